@@ -1,0 +1,463 @@
+r"""Extrinsic calibration of total stations from ground control points (GCPs).
+
+Every station shoots the same markers; the shots of station s give marker positions
+``p_s`` in the frame of s (:func:`rtsgt.measurement.polar.polar_to_cartesian`, additive constant
+applied), and the transform ``T_world_s`` into the frame of the reference station (the world
+frame) is the rigid fit, without scale, of the markers s shares with the reference:
+
+.. math::
+
+    (R, t) = \arg\min_{R \in SO(3), t} \sum_i w_i \| p_{ref,i} - (R p_{s,i} + t) \|^2
+
+solved in closed form by :func:`rtsgt.geometry.kabsch` (Kabsch 1976 / Umeyama 1991, reflection
+guarded). Markers are matched by their identifier, never by time (station clocks may be wrong:
+in the RTS_project data of 2022-11-10 station 1 is months off).
+
+Weights (``weighted=True``). Each point carries the first-order covariance of its polar
+measurement, ``C = J S J^T`` with ``J`` = :func:`rtsgt.measurement.polar.polar_jacobian` and
+``S`` the covariance of ``(Hz, V, d)`` under the instrument and tilt model of
+:mod:`rtsgt.noise.perturb` (``V^ = V + e_V + e_tilt``, ``Hz^ = Hz + e_Hz + e_tilt cot V``)::
+
+    S = [[sa^2 + st^2 cot^2 V, st^2 cot V, 0],
+         [st^2 cot V,          sa^2 + st^2, 0],
+         [0,                   0,           sd(d)^2]]
+
+The residual of marker i, ``p_ref,i - R p_s,i - t``, has covariance ``C_ref,i + R C_s,i R^T``;
+rtsgt uses the isotropic approximation ``w_i = 1 / tr(C_ref,i + R C_s,i R^T)
+= 1 / (tr C_ref,i + tr C_s,i)``, which does not depend on R (the trace is rotation invariant),
+so the weighted fit stays a closed-form weighted Kabsch with no iteration. It down-weights the
+far markers, whose angular noise grows with range. The fully anisotropic generalised
+least-squares fit is not implemented (it needs an iterative solver); its residual gain over
+the trace weighting is small for the near-isotropic covariances of GCP shots at 5-100 m.
+
+Uncertainty (:func:`calibrate`). As in Vaidis et al. 2023 (section III-E), every GCP shot of
+every station is perturbed with the instrument and tilt noise
+(:func:`rtsgt.noise.perturb.sample_polar_errors`), and the fit is repeated for each of M
+samples, all samples at once (batched SVD). The sampled transforms are kept (sample m is
+used by sample m of the prism Monte Carlo) and summarised by the sample covariance (ddof 1)
+of their left perturbations about the nominal fit, in the convention of
+:mod:`rtsgt.geometry.transform` (world frame, ordered x, y, z, rx, ry, rz). The samples are
+not re-centred: their mean offset from the nominal fit is a second-order bias, far below the
+spread. The reference station is perturbed too, so the
+samples of different stations are correlated through the reference's shots, as they should be.
+
+Residuals. For every marker and every pair of stations that both shot it, the distance between
+the two stations' positions of the marker after mapping both into the world frame.
+
+This module reads no files: the shots come from :mod:`rtsgt.io`.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from itertools import combinations
+
+import numpy as np
+
+from rtsgt.errors import GeometryError, InputError
+from rtsgt.geometry.kabsch import kabsch
+from rtsgt.geometry.transform import RigidTransform, perturbation
+from rtsgt.measurement.instruments import TRIMBLE_S7, InstrumentProfile
+from rtsgt.measurement.polar import polar_jacobian, polar_to_cartesian
+from rtsgt.noise.perturb import sample_polar_errors
+from rtsgt.types import GcpShots
+
+#: A station's markers must stand off their best-fit line by more than this many times the
+#: point noise (1 sigma), or the rotation about that line is undetermined.
+COLLINEARITY_FACTOR = 3.0
+
+
+@dataclass(frozen=True)
+class MarkerResiduals:
+    """Inter-station residuals of the GCPs after calibration.
+
+    Attributes
+    ----------
+    marker : ndarray of str, shape (K,)
+    station_a, station_b : ndarray of str, shape (K,)
+        The two stations of each residual (``station_a`` sorts before ``station_b``).
+    distance_m : ndarray, shape (K,)
+        ``|T_world_a p_a - T_world_b p_b|``, m, world frame.
+    """
+
+    marker: np.ndarray
+    station_a: np.ndarray
+    station_b: np.ndarray
+    distance_m: np.ndarray
+
+    def __len__(self) -> int:
+        return self.distance_m.shape[0]
+
+    @property
+    def median_m(self) -> float:
+        """Median residual, m (NaN when there is none)."""
+        return float(np.median(self.distance_m)) if len(self) else float("nan")
+
+    @property
+    def max_m(self) -> float:
+        """Largest residual, m (NaN when there is none)."""
+        return float(np.max(self.distance_m)) if len(self) else float("nan")
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """Extrinsic calibration of all stations into the reference station's frame.
+
+    Attributes
+    ----------
+    reference_station : str
+    transforms : dict str -> RigidTransform
+        ``T_world_station`` for every station (world = frame of the reference station; the
+        reference itself is the identity with zero covariance). Each carries ``covariance``
+        (6x6, left perturbation in the world frame, ordered x, y, z, rx, ry, rz; m^2, rad^2)
+        and the Monte Carlo samples ``samples_rotation`` (M, 3, 3) and
+        ``samples_translation`` (M, 3), or None for both when ``samples == 0``.
+    residuals : MarkerResiduals
+        For every marker and pair of stations, the distance between the two positions.
+    markers_used : dict str -> tuple of str
+        Markers used in the fit of each station (for the reference: those used by any fit).
+    markers_skipped : tuple of str
+        Markers left out because fewer than 2 stations shot them validly.
+    excluded_shots : int
+        Shots left out because their status was not 0.
+    samples : int
+        Number of Monte Carlo samples M (0: no uncertainty computed).
+    weighted : bool
+        Whether the fits used the covariance (trace) weights.
+    """
+
+    reference_station: str
+    transforms: dict[str, RigidTransform]
+    residuals: MarkerResiduals
+    markers_used: dict[str, tuple[str, ...]]
+    markers_skipped: tuple[str, ...]
+    excluded_shots: int
+    samples: int
+    weighted: bool
+
+
+def polar_point_covariance(
+    hz: np.ndarray, v: np.ndarray, d: np.ndarray, instrument: InstrumentProfile
+) -> np.ndarray:
+    """First-order covariance of station-frame points from instrument and tilt noise.
+
+    Parameters
+    ----------
+    hz, v, d : ndarray, shape (N,)
+        Clockwise direction (rad), zenith angle (rad), slope distance (m, constant applied).
+    instrument : InstrumentProfile
+
+    Returns
+    -------
+    ndarray, shape (N, 3, 3)
+        ``J S J^T``, m^2, station frame (model in the module docstring).
+    """
+    sa2 = instrument.sigma_angle**2
+    st2 = instrument.sigma_tilt**2
+    cot = 1.0 / np.tan(v)
+    S = np.zeros(np.shape(hz) + (3, 3))
+    S[..., 0, 0] = sa2 + st2 * cot**2  # Hz: e_Hz + e_tilt cot V
+    S[..., 0, 1] = S[..., 1, 0] = st2 * cot
+    S[..., 1, 1] = sa2 + st2  # V: e_V + e_tilt
+    S[..., 2, 2] = instrument.sigma_distance(d) ** 2
+    J = polar_jacobian(hz, v, d)
+    return J @ S @ np.swapaxes(J, -1, -2)
+
+
+def _natural_key(s: str) -> tuple:
+    return (0, int(s), s) if s.isdigit() else (1, 0, s)
+
+
+@dataclass(frozen=True)
+class _Setup:
+    """Valid shots, the station list and, for each station, the indices of its fit pairs."""
+
+    stations: list[str]
+    hz: np.ndarray
+    v: np.ndarray
+    d: np.ndarray  # additive constant applied
+    points: np.ndarray  # (N, 3) nominal station-frame points of the valid shots
+    shot: dict[tuple[str, str], int]  # (station, marker) -> index into the valid shots
+    pairs: dict[str, tuple[np.ndarray, np.ndarray, tuple[str, ...]]]  # idx_s, idx_ref, markers
+    used_markers: set[str]
+    skipped: tuple[str, ...]
+    excluded: int
+
+
+def _where(shots: GcpShots, k: int) -> str:
+    return f"line {int(shots.lines[k])}" if shots.lines is not None else f"shot {k}"
+
+
+def _setup(shots: GcpShots, reference_station: str, instrument: InstrumentProfile) -> _Setup:
+    if not isinstance(shots, GcpShots):
+        raise TypeError(f"Expected GcpShots, got {type(shots).__name__}")
+    ref = str(reference_station)
+    known = sorted({str(s) for s in shots.station}, key=_natural_key)
+    if ref not in known:
+        raise InputError(
+            f"unknown reference station {ref!r}; "
+            f"stations in the file: {', '.join(known) or 'none'}",
+            shots.source,
+        )
+    if len(known) < 2:
+        raise InputError(
+            f"only one station ({known[0]}) in the GCP shots: calibration needs at least two",
+            shots.source,
+        )
+    valid = np.flatnonzero(shots.status == 0)
+    excluded = len(shots) - valid.size
+    shot: dict[tuple[str, str], int] = {}
+    for j, k in enumerate(valid):
+        key = (shots.station[k], shots.marker[k])
+        if key in shot:
+            first = valid[shot[key]]
+            raise InputError(
+                f"station {key[0]} shot marker {key[1]} twice with status 0 "
+                f"({_where(shots, first)} and {_where(shots, k)}): keep one shot per station "
+                "and marker (delete one, or average them into one line)",
+                shots.source, None if shots.lines is None else int(shots.lines[k]),
+            )
+        shot[key] = j
+    stations_of: dict[str, set[str]] = {}
+    for s, m in shot:
+        stations_of.setdefault(m, set()).add(s)
+    skipped = tuple(
+        sorted((m for m, ss in stations_of.items() if len(ss) < 2), key=_natural_key)
+    )
+    if skipped:
+        warnings.warn(
+            f"{shots.source or 'GCP shots'}: marker(s) {', '.join(skipped)} shot validly by "
+            "fewer than 2 stations are not used",
+            UserWarning, stacklevel=3,
+        )
+    hz = np.asarray(shots.hz[valid])
+    v = np.asarray(shots.v[valid])
+    d = np.asarray(shots.distance[valid])
+    bad = np.flatnonzero(~(np.isfinite(hz) & (v > 0) & (v < np.pi) & (d > 0)))
+    if bad.size:
+        k = valid[bad[0]]
+        raise InputError(
+            f"invalid valid-status shot of marker {shots.marker[k]} by station "
+            f"{shots.station[k]} ({_where(shots, k)}): expected finite Hz, zenith in (0, pi) "
+            f"and a positive distance, got hz={float(shots.hz[k])!r}, v={float(shots.v[k])!r}, "
+            f"d={float(shots.distance[k])!r}",
+            shots.source, None if shots.lines is None else int(shots.lines[k]),
+        )
+    points = polar_to_cartesian(hz, v, d)
+    pairs = {}
+    used: set[str] = set()
+    for s in known:
+        if s == ref:
+            continue
+        markers = tuple(
+            sorted((m for (st, m) in shot if st == s and (ref, m) in shot), key=_natural_key)
+        )
+        if len(markers) < 3:
+            raise GeometryError(
+                f"station {s} shares {len(markers)} valid marker(s) with reference station {ref}"
+                f"{' (' + ', '.join(markers) + ')' if markers else ''}: a rigid fit needs at "
+                "least 3 markers, not collinear"
+            )
+        idx_s = np.array([shot[(s, m)] for m in markers])
+        idx_r = np.array([shot[(ref, m)] for m in markers])
+        _check_spread(points[idx_s], hz[idx_s], v[idx_s], d[idx_s], instrument, s, markers)
+        pairs[s] = (idx_s, idx_r, markers)
+        used.update(markers)
+    return _Setup(known, hz, v, d, points, shot, pairs, used, skipped, excluded)
+
+
+def _check_spread(p, hz, v, d, instrument, station, markers) -> None:
+    """Refuse markers whose spread off their best-fit line is within the point noise."""
+    c = p - p.mean(axis=0)
+    s = np.linalg.svd(c, compute_uv=False)
+    off_line_rms = float(np.sqrt((s[1] ** 2 + s[2] ** 2) / p.shape[0]))
+    cov = polar_point_covariance(hz, v, d, instrument)
+    sigma = float(np.sqrt(np.trace(cov, axis1=-2, axis2=-1).mean() / 3.0))
+    if off_line_rms <= COLLINEARITY_FACTOR * sigma or s[1] <= 1e-9 * max(s[0], 1e-300):
+        raise GeometryError(
+            f"station {station}: markers {', '.join(markers)} are (nearly) collinear "
+            f"(rms distance to their best-fit line {off_line_rms * 1e3:.3g} mm, point noise "
+            f"{sigma * 1e3:.3g} mm): the rotation about that line is undetermined; "
+            "add markers off the line"
+        )
+
+
+def _weights(setup: _Setup, idx_s, idx_r, instrument) -> np.ndarray:
+    """``w_i = 1 / (tr C_ref,i + tr C_s,i)`` (1/m^2), see the module docstring."""
+    C = polar_point_covariance(setup.hz, setup.v, setup.d, instrument)
+    tr = np.trace(C, axis1=-2, axis2=-1)
+    return 1.0 / (tr[idx_s] + tr[idx_r])
+
+
+def _nominal(setup: _Setup, weighted: bool, instrument) -> dict[str, tuple]:
+    """Nominal fit of each non-reference station: ``{s: (R, t, weights or None)}``."""
+    out = {}
+    for s, (idx_s, idx_r, markers) in setup.pairs.items():
+        w = _weights(setup, idx_s, idx_r, instrument) if weighted else None
+        try:
+            R, t = kabsch(setup.points[idx_s], setup.points[idx_r], w)
+        except GeometryError as exc:
+            raise GeometryError(f"station {s} (markers {', '.join(markers)}): {exc}") from None
+        out[s] = (R, t, w)
+    return out
+
+
+def _check_args(instrument, weighted) -> None:
+    if not isinstance(instrument, InstrumentProfile):
+        raise TypeError(f"Expected an InstrumentProfile, got {type(instrument).__name__}")
+    if not isinstance(weighted, bool):
+        raise TypeError(f"Expected weighted to be a bool, got {weighted!r}")
+
+
+def fit_stations(
+    shots: GcpShots,
+    *,
+    reference_station: str = "1",
+    weighted: bool = False,
+    instrument: InstrumentProfile = TRIMBLE_S7,
+) -> dict[str, RigidTransform]:
+    """Rigid fit of every station into the reference station's frame, matched by marker.
+
+    Parameters
+    ----------
+    shots : GcpShots
+        Shots of all stations; those with a non-zero status are left out.
+    reference_station : str
+        Station whose frame is the world frame.
+    weighted : bool
+        Weight each marker by ``1 / (tr C_ref + tr C_s)`` (module docstring).
+    instrument : InstrumentProfile
+        Noise model for the weights and the collinearity check.
+
+    Returns
+    -------
+    dict str -> RigidTransform
+        ``T_world_station`` for every station (the reference is the identity); no
+        covariance on the fitted ones (use :func:`calibrate` for it).
+
+    Raises
+    ------
+    InputError
+        Unknown reference station (the message lists the known ones), a single station,
+        a marker shot twice by one station.
+    GeometryError
+        A station sharing fewer than 3 valid markers with the reference, or (nearly)
+        collinear markers.
+    """
+    _check_args(instrument, weighted)
+    ref = str(reference_station)
+    setup = _setup(shots, ref, instrument)
+    nominal = _nominal(setup, weighted, instrument)
+    out = {ref: RigidTransform(np.eye(3), np.zeros(3), np.zeros((6, 6)), "world", f"station_{ref}")}
+    for s in setup.stations:
+        if s != ref:
+            R, t, _ = nominal[s]
+            out[s] = RigidTransform(R, t, None, "world", f"station_{s}")
+    return out
+
+
+def _residuals(setup: _Setup, R: dict, t: dict) -> MarkerResiduals:
+    markers, sa, sb, dist = [], [], [], []
+    for a, b in combinations(setup.stations, 2):
+        common = sorted(
+            (m for (st, m) in setup.shot if st == a and (b, m) in setup.shot), key=_natural_key
+        )
+        if not common:
+            continue
+        ia = np.array([setup.shot[(a, m)] for m in common])
+        ib = np.array([setup.shot[(b, m)] for m in common])
+        qa = setup.points[ia] @ R[a].T + t[a]
+        qb = setup.points[ib] @ R[b].T + t[b]
+        markers += common
+        sa += [a] * len(common)
+        sb += [b] * len(common)
+        dist.append(np.linalg.norm(qa - qb, axis=-1))
+    return MarkerResiduals(
+        np.array(markers, dtype=object), np.array(sa, dtype=object), np.array(sb, dtype=object),
+        np.concatenate(dist) if dist else np.zeros(0),
+    )
+
+
+def calibrate(
+    shots: GcpShots,
+    *,
+    reference_station: str = "1",
+    instrument: InstrumentProfile = TRIMBLE_S7,
+    samples: int = 1000,
+    rng: np.random.Generator | None = None,
+    weighted: bool = False,
+) -> CalibrationResult:
+    """Calibrate all stations from GCP shots, with a Monte Carlo 6x6 covariance per station.
+
+    Parameters
+    ----------
+    shots : GcpShots
+    reference_station : str
+        Station whose frame is the world frame.
+    instrument : InstrumentProfile
+        Instrument and tilt noise model of every station.
+    samples : int
+        M, number of Monte Carlo samples (0: fit only, no covariance and no samples).
+    rng : numpy.random.Generator, optional
+        Source of every random draw (a fresh unseeded one when None).
+    weighted : bool
+        Trace-weighted fits (module docstring), for the nominal fit and every sample.
+
+    Returns
+    -------
+    CalibrationResult
+
+    Raises
+    ------
+    InputError, GeometryError
+        As :func:`fit_stations`.
+    """
+    _check_args(instrument, weighted)
+    if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)):
+        raise TypeError(f"Expected an integer number of samples, got {samples!r}")
+    if samples < 0 or samples == 1:
+        raise ValueError(f"Expected samples = 0 or >= 2, got {samples}")
+    rng = np.random.default_rng() if rng is None else rng
+    ref = str(reference_station)
+    setup = _setup(shots, ref, instrument)
+    nominal = _nominal(setup, weighted, instrument)
+    R = {ref: np.eye(3)}
+    t = {ref: np.zeros(3)}
+    for s, (Rs, ts, _) in nominal.items():
+        R[s], t[s] = Rs, ts
+
+    M = int(samples)
+    if M:
+        # Perturb every valid shot of every station: (M, N) -> points (M, N, 3)
+        hz_m, v_m, d_m = sample_polar_errors(setup.hz, setup.v, setup.d, instrument, M, rng)
+        points_m = polar_to_cartesian(hz_m, v_m, d_m)
+    transforms = {}
+    for s in setup.stations:
+        if s == ref:
+            cov = np.zeros((6, 6))
+            Rm = np.broadcast_to(np.eye(3), (M, 3, 3)).copy() if M else None
+            tm = np.zeros((M, 3)) if M else None
+        elif M:
+            idx_s, idx_r, _ = setup.pairs[s]
+            Rm, tm = kabsch(points_m[:, idx_s], points_m[:, idx_r], nominal[s][2], check=False)
+            xi = perturbation(R[s], t[s], Rm, tm)  # (M, 6), (x, y, z, rx, ry, rz)
+            cov = np.cov(xi, rowvar=False)
+            cov = 0.5 * (cov + cov.T)
+        else:
+            cov = Rm = tm = None
+        transforms[s] = RigidTransform(
+            R[s], t[s], cov, "world", f"station_{s}", Rm, tm
+        )
+    used = {s: setup.pairs[s][2] for s in setup.pairs}
+    used[ref] = tuple(sorted(setup.used_markers, key=_natural_key))
+    return CalibrationResult(
+        reference_station=ref,
+        transforms=transforms,
+        residuals=_residuals(setup, R, t),
+        markers_used={s: used[s] for s in setup.stations},
+        markers_skipped=setup.skipped,
+        excluded_shots=setup.excluded,
+        samples=M,
+        weighted=weighted,
+    )

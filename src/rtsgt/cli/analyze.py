@@ -1,0 +1,163 @@
+"""``rtsgt analyze`` (per-source noise analysis and figures) and ``rtsgt report`` (HTML report)."""
+
+from __future__ import annotations
+
+import json
+import math
+import webbrowser
+from pathlib import Path
+
+import typer
+from rich import box
+from rich.console import Console
+from rich.table import Table
+
+from rtsgt.report.analysis import PAPER_CITATION, Analysis
+
+_BINS_HELP = ("Lower edges of the range bins in m, comma separated; the last bin is open "
+              "(default: the paper's 0-75, 75-150, > 150 m).")
+_ENGINE_HELP = "Pose engine for the per-source poses: mc, ut or linear (default: the run's)."
+
+
+def _mm(x) -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "-"
+    return f"{x:.3g}"
+
+
+def print_analysis(analysis: Analysis, console: Console | None = None) -> None:
+    """The per-source medians next to the paper's, and the pose uncertainty per source."""
+    console = console or Console()
+    a = analysis
+    table = Table(title=f"{a.name}: median sqrt(||Sigma||_F) of the prism covariance, mm",
+                  box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True,
+                  caption="range bins: " + ", ".join(
+                      f"{lab} n={c} ({100 * sh:.0f} %)"
+                      for lab, c, sh in zip(a.bin_labels, a.bin_counts, a.bin_shares,
+                                            strict=True)) + f"; {a.n_measurements} measurements")
+    table.add_column("source", no_wrap=True)
+    table.add_column("all", justify="right", no_wrap=True)
+    table.add_column("paper", justify="right", style="italic", no_wrap=True)
+    for lab in a.bin_labels:
+        table.add_column(lab.replace(" m", "m").replace("> ", ">"), justify="right",
+                         no_wrap=True)
+        table.add_column("paper", justify="right", style="italic", no_wrap=True, min_width=5)
+    for r in a.table_rows():
+        cells = [r["source"], _mm(r["median_mm"]), _mm(r["paper_median_mm"])]
+        for b in r["bins"]:
+            cells += [_mm(b["median_mm"]), _mm(b["paper_median_mm"])]
+        table.add_row(*cells, style="bold" if r["source"] == "all" else None)
+    console.print(table)
+    console.print(f"[dim]paper: {PAPER_CITATION}[/dim]")
+    pose = Table(title=f"pose uncertainty per noise source, median over {a.pose_t.size} kept "
+                       f"poses ({a.engine} engine, {a.pose_measure} of each 3x3 block)",
+                 box=box.SIMPLE_HEAD)
+    pose.add_column("source", no_wrap=True)
+    pose.add_column("translation (mm)", justify="right")
+    pose.add_column("rotation (mrad)", justify="right")
+    for r in a.pose_rows():
+        pose.add_row(r["source"], _mm(r["translation_mm"]),
+                     _mm(r["rotation_mrad"]), style="bold" if r["source"] == "all" else None)
+    console.print(pose)
+
+
+def run_analyze(run_dir: Path, *, bins: str = "0,75,150", out: Path | None = None,
+                engine: str | None = None, samples: int | None = None,
+                pose_measure: str = "sqrt_trace", figures: bool = True,
+                formats: tuple[str, ...] = ("png", "svg")) -> tuple[Analysis, list[Path]]:
+    """Analyse a run directory; write the figures and ``analysis.json`` into ``out``.
+
+    Returns the analysis and the written files (``out`` defaults to ``RUN_DIR/analysis``).
+    """
+    from rtsgt.io.run_reader import read_run
+    from rtsgt.report.analysis import analyze
+    from rtsgt.report.figures import draw_all, save_figures
+
+    data = read_run(run_dir)
+    analysis = analyze(data, bins=bins, engine=engine, samples=samples,
+                       pose_measure=pose_measure)
+    folder = Path(run_dir) / "analysis" if out is None else Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    if figures:
+        written += save_figures(draw_all(data, analysis), folder, formats)
+    js = folder / "analysis.json"
+    js.write_text(json.dumps(analysis.to_dict(), indent=2) + "\n", encoding="utf-8")
+    written.append(js)
+    return analysis, written
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``rtsgt analyze`` and ``rtsgt report`` to the application."""
+
+    @app.command("analyze")
+    def analyze_command(
+        run_dir: Path = typer.Argument(..., metavar="RUN_DIR",
+                                       help="Output directory of `rtsgt run`."),
+        bins: str = typer.Option("0,75,150", "--bins", help=_BINS_HELP),
+        out: Path = typer.Option(None, "--out", "-o",
+                                 help="Folder for the figures and analysis.json "
+                                      "(default: RUN_DIR/analysis)."),
+        as_json: bool = typer.Option(False, "--json",
+                                     help="Print one JSON object instead of the tables."),
+        engine: str = typer.Option(None, "--engine", help=_ENGINE_HELP),
+        samples: int = typer.Option(None, "--samples", min=10,
+                                    help="Monte Carlo samples (default: the run's)."),
+        pose_measure: str = typer.Option(
+            "sqrt_trace", "--pose-measure",
+            help="Size of a 3x3 pose covariance block: sqrt_trace or max_std "
+                 "(sqrt of the largest eigenvalue)."),
+        no_figures: bool = typer.Option(False, "--no-figures", help="Write no figures."),
+        formats: str = typer.Option("png,svg", "--formats", help="Figure formats."),
+    ) -> None:
+        """Per-source noise analysis of a run, next to the paper's medians, with figures."""
+        fmts = tuple(f.strip().lower() for f in formats.split(",") if f.strip())
+        bad = [f for f in fmts if f not in ("png", "svg", "pdf")]
+        if bad or not fmts:
+            raise typer.BadParameter(f"expected png, svg or pdf, got {formats!r}",
+                                     param_hint="--formats")
+        analysis, written = run_analyze(run_dir, bins=bins, out=out, engine=engine,
+                                        samples=samples, pose_measure=pose_measure,
+                                        figures=not no_figures, formats=fmts)
+        if as_json:
+            d = analysis.to_dict()
+            d["files"] = [str(p) for p in written]
+            typer.echo(json.dumps(d))
+            return
+        print_analysis(analysis)
+        folder = written[-1].parent
+        Console(stderr=True).print(f"figures and analysis.json in {folder}")
+
+    @app.command("report")
+    def report_command(
+        run_dir: Path = typer.Argument(..., metavar="RUN_DIR",
+                                       help="Output directory of `rtsgt run`."),
+        out: Path = typer.Option(None, "--out", "-o",
+                                 help="HTML file to write (default: RUN_DIR/report.html)."),
+        open_: bool = typer.Option(False, "--open", help="Open the report in a browser."),
+        bins: str = typer.Option("0,75,150", "--bins", help=_BINS_HELP),
+        engine: str = typer.Option(None, "--engine", help=_ENGINE_HELP),
+        samples: int = typer.Option(None, "--samples", min=10,
+                                    help="Monte Carlo samples (default: the run's)."),
+        figure_format: str = typer.Option("svg", "--figure-format",
+                                          help="Embedded figures: svg or png."),
+    ) -> None:
+        """Write a single self-contained HTML report of a run (opens offline)."""
+        from rtsgt.io.run_reader import read_run
+        from rtsgt.report.analysis import analyze
+        from rtsgt.report.html import write_report_file
+
+        if figure_format not in ("svg", "png"):
+            raise typer.BadParameter(f"expected svg or png, got {figure_format!r}",
+                                     param_hint="--figure-format")
+        data = read_run(run_dir)
+        analysis = analyze(data, bins=bins, engine=engine, samples=samples)
+        path = Path(run_dir) / "report.html" if out is None else Path(out)
+        info = write_report_file(data, analysis, path, figure_format=figure_format)
+        err = Console(stderr=True)
+        if not info.view3d:
+            err.print("[yellow]warning:[/yellow] plotly is not installed: the report has no "
+                      "3D view (pip install 'rtsgt[report]')")
+        typer.echo(str(info.path))
+        if open_:
+            webbrowser.open(info.path.resolve().as_uri())

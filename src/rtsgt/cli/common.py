@@ -1,0 +1,73 @@
+"""Helpers shared by the commands: progress display and run summaries (CLI edge only)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.table import Table
+
+
+def echo_err(msg: str) -> None:
+    """A line on stderr."""
+    typer.echo(msg, err=True)
+
+
+class Stages:
+    """A progress display of pipeline stages on stderr (a spinner and the elapsed time).
+
+    Call the object with a stage name when the stage starts; nothing is shown with ``quiet``.
+    """
+
+    def __init__(self, quiet: bool = False):
+        self.quiet = quiet
+        self.console = Console(stderr=True)
+        self._status = None
+        self._name = None
+        self._t0 = 0.0
+
+    def __enter__(self) -> Stages:
+        if not self.quiet:
+            self._status = self.console.status("starting")
+            self._status.__enter__()
+        return self
+
+    def __call__(self, stage: str) -> None:
+        self._finish()
+        self._name, self._t0 = stage, time.perf_counter()
+        if self._status is not None:
+            self._status.update(f"{stage} ...")
+
+    def _finish(self) -> None:
+        if self._name is not None and not self.quiet:
+            self.console.log(f"{self._name}: {time.perf_counter() - self._t0:.2f} s")
+        self._name = None
+
+    def __exit__(self, *exc) -> None:
+        if exc[0] is None:
+            self._finish()
+        if self._status is not None:
+            self._status.__exit__(*exc)
+
+
+def print_run_summary(result, out) -> None:
+    """A short table of what a run produced."""
+    gt = result.groundtruth
+    console = Console()
+    table = Table(title=f"rtsgt run: {result.data.name}", show_header=False)
+    table.add_row("poses kept / queried", f"{len(gt)} / {len(result.estimate)}")
+    if len(gt):
+        sig_t = np.sqrt(np.trace(gt.cov[:, :3, :3], axis1=1, axis2=2)) * 1e3
+        sig_r = np.degrees(np.sqrt(np.trace(gt.cov[:, 3:, 3:], axis1=1, axis2=2))) * 1e3
+        table.add_row("median sigma translation", f"{np.median(sig_t):.2f} mm")
+        table.add_row("median sigma rotation", f"{np.median(sig_r):.1f} mdeg")
+        table.add_row("time span", f"{gt.t[-1] - gt.t[0]:.1f} s")
+    for pid, g in result.gps.items():
+        table.add_row(f"Qc prism {pid}", np.array2string(np.diag(g.qc), precision=3) + " m^2/s^3")
+    rej = result.rejection_reasons[~result.keep]
+    for reason in np.unique(rej):
+        table.add_row(f"rejected: {reason}", str(int(np.sum(rej == reason))))
+    table.add_row("output", str(out))
+    console.print(table)

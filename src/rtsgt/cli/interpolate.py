@@ -1,0 +1,148 @@
+"""``rtsgt interpolate``: GP interpolation of one prism track at query times.
+
+A thin wrapper over :func:`rtsgt.io.track_csv.read_track_csv`,
+:func:`rtsgt.interpolation.fit_track` and :func:`rtsgt.io.track_csv.write_track_csv`.
+The output has the header of the input (``t,x,y,z,cov_xx,...``): the posterior mean position
+and its covariance at each query time. The Qc used (given or fitted) is printed on stderr.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from rtsgt.errors import InputError
+from rtsgt.interpolation import DEFAULT_MAX_GAP_S, GPTrack, fit_track
+from rtsgt.io._parse import atomic_write_text
+from rtsgt.io.track_csv import read_query_times, read_track_csv, track_csv_text
+
+
+def rate_times(gp: GPTrack, rate_hz: float) -> tuple[np.ndarray, int]:
+    """Times ``t_0 + k / rate`` inside the track, without those across gaps > ``max_gap_s``.
+
+    Returns
+    -------
+    times : ndarray, shape (Q,)
+    n_skipped : int
+        Grid times dropped because they fall in a long gap.
+    """
+    if not (math.isfinite(rate_hz) and rate_hz > 0):
+        raise InputError(f"Expected --rate > 0 Hz, got {rate_hz!r}")
+    span = gp.t[-1] - gp.t[0]
+    n = int(math.floor(span * rate_hz * (1 + 1e-12))) + 1
+    if n > 50_000_000:
+        raise InputError(f"--rate {rate_hz} Hz over {span:.1f} s gives {n} times; too many")
+    times = gp.t[0] + np.arange(n) / rate_hz
+    times = times[times <= gp.t[-1]]
+    ok = gp.supported(times)
+    return times[ok], int(np.sum(~ok))
+
+
+def interpolate_file(
+    track_path: Path,
+    *,
+    at: Path | None = None,
+    rate: float | None = None,
+    qc: float | None = None,
+    fit_qc: bool = False,
+    qc_mode: str = "isotropic",
+    max_gap: float = DEFAULT_MAX_GAP_S,
+) -> tuple[str, GPTrack, int]:
+    """Fit the track of ``track_path`` and answer the queries; return the CSV text.
+
+    Returns
+    -------
+    text : str
+        Prism track CSV of the posterior at the query times.
+    gp : GPTrack
+    n_skipped : int
+        Rate-grid times dropped in long gaps (0 with ``at``).
+    """
+    if (at is None) == (rate is None):
+        raise InputError("Give exactly one of --at TIMES.txt and --rate HZ")
+    if qc is not None and fit_qc:
+        raise InputError("Give either --qc Q or --fit-qc, not both")
+    if qc is not None and not (math.isfinite(qc) and qc > 0):
+        raise InputError(f"Expected --qc > 0 (m^2/s^3), got {qc!r}")
+    track = read_track_csv(track_path)
+    gp = fit_track(track, qc=qc, fit_qc=fit_qc or qc is None, qc_mode=qc_mode, max_gap_s=max_gap)
+    if at is not None:
+        times = read_query_times(at)
+        n_skipped = 0
+    else:
+        times, n_skipped = rate_times(gp, rate)
+    order = np.argsort(times, kind="stable")
+    times = times[order]
+    if times.size and np.any(np.diff(times) <= 0):
+        raise InputError("Expected distinct query times (the output is a track)", at)
+    if times.size == 0:
+        raise InputError("No query time inside the track")
+    res = gp.query(times)
+    return track_csv_text((res.t, res.position, res.position_cov)), gp, n_skipped
+
+
+def _describe_qc(gp: GPTrack) -> str:
+    diag = np.diag(gp.qc)
+    if np.allclose(gp.qc, diag[0] * np.eye(3), rtol=0, atol=0):
+        value = f"{diag[0]:.6g} m^2/s^3 (isotropic)"
+    else:
+        value = "diag(" + ", ".join(f"{v:.6g}" for v in diag) + ") m^2/s^3"
+    if gp.qc_fit is None:
+        return f"qc = {value}, given; log-likelihood {gp.log_likelihood:.3f}"
+    info = gp.qc_fit
+    state = "converged" if info.converged else f"NOT converged: {info.message}"
+    return (
+        f"qc = {value}, fitted by maximum marginal likelihood ({info.mode}, {state}, "
+        f"{info.n_evaluations} evaluations); log-likelihood {gp.log_likelihood:.3f}"
+    )
+
+
+def register(app: typer.Typer) -> None:
+    """Add the command to the application."""
+
+    @app.command("interpolate")
+    def interpolate(
+        track: Path = typer.Argument(
+            ..., help="Prism track CSV: t,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz."
+        ),
+        at: Path | None = typer.Option(
+            None, "--at", help="File of query times, one per line (s)."
+        ),
+        rate: float | None = typer.Option(
+            None, "--rate", help="Query on a regular grid at this rate (Hz), skipping long gaps."
+        ),
+        qc: float | None = typer.Option(
+            None, "--qc", help="Isotropic power spectral density Q (Qc = Q I), m^2/s^3."
+        ),
+        fit_qc: bool = typer.Option(
+            False, "--fit-qc", help="Estimate Qc by maximum marginal likelihood (default)."
+        ),
+        qc_mode: str = typer.Option(
+            "isotropic", "--qc-mode", help="Fitted Qc: 'isotropic' or 'per-axis'."
+        ),
+        max_gap: float = typer.Option(
+            DEFAULT_MAX_GAP_S, "--max-gap", help="Refuse queries across longer gaps (s)."
+        ),
+        out: Path | None = typer.Option(
+            None, "--out", help="Output CSV (default: standard output)."
+        ),
+    ) -> None:
+        """Interpolate a prism track (exact GP, WNOA prior) at query times, with covariance."""
+        text, gp, n_skipped = interpolate_file(
+            track, at=at, rate=rate, qc=qc, fit_qc=fit_qc, qc_mode=qc_mode, max_gap=max_gap
+        )
+        typer.echo(_describe_qc(gp), err=True)
+        if n_skipped:
+            typer.echo(
+                f"skipped {n_skipped} grid times inside gaps longer than {max_gap} s", err=True
+            )
+        if out is None:
+            typer.echo(text, nl=False)
+        else:
+            atomic_write_text(out, text)
+
+
+__all__ = ["interpolate_file", "rate_times", "register"]

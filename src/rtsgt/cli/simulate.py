@@ -1,0 +1,99 @@
+"""``rtsgt simulate``: write a simulated deployment with known truth.
+
+A thin wrapper over :func:`rtsgt.simulation.simulate_deployment` and
+:func:`rtsgt.simulation.write_deployment`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from rtsgt.errors import InputError
+
+
+def run_simulate(
+    out_dir: Path, *, seed: int = 0, duration: float = 600.0, stations: int = 3,
+    force: bool = False,
+):
+    """Simulate and write a deployment; returns ``(sim, path to deployment.toml)``."""
+    from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
+
+    out_dir = Path(out_dir)
+    # refuse early, before spending time on the simulation
+    if out_dir.exists() and not force:
+        if not out_dir.is_dir():
+            raise InputError("exists and is not a directory", out_dir)
+        if any(out_dir.iterdir()):
+            raise InputError("exists and is not empty; use --force to replace it", out_dir)
+    try:
+        config = SimulationConfig(duration_s=duration, n_stations=stations)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    sim = simulate_deployment(config, int(seed))  # an int seed is recorded in the result
+    toml = write_deployment(sim, out_dir, overwrite=force)
+    return sim, toml
+
+
+def _print_summary(sim, toml: Path, console: Console) -> None:
+    out = toml.parent
+    table = Table(title=f"simulated deployment written to {out}")
+    table.add_column("file")
+    table.add_column("content")
+    table.add_column("size", justify="right")
+
+    def size(name: str) -> str:
+        n = (out / name).stat().st_size
+        return f"{n / 1e6:.1f} MB" if n >= 1e6 else f"{n / 1e3:.1f} kB"
+
+    tr = sim.truth
+    for obs in sim.observations:
+        o = tr.observations[obs.station]
+        rng = (o.d.min() + tr.additive_constant, o.d.max() + tr.additive_constant)
+        name = f"prism{obs.prism}.csv"
+        table.add_row(
+            name,
+            f"station {obs.station} -> prism {obs.prism}: {len(obs)} measurements, "
+            f"range {rng[0]:.0f}-{rng[1]:.0f} m, clock offset "
+            f"{tr.clock_offset_s[obs.station] * 1e3:.3f} ms",
+            size(name),
+        )
+    n_markers = len(set(sim.gcp.marker.tolist()))
+    table.add_row("GCP.txt", f"{len(sim.gcp)} shots of {n_markers} markers", size("GCP.txt"))
+    table.add_row("calibration_raw.csv",
+                  f"static survey, {len(sim.survey.label)} points (prisms, GNSS)",
+                  size("calibration_raw.csv"))
+    table.add_row("weather.csv", f"{len(sim.weather_reported.t)} hourly records",
+                  size("weather.csv"))
+    table.add_row("truth.tum", f"T_world_body, {len(tr.t)} poses at "
+                  f"{sim.config.truth_rate_hz:g} Hz", size("truth.tum"))
+    table.add_row("truth_prisms.csv", "true prism positions (world)", size("truth_prisms.csv"))
+    table.add_row("truth.json", "stations, clock offsets, reference points, config",
+                  size("truth.json"))
+    table.add_row("deployment.toml", "configuration for `rtsgt run`", size("deployment.toml"))
+    console.print(table)
+    console.print(f"next: rtsgt run {toml}")
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``rtsgt simulate`` to the application."""
+
+    @app.command("simulate")
+    def simulate_command(
+        out_dir: Path = typer.Argument(..., metavar="OUT_DIR",
+                                       help="Directory to create with the deployment's files."),
+        seed: int = typer.Option(0, "--seed", help="Seed of the random generator."),
+        duration: float = typer.Option(600.0, "--duration", min=1.0,
+                                       help="Length of the tracking session, s."),
+        stations: int = typer.Option(3, "--stations", min=3,
+                                     help="Number of stations (each tracks its own prism)."),
+        force: bool = typer.Option(False, "--force",
+                                   help="Replace OUT_DIR if it exists and is not empty."),
+    ) -> None:
+        """Simulate a deployment with known truth and write it as a real one's files."""
+        sim, toml = run_simulate(out_dir, seed=seed, duration=duration, stations=stations,
+                                 force=force)
+        _print_summary(sim, toml, Console())

@@ -1,0 +1,54 @@
+"""Exception hierarchy of rtsgt.
+
+Every error rtsgt raises on purpose derives from :class:`RtsgtError`; the CLI turns it into a
+one-line message and exit code 1. Errors about user input subclass :class:`ValueError` as well,
+so that library users can catch them either way.
+"""
+
+from __future__ import annotations
+
+from os import PathLike
+
+
+class RtsgtError(Exception):
+    """Root of all rtsgt errors."""
+
+
+class InputError(RtsgtError, ValueError):
+    """Bad input data: a file, a line or a value that cannot be used.
+
+    Parameters
+    ----------
+    message : str
+        What is wrong and, where possible, what to do about it.
+    path : str or PathLike, optional
+        The file the problem is in.
+    line : int, optional
+        1-based line number in ``path``.
+    """
+
+    def __init__(self, message: str, path: str | PathLike | None = None, line: int | None = None):
+        self.path = None if path is None else str(path)
+        self.line = line
+        where = ""
+        if self.path is not None:
+            where = self.path if line is None else f"{self.path}:{line}"
+            where += ": "
+        super().__init__(where + message)
+        self.bare_message = message
+
+
+class ConfigError(InputError):
+    """Invalid deployment configuration (TOML)."""
+
+
+class GeometryError(RtsgtError, ValueError):
+    """Degenerate geometry: collinear points, too few points, a reflection, ..."""
+
+
+class ExtrapolationError(RtsgtError, ValueError):
+    """A query outside the support of a track (beyond its ends or across a long gap)."""
+
+
+class ConvergenceError(RtsgtError, RuntimeError):
+    """An iterative solver did not converge within ``max_iter``."""

@@ -1,0 +1,321 @@
+r"""Association of estimated poses with the (uncertain) ground truth, in time.
+
+For each estimated pose at time ``t`` the ground truth is taken at ``tau = t + time_offset``
+(``time_offset`` is evo's ``--t_offset``: it is added to the estimate's clock). Two kinds of
+ground truth are accepted:
+
+- a **continuous-time query** ``gt_query(tau) -> PoseTrajectory`` (with ``cov``), such as the
+  posterior of the GP prism tracks turned into poses: the pose and covariance at ``tau``, not
+  the nearest stored pose. It may also return ``(PoseTrajectory, cross_next)`` with
+  ``cross_next`` of shape (M - 1, 6, 6) the cross-covariances ``Cov(xi_k, xi_{k+1})`` between
+  consecutive returned poses (the GP smoother provides them); the RPE then uses them.
+  ``measurement_times`` (the times of the measurements the ground truth rests on) bound the
+  support and give the distance to the nearest measurement;
+- a **discrete** :class:`~rtsgt.types.PoseTrajectory`: interpolated between its two
+  neighbours, linearly in translation and by slerp in rotation
+  (``R = exp(f log(R_b R_a^T)) R_a``, the shortest path, as evo's ``--sync_method
+  interpolation``); its covariance is interpolated linearly, ``(1 - f) P_a + f P_b``, which is
+  only an approximation of the posterior between samples, so those poses are flagged
+  (``cov_interpolated``). A pose that falls exactly on a ground-truth time takes that sample
+  unchanged. No extrapolation: estimate poses outside the ground-truth span are dropped.
+
+In both cases a pose is kept only when the nearest ground-truth measurement time is at most
+``max_dt`` away (this rejects poses inside the gaps of the ground truth).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from rtsgt.errors import InputError
+from rtsgt.evaluation.metrics import chain_cross_covariance
+from rtsgt.geometry.so3 import exp_so3, log_so3, matrix_to_quat_xyzw
+from rtsgt.types import PoseTrajectory
+
+#: Signature of a continuous-time ground truth: times (M,) s -> poses at those times, with
+#: ``cov``, optionally with the (M - 1, 6, 6) cross-covariances of consecutive poses.
+GroundTruthQuery = Callable[[np.ndarray], "PoseTrajectory | tuple[PoseTrajectory, np.ndarray]"]
+
+#: Times closer than this (s) are the same time (snapping onto ground-truth samples).
+TIME_EPS = 1e-9
+
+
+@dataclass(frozen=True)
+class Association:
+    """Estimate poses paired with the ground truth at the same (offset) times.
+
+    Attributes
+    ----------
+    index : ndarray of int, shape (M,)
+        Indices of the associated poses in the estimate.
+    est : PoseTrajectory
+        The associated estimate poses (estimate frame, times of the estimate).
+    gt : PoseTrajectory
+        Ground truth at ``est.t + time_offset`` (world frame), stored with the estimate's
+        times so that both share one time axis.
+    dt_nearest : ndarray, shape (M,)
+        Distance to the nearest ground-truth measurement time, s (NaN when unknown).
+    cov_interpolated : ndarray of bool, shape (M,)
+        True where the ground-truth covariance was interpolated linearly between samples.
+    cross_next : ndarray, shape (M - 1, 6, 6) or None
+        ``Cov(xi_k, xi_{k+1})`` of consecutive associated ground-truth poses, NaN where
+        unknown; None when no correlation is known at all.
+    time_offset : float
+        s, added to the estimate's times.
+    max_dt : float or None
+        s.
+    n_est : int
+        Number of estimate poses given.
+    n_outside : int
+        Estimate poses outside the ground-truth time span.
+    n_gap : int
+        Estimate poses inside the span but farther than ``max_dt`` from any measurement.
+    """
+
+    index: np.ndarray
+    est: PoseTrajectory
+    gt: PoseTrajectory
+    dt_nearest: np.ndarray
+    cov_interpolated: np.ndarray
+    cross_next: np.ndarray | None
+    time_offset: float
+    max_dt: float | None
+    n_est: int
+    n_outside: int
+    n_gap: int
+
+    def __len__(self) -> int:
+        return self.index.shape[0]
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary."""
+        return {
+            "n_estimate": int(self.n_est),
+            "n_associated": int(len(self)),
+            "n_outside_ground_truth": int(self.n_outside),
+            "n_in_gaps": int(self.n_gap),
+            "n_covariance_interpolated": int(np.count_nonzero(self.cov_interpolated)),
+            "time_offset_s": float(self.time_offset),
+            "max_dt_s": None if self.max_dt is None else float(self.max_dt),
+            "max_dt_nearest_s": (
+                float(np.nanmax(self.dt_nearest))
+                if len(self) and np.any(np.isfinite(self.dt_nearest))
+                else None
+            ),
+        }
+
+
+def _nearest_distance(times: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    k = np.clip(np.searchsorted(times, tau), 1, times.size - 1) if times.size > 1 else None
+    if k is None:
+        return np.abs(tau - times[0])
+    return np.minimum(np.abs(tau - times[k - 1]), np.abs(times[k] - tau))
+
+
+def interpolate_trajectory(
+    gt: PoseTrajectory, tau: ArrayLike
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+    """Interpolate a discrete trajectory at times inside its span.
+
+    Parameters
+    ----------
+    gt : PoseTrajectory
+        Strictly increasing times, at least 2 poses.
+    tau : array_like, shape (M,)
+        Query times within ``[gt.t[0], gt.t[-1]]``, s.
+
+    Returns
+    -------
+    position : ndarray, shape (M, 3)
+    rotation : ndarray, shape (M, 3, 3)
+    cov : ndarray, shape (M, 6, 6) or None
+        Linearly interpolated covariance.
+    exact : ndarray of int, shape (M,)
+        Index of the ground-truth sample the query coincides with, or -1.
+    frac : ndarray, shape (M,)
+        Interpolation fraction between the left and right neighbours.
+    """
+    tau = np.asarray(tau, dtype=float)
+    t = gt.t
+    n = t.size
+    a = np.clip(np.searchsorted(t, tau, side="right") - 1, 0, n - 2)
+    b = a + 1
+    f = (tau - t[a]) / (t[b] - t[a])
+    at_a = np.abs(tau - t[a]) <= TIME_EPS
+    at_b = np.abs(t[b] - tau) <= TIME_EPS
+    exact = np.where(at_a, a, np.where(at_b, b, -1))
+    f = np.where(at_a, 0.0, np.where(at_b, 1.0, f))
+    pos = gt.position[a] + f[:, None] * (gt.position[b] - gt.position[a])
+    Ra, Rb = gt.rotation[a], gt.rotation[b]
+    rot = exp_so3(f[:, None] * log_so3(Rb @ np.swapaxes(Ra, -1, -2))) @ Ra
+    cov = None
+    if gt.cov is not None:
+        cov = (1.0 - f)[:, None, None] * gt.cov[a] + f[:, None, None] * gt.cov[b]
+    snap = exact >= 0
+    if np.any(snap):
+        e = exact[snap]
+        pos[snap] = gt.position[e]
+        rot[snap] = gt.rotation[e]
+        if cov is not None:
+            cov[snap] = gt.cov[e]
+    return pos, rot, cov, exact, f
+
+
+def _check_times(t: np.ndarray, what: str) -> None:
+    if t.size and not np.all(np.isfinite(t)):
+        raise InputError(f"Expected finite {what} times, got NaN or inf")
+    if t.size > 1 and np.any(np.diff(t) <= 0):
+        k = int(np.argmax(np.diff(t) <= 0)) + 1
+        raise InputError(
+            f"Expected strictly increasing {what} times, got {t[k]!r} after {t[k - 1]!r} "
+            f"(pose {k}); sort the trajectory and remove duplicates"
+        )
+
+
+def associate(
+    gt: PoseTrajectory | GroundTruthQuery,
+    est: PoseTrajectory,
+    *,
+    time_offset: float = 0.0,
+    max_dt: float | None = 0.5,
+    measurement_times: ArrayLike | None = None,
+    gt_cross_next: ArrayLike | None = None,
+) -> Association:
+    """Pair each estimate pose with the ground truth at its (offset) time.
+
+    Parameters
+    ----------
+    gt : PoseTrajectory or callable
+        Discrete ground truth (interpolated) or a continuous-time query
+        ``gt(times) -> PoseTrajectory`` or ``(PoseTrajectory, cross_next)`` (module docstring).
+    est : PoseTrajectory
+        Estimate, strictly increasing times.
+    time_offset : float
+        s, added to the estimate's times before the association (evo ``--t_offset``).
+    max_dt : float or None
+        Maximum distance (s) from a query time to the nearest ground-truth measurement time;
+        None disables the check.
+    measurement_times : array_like, shape (K,), optional
+        Times of the measurements supporting the ground truth. For a query, they bound the
+        support (no pose outside ``[min, max]``) and feed ``max_dt``; without them every time
+        is queried (the query may raise :class:`~rtsgt.errors.ExtrapolationError`). For a
+        discrete ground truth the default is its own times.
+    gt_cross_next : array_like, shape (N_gt - 1, 6, 6), optional
+        For a discrete ground truth: ``Cov(xi_k, xi_{k+1})`` of consecutive ground-truth
+        samples. Used for associated poses that fall exactly on ground-truth samples (chained
+        over the samples in between, :func:`~rtsgt.evaluation.metrics.chain_cross_covariance`).
+
+    Returns
+    -------
+    Association
+
+    Raises
+    ------
+    InputError
+        No time overlap, every overlapping pose in a gap, bad shapes or times.
+    """
+    t_est = np.asarray(est.t, dtype=float)
+    _check_times(t_est, "estimate")
+    if len(est) == 0:
+        raise InputError("The estimate has no poses")
+    if not np.isfinite(time_offset):
+        raise InputError(f"Expected a finite time offset, got {time_offset}")
+    if max_dt is not None and not max_dt > 0:
+        raise InputError(f"Expected a positive max_dt, got {max_dt}")
+    tau_all = t_est + float(time_offset)
+    discrete = isinstance(gt, PoseTrajectory)
+    if discrete:
+        _check_times(np.asarray(gt.t), "ground-truth")
+        if len(gt) < 2:
+            raise InputError(f"Expected a ground truth with at least 2 poses, got {len(gt)}")
+        mt = np.asarray(gt.t if measurement_times is None else measurement_times, dtype=float)
+        span = (float(gt.t[0]), float(gt.t[-1]))
+    elif callable(gt):
+        mt = None if measurement_times is None else np.sort(np.asarray(measurement_times, float))
+        span = (-np.inf, np.inf) if mt is None or mt.size == 0 else (float(mt[0]), float(mt[-1]))
+    else:
+        raise TypeError(f"Expected a PoseTrajectory or a callable ground truth, got {type(gt)}")
+
+    inside = (tau_all >= span[0] - TIME_EPS) & (tau_all <= span[1] + TIME_EPS)
+    dt_all = np.full(tau_all.shape, np.nan)
+    if mt is not None and mt.size:
+        dt_all = _nearest_distance(mt, tau_all)
+    near = np.ones_like(inside) if max_dt is None or mt is None else dt_all <= max_dt
+    keep = inside & near
+    n_outside = int(np.count_nonzero(~inside))
+    n_gap = int(np.count_nonzero(inside & ~near))
+    if not np.any(inside):
+        raise InputError(
+            f"No time overlap: the estimate spans [{t_est[0]:.6f}, {t_est[-1]:.6f}] s "
+            f"(+ time offset {time_offset} s) and the ground truth [{span[0]:.6f}, "
+            f"{span[1]:.6f}] s; check the clocks or pass a time offset"
+        )
+    if not np.any(keep):
+        raise InputError(
+            f"None of the {np.count_nonzero(inside)} estimate poses inside the ground-truth span "
+            f"is within max_dt = {max_dt} s of a ground-truth measurement; raise --max-dt"
+        )
+    index = np.flatnonzero(keep)
+    tau = tau_all[index]
+    est_k = PoseTrajectory(
+        est.t[index],
+        est.position[index],
+        est.quat_xyzw[index],
+        None if est.cov is None else est.cov[index],
+    )
+    cross = None
+    if discrete:
+        pos, rot, cov, exact, frac = interpolate_trajectory(gt, tau)
+        interp = (exact < 0) if gt.cov is not None else np.zeros(index.size, dtype=bool)
+        if gt_cross_next is not None:
+            C = np.asarray(gt_cross_next, dtype=float)
+            if C.shape != (len(gt) - 1, 6, 6):
+                raise ValueError(
+                    f"Expected gt_cross_next of shape ({len(gt) - 1}, 6, 6), got {C.shape}"
+                )
+            if gt.cov is None:
+                raise ValueError("gt_cross_next needs a ground truth with covariances")
+            cross = np.full((index.size - 1, 6, 6), np.nan)
+            ok = (exact[:-1] >= 0) & (exact[1:] >= 0) & (exact[1:] > exact[:-1])
+            if np.any(ok):
+                pairs = np.stack([exact[:-1][ok], exact[1:][ok]], axis=1)
+                cross[ok] = chain_cross_covariance(gt.cov, C, pairs)
+        gt_k = PoseTrajectory(est_k.t, pos, matrix_to_quat_xyzw(rot), cov)
+    else:
+        out = gt(tau)
+        if isinstance(out, tuple):
+            if len(out) != 2:
+                raise ValueError(
+                    "Expected the ground-truth query to return a PoseTrajectory or a pair"
+                )
+            traj, cross = out[0], None if out[1] is None else np.asarray(out[1], dtype=float)
+        else:
+            traj = out
+        if not isinstance(traj, PoseTrajectory) or len(traj) != index.size:
+            raise ValueError(
+                f"Expected the ground-truth query to return a PoseTrajectory of {index.size} poses"
+            )
+        if cross is not None and cross.shape != (index.size - 1, 6, 6):
+            raise ValueError(
+                f"Expected query cross-covariances of shape ({index.size - 1}, 6, 6), "
+                f"got {cross.shape}"
+            )
+        interp = np.zeros(index.size, dtype=bool)
+        gt_k = PoseTrajectory(est_k.t, traj.position, traj.quat_xyzw, traj.cov)
+    return Association(
+        index=index,
+        est=est_k,
+        gt=gt_k,
+        dt_nearest=dt_all[index],
+        cov_interpolated=interp,
+        cross_next=cross,
+        time_offset=float(time_offset),
+        max_dt=None if max_dt is None else float(max_dt),
+        n_est=len(est),
+        n_outside=n_outside,
+        n_gap=n_gap,
+    )

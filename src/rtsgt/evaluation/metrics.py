@@ -1,0 +1,604 @@
+r"""Trajectory error metrics: evo's APE and RPE, and the uncertainty-aware ones.
+
+evo-compatible metrics (M. Grupp, evo, ``evo/core/metrics.py``; same definitions, same
+statistics, checked against evo in the tests):
+
+- **APE**: for associated poses ``Q_k`` (ground truth) and ``P_k`` (aligned estimate),
+  ``E_k = P_k^-1 Q_k`` (Kümmerle et al. 2009). *translation part*: ``|t_P,k - t_Q,k|`` (m);
+  *rotation angle*: ``|log(R_E,k)|`` (deg); *full*: ``||E_k - I_4||_F`` (unitless).
+- **RPE** (Sturm et al. 2012, TUM RGB-D benchmark): for index pairs ``(i, j)`` selected from the
+  estimate, ``E_ij = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``; translation part ``|t_E|``, rotation angle
+  ``|log(R_E)|``, full ``||E - I||_F``. Pairs are selected as in evo
+  (:func:`rpe_pairs`): every ``delta`` frames, or every ``delta`` metres of travelled path
+  (consecutive, non-overlapping segments), or all pairs whose separation is ``delta`` within a
+  relative tolerance. rtsgt adds ``delta`` in seconds.
+- Statistics: ``rmse = sqrt(mean(e^2))``, ``mean``, ``median``, ``std`` (population, ddof 0),
+  ``min``, ``max``.
+
+Uncertainty-aware metrics (DESIGN.md section 7):
+
+- pose error in the left-perturbation convention of :mod:`rtsgt.geometry.transform`,
+  ``e_k = perturbation(gt_k, est_k) = (t_est - t_gt, log(R_est R_gt^T))`` (world frame,
+  ordered x, y, z, rx, ry, rz); its rotation part has the norm of evo's rotation angle;
+- squared Mahalanobis distance ``NEES_k = e_k^T S_k^-1 e_k`` with ``S_k = Sigma_gt,k`` (plus the
+  estimate's own covariance when it has one, mapped into the world frame by the alignment);
+  under consistency it follows chi-square(3) for the position and chi-square(6) for the pose
+  (95 % quantiles 7.815 and 12.592);
+- the chi-square consistency test of :func:`nees_consistency` (Bar-Shalom, Li, Kirubarajan,
+  *Estimation with Applications to Tracking and Navigation*, 2001, sec. 5.4.2: the sum of N
+  independent NEES values is chi-square(N dof)), made robust to the correlation between
+  consecutive poses by an effective sample size;
+- the ground-truth noise floor ``sqrt(mean_k tr Sigma_gt,pos,k)``: the APE rmse a perfect
+  estimate would get, from ``E|dp|^2 = tr Sigma_est + tr Sigma_gt + |bias|^2``;
+- the covariance of the relative ground-truth pose ``Q_i^-1 Q_j`` for the RPE, with the
+  cross-covariance of the two poses when it is known (:func:`relative_pose_covariance`).
+
+This module imports only numpy, scipy and rtsgt.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy import stats
+
+from rtsgt.geometry.so3 import hat, log_so3
+
+#: Names of the statistics, in evo's order.
+STATISTICS = ("rmse", "mean", "median", "std", "min", "max")
+
+#: Units accepted for the RPE delta: metres of path, seconds, frames.
+DELTA_UNITS = ("m", "s", "f")
+
+
+def error_statistics(errors: ArrayLike) -> dict[str, float]:
+    """evo's statistics of an error array: rmse, mean, median, std (ddof 0), min, max.
+
+    Parameters
+    ----------
+    errors : array_like, shape (N,)
+
+    Returns
+    -------
+    dict
+        Keys :data:`STATISTICS`, Python floats.
+    """
+    e = np.asarray(errors, dtype=float)
+    if e.ndim != 1 or e.size == 0:
+        raise ValueError(f"Expected a non-empty 1-D error array, got shape {e.shape}")
+    return {
+        "rmse": float(np.sqrt(np.mean(e**2))),
+        "mean": float(np.mean(e)),
+        "median": float(np.median(e)),
+        "std": float(np.std(e)),
+        "min": float(np.min(e)),
+        "max": float(np.max(e)),
+    }
+
+
+def _rotation_angle(R: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(log_so3(R), axis=-1)
+
+
+def _full_error(R_E: np.ndarray, t_E: np.ndarray) -> np.ndarray:
+    """``||E - I_4||_F`` for E = [[R_E, t_E], [0, 1]]."""
+    dR = R_E - np.eye(3)
+    return np.sqrt(np.einsum("...ij,...ij->...", dR, dR) + np.einsum("...i,...i->...", t_E, t_E))
+
+
+def ape_errors(
+    R_gt: ArrayLike, t_gt: ArrayLike, R_est: ArrayLike, t_est: ArrayLike
+) -> dict[str, np.ndarray]:
+    """Per-pose absolute pose errors with evo's definitions.
+
+    Parameters
+    ----------
+    R_gt, R_est : array_like, shape (N, 3, 3)
+        ``R_world_body`` of the ground truth and of the aligned estimate.
+    t_gt, t_est : array_like, shape (N, 3)
+        ``t_world_body``, m.
+
+    Returns
+    -------
+    dict of ndarray, shape (N,)
+        ``translation`` (m), ``rotation_rad`` (rad), ``full`` (unitless), with
+        ``E = P^-1 Q``: ``|t_est - t_gt|``, ``|log(R_E)|``, ``||E - I||_F``.
+    """
+    R_gt = np.asarray(R_gt, dtype=float)
+    R_est = np.asarray(R_est, dtype=float)
+    d = np.asarray(t_gt, dtype=float) - np.asarray(t_est, dtype=float)
+    RestT = np.swapaxes(R_est, -1, -2)
+    R_E = RestT @ R_gt
+    t_E = np.einsum("...ij,...j->...i", RestT, d)
+    return {
+        "translation": np.linalg.norm(-d, axis=-1),
+        "rotation_rad": _rotation_angle(R_E),
+        "full": _full_error(R_E, t_E),
+    }
+
+
+def relative_poses(
+    R: np.ndarray, t: np.ndarray, pairs: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``T_i^-1 T_j`` for index pairs: rotation (K, 3, 3), translation (K, 3) in frame i."""
+    i, j = pairs[:, 0], pairs[:, 1]
+    RiT = np.swapaxes(R[i], -1, -2)
+    return RiT @ R[j], np.einsum("kab,kb->ka", RiT, t[j] - t[i])
+
+
+def rpe_errors(
+    R_gt: ArrayLike, t_gt: ArrayLike, R_est: ArrayLike, t_est: ArrayLike, pairs: ArrayLike
+) -> dict[str, np.ndarray]:
+    """Per-pair relative pose errors with evo's definitions.
+
+    ``E_ij = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)`` (Sturm et al. 2012); returns ``translation`` (m),
+    ``rotation_rad`` and ``full`` arrays of shape (K,).
+    """
+    pairs = np.asarray(pairs, dtype=int).reshape(-1, 2)
+    RQ, tQ = relative_poses(np.asarray(R_gt, float), np.asarray(t_gt, float), pairs)
+    RP, tP = relative_poses(np.asarray(R_est, float), np.asarray(t_est, float), pairs)
+    RQT = np.swapaxes(RQ, -1, -2)
+    R_E = RQT @ RP
+    t_E = np.einsum("kab,kb->ka", RQT, tP - tQ)
+    return {
+        "translation": np.linalg.norm(t_E, axis=-1),
+        "rotation_rad": _rotation_angle(R_E),
+        "full": _full_error(R_E, t_E),
+    }
+
+
+def _consecutive_by_path(inc: np.ndarray, delta: float) -> np.ndarray:
+    """Start indices of consecutive segments of at least ``delta`` metres of path.
+
+    The path since the last selected pose is summed sequentially from zero, exactly as evo's
+    ``filter_pairs_by_path`` does, so that ties resolve identically.
+    """
+    n = inc.size + 1
+    ids = [0]
+    start = 0
+    w = 64
+    while start < n - 1:
+        stop = min(start + w, n - 1)
+        cs = np.cumsum(inc[start:stop])
+        hit = np.flatnonzero(cs >= delta)
+        if hit.size:
+            start = start + int(hit[0]) + 1
+            ids.append(start)
+            w = max(64, 2 * (int(hit[0]) + 1))
+        elif stop >= n - 1:
+            break
+        else:
+            w *= 2
+    return np.asarray(ids, dtype=int)
+
+
+def _all_pairs_nearest(D: np.ndarray, delta: float, tol: float) -> np.ndarray:
+    """For every i, the first j > i minimising ``|(D_j - D_i) - delta|``, kept if within tol.
+
+    ``D`` is non-decreasing (accumulated path or time). Vectorised version of evo's
+    ``filter_pairs_by_path(all_pairs=True)`` loop (argmin, first occurrence on ties).
+    """
+    n = D.size
+    if n < 2:
+        return np.zeros((0, 2), dtype=int)
+    i = np.arange(n - 1)
+    k = np.searchsorted(D, D[i] + delta, side="left")
+    cand = k[:, None] + np.arange(-2, 2)[None, :]
+    cand = np.clip(cand, (i + 1)[:, None], n - 1)
+    val = np.abs((D[cand] - D[i][:, None]) - delta)
+    best = np.argmin(val, axis=1)
+    # among equal values the smallest index wins (argmin on clipped, sorted candidates)
+    j = cand[np.arange(n - 1), best]
+    vmin = val[np.arange(n - 1), best]
+    # a plateau of equal D values extends the tie to the left: take its first index > i
+    j = np.maximum(np.searchsorted(D, D[j], side="left"), i + 1)
+    keep = vmin <= tol
+    return np.stack([i[keep], j[keep]], axis=1)
+
+
+def rpe_pairs(
+    position: ArrayLike,
+    t: ArrayLike | None,
+    delta: float,
+    delta_unit: str = "f",
+    *,
+    all_pairs: bool = False,
+    rel_tol: float = 0.1,
+) -> np.ndarray:
+    """Index pairs ``(i, j)`` for the RPE, selected as evo does.
+
+    Parameters
+    ----------
+    position : array_like, shape (N, 3)
+        Positions of the trajectory the pairs are taken from (evo: the aligned estimate).
+    t : array_like, shape (N,), optional
+        Times, s (needed for ``delta_unit="s"``).
+    delta : float
+        Separation, in ``delta_unit``.
+    delta_unit : {"f", "m", "s"}
+        ``f``: frames (integer ``delta``); ``m``: metres of travelled path; ``s``: seconds.
+    all_pairs : bool
+        ``False`` (evo's default): consecutive, non-overlapping pairs: every ``delta`` frames,
+        or each time the path travelled (time elapsed) since the last selected pose reaches
+        ``delta``. ``True``: for every i, the pair (i, i + delta) in frames, or the j > i whose
+        path (time) separation is closest to ``delta``, kept if within ``rel_tol * delta``.
+    rel_tol : float
+        Relative tolerance of the all-pairs mode (evo's ``--delta_tol``, default 0.1).
+
+    Returns
+    -------
+    ndarray of int, shape (K, 2)
+        May be empty.
+
+    Notes
+    -----
+    evo ``filters.filter_pairs_by_index`` and ``filter_pairs_by_path``; the path is the sum of
+    the distances between consecutive positions. The seconds unit (not in evo) uses the same
+    rules with the elapsed time in place of the path.
+    """
+    p = np.asarray(position, dtype=float)
+    n = p.shape[0]
+    if delta_unit not in DELTA_UNITS:
+        raise ValueError(f"Expected a delta unit in {DELTA_UNITS}, got {delta_unit!r}")
+    if not np.isfinite(delta) or delta <= 0:
+        raise ValueError(f"Expected a positive delta, got {delta}")
+    if delta_unit == "f":
+        if float(delta) != int(delta):
+            raise ValueError(f"Expected an integer delta for unit 'f' (frames), got {delta}")
+        d = int(delta)
+        if all_pairs:
+            i = np.arange(max(n - d, 0))
+            return np.stack([i, i + d], axis=1)
+        ids = np.arange(0, n, d)
+        return np.stack([ids[:-1], ids[1:]], axis=1)
+    if delta_unit == "m":
+        inc = np.linalg.norm(p[:-1] - p[1:], axis=1)
+        if all_pairs:
+            D = np.concatenate([[0.0], np.cumsum(inc)])
+            return _all_pairs_nearest(D, float(delta), float(delta) * rel_tol)
+        ids = _consecutive_by_path(inc, float(delta))
+        return np.stack([ids[:-1], ids[1:]], axis=1)
+    if t is None:
+        raise ValueError("Expected times for a delta in seconds")
+    tt = np.asarray(t, dtype=float)
+    if all_pairs:
+        return _all_pairs_nearest(tt, float(delta), float(delta) * rel_tol)
+    ids = [0]
+    while True:
+        k = int(np.searchsorted(tt, tt[ids[-1]] + delta, side="left"))
+        if k >= n:
+            break
+        ids.append(k)
+    ids = np.asarray(ids, dtype=int)
+    return np.stack([ids[:-1], ids[1:]], axis=1)
+
+
+def pose_error(R_gt: ArrayLike, t_gt: ArrayLike, R_est: ArrayLike, t_est: ArrayLike) -> np.ndarray:
+    """Pose error ``(t_est - t_gt, log(R_est R_gt^T))`` in the world frame, shape (N, 6).
+
+    The left perturbation of :func:`rtsgt.geometry.transform.perturbation` of the estimate
+    about the ground truth, ordered (x, y, z, rx, ry, rz); m and rad.
+    """
+    R_gt = np.asarray(R_gt, dtype=float)
+    R_est = np.asarray(R_est, dtype=float)
+    dtheta = log_so3(R_est @ np.swapaxes(R_gt, -1, -2))
+    return np.concatenate([np.asarray(t_est, float) - np.asarray(t_gt, float), dtheta], axis=-1)
+
+
+def relative_pose_error_vector(
+    R_gt: ArrayLike, t_gt: ArrayLike, R_est: ArrayLike, t_est: ArrayLike, pairs: ArrayLike
+) -> np.ndarray:
+    """Error of the relative pose ``P_i^-1 P_j`` about ``Q_i^-1 Q_j``, shape (K, 6), frame i.
+
+    Same convention as :func:`pose_error`, applied to the relative poses (coordinates of the
+    ground-truth body frame at i): ``(t_P,ij - t_Q,ij, log(R_P,ij R_Q,ij^T))``.
+    """
+    pairs = np.asarray(pairs, dtype=int).reshape(-1, 2)
+    RQ, tQ = relative_poses(np.asarray(R_gt, float), np.asarray(t_gt, float), pairs)
+    RP, tP = relative_poses(np.asarray(R_est, float), np.asarray(t_est, float), pairs)
+    return pose_error(RQ, tQ, RP, tP)
+
+
+def relative_pose_covariance(
+    R_i: ArrayLike,
+    t_i: ArrayLike,
+    t_j: ArrayLike,
+    cov_i: ArrayLike,
+    cov_j: ArrayLike,
+    cross_ij: ArrayLike | None = None,
+) -> np.ndarray:
+    r"""First-order covariance of the relative pose ``T_ij = T_i^-1 T_j``.
+
+    Parameters
+    ----------
+    R_i : array_like, shape (K, 3, 3)
+        Mean ``R_world_i``.
+    t_i, t_j : array_like, shape (K, 3)
+        Mean positions, m, world frame.
+    cov_i, cov_j : array_like, shape (K, 6, 6)
+        Pose covariances in the world-frame left-perturbation convention.
+    cross_ij : array_like, shape (K, 6, 6), optional
+        ``Cov(xi_i, xi_j)``; zero (independent poses) when None.
+
+    Returns
+    -------
+    ndarray, shape (K, 6, 6)
+        Covariance of ``T_ij`` in the same convention, expressed in frame i:
+        ``t_ij = mean + dt``, ``R_ij = exp([dphi]x) mean``.
+
+    Notes
+    -----
+    With ``Delta = t_j - t_i`` and ``t_ij = R_i^T Delta``, ``R_ij = R_i^T R_j``, perturbing
+    ``t = t + dt``, ``R = exp([dtheta]x) R`` at both poses gives to first order::
+
+        dt_ij   = R_i^T (dt_j - dt_i + [Delta]x dtheta_i)
+        dphi_ij = R_i^T (dtheta_j - dtheta_i)
+
+    so ``xi_ij = J_i xi_i + J_j xi_j`` with ``J_i = B [[-I, [Delta]x], [0, -I]]``,
+    ``J_j = B``, ``B = blockdiag(R_i^T, R_i^T)``, and
+    ``Cov = J_i P_i J_i^T + J_j P_j J_j^T + J_i C J_j^T + J_j C^T J_i^T``.
+    """
+    R_i = np.asarray(R_i, dtype=float)
+    K = R_i.shape[0]
+    RiT = np.swapaxes(R_i, -1, -2)
+    B = np.zeros((K, 6, 6))
+    B[:, :3, :3] = RiT
+    B[:, 3:, 3:] = RiT
+    A = np.zeros((K, 6, 6))
+    A[:, :3, :3] = -np.eye(3)
+    A[:, :3, 3:] = hat(np.asarray(t_j, float) - np.asarray(t_i, float))
+    A[:, 3:, 3:] = -np.eye(3)
+    Ji = B @ A
+    Jj = B
+    JiT = np.swapaxes(Ji, -1, -2)
+    JjT = np.swapaxes(Jj, -1, -2)
+    cov = Ji @ np.asarray(cov_i, float) @ JiT + Jj @ np.asarray(cov_j, float) @ JjT
+    if cross_ij is not None:
+        X = Ji @ np.asarray(cross_ij, float) @ JjT
+        cov = cov + X + np.swapaxes(X, -1, -2)
+    return 0.5 * (cov + np.swapaxes(cov, -1, -2))
+
+
+def chain_cross_covariance(cov: ArrayLike, cross_next: ArrayLike, pairs: ArrayLike) -> np.ndarray:
+    r"""``Cov(xi_i, xi_j)`` for index pairs from consecutive cross-covariances.
+
+    Parameters
+    ----------
+    cov : array_like, shape (M, 6, 6)
+        ``P_k = Cov(xi_k)``.
+    cross_next : array_like, shape (M - 1, 6, 6)
+        ``C_k = Cov(xi_k, xi_{k+1})``; NaN where unknown.
+    pairs : array_like of int, shape (K, 2)
+        With ``i < j``.
+
+    Returns
+    -------
+    ndarray, shape (K, 6, 6)
+        NaN for pairs whose chain crosses an unknown ``C_k``.
+
+    Notes
+    -----
+    For a Gauss-Markov sequence ``xi_{k+1} = A_k xi_k + w_k``, ``C_k = P_k A_k^T`` and
+    ``Cov(xi_i, xi_j) = C_i P_{i+1}^-1 C_{i+1} ... P_{j-1}^-1 C_{j-1}`` (exact for a
+    Markov sequence, e.g. the states of a GP with a white-noise-on-acceleration prior; an
+    approximation for poses derived from several such tracks). For ``j = i + 1`` it is ``C_i``.
+    """
+    P = np.asarray(cov, dtype=float)
+    C = np.asarray(cross_next, dtype=float)
+    pairs = np.asarray(pairs, dtype=int).reshape(-1, 2)
+    i, j = pairs[:, 0], pairs[:, 1]
+    if np.any(j <= i):
+        raise ValueError("Expected pairs with i < j")
+    out = C[i].copy()
+    span = j - i
+    if span.size and span.max() > 1:
+        # G_k = P_k^-1 C_k (Cholesky-free solve; falls back to the pseudo-inverse)
+        try:
+            G = np.linalg.solve(P[:-1], C)
+        except np.linalg.LinAlgError:
+            G = np.linalg.pinv(P[:-1]) @ C
+        for s in range(1, int(span.max())):
+            active = span > s
+            out[active] = out[active] @ G[i[active] + s]
+    return out
+
+
+def squared_mahalanobis(e: ArrayLike, S: ArrayLike) -> np.ndarray:
+    """``e_k^T S_k^-1 e_k`` through Cholesky factors.
+
+    Parameters
+    ----------
+    e : array_like, shape (N, d)
+    S : array_like, shape (N, d, d)
+        Symmetric positive definite.
+
+    Raises
+    ------
+    ValueError
+        Naming the first covariance that is not positive definite.
+    """
+    e = np.asarray(e, dtype=float)
+    S = np.asarray(S, dtype=float)
+    try:
+        L = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        eig = np.linalg.eigvalsh(0.5 * (S + np.swapaxes(S, -1, -2)))
+        k = int(np.argmin(eig.min(axis=-1)))
+        raise ValueError(
+            f"Expected positive definite covariances, got one with eigenvalue "
+            f"{eig[k].min():.3g} at index {k}"
+        ) from None
+    z = np.linalg.solve(L, e[..., None])[..., 0]
+    return np.einsum("...i,...i->...", z, z)
+
+
+def integrated_autocorrelation_time(x: ArrayLike) -> float:
+    r"""Integrated autocorrelation time ``tau = 1 + 2 sum_{k>=1} rho_k`` of a series.
+
+    The sum stops at the first lag whose sample autocorrelation is not positive (the initial
+    positive sequence, Geyer 1992, in its simplest form). ``tau >= 1``; the effective number of
+    independent samples of an average over N values is ``N / tau``.
+    """
+    x = np.asarray(x, dtype=float)
+    n = x.size
+    if n < 3:
+        return 1.0
+    x0 = x - x.mean()
+    var = float(x0 @ x0)
+    if var <= 0:
+        return 1.0
+    f = np.fft.rfft(x0, 2 * n)
+    acf = np.fft.irfft(f * np.conj(f), 2 * n)[:n] / var
+    nonpos = np.flatnonzero(acf[1:] <= 0)
+    stop = int(nonpos[0]) + 1 if nonpos.size else n
+    return max(1.0, 1.0 + 2.0 * float(np.sum(acf[1:stop])))
+
+
+@dataclass(frozen=True)
+class NeesResult:
+    """NEES of N poses against chi-square(dof), with a consistency verdict.
+
+    Attributes
+    ----------
+    values : ndarray, shape (N,)
+        Per-pose squared Mahalanobis distance.
+    dof : int
+    mean : float
+        Average NEES (ANEES times dof); ``dof`` when consistent.
+    fraction_inside_95 : float
+        Share of poses with ``NEES <= chi2.ppf(0.95, dof)``; 0.95 when consistent.
+    quantile_95 : float
+        ``chi2.ppf(0.95, dof)``: 7.815 (3 dof), 12.592 (6 dof).
+    n : int
+    n_eff : float
+        Effective number of independent poses for the mean (``n / tau``).
+    mean_interval : tuple of float
+        Two-sided ``1 - alpha`` acceptance interval of ``mean``.
+    fraction_interval : tuple of float
+        Two-sided ``1 - alpha`` acceptance interval of ``fraction_inside_95``.
+    consistent : bool
+        Both ``mean`` and ``fraction_inside_95`` inside their intervals.
+    alpha : float
+    """
+
+    values: np.ndarray
+    dof: int
+    mean: float
+    fraction_inside_95: float
+    quantile_95: float
+    n: int
+    n_eff: float
+    mean_interval: tuple[float, float]
+    fraction_interval: tuple[float, float]
+    consistent: bool
+    alpha: float = 0.05
+
+    @property
+    def mean_ok(self) -> bool:
+        return self.mean_interval[0] <= self.mean <= self.mean_interval[1]
+
+    @property
+    def fraction_ok(self) -> bool:
+        return self.fraction_interval[0] <= self.fraction_inside_95 <= self.fraction_interval[1]
+
+    def to_dict(self) -> dict:
+        """JSON-ready: ``mean, dof, fraction_inside_95, consistent`` and the test details."""
+        return {
+            "mean": float(self.mean),
+            "dof": int(self.dof),
+            "fraction_inside_95": float(self.fraction_inside_95),
+            "consistent": bool(self.consistent),
+            "n": int(self.n),
+            "n_eff": float(self.n_eff),
+            "mean_interval": [float(v) for v in self.mean_interval],
+            "fraction_interval": [float(v) for v in self.fraction_interval],
+            "quantile_95": float(self.quantile_95),
+            "alpha": float(self.alpha),
+        }
+
+
+def nees_consistency(
+    nees: ArrayLike, dof: int, *, alpha: float = 0.05, correlated: bool = True
+) -> NeesResult:
+    r"""Chi-square consistency test of per-pose NEES values.
+
+    Parameters
+    ----------
+    nees : array_like, shape (N,)
+        Squared Mahalanobis distances, each chi-square(dof) under consistency.
+    dof : int
+        3 (position) or 6 (pose).
+    alpha : float
+        Significance of each two-sided test.
+    correlated : bool
+        Account for the correlation between consecutive poses through an effective sample
+        size (recommended). ``False`` gives the textbook test, which assumes independence.
+
+    Returns
+    -------
+    NeesResult
+
+    Notes
+    -----
+    Textbook test (Bar-Shalom et al. 2001, sec. 5.4.2): with independent poses,
+    ``N * mean(NEES) ~ chi2(N dof)``, so the mean is accepted when it lies in
+    ``[chi2.ppf(alpha/2, N dof) / N, chi2.ppf(1 - alpha/2, N dof) / N]``.
+
+    Consecutive poses of a ground truth (GP-smoothed) and of an odometry are correlated, so
+    the N values carry fewer than N independent samples and the textbook interval is too
+    narrow: a consistent estimate would be called inconsistent. The test is therefore
+    approximate; rtsgt makes it robust in two ways:
+
+    1. N is replaced by ``N_eff = N / tau``, with ``tau`` the integrated autocorrelation time
+       of the NEES series (:func:`integrated_autocorrelation_time`); the mean of ``N_eff``
+       independent chi-square(dof) values has the same variance as the correlated mean.
+    2. The share of poses inside the 95 % region (NEES below the chi-square 0.95 quantile) is
+       tested too, against a binomial(``N_eff'``, 0.95) interval, ``N_eff'`` from the
+       autocorrelation of the inside/outside indicator. It is insensitive to a few gross
+       outliers in the mean and sensitive to the shape of the distribution.
+
+    The verdict is ``consistent`` when both pass. An over-confident estimate (mean too high,
+    too few inside), a biased one (mean too high) and an under-confident one (mean too low,
+    too many inside) fail. The alignment fitted on the same poses lowers the NEES slightly
+    (by at most 7 of ``N dof`` degrees of freedom); this is neglected.
+    """
+    v = np.asarray(nees, dtype=float)
+    if v.ndim != 1 or v.size == 0:
+        raise ValueError(f"Expected a non-empty 1-D NEES array, got shape {v.shape}")
+    n = v.size
+    q95 = float(stats.chi2.ppf(0.95, dof))
+    inside = v <= q95
+    mean = float(v.mean())
+    frac = float(inside.mean())
+    tau = integrated_autocorrelation_time(v) if correlated else 1.0
+    tau_i = integrated_autocorrelation_time(inside.astype(float)) if correlated else 1.0
+    n_eff = n / tau
+    lo = float(stats.chi2.ppf(alpha / 2, n_eff * dof) / n_eff)
+    hi = float(stats.chi2.ppf(1 - alpha / 2, n_eff * dof) / n_eff)
+    m = max(1, int(round(n / tau_i)))
+    flo = float(stats.binom.ppf(alpha / 2, m, 0.95) / m)
+    fhi = float(stats.binom.ppf(1 - alpha / 2, m, 0.95) / m)
+    ok = (lo <= mean <= hi) and (flo <= frac <= fhi)
+    return NeesResult(v, int(dof), mean, frac, q95, n, n_eff, (lo, hi), (flo, fhi), bool(ok), alpha)
+
+
+def noise_floor(cov_pos: ArrayLike) -> float:
+    """Ground-truth noise floor ``sqrt(mean_k tr Sigma_k)`` (m for positions, rad for rotations).
+
+    The rmse of the error between a perfect estimate and a ground truth whose errors have
+    covariances ``Sigma_k`` (DESIGN.md section 7: ``E|dp|^2 = tr Sigma_gt`` when
+    ``Sigma_est = 0`` and there is no bias).
+
+    Parameters
+    ----------
+    cov_pos : array_like, shape (N, d, d)
+    """
+    c = np.asarray(cov_pos, dtype=float)
+    return float(np.sqrt(np.mean(np.trace(c, axis1=-2, axis2=-1))))
+
+
+def remove_floor(rmse: float, floor: float) -> float:
+    """``sqrt(max(rmse^2 - floor^2, 0))``: the rmse with the ground truth's own noise removed."""
+    return float(np.sqrt(max(rmse * rmse - floor * floor, 0.0)))

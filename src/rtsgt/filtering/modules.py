@@ -1,0 +1,370 @@
+r"""Filtering modules 1 and 2 of Vaidis et al. (2022), "Accurate outdoor ground truth based on
+total stations" (CRV 2021/2022), with the parameters of the paper (DESIGN.md section 6).
+
+Module 1 (per station, on raw polar observations)
+-------------------------------------------------
+1. Observations with a non-zero instrument status or a non-finite value are removed
+   (reasons ``"status"``, ``"non_finite"``); a measurement with the same time as the previous
+   kept one is removed (``"duplicate_time"``); times going backwards are an input error.
+2. The series is split into blocks at gaps **longer than** ``tau_s`` (``dt > tau_s``).
+3. Inside a block, every measurement is compared with the **last accepted** measurement of the
+   same block (the first measurement of a block is always accepted and is never compared with
+   the previous block). It is rejected when the rate of change of the slope distance exceeds
+   ``tau_r`` (``"rate_distance"``), else when the rate of change of the horizontal direction
+   exceeds ``tau_a`` (``"rate_hz"``), else when that of the zenith angle exceeds ``tau_e``
+   (``"rate_v"``); rates are ``|difference| / dt`` and a rate equal to its threshold passes.
+   The horizontal-direction difference is wrapped into ``[-pi, pi)``, so a crossing of
+   0 / 2 pi is not a jump. Comparing with the last accepted measurement (rather than with the
+   previous raw one) means that one outlier removes one measurement, not also its successor.
+
+The sequential rule is evaluated exactly without a Python loop over measurements: raw
+consecutive pairs are tested at once, and only each episode that starts at a failing pair
+(an outlier or a burst of them) is resolved, by a vectorised search for the first measurement
+that agrees with the last accepted one again.
+
+Module 2 (across prisms, on time series of each prism)
+------------------------------------------------------
+1. Each prism's series is split into segments at gaps longer than ``tau_s``.
+2. The intervals where **every** prism is inside one of its segments are intersected
+   (an interval ``[a, b]`` with ``a < b``, bounds being measurement times).
+3. Intervals shorter than ``tau_l`` (``b - a < tau_l``) are dropped.
+4. Each series keeps its measurements inside the kept intervals, **plus** the last measurement
+   at or before ``a`` and the first at or after ``b`` of the segment that contains the interval,
+   so that every time of ``[a, b]`` lies between two kept measurements of every prism (they are
+   at most ``tau_s`` apart): an interpolator can then be queried on the whole interval.
+   Removed measurements are counted as ``"short_interval"`` (inside an intersection interval
+   dropped for its duration) or ``"not_all_tracked"`` (anywhere else).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rtsgt.errors import InputError
+from rtsgt.types import Observations, PrismTrack
+
+__all__ = [
+    "FilterParams", "FilterReport", "MODULE1_REASONS", "MODULE2_REASONS", "module1", "module2",
+]
+
+#: Reasons of module 1, in the order they are tested.
+MODULE1_REASONS = ("status", "non_finite", "duplicate_time", "rate_distance", "rate_hz", "rate_v")
+
+#: Reasons of module 2.
+MODULE2_REASONS = ("not_all_tracked", "short_interval")
+
+_TWO_PI = 2.0 * np.pi
+
+
+@dataclass(frozen=True)
+class FilterParams:
+    """Thresholds of the filtering modules (defaults: Vaidis et al. 2022).
+
+    Attributes
+    ----------
+    tau_r : float
+        Largest rate of change of the slope distance, m/s (2 m/s).
+    tau_a : float
+        Largest rate of change of the horizontal direction, rad/s (1 deg/s).
+    tau_e : float
+        Largest rate of change of the zenith angle, rad/s (1 deg/s).
+    tau_s : float
+        Gap that splits a series, s (3 s): a gap longer than this starts a new block.
+    tau_l : float
+        Shortest interval kept by module 2, s (2 s).
+    """
+
+    tau_r: float = 2.0
+    tau_a: float = float(np.deg2rad(1.0))
+    tau_e: float = float(np.deg2rad(1.0))
+    tau_s: float = 3.0
+    tau_l: float = 2.0
+
+    def __post_init__(self) -> None:
+        for name in ("tau_r", "tau_a", "tau_e", "tau_s"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise InputError(f"Expected {name} > 0, got {v!r}")
+        if not (np.isfinite(self.tau_l) and self.tau_l >= 0):
+            raise InputError(f"Expected tau_l >= 0, got {self.tau_l!r}")
+
+    @classmethod
+    def from_degrees(
+        cls,
+        tau_r: float = 2.0,
+        tau_a_deg: float = 1.0,
+        tau_e_deg: float = 1.0,
+        tau_s: float = 3.0,
+        tau_l: float = 2.0,
+    ) -> FilterParams:
+        """Parameters with the angular rates given in deg/s."""
+        return cls(tau_r, float(np.deg2rad(tau_a_deg)), float(np.deg2rad(tau_e_deg)), tau_s, tau_l)
+
+
+@dataclass(frozen=True)
+class FilterReport:
+    """What a filtering module removed, and why.
+
+    Attributes
+    ----------
+    module : str
+        ``"module1"`` or ``"module2"``.
+    n_in : int
+        Number of measurements given (all series together).
+    n_kept : int
+        Number of measurements kept.
+    removed : mapping str -> int
+        Number removed for each reason (every reason of the module is present).
+    per_series : tuple of mappings
+        The same counts for each series given (module 2; module 1 has one series).
+    n_blocks : int
+        Module 1: blocks after splitting at gaps; module 2: intervals kept.
+    """
+
+    module: str
+    n_in: int
+    n_kept: int
+    removed: Mapping[str, int]
+    per_series: tuple[Mapping[str, int], ...] = field(default=())
+    n_blocks: int = 0
+
+    @property
+    def n_removed(self) -> int:
+        """Total number of measurements removed."""
+        return self.n_in - self.n_kept
+
+    def summary(self) -> str:
+        """One line: ``module1: kept 200/215 (rate_hz 10, status 5)``."""
+        parts = ", ".join(f"{k} {v}" for k, v in self.removed.items() if v)
+        return f"{self.module}: kept {self.n_kept}/{self.n_in}" + (f" ({parts})" if parts else "")
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    """Angle difference wrapped into [-pi, pi)."""
+    return (a + np.pi) % _TWO_PI - np.pi
+
+
+def _gate(t, d, hz, v, i, js, p: FilterParams) -> np.ndarray:
+    """Reason code of comparing measurements ``js`` with measurement ``i``: 0 = passes,
+    1 = distance, 2 = horizontal direction, 3 = zenith angle (first failing gate)."""
+    dt = t[js] - t[i]
+    code = np.zeros(np.shape(js), dtype=int)
+    bad_v = np.abs(v[js] - v[i]) > p.tau_e * dt
+    bad_h = np.abs(_wrap(hz[js] - hz[i])) > p.tau_a * dt
+    bad_d = np.abs(d[js] - d[i]) > p.tau_r * dt
+    code[bad_v] = 3
+    code[bad_h] = 2
+    code[bad_d] = 1
+    return code
+
+
+def _rate_filter(t, d, hz, v, p: FilterParams) -> tuple[np.ndarray, int]:
+    """Sequential rate gate, exactly, with vectorised episodes.
+
+    Returns ``code`` (0 kept, 1-3 reason) per measurement, and the number of blocks.
+    """
+    n = t.shape[0]
+    code = np.zeros(n, dtype=int)
+    if n == 0:
+        return code, 0
+    new_block = np.empty(n, dtype=bool)
+    new_block[0] = True
+    new_block[1:] = np.diff(t) > p.tau_s
+    starts = np.flatnonzero(new_block)
+    block_end = np.empty(n, dtype=int)  # exclusive end of the block of each measurement
+    ends = np.append(starts[1:], n)
+    block_end[:] = np.repeat(ends, np.diff(np.append(starts, n)))
+    # raw consecutive pairs (j-1, j) inside a block
+    raw = np.zeros(n, dtype=int)
+    inner = np.flatnonzero(~new_block)
+    if inner.size:
+        raw[inner] = _gate(t, d, hz, v, inner - 1, inner, p)
+    candidates = np.flatnonzero(raw)
+    resume = 0  # the next raw pair to consider is (resume - 1, resume)
+    for j in candidates:  # one iteration per episode of rejections, not per measurement
+        if j < resume:
+            continue
+        i = j - 1  # last accepted: every pair between resume and j passed
+        end = block_end[j]
+        m = j
+        width = 64
+        found = -1
+        while m < end:
+            js = np.arange(m, min(m + width, end))
+            c = _gate(t, d, hz, v, i, js, p)
+            ok = np.flatnonzero(c == 0)
+            stop = js.size if ok.size == 0 else ok[0]
+            code[js[:stop]] = c[:stop]
+            if ok.size:
+                found = js[ok[0]]
+                break
+            m = js[-1] + 1
+            width *= 4
+        resume = end if found < 0 else found + 1
+    return code, starts.size
+
+
+def module1(
+    obs: Observations, params: FilterParams | None = None
+) -> tuple[Observations, FilterReport]:
+    """Module 1 of Vaidis et al. (2022): rate gates on one station's observations.
+
+    Parameters
+    ----------
+    obs : Observations
+        Polar observations of one prism by one station (t s, hz rad, v rad, d m), in time
+        order.
+    params : FilterParams, optional
+        Thresholds (default: the paper's).
+
+    Returns
+    -------
+    kept : Observations
+        The observations that pass, in the same order.
+    report : FilterReport
+        Counts per reason (module docstring).
+
+    Raises
+    ------
+    InputError
+        Times that go backwards.
+    """
+    p = FilterParams() if params is None else params
+    if not isinstance(obs, Observations):
+        raise InputError(f"Expected Observations, got {type(obs).__name__}")
+    n = len(obs)
+    reason = np.zeros(n, dtype=int)  # 0 kept, else 1 + index in MODULE1_REASONS
+    reason[obs.status != 0] = 1
+    finite = np.isfinite(obs.t) & np.isfinite(obs.hz) & np.isfinite(obs.v) & np.isfinite(obs.d)
+    reason[(reason == 0) & ~finite] = 2
+    idx = np.flatnonzero(reason == 0)
+    t = obs.t[idx]
+    dt = np.diff(t)
+    back = np.flatnonzero(dt < 0)
+    if back.size:
+        k = back[0]
+        raise InputError(
+            f"Expected observations in time order, got t = {float(t[k + 1])!r} s "
+            f"after t = {float(t[k])!r} s "
+            f"(measurements {idx[k]} and {idx[k + 1]})",
+            obs.source,
+        )
+    dup = np.flatnonzero(dt == 0) + 1
+    reason[idx[dup]] = 3
+    idx = np.flatnonzero(reason == 0)
+    code, n_blocks = _rate_filter(obs.t[idx], obs.distance[idx], obs.hz[idx], obs.v[idx], p)
+    reason[idx[code > 0]] = 3 + code[code > 0]
+    counts = {r: int(np.sum(reason == i + 1)) for i, r in enumerate(MODULE1_REASONS)}
+    keep = reason == 0
+    report = FilterReport("module1", n, int(keep.sum()), counts, (dict(counts),), n_blocks)
+    return obs.select(keep), report
+
+
+def _segments(t: np.ndarray, tau_s: float) -> np.ndarray:
+    """(K, 2) index ranges [first, last] of the segments of ``t`` split at gaps > tau_s."""
+    brk = np.flatnonzero(np.diff(t) > tau_s)
+    first = np.concatenate([[0], brk + 1])
+    last = np.concatenate([brk, [t.shape[0] - 1]])
+    return np.stack([first, last], axis=1)
+
+
+def _intersect(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Intersections of two sorted lists of disjoint closed intervals (K, 2), keeping a < b."""
+    if a.shape[0] == 0 or b.shape[0] == 0:
+        return np.zeros((0, 2))
+    lo = np.searchsorted(b[:, 1], a[:, 0], side="left")  # first b ending at/after a's start
+    hi = np.searchsorted(b[:, 0], a[:, 1], side="right")  # b's starting at/before a's end
+    cnt = np.maximum(hi - lo, 0)
+    ia = np.repeat(np.arange(a.shape[0]), cnt)
+    offset = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    ib = np.repeat(lo, cnt) + offset
+    start = np.maximum(a[ia, 0], b[ib, 0])
+    end = np.minimum(a[ia, 1], b[ib, 1])
+    ok = start < end
+    return np.stack([start[ok], end[ok]], axis=1)
+
+
+def module2(
+    tracks: Sequence[Observations | PrismTrack], params: FilterParams | None = None
+) -> tuple[list, np.ndarray, FilterReport]:
+    """Module 2 of Vaidis et al. (2022): keep the intervals where every prism is tracked.
+
+    Parameters
+    ----------
+    tracks : sequence of Observations or PrismTrack
+        One time series per prism (usually three), each with strictly increasing times ``t``
+        (s) on a common clock.
+    params : FilterParams, optional
+        ``tau_s`` and ``tau_l`` are used (default: the paper's).
+
+    Returns
+    -------
+    kept : list
+        The series restricted to the kept intervals (same types, same order), each with its
+        bracketing measurements (module docstring).
+    intervals : ndarray, shape (K, 2)
+        Kept intervals ``[a, b]``, s, sorted and disjoint.
+    report : FilterReport
+        Counts per reason, total and per series.
+
+    Raises
+    ------
+    InputError
+        No series, or times not strictly increasing.
+    """
+    p = FilterParams() if params is None else params
+    series = list(tracks)
+    if not series:
+        raise InputError("Expected at least one time series, got none")
+    times = []
+    for s_i, s in enumerate(series):
+        t = np.asarray(getattr(s, "t", None), dtype=float)
+        if t.ndim != 1:
+            raise InputError(f"Expected series {s_i} to have times of shape (N,), got {t.shape}")
+        if not np.all(np.isfinite(t)):
+            raise InputError(f"Expected finite times in series {s_i}")
+        if np.any(np.diff(t) <= 0):
+            raise InputError(f"Expected strictly increasing times in series {s_i}")
+        times.append(t)
+    seg_idx = [_segments(t, p.tau_s) if t.size else np.zeros((0, 2), int) for t in times]
+    seg_t = [t[s] if t.size else np.zeros((0, 2)) for t, s in zip(times, seg_idx, strict=True)]
+    common = seg_t[0]
+    common = common[common[:, 1] > common[:, 0]]
+    for st in seg_t[1:]:
+        common = _intersect(common, st)
+    duration = common[:, 1] - common[:, 0]
+    long_enough = duration >= p.tau_l
+    kept_iv = common[long_enough]
+    short_iv = common[~long_enough]
+    kept, per_series = [], []
+    total = dict.fromkeys(MODULE2_REASONS, 0)
+    n_in = n_kept = 0
+    for s, t in zip(series, times, strict=True):
+        n = t.size
+        mark = np.zeros(n + 1, dtype=int)
+        if kept_iv.shape[0] and n:
+            lo = np.searchsorted(t, kept_iv[:, 0], side="right") - 1
+            hi = np.searchsorted(t, kept_iv[:, 1], side="left")
+            np.add.at(mark, np.clip(lo, 0, n - 1), 1)
+            np.add.at(mark, np.clip(hi, 0, n - 1) + 1, -1)
+        keep = np.cumsum(mark)[:n] > 0
+        in_short = np.zeros(n, dtype=bool)
+        if short_iv.shape[0] and n:
+            k = np.searchsorted(short_iv[:, 0], t, side="right") - 1
+            ok = k >= 0
+            in_short[ok] = t[ok] <= short_iv[k[ok], 1]
+        counts = {
+            "not_all_tracked": int(np.sum(~keep & ~in_short)),
+            "short_interval": int(np.sum(~keep & in_short)),
+        }
+        for r in MODULE2_REASONS:
+            total[r] += counts[r]
+        per_series.append(counts)
+        n_in += n
+        n_kept += int(keep.sum())
+        kept.append(s.select(keep))
+    report = FilterReport("module2", n_in, n_kept, total, tuple(per_series), kept_iv.shape[0])
+    return kept, kept_iv, report

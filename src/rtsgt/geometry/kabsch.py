@@ -1,0 +1,72 @@
+r"""Least-squares rigid fit of point sets (Kabsch / Umeyama without scale).
+
+Solves, for each batch element, ``argmin_{R, t} sum_i w_i ||q_i - (R p_i + t)||^2`` over proper
+rotations (``det R = +1``: the reflection case is guarded by flipping the smallest singular
+direction, Umeyama 1991, eq. 39).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from rtsgt.errors import GeometryError
+
+
+def kabsch(
+    p_b: ArrayLike, q_a: ArrayLike, weights: ArrayLike | None = None, *, check: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid transform ``T_a_b`` that maps points ``p_b`` onto ``q_a``.
+
+    Parameters
+    ----------
+    p_b : array_like, shape (..., N, 3)
+        Points in the source frame b.
+    q_a : array_like, shape (..., N, 3)
+        The same points in the target frame a.
+    weights : array_like, shape (..., N), optional
+        Non-negative weights (uniform when None).
+    check : bool
+        Raise :class:`GeometryError` when a batch element is degenerate (fewer than 3 points, or
+        the points are collinear so that the rotation is not determined).
+
+    Returns
+    -------
+    R_a_b : ndarray, shape (..., 3, 3)
+    t_a_b : ndarray, shape (..., 3)
+        With ``q_a ~= R_a_b @ p_b + t_a_b``.
+    """
+    p = np.asarray(p_b, dtype=float)
+    q = np.asarray(q_a, dtype=float)
+    if p.shape != q.shape or p.shape[-1] != 3 or p.ndim < 2:
+        raise ValueError(f"Expected two arrays of shape (..., N, 3), got {p.shape} and {q.shape}")
+    n = p.shape[-2]
+    if n < 3:
+        raise GeometryError(f"A rigid fit needs at least 3 points, got {n}")
+    if weights is None:
+        w = np.full(p.shape[:-1], 1.0 / n)
+    else:
+        w = np.broadcast_to(np.asarray(weights, dtype=float), p.shape[:-1])
+        if np.any(w < 0) or not np.all(np.isfinite(w)):
+            raise ValueError("Expected finite non-negative weights")
+        w = w / w.sum(axis=-1, keepdims=True)
+    pc = np.einsum("...i,...ij->...j", w, p)
+    qc = np.einsum("...i,...ij->...j", w, q)
+    p0 = p - pc[..., None, :]
+    q0 = q - qc[..., None, :]
+    H = np.einsum("...i,...ij,...ik->...jk", w, p0, q0)  # cross-covariance, sum w p q^T
+    U, S, Vt = np.linalg.svd(H)
+    if check:
+        # rank of the centred source cloud: the second singular value must not vanish
+        scale = np.maximum(S[..., 0], np.finfo(float).tiny)
+        if np.any(S[..., 1] / scale < 1e-10):
+            raise GeometryError("Degenerate rigid fit: the points are (nearly) collinear")
+    d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
+    d = np.where(d == 0, 1.0, d)
+    D = np.zeros(H.shape)
+    D[..., 0, 0] = 1.0
+    D[..., 1, 1] = 1.0
+    D[..., 2, 2] = d
+    R = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
+    t = qc - np.einsum("...ij,...j->...i", R, pc)
+    return R, t

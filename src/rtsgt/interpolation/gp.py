@@ -1,0 +1,1095 @@
+r"""Exact Gaussian-process interpolation of a prism track with a white-noise-on-acceleration prior.
+
+Model (DESIGN.md section 4; Barfoot, Tong and Särkkä 2014, "Batch continuous-time trajectory
+estimation as exactly sparse Gaussian process regression", RSS)
+---------------------------------------------------------------------------------------------
+The state of a prism is ``x = [p; v]`` (position, m, and velocity, m/s, in the frame of the
+track), driven by white noise on the acceleration with power spectral density ``Qc`` (3x3,
+m^2/s^3). Between two times ``s < t`` with ``dt = t - s``:
+
+.. math::
+
+    x(t) = \Phi(dt)\,x(s) + w,\quad w \sim N(0, Q(dt)),\qquad
+    \Phi(dt) = \begin{bmatrix} I & dt\,I \\ 0 & I \end{bmatrix},\quad
+    Q(dt) = \begin{bmatrix} dt^3/3\,Q_c & dt^2/2\,Q_c \\ dt^2/2\,Q_c & dt\,Q_c \end{bmatrix}
+
+and each measurement is ``y_k = p(t_k) + n_k``, ``n_k ~ N(0, Sigma_k)`` with a full 3x3
+covariance per measurement.
+
+Prior on the first state
+------------------------
+By default the prior on ``x(t_0)`` is **diffuse**: an improper flat density on the six
+components of ``x(t_0)`` (zero prior information on position and velocity). The posterior is
+then the limit of the posterior under a Gaussian prior ``N(m0, P0)`` when ``P0^-1 -> 0``; it is
+proper as soon as the track has two measurements, it does not depend on any arbitrary number,
+and it is translation-equivariant (shifting every measurement shifts the posterior mean).
+Because a flat density pushed through the prior stays flat, placing the diffuse prior at any
+time before ``t_0`` gives the same posterior (used for extrapolation before ``t_0``).
+A proper Gaussian prior ``N(m0, P0)`` on ``x(t_0)`` can be given instead.
+
+Algorithm
+---------
+The negative log posterior is a quadratic form with a block-tridiagonal information matrix
+``J`` (6x6 blocks): ``J_kk = Qinv_{k-1} + Phi_k^T Qinv_k Phi_k + H^T Sigma_k^-1 H``,
+``J_k,k+1 = -Phi_k^T Qinv_k``, right-hand side ``h_k = H^T Sigma_k^-1 y_k`` (plus ``P0^-1`` and
+``P0^-1 m0`` at ``k = 0`` for a proper prior). It is solved exactly by **block cyclic
+reduction**: odd-indexed blocks are eliminated (Schur complement onto the even blocks) level
+after level, each level one batched numpy operation over all the blocks it eliminates; the back
+substitution recovers the posterior means and the selected inverse of ``J``: the marginal
+covariance of every knot and the lag-one cross-covariances ``Cov(x_k, x_k+1)``. Block cyclic
+reduction is block Gaussian elimination of the SPD matrix ``J`` in an odd-even order, so it is
+a (stable) block Cholesky factorisation; it gives the same posterior as a Kalman filter followed
+by a Rauch-Tung-Striebel smoother, in O(N) operations (N + N/2 + N/4 + ...) with O(log N)
+Python steps, instead of N sequential Python steps.
+
+Marginal likelihood
+-------------------
+With ``c = sum_k y_k^T Sigma_k^-1 y_k`` (plus the prior term), the marginal likelihood (for the
+diffuse prior: the density of the data with ``x(t_0)`` integrated over Lebesgue measure, the
+"diffuse likelihood" of de Jong 1991) is
+
+.. math::
+
+    \log L = -\tfrac12 (c - h^T J^{-1} h) - \tfrac12 \sum_k \log|Sigma_k|
+             - \tfrac12 \sum_k \log|Q(dt_k)| - \tfrac12 \log|J| + \text{const}
+
+with const ``= (3 - 1.5 N) log(2 pi)`` for the diffuse prior and
+``-1.5 N log(2 pi) - 0.5 log|P0|`` for a proper prior. ``c - h^T J^-1 h`` is evaluated as the
+sum of the whitened residuals (measurements and prior increments) at the posterior mean, which
+avoids cancellation, and ``log|J|`` comes from the Cholesky factors of the pivots of the cyclic
+reduction. This is the same number as the prediction-error decomposition of the exact diffuse
+Kalman filter, ``log L = -3 log(t_1 - t_0) + sum_{k>=2} log N(e_k; 0, S_k)`` with ``e_k, S_k``
+the innovations and their covariances (the first two measurements fix the state; the first
+term is the Jacobian of that change of variables); the tests check both identities.
+
+Queries (DESIGN.md section 4)
+-----------------------------
+At a time ``tau`` between knots ``k`` and ``k+1`` (``s = (tau - t_k) / (t_k+1 - t_k)``)
+the posterior is the conditional Gaussian given both knot states:
+``Psi = Q(tau-t_k) Phi(t_k+1-tau)^T Q(t_k+1-t_k)^-1``,
+``Lambda = Phi(tau-t_k) - Psi Phi(t_k+1-t_k)``, mean ``Lambda x_k + Psi x_k+1``, covariance
+``[Lambda Psi] P_(k,k+1) [Lambda Psi]^T + Q(tau-t_k) - Psi Phi(t_k+1-tau) Q(tau-t_k)``.
+For this prior ``Lambda`` and ``Psi`` do not depend on ``Qc``: they are the cubic Hermite
+basis (``Psi[p,p] = 3 s^2 - 2 s^3`` ...), evaluated here in closed form in ``s``; the last
+term is ``kron(q, Qc)`` with ``q = [[D^3 s^3 (1-s)^3 / 3, D^2 s^2 (1-s)^2 (1-2s) / 2], [.,
+D s (1-s) (1 - 3s + 3s^2)]]``, ``D = t_k+1 - t_k``. A query exactly on a knot returns that
+knot's posterior. After the last knot the prediction is ``Phi(d) x_N`` with covariance
+``Phi P_N Phi^T + Q(d)``; before the first knot (flat prior at the query time) it is
+``Phi(-d) x_0`` with covariance ``Phi(-d) (P_0 + Q(d)) Phi(-d)^T``. Extrapolation and
+interpolation across a gap longer than ``max_gap_s`` are refused unless asked for, and then
+flagged.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy import optimize
+
+from rtsgt.errors import ExtrapolationError, InputError, RtsgtError
+from rtsgt.types import PrismTrack
+
+__all__ = [
+    "DEFAULT_MAX_GAP_S",
+    "QC_BOUNDS",
+    "GPQuery",
+    "GPTrack",
+    "QcFitInfo",
+    "as_qc",
+    "fit_qc",
+    "fit_track",
+    "log_marginal_likelihood",
+    "wnoa_phi",
+    "wnoa_q",
+    "wnoa_q_inv",
+]
+
+#: Default longest gap between two measurements across which a query is answered, s
+#: (the gap-splitting threshold tau_s of Vaidis et al. 2022).
+DEFAULT_MAX_GAP_S = 3.0
+
+#: Search interval of a fitted Qc (each diagonal entry), m^2/s^3.
+QC_BOUNDS = (1e-12, 1e6)
+
+_LOG_2PI = math.log(2.0 * math.pi)
+_EYE3 = np.eye(3)
+_QUERY_CHUNK = 1 << 16
+
+
+# --------------------------------------------------------------------------------------------
+# WNOA building blocks
+# --------------------------------------------------------------------------------------------
+
+
+def _kron2(a: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """``kron(a, m)`` for a batch of 2x2 ``a`` (..., 2, 2) and a 3x3 ``m``: shape (..., 6, 6)."""
+    out = a[..., :, None, :, None] * m[..., None, :, None, :]
+    return out.reshape(out.shape[:-4] + (6, 6))
+
+
+def _sym(a: np.ndarray) -> np.ndarray:
+    return 0.5 * (a + np.swapaxes(a, -1, -2))
+
+
+def as_qc(qc: ArrayLike, name: str = "qc") -> np.ndarray:
+    """Power spectral density ``Qc`` as a 3x3 SPD matrix, m^2/s^3.
+
+    Parameters
+    ----------
+    qc : float, array_like of shape (3,) or (3, 3)
+        A scalar ``q`` (``Qc = q I``, isotropic), the diagonal of ``Qc`` (one value per axis),
+        or the full symmetric positive definite matrix.
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+
+    Raises
+    ------
+    InputError
+        Not finite, not positive, not symmetric or not positive definite.
+    """
+    a = np.asarray(qc, dtype=float)
+    if a.ndim == 0:
+        a = a * _EYE3
+    elif a.shape == (3,):
+        a = np.diag(a)
+    elif a.shape != (3, 3):
+        raise InputError(f"Expected {name} as a scalar, shape (3,) or (3, 3), got shape {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise InputError(f"Expected a finite {name}, got {a.tolist()}")
+    scale = np.abs(a).max()
+    if np.any(np.abs(a - a.T) > 1e-12 * scale):
+        raise InputError(f"Expected a symmetric {name}, got {a.tolist()}")
+    try:
+        np.linalg.cholesky(a)
+    except np.linalg.LinAlgError:
+        raise InputError(
+            f"Expected a positive definite {name} (m^2/s^3), got {a.tolist()}"
+        ) from None
+    return _sym(a)
+
+
+def _as_dt(dt: ArrayLike, positive: bool) -> np.ndarray:
+    d = np.asarray(dt, dtype=float)
+    if not np.all(np.isfinite(d)):
+        raise InputError("Expected finite time steps dt (s)")
+    if positive and np.any(d <= 0):
+        raise InputError(f"Expected time steps dt > 0 s, got min {float(d.min())!r}")
+    return d
+
+
+def wnoa_phi(dt: ArrayLike) -> np.ndarray:
+    """Transition matrix ``Phi(dt) = [[I, dt I], [0, I]]`` of the WNOA prior.
+
+    Parameters
+    ----------
+    dt : float or array_like, shape (...)
+        Time step, s (may be negative: ``Phi(-dt)`` is the inverse of ``Phi(dt)``).
+
+    Returns
+    -------
+    ndarray, shape (..., 6, 6)
+        Acts on the state ``[p; v]``.
+    """
+    d = _as_dt(dt, positive=False)
+    a = np.zeros(d.shape + (2, 2))
+    a[..., 0, 0] = a[..., 1, 1] = 1.0
+    a[..., 0, 1] = d
+    return _kron2(a, _EYE3)
+
+
+def _q_coef(d: np.ndarray) -> np.ndarray:
+    a = np.empty(d.shape + (2, 2))
+    a[..., 0, 0] = d**3 / 3.0
+    a[..., 0, 1] = a[..., 1, 0] = d**2 / 2.0
+    a[..., 1, 1] = d
+    return a
+
+
+def _qinv_coef(d: np.ndarray) -> np.ndarray:
+    a = np.empty(d.shape + (2, 2))
+    a[..., 0, 0] = 12.0 / d**3
+    a[..., 0, 1] = a[..., 1, 0] = -6.0 / d**2
+    a[..., 1, 1] = 4.0 / d
+    return a
+
+
+def wnoa_q(dt: ArrayLike, qc: ArrayLike) -> np.ndarray:
+    """Process-noise covariance ``Q(dt)`` of the WNOA prior (DESIGN.md section 4).
+
+    ``Q(dt) = [[dt^3/3 Qc, dt^2/2 Qc], [dt^2/2 Qc, dt Qc]]``.
+
+    Parameters
+    ----------
+    dt : float or array_like, shape (...)
+        Time step, s, >= 0.
+    qc : float, array_like (3,) or (3, 3)
+        Power spectral density, m^2/s^3 (see :func:`as_qc`).
+
+    Returns
+    -------
+    ndarray, shape (..., 6, 6)
+        Covariance of ``[p; v]``, m^2, m^2/s, m^2/s^2.
+    """
+    d = _as_dt(dt, positive=False)
+    if np.any(d < 0):
+        raise InputError(f"Expected time steps dt >= 0 s, got min {float(d.min())!r}")
+    return _kron2(_q_coef(d), as_qc(qc))
+
+
+def wnoa_q_inv(dt: ArrayLike, qc: ArrayLike) -> np.ndarray:
+    """Inverse of :func:`wnoa_q`, in closed form.
+
+    ``Q(dt)^-1 = [[12/dt^3 Qc^-1, -6/dt^2 Qc^-1], [-6/dt^2 Qc^-1, 4/dt Qc^-1]]``.
+
+    Parameters
+    ----------
+    dt : float or array_like, shape (...)
+        Time step, s, > 0.
+    qc : float, array_like (3,) or (3, 3)
+        Power spectral density, m^2/s^3.
+
+    Returns
+    -------
+    ndarray, shape (..., 6, 6)
+    """
+    d = _as_dt(dt, positive=True)
+    return _kron2(_qinv_coef(d), _spd_inv(as_qc(qc)))
+
+
+def _spd_inv(a: np.ndarray) -> np.ndarray:
+    """Inverse of one SPD matrix through its Cholesky factor."""
+    L = np.linalg.cholesky(a)
+    Li = np.linalg.solve(L, np.eye(a.shape[-1]))
+    return _sym(Li.T @ Li)
+
+
+# --------------------------------------------------------------------------------------------
+# Input validation
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Data:
+    """Validated measurements, centred on ``y_ref`` for conditioning."""
+
+    t: np.ndarray  # (N,)
+    y: np.ndarray  # (N, 3), centred
+    y_ref: np.ndarray  # (3,)
+    r_inv: np.ndarray  # (N, 3, 3)
+    logdet_r: float  # sum_k log|Sigma_k|
+    prior_inv: np.ndarray | None  # (6, 6) P0^-1 or None (diffuse)
+    prior_mean: np.ndarray | None  # (6,) m0, centred
+    logdet_p0: float
+    prism: str
+    frame: str
+
+
+def _track_arrays(track) -> tuple[np.ndarray, np.ndarray, np.ndarray, str, str]:
+    if isinstance(track, PrismTrack):
+        return track.t, track.xyz, track.cov, track.prism, track.frame
+    if isinstance(track, Sequence) and len(track) == 3:
+        t, xyz, cov = track
+        try:
+            t = np.asarray(t, dtype=float)
+            xyz = np.asarray(xyz, dtype=float)
+            cov = np.asarray(cov, dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"Expected numeric arrays (t, xyz, cov), got {exc}") from None
+        return t, xyz, cov, "1", "world"
+    raise InputError(
+        f"Expected a PrismTrack or a tuple (t, xyz, cov), got {type(track).__name__}"
+    )
+
+
+def _check_measurements(t, xyz, cov) -> np.ndarray:
+    """Validate a track; return the (N, 3, 3) Cholesky factors of the covariances."""
+    if t.ndim != 1:
+        raise InputError(f"Expected t of shape (N,), got {t.shape}")
+    n = t.shape[0]
+    if n < 2:
+        raise InputError(f"Expected at least 2 measurements to fit a track, got {n}")
+    if xyz.shape != (n, 3):
+        raise InputError(f"Expected xyz of shape ({n}, 3), got {xyz.shape}")
+    if cov.shape != (n, 3, 3):
+        raise InputError(f"Expected cov of shape ({n}, 3, 3), got {cov.shape}")
+    for name, a in (("t", t), ("xyz", xyz), ("cov", cov)):
+        bad = ~np.isfinite(a.reshape(n, -1)).all(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InputError(
+                f"Expected finite values, got NaN or inf in {name} of measurement {i} "
+                f"(t = {float(t[i])!r} s)"
+            )
+    dt = np.diff(t)
+    bad = np.flatnonzero(dt <= 0)
+    if bad.size:
+        i = int(bad[0])
+        what = "duplicated" if dt[i] == 0 else "unsorted"
+        raise InputError(
+            f"Expected strictly increasing times, got {what} times: measurement {i + 1} "
+            f"(t = {float(t[i + 1])!r} s) after measurement {i} (t = {float(t[i])!r} s)"
+        )
+    scale = np.abs(cov).max(axis=(1, 2))
+    asym = np.abs(cov - np.swapaxes(cov, 1, 2)).max(axis=(1, 2))
+    bad = np.flatnonzero(asym > 1e-9 * scale)
+    if bad.size:
+        i = int(bad[0])
+        raise InputError(
+            f"Expected a symmetric covariance, got {cov[i].tolist()} for measurement {i} "
+            f"(t = {float(t[i])!r} s)"
+        )
+    try:
+        return np.linalg.cholesky(_sym(cov))
+    except np.linalg.LinAlgError:
+        eig = np.linalg.eigvalsh(_sym(cov))
+        i = int(np.flatnonzero(~(eig[:, 0] > 0))[0])
+        raise InputError(
+            f"Expected a positive definite covariance (m^2), got eigenvalues "
+            f"{eig[i].tolist()} for measurement {i} (t = {float(t[i])!r} s)"
+        ) from None
+
+
+def _prepare(track, initial_state_cov=None, initial_state_mean=None) -> _Data:
+    t, xyz, cov, prism, frame = _track_arrays(track)
+    L = _check_measurements(t, xyz, cov)
+    li = np.linalg.inv(L)  # lower-triangular inverses, (N, 3, 3)
+    r_inv = _sym(np.swapaxes(li, 1, 2) @ li)
+    logdet_r = 2.0 * float(np.log(np.diagonal(L, axis1=1, axis2=2)).sum())
+    y_ref = xyz[0].copy()
+    y = xyz - y_ref
+    prior_inv = prior_mean = None
+    logdet_p0 = 0.0
+    if initial_state_cov is not None:
+        p0 = np.asarray(initial_state_cov, dtype=float)
+        if p0.shape != (6, 6) or not np.all(np.isfinite(p0)):
+            raise InputError(f"Expected a finite initial_state_cov of shape (6, 6), got {p0.shape}")
+        if np.any(np.abs(p0 - p0.T) > 1e-12 * np.abs(p0).max()):
+            raise InputError("Expected a symmetric initial_state_cov")
+        try:
+            lp = np.linalg.cholesky(_sym(p0))
+        except np.linalg.LinAlgError:
+            raise InputError("Expected a positive definite initial_state_cov") from None
+        logdet_p0 = 2.0 * float(np.log(np.diag(lp)).sum())
+        prior_inv = _spd_inv(p0)
+        if initial_state_mean is None:
+            m0 = np.concatenate([xyz[0], np.zeros(3)])
+        else:
+            m0 = np.asarray(initial_state_mean, dtype=float)
+            if m0.shape != (6,) or not np.all(np.isfinite(m0)):
+                raise InputError(
+                    f"Expected a finite initial_state_mean of shape (6,), got {m0.shape}"
+                )
+        prior_mean = m0 - np.concatenate([y_ref, np.zeros(3)])
+    elif initial_state_mean is not None:
+        raise InputError(
+            "initial_state_mean needs initial_state_cov (the default prior is diffuse)"
+        )
+    return _Data(t, y, y_ref, r_inv, logdet_r, prior_inv, prior_mean, logdet_p0, prism, frame)
+
+
+# --------------------------------------------------------------------------------------------
+# Block-tridiagonal system and its solution by block cyclic reduction
+# --------------------------------------------------------------------------------------------
+
+
+def _build_system(data: _Data, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Blocks of the information matrix and information vector (module docstring).
+
+    Returns D (N, 6, 6), B (N-1, 6, 6) with ``B_k = J_k,k+1``, h (N, 6).
+    """
+    n = data.t.shape[0]
+    dt = np.diff(data.t)
+    a, b, c, e = 12.0 / dt**3, 6.0 / dt**2, 4.0 / dt, 2.0 / dt
+    coef_d = np.zeros((n, 2, 2))
+    # Qinv_{k-1} = kron([[a, -b], [-b, c]], W) enters D_k
+    coef_d[1:, 0, 0] += a
+    coef_d[1:, 0, 1] -= b
+    coef_d[1:, 1, 0] -= b
+    coef_d[1:, 1, 1] += c
+    # Phi_k^T Qinv_k Phi_k = kron([[a, b], [b, c]], W) enters D_k
+    coef_d[:-1, 0, 0] += a
+    coef_d[:-1, 0, 1] += b
+    coef_d[:-1, 1, 0] += b
+    coef_d[:-1, 1, 1] += c
+    D = _kron2(coef_d, w)
+    D[:, :3, :3] += data.r_inv
+    # J_k,k+1 = -Phi_k^T Qinv_k = -kron([[a, -b], [b, -2/dt]], W)
+    coef_b = np.empty((n - 1, 2, 2))
+    coef_b[:, 0, 0] = -a
+    coef_b[:, 0, 1] = b
+    coef_b[:, 1, 0] = -b
+    coef_b[:, 1, 1] = e
+    B = _kron2(coef_b, w)
+    h = np.zeros((n, 6))
+    h[:, :3] = np.einsum("nij,nj->ni", data.r_inv, data.y)
+    if data.prior_inv is not None:
+        D[0] += data.prior_inv
+        h[0] += data.prior_inv @ data.prior_mean
+    return D, B, h
+
+
+def _chol_logdet(a: np.ndarray) -> float:
+    try:
+        L = np.linalg.cholesky(a)
+    except np.linalg.LinAlgError:
+        raise RtsgtError(
+            "The information matrix of the track is not numerically positive definite "
+            "(extreme time steps or covariances?)"
+        ) from None
+    return 2.0 * float(np.log(np.diagonal(L, axis1=-2, axis2=-1)).sum())
+
+
+def _bcr(D: np.ndarray, B: np.ndarray, h: np.ndarray, want_cov: bool):
+    """Solve ``J x = h`` for a block-tridiagonal SPD ``J`` by block cyclic reduction.
+
+    Level by level, the odd-indexed blocks are eliminated (Schur complement onto the even
+    blocks); an odd block without a right neighbour (even count) gets a zero coupling.
+
+    Returns
+    -------
+    mean : (N, 6)
+    logdet : float, ``log|J|``
+    S : (N, 6, 6) diagonal blocks of ``J^-1`` or None
+    C : (N-1, 6, 6) blocks ``(J^-1)_k,k+1`` or None
+    """
+    levels = []
+    logdet = 0.0
+    while D.shape[0] > 1:
+        n = D.shape[0]
+        n_even = (n + 1) // 2
+        d_odd = D[1::2]
+        b_left = B[0::2]  # J_{i-1,i} for odd i
+        b_right = B[1::2]  # J_{i,i+1} for odd i (none for the last odd when n is even)
+        if n % 2 == 0:
+            b_right = np.concatenate([b_right, np.zeros((1, 6, 6))])
+        logdet += _chol_logdet(d_odd)
+        d_inv = _sym(np.linalg.inv(d_odd))
+        b_left_t = np.swapaxes(b_left, 1, 2)
+        b_right_t = np.swapaxes(b_right, 1, 2)
+        ga = d_inv @ b_left_t  # D_i^-1 J_{i,i-1}
+        gb = d_inv @ b_right  # D_i^-1 J_{i,i+1}
+        g = np.einsum("nij,nj->ni", d_inv, h[1::2])
+        # Schur complement onto the even blocks
+        d_even = D[0::2].copy()
+        n_odd = d_odd.shape[0]
+        d_even[:n_odd] -= b_left @ ga
+        d_even[1:] -= (b_right_t @ gb)[: n_even - 1]
+        h_even = h[0::2].copy()
+        h_even[:n_odd] -= np.einsum("nij,nj->ni", b_left, g)
+        h_even[1:] -= np.einsum("nij,nj->ni", b_right_t, g)[: n_even - 1]
+        b_even = -(b_left @ gb)[: n_even - 1]
+        levels.append((d_inv, b_left_t, b_right, g, n))
+        D, B, h = _sym(d_even), b_even, h_even
+    logdet += _chol_logdet(D)
+    s0 = _sym(np.linalg.inv(D))
+    mean = np.einsum("nij,nj->ni", s0, h)
+    S = s0 if want_cov else None
+    C = np.zeros((0, 6, 6)) if want_cov else None
+    for d_inv, b_left_t, b_right, g, n in reversed(levels):
+        ga = d_inv @ b_left_t
+        gb = d_inv @ b_right
+        m_e = mean
+        if n % 2 == 0:  # a zero neighbour to the right of the last odd block
+            m_e = np.concatenate([m_e, np.zeros((1, 6))])
+        m_o = g - np.einsum("nij,nj->ni", ga, m_e[:-1]) - np.einsum("nij,nj->ni", gb, m_e[1:])
+        mean = np.empty((n, 6))
+        mean[0::2] = m_e[: (n + 1) // 2]
+        mean[1::2] = m_o
+        if want_cov:
+            s_e, c_e = S, C
+            if n % 2 == 0:
+                s_e = np.concatenate([s_e, np.zeros((1, 6, 6))])
+                c_e = np.concatenate([c_e, np.zeros((1, 6, 6))])
+            # rows i (odd) of J Sigma = I, neighbours a = i-1 and b = i+1:
+            # Sigma_ia = -(G_a Sigma_aa + G_b Sigma_ba), Sigma_ib = -(G_a Sigma_ab + G_b Sigma_bb)
+            s_ia = -(ga @ s_e[:-1] + gb @ np.swapaxes(c_e, 1, 2))
+            s_ib = -(ga @ c_e + gb @ s_e[1:])
+            # Sigma_ii = D_i^-1 - G_a Sigma_ai - G_b Sigma_bi
+            s_ii = d_inv - ga @ np.swapaxes(s_ia, 1, 2) - gb @ np.swapaxes(s_ib, 1, 2)
+            S = np.empty((n, 6, 6))
+            S[0::2] = s_e[: (n + 1) // 2]
+            S[1::2] = _sym(s_ii)
+            C = np.empty((n - 1, 6, 6))
+            C[0::2] = np.swapaxes(s_ia, 1, 2)
+            C[1::2] = s_ib[: (n - 1) // 2]
+    return mean, logdet, S, C
+
+
+def _solve(data: _Data, qc: np.ndarray, want_cov: bool):
+    """Posterior (centred) and log marginal likelihood for one Qc."""
+    w = _spd_inv(qc)
+    D, B, h = _build_system(data, w)
+    mean, logdet_j, S, C = _bcr(D, B, h, want_cov)
+    n = data.t.shape[0]
+    dt = np.diff(data.t)
+    # whitened residuals at the posterior mean: c - h^T J^-1 h
+    r = data.y - mean[:, :3]
+    quad = float(np.einsum("ni,nij,nj->", r, data.r_inv, r))
+    ep = mean[1:, :3] - mean[:-1, :3] - dt[:, None] * mean[:-1, 3:]
+    ev = mean[1:, 3:] - mean[:-1, 3:]
+    epw = ep @ w
+    evw = ev @ w
+    quad += float(
+        np.sum(12.0 / dt**3 * np.einsum("ni,ni->n", epw, ep))
+        - np.sum(12.0 / dt**2 * np.einsum("ni,ni->n", epw, ev))
+        + np.sum(4.0 / dt * np.einsum("ni,ni->n", evw, ev))
+    )
+    logdet_q = float(np.sum(3.0 * np.log(dt**4 / 12.0))) + 2.0 * (n - 1) * _chol_logdet(qc)
+    if data.prior_inv is None:
+        const = (3.0 - 1.5 * n) * _LOG_2PI
+    else:
+        e0 = mean[0] - data.prior_mean
+        quad += float(e0 @ data.prior_inv @ e0)
+        const = -1.5 * n * _LOG_2PI - 0.5 * data.logdet_p0
+    loglik = -0.5 * quad - 0.5 * data.logdet_r - 0.5 * logdet_q - 0.5 * logdet_j + const
+    return mean, S, C, loglik
+
+
+# --------------------------------------------------------------------------------------------
+# Qc estimation
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class QcFitInfo:
+    """Outcome of the maximum-marginal-likelihood estimation of ``Qc``.
+
+    Attributes
+    ----------
+    mode : str
+        ``"isotropic"`` (``Qc = q I``) or ``"per-axis"`` (``Qc = diag(q)``).
+    qc : ndarray, shape (3, 3)
+        Estimated power spectral density, m^2/s^3.
+    log_likelihood : float
+        Log marginal likelihood at ``qc``.
+    converged : bool
+        The optimiser met its tolerance and the estimate is not on a bound of
+        :data:`QC_BOUNDS`.
+    at_bound : bool
+        The estimate sits on a bound (e.g. a static prism: no detectable acceleration).
+    n_evaluations : int
+        Number of likelihood evaluations.
+    n_iterations : int
+        Iterations of the final optimiser.
+    message : str
+    """
+
+    mode: str
+    qc: np.ndarray
+    log_likelihood: float
+    converged: bool
+    at_bound: bool
+    n_evaluations: int
+    n_iterations: int
+    message: str
+
+
+def _fit_qc_data(
+    data: _Data,
+    mode: str,
+    qc0,
+    bounds: tuple[float, float],
+    max_iter: int,
+    tol: float,
+) -> QcFitInfo:
+    if mode not in ("isotropic", "per-axis"):
+        raise InputError(f"Expected qc_mode 'isotropic' or 'per-axis', got {mode!r}")
+    lo, hi = (float(b) for b in bounds)
+    if not (0 < lo < hi < np.inf):
+        raise InputError(f"Expected Qc bounds 0 < lo < hi, got {bounds!r}")
+    if max_iter < 1 or not tol > 0:
+        raise InputError(f"Expected max_iter >= 1 and tol > 0, got {max_iter!r}, {tol!r}")
+    slo, shi = math.log(lo), math.log(hi)
+    n_eval = 0
+
+    def negll(s: np.ndarray) -> float:
+        nonlocal n_eval
+        n_eval += 1
+        q = np.exp(np.clip(np.atleast_1d(s), slo, shi))
+        qc = q[0] * _EYE3 if q.size == 1 else np.diag(q)
+        return -_solve(data, qc, want_cov=False)[3]
+
+    # isotropic: coarse grid over the decades, then bounded Brent in log space
+    if qc0 is None:
+        grid = np.linspace(slo, shi, int(round((shi - slo) / math.log(10.0))) + 1)
+        vals = np.array([negll(np.array([s])) for s in grid])
+        i = int(np.argmin(vals))
+        a, b = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    else:
+        s0 = math.log(float(np.clip(np.mean(np.diag(as_qc(qc0))), lo, hi)))
+        a, b = max(s0 - 2 * math.log(10.0), slo), min(s0 + 2 * math.log(10.0), shi)
+    res = optimize.minimize_scalar(
+        lambda s: negll(np.array([s])),
+        bounds=(a, b),
+        method="bounded",
+        options={"xatol": tol, "maxiter": max_iter},
+    )
+    s_iso = float(res.x)
+    converged = bool(res.success)
+    n_iter = int(getattr(res, "nit", 0))
+    message = str(res.message)
+    # the bracket may have cut the optimum: refuse an estimate on an inner bracket edge
+    edge = min(abs(s_iso - a), abs(s_iso - b)) < 10 * tol
+    inner_edge = edge and not (abs(s_iso - slo) < 10 * tol or abs(s_iso - shi) < 10 * tol)
+    if inner_edge:
+        converged = False
+        message = "optimum on the edge of the search bracket; give a better qc0"
+    s_best = np.array([s_iso])
+    best = float(res.fun)
+    if mode == "per-axis":
+        res3 = optimize.minimize(
+            negll,
+            np.full(3, s_iso),
+            method="L-BFGS-B",
+            bounds=[(slo, shi)] * 3,
+            options={"maxiter": max_iter, "ftol": tol * 1e-3, "gtol": tol},
+        )
+        s_best = np.asarray(res3.x, dtype=float)
+        best = float(res3.fun)
+        converged = bool(res3.success)
+        n_iter = int(res3.nit)
+        message = str(res3.message)
+    q = np.exp(np.clip(s_best, slo, shi))
+    log_q = np.log(q)
+    at_bound = bool(np.any((np.abs(log_q - slo) < 10 * tol) | (np.abs(log_q - shi) < 10 * tol)))
+    if at_bound:
+        converged = False
+        message = (
+            f"Qc on the bound of the search interval {bounds!r} m^2/s^3: the data do not "
+            "determine it (a static prism gives no acceleration to measure)"
+        )
+    qc = q[0] * _EYE3 if q.size == 1 else np.diag(q)
+    return QcFitInfo(mode, _readonly(qc), -best, converged, at_bound, n_eval, n_iter, message)
+
+
+def fit_qc(
+    track,
+    *,
+    mode: str = "isotropic",
+    qc0=None,
+    initial_state_cov: ArrayLike | None = None,
+    initial_state_mean: ArrayLike | None = None,
+    bounds: tuple[float, float] = QC_BOUNDS,
+    max_iter: int = 200,
+    tol: float = 1e-4,
+) -> tuple[np.ndarray, float, QcFitInfo]:
+    """Estimate ``Qc`` by maximising the marginal likelihood of a track.
+
+    The parameters are optimised in log space: ``log q`` (isotropic, ``Qc = q I``) by a
+    grid over the decades of ``bounds`` followed by bounded Brent search, or
+    ``log q_x, log q_y, log q_z`` (per axis, ``Qc = diag(q)``) by L-BFGS-B started from the
+    isotropic optimum. Each evaluation is one O(N) solve (module docstring).
+
+    Parameters
+    ----------
+    track : PrismTrack or tuple (t, xyz, cov)
+        Times (s, strictly increasing), positions (m) and 3x3 covariances (m^2).
+    mode : {"isotropic", "per-axis"}
+    qc0 : float or array_like, optional
+        Initial guess; the isotropic search then looks within two decades of it instead of
+        scanning all of ``bounds``.
+    initial_state_cov, initial_state_mean : array_like (6, 6) and (6,), optional
+        Proper Gaussian prior on ``x(t_0)``; diffuse when None (module docstring).
+    bounds : (float, float)
+        Search interval of each ``q``, m^2/s^3.
+    max_iter : int
+        Iterations of the optimiser.
+    tol : float
+        Tolerance on ``log q`` (relative tolerance on ``q``).
+
+    Returns
+    -------
+    qc : ndarray, shape (3, 3)
+        Estimated power spectral density, m^2/s^3.
+    log_likelihood : float
+    info : QcFitInfo
+        Convergence report; ``info.converged`` is False when the optimiser stopped early or the
+        estimate sits on a bound.
+    """
+    data = _prepare(track, initial_state_cov, initial_state_mean)
+    info = _fit_qc_data(data, mode, qc0, bounds, max_iter, tol)
+    return np.array(info.qc), info.log_likelihood, info
+
+
+def log_marginal_likelihood(
+    track,
+    qc,
+    *,
+    initial_state_cov: ArrayLike | None = None,
+    initial_state_mean: ArrayLike | None = None,
+) -> float:
+    """Log marginal likelihood of a track under the WNOA prior with power spectral density ``qc``.
+
+    See the module docstring for the formula and the meaning with the diffuse prior.
+    """
+    data = _prepare(track, initial_state_cov, initial_state_mean)
+    return _solve(data, as_qc(qc), want_cov=False)[3]
+
+
+# --------------------------------------------------------------------------------------------
+# Fitted track and queries
+# --------------------------------------------------------------------------------------------
+
+
+def _readonly(a: np.ndarray | None) -> np.ndarray | None:
+    if a is None:
+        return None
+    a = np.ascontiguousarray(a)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True)
+class GPQuery:
+    """Posterior of a track at query times.
+
+    Attributes
+    ----------
+    t : ndarray, shape (Q,)
+        Query times, s.
+    position : ndarray, shape (Q, 3)
+        Posterior mean position, m, frame of the track.
+    position_cov : ndarray, shape (Q, 3, 3)
+        Posterior covariance of the position, m^2.
+    velocity : ndarray, shape (Q, 3) or None
+        Posterior mean velocity, m/s (only with ``with_velocity=True``).
+    velocity_cov : ndarray, shape (Q, 3, 3) or None
+        m^2/s^2 (only with ``with_velocity=True``).
+    state_cov : ndarray, shape (Q, 6, 6) or None
+        Covariance of ``[p; v]`` (only with ``with_velocity=True``).
+    nearest_measurement_dt : ndarray, shape (Q,)
+        Time to the nearest measurement, s.
+    across_gap : ndarray of bool, shape (Q,)
+        The query is not supported by the data: inside a gap longer than ``max_gap_s`` or
+        outside the track (only possible with ``allow_gaps=True``).
+    extrapolated : ndarray of bool, shape (Q,)
+        The query is before the first or after the last measurement (a subset of
+        ``across_gap``).
+    """
+
+    t: np.ndarray
+    position: np.ndarray
+    position_cov: np.ndarray
+    velocity: np.ndarray | None
+    velocity_cov: np.ndarray | None
+    state_cov: np.ndarray | None
+    nearest_measurement_dt: np.ndarray
+    across_gap: np.ndarray
+    extrapolated: np.ndarray
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+    @property
+    def position_sigma(self) -> np.ndarray:
+        """RMS per-axis position standard deviation ``sqrt(trace(cov) / 3)``, m, shape (Q,)."""
+        return np.sqrt(np.trace(self.position_cov, axis1=1, axis2=2) / 3.0)
+
+
+@dataclass(frozen=True)
+class GPTrack:
+    """Fitted posterior of one prism track (WNOA prior), queryable at any time.
+
+    Attributes
+    ----------
+    t : ndarray, shape (N,)
+        Knot (measurement) times, s.
+    mean : ndarray, shape (N, 6)
+        Posterior mean of ``[p; v]`` at each knot, m and m/s.
+    cov : ndarray, shape (N, 6, 6)
+        Posterior marginal covariance of each knot.
+    cross_cov : ndarray, shape (N-1, 6, 6)
+        ``Cov(x_k, x_k+1)``.
+    qc : ndarray, shape (3, 3)
+        Power spectral density used, m^2/s^3.
+    log_likelihood : float
+        Log marginal likelihood of the measurements under ``qc`` (module docstring).
+    max_gap_s : float
+        Longest gap between knots across which :meth:`query` answers without
+        ``allow_gaps``, s.
+    prism, frame : str
+    diffuse_prior : bool
+        Whether the prior on ``x(t_0)`` was diffuse.
+    qc_fit : QcFitInfo or None
+        The estimation report when ``qc`` was estimated.
+    """
+
+    t: np.ndarray
+    mean: np.ndarray
+    cov: np.ndarray
+    cross_cov: np.ndarray
+    qc: np.ndarray
+    log_likelihood: float
+    max_gap_s: float = DEFAULT_MAX_GAP_S
+    prism: str = "1"
+    frame: str = "world"
+    diffuse_prior: bool = True
+    qc_fit: QcFitInfo | None = field(default=None, repr=False)
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+    @property
+    def position(self) -> np.ndarray:
+        """Posterior mean position at the knots, m, shape (N, 3)."""
+        return self.mean[:, :3]
+
+    @property
+    def position_cov(self) -> np.ndarray:
+        """Posterior position covariance at the knots, m^2, shape (N, 3, 3)."""
+        return self.cov[:, :3, :3]
+
+    def supported(self, times: ArrayLike) -> np.ndarray:
+        """Whether each time lies inside the track and in no gap longer than ``max_gap_s``."""
+        tau = np.asarray(times, dtype=float)
+        k = np.searchsorted(self.t, tau, side="right") - 1
+        inside = (tau >= self.t[0]) & (tau <= self.t[-1])
+        kk = np.clip(k, 0, self.t.shape[0] - 2)
+        on_knot = inside & (self.t[np.clip(k, 0, None)] == tau)
+        gap = (self.t[kk + 1] - self.t[kk]) > self.max_gap_s
+        return inside & (on_knot | ~gap)
+
+    def query(
+        self, times: ArrayLike, *, with_velocity: bool = False, allow_gaps: bool = False
+    ) -> GPQuery:
+        """Posterior mean and covariance at arbitrary times (vectorised).
+
+        Parameters
+        ----------
+        times : array_like, shape (Q,)
+            Query times, s, in any order.
+        with_velocity : bool
+            Also return the velocity and the full 6x6 state covariance.
+        allow_gaps : bool
+            Answer queries outside the track or inside a gap longer than ``max_gap_s``
+            (flagged in ``across_gap`` / ``extrapolated``) instead of raising.
+
+        Returns
+        -------
+        GPQuery
+
+        Raises
+        ------
+        InputError
+            Times not finite or not 1-D.
+        ExtrapolationError
+            A query outside the track or across a long gap, without ``allow_gaps``.
+        """
+        tau = np.asarray(times, dtype=float)
+        if tau.ndim == 0:
+            tau = tau[None]
+        if tau.ndim != 1:
+            raise InputError(f"Expected query times of shape (Q,), got {tau.shape}")
+        if not np.all(np.isfinite(tau)):
+            i = int(np.flatnonzero(~np.isfinite(tau))[0])
+            raise InputError(f"Expected finite query times, got {float(tau[i])!r} at index {i}")
+        t = self.t
+        n = t.shape[0]
+        k = np.searchsorted(t, tau, side="right") - 1
+        before = k < 0
+        after = (k == n - 1) & (tau > t[-1])
+        extrap = before | after
+        kc = np.clip(k, 0, n - 1)
+        on_knot = ~before & (t[kc] == tau)
+        interior = ~extrap & ~on_knot
+        ki = np.clip(k, 0, n - 2)
+        gap = interior & ((t[ki + 1] - t[ki]) > self.max_gap_s)
+        unsupported = extrap | gap
+        if not allow_gaps and unsupported.any():
+            i = int(np.flatnonzero(unsupported)[0])
+            count = int(unsupported.sum())
+            if before[i]:
+                why = f"before the first measurement (t = {float(t[0])!r} s)"
+            elif after[i]:
+                why = f"after the last measurement (t = {float(t[-1])!r} s)"
+            else:
+                why = (
+                    f"inside a gap of {t[ki[i] + 1] - t[ki[i]]:.3f} s between measurements at "
+                    f"{float(t[ki[i]])!r} s and {float(t[ki[i] + 1])!r} s, longer than max_gap_s = "
+                    f"{self.max_gap_s!r} s"
+                )
+            raise ExtrapolationError(
+                f"query time {float(tau[i])!r} s is {why} "
+                f"({count} of {tau.size} queries unsupported); query inside the track, "
+                "or pass allow_gaps=True to get a flagged answer"
+            )
+        dim = 6 if with_velocity else 3
+        q = tau.shape[0]
+        mean = np.empty((q, 6))
+        cov = np.empty((q, dim, dim))
+        for lo in range(0, q, _QUERY_CHUNK):
+            sl = slice(lo, min(lo + _QUERY_CHUNK, q))
+            m_c, c_c = self._query_chunk(
+                tau[sl], kc[sl], ki[sl], on_knot[sl], interior[sl], before[sl], after[sl], dim
+            )
+            mean[sl] = m_c
+            cov[sl] = c_c
+        near = np.minimum(np.abs(tau - t[ki]), np.abs(t[ki + 1] - tau))
+        near = np.where(before, t[0] - tau, np.where(after, tau - t[-1], near))
+        cov = _sym(cov)
+        return GPQuery(
+            t=_readonly(tau.copy()),
+            position=_readonly(mean[:, :3]),
+            position_cov=_readonly(cov[:, :3, :3]),
+            velocity=_readonly(mean[:, 3:]) if with_velocity else None,
+            velocity_cov=_readonly(cov[:, 3:, 3:]) if with_velocity else None,
+            state_cov=_readonly(cov) if with_velocity else None,
+            nearest_measurement_dt=_readonly(near),
+            across_gap=_readonly(unsupported),
+            extrapolated=_readonly(extrap),
+        )
+
+    def _query_chunk(self, tau, kc, ki, on_knot, interior, before, after, dim):
+        t, S, C, m = self.t, self.cov, self.cross_cov, self.mean
+        q = tau.shape[0]
+        mean = np.empty((q, 6))
+        cov = np.empty((q, dim, dim))
+        # on a knot: the knot posterior itself
+        idx = np.flatnonzero(on_knot)
+        if idx.size:
+            mean[idx] = m[kc[idx]]
+            cov[idx] = S[kc[idx], :dim, :dim]
+        # between two knots: conditional Gaussian given both knot states (closed form in s)
+        idx = np.flatnonzero(interior)
+        if idx.size:
+            k = ki[idx]
+            big_d = t[k + 1] - t[k]
+            s = (tau[idx] - t[k]) / big_d
+            s2, s3 = s * s, s * s * s
+            lam = np.empty((idx.size, 2, 2))
+            psi = np.empty((idx.size, 2, 2))
+            lam[:, 0, 0] = 1.0 - 3.0 * s2 + 2.0 * s3
+            lam[:, 0, 1] = big_d * (s - 2.0 * s2 + s3)
+            lam[:, 1, 0] = -6.0 * (s - s2) / big_d
+            lam[:, 1, 1] = 1.0 - 4.0 * s + 3.0 * s2
+            psi[:, 0, 0] = 3.0 * s2 - 2.0 * s3
+            psi[:, 0, 1] = big_d * (s3 - s2)
+            psi[:, 1, 0] = 6.0 * (s - s2) / big_d
+            psi[:, 1, 1] = 3.0 * s2 - 2.0 * s
+            u = 1.0 - s
+            qq = np.empty((idx.size, 2, 2))
+            qq[:, 0, 0] = big_d**3 * s3 * u**3 / 3.0
+            qq[:, 0, 1] = qq[:, 1, 0] = big_d**2 * s2 * u * u * (1.0 - 2.0 * s) / 2.0
+            qq[:, 1, 1] = big_d * s * u * (1.0 - 3.0 * s + 3.0 * s2)
+            x0, x1 = m[k], m[k + 1]
+            mean[idx] = _kron_vec(lam, x0) + _kron_vec(psi, x1)
+            wl = _kron2(lam, _EYE3)[:, :dim]
+            wp = _kron2(psi, _EYE3)[:, :dim]
+            s_k, s_k1, c_k = S[k], S[k + 1], C[k]
+            t1 = wl @ s_k + wp @ np.swapaxes(c_k, 1, 2)
+            t2 = wl @ c_k + wp @ s_k1
+            cov[idx] = (
+                t1 @ np.swapaxes(wl, 1, 2)
+                + t2 @ np.swapaxes(wp, 1, 2)
+                + _kron2(qq, self.qc)[:, :dim, :dim]
+            )
+        # after the end: prediction from the last knot
+        idx = np.flatnonzero(after)
+        if idx.size:
+            d = tau[idx] - t[-1]
+            phi = wnoa_phi(d)
+            mean[idx] = np.einsum("nij,j->ni", phi, m[-1])
+            full = phi @ S[-1] @ np.swapaxes(phi, 1, 2) + _kron2(_q_coef(d), self.qc)
+            cov[idx] = full[:, :dim, :dim]
+        # before the start: flat prior at the query time, conditioned on the first knot
+        idx = np.flatnonzero(before)
+        if idx.size:
+            d = t[0] - tau[idx]
+            phi_b = wnoa_phi(-d)
+            mean[idx] = np.einsum("nij,j->ni", phi_b, m[0])
+            inner = S[0] + _kron2(_q_coef(d), self.qc)
+            full = phi_b @ inner @ np.swapaxes(phi_b, 1, 2)
+            cov[idx] = full[:, :dim, :dim]
+        return mean, cov
+
+
+def _kron_vec(a: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``kron(a, I3) @ x`` for a (Q, 2, 2) and x (Q, 6)."""
+    xr = x.reshape(-1, 2, 3)
+    return np.einsum("qab,qbj->qaj", a, xr).reshape(-1, 6)
+
+
+def fit_track(
+    track,
+    *,
+    qc=None,
+    fit_qc: bool = False,
+    qc_mode: str = "isotropic",
+    initial_state_cov: ArrayLike | None = None,
+    initial_state_mean: ArrayLike | None = None,
+    max_gap_s: float = DEFAULT_MAX_GAP_S,
+    qc_bounds: tuple[float, float] = QC_BOUNDS,
+    max_iter: int = 200,
+    tol: float = 1e-4,
+) -> GPTrack:
+    """Fit the exact WNOA GP posterior of one prism track.
+
+    Parameters
+    ----------
+    track : PrismTrack or tuple (t, xyz, cov)
+        ``t`` (N,) s strictly increasing, ``xyz`` (N, 3) m, ``cov`` (N, 3, 3) m^2 symmetric
+        positive definite, N >= 2.
+    qc : float, array_like (3,) or (3, 3), optional
+        Power spectral density, m^2/s^3 (scalar: ``q I``; (3,): diagonal; (3, 3): full).
+        When None, ``Qc`` is estimated (``fit_qc`` is implied).
+    fit_qc : bool
+        Estimate ``Qc`` by maximum marginal likelihood (``qc``, if given, is the initial guess).
+    qc_mode : {"isotropic", "per-axis"}
+        Parametrisation of the estimated ``Qc``.
+    initial_state_cov : array_like, shape (6, 6), optional
+        Covariance of a proper Gaussian prior on ``x(t_0) = [p; v]``. Default: diffuse prior
+        (zero prior information; module docstring).
+    initial_state_mean : array_like, shape (6,), optional
+        Mean of that prior (default: first measurement, zero velocity).
+    max_gap_s : float
+        Longest gap between measurements across which queries are answered, s.
+    qc_bounds, max_iter, tol
+        Passed to :func:`fit_qc`.
+
+    Returns
+    -------
+    GPTrack
+
+    Raises
+    ------
+    InputError
+        Fewer than 2 measurements, non-finite values, times not strictly increasing,
+        covariances not symmetric positive definite, a bad ``qc``.
+
+    Examples
+    --------
+    >>> gp = fit_track((t, xyz, cov), qc=0.1)          # doctest: +SKIP
+    >>> res = gp.query(np.arange(t[0], t[-1], 0.2))    # doctest: +SKIP
+    >>> res.position, res.position_cov                 # doctest: +SKIP
+    """
+    mg = float(max_gap_s)
+    if not mg > 0:
+        raise InputError(f"Expected max_gap_s > 0 s, got {max_gap_s!r}")
+    data = _prepare(track, initial_state_cov, initial_state_mean)
+    info = None
+    if qc is None or fit_qc:
+        info = _fit_qc_data(data, qc_mode, qc, qc_bounds, max_iter, tol)
+        qc_m = np.array(info.qc)
+    else:
+        qc_m = as_qc(qc)
+    mean, S, C, loglik = _solve(data, qc_m, want_cov=True)
+    mean[:, :3] += data.y_ref
+    return GPTrack(
+        t=_readonly(data.t.copy()),
+        mean=_readonly(mean),
+        cov=_readonly(S),
+        cross_cov=_readonly(C),
+        qc=_readonly(qc_m),
+        log_likelihood=float(loglik),
+        max_gap_s=mg,
+        prism=data.prism,
+        frame=data.frame,
+        diffuse_prior=data.prior_inv is None,
+        qc_fit=info,
+    )

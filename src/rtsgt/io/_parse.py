@@ -1,0 +1,305 @@
+"""Shared helpers of the readers and writers: line-numbered parsing, validation, atomic writes.
+
+Every reader of :mod:`rtsgt.io` reports bad input as an :class:`~rtsgt.errors.InputError` that
+names the file and the 1-based line (``path:line: message``) and, where it helps, says what to
+do. Every writer writes to a temporary file in the destination directory and moves it into
+place with :func:`os.replace`, so that a file is never left half-written.
+
+Conventions of the text formats read here: blank lines and lines whose first non-blank
+character is ``#`` are ignored (line numbers still count them).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Iterable, Sequence
+from os import PathLike
+from pathlib import Path
+
+import numpy as np
+
+from rtsgt.errors import InputError
+
+#: Encodings tried in turn when decoding a text file (ECCC files exist in both).
+ENCODINGS = ("utf-8-sig", "cp1252")
+
+
+def read_text(path: str | PathLike) -> str:
+    """Whole text of a file, UTF-8 (with or without BOM) or Windows-1252.
+
+    Raises
+    ------
+    InputError
+        The file does not exist, is a directory or cannot be read.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise InputError("file not found", p)
+    if p.is_dir():
+        raise InputError("expected a file, got a directory", p)
+    try:
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read the file ({exc.strerror})", p) from exc
+    for enc in ENCODINGS:
+        try:
+            return raw.decode(enc)
+        except UnicodeDecodeError:
+            continue
+    raise InputError("cannot decode the file as UTF-8 or Windows-1252 text", p)  # pragma: no cover
+
+
+def numbered_lines(text: str) -> tuple[list[int], list[str]]:
+    """1-based numbers and contents of the lines that are neither blank nor ``#`` comments."""
+    numbers: list[int] = []
+    lines: list[str] = []
+    for i, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if s and not s.startswith("#"):
+            numbers.append(i)
+            lines.append(s)
+    return numbers, lines
+
+
+def read_lines(path: str | PathLike, what: str) -> tuple[list[int], list[str]]:
+    """Numbered non-blank, non-comment lines of a file; :class:`InputError` if there are none.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    what : str
+        What the file should hold, for the message ("tracked prism measurements").
+    """
+    numbers, lines = numbered_lines(read_text(path))
+    if not lines:
+        raise InputError(f"empty file: expected {what}, found no data line", path)
+    return numbers, lines
+
+
+def split_rows(
+    lines: Sequence[str],
+    numbers: Sequence[int],
+    path: str | PathLike,
+    columns: Sequence[str],
+    sep: str | None,
+) -> np.ndarray:
+    """Split lines into a (N, K) array of stripped tokens, checking the column count.
+
+    Parameters
+    ----------
+    lines, numbers : sequences of length N
+        Line contents and their 1-based line numbers.
+    path : str or PathLike
+        File name for messages.
+    columns : sequence of str, length K
+        Expected column names (for messages).
+    sep : str or None
+        Separator (``None``: any run of whitespace).
+    """
+    k = len(columns)
+    rows = [line.split(sep) for line in lines]
+    for row, number in zip(rows, numbers, strict=True):
+        if len(row) != k:
+            how = "whitespace-separated" if sep is None else f"{sep.strip() or repr(sep)}-separated"
+            raise InputError(
+                f"expected {k} {how} columns ({' '.join(columns)}), got {len(row)}", path, number
+            )
+    out = np.array(rows, dtype=object).reshape(len(rows), k)
+    return np.vectorize(str.strip, otypes=[object])(out) if out.size else out
+
+
+def to_float(
+    tokens: np.ndarray,
+    numbers: Sequence[int],
+    path: str | PathLike,
+    names: Sequence[str],
+    *,
+    finite: bool | np.ndarray = True,
+    decimal_comma: bool = False,
+) -> np.ndarray:
+    """Convert a (N, K) token array to float64, naming the line and column of a bad token.
+
+    Parameters
+    ----------
+    tokens : ndarray of str, shape (N, K)
+    numbers : sequence of int, length N
+        1-based line number of each row.
+    path : str or PathLike
+    names : sequence of str, length K
+        Column names.
+    finite : bool or ndarray of bool, shape (N,)
+        Reject NaN and infinities (in every row, or in the rows where the mask is true).
+    decimal_comma : bool
+        Read ``"93,44"`` as 93.44 (the whole field; never digit by digit).
+
+    Returns
+    -------
+    ndarray, shape (N, K)
+    """
+    tok = np.asarray(tokens, dtype=object)
+    if decimal_comma:
+        tok = np.vectorize(lambda s: s.replace(",", "."), otypes=[object])(tok) if tok.size else tok
+    try:
+        out = tok.astype(float)
+    except ValueError:
+        for i, j in np.ndindex(*tok.shape):
+            try:
+                float(tok[i, j])
+            except ValueError:
+                raise InputError(
+                    f"expected a number in column {names[j]!r}, got {tokens[i, j]!r}",
+                    path, numbers[i],
+                ) from None
+        raise  # pragma: no cover - astype failed but every token parses
+    check = np.broadcast_to(np.asarray(finite, dtype=bool), (tok.shape[0],))
+    bad = ~np.isfinite(out) & check[:, None]
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        raise InputError(
+            f"expected a finite number in column {names[j]!r}, got {tokens[i, j]!r}",
+            path, numbers[i],
+        )
+    return out
+
+
+def to_int(
+    tokens: np.ndarray, numbers: Sequence[int], path: str | PathLike, names: Sequence[str]
+) -> np.ndarray:
+    """Convert a (N, K) token array to int64, naming the line and column of a bad token."""
+    tok = np.asarray(tokens, dtype=object)
+    out = np.empty(tok.shape, dtype=np.int64)
+    for j in range(tok.shape[1]):
+        try:
+            out[:, j] = [int(s) for s in tok[:, j]]
+        except ValueError:
+            for i, s in enumerate(tok[:, j]):
+                try:
+                    int(s)
+                except ValueError:
+                    raise InputError(
+                        f"expected an integer in column {names[j]!r}, got {s!r}", path, numbers[i]
+                    ) from None
+    return out
+
+
+def first_bad(mask: np.ndarray) -> int | None:
+    """Index of the first true element of ``mask``, or None."""
+    idx = np.flatnonzero(mask)
+    return None if idx.size == 0 else int(idx[0])
+
+
+def check_distance(
+    d: np.ndarray, numbers: Sequence[int], path: str | PathLike, *, where: np.ndarray | None = None
+) -> None:
+    """Slope distances must be positive (m); ``where`` restricts the check to some rows."""
+    bad = ~(d > 0)
+    if where is not None:
+        bad &= where
+    i = first_bad(bad)
+    if i is not None:
+        raise InputError(
+            f"expected a positive slope distance, got {float(d[i])!r} m", path, numbers[i]
+        )
+
+
+def check_zenith(
+    v: np.ndarray, numbers: Sequence[int], path: str | PathLike, *, where: np.ndarray | None = None
+) -> None:
+    """Zenith angles must lie in the open interval (0, pi) rad."""
+    bad = ~((v > 0) & (v < np.pi))
+    if where is not None:
+        bad &= where
+    i = first_bad(bad)
+    if i is not None:
+        raise InputError(
+            f"expected a zenith angle in (0, pi) rad, got {float(v[i])!r} rad "
+            "(is the column a zenith angle in radians? elevation angles and degrees are not)",
+            path, numbers[i],
+        )
+
+
+def check_increasing(t: np.ndarray, numbers: Sequence[int], path: str | PathLike) -> None:
+    """Timestamps must be strictly increasing; say how to fix a duplicate or a step back."""
+    dt = np.diff(t)
+    i = first_bad(dt <= 0)
+    if i is None:
+        return
+    if dt[i] == 0:
+        raise InputError(
+            f"duplicated timestamp t = {float(t[i + 1])!r} s (same as line {numbers[i]}): "
+            f"remove the duplicate line {numbers[i + 1]}",
+            path, numbers[i + 1],
+        )
+    raise InputError(
+        f"timestamp t = {float(t[i + 1])!r} s is earlier than t = {float(t[i])!r} s "
+        f"on line {numbers[i]}: "
+        "timestamps must increase; sort the file by time (e.g. `sort -g -k1`) "
+        f"or remove the out-of-order line {numbers[i + 1]}",
+        path, numbers[i + 1],
+    )
+
+
+def check_header(
+    found: Sequence[str], expected: Sequence[str], path: str | PathLike, number: int
+) -> None:
+    """The header line must name exactly ``expected`` (case-insensitive, spaces ignored)."""
+    got = [c.strip().lower() for c in found]
+    if got != [c.lower() for c in expected]:
+        raise InputError(
+            f"expected the header {' , '.join(expected)!r}, got {' , '.join(found)!r}",
+            path, number,
+        )
+
+
+def find_columns(
+    header: Sequence[str],
+    required: Iterable[str],
+    path: str | PathLike,
+    number: int,
+    optional: Iterable[str] = (),
+) -> dict[str, int]:
+    """Positions of named columns in a header (exact names, case-insensitive)."""
+    names = [h.strip().lower() for h in header]
+    pos: dict[str, int] = {}
+    for name in list(required) + list(optional):
+        if name.lower() in names:
+            pos[name] = names.index(name.lower())
+    missing = [name for name in required if name not in pos]
+    if missing:
+        raise InputError(
+            f"missing column(s) {', '.join(missing)} in the header; got {', '.join(header)}",
+            path, number,
+        )
+    return pos
+
+
+def fmt_float(x: float) -> str:
+    """Shortest text that reads back as exactly the same float64."""
+    return repr(float(x))
+
+
+def atomic_write_text(path: str | PathLike, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` through a temporary file and :func:`os.replace`.
+
+    The file appears complete or not at all: an error while writing leaves any previous file
+    untouched and removes the temporary file.
+    """
+    p = Path(path)
+    directory = p.parent if str(p.parent) else Path(".")
+    if not directory.is_dir():
+        raise InputError("cannot write: the directory does not exist", p)
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=directory)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, p)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise

@@ -1,0 +1,384 @@
+"""Deployment configuration (TOML): what files a deployment has and how to process them.
+
+Paths are relative to the configuration file. Units are in the key names (``_m``, ``_s``,
+``_deg_s``, ``_hz``). Example, with every section (only ``[[stations]]``, ``[gcp]`` and
+``[reference]`` are required)::
+
+    [deployment]
+    name = "forest-2022-11-10"
+    reference_station = "1"          # the world frame is this station's frame
+
+    [instrument]
+    profile = "trimble-s7"           # a built-in profile, or the fields of a custom one:
+    # name = "my-rts"; distance_constant_mm = 3; distance_ppm = 1.5; angle_arcsec = 1; ...
+
+    [[stations]]                     # one table per station; station k tracks one prism
+    id = "1"
+    prism = "1"
+    file = "prism1.csv"
+    format = "rts-project"           # t d V Hz, no header
+    additive_constant_m = 0.01
+
+    [gcp]
+    file = "GCP.txt"
+    format = "rts-project"           # or "csv"
+    additive_constant_m = 0.01
+
+    [weather]                        # optional: without it, no atmospheric correction
+    file = "weather.csv"
+    format = "csv"                   # or "eccc" (raw ECCC hourly file)
+    utc_offset_hours = -5.0          # eccc only: offset of the file's local standard time
+
+    [reference]                      # the prisms on the robot (static survey)
+    file = "calibration_raw.csv"
+    format = "survey-dms"            # or "csv" (name,x,y,z,cov_xx,...)
+    prisms = { "1" = 1, "2" = 2, "3" = 3 }   # prism id -> 1-based row of the survey file
+    body_frame = "survey"            # or "points" with body_points = [4, 5, 6], or "transform"
+    # T_survey_body = [[...4x4...]]  (with body_frame = "transform")
+
+    [noise]
+    sources = ["instrument", "tilt", "atmosphere", "time_sync", "calibration"]
+    time_sync_mean_s = 1.157e-3
+    time_sync_std_s = 0.815e-3
+    temperature_halfwidth_c = 1.0
+    pressure_halfwidth_hpa = 10.0
+    humidity_halfwidth_pct = 2.0
+
+    [filter]
+    tau_r_m_s = 2.0
+    tau_a_deg_s = 1.0
+    tau_e_deg_s = 1.0
+    tau_s_s = 3.0
+    tau_l_s = 2.0
+
+    [interpolation]
+    rate_hz = 5.0                    # or query_times = "lidar_stamps.txt" (one time per line, s)
+    qc = "fit"                       # or a number: isotropic PSD, m^2/s^3
+    max_gap_s = 3.0
+
+    [pose]
+    engine = "mc"                    # mc | ut | linear
+    samples = 1000
+    distance_gate_m = 0.10
+    uncertainty_gate_m = 0.20
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rtsgt.errors import ConfigError
+from rtsgt.types import NOISE_SOURCES
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+ENGINES = ("mc", "ut", "linear")
+STATION_FORMATS = ("rts-project",)
+GCP_FORMATS = ("rts-project", "csv")
+WEATHER_FORMATS = ("csv", "eccc")
+REFERENCE_FORMATS = ("survey-dms", "csv")
+BODY_FRAMES = ("survey", "points", "transform")
+
+
+@dataclass(frozen=True)
+class StationConfig:
+    """One station and the prism it tracks."""
+
+    id: str
+    prism: str
+    file: Path
+    format: str = "rts-project"
+    additive_constant_m: float = 0.0
+
+
+@dataclass(frozen=True)
+class FileConfig:
+    """A file with its format (GCP, weather, reference survey)."""
+
+    file: Path
+    format: str
+    additive_constant_m: float = 0.0
+    utc_offset_hours: float = 0.0
+
+
+@dataclass(frozen=True)
+class ReferenceConfig:
+    """Where the reference prism positions on the robot come from, and the body frame."""
+
+    file: Path
+    format: str
+    prisms: dict[str, int]
+    body_frame: str = "survey"
+    body_points: tuple[int, ...] = ()
+    T_survey_body: tuple[tuple[float, ...], ...] | None = None
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    """Noise sources to include and their parameters (see :class:`rtsgt.noise.NoiseModel`)."""
+
+    sources: tuple[str, ...] = NOISE_SOURCES
+    time_sync_mean_s: float = 1.157e-3
+    time_sync_std_s: float = 0.815e-3
+    temperature_halfwidth_c: float = 1.0
+    pressure_halfwidth_hpa: float = 10.0
+    humidity_halfwidth_pct: float = 2.0
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Parameters of the filtering modules (Vaidis et al. 2022 defaults)."""
+
+    tau_r_m_s: float = 2.0
+    tau_a_deg_s: float = 1.0
+    tau_e_deg_s: float = 1.0
+    tau_s_s: float = 3.0
+    tau_l_s: float = 2.0
+
+
+@dataclass(frozen=True)
+class InterpolationConfig:
+    """Query times and GP settings."""
+
+    rate_hz: float | None = 5.0
+    query_times: Path | None = None
+    qc: float | str = "fit"
+    max_gap_s: float = 3.0
+
+
+@dataclass(frozen=True)
+class PoseConfig:
+    """Pose engine and quality gates (module 4)."""
+
+    engine: str = "mc"
+    samples: int = 1000
+    distance_gate_m: float = 0.10
+    uncertainty_gate_m: float = 0.20
+
+
+@dataclass(frozen=True)
+class DeploymentConfig:
+    """A validated deployment configuration; every path is absolute."""
+
+    path: Path
+    name: str
+    reference_station: str
+    instrument: dict[str, Any]
+    stations: tuple[StationConfig, ...]
+    gcp: FileConfig
+    reference: ReferenceConfig
+    weather: FileConfig | None = None
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    interpolation: InterpolationConfig = field(default_factory=InterpolationConfig)
+    pose: PoseConfig = field(default_factory=PoseConfig)
+
+
+class _Section:
+    """Reads typed keys of one TOML table and rejects unknown keys with a clear message."""
+
+    def __init__(self, path: Path, name: str, table: Any):
+        if not isinstance(table, dict):
+            raise ConfigError(f"[{name}] must be a table, got {type(table).__name__}", path)
+        self.path, self.name, self.table, self.used = path, name, table, set()
+
+    def get(self, key: str, kind: type | tuple, default: Any = ..., choices: tuple = ()) -> Any:
+        self.used.add(key)
+        if key not in self.table:
+            if default is ...:
+                raise ConfigError(f"[{self.name}] is missing the key {key!r}", self.path)
+            return default
+        val = self.table[key]
+        if kind is float and isinstance(val, int) and not isinstance(val, bool):
+            val = float(val)
+        if kind is str and isinstance(val, int) and not isinstance(val, bool):
+            val = str(val)
+        if not isinstance(val, kind) or isinstance(val, bool) and kind is not bool:
+            want = kind.__name__ if isinstance(kind, type) else " or ".join(k.__name__ for k in kind)
+            raise ConfigError(f"[{self.name}] {key} must be {want}, got {val!r}", self.path)
+        if choices and val not in choices:
+            raise ConfigError(
+                f"[{self.name}] {key} = {val!r} is not one of {', '.join(map(repr, choices))}",
+                self.path,
+            )
+        return val
+
+    def positive(self, key: str, default: Any = ...) -> float:
+        val = self.get(key, float, default)
+        if val is not None and not val > 0:
+            raise ConfigError(f"[{self.name}] {key} must be > 0, got {val}", self.path)
+        return val
+
+    def file(self, key: str = "file") -> Path:
+        rel = self.get(key, str)
+        p = (self.path.parent / rel).resolve()
+        if not p.is_file():
+            raise ConfigError(f"[{self.name}] {key} = {rel!r}: no such file ({p})", self.path)
+        return p
+
+    def done(self) -> None:
+        unknown = sorted(set(self.table) - self.used)
+        if unknown:
+            raise ConfigError(
+                f"[{self.name}] has unknown key(s) {', '.join(unknown)}; "
+                f"known: {', '.join(sorted(self.used))}",
+                self.path,
+            )
+
+
+def load_config(path: str | Path) -> DeploymentConfig:
+    """Read and validate a deployment configuration.
+
+    Raises
+    ------
+    ConfigError
+        Naming the file, the section and the key of any problem: a missing file, an unknown
+        key, a wrong type, an unknown format, engine or noise source, duplicated stations, ...
+    """
+    path = Path(path).resolve()
+    if not path.is_file():
+        raise ConfigError("no such configuration file", path)
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"invalid TOML: {exc}", path) from None
+    known = {"deployment", "instrument", "stations", "gcp", "weather", "reference", "noise",
+             "filter", "interpolation", "pose"}
+    unknown = sorted(set(doc) - known)
+    if unknown:
+        raise ConfigError(f"unknown section(s) {', '.join(unknown)}", path)
+
+    dep = _Section(path, "deployment", doc.get("deployment", {}))
+    name = dep.get("name", str, path.stem)
+    reference_station = dep.get("reference_station", str, "1")
+    dep.done()
+
+    instrument = doc.get("instrument", {"profile": "trimble-s7"})
+    if not isinstance(instrument, dict):
+        raise ConfigError("[instrument] must be a table", path)
+
+    raw_stations = doc.get("stations")
+    if not isinstance(raw_stations, list) or not raw_stations:
+        raise ConfigError("expected at least one [[stations]] table", path)
+    stations = []
+    for i, tab in enumerate(raw_stations):
+        s = _Section(path, f"stations #{i + 1}", tab)
+        st = StationConfig(
+            id=s.get("id", str),
+            prism=s.get("prism", str),
+            file=s.file(),
+            format=s.get("format", str, "rts-project", STATION_FORMATS),
+            additive_constant_m=s.get("additive_constant_m", float, 0.0),
+        )
+        s.done()
+        stations.append(st)
+    ids = [s.id for s in stations]
+    if len(set(ids)) != len(ids):
+        raise ConfigError(f"duplicated station ids in [[stations]]: {ids}", path)
+    if reference_station not in ids:
+        raise ConfigError(
+            f"[deployment] reference_station = {reference_station!r} is not a station; "
+            f"known: {', '.join(ids)}",
+            path,
+        )
+    prisms = [s.prism for s in stations]
+    if len(set(prisms)) != len(prisms):
+        raise ConfigError(f"each station must track a different prism, got {prisms}", path)
+
+    g = _Section(path, "gcp", doc.get("gcp", None) if "gcp" in doc else _missing(path, "gcp"))
+    gcp = FileConfig(g.file(), g.get("format", str, "rts-project", GCP_FORMATS),
+                     g.get("additive_constant_m", float, 0.0))
+    g.done()
+
+    weather = None
+    if "weather" in doc:
+        w = _Section(path, "weather", doc["weather"])
+        fmt = w.get("format", str, "csv", WEATHER_FORMATS)
+        weather = FileConfig(w.file(), fmt, 0.0, w.get("utc_offset_hours", float, 0.0))
+        w.done()
+
+    r = _Section(path, "reference", doc["reference"] if "reference" in doc else _missing(path, "reference"))
+    ref_file = r.file()
+    ref_format = r.get("format", str, "survey-dms", REFERENCE_FORMATS)
+    prism_rows = r.get("prisms", dict)
+    rows: dict[str, int] = {}
+    for k, v in prism_rows.items():
+        if not isinstance(v, int) or v < 1:
+            raise ConfigError(f"[reference] prisms.{k} must be a 1-based row number, got {v!r}", path)
+        rows[str(k)] = v
+    missing = sorted(set(prisms) - set(rows))
+    if missing:
+        raise ConfigError(
+            f"[reference] prisms has no survey row for tracked prism(s) {', '.join(missing)}", path
+        )
+    if len(rows) < 3:
+        raise ConfigError(f"a pose needs at least 3 reference prisms, got {len(rows)}", path)
+    body_frame = r.get("body_frame", str, "survey", BODY_FRAMES)
+    body_points = tuple(r.get("body_points", list, []))
+    T_sb = r.get("T_survey_body", list, None)
+    if body_frame == "points" and len(body_points) < 3:
+        raise ConfigError("[reference] body_frame = 'points' needs body_points = [3+ rows]", path)
+    if body_frame == "transform":
+        if T_sb is None or len(T_sb) != 4 or any(len(row) != 4 for row in T_sb):
+            raise ConfigError("[reference] body_frame = 'transform' needs a 4x4 T_survey_body", path)
+        T_sb = tuple(tuple(float(x) for x in row) for row in T_sb)
+    reference = ReferenceConfig(ref_file, ref_format, rows, body_frame, body_points, T_sb)
+    r.done()
+
+    n = _Section(path, "noise", doc.get("noise", {}))
+    sources = tuple(n.get("sources", list, list(NOISE_SOURCES)))
+    bad = [s for s in sources if s not in NOISE_SOURCES]
+    if bad:
+        raise ConfigError(
+            f"[noise] unknown source(s) {', '.join(map(repr, bad))}; known: {', '.join(NOISE_SOURCES)}",
+            path,
+        )
+    noise = NoiseConfig(
+        sources=sources,
+        time_sync_mean_s=n.get("time_sync_mean_s", float, 1.157e-3),
+        time_sync_std_s=n.get("time_sync_std_s", float, 0.815e-3),
+        temperature_halfwidth_c=n.get("temperature_halfwidth_c", float, 1.0),
+        pressure_halfwidth_hpa=n.get("pressure_halfwidth_hpa", float, 10.0),
+        humidity_halfwidth_pct=n.get("humidity_halfwidth_pct", float, 2.0),
+    )
+    n.done()
+
+    f = _Section(path, "filter", doc.get("filter", {}))
+    filt = FilterConfig(*(f.positive(k, getattr(FilterConfig, k)) for k in
+                          ("tau_r_m_s", "tau_a_deg_s", "tau_e_deg_s", "tau_s_s", "tau_l_s")))
+    f.done()
+
+    it = _Section(path, "interpolation", doc.get("interpolation", {}))
+    query_times = it.file("query_times") if "query_times" in it.table else None
+    rate = it.positive("rate_hz", None if query_times is not None else 5.0)
+    if query_times is not None and rate is not None:
+        raise ConfigError("[interpolation] give rate_hz or query_times, not both", path)
+    qc = it.get("qc", (str, float, int), "fit")
+    if isinstance(qc, str) and qc != "fit":
+        raise ConfigError(f"[interpolation] qc must be 'fit' or a number (m^2/s^3), got {qc!r}", path)
+    if not isinstance(qc, str) and not qc > 0:
+        raise ConfigError(f"[interpolation] qc must be > 0, got {qc}", path)
+    interp = InterpolationConfig(rate, query_times, qc if isinstance(qc, str) else float(qc),
+                                 it.positive("max_gap_s", 3.0))
+    it.done()
+
+    p = _Section(path, "pose", doc.get("pose", {}))
+    samples = p.get("samples", int, 1000)
+    if samples < 10:
+        raise ConfigError(f"[pose] samples must be >= 10, got {samples}", path)
+    pose = PoseConfig(p.get("engine", str, "mc", ENGINES), samples,
+                      p.positive("distance_gate_m", 0.10), p.positive("uncertainty_gate_m", 0.20))
+    p.done()
+
+    return DeploymentConfig(path, name, reference_station, dict(instrument), tuple(stations), gcp,
+                            reference, weather, noise, filt, interp, pose)
+
+
+def _missing(path: Path, section: str):
+    raise ConfigError(f"missing the [{section}] section", path)

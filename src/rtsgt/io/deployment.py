@@ -1,0 +1,142 @@
+"""Read every file a deployment configuration names into a :class:`DeploymentData`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from rtsgt.errors import ConfigError, InputError
+from rtsgt.geometry import RigidTransform
+from rtsgt.io.config import DeploymentConfig, load_config
+from rtsgt.io.gcp_csv import read_gcp_shots
+from rtsgt.io.rts_project import read_prism_file
+from rtsgt.io.weather import read_weather_csv, read_weather_eccc
+from rtsgt.measurement.instruments import InstrumentProfile, get_instrument
+from rtsgt.pipeline import DeploymentData, RunOptions
+from rtsgt.pose.reference import ReferencePoints, reference_from_survey
+
+
+def instrument_from_config(table: dict, path: Path) -> InstrumentProfile:
+    """A built-in profile (``profile = "name"``) or a user-defined one (the profile's fields)."""
+    table = dict(table)
+    if "profile" in table:
+        if len(table) > 1:
+            raise ConfigError(
+                "[instrument] give either profile = NAME or the fields of a custom profile, "
+                f"not both (extra keys: {', '.join(sorted(set(table) - {'profile'}))})", path
+            )
+        try:
+            return get_instrument(str(table["profile"]))
+        except InputError as exc:
+            raise ConfigError(f"[instrument] {exc.bare_message}", path) from None
+    try:
+        return InstrumentProfile.from_dict(table)
+    except (InputError, ValueError, TypeError) as exc:
+        raise ConfigError(f"[instrument] {exc}", path) from None
+
+
+def read_reference(cfg: DeploymentConfig) -> ReferencePoints:
+    """Reference prisms in the body frame, from the survey file named by the configuration."""
+    from rtsgt.io.survey import read_reference_csv, read_survey_raw
+
+    rc = cfg.reference
+    names = list(rc.prisms)
+    if rc.format == "csv":
+        ref = read_reference_csv(rc.file)
+        missing = [n for n in names if n not in ref.names]
+        if missing:
+            raise InputError(f"no reference point named {', '.join(missing)}", rc.file)
+        return ref.select(names)
+    survey = read_survey_raw(rc.file)
+    n_rows = survey.xyz.shape[0]
+    rows = [rc.prisms[n] - 1 for n in names]
+    for n, r in zip(names, rows):
+        if r >= n_rows:
+            raise ConfigError(
+                f"[reference] prisms.{n} = {r + 1}: the survey {rc.file.name} has {n_rows} rows",
+                cfg.path,
+            )
+    if rc.body_frame == "survey":
+        body = "survey"
+    elif rc.body_frame == "points":
+        body = [r - 1 for r in rc.body_points]
+    else:
+        body = RigidTransform.from_matrix(np.array(rc.T_survey_body), frame_to="survey",
+                                          frame_from="body")
+    return reference_from_survey(survey.xyz, survey.cov, rows, body_frame=body, names=names)
+
+
+def load_deployment(config: str | Path | DeploymentConfig) -> tuple[DeploymentData, RunOptions]:
+    """Read a deployment: its configuration, then every file it names.
+
+    Returns
+    -------
+    data : DeploymentData
+    options : RunOptions
+        The processing parameters of the configuration (the CLI may override some).
+    """
+    cfg = config if isinstance(config, DeploymentConfig) else load_config(config)
+    instrument = instrument_from_config(cfg.instrument, cfg.path)
+    observations = tuple(
+        read_prism_file(s.file, station=s.id, prism=s.prism, additive_constant=s.additive_constant_m)
+        for s in cfg.stations
+    )
+    gcp = read_gcp_shots(cfg.gcp.file, format=cfg.gcp.format,
+                         additive_constant=cfg.gcp.additive_constant_m)
+    weather = None
+    if cfg.weather is not None:
+        if cfg.weather.format == "eccc":
+            weather = read_weather_eccc(cfg.weather.file, utc_offset_hours=cfg.weather.utc_offset_hours)
+        else:
+            weather = read_weather_csv(cfg.weather.file)
+    reference = read_reference(cfg)
+    query_times = None
+    if cfg.interpolation.query_times is not None:
+        query_times = _read_times(cfg.interpolation.query_times)
+    data = DeploymentData(cfg.name, instrument, observations, gcp, reference,
+                          cfg.reference_station, weather, query_times)
+    from rtsgt.filtering import FilterParams
+    from rtsgt.noise import NoiseModel
+
+    f = cfg.filter
+    n = cfg.noise
+    options = RunOptions(
+        engine=cfg.pose.engine,
+        samples=cfg.pose.samples,
+        rate_hz=cfg.interpolation.rate_hz or 5.0,
+        qc=cfg.interpolation.qc,
+        max_gap_s=cfg.interpolation.max_gap_s,
+        noise=NoiseModel(
+            instrument=instrument, sources=n.sources, time_sync_mean_s=n.time_sync_mean_s,
+            time_sync_std_s=n.time_sync_std_s, temperature_halfwidth_c=n.temperature_halfwidth_c,
+            pressure_halfwidth_hpa=n.pressure_halfwidth_hpa,
+            humidity_halfwidth_pct=n.humidity_halfwidth_pct,
+        ),
+        filter=FilterParams(
+            tau_r=f.tau_r_m_s, tau_a=np.radians(f.tau_a_deg_s), tau_e=np.radians(f.tau_e_deg_s),
+            tau_s=f.tau_s_s, tau_l=f.tau_l_s,
+        ),
+        distance_gate_m=cfg.pose.distance_gate_m,
+        uncertainty_gate_m=cfg.pose.uncertainty_gate_m,
+    )
+    return data, options
+
+
+def _read_times(path: Path) -> np.ndarray:
+    """One time (s) per line; ``#`` comments and blank lines allowed."""
+    values = []
+    for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        s = line.split("#", 1)[0].strip()
+        if not s:
+            continue
+        try:
+            v = float(s.split()[0].split(",")[0])
+        except ValueError:
+            raise InputError(f"expected a time in seconds, got {s!r}", path, i) from None
+        if not np.isfinite(v):
+            raise InputError(f"expected a finite time, got {s!r}", path, i)
+        values.append(v)
+    if not values:
+        raise InputError("no query time in the file", path)
+    return np.sort(np.array(values))

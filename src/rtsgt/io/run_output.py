@@ -1,0 +1,265 @@
+"""Files of an rtsgt run directory, written atomically.
+
+Layout of ``OUT/`` (every number in SI units, stated in the headers)::
+
+    groundtruth.tum                  t x y z qx qy qz qw (s, m, unit quaternion scalar last)
+    groundtruth_covariance.csv       t,x,y,z,qx,qy,qz,qw,cov_00,...,cov_55
+                                     6x6 row-major, order (x, y, z, rx, ry, rz), m^2 / rad^2,
+                                     left perturbation in the world frame
+    rejected_poses.csv               t,reason for every pose removed by a gate
+    prisms/prism<i>.csv              interpolated track: t,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz
+    prisms/prism<i>_sources.csv      per-source covariance at the same times: t,<source>_xx,...
+    measurements/prism<i>.csv        measured track (world frame) after filtering, with the
+                                     covariance given to the GP, the range and every source's
+                                     covariance: t,x,y,z,cov_xx..cov_zz,range_m,<source>_xx..
+    reference.csv                    reference prisms in the body frame: name,x,y,z,cov_xx..cov_zz
+    summary.json                     inputs, parameters, version, seed, counts removed per
+                                     filter and gate, Qc, calibration, medians, timings
+
+The directory is assembled under a temporary name beside ``OUT`` and renamed at the end: a
+crash never leaves a half-written run.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from rtsgt.errors import InputError
+
+COV3_NAMES = ("xx", "xy", "xz", "yy", "yz", "zz")
+_IU = np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2])
+
+
+def cov3_to_columns(cov: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) -> (N, 6) upper-triangle columns xx, xy, xz, yy, yz, zz."""
+    return cov[:, _IU[0], _IU[1]]
+
+
+def columns_to_cov3(cols: np.ndarray) -> np.ndarray:
+    """(N, 6) upper-triangle columns -> (N, 3, 3) symmetric matrices."""
+    cols = np.asarray(cols, dtype=float)
+    out = np.empty((cols.shape[0], 3, 3))
+    out[:, _IU[0], _IU[1]] = cols
+    out[:, _IU[1], _IU[0]] = cols
+    return out
+
+
+def prepare_output_dir(out: str | Path, force: bool) -> tuple[Path, Path]:
+    """Check ``out`` and make a temporary sibling to write into.
+
+    Returns
+    -------
+    final, tmp : Path
+        Where the result goes, and the empty temporary directory to fill first.
+    """
+    final = Path(out).resolve()
+    if final.exists() and not force:
+        if final.is_dir() and not any(final.iterdir()):
+            pass
+        else:
+            raise InputError(f"output directory {final} exists; use --force to replace it")
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=final.parent))
+    return final, tmp
+
+
+def commit_output_dir(tmp: Path, final: Path) -> None:
+    """Move the finished temporary directory into place (replacing an older one)."""
+    if final.exists():
+        old = final.with_name(f".{final.name}.old-{os.getpid()}")
+        os.replace(final, old)
+        os.replace(tmp, final)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, final)
+
+
+def write_csv(path: Path, header: list[str], columns: list[np.ndarray], fmt: str = "%.17g") -> None:
+    """Write columns of numbers with a one-line header (no comment character)."""
+    data = np.column_stack([np.asarray(c, dtype=float).reshape(len(columns[0]), -1) for c in columns])
+    np.savetxt(path, data, delimiter=",", header=",".join(header), comments="", fmt=fmt)
+
+
+def write_tum(path: Path, t: np.ndarray, xyz: np.ndarray, quat_xyzw: np.ndarray) -> None:
+    """TUM trajectory ``t x y z qx qy qz qw``, with a comment line giving the units."""
+    np.savetxt(
+        path, np.column_stack([t, xyz, quat_xyzw]), fmt="%.9f %.9f %.9f %.9f %.12f %.12f %.12f %.12f",
+        header="t[s] x[m] y[m] z[m] qx qy qz qw (world frame = reference station)",
+    )
+
+
+def write_pose_covariance_csv(path: Path, traj) -> None:
+    """rtsgt pose covariance CSV (see the module docstring)."""
+    header = ["t", "x", "y", "z", "qx", "qy", "qz", "qw"] + [f"cov_{i}{j}" for i in range(6) for j in range(6)]
+    write_csv(path, header, [traj.t, traj.position, traj.quat_xyzw, traj.cov.reshape(len(traj), 36)])
+
+
+def write_json(path: Path, obj: dict) -> None:
+    path.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n", encoding="utf-8")
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _report_dict(rep) -> dict:
+    """A filter or gate report as plain JSON data (dataclass, mapping or object with counts)."""
+    import dataclasses
+
+    if rep is None:
+        return {}
+    if hasattr(rep, "as_dict"):
+        return json.loads(json.dumps(rep.as_dict(), default=_json_default))
+    if dataclasses.is_dataclass(rep):
+        return json.loads(json.dumps(dataclasses.asdict(rep), default=_json_default))
+    if isinstance(rep, dict):
+        return json.loads(json.dumps(rep, default=_json_default))
+    return {"counts": getattr(rep, "counts", str(rep))}
+
+
+def _median_sigmas(traj) -> dict:
+    if len(traj) == 0:
+        return {"translation_mm": None, "rotation_mdeg": None}
+    tr = np.sqrt(np.trace(traj.cov[:, :3, :3], axis1=1, axis2=2)) * 1e3
+    rot = np.sqrt(np.trace(traj.cov[:, 3:, 3:], axis1=1, axis2=2)) * 1e3 * 180 / np.pi
+    return {"translation_mm": float(np.median(tr)), "rotation_mdeg": float(np.median(rot))}
+
+
+def run_summary(result, inputs: dict | None = None) -> dict:
+    """The ``summary.json`` content of a run (see the module docstring)."""
+    from rtsgt import __version__
+
+    opt = result.options
+    cal = result.calibration
+    gt = result.groundtruth
+    est = result.estimate
+    rejected = {}
+    for reason in np.unique(result.rejection_reasons[~result.keep]):
+        rejected[str(reason)] = int(np.sum(result.rejection_reasons[~result.keep] == reason))
+    stations = {}
+    for sid, T in cal.transforms.items():
+        stations[sid] = {
+            "matrix": T.as_matrix(),
+            "yaw_deg": float(np.degrees(T.yaw)),
+            "translation_m": T.translation,
+            "sigma_translation_mm": np.sqrt(np.diag(T.covariance)[:3]) * 1e3,
+            "sigma_rotation_mdeg": np.degrees(np.sqrt(np.diag(T.covariance)[3:])) * 1e3,
+        }
+    prisms = {}
+    for pid, tr in result.tracks.items():
+        gp = result.gps[pid]
+        sig = np.sqrt(np.trace(result.prisms.cov[:, result.prism_ids.index(pid)], axis1=1, axis2=2))
+        prisms[pid] = {
+            "station": tr.station,
+            "measurements_used": len(tr),
+            "qc_m2_s3": gp.qc,
+            "median_sigma_mm": float(np.median(sig) * 1e3),
+        }
+    res = cal.residuals
+    return {
+        "software": {"name": "rtsgt", "version": __version__},
+        "deployment": result.data.name,
+        "inputs": inputs or {},
+        "parameters": {
+            "engine": opt.engine,
+            "samples": opt.samples,
+            "seed": opt.seed,
+            "rate_hz": opt.rate_hz,
+            "qc": opt.qc,
+            "max_gap_s": opt.max_gap_s,
+            "gp_noise": opt.gp_noise,
+            "noise_sources": list(result.noise_model.sources),
+            "instrument": result.data.instrument.name,
+            "filter": _report_dict(opt.filter),
+            "distance_gate_m": opt.distance_gate_m,
+            "uncertainty_gate_m": opt.uncertainty_gate_m,
+        },
+        "filters": {k: _report_dict(v) for k, v in result.filter_reports.items()},
+        "gates": _report_dict(result.gate_report),
+        "intervals_s": result.intervals,
+        "poses": {
+            "queried": int(len(est)),
+            "kept": int(len(gt)),
+            "rejected_by_reason": rejected,
+            "first_t": float(gt.t[0]) if len(gt) else None,
+            "last_t": float(gt.t[-1]) if len(gt) else None,
+        },
+        "median_uncertainty": _median_sigmas(gt),
+        "prisms": prisms,
+        "calibration": {
+            "reference_station": cal.reference_station,
+            "stations": stations,
+            "residuals_mm": {
+                "median": float(np.median(res.distance_m) * 1e3) if len(res) else None,
+                "max": float(np.max(res.distance_m) * 1e3) if len(res) else None,
+                "count": int(len(res)),
+            },
+        },
+        "timings_s": result.timings_s,
+    }
+
+
+def write_run(result, out: str | Path, *, force: bool = False, inputs: dict | None = None) -> Path:
+    """Write every file of a run directory atomically; returns the final directory."""
+    final, tmp = prepare_output_dir(out, force)
+    try:
+        gt = result.groundtruth
+        write_tum(tmp / "groundtruth.tum", gt.t, gt.position, gt.quat_xyzw)
+        write_pose_covariance_csv(tmp / "groundtruth_covariance.csv", gt)
+        rej = ~result.keep
+        with open(tmp / "rejected_poses.csv", "w", encoding="utf-8") as fh:
+            fh.write("t,reason\n")
+            for t, r in zip(result.prisms.t[rej], result.rejection_reasons[rej]):
+                fh.write(f"{t:.9f},{r}\n")
+        (tmp / "prisms").mkdir()
+        (tmp / "measurements").mkdir()
+        cov_cols = [f"cov_{c}" for c in COV3_NAMES]
+        P = result.prisms
+        for i, pid in enumerate(result.prism_ids):
+            write_csv(tmp / "prisms" / f"prism{pid}.csv", ["t", "x", "y", "z", *cov_cols],
+                      [P.t, P.xyz[:, i], cov3_to_columns(P.cov[:, i])])
+            srcs = list(P.cov_by_source)
+            write_csv(tmp / "prisms" / f"prism{pid}_sources.csv",
+                      ["t", "gp_xx", "gp_xy", "gp_xz", "gp_yy", "gp_yz", "gp_zz"]
+                      + [f"{s}_{c}" for s in srcs for c in COV3_NAMES],
+                      [P.t, cov3_to_columns(P.cov_gp[:, i])]
+                      + [cov3_to_columns(P.cov_by_source[s][:, i]) for s in srcs])
+            tr = result.tracks[pid]
+            from rtsgt.pipeline import gp_covariance
+
+            srcs = list(tr.cov_by_source)
+            write_csv(tmp / "measurements" / f"prism{pid}.csv",
+                      ["t", "x", "y", "z", *cov_cols, "range_m"]
+                      + [f"{s}_{c}" for s in srcs for c in COV3_NAMES],
+                      [tr.t, tr.xyz, cov3_to_columns(gp_covariance(tr, result.options.gp_noise)),
+                       tr.range_m if tr.range_m is not None else np.full(len(tr), np.nan)]
+                      + [cov3_to_columns(tr.cov_by_source[s]) for s in srcs])
+        ref = result.data.reference
+        with open(tmp / "reference.csv", "w", encoding="utf-8") as fh:
+            fh.write("name,x,y,z," + ",".join(cov_cols) + "\n")
+            blocks = cov3_to_columns(ref.cov_blocks())
+            for name, p, c in zip(ref.names, ref.xyz, blocks):
+                fh.write(",".join([name] + [f"{v:.17g}" for v in (*p, *c)]) + "\n")
+        summary = run_summary(result, inputs)
+        summary["reference"] = {"names": list(ref.names), "xyz_m": ref.xyz, "cov_m2": ref.cov,
+                                "frame": ref.frame}
+        write_json(tmp / "summary.json", summary)
+        commit_output_dir(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return final

@@ -1,0 +1,495 @@
+"""Read an rtsgt run directory back into arrays (for ``rtsgt analyze`` and ``rtsgt report``).
+
+The layout is the one written by :mod:`rtsgt.io.run_output` (see its module docstring)::
+
+    groundtruth_covariance.csv   t,x,y,z,qx,qy,qz,qw,cov_00..cov_55 (kept poses)
+    rejected_poses.csv           t,reason
+    prisms/prism<i>.csv          t,x,y,z,cov_xx..cov_zz (prisms at the query times, total cov)
+    prisms/prism<i>_sources.csv  t,<source>_xx..<source>_zz (each source at the query times)
+    measurements/prism<i>.csv    t,x,y,z,cov_xx..cov_zz,range_m,<source>_xx..<source>_zz
+    reference.csv                name,x,y,z,cov_xx..cov_zz
+    summary.json
+
+Columns are located by their header names, so extra columns are ignored and the order of the
+columns does not matter. Every problem is an :class:`~rtsgt.errors.InputError` naming the file
+(and the line where it applies).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from dataclasses import dataclass, field
+from os import PathLike
+from pathlib import Path
+
+import numpy as np
+
+from rtsgt.errors import InputError
+from rtsgt.io.run_output import COV3_NAMES, columns_to_cov3
+from rtsgt.types import NOISE_SOURCES, PoseTrajectory, PrismTrack
+
+__all__ = ["RunData", "read_run", "read_table", "station_positions_from_summary"]
+
+_PRISM_FILE = re.compile(r"^prism(?P<id>.+?)\.csv$")
+_SOURCES_FILE = re.compile(r"^prism(?P<id>.+?)_sources\.csv$")
+
+
+@dataclass(frozen=True)
+class RunData:
+    """The arrays of one run that the analysis, the figures and the report use.
+
+    Built by :func:`read_run` from a run directory, or by
+    :func:`rtsgt.report.analysis.run_data_from_result` from an in-memory
+    :class:`~rtsgt.pipeline.RunResult`. Every position and covariance is in the world frame
+    (m, m^2); times in s.
+
+    Attributes
+    ----------
+    name : str
+        Deployment name (or the directory name).
+    prism_ids : tuple of str, length n
+        Prisms in the order of the ``n`` axis of the ``prisms_*`` arrays.
+    measurements : dict str -> PrismTrack
+        The measured (filtered) track of each prism: ``xyz``, ``range_m`` and
+        ``cov_by_source``. ``cov`` is the sum of the per-source covariances when they are
+        known (the total of independent sources), else the covariance of the file.
+    prisms_t : ndarray, shape (T,)
+        Query times (every pose time, kept or rejected).
+    prisms_xyz : ndarray, shape (T, n, 3)
+        Interpolated prism positions.
+    prisms_cov : ndarray, shape (T, n, 3, 3)
+        Their total covariance (what the pose engine used).
+    prisms_cov_by_source : dict str -> ndarray (T, n, 3, 3)
+        Each source's covariance at the query times.
+    prisms_cov_gp : ndarray, shape (T, n, 3, 3), optional
+        The GP posterior covariance alone (``gp_*`` columns of ``prism<i>_sources.csv``).
+    groundtruth : PoseTrajectory
+        The kept poses with their 6x6 covariance.
+    rejected_t : ndarray, shape (R,)
+    rejected_reason : ndarray of str, shape (R,)
+    reference_xyz : ndarray, shape (n, 3)
+        Reference prisms in the body frame, same order as ``prism_ids``.
+    reference_cov : ndarray, shape (3n, 3n)
+        Their covariance (block diagonal when read from ``reference.csv``).
+    stations : dict str -> ndarray (3,)
+        Station positions (translations of ``T_world_station``), m.
+    gcp_xyz : ndarray, shape (G, 3), optional
+        Ground control points in the world frame, m.
+    gcp_names : tuple of str
+    engine : str
+        Pose engine of the run (``"mc"``, ``"ut"`` or ``"linear"``).
+    samples : int
+        Monte Carlo samples of the run.
+    seed : int
+    gp_noise : str
+        ``"white"`` (systematic sources added after the GP) or ``"all"``.
+    summary : dict
+        The run's ``summary.json`` (empty when the run was not written).
+    path : Path, optional
+        The run directory.
+    """
+
+    name: str
+    prism_ids: tuple[str, ...]
+    measurements: dict[str, PrismTrack]
+    prisms_t: np.ndarray
+    prisms_xyz: np.ndarray
+    prisms_cov: np.ndarray
+    prisms_cov_by_source: dict[str, np.ndarray]
+    groundtruth: PoseTrajectory
+    rejected_t: np.ndarray
+    rejected_reason: np.ndarray
+    reference_xyz: np.ndarray
+    reference_cov: np.ndarray
+    stations: dict[str, np.ndarray] = field(default_factory=dict)
+    prisms_cov_gp: np.ndarray | None = None
+    gcp_xyz: np.ndarray | None = None
+    gcp_names: tuple[str, ...] = ()
+    engine: str = "linear"
+    samples: int = 1000
+    seed: int = 0
+    gp_noise: str = "white"
+    summary: dict = field(default_factory=dict)
+    path: Path | None = None
+
+    def __post_init__(self) -> None:
+        n = len(self.prism_ids)
+        T = self.prisms_t.shape[0]
+        if self.prisms_xyz.shape != (T, n, 3):
+            raise ValueError(f"Expected prisms_xyz of shape ({T}, {n}, 3), got "
+                             f"{self.prisms_xyz.shape}")
+        if self.prisms_cov.shape != (T, n, 3, 3):
+            raise ValueError(f"Expected prisms_cov of shape ({T}, {n}, 3, 3), got "
+                             f"{self.prisms_cov.shape}")
+        for s, c in self.prisms_cov_by_source.items():
+            if c.shape != (T, n, 3, 3):
+                raise ValueError(f"Expected prisms_cov_by_source[{s!r}] of shape "
+                                 f"({T}, {n}, 3, 3), got {c.shape}")
+        if self.prisms_cov_gp is not None and self.prisms_cov_gp.shape != (T, n, 3, 3):
+            raise ValueError(f"Expected prisms_cov_gp of shape ({T}, {n}, 3, 3), got "
+                             f"{self.prisms_cov_gp.shape}")
+        if self.reference_xyz.shape != (n, 3):
+            raise ValueError(f"Expected reference_xyz of shape ({n}, 3), got "
+                             f"{self.reference_xyz.shape}")
+        if self.reference_cov.shape != (3 * n, 3 * n):
+            raise ValueError(f"Expected reference_cov of shape ({3 * n}, {3 * n}), got "
+                             f"{self.reference_cov.shape}")
+        if self.rejected_t.shape != self.rejected_reason.shape:
+            raise ValueError("Expected one rejection reason per rejected time")
+
+    @property
+    def sources(self) -> tuple[str, ...]:
+        """Noise sources present in the measurements, in :data:`NOISE_SOURCES` order."""
+        present = set()
+        for tr in self.measurements.values():
+            present |= set(tr.cov_by_source)
+        return _ordered_sources(present)
+
+
+def _ordered_sources(names) -> tuple[str, ...]:
+    names = set(names)
+    known = [s for s in NOISE_SOURCES if s in names]
+    return tuple(known + sorted(names - set(known)))
+
+
+def _natural_key(s: str) -> tuple:
+    return tuple(int(p) if p.isdigit() else p for p in re.split(r"(\d+)", s) if p)
+
+
+def read_table(path: Path, required: tuple[str, ...] = ()) -> tuple[list[str], np.ndarray]:
+    """Read a numeric CSV with a one-line header.
+
+    Parameters
+    ----------
+    path : Path
+    required : tuple of str
+        Column names that must be present.
+
+    Returns
+    -------
+    header : list of str
+    data : ndarray, shape (N, len(header))
+
+    Raises
+    ------
+    InputError
+        Missing file, missing column, a wrong number of fields or a non-numeric value
+        (naming the line).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file not found (is this an rtsgt run directory?)", path)
+    with path.open(encoding="utf-8", newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        raise InputError("empty file, expected a header line", path)
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise InputError(f"missing column(s) {', '.join(missing)}; header is {','.join(header)}",
+                         path, 1)
+    data = np.empty((len(rows) - 1, len(header)))
+    for k, row in enumerate(rows[1:]):
+        if len(row) != len(header):
+            raise InputError(f"expected {len(header)} fields, got {len(row)}", path, k + 2)
+        try:
+            data[k] = [float(x) for x in row]
+        except ValueError as exc:
+            raise InputError(f"not a number: {exc}", path, k + 2) from exc
+    return header, data
+
+
+def _col(header: list[str], data: np.ndarray, name: str) -> np.ndarray:
+    return data[:, header.index(name)]
+
+
+def _cov_from(header: list[str], data: np.ndarray, prefix: str) -> np.ndarray:
+    cols = np.column_stack([_col(header, data, f"{prefix}_{c}") for c in COV3_NAMES])
+    return columns_to_cov3(cols)
+
+
+#: Covariance column prefixes that are not noise sources: the total, the GP posterior.
+_NOT_SOURCES = ("cov", "gp")
+
+
+def _source_prefixes(header: list[str]) -> tuple[str, ...]:
+    """Sources with all six ``<source>_xx .. <source>_zz`` columns (not ``cov`` or ``gp``)."""
+    found = []
+    for h in header:
+        if h.endswith("_xx"):
+            s = h[:-3]
+            if s not in _NOT_SOURCES and all(f"{s}_{c}" in header for c in COV3_NAMES):
+                found.append(s)
+    return _ordered_sources(found)
+
+
+def _prism_files(folder: Path, pattern: re.Pattern) -> dict[str, Path]:
+    if not folder.is_dir():
+        raise InputError("folder not found (is this an rtsgt run directory?)", folder)
+    out = {}
+    for p in folder.iterdir():
+        m = pattern.match(p.name)
+        if m and not (pattern is _PRISM_FILE and p.name.endswith("_sources.csv")):
+            out[m.group("id")] = p
+    return dict(sorted(out.items(), key=lambda kv: _natural_key(kv[0])))
+
+
+def _read_measurements(path: Path, pid: str) -> PrismTrack:
+    header, data = read_table(path, ("t", "x", "y", "z"))
+    sources = _source_prefixes(header)
+    by_source = {s: _cov_from(header, data, s) for s in sources}
+    if by_source:
+        cov = np.sum(list(by_source.values()), axis=0)
+    elif "cov_xx" in header:
+        cov = _cov_from(header, data, "cov")
+    else:
+        raise InputError("no covariance columns (cov_xx.. or <source>_xx..)", path, 1)
+    rng = _col(header, data, "range_m") if "range_m" in header else None
+    try:
+        return PrismTrack(_col(header, data, "t"), data[:, [header.index(c) for c in "xyz"]],
+                          cov, by_source, pid, "world", None, rng)
+    except ValueError as exc:
+        raise InputError(str(exc), path) from exc
+
+
+def _read_reference(path: Path, ids: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    if not path.is_file():
+        raise InputError("file not found (is this an rtsgt run directory?)", path)
+    with path.open(encoding="utf-8", newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        raise InputError("empty file, expected a header line", path)
+    header = [h.strip() for h in rows[0]]
+    need = ["name", "x", "y", "z"] + [f"cov_{c}" for c in COV3_NAMES]
+    missing = [c for c in need if c not in header]
+    if missing:
+        raise InputError(f"missing column(s) {', '.join(missing)}", path, 1)
+    by_name = {}
+    for k, row in enumerate(rows[1:]):
+        if len(row) != len(header):
+            raise InputError(f"expected {len(header)} fields, got {len(row)}", path, k + 2)
+        rec = dict(zip(header, row, strict=True))
+        try:
+            vals = np.array([float(rec[c]) for c in need[1:]])
+        except ValueError as exc:
+            raise InputError(f"not a number: {exc}", path, k + 2) from exc
+        by_name[_strip_prism(rec["name"].strip())] = vals
+    n = len(ids)
+    xyz = np.empty((n, 3))
+    cov = np.zeros((3 * n, 3 * n))
+    for i, pid in enumerate(ids):
+        if pid not in by_name:
+            raise InputError(f"no reference for prism {pid}; names: {', '.join(by_name)}", path)
+        v = by_name[pid]
+        xyz[i] = v[:3]
+        cov[3 * i:3 * i + 3, 3 * i:3 * i + 3] = columns_to_cov3(v[None, 3:])[0]
+    return xyz, cov
+
+
+def _strip_prism(name: str) -> str:
+    """``"prism2"`` and ``"2"`` both name prism ``"2"``."""
+    return name[5:] if name.lower().startswith("prism") and len(name) > 5 else name
+
+
+def _full_reference_cov(summary: dict, ids: tuple[str, ...], blocks: np.ndarray) -> np.ndarray:
+    """The joint reference covariance of ``summary.json`` (``reference.cov_m2``, correlated
+    between prisms when the body frame is defined by surveyed points), reordered to ``ids``;
+    the block-diagonal one of ``reference.csv`` when it is absent or does not match."""
+    ref = summary.get("reference") if isinstance(summary, dict) else None
+    if not isinstance(ref, dict) or ref.get("cov_m2") is None or ref.get("names") is None:
+        return blocks
+    names = [_strip_prism(str(x)) for x in ref["names"]]
+    full = np.asarray(ref["cov_m2"], dtype=float)
+    if full.shape != (3 * len(names), 3 * len(names)) or not set(ids) <= set(names):
+        return blocks
+    idx = np.concatenate([[3 * names.index(p) + j for j in range(3)] for p in ids])
+    sub = full[np.ix_(idx, idx)]
+    # the diagonal blocks must be those of reference.csv, else the files disagree
+    if not np.allclose(np.diagonal(sub.reshape(len(ids), 3, len(ids), 3), axis1=0, axis2=2),
+                       np.diagonal(blocks.reshape(len(ids), 3, len(ids), 3), axis1=0, axis2=2),
+                       rtol=1e-9, atol=1e-15):
+        return blocks
+    return sub
+
+
+def _read_rejected(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    if not path.is_file():
+        return np.empty(0), np.empty(0, dtype="<U32")
+    with path.open(encoding="utf-8", newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        return np.empty(0), np.empty(0, dtype="<U32")
+    header = [h.strip() for h in rows[0]]
+    if "t" not in header or "reason" not in header:
+        raise InputError(f"expected columns t,reason, got {','.join(header)}", path, 1)
+    it, ir = header.index("t"), header.index("reason")
+    t, reason = [], []
+    for k, row in enumerate(rows[1:]):
+        if not row:
+            continue
+        try:
+            t.append(float(row[it]))
+        except (ValueError, IndexError) as exc:
+            raise InputError(f"bad time: {exc}", path, k + 2) from exc
+        reason.append(row[ir].strip() if ir < len(row) else "")
+    return np.asarray(t, dtype=float), np.asarray(reason, dtype=str)
+
+
+def _find(d: dict, *keys, default=None):
+    """First value found among nested key paths (tuples) or keys of ``d``."""
+    for key in keys:
+        path = key if isinstance(key, tuple) else (key,)
+        cur = d
+        for k in path:
+            if isinstance(cur, dict) and k in cur:
+                cur = cur[k]
+            else:
+                break
+        else:
+            return cur
+    return default
+
+
+def station_positions_from_summary(summary: dict) -> dict[str, np.ndarray]:
+    """Station positions (m, world frame) from the calibration block of ``summary.json``.
+
+    Accepts the object of ``rtsgt calibrate --json`` (``stations`` with ``translation_m`` or a
+    4x4 ``matrix``) under ``calibration``; the reference station is at the origin.
+    """
+    calib = _find(summary, "calibration", default=None)
+    if not isinstance(calib, dict):
+        return {}
+    out: dict[str, np.ndarray] = {}
+    ref = calib.get("reference_station")
+    if ref is not None:
+        out[str(ref)] = np.zeros(3)
+    stations = calib.get("stations", {})
+    if isinstance(stations, dict):
+        for sid, entry in stations.items():
+            if not isinstance(entry, dict):
+                continue
+            if entry.get("translation_m") is not None:
+                out[str(sid)] = np.asarray(entry["translation_m"], dtype=float).reshape(3)
+            elif entry.get("matrix") is not None:
+                out[str(sid)] = np.asarray(entry["matrix"], dtype=float)[:3, 3]
+    return dict(sorted(out.items(), key=lambda kv: _natural_key(kv[0])))
+
+
+def _gcp_from_summary(summary: dict) -> tuple[np.ndarray | None, tuple[str, ...]]:
+    g = _find(summary, ("calibration", "gcp_world"), "gcp_world", default=None)
+    if not g:
+        return None, ()
+    if isinstance(g, dict):
+        names = tuple(str(k) for k in g)
+        return np.asarray(list(g.values()), dtype=float).reshape(-1, 3), names
+    arr = np.asarray(g, dtype=float).reshape(-1, 3)
+    return arr, tuple(str(i + 1) for i in range(arr.shape[0]))
+
+
+def read_run(run_dir: str | PathLike) -> RunData:
+    """Read a run directory written by :mod:`rtsgt.io.run_output`.
+
+    Parameters
+    ----------
+    run_dir : path
+        The ``OUT`` directory of ``rtsgt run``.
+
+    Returns
+    -------
+    RunData
+        Rejected poses, GCPs and station positions are optional (empty when absent).
+
+    Raises
+    ------
+    InputError
+        A missing or malformed file, prisms whose query times disagree.
+    """
+    root = Path(run_dir)
+    if not root.is_dir():
+        raise InputError("run directory not found", root)
+    summary_path = root / "summary.json"
+    summary: dict = {}
+    if summary_path.is_file():
+        try:
+            summary = json.loads(summary_path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise InputError(f"invalid JSON: {exc.msg}", summary_path, exc.lineno) from exc
+
+    # measurements
+    meas_files = _prism_files(root / "measurements", _PRISM_FILE)
+    measurements = {pid: _read_measurements(p, pid) for pid, p in meas_files.items()}
+
+    # prisms at the query times
+    prism_files = _prism_files(root / "prisms", _PRISM_FILE)
+    if not prism_files:
+        raise InputError("no prisms/prism<i>.csv files", root / "prisms")
+    ids = tuple(prism_files)
+    source_files = _prism_files(root / "prisms", _SOURCES_FILE)
+    t_ref = None
+    xyz, cov, by_source, cov_gp = [], [], {}, []
+    for pid, p in prism_files.items():
+        header, data = read_table(p, ("t", "x", "y", "z") + tuple(f"cov_{c}" for c in COV3_NAMES))
+        t = _col(header, data, "t")
+        if t_ref is None:
+            t_ref = t
+        elif t.shape != t_ref.shape or np.max(np.abs(t - t_ref), initial=0.0) > 1e-6:
+            raise InputError(f"query times differ from those of prism {ids[0]}", p)
+        xyz.append(data[:, [header.index(c) for c in "xyz"]])
+        cov.append(_cov_from(header, data, "cov"))
+        sp = source_files.get(pid)
+        if sp is not None:
+            sh, sd = read_table(sp, ("t",))
+            ts = _col(sh, sd, "t")
+            if ts.shape != t_ref.shape or np.max(np.abs(ts - t_ref), initial=0.0) > 1e-6:
+                raise InputError(f"times differ from those of {p.name}", sp)
+            for s in _source_prefixes(sh):
+                by_source.setdefault(s, {})[pid] = _cov_from(sh, sd, s)
+            if all(f"gp_{c}" in sh for c in COV3_NAMES):
+                cov_gp.append(_cov_from(sh, sd, "gp"))
+    T, n = t_ref.shape[0], len(ids)
+    prisms_by_source = {}
+    for s, per in by_source.items():
+        arr = np.zeros((T, n, 3, 3))
+        for i, pid in enumerate(ids):
+            if pid in per:
+                arr[:, i] = per[pid]
+        prisms_by_source[s] = arr
+
+    # poses
+    gt_path = root / "groundtruth_covariance.csv"
+    names = ["t", "x", "y", "z", "qx", "qy", "qz", "qw"]
+    covn = [f"cov_{i}{j}" for i in range(6) for j in range(6)]
+    header, data = read_table(gt_path, tuple(names + covn))
+    gt = PoseTrajectory(
+        _col(header, data, "t"), data[:, [header.index(c) for c in names[1:4]]],
+        data[:, [header.index(c) for c in names[4:8]]],
+        data[:, [header.index(c) for c in covn]].reshape(-1, 6, 6),
+    )
+    rej_t, rej_r = _read_rejected(root / "rejected_poses.csv")
+    ref_xyz, ref_cov = _read_reference(root / "reference.csv", ids)
+    ref_cov = _full_reference_cov(summary, ids, ref_cov)
+    gcp_xyz, gcp_names = _gcp_from_summary(summary)
+    opts = _find(summary, "options", "parameters", default={}) or {}
+    engine = str(_find(opts, "engine", default=_find(summary, "engine", default="linear")))
+    samples = int(_find(opts, "samples", default=_find(summary, "samples", default=1000)))
+    seed = _find(opts, "seed", default=_find(summary, "seed", default=0))
+    gp_noise = str(_find(opts, "gp_noise", default=_find(summary, "gp_noise", default="white")))
+    name = _find(summary, "name", "deployment", default=root.name)
+    name = str(name.get("name", root.name) if isinstance(name, dict) else name)
+    return RunData(
+        name=name, prism_ids=ids,
+        measurements={pid: measurements[pid] for pid in ids if pid in measurements},
+        prisms_t=t_ref, prisms_xyz=np.stack(xyz, axis=1), prisms_cov=np.stack(cov, axis=1),
+        prisms_cov_by_source=dict(zip(_ordered_sources(prisms_by_source),
+                                      [prisms_by_source[s] for s in
+                                       _ordered_sources(prisms_by_source)], strict=True)),
+        groundtruth=gt, rejected_t=rej_t, rejected_reason=rej_r,
+        reference_xyz=ref_xyz, reference_cov=ref_cov,
+        stations=station_positions_from_summary(summary),
+        prisms_cov_gp=np.stack(cov_gp, axis=1) if len(cov_gp) == n else None, gcp_xyz=gcp_xyz,
+        gcp_names=gcp_names, engine=engine, samples=samples,
+        seed=int(seed) if seed is not None else 0, gp_noise=gp_noise,
+        summary=summary, path=root,
+    )

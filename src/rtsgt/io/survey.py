@@ -1,0 +1,333 @@
+r"""Readers of the static survey of the robot and of reference-point files.
+
+Three formats:
+
+``calibration_raw.csv`` (RTS_project, one station shooting points on the robot)
+    Space separated rows of 15 fields: Hz as ``d m s``, sigma Hz as ``d m s``, V (zenith) as
+    ``d m s``, sigma V as ``d m s``, slope distance (m), sigma distance (m), and a trailing
+    field (0 in the files). Rows, by the RTS_project layout: prisms 1-3, GNSS antennas 1-3,
+    then lidar points. The sigmas are read as one standard deviation. Manual shots use the
+    convention (a frame rotated by -90 deg about z from the tracking convention of
+    :mod:`rtsgt.measurement.polar`; no additive constant)::
+
+        x = d cos(Hz) sin(V),   y = -d sin(Hz) sin(V),   z = d cos(V)
+
+    The Cartesian covariance is first order: ``J diag(s_Hz^2, s_V^2, s_d^2) J^T``.
+``calibration_results.csv`` (RTS_project)
+    One line: the inter-prism distances d12 d13 d23, then the inter-GNSS distances
+    g12 g13 g23 (m), space or comma separated.
+rtsgt reference CSV
+    Header ``name,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz`` (any column order), one
+    point per row, body frame, m and m^2 (no correlation between points).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from os import PathLike
+from pathlib import Path
+
+import numpy as np
+
+from rtsgt.errors import GeometryError, InputError
+from rtsgt.io._parse import (
+    atomic_write_text,
+    find_columns,
+    fmt_float,
+    read_lines,
+    split_rows,
+    to_float,
+)
+from rtsgt.measurement.polar import polar_jacobian, polar_to_cartesian
+from rtsgt.measurement.units import dms_to_rad
+from rtsgt.pose.reference import ReferencePoints
+
+#: Rotation from the tracking convention (x = d sinV sinHz, y = d sinV cosHz) to the manual
+#: survey convention of RTS_project (x = d cosHz sinV, y = -d sinHz sinV): -90 deg about z.
+R_MANUAL_TRACKING = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+SURVEY_COLUMNS = (
+    "hz_d", "hz_m", "hz_s", "sigma_hz_d", "sigma_hz_m", "sigma_hz_s",
+    "v_d", "v_m", "v_s", "sigma_v_d", "sigma_v_m", "sigma_v_s",
+    "distance", "sigma_distance", "flag",
+)
+
+REFERENCE_CSV_COLUMNS = (
+    "name", "x", "y", "z", "cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz",
+)
+
+
+def default_survey_names(k: int) -> tuple[str, ...]:
+    """Row names of the RTS_project layout: prism1-3, gnss1-3, then lidar1, lidar2, ..."""
+    names = []
+    for i in range(k):
+        if i < 3:
+            names.append(f"prism{i + 1}")
+        elif i < 6:
+            names.append(f"gnss{i - 2}")
+        else:
+            names.append(f"lidar{i - 5}")
+    return tuple(names)
+
+
+@dataclass(frozen=True)
+class SurveyShots:
+    """Static survey of points on the robot, by one station.
+
+    Attributes
+    ----------
+    names : tuple of str, length K
+    hz, sigma_hz : ndarray, shape (K,)
+        Horizontal direction (clockwise) and its standard deviation, rad.
+    v, sigma_v : ndarray, shape (K,)
+        Zenith angle and its standard deviation, rad.
+    d, sigma_d : ndarray, shape (K,)
+        Slope distance (additive constant applied) and its standard deviation, m.
+    xyz : ndarray, shape (K, 3)
+        Points in the survey frame (manual-shot convention of the module docstring), m.
+    cov : ndarray, shape (K, 3, 3)
+        First-order covariance of each point, m^2, survey frame (points independent).
+    source : str
+    """
+
+    names: tuple[str, ...]
+    hz: np.ndarray
+    sigma_hz: np.ndarray
+    v: np.ndarray
+    sigma_v: np.ndarray
+    d: np.ndarray
+    sigma_d: np.ndarray
+    xyz: np.ndarray
+    cov: np.ndarray
+    source: str = ""
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def cov_stacked(self) -> np.ndarray:
+        """Covariance of the stacked points ``(x1, y1, z1, x2, ...)``, shape (3K, 3K)."""
+        k = len(self)
+        out = np.zeros((3 * k, 3 * k))
+        for i in range(k):
+            out[3 * i:3 * i + 3, 3 * i:3 * i + 3] = self.cov[i]
+        return out
+
+    def index(self, name: str) -> int:
+        """0-based row of the point called ``name``."""
+        if name not in self.names:
+            raise ValueError(f"Expected a point among {self.names}, got {name!r}")
+        return self.names.index(name)
+
+
+def _dms_to_rad(
+    tokens: np.ndarray, numbers: Sequence[int], path: str | PathLike, what: str
+) -> np.ndarray:
+    """Angles from (N, 3) tokens ``degrees minutes seconds`` to radians.
+
+    Checks each line (naming the file and line), then converts with
+    :func:`rtsgt.measurement.units.dms_to_rad`: a leading ``-`` on the degrees makes the whole
+    angle negative (``-0 30 00`` is -0.5 deg). Degrees and minutes must be whole numbers,
+    minutes in [0, 60) and seconds in [0, 60).
+    """
+    names = (f"{what} degrees", f"{what} minutes", f"{what} seconds")
+    values = to_float(tokens, numbers, path, names)
+    deg, mins, secs = values[:, 0], values[:, 1], values[:, 2]
+    for i in range(values.shape[0]):
+        if not (mins[i] >= 0 and mins[i] < 60 and mins[i] == np.floor(mins[i])):
+            raise InputError(
+                f"expected whole minutes in [0, 60) for {what}, got {tokens[i, 1]!r}",
+                path, numbers[i],
+            )
+        if not (secs[i] >= 0 and secs[i] < 60):
+            raise InputError(
+                f"expected seconds in [0, 60) for {what}, got {tokens[i, 2]!r}", path, numbers[i]
+            )
+        if deg[i] != np.floor(deg[i]):
+            raise InputError(
+                f"expected whole degrees for {what} (d m s), got {tokens[i, 0]!r}",
+                path, numbers[i],
+            )
+    # the sign of the degrees (a "-0" included) applies to the whole angle
+    return dms_to_rad(deg, mins, secs)
+
+
+def read_survey_raw(
+    path: str | PathLike,
+    *,
+    names: Sequence[str] | None = None,
+    additive_constant: float = 0.0,
+) -> SurveyShots:
+    """Read a static survey in the RTS_project ``calibration_raw.csv`` format.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    names : sequence of str, optional
+        One name per row (default :func:`default_survey_names`: prism1-3, gnss1-3, lidar...).
+    additive_constant : float
+        Added to every distance, m (0 for the RTS_project manual shots).
+
+    Returns
+    -------
+    SurveyShots
+
+    Raises
+    ------
+    InputError
+        Missing file, wrong column count, a bad number or angle, a non-positive distance or
+        sigma, a zenith angle outside (0, 180) deg; the message names the file and line.
+    """
+    numbers, lines = read_lines(path, "survey shots (15 space-separated fields per line)")
+    tok = split_rows(lines, numbers, path, SURVEY_COLUMNS, None)
+    hz = _dms_to_rad(tok[:, 0:3], numbers, path, "Hz")
+    s_hz = _dms_to_rad(tok[:, 3:6], numbers, path, "sigma Hz")
+    v = _dms_to_rad(tok[:, 6:9], numbers, path, "V")
+    s_v = _dms_to_rad(tok[:, 9:12], numbers, path, "sigma V")
+    rest = to_float(tok[:, 12:15], numbers, path, SURVEY_COLUMNS[12:15])
+    d_raw, s_d = rest[:, 0], rest[:, 1]
+    for i, number in enumerate(numbers):
+        if not d_raw[i] > 0:
+            raise InputError(f"expected a positive distance, got {tok[i, 12]!r} m", path, number)
+        if not (v[i] > 0 and v[i] < np.pi):
+            raise InputError(
+                f"expected a zenith angle V in (0, 180) deg, got {' '.join(tok[i, 6:9])}",
+                path, number,
+            )
+        for what, val in (("sigma Hz", s_hz[i]), ("sigma V", s_v[i]), ("sigma distance", s_d[i])):
+            if not val >= 0:
+                raise InputError(f"expected a non-negative {what}, got {val!r}", path, number)
+    k = len(lines)
+    if names is None:
+        names = default_survey_names(k)
+    names = tuple(str(s) for s in names)
+    if len(names) != k:
+        raise InputError(f"expected {len(names)} survey rows (one per name), got {k}", path)
+    d = d_raw + float(additive_constant)
+    xyz = polar_to_cartesian(hz, v, d) @ R_MANUAL_TRACKING.T
+    J = R_MANUAL_TRACKING @ polar_jacobian(hz, v, d)
+    var = np.stack([s_hz**2, s_v**2, s_d**2], axis=-1)
+    cov = np.einsum("kij,kj,klj->kil", J, var, J)
+    return SurveyShots(names, hz, s_hz, v, s_v, d, s_d, xyz, cov, str(path))
+
+
+@dataclass(frozen=True)
+class CalibrationResults:
+    """Inter-point distances of the RTS_project ``calibration_results.csv``, m.
+
+    Attributes
+    ----------
+    prism_distances : ndarray, shape (3,)
+        d12, d13, d23.
+    gnss_distances : ndarray, shape (3,) or None
+        g12, g13, g23 (None when the file has only the three prism distances).
+    """
+
+    prism_distances: np.ndarray
+    gnss_distances: np.ndarray | None = None
+
+
+def read_calibration_results(path: str | PathLike) -> CalibrationResults:
+    """Read ``calibration_results.csv``: one line ``d12 d13 d23 [g12 g13 g23]`` (m).
+
+    Raises
+    ------
+    InputError
+        Not exactly one data line of 3 or 6 positive numbers.
+    """
+    numbers, lines = read_lines(path, "inter-prism distances d12 d13 d23 [g12 g13 g23]")
+    if len(lines) != 1:
+        raise InputError(
+            f"expected one line of distances, got {len(lines)} data lines", path, numbers[1]
+        )
+    fields = lines[0].replace(",", " ").split()
+    if len(fields) not in (3, 6):
+        raise InputError(
+            f"expected 3 or 6 distances (d12 d13 d23 [g12 g13 g23]), got {len(fields)}",
+            path, numbers[0],
+        )
+    cols = ("d12", "d13", "d23", "g12", "g13", "g23")[: len(fields)]
+    vals = to_float(np.array([fields], dtype=object), numbers, path, cols)[0]
+    for c, x in zip(cols, vals, strict=True):
+        if not x > 0:
+            raise InputError(f"expected a positive distance {c}, got {x!r} m", path, numbers[0])
+    return CalibrationResults(vals[:3], vals[3:] if len(vals) == 6 else None)
+
+
+def read_reference_csv(path: str | PathLike, *, frame: str = "body") -> ReferencePoints:
+    """Read reference points ``name,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz``.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        Header line first; ``#`` comments and blank lines are ignored. Body frame, m, m^2.
+    frame : str
+        Name of the body frame.
+
+    Returns
+    -------
+    ReferencePoints
+        Block-diagonal covariance (the format has no correlation between points).
+
+    Raises
+    ------
+    InputError
+        Missing columns, bad numbers, duplicated names, a covariance that is not symmetric
+        positive semi-definite, fewer than 3 points or nearly collinear ones (with the line).
+    """
+    numbers, lines = read_lines(path, "a header and reference points")
+    header = [h.strip() for h in lines[0].split(",")]
+    pos = find_columns(header, REFERENCE_CSV_COLUMNS, path, numbers[0])
+    if len(lines) < 2:
+        raise InputError("expected reference points after the header, got none", path)
+    tok = split_rows(lines[1:], numbers[1:], path, header, ",")
+    names = [str(s) for s in tok[:, pos["name"]]]
+    for i, s in enumerate(names):
+        if not s:
+            raise InputError("expected a point name, got an empty field", path, numbers[1 + i])
+        if s in names[:i]:
+            raise InputError(f"duplicated point name {s!r}", path, numbers[1 + i])
+    num_cols = REFERENCE_CSV_COLUMNS[1:]
+    vals = to_float(tok[:, [pos[c] for c in num_cols]], numbers[1:], path, num_cols)
+    xyz = vals[:, :3]
+    cxx, cxy, cxz, cyy, cyz, czz = vals[:, 3:].T
+    cov = np.stack([
+        np.stack([cxx, cxy, cxz], -1), np.stack([cxy, cyy, cyz], -1), np.stack([cxz, cyz, czz], -1)
+    ], axis=-2)
+    for i in range(len(names)):
+        w = np.linalg.eigvalsh(cov[i])
+        if w[0] < -1e-9 * max(abs(w[-1]), 1e-300):
+            raise InputError(
+                f"expected a positive semi-definite covariance for {names[i]!r}, got "
+                f"eigenvalue {w[0]:.3g} m^2", path, numbers[1 + i],
+            )
+    try:
+        return ReferencePoints(tuple(names), xyz, cov, frame)
+    except GeometryError as exc:
+        raise InputError(str(exc), path) from exc
+
+
+def write_reference_csv(path: str | PathLike, reference: ReferencePoints) -> None:
+    """Write reference points in the rtsgt reference CSV format (atomically).
+
+    Raises
+    ------
+    ValueError
+        The covariance correlates different points (the format cannot hold that).
+    """
+    n = len(reference)
+    cov = reference.cov
+    off = cov.copy()
+    for i in range(n):
+        off[3 * i:3 * i + 3, 3 * i:3 * i + 3] = 0.0
+    if np.any(off != 0.0):
+        raise ValueError(
+            "Expected a block-diagonal reference covariance: the CSV format has no "
+            "correlation between points"
+        )
+    rows = [",".join(REFERENCE_CSV_COLUMNS)]
+    blocks = reference.cov_blocks()
+    for name, p, c in zip(reference.names, reference.xyz, blocks, strict=True):
+        vals = [p[0], p[1], p[2], c[0, 0], c[0, 1], c[0, 2], c[1, 1], c[1, 2], c[2, 2]]
+        rows.append(",".join([name] + [fmt_float(x) for x in vals]))
+    atomic_write_text(Path(path), "\n".join(rows) + "\n")

@@ -1,0 +1,73 @@
+r"""Polar (total-station) to Cartesian coordinates: the station-frame convention of rtsgt.
+
+Convention (RTS_project tracking convention; the one place it is defined)
+-------------------------------------------------------------------------
+- ``hz``: horizontal direction, **clockwise** seen from above, rad, zero along +y.
+- ``v``: **zenith** angle, rad, ``v = 0`` straight up, ``v = pi/2`` horizontal.
+- ``d``: slope distance, m, *after* the additive (prism) constant has been added.
+
+.. math::
+
+    x = d \sin V \sin Hz,\quad y = d \sin V \cos Hz,\quad z = d \cos V
+
+The frame is right-handed with z up (x east-like when y points along Hz = 0).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+
+def polar_to_cartesian(hz: ArrayLike, v: ArrayLike, d: ArrayLike) -> np.ndarray:
+    """Station-frame Cartesian coordinates of polar measurements.
+
+    Parameters
+    ----------
+    hz, v, d : array_like, broadcastable, rad / rad / m
+        Clockwise horizontal direction, zenith angle and slope distance (additive constant
+        already applied).
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+        ``(x, y, z)`` in metres, station frame.
+    """
+    hz = np.asarray(hz, dtype=float)
+    v = np.asarray(v, dtype=float)
+    d = np.asarray(d, dtype=float)
+    sv = np.sin(v)
+    return np.stack(np.broadcast_arrays(d * sv * np.sin(hz), d * sv * np.cos(hz), d * np.cos(v)), axis=-1)
+
+
+def cartesian_to_polar(p: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Inverse of :func:`polar_to_cartesian`: ``(hz in [0, 2pi), v in [0, pi], d)``."""
+    p = np.asarray(p, dtype=float)
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    d = np.sqrt(x * x + y * y + z * z)
+    hz = np.mod(np.arctan2(x, y), 2 * np.pi)
+    v = np.arccos(np.clip(z / np.where(d > 0, d, 1.0), -1.0, 1.0))
+    return hz, v, d
+
+
+def polar_jacobian(hz: ArrayLike, v: ArrayLike, d: ArrayLike) -> np.ndarray:
+    """Jacobian of :func:`polar_to_cartesian` with respect to ``(hz, v, d)``.
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+        ``J[..., i, j] = d p_i / d (hz, v, d)_j``.
+    """
+    hz, v, d = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (hz, v, d)))
+    sh, ch, sv, cv = np.sin(hz), np.cos(hz), np.sin(v), np.cos(v)
+    J = np.empty(hz.shape + (3, 3))
+    J[..., 0, 0] = d * sv * ch
+    J[..., 0, 1] = d * cv * sh
+    J[..., 0, 2] = sv * sh
+    J[..., 1, 0] = -d * sv * sh
+    J[..., 1, 1] = d * cv * ch
+    J[..., 1, 2] = sv * ch
+    J[..., 2, 0] = 0.0
+    J[..., 2, 1] = -d * sv
+    J[..., 2, 2] = cv
+    return J

@@ -1,0 +1,268 @@
+r"""Angle units to and from radians: degrees, arc seconds, DMS, gon (grads), mgon.
+
+rtsgt works in radians inside; readers and writers convert with the functions here. All
+functions are vectorised over array inputs and never mutate them.
+
+Degrees-minutes-seconds (DMS)
+-----------------------------
+A DMS angle is a sign and three non-negative magnitudes, ``sign * (d + m/60 + s/3600)``.
+The sign is the hard part (``-0 30 00`` is minus half a degree; ``-12 30 00`` is
+``-(12.5)`` degrees, not ``-12 + 0.5``), so:
+
+- in tuples ``(d, m, s)`` the angle is negative when *any* component is negative, including a
+  negative zero in ``d`` (``-0.0``); minutes and seconds otherwise count as magnitudes;
+- in strings the sign is a leading ``-`` or ``+`` (or a trailing hemisphere letter ``S`` / ``W``
+  for negative, ``N`` / ``E`` for positive). Accepted separators: blanks, ``:``, ``°``, ``d``,
+  ``'``, ``m``, ``"``, ``s`` (and the Unicode prime/double prime), e.g. ``"-12 30 15.5"``,
+  ``"12°30'15.5\""``, ``"12:30:15.5"``, ``"12d30m15.5s"``, ``"-0 30 0"``. Missing trailing
+  fields are zero (``"12 30"`` is 12 deg 30 min).
+
+Minutes and seconds must lie in ``[0, 60)``; anything else raises :class:`InputError` naming the
+value and its index.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from rtsgt.errors import InputError
+
+#: One degree, rad.
+DEGREE = np.pi / 180.0
+#: One arc minute, rad.
+ARCMIN = DEGREE / 60.0
+#: One arc second, rad.
+ARCSEC = DEGREE / 3600.0
+#: One gon (grad, 1/400 of a turn), rad.
+GON = np.pi / 200.0
+#: One milligon, rad.
+MGON = GON / 1000.0
+
+#: Unit names accepted by :func:`to_radians` and :func:`from_radians`.
+ANGLE_UNITS = ("rad", "deg", "arcsec", "gon", "mgon", "dms")
+
+_SCALE = {"rad": 1.0, "deg": DEGREE, "arcsec": ARCSEC, "gon": GON, "mgon": MGON}
+
+
+def deg_to_rad(a: ArrayLike) -> np.ndarray:
+    """Degrees to radians."""
+    return np.asarray(a, dtype=float) * DEGREE
+
+
+def rad_to_deg(a: ArrayLike) -> np.ndarray:
+    """Radians to degrees."""
+    return np.asarray(a, dtype=float) / DEGREE
+
+
+def gon_to_rad(a: ArrayLike) -> np.ndarray:
+    """Gon (grads, 400 per turn) to radians."""
+    return np.asarray(a, dtype=float) * GON
+
+
+def rad_to_gon(a: ArrayLike) -> np.ndarray:
+    """Radians to gon."""
+    return np.asarray(a, dtype=float) / GON
+
+
+def arcsec_to_rad(a: ArrayLike) -> np.ndarray:
+    """Arc seconds to radians."""
+    return np.asarray(a, dtype=float) * ARCSEC
+
+
+def rad_to_arcsec(a: ArrayLike) -> np.ndarray:
+    """Radians to arc seconds."""
+    return np.asarray(a, dtype=float) / ARCSEC
+
+
+def _first_bad(mask: np.ndarray):
+    idx = tuple(int(i) for i in np.argwhere(mask)[0])
+    return idx[0] if len(idx) == 1 else idx
+
+
+def dms_to_rad(d: ArrayLike, m: ArrayLike = 0.0, s: ArrayLike = 0.0) -> np.ndarray:
+    """Degrees, minutes, seconds to radians, with robust sign handling.
+
+    Parameters
+    ----------
+    d, m, s : array_like, broadcastable
+        Degrees, minutes and seconds. The angle is negative when any of them is negative,
+        including ``d = -0.0``; the magnitudes ``|d| + |m|/60 + |s|/3600`` are summed.
+
+    Returns
+    -------
+    ndarray
+        Angle in radians, the broadcast shape of the inputs.
+
+    Raises
+    ------
+    InputError
+        Non-finite values, or minutes / seconds outside ``[0, 60)`` (in magnitude), naming the
+        first offending value and index.
+    """
+    d, m, s = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (d, m, s)))
+    for name, a in (("degrees", d), ("minutes", m), ("seconds", s)):
+        bad = ~np.isfinite(a)
+        if np.any(bad):
+            i = _first_bad(bad)
+            raise InputError(f"Expected finite DMS {name}, got {float(a[i])!r} at index {i}")
+    for name, a in (("minutes", m), ("seconds", s)):
+        bad = np.abs(a) >= 60.0
+        if np.any(bad):
+            i = _first_bad(bad)
+            raise InputError(f"Expected DMS {name} in [0, 60), got {float(a[i])!r} at index {i}")
+    negative = np.signbit(d) | (m < 0) | (s < 0)
+    magnitude = np.abs(d) + np.abs(m) / 60.0 + np.abs(s) / 3600.0
+    return np.where(negative, -magnitude, magnitude) * DEGREE
+
+
+def rad_to_dms(a: ArrayLike, decimals: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Radians to ``(d, m, s)`` with the sign carried by ``d`` (``-0.0`` when ``|a| < 1 deg``).
+
+    Parameters
+    ----------
+    a : array_like
+        Angle, rad.
+    decimals : int, optional
+        Round the seconds to this many decimals first, carrying 60 s into the minutes and
+        60 min into the degrees (so that ``59.99996"`` never prints as ``60.0000"``).
+
+    Returns
+    -------
+    d, m, s : ndarray
+        Whole degrees (float, signed), whole minutes and seconds (non-negative).
+        ``dms_to_rad(*rad_to_dms(a))`` returns ``a``.
+    """
+    a = np.asarray(a, dtype=float)
+    negative = np.signbit(a)
+    total_s = np.abs(a) / ARCSEC
+    if decimals is not None:
+        total_s = np.round(total_s, decimals)
+    d = np.floor(total_s / 3600.0)
+    rest = total_s - d * 3600.0
+    m = np.floor(rest / 60.0)
+    s = rest - m * 60.0
+    # floating-point guard: rest may round to exactly 3600 or s to 60
+    carry = s >= 60.0
+    m = np.where(carry, m + 1, m)
+    s = np.where(carry, s - 60.0, s)
+    carry = m >= 60.0
+    d = np.where(carry, d + 1, d)
+    m = np.where(carry, m - 60.0, m)
+    if decimals is not None:
+        s = np.round(s, decimals)
+    d = np.where(negative, -d, d)  # -0.0 keeps the sign of angles under one degree
+    return d, m, s
+
+
+_DMS_SPLIT = re.compile(r"[\s:°º˚'’′\"”″dDmMsS]+")
+_HEMI = {"N": 1.0, "E": 1.0, "S": -1.0, "W": -1.0}
+
+
+def _parse_one_dms(text: str, index) -> float:
+    raw = str(text).strip()
+    if not raw:
+        raise InputError(f"Expected a DMS angle, got an empty string at index {index}")
+    body = raw
+    sign = 1.0
+    last, before = body[-1], body[-2:-1]
+    # a trailing N/E/W, or an S after a blank or a seconds mark, is a hemisphere letter;
+    # "15s" / "15S" right after digits is the seconds unit
+    if last in "NEW" or (last == "S" and before in (" ", "\t", '"', "”", "″")):
+        sign = _HEMI[last]
+        body = body[:-1].strip()
+    if body[:1] in "+-−":
+        if body[0] in "-−":
+            sign = -sign
+        body = body[1:].strip()
+    parts = [p for p in _DMS_SPLIT.split(body) if p != ""]
+    if not 1 <= len(parts) <= 3:
+        raise InputError(f"Expected a DMS angle 'd m s', got {raw!r} at index {index}")
+    try:
+        vals = [float(p) for p in parts]
+    except ValueError:
+        raise InputError(f"Expected a DMS angle 'd m s', got {raw!r} at index {index}") from None
+    vals += [0.0] * (3 - len(vals))
+    d, m, s = vals
+    if any(v < 0 for v in vals) or not all(np.isfinite(vals)):
+        raise InputError(
+            f"Expected DMS components to be non-negative after the sign, got {raw!r} at index {index}"
+        )
+    if m >= 60 or s >= 60:
+        raise InputError(f"Expected DMS minutes and seconds in [0, 60), got {raw!r} at index {index}")
+    return sign * (d + m / 60.0 + s / 3600.0) * DEGREE
+
+
+def parse_dms(text: str | ArrayLike) -> np.ndarray | float:
+    """Parse DMS strings to radians (see the module docstring for the accepted forms).
+
+    Parameters
+    ----------
+    text : str or array_like of str
+
+    Returns
+    -------
+    float or ndarray
+        Radians, same shape as ``text``.
+    """
+    if isinstance(text, str):
+        return _parse_one_dms(text, 0)
+    arr = np.asarray(text, dtype=object)
+    out = np.empty(arr.shape)
+    for idx in np.ndindex(arr.shape):  # strings: parsing is inherently per element
+        out[idx] = _parse_one_dms(arr[idx], idx if len(idx) != 1 else idx[0])
+    return out
+
+
+def format_dms(a: ArrayLike, decimals: int = 1) -> np.ndarray | str:
+    """Radians to DMS strings ``"-12°30'15.5\""`` (the inverse of :func:`parse_dms`)."""
+    arr = np.asarray(a, dtype=float)
+    d, m, s = rad_to_dms(arr, decimals)
+    width = 3 + decimals if decimals > 0 else 2
+
+    def one(di, mi, si):
+        sign = "-" if np.signbit(di) else ""
+        return f"{sign}{abs(di):.0f}°{mi:02.0f}'{si:0{width}.{decimals}f}\""
+
+    if arr.ndim == 0:
+        return one(float(d), float(m), float(s))
+    out = np.empty(arr.shape, dtype=object)
+    for idx in np.ndindex(arr.shape):
+        out[idx] = one(d[idx], m[idx], s[idx])
+    return out
+
+
+def to_radians(value, unit: str) -> np.ndarray:
+    """Convert angles in ``unit`` to radians.
+
+    Parameters
+    ----------
+    value : array_like
+        For ``"dms"``: strings (see :func:`parse_dms`) or numbers of shape (..., 3) holding
+        ``(d, m, s)``; otherwise numbers.
+    unit : {"rad", "deg", "arcsec", "gon", "mgon", "dms"}
+    """
+    unit = unit.lower()
+    if unit == "dms":
+        arr = np.asarray(value)
+        if isinstance(value, str) or arr.dtype.kind in "UO":
+            return parse_dms(value)
+        arr = np.asarray(value, dtype=float)
+        if arr.shape[-1:] != (3,):
+            raise InputError(f"Expected DMS tuples of shape (..., 3), got {arr.shape}")
+        return dms_to_rad(arr[..., 0], arr[..., 1], arr[..., 2])
+    if unit not in _SCALE:
+        raise InputError(f"Unknown angle unit {unit!r}; known: {', '.join(ANGLE_UNITS)}")
+    return np.asarray(value, dtype=float) * _SCALE[unit]
+
+
+def from_radians(value: ArrayLike, unit: str, decimals: int = 1):
+    """Convert radians to ``unit``; ``"dms"`` gives strings with ``decimals`` on the seconds."""
+    unit = unit.lower()
+    if unit == "dms":
+        return format_dms(value, decimals)
+    if unit not in _SCALE:
+        raise InputError(f"Unknown angle unit {unit!r}; known: {', '.join(ANGLE_UNITS)}")
+    return np.asarray(value, dtype=float) / _SCALE[unit]

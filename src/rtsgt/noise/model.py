@@ -1,0 +1,376 @@
+r"""The per-measurement noise model shared by the Monte Carlo and the linearised engines.
+
+Model (Vaidis et al. 2023, section III; rtsgt DESIGN.md section 3). For one measurement
+``(Hz, V, d)`` of a prism by a station, with ``d`` including the additive constant and
+``alpha(T, p, RH) = 1e-6 K(T, p, RH)`` the first-velocity correction
+(:mod:`rtsgt.measurement.atmosphere`):
+
+.. math::
+
+    \hat d &= (d + e_d)(1 + \alpha(T + e_T, p + e_p, RH + e_{RH})) \\
+    \hat V &= V + e_V + e_{tilt} \\
+    \hat{Hz} &= Hz + e_{Hz} + e_{tilt} \cot \hat V \\
+    p_{station} &= \mathrm{polar}(\hat{Hz}, \hat V, \hat d) + e_{ts}\, v \\
+    p_{world} &= R_{ws} p_{station} + t_{ws}
+
+Sources and distributions:
+
+``instrument``
+    ``e_d ~ N(0, sigma_d(d)^2)``, ``e_Hz, e_V ~ N(0, sigma_angle^2)`` (one-sigma values of the
+    :class:`~rtsgt.measurement.instruments.InstrumentProfile`).
+``tilt``
+    ``e_tilt ~ N(0, sigma_tilt^2)``, entering V and Hz as above.
+``atmosphere``
+    Zero-mean uniform errors of the weather used for the correction:
+    ``e_T ~ U(-hT, hT)``, ``e_p ~ U(-hp, hp)``, ``e_RH ~ U(-hRH, hRH)`` (DESIGN.md: the paper
+    writes ``[0, x]``, a one-sided bias; the symmetric interval is the physical reading). The
+    perturbed humidity is clipped to [0, 100] %.
+``time_sync``
+    A clock error ``e_ts`` displaces a prism moving at velocity ``v`` by ``e_ts v``. The
+    authors measured ``|e_ts|`` as ``N(mu, sigma)`` (1.157 ms, 0.815 ms). Whether the
+    station's clock leads or lags the robot's is not known per deployment, so rtsgt draws
+    ``e_ts = s |e|`` with a random sign ``s = +-1`` and ``e ~ N(mu, sigma)``: a **zero-mean**
+    error whose second moment is ``mu^2 + sigma^2``. The nominal position is therefore not
+    shifted, and the covariance is ``(mu^2 + sigma^2) v v^T`` (rank one along ``v``) plus,
+    in the linearised engine, ``(mu^2 + sigma^2) Cov(v)`` for the noise of the differenced
+    velocity. A *known* latency should be removed from the time stamps instead (then set
+    ``time_sync_mean_s`` to 0 and ``time_sync_std_s`` to the residual).
+``calibration``
+    The uncertainty of ``T_world_station``: Monte Carlo sample ``m`` uses transform sample
+    ``m`` (the GCP Monte Carlo), or left perturbations drawn from its 6x6 covariance.
+
+The velocity ``v`` is the nominal station-frame velocity of the prism from
+:func:`prism_velocity`: central differences of consecutive positions, one-sided at the ends of
+a block, never across a gap longer than ``max_velocity_gap_s`` (there ``v = 0``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from rtsgt.errors import InputError
+from rtsgt.measurement.atmosphere import VAPOUR_FORMULAS
+from rtsgt.measurement.instruments import InstrumentProfile
+from rtsgt.types import NOISE_SOURCES
+
+__all__ = ["NOISE_SOURCES", "NoiseModel", "prism_velocity", "check_strictly_increasing"]
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Which noise sources to propagate, and their parameters.
+
+    Attributes
+    ----------
+    instrument : InstrumentProfile
+        Accuracy of the total station (distance, angles, compensator) and its EDM reference
+        atmosphere.
+    sources : tuple of str
+        Subset of :data:`rtsgt.types.NOISE_SOURCES` (``"instrument"``, ``"tilt"``,
+        ``"atmosphere"``, ``"time_sync"``, ``"calibration"``), kept in that order.
+    time_sync_mean_s, time_sync_std_s : float
+        Mean and standard deviation of the magnitude of the clock error, s (the authors'
+        values; the paper rounds them to 1.2 ms and 0.8 ms). See the module docstring for the
+        random sign.
+    temperature_halfwidth_c, pressure_halfwidth_hpa, humidity_halfwidth_pct : float
+        Half-widths of the zero-mean uniform errors of the weather, degC, hPa, %.
+    vapour_formula : {"magnus", "buck"}
+        Saturation vapour-pressure formula of the atmospheric correction.
+    max_velocity_gap_s : float
+        The velocity is differenced only across gaps of at most this many seconds.
+    """
+
+    instrument: InstrumentProfile
+    sources: tuple[str, ...] = NOISE_SOURCES
+    time_sync_mean_s: float = 1.157e-3
+    time_sync_std_s: float = 0.815e-3
+    temperature_halfwidth_c: float = 1.0
+    pressure_halfwidth_hpa: float = 10.0
+    humidity_halfwidth_pct: float = 2.0
+    vapour_formula: str = "magnus"
+    max_velocity_gap_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.instrument, InstrumentProfile):
+            raise InputError(
+                f"Expected an InstrumentProfile, got {type(self.instrument).__name__}"
+            )
+        srcs = (self.sources,) if isinstance(self.sources, str) else tuple(self.sources)
+        unknown = [s for s in srcs if s not in NOISE_SOURCES]
+        if unknown:
+            raise InputError(
+                f"Unknown noise source(s) {', '.join(map(repr, unknown))}; "
+                f"known: {', '.join(NOISE_SOURCES)}"
+            )
+        if len(set(srcs)) != len(srcs):
+            raise InputError(f"Expected distinct noise sources, got {srcs}")
+        object.__setattr__(self, "sources", tuple(s for s in NOISE_SOURCES if s in srcs))
+        for name in (
+            "time_sync_mean_s", "time_sync_std_s", "temperature_halfwidth_c",
+            "pressure_halfwidth_hpa", "humidity_halfwidth_pct",
+        ):
+            val = getattr(self, name)
+            if isinstance(val, bool) or not np.isfinite(val) or val < 0:
+                raise InputError(f"Expected {name} >= 0, got {val!r}")
+            object.__setattr__(self, name, float(val))
+        if not self.max_velocity_gap_s > 0:
+            raise InputError(f"Expected max_velocity_gap_s > 0, got {self.max_velocity_gap_s!r}")
+        f = str(self.vapour_formula).lower()
+        if f not in VAPOUR_FORMULAS:
+            raise InputError(
+                f"Unknown vapour_formula {self.vapour_formula!r}; known: {', '.join(VAPOUR_FORMULAS)}"
+            )
+        object.__setattr__(self, "vapour_formula", f)
+
+    def with_sources(self, sources) -> NoiseModel:
+        """A copy restricted to (or extended with) ``sources`` (a name or an iterable)."""
+        srcs = (sources,) if isinstance(sources, str) else tuple(sources)
+        return replace(self, sources=srcs)
+
+    @property
+    def time_sync_second_moment_s2(self) -> float:
+        """``E[e_ts^2] = mu^2 + sigma^2`` (s^2), the variance of the zero-mean clock error."""
+        return self.time_sync_mean_s**2 + self.time_sync_std_s**2
+
+    @property
+    def weather_variances(self) -> tuple[float, float, float]:
+        """Variances of the uniform weather errors, ``h^2 / 3`` (degC^2, hPa^2, %^2)."""
+        return (
+            self.temperature_halfwidth_c**2 / 3.0,
+            self.pressure_halfwidth_hpa**2 / 3.0,
+            self.humidity_halfwidth_pct**2 / 3.0,
+        )
+
+
+def check_strictly_increasing(t: np.ndarray, source: str | None = None) -> None:
+    """Raise :class:`InputError` at the first time that does not increase strictly."""
+    t = np.asarray(t, dtype=float)
+    bad = ~np.isfinite(t)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        raise InputError(f"Expected finite times, got t[{i}] = {float(t[i])!r}", source)
+    if t.shape[0] > 1:
+        dt = np.diff(t)
+        if np.any(dt <= 0):
+            i = int(np.argmax(dt <= 0)) + 1
+            what = "duplicated" if dt[i - 1] == 0 else "decreasing"
+            raise InputError(
+                f"Expected strictly increasing times, got {what} t[{i}] = {float(t[i])!r} after "
+                f"t[{i - 1}] = {float(t[i - 1])!r}; sort the observations by time and drop repeated "
+                "time stamps before propagating",
+                source,
+            )
+
+
+def prism_velocity(
+    t: ArrayLike, xyz: ArrayLike, max_gap_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Velocity of a prism by differencing consecutive positions, never across long gaps.
+
+    For measurement ``i`` with neighbours at gaps ``dt- = t_i - t_{i-1}`` and
+    ``dt+ = t_{i+1} - t_i``:
+
+    - both gaps ``<= max_gap_s``: central difference ``(p_{i+1} - p_{i-1}) / (dt- + dt+)``;
+    - only one: the one-sided difference over it;
+    - none (an isolated measurement): invalid, ``v = 0``.
+
+    Parameters
+    ----------
+    t : array_like, shape (N,)
+        Times, s, strictly increasing.
+    xyz : array_like, shape (N, 3)
+        Positions, m (any frame; the velocity is in the same frame).
+    max_gap_s : float
+        Largest gap, s, a difference may span.
+
+    Returns
+    -------
+    v : ndarray, shape (N, 3)
+        Velocity, m/s; zero where invalid.
+    valid : ndarray of bool, shape (N,)
+
+    Raises
+    ------
+    InputError
+        For shapes that do not match, non-finite or non-increasing times.
+    """
+    t = np.asarray(t, dtype=float)
+    p = np.asarray(xyz, dtype=float)
+    if t.ndim != 1:
+        raise InputError(f"Expected t of shape (N,), got {t.shape}")
+    n = t.shape[0]
+    if p.shape != (n, 3):
+        raise InputError(f"Expected xyz of shape ({n}, 3), got {p.shape}")
+    if not max_gap_s > 0:
+        raise InputError(f"Expected max_gap_s > 0, got {max_gap_s!r}")
+    check_strictly_increasing(t)
+    v = np.zeros((n, 3))
+    valid = np.zeros(n, dtype=bool)
+    if n < 2:
+        return v, valid
+    idx_prev, idx_next, _ = _difference_stencil(t, max_gap_s)
+    valid = idx_prev != idx_next
+    dt = t[idx_next] - t[idx_prev]
+    safe = np.where(valid, dt, 1.0)
+    v = (p[idx_next] - p[idx_prev]) / safe[:, None]
+    v[~valid] = 0.0
+    return v, valid
+
+
+def _difference_stencil(t: np.ndarray, max_gap_s: float):
+    """Indices ``(prev, next)`` of the difference used at each time, and ``dt`` (internal).
+
+    ``prev == next`` marks an isolated measurement.
+    """
+    n = t.shape[0]
+    i = np.arange(n)
+    gap = np.diff(t)
+    ok_prev = np.zeros(n, dtype=bool)
+    ok_next = np.zeros(n, dtype=bool)
+    ok_prev[1:] = gap <= max_gap_s
+    ok_next[:-1] = gap <= max_gap_s
+    idx_prev = np.where(ok_prev, i - 1, i)
+    idx_next = np.where(ok_next, i + 1, i)
+    return idx_prev, idx_next, t[idx_next] - t[idx_prev]
+
+
+# --------------------------------------------------------------------------------------------
+# Nominal values shared by both engines
+# --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Nominal:
+    """Validated nominal quantities of one set of observations (internal to the engines).
+
+    All arrays have N rows; angles in rad, lengths in m, the station frame of the
+    measuring station.
+    """
+
+    t: np.ndarray
+    hz: np.ndarray
+    v: np.ndarray
+    d: np.ndarray  # slope distance with the additive constant, before the atmospheric correction
+    temperature_c: np.ndarray
+    pressure_hpa: np.ndarray
+    humidity_pct: np.ndarray
+    ppm: np.ndarray  # nominal first-velocity correction K
+    d_corr: np.ndarray  # d (1 + 1e-6 ppm)
+    xyz_station: np.ndarray  # (N, 3)
+    velocity: np.ndarray  # (N, 3) station frame, zero where invalid
+    velocity_valid: np.ndarray  # (N,)
+    R: np.ndarray  # (3, 3) R_world_station
+    t_ws: np.ndarray  # (3,) t_world_station
+    frame: str
+
+
+def _bad_index(mask: np.ndarray) -> int:
+    return int(np.argmax(mask))
+
+
+def validate_observations(obs) -> None:
+    """Raise :class:`InputError` naming the first bad value: NaN or negative distances, zenith
+    angles outside (0, pi), non-finite directions, invalid status, non-increasing times."""
+    src = getattr(obs, "source", None)
+    n = len(obs)
+    if n == 0:
+        raise InputError("Expected at least one observation, got none", src)
+    d = np.asarray(obs.d, dtype=float)
+    bad = ~np.isfinite(d)
+    if np.any(bad):
+        i = _bad_index(bad)
+        raise InputError(f"Expected finite distances, got d[{i}] = {float(d[i])!r}", src)
+    bad = d < 0
+    if np.any(bad):
+        i = _bad_index(bad)
+        raise InputError(f"Expected non-negative distances, got d[{i}] = {float(d[i])!r} m", src)
+    dc = d + float(obs.additive_constant)
+    bad = dc <= 0
+    if np.any(bad):
+        i = _bad_index(bad)
+        raise InputError(
+            f"Expected positive distances after the additive constant, got d[{i}] + "
+            f"{obs.additive_constant!r} = {float(dc[i])!r} m", src,
+        )
+    v = np.asarray(obs.v, dtype=float)
+    bad = ~np.isfinite(v) | (v <= 0) | (v >= np.pi)
+    if np.any(bad):
+        i = _bad_index(bad)
+        raise InputError(
+            f"Expected zenith angles in (0, pi) rad, got v[{i}] = {float(v[i])!r} rad; V is the zenith "
+            "angle (pi/2 = horizontal), not an elevation", src,
+        )
+    hz = np.asarray(obs.hz, dtype=float)
+    bad = ~np.isfinite(hz)
+    if np.any(bad):
+        i = _bad_index(bad)
+        raise InputError(f"Expected finite horizontal directions, got hz[{i}] = {float(hz[i])!r}", src)
+    status = np.asarray(obs.status)
+    bad = status != 0
+    if np.any(bad):
+        i = _bad_index(bad)
+        raise InputError(
+            f"Observation {i} has instrument status {status[i]} (0 = valid); keep the valid "
+            "ones first, e.g. obs.select(obs.status == 0)", src,
+        )
+    check_strictly_increasing(obs.t, src)
+
+
+def prepare_nominal(obs, model: NoiseModel, T_world_station=None, weather=None) -> Nominal:
+    """Validate the inputs and compute the nominal quantities both engines start from.
+
+    Without ``weather`` the atmosphere is the instrument's reference atmosphere (0 ppm); the
+    ``atmosphere`` source then still accounts for the unknown weather within the half-widths.
+    """
+    from rtsgt.measurement.atmosphere import instrument_correction_ppm
+    from rtsgt.measurement.polar import polar_to_cartesian
+
+    validate_observations(obs)
+    src = getattr(obs, "source", None)
+    prof = model.instrument
+    n = len(obs)
+    t = np.asarray(obs.t, dtype=float)
+    if weather is None:
+        temp = np.full(n, float(prof.reference_temperature_c))
+        pres = np.full(n, float(prof.reference_pressure_hpa))
+        hum = np.full(n, float(prof.reference_humidity_pct))
+    else:
+        temp, pres, hum = (np.asarray(a, dtype=float) for a in weather.at(t))
+        wsrc = getattr(weather, "source", None)
+        for name, a, lo, hi in (
+            ("temperature_c", temp, -80.0, 70.0),
+            ("pressure_hpa", pres, 300.0, 1200.0),
+            ("humidity_pct", hum, 0.0, 100.0),
+        ):
+            bad = ~np.isfinite(a) | (a < lo) | (a > hi)
+            if np.any(bad):
+                i = _bad_index(bad)
+                raise InputError(
+                    f"Expected weather {name} in [{lo}, {hi}] at the observation times, got "
+                    f"{float(a[i])!r} at t = {float(t[i])!r} (observation {i})", wsrc,
+                )
+    ppm = np.asarray(
+        instrument_correction_ppm(prof, temp, pres, hum, model.vapour_formula), dtype=float
+    )
+    if weather is None:
+        ppm = np.zeros(n)  # exactly the reference atmosphere
+    d = np.asarray(obs.d, dtype=float) + float(obs.additive_constant)
+    d_corr = d * (1.0 + 1e-6 * ppm)
+    hz = np.asarray(obs.hz, dtype=float)
+    v = np.asarray(obs.v, dtype=float)
+    xyz = polar_to_cartesian(hz, v, d_corr)
+    if "time_sync" in model.sources:
+        vel, valid = prism_velocity(t, xyz, model.max_velocity_gap_s)
+    else:
+        vel, valid = np.zeros((n, 3)), np.zeros(n, dtype=bool)
+    if T_world_station is None:
+        R, tws, frame = np.eye(3), np.zeros(3), f"station_{obs.station}"
+    else:
+        R = np.asarray(T_world_station.rotation, dtype=float)
+        tws = np.asarray(T_world_station.translation, dtype=float)
+        frame = T_world_station.frame_to
+    del src
+    return Nominal(t, hz, v, d, temp, pres, hum, ppm, d_corr, xyz, vel, valid, R, tws, frame)

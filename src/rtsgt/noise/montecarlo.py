@@ -1,0 +1,654 @@
+r"""Monte Carlo engine of the per-measurement noise model (the paper's method, vectorised).
+
+Every Monte Carlo sample perturbs the raw measurement exactly as in
+:mod:`rtsgt.noise.model` (Vaidis et al. 2023, section III) and maps it to Cartesian
+coordinates with the full non-linear model; the covariance of the samples is the result.
+
+Implementation notes
+--------------------
+- Samples are processed as arrays of shape (n, M) (n measurements of a chunk, M samples):
+  no Python loop over samples or measurements. Only chunks of measurements are looped over,
+  sized so that ``n * M`` stays near :data:`CHUNK_ELEMENTS` (the arrays stay in the CPU cache;
+  memory is bounded whatever N).
+- Each chunk draws from its own child generator whose seed is drawn from the ``rng`` passed in,
+  so results are reproducible from a seed, independent of ``workers`` and of the order in which
+  chunks complete.
+- The total and every source alone share the same random draws (common random numbers): each
+  source's covariance is the Monte Carlo covariance of the model with only that source active.
+- Samples are computed as exact *displacements* from the nominal point (no cancellation
+  between a 100 m coordinate and a 1 mm error), with the addition theorem for the perturbed
+  angles and the Taylor series of ``sin`` / ``cos`` of the (tiny) perturbation, truncated below
+  the rounding error of the working precision for ``|delta| <= 2e-4`` rad; larger
+  perturbations fall back to ``np.sin`` / ``np.cos``. The result equals evaluating
+  ``polar_to_cartesian`` on the perturbed measurement to machine precision (tested).
+- Sources that act along one fixed direction are reduced exactly: ``atmosphere`` alone moves
+  the point along the line of sight (covariance ``u u^T d^2 var(alpha)``), ``time_sync`` alone
+  along the velocity (``var(e_ts) v v^T``), and ``calibration`` alone is linear in the sampled
+  ``(R_m, t_m)`` (covariance ``A(p) C A(p)^T`` with ``C`` the 12x12 sample covariance of
+  ``(vec R_m, t_m)``). These are algebraically identical to the sample covariance of the
+  sampled points, computed without forming them.
+- Covariances are sample covariances (``ddof = 1``) about the sample mean, computed with
+  ``numpy.einsum`` row dot products.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from rtsgt.errors import InputError
+from rtsgt.geometry.so3 import exp_so3
+from rtsgt.measurement.atmosphere import KELVIN, P0_HPA, WATER_VAPOUR_COEFF, group_refractivity
+from rtsgt.measurement.atmosphere import refractivity as _refractivity_checked
+from rtsgt.noise.model import NoiseModel, Nominal
+
+#: Target number of measurement-samples per chunk (n * M); the workspace holds ~28 arrays of
+#: this size (~3.5 MB in float64), and memory stays bounded whatever the number of measurements.
+CHUNK_ELEMENTS = 2**15
+
+#: Perturbations up to this size (rad) use the Taylor form of sin / cos (exact in float64).
+_TAYLOR_LIMIT = 2e-4
+
+_LN10 = np.log(10.0)
+
+
+def sample_gaussian(cov: np.ndarray, n_samples: int, rng: np.random.Generator) -> np.ndarray:
+    """Draw ``n_samples`` zero-mean Gaussian vectors with covariance ``cov`` (k, k).
+
+    Uses the symmetric square root ``V sqrt(w)`` of ``cov = V diag(w) V^T`` (the *columns* of
+    ``V`` are the eigenvectors; DESIGN.md pitfall 1), so positive semi-definite (singular)
+    covariances are fine.
+
+    Returns
+    -------
+    ndarray, shape (n_samples, k)
+    """
+    cov = np.asarray(cov, dtype=float)
+    w, V = np.linalg.eigh(0.5 * (cov + cov.T))
+    L = V * np.sqrt(np.clip(w, 0.0, None))[None, :]
+    z = rng.standard_normal((int(n_samples), cov.shape[0]))
+    return z @ L.T
+
+
+def transform_samples(
+    T_world_station, n_samples: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The ``n_samples`` transform samples the calibration source uses, or None.
+
+    - With Monte Carlo samples on the transform: its first ``n_samples`` (sample m of the GCP
+      Monte Carlo is used by sample m of every measurement);
+    - else with a 6x6 covariance: ``R_m = exp([dtheta_m]x) R``, ``t_m = t + dt_m`` with
+      ``(dt_m, dtheta_m)`` drawn from the covariance (left perturbation, world frame);
+    - else (or no transform): None (no calibration uncertainty).
+
+    Raises
+    ------
+    InputError
+        When the transform carries fewer samples than ``n_samples``.
+    """
+    if T_world_station is None:
+        return None
+    Rs = T_world_station.samples_rotation
+    ts = T_world_station.samples_translation
+    if Rs is not None and ts is not None:
+        Rs = np.asarray(Rs, dtype=float)
+        ts = np.asarray(ts, dtype=float)
+        if Rs.shape[0] < n_samples or ts.shape[0] < n_samples:
+            raise InputError(
+                f"The transform {T_world_station.frame_to} <- {T_world_station.frame_from} "
+                f"carries {min(Rs.shape[0], ts.shape[0])} Monte Carlo samples, fewer than the "
+                f"{n_samples} requested: calibrate with at least as many samples, or lower "
+                "samples"
+            )
+        return Rs[:n_samples], ts[:n_samples]
+    if T_world_station.covariance is None:
+        return None
+    xi = sample_gaussian(T_world_station.covariance, n_samples, rng)
+    R = exp_so3(xi[:, 3:]) @ T_world_station.rotation
+    t = T_world_station.translation + xi[:, :3]
+    return R, t
+
+
+def calibration_covariance_from_samples(
+    p_station: np.ndarray, Rs: np.ndarray, ts: np.ndarray
+) -> np.ndarray:
+    """Sample covariance of ``R_m p + t_m`` over the transform samples, for every point.
+
+    Parameters
+    ----------
+    p_station : ndarray, shape (N, 3)
+        Station-frame points ``p``.
+    Rs, ts : ndarray, shapes (M, 3, 3), (M, 3)
+        Transform samples.
+
+    Returns
+    -------
+    ndarray, shape (N, 3, 3)
+        Identical to the sample covariance (ddof = 1) of the M points ``R_m p + t_m``: the map
+        is linear in ``(vec R_m, t_m)``, so it is ``A(p) C A(p)^T`` with ``C`` their 12x12
+        sample covariance.
+    """
+    M = Rs.shape[0]
+    X = np.concatenate([Rs.reshape(M, 9), ts], axis=1)
+    X = X - X.mean(axis=0)
+    C = X.T @ X / (M - 1)
+    Crr = C[:9, :9].reshape(3, 3, 3, 3)
+    Crt = C[:9, 9:].reshape(3, 3, 3)
+    Ctt = C[9:, 9:]
+    p = p_station
+    out = np.einsum("nj,ijkl,nl->nik", p, Crr, p, optimize=True)
+    cross = np.einsum("nj,ijk->nik", p, Crt, optimize=True)
+    out += cross + np.swapaxes(cross, -1, -2) + Ctt
+    return out
+
+
+class _Workspace:
+    """Scratch arrays of shape (n, M) reused from chunk to chunk (internal).
+
+    Allocating fresh half-megabyte temporaries for every operation costs page faults that
+    double the run time; every (n, M) operation of the engine writes into these buffers with
+    ``out=`` instead. The last, shorter chunk uses the leading rows (views stay contiguous).
+    """
+
+    NAMES = (
+        "z0", "z1", "z2", "z3", "u0", "u1", "u2", "ts", "a", "b", "dsv", "dcv", "sv", "cv",
+        "tl", "dsh", "dch", "sh", "ch", "dr", "dd", "x", "y", "z", "wx", "wy", "wz",
+    )
+
+    def __init__(self, n: int, M: int, dtype):
+        self.n_max = n
+        self.dtype = dtype
+        self._bufs = {k: np.empty((n, M), dtype=dtype) for k in self.NAMES}
+        self._mask = np.empty((n, M), dtype=bool)
+        self.n = n
+
+    def rows(self, n: int) -> None:
+        self.n = n
+
+    def __getattr__(self, name):
+        bufs = self.__dict__.get("_bufs")
+        if bufs is None or name not in bufs:
+            raise AttributeError(name)
+        return bufs[name][: self.__dict__["n"]]
+
+    @property
+    def mask(self):
+        return self._mask[: self.n]
+
+
+def _standard_normals(ws: _Workspace, rng: np.random.Generator, outs) -> None:
+    """Fill each array of ``outs`` (views of the workspace) with standard normal draws.
+
+    float64: ``Generator.standard_normal`` (ziggurat). float32: the Box-Muller transform of
+    ``Generator.random`` float32 uniforms, ``r = sqrt(-2 ln(1 - u1))``, ``z = (r cos 2 pi u2,
+    r sin 2 pi u2)`` (Box & Muller 1958), which numpy's SIMD float32 ``log`` / ``sin`` / ``cos``
+    make about 1.5 times faster than the float32 ziggurat. The 24-bit uniforms bound
+    ``|z| <= 5.8``: the tails beyond carry 7e-9 of the probability and change a variance by
+    less than 1e-6 (relative), far below the Monte Carlo error. Uses ``ws.u0``, ``ws.u1``.
+    """
+    if ws.dtype == np.float64:
+        for o in outs:
+            rng.standard_normal(out=o, dtype=np.float64)
+        return
+    f32 = np.float32
+    for i in range(0, len(outs), 2):
+        pair = outs[i:i + 2]
+        r, th = ws.u0, ws.u1
+        rng.random(out=r, dtype=f32)
+        rng.random(out=th, dtype=f32)
+        np.subtract(f32(1.0), r, out=r)  # (0, 1]
+        np.log(r, out=r)
+        r *= f32(-2.0)
+        np.sqrt(r, out=r)
+        th *= f32(2.0 * np.pi)
+        np.cos(th, out=pair[0])
+        pair[0] *= r
+        if len(pair) == 2:
+            np.sin(th, out=pair[1])
+            pair[1] *= r
+
+
+def _sincos_delta(ws: _Workspace, s0, c0, delta, ds, dc):
+    """``ds = sin(a + delta) - sin a``, ``dc = cos(a + delta) - cos a`` (into ``ds``, ``dc``).
+
+    From ``s0 = sin a``, ``c0 = cos a`` (n, 1) by the addition theorem, with ``sin(delta)`` and
+    ``1 - cos(delta)`` by their Taylor series truncated where the next term is below the
+    rounding error of the working precision for ``|delta| <= 2e-4`` rad (41 arc seconds):
+    float64 uses ``delta (1 - delta^2 / 6)`` and ``delta^2 / 2 (1 - delta^2 / 12)`` (next terms
+    below 1e-17 relative), float32 ``delta`` and ``delta^2 / 2``. Larger perturbations use
+    ``np.sin(delta)`` and ``2 sin^2(delta / 2)``. Uses ``ws.a`` and ``ws.b`` as scratch.
+    """
+    a, b = ws.a, ws.b
+    if np.max(np.abs(delta)) <= _TAYLOR_LIMIT:
+        np.multiply(delta, delta, out=a)  # d2
+        if ws.dtype == np.float64:
+            np.multiply(a, -1.0 / 6.0, out=b)
+            b += 1.0
+            b *= delta  # sd = d (1 - d2 / 6)
+            sd = b
+            np.multiply(a, -1.0 / 12.0, out=dc)
+            dc += 1.0
+            dc *= a
+            dc *= 0.5  # omc = d2 / 2 (1 - d2 / 12), held in dc
+            omc = dc
+        else:
+            sd = delta
+            a *= 0.5  # omc = d2 / 2, held in a
+            omc = a
+    else:
+        sd = np.sin(delta, out=b)
+        np.multiply(delta, 0.5, out=dc)  # 1 - cos d = 2 sin^2(d / 2), without cancellation
+        np.sin(dc, out=dc)
+        np.multiply(dc, dc, out=dc)
+        dc *= 2.0
+        omc = dc
+    # sin(a + d) - sin a = c0 sin d - s0 (1 - cos d)
+    # cos(a + d) - cos a = -(s0 sin d + c0 (1 - cos d))
+    if omc is dc:
+        np.multiply(c0, sd, out=ds)
+        np.multiply(s0, omc, out=a)
+        ds -= a
+        dc *= c0  # c0 omc
+        np.multiply(s0, sd, out=a)
+        dc += a
+    else:  # omc is a, sd is delta
+        np.multiply(c0, sd, out=ds)
+        np.multiply(s0, omc, out=dc)
+        ds -= dc
+        np.multiply(c0, omc, out=dc)
+        np.multiply(s0, sd, out=a)
+        dc += a
+    np.negative(dc, out=dc)
+
+
+def _cov_rows_inplace(x, y, z) -> np.ndarray:
+    """Sample covariance (ddof = 1) of (n, M) arrays per row -> (n, 3, 3) float64.
+
+    Centres ``x``, ``y``, ``z`` in place (they are scratch buffers).
+    """
+    n, M = x.shape
+    for a in (x, y, z):
+        a -= a.mean(axis=1, keepdims=True)
+    out = np.empty((n, 3, 3))
+    f = 1.0 / (M - 1)
+    out[:, 0, 0] = np.einsum("nm,nm->n", x, x) * f
+    out[:, 1, 1] = np.einsum("nm,nm->n", y, y) * f
+    out[:, 2, 2] = np.einsum("nm,nm->n", z, z) * f
+    out[:, 0, 1] = out[:, 1, 0] = np.einsum("nm,nm->n", x, y) * f
+    out[:, 0, 2] = out[:, 2, 0] = np.einsum("nm,nm->n", x, z) * f
+    out[:, 1, 2] = out[:, 2, 1] = np.einsum("nm,nm->n", y, z) * f
+    return out
+
+
+def _var_rows(a) -> np.ndarray:
+    """Sample variance (ddof = 1) of an (n, M) array per row (``a`` is not modified)."""
+    mean = a.mean(axis=1, keepdims=True, dtype=np.float64)
+    # E[(a - m)^2] = E[a^2] - m^2 would cancel; centre instead (one temporary per call)
+    ac = a - mean.astype(a.dtype)
+    return np.einsum("nm,nm->n", ac, ac).astype(float) / (a.shape[1] - 1)
+
+
+def _outer(u) -> np.ndarray:
+    return u[:, :, None] * u[:, None, :]
+
+
+class _Chunk:
+    """Nominal columns (n, 1) of one chunk, in the working dtype (internal)."""
+
+    def __init__(self, nom: Nominal, model: NoiseModel, sl: slice, dtype):
+        prof = model.instrument
+        self.model = model
+        self.dtype = dtype
+        def col(a, take=True):
+            return np.ascontiguousarray(a[sl] if take else a, dtype=dtype)[:, None]
+
+        sh, chz = np.sin(nom.hz[sl]), np.cos(nom.hz[sl])
+        sv, cv = np.sin(nom.v[sl]), np.cos(nom.v[sl])
+        self.hz_s, self.hz_c = col(sh, False), col(chz, False)
+        self.v_s, self.v_c = col(sv, False), col(cv, False)
+        self.u_los = np.stack([sv * sh, sv * chz, cv], axis=1)  # float64, (n, 3)
+        self.d = col(nom.d)
+        self.d64 = nom.d[sl]
+        self.d0 = col(nom.d_corr)
+        self.r0 = col(nom.d_corr[sl] * sv, False)  # horizontal distance
+        self.p0 = np.ascontiguousarray(nom.xyz_station[sl], dtype=dtype)
+        self.one_alpha0 = col(1.0 + 1e-6 * nom.ppm)
+        self.alpha0 = col(1e-6 * nom.ppm)
+        self.sig_d = col(prof.sigma_distance(nom.d))
+        h_t, h_p, h_r = (model.temperature_halfwidth_c, model.pressure_halfwidth_hpa,
+                         model.humidity_halfwidth_pct)
+        # T^ = T + h (2u - 1) = (T - h) + 2h u with u ~ U[0, 1)
+        self.T_lo, self.T_w = col(nom.temperature_c - h_t), dtype(2.0 * h_t)
+        self.p_lo, self.p_w = col(nom.pressure_hpa - h_p), dtype(2.0 * h_p)
+        self.rh_lo, self.rh_w = col(nom.humidity_pct - h_r), dtype(2.0 * h_r)
+        self.vel64 = nom.velocity[sl]
+        self.vel = np.ascontiguousarray(self.vel64, dtype=dtype)
+
+
+def _alpha_samples(ws: _Workspace, ch: _Chunk, n_gr: float, n_ref: float):
+    """``alpha = 1e-6 K`` at the perturbed weather into ``ws.u1`` ([R02-K] of atmosphere.py).
+
+    ``ws.u0``, ``ws.u1``, ``ws.u2`` hold U[0, 1) draws for temperature, pressure, humidity;
+    they are overwritten. Returns ``ws.u1``.
+    """
+    dt = ws.dtype
+    model = ch.model
+    t, p, rh, E = ws.u0, ws.u1, ws.u2, ws.a
+    t *= ch.T_w
+    t += ch.T_lo
+    p *= ch.p_w
+    p += ch.p_lo
+    rh *= ch.rh_w
+    rh += ch.rh_lo
+    np.clip(rh, 0.0, 100.0, out=rh)
+    if model.vapour_formula == "magnus":
+        # [MAG] E = 6.1078 10^(7.5 t / (237.3 + t))
+        np.add(t, dt(237.3), out=E)
+        np.divide(t, E, out=E)
+        E *= dt(_LN10 * 7.5)
+        np.exp(E, out=E)
+        E *= dt(6.1078)
+    else:
+        # [BUCK] E = (1.0007 + 3.46e-6 p) 6.1121 exp(17.502 t / (240.94 + t))
+        np.add(t, dt(240.94), out=E)
+        np.divide(t, E, out=E)
+        E *= dt(17.502)
+        np.exp(E, out=E)
+        np.multiply(p, dt(3.46e-6 * 6.1121), out=ws.b)
+        ws.b += dt(1.0007 * 6.1121)
+        E *= ws.b
+    # [IAG99-2] N_L = (273.15/1013.25 N_gr p - 11.27 RH/100 E) / T
+    E *= rh
+    E *= dt(WATER_VAPOUR_COEFF / 100.0)
+    n_l = p
+    n_l *= dt(KELVIN / P0_HPA * n_gr)
+    n_l -= E
+    t += dt(KELVIN)
+    n_l /= t
+    # [R02-K] K = (N_REF - N_L) / (1 + 1e-6 N_L); alpha = 1e-6 K
+    den = ws.b
+    np.multiply(n_l, dt(1e-6), out=den)
+    den += dt(1.0)
+    np.subtract(dt(n_ref), n_l, out=n_l)
+    n_l /= den
+    n_l *= dt(1e-6)
+    return n_l
+
+
+def _deltas(ws: _Workspace, ch: _Chunk, dd, dV, e_t, dH):
+    """Sample displacements from the nominal station-frame position, into ws.x, ws.y, ws.z.
+
+    ``dd``: perturbation of the corrected slope distance (None: none); ``dV``: total
+    perturbation of V; ``e_t``: tilt error, entering Hz through ``cot(V^)``; ``dH``: the other
+    perturbation of Hz (None: none). Exact algebra, no cancellation:
+    ``r^ - r0 = dd sV^ + d0 dsV``, ``x^ - x0 = (r^ - r0) sH^ + r0 dsH``,
+    ``y^ - y0 = (r^ - r0) cH^ + r0 dcH``, ``z^ - z0 = dd cV^ + d0 dcV``.
+    """
+    x, y, z, a = ws.x, ws.y, ws.z, ws.a
+    if dV is None:
+        dsV = dcV = None
+        sV, cV = ch.v_s, ch.v_c
+    else:
+        dsV, dcV = ws.dsv, ws.dcv
+        _sincos_delta(ws, ch.v_s, ch.v_c, dV, dsV, dcV)
+        sV = np.add(dsV, ch.v_s, out=ws.sv)
+        cV = np.add(dcV, ch.v_c, out=ws.cv)
+    if e_t is not None:
+        tl = np.multiply(e_t, cV, out=ws.tl)
+        tl /= sV  # e_t cot(V^)
+        if dH is not None:
+            tl += dH
+        dH = tl
+    if dH is None:
+        dsH = dcH = None
+        sH, cH = ch.hz_s, ch.hz_c
+    else:
+        dsH, dcH = ws.dsh, ws.dch
+        _sincos_delta(ws, ch.hz_s, ch.hz_c, dH, dsH, dcH)
+        sH = np.add(dsH, ch.hz_s, out=ws.sh)
+        cH = np.add(dcH, ch.hz_c, out=ws.ch)
+    dr = ws.dr
+    if dd is None:
+        if dsV is None:
+            dr[...] = 0.0
+            z[...] = 0.0
+        else:
+            np.multiply(ch.d0, dsV, out=dr)
+            np.multiply(ch.d0, dcV, out=z)
+    else:
+        np.multiply(dd, sV, out=dr)
+        np.multiply(dd, cV, out=z)
+        if dsV is not None:
+            dr += np.multiply(ch.d0, dsV, out=a)
+            z += np.multiply(ch.d0, dcV, out=a)
+    np.multiply(dr, sH, out=x)
+    np.multiply(dr, cH, out=y)
+    if dsH is not None:
+        x += np.multiply(ch.r0, dsH, out=a)
+        y += np.multiply(ch.r0, dcH, out=a)
+    return x, y, z
+
+
+def _run_chunk(
+    ws: _Workspace, ch: _Chunk, rng: np.random.Generator, cal: tuple | None,
+    n_gr: float, n_ref: float,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Monte Carlo of one chunk: total (world frame when ``cal`` is given, else station frame)
+    and per-source covariances (station frame; calibration handled by the caller)."""
+    model = ch.model
+    prof = model.instrument
+    srcs = model.sources
+    dt = ws.dtype
+    # ---- draws, in a fixed order -----------------------------------------------------------
+    e_d = e_V = e_H = e_t = None
+    normals = []
+    if "instrument" in srcs:
+        e_d, e_V, e_H = ws.z0, ws.z1, ws.z2
+        normals += [e_d, e_V, e_H]
+    if "tilt" in srcs:
+        e_t = ws.z3
+        normals.append(e_t)
+    _standard_normals(ws, rng, normals)
+    if e_d is not None:
+        e_d *= ch.sig_d
+        e_V *= dt(prof.sigma_angle)
+        e_H *= dt(prof.sigma_angle)
+    if e_t is not None:
+        e_t *= dt(prof.sigma_tilt)
+    e_ts = None
+    if "time_sync" in srcs:
+        e_ts = ws.ts
+        _standard_normals(ws, rng, [e_ts])
+        e_ts *= dt(model.time_sync_std_s)
+        e_ts += dt(model.time_sync_mean_s)
+        flip = rng.random(out=ws.a, dtype=dt)
+        np.less(flip, 0.5, out=ws.mask)
+        np.negative(e_ts, out=e_ts, where=ws.mask)
+    # after the normals: the float32 Box-Muller of _standard_normals overwrites u0, u1
+    alpha = None
+    if "atmosphere" in srcs:
+        for buf in (ws.u0, ws.u1, ws.u2):
+            rng.random(out=buf, dtype=dt)
+        alpha = _alpha_samples(ws, ch, n_gr, n_ref)
+
+    by_source: dict[str, np.ndarray] = {}
+    # ---- each source alone ------------------------------------------------------------------
+    if "instrument" in srcs:
+        dd = np.multiply(e_d, ch.one_alpha0, out=ws.dd)
+        by_source["instrument"] = _cov_rows_inplace(*_deltas(ws, ch, dd, e_V, None, e_H))
+    if "tilt" in srcs:
+        by_source["tilt"] = _cov_rows_inplace(*_deltas(ws, ch, None, e_t, e_t, None))
+    if "atmosphere" in srcs:
+        var = _var_rows(alpha) * ch.d64**2
+        by_source["atmosphere"] = _outer(ch.u_los) * var[:, None, None]
+    if "time_sync" in srcs:
+        by_source["time_sync"] = _outer(ch.vel64) * _var_rows(e_ts)[:, None, None]
+
+    # ---- total ------------------------------------------------------------------------------
+    dV = None
+    if e_V is not None and e_t is not None:
+        dV = np.add(e_V, e_t, out=ws.wx)  # wx is only used after _deltas
+    elif e_V is not None:
+        dV = e_V
+    elif e_t is not None:
+        dV = e_t
+    # dd = (d + e_d)(1 + alpha) - d (1 + alpha0) = e_d (1 + alpha) + d (alpha - alpha0)
+    dd = None
+    if alpha is not None:
+        dd = np.subtract(alpha, ch.alpha0, out=ws.dd)
+        dd *= ch.d
+        if e_d is not None:
+            alpha += dt(1.0)
+            alpha *= e_d
+            dd += alpha
+    elif e_d is not None:
+        dd = np.multiply(e_d, ch.one_alpha0, out=ws.dd)
+    x, y, z = _deltas(ws, ch, dd, dV, e_t, e_H)
+    if e_ts is not None:
+        x += np.multiply(e_ts, ch.vel[:, 0:1], out=ws.a)
+        y += np.multiply(e_ts, ch.vel[:, 1:2], out=ws.a)
+        z += np.multiply(e_ts, ch.vel[:, 2:3], out=ws.a)
+    if cal is not None:
+        dR, dtr, Rs = cal  # R_m - R, t_m - t, R_m in the working dtype
+        p0 = ch.p0
+        # R_m (p0 + d) + t_m - (R p0 + t) = (R_m - R) p0 + (t_m - t) + R_m d
+        a = ws.a
+        for i, w in enumerate((ws.wx, ws.wy, ws.wz)):
+            np.multiply(dR[:, i, 0], p0[:, 0:1], out=w)
+            w += np.multiply(dR[:, i, 1], p0[:, 1:2], out=a)
+            w += np.multiply(dR[:, i, 2], p0[:, 2:3], out=a)
+            w += dtr[:, i]
+            w += np.multiply(Rs[:, i, 0], x, out=a)
+            w += np.multiply(Rs[:, i, 1], y, out=a)
+            w += np.multiply(Rs[:, i, 2], z, out=a)
+        x, y, z = ws.wx, ws.wy, ws.wz
+    total = _cov_rows_inplace(x, y, z)
+    return total, by_source
+
+
+def _rotate(R: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    return np.einsum("ij,njk,lk->nil", R, cov, R, optimize=True)
+
+
+def mc_covariances(
+    nom: Nominal,
+    model: NoiseModel,
+    T_world_station=None,
+    *,
+    samples: int = 1000,
+    rng: np.random.Generator,
+    chunk_size: int | None = None,
+    workers: int = 1,
+    dtype=np.float64,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """World-frame total and per-source covariances by Monte Carlo.
+
+    Parameters
+    ----------
+    nom : Nominal
+        From :func:`rtsgt.noise.model.prepare_nominal`.
+    model : NoiseModel
+    T_world_station : RigidTransform, optional
+        Supplies the calibration samples (see :func:`transform_samples`).
+    samples : int
+        M >= 2, samples per measurement.
+    rng : numpy.random.Generator
+    chunk_size : int, optional
+        Measurements per chunk; default ``max(1, CHUNK_ELEMENTS // M)``.
+    workers : int
+        Threads processing chunks in parallel (numpy releases the GIL); the result does not
+        depend on it.
+    dtype : {numpy.float64, numpy.float32}
+        Working precision of the sampled *displacements* (the model is evaluated as exact
+        displacements from the nominal point, so float32 loses nothing at the 1e-7 relative
+        level and is about twice as fast). Covariances are returned in float64.
+
+    Returns
+    -------
+    total : ndarray, shape (N, 3, 3)
+    by_source : dict str -> ndarray (N, 3, 3)
+        One entry per source of ``model.sources``, each the covariance with that source alone.
+    """
+    M = int(samples)
+    if M < 2:
+        raise InputError(f"Expected samples >= 2 for the Monte Carlo engine, got {samples!r}")
+    if not isinstance(rng, np.random.Generator):
+        raise InputError(
+            "The Monte Carlo engine needs rng = numpy.random.Generator "
+            f"(e.g. np.random.default_rng(seed)), got {type(rng).__name__}"
+        )
+    N = nom.d.shape[0]
+    if chunk_size is None:
+        chunk_size = max(1, CHUNK_ELEMENTS // M)
+    chunk_size = int(chunk_size)
+    if chunk_size < 1:
+        raise InputError(f"Expected chunk_size >= 1, got {chunk_size}")
+    workers = max(1, int(workers))
+    dtype = np.dtype(dtype).type
+    if dtype not in (np.float64, np.float32):
+        raise InputError(f"Expected dtype float64 or float32, got {dtype}")
+    R = nom.R
+    srcs = model.sources
+
+    cal = transform_samples(T_world_station, M, rng) if "calibration" in srcs else None
+    cal_work = None
+    if cal is not None:
+        cal_work = (
+            (cal[0] - R).astype(dtype), (cal[1] - nom.t_ws).astype(dtype), cal[0].astype(dtype)
+        )
+    # the total is sampled in the world frame with the transform samples (R_m, t_m) when the
+    # calibration source is on, and rotated by the mean rotation otherwise
+    n_gr = float(group_refractivity(model.instrument.wavelength_um))
+    prof = model.instrument
+    n_ref = float(_refractivity_checked(
+        prof.reference_temperature_c, prof.reference_pressure_hpa, prof.reference_humidity_pct,
+        prof.wavelength_um, model.vapour_formula,
+    ))
+
+    starts = list(range(0, N, chunk_size))
+    seeds = rng.integers(0, 2**63 - 1, size=(len(starts), 2), dtype=np.int64)
+    bitgen = type(rng.bit_generator)
+
+    total = np.empty((N, 3, 3))
+    by_source = {s: np.zeros((N, 3, 3)) for s in srcs}
+    workers = min(workers, len(starts))
+
+    def work(ks: range) -> None:
+        ws = _Workspace(min(chunk_size, N), M, dtype)
+        for k in ks:
+            sl = slice(starts[k], min(starts[k] + chunk_size, N))
+            ws.rows(sl.stop - sl.start)
+            child = np.random.Generator(
+                bitgen(np.random.SeedSequence([int(s) for s in seeds[k]]))
+            )
+            tot, bys = _run_chunk(ws, _Chunk(nom, model, sl, dtype), child, cal_work, n_gr,
+                                  n_ref)
+            total[sl] = tot
+            for s, c in bys.items():
+                by_source[s][sl] = c
+
+    # contiguous groups of chunks per thread; each chunk has its own generator, so the
+    # result does not depend on the number of threads
+    bounds = np.linspace(0, len(starts), workers + 1).astype(int)
+    groups = [range(bounds[i], bounds[i + 1]) for i in range(workers)]
+    if workers == 1:
+        work(groups[0])
+    else:
+        with ThreadPoolExecutor(max_workers=workers) as ex:
+            list(ex.map(work, groups))
+
+    # station frame -> world frame
+    for s in srcs:
+        if s != "calibration":
+            by_source[s] = _rotate(R, by_source[s])
+    if cal is None:
+        total = _rotate(R, total)
+    if "calibration" in srcs:
+        if cal is None:
+            by_source["calibration"] = np.zeros((N, 3, 3))
+        else:
+            by_source["calibration"] = calibration_covariance_from_samples(
+                nom.xyz_station, cal[0], cal[1]
+            )
+    return total, by_source

@@ -1,0 +1,384 @@
+r"""Poses with a 6x6 covariance from three or more prisms: Monte Carlo, unscented, linear.
+
+Model (one for the three engines)
+---------------------------------
+At each pose time k the prisms' world positions ``q_ki`` (m) are Gaussian with a 3x3
+covariance each, independent between prisms and between times (what the GP interpolation
+gives); the reference positions ``r_i`` of the same prisms in the body frame (the static
+survey) are Gaussian with a full ``(3n, 3n)`` covariance (correlated between prisms when the
+body frame is defined by surveyed points), the same draw for every pose. The pose is the
+least-squares rigid fit (:func:`rtsgt.pose.registration.register`)::
+
+    T_world_body,k = argmin_T  sum_i || q_ki - T r_i ||^2
+
+Reported mean: the fit of the mean inputs (one documented choice for every engine). Reported
+covariance: the second moment of the left perturbation ``xi = (dt, dtheta)`` of the fit of the
+perturbed inputs about that mean, 6x6 ordered (x, y, z, rx, ry, rz), world frame, the
+convention of :mod:`rtsgt.geometry.transform` (``t = t_mean + dt``,
+``R = exp([dtheta]x) R_mean``).
+
+Engines
+-------
+``"mc"``
+    The paper's Monte Carlo: ``M`` samples of every prism (Cholesky factor of each covariance)
+    and of the stacked reference (Cholesky factor of the full covariance, one draw per sample
+    m shared by all poses), each solved with the closed-form registration, vectorised over
+    poses and samples in chunks. ``mean_offset`` reports the sample mean of ``xi``: the
+    one-step estimate of the SE(3) mean of the samples about the reported pose (it differs from
+    it by a second-order bias, far below the noise).
+``"ut"``
+    Unscented transform over the stacked vector ``(q_k1..q_kn, r_1..r_n)`` of dimension 6n
+    (Julier and Uhlmann 2004, symmetric set with ``alpha = 1, kappa = 0``: ``2 L`` points at
+    ``+- sqrt(L)`` times the columns of the block Cholesky factor, weights ``1 / (2 L)``, the
+    centre weight 0). ``mean_offset`` is the weighted mean of the sigma points' ``xi``.
+``"linear"``
+    First order: ``cov = J_q Sigma_q J_q^T + J_r Sigma_r J_r^T`` with the analytic Jacobian of
+    the fit (:func:`rtsgt.pose.registration.registration_jacobian`, implicit function theorem).
+
+Degenerate poses (reported, never silently solved): a prism or its covariance is not finite
+(``"missing_prism"``), or the world prisms are nearly collinear (:func:`shape_ratio` below
+``min_shape``, ``"collinear"``). Their pose and covariance are NaN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from rtsgt.errors import GeometryError
+from rtsgt.geometry.so3 import matrix_to_quat_xyzw
+from rtsgt.geometry.transform import check_covariance
+from rtsgt.pose.reference import ReferencePoints
+from rtsgt.pose.registration import (
+    DEFAULT_CHUNK,
+    MIN_SHAPE,
+    _register_flat,
+    register,
+    registration_jacobian,
+    shape_ratio,
+    small_rotation_vector,
+)
+
+#: The pose engines.
+POSE_ENGINES = ("mc", "ut", "linear")
+PoseEngine = Literal["mc", "ut", "linear"]
+
+#: Reason codes of :attr:`PoseEstimate.reason` ("" for a valid pose).
+REASON_OK = ""
+REASON_MISSING = "missing_prism"
+REASON_COLLINEAR = "collinear"
+
+#: Default number of registrations per Monte Carlo chunk (bounds the memory to ~30 MB).
+DEFAULT_MC_CHUNK = 1 << 16
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """Poses ``T_world_body`` with covariance, one per query time (time-agnostic).
+
+    Attributes
+    ----------
+    R : ndarray, shape (T, 3, 3)
+        ``R_world_body``; NaN for degenerate poses.
+    t : ndarray, shape (T, 3)
+        ``t_world_body``, m; NaN for degenerate poses.
+    cov : ndarray, shape (T, 6, 6)
+        Left-perturbation covariance in the world frame, ordered (x, y, z, rx, ry, rz),
+        m^2 / rad^2 (:mod:`rtsgt.geometry.transform`); NaN for degenerate poses.
+    degenerate : ndarray of bool, shape (T,)
+    reason : ndarray of str, shape (T,)
+        ``""`` (valid), ``"missing_prism"`` or ``"collinear"``.
+    inter_prism_distance : ndarray, shape (T, n (n - 1) / 2)
+        ``|q_i - q_j|`` of the mean world prisms for the pairs :attr:`pairs` (m); NaN where a
+        prism is missing.
+    rms_residual : ndarray, shape (T,)
+        ``sqrt(mean_i |q_i - R r_i - t|^2)`` of the mean fit, m.
+    shape : ndarray, shape (T,)
+        Shape ratio of the world prisms (:func:`rtsgt.pose.registration.shape_ratio`).
+    pairs : tuple of (int, int)
+        Prism index pairs of :attr:`inter_prism_distance`: (0, 1), (0, 2), ..., (1, 2), ...
+    engine : str
+    samples : int or None
+        Monte Carlo samples (``"mc"``) or sigma points (``"ut"``); None for ``"linear"``.
+    mean_offset : ndarray, shape (T, 6), or None
+        Mean perturbation of the samples (sigma points) about the reported pose: how far the
+        SE(3) mean of the samples is from the fit of the mean inputs. None for ``"linear"``.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    cov: np.ndarray
+    degenerate: np.ndarray
+    reason: np.ndarray
+    inter_prism_distance: np.ndarray
+    rms_residual: np.ndarray
+    shape: np.ndarray
+    pairs: tuple[tuple[int, int], ...]
+    engine: str
+    samples: int | None = None
+    mean_offset: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+    @property
+    def position(self) -> np.ndarray:
+        """``t_world_body``, shape (T, 3), m."""
+        return self.t
+
+    @property
+    def quat_xyzw(self) -> np.ndarray:
+        """Orientation as unit quaternions (qx, qy, qz, qw), shape (T, 4); NaN if degenerate."""
+        out = np.full((len(self), 4), np.nan)
+        ok = ~self.degenerate
+        if ok.any():
+            out[ok] = matrix_to_quat_xyzw(self.R[ok])
+        return out
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Poses per reason: ``{"valid": ..., "missing_prism": ..., "collinear": ...}``."""
+        return {
+            "valid": int(np.sum(~self.degenerate)),
+            REASON_MISSING: int(np.sum(self.reason == REASON_MISSING)),
+            REASON_COLLINEAR: int(np.sum(self.reason == REASON_COLLINEAR)),
+        }
+
+
+def psd_factor(cov: ArrayLike) -> np.ndarray:
+    """A factor ``L`` with ``L @ L^T == cov`` for (batches of) PSD matrices.
+
+    Cholesky where it succeeds for the whole batch; otherwise (a singular covariance, e.g. a
+    reference known exactly) ``V diag(sqrt(max(w, 0)))`` from ``eigh``, scaling the *columns*
+    of the eigenvector matrix (the reference code used its rows: DESIGN.md pitfall 1).
+
+    Parameters
+    ----------
+    cov : array_like, shape (..., d, d)
+
+    Returns
+    -------
+    ndarray, shape (..., d, d)
+    """
+    cov = np.asarray(cov, dtype=float)
+    try:
+        return np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        w, V = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
+        return V * np.sqrt(np.clip(w, 0.0, None))[..., None, :]
+
+
+def _reference_inputs(r_body, cov_r) -> tuple[np.ndarray, np.ndarray]:
+    if isinstance(r_body, ReferencePoints):
+        if cov_r is not None:
+            raise ValueError("Expected cov_r=None when r_body is a ReferencePoints (it has one)")
+        return r_body.xyz, r_body.cov
+    r = np.asarray(r_body, dtype=float)
+    if r.ndim != 2 or r.shape[1] != 3:
+        raise ValueError(f"Expected r_body of shape (n, 3), got {r.shape}")
+    n = r.shape[0]
+    if cov_r is None:
+        raise ValueError("Expected cov_r of shape (3n, 3n) or (n, 3, 3), got None")
+    c = np.asarray(cov_r, dtype=float)
+    if c.shape == (n, 3, 3):
+        full = np.zeros((3 * n, 3 * n))
+        for i in range(n):
+            full[3 * i:3 * i + 3, 3 * i:3 * i + 3] = c[i]
+        c = full
+    if c.shape != (3 * n, 3 * n):
+        raise ValueError(
+            f"Expected cov_r of shape ({3 * n}, {3 * n}) or ({n}, 3, 3), got {c.shape}"
+        )
+    if not np.all(np.isfinite(r)):
+        raise ValueError("Expected finite reference positions r_body")
+    return r, check_covariance(c, 3 * n, "cov_r")
+
+
+def estimate_poses(
+    q_world: ArrayLike,
+    cov_q: ArrayLike,
+    r_body: ArrayLike | ReferencePoints,
+    cov_r: ArrayLike | None = None,
+    *,
+    engine: PoseEngine = "mc",
+    samples: int = 1000,
+    rng: np.random.Generator | None = None,
+    chunk_size: int | None = None,
+    min_shape: float = MIN_SHAPE,
+) -> PoseEstimate:
+    """Poses ``T_world_body`` and their 6x6 covariances from prism positions.
+
+    Parameters
+    ----------
+    q_world : array_like, shape (T, n, 3)
+        Mean world positions of the n prisms at each pose time, m. NaN marks a missing prism.
+    cov_q : array_like, shape (T, n, 3, 3)
+        Their covariances (independent between prisms and times), m^2, world frame.
+    r_body : array_like, shape (n, 3), or ReferencePoints
+        Reference positions of the same prisms, in the same order, in the body frame, m.
+    cov_r : array_like, shape (3n, 3n) or (n, 3, 3)
+        Covariance of the stacked reference ``(r_1x, r_1y, r_1z, r_2x, ...)``, m^2, body frame
+        (None when ``r_body`` is a :class:`ReferencePoints`).
+    engine : {"mc", "ut", "linear"}
+        Uncertainty engine (module docstring).
+    samples : int
+        Monte Carlo samples M (``"mc"`` only).
+    rng : numpy.random.Generator
+        Required by ``"mc"``. Draws: the reference ``(M, 3n)`` first, then the prisms
+        ``(T_valid, M, n, 3)`` in pose order, so results do not depend on ``chunk_size``.
+    chunk_size : int, optional
+        Registrations per Monte Carlo chunk (default 65536), bounds the memory.
+    min_shape : float
+        Collinearity threshold on the shape ratio (:data:`MIN_SHAPE`).
+
+    Returns
+    -------
+    PoseEstimate
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, a non-PSD covariance, an unknown engine, a missing generator.
+    GeometryError
+        Fewer than 3 prisms, or a nearly collinear reference.
+    """
+    q = np.asarray(q_world, dtype=float)
+    cq = np.asarray(cov_q, dtype=float)
+    if q.ndim != 3 or q.shape[2] != 3:
+        raise ValueError(f"Expected q_world of shape (T, n, 3), got {q.shape}")
+    T, n, _ = q.shape
+    if cq.shape != (T, n, 3, 3):
+        raise ValueError(f"Expected cov_q of shape ({T}, {n}, 3, 3), got {cq.shape}")
+    r, cr = _reference_inputs(r_body, cov_r)
+    if r.shape[0] != n:
+        raise ValueError(f"Expected {n} reference points (one per prism), got {r.shape[0]}")
+    if n < 3:
+        raise GeometryError(f"A pose needs at least 3 prisms, got {n}")
+    if engine not in POSE_ENGINES:
+        raise ValueError(f"Expected engine in {POSE_ENGINES}, got {engine!r}")
+    if engine == "mc":
+        if not isinstance(rng, np.random.Generator):
+            raise ValueError(f"Expected a numpy.random.Generator for engine 'mc', got {rng!r}")
+        if int(samples) != samples or samples < 2:
+            raise ValueError(f"Expected an integer number of samples >= 2, got {samples}")
+        samples = int(samples)
+    chunk = DEFAULT_MC_CHUNK if chunk_size is None else int(chunk_size)
+    if chunk < 1:
+        raise ValueError(f"Expected a positive chunk_size, got {chunk_size}")
+    shape_ref = float(shape_ratio(r))
+    if not shape_ref >= min_shape:
+        raise GeometryError(
+            f"The reference prisms are nearly collinear (shape ratio {shape_ref:.3g} < "
+            f"{min_shape}): the rotation about their line is not determined"
+        )
+
+    # per-pose validity
+    finite = np.all(np.isfinite(q), axis=(1, 2)) & np.all(np.isfinite(cq), axis=(1, 2, 3))
+    if finite.any():
+        check_covariance(cq[finite], 3, "cov_q")
+    shape = shape_ratio(q)
+    collinear = finite & ~(shape >= min_shape)
+    reason = np.full(T, REASON_OK, dtype="<U16")
+    reason[~finite] = REASON_MISSING
+    reason[collinear] = REASON_COLLINEAR
+    degenerate = reason != REASON_OK
+    valid = np.flatnonzero(~degenerate)
+
+    pairs = tuple((i, j) for i in range(n) for j in range(i + 1, n))
+    ii = np.array([a for a, _ in pairs])
+    jj = np.array([b for _, b in pairs])
+    dist = np.linalg.norm(q[:, ii] - q[:, jj], axis=-1)
+
+    R = np.full((T, 3, 3), np.nan)
+    t = np.full((T, 3), np.nan)
+    cov = np.full((T, 6, 6), np.nan)
+    rms = np.full(T, np.nan)
+    offset = None if engine == "linear" else np.full((T, 6), np.nan)
+    n_samples: int | None = None
+    if engine == "mc":
+        n_samples = samples
+    elif engine == "ut":
+        n_samples = 12 * n
+
+    qv, cqv = q[valid], cq[valid]
+    if valid.size:
+        rb = np.broadcast_to(r, qv.shape)
+        Rv, tv = register(rb, qv)
+        res = qv - (np.einsum("kij,nj->kni", Rv, r) + tv[:, None, :])
+        rms[valid] = np.sqrt(np.mean(np.sum(res * res, axis=-1), axis=-1))
+        R[valid], t[valid] = Rv, tv
+    if engine == "mc":
+        Lr = psd_factor(cr)
+        z_r = rng.standard_normal((samples, 3 * n))  # drawn even when no pose is valid
+        if valid.size:
+            r_samples = (r.reshape(3 * n) + z_r @ Lr.T).reshape(samples, n, 3)
+            c, o = _mc(qv, psd_factor(cqv), r_samples, Rv, tv, rng, chunk)
+            cov[valid], offset[valid] = c, o
+    elif valid.size and engine == "ut":
+        c, o = _ut(qv, psd_factor(cqv), r, psd_factor(cr), Rv, tv)
+        cov[valid], offset[valid] = c, o
+    elif valid.size:
+        J_q, J_r = registration_jacobian(np.broadcast_to(r, qv.shape), qv, Rv)
+        c = np.einsum("kani,knij,kbnj->kab", J_q, cqv, J_q)
+        Jr = J_r.reshape(valid.size, 6, 3 * n)
+        c = c + np.einsum("kai,ij,kbj->kab", Jr, cr, Jr)
+        cov[valid] = c
+    cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    return PoseEstimate(R, t, cov, degenerate, reason, dist, rms, shape, pairs, engine,
+                        n_samples, offset)
+
+
+def _perturbations(R: np.ndarray, t: np.ndarray, R0: np.ndarray, t0: np.ndarray) -> np.ndarray:
+    """Left perturbations (..., S, 6) of solutions (..., S) about means (..., 3, 3)/(..., 3)."""
+    dR = R @ np.swapaxes(R0, -1, -2)[..., None, :, :]
+    xi = np.empty(t.shape[:-1] + (6,))
+    xi[..., :3] = t - t0[..., None, :]
+    xi[..., 3:] = small_rotation_vector(dR)
+    return xi
+
+
+def _mc(q, Lq, r_samples, R0, t0, rng, chunk):
+    """Monte Carlo second moment and mean of the perturbations, chunked over poses."""
+    K, n, _ = q.shape
+    M = r_samples.shape[0]
+    per = max(1, chunk // M)
+    cov = np.empty((K, 6, 6))
+    off = np.empty((K, 6))
+    for s in range(0, K, per):
+        e = min(K, s + per)
+        z = rng.standard_normal((e - s, M, n, 3))
+        qs = q[s:e, None] + np.einsum("knij,kmnj->kmni", Lq[s:e], z)
+        ps = np.broadcast_to(r_samples, qs.shape)
+        Rs, ts, _ = _register_flat(ps.reshape(-1, n, 3), qs.reshape(-1, n, 3), DEFAULT_CHUNK)
+        xi = _perturbations(Rs.reshape(e - s, M, 3, 3), ts.reshape(e - s, M, 3), R0[s:e], t0[s:e])
+        cov[s:e] = np.einsum("kmi,kmj->kij", xi, xi) / M
+        off[s:e] = xi.mean(axis=1)
+    return cov, off
+
+
+def _ut(q, Lq, r, Lr, R0, t0):
+    """Unscented transform over (q_1..q_n, r_1..r_n): 2 L sigma points, L = 6 n."""
+    K, n, _ = q.shape
+    L = 6 * n
+    gamma = np.sqrt(L)  # alpha = 1, kappa = 0: sigma points at +- sqrt(L) columns
+    # prism part: column j of prism i's factor moves prism i only
+    dq = np.zeros((K, 3 * n, n, 3))
+    for i in range(n):
+        dq[:, 3 * i:3 * i + 3, i, :] = np.swapaxes(Lq[:, i], -1, -2)  # rows = columns of L
+    dq *= gamma
+    q_sig = np.concatenate([q[:, None] + dq, q[:, None] - dq], axis=1)  # (K, 6n, n, 3)
+    p_sig_q = np.broadcast_to(r, q_sig.shape)
+    dr = gamma * Lr.T.reshape(3 * n, n, 3)  # row k = column k of Lr
+    r_sig = np.concatenate([r + dr, r - dr], axis=0)  # (6n, n, 3)
+    p_sig_r = np.broadcast_to(r_sig, (K,) + r_sig.shape)
+    q_sig_r = np.broadcast_to(q[:, None], p_sig_r.shape)
+    P = np.concatenate([p_sig_q, p_sig_r], axis=1)
+    Q = np.concatenate([q_sig, q_sig_r], axis=1)
+    S = P.shape[1]  # 12 n = 2 L
+    Rs, ts, _ = _register_flat(P.reshape(-1, n, 3), Q.reshape(-1, n, 3), DEFAULT_CHUNK)
+    xi = _perturbations(Rs.reshape(K, S, 3, 3), ts.reshape(K, S, 3), R0, t0)
+    w = 1.0 / (2 * L)
+    return w * np.einsum("kmi,kmj->kij", xi, xi), w * xi.sum(axis=1)

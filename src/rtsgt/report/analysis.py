@@ -1,0 +1,593 @@
+r"""Noise-source analysis of one run: the numbers behind the paper's figures, for any deployment.
+
+Two questions, one answer each per noise source (instrument, tilt, atmosphere, time_sync,
+calibration) and for all of them together:
+
+**How large is each source at the prisms?** (Vaidis et al. 2023, Fig. 4 / Table II.) For every
+measurement of every prism, the size of a source's 3x3 position covariance ``Sigma_s`` (world
+frame, m^2) is the square root of its Frobenius norm, in mm:
+
+.. math::  n_s = \sqrt{\lVert \Sigma_s \rVert_F} \cdot 10^3
+
+(:func:`rtsgt.noise.analysis.frobenius_norm_mm`). The values are binned by the range of the
+measurement (default bins 0-75, 75-150, > 150 m, the paper's) and summarised by their median
+per bin and overall, with the share of measurements falling in each bin. ``Sigma_s`` is the
+covariance of the source *alone* (``PrismTrack.cov_by_source``); the authors' figure code
+measured a source other than the instrument as ``sqrt(||Sigma_(instrument + s) -
+Sigma_instrument||_F)`` instead. The two are identical for first-order propagation (independent
+sources add) and agree to Monte Carlo noise otherwise (see
+:func:`rtsgt.noise.analysis.authors_source_norms_mm`). ``"all"`` is the sum of the sources'
+covariances (the covariance of the sum of independent errors).
+
+**How much of it reaches the pose?** The run's pose engine (``mc``, ``ut`` or ``linear``) is run
+again at the kept pose times with each source's prism covariance alone
+(``PrismsAtTimes.cov_by_source[s]``, interpolated from the measurements) and an exactly known
+reference (zero covariance), which isolates that source. Three further entries: ``"gp"`` (the
+GP posterior covariance alone: the white sources after interpolation, with the motion model's
+uncertainty between measurements; present when the run has it), ``"reference"`` (the survey of
+the reference prisms on the robot alone, prisms exact) and ``"all"``, the run's own pose
+covariance (GP posterior of the white sources, plus the systematic sources, plus the
+reference). The ``"all"`` entry is therefore not the sum of the others: the GP smooths the white
+sources (instrument, tilt) over neighbouring measurements and adds its motion-model uncertainty
+between them. Each 6x6 pose covariance (x, y, z, rx, ry, rz) is summarised by
+
+- translation (mm): ``sqrt(tr Sigma_tt) * 1e3`` (the RMS of the 3-D position error), and
+- rotation (mrad): ``sqrt(tr Sigma_rr) * 1e3`` (the RMS of the rotation-vector error),
+
+the default measure ``"sqrt_trace"``; ``pose_measure="max_std"`` uses the square root of the
+largest eigenvalue instead (the standard deviation along the worst direction). Both are
+:func:`rtsgt.filtering.gates.position_uncertainty` applied to each 3x3 block.
+
+Nothing here reads files or prints: :func:`analyze_dir` reads through
+:func:`rtsgt.io.run_reader.read_run`, :func:`analyze_run` takes the in-memory result of
+:func:`rtsgt.pipeline.run_pipeline`, and both go through :func:`analyze`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from os import PathLike
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from rtsgt.errors import InputError
+from rtsgt.filtering.gates import position_uncertainty
+from rtsgt.io.run_reader import RunData, read_run
+from rtsgt.noise.analysis import bin_by_range, frobenius_norm_mm
+from rtsgt.types import NOISE_SOURCES, PoseTrajectory, PrismTrack
+
+__all__ = [
+    "ALL",
+    "GP",
+    "REFERENCE",
+    "DEFAULT_BINS_M",
+    "PAPER_CITATION",
+    "PAPER_MEDIANS_MM",
+    "POSE_MEASURES",
+    "Analysis",
+    "analyze",
+    "analyze_dir",
+    "analyze_run",
+    "bin_edges",
+    "bin_labels",
+    "paper_median_mm",
+    "parse_bins",
+    "pose_sigmas",
+    "run_data_from_result",
+]
+
+#: Name of the entry that combines every source.
+ALL = "all"
+#: Name of the pose entry of the reference prisms' survey uncertainty alone.
+REFERENCE = "reference"
+#: Name of the pose entry of the GP posterior alone (the white sources after interpolation).
+GP = "gp"
+#: Lower edges of the default range bins, m (the paper's: 0-75, 75-150, > 150 m).
+DEFAULT_BINS_M = (0.0, 75.0, 150.0)
+#: Scalar measures of a 3x3 covariance block for the pose uncertainty.
+POSE_MEASURES = ("sqrt_trace", "max_std")
+
+#: Where :data:`PAPER_MEDIANS_MM` come from.
+PAPER_CITATION = (
+    "Vaidis, Dubois, Daum, Pomerleau, Giguère, 'Uncertainty analysis for accurate ground truth "
+    "trajectories with robotic total stations', IROS 2023: medians of sqrt(||Sigma||_F) per "
+    "noise source (Trimble S7, Forêt Montmorency deployments), as quoted in rtsgt DESIGN.md "
+    "section 3"
+)
+
+_INF = math.inf
+#: The paper's published medians of ``sqrt(||Sigma_s||_F)``, mm (:data:`PAPER_CITATION`):
+#: ``"overall"`` and, where the paper gives them, per range bin keyed by ``(lower, upper)`` m.
+PAPER_MEDIANS_MM = MappingProxyType({
+    "instrument": MappingProxyType({"overall": 2.1, "bins": {(150.0, _INF): 2.78}}),
+    "tilt": MappingProxyType({"overall": 0.06, "bins": {}}),
+    "atmosphere": MappingProxyType({"overall": 0.16, "bins": {}}),
+    "time_sync": MappingProxyType({"overall": 0.4, "bins": {}}),
+    "calibration": MappingProxyType({
+        "overall": 1.32, "bins": {(0.0, 75.0): 0.91, (75.0, 150.0): 1.88, (150.0, _INF): 5.49},
+    }),
+})
+
+
+def paper_median_mm(source: str, lower: float | None = None,
+                    upper: float | None = None) -> float | None:
+    """The paper's median for a source, overall (no bounds) or for the bin ``[lower, upper)``.
+
+    Returns None where the paper gives no number (another source, or another bin).
+    """
+    entry = PAPER_MEDIANS_MM.get(source)
+    if entry is None:
+        return None
+    if lower is None and upper is None:
+        return entry["overall"]
+    return entry["bins"].get((float(lower), float(upper)))
+
+
+def parse_bins(text: str | Sequence[float]) -> tuple[float, ...]:
+    """Lower edges of the range bins from ``"0,75,150"`` (or a sequence), m.
+
+    The last bin is open (``> 150 m``). The edges must be finite, non-negative and strictly
+    increasing.
+    """
+    if isinstance(text, str):
+        try:
+            vals = [float(x) for x in text.replace(" ", "").split(",") if x != ""]
+        except ValueError as exc:
+            raise InputError(f"Expected range bins as comma-separated metres like "
+                             f"'0,75,150', got {text!r}") from exc
+    else:
+        vals = [float(x) for x in text]
+    if not vals:
+        raise InputError("Expected at least one range bin edge, got none")
+    e = np.asarray(vals)
+    if not np.all(np.isfinite(e)) or np.any(e < 0) or np.any(np.diff(e) <= 0):
+        raise InputError(f"Expected finite, non-negative, increasing bin edges, got {vals}")
+    return tuple(vals)
+
+
+def bin_edges(lower_edges: Sequence[float]) -> np.ndarray:
+    """All edges including the open upper end: ``(0, 75, 150) -> [0, 75, 150, inf]``."""
+    return np.append(np.asarray(parse_bins(lower_edges), dtype=float), np.inf)
+
+
+def bin_labels(lower_edges: Sequence[float]) -> tuple[str, ...]:
+    """``("0-75 m", "75-150 m", "> 150 m")`` for ``(0, 75, 150)``."""
+    e = bin_edges(lower_edges)
+    return tuple(f"> {lo:g} m" if np.isinf(hi) else f"{lo:g}-{hi:g} m"
+                 for lo, hi in zip(e[:-1], e[1:], strict=True))
+
+
+def pose_sigmas(cov: np.ndarray, measure: str = "sqrt_trace") -> tuple[np.ndarray, np.ndarray]:
+    """Translation (mm) and rotation (mrad) uncertainty of 6x6 pose covariances.
+
+    Parameters
+    ----------
+    cov : ndarray, shape (T, 6, 6)
+        Ordered (x, y, z, rx, ry, rz), m^2 / rad^2.
+    measure : {"sqrt_trace", "max_std"}
+        ``sqrt(trace)`` or ``sqrt(largest eigenvalue)`` of each 3x3 block.
+
+    Returns
+    -------
+    translation_mm, rotation_mrad : ndarray, shape (T,)
+        NaN where the covariance is not finite.
+    """
+    if measure not in POSE_MEASURES:
+        raise InputError(f"Expected pose measure in {POSE_MEASURES}, got {measure!r}")
+    c = np.asarray(cov, dtype=float)
+    if c.ndim != 3 or c.shape[1:] != (6, 6):
+        raise ValueError(f"Expected pose covariances of shape (T, 6, 6), got {c.shape}")
+    return (position_uncertainty(c[:, :3, :3], measure) * 1e3,
+            position_uncertainty(c[:, 3:, 3:], measure) * 1e3)
+
+
+def _median(x: np.ndarray) -> float:
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if x.size else float("nan")
+
+
+def _num(x: float) -> float | None:
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+@dataclass(frozen=True)
+class Analysis:
+    """Per-source noise analysis of one run (module docstring for the definitions).
+
+    Attributes
+    ----------
+    name : str
+        Deployment name.
+    sources : tuple of str
+        Measurement-level entries: the sources present, in :data:`NOISE_SOURCES` order, then
+        ``"all"``.
+    bin_lower_m : tuple of float
+        Lower edges of the range bins, m (the last bin is open).
+    bin_labels : tuple of str
+    bin_counts : tuple of int
+        Measurements per bin (all prisms).
+    bin_shares : tuple of float
+        Share of the measurements in each bin (sums to 1 when every range is >= the first
+        edge).
+    n_measurements : int
+    prism : ndarray of str, shape (N,)
+        Prism of each measurement (all prisms concatenated).
+    t : ndarray, shape (N,)
+        Time of each measurement, s.
+    range_m : ndarray, shape (N,)
+        Slope distance of each measurement from its station, m.
+    bin_index : ndarray of int, shape (N,)
+        Bin of each measurement (-1: below the first edge).
+    norm_mm : dict str -> ndarray (N,)
+        ``sqrt(||Sigma_s||_F)`` per measurement, mm.
+    median_mm : dict str -> float
+        Overall median per entry, mm.
+    bin_median_mm : dict str -> tuple of float
+        Median per bin, mm (NaN for an empty bin).
+    pose_sources : tuple of str
+        Pose-level entries: the sources present at the query times, ``"gp"`` (when known),
+        ``"reference"`` (when the reference has a covariance), ``"all"``.
+    pose_t : ndarray, shape (K,)
+        Kept pose times, s.
+    pose_cov : dict str -> ndarray (K, 6, 6)
+        Pose covariance per entry.
+    translation_mm, rotation_mrad : dict str -> ndarray (K,)
+        :func:`pose_sigmas` of ``pose_cov``.
+    pose_median_translation_mm, pose_median_rotation_mrad : dict str -> float
+    pose_measure : str
+    engine : str
+        Pose engine used for the per-source poses.
+    samples : int or None
+        Monte Carlo samples (``"mc"``) of the per-source poses.
+    """
+
+    name: str
+    sources: tuple[str, ...]
+    bin_lower_m: tuple[float, ...]
+    bin_labels: tuple[str, ...]
+    bin_counts: tuple[int, ...]
+    bin_shares: tuple[float, ...]
+    n_measurements: int
+    prism: np.ndarray
+    t: np.ndarray
+    range_m: np.ndarray
+    bin_index: np.ndarray
+    norm_mm: dict[str, np.ndarray]
+    median_mm: dict[str, float]
+    bin_median_mm: dict[str, tuple[float, ...]]
+    pose_sources: tuple[str, ...]
+    pose_t: np.ndarray
+    pose_cov: dict[str, np.ndarray]
+    translation_mm: dict[str, np.ndarray]
+    rotation_mrad: dict[str, np.ndarray]
+    pose_median_translation_mm: dict[str, float]
+    pose_median_rotation_mrad: dict[str, float]
+    pose_measure: str
+    engine: str
+    samples: int | None
+
+    @property
+    def bin_edges_m(self) -> np.ndarray:
+        """All bin edges including the open end, m."""
+        return bin_edges(self.bin_lower_m)
+
+    def table_rows(self) -> list[dict[str, Any]]:
+        """Rows of the per-source table: ours next to the paper's medians, mm.
+
+        Each row: ``source``, ``median_mm``, ``paper_median_mm``, and ``bins``: a list of
+        ``{"label", "median_mm", "paper_median_mm", "count", "share"}`` per range bin.
+        """
+        e = self.bin_edges_m
+        rows = []
+        for s in self.sources:
+            bins = []
+            for k, label in enumerate(self.bin_labels):
+                bins.append({
+                    "label": label,
+                    "median_mm": _num(self.bin_median_mm[s][k]),
+                    "paper_median_mm": paper_median_mm(s, e[k], e[k + 1]),
+                    "count": int(self.bin_counts[k]),
+                    "share": float(self.bin_shares[k]),
+                })
+            rows.append({"source": s, "median_mm": _num(self.median_mm[s]),
+                         "paper_median_mm": paper_median_mm(s), "bins": bins})
+        return rows
+
+    def pose_rows(self) -> list[dict[str, Any]]:
+        """Rows of the pose table: median translation (mm) and rotation (mrad) per entry."""
+        return [{"source": s,
+                 "translation_mm": _num(self.pose_median_translation_mm[s]),
+                 "rotation_mrad": _num(self.pose_median_rotation_mrad[s])}
+                for s in self.pose_sources]
+
+    def to_dict(self, include_arrays: bool = False) -> dict[str, Any]:
+        """JSON-ready form (medians, counts, parameters; the arrays on request)."""
+        out: dict[str, Any] = {
+            "name": self.name,
+            "definition": {
+                "prism": "sqrt(||Sigma_s||_F) of each source's 3x3 world covariance, mm",
+                "pose": f"{self.pose_measure} of the 3x3 blocks of the 6x6 pose covariance: "
+                        "translation mm, rotation mrad",
+                "paper": PAPER_CITATION,
+            },
+            "bins": {"lower_m": list(self.bin_lower_m), "labels": list(self.bin_labels),
+                     "counts": list(self.bin_counts), "shares": list(self.bin_shares)},
+            "n_measurements": self.n_measurements,
+            "sources": self.table_rows(),
+            "pose": {"engine": self.engine, "samples": self.samples,
+                     "measure": self.pose_measure, "n_poses": int(self.pose_t.shape[0]),
+                     "sources": self.pose_rows()},
+        }
+        if include_arrays:
+            out["arrays"] = {
+                "prism": self.prism.tolist(), "t": self.t.tolist(),
+                "range_m": self.range_m.tolist(),
+                "norm_mm": {s: v.tolist() for s, v in self.norm_mm.items()},
+                "pose_t": self.pose_t.tolist(),
+                "translation_mm": {s: v.tolist() for s, v in self.translation_mm.items()},
+                "rotation_mrad": {s: v.tolist() for s, v in self.rotation_mrad.items()},
+            }
+        return out
+
+
+def _measurement_part(data: RunData, lower: tuple[float, ...]):
+    prisms, ts, ranges = [], [], []
+    per_source: dict[str, list[np.ndarray]] = {}
+    sources = data.sources
+    if not data.measurements:
+        raise InputError("The run has no measured prism tracks to analyse")
+    for pid, tr in data.measurements.items():
+        if tr.range_m is None:
+            raise InputError(f"The measurements of prism {pid} have no range; cannot bin them")
+        n = len(tr)
+        prisms.append(np.full(n, pid, dtype=object))
+        ts.append(tr.t)
+        ranges.append(tr.range_m)
+        for s in sources:
+            c = tr.cov_by_source.get(s)
+            per_source.setdefault(s, []).append(
+                np.full(n, np.nan) if c is None else frobenius_norm_mm(c))
+        total = np.sum(list(tr.cov_by_source.values()), axis=0) if tr.cov_by_source else tr.cov
+        per_source.setdefault(ALL, []).append(frobenius_norm_mm(total))
+    r = np.concatenate(ranges)
+    norm = {s: np.concatenate(v) for s, v in per_source.items()}
+    edges = bin_edges(lower)
+    binned = bin_by_range(norm, r, edges)
+    k = np.searchsorted(edges, r, side="right") - 1
+    k = np.where(np.isfinite(r) & (k >= 0) & (k < edges.size - 1), k, -1)
+    counts = np.bincount(k[k >= 0], minlength=edges.size - 1)
+    n_all = r.shape[0]
+    shares = counts / n_all if n_all else np.zeros(counts.shape)
+    return (tuple(sources) + (ALL,), np.concatenate(prisms).astype(str), np.concatenate(ts), r,
+            k, norm, binned, counts, shares)
+
+
+def _pose_times(data: RunData) -> np.ndarray:
+    """Indices into ``data.prisms_t`` of the kept poses."""
+    gt_t = data.groundtruth.t
+    pt = data.prisms_t
+    if gt_t.size == 0:
+        return np.empty(0, dtype=int)
+    idx = np.clip(np.searchsorted(pt, gt_t), 0, max(pt.size - 1, 0))
+    prev = np.clip(idx - 1, 0, None)
+    better = np.abs(pt[prev] - gt_t) < np.abs(pt[idx] - gt_t)
+    idx = np.where(better, prev, idx)
+    if pt.size == 0 or np.any(np.abs(pt[idx] - gt_t) > 1e-6):
+        raise InputError("Some ground-truth pose times are not among the prisms' query times")
+    return idx
+
+
+def _pose_part(data: RunData, engine: str, samples: int, seed: int, measure: str):
+    from rtsgt.pose import estimate_poses
+
+    idx = _pose_times(data)
+    q = data.prisms_xyz[idx]
+    n = q.shape[1]
+    zero_r = np.zeros((3 * n, 3 * n))
+    rng = np.random.default_rng(seed)
+    cov: dict[str, np.ndarray] = {}
+    if idx.size:
+        for s, c in data.prisms_cov_by_source.items():
+            cov[s] = estimate_poses(q, c[idx], data.reference_xyz, zero_r, engine=engine,
+                                    samples=samples, rng=rng).cov
+        if data.prisms_cov_gp is not None:
+            cov[GP] = estimate_poses(q, data.prisms_cov_gp[idx], data.reference_xyz, zero_r,
+                                     engine=engine, samples=samples, rng=rng).cov
+        if np.any(data.reference_cov != 0):
+            cov[REFERENCE] = estimate_poses(q, np.zeros(q.shape + (3,)), data.reference_xyz,
+                                            data.reference_cov, engine=engine,
+                                            samples=samples, rng=rng).cov
+    else:
+        for s in data.prisms_cov_by_source:
+            cov[s] = np.empty((0, 6, 6))
+    order = [s for s in NOISE_SOURCES if s in cov] + sorted(
+        s for s in cov if s not in NOISE_SOURCES and s not in (GP, REFERENCE))
+    order += [s for s in (GP, REFERENCE) if s in cov]
+    cov = {s: cov[s] for s in order}
+    gt_cov = data.groundtruth.cov
+    cov[ALL] = np.empty((0, 6, 6)) if gt_cov is None else np.asarray(gt_cov)
+    trans, rot = {}, {}
+    for s, c in cov.items():
+        trans[s], rot[s] = pose_sigmas(c, measure) if c.shape[0] else (np.empty(0), np.empty(0))
+    return tuple(cov), data.groundtruth.t, cov, trans, rot
+
+
+def analyze(
+    data: RunData,
+    *,
+    bins: Sequence[float] | str = DEFAULT_BINS_M,
+    engine: str | None = None,
+    samples: int | None = None,
+    seed: int | None = None,
+    pose_measure: str = "sqrt_trace",
+) -> Analysis:
+    """Per-source analysis of a run's arrays.
+
+    Parameters
+    ----------
+    data : RunData
+        From :func:`rtsgt.io.run_reader.read_run` or :func:`run_data_from_result`.
+    bins : sequence of float or str
+        Lower edges of the range bins, m (``"0,75,150"``; the last bin is open).
+    engine : {"mc", "ut", "linear"}, optional
+        Pose engine for the per-source poses; default the run's.
+    samples : int, optional
+        Monte Carlo samples (``"mc"``); default the run's.
+    seed : int, optional
+        Seed of the per-source Monte Carlo; default the run's (results are reproducible).
+    pose_measure : {"sqrt_trace", "max_std"}
+        Scalar measure of the 3x3 blocks of the pose covariance (module docstring).
+
+    Returns
+    -------
+    Analysis
+    """
+    lower = parse_bins(bins)
+    if pose_measure not in POSE_MEASURES:
+        raise InputError(f"Expected pose measure in {POSE_MEASURES}, got {pose_measure!r}")
+    eng = data.engine if engine is None else engine
+    if eng not in ("mc", "ut", "linear"):
+        raise InputError(f"Expected engine mc, ut or linear, got {eng!r}")
+    m = int(data.samples if samples is None else samples)
+    sd = int(data.seed if seed is None else seed)
+    (sources, prism, t, r, k, norm, binned, counts, shares) = _measurement_part(data, lower)
+    pose_sources, pose_t, pose_cov, trans, rot = _pose_part(data, eng, m, sd, pose_measure)
+    return Analysis(
+        name=data.name,
+        sources=sources,
+        bin_lower_m=lower,
+        bin_labels=bin_labels(lower),
+        bin_counts=tuple(int(c) for c in counts),
+        bin_shares=tuple(float(s) for s in shares),
+        n_measurements=int(r.shape[0]),
+        prism=prism, t=t, range_m=r, bin_index=k,
+        norm_mm={s: norm[s] for s in sources},
+        median_mm={s: float(binned[s].overall_median) for s in sources},
+        bin_median_mm={s: tuple(float(x) for x in binned[s].median) for s in sources},
+        pose_sources=pose_sources,
+        pose_t=pose_t,
+        pose_cov=pose_cov,
+        translation_mm=trans,
+        rotation_mrad=rot,
+        pose_median_translation_mm={s: _median(v) for s, v in trans.items()},
+        pose_median_rotation_mrad={s: _median(v) for s, v in rot.items()},
+        pose_measure=pose_measure,
+        engine=eng,
+        samples=m if eng == "mc" else None,
+    )
+
+
+def run_data_from_result(result) -> RunData:
+    """The :class:`~rtsgt.io.run_reader.RunData` of an in-memory run (no file access).
+
+    Parameters
+    ----------
+    result : rtsgt.pipeline.RunResult
+    """
+    ids = tuple(result.prism_ids)
+    ids = tuple(p for p in ids if p in result.tracks) or tuple(result.tracks)
+    calib = result.calibration
+    stations = {s: np.asarray(T.translation, dtype=float)
+                for s, T in calib.transforms.items()}
+    measurements = {}
+    for pid in ids:
+        tr = result.tracks[pid]
+        rng_m = tr.range_m
+        if rng_m is None and tr.station in stations:
+            rng_m = np.linalg.norm(tr.xyz - stations[tr.station], axis=1)
+        cov = np.sum(list(tr.cov_by_source.values()), axis=0) if tr.cov_by_source else tr.cov
+        measurements[pid] = PrismTrack(tr.t, tr.xyz, cov, tr.cov_by_source, pid, tr.frame,
+                                       tr.station, rng_m)
+    pr = result.prisms
+    order = [list(result.tracks).index(p) for p in ids]
+    ref = result.data.reference
+    ref_ids = list(ref.names)
+    try:
+        rorder = [ref_ids.index(p) for p in ids]
+    except ValueError as exc:
+        raise InputError(f"A tracked prism has no reference point: {exc}") from exc
+    ridx = np.concatenate([[3 * k, 3 * k + 1, 3 * k + 2] for k in rorder])
+    keep = np.asarray(result.keep, dtype=bool)
+    if len(result.estimate) != keep.shape[0]:
+        raise InputError("The run's pose estimate and its gate mask have different lengths")
+    reason = _rejection_reasons(result)
+    gcp_xyz, gcp_names = _gcp_world(result.data.gcp, calib.transforms)
+    gt = result.groundtruth
+    opts = result.options
+    return RunData(
+        name=result.data.name, prism_ids=ids, measurements=measurements,
+        prisms_t=np.asarray(pr.t), prisms_xyz=np.asarray(pr.xyz)[:, order],
+        prisms_cov=np.asarray(pr.cov)[:, order],
+        prisms_cov_gp=None if getattr(pr, "cov_gp", None) is None
+        else np.asarray(pr.cov_gp)[:, order],
+        prisms_cov_by_source={s: np.asarray(c)[:, order] for s, c in
+                              _ordered(pr.cov_by_source).items()},
+        groundtruth=PoseTrajectory(gt.t, gt.position, gt.quat_xyzw, gt.cov),
+        rejected_t=np.asarray(pr.t)[~keep], rejected_reason=reason[~keep],
+        reference_xyz=np.asarray(ref.xyz)[rorder],
+        reference_cov=np.asarray(ref.cov)[np.ix_(ridx, ridx)],
+        stations=stations, gcp_xyz=gcp_xyz, gcp_names=gcp_names,
+        engine=opts.engine, samples=int(opts.samples), seed=int(opts.seed),
+        gp_noise=opts.gp_noise, summary={}, path=None,
+    )
+
+
+def _gcp_world(gcp, transforms) -> tuple[np.ndarray | None, tuple[str, ...]]:
+    """World position of every marker: mean over the calibrated stations' valid shots."""
+    from rtsgt.measurement.polar import polar_to_cartesian
+
+    if gcp is None or len(gcp) == 0:
+        return None, ()
+    ok = (np.asarray(gcp.status) == 0) & np.isin(gcp.station, list(transforms))
+    if not ok.any():
+        return None, ()
+    p_station = polar_to_cartesian(gcp.hz[ok], gcp.v[ok], gcp.distance[ok])
+    p_world = np.empty_like(p_station)
+    stations = gcp.station[ok]
+    for s in np.unique(stations):  # one transform per station (a handful)
+        m = stations == s
+        p_world[m] = transforms[str(s)].apply(p_station[m])
+    markers = gcp.marker[ok]
+    names = tuple(sorted(set(markers.tolist()), key=lambda x: (len(x), x)))
+    xyz = np.array([p_world[markers == k].mean(axis=0) for k in names])
+    return xyz, names
+
+
+def _ordered(d: dict) -> dict:
+    keys = [s for s in NOISE_SOURCES if s in d] + sorted(s for s in d if s not in NOISE_SOURCES)
+    return {k: d[k] for k in keys}
+
+
+def _rejection_reasons(result) -> np.ndarray:
+    """Per query time, why the pose was rejected ("" when kept), as ``rejected_poses.csv``."""
+    reasons = getattr(result, "rejection_reasons", None)
+    if reasons is None:
+        reasons = getattr(result.gate_report, "reason", None)
+    T = len(result.estimate)
+    if reasons is None or len(reasons) != T:
+        out = np.full(T, "rejected", dtype=object)
+        out[np.asarray(result.keep, dtype=bool)] = ""
+        return out.astype(str)
+    return np.asarray(reasons, dtype=str)
+
+
+def analyze_run(result, *, bins: Sequence[float] | str = DEFAULT_BINS_M, **kwargs) -> Analysis:
+    """Per-source analysis of an in-memory :class:`~rtsgt.pipeline.RunResult`.
+
+    Reuses the run's inputs (tracks, prisms at the query times, reference, engine, seed);
+    nothing is re-read. Keyword arguments as :func:`analyze`.
+    """
+    return analyze(run_data_from_result(result), bins=bins, **kwargs)
+
+
+def analyze_dir(run_dir: str | PathLike, *, bins: Sequence[float] | str = DEFAULT_BINS_M,
+                **kwargs) -> Analysis:
+    """Per-source analysis of a run directory written by ``rtsgt run``.
+
+    Keyword arguments as :func:`analyze`.
+    """
+    return analyze(read_run(run_dir), bins=bins, **kwargs)

@@ -1,0 +1,254 @@
+"""Figures of ``rtsgt evaluate --plot DIR`` (matplotlib, Agg canvas, no pyplot state).
+
+Three figures, each written as PNG and SVG:
+
+``translation_error``
+    The APE translation error over time: its norm against the ground truth's own noise
+    (``k sqrt(tr Sigma_gt,pos)``, k = 1, 2, 3, the rms norm a perfect estimate would show),
+    and each component x, y, z with the ground truth's ``+-1/2/3 sigma`` bands
+    (``sigma = sqrt(Sigma_gt,ii)``).
+``top_view``
+    Ground truth and aligned estimate in the x-y plane, with 95 % ellipses of the ground-truth
+    horizontal position covariance (chi-square 2 dof, 5.991), magnified by a stated factor so
+    that millimetre ellipses remain visible on a trajectory of metres.
+``nees_histogram``
+    Histograms (densities) of the position and pose NEES against the chi-square(3) and
+    chi-square(6) densities, with the 95 % quantiles.
+
+:func:`plot_evaluation` returns a :class:`EvalPlots` holding what was drawn (file names,
+number of ellipses, histogram counts and edges, band widths) so that tests can check it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from os import PathLike
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.patches import Ellipse
+from scipy import stats
+
+from rtsgt.errors import InputError
+
+#: chi-square(2) 0.95 quantile: the 95 % ellipse of a 2-D Gaussian.
+CHI2_2_95 = float(stats.chi2.ppf(0.95, 2))
+
+
+@dataclass(frozen=True)
+class EvalPlots:
+    """What :func:`plot_evaluation` drew.
+
+    Attributes
+    ----------
+    files : list of Path
+        Written files (PNG and SVG of every figure).
+    n_ellipses : int
+        Covariance ellipses on the top view.
+    ellipse_scale : float
+        Magnification of the ellipses.
+    sigma_norm : ndarray, shape (N,) or None
+        ``sqrt(tr Sigma_gt,pos)`` per pose, m (the 1-sigma line of the norm panel).
+    sigma_xyz : ndarray, shape (N, 3) or None
+        Per-axis ground-truth standard deviations, m.
+    hist : dict
+        ``{"position": (counts, edges), "pose": (counts, edges)}`` of the NEES histograms.
+    """
+
+    files: list[Path]
+    n_ellipses: int
+    ellipse_scale: float
+    sigma_norm: np.ndarray | None
+    sigma_xyz: np.ndarray | None
+    hist: dict = field(default_factory=dict)
+
+
+def _save(fig: Figure, out: Path, name: str, files: list[Path]) -> None:
+    FigureCanvasAgg(fig)
+    for ext in ("png", "svg"):
+        p = out / f"{name}.{ext}"
+        fig.savefig(p, format=ext, dpi=120, bbox_inches="tight")
+        files.append(p)
+
+
+def _error_figure(result) -> tuple[Figure, np.ndarray | None, np.ndarray | None]:
+    t = result.t - result.t[0]
+    err = result.est.position - result.gt.position
+    fig = Figure(figsize=(9, 9))
+    axes = fig.subplots(4, 1, sharex=True)
+    sig_norm = sig_xyz = None
+    cov = result.gt.cov
+    if cov is not None:
+        sig_xyz = np.sqrt(np.clip(np.diagonal(cov[:, :3, :3], axis1=1, axis2=2), 0, None))
+        sig_norm = np.sqrt(np.clip(np.trace(cov[:, :3, :3], axis1=1, axis2=2), 0, None))
+    ax = axes[0]
+    ax.plot(t, 1e3 * np.linalg.norm(err, axis=1), color="k", lw=0.8, label="|error|")
+    if sig_norm is not None:
+        for k, ls in zip((1, 2, 3), ("-", "--", ":"), strict=True):
+            ax.plot(
+                t,
+                1e3 * k * sig_norm,
+                color="tab:red",
+                ls=ls,
+                lw=0.8,
+                label=f"{k} x rms ground-truth noise",
+            )
+    ax.set_ylabel("APE translation (mm)")
+    ax.legend(loc="upper right", fontsize="small")
+    for a, (ax, name) in enumerate(zip(axes[1:], "xyz", strict=True)):
+        if sig_xyz is not None:
+            for k, alpha in zip((3, 2, 1), (0.12, 0.2, 0.3), strict=True):
+                s = 1e3 * k * sig_xyz[:, a]
+                ax.fill_between(
+                    t, -s, s, color="tab:blue", alpha=alpha, lw=0, label=f"+-{k} sigma ground truth"
+                )
+        ax.plot(t, 1e3 * err[:, a], color="k", lw=0.8, label=f"error {name}")
+        ax.set_ylabel(f"{name} error (mm)")
+    axes[1].legend(loc="upper right", fontsize="small")
+    axes[-1].set_xlabel("time since first associated pose (s)")
+    fig.suptitle("Translation error against the ground truth's uncertainty")
+    return fig, sig_norm, sig_xyz
+
+
+def _ellipse_params(cov2: np.ndarray, k2: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Full widths, heights (m) and angles (deg) of ``x^T C^-1 x = k2`` ellipses, (N, 2, 2)."""
+    w, v = np.linalg.eigh(cov2)
+    w = np.clip(w, 0, None)
+    width = 2 * np.sqrt(k2 * w[:, 1])
+    height = 2 * np.sqrt(k2 * w[:, 0])
+    angle = np.degrees(np.arctan2(v[:, 1, 1], v[:, 0, 1]))
+    return width, height, angle
+
+
+def _top_view(result, max_ellipses: int, ellipse_scale: float | None) -> tuple[Figure, int, float]:
+    gt, est = result.gt.position, result.est.position
+    fig = Figure(figsize=(7, 7))
+    ax = fig.subplots()
+    ax.plot(gt[:, 0], gt[:, 1], color="k", lw=1.0, label="ground truth")
+    ax.plot(
+        est[:, 0],
+        est[:, 1],
+        color="tab:orange",
+        lw=0.8,
+        label=f"estimate ({result.alignment.method})",
+    )
+    n_ell, scale = 0, 1.0
+    if result.gt.cov is not None and max_ellipses > 0:
+        idx = np.unique(np.linspace(0, len(gt) - 1, min(max_ellipses, len(gt))).astype(int))
+        wdt, hgt, ang = _ellipse_params(result.gt.cov[idx, :2, :2], CHI2_2_95)
+        if ellipse_scale is None:
+            extent = float(np.ptp(gt[:, :2], axis=0).max()) or 1.0
+            med = float(np.median(wdt)) or extent
+            # make the median ellipse about 2 % of the trajectory extent, rounded to 1-2-5
+            raw = max(1.0, 0.02 * extent / med)
+            dec = 10 ** np.floor(np.log10(raw))
+            scale = float(min(m * dec for m in (1, 2, 5, 10) if m * dec >= raw))
+        else:
+            scale = float(ellipse_scale)
+        for k, i in enumerate(idx):
+            ax.add_patch(
+                Ellipse(
+                    (gt[i, 0], gt[i, 1]),
+                    scale * wdt[k],
+                    scale * hgt[k],
+                    angle=ang[k],
+                    fill=False,
+                    color="tab:blue",
+                    lw=0.7,
+                    label=f"95 % ground-truth ellipse x {scale:g}" if k == 0 else None,
+                )
+            )
+        n_ell = idx.size
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend(loc="best", fontsize="small")
+    ax.set_title("Top view")
+    return fig, n_ell, scale
+
+
+def _nees_figure(result) -> tuple[Figure, dict]:
+    fig = Figure(figsize=(10, 4))
+    axes = fig.subplots(1, 2)
+    hist = {}
+    for ax, (name, r) in zip(
+        axes, (("position", result.nees.position), ("pose", result.nees.pose)), strict=True
+    ):
+        if r is None:
+            ax.text(
+                0.5,
+                0.5,
+                "no ground-truth covariance",
+                ha="center",
+                va="center",
+                transform=ax.transAxes,
+            )
+            continue
+        top = max(float(np.quantile(r.values, 0.99)), 3 * r.quantile_95)
+        edges = np.linspace(0, top, 41)
+        counts, edges, _ = ax.hist(
+            np.clip(r.values, 0, top),
+            bins=edges,
+            density=True,
+            color="tab:blue",
+            alpha=0.6,
+            label=f"NEES ({r.n} poses)",
+        )
+        x = np.linspace(1e-6, top, 400)
+        ax.plot(x, stats.chi2.pdf(x, r.dof), color="k", lw=1.2, label=f"chi-square({r.dof})")
+        ax.axvline(
+            r.quantile_95,
+            color="tab:red",
+            ls="--",
+            lw=1,
+            label=f"95 % quantile {r.quantile_95:.3f}",
+        )
+        verdict = "consistent" if r.consistent else "inconsistent"
+        ax.set_title(
+            f"{name}: mean {r.mean:.2f} (dof {r.dof}), "
+            f"{100 * r.fraction_inside_95:.1f} % inside, {verdict}",
+            fontsize="medium",
+        )
+        ax.set_xlabel("NEES")
+        ax.legend(fontsize="small")
+        hist[name] = (np.asarray(counts), np.asarray(edges))
+    return fig, hist
+
+
+def plot_evaluation(
+    result,
+    out_dir: str | PathLike,
+    *,
+    max_ellipses: int = 60,
+    ellipse_scale: float | None = None,
+) -> EvalPlots:
+    """Write the evaluation figures (PNG and SVG) into ``out_dir`` (created if needed).
+
+    Parameters
+    ----------
+    result : rtsgt.evaluation.EvaluationResult
+    out_dir : str or PathLike
+    max_ellipses : int
+        Covariance ellipses drawn on the top view (evenly spaced poses).
+    ellipse_scale : float, optional
+        Magnification of the ellipses; chosen automatically (1-2-5 steps) when None.
+
+    Returns
+    -------
+    EvalPlots
+    """
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the plot directory ({exc.strerror})", out) from exc
+    files: list[Path] = []
+    fig, sig_norm, sig_xyz = _error_figure(result)
+    _save(fig, out, "translation_error", files)
+    fig, n_ell, scale = _top_view(result, max_ellipses, ellipse_scale)
+    _save(fig, out, "top_view", files)
+    fig, hist = _nees_figure(result)
+    _save(fig, out, "nees_histogram", files)
+    return EvalPlots(files, n_ell, scale, sig_norm, sig_xyz, hist)

@@ -1,0 +1,568 @@
+"""The paper's figures for any run (matplotlib, Agg canvas, no pyplot state), PNG and SVG.
+
+``source_norms``
+    Per-source ``sqrt(||Sigma_s||_F)`` (mm, log scale) of the prism measurements as box plots by
+    range bin, plus one group over all ranges, with the share of the measurements in each bin
+    (bar panel above) and the paper's published medians as black diamonds where it gives them
+    (Vaidis et al. 2023, Fig. 4).
+``pose_uncertainty``
+    Per-source pose uncertainty at the kept poses: translation (mm) and rotation (mrad), box
+    plots (:mod:`rtsgt.report.analysis` for the measure).
+``top_view``
+    The deployment seen from above (world x-y, m): stations, ground control points, the
+    measured prism tracks, the ground-truth path with its 95 % horizontal covariance ellipses
+    (chi-square 2 dof, 5.991) magnified by a stated factor, and the rejected poses marked by
+    the gate that rejected them.
+``uncertainty_time``
+    Uncertainty along time: ``sqrt(tr Sigma)`` of each interpolated prism (mm), and the pose's
+    translation (mm) and rotation (mrad) uncertainty, with every measurement gap of each prism
+    shaded and the rejected poses marked.
+
+Boxes: median line, box from the first to the third quartile, whiskers from the 5th to the
+95th percentile, no outlier points. Each function returns a :class:`DrawnFigure` that says
+what was drawn (boxes per panel and the number of values behind each, points per artist,
+ellipses, shaded gaps), so that tests can check the content and not only the existence.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from os import PathLike
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Ellipse, Patch
+
+from rtsgt.io.run_reader import RunData
+from rtsgt.report.analysis import ALL, GP, REFERENCE, Analysis, paper_median_mm, pose_sigmas
+
+__all__ = [
+    "CHI2_2_95",
+    "FIGURE_NAMES",
+    "DrawnFigure",
+    "SOURCE_COLORS",
+    "SOURCE_LABELS",
+    "draw_all",
+    "plot_pose_uncertainty",
+    "plot_source_norms",
+    "plot_top_view",
+    "plot_uncertainty_time",
+    "save_figures",
+]
+
+#: chi-square(2) 0.95 quantile: the 95 % ellipse of a 2-D Gaussian is ``x^T S^-1 x <= 5.991``.
+CHI2_2_95 = 5.991464547107979
+#: Names (and file stems) of the figures, in report order.
+FIGURE_NAMES = ("source_norms", "pose_uncertainty", "top_view", "uncertainty_time")
+
+#: Colour of each entry (colour-blind-safe Okabe-Ito palette).
+SOURCE_COLORS = {
+    "instrument": "#0072B2",
+    "tilt": "#56B4E9",
+    "atmosphere": "#009E73",
+    "time_sync": "#E69F00",
+    "calibration": "#D55E00",
+    GP: "#9467BD",
+    REFERENCE: "#CC79A7",
+    ALL: "#555555",
+}
+#: Readable names of the entries.
+SOURCE_LABELS = {
+    "instrument": "instrument",
+    "tilt": "tilt compensator",
+    "atmosphere": "atmosphere",
+    "time_sync": "time synchronisation",
+    "calibration": "extrinsic calibration",
+    GP: "GP posterior (interpolation)",
+    REFERENCE: "reference prisms (survey)",
+    ALL: "all sources",
+}
+_PRISM_COLORS = ("#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#F0E442")
+_REASON_MARKERS = {"distance": "X", "uncertainty": "P", "degenerate": "v",
+                   "missing_prism": "v", "collinear": "d"}
+_BOX_STYLE = dict(whis=(5, 95), showfliers=False, patch_artist=True, manage_ticks=False)
+
+
+def _label(s: str) -> str:
+    return SOURCE_LABELS.get(s, s.replace("_", " "))
+
+
+def _color(s: str, k: int = 0) -> str:
+    return SOURCE_COLORS.get(s, _PRISM_COLORS[k % len(_PRISM_COLORS)])
+
+
+@dataclass
+class DrawnFigure:
+    """A figure and what was drawn on it.
+
+    Attributes
+    ----------
+    name : str
+        File stem (one of :data:`FIGURE_NAMES`).
+    figure : matplotlib.figure.Figure
+    boxes : dict str -> int
+        Number of box plots per panel.
+    box_sizes : dict str -> list of int
+        Number of values behind each box, per panel (in drawing order).
+    box_keys : dict str -> list of tuple
+        ``(entry, group)`` of each box, per panel.
+    box_medians : dict str -> list of float
+        The median drawn in each box (read back from the artist), per panel.
+    points : dict str -> int
+        Number of data points per drawn artist (by legend label or role).
+    ellipses : int
+        Covariance ellipses drawn.
+    ellipse_scale : float or None
+        Magnification of the ellipses.
+    spans : int
+        Shaded time spans (measurement gaps), counted once per panel.
+    caption : str
+        One sentence saying what the figure shows (used by the HTML report).
+    """
+
+    name: str
+    figure: Figure
+    boxes: dict[str, int] = field(default_factory=dict)
+    box_sizes: dict[str, list[int]] = field(default_factory=dict)
+    box_keys: dict[str, list[tuple]] = field(default_factory=dict)
+    box_medians: dict[str, list[float]] = field(default_factory=dict)
+    points: dict[str, int] = field(default_factory=dict)
+    ellipses: int = 0
+    ellipse_scale: float | None = None
+    spans: int = 0
+    caption: str = ""
+
+    def save(self, out_dir: str | PathLike, formats: Sequence[str] = ("png", "svg"),
+             dpi: int = 150) -> list[Path]:
+        """Write ``<out_dir>/<name>.<fmt>`` for each format; returns the paths."""
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        FigureCanvasAgg(self.figure)
+        paths = []
+        for fmt in formats:
+            p = out / f"{self.name}.{fmt}"
+            self.figure.savefig(p, format=fmt, dpi=dpi, bbox_inches="tight",
+                                metadata={"Date": None} if fmt == "svg" else None)
+            paths.append(p)
+        return paths
+
+
+def _box(ax, values: np.ndarray, x: float, width: float, color: str):
+    bp = ax.boxplot([values], positions=[x], widths=width, **_BOX_STYLE)
+    for patch in bp["boxes"]:
+        patch.set_facecolor(color)
+        patch.set_alpha(0.75)
+        patch.set_edgecolor("black")
+        patch.set_linewidth(0.8)
+    for med in bp["medians"]:
+        med.set_color("black")
+        med.set_linewidth(1.2)
+    return bp
+
+
+def _plain_log(ax) -> None:
+    """Plain numbers (0.1, 2, 50) instead of powers of ten on a log y axis.
+
+    Minor ticks are labelled too when the axis spans less than about two decades.
+    """
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    fmt = FuncFormatter(lambda v, _: f"{v:.10g}")
+    ax.yaxis.set_major_formatter(fmt)
+    lo, hi = ax.get_ylim()
+    decades = math.log10(max(hi, 1e-300) / max(lo, 1e-300))
+    if decades < 1.3:
+        ax.yaxis.set_minor_locator(LogLocator(subs=(2.0, 3.0, 5.0)))
+        ax.yaxis.set_minor_formatter(fmt)
+    elif decades < 2.3:
+        ax.yaxis.set_minor_locator(LogLocator(subs=(2.0, 5.0)))
+        ax.yaxis.set_minor_formatter(fmt)
+    else:
+        ax.yaxis.set_minor_formatter(NullFormatter())
+
+
+def _positive(v: np.ndarray) -> np.ndarray:
+    return v[np.isfinite(v) & (v > 0)]
+
+
+def plot_source_norms(analysis: Analysis, *, show_paper: bool = True) -> DrawnFigure:
+    """Per-source ``sqrt(||Sigma||_F)`` (mm) by range bin, with the share of measurements.
+
+    One group of boxes per range bin that holds measurements, and a last group over all
+    ranges; one box per entry of ``analysis.sources`` with positive values in the group. The
+    paper's medians (:data:`rtsgt.report.analysis.PAPER_MEDIANS_MM`) are black diamonds at the
+    groups for which the paper gives one.
+    """
+    a = analysis
+    fig = Figure(figsize=(10, 6.4), layout="constrained")
+    ax_share, ax = fig.subplots(2, 1, sharex=True, height_ratios=(1, 4))
+    nb = len(a.bin_labels)
+    groups = [k for k in range(nb) if a.bin_counts[k] > 0] + [nb]  # nb = all ranges
+    ns = len(a.sources)
+    width = 0.8 / ns
+    edges = a.bin_edges_m
+    drawn = DrawnFigure("source_norms", fig, box_sizes={"norms": []}, box_keys={"norms": []},
+                        box_medians={"norms": []})
+    paper_x, paper_y = [], []
+    for gi, k in enumerate(groups):
+        in_group = np.ones(a.n_measurements, bool) if k == nb else a.bin_index == k
+        for si, s in enumerate(a.sources):
+            vals = _positive(a.norm_mm[s][in_group])
+            x = gi - 0.4 + width * (si + 0.5)
+            if vals.size:
+                bp = _box(ax, vals, x, width * 0.85, _color(s))
+                drawn.box_medians["norms"].append(float(bp["medians"][0].get_ydata()[0]))
+                drawn.box_sizes["norms"].append(int(vals.size))
+                drawn.box_keys["norms"].append((s, "all ranges" if k == nb else a.bin_labels[k]))
+            p = paper_median_mm(s) if k == nb else paper_median_mm(s, edges[k], edges[k + 1])
+            if show_paper and p is not None:
+                paper_x.append(x)
+                paper_y.append(p)
+    drawn.boxes["norms"] = len(drawn.box_sizes["norms"])
+    if paper_x:
+        ax.plot(paper_x, paper_y, "D", color="black", ms=5, mfc="white", mew=1.3, zorder=5)
+        drawn.points["paper medians"] = len(paper_x)
+    ax.set_yscale("log")
+    ax.set_ylabel(r"$\sqrt{\|\Sigma\|_F}$ of the prism covariance (mm)")
+    ticks = []
+    for k in groups:
+        if k == nb:
+            ticks.append(f"all ranges\nn = {a.n_measurements}")
+        else:
+            ticks.append(f"{a.bin_labels[k]}\nn = {a.bin_counts[k]} "
+                         f"({100 * a.bin_shares[k]:.0f} %)")
+    ax.set_xticks(range(len(groups)), ticks)
+    ax.set_xlim(-0.6, len(groups) - 0.4)
+    ax.set_xlabel("range from the station")
+    ax.grid(axis="y", which="both", alpha=0.3)
+    handles = [Patch(facecolor=_color(s), edgecolor="black", alpha=0.75, label=_label(s))
+               for s in a.sources]
+    if paper_x:
+        handles.append(Line2D([], [], marker="D", color="black", mfc="white", ls="",
+                              label="paper median (Vaidis et al. 2023)"))
+    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8,
+              framealpha=0.9)
+    for gi in range(len(groups) - 1):
+        ax.axvline(gi + 0.5, color="#bbbbbb", lw=0.8, ls="--" if gi == len(groups) - 2 else ":")
+    _plain_log(ax)
+    shares = [100 * a.bin_shares[k] for k in groups[:-1]]
+    ax_share.bar(range(len(groups) - 1), shares, width=0.6, color="#999999")
+    for x, v in enumerate(shares):
+        ax_share.text(x, v, f"{v:.0f} %", ha="center", va="bottom", fontsize=8)
+    ax_share.set_ylim(0, 115)
+    ax_share.set_ylabel("share of\nmeasurements (%)")
+    ax_share.set_title(f"{a.name}: size of each noise source at the prisms, by range "
+                       "(boxes 25-75 %, whiskers 5-95 %)")
+    drawn.points["share bars"] = len(shares)
+    drawn.caption = (
+        "Square root of the Frobenius norm of each noise source's 3x3 prism covariance (mm, "
+        "log scale), by range bin and over all ranges; bars: share of the measurements per "
+        "bin; diamonds: the paper's published medians.")
+    return drawn
+
+
+def plot_pose_uncertainty(analysis: Analysis) -> DrawnFigure:
+    """Per-source pose uncertainty at the kept poses: translation (mm), rotation (mrad)."""
+    a = analysis
+    fig = Figure(figsize=(10, 4.8), layout="constrained")
+    axes = fig.subplots(1, 2)
+    drawn = DrawnFigure("pose_uncertainty", fig)
+    for ax, (panel, data, unit) in zip(axes, (("translation", a.translation_mm, "mm"),
+                                              ("rotation", a.rotation_mrad, "mrad")),
+                                       strict=True):
+        sizes, keys, labels, medians = [], [], [], []
+        for s in a.pose_sources:
+            vals = _positive(data[s])
+            if not vals.size:
+                continue
+            x = len(sizes)
+            bp = _box(ax, vals, x, 0.6, _color(s))
+            medians.append(float(bp["medians"][0].get_ydata()[0]))
+            sizes.append(int(vals.size))
+            keys.append((s, panel))
+            labels.append(_label(s).replace(" ", "\n", 1))
+            ax.text(x, np.median(vals), f" {np.median(vals):.3g}", fontsize=7, va="bottom",
+                    ha="left")
+        drawn.boxes[panel], drawn.box_sizes[panel], drawn.box_keys[panel] = \
+            len(sizes), sizes, keys
+        drawn.box_medians[panel] = medians
+        ax.set_xticks(range(len(sizes)), labels, fontsize=8, rotation=30, ha="right")
+        ax.set_xlim(-0.6, max(len(sizes), 1) - 0.4)
+        if sizes:
+            ax.set_yscale("log")
+            _plain_log(ax)
+        ax.set_ylabel(f"pose {panel} uncertainty ({unit})")
+        ax.grid(axis="y", which="both", alpha=0.3)
+    measure = ("sqrt(trace)" if a.pose_measure == "sqrt_trace"
+               else "sqrt(largest eigenvalue)")
+    fig.suptitle(f"{a.name}: pose uncertainty per noise source, {a.pose_t.size} kept poses "
+                 f"({a.engine} engine; {measure} of each 3x3 block)", fontsize=10)
+    drawn.caption = (
+        f"Uncertainty of the kept poses when only one source is present (prisms from that "
+        f"source alone, reference exact; 'reference prisms' = the survey alone, prisms exact) "
+        f"and with all of them (the run's covariance): {measure} of the translation block "
+        f"(mm) and of the rotation block (mrad).")
+    return drawn
+
+
+def _nice_scale(x: float) -> float:
+    """Largest of 1, 2, 5 x 10^k not above ``x`` (at least 1)."""
+    if not np.isfinite(x) or x <= 1:
+        return 1.0
+    k = math.floor(math.log10(x))
+    for m in (5, 2, 1):
+        if m * 10 ** k <= x:
+            return float(m * 10 ** k)
+    return float(10 ** k)  # pragma: no cover
+
+
+def _ellipse_axes(cov2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Full widths (major, minor) of the 95 % ellipses (m) and their angles (deg)."""
+    w, V = np.linalg.eigh(cov2)
+    w = np.clip(w, 0.0, None)
+    major = 2 * np.sqrt(CHI2_2_95 * w[:, 1])
+    minor = 2 * np.sqrt(CHI2_2_95 * w[:, 0])
+    angle = np.degrees(np.arctan2(V[:, 1, 1], V[:, 0, 1]))
+    return major, minor, angle
+
+
+def _break_gaps(t: np.ndarray, xy: np.ndarray, max_dt: float) -> np.ndarray:
+    """Insert NaN rows where consecutive times are more than ``max_dt`` apart."""
+    if t.size < 2:
+        return xy
+    cut = np.flatnonzero(np.diff(t) > max_dt) + 1
+    return np.insert(xy.astype(float), cut, np.nan, axis=0)
+
+
+def _rejected_positions(data: RunData) -> tuple[np.ndarray, np.ndarray]:
+    """Body positions of the rejected poses (fit of the reference onto the prisms), reasons.
+
+    Rejected poses whose prisms are not all finite or nearly collinear are left out.
+    """
+    from rtsgt.pose import register, shape_ratio
+
+    if data.rejected_t.size == 0 or data.prisms_t.size == 0:
+        return np.empty((0, 3)), np.empty(0, dtype=str)
+    idx = np.clip(np.searchsorted(data.prisms_t, data.rejected_t), 0, data.prisms_t.size - 1)
+    prev = np.clip(idx - 1, 0, None)
+    idx = np.where(np.abs(data.prisms_t[prev] - data.rejected_t)
+                   < np.abs(data.prisms_t[idx] - data.rejected_t), prev, idx)
+    match = np.abs(data.prisms_t[idx] - data.rejected_t) < 1e-6
+    q = data.prisms_xyz[idx]
+    ok = match & np.all(np.isfinite(q), axis=(1, 2))
+    if ok.any():
+        ok[ok] &= shape_ratio(q[ok]) >= 0.05
+    if not ok.any():
+        return np.empty((0, 3)), np.empty(0, dtype=str)
+    _, t_body = register(np.broadcast_to(data.reference_xyz, q[ok].shape), q[ok])
+    return t_body, data.rejected_reason[ok]
+
+
+def plot_top_view(data: RunData, *, max_ellipses: int = 60,
+                  ellipse_scale: float | None = None) -> DrawnFigure:
+    """Top view of the deployment (world x-y, m).
+
+    Parameters
+    ----------
+    data : RunData
+    max_ellipses : int
+        Ellipses are drawn at most at this many kept poses, evenly spread in index.
+    ellipse_scale : float, optional
+        Magnification of the 95 % ellipses; default a round number that makes the median
+        ellipse about 1.5 % of the plotted extent (at least 1).
+    """
+    fig = Figure(figsize=(9, 8), layout="constrained")
+    ax = fig.subplots()
+    drawn = DrawnFigure("top_view", fig)
+    everything = []
+    for k, (pid, tr) in enumerate(data.measurements.items()):
+        xy = tr.xyz[:, :2]
+        ax.plot(xy[:, 0], xy[:, 1], ".", ms=1.5, color=_PRISM_COLORS[k % len(_PRISM_COLORS)],
+                alpha=0.6, label=f"prism {pid} measurements")
+        drawn.points[f"prism {pid}"] = int(xy.shape[0])
+        everything.append(xy)
+    gt = data.groundtruth
+    if len(gt):
+        dts = np.diff(gt.t)
+        max_dt = 3 * float(np.median(dts)) if dts.size else 1.0
+        path = _break_gaps(gt.t, gt.position[:, :2], max_dt)
+        ax.plot(path[:, 0], path[:, 1], "-", color="black", lw=1.0,
+                label="ground truth (body origin)")
+        drawn.points["ground truth"] = int(len(gt))
+        everything.append(gt.position[:, :2])
+    for s, p in data.stations.items():
+        ax.plot(p[0], p[1], "^", ms=11, color="#333333", mfc="#F0E442", mew=1.2)
+        ax.annotate(f"station {s}", (p[0], p[1]), textcoords="offset points", xytext=(6, 6),
+                    fontsize=9, fontweight="bold")
+        everything.append(p[None, :2])
+    if data.stations:
+        ax.plot([], [], "^", ms=9, color="#333333", mfc="#F0E442", label="stations")
+        drawn.points["stations"] = len(data.stations)
+    if data.gcp_xyz is not None and len(data.gcp_xyz):
+        ax.plot(data.gcp_xyz[:, 0], data.gcp_xyz[:, 1], "s", ms=5, color="#666666",
+                mfc="none", label="ground control points")
+        drawn.points["ground control points"] = int(len(data.gcp_xyz))
+        everything.append(data.gcp_xyz[:, :2])
+    pos_r, reason_r = _rejected_positions(data)
+    for reason in sorted(set(reason_r.tolist())):
+        m = reason_r == reason
+        ax.plot(pos_r[m, 0], pos_r[m, 1], _REASON_MARKERS.get(reason, "x"), ms=6, ls="",
+                color="#D55E00", mfc="none", label=f"rejected: {reason or 'unspecified'} "
+                f"({int(m.sum())})")
+        drawn.points[f"rejected: {reason}"] = int(m.sum())
+    extent = 1.0
+    if everything:
+        allxy = np.concatenate(everything)
+        allxy = allxy[np.all(np.isfinite(allxy), axis=1)]
+        if allxy.size:
+            extent = max(float(np.ptp(allxy[:, 0])), float(np.ptp(allxy[:, 1])), 1.0)
+    if len(gt) and gt.cov is not None and max_ellipses > 0:
+        ok = np.flatnonzero(np.all(np.isfinite(gt.cov[:, :2, :2]), axis=(1, 2)))
+        if ok.size:
+            sel = ok[np.unique(np.linspace(0, ok.size - 1, min(ok.size, max_ellipses))
+                               .round().astype(int))]
+            major, minor, angle = _ellipse_axes(gt.cov[sel, :2, :2])
+            if ellipse_scale is None:
+                med = float(np.median(major))
+                ellipse_scale = _nice_scale(0.015 * extent / med) if med > 0 else 1.0
+            for (x, y), w, h, ang in zip(gt.position[sel, :2], major, minor, angle,
+                                         strict=True):
+                ax.add_patch(Ellipse((x, y), w * ellipse_scale, h * ellipse_scale, angle=ang,
+                                     fc="#0072B2", ec="#0072B2", alpha=0.35, lw=0.8))
+            drawn.ellipses = int(sel.size)
+            drawn.ellipse_scale = float(ellipse_scale)
+            ax.plot([], [], "o", ms=9, color="#0072B2", alpha=0.35,
+                    label=f"95 % position ellipses x {ellipse_scale:g} ({sel.size} poses)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x, world frame (m)")
+    ax.set_ylabel("y, world frame (m)")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8, framealpha=0.9, markerscale=2)
+    ax.set_title(f"{data.name}: top view (world frame = reference station)")
+    scale_txt = ("" if drawn.ellipse_scale is None else
+                 f"; 95 % horizontal ellipses magnified {drawn.ellipse_scale:g} times")
+    drawn.caption = ("Top view of the deployment: stations, ground control points, measured "
+                     "prism positions, ground-truth path" + scale_txt +
+                     ", rejected poses by gate.")
+    return drawn
+
+
+def _gaps(t: np.ndarray, gap_s: float) -> list[tuple[float, float]]:
+    if t.size < 2:
+        return []
+    d = np.diff(t)
+    k = np.flatnonzero(d > gap_s)
+    return [(float(t[i]), float(t[i + 1])) for i in k]
+
+
+def default_gap_s(data: RunData) -> float:
+    """Gap threshold: three times the median measurement interval, at least 1 s."""
+    dts = [np.diff(tr.t) for tr in data.measurements.values() if len(tr) > 1]
+    med = float(np.median(np.concatenate(dts))) if dts else 0.4
+    return max(1.0, 3.0 * med)
+
+
+def _time_origin(data: RunData) -> float:
+    starts = [tr.t[0] for tr in data.measurements.values() if len(tr)]
+    if data.prisms_t.size:
+        starts.append(data.prisms_t[0])
+    return float(min(starts)) if starts else 0.0
+
+
+def _time_label(t0: float) -> str:
+    if t0 > 1e8:
+        iso = datetime.fromtimestamp(t0, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
+        return f"time since {iso} (s)"
+    return f"time since t = {t0:g} s (s)"
+
+
+def plot_uncertainty_time(data: RunData, *, gap_s: float | None = None,
+                          pose_measure: str = "sqrt_trace") -> DrawnFigure:
+    """Uncertainty along time, with each prism's measurement gaps shaded.
+
+    Panels: ``sqrt(tr Sigma)`` of each interpolated prism (mm; every query time), the pose's
+    translation (mm) and rotation (mrad) uncertainty (kept poses; ``pose_measure``). A gap is
+    an interval longer than ``gap_s`` between two consecutive measurements of a prism
+    (default :func:`default_gap_s`); it is shaded in the prism's colour in every panel.
+    Rejected poses are ticked along the bottom of the translation panel.
+    """
+    fig = Figure(figsize=(11, 8), layout="constrained")
+    axes = fig.subplots(3, 1, sharex=True)
+    drawn = DrawnFigure("uncertainty_time", fig)
+    t0 = _time_origin(data)
+    gap = default_gap_s(data) if gap_s is None else float(gap_s)
+    step = np.median(np.diff(data.prisms_t)) if data.prisms_t.size > 1 else 1.0
+    for i, pid in enumerate(data.prism_ids):
+        c = data.prisms_cov[:, i]
+        sig = np.sqrt(np.clip(np.trace(c, axis1=-2, axis2=-1), 0.0, None)) * 1e3
+        y = _break_gaps(data.prisms_t, np.column_stack([data.prisms_t - t0, sig]), 2.5 * step)
+        axes[0].plot(y[:, 0], y[:, 1], "-", lw=1.0, color=_PRISM_COLORS[i % 7],
+                     label=f"prism {pid}")
+        drawn.points[f"prism {pid}"] = int(np.count_nonzero(np.isfinite(sig)))
+    gt = data.groundtruth
+    if len(gt) and gt.cov is not None:
+        tr_mm, rot_mrad = pose_sigmas(gt.cov, pose_measure)
+        dts = np.diff(gt.t)
+        max_dt = 2.5 * float(np.median(dts)) if dts.size else 1.0
+        for ax, v, name in ((axes[1], tr_mm, "pose translation"),
+                            (axes[2], rot_mrad, "pose rotation")):
+            y = _break_gaps(gt.t, np.column_stack([gt.t - t0, v]), max_dt)
+            ax.plot(y[:, 0], y[:, 1], "-", lw=1.0, color="black", label=name)
+            drawn.points[name] = int(np.count_nonzero(np.isfinite(v)))
+    if data.rejected_t.size:
+        axes[1].plot(data.rejected_t - t0, np.zeros(data.rejected_t.size), "|", ms=10,
+                     color="#D55E00", transform=axes[1].get_xaxis_transform(),
+                     label=f"rejected poses ({data.rejected_t.size})")
+        drawn.points["rejected poses"] = int(data.rejected_t.size)
+    n_spans = 0
+    for i, (pid, tr) in enumerate(data.measurements.items()):
+        col = _PRISM_COLORS[i % 7]
+        for a, b in _gaps(tr.t, gap):
+            for ax in axes:
+                ax.axvspan(a - t0, b - t0, color=col, alpha=0.15, lw=0)
+            n_spans += 1
+        axes[0].plot([], [], "s", ms=9, color=col, alpha=0.3,
+                     label=f"prism {pid}: gap > {gap:.1f} s")
+    drawn.spans = n_spans
+    unit = "sqrt(trace)" if pose_measure == "sqrt_trace" else "sqrt(largest eigenvalue)"
+    axes[0].set_ylabel("prism sqrt(tr Σ) (mm)")
+    axes[1].set_ylabel(f"translation {unit}\n(mm)")
+    axes[2].set_ylabel(f"rotation {unit}\n(mrad)")
+    for ax in axes:
+        if ax.lines and any(np.nanmax(np.asarray(ln.get_ydata(), dtype=float), initial=0) > 0
+                            for ln in ax.lines if len(ln.get_ydata())):
+            ax.set_yscale("log")
+            _plain_log(ax)
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(loc="upper left", bbox_to_anchor=(1.005, 1.0), fontsize=7, framealpha=0.9)
+    axes[-1].set_xlabel(_time_label(t0))
+    axes[0].set_title(f"{data.name}: uncertainty along time (shaded: measurement gaps)")
+    drawn.caption = (f"Uncertainty along time: each interpolated prism (mm), the pose "
+                     f"translation (mm) and rotation (mrad); shaded: gaps longer than "
+                     f"{gap:.1f} s between two measurements of a prism; ticks: rejected poses.")
+    return drawn
+
+
+def draw_all(data: RunData, analysis: Analysis, **kwargs) -> dict[str, DrawnFigure]:
+    """The four figures, keyed by :data:`FIGURE_NAMES`."""
+    return {
+        "source_norms": plot_source_norms(analysis),
+        "pose_uncertainty": plot_pose_uncertainty(analysis),
+        "top_view": plot_top_view(data, **kwargs),
+        "uncertainty_time": plot_uncertainty_time(data, pose_measure=analysis.pose_measure),
+    }
+
+
+def save_figures(figures: dict[str, DrawnFigure], out_dir: str | PathLike,
+                 formats: Sequence[str] = ("png", "svg"), dpi: int = 150) -> list[Path]:
+    """Write every figure as ``<name>.<fmt>`` into ``out_dir``; returns the paths."""
+    paths: list[Path] = []
+    for fig in figures.values():
+        paths += fig.save(out_dir, formats, dpi)
+    return paths

@@ -1,0 +1,507 @@
+"""A single self-contained HTML report of one run: tables, figures and an interactive 3D view.
+
+The file opens offline: the figures are embedded as data URIs (SVG by default, or PNG), the
+3D view is drawn by plotly.js, which is embedded inline (MIT licence; the optional extra
+``rtsgt[report]`` installs the ``plotly`` Python package that carries it). Nothing is fetched
+from a network. Without plotly the report is written all the same, with a note in place of
+the 3D view.
+
+Sections: key numbers; the per-source table next to the paper's published medians; the pose
+uncertainty per source; the four figures of :mod:`rtsgt.report.figures`; the 3D view (the
+ground-truth path, the prism measurements, the stations, the ground control points, the
+rejected poses, and the 95 % position ellipsoids (chi-square 3 dof, 7.815) of a subsample of
+the poses, magnified by a stated factor); every table of ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from os import PathLike
+from pathlib import Path
+
+import numpy as np
+
+from rtsgt import __version__
+from rtsgt.io.run_reader import RunData, read_run
+from rtsgt.report.analysis import DEFAULT_BINS_M, PAPER_CITATION, Analysis, analyze
+from rtsgt.report.figures import (
+    SOURCE_LABELS,
+    DrawnFigure,
+    _nice_scale,
+    draw_all,
+)
+
+__all__ = [
+    "CHI2_3_95",
+    "VIEW3D_ID",
+    "ReportInfo",
+    "ellipsoid_mesh",
+    "render_report",
+    "write_report",
+    "write_report_file",
+]
+
+#: chi-square(3) 0.95 quantile: the 95 % ellipsoid of a 3-D Gaussian.
+CHI2_3_95 = 7.814727903251178
+#: id of the 3D view's element in the page.
+VIEW3D_ID = "rtsgt-view3d"
+
+_CSS = """
+body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0;color:#222;
+background:#fafafa;line-height:1.45}
+main{max-width:1180px;margin:0 auto;padding:1.2em 2em 3em}
+h1{font-size:1.6em;margin:.2em 0}h2{border-bottom:2px solid #ddd;padding-bottom:.2em;
+margin-top:2em}h3{margin-top:1.4em}
+table{border-collapse:collapse;margin:.6em 0;font-size:.88em;background:#fff}
+th,td{border:1px solid #ccc;padding:.25em .6em;text-align:right;vertical-align:top}
+th{background:#eef2f6}td.k,th.k{text-align:left;font-family:ui-monospace,monospace}
+td.s{text-align:left}tr.all td{font-weight:bold}
+.paper{color:#666;font-style:italic}
+figure{margin:1.2em 0;background:#fff;border:1px solid #ddd;padding:.6em}
+figure img{max-width:100%;height:auto;display:block;margin:0 auto}
+figcaption{font-size:.9em;color:#444;margin-top:.4em}
+.note{background:#fff8e1;border-left:4px solid #f0b400;padding:.5em .8em}
+.kpi{display:flex;flex-wrap:wrap;gap:.8em}.kpi div{background:#fff;border:1px solid #ddd;
+padding:.5em .9em;min-width:10em}.kpi b{display:block;font-size:1.3em}
+nav a{margin-right:1em}details{margin:.4em 0}summary{cursor:pointer}
+#rtsgt-view3d{height:720px;background:#fff;border:1px solid #ddd}
+"""
+
+
+@dataclass(frozen=True)
+class ReportInfo:
+    """What :func:`write_report_file` wrote.
+
+    Attributes
+    ----------
+    path : Path
+        The HTML file.
+    size_bytes : int
+    figures : tuple of str
+        Names of the embedded figures.
+    view3d : bool
+        Whether the interactive 3D view is in the page (plotly available).
+    n_ellipsoids : int
+        Ellipsoids in the 3D view.
+    ellipsoid_scale : float or None
+        Their magnification.
+    """
+
+    path: Path
+    size_bytes: int
+    figures: tuple[str, ...]
+    view3d: bool
+    n_ellipsoids: int
+    ellipsoid_scale: float | None
+
+
+def _fmt(v, digits: int = 4) -> str:
+    if v is None:
+        return "–"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        if not math.isfinite(v):
+            return "–"
+        return f"{v:.{digits}g}"
+    return html.escape(str(v))
+
+
+def _sources_table(a: Analysis) -> str:
+    head = ["<tr><th class='k' rowspan='2'>source</th><th colspan='2'>all ranges</th>"]
+    head += [f"<th colspan='2'>{html.escape(lab)}<br><small>n = {c} "
+             f"({100 * sh:.0f} %)</small></th>"
+             for lab, c, sh in zip(a.bin_labels, a.bin_counts, a.bin_shares, strict=True)]
+    head.append("</tr><tr>" + "<th>this run</th><th class='paper'>paper</th>"
+                * (len(a.bin_labels) + 1) + "</tr>")
+    rows = []
+    for r in a.table_rows():
+        cls = " class='all'" if r["source"] == "all" else ""
+        cells = [f"<td class='s'>{html.escape(SOURCE_LABELS.get(r['source'], r['source']))}</td>",
+                 f"<td>{_fmt(r['median_mm'], 3)}</td>",
+                 f"<td class='paper'>{_fmt(r['paper_median_mm'], 3)}</td>"]
+        for b in r["bins"]:
+            cells.append(f"<td>{_fmt(b['median_mm'], 3)}</td>"
+                         f"<td class='paper'>{_fmt(b['paper_median_mm'], 3)}</td>")
+        rows.append(f"<tr{cls}>{''.join(cells)}</tr>")
+    return ("<table id='sources-table'>" + "".join(head) + "".join(rows) + "</table>"
+            f"<p><small>Median of sqrt(||Σ||<sub>F</sub>) of each source's 3x3 prism "
+            f"covariance, mm, over {a.n_measurements} measurements. Paper: "
+            f"{html.escape(PAPER_CITATION)}.</small></p>")
+
+
+_ALL_CLASS = " class='all'"
+
+
+def _pose_table(a: Analysis) -> str:
+    rows = "".join(
+        f"<tr{_ALL_CLASS if r['source'] == 'all' else ''}>"
+        f"<td class='s'>{html.escape(SOURCE_LABELS.get(r['source'], r['source']))}</td>"
+        f"<td>{_fmt(r['translation_mm'], 3)}</td><td>{_fmt(r['rotation_mrad'], 3)}</td></tr>"
+        for r in a.pose_rows())
+    measure = "sqrt(trace)" if a.pose_measure == "sqrt_trace" else "sqrt(largest eigenvalue)"
+    return ("<table id='pose-table'><tr><th class='k'>source</th><th>translation (mm)</th>"
+            f"<th>rotation (mrad)</th></tr>{rows}</table><p><small>Medians over "
+            f"{a.pose_t.size} kept poses, {a.engine} engine, {measure} of each 3x3 block of "
+            "the 6x6 pose covariance.</small></p>")
+
+
+def _flatten(obj, prefix: str = "") -> list[tuple[str, object]]:
+    out: list[tuple[str, object]] = []
+    if isinstance(obj, Mapping):
+        for k, v in obj.items():
+            out += _flatten(v, f"{prefix}.{k}" if prefix else str(k))
+    elif isinstance(obj, list) and obj and all(isinstance(x, Mapping) for x in obj):
+        out.append((prefix, obj))
+    else:
+        out.append((prefix, obj))
+    return out
+
+
+def _value_html(v) -> str:
+    if isinstance(v, list):
+        if all(not isinstance(x, (list, dict)) for x in v):
+            shown = ", ".join(_fmt(x, 6) for x in v[:12])
+            return f"[{shown}{', …' if len(v) > 12 else ''}]" + (
+                f" <small>({len(v)} values)</small>" if len(v) > 12 else "")
+        return html.escape(json.dumps(v)[:300])
+    return _fmt(v, 6)
+
+
+def _records_table(records: list[Mapping], max_rows: int = 200) -> str:
+    cols: list[str] = []
+    for r in records:
+        for k in r:
+            if k not in cols:
+                cols.append(k)
+    head = "".join(f"<th class='k'>{html.escape(str(c))}</th>" for c in cols)
+    body = "".join("<tr>" + "".join(f"<td>{_value_html(r.get(c))}</td>" for c in cols)
+                   + "</tr>" for r in records[:max_rows])
+    more = (f"<p><small>{len(records) - max_rows} more rows in summary.json</small></p>"
+            if len(records) > max_rows else "")
+    return f"<table><tr>{head}</tr>{body}</table>{more}"
+
+
+def _summary_tables(summary: Mapping) -> str:
+    if not summary:
+        return "<p class='note'>No summary.json in this run.</p>"
+    parts = []
+    scalars = [(k, v) for k, v in summary.items() if not isinstance(v, (dict, list))]
+    if scalars:
+        parts.append("<h3>run</h3><table class='summary'>" + "".join(
+            f"<tr><td class='k'>{html.escape(k)}</td><td class='s'>{_value_html(v)}</td></tr>"
+            for k, v in scalars) + "</table>")
+    for key, val in summary.items():
+        if not isinstance(val, (dict, list)):
+            continue
+        rows, subtables = [], []
+        for k, v in _flatten(val):
+            if isinstance(v, list) and v and all(isinstance(x, Mapping) for x in v):
+                subtables.append(f"<details><summary>{html.escape(k or key)} ({len(v)} rows)"
+                                 f"</summary>{_records_table(v)}</details>")
+            else:
+                rows.append(f"<tr><td class='k'>{html.escape(k)}</td>"
+                            f"<td class='s'>{_value_html(v)}</td></tr>")
+        table = f"<table class='summary'>{''.join(rows)}</table>" if rows else ""
+        parts.append(f"<h3>{html.escape(key)}</h3>{table}{''.join(subtables)}")
+    return "".join(parts)
+
+
+def _figure_html(fig: DrawnFigure, fmt: str) -> str:
+    import io
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig.figure)
+    buf = io.BytesIO()
+    fig.figure.savefig(buf, format=fmt, dpi=110, bbox_inches="tight",
+                       metadata={"Date": None} if fmt == "svg" else None)
+    mime = "image/svg+xml" if fmt == "svg" else "image/png"
+    b64 = base64.b64encode(buf.getvalue()).decode("ascii")
+    alt = html.escape(fig.caption or fig.name)
+    return (f"<figure id='fig-{fig.name}'><img alt='{alt}' src='data:{mime};base64,{b64}'>"
+            f"<figcaption>{html.escape(fig.caption)}</figcaption></figure>")
+
+
+def ellipsoid_mesh(centres: np.ndarray, covs: np.ndarray, scale: float, *,
+                   n_lat: int = 8, n_lon: int = 12, k2: float = CHI2_3_95):
+    """Triangle mesh of the ellipsoids ``(x - c)^T S^-1 (x - c) = k2`` magnified by ``scale``.
+
+    Parameters
+    ----------
+    centres : ndarray, shape (E, 3)
+    covs : ndarray, shape (E, 3, 3)
+        m^2.
+    scale : float
+        Magnification of the ellipsoids about their centres.
+    n_lat, n_lon : int
+        Rings and meridians of the unit sphere that is deformed.
+    k2 : float
+        Squared Mahalanobis radius (default: the 95 % quantile of chi-square(3)).
+
+    Returns
+    -------
+    vertices : ndarray, shape (E * V, 3)
+    faces : ndarray of int, shape (E * F, 3)
+        Vertex indices of each triangle.
+    ellipsoid : ndarray of int, shape (E * V,)
+        Which ellipsoid each vertex belongs to.
+    """
+    th = np.linspace(0, np.pi, n_lat + 1)[1:-1]
+    ph = np.linspace(0, 2 * np.pi, n_lon, endpoint=False)
+    ring = np.stack([np.outer(np.sin(th), np.cos(ph)), np.outer(np.sin(th), np.sin(ph)),
+                     np.outer(np.cos(th), np.ones_like(ph))], axis=-1).reshape(-1, 3)
+    unit = np.vstack([[0, 0, 1.0], ring, [0, 0, -1.0]])  # V = 2 + (n_lat - 1) n_lon
+    V = unit.shape[0]
+    faces = []
+    nr = n_lat - 1
+    for j in range(n_lon):  # top and bottom caps
+        j2 = (j + 1) % n_lon
+        faces.append((0, 1 + j, 1 + j2))
+        faces.append((V - 1, 1 + (nr - 1) * n_lon + j2, 1 + (nr - 1) * n_lon + j))
+    for i in range(nr - 1):
+        for j in range(n_lon):
+            j2 = (j + 1) % n_lon
+            a, b = 1 + i * n_lon + j, 1 + i * n_lon + j2
+            c, d = a + n_lon, b + n_lon
+            faces += [(a, c, b), (b, c, d)]
+    faces = np.asarray(faces)
+    w, U = np.linalg.eigh(0.5 * (covs + np.swapaxes(covs, -1, -2)))
+    A = U * np.sqrt(np.clip(w, 0.0, None) * k2)[:, None, :] * scale  # (E, 3, 3)
+    verts = centres[:, None, :] + np.einsum("eij,vj->evi", A, unit)
+    E = centres.shape[0]
+    all_faces = (faces[None] + (np.arange(E) * V)[:, None, None]).reshape(-1, 3)
+    return verts.reshape(-1, 3), all_faces, np.repeat(np.arange(E), V)
+
+
+def _nan_breaks(t: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    if t.size < 2:
+        return xyz
+    dts = np.diff(t)
+    cut = np.flatnonzero(dts > 3 * np.median(dts)) + 1
+    return np.insert(xyz.astype(float), cut, np.nan, axis=0)
+
+
+def _view3d(data: RunData, max_ellipsoids: int, scale: float | None):
+    """The plotly div (with plotly.js inline), the number of ellipsoids and their scale."""
+    try:
+        import plotly.graph_objects as go
+    except ImportError:
+        return None, 0, None
+    traces = []
+    gt = data.groundtruth
+    everything = []
+    for k, (pid, tr) in enumerate(data.measurements.items()):
+        step = max(1, len(tr) // 4000)
+        p = tr.xyz[::step]
+        traces.append(go.Scatter3d(x=p[:, 0], y=p[:, 1], z=p[:, 2], mode="markers",
+                                   marker=dict(size=1.5, opacity=0.5),
+                                   name=f"prism {pid} measurements"))
+        everything.append(tr.xyz)
+    n_ell, used_scale = 0, None
+    if len(gt):
+        path = _nan_breaks(gt.t, gt.position)
+        traces.append(go.Scatter3d(x=path[:, 0], y=path[:, 1], z=path[:, 2], mode="lines",
+                                   line=dict(color="black", width=4),
+                                   name="ground truth (body origin)"))
+        everything.append(gt.position)
+    for s, p in data.stations.items():
+        everything.append(p[None])
+    if data.stations:
+        st = np.array(list(data.stations.values()))
+        traces.append(go.Scatter3d(x=st[:, 0], y=st[:, 1], z=st[:, 2], mode="markers+text",
+                                   text=[f"station {s}" for s in data.stations],
+                                   marker=dict(size=6, symbol="diamond", color="#E69F00"),
+                                   name="stations"))
+    if data.gcp_xyz is not None and len(data.gcp_xyz):
+        g = data.gcp_xyz
+        traces.append(go.Scatter3d(x=g[:, 0], y=g[:, 1], z=g[:, 2], mode="markers",
+                                   marker=dict(size=3, symbol="square", color="#666"),
+                                   name="ground control points"))
+    if data.rejected_t.size and gt.t.size:
+        # rejected poses along the path: nearest kept pose in time is not the place; use the
+        # prisms' centroid at that time (always measured there)
+        idx = np.clip(np.searchsorted(data.prisms_t, data.rejected_t), 0,
+                      data.prisms_t.size - 1)
+        c = np.nanmean(data.prisms_xyz[idx], axis=1)
+        traces.append(go.Scatter3d(x=c[:, 0], y=c[:, 1], z=c[:, 2], mode="markers",
+                                   marker=dict(size=3, symbol="x", color="#D55E00"),
+                                   text=[str(r) for r in data.rejected_reason],
+                                   name=f"rejected poses ({data.rejected_t.size}, at the "
+                                        "prisms' centroid)"))
+    if len(gt) and gt.cov is not None and max_ellipsoids > 0:
+        ok = np.flatnonzero(np.all(np.isfinite(gt.cov[:, :3, :3]), axis=(1, 2)))
+        if ok.size:
+            sel = ok[np.unique(np.linspace(0, ok.size - 1, min(ok.size, max_ellipsoids))
+                               .round().astype(int))]
+            covs = gt.cov[sel, :3, :3]
+            if scale is None:
+                allp = np.concatenate(everything)
+                allp = allp[np.all(np.isfinite(allp), axis=1)]
+                extent = max(float(np.max(np.ptp(allp, axis=0))), 1.0)
+                radius = np.sqrt(CHI2_3_95 * np.linalg.eigvalsh(covs)[:, -1])
+                med = float(np.median(radius))
+                scale = _nice_scale(0.01 * extent / med) if med > 0 else 1.0
+            verts, faces, which = ellipsoid_mesh(gt.position[sel], covs, scale)
+            sig_mm = np.sqrt(np.trace(covs, axis1=1, axis2=2)) * 1e3
+            traces.append(go.Mesh3d(
+                x=verts[:, 0], y=verts[:, 1], z=verts[:, 2],
+                i=faces[:, 0], j=faces[:, 1], k=faces[:, 2],
+                intensity=sig_mm[which], colorscale="Viridis", opacity=0.55,
+                colorbar=dict(title=dict(text="sqrt(tr Σ)<br>(mm)"), len=0.6),
+                name=f"95 % position ellipsoids x {scale:g}", showlegend=True,
+                hoverinfo="name"))
+            n_ell, used_scale = int(sel.size), float(scale)
+    fig = go.Figure(traces)
+    fig.update_layout(
+        scene=dict(aspectmode="data", xaxis_title="x (m)", yaxis_title="y (m)",
+                   zaxis_title="z (m)"),
+        margin=dict(l=0, r=0, t=30, b=0), legend=dict(x=0, y=1, bgcolor="rgba(255,255,255,.8)"),
+        title=dict(text=f"{data.name}: world frame; ellipsoids magnified {used_scale or 1:g} x",
+                   font=dict(size=13)),
+    )
+    div = fig.to_html(
+        include_plotlyjs=True, full_html=False, div_id=VIEW3D_ID,
+        config={"displaylogo": False, "responsive": True},
+        default_height="720px",
+        post_script=("var gd=document.getElementById('{plot_id}');"
+                     "gd.setAttribute('data-rendered','1');"),
+    )
+    return div, n_ell, used_scale
+
+
+def _kpis(data: RunData, a: Analysis) -> str:
+    n_kept = len(data.groundtruth)
+    n_rej = int(data.rejected_t.size)
+    items = [
+        ("kept poses", f"{n_kept}"),
+        ("rejected poses", f"{n_rej}"),
+        ("measurements", f"{a.n_measurements}"),
+        ("median pose translation", f"{_fmt(a.pose_median_translation_mm.get('all'), 3)} mm"),
+        ("median pose rotation", f"{_fmt(a.pose_median_rotation_mrad.get('all'), 3)} mrad"),
+        ("median prism sqrt(||Σ||F)", f"{_fmt(a.median_mm.get('all'), 3)} mm"),
+    ]
+    if n_kept > 1:
+        dur = float(data.groundtruth.t[-1] - data.groundtruth.t[0])
+        items.insert(0, ("span of the ground truth", f"{dur:.0f} s"))
+    return "<div class='kpi'>" + "".join(f"<div>{html.escape(k)}<b>{v}</b></div>"
+                                         for k, v in items) + "</div>"
+
+
+def render_report(data: RunData, analysis: Analysis, *,
+                  figures: Mapping[str, DrawnFigure] | None = None,
+                  figure_format: str = "svg", max_ellipsoids: int = 150,
+                  ellipsoid_scale: float | None = None) -> tuple[str, dict]:
+    """The report page as a string, and what it holds.
+
+    Parameters
+    ----------
+    data : RunData
+    analysis : Analysis
+    figures : mapping, optional
+        Figures to embed (default :func:`rtsgt.report.figures.draw_all`).
+    figure_format : {"svg", "png"}
+    max_ellipsoids : int
+        Ellipsoids in the 3D view, at most (evenly spread over the kept poses).
+    ellipsoid_scale : float, optional
+        Their magnification; default a round number making the median one ~1 % of the scene.
+
+    Returns
+    -------
+    html : str
+    info : dict
+        ``figures``, ``view3d``, ``n_ellipsoids``, ``ellipsoid_scale``.
+    """
+    if figure_format not in ("svg", "png"):
+        raise ValueError(f"Expected figure_format 'svg' or 'png', got {figure_format!r}")
+    figs = draw_all(data, analysis) if figures is None else figures
+    div, n_ell, scale = _view3d(data, max_ellipsoids, ellipsoid_scale)
+    title = f"rtsgt report: {data.name}"
+    now = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    where = f" from <code>{html.escape(str(data.path))}</code>" if data.path else ""
+    if div is None:
+        view = ("<p class='note' id='no-view3d'>The interactive 3D view needs plotly: "
+                "<code>pip install 'rtsgt[report]'</code>, then run <code>rtsgt report</code> "
+                "again.</p>")
+    else:
+        view = (f"<p>Drag to rotate, scroll to zoom, double-click to reset. The ellipsoids are "
+                f"the 95 % regions (chi-square 3 dof) of the position covariance of {n_ell} "
+                f"poses spread evenly over the kept ones, <b>magnified {scale:g} times</b> "
+                f"about their centres so that they are visible at the scale of the site; "
+                f"their colour is sqrt(tr Σ) in mm.</p>{div}")
+    fig_html = "".join(_figure_html(f, figure_format) for f in figs.values())
+    body = f"""<main>
+<header><h1>{html.escape(title)}</h1>
+<p>Generated {now} by rtsgt {html.escape(__version__)}{where}.</p>
+<nav><a href="#key">key numbers</a><a href="#sources">noise sources</a>
+<a href="#pose">pose</a><a href="#figures">figures</a><a href="#view">3D view</a>
+<a href="#summary">summary.json</a></nav></header>
+<section id="key"><h2>Key numbers</h2>{_kpis(data, analysis)}</section>
+<section id="sources"><h2>Noise sources at the prisms, next to the paper</h2>
+{_sources_table(analysis)}</section>
+<section id="pose"><h2>Pose uncertainty per noise source</h2>{_pose_table(analysis)}</section>
+<section id="figures"><h2>Figures</h2>{fig_html}</section>
+<section id="view"><h2>Interactive 3D view</h2>{view}</section>
+<section id="summary"><h2>summary.json</h2>{_summary_tables(data.summary)}</section>
+<footer><p><small>Method: {html.escape(PAPER_CITATION)}.</small></p></footer>
+</main>"""
+    page = (f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+            f"<meta name='viewport' content='width=device-width, initial-scale=1'>"
+            f"<title>{html.escape(title)}</title><style>{_CSS}</style></head>"
+            f"<body>{body}</body></html>\n")
+    info = {"figures": tuple(figs), "view3d": div is not None, "n_ellipsoids": n_ell,
+            "ellipsoid_scale": scale}
+    return page, info
+
+
+def write_report_file(data: RunData, analysis: Analysis, path: str | PathLike,
+                      **kwargs) -> ReportInfo:
+    """Write the report of ``data`` and ``analysis`` to ``path`` (atomically).
+
+    Keyword arguments as :func:`render_report`.
+    """
+    from rtsgt.io._parse import atomic_write_text
+
+    page, info = render_report(data, analysis, **kwargs)
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(p, page)
+    return ReportInfo(p, p.stat().st_size, tuple(info["figures"]), bool(info["view3d"]),
+                      int(info["n_ellipsoids"]), info["ellipsoid_scale"])
+
+
+def write_report(run_dir: str | PathLike, out: str | PathLike | None = None, *,
+                 bins: Sequence[float] | str = DEFAULT_BINS_M, engine: str | None = None,
+                 samples: int | None = None, pose_measure: str = "sqrt_trace",
+                 **kwargs) -> Path:
+    """Read a run directory, analyse it and write its report (default ``RUN_DIR/report.html``).
+
+    Parameters
+    ----------
+    run_dir : path
+        Output directory of ``rtsgt run``.
+    out : path, optional
+        The HTML file to write.
+    bins, engine, samples, pose_measure
+        As :func:`rtsgt.report.analysis.analyze`.
+    **kwargs
+        As :func:`render_report` (``figure_format``, ``max_ellipsoids``, ...).
+
+    Returns
+    -------
+    Path
+        The written file.
+    """
+    data = read_run(run_dir)
+    analysis = analyze(data, bins=bins, engine=engine, samples=samples,
+                       pose_measure=pose_measure)
+    path = Path(run_dir) / "report.html" if out is None else Path(out)
+    return write_report_file(data, analysis, path, **kwargs).path

@@ -1,0 +1,1101 @@
+r"""Simulation of a robotic-total-station deployment with known truth.
+
+A simulated deployment has what a real one has (Vaidis et al. 2023, the 2022-11-10 Warthog
+deployment of ``norlab-ulaval/RTS_project``): three or more levelled stations set up around a
+site, ground control points (GCPs) shot by every station, a robot carrying one prism per
+station driving a smooth path, each station tracking its own prism at ~2.5 Hz, hourly weather,
+and a static survey of the prisms on the robot. Every noise source of the paper is applied with
+the paper's magnitudes, and every source can be switched off (``SimulationConfig.noise_*``).
+
+Frames (all right-handed, z up unless said otherwise)
+-----------------------------------------------------
+- ``site``: internal frame in which the site is generated (not exported).
+- ``station k``: the levelled tracking frame of station k, RTS_project tracking convention
+  (:mod:`rtsgt.measurement.polar`): ``x = d sinV sinHz, y = d sinV cosHz, z = d cosV``.
+  Levelled: ``T_world_station`` is a rotation about z (yaw) and a translation.
+- ``world``: the frame of station 1 (``T_world_station1 = identity``).
+- ``robot``: x forward, y left, z along the terrain normal, origin on the ground under the
+  robot's centre. The prisms are fixed in it (Warthog-like geometry).
+- ``body``: the frame of the static survey, i.e. the *manual-shot* frame of the survey station
+  (``x = d cosHz sinV, y = -d sinHz sinV, z = d cosV``, as in ``calibration_raw.csv``) at the
+  time of the survey, rigidly attached to the robot from then on. The surveyed points are
+  therefore the reference prism positions ``r_i`` in the body frame, and the true trajectory is
+  ``T_world_body(t)`` -- the pose that ``body_frame = "survey"`` asks the pipeline for. Its origin
+  is the survey station, ~10 m from the robot (as in the real data).
+
+Time
+----
+``t`` is Unix time (s). The truth is in true time. A station stamps a measurement taken at true
+time ``t_true`` with ``t_rec = t_true - e_ts``: ``e_ts`` (the clock error, s) is the station's
+constant offset drawn from ``N(mu_ts, sigma_ts)`` plus a small jitter. The position measured at
+the stamp ``t_rec`` is therefore ``p(t_rec + e_ts) ~ p(t_rec) + e_ts v``, the displacement of
+the paper's time-synchronisation model (DESIGN.md section 3).
+
+Measurement model (inverse of the pipeline's, DESIGN.md section 3)
+------------------------------------------------------------------
+For the true station-frame position ``p`` of a prism, ``(Hz, V, D) = cartesian_to_polar(p)``.
+The stations do not apply an atmospheric correction (their distances are at the instrument's
+reference atmosphere, 0 ppm), so with ``K`` the true correction (ppm) at ``t_true``
+(:mod:`rtsgt.measurement.atmosphere`) and ``c`` the additive (prism) constant::
+
+    d_raw = D / (1 + K 1e-6) + e_d - c
+    V^    = V + e_V + e_tilt
+    Hz^   = Hz + e_Hz + e_tilt cot(V^)
+
+so that ``(d_raw + c)(1 + K 1e-6) = D`` when the noise is off. ``e_d ~ N(0, sigma_d(D)^2)``,
+``e_V, e_Hz ~ N(0, sigma_angle^2)``, ``e_tilt ~ N(0, sigma_tilt^2)``, one-sigma values of the
+instrument profile (the Trimble S7 numbers are quoted at 2 sigma and halved there). GCP shots
+follow the same model. The reported (hourly) weather is the true weather plus a uniform error
+within the paper's half-widths (+-1 degC, +-10 hPa, +-2 %).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.interpolate import CubicHermiteSpline
+
+from rtsgt.geometry.so3 import matrix_to_quat_xyzw
+from rtsgt.geometry.transform import RigidTransform
+from rtsgt.measurement.atmosphere import instrument_correction_ppm
+from rtsgt.measurement.instruments import ARCSEC, TRIMBLE_S7, InstrumentProfile
+from rtsgt.measurement.polar import cartesian_to_polar
+from rtsgt.noise.perturb import sample_polar_errors
+from rtsgt.types import GcpShots, Observations, PoseTrajectory, WeatherSeries
+
+__all__ = [
+    "SimulationConfig",
+    "SimulatedDeployment",
+    "SimulationTruth",
+    "ObservationTruth",
+    "SurveyShots",
+    "TruthModel",
+    "simulate_deployment",
+    "atmospheric_ppm",
+]
+
+#: Warthog-like prism positions in the robot frame (m): prisms 1-3 at different heights with
+#: inter-prism distances 0.738, 0.899 and 1.020 m (the real ones: 0.736, 0.903, 1.030 m).
+#: Positions 4 and 5 are used only when more than three stations are simulated.
+WARTHOG_PRISMS_ROBOT_M = (
+    (0.40, 0.30, 0.80),
+    (0.40, -0.42, 0.64),
+    (-0.45, 0.05, 0.95),
+    (-0.45, -0.45, 0.70),
+    (0.00, 0.45, 1.05),
+)
+
+#: GNSS antenna positions in the robot frame (m), surveyed after the prisms like in the real
+#: ``calibration_raw.csv`` (rows 4-6 there).
+WARTHOG_GNSS_ROBOT_M = (
+    (0.30, 0.00, 1.10),
+    (-0.45, 0.20, 1.05),
+    (-0.30, -0.30, 1.08),
+)
+
+
+@dataclass(frozen=True)
+class SimulationConfig:
+    """Parameters of a simulated deployment. Units are in the names or stated.
+
+    Attributes
+    ----------
+    duration_s : float
+        Length of the tracking session, s.
+    n_stations : int
+        Number of stations (>= 3); station k tracks prism k.
+    rate_hz : float
+        Nominal measurement rate of each station, Hz (the S7 tracks at ~2.5 Hz).
+    start_time_s : float
+        Unix time of the start of tracking, s (default 2022-11-10 15:00 UTC).
+    truth_rate_hz : float
+        Rate of the exported truth, Hz.
+    speed_min_m_s, speed_max_m_s : float
+        Range of the cruise speeds (horizontal speed of the robot centre), m/s.
+    accel_max_m_s2 : float
+        Largest longitudinal acceleration, m/s^2 (sets the length of the speed ramps).
+    initial_stop_s : (float, float)
+        Range of the static period at the start, s.
+    drive_segment_s : (float, float)
+        Range of the duration of a constant-speed segment, s.
+    stop_probability : float
+        Probability that a segment is followed by a stop.
+    stop_duration_s : (float, float)
+        Range of the duration of a stop, s.
+    site_size_m : float
+        Size of the area the robot drives in, m (the path's mean diameter is half of it).
+    min_turn_radius_m : float
+        Smallest radius of curvature of the path, m.
+    terrain_max_slope_deg : float
+        Largest terrain slope, deg (the robot's roll and pitch stay below it).
+    station_clearance_m : float
+        Smallest horizontal distance between a station and the path, m.
+    station_spread_m : float
+        Stations stand between ``clearance`` and ``clearance + spread`` beyond the path, m.
+    instrument_height_m : (float, float)
+        Range of the height of the instruments above the ground, m.
+    n_gcp : int
+        Number of ground control points (markers).
+    gcp_blocked_max : int
+        Largest number of markers hidden from one station.
+    gcp_min_common : int
+        Smallest number of markers a station shares with station 1.
+    gcp_height_m : (float, float)
+        Range of the height of the markers above the ground, m.
+    gcp_lead_time_s : float
+        The GCP sessions start this long before tracking, s.
+    gcp_shot_interval_s : (float, float)
+        Range of the time between two GCP shots of a station, s.
+    instrument : InstrumentProfile
+        Accuracy of the stations (:data:`rtsgt.measurement.instruments.TRIMBLE_S7`).
+    additive_constant_m : float
+        Prism (additive) constant, m: the files hold distances without it (RTS_project: 0.01).
+    time_sync_mean_s, time_sync_std_s : float
+        Mean and standard deviation of the per-station clock error, s (authors' values).
+    time_sync_jitter_s : float
+        Standard deviation of the per-measurement clock jitter around the offset, s.
+    sampling_jitter_s : float
+        Standard deviation of the true measurement epochs around their nominal grid, s.
+    temperature_c, pressure_hpa, humidity_pct : float
+        Mean true weather (degC, station pressure hPa, %); defaults near the real forest site
+        (~640 m a.s.l. in November).
+    temperature_amplitude_c : float
+        Amplitude of the daily temperature cycle, degC.
+    pressure_trend_hpa_h : float
+        Largest pressure trend, hPa/h (drawn in +-).
+    humidity_amplitude_pct : float
+        Amplitude of the daily humidity cycle, %.
+    weather_interval_s : float
+        Interval of the reported weather records, s (ECCC: hourly).
+    temperature_halfwidth_c, pressure_halfwidth_hpa, humidity_halfwidth_pct : float
+        Half-widths of the uniform errors of the reported weather (paper: 1, 10, 2).
+    dropouts : bool
+        Whether the line of sight is lost at times.
+    dropout_rate_per_min : float
+        Mean number of line-of-sight losses per minute and station.
+    common_dropout_rate_per_min : float
+        Mean number per minute of losses that hit all stations at once.
+    dropout_duration_s : (float, float)
+        Range of the duration of a loss, s.
+    single_loss_probability : float
+        Probability that one measurement is missing on its own.
+    outlier_probability : float
+        Probability that a measurement is a gross outlier (distance off by 1-5 m, the kind the
+        rate gates remove); 0 by default.
+    prism_positions_robot_m : tuple of (x, y, z)
+        Prism positions in the robot frame, m; the first ``n_stations`` are used.
+    gnss_positions_robot_m : tuple of (x, y, z)
+        Further surveyed points (GNSS antennas) in the robot frame, m.
+    survey_distance_m : (float, float)
+        Range of the distance from the survey station to the robot, m.
+    survey_tilt_deg : float
+        Largest roll and pitch of the robot during the survey, deg.
+    survey_instrument_height_m : (float, float)
+        Range of the survey instrument's height above the robot's ground, m.
+    survey_sigma_angle_rad : (float, float)
+        Range (log-uniform) of the one-sigma angle noise of a survey shot, rad (real: 1-10").
+    survey_sigma_distance_m : (float, float)
+        Range of the one-sigma distance noise of a survey shot, m (real: 0.6-0.7 mm).
+    noise_instrument, noise_tilt : bool
+        Instrument (distance and angles) and compensator noise, on tracking and GCP shots.
+    noise_weather : bool
+        Errors of the reported weather (the paper's "atmosphere" source).
+    noise_time_sync : bool
+        Clock offsets and jitter (off: every stamp is the true time).
+    noise_survey : bool
+        Noise of the static survey shots.
+    atmosphere : bool
+        Whether the true atmosphere scales the distances (the stations report at 0 ppm). Off:
+        the true atmosphere is the instrument's reference atmosphere (0 ppm) at all times.
+    """
+
+    duration_s: float = 600.0
+    n_stations: int = 3
+    rate_hz: float = 2.5
+    start_time_s: float = 1668092400.0
+    truth_rate_hz: float = 100.0
+    # robot motion
+    speed_min_m_s: float = 0.5
+    speed_max_m_s: float = 2.0
+    accel_max_m_s2: float = 0.5
+    initial_stop_s: tuple[float, float] = (10.0, 20.0)
+    drive_segment_s: tuple[float, float] = (20.0, 90.0)
+    stop_probability: float = 0.3
+    stop_duration_s: tuple[float, float] = (3.0, 15.0)
+    # site
+    site_size_m: float = 120.0
+    min_turn_radius_m: float = 8.0
+    terrain_max_slope_deg: float = 4.0
+    station_clearance_m: float = 8.0
+    station_spread_m: float = 30.0
+    instrument_height_m: tuple[float, float] = (1.4, 1.7)
+    n_gcp: int = 10
+    gcp_blocked_max: int = 2
+    gcp_min_common: int = 5
+    gcp_height_m: tuple[float, float] = (0.0, 1.5)
+    gcp_lead_time_s: float = 1800.0
+    gcp_shot_interval_s: tuple[float, float] = (30.0, 60.0)
+    # instruments and time
+    instrument: InstrumentProfile = TRIMBLE_S7
+    additive_constant_m: float = 0.01
+    time_sync_mean_s: float = 1.157e-3
+    time_sync_std_s: float = 0.815e-3
+    time_sync_jitter_s: float = 0.05e-3
+    sampling_jitter_s: float = 3e-3
+    # weather
+    temperature_c: float = 2.0
+    pressure_hpa: float = 937.0
+    humidity_pct: float = 70.0
+    temperature_amplitude_c: float = 3.0
+    pressure_trend_hpa_h: float = 0.8
+    humidity_amplitude_pct: float = 10.0
+    weather_interval_s: float = 3600.0
+    temperature_halfwidth_c: float = 1.0
+    pressure_halfwidth_hpa: float = 10.0
+    humidity_halfwidth_pct: float = 2.0
+    # line of sight
+    dropouts: bool = True
+    dropout_rate_per_min: float = 0.5
+    common_dropout_rate_per_min: float = 0.05
+    dropout_duration_s: tuple[float, float] = (1.0, 15.0)
+    single_loss_probability: float = 0.02
+    outlier_probability: float = 0.0
+    # robot geometry and static survey
+    prism_positions_robot_m: tuple[tuple[float, float, float], ...] = WARTHOG_PRISMS_ROBOT_M
+    gnss_positions_robot_m: tuple[tuple[float, float, float], ...] = WARTHOG_GNSS_ROBOT_M
+    survey_distance_m: tuple[float, float] = (9.5, 11.5)
+    survey_tilt_deg: float = 2.0
+    survey_instrument_height_m: tuple[float, float] = (0.7, 1.2)
+    survey_sigma_angle_rad: tuple[float, float] = (1.0 * ARCSEC, 10.0 * ARCSEC)
+    survey_sigma_distance_m: tuple[float, float] = (0.5e-3, 0.8e-3)
+    # switches
+    noise_instrument: bool = True
+    noise_tilt: bool = True
+    noise_weather: bool = True
+    noise_time_sync: bool = True
+    noise_survey: bool = True
+    atmosphere: bool = True
+
+    def __post_init__(self) -> None:
+        def positive(name: str) -> None:
+            val = getattr(self, name)
+            if not (np.isfinite(val) and val > 0):
+                raise ValueError(f"Expected {name} > 0, got {val!r}")
+
+        def interval(name: str, low: float = 0.0) -> None:
+            a, b = getattr(self, name)
+            if not (np.isfinite(a) and np.isfinite(b) and low <= a <= b):
+                raise ValueError(f"Expected {name} = (a, b) with {low} <= a <= b, got {(a, b)!r}")
+
+        for name in ("duration_s", "rate_hz", "truth_rate_hz", "speed_min_m_s", "speed_max_m_s",
+                     "accel_max_m_s2", "site_size_m", "min_turn_radius_m", "station_clearance_m",
+                     "weather_interval_s", "pressure_hpa", "additive_constant_m"):
+            if name == "additive_constant_m":
+                if not np.isfinite(self.additive_constant_m):
+                    raise ValueError("Expected a finite additive_constant_m")
+                continue
+            positive(name)
+        for name in ("initial_stop_s", "drive_segment_s", "stop_duration_s", "instrument_height_m",
+                     "gcp_height_m", "gcp_shot_interval_s", "dropout_duration_s",
+                     "survey_distance_m", "survey_instrument_height_m",
+                     "survey_sigma_angle_rad", "survey_sigma_distance_m"):
+            interval(name)
+        if self.drive_segment_s[0] <= 0:
+            raise ValueError(f"Expected drive_segment_s > 0, got {self.drive_segment_s!r}")
+        if self.survey_sigma_angle_rad[0] <= 0 or self.survey_sigma_distance_m[0] <= 0:
+            raise ValueError("Expected positive survey sigmas")
+        if self.speed_min_m_s > self.speed_max_m_s:
+            raise ValueError(
+                f"Expected speed_min_m_s <= speed_max_m_s, got {self.speed_min_m_s} > "
+                f"{self.speed_max_m_s}"
+            )
+        if int(self.n_stations) != self.n_stations or self.n_stations < 3:
+            raise ValueError(f"Expected n_stations >= 3 (a pose needs 3 prisms), got "
+                             f"{self.n_stations!r}")
+        prisms = np.asarray(self.prism_positions_robot_m, dtype=float)
+        if prisms.ndim != 2 or prisms.shape[1] != 3:
+            raise ValueError(
+                f"Expected prism_positions_robot_m of shape (P, 3), got {prisms.shape}")
+        if self.n_stations > prisms.shape[0]:
+            raise ValueError(
+                f"Expected at most {prisms.shape[0]} stations (one per prism position in "
+                f"prism_positions_robot_m), got {self.n_stations}"
+            )
+        gnss = np.asarray(self.gnss_positions_robot_m, dtype=float).reshape(-1, 3)
+        if not np.all(np.isfinite(gnss)):
+            raise ValueError("Expected finite gnss_positions_robot_m")
+        if int(self.n_gcp) != self.n_gcp or self.n_gcp < 4:
+            raise ValueError(f"Expected n_gcp >= 4, got {self.n_gcp!r}")
+        if not 3 <= self.gcp_min_common <= self.n_gcp:
+            raise ValueError(
+                f"Expected 3 <= gcp_min_common <= n_gcp, got {self.gcp_min_common} "
+                f"(n_gcp = {self.n_gcp})"
+            )
+        if self.gcp_blocked_max < 0 or self.n_gcp - self.gcp_blocked_max < self.gcp_min_common:
+            raise ValueError(
+                f"Expected 0 <= gcp_blocked_max <= n_gcp - gcp_min_common, got "
+                f"{self.gcp_blocked_max}"
+            )
+        for name in ("stop_probability", "single_loss_probability", "outlier_probability"):
+            p = getattr(self, name)
+            if not 0.0 <= p < 1.0:
+                raise ValueError(f"Expected 0 <= {name} < 1, got {p!r}")
+        for name in ("dropout_rate_per_min", "common_dropout_rate_per_min", "time_sync_std_s",
+                     "time_sync_jitter_s", "sampling_jitter_s", "temperature_halfwidth_c",
+                     "pressure_halfwidth_hpa", "humidity_halfwidth_pct",
+                     "temperature_amplitude_c", "pressure_trend_hpa_h", "humidity_amplitude_pct",
+                     "terrain_max_slope_deg", "survey_tilt_deg", "station_spread_m",
+                     "gcp_lead_time_s"):
+            val = getattr(self, name)
+            if not (np.isfinite(val) and val >= 0):
+                raise ValueError(f"Expected {name} >= 0, got {val!r}")
+        if self.sampling_jitter_s * 6 >= 1.0 / self.rate_hz:
+            raise ValueError("Expected sampling_jitter_s well below the measurement interval")
+        if self.terrain_max_slope_deg >= 30:
+            raise ValueError(
+                f"Expected terrain_max_slope_deg < 30, got {self.terrain_max_slope_deg}")
+
+    def without_noise(self) -> SimulationConfig:
+        """The same deployment with every noise source off (dropouts and atmosphere kept)."""
+        return replace(self, noise_instrument=False, noise_tilt=False, noise_weather=False,
+                       noise_time_sync=False, noise_survey=False)
+
+    @property
+    def noise_sources(self) -> tuple[str, ...]:
+        """Noise sources of :data:`rtsgt.types.NOISE_SOURCES` present in the simulated data.
+
+        ``calibration`` is present when the GCP shots are noisy (instrument or tilt noise).
+        """
+        on = {
+            "instrument": self.noise_instrument,
+            "tilt": self.noise_tilt,
+            "atmosphere": self.noise_weather,
+            "time_sync": self.noise_time_sync,
+            "calibration": self.noise_instrument or self.noise_tilt,
+        }
+        return tuple(k for k, v in on.items() if v)
+
+
+@dataclass(frozen=True, eq=False)
+class SurveyShots:
+    """Static survey of points on the robot by one station, manual-shot convention.
+
+    ``x = d cos(hz) sin(v), y = -d sin(hz) sin(v), z = d cos(v)`` (the convention of the real
+    ``calibration_raw.csv``; no additive constant). Rows: the prisms 1..P, then the GNSS
+    antennas.
+
+    Attributes
+    ----------
+    label : tuple of str, length N
+        ``"prism1"``, ..., ``"gnss1"``, ...
+    hz, v, d : ndarray, shape (N,)
+        Horizontal direction (rad, in [0, 2pi)), zenith angle (rad), distance (m).
+    sigma_hz, sigma_v, sigma_d : ndarray, shape (N,)
+        One-sigma noise of each shot (rad, rad, m), the numbers the noise was drawn with.
+    """
+
+    label: tuple[str, ...]
+    hz: np.ndarray
+    v: np.ndarray
+    d: np.ndarray
+    sigma_hz: np.ndarray
+    sigma_v: np.ndarray
+    sigma_d: np.ndarray
+
+    def xyz(self) -> np.ndarray:
+        """Cartesian positions in the survey (= body) frame, shape (N, 3), m."""
+        sv = np.sin(self.v)
+        return np.stack([self.d * np.cos(self.hz) * sv, -self.d * np.sin(self.hz) * sv,
+                         self.d * np.cos(self.v)], axis=-1)
+
+
+@dataclass(frozen=True, eq=False)
+class ObservationTruth:
+    """What really happened at each simulated measurement of one station.
+
+    Attributes
+    ----------
+    t_true : ndarray, shape (N,)
+        True epoch of each measurement, s (the file holds ``t_true - clock_error_s``).
+    clock_error_s : ndarray, shape (N,)
+        ``t_true - t_recorded``, s.
+    hz, v, d : ndarray, shape (N,)
+        Noise-free values the station would have reported (rad, rad, m; ``d`` without the
+        additive constant, at the reference atmosphere): the residual ``measured - these`` is
+        the instrument and tilt noise.
+    ppm : ndarray, shape (N,)
+        True atmospheric correction, ppm: ``(d + c)(1 + ppm 1e-6)`` is the true distance.
+    xyz_world : ndarray, shape (N, 3)
+        True prism position at ``t_true``, world frame, m.
+    outlier : ndarray of bool, shape (N,)
+        Gross outliers (see ``SimulationConfig.outlier_probability``).
+    """
+
+    t_true: np.ndarray
+    clock_error_s: np.ndarray
+    hz: np.ndarray
+    v: np.ndarray
+    d: np.ndarray
+    ppm: np.ndarray
+    xyz_world: np.ndarray
+    outlier: np.ndarray
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    """Quintic smoothstep ``S(x) = 10x^3 - 15x^4 + 6x^5`` on [0, 1] (0 before, 1 after)."""
+    x = np.clip(x, 0.0, 1.0)
+    return x**3 * (10.0 - 15.0 * x + 6.0 * x * x)
+
+
+def _smoothstep_integral(x: np.ndarray) -> np.ndarray:
+    """``int_0^x S``: 0 before 0, ``2.5x^4 - 3x^5 + x^6`` on [0, 1], ``x - 1/2`` after."""
+    xc = np.clip(x, 0.0, 1.0)
+    inside = xc**4 * (2.5 - 3.0 * xc + xc * xc)
+    return np.where(x > 1.0, x - 0.5, inside)
+
+
+def _rot_z(angle: np.ndarray | float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    z, o = np.zeros_like(c), np.ones_like(c)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1),
+                     np.stack([z, z, o], -1)], -2)
+
+
+def _rot_y(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _rot_x(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def atmospheric_ppm(
+    temperature_c: np.ndarray, pressure_hpa: np.ndarray, humidity_pct: np.ndarray,
+    profile: InstrumentProfile,
+) -> np.ndarray:
+    """Atmospheric correction (ppm) of an instrument at the given weather.
+
+    :func:`rtsgt.measurement.atmosphere.instrument_correction_ppm` (IAG 1999 / Rueger 2002,
+    DESIGN.md section 3, Magnus vapour pressure), with the instrument's wavelength and reference
+    atmosphere: the corrected distance is ``D = D' (1 + K 1e-6)``.
+    """
+    return np.asarray(
+        instrument_correction_ppm(profile, temperature_c, pressure_hpa, humidity_pct), dtype=float
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class TruthModel:
+    """Analytic truth of a simulated deployment: robot path, attitude, weather.
+
+    The robot centre follows a smooth closed loop in the site frame,
+    ``xy(u) = c + Rot(theta) [sx rho(u) cos u, sy rho(u) sin u]`` with
+    ``rho(u) = R0 (1 + sum_k a_k cos(k u + phi_k))``, travelled at the horizontal speed
+    ``v(t)``: constant plateaus joined by quintic-smoothstep ramps, whose arc length ``s(t)`` is
+    integrated in closed form. The loop parameter is ``u = u0 + direction w(s)``, with ``w(s)`` a
+    cubic Hermite spline through a fine arc-length table with the exact derivative
+    ``1/|xy'(u)|``, so the path is C1 and
+    evaluating it at any time is exact by construction (the observations and the truth use the
+    same function). The ground is ``h(x, y) = sum_j A_j sin(k_j . (x, y) + psi_j)``; the robot's z
+    axis is the terrain normal, its x axis the direction of travel.
+
+    Use :meth:`robot_at`, :meth:`body_at`, :meth:`prisms_at`, :meth:`weather_at`; all take Unix
+    times (s) of any shape (...) and are vectorised.
+    """
+
+    t0: float
+    # speed profile: ramps k start at ramp_t[k] (s after t0), last ramp_len[k] s, go from
+    # level[k] to level[k + 1] (m/s); s_base[k] is the arc length at ramp_t[k] (m).
+    ramp_t: np.ndarray
+    ramp_len: np.ndarray
+    level: np.ndarray
+    s_base: np.ndarray
+    # loop
+    radius: float
+    harmonics: np.ndarray  # (K, 3): order, relative amplitude, phase
+    scale: np.ndarray  # (2,) sx, sy
+    theta: float
+    direction: float
+    u0: float
+    loop_length: float
+    w_of_s: CubicHermiteSpline
+    # terrain: rows (A, kx, ky, psi)
+    terrain: np.ndarray
+    # site -> world
+    R_world_site: np.ndarray
+    t_world_site: np.ndarray
+    # robot geometry
+    prisms_robot: np.ndarray  # (P, 3)
+    R_robot_body: np.ndarray
+    t_robot_body: np.ndarray
+    # weather: (mean, amplitude, phase, trend per hour) for T, P, RH
+    weather_params: np.ndarray  # (3, 4)
+
+    # -- robot motion ------------------------------------------------------------------------
+    def speed_at(self, t) -> np.ndarray:
+        """Horizontal speed of the robot centre, m/s."""
+        tau = np.asarray(t, dtype=float) - self.t0
+        k = np.clip(np.searchsorted(self.ramp_t, tau, side="right") - 1, 0, None)
+        x = (tau - self.ramp_t[k]) / self.ramp_len[k]
+        return self.level[k] + (self.level[k + 1] - self.level[k]) * _smoothstep(x)
+
+    def arc_at(self, t) -> np.ndarray:
+        """Horizontal arc length travelled since ``t0``, m (0 before the first ramp)."""
+        tau = np.asarray(t, dtype=float) - self.t0
+        k = np.clip(np.searchsorted(self.ramp_t, tau, side="right") - 1, 0, None)
+        dt = tau - self.ramp_t[k]
+        x = dt / self.ramp_len[k]
+        s = (self.s_base[k] + self.level[k] * dt
+             + (self.level[k + 1] - self.level[k]) * self.ramp_len[k] * _smoothstep_integral(x))
+        return np.where(tau < self.ramp_t[0], 0.0, s)
+
+    def _loop(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Loop point and derivative with respect to u, site frame, shapes (..., 2)."""
+        order, amp, phase = self.harmonics.T
+        arg = order * u[..., None] + phase
+        rho = self.radius * (1.0 + np.sum(amp * np.cos(arg), axis=-1))
+        drho = -self.radius * np.sum(amp * order * np.sin(arg), axis=-1)
+        cu, su = np.cos(u), np.sin(u)
+        p = np.stack([self.scale[0] * rho * cu, self.scale[1] * rho * su], axis=-1)
+        dp = np.stack([self.scale[0] * (drho * cu - rho * su),
+                       self.scale[1] * (drho * su + rho * cu)], axis=-1)
+        c, s = np.cos(self.theta), np.sin(self.theta)
+        rot = np.array([[c, -s], [s, c]])
+        return p @ rot.T, dp @ rot.T
+
+    def _ground(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Terrain height (m) and gradient (..., 2) at site-frame points (..., 2)."""
+        amp, kx, ky, psi = self.terrain.T
+        arg = xy[..., :1] * kx + xy[..., 1:2] * ky + psi
+        h = np.sum(amp * np.sin(arg), axis=-1)
+        c = amp * np.cos(arg)
+        grad = np.stack([np.sum(c * kx, axis=-1), np.sum(c * ky, axis=-1)], axis=-1)
+        return h, grad
+
+    def robot_at(self, t) -> tuple[np.ndarray, np.ndarray]:
+        """``T_world_robot`` at times ``t``: rotation (..., 3, 3) and translation (..., 3), m."""
+        s = self.arc_at(t)
+        u = self.u0 + self.direction * self.w_of_s(np.mod(s, self.loop_length))
+        xy, dxy = self._loop(u)
+        tangent = self.direction * dxy / np.linalg.norm(dxy, axis=-1, keepdims=True)
+        h, grad = self._ground(xy)
+        # x axis: direction of travel on the ground; z axis: terrain normal
+        x_axis = np.concatenate([tangent, np.sum(grad * tangent, -1, keepdims=True)], axis=-1)
+        x_axis /= np.linalg.norm(x_axis, axis=-1, keepdims=True)
+        z_axis = np.concatenate([-grad, np.ones(grad.shape[:-1] + (1,))], axis=-1)
+        z_axis /= np.linalg.norm(z_axis, axis=-1, keepdims=True)
+        y_axis = np.cross(z_axis, x_axis)
+        # columns of R_world_robot = the robot axes expressed in the world frame
+        R = np.stack([a @ self.R_world_site.T for a in (x_axis, y_axis, z_axis)], axis=-1)
+        p_site = np.concatenate([xy, h[..., None]], axis=-1)
+        p = p_site @ self.R_world_site.T + self.t_world_site
+        return R, p
+
+    def body_from_robot(self, R_wr: np.ndarray, t_wr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``T_world_body = T_world_robot T_robot_body``: R (..., 3, 3), t (..., 3)."""
+        R = np.einsum("...ij,jk->...ik", R_wr, self.R_robot_body)
+        p = np.einsum("...ij,j->...i", R_wr, self.t_robot_body) + t_wr
+        return R, p
+
+    def prisms_from_robot(self, R_wr: np.ndarray, t_wr: np.ndarray) -> np.ndarray:
+        """Prism positions ``T_world_robot p_robot``, shape (..., P, 3), m."""
+        return np.einsum("...ij,pj->...pi", R_wr, self.prisms_robot) + t_wr[..., None, :]
+
+    def body_at(self, t) -> tuple[np.ndarray, np.ndarray]:
+        """``T_world_body`` at times ``t``: rotation (..., 3, 3) and translation (..., 3), m."""
+        return self.body_from_robot(*self.robot_at(t))
+
+    def prisms_at(self, t) -> np.ndarray:
+        """True prism positions in the world frame, shape (..., P, 3), m."""
+        return self.prisms_from_robot(*self.robot_at(t))
+
+    # -- weather -----------------------------------------------------------------------------
+    def weather_at(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """True temperature (degC), station pressure (hPa) and relative humidity (%)."""
+        hours = (np.asarray(t, dtype=float) - self.t0) / 3600.0
+        mean, amp, phase, trend = self.weather_params.T
+        day = 2.0 * np.pi * hours[..., None] / 24.0
+        vals = mean + amp * np.sin(day + phase) + trend * hours[..., None]
+        return vals[..., 0], vals[..., 1], np.clip(vals[..., 2], 0.0, 100.0)
+
+
+@dataclass(frozen=True, eq=False)
+class SimulationTruth:
+    """Everything true about a simulated deployment.
+
+    Attributes
+    ----------
+    t : ndarray, shape (N,)
+        Times of the exported truth (``truth_rate_hz``), s.
+    body : PoseTrajectory
+        ``T_world_body`` at ``t`` (no covariance).
+    prisms_world : ndarray, shape (N, P, 3)
+        True prism positions at ``t``, world frame, m.
+    prism_ids : tuple of str, length P
+    T_world_station : dict str -> RigidTransform
+        True station set-ups (station "1" is the identity).
+    station_prism : dict str -> str
+        Prism tracked by each station.
+    clock_offset_s : dict str -> float
+        Constant part of each station's clock error ``t_true - t_recorded``, s.
+    reference_body : ndarray, shape (P, 3)
+        True prism positions in the body frame (what the survey measures), m.
+    gnss_body : ndarray, shape (G, 3)
+        True GNSS antenna positions in the body frame, m.
+    T_body_robot : RigidTransform
+        The robot frame in the body (survey) frame.
+    gcp_markers : tuple of str
+    gcp_world : ndarray, shape (n_gcp, 3)
+        True marker positions, world frame, m.
+    observations : dict str -> ObservationTruth
+        Per station, what really happened at each of its measurements.
+    additive_constant : float
+        m.
+    model : TruthModel
+        Exact evaluator at any time.
+    """
+
+    t: np.ndarray
+    body: PoseTrajectory
+    prisms_world: np.ndarray
+    prism_ids: tuple[str, ...]
+    T_world_station: dict[str, RigidTransform]
+    station_prism: dict[str, str]
+    clock_offset_s: dict[str, float]
+    reference_body: np.ndarray
+    gnss_body: np.ndarray
+    T_body_robot: RigidTransform
+    gcp_markers: tuple[str, ...]
+    gcp_world: np.ndarray
+    observations: dict[str, ObservationTruth]
+    additive_constant: float
+    model: TruthModel = field(repr=False)
+
+
+@dataclass(frozen=True, eq=False)
+class SimulatedDeployment:
+    """A simulated deployment: the data a real one yields, and its truth.
+
+    Attributes
+    ----------
+    observations : list of Observations
+        One per station (station k tracks prism k), raw distances without the additive
+        constant, times as stamped by the station's clock.
+    gcp : GcpShots
+        GCP shots of every station (raw distances, station-clock times).
+    survey : SurveyShots
+        Static survey of the prisms (and GNSS antennas) on the robot, manual-shot convention.
+    weather_true : WeatherSeries
+        True weather every minute over the whole deployment.
+    weather_reported : WeatherSeries
+        Reported weather (hourly), true weather plus the reporting errors.
+    truth : SimulationTruth
+    config : SimulationConfig
+    seed : int or None
+        Seed of the generator, when the simulation was started from one.
+    """
+
+    observations: list[Observations]
+    gcp: GcpShots
+    survey: SurveyShots
+    weather_true: WeatherSeries
+    weather_reported: WeatherSeries
+    truth: SimulationTruth
+    config: SimulationConfig
+    seed: int | None = None
+
+    def truth_at(self, t, frame: str = "robot") -> tuple[np.ndarray, np.ndarray]:
+        """Exact pose at any times: positions (..., 3) m and quat_xyzw (..., 4).
+
+        ``frame="robot"``: ``T_world_robot``, the frame the written deployment's ground truth
+        is computed in (and ``truth.tum``); ``frame="body"``: ``T_world_body`` (the survey
+        frame, ``truth.body``).
+        """
+        if frame == "robot":
+            R, p = self.truth.model.robot_at(t)
+        elif frame == "body":
+            R, p = self.truth.model.body_at(t)
+        else:
+            raise ValueError(f"Expected frame 'robot' or 'body', got {frame!r}")
+        return p, matrix_to_quat_xyzw(R)
+
+
+# --------------------------------------------------------------------------------------------
+# generation
+# --------------------------------------------------------------------------------------------
+
+
+def _speed_profile(cfg: SimulationConfig, rng: np.random.Generator):
+    """Plateaus and ramps of the speed, covering ``[0, duration]`` (s after the start)."""
+    ramp_t, ramp_len, level = [], [], [0.0]
+    tau = rng.uniform(*cfg.initial_stop_s)
+    moving = False
+    # loop over segments (a few per minute), not measurements; at least one ramp
+    while not ramp_t or tau <= cfg.duration_s:
+        if moving and rng.random() < cfg.stop_probability:
+            target, hold = 0.0, rng.uniform(*cfg.stop_duration_s)
+        else:
+            target, hold = rng.uniform(cfg.speed_min_m_s, cfg.speed_max_m_s), rng.uniform(
+                *cfg.drive_segment_s)
+        # quintic smoothstep: peak acceleration 15/8 dv / T
+        length = max(1.0, 1.875 * abs(target - level[-1]) / cfg.accel_max_m_s2)
+        ramp_t.append(tau)
+        ramp_len.append(length)
+        level.append(target)
+        tau += length + hold
+        moving = target > 0
+    ramp_t = np.asarray(ramp_t)
+    ramp_len = np.asarray(ramp_len)
+    level = np.asarray(level)
+    # arc length at each ramp start (closed form; the ramps do not overlap)
+    span = np.diff(ramp_t)
+    dv = np.diff(level)
+    inc = level[:-2] * span + dv[:-1] * (span - 0.5 * ramp_len[:-1])
+    s_base = np.concatenate([[0.0], np.cumsum(inc)])
+    return ramp_t, ramp_len, level, s_base
+
+
+def _loop_shape(cfg: SimulationConfig, rng: np.random.Generator):
+    """Random smooth closed loop meeting the curvature limit (rejection sampling)."""
+    radius = cfg.site_size_m / 4.0
+    u = np.linspace(0.0, 2.0 * np.pi, 8193)
+    for _ in range(200):
+        orders = np.array([2.0, 3.0, 4.0])
+        amps = rng.uniform(0.0, [0.15, 0.08, 0.04])
+        phases = rng.uniform(0.0, 2.0 * np.pi, 3)
+        harmonics = np.stack([orders, amps, phases], axis=-1)
+        stretch = rng.uniform(1.0, 1.3)
+        scale = np.array([stretch, 1.0 / stretch])
+        theta = rng.uniform(0.0, 2.0 * np.pi)
+        arg = orders * u[:, None] + phases
+        rho = radius * (1.0 + np.sum(amps * np.cos(arg), -1))
+        d1 = -radius * np.sum(amps * orders * np.sin(arg), -1)
+        d2 = -radius * np.sum(amps * orders**2 * np.cos(arg), -1)
+        cu, su = np.cos(u), np.sin(u)
+        x1 = scale[0] * (d1 * cu - rho * su)
+        y1 = scale[1] * (d1 * su + rho * cu)
+        x2 = scale[0] * (d2 * cu - 2 * d1 * su - rho * cu)
+        y2 = scale[1] * (d2 * su + 2 * d1 * cu - rho * su)
+        speed = np.hypot(x1, y1)
+        curvature = np.abs(x1 * y2 - y1 * x2) / speed**3
+        if 1.0 / curvature.max() >= cfg.min_turn_radius_m:
+            break
+    else:  # pragma: no cover - the defaults always succeed
+        raise ValueError(
+            f"Could not draw a loop with turn radius >= {cfg.min_turn_radius_m} m in a site of "
+            f"{cfg.site_size_m} m; lower min_turn_radius_m or enlarge site_size_m"
+        )
+    # start point and direction of travel: u = u0 + direction * w, w in [0, 2 pi]
+    direction = float(rng.choice([-1.0, 1.0]))
+    u0 = rng.uniform(0.0, 2.0 * np.pi)
+    arg = orders * (u0 + direction * u)[:, None] + phases
+    rho = radius * (1.0 + np.sum(amps * np.cos(arg), -1))
+    d1 = -radius * np.sum(amps * orders * np.sin(arg), -1)
+    cw, sw = np.cos(u0 + direction * u), np.sin(u0 + direction * u)
+    speed_w = np.hypot(scale[0] * (d1 * cw - rho * sw), scale[1] * (d1 * sw + rho * cw))
+    # arc-length table s(w) and its inverse w(s) (cubic Hermite with the exact derivative)
+    seg = 0.5 * (speed_w[1:] + speed_w[:-1]) * np.diff(u)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    w_of_s = CubicHermiteSpline(s, u, 1.0 / speed_w)
+    return radius, harmonics, scale, theta, direction, u0, float(s[-1]), w_of_s
+
+
+def _terrain(cfg: SimulationConfig, rng: np.random.Generator) -> np.ndarray:
+    """Three plane waves with a total slope below ``terrain_max_slope_deg``."""
+    n = 3
+    wavelength = rng.uniform(60.0, 200.0, n)
+    k = 2.0 * np.pi / wavelength
+    heading = rng.uniform(0.0, 2.0 * np.pi, n)
+    slope = np.tan(np.radians(cfg.terrain_max_slope_deg)) / n * rng.uniform(0.5, 1.0, n)
+    amp = slope / k
+    return np.stack([amp, k * np.cos(heading), k * np.sin(heading),
+                     rng.uniform(0.0, 2.0 * np.pi, n)], axis=-1)
+
+
+def _weather_params(cfg: SimulationConfig, rng: np.random.Generator) -> np.ndarray:
+    phase = rng.uniform(0.0, 2.0 * np.pi, 3)
+    p_trend = rng.uniform(-cfg.pressure_trend_hpa_h, cfg.pressure_trend_hpa_h)
+    p_amp = rng.uniform(0.0, 1.0)
+    return np.array([
+        [cfg.temperature_c, cfg.temperature_amplitude_c, phase[0], 0.0],
+        [cfg.pressure_hpa, p_amp, phase[1], p_trend],
+        [cfg.humidity_pct, cfg.humidity_amplitude_pct, phase[2], 0.0],
+    ])
+
+
+def _true_ppm(cfg: SimulationConfig, model: TruthModel, t: np.ndarray) -> np.ndarray:
+    if not cfg.atmosphere:
+        return np.zeros_like(t)
+    return atmospheric_ppm(*model.weather_at(t), cfg.instrument)
+
+
+def _measure(cfg: SimulationConfig, rng: np.random.Generator, p_station: np.ndarray,
+             ppm: np.ndarray):
+    """Noise-free and noisy raw polar values of station-frame points (N, 3)."""
+    hz0, v0, dist = cartesian_to_polar(p_station)
+    d_ref = dist / (1.0 + ppm * 1e-6)  # what a 0-ppm instrument reports (constant included)
+    hz_s, v_s, d_s = sample_polar_errors(
+        hz0, v0, d_ref, cfg.instrument, 1, rng,
+        instrument=cfg.noise_instrument, tilt=cfg.noise_tilt,
+    )
+    c = cfg.additive_constant_m
+    return (hz0, v0, d_ref - c), (np.mod(hz_s[0], 2.0 * np.pi), v_s[0], d_s[0] - c)
+
+
+def _gaps_mask(t: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """True where ``t`` falls in one of the intervals ``[start, start + length)``."""
+    if starts.size == 0:
+        return np.zeros(t.shape, dtype=bool)
+    inside = (t[:, None] >= starts) & (t[:, None] < starts + lengths)
+    return inside.any(axis=1)
+
+
+def _draw_gaps(cfg: SimulationConfig, rng: np.random.Generator, rate_per_min: float):
+    n = rng.poisson(rate_per_min * cfg.duration_s / 60.0)
+    return rng.uniform(0.0, cfg.duration_s, n), rng.uniform(*cfg.dropout_duration_s, n)
+
+
+def simulate_deployment(
+    config: SimulationConfig, rng: np.random.Generator | int
+) -> SimulatedDeployment:
+    """Simulate a deployment with known truth.
+
+    Parameters
+    ----------
+    config : SimulationConfig
+    rng : numpy.random.Generator or int
+        Source of every random draw; an int is a seed (recorded in the result).
+
+    Returns
+    -------
+    SimulatedDeployment
+        Observations, GCP shots, survey, weather and the truth. Nothing is written to disk
+        (see :func:`rtsgt.simulation.files.write_deployment`).
+    """
+    if not isinstance(config, SimulationConfig):
+        raise ValueError(f"Expected a SimulationConfig, got {type(config).__name__}")
+    seed = None
+    if isinstance(rng, (int, np.integer)) and not isinstance(rng, bool):
+        seed = int(rng)
+        rng = np.random.default_rng(seed)
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError(f"Expected a numpy.random.Generator or an int seed, got {rng!r}")
+    cfg = config
+    n_st = int(cfg.n_stations)
+    t0 = float(cfg.start_time_s)
+
+    # --- robot path, terrain, speed profile ---------------------------------------------------
+    radius, harmonics, scale, theta, direction, u0, loop_length, w_of_s = _loop_shape(cfg, rng)
+    terrain = _terrain(cfg, rng)
+    ramp_t, ramp_len, level, s_base = _speed_profile(cfg, rng)
+
+    # --- stations around the site (site frame) ------------------------------------------------
+    proto = TruthModel(
+        t0, ramp_t, ramp_len, level, s_base, radius, harmonics, scale, theta, direction, u0,
+        loop_length, w_of_s, terrain, np.eye(3), np.zeros(3), np.zeros((1, 3)), np.eye(3),
+        np.zeros(3), np.zeros((3, 4)),
+    )
+    u_grid = np.linspace(0.0, 2.0 * np.pi, 2048, endpoint=False)
+    loop_xy, _ = proto._loop(u_grid)
+    loop_r = np.linalg.norm(loop_xy, axis=-1)
+    loop_ang = np.arctan2(loop_xy[:, 1], loop_xy[:, 0])
+    alpha = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(n_st) / n_st \
+        + rng.uniform(-0.35, 0.35, n_st)
+    # radius of the loop in each station's direction, then stand beyond it
+    diff = np.abs(np.angle(np.exp(1j * (loop_ang[None, :] - alpha[:, None]))))
+    reach = np.where(diff < 0.3, loop_r[None, :], 0.0).max(axis=1)
+    st_r = reach + cfg.station_clearance_m + rng.uniform(0.0, cfg.station_spread_m, n_st)
+    st_xy = np.stack([st_r * np.cos(alpha), st_r * np.sin(alpha)], axis=-1)
+    # push out any station still too close to the path
+    for _ in range(50):
+        dmin = np.linalg.norm(st_xy[:, None, :] - loop_xy[None], axis=-1).min(axis=1)
+        close = dmin < cfg.station_clearance_m
+        if not close.any():
+            break
+        st_xy[close] *= 1.0 + (cfg.station_clearance_m - dmin[close, None]) / np.linalg.norm(
+            st_xy[close], axis=-1, keepdims=True) + 0.01
+    st_h, _ = proto._ground(st_xy)
+    st_z = st_h + rng.uniform(*cfg.instrument_height_m, n_st)
+    st_p = np.concatenate([st_xy, st_z[:, None]], axis=-1)
+    st_yaw = rng.uniform(0.0, 2.0 * np.pi, n_st)
+    R_site_st = _rot_z(st_yaw)
+    # world = station 1
+    R_world_site = R_site_st[0].T
+    t_world_site = -R_world_site @ st_p[0]
+    R_world_st = R_world_site @ R_site_st
+    t_world_st = st_p @ R_world_site.T + t_world_site
+    R_world_st[0] = np.eye(3)
+    t_world_st[0] = 0.0
+
+    # --- robot geometry and the body (survey) frame --------------------------------------------
+    prisms_robot = np.asarray(cfg.prism_positions_robot_m, dtype=float)[:n_st]
+    gnss_robot = np.asarray(cfg.gnss_positions_robot_m, dtype=float).reshape(-1, 3)
+    tilt = np.radians(cfg.survey_tilt_deg)
+    R_body_robot = (_rot_z(rng.uniform(0.0, 2.0 * np.pi)) @ _rot_y(rng.uniform(-tilt, tilt))
+                    @ _rot_x(rng.uniform(-tilt, tilt)))
+    t_body_robot = np.array([rng.uniform(*cfg.survey_distance_m), rng.uniform(-0.5, 0.5),
+                             -rng.uniform(*cfg.survey_instrument_height_m)])
+    R_robot_body = R_body_robot.T
+    t_robot_body = -R_robot_body @ t_body_robot
+
+    model = TruthModel(
+        t0, ramp_t, ramp_len, level, s_base, radius, harmonics, scale, theta, direction, u0,
+        loop_length, w_of_s, terrain, R_world_site, t_world_site, prisms_robot, R_robot_body,
+        t_robot_body, _weather_params(cfg, rng),
+    )
+    reference_body = prisms_robot @ R_body_robot.T + t_body_robot
+    gnss_body = gnss_robot @ R_body_robot.T + t_body_robot
+
+    # --- clocks -----------------------------------------------------------------------------
+    if cfg.noise_time_sync:
+        offsets = rng.normal(cfg.time_sync_mean_s, cfg.time_sync_std_s, n_st)
+    else:
+        offsets = np.zeros(n_st)
+
+    # --- tracking measurements (all stations at once) ------------------------------------------
+    n_nom = int(np.floor(cfg.duration_s * cfg.rate_hz)) + 1
+    period = 1.0 / cfg.rate_hz
+    phase = (np.arange(n_st) + rng.uniform(-0.25, 0.25, n_st)) * period / n_st
+    phase = np.mod(phase, period)
+    tau = phase[:, None] + np.arange(n_nom)[None, :] * period
+    tau = tau + np.clip(rng.normal(0.0, cfg.sampling_jitter_s, tau.shape),
+                        -3 * cfg.sampling_jitter_s, 3 * cfg.sampling_jitter_s)
+    keep = (tau >= 0.0) & (tau <= cfg.duration_s)
+    if cfg.dropouts:
+        c_start, c_len = _draw_gaps(cfg, rng, cfg.common_dropout_rate_per_min)
+        keep_rows = []
+        for k in range(n_st):  # loop over stations
+            s_start, s_len = _draw_gaps(cfg, rng, cfg.dropout_rate_per_min)
+            gap = _gaps_mask(tau[k], np.concatenate([s_start, c_start]),
+                             np.concatenate([s_len, c_len]))
+            keep_rows.append(~gap)
+        keep &= np.stack(keep_rows)
+        keep &= rng.random(tau.shape) >= cfg.single_loss_probability
+    station_idx = np.broadcast_to(np.arange(n_st)[:, None], tau.shape)[keep]
+    t_true = t0 + tau[keep]
+    order = np.lexsort((t_true, station_idx))
+    station_idx, t_true = station_idx[order], t_true[order]
+    if cfg.noise_time_sync:
+        clock = offsets[station_idx] + rng.normal(0.0, cfg.time_sync_jitter_s, t_true.shape)
+    else:
+        clock = np.zeros_like(t_true)
+    t_rec = t_true - clock
+    clock = t_true - t_rec  # exactly what the stored numbers imply
+    p_world = model.prisms_at(t_true)[np.arange(t_true.size), station_idx]
+    p_station = np.einsum("nji,nj->ni", R_world_st[station_idx],
+                          p_world - t_world_st[station_idx])
+    ppm = _true_ppm(cfg, model, t_true)
+    (hz0, v0, d0), (hz, v, d) = _measure(cfg, rng, p_station, ppm)
+    outlier = rng.random(t_true.shape) < cfg.outlier_probability
+    d = d + outlier * rng.choice([-1.0, 1.0], t_true.shape) * rng.uniform(1.0, 5.0, t_true.shape)
+
+    station_ids = tuple(str(k + 1) for k in range(n_st))
+    observations, obs_truth = [], {}
+    for k, sid in enumerate(station_ids):  # loop over stations
+        m = station_idx == k
+        observations.append(Observations(t_rec[m], hz[m], v[m], d[m], None, sid, sid,
+                                          cfg.additive_constant_m, None))
+        obs_truth[sid] = ObservationTruth(t_true[m], clock[m], hz0[m], v0[m], d0[m], ppm[m],
+                                          p_world[m], outlier[m])
+
+    # --- ground control points ---------------------------------------------------------------
+    n_gcp = int(cfg.n_gcp)
+    g_ang = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(n_gcp) / n_gcp \
+        + rng.uniform(-0.2, 0.2, n_gcp)
+    g_rad = rng.uniform(0.3, 1.0, n_gcp) * st_r.min()
+    g_xy = np.stack([g_rad * np.cos(g_ang), g_rad * np.sin(g_ang)], axis=-1)
+    g_h, _ = proto._ground(g_xy)
+    g_site = np.concatenate([g_xy, (g_h + rng.uniform(*cfg.gcp_height_m, n_gcp))[:, None]], -1)
+    gcp_world = g_site @ R_world_site.T + t_world_site
+    # visibility: a few markers hidden per station, enough in common with station 1
+    for _ in range(1000):
+        visible = np.ones((n_st, n_gcp), dtype=bool)
+        for k in range(n_st):
+            nb = rng.integers(0, cfg.gcp_blocked_max + 1)
+            visible[k, rng.choice(n_gcp, nb, replace=False)] = False
+        if np.all((visible & visible[0]).sum(axis=1) >= cfg.gcp_min_common):
+            break
+    g_st, g_mk = np.nonzero(visible)  # station-major, marker order, like the real GCP.txt
+    intervals = rng.uniform(*cfg.gcp_shot_interval_s, g_st.size)
+    session_start = t0 - cfg.gcp_lead_time_s + 120.0 * g_st
+    first = np.concatenate([[True], g_st[1:] != g_st[:-1]])
+    csum = np.cumsum(np.where(first, 0.0, intervals))
+    csum -= np.maximum.accumulate(np.where(first, csum, 0.0))
+    g_true = session_start + csum
+    if cfg.noise_time_sync:
+        g_clock = offsets[g_st] + rng.normal(0.0, cfg.time_sync_jitter_s, g_st.size)
+    else:
+        g_clock = np.zeros(g_st.size)
+    g_rec = g_true - g_clock
+    gp_station = np.einsum("nji,nj->ni", R_world_st[g_st], gcp_world[g_mk] - t_world_st[g_st])
+    _, (g_hz, g_v, g_d) = _measure(cfg, rng, gp_station, _true_ppm(cfg, model, g_true))
+    markers = tuple(str(i + 1) for i in range(n_gcp))
+    gcp = GcpShots(np.asarray(station_ids, dtype=object)[g_st], np.asarray(markers)[g_mk],
+                   g_hz, g_v, g_d, g_rec, None, cfg.additive_constant_m)
+
+    # --- static survey of the robot (manual-shot convention) -----------------------------------
+    pts = np.concatenate([reference_body, gnss_body])
+    s_d = np.linalg.norm(pts, axis=-1)
+    s_v = np.arccos(pts[:, 2] / s_d)
+    s_hz = np.mod(np.arctan2(-pts[:, 1], pts[:, 0]), 2 * np.pi)
+    lo, hi = np.log(cfg.survey_sigma_angle_rad)
+    sig_hz = np.exp(rng.uniform(lo, hi, s_d.size))
+    sig_v = np.exp(rng.uniform(lo, hi, s_d.size))
+    sig_d = rng.uniform(*cfg.survey_sigma_distance_m, s_d.size)
+    if cfg.noise_survey:
+        e = rng.standard_normal((3, s_d.size))
+        s_hz = np.mod(s_hz + sig_hz * e[0], 2 * np.pi)
+        s_v = s_v + sig_v * e[1]
+        s_d = s_d + sig_d * e[2]
+    labels = tuple(f"prism{i + 1}" for i in range(n_st)) + tuple(
+        f"gnss{i + 1}" for i in range(gnss_body.shape[0]))
+    survey = SurveyShots(labels, s_hz, s_v, s_d, sig_hz, sig_v, sig_d)
+
+    # --- weather -----------------------------------------------------------------------------
+    t_first = min(float(g_true.min()), t0)
+    t_last = t0 + cfg.duration_s
+    step = cfg.weather_interval_s
+    w_t = np.arange(np.floor(t_first / step) - 1, np.ceil(t_last / step) + 2) * step
+    T, P, H = model.weather_at(w_t)
+    if cfg.noise_weather:
+        T = T + rng.uniform(-cfg.temperature_halfwidth_c, cfg.temperature_halfwidth_c, w_t.size)
+        P = P + rng.uniform(-cfg.pressure_halfwidth_hpa, cfg.pressure_halfwidth_hpa, w_t.size)
+        H = np.clip(H + rng.uniform(-cfg.humidity_halfwidth_pct, cfg.humidity_halfwidth_pct,
+                                    w_t.size), 0.0, 100.0)
+    weather_reported = WeatherSeries(w_t, T, P, H, "simulated (reported)")
+    wt_t = np.arange(w_t[0], w_t[-1] + 1.0, 60.0)
+    weather_true = WeatherSeries(wt_t, *model.weather_at(wt_t), "simulated (true)")
+
+    # --- exported truth ----------------------------------------------------------------------
+    n_truth = int(np.floor(cfg.duration_s * cfg.truth_rate_hz + 1e-9)) + 1
+    t_truth = t0 + np.arange(n_truth) / cfg.truth_rate_hz
+    R_wr, t_wr = model.robot_at(t_truth)
+    R_wb, p_wb = model.body_from_robot(R_wr, t_wr)
+    body = PoseTrajectory(t_truth, p_wb, matrix_to_quat_xyzw(R_wb))
+    prisms_world = model.prisms_from_robot(R_wr, t_wr)
+    T_world_station = {
+        sid: RigidTransform(R_world_st[k], t_world_st[k], None, "world", f"station{sid}")
+        for k, sid in enumerate(station_ids)
+    }
+    truth = SimulationTruth(
+        t=t_truth,
+        body=body,
+        prisms_world=prisms_world,
+        prism_ids=station_ids,
+        T_world_station=T_world_station,
+        station_prism={sid: sid for sid in station_ids},
+        clock_offset_s={sid: float(offsets[k]) for k, sid in enumerate(station_ids)},
+        reference_body=reference_body,
+        gnss_body=gnss_body,
+        T_body_robot=RigidTransform(R_body_robot, t_body_robot, None, "body", "robot"),
+        gcp_markers=markers,
+        gcp_world=gcp_world,
+        observations=obs_truth,
+        additive_constant=cfg.additive_constant_m,
+        model=model,
+    )
+    return SimulatedDeployment(observations, gcp, survey, weather_true, weather_reported, truth,
+                               cfg, seed)

@@ -1,0 +1,329 @@
+"""Core data types that flow through the rtsgt pipeline.
+
+All arrays are float64 numpy arrays; time is in seconds (Unix epoch where the input has it),
+lengths in metres, angles in radians, covariances in m^2 (positions) and in the pose
+convention of :mod:`rtsgt.geometry.transform` (6x6, ordered x, y, z, rx, ry, rz).
+The types validate their shapes at construction and are immutable (frozen dataclasses whose
+arrays are made read-only).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rtsgt.errors import InputError
+
+#: Names of the noise sources of the paper, in the order used in reports.
+NOISE_SOURCES = ("instrument", "tilt", "atmosphere", "time_sync", "calibration")
+
+
+def _frozen(a, dtype=float) -> np.ndarray:
+    a = np.array(a, dtype=dtype, copy=True)
+    a.setflags(write=False)
+    return a
+
+
+def _check_len(name: str, a: np.ndarray, n: int, where: str | None) -> None:
+    if a.shape[0] != n:
+        raise InputError(f"Expected {n} values of {name}, got {a.shape[0]}", where)
+
+
+@dataclass(frozen=True)
+class Observations:
+    """Raw polar observations of one prism by one station, in time order.
+
+    Attributes
+    ----------
+    t : ndarray, shape (N,)
+        Time, s (Unix epoch).
+    hz : ndarray, shape (N,)
+        Clockwise horizontal direction, rad.
+    v : ndarray, shape (N,)
+        Zenith angle, rad (pi/2 = horizontal).
+    d : ndarray, shape (N,)
+        Slope distance as measured, m, **without** the additive constant.
+    status : ndarray of int, shape (N,)
+        0 = valid; anything else is an instrument error code.
+    station : str
+        Station identifier ("1", "2", ...).
+    prism : str
+        Identifier of the tracked prism.
+    additive_constant : float
+        Added to every distance before use (m); 0.01 m for the RTS_project data.
+    source : str, optional
+        File the observations were read from (for messages).
+    """
+
+    t: np.ndarray
+    hz: np.ndarray
+    v: np.ndarray
+    d: np.ndarray
+    status: np.ndarray | None = None
+    station: str = "1"
+    prism: str = "1"
+    additive_constant: float = 0.0
+    source: str | None = None
+
+    def __post_init__(self) -> None:
+        t = _frozen(self.t)
+        n = t.shape[0] if t.ndim == 1 else -1
+        if t.ndim != 1:
+            raise InputError(f"Expected t of shape (N,), got {t.shape}", self.source)
+        for name in ("hz", "v", "d"):
+            a = _frozen(getattr(self, name))
+            if a.ndim != 1:
+                raise InputError(f"Expected {name} of shape (N,), got {a.shape}", self.source)
+            _check_len(name, a, n, self.source)
+            object.__setattr__(self, name, a)
+        status = np.zeros(n, dtype=int) if self.status is None else self.status
+        status = _frozen(status, dtype=int)
+        _check_len("status", status, n, self.source)
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "status", status)
+        object.__setattr__(self, "station", str(self.station))
+        object.__setattr__(self, "prism", str(self.prism))
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+    @property
+    def distance(self) -> np.ndarray:
+        """Slope distance with the additive constant applied, m."""
+        return self.d + self.additive_constant
+
+    def select(self, mask: np.ndarray) -> Observations:
+        """A new object holding the rows where ``mask`` is true (or at the given indices)."""
+        return Observations(
+            self.t[mask], self.hz[mask], self.v[mask], self.d[mask], self.status[mask],
+            self.station, self.prism, self.additive_constant, self.source,
+        )
+
+
+@dataclass(frozen=True)
+class PrismTrack:
+    """Positions of one prism over time, with a covariance per position.
+
+    Attributes
+    ----------
+    t : ndarray, shape (N,)
+        Time, s, strictly increasing.
+    xyz : ndarray, shape (N, 3)
+        Position, m, in frame ``frame``.
+    cov : ndarray, shape (N, 3, 3)
+        Total covariance of each position, m^2, in frame ``frame``.
+    cov_by_source : mapping str -> ndarray (N, 3, 3)
+        Covariance due to each noise source alone (keys from :data:`NOISE_SOURCES`), m^2.
+    prism : str
+        Prism identifier.
+    frame : str
+        Name of the frame of ``xyz`` and ``cov`` ("world" for the common frame).
+    station : str, optional
+        Station that measured it.
+    range_m : ndarray, shape (N,), optional
+        Slope distance from the measuring station, m (for per-range analyses).
+    """
+
+    t: np.ndarray
+    xyz: np.ndarray
+    cov: np.ndarray
+    cov_by_source: Mapping[str, np.ndarray] = field(default_factory=dict)
+    prism: str = "1"
+    frame: str = "world"
+    station: str | None = None
+    range_m: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        t = _frozen(self.t)
+        n = t.shape[0]
+        xyz = _frozen(self.xyz)
+        cov = _frozen(self.cov)
+        if t.ndim != 1:
+            raise ValueError(f"Expected t of shape (N,), got {t.shape}")
+        if xyz.shape != (n, 3):
+            raise ValueError(f"Expected xyz of shape ({n}, 3), got {xyz.shape}")
+        if cov.shape != (n, 3, 3):
+            raise ValueError(f"Expected cov of shape ({n}, 3, 3), got {cov.shape}")
+        by_source = {}
+        for k, c in dict(self.cov_by_source).items():
+            c = _frozen(c)
+            if c.shape != (n, 3, 3):
+                raise ValueError(f"Expected cov_by_source[{k!r}] of shape ({n}, 3, 3), got {c.shape}")
+            by_source[k] = c
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "xyz", xyz)
+        object.__setattr__(self, "cov", cov)
+        object.__setattr__(self, "cov_by_source", by_source)
+        object.__setattr__(self, "prism", str(self.prism))
+        if self.range_m is not None:
+            r = _frozen(self.range_m)
+            if r.shape != (n,):
+                raise ValueError(f"Expected range_m of shape ({n},), got {r.shape}")
+            object.__setattr__(self, "range_m", r)
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+    def select(self, mask: np.ndarray) -> PrismTrack:
+        """A new track holding the rows where ``mask`` is true (or at the given indices)."""
+        return PrismTrack(
+            self.t[mask], self.xyz[mask], self.cov[mask],
+            {k: c[mask] for k, c in self.cov_by_source.items()},
+            self.prism, self.frame, self.station,
+            None if self.range_m is None else self.range_m[mask],
+        )
+
+
+@dataclass(frozen=True)
+class WeatherSeries:
+    """Weather over time, for the atmospheric correction.
+
+    Attributes
+    ----------
+    t : ndarray, shape (N,)
+        Time, s (Unix epoch, UTC).
+    temperature_c : ndarray, shape (N,)
+        Dry-bulb temperature, degC.
+    pressure_hpa : ndarray, shape (N,)
+        Station (not sea-level) pressure, hPa.
+    humidity_pct : ndarray, shape (N,)
+        Relative humidity, %.
+    source : str, optional
+    """
+
+    t: np.ndarray
+    temperature_c: np.ndarray
+    pressure_hpa: np.ndarray
+    humidity_pct: np.ndarray
+    source: str | None = None
+
+    def __post_init__(self) -> None:
+        t = _frozen(self.t)
+        for name in ("temperature_c", "pressure_hpa", "humidity_pct"):
+            a = _frozen(getattr(self, name))
+            _check_len(name, a, t.shape[0], self.source)
+            object.__setattr__(self, name, a)
+        object.__setattr__(self, "t", t)
+        if t.shape[0] == 0:
+            raise InputError("Expected at least one weather record, got none", self.source)
+        if np.any(np.diff(t) <= 0):
+            raise InputError("Expected strictly increasing weather times", self.source)
+
+    def at(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Temperature (degC), pressure (hPa), humidity (%) linearly interpolated at ``t``.
+
+        Times before the first or after the last record take the nearest record's values.
+        """
+        t = np.asarray(t, dtype=float)
+        return tuple(
+            np.interp(t, self.t, a) for a in (self.temperature_c, self.pressure_hpa, self.humidity_pct)
+        )
+
+
+@dataclass(frozen=True)
+class GcpShots:
+    """Shots of ground control points (markers) by several stations.
+
+    Attributes
+    ----------
+    station : ndarray of str, shape (N,)
+    marker : ndarray of str, shape (N,)
+    hz, v, d : ndarray, shape (N,)
+        Polar measurements (rad, rad, m without additive constant), tracking convention.
+    t : ndarray, shape (N,)
+        Time of each shot, s (may be wrong on a station whose clock was off).
+    status : ndarray of int, shape (N,)
+        0 = valid.
+    additive_constant : float
+        m, added to every distance before use.
+    source : str, optional
+    lines : ndarray of int, shape (N,), optional
+        Line number of each shot in ``source`` (for messages).
+    """
+
+    station: np.ndarray
+    marker: np.ndarray
+    hz: np.ndarray
+    v: np.ndarray
+    d: np.ndarray
+    t: np.ndarray | None = None
+    status: np.ndarray | None = None
+    additive_constant: float = 0.0
+    source: str | None = None
+    lines: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        station = _frozen(np.asarray(self.station).astype(str), dtype=object)
+        n = station.shape[0]
+        object.__setattr__(self, "station", station)
+        object.__setattr__(self, "marker", _frozen(np.asarray(self.marker).astype(str), dtype=object))
+        for name in ("hz", "v", "d"):
+            a = _frozen(getattr(self, name))
+            _check_len(name, a, n, self.source)
+            object.__setattr__(self, name, a)
+        object.__setattr__(self, "t", _frozen(np.full(n, np.nan) if self.t is None else self.t))
+        object.__setattr__(
+            self, "status", _frozen(np.zeros(n, int) if self.status is None else self.status, int)
+        )
+        if self.lines is not None:
+            object.__setattr__(self, "lines", _frozen(self.lines, int))
+
+    def __len__(self) -> int:
+        return self.station.shape[0]
+
+    @property
+    def distance(self) -> np.ndarray:
+        """Slope distance with the additive constant applied, m."""
+        return self.d + self.additive_constant
+
+
+@dataclass(frozen=True)
+class PoseTrajectory:
+    """Poses ``T_world_body`` over time, optionally with a 6x6 covariance each.
+
+    Attributes
+    ----------
+    t : ndarray, shape (N,)
+        Time, s.
+    position : ndarray, shape (N, 3)
+        ``t_world_body``, m.
+    quat_xyzw : ndarray, shape (N, 4)
+        Orientation ``R_world_body`` as a unit quaternion, scalar last.
+    cov : ndarray, shape (N, 6, 6), optional
+        Left-perturbation covariance in the world frame, ordered (x, y, z, rx, ry, rz).
+    """
+
+    t: np.ndarray
+    position: np.ndarray
+    quat_xyzw: np.ndarray
+    cov: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        t = _frozen(self.t)
+        n = t.shape[0]
+        p = _frozen(self.position)
+        q = _frozen(self.quat_xyzw)
+        if p.shape != (n, 3):
+            raise ValueError(f"Expected position of shape ({n}, 3), got {p.shape}")
+        if q.shape != (n, 4):
+            raise ValueError(f"Expected quat_xyzw of shape ({n}, 4), got {q.shape}")
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "position", p)
+        object.__setattr__(self, "quat_xyzw", q)
+        if self.cov is not None:
+            c = _frozen(self.cov)
+            if c.shape != (n, 6, 6):
+                raise ValueError(f"Expected cov of shape ({n}, 6, 6), got {c.shape}")
+            object.__setattr__(self, "cov", c)
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """``R_world_body``, shape (N, 3, 3)."""
+        from rtsgt.geometry.so3 import quat_xyzw_to_matrix
+
+        return quat_xyzw_to_matrix(self.quat_xyzw)

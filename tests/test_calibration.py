@@ -1,0 +1,387 @@
+"""GCP extrinsic calibration: real excerpt, synthetic truth, Monte Carlo covariance, errors."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+from scipy.stats import chi2
+
+from rtsgt.calibration import calibrate, fit_stations, polar_point_covariance
+from rtsgt.errors import GeometryError, InputError
+from rtsgt.geometry.so3 import exp_so3
+from rtsgt.geometry.transform import perturbation
+from rtsgt.io.rts_project import read_gcp_rts_project
+from rtsgt.measurement.instruments import TRIMBLE_S7
+from rtsgt.measurement.polar import cartesian_to_polar, polar_to_cartesian
+from rtsgt.types import GcpShots
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+GCP = SHARED / "data" / "rts_20221110" / "GCP.txt"
+
+#: Synthetic truth: T_world_station (rotation vector rad, translation m); world = station 1.
+TRUTH = {
+    "1": ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
+    "2": ((0.01, -0.02, 2.3), (14.0, -6.0, 0.8)),
+    "3": ((0.0, 0.0, -0.9), (-9.0, 11.0, -0.5)),
+}
+MARKERS = np.array([
+    [4.0, 3.0, -0.6], [-18.0, 7.0, 0.9], [25.0, 20.0, 1.8], [40.0, -15.0, 0.1],
+    [-10.0, -30.0, -1.3], [6.0, 50.0, 2.6], [-45.0, -28.0, -0.2], [60.0, 25.0, 2.2],
+    [-30.0, 35.0, 3.5], [15.0, -42.0, -2.0],
+])
+
+
+def truth(s):
+    rv, t = TRUTH[s]
+    return exp_so3(np.array(rv)), np.array(t, dtype=float)
+
+
+def true_polar(markers=MARKERS, stations=("1", "2", "3")):
+    """Noise-free (hz, v, d with constant) of every marker from every station, station order."""
+    hz, v, d, st, mk = [], [], [], [], []
+    for s in stations:
+        R, t = truth(s)
+        h, z, r = cartesian_to_polar((markers - t) @ R)
+        hz.append(h)
+        v.append(z)
+        d.append(r)
+        st += [s] * len(markers)
+        mk += [str(i + 1) for i in range(len(markers))]
+    return np.concatenate(hz), np.concatenate(v), np.concatenate(d), st, mk
+
+
+def shots_of(hz, v, d, st, mk, *, c=0.01, status=None):
+    return GcpShots(st, mk, hz, v, np.asarray(d) - c, status=status, additive_constant=c)
+
+
+def noisy_polar(hz, v, d, rng):
+    """Independent implementation of the instrument + tilt noise (Vaidis et al. 2023, III)."""
+    n = hz.shape
+    sa = TRIMBLE_S7.angle_rad / TRIMBLE_S7.confidence_sigma
+    st = TRIMBLE_S7.tilt_rad / TRIMBLE_S7.confidence_sigma
+    sd = (TRIMBLE_S7.distance_constant_m + TRIMBLE_S7.distance_ppm * 1e-6 * d) / 2.0
+    e_tilt = rng.normal(0.0, st, n)
+    v2 = v + rng.normal(0.0, sa, n) + e_tilt
+    hz2 = hz + rng.normal(0.0, sa, n) + e_tilt * np.cos(v2) / np.sin(v2)
+    return hz2, v2, d + rng.normal(0.0, 1.0, n) * sd
+
+
+# ---------------------------------------------------------------- real excerpt
+
+
+@pytest.fixture(scope="module")
+def real_result():
+    if not GCP.exists():
+        pytest.skip(f"real excerpt {GCP} not available (../shared is not beside the repository)")
+    return calibrate(read_gcp_rts_project(GCP), samples=500, rng=np.random.default_rng(0))
+
+
+def test_real_gcp_fit_matches_source_md(real_result):
+    T2 = real_result.transforms["2"]
+    T3 = real_result.transforms["3"]
+    # SOURCE.md "Facts for tests", with the +0.01 m additive constant
+    assert np.degrees(T2.yaw) == pytest.approx(159.94, abs=0.05)
+    np.testing.assert_allclose(T2.translation, [-0.659, -1.301, 0.286], atol=0.005)
+    assert np.degrees(T3.yaw) == pytest.approx(1.99, abs=0.05)
+    np.testing.assert_allclose(T3.translation, [0.873, -2.433, 0.000], atol=0.005)
+    res = real_result.residuals
+    assert len(res) == 36  # 12 markers x 3 pairs
+    assert res.median_m * 1e3 == pytest.approx(1.90, abs=0.1)
+    assert res.max_m * 1e3 == pytest.approx(8.25, abs=0.1)
+    assert sorted(set(zip(res.station_a, res.station_b, strict=True))) == [
+        ("1", "2"), ("1", "3"), ("2", "3")
+    ]
+    assert real_result.markers_used["2"] == tuple(str(m) for m in range(1, 13))
+    assert real_result.excluded_shots == 0 and real_result.markers_skipped == ()
+
+
+def test_real_gcp_additive_constant_matters():
+    if not GCP.exists():
+        pytest.skip("real excerpt not available")
+    a = fit_stations(read_gcp_rts_project(GCP))
+    b = fit_stations(read_gcp_rts_project(GCP, additive_constant=0.0))
+    # the constant shifts every point radially by 1 cm: the fit moves by mm, not by nothing
+    assert 1e-4 < np.linalg.norm(a["2"].translation - b["2"].translation) < 0.02
+
+
+def test_real_gcp_uncertainty_is_sub_millimetre_and_consistent(real_result):
+    res = real_result.residuals
+    for s in ("2", "3"):
+        T = real_result.transforms[s]
+        sig = np.sqrt(np.diag(T.covariance))
+        assert np.all(sig[:2] > 2e-4) and np.all(sig[:3] < 2e-3)  # 0.2-2 mm
+        assert np.all(sig[3:] < np.radians(0.01))
+        assert T.samples_rotation.shape == (500, 3, 3) and T.samples_translation.shape == (500, 3)
+    # the residuals are what the noise model predicts: a pair's residual has covariance
+    # C_a + C_b (fit error is smaller); the median of |N(0, C)| over the 36 lies in its range
+    assert 1e-3 < res.median_m < 3e-3
+
+
+# ---------------------------------------------------------------- synthetic truth
+
+
+def test_noise_free_shots_recover_the_truth_exactly():
+    hz, v, d, st, mk = true_polar()
+    for weighted in (False, True):
+        T = fit_stations(shots_of(hz, v, d, st, mk), weighted=weighted)
+        for s in ("1", "2", "3"):
+            R, t = truth(s)
+            np.testing.assert_allclose(T[s].rotation, R, atol=1e-12)
+            np.testing.assert_allclose(T[s].translation, t, atol=1e-10)
+    r = calibrate(shots_of(hz, v, d, st, mk), samples=0)
+    assert r.residuals.max_m < 1e-9 and len(r.residuals) == 30
+    assert r.transforms["2"].covariance is None and r.transforms["2"].samples_rotation is None
+
+
+def test_other_reference_station_is_the_inverse():
+    hz, v, d, st, mk = true_polar()
+    T = fit_stations(shots_of(hz, v, d, st, mk), reference_station="2")
+    R1, t1 = truth("2")
+    np.testing.assert_allclose(T["1"].rotation, R1.T, atol=1e-12)
+    np.testing.assert_allclose(T["1"].translation, -R1.T @ t1, atol=1e-10)
+    np.testing.assert_array_equal(T["2"].rotation, np.eye(3))
+
+
+def test_reflection_is_guarded():
+    # station 2 records counter-clockwise directions (a mirror image of its points): the best
+    # *proper* rotation is returned, never a reflection, and the residuals expose the problem
+    hz, v, d, st, mk = true_polar()
+    mirrored = np.where(np.array(st) == "2", np.mod(-hz, 2 * np.pi), hz)
+    r = calibrate(shots_of(mirrored, v, d, st, mk), samples=50, rng=np.random.default_rng(0))
+    R = r.transforms["2"].rotation
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.all(np.linalg.det(r.transforms["2"].samples_rotation) > 0.999)
+    assert r.residuals.max_m > 1.0
+
+
+def test_weighted_fit_matches_an_independent_weighted_least_squares():
+    rng = np.random.default_rng(5)
+    hz, v, d, st, mk = true_polar()
+    hz, v, d = noisy_polar(hz, v, d, rng)
+    shots = shots_of(hz, v, d, st, mk)
+    T = fit_stations(shots, weighted=True)
+    # weights from a finite-difference Jacobian and the polar covariance written out here
+    sa2 = (TRIMBLE_S7.angle_rad / 2) ** 2
+    st2 = (TRIMBLE_S7.tilt_rad / 2) ** 2
+    sd2 = ((0.004 + 2e-6 * d) / 2) ** 2
+    cot = 1 / np.tan(v)
+    trace = np.zeros(len(hz))
+    for k in range(len(hz)):
+        J = np.empty((3, 3))
+        for j, h in enumerate((1e-7, 1e-7, 1e-6)):
+            e = np.zeros(3)
+            e[j] = h
+            a = np.array([hz[k], v[k], d[k]])
+            J[:, j] = (polar_to_cartesian(*(a + e)) - polar_to_cartesian(*(a - e))) / (2 * h)
+        S = np.array([[sa2 + st2 * cot[k] ** 2, st2 * cot[k], 0],
+                      [st2 * cot[k], sa2 + st2, 0], [0, 0, sd2[k]]])
+        trace[k] = np.trace(J @ S @ J.T)
+    np.testing.assert_allclose(
+        trace, np.trace(polar_point_covariance(hz, v, d, TRIMBLE_S7), axis1=1, axis2=2),
+        rtol=1e-6,
+    )
+    p = polar_to_cartesian(hz, v, d)
+    st = np.array(st)
+    for s in ("2", "3"):
+        ps, pr = p[st == s], p[st == "1"]
+        w = 1 / (trace[st == s] + trace[st == "1"])
+
+        def cost(x, ps=ps, pr=pr, w=w):
+            return (np.sqrt(w)[:, None] * (pr - ps @ exp_so3(x[:3]).T - x[3:])).ravel()
+
+        x0 = np.concatenate([np.array(TRUTH[s][0]) + 0.01, TRUTH[s][1]])
+        sol = least_squares(cost, x0, xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        np.testing.assert_allclose(T[s].rotation, exp_so3(sol.x[:3]), atol=1e-9)
+        np.testing.assert_allclose(T[s].translation, sol.x[3:], atol=1e-8)
+    # the weights change the answer (they are used), but only within the noise
+    U = fit_stations(shots)
+    assert 1e-7 < np.abs(U["2"].translation - T["2"].translation).max() < 2e-3
+
+
+def test_monte_carlo_covariance_matches_independent_repeated_draws():
+    """MC covariance (batched, one call) vs the spread of fit_stations over independent draws.
+
+    Independent in code path (noise drawn by this test, nominal fits one by one) and in data.
+    N = 300 trials: the whitened empirical covariance must be I within Wishart sampling error
+    (the extreme eigenvalues of a 6x6 Wishart(300)/300 fall in about [0.65, 1.4]; its mean
+    eigenvalue has a standard deviation of 3.3 %), and the 95 % chi-square(6)
+    region centred on each trial's estimate must cover the truth 95 % of the time
+    (binomial standard deviation 1.3 %).
+    """
+    rng = np.random.default_rng(2023)
+    hz0, v0, d0, st, mk = true_polar()
+    n_trials = 300
+    xi = {s: np.empty((n_trials, 6)) for s in ("2", "3")}
+    for k in range(n_trials):
+        T = fit_stations(shots_of(*noisy_polar(hz0, v0, d0, rng), st, mk))
+        for s in xi:
+            R, t = truth(s)
+            xi[s][k] = perturbation(T[s].rotation, T[s].translation, R, t)  # truth about estimate
+    mc = calibrate(
+        shots_of(*noisy_polar(hz0, v0, d0, rng), st, mk), samples=4000,
+        rng=np.random.default_rng(1),
+    )
+    for s in xi:
+        C = mc.transforms[s].covariance
+        L = np.linalg.cholesky(C)
+        z = np.linalg.solve(L, xi[s].T).T  # whitened errors, ~ N(0, I) if C is right
+        W = z.T @ z / n_trials
+        eig = np.linalg.eigvalsh(W)
+        assert 0.6 < eig.min() and eig.max() < 1.45, (s, eig)
+        assert np.trace(W) / 6 == pytest.approx(1.0, abs=0.1)
+        m2 = np.einsum("ki,ki->k", z, z)
+        coverage = np.mean(m2 <= chi2.ppf(0.95, 6))
+        assert 0.91 <= coverage <= 0.99, (s, coverage)
+        # the samples reproduce the stored covariance (convention of geometry.transform)
+        T = mc.transforms[s]
+        x = perturbation(T.rotation, T.translation, T.samples_rotation, T.samples_translation)
+        np.testing.assert_allclose(np.cov(x, rowvar=False), C, rtol=1e-9, atol=1e-18)
+
+
+def test_weighted_monte_carlo_is_not_worse():
+    # markers from 4 to 80 m: weighting by 1/trace down-weights the far, noisier ones
+    rng = np.random.default_rng(7)
+    hz, v, d, st, mk = true_polar()
+    shots = shots_of(*noisy_polar(hz, v, d, rng), st, mk)
+    u = calibrate(shots, samples=3000, rng=np.random.default_rng(3))
+    w = calibrate(shots, samples=3000, rng=np.random.default_rng(3), weighted=True)
+    assert w.weighted and not u.weighted
+    for s in ("2", "3"):
+        tu = np.trace(u.transforms[s].covariance[:3, :3])
+        tw = np.trace(w.transforms[s].covariance[:3, :3])
+        assert tw < 1.05 * tu
+
+
+def test_monte_carlo_is_seeded_and_shaped():
+    hz, v, d, st, mk = true_polar()
+    shots = shots_of(hz, v, d, st, mk)
+    a = calibrate(shots, samples=200, rng=np.random.default_rng(11))
+    b = calibrate(shots, samples=200, rng=np.random.default_rng(11))
+    c = calibrate(shots, samples=200, rng=np.random.default_rng(12))
+    np.testing.assert_array_equal(a.transforms["3"].covariance, b.transforms["3"].covariance)
+    assert not np.array_equal(a.transforms["3"].covariance, c.transforms["3"].covariance)
+    ref = a.transforms["1"]
+    np.testing.assert_array_equal(ref.covariance, np.zeros((6, 6)))
+    np.testing.assert_array_equal(ref.samples_rotation, np.broadcast_to(np.eye(3), (200, 3, 3)))
+    np.testing.assert_array_equal(ref.samples_translation, np.zeros((200, 3)))
+    assert a.samples == 200 and a.reference_station == "1"
+    assert np.all(np.linalg.eigvalsh(a.transforms["2"].covariance) > 0)
+    with pytest.raises(ValueError, match="samples"):
+        calibrate(shots, samples=1)
+    with pytest.raises(TypeError, match="InstrumentProfile"):
+        calibrate(shots, instrument="trimble-s7")
+
+
+# ---------------------------------------------------------------- bad input
+
+
+def test_unknown_reference_station_lists_known_ones():
+    hz, v, d, st, mk = true_polar()
+    with pytest.raises(InputError, match=r"unknown reference station '7'; .*: 1, 2, 3"):
+        calibrate(shots_of(hz, v, d, st, mk), reference_station="7", samples=0)
+
+
+def test_single_station_is_refused():
+    hz, v, d, st, mk = true_polar(stations=("1",))
+    with pytest.raises(InputError, match="only one station"):
+        fit_stations(shots_of(hz, v, d, st, mk))
+
+
+def test_marker_seen_by_one_station_is_skipped_and_reported():
+    hz, v, d, st, mk = true_polar()
+    keep = ~((np.array(st) != "1") & (np.array(mk) == "4"))  # marker 4 only seen by station 1
+    args = [np.asarray(a)[keep] for a in (hz, v, d, st, mk)]
+    with pytest.warns(UserWarning, match=r"marker\(s\) 4 shot validly by fewer than 2"):
+        r = calibrate(shots_of(*args), samples=0)
+    assert r.markers_skipped == ("4",)
+    assert "4" not in r.markers_used["2"] and "4" not in r.markers_used["1"]
+    assert len(r.residuals) == 27 and "4" not in set(r.residuals.marker)
+
+
+def test_status_nonzero_shots_are_excluded_and_counted():
+    hz, v, d, st, mk = true_polar()
+    status = np.zeros(len(hz), int)
+    bad = [3, 15]  # station 1 marker 4, station 2 marker 6
+    status[bad] = 4
+    d = d.copy()
+    d[bad] += 5.0  # garbage that would spoil the fit if it were used
+    # marker 4 (invalid on station 1) is still seen by 2 and 3: not skipped, no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = calibrate(shots_of(hz, v, d, st, mk, status=status), samples=0)
+    assert r.excluded_shots == 2
+    assert "4" not in r.markers_used["2"] and "6" not in r.markers_used["2"]
+    assert "6" in r.markers_used["3"]
+    assert r.residuals.max_m < 1e-9  # garbage not used anywhere
+    assert r.markers_skipped == ()
+    # 30 residuals less the pairs of the two invalid shots: (1-2, 1-3) for 4, (1-2, 2-3) for 6
+    assert len(r.residuals) == 30 - 4
+    assert "4" in set(r.residuals.marker[(r.residuals.station_a == "2")])
+
+
+def test_invalid_values_in_valid_shots_are_refused():
+    hz, v, d, st, mk = true_polar()
+    v = v.copy()
+    v[12] = np.nan  # station 2, marker 3
+    with pytest.raises(InputError, match=r"marker 3 by station 2 \(shot 12\).*v=nan"):
+        fit_stations(shots_of(hz, v, d, st, mk))
+    status = np.zeros(len(hz), int)
+    status[12] = 2  # the same garbage with an error status is simply excluded
+    assert calibrate(shots_of(hz, v, d, st, mk, status=status), samples=0).excluded_shots == 1
+
+
+def test_fewer_than_three_common_markers():
+    hz, v, d, st, mk = true_polar()
+    st_, mk_ = np.array(st), np.array(mk)
+    # station 3 shares only markers 1 and 2 with the reference (its others are invalid)
+    status = np.where((st_ == "3") & ~np.isin(mk_, ["1", "2"]), 1, 0)
+    with pytest.raises(GeometryError, match=r"station 3 shares 2 valid marker\(s\) .* \(1, 2\)"):
+        fit_stations(shots_of(hz, v, d, st, mk, status=status))
+
+
+def test_collinear_markers_are_refused():
+    line = np.array([[x, 0.5 * x + 3.0, 0.02 * x] for x in (-30.0, -10.0, 5.0, 20.0, 45.0)])
+    hz, v, d, st, mk = true_polar(markers=line)
+    with pytest.raises(GeometryError, match=r"station 2: markers .* collinear"):
+        fit_stations(shots_of(hz, v, d, st, mk))
+    # still refused with measurement noise (spread off the line within the noise)
+    hz, v, d = noisy_polar(hz, v, d, np.random.default_rng(0))
+    with pytest.raises(GeometryError, match="collinear"):
+        calibrate(shots_of(hz, v, d, st, mk), samples=10, rng=np.random.default_rng(0))
+    # a marker 7 m off the line makes the geometry well posed again
+    ok = np.vstack([line, [[2.0, -3.0, 0.5]]])
+    hz, v, d, st, mk = true_polar(markers=ok)
+    fit_stations(shots_of(hz, v, d, st, mk))
+
+
+def test_duplicate_shot_names_both_lines(tmp_path):
+    p = tmp_path / "GCP.txt"
+    hz, v, d, st, mk = true_polar()
+    shots = shots_of(hz, v, d, st, mk)
+    from rtsgt.io.rts_project import write_gcp_rts_project
+
+    dup = GcpShots(
+        np.append(shots.station, "2"), np.append(shots.marker, "5"), np.append(shots.hz, 1.0),
+        np.append(shots.v, 1.5), np.append(shots.d, 9.0), t=np.arange(31.0),
+    )
+    write_gcp_rts_project(p, dup)
+    with pytest.raises(InputError, match=r"marker 5 twice .*line 16 and line 32") as e:
+        fit_stations(read_gcp_rts_project(p))
+    assert e.value.path == str(p) and e.value.line == 32
+
+
+def test_calibration_does_not_read_files():
+    import rtsgt.calibration.gcp as mod
+
+    src = Path(mod.__file__).read_text()
+    for bad in ("open(", "read_text", "import rtsgt.io", "from rtsgt.io", "print("):
+        assert bad not in src
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        hz, v, d, st, mk = true_polar()
+        calibrate(shots_of(hz, v, d, st, mk), samples=0)  # clean input: no warning at all

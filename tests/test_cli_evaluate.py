@@ -1,0 +1,285 @@
+"""``rtsgt evaluate`` on files: the JSON layout, the table, the figures, formats and errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import typer
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from rtsgt.cli.evaluate import register
+from rtsgt.errors import InputError
+from rtsgt.evaluation import evaluate
+from rtsgt.io.trajectory import (
+    read_groundtruth_dir,
+    read_tum,
+    write_covariance_csv,
+    write_euroc,
+    write_kitti,
+    write_tum,
+)
+from rtsgt.types import PoseTrajectory
+from test_evaluation_synth import (
+    perturbed,
+    random_covariances,
+    smooth_truth,
+    trajectory,
+    transform_trajectory,
+    write_gt_dir,
+)
+
+STATS = {"rmse", "mean", "median", "std", "min", "max"}
+
+
+def _app() -> typer.Typer:
+    """A bare application holding only this command (isolated from the other commands)."""
+    app = typer.Typer()
+
+    @app.callback()
+    def _root() -> None:
+        """rtsgt (test)."""
+
+    register(app)
+    return app
+
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    """A ground-truth directory (1000 poses at 10 Hz with covariances) and an estimate:
+    truth + N(0, Sigma_est) at 5 Hz, in another frame."""
+    d = tmp_path_factory.mktemp("eval")
+    rng = np.random.default_rng(7)
+    t, p, R = smooth_truth(1000)
+    gt = perturbed(t, p, R, random_covariances(len(t), rng, 2e-3, 5e-4), rng)
+    gt_dir = write_gt_dir(d / "run", gt)
+    sub = slice(0, None, 2)
+    est_w = perturbed(t[sub], p[sub], R[sub], random_covariances(len(t[sub]), rng, 6e-3, 2e-3), rng)
+    Ra = Rotation.from_rotvec([0.0, 0.0, 1.2]).as_matrix()
+    est = transform_trajectory(est_w, Ra, np.array([2.0, -1.0, 0.5]))
+    write_tum(d / "est.tum", est)
+    write_covariance_csv(d / "est_cov.csv", est)
+    return d, gt_dir, est
+
+
+def test_json_layout_and_values(files):
+    d, gt_dir, est = files
+    r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(d / "est.tum"), "--json"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    assert {"ape", "rpe", "nees", "noise_floor"} <= set(out)
+    for sec in ("ape", "rpe"):
+        for part in ("translation_m", "rotation_deg"):
+            assert set(out[sec][part]) == STATS
+    for part, dof in (("position", 3), ("pose", 6)):
+        assert {"mean", "dof", "fraction_inside_95", "consistent"} <= set(out["nees"][part])
+        assert out["nees"][part]["dof"] == dof
+    # same numbers as the library on the same files
+    lib = evaluate(read_groundtruth_dir(gt_dir), read_tum(d / "est.tum"))
+    assert out["ape"]["translation_m"]["rmse"] == pytest.approx(
+        lib.ape.translation_m.rmse, rel=1e-12
+    )
+    assert out["rpe"]["rotation_deg"]["max"] == pytest.approx(lib.rpe.rotation_deg.max, rel=1e-12)
+    assert out["noise_floor"]["ape_translation_m"] == pytest.approx(
+        lib.noise_floor.ape_translation_m, rel=1e-12
+    )
+    # without the estimate's covariance, its own 6 mm noise makes the NEES too large
+    assert out["nees"]["position"]["consistent"] is False
+    # with it (--est-cov), consistent
+    r = runner.invoke(
+        _app(),
+        [
+            "evaluate",
+            str(gt_dir),
+            str(d / "est.tum"),
+            "--json",
+            "--est-cov",
+            str(d / "est_cov.csv"),
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    nees = json.loads(r.stdout)["nees"]
+    assert nees["position"]["consistent"] is True and nees["pose"]["consistent"] is True
+    assert abs(nees["pose"]["mean"] - 6) < 0.5
+
+
+def test_json_ape_equals_evo_ape_on_the_same_files(files, tmp_path):
+    pytest.importorskip("evo")
+    import shutil
+    import zipfile
+    from pathlib import Path
+
+    d, gt_dir, _ = files
+    exe = shutil.which("evo_ape") or str(Path(sys.executable).parent / "evo_ape")
+    out = tmp_path / "r.zip"
+    subprocess.run(
+        [
+            exe,
+            "tum",
+            str(gt_dir / "groundtruth.tum"),
+            str(d / "est.tum"),
+            "-a",
+            "--t_max_diff",
+            "0.001",
+            "--save_results",
+            str(out),
+            "--no_warnings",
+            "--silent",
+        ],
+        check=True,
+        capture_output=True,
+        timeout=120,
+    )
+    with zipfile.ZipFile(out) as z:
+        s = json.loads(z.read("stats.json"))
+    r = runner.invoke(
+        _app(), ["evaluate", str(gt_dir), str(d / "est.tum"), "--json", "--align", "se3"]
+    )
+    mine = json.loads(r.stdout)["ape"]["translation_m"]
+    for k in STATS:
+        # the TUM ground truth is written to 1e-9 m precision at most (shortest repr here)
+        assert mine[k] == pytest.approx(s[k], abs=1e-9)
+
+
+def test_table_output(files):
+    d, gt_dir, _ = files
+    r = runner.invoke(
+        _app(),
+        [
+            "evaluate",
+            str(gt_dir),
+            str(d / "est.tum"),
+            "--align",
+            "4dof",
+            "--delta",
+            "10",
+            "--delta-unit",
+            "f",
+        ],
+        env={"COLUMNS": "200"},
+    )
+    assert r.exit_code == 0, r.output
+    for text in (
+        "APE translation",
+        "RPE rotation",
+        "NEES",
+        "inconsistent",
+        "noise floor",
+        "alignment: 4dof",
+        "500 of 500",
+    ):
+        assert text in r.stdout, text
+
+
+def test_plots(files, tmp_path):
+    from rtsgt.report.eval_plots import plot_evaluation
+
+    d, gt_dir, _ = files
+    r = runner.invoke(
+        _app(),
+        ["evaluate", str(gt_dir), str(d / "est.tum"), "--plot", str(tmp_path / "fig"), "--json"],
+    )
+    assert r.exit_code == 0, r.output
+    for name in ("translation_error", "top_view", "nees_histogram"):
+        for ext in ("png", "svg"):
+            f = tmp_path / "fig" / f"{name}.{ext}"
+            assert f.stat().st_size > 1000
+    assert (tmp_path / "fig" / "top_view.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    res = evaluate(read_groundtruth_dir(gt_dir), read_tum(d / "est.tum"))
+    pl = plot_evaluation(res, tmp_path / "fig2", max_ellipses=25)
+    assert pl.n_ellipses == 25 and pl.ellipse_scale >= 1
+    counts, edges = pl.hist["pose"]
+    assert np.sum(counts * np.diff(edges)) == pytest.approx(1.0)
+    np.testing.assert_allclose(pl.sigma_norm**2, np.trace(res.gt.cov[:, :3, :3], axis1=1, axis2=2))
+    assert len(pl.files) == 6
+
+
+def test_other_estimate_formats(files, tmp_path):
+    d, gt_dir, est = files
+    ref = json.loads(
+        runner.invoke(_app(), ["evaluate", str(gt_dir), str(d / "est.tum"), "--json"]).stdout
+    )["ape"]["translation_m"]["rmse"]
+    write_kitti(tmp_path / "est.kitti", est, tmp_path / "times.txt")
+    write_euroc(tmp_path / "est_euroc.csv", est)
+    for args in (
+        [
+            str(tmp_path / "est.kitti"),
+            "--format",
+            "kitti",
+            "--timestamps",
+            str(tmp_path / "times.txt"),
+        ],
+        [str(tmp_path / "est_euroc.csv")],
+    ):
+        r = runner.invoke(_app(), ["evaluate", str(gt_dir), *args, "--json"])
+        assert r.exit_code == 0, r.output
+        assert json.loads(r.stdout)["ape"]["translation_m"]["rmse"] == pytest.approx(ref, rel=1e-6)
+
+
+def test_bag_estimate_and_unknown_topic(files, tmp_path):
+    pytest.importorskip("rosbags")
+    from test_io_trajectory import write_bag
+
+    d, gt_dir, est = files
+    write_bag(tmp_path / "est.bag", True, est, kinds=("posecov", "pose"))
+    r = runner.invoke(
+        _app(),
+        ["evaluate", str(gt_dir), str(tmp_path / "est.bag"), "--topic", "/posecov", "--json"],
+    )
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout)["nees"]["pose"]["consistent"] is True  # covariance from the bag
+    r = runner.invoke(
+        _app(), ["evaluate", str(gt_dir), str(tmp_path / "est.bag"), "--topic", "/odom"]
+    )
+    assert isinstance(r.exception, InputError)
+    assert "/pose (geometry_msgs/msg/PoseStamped)" in str(r.exception)
+
+
+def test_errors(files, tmp_path):
+    d, gt_dir, est = files
+    late = PoseTrajectory(est.t + 1e5, est.position, est.quat_xyzw)
+    write_tum(tmp_path / "late.tum", late)
+    r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(tmp_path / "late.tum")])
+    assert isinstance(r.exception, InputError) and "No time overlap" in str(r.exception)
+    r = runner.invoke(
+        _app(), ["evaluate", str(gt_dir), str(tmp_path / "late.tum"), "--time-offset", "-100000"]
+    )
+    assert r.exit_code == 0, r.output
+    two = trajectory(est.t[:2], est.position[:2], est.rotation[:2])
+    write_tum(tmp_path / "two.tum", two)
+    r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(tmp_path / "two.tum")])
+    assert isinstance(r.exception, InputError) and "at least 3 associated poses" in str(r.exception)
+    r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(d / "est.tum"), "--align", "7dof"])
+    assert r.exit_code == 2 and "--align" in r.output
+    (tmp_path / "bad.tum").write_text("1 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 2\n")
+    r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(tmp_path / "bad.tum")])
+    assert isinstance(r.exception, InputError) and ":2:" in str(r.exception)
+
+
+def test_entry_point_prints_one_line_error_and_exit_code_1(files, tmp_path):
+    """Through the real `rtsgt` entry point (rtsgt.cli.main.main)."""
+    d, gt_dir, _ = files
+    (tmp_path / "nan.tum").write_text("1 0 0 0 0 0 0 1\n2 nan 0 0 0 0 0 1\n")
+    p = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "from rtsgt.cli.main import main; main()",
+            "evaluate",
+            str(gt_dir),
+            str(tmp_path / "nan.tum"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert p.returncode == 1
+    assert p.stderr.startswith("error: ") and "nan.tum:2" in p.stderr
+    assert p.stderr.count("\n") == 1

@@ -1,0 +1,92 @@
+"""Deployment configuration: the real-excerpt configuration loads, bad ones fail clearly."""
+
+from pathlib import Path
+
+import pytest
+
+from rtsgt.errors import ConfigError
+from rtsgt.io.config import load_config
+
+MINIMAL = """
+[deployment]
+reference_station = "1"
+[[stations]]
+id = "1"
+prism = "1"
+file = "p1.csv"
+[[stations]]
+id = "2"
+prism = "2"
+file = "p2.csv"
+[[stations]]
+id = "3"
+prism = "3"
+file = "p3.csv"
+[gcp]
+file = "gcp.txt"
+[reference]
+file = "survey.csv"
+prisms = { "1" = 1, "2" = 2, "3" = 3 }
+"""
+
+
+@pytest.fixture
+def deployment(tmp_path: Path) -> Path:
+    for name in ("p1.csv", "p2.csv", "p3.csv", "gcp.txt", "survey.csv"):
+        (tmp_path / name).write_text("x\n")
+    cfg = tmp_path / "deployment.toml"
+    cfg.write_text(MINIMAL)
+    return cfg
+
+
+def test_minimal_configuration_takes_the_paper_defaults(deployment):
+    cfg = load_config(deployment)
+    assert [s.prism for s in cfg.stations] == ["1", "2", "3"]
+    assert cfg.stations[0].file == deployment.parent / "p1.csv"
+    assert cfg.filter.tau_r_m_s == 2.0 and cfg.filter.tau_s_s == 3.0 and cfg.filter.tau_l_s == 2.0
+    assert cfg.pose.distance_gate_m == 0.10 and cfg.pose.uncertainty_gate_m == 0.20
+    assert cfg.interpolation.qc == "fit" and cfg.interpolation.rate_hz == 5.0
+    assert cfg.weather is None
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda s: s.replace('file = "p2.csv"', 'file = "nope.csv"'), r"no such file"),
+        (lambda s: s.replace('reference_station = "1"', 'reference_station = "7"'),
+         r"reference_station = '7' is not a station; known: 1, 2, 3"),
+        (lambda s: s + '[pose]\nengine = "fast"\n', r"engine = 'fast' is not one of"),
+        (lambda s: s + '[pose]\nsamples = "many"\n', r"samples must be int"),
+        (lambda s: s + "[noise]\nsources = ['instrument', 'gravity']\n", r"unknown source\(s\) 'gravity'"),
+        (lambda s: s + "[interpolation]\nqc = -1.0\n", r"qc must be > 0"),
+        (lambda s: s + "[interpolation]\nqc = 'auto'\n", r"qc must be 'fit' or a number"),
+        (lambda s: s.replace('prisms = { "1" = 1, "2" = 2, "3" = 3 }', 'prisms = { "1" = 1, "2" = 2 }'),
+         r"no survey row for tracked prism\(s\) 3"),
+        (lambda s: s + "[filter]\ntau_r_m_s = 0\n", r"tau_r_m_s must be > 0"),
+        (lambda s: s + "[filter]\ntau_x = 1\n", r"unknown key\(s\) tau_x"),
+        (lambda s: s + "[cameras]\nx = 1\n", r"unknown section\(s\) cameras"),
+        (lambda s: s.replace('prism = "2"', 'prism = "1"'), r"different prism"),
+        (lambda s: s.replace("[gcp]", "[gcp_]"), r"unknown section"),
+        (lambda s: s + "[pose\n", r"invalid TOML"),
+    ],
+)
+def test_bad_configurations_name_the_problem(deployment, edit, message):
+    deployment.write_text(edit(MINIMAL))
+    with pytest.raises(ConfigError, match=message) as info:
+        load_config(deployment)
+    assert str(deployment) in str(info.value)
+
+
+def test_missing_configuration_file(tmp_path):
+    with pytest.raises(ConfigError, match="no such configuration file"):
+        load_config(tmp_path / "absent.toml")
+
+
+def test_real_excerpt_configuration_loads():
+    shared = Path(__file__).resolve().parents[2] / "shared" / "data" / "rts_20221110"
+    if not shared.is_dir():
+        pytest.skip("shared/data/rts_20221110 is not beside this checkout")
+    cfg = load_config(Path(__file__).resolve().parents[1] / "examples/rts_20221110/deployment.toml")
+    assert cfg.weather is not None and cfg.weather.format == "eccc"
+    assert cfg.weather.utc_offset_hours == -5.0
+    assert all(s.additive_constant_m == 0.01 for s in cfg.stations)
