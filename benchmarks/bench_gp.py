@@ -51,11 +51,13 @@ def main(argv=None) -> int:
         t, xyz, cov = simulate(n, rng)
         tq = rng.uniform(t[0], t[-1], 2 * n)
         track = (t, xyz, cov)
-        t_fit, gp = median_time(lambda: fit_track(track, qc=0.05, max_gap_s=10.0), args.repeat)
-        t_q, _ = median_time(lambda: gp.query(tq), args.repeat)
-        t_ll, _ = median_time(lambda: log_marginal_likelihood(track, 0.05), args.repeat)
+        t_fit, gp = median_time(lambda track=track: fit_track(track, qc=0.05, max_gap_s=10.0),
+                                args.repeat)
+        t_q, _ = median_time(lambda gp=gp, tq=tq: gp.query(tq), args.repeat)
+        t_ll, _ = median_time(lambda track=track: log_marginal_likelihood(track, 0.05),
+                              args.repeat)
         if n <= 100_000:
-            t_qc, _ = median_time(lambda: fit_qc(track), 1)
+            t_qc, _ = median_time(lambda track=track: fit_qc(track), 1)
             qc_txt = f"{t_qc:>10.2f}"
         else:
             qc_txt = f"{'-':>10}"

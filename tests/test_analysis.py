@@ -207,13 +207,13 @@ def test_sqrt_frobenius_closed_form(run_data, analysis):
 def test_bin_medians_counts_and_shares(analysis):
     r = analysis.range_m
     edges = [0, 75, 150, np.inf]
-    counts = [int(np.sum((r >= a) & (r < b))) for a, b in zip(edges[:-1], edges[1:])]
+    counts = [int(np.sum((r >= a) & (r < b))) for a, b in zip(edges[:-1], edges[1:], strict=True)]
     assert analysis.bin_counts == tuple(counts)
     assert min(counts) > 20  # the synthetic run spans every bin
     np.testing.assert_allclose(analysis.bin_shares, np.array(counts) / r.size)
     assert sum(analysis.bin_shares) == pytest.approx(1.0)
     for s in analysis.sources:
-        for k, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
+        for k, (a, b) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
             m = (r >= a) & (r < b)
             assert analysis.bin_median_mm[s][k] == pytest.approx(
                 np.median(analysis.norm_mm[s][m]), rel=1e-12)

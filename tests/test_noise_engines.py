@@ -14,7 +14,7 @@ from rtsgt.errors import InputError
 from rtsgt.geometry.so3 import exp_so3
 from rtsgt.geometry.transform import RigidTransform, perturbation
 from rtsgt.measurement.instruments import LEICA_MS60, TRIMBLE_S7
-from rtsgt.measurement.polar import polar_jacobian, polar_to_cartesian
+from rtsgt.measurement.polar import polar_jacobian
 from rtsgt.noise import NoiseModel, propagate
 from rtsgt.noise import montecarlo as mc
 from rtsgt.noise.model import prepare_nominal

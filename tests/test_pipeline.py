@@ -11,7 +11,7 @@ import pytest
 from rtsgt.errors import InputError
 from rtsgt.io.deployment import load_deployment
 from rtsgt.io.run_output import write_run
-from rtsgt.pipeline import RunOptions, run_pipeline
+from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 from rtsgt.simulation.compare import compare_to_truth
 

@@ -34,12 +34,12 @@ from rtsgt.calibration import CalibrationResult, calibrate
 from rtsgt.errors import InputError
 from rtsgt.filtering import FilterParams, module1, module2
 from rtsgt.filtering.gates import GateReport, apply_gates
+from rtsgt.geometry.so3 import matrix_to_quat_xyzw
 from rtsgt.interpolation import GPTrack, fit_track
 from rtsgt.measurement.instruments import InstrumentProfile
 from rtsgt.noise import NoiseModel, propagate
 from rtsgt.pose import PoseEstimate, ReferencePoints, estimate_poses
 from rtsgt.types import GcpShots, Observations, PoseTrajectory, PrismTrack, WeatherSeries
-from rtsgt.geometry.so3 import matrix_to_quat_xyzw
 
 #: Noise sources whose errors are independent between measurements (fed to the GP).
 WHITE_SOURCES = ("instrument", "tilt")

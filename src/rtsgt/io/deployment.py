@@ -51,7 +51,7 @@ def read_reference(cfg: DeploymentConfig) -> ReferencePoints:
     survey = read_survey_raw(rc.file)
     n_rows = survey.xyz.shape[0]
     rows = [rc.prisms[n] - 1 for n in names]
-    for n, r in zip(names, rows):
+    for n, r in zip(names, rows, strict=True):
         if r >= n_rows:
             raise ConfigError(
                 f"[reference] prisms.{n} = {r + 1}: the survey {rc.file.name} has {n_rows} rows",

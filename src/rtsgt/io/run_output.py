@@ -223,7 +223,7 @@ def write_run(result, out: str | Path, *, force: bool = False, inputs: dict | No
         rej = ~result.keep
         with open(tmp / "rejected_poses.csv", "w", encoding="utf-8") as fh:
             fh.write("t,reason\n")
-            for t, r in zip(result.prisms.t[rej], result.rejection_reasons[rej]):
+            for t, r in zip(result.prisms.t[rej], result.rejection_reasons[rej], strict=True):
                 fh.write(f"{t:.9f},{r}\n")
         (tmp / "prisms").mkdir()
         (tmp / "measurements").mkdir()
@@ -252,7 +252,7 @@ def write_run(result, out: str | Path, *, force: bool = False, inputs: dict | No
         with open(tmp / "reference.csv", "w", encoding="utf-8") as fh:
             fh.write("name,x,y,z," + ",".join(cov_cols) + "\n")
             blocks = cov3_to_columns(ref.cov_blocks())
-            for name, p, c in zip(ref.names, ref.xyz, blocks):
+            for name, p, c in zip(ref.names, ref.xyz, blocks, strict=True):
                 fh.write(",".join([name] + [f"{v:.17g}" for v in (*p, *c)]) + "\n")
         summary = run_summary(result, inputs)
         summary["reference"] = {"names": list(ref.names), "xyz_m": ref.xyz, "cov_m2": ref.cov,

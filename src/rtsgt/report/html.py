@@ -299,7 +299,7 @@ def _view3d(data: RunData, max_ellipsoids: int, scale: float | None):
     traces = []
     gt = data.groundtruth
     everything = []
-    for k, (pid, tr) in enumerate(data.measurements.items()):
+    for pid, tr in data.measurements.items():
         step = max(1, len(tr) // 4000)
         p = tr.xyz[::step]
         traces.append(go.Scatter3d(x=p[:, 0], y=p[:, 1], z=p[:, 2], mode="markers",
@@ -313,8 +313,7 @@ def _view3d(data: RunData, max_ellipsoids: int, scale: float | None):
                                    line=dict(color="black", width=4),
                                    name="ground truth (body origin)"))
         everything.append(gt.position)
-    for s, p in data.stations.items():
-        everything.append(p[None])
+    everything += [p[None] for p in data.stations.values()]
     if data.stations:
         st = np.array(list(data.stations.values()))
         traces.append(go.Scatter3d(x=st[:, 0], y=st[:, 1], z=st[:, 2], mode="markers+text",
