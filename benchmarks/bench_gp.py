@@ -45,6 +45,7 @@ def main(argv=None) -> int:
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args(argv)
     rng = np.random.default_rng(0)
+    sizes, totals = [], []
     print(f"{'N':>8} {'fit (s)':>9} {'2N queries (s)':>15} {'total (s)':>10} "
           f"{'us/meas':>8} {'loglik (s)':>10} {'fit Qc (s)':>10}")
     for n in args.sizes:
@@ -62,8 +63,18 @@ def main(argv=None) -> int:
         else:
             qc_txt = f"{'-':>10}"
         total = t_fit + t_q
+        sizes.append(n)
+        totals.append(total)
         print(f"{n:>8} {t_fit:>9.3f} {t_q:>15.3f} {total:>10.3f} {total / n * 1e6:>8.2f} "
               f"{t_ll:>10.3f} {qc_txt}", flush=True)
+    if len(sizes) > 1:
+        slope = np.polyfit(np.log(sizes), np.log(totals), 1)[0]
+        print(f"fit + queries: time ~ N^{slope:.2f} over N = {sizes[0]} ... {sizes[-1]} "
+              "(1 = linear)")
+    if 100_000 in sizes:
+        t5 = totals[sizes.index(100_000)]
+        print(f"N = 100000: {t5:.2f} s (target: under 5 s) -> {'ok' if t5 < 5 else 'SLOW'}")
+    print("(wall times on this machine; indicative when it is shared)")
     return 0
 
 

@@ -18,6 +18,7 @@ import pytest
 
 from rtsgt.errors import InputError
 from rtsgt.geometry.so3 import exp_so3, matrix_to_quat_xyzw
+from rtsgt.geometry.transform import check_covariance
 from rtsgt.io.run_output import COV3_NAMES, cov3_to_columns, write_csv
 from rtsgt.io.run_reader import RunData, read_run, station_positions_from_summary
 from rtsgt.pose import estimate_poses
@@ -28,7 +29,9 @@ from rtsgt.report.analysis import (
     REFERENCE,
     analyze,
     analyze_dir,
+    analyze_run,
     bin_labels,
+    nearest_psd,
     paper_median_mm,
     parse_bins,
     pose_sigmas,
@@ -277,8 +280,11 @@ def test_monte_carlo_engine_agrees_with_linear(run_data, analysis):
         ratio = mc.translation_mm[s] / analysis.translation_mm[s]
         assert abs(np.median(ratio) - 1) < 0.03, s
         assert np.all(np.abs(ratio - 1) < 0.10), s
-    again = analyze(run_data, engine="mc", samples=4000, seed=3)
-    np.testing.assert_array_equal(again.translation_mm["tilt"], mc.translation_mm["tilt"])
+    small = analyze(run_data, engine="mc", samples=300, seed=3)
+    again = analyze(run_data, engine="mc", samples=300, seed=3)  # same seed, same numbers
+    np.testing.assert_array_equal(again.translation_mm["tilt"], small.translation_mm["tilt"])
+    other = analyze(run_data, engine="mc", samples=300, seed=4)
+    assert not np.array_equal(other.translation_mm["tilt"], small.translation_mm["tilt"])
 
 
 def test_to_dict_is_json(analysis):
@@ -334,3 +340,117 @@ def test_station_positions_from_calibrate_json():
     assert list(st) == ["1", "2"]
     np.testing.assert_array_equal(st["2"], [4.0, -2.0, 0.5])
     assert station_positions_from_summary({}) == {}
+
+
+# --------------------------------------------------------------------------------------------
+# a run of the real pipeline (simulated deployment): in memory and from its directory
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def pipeline_run(tmp_path_factory):
+    """A 90 s simulated deployment through the pipeline (Monte Carlo engine), written out."""
+    import dataclasses
+
+    from rtsgt.io.deployment import load_deployment
+    from rtsgt.io.run_output import write_run
+    from rtsgt.pipeline import run_pipeline
+    from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
+
+    tmp = tmp_path_factory.mktemp("pipeline-run")
+    sim = simulate_deployment(SimulationConfig(duration_s=90.0), np.random.default_rng(5))
+    data, opts = load_deployment(write_deployment(sim, tmp / "deployment"))
+    result = run_pipeline(data, dataclasses.replace(opts, engine="mc", samples=200, seed=5))
+    return sim, result, write_run(result, tmp / "run")
+
+
+def test_nearest_psd_clips_round_off_only():
+    rng = np.random.default_rng(4)
+    g = rng.normal(size=(50, 3))
+    rank1 = g[:, :, None] * g[:, None, :] * 1e-8  # a tilt-like source: rank one
+    e = rng.normal(scale=1e-8 * 1e-8, size=rank1.shape)
+    noisy = rank1 + e + np.swapaxes(e, 1, 2)  # round-off of relative size 1e-8
+    assert np.linalg.eigvalsh(noisy)[:, 0].min() < 0
+    with pytest.raises(ValueError, match="positive semi-definite"):
+        check_covariance(noisy, 3)  # what the pose engines refused on the real excerpt
+    fixed = nearest_psd(noisy)
+    check_covariance(fixed, 3, tol=1e-12)
+    w = np.linalg.eigvalsh(fixed)
+    scale = np.abs(fixed).max(axis=(1, 2))
+    assert np.all(w[:, 0] >= -1e-14 * scale)
+    np.testing.assert_array_equal(fixed, np.swapaxes(fixed, 1, 2))
+    np.testing.assert_allclose(fixed, rank1, atol=1e-15)  # only the round-off is changed
+    spd = np.eye(3)[None] * np.array([1e-6, 2e-6])[:, None, None]
+    np.testing.assert_array_equal(nearest_psd(spd), spd)  # PSD input is returned as is
+    with_nan = np.concatenate([noisy[:2], np.full((1, 3, 3), np.nan)])
+    out = nearest_psd(with_nan)
+    assert np.isnan(out[2]).all() and np.isfinite(out[:2]).all()
+
+
+def test_pipeline_run_in_memory_equals_run_directory(pipeline_run):
+    """The per-source covariances of a real run (rank-deficient sources included) go through
+    the pose engine, and reading the directory gives the analysis of the in-memory run."""
+    _, result, run_dir = pipeline_run
+    mem = analyze_run(result)
+    disk = analyze_dir(run_dir)
+    assert mem.engine == disk.engine == "mc" and mem.samples == 200
+    assert mem.sources == disk.sources == NOISE_SOURCES + (ALL,)
+    assert mem.n_measurements == sum(len(tr) for tr in result.tracks.values())
+    for s in mem.sources:
+        np.testing.assert_allclose(disk.norm_mm[s], mem.norm_mm[s], rtol=1e-12)
+    assert mem.pose_sources == disk.pose_sources
+    assert mem.pose_t.size == len(result.groundtruth) > 100
+    for s in mem.pose_sources:
+        assert np.all(np.isfinite(mem.translation_mm[s])), s
+        assert np.all(np.isfinite(disk.translation_mm[s])), s
+    # the files hold the upper triangle of each 3x3 (in memory: symmetric to round-off), which
+    # can change the Monte Carlo draws of rank-deficient sources; first order is exact
+    mem, disk = analyze_run(result, engine="linear"), analyze_dir(run_dir, engine="linear")
+    for s in mem.pose_sources:
+        v = mem.translation_mm[s]
+        np.testing.assert_allclose(disk.translation_mm[s], v, rtol=1e-9, atol=1e-12 * v.max())
+    np.testing.assert_allclose(mem.pose_cov[ALL], result.groundtruth.cov)
+
+
+def test_run_directory_has_the_gcps_and_stations(pipeline_run):
+    sim, result, run_dir = pipeline_run
+    data = read_run(run_dir)
+    truth = sim.truth
+    assert set(data.gcp_names) <= set(truth.gcp_markers) and len(data.gcp_names) >= 4
+    idx = [truth.gcp_markers.index(m) for m in data.gcp_names]
+    # the shots' mean mapped through the calibration lands within a few mm of the markers
+    err = np.linalg.norm(data.gcp_xyz - truth.gcp_world[idx], axis=1)
+    assert np.max(err) < 0.02, err
+    for sid, T in truth.T_world_station.items():
+        np.testing.assert_allclose(data.stations[sid], T.translation, atol=0.01)
+
+
+def test_removed_measurements_are_written_and_read_back(pipeline_run):
+    """measurements/removed.csv: what modules 1 and 2 removed, counts as in the reports."""
+    from rtsgt.io.run_output import removed_measurements
+    from rtsgt.report.figures import plot_top_view, plot_uncertainty_time
+
+    _, result, run_dir = pipeline_run
+    removed = removed_measurements(result)
+    rep = result.filter_reports
+    n1 = sum(r.n_removed for k, r in rep.items() if k.startswith("module1"))
+    n2 = rep["module2"].n_removed
+    assert np.sum(removed["stage"] == "module1") == n1
+    assert np.sum(removed["stage"] == "module2") == n2 and n1 + n2 > 0
+    data = read_run(run_dir)
+    np.testing.assert_allclose(data.removed_t, removed["t"], atol=1e-9)
+    np.testing.assert_allclose(data.removed_xyz, removed["xyz"], atol=1e-6)
+    np.testing.assert_array_equal(data.removed_stage, removed["stage"])
+    np.testing.assert_array_equal(data.removed_prism, removed["prism"])
+    # none of them is among the measurements kept for the prism
+    for pid, tr in result.tracks.items():
+        assert not np.isin(data.removed_t[data.removed_prism == pid], tr.t).any()
+    # removed measurements lie on the robot's path: within a few metres of a kept one
+    kept = np.concatenate([tr.xyz for tr in result.tracks.values()])
+    d = np.min(np.linalg.norm(data.removed_xyz[:, None] - kept[None], axis=-1), axis=1)
+    assert np.median(d) < 2.0
+    top, along = plot_top_view(data), plot_uncertainty_time(data)
+    for stage in ("module1", "module2"):
+        n = int(np.sum(data.removed_stage == stage))
+        if n:
+            assert top.points[f"removed: {stage}"] == n == along.points[f"removed: {stage}"]

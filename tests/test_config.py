@@ -45,7 +45,7 @@ def test_minimal_configuration_takes_the_paper_defaults(deployment):
     assert cfg.stations[0].file == deployment.parent / "p1.csv"
     assert cfg.filter.tau_r_m_s == 2.0 and cfg.filter.tau_s_s == 3.0 and cfg.filter.tau_l_s == 2.0
     assert cfg.pose.distance_gate_m == 0.10 and cfg.pose.uncertainty_gate_m == 0.20
-    assert cfg.interpolation.qc == "fit" and cfg.interpolation.rate_hz == 5.0
+    assert cfg.interpolation.qc == "loo" and cfg.interpolation.rate_hz == 5.0
     assert cfg.weather is None
 
 
@@ -59,7 +59,7 @@ def test_minimal_configuration_takes_the_paper_defaults(deployment):
         (lambda s: s + '[pose]\nsamples = "many"\n', r"samples must be int"),
         (lambda s: s + "[noise]\nsources = ['instrument', 'gravity']\n", r"unknown source\(s\) 'gravity'"),
         (lambda s: s + "[interpolation]\nqc = -1.0\n", r"qc must be > 0"),
-        (lambda s: s + "[interpolation]\nqc = 'auto'\n", r"qc must be 'fit' or a number"),
+        (lambda s: s + "[interpolation]\nqc = 'auto'\n", r"qc must be 'loo', 'likelihood' or a number"),
         (lambda s: s.replace('prisms = { "1" = 1, "2" = 2, "3" = 3 }', 'prisms = { "1" = 1, "2" = 2 }'),
          r"no survey row for tracked prism\(s\) 3"),
         (lambda s: s + "[filter]\ntau_r_m_s = 0\n", r"tau_r_m_s must be > 0"),

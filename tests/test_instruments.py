@@ -1,5 +1,7 @@
 """Instrument profiles: built-ins, confidence levels, user-defined profiles from a config."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -104,3 +106,67 @@ def test_sigma_distance_is_vectorised():
     d = np.array([0.0, 100.0, 1000.0])
     p = INSTRUMENTS["leica-ms60"]
     np.testing.assert_allclose(p.sigma_distance(d), 0.003 + 1.5e-6 * d)
+
+
+# ---------------------------------------------------------------- through a deployment file
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "rts_20221110" / "deployment.toml"
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "rts_20221110"
+MY_RTS_TOML = """[instrument]
+name = "My-RTS"
+distance_constant_mm = 2.0
+distance_ppm = 2.0
+angle_arcsec = 1.0
+tilt_arcsec = 0.5
+confidence_sigma = 1
+wavelength_um = 0.658
+reference_temperature_c = 12
+reference_pressure_hpa = 1013.25
+reference_humidity_pct = 60
+description = "our instrument, tracking mode"
+"""
+
+
+def real_config(tmp_path: Path, instrument_table: str) -> Path:
+    """The real-excerpt configuration with absolute data paths and another [instrument]."""
+    if not DATA.is_dir():
+        pytest.skip(f"real excerpt {DATA} not available (../shared is not beside the repository)")
+    text = EXAMPLE.read_text().replace("../../../shared/data/rts_20221110/", f"{DATA}/")
+    text = text.replace('[instrument]\nprofile = "trimble-s7"\n', instrument_table)
+    assert instrument_table in text
+    cfg = tmp_path / "deployment.toml"
+    cfg.write_text(text)
+    return cfg
+
+
+def test_deployment_with_a_user_defined_instrument(tmp_path):
+    from rtsgt.io.deployment import load_deployment
+
+    data, opts = load_deployment(real_config(tmp_path, MY_RTS_TOML))
+    expected = InstrumentProfile.from_dict({**FULL, "description": "our instrument, tracking mode"})
+    assert data.instrument == expected and data.instrument.name == "my-rts"
+    assert opts.noise.instrument == expected  # the noise model uses it
+    data, opts = load_deployment(
+        real_config(tmp_path, '[instrument]\nprofile = "leica-ms60"\ndistance_ppm = 1.0\n'))
+    assert opts.noise.instrument.name == "leica-ms60-custom"
+    assert opts.noise.instrument.distance_ppm == 1.0
+    assert opts.noise.instrument.wavelength_um == INSTRUMENTS["leica-ms60"].wavelength_um
+
+
+@pytest.mark.parametrize(
+    "table, message",
+    [
+        ('[instrument]\nprofile = "theodolite-3000"\n', r"\[instrument\] Unknown instrument"),
+        (MY_RTS_TOML.replace("tilt_arcsec = 0.5\n", ""), r"missing the key\(s\) tilt_arcsec"),
+        (MY_RTS_TOML.replace("confidence_sigma = 1", "confidence_sigma = 0"),
+         r"confidence_sigma > 0"),
+        ('[instrument]\nprofile = "trimble-s7"\nangle = 1.0\n', r"unknown key\(s\) angle"),
+    ],
+)
+def test_bad_instrument_tables_name_the_configuration(tmp_path, table, message):
+    from rtsgt.io.deployment import load_deployment
+
+    cfg = real_config(tmp_path, table)
+    with pytest.raises(ConfigError, match=message) as info:
+        load_deployment(cfg)
+    assert info.value.path == str(cfg)

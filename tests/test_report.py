@@ -33,6 +33,7 @@ from typer.testing import CliRunner
 
 from rtsgt.cli.main import app
 from rtsgt.errors import InputError
+from rtsgt.io.run_reader import read_run
 from rtsgt.report.analysis import ALL, analyze
 from rtsgt.report.figures import (
     CHI2_2_95,
@@ -163,6 +164,47 @@ def test_uncertainty_time_content(data):
     assert f.points["pose translation"] == len(data.groundtruth)
     assert f.points["rejected poses"] == data.rejected_t.size
     assert "UTC" in f.figure.axes[-1].get_xlabel()
+    assert f.common_spans == 0
+
+
+def test_uncertainty_time_shades_common_gaps_once(data):
+    """A window where no prism is measured: one grey span, on top of each prism's gap."""
+    from dataclasses import replace
+
+    t0 = data.prisms_t[0]
+    cut = {}
+    for pid, tr in data.measurements.items():
+        keep = ~((tr.t - t0 > 100) & (tr.t - t0 < 110))
+        cut[pid] = type(tr)(tr.t[keep], tr.xyz[keep], tr.cov[keep],
+                            {s: c[keep] for s, c in tr.cov_by_source.items()}, tr.prism,
+                            tr.frame, tr.station, tr.range_m[keep])
+    f = plot_uncertainty_time(replace(data, measurements=cut))
+    assert f.spans == 2 + 3 and f.common_spans == 1
+    for ax in f.figure.axes:
+        assert len(ax.patches) == 2 + 3 + 1
+        grey = [p for p in ax.patches if p.get_facecolor()[:3] == pytest.approx(
+            (0xd4 / 255,) * 3)]
+        assert len(grey) == 1
+        x = grey[0].get_x() + t0
+        # the common gap runs from the last measurement before the cut to the first after it
+        last = max(tr.t[tr.t - t0 <= 100].max() for tr in cut.values())
+        first = min(tr.t[tr.t - t0 >= 110].min() for tr in cut.values())
+        assert x == pytest.approx(last) and grey[0].get_width() == pytest.approx(first - last)
+    labels = [ln.get_label() for ln in f.figure.axes[0].lines]
+    assert "no prism measured" in labels
+
+
+def test_station_labels_do_not_collide():
+    from rtsgt.report.figures import _label_offsets
+
+    # three stations within a few metres (the real excerpt): three different directions
+    off = _label_offsets(np.array([[0.0, 0.0], [-0.66, -1.3], [0.87, -2.43]]))
+    ang = np.sort(np.degrees(np.arctan2(off[:, 1], off[:, 0])) % 360)
+    gaps = np.diff(np.r_[ang, ang[0] + 360])
+    assert gaps.min() > 60
+    same = _label_offsets(np.zeros((3, 2)))  # even at one place
+    assert len({tuple(np.round(o, 6)) for o in same}) == 3
+    assert _label_offsets(np.zeros((0, 2))).shape == (0, 2)
 
 
 def test_save_png_and_svg(data, analysis, tmp_path):
@@ -177,7 +219,7 @@ def test_save_png_and_svg(data, analysis, tmp_path):
     root = ET.parse(tmp_path / "source_norms.svg").getroot()
     assert root.tag.endswith("svg")
     text = (tmp_path / "source_norms.svg").read_text()
-    assert "range from the station" in text and "share of" in text
+    assert "range from the station (m)" in text and "share (%)" in text
 
 
 # --------------------------------------------------------------------------------------------
@@ -190,7 +232,7 @@ def report_page(data, analysis):
     return render_report(data, analysis)
 
 
-def test_report_is_self_contained(report_page, analysis):
+def test_report_is_self_contained(report_page, data, analysis):
     page, info = report_page
     assert info["view3d"] and info["n_ellipsoids"] == len(analysis.pose_t)
     external = re.findall(r"<(?:script|link|img|iframe|source)\b[^>]*\b(?:src|href)\s*=\s*"
@@ -201,6 +243,9 @@ def test_report_is_self_contained(report_page, analysis):
     assert f'id="{VIEW3D_ID}"' in page
     assert "Plotly.newPlot" in page and len(page) > 3_000_000  # plotly.js is inline
     assert f"magnified {info['ellipsoid_scale']:g} times" in page
+    for reason in set(data.rejected_reason):  # rejected poses by gate in the 3D view
+        n = int(np.sum(data.rejected_reason == reason))
+        assert f'"name":"rejected: {reason} ({n})"' in page
 
 
 def test_report_tables(report_page, analysis):
@@ -534,3 +579,73 @@ def test_cli_bad_input(run_dir, tmp_path):
                         "analyze", str(tmp_path / "missing")], capture_output=True, text=True,
                        timeout=120)
     assert p.returncode == 1 and p.stderr.startswith("error:") and "missing" in p.stderr
+
+
+@pytest.mark.skipif(os.name != "posix", reason="the stand-in browser is a shell script")
+def test_cli_report_open_prints_the_path_and_opens_it(run_dir, tmp_path):
+    """``--open`` hands the report's file:// URI to the system browser (Python's webbrowser).
+
+    The browser is the one the user chooses with the BROWSER environment variable, here a
+    script that writes down what it was asked to open, so that no real browser starts.
+    """
+    seen = tmp_path / "browser-was-asked.txt"
+    browser = tmp_path / "browser.sh"
+    browser.write_text(f"#!/bin/sh\nprintf '%s' \"$1\" > '{seen}'\n")
+    browser.chmod(0o755)
+    p = subprocess.run([sys.executable, "-c", "from rtsgt.cli.main import main; main()",
+                        "report", str(run_dir), "--open", "--figure-format", "png"],
+                       capture_output=True, text=True, timeout=300,
+                       env=dict(os.environ, BROWSER=str(browser)))
+    assert p.returncode == 0, p.stderr
+    path = Path(p.stdout.strip())
+    assert path == run_dir / "report.html" and path.is_file()
+    assert seen.read_text() == path.resolve().as_uri()
+    assert "could not start a browser" not in p.stderr
+
+
+def test_cli_demo_writes_the_report_and_says_where(tmp_path):
+    r = runner.invoke(app, ["demo", "--out", str(tmp_path / "demo"), "--duration", "60",
+                            "--engine", "linear", "--quiet"], env={"COLUMNS": "120"})
+    assert r.exit_code == 0, r.output
+    line = next(x for x in r.stdout.splitlines() if x.startswith("report: "))
+    path = Path(line.removeprefix("report: "))
+    assert path == (tmp_path / "demo" / "run" / "report.html").resolve() and path.is_file()
+    page = path.read_text()
+    assert "id='sources-table'" in page and page.count("<img alt=") == 4
+
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "rts_20221110"
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "rts_20221110" / "deployment.toml"
+
+
+@pytest.mark.skipif(not SHARED.is_dir(), reason="shared/data/rts_20221110 is not beside this checkout")
+def test_real_excerpt_run_report_and_analyze(tmp_path):
+    """`rtsgt run --report` then `rtsgt analyze` on the real excerpt (DESIGN.md section 9)."""
+    out = tmp_path / "real"
+    r = runner.invoke(app, ["run", str(EXAMPLE), "--out", str(out), "--report",
+                            "--engine", "linear"], env={"COLUMNS": "120"})
+    assert r.exit_code == 0, r.output
+    assert f"report: {out.resolve() / 'report.html'}" in r.stderr
+    assert (out / "report.html").stat().st_size > 3_000_000
+    r = runner.invoke(app, ["analyze", str(out)], env={"COLUMNS": "120"})
+    assert r.exit_code == 0, r.output
+    rows: dict[str, str] = {}
+    for line in r.stdout.splitlines():  # the first table: the prisms, next to the paper
+        if line.strip():
+            rows.setdefault(line.split()[0], line)
+    for v in ("1.32", "0.91", "1.88", "5.49"):  # the paper's, next to ours
+        assert v in rows["calibration"]
+    assert "2.1" in rows["instrument"] and "2.78" in rows["instrument"]
+    assert "0-75m" in r.stdout and "75-150m" in r.stdout and ">150m" in r.stdout
+    js = json.loads((out / "analysis" / "analysis.json").read_text())
+    med = {row["source"]: row for row in js["sources"]}
+    # the excerpt's measurements are all within 150 m of the stations
+    assert js["bins"]["counts"][2] == 0 and sum(js["bins"]["counts"]) == js["n_measurements"]
+    # the instrument source is set by the datasheet (4 mm + 2 ppm, 2"): the paper's 2.1 mm;
+    # the calibration (same GCPs as the paper's deployment) near its 0.91 mm below 75 m
+    assert med["instrument"]["median_mm"] == pytest.approx(2.1, rel=0.1)
+    assert med["calibration"]["bins"][0]["median_mm"] == pytest.approx(0.91, rel=0.35)
+    for s in ("tilt", "atmosphere"):  # both well under a millimetre, as in the paper
+        assert med[s]["median_mm"] < 0.3
+    data = read_run(out)
+    assert len(data.gcp_names) == 12 and len(data.stations) == 3

@@ -227,7 +227,7 @@ def test_deployment_toml_schema(written):
         assert np.all(rate_hz[short] < filt["tau_a_deg_s"])
         assert np.all(rate_v[short] < filt["tau_e_deg_s"])
         assert np.all(rate_d[short] < filt["tau_r_m_s"])
-    assert doc["interpolation"] == {"rate_hz": 5.0, "qc": "fit", "max_gap_s": 3.0}
+    assert doc["interpolation"] == {"rate_hz": 5.0, "qc": "loo", "max_gap_s": 3.0}
     assert doc["pose"] == {"engine": "mc", "samples": 1000, "distance_gate_m": 0.10,
                            "uncertainty_gate_m": 0.20}
     config = pytest.importorskip("rtsgt.io.config")

@@ -46,8 +46,10 @@ class GeometryError(RtsgtError, ValueError):
     """Degenerate geometry: collinear points, too few points, a reflection, ..."""
 
 
-class ExtrapolationError(RtsgtError, ValueError):
-    """A query outside the support of a track (beyond its ends or across a long gap)."""
+class ExtrapolationError(InputError):
+    """A query outside the support of a track (beyond its ends or across a long gap).
+
+    A bad query is bad input: this is an :class:`InputError` (and so a ``ValueError``)."""
 
 
 class ConvergenceError(RtsgtError, RuntimeError):

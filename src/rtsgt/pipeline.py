@@ -36,6 +36,7 @@ from rtsgt.filtering import FilterParams, module1, module2
 from rtsgt.filtering.gates import GateReport, apply_gates
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
 from rtsgt.interpolation import GPTrack, fit_track
+from rtsgt.interpolation.loo import fit_qc_loo
 from rtsgt.measurement.instruments import InstrumentProfile
 from rtsgt.noise import NoiseModel, propagate
 from rtsgt.pose import PoseEstimate, ReferencePoints, estimate_poses
@@ -45,6 +46,8 @@ from rtsgt.types import GcpShots, Observations, PoseTrajectory, PrismTrack, Weat
 WHITE_SOURCES = ("instrument", "tilt")
 #: Noise sources whose errors are shared by many measurements (added after the GP).
 SYSTEMATIC_SOURCES = ("atmosphere", "time_sync", "calibration")
+#: How Qc is chosen when not given as a number (see :func:`fit_gps`).
+QC_METHODS = ("loo", "likelihood")
 
 Progress = Callable[[str], None]
 
@@ -87,7 +90,7 @@ class RunOptions:
     samples: int = 1000
     seed: int = 0
     rate_hz: float = 5.0
-    qc: float | str = "fit"
+    qc: float | str = "loo"
     max_gap_s: float = 3.0
     noise: NoiseModel | None = None
     filter: FilterParams = field(default_factory=FilterParams)
@@ -100,6 +103,11 @@ class RunOptions:
             raise InputError(f"Expected engine mc, ut or linear, got {self.engine!r}")
         if self.samples < 10:
             raise InputError(f"Expected at least 10 samples, got {self.samples}")
+        if isinstance(self.qc, str) and self.qc not in QC_METHODS:
+            raise InputError(
+                f"Expected qc {', '.join(QC_METHODS)} or a number (m^2/s^3), got {self.qc!r}")
+        if not isinstance(self.qc, str) and not (np.isfinite(self.qc) and self.qc > 0):
+            raise InputError(f"Expected qc > 0 m^2/s^3, got {self.qc!r}")
         if self.gp_noise not in ("white", "all"):
             raise InputError(f"Expected gp_noise 'white' or 'all', got {self.gp_noise!r}")
 
@@ -154,6 +162,7 @@ class RunResult:
     groundtruth: PoseTrajectory
     noise_model: NoiseModel
     timings_s: dict[str, float]
+    qc_info: dict[str, dict] = field(default_factory=dict)
 
     @property
     def rejection_reasons(self) -> np.ndarray:
@@ -199,18 +208,69 @@ def query_grid(intervals: np.ndarray, rate_hz: float) -> np.ndarray:
     return np.concatenate(parts) if parts else np.empty(0)
 
 
+def gcp_atmospheric_correction(
+    gcp: GcpShots, model: NoiseModel, weather: WeatherSeries | None, fallback_t: float
+) -> GcpShots:
+    """GCP shots with the first-velocity correction applied to their distances.
+
+    The GCP distances need the same atmospheric correction as the tracking distances: at
+    100 m, the 5-10 ppm of a cold, high site is 0.5-1 mm of scale between stations, a bias of
+    the calibration that no covariance accounts for. Each shot takes the weather at its time
+    when that time lies inside the weather series, else the weather at ``fallback_t`` (the
+    start of tracking): a station whose clock was off (the GCP shots of station 1 in the
+    2022-11-10 data are months off) must not pick the weather of another season. Without
+    weather, the shots are returned unchanged (reference atmosphere, as for the tracks).
+    """
+    if weather is None:
+        return gcp
+    from dataclasses import replace
+
+    from rtsgt.measurement.atmosphere import instrument_correction_ppm
+
+    n = len(gcp.d)
+    t = np.full(n, float(fallback_t)) if gcp.t is None else np.asarray(gcp.t, dtype=float)
+    inside = np.isfinite(t) & (t >= weather.t[0]) & (t <= weather.t[-1])
+    t = np.where(inside, t, float(fallback_t))
+    temp, pres, hum = weather.at(t)
+    ppm = np.asarray(instrument_correction_ppm(model.instrument, temp, pres, hum,
+                                               model.vapour_formula), dtype=float)
+    c = float(gcp.additive_constant)
+    d = (np.asarray(gcp.d, dtype=float) + c) * (1.0 + 1e-6 * ppm) - c
+    return replace(gcp, d=d)
+
+
 def fit_gps(
-    tracks: dict[str, PrismTrack], options: RunOptions
+    tracks: dict[str, PrismTrack], options: RunOptions, qc: dict[str, object] | None = None,
+    info: dict[str, dict] | None = None,
 ) -> dict[str, GPTrack]:
-    """Fit the GP of every prism track (Qc fitted per prism or given)."""
+    """Fit the GP of every prism track, its Qc chosen by ``options.qc``.
+
+    ``"loo"`` (default): leave-one-out cross-validation, which calibrates the GP for
+    interpolation (:mod:`rtsgt.interpolation.loo`); ``"likelihood"``: the marginal likelihood;
+    a number: that isotropic PSD, m^2/s^3. ``qc`` optionally gives each prism's Qc (scalar or
+    3x3), overriding ``options.qc``: refitting the tracks of a written run with the Qc it found.
+    ``info``, when given, receives per prism the method and the fit's statistics.
+    """
     gps = {}
     for pid, tr in tracks.items():
         cov = gp_covariance(tr, options.gp_noise)
-        if options.qc == "fit":
-            gps[pid] = fit_track((tr.t, tr.xyz, cov), fit_qc=True, max_gap_s=options.max_gap_s)
+        data = (tr.t, tr.xyz, cov)
+        if qc is not None and pid in qc:
+            gps[pid], entry = fit_track(data, qc=qc[pid], max_gap_s=options.max_gap_s), {
+                "method": "given"}
+        elif options.qc == "loo":
+            loo = fit_qc_loo(data, max_gap_s=options.max_gap_s)
+            gps[pid] = fit_track(data, qc=loo.qc, max_gap_s=options.max_gap_s)
+            entry = {"method": "loo", "loo_log_predictive": loo.log_predictive,
+                     "loo_knots": loo.n_used, "loo_nees_per_dof": loo.nees_mean}
+        elif options.qc == "likelihood":
+            gps[pid] = fit_track(data, fit_qc=True, max_gap_s=options.max_gap_s)
+            entry = {"method": "likelihood"}
         else:
-            gps[pid] = fit_track((tr.t, tr.xyz, cov), qc=float(options.qc),
-                                 max_gap_s=options.max_gap_s)
+            gps[pid] = fit_track(data, qc=float(options.qc), max_gap_s=options.max_gap_s)
+            entry = {"method": "given"}
+        if info is not None:
+            info[pid] = entry
     return gps
 
 
@@ -282,12 +342,14 @@ def run_pipeline(
     lap("filter_module1")
 
     say("extrinsic calibration")
-    calib = calibrate(data.gcp, reference_station=data.reference_station,
+    model = options.noise if options.noise is not None else NoiseModel(instrument=data.instrument)
+    t_start = min(float(o.t[0]) for o in filtered)
+    gcp = gcp_atmospheric_correction(data.gcp, model, data.weather, t_start)
+    calib = calibrate(gcp, reference_station=data.reference_station,
                       instrument=data.instrument, samples=options.samples, rng=rng)
     lap("calibration")
 
     say("noise model")
-    model = options.noise if options.noise is not None else NoiseModel(instrument=data.instrument)
     tracks: dict[str, PrismTrack] = {}
     for obs in filtered:
         if obs.station not in calib.transforms:
@@ -308,7 +370,8 @@ def run_pipeline(
     lap("filter_module2")
 
     say("GP interpolation")
-    gps = fit_gps(tracks, options)
+    qc_info: dict[str, dict] = {}
+    gps = fit_gps(tracks, options, info=qc_info)
     if data.query_times is not None:
         t_query = np.asarray(data.query_times, dtype=float)
         inside = np.zeros(t_query.shape, bool)
@@ -343,4 +406,4 @@ def run_pipeline(
     )
     lap("gates")
     return RunResult(data, options, reports, calib, tracks, intervals, gps, prisms, est, keep,
-                     gate_report, gt, model, timings)
+                     gate_report, gt, model, timings, qc_info)

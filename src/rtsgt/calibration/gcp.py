@@ -245,6 +245,7 @@ def _setup(shots: GcpShots, reference_station: str, instrument: InstrumentProfil
             shots.source, None if shots.lines is None else int(shots.lines[k]),
         )
     points = polar_to_cartesian(hz, v, d)
+    origin = f"{shots.source}: " if shots.source else ""  # geometry errors name the file
     pairs = {}
     used: set[str] = set()
     for s in known:
@@ -255,19 +256,20 @@ def _setup(shots: GcpShots, reference_station: str, instrument: InstrumentProfil
         )
         if len(markers) < 3:
             raise GeometryError(
-                f"station {s} shares {len(markers)} valid marker(s) with reference station {ref}"
-                f"{' (' + ', '.join(markers) + ')' if markers else ''}: a rigid fit needs at "
-                "least 3 markers, not collinear"
+                f"{origin}station {s} shares {len(markers)} valid marker(s) with reference "
+                f"station {ref}{' (' + ', '.join(markers) + ')' if markers else ''}: a rigid "
+                "fit needs at least 3 markers, not collinear"
             )
         idx_s = np.array([shot[(s, m)] for m in markers])
         idx_r = np.array([shot[(ref, m)] for m in markers])
-        _check_spread(points[idx_s], hz[idx_s], v[idx_s], d[idx_s], instrument, s, markers)
+        _check_spread(points[idx_s], hz[idx_s], v[idx_s], d[idx_s], instrument, s, markers,
+                      origin)
         pairs[s] = (idx_s, idx_r, markers)
         used.update(markers)
     return _Setup(known, hz, v, d, points, shot, pairs, used, skipped, excluded)
 
 
-def _check_spread(p, hz, v, d, instrument, station, markers) -> None:
+def _check_spread(p, hz, v, d, instrument, station, markers, origin: str = "") -> None:
     """Refuse markers whose spread off their best-fit line is within the point noise."""
     c = p - p.mean(axis=0)
     s = np.linalg.svd(c, compute_uv=False)
@@ -276,7 +278,7 @@ def _check_spread(p, hz, v, d, instrument, station, markers) -> None:
     sigma = float(np.sqrt(np.trace(cov, axis1=-2, axis2=-1).mean() / 3.0))
     if off_line_rms <= COLLINEARITY_FACTOR * sigma or s[1] <= 1e-9 * max(s[0], 1e-300):
         raise GeometryError(
-            f"station {station}: markers {', '.join(markers)} are (nearly) collinear "
+            f"{origin}station {station}: markers {', '.join(markers)} are (nearly) collinear "
             f"(rms distance to their best-fit line {off_line_rms * 1e3:.3g} mm, point noise "
             f"{sigma * 1e3:.3g} mm): the rotation about that line is undetermined; "
             "add markers off the line"

@@ -29,7 +29,7 @@ def print_analysis(analysis: Analysis, console: Console | None = None) -> None:
     """The per-source medians next to the paper's, and the pose uncertainty per source."""
     console = console or Console()
     a = analysis
-    table = Table(title=f"{a.name}: median sqrt(||Sigma||_F) of the prism covariance, mm",
+    table = Table(title=f"{a.name}: prism covariance, median sqrt(||Sigma||_F) (mm)",
                   box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True,
                   caption="range bins: " + ", ".join(
                       f"{lab} n={c} ({100 * sh:.0f} %)"
@@ -49,8 +49,9 @@ def print_analysis(analysis: Analysis, console: Console | None = None) -> None:
         table.add_row(*cells, style="bold" if r["source"] == "all" else None)
     console.print(table)
     console.print(f"[dim]paper: {PAPER_CITATION}[/dim]")
-    pose = Table(title=f"pose uncertainty per noise source, median over {a.pose_t.size} kept "
-                       f"poses ({a.engine} engine, {a.pose_measure} of each 3x3 block)",
+    measure = "sqrt(trace)" if a.pose_measure == "sqrt_trace" else "sqrt(largest eigenvalue)"
+    pose = Table(title=f"pose uncertainty per source, median of {a.pose_t.size} poses",
+                 caption=f"{a.engine} engine; {measure} of each 3x3 block",
                  box=box.SIMPLE_HEAD)
     pose.add_column("source", no_wrap=True)
     pose.add_column("translation (mm)", justify="right")
@@ -134,7 +135,8 @@ def register(app: typer.Typer) -> None:
                                        help="Output directory of `rtsgt run`."),
         out: Path = typer.Option(None, "--out", "-o",
                                  help="HTML file to write (default: RUN_DIR/report.html)."),
-        open_: bool = typer.Option(False, "--open", help="Open the report in a browser."),
+        open_: bool = typer.Option(False, "--open",
+                                   help="Open the report in the system's web browser."),
         bins: str = typer.Option("0,75,150", "--bins", help=_BINS_HELP),
         engine: str = typer.Option(None, "--engine", help=_ENGINE_HELP),
         samples: int = typer.Option(None, "--samples", min=10,
@@ -160,4 +162,7 @@ def register(app: typer.Typer) -> None:
                       "3D view (pip install 'rtsgt[report]')")
         typer.echo(str(info.path))
         if open_:
-            webbrowser.open(info.path.resolve().as_uri())
+            # the system's browser (the BROWSER environment variable overrides the choice)
+            if not webbrowser.open(info.path.resolve().as_uri()):
+                err.print(f"could not start a browser; open {info.path.resolve().as_uri()} "
+                          "yourself")

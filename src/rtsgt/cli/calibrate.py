@@ -2,7 +2,9 @@
 
 A thin wrapper over :func:`rtsgt.io.gcp_csv.read_gcp_shots` and
 :func:`rtsgt.calibration.calibrate`. ``GCP_FILE`` may be the word ``example`` for the small
-synthetic example shipped in the package (three stations, eight markers).
+synthetic example shipped in the package (three stations, eight markers). ``--out FILE``
+writes the JSON object to a file, atomically (complete or not at all: a failed run leaves no
+file and keeps a previous one), which a shell redirection of ``--json`` cannot promise.
 """
 
 from __future__ import annotations
@@ -19,6 +21,8 @@ from rich.console import Console
 from rich.table import Table
 
 from rtsgt.calibration import CalibrationResult, calibrate
+from rtsgt.errors import InputError
+from rtsgt.io._parse import atomic_write_text
 from rtsgt.io.gcp_csv import GCP_FORMATS, read_gcp_shots
 from rtsgt.measurement.instruments import get_instrument
 
@@ -151,6 +155,23 @@ def run_calibrate(
     return result, source
 
 
+def check_output_path(out: Path) -> Path:
+    """Refuse, before any work, an output file that could not be written.
+
+    Raises
+    ------
+    InputError
+        When ``out`` is a directory or its directory does not exist.
+    """
+    out = Path(out)
+    if out.is_dir():
+        raise InputError("--out names a directory; give a file name (e.g. calibration.json)", out)
+    parent = out.parent if str(out.parent) else Path(".")
+    if not parent.is_dir():
+        raise InputError(f"cannot write: the directory {parent} does not exist", out)
+    return out
+
+
 def register(app: typer.Typer) -> None:
     """Add ``rtsgt calibrate`` to the application."""
 
@@ -184,16 +205,30 @@ def register(app: typer.Typer) -> None:
             "trimble-s7", "--instrument", help="Instrument profile for the noise model."
         ),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
+        out: Path | None = typer.Option(
+            None, "--out", "-o",
+            help="Also write the JSON object to this file (atomically: complete or absent).",
+        ),
     ) -> None:
         """Calibrate every station into the reference station's frame from GCP shots."""
         if samples == 1:
             raise typer.BadParameter("use 0 (fit only) or at least 2", param_hint="--samples")
+        if out is not None:
+            check_output_path(out)
         result, source = run_calibrate(
             gcp_file, format=format, reference_station=reference_station,
             additive_constant=additive_constant, samples=samples, seed=seed,
             weighted=weighted, instrument=instrument,
         )
+        obj = result_to_json(result, source=source, seed=seed)
+        if out is not None:
+            try:
+                atomic_write_text(out, json.dumps(obj) + "\n")
+            except OSError as exc:
+                raise InputError(f"cannot write: {exc.strerror or exc}", out) from exc
         if as_json:
-            typer.echo(json.dumps(result_to_json(result, source=source, seed=seed)))
+            typer.echo(json.dumps(obj))
         else:
             _print_table(result, source, Console())
+            if out is not None:
+                Console().print(f"written: {out}")

@@ -2,8 +2,12 @@
 
 A thin wrapper over :func:`rtsgt.io.trajectory.read_trajectory`,
 :func:`rtsgt.evaluation.evaluate` and :func:`rtsgt.report.eval_plots.plot_evaluation`.
-``GT_DIR`` is an ``rtsgt run`` output directory (``groundtruth_covariance.csv`` preferred,
-else ``groundtruth.tum``) or a trajectory file.
+``GT_DIR`` is an ``rtsgt run`` output directory or a trajectory file. A run directory with
+``measurements/`` gives a continuous-time ground truth
+(:class:`rtsgt.evaluation.groundtruth.ContinuousGroundTruth`: the pose and covariance at each
+estimate time from the run's GP tracks, and the run's gates); otherwise (or with
+``--gt-mode discrete``) its stored poses (``groundtruth_covariance.csv`` preferred, else
+``groundtruth.tum``) are interpolated.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from rich.table import Table
 
 from rtsgt.errors import InputError
 from rtsgt.evaluation import ALIGN_METHODS, DELTA_UNITS, EvaluationResult, evaluate
+from rtsgt.evaluation.associate import GroundTruthQuery, ValidatedGroundTruth
 from rtsgt.io.trajectory import (
     FORMATS,
     attach_covariance,
@@ -24,6 +29,39 @@ from rtsgt.io.trajectory import (
     read_groundtruth_dir,
     read_trajectory,
 )
+from rtsgt.types import PoseTrajectory
+
+#: Ground-truth modes of ``--gt-mode``.
+GT_MODES = ("auto", "continuous", "discrete")
+#: Pose engines of ``--gt-engine`` (``run``: the run's own).
+GT_ENGINES = ("run", "mc", "ut", "linear")
+
+
+def load_ground_truth(
+    gt_dir: str | Path, *, mode: str = "auto", engine: str | None = None
+) -> PoseTrajectory | ValidatedGroundTruth | GroundTruthQuery:
+    """The ground truth of ``GT_DIR``: continuous from a run directory with ``measurements/``
+    (``mode`` ``auto`` or ``continuous``), else the discrete stored poses or trajectory file.
+
+    ``engine``: pose engine of the continuous ground truth (None: the run's).
+    """
+    if mode not in GT_MODES:
+        raise InputError(f"unknown ground-truth mode {mode!r}; expected one of {', '.join(GT_MODES)}")
+    gt_path = Path(gt_dir)
+    run_dir = gt_path.is_dir() and not (gt_path / "metadata.yaml").exists()
+    if run_dir and mode != "discrete" and (gt_path / "measurements").is_dir():
+        from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
+
+        return ContinuousGroundTruth.from_run_dir(gt_path, engine=engine)
+    if mode == "continuous":
+        raise InputError(
+            "a continuous ground truth needs an rtsgt run directory with measurements/", gt_path
+        )
+    if run_dir:
+        return read_groundtruth_dir(gt_path)
+    if gt_path.exists():
+        return read_trajectory(gt_path)
+    raise InputError("ground truth not found", gt_path)
 
 
 def run_evaluate(
@@ -43,15 +81,23 @@ def run_evaluate(
     all_pairs: bool = False,
     time_offset: float = 0.0,
     max_dt: float | None = 0.5,
+    gt_mode: str = "auto",
+    gt_engine: str | None = None,
 ) -> EvaluationResult:
-    """Read the ground truth and the estimate, then :func:`rtsgt.evaluation.evaluate`."""
-    gt_path = Path(gt_dir)
-    if gt_path.is_dir() and not (gt_path / "metadata.yaml").exists():
-        gt = read_groundtruth_dir(gt_path)
-    elif gt_path.exists():
-        gt = read_trajectory(gt_path)
-    else:
-        raise InputError("ground truth not found", gt_path)
+    """Read the ground truth and the estimate, then :func:`rtsgt.evaluation.evaluate`.
+
+    ``time_offset`` (s) is added to the estimate's times; ``max_dt`` (s) is the largest
+    distance to the nearest ground-truth measurement (continuous: of every prism; discrete:
+    the nearest stored pose); ``gt_mode`` and ``gt_engine``: :func:`load_ground_truth`
+    (``gt_engine`` ``"run"`` or None: the run's engine).
+    """
+    if gt_engine is not None and gt_engine not in GT_ENGINES:
+        raise InputError(
+            f"unknown ground-truth engine {gt_engine!r}; expected one of {', '.join(GT_ENGINES)}"
+        )
+    gt = load_ground_truth(
+        gt_dir, mode=gt_mode, engine=None if gt_engine in (None, "run") else gt_engine
+    )
     if fmt is not None and fmt not in FORMATS:
         raise InputError(f"unknown format {fmt!r}; expected one of {', '.join(FORMATS)}")
     est = read_trajectory(
@@ -85,10 +131,19 @@ def print_report(
 ) -> None:
     """The readable report: association, alignment, APE/RPE, NEES, noise floor."""
     a = result.association
+    if a.ground_truth == "continuous":
+        d = a.ground_truth_detail
+        kind = f"continuous ground truth (GP tracks, {d.get('engine', '?')} pose engine)"
+        limit = "max gap"
+    else:
+        kind = f"{a.ground_truth} ground truth"
+        limit = "max dt"
+    dropped = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in a.dropped.items())
     console.print(
-        f"[bold]{est_source}[/bold] against [bold]{gt_source}[/bold]: {len(a)} of {a.n_est} "
-        f"estimate poses associated ({a.n_outside} outside the ground truth, {a.n_gap} in its "
-        f"gaps; time offset {a.time_offset} s, max dt {a.max_dt} s)"
+        f"[bold]{est_source}[/bold] against [bold]{gt_source}[/bold] ({kind}): {len(a)} of "
+        f"{a.n_est} estimate poses associated"
+        + (f"; dropped: {dropped}" if dropped else "")
+        + f" (time offset {a.time_offset} s, {limit} {a.max_dt} s)"
     )
     al = result.alignment
     if al.method == "none":
@@ -167,8 +222,8 @@ def register(app: typer.Typer) -> None:
         gt_dir: Path = typer.Argument(
             ...,
             metavar="GT_DIR",
-            help="rtsgt output directory (groundtruth_covariance.csv or groundtruth.tum), "
-            "or a ground-truth trajectory file.",
+            help="rtsgt run directory (continuous ground truth from its measurements/, else "
+            "groundtruth_covariance.csv or groundtruth.tum), or a ground-truth trajectory file.",
         ),
         est_file: Path = typer.Argument(
             ..., metavar="EST_FILE", help="Estimated trajectory (file, or ROS 2 bag directory)."
@@ -207,10 +262,26 @@ def register(app: typer.Typer) -> None:
             False, "--all-pairs", help="RPE on all pairs (evo --all_pairs)."
         ),
         time_offset: float = typer.Option(
-            0.0, "--time-offset", help="Seconds added to the estimate's times."
+            0.0, "--t-offset", "--time-offset", help="Seconds added to the estimate's times."
         ),
         max_dt: float = typer.Option(
-            0.5, "--max-dt", help="Max distance (s) to the nearest ground-truth time."
+            0.5,
+            "--max-gap",
+            "--max-dt",
+            help="Max distance (s) to the nearest ground-truth measurement (continuous: of "
+            "every prism; discrete: the nearest stored pose); poses farther are dropped.",
+        ),
+        gt_mode: str = typer.Option(
+            "auto",
+            "--gt-mode",
+            help="Ground truth: auto (continuous when GT_DIR has measurements/) | continuous "
+            "| discrete (interpolate the stored poses).",
+        ),
+        gt_engine: str = typer.Option(
+            "run",
+            "--gt-engine",
+            help="Pose engine of the continuous ground truth: run (the run's) | mc | ut | "
+            "linear (fastest).",
         ),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
         plot: Path | None = typer.Option(None, "--plot", help="Write PNG and SVG figures here."),
@@ -226,6 +297,14 @@ def register(app: typer.Typer) -> None:
             )
         if fmt is not None and fmt not in FORMATS:
             raise typer.BadParameter(f"expected one of {', '.join(FORMATS)}", param_hint="--format")
+        if gt_mode not in GT_MODES:
+            raise typer.BadParameter(f"expected one of {', '.join(GT_MODES)}", param_hint="--gt-mode")
+        if gt_engine not in GT_ENGINES:
+            raise typer.BadParameter(
+                f"expected one of {', '.join(GT_ENGINES)}", param_hint="--gt-engine"
+            )
+        if not max_dt > 0:
+            raise typer.BadParameter("expected a positive number of seconds", param_hint="--max-gap")
         result = run_evaluate(
             gt_dir,
             est_file,
@@ -242,6 +321,8 @@ def register(app: typer.Typer) -> None:
             all_pairs=all_pairs,
             time_offset=time_offset,
             max_dt=max_dt,
+            gt_mode=gt_mode,
+            gt_engine=gt_engine,
         )
         written = None
         if plot is not None:

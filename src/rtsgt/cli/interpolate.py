@@ -67,21 +67,64 @@ def interpolate_file(
         raise InputError("Give either --qc Q or --fit-qc, not both")
     if qc is not None and not (math.isfinite(qc) and qc > 0):
         raise InputError(f"Expected --qc > 0 (m^2/s^3), got {qc!r}")
+    if rate is not None and not (math.isfinite(rate) and rate > 0):
+        raise InputError(f"Expected --rate > 0 Hz, got {rate!r}")
+    if not max_gap > 0:  # inf allowed (no limit), NaN refused
+        raise InputError(f"Expected --max-gap > 0 s, got {max_gap!r}")
+    if qc_mode not in ("isotropic", "per-axis"):
+        raise InputError(f"Expected --qc-mode isotropic or per-axis, got {qc_mode!r}")
     track = read_track_csv(track_path)
-    gp = fit_track(track, qc=qc, fit_qc=fit_qc or qc is None, qc_mode=qc_mode, max_gap_s=max_gap)
+    try:
+        gp = fit_track(
+            track, qc=qc, fit_qc=fit_qc or qc is None, qc_mode=qc_mode, max_gap_s=max_gap
+        )
+    except InputError as exc:  # e.g. a single measurement: say which file
+        if exc.path is None:
+            raise InputError(exc.bare_message, track_path) from None
+        raise
     if at is not None:
-        times = read_query_times(at)
+        times, lines = read_query_times(at, with_lines=True)
+        _check_query_times(gp, times, lines, at)
         n_skipped = 0
     else:
         times, n_skipped = rate_times(gp, rate)
-    order = np.argsort(times, kind="stable")
-    times = times[order]
-    if times.size and np.any(np.diff(times) <= 0):
-        raise InputError("Expected distinct query times (the output is a track)", at)
-    if times.size == 0:
-        raise InputError("No query time inside the track")
-    res = gp.query(times)
+        if times.size == 0:
+            raise InputError(f"No --rate {rate} Hz grid time inside the track", track_path)
+    res = gp.query(np.sort(times))
     return track_csv_text((res.t, res.position, res.position_cov)), gp, n_skipped
+
+
+def _check_query_times(gp: GPTrack, times: np.ndarray, lines: np.ndarray, path: Path) -> None:
+    """Query times must be distinct and supported by the track: name the line of the first
+    one that is not."""
+    order = np.argsort(times, kind="stable")
+    dup = np.flatnonzero(np.diff(times[order]) == 0)
+    if dup.size:
+        i, j = sorted((order[dup[0]], order[dup[0] + 1]))
+        raise InputError(
+            f"duplicated query time {float(times[j])!r} s (same as line {lines[i]}): "
+            "the output is a track, its times must be distinct",
+            path, int(lines[j]),
+        )
+    ok = gp.supported(times)
+    if ok.all():
+        return
+    i = int(np.flatnonzero(~ok)[0])
+    tau, t = float(times[i]), gp.t
+    if tau < t[0] or tau > t[-1]:
+        why = f"outside the track ({float(t[0])!r} s to {float(t[-1])!r} s)"
+    else:
+        k = int(np.searchsorted(t, tau, side="right")) - 1
+        why = (
+            f"inside a gap of {t[k + 1] - t[k]:.3f} s between measurements at "
+            f"{float(t[k])!r} s and {float(t[k + 1])!r} s, longer than --max-gap "
+            f"{gp.max_gap_s!r} s"
+        )
+    raise InputError(
+        f"query time {tau!r} s is {why}; {int((~ok).sum())} of {times.size} query times "
+        "are not supported by the track (no extrapolation)",
+        path, int(lines[i]),
+    )
 
 
 def _describe_qc(gp: GPTrack) -> str:

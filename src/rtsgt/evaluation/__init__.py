@@ -22,8 +22,15 @@ the JSON layout of ``rtsgt evaluate --json``::
                      "rpe_rotation_deg": ..., "rpe_rotation_rmse_floor_removed_deg": ...},
      "alignment": {"method", "weighted", "n_used", "scale", "yaw_deg", "matrix_sim3"},
      "association": {"n_estimate", "n_associated", "n_outside_ground_truth", "n_in_gaps",
+                     "n_dropped", "dropped_by_reason": {reason: count},
+                     "ground_truth": "continuous" | "discrete" | "query",
+                     "ground_truth_detail": {...},
                      "n_covariance_interpolated", "time_offset_s", "max_dt_s",
                      "max_dt_nearest_s"}}
+
+The ground truth is best a :class:`~rtsgt.evaluation.groundtruth.ContinuousGroundTruth`
+(``ContinuousGroundTruth.from_run_dir(run)``): the pose and covariance at each estimate time
+from the run's GP tracks, with a reason for every estimate pose it cannot vouch for.
 
 The four sections ``ape``, ``rpe``, ``nees``, ``noise_floor`` and the keys the issue names
 (``translation_m`` / ``rotation_deg`` with the six statistics; ``mean, dof,
@@ -44,7 +51,13 @@ from numpy.typing import ArrayLike
 
 from rtsgt.errors import InputError
 from rtsgt.evaluation.align import ALIGN_METHODS, Alignment, align_trajectories
-from rtsgt.evaluation.associate import Association, GroundTruthQuery, associate
+from rtsgt.evaluation.associate import (
+    Association,
+    GroundTruthQuery,
+    GroundTruthSample,
+    ValidatedGroundTruth,
+    associate,
+)
 from rtsgt.evaluation.metrics import (
     DELTA_UNITS,
     STATISTICS,
@@ -73,13 +86,24 @@ __all__ = [
     "ErrorStatistics",
     "EvaluationResult",
     "GroundTruthQuery",
+    "GroundTruthSample",
     "NeesResult",
     "NeesSection",
     "NoiseFloor",
     "PoseErrors",
+    "ValidatedGroundTruth",
     "associate",
     "evaluate",
 ]
+
+
+def __getattr__(name: str):
+    # imported lazily: it needs the pipeline, which the rest of this package does not
+    if name == "ContinuousGroundTruth":
+        from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
+
+        return ContinuousGroundTruth
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 @dataclass(frozen=True)
@@ -307,7 +331,7 @@ def _nees(e: np.ndarray, S: np.ndarray, dof: int, what: str, t: np.ndarray) -> N
 
 
 def evaluate(
-    gt: PoseTrajectory | GroundTruthQuery,
+    gt: PoseTrajectory | GroundTruthQuery | ValidatedGroundTruth,
     est: PoseTrajectory,
     *,
     align: str = "se3",
@@ -327,11 +351,14 @@ def evaluate(
 
     Parameters
     ----------
-    gt : PoseTrajectory or callable
+    gt : PoseTrajectory, ValidatedGroundTruth or callable
         Ground truth in the world frame: a discrete trajectory (interpolated at the estimate's
-        times) or a continuous-time query ``gt(times) -> PoseTrajectory`` (optionally
-        ``(PoseTrajectory, cross_next)``), e.g. the GP tracks turned into poses; see
-        :mod:`rtsgt.evaluation.associate`. Covariances (``cov``) enable NEES and noise floor.
+        times), a validated continuous-time ground truth such as
+        :class:`~rtsgt.evaluation.groundtruth.ContinuousGroundTruth` (the run's GP tracks
+        turned into poses at the estimate's times, with a drop reason per time), or a plain
+        query ``gt(times) -> PoseTrajectory`` (optionally ``(PoseTrajectory, cross_next)``);
+        see :mod:`rtsgt.evaluation.associate`. Covariances (``cov``) enable NEES and noise
+        floor.
     est : PoseTrajectory
         Estimate in its own frame, strictly increasing times; an optional ``cov`` (6x6, the
         left-perturbation convention in the estimate's frame) enters the NEES.
@@ -349,7 +376,8 @@ def evaluate(
     time_offset : float
         s added to the estimate's times (evo ``--t_offset``).
     max_dt : float or None
-        Max distance (s) to the nearest ground-truth measurement time.
+        Max distance (s) to the nearest ground-truth measurement time (for a continuous ground
+        truth: to the nearest measurement of every prism, ``--max-gap``).
     gt_measurement_times : array_like, optional
         Measurement times supporting a query ground truth (support and ``max_dt``).
     gt_cross_next : array_like, shape (N_gt - 1, 6, 6), optional

@@ -21,12 +21,20 @@ ground truth are accepted:
 
 In both cases a pose is kept only when the nearest ground-truth measurement time is at most
 ``max_dt`` away (this rejects poses inside the gaps of the ground truth).
+
+A third kind, a **validated continuous-time ground truth** (:class:`ValidatedGroundTruth`, e.g.
+:class:`rtsgt.evaluation.groundtruth.ContinuousGroundTruth` built from a run directory),
+answers at every offset time with a pose and a drop reason (:class:`GroundTruthSample`):
+outside the ground truth, in a gap, farther than ``max_dt`` from the nearest measurement of a
+prism, or rejected by the run's quality gates. Each dropped estimate pose is counted under its
+reason (:attr:`Association.dropped`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -42,6 +50,74 @@ GroundTruthQuery = Callable[[np.ndarray], "PoseTrajectory | tuple[PoseTrajectory
 
 #: Times closer than this (s) are the same time (snapping onto ground-truth samples).
 TIME_EPS = 1e-9
+
+#: Drop reason: before the first or after the last ground-truth time.
+REASON_OUTSIDE = "outside_ground_truth"
+#: Drop reason: farther than ``max_dt`` from the nearest ground-truth measurement.
+REASON_FAR = "far_from_measurement"
+
+
+@dataclass(frozen=True)
+class GroundTruthSample:
+    """A validated continuous-time ground truth at query times (one entry per time).
+
+    Attributes
+    ----------
+    t : ndarray, shape (M,)
+        Query times, s (ground-truth clock).
+    position : ndarray, shape (M, 3)
+        m, world frame; NaN where no pose was computed.
+    quat_xyzw : ndarray, shape (M, 4)
+        NaN where no pose was computed.
+    cov : ndarray, shape (M, 6, 6) or None
+        Left-perturbation covariance, world frame (``PoseTrajectory`` convention).
+    reason : ndarray of str, shape (M,)
+        ``""`` where the pose is valid, else why it is not (a short code).
+    nearest_dt : ndarray, shape (M,)
+        Distance to the nearest measurement supporting the pose, s (the largest over the
+        tracks the pose rests on; NaN where unknown).
+    cross_next : ndarray, shape (V - 1, 6, 6) or None
+        ``Cov(xi_k, xi_{k+1})`` of consecutive *valid* poses (NaN where unknown), or None.
+    """
+
+    t: np.ndarray
+    position: np.ndarray
+    quat_xyzw: np.ndarray
+    cov: np.ndarray | None
+    reason: np.ndarray
+    nearest_dt: np.ndarray
+    cross_next: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+    @property
+    def valid(self) -> np.ndarray:
+        """Boolean mask of the valid poses, shape (M,)."""
+        return self.reason == ""
+
+    def trajectory(self) -> PoseTrajectory:
+        """The valid poses as a trajectory."""
+        v = self.valid
+        return PoseTrajectory(
+            self.t[v], self.position[v], self.quat_xyzw[v], None if self.cov is None else self.cov[v]
+        )
+
+    def counts(self) -> dict[str, int]:
+        """Number of invalid times per reason (reasons in order of first appearance)."""
+        bad = self.reason[~self.valid]
+        names, first = np.unique(bad, return_index=True)
+        return {str(n): int(np.count_nonzero(bad == n)) for n in names[np.argsort(first)]}
+
+
+@runtime_checkable
+class ValidatedGroundTruth(Protocol):
+    """A continuous-time ground truth that says, per time, whether it can vouch for a pose."""
+
+    def query_poses(self, times: np.ndarray, *, max_gap_s: float | None = None) -> GroundTruthSample:
+        """Poses at ``times`` with a drop reason per time (``max_gap_s``: distance to the
+        nearest measurement beyond which a time is dropped, None: no limit)."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -73,7 +149,15 @@ class Association:
     n_outside : int
         Estimate poses outside the ground-truth time span.
     n_gap : int
-        Estimate poses inside the span but farther than ``max_dt`` from any measurement.
+        Estimate poses inside the span but farther than ``max_dt`` from any measurement
+        (for a validated ground truth: every drop that is neither outside its span nor a
+        quality gate, i.e. gaps and ``max_dt``).
+    dropped : dict str -> int
+        Dropped estimate poses per reason (module docstring), only reasons that occurred.
+    ground_truth : str
+        ``"discrete"``, ``"query"`` or ``"continuous"`` (validated).
+    ground_truth_detail : dict
+        What a validated ground truth says about itself (its ``info``: source, engine...).
     """
 
     index: np.ndarray
@@ -87,6 +171,9 @@ class Association:
     n_est: int
     n_outside: int
     n_gap: int
+    dropped: dict[str, int] = field(default_factory=dict)
+    ground_truth: str = "discrete"
+    ground_truth_detail: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return self.index.shape[0]
@@ -98,6 +185,10 @@ class Association:
             "n_associated": int(len(self)),
             "n_outside_ground_truth": int(self.n_outside),
             "n_in_gaps": int(self.n_gap),
+            "n_dropped": int(self.n_est - len(self)),
+            "dropped_by_reason": {k: int(v) for k, v in self.dropped.items()},
+            "ground_truth": self.ground_truth,
+            "ground_truth_detail": dict(self.ground_truth_detail),
             "n_covariance_interpolated": int(np.count_nonzero(self.cov_interpolated)),
             "time_offset_s": float(self.time_offset),
             "max_dt_s": None if self.max_dt is None else float(self.max_dt),
@@ -227,6 +318,8 @@ def associate(
     if max_dt is not None and not max_dt > 0:
         raise InputError(f"Expected a positive max_dt, got {max_dt}")
     tau_all = t_est + float(time_offset)
+    if not isinstance(gt, PoseTrajectory) and isinstance(gt, ValidatedGroundTruth):
+        return _associate_validated(gt, est, tau_all, float(time_offset), max_dt)
     discrete = isinstance(gt, PoseTrajectory)
     if discrete:
         _check_times(np.asarray(gt.t), "ground-truth")
@@ -318,4 +411,77 @@ def associate(
         n_est=len(est),
         n_outside=n_outside,
         n_gap=n_gap,
+        dropped={
+            k: v for k, v in ((REASON_OUTSIDE, n_outside), (REASON_FAR, n_gap)) if v
+        },
+        ground_truth="discrete" if discrete else "query",
+    )
+
+
+def _associate_validated(
+    gt: ValidatedGroundTruth,
+    est: PoseTrajectory,
+    tau_all: np.ndarray,
+    time_offset: float,
+    max_dt: float | None,
+) -> Association:
+    """:func:`associate` for a :class:`ValidatedGroundTruth`: one query at every offset time."""
+    s = gt.query_poses(tau_all, max_gap_s=max_dt)
+    if not isinstance(s, GroundTruthSample) or len(s) != tau_all.size:
+        raise ValueError(
+            f"Expected query_poses to return a GroundTruthSample of {tau_all.size} times"
+        )
+    reason = np.asarray(s.reason)
+    keep = reason == ""
+    counts = s.counts()
+    n_outside = counts.get(REASON_OUTSIDE, 0)
+    n_gate = sum(v for k, v in counts.items() if k.startswith("gate_"))
+    n_gap = int(np.count_nonzero(~keep)) - n_outside - n_gate
+    t_est = est.t
+    if n_outside == tau_all.size:
+        span = getattr(gt, "span", None)
+        where = (
+            f"[{span[0]:.6f}, {span[1]:.6f}] s" if span is not None else "a disjoint interval"
+        )
+        raise InputError(
+            f"No time overlap: the estimate spans [{t_est[0]:.6f}, {t_est[-1]:.6f}] s "
+            f"(+ time offset {time_offset} s) and the ground truth {where}; check the clocks "
+            "or pass a time offset"
+        )
+    if not np.any(keep):
+        why = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in counts.items())
+        raise InputError(
+            f"None of the {tau_all.size} estimate poses could be associated with the ground "
+            f"truth ({why}); check the time offset or raise --max-gap (now {max_dt} s)"
+        )
+    index = np.flatnonzero(keep)
+    est_k = PoseTrajectory(
+        est.t[index],
+        est.position[index],
+        est.quat_xyzw[index],
+        None if est.cov is None else est.cov[index],
+    )
+    cross = None if s.cross_next is None else np.asarray(s.cross_next, dtype=float)
+    if cross is not None and cross.shape != (index.size - 1, 6, 6):
+        raise ValueError(
+            f"Expected cross-covariances of shape ({index.size - 1}, 6, 6), got {cross.shape}"
+        )
+    gt_k = PoseTrajectory(
+        est_k.t, s.position[index], s.quat_xyzw[index], None if s.cov is None else s.cov[index]
+    )
+    return Association(
+        index=index,
+        est=est_k,
+        gt=gt_k,
+        dt_nearest=np.asarray(s.nearest_dt, dtype=float)[index],
+        cov_interpolated=np.zeros(index.size, dtype=bool),
+        cross_next=cross,
+        time_offset=time_offset,
+        max_dt=None if max_dt is None else float(max_dt),
+        n_est=len(est),
+        n_outside=n_outside,
+        n_gap=n_gap,
+        dropped=counts,
+        ground_truth="continuous",
+        ground_truth_detail=dict(getattr(gt, "info", None) or {}),
     )

@@ -13,7 +13,7 @@ Module 1 (per station, on raw polar observations)
    ``tau_r`` (``"rate_distance"``), else when the rate of change of the horizontal direction
    exceeds ``tau_a`` (``"rate_hz"``), else when that of the zenith angle exceeds ``tau_e``
    (``"rate_v"``); rates are ``|difference| / dt`` and a rate equal to its threshold passes.
-   The horizontal-direction difference is wrapped into ``[-pi, pi)``, so a crossing of
+   The horizontal-direction difference is wrapped into ``[-pi, pi]``, so a crossing of
    0 / 2 pi is not a jump. Comparing with the last accepted measurement (rather than with the
    previous raw one) means that one outlier removes one measurement, not also its successor.
 
@@ -143,8 +143,8 @@ class FilterReport:
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
-    """Angle difference wrapped into [-pi, pi)."""
-    return (a + np.pi) % _TWO_PI - np.pi
+    """Angle difference wrapped into [-pi, pi] (exact, without rounding, when already there)."""
+    return a - _TWO_PI * np.round(a / _TWO_PI)
 
 
 def _gate(t, d, hz, v, i, js, p: FilterParams) -> np.ndarray:

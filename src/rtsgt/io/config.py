@@ -9,8 +9,13 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
     reference_station = "1"          # the world frame is this station's frame
 
     [instrument]
-    profile = "trimble-s7"           # a built-in profile, or the fields of a custom one:
-    # name = "my-rts"; distance_constant_mm = 3; distance_ppm = 1.5; angle_arcsec = 1; ...
+    profile = "trimble-s7"           # a built-in profile (trimble-s7, trimble-s9, leica-ms60,
+                                     # leica-ts16), optionally with fields overridden, e.g.
+    # angle_arcsec = 1.0             # (then named "trimble-s7-custom"); or, without profile,
+    # every field of a custom one: name = "my-rts", distance_constant_mm = 3, distance_ppm =
+    # 1.5, angle_arcsec = 1, tilt_arcsec = 0.5, confidence_sigma = 1 (1 or 2 sigma, as the
+    # datasheet quotes them), wavelength_um = 0.658, reference_temperature_c = 12,
+    # reference_pressure_hpa = 1013.25, reference_humidity_pct = 60 (zero-ppm atmosphere)
 
     [[stations]]                     # one table per station; station k tracks one prism
     id = "1"
@@ -53,7 +58,8 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
 
     [interpolation]
     rate_hz = 5.0                    # or query_times = "lidar_stamps.txt" (one time per line, s)
-    qc = "fit"                       # or a number: isotropic PSD, m^2/s^3
+    qc = "loo"                       # "loo" (leave-one-out, default), "likelihood", or a
+                                     # number: isotropic PSD, m^2/s^3
     max_gap_s = 3.0
 
     [pose]
@@ -148,7 +154,7 @@ class InterpolationConfig:
 
     rate_hz: float | None = 5.0
     query_times: Path | None = None
-    qc: float | str = "fit"
+    qc: float | str = "loo"
     max_gap_s: float = 3.0
 
 
@@ -359,9 +365,11 @@ def load_config(path: str | Path) -> DeploymentConfig:
     rate = it.positive("rate_hz", None if query_times is not None else 5.0)
     if query_times is not None and rate is not None:
         raise ConfigError("[interpolation] give rate_hz or query_times, not both", path)
-    qc = it.get("qc", (str, float, int), "fit")
-    if isinstance(qc, str) and qc != "fit":
-        raise ConfigError(f"[interpolation] qc must be 'fit' or a number (m^2/s^3), got {qc!r}", path)
+    qc = it.get("qc", (str, float, int), "loo")
+    if isinstance(qc, str) and qc not in ("loo", "likelihood"):
+        raise ConfigError(
+            f"[interpolation] qc must be 'loo', 'likelihood' or a number (m^2/s^3), got {qc!r}",
+            path)
     if not isinstance(qc, str) and not qc > 0:
         raise ConfigError(f"[interpolation] qc must be > 0, got {qc}", path)
     interp = InterpolationConfig(rate, query_times, qc if isinstance(qc, str) else float(qc),

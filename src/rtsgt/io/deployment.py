@@ -12,28 +12,50 @@ from rtsgt.io.config import DeploymentConfig, load_config
 from rtsgt.io.gcp_csv import read_gcp_shots
 from rtsgt.io.rts_project import read_prism_file
 from rtsgt.io.weather import read_weather_csv, read_weather_eccc
-from rtsgt.measurement.instruments import InstrumentProfile, get_instrument
+from rtsgt.measurement.instruments import InstrumentProfile
+from rtsgt.measurement.instruments import instrument_from_config as _instrument_from_table
 from rtsgt.pipeline import DeploymentData, RunOptions
 from rtsgt.pose.reference import ReferencePoints, reference_from_survey
 
 
-def instrument_from_config(table: dict, path: Path) -> InstrumentProfile:
-    """A built-in profile (``profile = "name"``) or a user-defined one (the profile's fields)."""
-    table = dict(table)
-    if "profile" in table:
-        if len(table) > 1:
-            raise ConfigError(
-                "[instrument] give either profile = NAME or the fields of a custom profile, "
-                f"not both (extra keys: {', '.join(sorted(set(table) - {'profile'}))})", path
-            )
-        try:
-            return get_instrument(str(table["profile"]))
-        except InputError as exc:
-            raise ConfigError(f"[instrument] {exc.bare_message}", path) from None
+def instrument_from_config(table: dict, path: Path | None = None) -> InstrumentProfile:
+    """The instrument profile of an ``[instrument]`` table (errors name the configuration file).
+
+    - ``profile = "trimble-s7"``: a built-in profile;
+    - ``profile`` with some fields (e.g. ``angle_arcsec = 1.0``): the built-in profile with
+      those fields overridden (named ``"<profile>-custom"`` unless ``name`` is given);
+    - every field of :meth:`~rtsgt.measurement.instruments.InstrumentProfile.from_dict`
+      (``name``, ``distance_constant_mm``, ``distance_ppm``, ``angle_arcsec``,
+      ``tilt_arcsec``, ``confidence_sigma``, ``wavelength_um``, ``reference_temperature_c``,
+      ``reference_pressure_hpa``, ``reference_humidity_pct``, optional ``description``): a
+      user-defined profile.
+
+    See :func:`rtsgt.measurement.instruments.instrument_from_config`.
+    """
     try:
-        return InstrumentProfile.from_dict(table)
-    except (InputError, ValueError, TypeError) as exc:
-        raise ConfigError(f"[instrument] {exc}", path) from None
+        return _instrument_from_table(table)
+    except InputError as exc:
+        raise ConfigError(f"[instrument] {exc.bare_message}", path) from None
+
+
+def check_gcp_covers_stations(cfg: DeploymentConfig, gcp) -> None:
+    """Every tracked station needs valid GCP shots for its calibration: refuse early.
+
+    Raises
+    ------
+    ConfigError
+        Naming the station, the GCP file and the stations it has.
+    """
+    valid = {str(s) for s, st in zip(gcp.station, gcp.status, strict=True) if st == 0}
+    missing = [s.id for s in cfg.stations if s.id not in valid]
+    if missing:
+        raise ConfigError(
+            f"[[stations]] {', '.join(repr(m) for m in missing)}: no valid shot in the GCP "
+            f"file {cfg.gcp.file} (stations there: {', '.join(sorted(valid)) or 'none'}); "
+            "every tracked station needs GCP shots for its calibration: check the station "
+            "ids or the GCP file",
+            cfg.path,
+        )
 
 
 def read_reference(cfg: DeploymentConfig) -> ReferencePoints:
@@ -84,6 +106,7 @@ def load_deployment(config: str | Path | DeploymentConfig) -> tuple[DeploymentDa
     )
     gcp = read_gcp_shots(cfg.gcp.file, format=cfg.gcp.format,
                          additive_constant=cfg.gcp.additive_constant_m)
+    check_gcp_covers_stations(cfg, gcp)
     weather = None
     if cfg.weather is not None:
         if cfg.weather.format == "eccc":

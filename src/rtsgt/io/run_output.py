@@ -12,6 +12,10 @@ Layout of ``OUT/`` (every number in SI units, stated in the headers)::
     measurements/prism<i>.csv        measured track (world frame) after filtering, with the
                                      covariance given to the GP, the range and every source's
                                      covariance: t,x,y,z,cov_xx..cov_zz,range_m,<source>_xx..
+    measurements/removed.csv         the measurements the filters removed, in the world frame:
+                                     t,prism,station,x,y,z,stage (stage: module1 = rates of
+                                     change or status, module2 = outside the intervals where
+                                     every prism is tracked)
     reference.csv                    reference prisms in the body frame: name,x,y,z,cov_xx..cov_zz
     summary.json                     inputs, parameters, version, seed, counts removed per
                                      filter and gate, Qc, calibration, medians, timings
@@ -139,6 +143,32 @@ def _median_sigmas(traj) -> dict:
     return {"translation_mm": float(np.median(tr)), "rotation_mdeg": float(np.median(rot))}
 
 
+def gcp_world_positions(gcp, transforms) -> tuple[np.ndarray | None, tuple[str, ...]]:
+    """World position of every ground control point, and the marker names.
+
+    Each valid shot (status 0) of a calibrated station is converted to Cartesian coordinates
+    (additive constant included) and mapped into the world frame by its station's transform;
+    a marker's position is the mean over its shots. Returns ``(None, ())`` without GCPs.
+    """
+    from rtsgt.measurement.polar import polar_to_cartesian
+
+    if gcp is None or len(gcp) == 0:
+        return None, ()
+    ok = (np.asarray(gcp.status) == 0) & np.isin(gcp.station, list(transforms))
+    if not ok.any():
+        return None, ()
+    p_station = polar_to_cartesian(gcp.hz[ok], gcp.v[ok], gcp.distance[ok])
+    p_world = np.empty_like(p_station)
+    stations = gcp.station[ok]
+    for s in np.unique(stations):  # one transform per station (a handful)
+        m = stations == s
+        p_world[m] = transforms[str(s)].apply(p_station[m])
+    markers = gcp.marker[ok]
+    names = tuple(sorted(set(markers.tolist()), key=lambda x: (len(x), x)))
+    xyz = np.array([p_world[markers == k].mean(axis=0) for k in names])
+    return xyz, names
+
+
 def run_summary(result, inputs: dict | None = None) -> dict:
     """The ``summary.json`` content of a run (see the module docstring)."""
     from rtsgt import __version__
@@ -167,6 +197,7 @@ def run_summary(result, inputs: dict | None = None) -> dict:
             "station": tr.station,
             "measurements_used": len(tr),
             "qc_m2_s3": gp.qc,
+            "qc_fit": result.qc_info.get(pid, {}),
             "median_sigma_mm": float(np.median(sig) * 1e3),
         }
     res = cal.residuals
@@ -208,9 +239,69 @@ def run_summary(result, inputs: dict | None = None) -> dict:
                 "max": float(np.max(res.distance_m) * 1e3) if len(res) else None,
                 "count": int(len(res)),
             },
+            # world position of each GCP (m), for the figures and the report
+            "gcp_world": _gcp_world_dict(result),
         },
         "timings_s": result.timings_s,
     }
+
+
+def removed_measurements(result) -> dict[str, np.ndarray]:
+    """The measurements removed by filtering modules 1 and 2, in the world frame.
+
+    Module 1 is run again on each station's observations (it is deterministic and cheap) to
+    tell its removals from module 2's. Positions are the raw polar measurements (additive
+    constant included, no atmospheric correction) mapped by the station's calibration.
+
+    Returns
+    -------
+    dict with ``t`` (s), ``prism``, ``station`` (str), ``xyz`` (m, world) and ``stage``
+    (``"module1"`` or ``"module2"``), one entry per removed measurement, sorted by time.
+    """
+    from rtsgt.filtering import module1
+    from rtsgt.measurement.polar import polar_to_cartesian
+
+    parts: dict[str, list] = {"t": [], "prism": [], "station": [], "xyz": [], "stage": []}
+    transforms = result.calibration.transforms
+    for obs in result.data.observations:
+        T = transforms.get(obs.station)
+        if T is None or len(obs) == 0:
+            continue
+        kept1, _ = module1(obs, result.options.filter)
+        tr = result.tracks.get(obs.prism)
+        in1 = np.isin(obs.t, kept1.t)
+        in2 = np.isin(obs.t, tr.t) if tr is not None else np.zeros(len(obs), bool)
+        gone = ~in2
+        if not gone.any():
+            continue
+        xyz = T.apply(polar_to_cartesian(obs.hz[gone], obs.v[gone], obs.distance[gone]))
+        parts["t"].append(np.asarray(obs.t[gone], dtype=float))
+        parts["prism"].append(np.full(int(gone.sum()), obs.prism, dtype=object))
+        parts["station"].append(np.full(int(gone.sum()), obs.station, dtype=object))
+        parts["xyz"].append(xyz)
+        parts["stage"].append(np.where(in1[gone], "module2", "module1").astype(object))
+    if not parts["t"]:
+        return {"t": np.empty(0), "prism": np.empty(0, dtype=str),
+                "station": np.empty(0, dtype=str), "xyz": np.empty((0, 3)),
+                "stage": np.empty(0, dtype=str)}
+    out = {k: np.concatenate(v) for k, v in parts.items()}
+    order = np.argsort(out["t"], kind="stable")
+    return {k: (v[order].astype(str) if v.dtype == object else v[order])
+            for k, v in out.items()}
+
+
+def _write_removed(path: Path, removed: dict[str, np.ndarray]) -> None:
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write("t,prism,station,x,y,z,stage\n")
+        for t, p, st, xyz, stage in zip(removed["t"], removed["prism"], removed["station"],
+                                        removed["xyz"], removed["stage"], strict=True):
+            fh.write(f"{t:.9f},{p},{st},{xyz[0]:.6f},{xyz[1]:.6f},{xyz[2]:.6f},{stage}\n")
+
+
+def _gcp_world_dict(result) -> dict[str, list[float]]:
+    xyz, names = gcp_world_positions(getattr(result.data, "gcp", None),
+                                     result.calibration.transforms)
+    return {} if xyz is None else {n: [float(v) for v in p] for n, p in zip(names, xyz, strict=True)}
 
 
 def write_run(result, out: str | Path, *, force: bool = False, inputs: dict | None = None) -> Path:
@@ -248,6 +339,7 @@ def write_run(result, out: str | Path, *, force: bool = False, inputs: dict | No
                       [tr.t, tr.xyz, cov3_to_columns(gp_covariance(tr, result.options.gp_noise)),
                        tr.range_m if tr.range_m is not None else np.full(len(tr), np.nan)]
                       + [cov3_to_columns(tr.cov_by_source[s]) for s in srcs])
+        _write_removed(tmp / "measurements" / "removed.csv", removed_measurements(result))
         ref = result.data.reference
         with open(tmp / "reference.csv", "w", encoding="utf-8") as fh:
             fh.write("name,x,y,z," + ",".join(cov_cols) + "\n")

@@ -7,6 +7,7 @@ The layout is the one written by :mod:`rtsgt.io.run_output` (see its module docs
     prisms/prism<i>.csv          t,x,y,z,cov_xx..cov_zz (prisms at the query times, total cov)
     prisms/prism<i>_sources.csv  t,<source>_xx..<source>_zz (each source at the query times)
     measurements/prism<i>.csv    t,x,y,z,cov_xx..cov_zz,range_m,<source>_xx..<source>_zz
+    measurements/removed.csv     t,prism,station,x,y,z,stage (optional: what the filters removed)
     reference.csv                name,x,y,z,cov_xx..cov_zz
     summary.json
 
@@ -89,6 +90,14 @@ class RunData:
         The run's ``summary.json`` (empty when the run was not written).
     path : Path, optional
         The run directory.
+    removed_t : ndarray, shape (M,)
+        Times of the measurements removed by the filters (``measurements/removed.csv``;
+        empty when the run does not have it), s.
+    removed_xyz : ndarray, shape (M, 3)
+        Their world positions, m.
+    removed_prism : ndarray of str, shape (M,)
+    removed_stage : ndarray of str, shape (M,)
+        ``"module1"`` or ``"module2"``: the filter that removed each.
     """
 
     name: str
@@ -113,6 +122,10 @@ class RunData:
     gp_noise: str = "white"
     summary: dict = field(default_factory=dict)
     path: Path | None = None
+    removed_t: np.ndarray = field(default_factory=lambda: np.empty(0))
+    removed_xyz: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
+    removed_prism: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=str))
+    removed_stage: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=str))
 
     def __post_init__(self) -> None:
         n = len(self.prism_ids)
@@ -337,6 +350,41 @@ def _read_rejected(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(t, dtype=float), np.asarray(reason, dtype=str)
 
 
+_REMOVED_COLUMNS = ("t", "prism", "station", "x", "y", "z", "stage")
+
+
+def _read_removed(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``measurements/removed.csv``: times, world positions, prisms and stages (optional)."""
+    empty = (np.empty(0), np.empty((0, 3)), np.empty(0, dtype=str), np.empty(0, dtype=str))
+    if not path.is_file():
+        return empty
+    with path.open(encoding="utf-8", newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        return empty
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in _REMOVED_COLUMNS if c not in header]
+    if missing:
+        raise InputError(f"missing column(s) {', '.join(missing)}; header is "
+                         f"{','.join(header)}", path, 1)
+    idx = {c: header.index(c) for c in _REMOVED_COLUMNS}
+    t, xyz, prism, stage = [], [], [], []
+    for k, row in enumerate(rows[1:]):
+        if not row:
+            continue
+        if len(row) != len(header):
+            raise InputError(f"expected {len(header)} fields, got {len(row)}", path, k + 2)
+        try:
+            t.append(float(row[idx["t"]]))
+            xyz.append([float(row[idx[c]]) for c in "xyz"])
+        except ValueError as exc:
+            raise InputError(f"not a number: {exc}", path, k + 2) from exc
+        prism.append(row[idx["prism"]].strip())
+        stage.append(row[idx["stage"]].strip())
+    return (np.asarray(t, dtype=float), np.asarray(xyz, dtype=float).reshape(-1, 3),
+            np.asarray(prism, dtype=str), np.asarray(stage, dtype=str))
+
+
 def _find(d: dict, *keys, default=None):
     """First value found among nested key paths (tuples) or keys of ``d``."""
     for key in keys:
@@ -468,6 +516,7 @@ def read_run(run_dir: str | PathLike) -> RunData:
         data[:, [header.index(c) for c in covn]].reshape(-1, 6, 6),
     )
     rej_t, rej_r = _read_rejected(root / "rejected_poses.csv")
+    rm_t, rm_xyz, rm_prism, rm_stage = _read_removed(root / "measurements" / "removed.csv")
     ref_xyz, ref_cov = _read_reference(root / "reference.csv", ids)
     ref_cov = _full_reference_cov(summary, ids, ref_cov)
     gcp_xyz, gcp_names = _gcp_from_summary(summary)
@@ -491,5 +540,6 @@ def read_run(run_dir: str | PathLike) -> RunData:
         prisms_cov_gp=np.stack(cov_gp, axis=1) if len(cov_gp) == n else None, gcp_xyz=gcp_xyz,
         gcp_names=gcp_names, engine=engine, samples=samples,
         seed=int(seed) if seed is not None else 0, gp_noise=gp_noise,
-        summary=summary, path=root,
+        summary=summary, path=root, removed_t=rm_t, removed_xyz=rm_xyz,
+        removed_prism=rm_prism, removed_stage=rm_stage,
     )

@@ -206,13 +206,21 @@ def write_track_csv(path: str | PathLike, track, *, extra_columns: bool = False)
     atomic_write_text(path, track_csv_text(track, extra_columns=extra_columns))
 
 
-def read_query_times(path: str | PathLike) -> np.ndarray:
+def read_query_times(path: str | PathLike, *, with_lines: bool = False):
     """Read query times, one per line (s); blank lines and ``#`` comments are skipped.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    with_lines : bool
+        Also return the 1-based line number of each time (for messages).
 
     Returns
     -------
-    ndarray, shape (Q,)
+    times : ndarray, shape (Q,)
         The times in file order (they need not be sorted).
+    lines : ndarray of int, shape (Q,)
+        Only with ``with_lines``.
 
     Raises
     ------
@@ -222,4 +230,7 @@ def read_query_times(path: str | PathLike) -> np.ndarray:
     """
     numbers, lines = read_lines(path, "query times, one per line")
     tokens = split_rows(lines, numbers, path, ("t",), None)
-    return to_float(tokens, numbers, path, ("t",))[:, 0]
+    times = to_float(tokens, numbers, path, ("t",))[:, 0]
+    if with_lines:
+        return times, np.asarray(numbers, dtype=int)
+    return times

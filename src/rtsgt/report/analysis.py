@@ -56,6 +56,7 @@ import numpy as np
 
 from rtsgt.errors import InputError
 from rtsgt.filtering.gates import position_uncertainty
+from rtsgt.io.run_output import gcp_world_positions, removed_measurements
 from rtsgt.io.run_reader import RunData, read_run
 from rtsgt.noise.analysis import bin_by_range, frobenius_norm_mm
 from rtsgt.types import NOISE_SOURCES, PoseTrajectory, PrismTrack
@@ -74,6 +75,7 @@ __all__ = [
     "analyze_run",
     "bin_edges",
     "bin_labels",
+    "nearest_psd",
     "paper_median_mm",
     "parse_bins",
     "pose_sigmas",
@@ -381,6 +383,32 @@ def _pose_times(data: RunData) -> np.ndarray:
     return idx
 
 
+def nearest_psd(cov: np.ndarray) -> np.ndarray:
+    """Covariances with their round-off negative eigenvalues set to zero (others untouched).
+
+    A single source's 3x3 covariance is often rank deficient (the tilt compensator moves a
+    point along one direction: rank one), so round-off in its computation, a Monte Carlo
+    estimate or a linear interpolation in time leaves eigenvalues like ``-1e-9 * ||Sigma||``
+    that the pose engines rightly refuse. Every finite matrix is symmetrised (which leaves a
+    symmetric one bit for bit as it is) and, where it has a negative eigenvalue, replaced by
+    its eigen-decomposition with the negative eigenvalues set to zero (the nearest PSD
+    matrix in the Frobenius norm). Non-finite matrices are returned unchanged.
+    """
+    c = np.array(cov, dtype=float)
+    if c.size == 0:
+        return c
+    flat = c.reshape((-1,) + c.shape[-2:])
+    ok = np.all(np.isfinite(flat), axis=(-1, -2))
+    sym = 0.5 * (flat[ok] + np.swapaxes(flat[ok], -1, -2))
+    w, V = np.linalg.eigh(sym)
+    bad = w[:, 0] < 0
+    if bad.any():
+        m = np.einsum("kij,kj,klj->kil", V[bad], np.clip(w[bad], 0.0, None), V[bad])
+        sym[bad] = 0.5 * (m + np.swapaxes(m, -1, -2))
+    flat[ok] = sym  # 0.5 (A + A^T) is A itself, bit for bit, when A is symmetric
+    return flat.reshape(c.shape)
+
+
 def _pose_part(data: RunData, engine: str, samples: int, seed: int, measure: str):
     from rtsgt.pose import estimate_poses
 
@@ -392,11 +420,12 @@ def _pose_part(data: RunData, engine: str, samples: int, seed: int, measure: str
     cov: dict[str, np.ndarray] = {}
     if idx.size:
         for s, c in data.prisms_cov_by_source.items():
-            cov[s] = estimate_poses(q, c[idx], data.reference_xyz, zero_r, engine=engine,
-                                    samples=samples, rng=rng).cov
+            cov[s] = estimate_poses(q, nearest_psd(c[idx]), data.reference_xyz, zero_r,
+                                    engine=engine, samples=samples, rng=rng).cov
         if data.prisms_cov_gp is not None:
-            cov[GP] = estimate_poses(q, data.prisms_cov_gp[idx], data.reference_xyz, zero_r,
-                                     engine=engine, samples=samples, rng=rng).cov
+            cov[GP] = estimate_poses(q, nearest_psd(data.prisms_cov_gp[idx]),
+                                     data.reference_xyz, zero_r, engine=engine,
+                                     samples=samples, rng=rng).cov
         if np.any(data.reference_cov != 0):
             cov[REFERENCE] = estimate_poses(q, np.zeros(q.shape + (3,)), data.reference_xyz,
                                             data.reference_cov, engine=engine,
@@ -515,9 +544,10 @@ def run_data_from_result(result) -> RunData:
     if len(result.estimate) != keep.shape[0]:
         raise InputError("The run's pose estimate and its gate mask have different lengths")
     reason = _rejection_reasons(result)
-    gcp_xyz, gcp_names = _gcp_world(result.data.gcp, calib.transforms)
+    gcp_xyz, gcp_names = gcp_world_positions(result.data.gcp, calib.transforms)
     gt = result.groundtruth
     opts = result.options
+    removed = removed_measurements(result)
     return RunData(
         name=result.data.name, prism_ids=ids, measurements=measurements,
         prisms_t=np.asarray(pr.t), prisms_xyz=np.asarray(pr.xyz)[:, order],
@@ -533,28 +563,9 @@ def run_data_from_result(result) -> RunData:
         stations=stations, gcp_xyz=gcp_xyz, gcp_names=gcp_names,
         engine=opts.engine, samples=int(opts.samples), seed=int(opts.seed),
         gp_noise=opts.gp_noise, summary={}, path=None,
+        removed_t=removed["t"], removed_xyz=removed["xyz"], removed_prism=removed["prism"],
+        removed_stage=removed["stage"],
     )
-
-
-def _gcp_world(gcp, transforms) -> tuple[np.ndarray | None, tuple[str, ...]]:
-    """World position of every marker: mean over the calibrated stations' valid shots."""
-    from rtsgt.measurement.polar import polar_to_cartesian
-
-    if gcp is None or len(gcp) == 0:
-        return None, ()
-    ok = (np.asarray(gcp.status) == 0) & np.isin(gcp.station, list(transforms))
-    if not ok.any():
-        return None, ()
-    p_station = polar_to_cartesian(gcp.hz[ok], gcp.v[ok], gcp.distance[ok])
-    p_world = np.empty_like(p_station)
-    stations = gcp.station[ok]
-    for s in np.unique(stations):  # one transform per station (a handful)
-        m = stations == s
-        p_world[m] = transforms[str(s)].apply(p_station[m])
-    markers = gcp.marker[ok]
-    names = tuple(sorted(set(markers.tolist()), key=lambda x: (len(x), x)))
-    xyz = np.array([p_world[markers == k].mean(axis=0) for k in names])
-    return xyz, names
 
 
 def _ordered(d: dict) -> dict:

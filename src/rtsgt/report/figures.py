@@ -83,9 +83,21 @@ SOURCE_LABELS = {
     REFERENCE: "reference prisms (survey)",
     ALL: "all sources",
 }
+#: Shorter names for tick labels.
+_SHORT_LABELS = {
+    "tilt": "tilt",
+    "time_sync": "time sync.",
+    "calibration": "calibration",
+    GP: "GP posterior",
+    REFERENCE: "reference survey",
+}
 _PRISM_COLORS = ("#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#F0E442")
 _REASON_MARKERS = {"distance": "X", "uncertainty": "P", "degenerate": "v",
                    "missing_prism": "v", "collinear": "d"}
+#: Markers and legend texts of the measurements removed by the filters, per module.
+_STAGE_MARKERS = {"module1": "x", "module2": "1"}
+_STAGE_LABELS = {"module1": "measurements removed by module 1 (rates, status)",
+                 "module2": "measurements removed by module 2 (not every prism tracked)"}
 _BOX_STYLE = dict(whis=(5, 95), showfliers=False, patch_artist=True, manage_ticks=False)
 
 
@@ -121,7 +133,9 @@ class DrawnFigure:
     ellipse_scale : float or None
         Magnification of the ellipses.
     spans : int
-        Shaded time spans (measurement gaps), counted once per panel.
+        Shaded time spans (measurement gaps of each prism), counted once for all panels.
+    common_spans : int
+        Time spans where no prism is measured (shaded grey), counted once for all panels.
     caption : str
         One sentence saying what the figure shows (used by the HTML report).
     """
@@ -136,6 +150,7 @@ class DrawnFigure:
     ellipses: int = 0
     ellipse_scale: float | None = None
     spans: int = 0
+    common_spans: int = 0
     caption: str = ""
 
     def save(self, out_dir: str | PathLike, formats: Sequence[str] = ("png", "svg"),
@@ -239,7 +254,9 @@ def plot_source_norms(analysis: Analysis, *, show_paper: bool = True) -> DrawnFi
                          f"({100 * a.bin_shares[k]:.0f} %)")
     ax.set_xticks(range(len(groups)), ticks)
     ax.set_xlim(-0.6, len(groups) - 0.4)
-    ax.set_xlabel("range from the station")
+    empty = [a.bin_labels[k] for k in range(nb) if a.bin_counts[k] == 0]
+    ax.set_xlabel("range from the station (m)" + (
+        f"; no measurements in {', '.join(empty)}" if empty else ""))
     ax.grid(axis="y", which="both", alpha=0.3)
     handles = [Patch(facecolor=_color(s), edgecolor="black", alpha=0.75, label=_label(s))
                for s in a.sources]
@@ -256,7 +273,7 @@ def plot_source_norms(analysis: Analysis, *, show_paper: bool = True) -> DrawnFi
     for x, v in enumerate(shares):
         ax_share.text(x, v, f"{v:.0f} %", ha="center", va="bottom", fontsize=8)
     ax_share.set_ylim(0, 115)
-    ax_share.set_ylabel("share of\nmeasurements (%)")
+    ax_share.set_ylabel("share (%)")
     ax_share.set_title(f"{a.name}: size of each noise source at the prisms, by range "
                        "(boxes 25-75 %, whiskers 5-95 %)")
     drawn.points["share bars"] = len(shares)
@@ -286,23 +303,29 @@ def plot_pose_uncertainty(analysis: Analysis) -> DrawnFigure:
             medians.append(float(bp["medians"][0].get_ydata()[0]))
             sizes.append(int(vals.size))
             keys.append((s, panel))
-            labels.append(_label(s).replace(" ", "\n", 1))
-            ax.text(x, np.median(vals), f" {np.median(vals):.3g}", fontsize=7, va="bottom",
-                    ha="left")
+            labels.append(_SHORT_LABELS.get(s, _label(s)))
+            # the median, written above the upper whisker (clear of the box and its caps)
+            ax.annotate(f"{np.median(vals):.3g}", (x, np.percentile(vals, 95)),
+                        textcoords="offset points", xytext=(0, 3), fontsize=7.5,
+                        ha="center", va="bottom")
         drawn.boxes[panel], drawn.box_sizes[panel], drawn.box_keys[panel] = \
             len(sizes), sizes, keys
         drawn.box_medians[panel] = medians
-        ax.set_xticks(range(len(sizes)), labels, fontsize=8, rotation=30, ha="right")
+        ax.set_xticks(range(len(sizes)), labels, fontsize=8.5, rotation=30, ha="right",
+                      rotation_mode="anchor")
         ax.set_xlim(-0.6, max(len(sizes), 1) - 0.4)
         if sizes:
             ax.set_yscale("log")
+            lo, hi = ax.get_ylim()
+            ax.set_ylim(lo, hi * (hi / lo) ** 0.06)  # room for the median labels on top
             _plain_log(ax)
         ax.set_ylabel(f"pose {panel} uncertainty ({unit})")
         ax.grid(axis="y", which="both", alpha=0.3)
     measure = ("sqrt(trace)" if a.pose_measure == "sqrt_trace"
                else "sqrt(largest eigenvalue)")
     fig.suptitle(f"{a.name}: pose uncertainty per noise source, {a.pose_t.size} kept poses "
-                 f"({a.engine} engine; {measure} of each 3x3 block)", fontsize=10)
+                 f"({a.engine} engine; {measure} of each 3x3 block; labels: medians)",
+                 fontsize=10)
     drawn.caption = (
         f"Uncertainty of the kept poses when only one source is present (prisms from that "
         f"source alone, reference exact; 'reference prisms' = the survey alone, prisms exact) "
@@ -364,6 +387,32 @@ def _rejected_positions(data: RunData) -> tuple[np.ndarray, np.ndarray]:
     return t_body, data.rejected_reason[ok]
 
 
+def _body_origin_offset(data: RunData) -> float:
+    """Distance of the body origin from the reference prisms' centroid, m."""
+    r = np.asarray(data.reference_xyz, dtype=float)
+    return float(np.linalg.norm(r.mean(axis=0))) if r.size else 0.0
+
+
+def _label_offsets(xy: np.ndarray, dist: float = 22.0) -> np.ndarray:
+    """Label offsets (points) pointing away from the centre of the labelled points.
+
+    Points that are (nearly) at the centre get directions spread evenly around the circle, so
+    that the labels of close stations do not overlap.
+    """
+    n = xy.shape[0]
+    if n == 0:
+        return np.empty((0, 2))
+    d = xy - xy.mean(axis=0)
+    spread = max(float(np.max(np.linalg.norm(d, axis=1))), 1e-12)
+    ang = np.arctan2(d[:, 1], d[:, 0])
+    near = np.linalg.norm(d, axis=1) < 0.2 * spread
+    if n == 1 or near.all():
+        ang = np.pi / 4 + 2 * np.pi * np.arange(n) / max(n, 1)
+    else:
+        ang = np.where(near, np.pi / 4 + 2 * np.pi * np.arange(n) / n, ang)
+    return dist * np.column_stack([np.cos(ang), np.sin(ang)])
+
+
 def plot_top_view(data: RunData, *, max_ellipses: int = 60,
                   ellipse_scale: float | None = None) -> DrawnFigure:
     """Top view of the deployment (world x-y, m).
@@ -392,14 +441,21 @@ def plot_top_view(data: RunData, *, max_ellipses: int = 60,
         dts = np.diff(gt.t)
         max_dt = 3 * float(np.median(dts)) if dts.size else 1.0
         path = _break_gaps(gt.t, gt.position[:, :2], max_dt)
+        lever = _body_origin_offset(data)
+        where = (f", {lever:.1f} m from the prisms' centroid" if lever >= 0.5 else "")
         ax.plot(path[:, 0], path[:, 1], "-", color="black", lw=1.0,
-                label="ground truth (body origin)")
+                label=f"ground truth (body origin{where})")
         drawn.points["ground truth"] = int(len(gt))
         everything.append(gt.position[:, :2])
-    for s, p in data.stations.items():
+    offsets = _label_offsets(np.array([p[:2] for p in data.stations.values()]).reshape(-1, 2))
+    for (s, p), off in zip(data.stations.items(), offsets, strict=True):
         ax.plot(p[0], p[1], "^", ms=11, color="#333333", mfc="#F0E442", mew=1.2)
-        ax.annotate(f"station {s}", (p[0], p[1]), textcoords="offset points", xytext=(6, 6),
-                    fontsize=9, fontweight="bold")
+        ax.annotate(f"station {s}", (p[0], p[1]), textcoords="offset points",
+                    xytext=tuple(off), fontsize=9, fontweight="bold",
+                    ha="left" if off[0] >= 0 else "right",
+                    va="bottom" if off[1] >= 0 else "top",
+                    bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8),
+                    arrowprops=dict(arrowstyle="-", color="#555555", lw=0.6))
         everything.append(p[None, :2])
     if data.stations:
         ax.plot([], [], "^", ms=9, color="#333333", mfc="#F0E442", label="stations")
@@ -409,6 +465,13 @@ def plot_top_view(data: RunData, *, max_ellipses: int = 60,
                 mfc="none", label="ground control points")
         drawn.points["ground control points"] = int(len(data.gcp_xyz))
         everything.append(data.gcp_xyz[:, :2])
+    for stage in sorted(set(data.removed_stage.tolist())):
+        m = data.removed_stage == stage
+        ax.plot(data.removed_xyz[m, 0], data.removed_xyz[m, 1], _STAGE_MARKERS.get(stage, "x"),
+                ms=4, ls="", color="#7F7F7F", mew=0.8,
+                label=f"{_STAGE_LABELS.get(stage, stage)} ({int(m.sum())})")
+        drawn.points[f"removed: {stage}"] = int(m.sum())
+        everything.append(data.removed_xyz[m, :2])
     pos_r, reason_r = _rejected_positions(data)
     for reason in sorted(set(reason_r.tolist())):
         m = reason_r == reason
@@ -443,13 +506,20 @@ def plot_top_view(data: RunData, *, max_ellipses: int = 60,
     ax.set_xlabel("x, world frame (m)")
     ax.set_ylabel("y, world frame (m)")
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8, framealpha=0.9, markerscale=2)
+    leg = ax.legend(loc="best", fontsize=8, framealpha=0.9)
+    for h in leg.legend_handles:  # the measurement dots are tiny on the map, not in the key
+        if isinstance(h, Line2D) and h.get_marker() == ".":
+            h.set_markersize(8)
     ax.set_title(f"{data.name}: top view (world frame = reference station)")
     scale_txt = ("" if drawn.ellipse_scale is None else
                  f"; 95 % horizontal ellipses magnified {drawn.ellipse_scale:g} times")
+    lever = _body_origin_offset(data)
+    lever_txt = (f" (the body origin is {lever:.1f} m from the prisms' centroid: the path "
+                 f"is that point's)" if lever >= 0.5 else "")
     drawn.caption = ("Top view of the deployment: stations, ground control points, measured "
-                     "prism positions, ground-truth path" + scale_txt +
-                     ", rejected poses by gate.")
+                     "prism positions, ground-truth path" + lever_txt + scale_txt +
+                     ", measurements removed by the filters (by module) and poses rejected "
+                     "by the gates (by gate).")
     return drawn
 
 
@@ -459,6 +529,18 @@ def _gaps(t: np.ndarray, gap_s: float) -> list[tuple[float, float]]:
     d = np.diff(t)
     k = np.flatnonzero(d > gap_s)
     return [(float(t[i]), float(t[i + 1])) for i in k]
+
+
+def _intersect_intervals(sets: list[np.ndarray]) -> np.ndarray:
+    """Intervals covered by every set of disjoint ``(start, end)`` intervals, shape (K, 2)."""
+    out = sets[0]
+    for other in sets[1:]:
+        lo = np.maximum(out[:, None, 0], other[None, :, 0])
+        hi = np.minimum(out[:, None, 1], other[None, :, 1])
+        keep = hi > lo
+        out = np.column_stack([lo[keep], hi[keep]])
+        out = out[np.argsort(out[:, 0])] if out.size else out.reshape(0, 2)
+    return out
 
 
 def default_gap_s(data: RunData) -> float:
@@ -515,21 +597,40 @@ def plot_uncertainty_time(data: RunData, *, gap_s: float | None = None,
             y = _break_gaps(gt.t, np.column_stack([gt.t - t0, v]), max_dt)
             ax.plot(y[:, 0], y[:, 1], "-", lw=1.0, color="black", label=name)
             drawn.points[name] = int(np.count_nonzero(np.isfinite(v)))
+    for stage in sorted(set(data.removed_stage.tolist())):
+        m = data.removed_stage == stage
+        axes[0].plot(data.removed_t[m] - t0, np.zeros(int(m.sum())), "|", ms=12, mew=1.2,
+                     color="#7F7F7F" if stage == "module2" else "#000000",
+                     transform=axes[0].get_xaxis_transform(), clip_on=False,
+                     label=f"removed by {stage.replace('module', 'module ')} "
+                           f"({int(m.sum())})")
+        drawn.points[f"removed: {stage}"] = int(m.sum())
     if data.rejected_t.size:
-        axes[1].plot(data.rejected_t - t0, np.zeros(data.rejected_t.size), "|", ms=10,
-                     color="#D55E00", transform=axes[1].get_xaxis_transform(),
+        axes[1].plot(data.rejected_t - t0, np.zeros(data.rejected_t.size), "|", ms=16,
+                     mew=2, color="#D55E00", transform=axes[1].get_xaxis_transform(),
                      label=f"rejected poses ({data.rejected_t.size})")
         drawn.points["rejected poses"] = int(data.rejected_t.size)
     n_spans = 0
+    all_gaps = []
     for i, (pid, tr) in enumerate(data.measurements.items()):
         col = _PRISM_COLORS[i % 7]
-        for a, b in _gaps(tr.t, gap):
+        g = _gaps(tr.t, gap)
+        all_gaps.append(np.asarray(g, dtype=float).reshape(-1, 2))
+        for a, b in g:
             for ax in axes:
-                ax.axvspan(a - t0, b - t0, color=col, alpha=0.15, lw=0)
+                ax.axvspan(a - t0, b - t0, color=col, alpha=0.15, lw=0, zorder=0.4)
             n_spans += 1
         axes[0].plot([], [], "s", ms=9, color=col, alpha=0.3,
                      label=f"prism {pid}: gap > {gap:.1f} s")
     drawn.spans = n_spans
+    # where no prism is measured, one neutral shade instead of the prisms' colours stacked
+    common = _intersect_intervals(all_gaps) if len(all_gaps) > 1 else np.empty((0, 2))
+    for a, b in common:
+        for ax in axes:
+            ax.axvspan(a - t0, b - t0, color="#d4d4d4", alpha=0.95, lw=0, zorder=0.5)
+    if common.shape[0]:
+        axes[0].plot([], [], "s", ms=9, color="#d4d4d4", label="no prism measured")
+    drawn.common_spans = int(common.shape[0])
     unit = "sqrt(trace)" if pose_measure == "sqrt_trace" else "sqrt(largest eigenvalue)"
     axes[0].set_ylabel("prism sqrt(tr Σ) (mm)")
     axes[1].set_ylabel(f"translation {unit}\n(mm)")
@@ -545,7 +646,8 @@ def plot_uncertainty_time(data: RunData, *, gap_s: float | None = None,
     axes[0].set_title(f"{data.name}: uncertainty along time (shaded: measurement gaps)")
     drawn.caption = (f"Uncertainty along time: each interpolated prism (mm), the pose "
                      f"translation (mm) and rotation (mrad); shaded: gaps longer than "
-                     f"{gap:.1f} s between two measurements of a prism; ticks: rejected poses.")
+                     f"{gap:.1f} s between two measurements of a prism (grey: of every prism); "
+                     f"ticks: rejected poses.")
     return drawn
 
 

@@ -33,7 +33,9 @@ from rtsgt.report.analysis import DEFAULT_BINS_M, PAPER_CITATION, Analysis, anal
 from rtsgt.report.figures import (
     SOURCE_LABELS,
     DrawnFigure,
+    _body_origin_offset,
     _nice_scale,
+    _rejected_positions,
     draw_all,
 )
 
@@ -167,6 +169,8 @@ def _flatten(obj, prefix: str = "") -> list[tuple[str, object]]:
 
 
 def _value_html(v) -> str:
+    if isinstance(v, (float, np.floating)) and math.isfinite(v) and abs(v) >= 1e7:
+        return f"{v:.3f}"  # epoch times and other large numbers: every digit that matters
     if isinstance(v, list):
         if all(not isinstance(x, (list, dict)) for x in v):
             shown = ", ".join(_fmt(x, 6) for x in v[:12])
@@ -208,7 +212,7 @@ def _summary_tables(summary: Mapping) -> str:
                 subtables.append(f"<details><summary>{html.escape(k or key)} ({len(v)} rows)"
                                  f"</summary>{_records_table(v)}</details>")
             else:
-                rows.append(f"<tr><td class='k'>{html.escape(k)}</td>"
+                rows.append(f"<tr><td class='k'>{html.escape(k or key)}</td>"
                             f"<td class='s'>{_value_html(v)}</td></tr>")
         table = f"<table class='summary'>{''.join(rows)}</table>" if rows else ""
         parts.append(f"<h3>{html.escape(key)}</h3>{table}{''.join(subtables)}")
@@ -309,15 +313,22 @@ def _view3d(data: RunData, max_ellipsoids: int, scale: float | None):
     n_ell, used_scale = 0, None
     if len(gt):
         path = _nan_breaks(gt.t, gt.position)
+        lever = _body_origin_offset(data)
         traces.append(go.Scatter3d(x=path[:, 0], y=path[:, 1], z=path[:, 2], mode="lines",
                                    line=dict(color="black", width=4),
-                                   name="ground truth (body origin)"))
+                                   name="ground truth (body origin" + (
+                                       f", {lever:.1f} m from the prisms' centroid)"
+                                       if lever >= 0.5 else ")")))
         everything.append(gt.position)
     everything += [p[None] for p in data.stations.values()]
     if data.stations:
         st = np.array(list(data.stations.values()))
+        where = ("top right", "bottom left", "top left", "bottom right", "top center",
+                 "bottom center")  # stations often stand close together: spread the labels
         traces.append(go.Scatter3d(x=st[:, 0], y=st[:, 1], z=st[:, 2], mode="markers+text",
                                    text=[f"station {s}" for s in data.stations],
+                                   textposition=[where[k % len(where)]
+                                                 for k in range(len(data.stations))],
                                    marker=dict(size=6, symbol="diamond", color="#E69F00"),
                                    name="stations"))
     if data.gcp_xyz is not None and len(data.gcp_xyz):
@@ -325,17 +336,14 @@ def _view3d(data: RunData, max_ellipsoids: int, scale: float | None):
         traces.append(go.Scatter3d(x=g[:, 0], y=g[:, 1], z=g[:, 2], mode="markers",
                                    marker=dict(size=3, symbol="square", color="#666"),
                                    name="ground control points"))
-    if data.rejected_t.size and gt.t.size:
-        # rejected poses along the path: nearest kept pose in time is not the place; use the
-        # prisms' centroid at that time (always measured there)
-        idx = np.clip(np.searchsorted(data.prisms_t, data.rejected_t), 0,
-                      data.prisms_t.size - 1)
-        c = np.nanmean(data.prisms_xyz[idx], axis=1)
+    # rejected poses where the body origin was (the reference fitted onto the prisms), as in
+    # the top view, one trace per gate
+    pos_r, reason_r = _rejected_positions(data)
+    for reason in sorted(set(reason_r.tolist())):
+        c = pos_r[reason_r == reason]
         traces.append(go.Scatter3d(x=c[:, 0], y=c[:, 1], z=c[:, 2], mode="markers",
-                                   marker=dict(size=3, symbol="x", color="#D55E00"),
-                                   text=[str(r) for r in data.rejected_reason],
-                                   name=f"rejected poses ({data.rejected_t.size}, at the "
-                                        "prisms' centroid)"))
+                                   marker=dict(size=4, symbol="x", color="#D55E00"),
+                                   name=f"rejected: {reason or 'unspecified'} ({len(c)})"))
     if len(gt) and gt.cov is not None and max_ellipsoids > 0:
         ok = np.flatnonzero(np.all(np.isfinite(gt.cov[:, :3, :3]), axis=(1, 2)))
         if ok.size:
@@ -361,9 +369,11 @@ def _view3d(data: RunData, max_ellipsoids: int, scale: float | None):
             n_ell, used_scale = int(sel.size), float(scale)
     fig = go.Figure(traces)
     fig.update_layout(
+        # a camera a little farther than plotly's default, so that the whole site is in view
         scene=dict(aspectmode="data", xaxis_title="x (m)", yaxis_title="y (m)",
-                   zaxis_title="z (m)"),
-        margin=dict(l=0, r=0, t=30, b=0), legend=dict(x=0, y=1, bgcolor="rgba(255,255,255,.8)"),
+                   zaxis_title="z (m)", camera=dict(eye=dict(x=1.6, y=1.6, z=1.1))),
+        margin=dict(l=0, r=0, t=30, b=0),
+        legend=dict(x=0, y=1, bgcolor="rgba(255,255,255,.8)", itemsizing="constant"),
         title=dict(text=f"{data.name}: world frame; ellipsoids magnified {used_scale or 1:g} x",
                    font=dict(size=13)),
     )

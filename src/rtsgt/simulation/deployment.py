@@ -27,7 +27,9 @@ Time
 ----
 ``t`` is Unix time (s). The truth is in true time. A station stamps a measurement taken at true
 time ``t_true`` with ``t_rec = t_true - e_ts``: ``e_ts`` (the clock error, s) is the station's
-constant offset drawn from ``N(mu_ts, sigma_ts)`` plus a small jitter. The position measured at
+constant offset ``s |e|`` with ``e ~ N(mu_ts, sigma_ts)`` and a random sign ``s`` per station
+(each station synchronises on its own; the authors measured the magnitude), plus a small
+jitter: the noise model's time-synchronisation assumption (:mod:`rtsgt.noise.model`). The position measured at
 the stamp ``t_rec`` is therefore ``p(t_rec + e_ts) ~ p(t_rec) + e_ts v``, the displacement of
 the paper's time-synchronisation model (DESIGN.md section 3).
 
@@ -152,7 +154,8 @@ class SimulationConfig:
     additive_constant_m : float
         Prism (additive) constant, m: the files hold distances without it (RTS_project: 0.01).
     time_sync_mean_s, time_sync_std_s : float
-        Mean and standard deviation of the per-station clock error, s (authors' values).
+        Mean and standard deviation of the magnitude of the per-station clock error, s
+        (authors' values); its sign is drawn per station.
     time_sync_jitter_s : float
         Standard deviation of the per-measurement clock jitter around the offset, s.
     sampling_jitter_s : float
@@ -951,7 +954,10 @@ def simulate_deployment(
 
     # --- clocks -----------------------------------------------------------------------------
     if cfg.noise_time_sync:
-        offsets = rng.normal(cfg.time_sync_mean_s, cfg.time_sync_std_s, n_st)
+        # |e| ~ N(mu, sigma) as the authors measured it; each station synchronises on its own,
+        # leading or lagging: a random sign per station (the noise model's assumption)
+        magnitude = np.abs(rng.normal(cfg.time_sync_mean_s, cfg.time_sync_std_s, n_st))
+        offsets = rng.choice([-1.0, 1.0], n_st) * magnitude
     else:
         offsets = np.zeros(n_st)
 

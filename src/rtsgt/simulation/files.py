@@ -275,7 +275,7 @@ def _toml_text(sim: SimulatedDeployment, name: str) -> str:
         "",
         "[interpolation]",
         "rate_hz = 5.0",
-        'qc = "fit"',
+        'qc = "loo"',
         "max_gap_s = 3.0",
         "",
         "[pose]",

@@ -1,0 +1,400 @@
+r"""Continuous-time ground truth: the poses of a run at any time, from its GP prism tracks.
+
+An ``rtsgt run`` directory stores poses on a regular grid (``groundtruth_covariance.csv``), but
+an estimate to evaluate has its own times. Picking the nearest stored pose is wrong by up to
+half a grid period times the robot's speed (centimetres at 5 Hz), and interpolating stored
+poses gives a covariance that is not the posterior between them. :class:`ContinuousGroundTruth`
+instead redoes, at the requested times, what the pipeline did on its grid
+(:mod:`rtsgt.pipeline`):
+
+1. refit each prism's GP from ``measurements/prism<i>.csv`` (the filtered measured track in the
+   world frame with the covariance the GP was given) with the ``Qc`` the run found
+   (``summary.json``): the same posterior, since the GP with a given ``Qc`` is exact;
+2. query every prism at the times (:func:`rtsgt.pipeline.query_prisms`: GP posterior plus the
+   systematic sources interpolated from the measurements when ``gp_noise = "white"``);
+3. compute the poses and their 6x6 covariances with the run's pose engine, samples and seed
+   (:func:`rtsgt.pose.estimate_poses`), or another engine (``"linear"`` is the fastest);
+4. apply the run's quality gates (:func:`rtsgt.filtering.gates.apply_gates`).
+
+At the run's own grid times this reproduces ``groundtruth_covariance.csv`` (exactly for the
+``linear`` and ``ut`` engines; within Monte Carlo noise for ``mc``, whose draws depend on the
+set of query times). The Monte Carlo engine draws from ``numpy.random.default_rng(seed)`` at
+every call, so a query is reproducible.
+
+Every time gets a reason when no pose is given there (``GroundTruthSample.reason``), checked in
+this order:
+
+``outside_ground_truth``
+    before the first or after the last interval the run kept;
+``between_intervals``
+    between two of the intervals where every prism was tracked (module 2 of the pipeline);
+``gp_gap``
+    inside a gap of a prism's measurements longer than the run's ``max_gap_s``;
+``far_from_measurement``
+    the nearest measurement of some prism is farther than ``max_gap_s`` of the query (the
+    evaluation's ``--max-gap``);
+``gate_degenerate``, ``gate_distance``, ``gate_uncertainty``
+    the pose fails the run's quality gate of that name.
+
+Correlations between the poses at different times (needed for an exact relative-pose
+covariance) are not computed: ``cross_next`` is None and the RPE NEES treats the ground-truth
+poses as independent.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from os import PathLike
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from rtsgt.errors import InputError
+from rtsgt.evaluation.associate import (
+    REASON_FAR,
+    REASON_OUTSIDE,
+    GroundTruthSample,
+    _nearest_distance,
+)
+from rtsgt.filtering.gates import apply_gates
+from rtsgt.interpolation import GPTrack
+from rtsgt.io.run_output import COV3_NAMES, columns_to_cov3
+from rtsgt.io.run_reader import read_run, read_table
+from rtsgt.pipeline import RunOptions, fit_gps, query_prisms
+from rtsgt.pose import ReferencePoints, estimate_poses
+from rtsgt.types import PrismTrack
+
+__all__ = [
+    "DROP_REASONS",
+    "REASON_BETWEEN",
+    "REASON_GP_GAP",
+    "ContinuousGroundTruth",
+]
+
+#: Drop reason: inside the ground-truth span but outside every interval common to all prisms.
+REASON_BETWEEN = "between_intervals"
+#: Drop reason: inside a gap of a prism's measurements longer than the run's ``max_gap_s``.
+REASON_GP_GAP = "gp_gap"
+#: Prefix of the drop reasons of the quality gates (``gate_`` + the gate's reason).
+GATE_PREFIX = "gate_"
+#: Every drop reason, in the order they are checked.
+DROP_REASONS = (
+    REASON_OUTSIDE,
+    REASON_BETWEEN,
+    REASON_GP_GAP,
+    REASON_FAR,
+    GATE_PREFIX + "degenerate",
+    GATE_PREFIX + "distance",
+    GATE_PREFIX + "uncertainty",
+)
+
+_ENGINES = ("mc", "ut", "linear")
+
+
+@dataclass(frozen=True)
+class ContinuousGroundTruth:
+    """The ground truth of a run, queryable at any time (module docstring).
+
+    Build it with :meth:`from_run_dir` (a written run) or :meth:`from_result` (in memory).
+    It is a :class:`~rtsgt.evaluation.associate.ValidatedGroundTruth`: pass it as the ground
+    truth of :func:`rtsgt.evaluation.evaluate`.
+
+    Attributes
+    ----------
+    tracks : dict str -> PrismTrack
+        Measured track of every prism (world frame) with its per-source covariances.
+    gps : dict str -> GPTrack
+        Their GP posteriors (the run's ``Qc``).
+    intervals : ndarray, shape (K, 2)
+        Intervals where every prism was tracked (the run's module 2), s.
+    reference : ReferencePoints
+        Reference prisms in the body frame, in the order of ``tracks``.
+    options : RunOptions
+        Engine, samples, seed, ``gp_noise``, ``max_gap_s`` and gates used for the poses.
+    uncertainty_measure : str
+        Measure of the uncertainty gate (:func:`rtsgt.filtering.gates.position_uncertainty`).
+    source : str
+        Where it comes from (for messages).
+    """
+
+    tracks: dict[str, PrismTrack]
+    gps: dict[str, GPTrack]
+    intervals: np.ndarray
+    reference: ReferencePoints
+    options: RunOptions
+    uncertainty_measure: str = "max_std"
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.tracks:
+            raise InputError("Expected at least 3 prism tracks, got none")
+        if set(self.tracks) != set(self.gps):
+            raise ValueError("Expected one GP per track")
+        if tuple(self.reference.names) != tuple(self.tracks):
+            raise ValueError(
+                f"Expected reference prisms {tuple(self.tracks)}, got {self.reference.names}"
+            )
+        iv = np.asarray(self.intervals, dtype=float).reshape(-1, 2)
+        if iv.shape[0] == 0:
+            raise InputError(f"{self.source or 'ground truth'}: no interval where every prism "
+                             "was tracked")
+        object.__setattr__(self, "intervals", iv[np.argsort(iv[:, 0])])
+
+    # ---------------------------------------------------------------------------------------
+    # construction
+    # ---------------------------------------------------------------------------------------
+
+    @classmethod
+    def from_tracks(
+        cls,
+        tracks: dict[str, PrismTrack],
+        qc: dict[str, ArrayLike],
+        intervals: ArrayLike,
+        reference: ReferencePoints,
+        options: RunOptions,
+        *,
+        uncertainty_measure: str = "max_std",
+        source: str = "",
+    ) -> ContinuousGroundTruth:
+        """Fit the GPs of ``tracks`` with the given per-prism ``Qc`` (m^2/s^3)."""
+        missing = [p for p in tracks if p not in qc]
+        if missing:
+            raise InputError(f"{source or 'ground truth'}: no Qc for prism(s) {', '.join(missing)}")
+        gps = fit_gps(tracks, options, qc={p: qc[p] for p in tracks})
+        return cls(dict(tracks), gps, np.asarray(intervals, dtype=float),
+                   reference.select(list(tracks)), options, uncertainty_measure, source)
+
+    @classmethod
+    def from_result(
+        cls,
+        result,
+        *,
+        engine: str | None = None,
+        samples: int | None = None,
+        seed: int | None = None,
+    ) -> ContinuousGroundTruth:
+        """From an in-memory :class:`rtsgt.pipeline.RunResult` (its GPs are reused as fitted).
+
+        ``engine``, ``samples``, ``seed``: override the run's.
+        """
+        opts = _override(result.options, engine, samples, seed)
+        tracks = dict(result.tracks)
+        return cls(tracks, {p: result.gps[p] for p in tracks}, np.asarray(result.intervals),
+                   result.data.reference.select(list(tracks)), opts,
+                   result.gate_report.uncertainty_measure, result.data.name)
+
+    @classmethod
+    def from_run_dir(
+        cls,
+        run_dir: str | PathLike,
+        *,
+        engine: str | None = None,
+        samples: int | None = None,
+        seed: int | None = None,
+    ) -> ContinuousGroundTruth:
+        """From a run directory written by :mod:`rtsgt.io.run_output`.
+
+        Parameters
+        ----------
+        run_dir : path
+            Needs ``measurements/prism<i>.csv``, ``reference.csv`` and ``summary.json`` (with
+            each prism's ``qc_m2_s3``) besides the files :func:`rtsgt.io.run_reader.read_run`
+            reads.
+        engine : {"mc", "ut", "linear"}, optional
+            Pose engine (default: the run's). ``"linear"`` is the fastest.
+        samples, seed : int, optional
+            Monte Carlo samples and seed (default: the run's).
+
+        Raises
+        ------
+        InputError
+            A missing or malformed file, no Qc in ``summary.json``, a bad engine.
+        """
+        root = Path(run_dir)
+        if not (root / "measurements").is_dir():
+            raise InputError(
+                "no measurements/ folder: not an rtsgt run directory with measured tracks", root
+            )
+        run = read_run(root)
+        summary = run.summary
+        summary_path = root / "summary.json"
+        if not summary:
+            raise InputError("missing or empty summary.json (the run's Qc and options)",
+                             summary_path)
+        params = summary.get("parameters") or summary.get("options") or {}
+        gp_noise = run.gp_noise
+        if gp_noise not in ("white", "all"):
+            raise InputError(f"gp_noise: expected 'white' or 'all', got {gp_noise!r}",
+                             summary_path)
+        tracks: dict[str, PrismTrack] = {}
+        qc: dict[str, np.ndarray] = {}
+        prisms_info = summary.get("prisms") or {}
+        for pid in run.prism_ids:
+            tr = run.measurements.get(pid)
+            path = root / "measurements" / f"prism{pid}.csv"
+            if tr is None:
+                raise InputError(f"no measured track of prism {pid}", path)
+            if gp_noise == "all":
+                # the GP was given the total covariance: the file's cov_* columns
+                header, data = read_table(path)
+                if all(f"cov_{c}" in header for c in COV3_NAMES):
+                    cols = [header.index(f"cov_{c}") for c in COV3_NAMES]
+                    tr = dataclasses.replace(tr, cov=columns_to_cov3(data[:, cols]))
+            tracks[pid] = tr
+            info = prisms_info.get(pid) if isinstance(prisms_info, dict) else None
+            q = info.get("qc_m2_s3") if isinstance(info, dict) else None
+            if q is None:
+                raise InputError(f"no qc_m2_s3 for prism {pid} under 'prisms'", summary_path)
+            try:
+                qc[pid] = np.asarray(q, dtype=float)
+            except (TypeError, ValueError) as exc:
+                raise InputError(f"prism {pid}: bad qc_m2_s3 {q!r}: {exc}", summary_path) from None
+        iv = summary.get("intervals_s")
+        if iv is None:
+            # an older summary: the span every prism covers
+            lo = max(float(tr.t[0]) for tr in tracks.values())
+            hi = min(float(tr.t[-1]) for tr in tracks.values())
+            iv = [[lo, hi]] if hi > lo else []
+        try:
+            intervals = np.asarray(iv, dtype=float).reshape(-1, 2)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"bad intervals_s: {exc}", summary_path) from None
+        frame = (summary.get("reference") or {}).get("frame", "body")
+        reference = ReferencePoints(run.prism_ids, run.reference_xyz, run.reference_cov, frame)
+        try:
+            options = RunOptions(
+                engine=run.engine,
+                samples=run.samples,
+                seed=run.seed,
+                max_gap_s=float(params.get("max_gap_s", 3.0)),
+                gp_noise=gp_noise,
+                distance_gate_m=float(params.get("distance_gate_m", 0.10)),
+                uncertainty_gate_m=float(params.get("uncertainty_gate_m", 0.20)),
+            )
+        except InputError as exc:
+            raise InputError(str(exc), summary_path) from None
+        options = _override(options, engine, samples, seed)
+        measure = str((summary.get("gates") or {}).get("uncertainty_measure", "max_std"))
+        return cls.from_tracks(tracks, qc, intervals, reference, options,
+                               uncertainty_measure=measure, source=str(root))
+
+    # ---------------------------------------------------------------------------------------
+    # queries
+    # ---------------------------------------------------------------------------------------
+
+    @property
+    def prism_ids(self) -> tuple[str, ...]:
+        return tuple(self.tracks)
+
+    @property
+    def info(self) -> dict:
+        """JSON-ready description (source, engine, samples, seed, prisms, run limits)."""
+        o = self.options
+        return {
+            "source": self.source,
+            "engine": o.engine,
+            "samples": o.samples if o.engine == "mc" else None,
+            "seed": o.seed if o.engine == "mc" else None,
+            "prisms": list(self.prism_ids),
+            "intervals": int(self.intervals.shape[0]),
+            "run_max_gap_s": float(o.max_gap_s),
+            "distance_gate_m": float(o.distance_gate_m),
+            "uncertainty_gate_m": float(o.uncertainty_gate_m),
+        }
+
+    @property
+    def span(self) -> tuple[float, float]:
+        """First and last time at which a pose can be given, s."""
+        return float(self.intervals[0, 0]), float(self.intervals[-1, 1])
+
+    @property
+    def measurement_times(self) -> np.ndarray:
+        """Sorted times of every prism measurement, s."""
+        return np.unique(np.concatenate([tr.t for tr in self.tracks.values()]))
+
+    def nearest_measurement_dt(self, times: ArrayLike) -> np.ndarray:
+        """Largest over the prisms of the distance to that prism's nearest measurement, s."""
+        tau = np.asarray(times, dtype=float)
+        return np.max([_nearest_distance(tr.t, tau) for tr in self.tracks.values()], axis=0)
+
+    def query_poses(
+        self, times: ArrayLike, *, max_gap_s: float | None = None
+    ) -> GroundTruthSample:
+        """Poses, covariances and validity at arbitrary times.
+
+        Parameters
+        ----------
+        times : array_like, shape (M,)
+            Query times on the ground truth's clock, s, any order.
+        max_gap_s : float, optional
+            Drop the times whose nearest measurement of some prism is farther than this, s
+            (``far_from_measurement``); None: only the run's own limits apply.
+
+        Returns
+        -------
+        GroundTruthSample
+            ``reason`` is ``""`` for a valid pose, else a code of :data:`DROP_REASONS`.
+        """
+        tau = np.asarray(times, dtype=float)
+        if tau.ndim != 1:
+            raise InputError(f"Expected query times of shape (M,), got {tau.shape}")
+        if not np.all(np.isfinite(tau)):
+            raise InputError("Expected finite query times, got NaN or inf")
+        if max_gap_s is not None and not max_gap_s > 0:
+            raise InputError(f"Expected a positive max_gap_s, got {max_gap_s}")
+        M = tau.size
+        reason = np.full(M, "", dtype="<U24")
+        a, b = self.span
+        outside = (tau < a) | (tau > b)
+        in_iv = np.zeros(M, dtype=bool)
+        for lo, hi in self.intervals:
+            in_iv |= (tau >= lo) & (tau <= hi)
+        supported = np.ones(M, dtype=bool)
+        for g in self.gps.values():
+            supported &= g.supported(tau)
+        nearest = self.nearest_measurement_dt(tau) if M else np.empty(0)
+        far = np.zeros(M, dtype=bool) if max_gap_s is None else nearest > max_gap_s
+        reason[far] = REASON_FAR
+        reason[~supported] = REASON_GP_GAP
+        reason[~in_iv] = REASON_BETWEEN
+        reason[outside] = REASON_OUTSIDE
+        nearest = np.where(outside, np.nan, nearest)
+
+        position = np.full((M, 3), np.nan)
+        quat = np.full((M, 4), np.nan)
+        cov = np.full((M, 6, 6), np.nan)
+        idx = np.flatnonzero(reason == "")
+        if idx.size:
+            prisms = query_prisms(self.tracks, self.gps, tau[idx], self.options)
+            opt = self.options
+            est = estimate_poses(
+                prisms.xyz, prisms.cov, self.reference, engine=opt.engine, samples=opt.samples,
+                rng=np.random.default_rng(opt.seed) if opt.engine == "mc" else None,
+            )
+            keep, report = apply_gates(
+                est, self.reference, distance_gate_m=opt.distance_gate_m,
+                uncertainty_gate_m=opt.uncertainty_gate_m,
+                uncertainty_measure=self.uncertainty_measure,
+            )
+            position[idx] = est.position
+            quat[idx] = est.quat_xyzw
+            cov[idx] = est.cov
+            gated = idx[~keep]
+            reason[gated] = np.char.add(GATE_PREFIX, report.reason[~keep].astype(str))
+        return GroundTruthSample(tau.copy(), position, quat, cov, reason, nearest, None)
+
+
+def _override(options: RunOptions, engine: str | None, samples: int | None,
+              seed: int | None) -> RunOptions:
+    if engine is not None and engine not in _ENGINES:
+        raise InputError(f"Expected a ground-truth engine in {_ENGINES}, got {engine!r}")
+    changes = {}
+    if engine is not None:
+        changes["engine"] = engine
+    if samples is not None:
+        changes["samples"] = int(samples)
+    if seed is not None:
+        changes["seed"] = int(seed)
+    return dataclasses.replace(options, **changes) if changes else options

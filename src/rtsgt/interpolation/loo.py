@@ -1,0 +1,168 @@
+r"""Qc by leave-one-out cross-validation: calibrate the GP for what it is used for, interpolation.
+
+Why not only the marginal likelihood
+------------------------------------
+The marginal likelihood (:func:`rtsgt.interpolation.gp.fit_qc`) scores one-step *predictions*
+(the filter's innovations): from the past alone, every change of velocity is a surprise, so a
+robot that accelerates, brakes and turns smoothly gets a large ``Qc``. The ground truth is not
+a prediction but an *interpolation* between measurements on both sides, where a smooth change
+of velocity is no surprise at all. With the likelihood's ``Qc`` the bridge variance between two
+knots (``Qc D^3 s^3 (1-s)^3 / 3`` and the loss of correlation) dominates, and the interpolated
+covariance overstates the error; on simulated deployments by a factor of about 2 in variance
+(NEES / dof of 0.4 at 5 Hz queries between 2.5 Hz measurements, while the same GP is calibrated
+at its knots).
+
+Leave-one-out (Rasmussen & Williams 2006, section 5.4.2) scores exactly interpolation: each
+measurement ``y_k`` is predicted from all the others, and ``Qc`` maximises the sum of the
+log predictive densities
+
+    ``L_LOO(Qc) = sum_k log N(y_k; mu_-k, Sigma_-k + R_k)``.
+
+The predictive from the others comes from the smoothed posterior without refitting: the
+measurement only informs the position ``p_k``, and the position marginal of the posterior is the
+Gaussian update of the others' marginal by ``y_k``, so in information form
+
+    ``Sigma_-k^-1 = P_k^-1 - R_k^-1``,
+    ``mu_-k = Sigma_-k (P_k^-1 m_k - R_k^-1 y_k)``
+
+with ``(m_k, P_k)`` the smoothed position mean and covariance at the knot. One smoother pass
+per candidate ``Qc``; a bounded scalar search in ``log Qc`` (isotropic ``Qc = q I``). A knot
+counts only when it has neighbours on both sides within ``max_gap_s`` (the interpolation a query
+performs); ends of the track and of its segments are left out.
+
+If the motion really is a white-noise-on-acceleration process, both criteria estimate the same
+``Qc`` (tested); if it is smoother, leave-one-out gives the smaller, honest one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from rtsgt.errors import InputError
+from rtsgt.interpolation.gp import QC_BOUNDS, fit_track
+
+__all__ = ["LooInfo", "fit_qc_loo", "loo_predictive"]
+
+
+@dataclass(frozen=True)
+class LooInfo:
+    """Result of :func:`fit_qc_loo`.
+
+    Attributes
+    ----------
+    qc : float
+        The isotropic power spectral density, m^2/s^3.
+    log_predictive : float
+        ``L_LOO`` at ``qc`` (sum over the knots used).
+    n_used : int
+        Knots scored (interior, neighbours within ``max_gap_s``).
+    nees_mean : float
+        Mean of ``(y_k - mu_-k)^T (Sigma_-k + R_k)^-1 (y_k - mu_-k) / 3`` at ``qc``.
+    """
+
+    qc: float
+    log_predictive: float
+    n_used: int
+    nees_mean: float
+
+
+def _interior(t: np.ndarray, max_gap_s: float) -> np.ndarray:
+    dt = np.diff(t)
+    ok = np.zeros(t.shape[0], dtype=bool)
+    ok[1:-1] = (dt[:-1] <= max_gap_s) & (dt[1:] <= max_gap_s)
+    return ok
+
+
+def loo_predictive(track, qc: float, *, max_gap_s: float = 3.0):
+    """Leave-one-out predictive of every interior measurement.
+
+    Parameters
+    ----------
+    track : (t, xyz, cov)
+        Times (N,) s, positions (N, 3) m, measurement covariances (N, 3, 3) m^2.
+    qc : float
+        Isotropic power spectral density, m^2/s^3.
+    max_gap_s : float
+        Knots with a neighbour farther than this are not scored.
+
+    Returns
+    -------
+    used : ndarray of bool, shape (N,)
+    residual : ndarray, shape (U, 3)
+        ``y_k - mu_-k`` at the used knots, m.
+    cov : ndarray, shape (U, 3, 3)
+        ``Sigma_-k + R_k``, m^2.
+    """
+    t, y, R = (np.asarray(a, dtype=float) for a in track)
+    gp = fit_track((t, y, R), qc=float(qc), max_gap_s=1e300)
+    used = _interior(t, max_gap_s)
+    P = gp.cov[used, :3, :3]
+    m = gp.mean[used, :3]
+    Ru, yu = R[used], y[used]
+    P_inv = np.linalg.inv(P)
+    R_inv = np.linalg.inv(Ru)
+    lam = P_inv - R_inv
+    # the others' information can be (numerically) singular when Qc makes them uninformative;
+    # symmetrise and floor its eigenvalues at a tiny fraction of the measurement information
+    lam = 0.5 * (lam + np.swapaxes(lam, 1, 2))
+    w, V = np.linalg.eigh(lam)
+    floor = 1e-12 * np.linalg.eigvalsh(R_inv)[:, -1:]
+    w = np.maximum(w, floor)
+    sigma = np.einsum("nij,nj,nkj->nik", V, 1.0 / w, V)
+    info = np.einsum("nij,nj->ni", P_inv, m) - np.einsum("nij,nj->ni", R_inv, yu)
+    mu = np.einsum("nij,nj->ni", sigma, info)
+    return used, yu - mu, sigma + Ru
+
+
+def _score(track, qc: float, max_gap_s: float) -> tuple[float, float, int]:
+    _, r, S = loo_predictive(track, qc, max_gap_s=max_gap_s)
+    L = np.linalg.cholesky(S)
+    z = np.linalg.solve(L, r[..., None])[..., 0]
+    nees = np.einsum("ni,ni->n", z, z)
+    logdet = 2.0 * np.log(np.diagonal(L, axis1=1, axis2=2)).sum(axis=1)
+    ll = -0.5 * float(np.sum(nees + logdet + 3.0 * np.log(2.0 * np.pi)))
+    return ll, float(nees.mean() / 3.0), int(r.shape[0])
+
+
+def fit_qc_loo(
+    track, *, max_gap_s: float = 3.0, bounds: tuple[float, float] = QC_BOUNDS,
+    xatol: float = 1e-3,
+) -> LooInfo:
+    """Isotropic ``Qc`` maximising the leave-one-out log predictive density.
+
+    Parameters
+    ----------
+    track : (t, xyz, cov)
+        As for :func:`rtsgt.interpolation.gp.fit_track`.
+    max_gap_s : float
+        Knots next to a longer gap are not scored.
+    bounds : (float, float)
+        Search interval for ``Qc``, m^2/s^3.
+    xatol : float
+        Tolerance on ``log Qc``.
+
+    Returns
+    -------
+    LooInfo
+
+    Raises
+    ------
+    InputError
+        Fewer than 5 interior knots to score.
+    """
+    t = np.asarray(track[0], dtype=float)
+    n_used = int(_interior(t, max_gap_s).sum()) if t.ndim == 1 and t.size >= 3 else 0
+    if n_used < 5:
+        raise InputError(
+            f"Expected at least 5 measurements with neighbours within max_gap_s = {max_gap_s} s "
+            f"to fit Qc by leave-one-out, got {n_used}"
+        )
+    lo, hi = (float(np.log(b)) for b in bounds)
+    res = minimize_scalar(lambda lq: -_score(track, np.exp(lq), max_gap_s)[0],
+                          bounds=(lo, hi), method="bounded", options={"xatol": xatol})
+    qc = float(np.exp(res.x))
+    ll, nees, n = _score(track, qc, max_gap_s)
+    return LooInfo(qc, ll, n, nees)
