@@ -5,8 +5,10 @@ References used here, all independent of the code under test:
 - a dense batch GP built directly from the covariance kernel of the WNOA process
   (integrated Wiener process, ``Cov(p(s), p(t)) = (u^2 v / 2 - u^3 / 6) Qc`` ...), with the same
   prior on the first state (a proper Gaussian, or diffuse: universal kriging with a flat prior
-  on the initial state), solved in extended precision (``np.longdouble``) so that the
-  reference itself is good to much better than the 1e-9 asked of the code;
+  on the initial state), solved in extended precision (``np.longdouble``), good to better
+  than 1e-10 on RTS-like tracks (the kernel form loses the digits of max prior variance / min
+  posterior variance), and in exact rational arithmetic (``fractions.Fraction``, no rounding
+  at all) on small, badly conditioned tracks;
 - a sequential Kalman filter (exact diffuse start from the first two measurements) for the
   prediction-error decomposition of the marginal likelihood;
 - simulation from the prior itself for coverage and for the estimation of Qc.

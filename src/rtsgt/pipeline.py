@@ -245,8 +245,8 @@ def fit_gps(
 ) -> dict[str, GPTrack]:
     """Fit the GP of every prism track, its Qc chosen by ``options.qc``.
 
-    ``"loo"`` (default): leave-one-out cross-validation, which calibrates the GP for
-    interpolation (:mod:`rtsgt.interpolation.loo`); ``"likelihood"``: the marginal likelihood;
+    ``"loo"`` (default): leave-one-out cross-validation of a diagonal Qc (one PSD per world
+    axis), which calibrates the GP for interpolation (:mod:`rtsgt.interpolation.loo`); ``"likelihood"``: the marginal likelihood;
     a number: that isotropic PSD, m^2/s^3. ``qc`` optionally gives each prism's Qc (scalar or
     3x3), overriding ``options.qc``: refitting the tracks of a written run with the Qc it found.
     ``info``, when given, receives per prism the method and the fit's statistics.
@@ -259,7 +259,7 @@ def fit_gps(
             gps[pid], entry = fit_track(data, qc=qc[pid], max_gap_s=options.max_gap_s), {
                 "method": "given"}
         elif options.qc == "loo":
-            loo = fit_qc_loo(data, max_gap_s=options.max_gap_s)
+            loo = fit_qc_loo(data, mode="per-axis", max_gap_s=options.max_gap_s)
             gps[pid] = fit_track(data, qc=loo.qc, max_gap_s=options.max_gap_s)
             entry = {"method": "loo", "loo_log_predictive": loo.log_predictive,
                      "loo_knots": loo.n_used, "loo_nees_per_dof": loo.nees_mean}

@@ -1,0 +1,87 @@
+"""Qc by leave-one-out cross-validation (rtsgt.interpolation.loo)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rtsgt.errors import InputError
+from rtsgt.interpolation.gp import fit_qc, fit_track
+from rtsgt.interpolation.loo import fit_qc_loo, loo_predictive
+from test_gp import measure, random_spd, simulate_prior  # helpers of the GP tests
+
+
+def _track(rng, n, q_true, sigma2=9e-6):
+    t = 1.668e9 + np.cumsum(rng.uniform(0.3, 0.5, n))
+    R = random_spd(rng, n, sigma2, cond=10)
+    x = simulate_prior(rng, t, q_true, np.array([10.0, -5, 2, 0.5, 0.1, 0]))
+    return t, measure(rng, x[:, :3], R), R, x
+
+
+def test_leave_one_out_predictive_equals_a_refit_without_the_measurement():
+    """The information-form shortcut is exact: refit the GP without y_k, query it at t_k."""
+    rng = np.random.default_rng(3)
+    t, y, R, _ = _track(rng, 40, 0.02)
+    qc = 0.02
+    used, resid, S = loo_predictive((t, y, R), qc, max_gap_s=10.0)
+    assert used.sum() == 38 and not used[0] and not used[-1]
+    for k in np.flatnonzero(used)[::7]:
+        keep = np.arange(t.size) != k
+        gp = fit_track((t[keep], y[keep], R[keep]), qc=qc, max_gap_s=10.0)
+        q = gp.query([t[k]])
+        i = int(np.flatnonzero(np.flatnonzero(used) == k)[0])
+        np.testing.assert_allclose(resid[i], y[k] - q.position[0], rtol=0, atol=1e-10)
+        np.testing.assert_allclose(S[i], q.position_cov[0] + R[k], rtol=1e-7)
+
+
+def test_knots_next_to_long_gaps_are_not_scored():
+    rng = np.random.default_rng(4)
+    t, y, R, _ = _track(rng, 30, 0.02)
+    t = t.copy()
+    t[15:] += 20.0  # a 20 s gap between knots 14 and 15
+    used, _, _ = loo_predictive((t, y, R), 0.02, max_gap_s=3.0)
+    assert not used[14] and not used[15] and used[13] and used[16]
+
+
+@pytest.mark.parametrize("q_true", [1e-3, 0.05])
+def test_on_a_white_noise_acceleration_track_both_criteria_find_the_true_qc(q_true):
+    """When the motion follows the prior, leave-one-out and the likelihood agree (within the
+    20 % of the likelihood's own recovery test, a little wider for the noisier LOO)."""
+    rng = np.random.default_rng(int(q_true * 1e5) + 1)
+    t, y, R, _ = _track(rng, 1500, q_true)
+    loo = fit_qc_loo((t, y, R))
+    ml, _, _ = fit_qc((t, y, R))
+    assert abs(loo.qc / q_true - 1) < 0.3, loo.qc
+    assert abs(loo.qc / ml[0, 0] - 1) < 0.3
+    assert loo.n_used == t.size - 2
+    assert abs(loo.nees_mean - 1.0) < 0.1  # the predictive is calibrated at the optimum
+
+
+def test_smooth_motion_gets_a_smaller_qc_and_calibrated_interpolation():
+    """A smooth path (sinusoid, no white acceleration): the likelihood overstates Qc for
+    interpolation; leave-one-out gives a smaller Qc whose midpoint queries are calibrated."""
+    rng = np.random.default_rng(8)
+    n = 1200
+    t = np.cumsum(rng.uniform(0.35, 0.45, n))
+    w = 2 * np.pi / 40.0
+    truth = lambda s: np.stack([8 * np.sin(w * s), 5 * np.cos(0.7 * w * s), 0.3 * s], -1)  # noqa: E731
+    R = random_spd(rng, n, 4e-6, cond=5)
+    y = measure(rng, truth(t), R)
+    loo = fit_qc_loo((t, y, R))
+    ml, _, _ = fit_qc((t, y, R))
+    assert loo.qc < ml[0, 0]
+    mid = 0.5 * (t[1:] + t[:-1])
+    nees = {}
+    for name, q in (("loo", loo.qc), ("likelihood", ml[0, 0])):
+        g = fit_track((t, y, R), qc=q).query(mid)
+        e = g.position - truth(mid)
+        nees[name] = np.mean(np.einsum("ni,nij,nj->n", e, np.linalg.inv(g.position_cov), e)) / 3
+    assert abs(nees["loo"] - 1.0) < 0.2, nees
+    assert nees["likelihood"] < nees["loo"]
+
+
+def test_too_few_interior_knots_is_a_clear_error():
+    rng = np.random.default_rng(9)
+    t, y, R, _ = _track(rng, 6, 0.02)
+    with pytest.raises(InputError, match="at least 5 measurements"):
+        fit_qc_loo((t, y, R), max_gap_s=0.1)
