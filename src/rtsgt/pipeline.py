@@ -24,6 +24,7 @@ reproduces the paper, which fed the total covariance to the GP.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -246,32 +247,37 @@ def fit_gps(
     """Fit the GP of every prism track, its Qc chosen by ``options.qc``.
 
     ``"loo"`` (default): leave-one-out cross-validation of a diagonal Qc (one PSD per world
-    axis), which calibrates the GP for interpolation (:mod:`rtsgt.interpolation.loo`); ``"likelihood"``: the marginal likelihood;
-    a number: that isotropic PSD, m^2/s^3. ``qc`` optionally gives each prism's Qc (scalar or
-    3x3), overriding ``options.qc``: refitting the tracks of a written run with the Qc it found.
-    ``info``, when given, receives per prism the method and the fit's statistics.
+    axis), which calibrates the GP for interpolation (:mod:`rtsgt.interpolation.loo`);
+    ``"likelihood"``: the marginal likelihood; a number: that isotropic PSD, m^2/s^3. ``qc``
+    optionally gives each prism's Qc (scalar or 3x3), overriding ``options.qc``: refitting the
+    tracks of a written run with the Qc it found. ``info``, when given, receives per prism the
+    method and the fit's statistics. The prisms are fitted in parallel threads (numpy releases
+    the interpreter lock in its array operations); the result does not depend on it.
     """
-    gps = {}
-    for pid, tr in tracks.items():
-        cov = gp_covariance(tr, options.gp_noise)
-        data = (tr.t, tr.xyz, cov)
+
+    def fit_one(pid: str, tr: PrismTrack) -> tuple[GPTrack, dict]:
+        data = (tr.t, tr.xyz, gp_covariance(tr, options.gp_noise))
         if qc is not None and pid in qc:
-            gps[pid], entry = fit_track(data, qc=qc[pid], max_gap_s=options.max_gap_s), {
-                "method": "given"}
-        elif options.qc == "loo":
+            return fit_track(data, qc=qc[pid], max_gap_s=options.max_gap_s), {"method": "given"}
+        if options.qc == "loo":
             loo = fit_qc_loo(data, mode="per-axis", max_gap_s=options.max_gap_s)
-            gps[pid] = fit_track(data, qc=loo.qc, max_gap_s=options.max_gap_s)
-            entry = {"method": "loo", "loo_log_predictive": loo.log_predictive,
-                     "loo_knots": loo.n_used, "loo_nees_per_dof": loo.nees_mean}
-        elif options.qc == "likelihood":
-            gps[pid] = fit_track(data, fit_qc=True, max_gap_s=options.max_gap_s)
-            entry = {"method": "likelihood"}
-        else:
-            gps[pid] = fit_track(data, qc=float(options.qc), max_gap_s=options.max_gap_s)
-            entry = {"method": "given"}
-        if info is not None:
-            info[pid] = entry
-    return gps
+            return fit_track(data, qc=loo.qc, max_gap_s=options.max_gap_s), {
+                "method": "loo", "loo_log_predictive": loo.log_predictive,
+                "loo_knots": loo.n_used, "loo_nees_per_dof": loo.nees_mean}
+        if options.qc == "likelihood":
+            return fit_track(data, fit_qc=True, max_gap_s=options.max_gap_s), {
+                "method": "likelihood"}
+        return fit_track(data, qc=float(options.qc), max_gap_s=options.max_gap_s), {
+            "method": "given"}
+
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=max(1, min(len(tracks), os.cpu_count() or 1))) as ex:
+        futures = {pid: ex.submit(fit_one, pid, tr) for pid, tr in tracks.items()}
+        done = {pid: f.result() for pid, f in futures.items()}
+    if info is not None:
+        info.update({pid: entry for pid, (_, entry) in done.items()})
+    return {pid: gp for pid, (gp, _) in done.items()}
 
 
 def query_prisms(
