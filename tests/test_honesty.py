@@ -1,24 +1,17 @@
 """Honest uncertainty end to end: simulated deployments with known truth.
 
 The ground truth's covariance must describe its error: pooled over many simulated deployments,
-NEES / dof should average to 1 and the 95 % regions should hold the truth 95 % of the time.
-Errors are correlated along one deployment (a station's calibration or clock offset is drawn
-once per deployment), so the statistics are pooled over deployments, each a fresh draw of
-every systematic error, rather than over more poses of one: 40 deployments here (about
-+-0.06 on NEES / dof), 120 in ``benchmarks/honesty.py`` (+-0.04).
+NEES / dof should average to 1 (issue: within 15 %) and the 95 % regions should hold the truth
+95 % of the time (within 3 %). Errors are correlated along one deployment (a station's
+calibration or clock offset is drawn once per deployment), so the statistics are pooled over
+deployments, each a fresh draw of every systematic error, rather than over more poses of one.
 
-What holds, and what does not (README, section Honesty):
-
-- each interpolated prism, at the query times, with every noise source: NEES / dof within
-  15 % of 1 and its 95 % region within 3 % of 95 % (the issue's criteria, asserted below);
-- the pose: NEES / dof 1.05-1.15 (6 dof) and 1.15-1.25 (3 dof, position), 95 % regions
-  92-94 %, measured over 120 deployments. The covariance is somewhat optimistic, most on the
-  position, because the three prisms are interpolated by independent GPs while their
-  interpolation errors during a manoeuvre are shared (correlation 0.1-0.2 between prisms,
-  measured on the simulated truth) and the GCP calibrations of the stations share the
-  reference station's shots; per-prism covariances cannot carry either correlation. The
-  issue's +-15 % on the position NEES is therefore not reliably met: the pose bounds below are
-  the measured ones with their statistical margin, a regression guard, not the target.
+``benchmarks/honesty.py`` measures the claim on 120 deployments (spread about +-0.04 on
+NEES / dof): Monte Carlo 1.12 (position) / 1.08 (pose), 95 % regions 93.1 % / 93.1 %; linear
+and unscented 1.11 / 1.05, 93.4 % / 93.9 % (README, section Honesty). This test pools 40
+deployments (spread about +-0.06), so its bounds add two spreads to the issue's tolerances on
+the means, and one point to those on the 95 % regions; the per-prism check uses the issue's
+tolerances as they are (each prism is pooled over all 40 deployments and is far from them).
 """
 
 from __future__ import annotations
@@ -73,14 +66,14 @@ def test_every_interpolated_prism_is_consistent(pooled):
 
 
 def test_pose_nees_for_the_monte_carlo_engine(pooled):
-    """Regression guard at the measured level (see the module docstring)."""
     n6 = np.concatenate([c.nees_pose.values for (_, c), _ in pooled])
     n3 = np.concatenate([c.nees_position.values for (_, c), _ in pooled])
     assert n6.size > 10_000  # several thousand poses, from 40 independent deployments
-    assert 0.85 < n6.mean() / 6.0 < 1.3, n6.mean() / 6.0
-    assert 0.85 < n3.mean() / 3.0 < 1.4, n3.mean() / 3.0
-    assert 0.88 < np.mean(n6 <= chi2.ppf(0.95, 6)) < 0.98
-    assert 0.86 < np.mean(n3 <= chi2.ppf(0.95, 3)) < 0.98
+    spread = 0.06  # of NEES / dof over 40 deployments (module docstring)
+    assert abs(n6.mean() / 6.0 - 1.0) < 0.15 + 2 * spread, n6.mean() / 6.0
+    assert abs(n3.mean() / 3.0 - 1.0) < 0.15 + 2 * spread, n3.mean() / 3.0
+    assert abs(np.mean(n6 <= chi2.ppf(0.95, 6)) - 0.95) < 0.03 + 0.01
+    assert abs(np.mean(n3 <= chi2.ppf(0.95, 3)) - 0.95) < 0.03 + 0.01
 
 
 def test_errors_are_millimetric_and_the_engines_agree(pooled, tmp_path):

@@ -107,3 +107,37 @@ def test_real_excerpt_end_to_end(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["poses"]["kept"] == len(gt)
     assert summary["parameters"]["instrument"] == "trimble-s7"
+
+
+def test_station_coupling_reproduces_the_sampled_cross_covariance_of_prisms(tmp_path):
+    """Two stations calibrated from the same reference shots have correlated errors: the joint
+    prism covariance's off-diagonal block equals the cross-covariance of prism positions mapped
+    by the calibration's own Monte Carlo samples (first order, so to a small relative error)."""
+    import warnings
+
+    from rtsgt.calibration import calibrate
+    from rtsgt.pipeline import StationCoupling, joint_prism_covariance
+
+    sim = simulate_deployment(SimulationConfig(duration_s=30.0), np.random.default_rng(5))
+    data, _ = load_deployment(write_deployment(sim, tmp_path / "dep"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        calib = calibrate(data.gcp, reference_station="1", instrument=data.instrument,
+                          samples=4000, rng=np.random.default_rng(1))
+    coupling = StationCoupling.from_calibration(calib)
+    assert set(coupling.cross) == {("1", "2"), ("1", "3"), ("2", "3")}
+    np.testing.assert_array_equal(coupling.cross[("1", "2")], 0.0)  # the reference is exact
+    # a prism 40 m from station 2 and one 60 m from station 3 (station frames)
+    T2, T3 = calib.transforms["2"], calib.transforms["3"]
+    p2, p3 = np.array([30.0, 25.0, 2.0]), np.array([-40.0, 44.0, -1.0])
+    w2 = np.einsum("mij,j->mi", T2.samples_rotation, p2) + T2.samples_translation
+    w3 = np.einsum("mij,j->mi", T3.samples_rotation, p3) + T3.samples_translation
+    sampled = (w2 - w2.mean(0)).T @ (w3 - w3.mean(0)) / (w2.shape[0] - 1)
+    xyz = np.stack([T2.rotation @ p2 + T2.translation, T3.rotation @ p3 + T3.translation])[None]
+    joint = joint_prism_covariance(xyz, np.zeros((1, 2, 3, 3)), ["2", "3"], coupling)[0]
+    assert np.linalg.norm(sampled) > 1e-8  # a real correlation, not a zero
+    np.testing.assert_allclose(joint[:3, 3:], sampled, rtol=0, atol=0.02 * np.abs(sampled).max())
+    np.testing.assert_allclose(joint[3:, :3], sampled.T, rtol=0, atol=0.02 * np.abs(sampled).max())
+    # round trip through summary.json
+    back = StationCoupling.from_dict(json.loads(json.dumps(coupling.to_dict())))
+    np.testing.assert_array_equal(back.cross[("2", "3")], coupling.cross[("2", "3")])

@@ -229,3 +229,49 @@ def test_psd_factor_columns_reproduce_the_covariance():
     B = rng.normal(size=(4, 3, 3))
     spd = B @ np.swapaxes(B, -1, -2) + np.eye(3)
     np.testing.assert_allclose(psd_factor(spd), np.linalg.cholesky(spd))
+
+
+def test_joint_prism_covariance_block_diagonal_equals_per_prism():
+    """A joint (3n x 3n) covariance with no cross terms gives what the per-prism blocks give."""
+    from rtsgt.pose.estimate import block_diagonal
+
+    rng = np.random.default_rng(41)
+    r = warthog_reference()
+    _, _, q, cov_q = simulate(rng, 20, r)
+    cov_r = correlated_reference_cov(rng)
+    joint = block_diagonal(cov_q)
+    assert joint.shape == (20, 9, 9)
+    for engine in ("linear", "ut"):
+        a = estimate_poses(q, cov_q, r, cov_r, engine=engine)
+        b = estimate_poses(q, joint, r, cov_r, engine=engine)
+        np.testing.assert_allclose(b.cov, a.cov, rtol=1e-9, atol=1e-18)
+    a = estimate_poses(q, cov_q, r, cov_r, engine="mc", samples=300, rng=np.random.default_rng(1))
+    b = estimate_poses(q, joint, r, cov_r, engine="mc", samples=300, rng=np.random.default_rng(1))
+    np.testing.assert_allclose(b.cov, a.cov, rtol=1e-9, atol=1e-18)
+
+
+@pytest.mark.parametrize("engine", ["mc", "ut", "linear"])
+def test_errors_shared_between_prisms_need_the_joint_covariance(engine):
+    """Prism errors with a common part (one shift for all prisms, as from a shared calibration
+    or a common interpolation error): NEES is consistent with the joint covariance, and too
+    large when only the per-prism blocks are given."""
+    rng = np.random.default_rng(42)
+    r = warthog_reference()
+    T = 1500
+    R, t, q0, cov_q = simulate(rng, T, r)
+    q_true = np.einsum("tij,nj->tni", R, r) + t[:, None, :]
+    common = np.diag([3e-3, 3e-3, 1.5e-3]) ** 2  # the shared part, m^2
+    joint = np.tile(np.kron(np.ones((3, 3)), common), (T, 1, 1))
+    for i in range(3):
+        joint[:, 3 * i:3 * i + 3, 3 * i:3 * i + 3] += cov_q[:, i]
+    L = np.linalg.cholesky(joint)
+    q = q_true + np.einsum("tab,tb->ta", L, rng.standard_normal((T, 9))).reshape(T, 3, 3)
+    zero_r = np.zeros((9, 9))
+    res = {}
+    for name, c in (("joint", joint), ("blocks", cov_q + common)):
+        est = estimate_poses(q, c, r, zero_r, engine=engine, samples=400,
+                             rng=np.random.default_rng(3))
+        xi = perturbation(est.R, est.t, R, t)
+        res[name] = np.mean(np.einsum("ti,tij,tj->t", xi, np.linalg.inv(est.cov), xi)) / 6
+    assert abs(res["joint"] - 1.0) < 0.1, res
+    assert res["blocks"] > 1.2, res

@@ -135,6 +135,9 @@ class PrismsAtTimes:
         Each source's covariance, interpolated from the measurements.
     nearest_dt : ndarray, shape (T, n)
         Time to the nearest measurement of each prism, s.
+    cov_joint : ndarray, shape (T, 3n, 3n), optional
+        Joint covariance of the stacked prisms: the blocks of ``cov`` on the diagonal, and off
+        it the calibration errors two stations share (:class:`StationCoupling`).
     """
 
     t: np.ndarray
@@ -143,6 +146,13 @@ class PrismsAtTimes:
     cov_gp: np.ndarray
     cov_by_source: dict[str, np.ndarray]
     nearest_dt: np.ndarray
+    cov_joint: np.ndarray | None = None
+
+    @property
+    def pose_covariance(self) -> np.ndarray:
+        """What the pose engines take: the joint (T, 3n, 3n) covariance when the prisms share
+        errors (the station calibrations), else the per-prism blocks (T, n, 3, 3)."""
+        return self.cov if self.cov_joint is None else self.cov_joint
 
 
 @dataclass(frozen=True)
@@ -164,6 +174,7 @@ class RunResult:
     noise_model: NoiseModel
     timings_s: dict[str, float]
     qc_info: dict[str, dict] = field(default_factory=dict)
+    coupling: StationCoupling | None = None
 
     @property
     def rejection_reasons(self) -> np.ndarray:
@@ -280,10 +291,111 @@ def fit_gps(
     return {pid: gp for pid, (gp, _) in done.items()}
 
 
+@dataclass(frozen=True)
+class StationCoupling:
+    """How the calibration errors of different stations are correlated.
+
+    Every station is fitted to the reference station's shots of the same markers, so the
+    errors of two calibrated stations share the reference's measurement noise: their left
+    perturbations ``xi_a``, ``xi_b`` (:mod:`rtsgt.geometry.transform`) are correlated, and so
+    are the errors of the prisms they track. The pose engines need that correlation: it moves
+    the prisms together, which a registration cannot average out.
+
+    Attributes
+    ----------
+    origin : dict str -> ndarray (3,)
+        World position of each station, m (the lever arm of its rotation error).
+    cross : dict (str, str) -> ndarray (6, 6)
+        ``Cov(xi_a, xi_b)`` for pairs of distinct stations, m^2 / m rad / rad^2.
+    """
+
+    origin: dict[str, np.ndarray]
+    cross: dict[tuple[str, str], np.ndarray]
+
+    @classmethod
+    def from_calibration(cls, calib: CalibrationResult) -> StationCoupling:
+        """From the calibration's Monte Carlo samples (sample m of every station comes from
+        the same perturbed GCP shots)."""
+        from rtsgt.geometry.transform import perturbation
+
+        xi = {}
+        for sid, T in calib.transforms.items():
+            if T.samples_rotation is None or T.samples_translation is None:
+                continue
+            d = perturbation(T.rotation, T.translation, T.samples_rotation,
+                             T.samples_translation)
+            xi[sid] = d - d.mean(axis=0)
+        cross = {}
+        ids = sorted(xi)
+        for i, a in enumerate(ids):
+            for b in ids[i + 1:]:
+                m = xi[a].shape[0]
+                if m > 1 and m == xi[b].shape[0]:
+                    cross[(a, b)] = xi[a].T @ xi[b] / (m - 1)
+        origin = {sid: np.asarray(T.translation, dtype=float)
+                  for sid, T in calib.transforms.items()}
+        return cls(origin, cross)
+
+    def to_dict(self) -> dict:
+        """JSON-ready (pairs keyed ``"a|b"``)."""
+        return {"origin_m": {k: v.tolist() for k, v in self.origin.items()},
+                "cross_covariance": {f"{a}|{b}": c.tolist() for (a, b), c in self.cross.items()}}
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> StationCoupling:
+        origin = {str(k): np.asarray(v, dtype=float) for k, v in doc["origin_m"].items()}
+        cross = {}
+        for key, c in doc["cross_covariance"].items():
+            a, b = str(key).split("|")
+            cross[(a, b)] = np.asarray(c, dtype=float).reshape(6, 6)
+        return cls(origin, cross)
+
+    def block(self, a: str, b: str) -> np.ndarray | None:
+        """``Cov(xi_a, xi_b)``, or None when the two are not correlated (or a == b)."""
+        if (a, b) in self.cross:
+            return self.cross[(a, b)]
+        if (b, a) in self.cross:
+            return self.cross[(b, a)].T
+        return None
+
+
+def joint_prism_covariance(
+    xyz: np.ndarray, cov: np.ndarray, stations: list[str], coupling: StationCoupling
+) -> np.ndarray:
+    """(T, 3n, 3n): the per-prism ``cov`` on the diagonal, ``J_i Cov(xi_a, xi_b) J_j^T`` off it.
+
+    ``J_i = [I, -[q_i]x]`` with ``q_i`` the prism's position relative to its station (world
+    axes), the Jacobian of the calibration source (:func:`rtsgt.noise.linear.calibration_covariance`).
+    """
+    from rtsgt.geometry.so3 import hat
+    from rtsgt.pose.estimate import block_diagonal
+
+    T, n, _ = xyz.shape
+    out = block_diagonal(cov)
+    J = {}
+    for i, s in enumerate(stations):
+        q = xyz[:, i] - coupling.origin.get(s, np.zeros(3))
+        J[i] = np.concatenate([np.broadcast_to(np.eye(3), (T, 3, 3)), -hat(q)], axis=-1)
+    for i in range(n):
+        for j in range(i + 1, n):
+            X = coupling.block(stations[i], stations[j])
+            if X is None:
+                continue
+            c = J[i] @ X @ np.swapaxes(J[j], 1, 2)
+            out[:, 3 * i:3 * i + 3, 3 * j:3 * j + 3] = c
+            out[:, 3 * j:3 * j + 3, 3 * i:3 * i + 3] = np.swapaxes(c, 1, 2)
+    return out
+
+
 def query_prisms(
-    tracks: dict[str, PrismTrack], gps: dict[str, GPTrack], t: np.ndarray, options: RunOptions
+    tracks: dict[str, PrismTrack], gps: dict[str, GPTrack], t: np.ndarray, options: RunOptions,
+    coupling: StationCoupling | None = None,
 ) -> PrismsAtTimes:
-    """Positions and covariances of every prism at the times ``t`` (inside every track)."""
+    """Positions and covariances of every prism at the times ``t`` (inside every track).
+
+    With ``coupling`` (and the calibration among the noise sources), the joint covariance
+    across prisms is filled too (:attr:`PrismsAtTimes.cov_joint`).
+    """
     ids = list(tracks)
     T, n = t.shape[0], len(ids)
     xyz = np.empty((T, n, 3))
@@ -303,7 +415,10 @@ def query_prisms(
     for s in systematic:
         if s in by_source:
             cov += by_source[s]
-    return PrismsAtTimes(t, xyz, cov, cov_gp, by_source, nearest)
+    joint = None
+    if coupling is not None and coupling.cross and "calibration" in by_source:
+        joint = joint_prism_covariance(xyz, cov, [tracks[p].station for p in ids], coupling)
+    return PrismsAtTimes(t, xyz, cov, cov_gp, by_source, nearest, joint)
 
 
 def run_pipeline(
@@ -393,12 +508,13 @@ def run_pipeline(
     t_query = t_query[ok]
     if t_query.size == 0:
         raise InputError("No query time falls inside the intervals common to all prisms")
-    prisms = query_prisms(tracks, gps, t_query, options)
+    coupling = StationCoupling.from_calibration(calib)
+    prisms = query_prisms(tracks, gps, t_query, options, coupling)
     lap("interpolation")
 
     say("poses")
     reference = data.reference.select(list(tracks))
-    est = estimate_poses(prisms.xyz, prisms.cov, reference, engine=options.engine,
+    est = estimate_poses(prisms.xyz, prisms.pose_covariance, reference, engine=options.engine,
                          samples=options.samples, rng=rng)
     lap("pose")
 
@@ -412,4 +528,4 @@ def run_pipeline(
     )
     lap("gates")
     return RunResult(data, options, reports, calib, tracks, intervals, gps, prisms, est, keep,
-                     gate_report, gt, model, timings, qc_info)
+                     gate_report, gt, model, timings, qc_info, coupling)

@@ -42,7 +42,8 @@ class Stages:
 
     def _finish(self) -> None:
         if self._name is not None and not self.quiet:
-            self.console.log(f"{self._name}: {time.perf_counter() - self._t0:.2f} s")
+            elapsed = time.perf_counter() - self._t0
+            self.console.print(f"  {self._name}: {elapsed:.2f} s", highlight=False)
         self._name = None
 
     def __exit__(self, *exc) -> None:

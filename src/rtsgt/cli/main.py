@@ -52,7 +52,15 @@ def _register_all() -> None:
 _register_all()
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings of the library as one ``warning: ...`` line, without a source excerpt."""
+    typer.echo(f"warning: {message}", err=True)
+
+
 def main() -> None:  # pragma: no cover - console entry point
+    import warnings
+
+    warnings.showwarning = _show_warning
     try:
         app()
     except RtsgtError as exc:

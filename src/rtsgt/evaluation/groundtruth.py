@@ -62,7 +62,7 @@ from rtsgt.filtering.gates import apply_gates
 from rtsgt.interpolation import GPTrack
 from rtsgt.io.run_output import COV3_NAMES, columns_to_cov3
 from rtsgt.io.run_reader import read_run, read_table
-from rtsgt.pipeline import RunOptions, fit_gps, query_prisms
+from rtsgt.pipeline import RunOptions, StationCoupling, fit_gps, query_prisms
 from rtsgt.pose import ReferencePoints, estimate_poses
 from rtsgt.types import PrismTrack
 
@@ -117,6 +117,8 @@ class ContinuousGroundTruth:
         Measure of the uncertainty gate (:func:`rtsgt.filtering.gates.position_uncertainty`).
     source : str
         Where it comes from (for messages).
+    coupling : StationCoupling, optional
+        Correlation of the station calibrations (the run's), for the joint prism covariance.
     """
 
     tracks: dict[str, PrismTrack]
@@ -126,6 +128,7 @@ class ContinuousGroundTruth:
     options: RunOptions
     uncertainty_measure: str = "max_std"
     source: str = ""
+    coupling: StationCoupling | None = None
 
     def __post_init__(self) -> None:
         if not self.tracks:
@@ -157,6 +160,7 @@ class ContinuousGroundTruth:
         *,
         uncertainty_measure: str = "max_std",
         source: str = "",
+        coupling: StationCoupling | None = None,
     ) -> ContinuousGroundTruth:
         """Fit the GPs of ``tracks`` with the given per-prism ``Qc`` (m^2/s^3)."""
         missing = [p for p in tracks if p not in qc]
@@ -164,7 +168,8 @@ class ContinuousGroundTruth:
             raise InputError(f"{source or 'ground truth'}: no Qc for prism(s) {', '.join(missing)}")
         gps = fit_gps(tracks, options, qc={p: qc[p] for p in tracks})
         return cls(dict(tracks), gps, np.asarray(intervals, dtype=float),
-                   reference.select(list(tracks)), options, uncertainty_measure, source)
+                   reference.select(list(tracks)), options, uncertainty_measure, source,
+                   coupling)
 
     @classmethod
     def from_result(
@@ -183,7 +188,8 @@ class ContinuousGroundTruth:
         tracks = dict(result.tracks)
         return cls(tracks, {p: result.gps[p] for p in tracks}, np.asarray(result.intervals),
                    result.data.reference.select(list(tracks)), opts,
-                   result.gate_report.uncertainty_measure, result.data.name)
+                   result.gate_report.uncertainty_measure, result.data.name,
+                   getattr(result, "coupling", None))
 
     @classmethod
     def from_run_dir(
@@ -242,8 +248,10 @@ class ContinuousGroundTruth:
                 if all(f"cov_{c}" in header for c in COV3_NAMES):
                     cols = [header.index(f"cov_{c}") for c in COV3_NAMES]
                     tr = dataclasses.replace(tr, cov=columns_to_cov3(data[:, cols]))
-            tracks[pid] = tr
             info = prisms_info.get(pid) if isinstance(prisms_info, dict) else None
+            if isinstance(info, dict) and info.get("station") is not None:
+                tr = dataclasses.replace(tr, station=str(info["station"]))
+            tracks[pid] = tr
             q = info.get("qc_m2_s3") if isinstance(info, dict) else None
             if q is None:
                 raise InputError(f"no qc_m2_s3 for prism {pid} under 'prisms'", summary_path)
@@ -277,8 +285,15 @@ class ContinuousGroundTruth:
             raise InputError(str(exc), summary_path) from None
         options = _override(options, engine, samples, seed)
         measure = str((summary.get("gates") or {}).get("uncertainty_measure", "max_std"))
+        coupling = None
+        doc = (summary.get("calibration") or {}).get("coupling")
+        if doc is not None:  # runs written before rtsgt carried it have none
+            try:
+                coupling = StationCoupling.from_dict(doc)
+            except (KeyError, TypeError, ValueError) as exc:
+                raise InputError(f"bad calibration.coupling: {exc}", summary_path) from None
         return cls.from_tracks(tracks, qc, intervals, reference, options,
-                               uncertainty_measure=measure, source=str(root))
+                               uncertainty_measure=measure, source=str(root), coupling=coupling)
 
     # ---------------------------------------------------------------------------------------
     # queries
@@ -367,10 +382,10 @@ class ContinuousGroundTruth:
         cov = np.full((M, 6, 6), np.nan)
         idx = np.flatnonzero(reason == "")
         if idx.size:
-            prisms = query_prisms(self.tracks, self.gps, tau[idx], self.options)
+            prisms = query_prisms(self.tracks, self.gps, tau[idx], self.options, self.coupling)
             opt = self.options
             est = estimate_poses(
-                prisms.xyz, prisms.cov, self.reference, engine=opt.engine, samples=opt.samples,
+                prisms.xyz, prisms.pose_covariance, self.reference, engine=opt.engine, samples=opt.samples,
                 rng=np.random.default_rng(opt.seed) if opt.engine == "mc" else None,
             )
             keep, report = apply_gates(

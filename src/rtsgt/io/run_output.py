@@ -241,6 +241,9 @@ def run_summary(result, inputs: dict | None = None) -> dict:
             },
             # world position of each GCP (m), for the figures and the report
             "gcp_world": _gcp_world_dict(result),
+            # correlation of the station calibrations (pipeline.StationCoupling): origins m,
+            # cross-covariances of the left perturbations (x, y, z, rx, ry, rz)
+            "coupling": result.coupling.to_dict() if result.coupling is not None else None,
         },
         "timings_s": result.timings_s,
     }

@@ -215,8 +215,11 @@ def estimate_poses(
     ----------
     q_world : array_like, shape (T, n, 3)
         Mean world positions of the n prisms at each pose time, m. NaN marks a missing prism.
-    cov_q : array_like, shape (T, n, 3, 3)
-        Their covariances (independent between prisms and times), m^2, world frame.
+    cov_q : array_like, shape (T, n, 3, 3) or (T, 3n, 3n)
+        Their covariances, m^2, world frame: per prism (independent between prisms), or the
+        joint covariance of the stacked ``(q_1x, q_1y, q_1z, q_2x, ...)`` at each time, for
+        errors shared between prisms (e.g. two stations calibrated from the same GCP shots).
+        Poses are independent between times either way.
     r_body : array_like, shape (n, 3), or ReferencePoints
         Reference positions of the same prisms, in the same order, in the body frame, m.
     cov_r : array_like, shape (3n, 3n) or (n, 3, 3)
@@ -228,7 +231,8 @@ def estimate_poses(
         Monte Carlo samples M (``"mc"`` only).
     rng : numpy.random.Generator
         Required by ``"mc"``. Draws: the reference ``(M, 3n)`` first, then the prisms
-        ``(T_valid, M, n, 3)`` in pose order, so results do not depend on ``chunk_size``.
+        ``(T_valid, M, n, 3)`` in pose order, so results do not depend on ``chunk_size`` (nor
+        on whether a block-diagonal covariance is given per prism or jointly).
     chunk_size : int, optional
         Registrations per Monte Carlo chunk (default 65536), bounds the memory.
     min_shape : float
@@ -250,8 +254,11 @@ def estimate_poses(
     if q.ndim != 3 or q.shape[2] != 3:
         raise ValueError(f"Expected q_world of shape (T, n, 3), got {q.shape}")
     T, n, _ = q.shape
-    if cq.shape != (T, n, 3, 3):
-        raise ValueError(f"Expected cov_q of shape ({T}, {n}, 3, 3), got {cq.shape}")
+    if cq.shape == (T, n, 3, 3):
+        cq = block_diagonal(cq)
+    elif cq.shape != (T, 3 * n, 3 * n):
+        raise ValueError(
+            f"Expected cov_q of shape ({T}, {n}, 3, 3) or ({T}, {3 * n}, {3 * n}), got {cq.shape}")
     r, cr = _reference_inputs(r_body, cov_r)
     if r.shape[0] != n:
         raise ValueError(f"Expected {n} reference points (one per prism), got {r.shape[0]}")
@@ -276,9 +283,9 @@ def estimate_poses(
         )
 
     # per-pose validity
-    finite = np.all(np.isfinite(q), axis=(1, 2)) & np.all(np.isfinite(cq), axis=(1, 2, 3))
+    finite = np.all(np.isfinite(q), axis=(1, 2)) & np.all(np.isfinite(cq), axis=(1, 2))
     if finite.any():
-        check_covariance(cq[finite], 3, "cov_q")
+        check_covariance(cq[finite], 3 * n, "cov_q")
     shape = shape_ratio(q)
     collinear = finite & ~(shape >= min_shape)
     reason = np.full(T, REASON_OK, dtype="<U16")
@@ -322,7 +329,8 @@ def estimate_poses(
         cov[valid], offset[valid] = c, o
     elif valid.size:
         J_q, J_r = registration_jacobian(np.broadcast_to(r, qv.shape), qv, Rv)
-        c = np.einsum("kani,knij,kbnj->kab", J_q, cqv, J_q)
+        Jq = J_q.reshape(valid.size, 6, 3 * n)
+        c = Jq @ cqv @ np.swapaxes(Jq, 1, 2)
         Jr = J_r.reshape(valid.size, 6, 3 * n)
         c = c + np.einsum("kai,ij,kbj->kab", Jr, cr, Jr)
         cov[valid] = c
@@ -340,8 +348,20 @@ def _perturbations(R: np.ndarray, t: np.ndarray, R0: np.ndarray, t0: np.ndarray)
     return xi
 
 
+def block_diagonal(blocks: np.ndarray) -> np.ndarray:
+    """(..., n, 3, 3) per-prism blocks -> (..., 3n, 3n) block-diagonal joint matrices."""
+    n = blocks.shape[-3]
+    out = np.zeros(blocks.shape[:-3] + (3 * n, 3 * n))
+    for i in range(n):
+        out[..., 3 * i:3 * i + 3, 3 * i:3 * i + 3] = blocks[..., i, :, :]
+    return out
+
+
 def _mc(q, Lq, r_samples, R0, t0, rng, chunk):
-    """Monte Carlo second moment and mean of the perturbations, chunked over poses."""
+    """Monte Carlo second moment and mean of the perturbations, chunked over poses.
+
+    ``Lq`` (K, 3n, 3n) factors the joint prism covariance of each pose.
+    """
     K, n, _ = q.shape
     M = r_samples.shape[0]
     per = max(1, chunk // M)
@@ -349,8 +369,8 @@ def _mc(q, Lq, r_samples, R0, t0, rng, chunk):
     off = np.empty((K, 6))
     for s in range(0, K, per):
         e = min(K, s + per)
-        z = rng.standard_normal((e - s, M, n, 3))
-        qs = q[s:e, None] + np.einsum("knij,kmnj->kmni", Lq[s:e], z)
+        z = rng.standard_normal((e - s, M, n, 3)).reshape(e - s, M, 3 * n)
+        qs = q[s:e, None] + np.einsum("kab,kmb->kma", Lq[s:e], z).reshape(e - s, M, n, 3)
         ps = np.broadcast_to(r_samples, qs.shape)
         Rs, ts, _ = _register_flat(ps.reshape(-1, n, 3), qs.reshape(-1, n, 3), DEFAULT_CHUNK)
         xi = _perturbations(Rs.reshape(e - s, M, 3, 3), ts.reshape(e - s, M, 3), R0[s:e], t0[s:e])
@@ -364,11 +384,8 @@ def _ut(q, Lq, r, Lr, R0, t0):
     K, n, _ = q.shape
     L = 6 * n
     gamma = np.sqrt(L)  # alpha = 1, kappa = 0: sigma points at +- sqrt(L) columns
-    # prism part: column j of prism i's factor moves prism i only
-    dq = np.zeros((K, 3 * n, n, 3))
-    for i in range(n):
-        dq[:, 3 * i:3 * i + 3, i, :] = np.swapaxes(Lq[:, i], -1, -2)  # rows = columns of L
-    dq *= gamma
+    # prism part: column j of the joint factor moves the prisms along it
+    dq = gamma * np.swapaxes(Lq, -1, -2).reshape(K, 3 * n, n, 3)  # rows = columns of L
     q_sig = np.concatenate([q[:, None] + dq, q[:, None] - dq], axis=1)  # (K, 6n, n, 3)
     p_sig_q = np.broadcast_to(r, q_sig.shape)
     dr = gamma * Lr.T.reshape(3 * n, n, 3)  # row k = column k of Lr
