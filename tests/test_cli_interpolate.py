@@ -105,6 +105,22 @@ def test_fit_qc_flag_and_per_axis(track_file):
     np.testing.assert_array_equal(read_output(c.stdout), expected)
 
 
+def test_leave_one_out_qc_method_equals_the_library(track_file):
+    from rtsgt.interpolation.loo import fit_qc_loo
+
+    r = invoke(track_file, "--rate", 2, "--qc-method", "loo", "--qc-mode", "per-axis")
+    assert r.exit_code == 0, r.output
+    assert "leave-one-out" in r.stderr and "diag(" in r.stderr
+    tr = read_track_csv(track_file)
+    loo = fit_qc_loo((tr.t, tr.xyz, tr.cov), mode="per-axis", max_gap_s=3.0)
+    gp, _ = library(track_file, [], qc=loo.qc, max_gap_s=3.0)
+    times, _ = rate_times(gp, 2.0)
+    _, expected = library(track_file, times, qc=loo.qc, max_gap_s=3.0)
+    np.testing.assert_array_equal(read_output(r.stdout), expected)
+    bad = invoke(track_file, "--rate", 2, "--qc-method", "cv")
+    assert bad.exit_code != 0
+
+
 def test_max_gap_option(track_file):
     wide = invoke(track_file, "--rate", 5, "--qc", 0.05, "--max-gap", 10)
     narrow = invoke(track_file, "--rate", 5, "--qc", 0.05)

@@ -16,6 +16,7 @@ import typer
 
 from rtsgt.errors import InputError
 from rtsgt.interpolation import DEFAULT_MAX_GAP_S, GPTrack, fit_track
+from rtsgt.interpolation.loo import fit_qc_loo
 from rtsgt.io._parse import atomic_write_text
 from rtsgt.io.track_csv import read_query_times, read_track_csv, track_csv_text
 
@@ -50,6 +51,7 @@ def interpolate_file(
     fit_qc: bool = False,
     qc_mode: str = "isotropic",
     max_gap: float = DEFAULT_MAX_GAP_S,
+    qc_method: str = "likelihood",
 ) -> tuple[str, GPTrack, int]:
     """Fit the track of ``track_path`` and answer the queries; return the CSV text.
 
@@ -73,11 +75,18 @@ def interpolate_file(
         raise InputError(f"Expected --max-gap > 0 s, got {max_gap!r}")
     if qc_mode not in ("isotropic", "per-axis"):
         raise InputError(f"Expected --qc-mode isotropic or per-axis, got {qc_mode!r}")
+    if qc_method not in ("likelihood", "loo"):
+        raise InputError(f"Expected --qc-method likelihood or loo, got {qc_method!r}")
     track = read_track_csv(track_path)
     try:
-        gp = fit_track(
-            track, qc=qc, fit_qc=fit_qc or qc is None, qc_mode=qc_mode, max_gap_s=max_gap
-        )
+        if qc is None and qc_method == "loo":
+            loo = fit_qc_loo((track.t, track.xyz, track.cov), mode=qc_mode,
+                             max_gap_s=max_gap if np.isfinite(max_gap) else 1e300)
+            gp = fit_track(track, qc=loo.qc, max_gap_s=max_gap)
+        else:
+            gp = fit_track(
+                track, qc=qc, fit_qc=fit_qc or qc is None, qc_mode=qc_mode, max_gap_s=max_gap
+            )
     except InputError as exc:  # e.g. a single measurement: say which file
         if exc.path is None:
             raise InputError(exc.bare_message, track_path) from None
@@ -127,12 +136,15 @@ def _check_query_times(gp: GPTrack, times: np.ndarray, lines: np.ndarray, path: 
     )
 
 
-def _describe_qc(gp: GPTrack) -> str:
+def _describe_qc(gp: GPTrack, method: str = "likelihood") -> str:
     diag = np.diag(gp.qc)
     if np.allclose(gp.qc, diag[0] * np.eye(3), rtol=0, atol=0):
         value = f"{diag[0]:.6g} m^2/s^3 (isotropic)"
     else:
         value = "diag(" + ", ".join(f"{v:.6g}" for v in diag) + ") m^2/s^3"
+    if method == "loo":
+        return (f"qc = {value}, fitted by leave-one-out cross-validation; log-likelihood "
+                f"{gp.log_likelihood:.3f}")
     if gp.qc_fit is None:
         return f"qc = {value}, given; log-likelihood {gp.log_likelihood:.3f}"
     info = gp.qc_fit
@@ -169,15 +181,21 @@ def register(app: typer.Typer) -> None:
         max_gap: float = typer.Option(
             DEFAULT_MAX_GAP_S, "--max-gap", help="Refuse queries across longer gaps (s)."
         ),
+        qc_method: str = typer.Option(
+            "likelihood", "--qc-method",
+            help="How a fitted Qc is chosen: 'likelihood' (maximum marginal likelihood) or "
+                 "'loo' (leave-one-out, calibrated for interpolation; rtsgt run's default).",
+        ),
         out: Path | None = typer.Option(
             None, "--out", help="Output CSV (default: standard output)."
         ),
     ) -> None:
         """Interpolate a prism track (exact GP, WNOA prior) at query times, with covariance."""
         text, gp, n_skipped = interpolate_file(
-            track, at=at, rate=rate, qc=qc, fit_qc=fit_qc, qc_mode=qc_mode, max_gap=max_gap
+            track, at=at, rate=rate, qc=qc, fit_qc=fit_qc, qc_mode=qc_mode, max_gap=max_gap,
+            qc_method=qc_method,
         )
-        typer.echo(_describe_qc(gp), err=True)
+        typer.echo(_describe_qc(gp, qc_method if qc is None else "given"), err=True)
         if n_skipped:
             typer.echo(
                 f"skipped {n_skipped} grid times inside gaps longer than {max_gap} s", err=True
