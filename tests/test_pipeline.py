@@ -125,7 +125,8 @@ def test_station_coupling_reproduces_the_sampled_cross_covariance_of_prisms(tmp_
         calib = calibrate(data.gcp, reference_station="1", instrument=data.instrument,
                           samples=4000, rng=np.random.default_rng(1))
     coupling = StationCoupling.from_calibration(calib)
-    assert set(coupling.cross) == {("1", "2"), ("1", "3"), ("2", "3")}
+    assert set(coupling.cross) == {("1", "1"), ("1", "2"), ("1", "3"), ("2", "2"), ("2", "3"),
+                                   ("3", "3")}
     np.testing.assert_array_equal(coupling.cross[("1", "2")], 0.0)  # the reference is exact
     # a prism 40 m from station 2 and one 60 m from station 3 (station frames)
     T2, T3 = calib.transforms["2"], calib.transforms["3"]
@@ -134,10 +135,14 @@ def test_station_coupling_reproduces_the_sampled_cross_covariance_of_prisms(tmp_
     w3 = np.einsum("mij,j->mi", T3.samples_rotation, p3) + T3.samples_translation
     sampled = (w2 - w2.mean(0)).T @ (w3 - w3.mean(0)) / (w2.shape[0] - 1)
     xyz = np.stack([T2.rotation @ p2 + T2.translation, T3.rotation @ p3 + T3.translation])[None]
-    joint = joint_prism_covariance(xyz, np.zeros((1, 2, 3, 3)), ["2", "3"], coupling)[0]
+    zero = np.zeros((1, 2, 3, 3))
+    joint = joint_prism_covariance(xyz, zero, zero, ["2", "3"], coupling)[0]
     assert np.linalg.norm(sampled) > 1e-8  # a real correlation, not a zero
     np.testing.assert_allclose(joint[:3, 3:], sampled, rtol=0, atol=0.02 * np.abs(sampled).max())
     np.testing.assert_allclose(joint[3:, :3], sampled.T, rtol=0, atol=0.02 * np.abs(sampled).max())
+    s22 = np.cov(w2, rowvar=False)  # the diagonal block: the calibration part of prism 2
+    np.testing.assert_allclose(joint[:3, :3], s22, rtol=0, atol=0.02 * np.abs(s22).max())
+    assert np.linalg.eigvalsh(joint).min() > -1e-12 * np.abs(joint).max()
     # round trip through summary.json
     back = StationCoupling.from_dict(json.loads(json.dumps(coupling.to_dict())))
     np.testing.assert_array_equal(back.cross[("2", "3")], coupling.cross[("2", "3")])

@@ -306,7 +306,8 @@ class StationCoupling:
     origin : dict str -> ndarray (3,)
         World position of each station, m (the lever arm of its rotation error).
     cross : dict (str, str) -> ndarray (6, 6)
-        ``Cov(xi_a, xi_b)`` for pairs of distinct stations, m^2 / m rad / rad^2.
+        ``Cov(xi_a, xi_b)`` for pairs of stations (``a <= b``, ``a == b`` included: one
+        sample covariance, so the joint matrix is positive semi-definite), m^2 / m rad / rad^2.
     """
 
     origin: dict[str, np.ndarray]
@@ -328,7 +329,7 @@ class StationCoupling:
         cross = {}
         ids = sorted(xi)
         for i, a in enumerate(ids):
-            for b in ids[i + 1:]:
+            for b in ids[i:]:  # (a, a) too: the joint matrix is then one sample covariance
                 m = xi[a].shape[0]
                 if m > 1 and m == xi[b].shape[0]:
                     cross[(a, b)] = xi[a].T @ xi[b] / (m - 1)
@@ -351,7 +352,7 @@ class StationCoupling:
         return cls(origin, cross)
 
     def block(self, a: str, b: str) -> np.ndarray | None:
-        """``Cov(xi_a, xi_b)``, or None when the two are not correlated (or a == b)."""
+        """``Cov(xi_a, xi_b)``, or None when unknown."""
         if (a, b) in self.cross:
             return self.cross[(a, b)]
         if (b, a) in self.cross:
@@ -360,31 +361,41 @@ class StationCoupling:
 
 
 def joint_prism_covariance(
-    xyz: np.ndarray, cov: np.ndarray, stations: list[str], coupling: StationCoupling
+    xyz: np.ndarray, cov: np.ndarray, cov_calibration: np.ndarray, stations: list[str],
+    coupling: StationCoupling,
 ) -> np.ndarray:
-    """(T, 3n, 3n): the per-prism ``cov`` on the diagonal, ``J_i Cov(xi_a, xi_b) J_j^T`` off it.
+    """(T, 3n, 3n) joint covariance of the prisms, the calibration part taken jointly.
 
-    ``J_i = [I, -[q_i]x]`` with ``q_i`` the prism's position relative to its station (world
-    axes), the Jacobian of the calibration source (:func:`rtsgt.noise.linear.calibration_covariance`).
+    ``cov`` (T, n, 3, 3) is each prism's total, ``cov_calibration`` its calibration part. The
+    calibration part is replaced by ``J_i Cov(xi_a, xi_b) J_j^T`` for every pair of prisms
+    (``i == j`` included), with ``J_i = [I, -[q_i]x]`` and ``q_i`` the prism's position
+    relative to its station (world axes), the Jacobian of the calibration source
+    (:func:`rtsgt.noise.linear.calibration_covariance`): one sample covariance of the stacked
+    station perturbations, so the result is positive semi-definite by construction.
     """
     from rtsgt.geometry.so3 import hat
     from rtsgt.pose.estimate import block_diagonal
 
     T, n, _ = xyz.shape
-    out = block_diagonal(cov)
-    J = {}
+    J = []
     for i, s in enumerate(stations):
         q = xyz[:, i] - coupling.origin.get(s, np.zeros(3))
-        J[i] = np.concatenate([np.broadcast_to(np.eye(3), (T, 3, 3)), -hat(q)], axis=-1)
+        J.append(np.concatenate([np.broadcast_to(np.eye(3), (T, 3, 3)), -hat(q)], axis=-1))
+    known = [coupling.block(s, s) is not None for s in stations]
+    rest = np.where(np.array(known)[None, :, None, None], cov - cov_calibration, cov)
+    out = block_diagonal(rest)
     for i in range(n):
-        for j in range(i + 1, n):
+        for j in range(i, n):
             X = coupling.block(stations[i], stations[j])
-            if X is None:
+            if X is None or not (known[i] and known[j]):
                 continue
             c = J[i] @ X @ np.swapaxes(J[j], 1, 2)
-            out[:, 3 * i:3 * i + 3, 3 * j:3 * j + 3] = c
-            out[:, 3 * j:3 * j + 3, 3 * i:3 * i + 3] = np.swapaxes(c, 1, 2)
-    return out
+            if i == j:
+                out[:, 3 * i:3 * i + 3, 3 * i:3 * i + 3] += c
+            else:
+                out[:, 3 * i:3 * i + 3, 3 * j:3 * j + 3] = c
+                out[:, 3 * j:3 * j + 3, 3 * i:3 * i + 3] = np.swapaxes(c, 1, 2)
+    return 0.5 * (out + np.swapaxes(out, 1, 2))
 
 
 def query_prisms(
@@ -417,7 +428,8 @@ def query_prisms(
             cov += by_source[s]
     joint = None
     if coupling is not None and coupling.cross and "calibration" in by_source:
-        joint = joint_prism_covariance(xyz, cov, [tracks[p].station for p in ids], coupling)
+        joint = joint_prism_covariance(xyz, cov, by_source["calibration"],
+                                       [tracks[p].station for p in ids], coupling)
     return PrismsAtTimes(t, xyz, cov, cov_gp, by_source, nearest, joint)
 
 
