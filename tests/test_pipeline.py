@@ -146,3 +146,23 @@ def test_station_coupling_reproduces_the_sampled_cross_covariance_of_prisms(tmp_
     # round trip through summary.json
     back = StationCoupling.from_dict(json.loads(json.dumps(coupling.to_dict())))
     np.testing.assert_array_equal(back.cross[("2", "3")], coupling.cross[("2", "3")])
+
+
+def test_rate_gates_too_tight_for_the_robot_are_reported(tmp_path):
+    """The paper's 1 deg/s gates on a 0.5-2 m/s robot passing 8 m from the stations: module 1
+    rejects true motion, and the run says so (with the configuration keys to change)."""
+    import dataclasses
+
+    from rtsgt.filtering import FilterParams
+
+    sim = simulate_deployment(SimulationConfig(duration_s=120.0), np.random.default_rng(11))
+    data, opts = load_deployment(write_deployment(sim, tmp_path / "dep"))
+    with pytest.warns(UserWarning, match=r"rejected \d+ of \d+ measurements .* \[filter\]"):
+        run_pipeline(data, dataclasses.replace(opts, filter=FilterParams(), engine="linear"))
+    # with the simulator's gates (from its robot's speed limits) nothing is said
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        run_pipeline(data, dataclasses.replace(opts, engine="linear"))
+    assert not [w for w in caught if "module 1 rejected" in str(w.message)]

@@ -220,6 +220,31 @@ def query_grid(intervals: np.ndarray, rate_hz: float) -> np.ndarray:
     return np.concatenate(parts) if parts else np.empty(0)
 
 
+#: Share of a station's measurements that module 1 may reject for their rates before rtsgt
+#: warns that the gates look too tight for the robot (outliers are rare; motion is not).
+RATE_REJECTION_WARNING = 0.10
+
+
+def warn_tight_rate_gates(obs: Observations, report, params: FilterParams) -> None:
+    """Warn when module 1's rate gates remove much of a station's series.
+
+    The paper's gates (1 deg/s) suit a slow robot far from the stations; a robot at 2 m/s,
+    10 m from a station, turns the line of sight by 11 deg/s, and the gates then reject true
+    motion, not outliers: say so, with the numbers to change.
+    """
+    n_rate = sum(int(report.removed.get(k, 0)) for k in ("rate_distance", "rate_hz", "rate_v"))
+    if report.n_in and n_rate / report.n_in > RATE_REJECTION_WARNING:
+        import warnings
+
+        warnings.warn(
+            f"station {obs.station}: module 1 rejected {n_rate} of {report.n_in} measurements "
+            f"({100 * n_rate / report.n_in:.0f} %) for their rate of change (gates "
+            f"tau_r = {params.tau_r:g} m/s, tau_a = {np.degrees(params.tau_a):g} deg/s, "
+            f"tau_e = {np.degrees(params.tau_e):g} deg/s): that is motion, not outliers, if the "
+            "robot is fast or close to the station; raise the [filter] gates of the "
+            "configuration", stacklevel=3)
+
+
 def gcp_atmospheric_correction(
     gcp: GcpShots, model: NoiseModel, weather: WeatherSeries | None, fallback_t: float
 ) -> GcpShots:
@@ -472,6 +497,7 @@ def run_pipeline(
             )
         filtered.append(kept)
         reports[f"module1_station{obs.station}"] = rep
+        warn_tight_rate_gates(obs, rep, fparams)
     lap("filter_module1")
 
     say("extrinsic calibration")
