@@ -85,3 +85,20 @@ def test_too_few_interior_knots_is_a_clear_error():
     t, y, R, _ = _track(rng, 6, 0.02)
     with pytest.raises(InputError, match="at least 5 measurements"):
         fit_qc_loo((t, y, R), max_gap_s=0.1)
+
+
+def test_pipeline_falls_back_to_the_likelihood_on_a_track_too_short_to_cross_validate():
+    from rtsgt.pipeline import RunOptions, fit_gps
+    from rtsgt.types import PrismTrack
+
+    rng = np.random.default_rng(12)
+    t, y, R, _ = _track(rng, 6, 0.02)
+    long_ = _track(rng, 60, 0.02)
+    tracks = {"1": PrismTrack(t, y, R, prism="1"), "2": PrismTrack(*long_[:3], prism="2")}
+    info = {}
+    opts = RunOptions(max_gap_s=0.45)  # knots 0.3-0.5 s apart: track 1 keeps < 5 to score
+    with pytest.warns(UserWarning, match="prism 1: .* marginal likelihood instead"):
+        gps = fit_gps(tracks, opts, info=info)
+    assert info["1"]["method"] == "likelihood" and info["2"]["method"] == "loo"
+    ml, _, _ = fit_qc((t, y, R))
+    np.testing.assert_allclose(gps["1"].qc, ml, rtol=1e-9)

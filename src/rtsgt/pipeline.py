@@ -308,7 +308,15 @@ def fit_gps(
         if qc is not None and pid in qc:
             return fit_track(data, qc=qc[pid], max_gap_s=options.max_gap_s), {"method": "given"}
         if options.qc == "loo":
-            loo = fit_qc_loo(data, mode="per-axis", max_gap_s=options.max_gap_s)
+            try:
+                loo = fit_qc_loo(data, mode="per-axis", max_gap_s=options.max_gap_s)
+            except InputError as exc:  # too few interior measurements to cross-validate
+                import warnings
+
+                warnings.warn(f"prism {pid}: {exc.bare_message}; Qc by the marginal "
+                              "likelihood instead", stacklevel=2)
+                return fit_track(data, fit_qc=True, max_gap_s=options.max_gap_s), {
+                    "method": "likelihood", "note": "too few measurements for leave-one-out"}
             return fit_track(data, qc=loo.qc, max_gap_s=options.max_gap_s), {
                 "method": "loo", "loo_log_predictive": loo.log_predictive,
                 "loo_knots": loo.n_used, "loo_nees_per_dof": loo.nees_mean}
