@@ -358,3 +358,48 @@ def test_errors_name_the_problem(linear_run, tmp_path):
         ContinuousGroundTruth.from_run_dir(broken)
     with pytest.raises(InputError, match="measurements/"):
         ContinuousGroundTruth.from_run_dir(tmp_path)
+
+
+def test_rpe_uses_the_correlation_between_ground_truth_poses(tmp_path):
+    """The two ends of a relative pose share most of the ground truth's error (calibration,
+    clock offsets, weather, reference, the GP's smoothing): with the cross-covariance the
+    continuous ground truth computes, an exact estimate's RPE NEES is near its dof; treating the
+    two poses as independent overstates the relative covariance (NEES well below the dof)."""
+    import dataclasses
+    import warnings
+
+    from scipy.stats import chi2
+
+    from rtsgt.evaluation import evaluate
+    from rtsgt.io.deployment import load_deployment
+    from rtsgt.io.run_output import write_run
+    from rtsgt.pipeline import run_pipeline
+    from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
+    from rtsgt.types import PoseTrajectory
+
+    class Independent:  # the same ground truth, without its cross-covariances
+        def __init__(self, g):
+            self.g = g
+
+        def query_poses(self, *args, **kwargs):
+            return self.g.query_poses(*args, **kwargs)
+
+    rel = {"with": [], "independent": []}
+    for seed in range(1000, 1012):
+        sim = simulate_deployment(SimulationConfig(duration_s=120.0), np.random.default_rng(seed))
+        data, opts = load_deployment(write_deployment(sim, tmp_path / f"dep{seed}"))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            result = run_pipeline(data, dataclasses.replace(opts, engine="linear", seed=seed))
+        cgt = ContinuousGroundTruth.from_run_dir(write_run(result, tmp_path / f"run{seed}"))
+        t = np.arange(result.groundtruth.t[0], result.groundtruth.t[-1], 0.1)
+        est = PoseTrajectory(t, *sim.truth_at(t))  # exact: the RPE error is the GT's own
+        for name, g in (("with", cgt), ("independent", Independent(cgt))):
+            res = evaluate(g, est, align="none", delta=1.0, delta_unit="m", max_dt=3.0)
+            rel[name].append(res.nees.relative_position.values)
+    with_ = np.concatenate(rel["with"])
+    indep = np.concatenate(rel["independent"])
+    assert with_.size > 1000
+    assert abs(with_.mean() / 3.0 - 1.0) < 0.25, with_.mean() / 3.0
+    assert abs(np.mean(with_ <= chi2.ppf(0.95, 3)) - 0.95) < 0.04
+    assert indep.mean() < 0.85 * with_.mean()

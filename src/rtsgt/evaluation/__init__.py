@@ -449,8 +449,17 @@ def evaluate(
         # Relative pose covariance of the ground truth (frame of the ground truth at i)
         i, j = pairs[:, 0], pairs[:, 1]
         cross = None
+        P_i, P_j = g.cov[i], g.cov[j]
         correl = "assumed independent (no cross-covariance between ground-truth poses given)"
-        if assoc.cross_next is not None:
+        if hasattr(gt, "cross_covariance"):
+            # a continuous ground truth computes the errors its poses share directly; the
+            # marginals come from the same first-order model, so that the difference of two
+            # strongly correlated poses stays positive definite
+            ti, tj = g.t[i] + assoc.time_offset, g.t[j] + assoc.time_offset
+            P_i, P_j = gt.cross_covariance(ti, ti), gt.cross_covariance(tj, tj)
+            cross = gt.cross_covariance(ti, tj)
+            correl = "computed by the ground truth (shared systematic errors, GP correlation)"
+        elif assoc.cross_next is not None:
             cross = chain_cross_covariance(g.cov, assoc.cross_next, pairs)
             known = np.all(np.isfinite(cross), axis=(1, 2))
             cross = np.where(known[:, None, None], cross, 0.0)
@@ -460,9 +469,7 @@ def evaluate(
                 if n_known == pairs.shape[0]
                 else f"provided for {n_known} of {pairs.shape[0]} pairs, others assumed independent"
             )
-        S_rel = relative_pose_covariance(
-            Rg[i], g.position[i], g.position[j], g.cov[i], g.cov[j], cross
-        )
+        S_rel = relative_pose_covariance(Rg[i], g.position[i], g.position[j], P_i, P_j, cross)
         xi_rel = relative_pose_error_vector(Rg, g.position, Re, e.position, pairs)
         nees_rpos = _nees(xi_rel[:, :3], S_rel[:, :3, :3], 3, "relative position", g.t[i])
         nees_rpose = _nees(xi_rel, S_rel, 6, "relative pose", g.t[i])

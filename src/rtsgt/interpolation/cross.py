@@ -1,0 +1,128 @@
+r"""Posterior cross-covariance of a GP track between two times.
+
+The relative pose between two ground-truth times needs ``Cov(x(tau_1), x(tau_2))``, not only
+the marginals that :meth:`rtsgt.interpolation.gp.GPTrack.query` returns.
+
+The smoothed posterior of the WNOA GP is Gauss-Markov along the knots, so for knots
+``a < b``:
+
+    ``Cov(x_a, x_b) = Cov(x_a, x_{b-1}) S_{b-1}^-1 C_{b-1}``,
+
+with ``S`` the knot marginals and ``C_k = Cov(x_k, x_{k+1})`` the lag-one cross-covariances
+(a product of ``b - a`` factors). A query time in the interval ``[t_k, t_{k+1}]`` is
+``x(tau) = W(tau) [x_k; x_{k+1}] + w(tau)`` (``W = [Lambda, Psi]``, DESIGN.md section 4) with a
+bridge term ``w`` independent of every knot and of the bridge terms of other intervals; two
+times of the same interval share their bridge, whose cross-covariance for
+``tau_1 <= tau_2`` is (condition the prior from ``x_k`` on ``x_{k+1}``)
+
+    ``Q(tau_1 - t_k) Phi(tau_2 - tau_1)^T
+      - Q(tau_1 - t_k) Phi(t_{k+1} - tau_1)^T Q(t_{k+1} - t_k)^-1 Phi(t_{k+1} - tau_2) Q(tau_2 - t_k)``,
+
+which for ``tau_1 = tau_2`` is the query's own bridge variance. A time on a knot is that
+knot (``W = [I, 0]``, no bridge).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from rtsgt.errors import InputError
+from rtsgt.interpolation.gp import GPTrack, wnoa_phi, wnoa_q
+
+__all__ = ["gp_cross_covariance"]
+
+_EYE6 = np.eye(6)
+
+
+def _weights(gp: GPTrack, tau: np.ndarray):
+    """Interval index k, weights W (K, 6, 12) on [x_k; x_{k+1}], and whether tau is interior."""
+    t = gp.t
+    n = t.shape[0]
+    k = np.clip(np.searchsorted(t, tau, side="right") - 1, 0, n - 2)
+    on_k = t[k] == tau
+    on_k1 = t[k + 1] == tau
+    interior = ~on_k & ~on_k1
+    d = t[k + 1] - t[k]
+    s = np.clip((tau - t[k]) / d, 0.0, 1.0)
+    W = np.zeros((tau.size, 6, 12))
+    # Lambda = Phi(tau - t_k) - Psi Phi(d), Psi = Q(tau - t_k) Phi(t_{k+1} - tau)^T Q(d)^-1
+    q1 = wnoa_q(s * d, gp.qc)
+    qd_inv = np.linalg.inv(wnoa_q(d, gp.qc))
+    psi = q1 @ np.swapaxes(wnoa_phi((1.0 - s) * d), 1, 2) @ qd_inv
+    lam = wnoa_phi(s * d) - psi @ wnoa_phi(d)
+    W[:, :, :6] = np.where(interior[:, None, None], lam, np.where(on_k[:, None, None], _EYE6, 0))
+    W[:, :, 6:] = np.where(interior[:, None, None], psi, np.where(on_k1[:, None, None], _EYE6, 0))
+    return k, W, interior
+
+
+def _knot_cov(gp: GPTrack, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``Cov(x_a, x_b)`` (K, 6, 6) for knot indices with ``a <= b`` elementwise."""
+    S, C = gp.cov, gp.cross_cov
+    out = S[a].copy()
+    lag = b - a
+    for step in range(int(lag.max(initial=0))):
+        m = lag > step
+        k = a[m] + step  # Cov(x_a, x_{k+1}) = Cov(x_a, x_k) S_k^-1 C_k
+        out[m] = out[m] @ np.linalg.solve(S[k], C[k])
+    return out
+
+
+def _pair_cov(gp: GPTrack, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``Cov(x_a, x_b)`` for any knot indices."""
+    swap = a > b
+    lo, hi = np.where(swap, b, a), np.where(swap, a, b)
+    c = _knot_cov(gp, lo, hi)
+    return np.where(swap[:, None, None], np.swapaxes(c, 1, 2), c)
+
+
+def gp_cross_covariance(gp: GPTrack, tau_1: ArrayLike, tau_2: ArrayLike) -> np.ndarray:
+    """``Cov(x(tau_1), x(tau_2))`` of the state ``[p; v]`` for pairs of times (module docstring).
+
+    Parameters
+    ----------
+    gp : GPTrack
+    tau_1, tau_2 : array_like, shape (K,)
+        Times, s, inside the track (from its first to its last knot), in any order.
+
+    Returns
+    -------
+    ndarray, shape (K, 6, 6)
+        m^2, m^2/s, m^2/s^2; ``[:, :3, :3]`` is the position block.
+
+    Raises
+    ------
+    InputError
+        Times outside the track, or arrays of different shapes.
+    """
+    t1 = np.atleast_1d(np.asarray(tau_1, dtype=float))
+    t2 = np.atleast_1d(np.asarray(tau_2, dtype=float))
+    if t1.shape != t2.shape or t1.ndim != 1:
+        raise InputError(f"Expected two time arrays of one shape (K,), got {t1.shape}, {t2.shape}")
+    lo, hi = gp.t[0], gp.t[-1]
+    bad = ~((t1 >= lo) & (t1 <= hi) & (t2 >= lo) & (t2 <= hi))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise InputError(f"Expected times inside the track [{lo!r}, {hi!r}] s, got "
+                         f"{float(t1[i])!r}, {float(t2[i])!r} (pair {i})")
+    swap = t1 > t2
+    a_t, b_t = np.where(swap, t2, t1), np.where(swap, t1, t2)
+    ka, Wa, ia = _weights(gp, a_t)
+    kb, Wb, ib = _weights(gp, b_t)
+    K = t1.size
+    big = np.empty((K, 12, 12))
+    for u, du in ((0, 0), (6, 1)):
+        for v, dv in ((0, 0), (6, 1)):
+            big[:, u:u + 6, v:v + 6] = _pair_cov(gp, ka + du, kb + dv)
+    out = Wa @ big @ np.swapaxes(Wb, 1, 2)
+    same = ia & ib & (ka == kb)
+    if same.any():
+        k = ka[same]
+        tk, d = gp.t[k], gp.t[k + 1] - gp.t[k]
+        d1, d2 = a_t[same] - tk, b_t[same] - tk
+        q1, q2, qd = wnoa_q(d1, gp.qc), wnoa_q(d2, gp.qc), wnoa_q(d, gp.qc)
+        bridge = (q1 @ np.swapaxes(wnoa_phi(d2 - d1), 1, 2)
+                  - q1 @ np.swapaxes(wnoa_phi(d - d1), 1, 2) @ np.linalg.solve(
+                      qd, wnoa_phi(d - d2) @ q2))
+        out[same] += bridge
+    return np.where(swap[:, None, None], np.swapaxes(out, 1, 2), out)
