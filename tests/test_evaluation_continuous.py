@@ -403,3 +403,21 @@ def test_rpe_uses_the_correlation_between_ground_truth_poses(tmp_path):
     assert abs(with_.mean() / 3.0 - 1.0) < 0.25, with_.mean() / 3.0
     assert abs(np.mean(with_ <= chi2.ppf(0.95, 3)) - 0.95) < 0.04
     assert indep.mean() < 0.85 * with_.mean()
+
+
+def test_pose_cross_covariance_at_equal_times_is_the_runs_linear_covariance(linear_run):
+    """The first-order cross-covariance model, at tau_a == tau_b, rebuilds the marginal pose
+    covariance the run computed with the linear engine from the per-source covariances: every
+    shared term (GP, clock, atmosphere, calibration coupling, reference) in its right place."""
+    _, result, out = linear_run
+    cgt = ContinuousGroundTruth.from_run_dir(out)
+    t = result.groundtruth.t[50:70]
+    s = cgt.query_poses(t)
+    C = cgt.cross_covariance(t, t)
+    rel = np.linalg.norm(C - s.cov, axis=(1, 2)) / np.linalg.norm(s.cov, axis=(1, 2))
+    assert np.max(rel) < 0.01, rel
+    P_a, P_b, C_ab = cgt.pair_covariances(t[:-5], t[5:])
+    np.testing.assert_allclose(P_a, C[:-5], rtol=1e-10, atol=0)
+    np.testing.assert_allclose(C_ab, cgt.cross_covariance(t[:-5], t[5:]), rtol=1e-10, atol=0)
+    np.testing.assert_allclose(C_ab, np.swapaxes(cgt.cross_covariance(t[5:], t[:-5]), 1, 2),
+                               rtol=1e-10, atol=1e-30)

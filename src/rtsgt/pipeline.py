@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -246,8 +247,6 @@ def warn_tight_rate_gates(obs: Observations, report, params: FilterParams) -> No
     """
     n_rate = sum(int(report.removed.get(k, 0)) for k in ("rate_distance", "rate_hz", "rate_v"))
     if report.n_in and n_rate / report.n_in > RATE_REJECTION_WARNING:
-        import warnings
-
         warnings.warn(
             f"station {obs.station}: module 1 rejected {n_rate} of {report.n_in} measurements "
             f"({100 * n_rate / report.n_in:.0f} %) for their rate of change (gates "
@@ -311,8 +310,6 @@ def fit_gps(
             try:
                 loo = fit_qc_loo(data, mode="per-axis", max_gap_s=options.max_gap_s)
             except InputError as exc:  # too few interior measurements to cross-validate
-                import warnings
-
                 warnings.warn(f"prism {pid}: {exc.bare_message}; Qc by the marginal "
                               "likelihood instead", stacklevel=2)
                 return fit_track(data, fit_qc=True, max_gap_s=options.max_gap_s), {
@@ -404,6 +401,35 @@ class StationCoupling:
             return self.cross[(b, a)].T
         return None
 
+    def prism_covariance(
+        self, xyz_a: np.ndarray, xyz_b: np.ndarray, stations: list[str]
+    ) -> np.ndarray:
+        """(T, 3n, 3n) calibration part of ``Cov(q(a), q(b))`` for prisms at two positions.
+
+        Block ``(i, j)`` is ``J_i(a) Cov(xi_s_i, xi_s_j) J_j(b)^T`` with ``J = [I, -[q]x]``
+        and ``q`` the prism's position relative to its station (world axes), the Jacobian of
+        the calibration source (:func:`rtsgt.noise.linear.calibration_covariance`); zero where
+        the coupling is unknown. ``xyz_a``, ``xyz_b``: (T, n, 3) m; ``stations``: the station
+        of each prism.
+        """
+        from rtsgt.geometry.so3 import hat
+
+        T, n, _ = xyz_a.shape
+        eye = np.broadcast_to(np.eye(3), (T, 3, 3))
+
+        def jac(xyz):
+            return [np.concatenate([eye, -hat(xyz[:, i] - self.origin.get(s, np.zeros(3)))],
+                                   axis=-1) for i, s in enumerate(stations)]
+
+        Ja, Jb = jac(xyz_a), jac(xyz_b)
+        out = np.zeros((T, 3 * n, 3 * n))
+        for i in range(n):
+            for j in range(n):
+                X = self.block(stations[i], stations[j])
+                if X is not None:
+                    out[:, 3 * i:3 * i + 3, 3 * j:3 * j + 3] = Ja[i] @ X @ np.swapaxes(Jb[j], 1, 2)
+        return out
+
 
 def joint_prism_covariance(
     xyz: np.ndarray, cov: np.ndarray, cov_calibration: np.ndarray, stations: list[str],
@@ -411,35 +437,17 @@ def joint_prism_covariance(
 ) -> np.ndarray:
     """(T, 3n, 3n) joint covariance of the prisms, the calibration part taken jointly.
 
-    ``cov`` (T, n, 3, 3) is each prism's total, ``cov_calibration`` its calibration part. The
-    calibration part is replaced by ``J_i Cov(xi_a, xi_b) J_j^T`` for every pair of prisms
-    (``i == j`` included), with ``J_i = [I, -[q_i]x]`` and ``q_i`` the prism's position
-    relative to its station (world axes), the Jacobian of the calibration source
-    (:func:`rtsgt.noise.linear.calibration_covariance`): one sample covariance of the stacked
-    station perturbations, so the result is positive semi-definite by construction.
+    ``cov`` (T, n, 3, 3) is each prism's total, ``cov_calibration`` its calibration part. For
+    every prism whose station the coupling knows, the calibration part is replaced by the
+    joint one of :meth:`StationCoupling.prism_covariance` (``i == j`` included): one sample
+    covariance of the stacked station perturbations, so the result is positive
+    semi-definite by construction.
     """
-    from rtsgt.geometry.so3 import hat
-    from rtsgt.pose.estimate import block_diagonal
+    from rtsgt.pose.reference import block_diagonal
 
-    T, n, _ = xyz.shape
-    J = []
-    for i, s in enumerate(stations):
-        q = xyz[:, i] - coupling.origin.get(s, np.zeros(3))
-        J.append(np.concatenate([np.broadcast_to(np.eye(3), (T, 3, 3)), -hat(q)], axis=-1))
     known = [coupling.block(s, s) is not None for s in stations]
     rest = np.where(np.array(known)[None, :, None, None], cov - cov_calibration, cov)
-    out = block_diagonal(rest)
-    for i in range(n):
-        for j in range(i, n):
-            X = coupling.block(stations[i], stations[j])
-            if X is None or not (known[i] and known[j]):
-                continue
-            c = J[i] @ X @ np.swapaxes(J[j], 1, 2)
-            if i == j:
-                out[:, 3 * i:3 * i + 3, 3 * i:3 * i + 3] += c
-            else:
-                out[:, 3 * i:3 * i + 3, 3 * j:3 * j + 3] = c
-                out[:, 3 * j:3 * j + 3, 3 * i:3 * i + 3] = np.swapaxes(c, 1, 2)
+    out = block_diagonal(rest) + coupling.prism_covariance(xyz, xyz, stations)
     return 0.5 * (out + np.swapaxes(out, 1, 2))
 
 

@@ -80,8 +80,7 @@ def interpolate_file(
     track = read_track_csv(track_path)
     try:
         if qc is None and qc_method == "loo":
-            loo = fit_qc_loo((track.t, track.xyz, track.cov), mode=qc_mode,
-                             max_gap_s=max_gap if np.isfinite(max_gap) else 1e300)
+            loo = fit_qc_loo((track.t, track.xyz, track.cov), mode=qc_mode, max_gap_s=max_gap)
             gp = fit_track(track, qc=loo.qc, max_gap_s=max_gap)
         else:
             gp = fit_track(

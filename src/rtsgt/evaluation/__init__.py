@@ -451,13 +451,12 @@ def evaluate(
         cross = None
         P_i, P_j = g.cov[i], g.cov[j]
         correl = "assumed independent (no cross-covariance between ground-truth poses given)"
-        if hasattr(gt, "cross_covariance"):
+        if hasattr(gt, "pair_covariances"):
             # a continuous ground truth computes the errors its poses share directly; the
             # marginals come from the same first-order model, so that the difference of two
             # strongly correlated poses stays positive definite
             ti, tj = g.t[i] + assoc.time_offset, g.t[j] + assoc.time_offset
-            P_i, P_j = gt.cross_covariance(ti, ti), gt.cross_covariance(tj, tj)
-            cross = gt.cross_covariance(ti, tj)
+            P_i, P_j, cross = gt.pair_covariances(ti, tj)
             correl = "computed by the ground truth (shared systematic errors, GP correlation)"
         elif assoc.cross_next is not None:
             cross = chain_cross_covariance(g.cov, assoc.cross_next, pairs)

@@ -347,55 +347,57 @@ class ContinuousGroundTruth:
         (across prisms too); the reference survey is the same at both times. All times must
         be valid (:meth:`query_poses`).
         """
-        from rtsgt.geometry.so3 import hat
-        from rtsgt.interpolation.cross import gp_cross_covariance
+        return self._between(self._linearise(tau_a), self._linearise(tau_b))
+
+    def pair_covariances(
+        self, tau_a: ArrayLike, tau_b: ArrayLike
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``Cov(xi(tau_a))``, ``Cov(xi(tau_b))`` and ``Cov(xi(tau_a), xi(tau_b))`` of the same
+        first-order model (:meth:`cross_covariance`), each time linearised once."""
+        sa, sb = self._linearise(tau_a), self._linearise(tau_b)
+        return self._between(sa, sa), self._between(sb, sb), self._between(sa, sb)
+
+    def _linearise(self, tau: ArrayLike) -> _Linearised:
         from rtsgt.pose.registration import registration_jacobian
 
-        ta = np.atleast_1d(np.asarray(tau_a, dtype=float))
-        tb = np.atleast_1d(np.asarray(tau_b, dtype=float))
+        tau = np.atleast_1d(np.asarray(tau, dtype=float))
+        n = len(self.tracks)
+        pr = query_prisms(self.tracks, self.gps, tau, self.options, self.coupling)
+        est = estimate_poses(pr.xyz, pr.pose_covariance, self.reference, engine="linear")
+        J_q, J_r = registration_jacobian(np.broadcast_to(self.reference.xyz, pr.xyz.shape),
+                                         pr.xyz, est.R)
+        velocity = [self.gps[p].query(tau, with_velocity=True, allow_gaps=True).velocity
+                    for p in self.tracks]
+        return _Linearised(tau, pr, J_q.reshape(tau.size, 6, 3 * n),
+                           J_r.reshape(tau.size, 6, 3 * n), velocity)
+
+    def _between(self, a: _Linearised, b: _Linearised) -> np.ndarray:
+        from rtsgt.interpolation.cross import gp_cross_covariance
+
         ids = list(self.tracks)
-        n, K = len(ids), ta.size
+        n, K = len(ids), a.t.size
         stations = [self.tracks[p].station for p in ids]
-        r = self.reference.xyz
-        side = []
-        for tau in (ta, tb):
-            pr = query_prisms(self.tracks, self.gps, tau, self.options, self.coupling)
-            est = estimate_poses(pr.xyz, pr.pose_covariance, self.reference, engine="linear")
-            J_q, J_r = registration_jacobian(np.broadcast_to(r, pr.xyz.shape), pr.xyz, est.R)
-            side.append((pr, J_q.reshape(K, 6, 3 * n), J_r.reshape(K, 6, 3 * n)))
-        (pa, Jqa, Jra), (pb, Jqb, Jrb) = side
         C = np.zeros((K, 3 * n, 3 * n))
         systematic = self.options.gp_noise == "white"
         for i, pid in enumerate(ids):
-            blk = gp_cross_covariance(self.gps[pid], ta, tb)[:, :3, :3]
+            blk = gp_cross_covariance(self.gps[pid], a.t, b.t)[:, :3, :3]
             if systematic:
                 origin = (self.coupling.origin.get(stations[i], np.zeros(3))
                           if self.coupling is not None else np.zeros(3))
-                va = self.gps[pid].query(ta, with_velocity=True, allow_gaps=True).velocity
-                vb = self.gps[pid].query(tb, with_velocity=True, allow_gaps=True).velocity
-                for src, da, db in (("time_sync", va, vb),
-                                    ("atmosphere", pa.xyz[:, i] - origin, pb.xyz[:, i] - origin)):
-                    if src not in pa.cov_by_source:
+                for src, da, db in (
+                    ("time_sync", a.velocity[i], b.velocity[i]),
+                    ("atmosphere", a.prisms.xyz[:, i] - origin, b.prisms.xyz[:, i] - origin),
+                ):
+                    if src not in a.prisms.cov_by_source:
                         continue
-                    fa = _rank_one_factor(pa.cov_by_source[src][:, i], da)
-                    fb = _rank_one_factor(pb.cov_by_source[src][:, i], db)
+                    fa = _rank_one_factor(a.prisms.cov_by_source[src][:, i], da)
+                    fb = _rank_one_factor(b.prisms.cov_by_source[src][:, i], db)
                     blk = blk + fa[:, :, None] * fb[:, None, :]
             C[:, 3 * i:3 * i + 3, 3 * i:3 * i + 3] = blk
-        if systematic and self.coupling is not None and "calibration" in pa.cov_by_source:
-            J = []
-            for pr in (pa, pb):
-                J.append([np.concatenate(
-                    [np.broadcast_to(np.eye(3), (K, 3, 3)),
-                     -hat(pr.xyz[:, i] - self.coupling.origin.get(stations[i], np.zeros(3)))],
-                    axis=-1) for i in range(n)])
-            for i in range(n):
-                for j in range(n):
-                    X = self.coupling.block(stations[i], stations[j])
-                    if X is not None:
-                        C[:, 3 * i:3 * i + 3, 3 * j:3 * j + 3] += (
-                            J[0][i] @ X @ np.swapaxes(J[1][j], 1, 2))
+        if systematic and self.coupling is not None and "calibration" in a.prisms.cov_by_source:
+            C += self.coupling.prism_covariance(a.prisms.xyz, b.prisms.xyz, stations)
         cr = self.reference.cov
-        return (Jqa @ C @ np.swapaxes(Jqb, 1, 2)) + (Jra @ cr @ np.swapaxes(Jrb, 1, 2))
+        return a.J_q @ C @ np.swapaxes(b.J_q, 1, 2) + a.J_r @ cr @ np.swapaxes(b.J_r, 1, 2)
 
     def query_poses(
         self, times: ArrayLike, *, max_gap_s: float | None = None
@@ -476,6 +478,17 @@ def _override(options: RunOptions, engine: str | None, samples: int | None,
     if seed is not None:
         changes["seed"] = int(seed)
     return dataclasses.replace(options, **changes) if changes else options
+
+
+@dataclass(frozen=True)
+class _Linearised:
+    """The ground truth at some times, with what the first-order cross-covariance needs."""
+
+    t: np.ndarray
+    prisms: object  # rtsgt.pipeline.PrismsAtTimes
+    J_q: np.ndarray  # (K, 6, 3n) pose Jacobian on the stacked prisms
+    J_r: np.ndarray  # (K, 6, 3n) pose Jacobian on the stacked reference
+    velocity: list  # per prism, (K, 3) GP velocity, m/s
 
 
 def _rank_one_factor(cov: np.ndarray, direction: np.ndarray) -> np.ndarray:

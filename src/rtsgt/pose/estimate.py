@@ -51,7 +51,7 @@ from numpy.typing import ArrayLike
 from rtsgt.errors import GeometryError
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
 from rtsgt.geometry.transform import check_covariance
-from rtsgt.pose.reference import ReferencePoints
+from rtsgt.pose.reference import ReferencePoints, block_diagonal
 from rtsgt.pose.registration import (
     DEFAULT_CHUNK,
     MIN_SHAPE,
@@ -346,15 +346,6 @@ def _perturbations(R: np.ndarray, t: np.ndarray, R0: np.ndarray, t0: np.ndarray)
     xi[..., :3] = t - t0[..., None, :]
     xi[..., 3:] = small_rotation_vector(dR)
     return xi
-
-
-def block_diagonal(blocks: np.ndarray) -> np.ndarray:
-    """(..., n, 3, 3) per-prism blocks -> (..., 3n, 3n) block-diagonal joint matrices."""
-    n = blocks.shape[-3]
-    out = np.zeros(blocks.shape[:-3] + (3 * n, 3 * n))
-    for i in range(n):
-        out[..., 3 * i:3 * i + 3, 3 * i:3 * i + 3] = blocks[..., i, :, :]
-    return out
 
 
 def _mc(q, Lq, r_samples, R0, t0, rng, chunk):

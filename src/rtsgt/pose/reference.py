@@ -132,7 +132,7 @@ class ReferencePoints:
             raise ValueError("Expected finite reference positions")
         cov = np.array(self.cov, dtype=float)
         if cov.shape == (n, 3, 3):
-            cov = _block_diag(cov)
+            cov = block_diagonal(cov)
         cov = np.array(check_covariance(cov, 3 * n, "reference covariance"), dtype=float)
         cov = 0.5 * (cov + cov.T)
         check_reference_geometry(xyz)
@@ -172,11 +172,12 @@ class ReferencePoints:
                                self.cov[np.ix_(rows, rows)], self.frame)
 
 
-def _block_diag(blocks: np.ndarray) -> np.ndarray:
-    n = blocks.shape[0]
-    out = np.zeros((3 * n, 3 * n))
+def block_diagonal(blocks: np.ndarray) -> np.ndarray:
+    """(..., n, 3, 3) per-point blocks -> (..., 3n, 3n) block-diagonal joint matrices."""
+    n = blocks.shape[-3]
+    out = np.zeros(blocks.shape[:-3] + (3 * n, 3 * n))
     for i in range(n):
-        out[3 * i:3 * i + 3, 3 * i:3 * i + 3] = blocks[i]
+        out[..., 3 * i:3 * i + 3, 3 * i:3 * i + 3] = blocks[..., i, :, :]
     return out
 
 
@@ -280,7 +281,7 @@ def reference_from_survey(
     K = X.shape[0]
     C = np.asarray(cov_survey, dtype=float)
     if C.shape == (K, 3, 3):
-        C = _block_diag(C)
+        C = block_diagonal(C)
     if C.shape != (3 * K, 3 * K):
         raise ValueError(
             f"Expected cov_survey of shape ({K}, 3, 3) or ({3 * K}, {3 * K}), got {C.shape}"
