@@ -54,3 +54,11 @@ class ExtrapolationError(InputError):
 
 class ConvergenceError(RtsgtError, RuntimeError):
     """An iterative solver did not converge within ``max_iter``."""
+
+
+class RtsgtWarning(UserWarning):
+    """Something the user should know about a result that is still produced (a weather record
+    that does not cover the measurements, a surveyed distance the tracking disagrees with, ...).
+
+    The CLI prints each as one ``warning: ...`` line on stderr; a run also records them in
+    ``summary.json`` under ``warnings``."""
