@@ -173,7 +173,7 @@ def analysis(run_data):
 
 
 def test_paper_medians_are_the_published_ones():
-    """DESIGN.md section 3 (Vaidis et al. 2023)."""
+    """docs/paper-figures.md#per-source-medians (Vaidis et al. 2023)."""
     assert paper_median_mm("instrument") == 2.1
     assert paper_median_mm("instrument", 150, np.inf) == 2.78
     assert [paper_median_mm("calibration", a, b) for a, b in

@@ -76,8 +76,9 @@ def test_zero_degrees_and_zero_humidity_are_valid():
 
 
 def test_sensitivities_near_standard_conditions():
-    # DESIGN.md: "about +0.9 ppm per degC and -0.26 ppm per hPa"; the exact values at
-    # 15 degC / 1013 hPa / 60 % are +0.99 and -0.275 (the rounded figures fit ~25 degC)
+    # often quoted: "about +0.9 ppm per degC and -0.26 ppm per hPa"; the exact values at
+    # 15 degC / 1013 hPa / 60 % are +0.99 and -0.275 (the rounded figures fit ~25 degC;
+    # docs/noise-model.md#checks)
     for lam in (0.658, 0.905):
         dT, dp, dR = correction_ppm_gradient(15.0, 1013.0, 60.0, wavelength_um=lam, reference=LEICA_REF)
         assert 0.85 < float(dT) < 1.05

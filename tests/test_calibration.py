@@ -10,6 +10,7 @@ import pytest
 from scipy.optimize import least_squares
 from scipy.stats import chi2
 
+from _paths import EXCERPT
 from rtsgt.calibration import calibrate, fit_stations, polar_point_covariance
 from rtsgt.errors import GeometryError, InputError
 from rtsgt.geometry.so3 import exp_so3
@@ -19,8 +20,7 @@ from rtsgt.measurement.instruments import TRIMBLE_S7
 from rtsgt.measurement.polar import cartesian_to_polar, polar_to_cartesian
 from rtsgt.types import GcpShots
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-GCP = SHARED / "data" / "rts_20221110" / "GCP.txt"
+GCP = EXCERPT / "GCP.txt"
 
 #: Synthetic truth: T_world_station (rotation vector rad, translation m); world = station 1.
 TRUTH = {
@@ -75,8 +75,6 @@ def noisy_polar(hz, v, d, rng):
 
 @pytest.fixture(scope="module")
 def real_result():
-    if not GCP.exists():
-        pytest.skip(f"real excerpt {GCP} not available (../shared is not beside the repository)")
     return calibrate(read_gcp_rts_project(GCP), samples=500, rng=np.random.default_rng(0))
 
 
@@ -100,8 +98,6 @@ def test_real_gcp_fit_matches_source_md(real_result):
 
 
 def test_real_gcp_additive_constant_matters():
-    if not GCP.exists():
-        pytest.skip("real excerpt not available")
     a = fit_stations(read_gcp_rts_project(GCP))
     b = fit_stations(read_gcp_rts_project(GCP, additive_constant=0.0))
     # the constant shifts every point radially by 1 cm: the fit moves by mm, not by nothing

@@ -12,8 +12,7 @@ import typer
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from rtsgt.cli.evaluate import register
-from rtsgt.errors import InputError
+from rtsgt.cli.main import app as main_app
 from rtsgt.evaluation import evaluate
 from rtsgt.io.trajectory import (
     read_groundtruth_dir,
@@ -37,15 +36,8 @@ STATS = {"rmse", "mean", "median", "std", "min", "max"}
 
 
 def _app() -> typer.Typer:
-    """A bare application holding only this command (isolated from the other commands)."""
-    app = typer.Typer()
-
-    @app.callback()
-    def _root() -> None:
-        """rtsgt (test)."""
-
-    register(app)
-    return app
+    """The application, with its rule for errors and exit statuses."""
+    return main_app
 
 
 runner = CliRunner()
@@ -238,8 +230,8 @@ def test_bag_estimate_and_unknown_topic(files, tmp_path):
     r = runner.invoke(
         _app(), ["evaluate", str(gt_dir), str(tmp_path / "est.bag"), "--topic", "/odom"]
     )
-    assert isinstance(r.exception, InputError)
-    assert "/pose (geometry_msgs/msg/PoseStamped)" in str(r.exception)
+    assert r.stderr.startswith("error: ")
+    assert "/pose (geometry_msgs/msg/PoseStamped)" in r.stderr
 
 
 def test_errors(files, tmp_path):
@@ -247,7 +239,7 @@ def test_errors(files, tmp_path):
     late = PoseTrajectory(est.t + 1e5, est.position, est.quat_xyzw)
     write_tum(tmp_path / "late.tum", late)
     r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(tmp_path / "late.tum")])
-    assert isinstance(r.exception, InputError) and "No time overlap" in str(r.exception)
+    assert r.stderr.startswith("error: ") and "No time overlap" in r.stderr
     r = runner.invoke(
         _app(), ["evaluate", str(gt_dir), str(tmp_path / "late.tum"), "--time-offset", "-100000"]
     )
@@ -255,12 +247,12 @@ def test_errors(files, tmp_path):
     two = trajectory(est.t[:2], est.position[:2], est.rotation[:2])
     write_tum(tmp_path / "two.tum", two)
     r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(tmp_path / "two.tum")])
-    assert isinstance(r.exception, InputError) and "at least 3 associated poses" in str(r.exception)
+    assert r.stderr.startswith("error: ") and "at least 3 associated poses" in r.stderr
     r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(d / "est.tum"), "--align", "7dof"])
     assert r.exit_code == 2 and "--align" in r.output
     (tmp_path / "bad.tum").write_text("1 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 2\n")
     r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(tmp_path / "bad.tum")])
-    assert isinstance(r.exception, InputError) and ":2:" in str(r.exception)
+    assert r.stderr.startswith("error: ") and ":2:" in r.stderr
 
 
 def test_entry_point_prints_one_line_error_and_exit_code_1(files, tmp_path):
@@ -283,3 +275,116 @@ def test_entry_point_prints_one_line_error_and_exit_code_1(files, tmp_path):
     assert p.returncode == 1
     assert p.stderr.startswith("error: ") and "nan.tum:2" in p.stderr
     assert p.stderr.count("\n") == 1
+
+
+# ----------------------------------------------------------------------------- a real run
+
+
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory):
+    """``rtsgt simulate`` (90 s, with line-of-sight losses) + ``rtsgt run --engine linear``."""
+    from rtsgt.cli.main import app as main_app
+
+    d = tmp_path_factory.mktemp("simrun")
+    r = runner.invoke(main_app, ["simulate", "--seed", "1", "--duration", "90", str(d / "dep")])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(
+        main_app,
+        ["run", str(d / "dep" / "deployment.toml"), "-o", str(d / "run"), "--engine", "linear",
+         "-q"],
+    )
+    assert r.exit_code == 0, r.output
+    return d / "run"
+
+
+def _json(*args: str) -> dict:
+    r = runner.invoke(_app(), ["evaluate", *args, "--json"])
+    assert r.exit_code == 0, r.output
+    return json.loads(r.stdout)
+
+
+def test_run_directory_keeps_every_pose_the_run_produced(sim_run):
+    """The estimate = the run's own groundtruth.tum: every pose is associated by default (the
+    run's own gap limit, summary.json parameters.max_gap_s), continuous and discrete; an
+    explicit --max-gap still wins."""
+    n = len(read_tum(sim_run / "groundtruth.tum"))
+    limit = json.loads((sim_run / "summary.json").read_text())["parameters"]["max_gap_s"]
+    est = str(sim_run / "groundtruth.tum")
+    for mode in ("auto", "discrete"):
+        out = _json(str(sim_run), est, "--gt-mode", mode)
+        a = out["association"]
+        assert a["n_associated"] == n and a["n_dropped"] == 0, (mode, a)
+        assert a["max_dt_s"] == limit
+        assert out["ape"]["translation_m"]["max"] < 1e-6
+    assert out["warnings"] == []
+    r = runner.invoke(_app(), ["evaluate", str(sim_run), est, "--max-gap", "0.5", "--json"])
+    assert r.exit_code == 0, r.output
+    shown = [ln for ln in r.stderr.splitlines() if ln.startswith("warning: ")]
+    assert len(shown) == 1 and "RPE pairs span a gap of the ground truth" in shown[0]
+    out = json.loads(r.stdout)
+    a = out["association"]
+    assert a["max_dt_s"] == 0.5
+    assert a["dropped_by_reason"]["far_from_measurement"] > 0  # measurement gaps beyond 1 s
+    # the RPE pairs across the poses so dropped are counted in a warning
+    assert len(out["warnings"]) == 1 and "(gap limit 0.5 s;" in out["warnings"][0]
+    # a trajectory file keeps the documented default for files (0.5 s)
+    out = _json(est, est)
+    assert out["association"]["max_dt_s"] == 0.5
+
+
+def test_no_rpe_pair_reports_ape_nees_and_why(files, tmp_path):
+    d, gt_dir, est = files
+    short = PoseTrajectory(est.t[:30], est.position[:30], est.quat_xyzw[:30])
+    write_tum(tmp_path / "short.tum", short)
+    args = ["evaluate", str(gt_dir), str(tmp_path / "short.tum"), "--delta", "100"]
+    r = runner.invoke(_app(), [*args, "--json"])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    assert out["rpe"]["n_pairs"] == 0 and out["rpe"]["translation_m"] is None
+    assert "100 m" in out["rpe"]["absent_reason"]
+    assert out["ape"]["n"] == 30 and out["nees"]["position"]["mean"] > 0
+    assert out["nees"]["relative_pose"]["mean"] is None
+    r = runner.invoke(_app(), args, env={"COLUMNS": "200"})
+    assert r.exit_code == 0, r.output
+    assert "APE translation" in r.stdout and "NEES" in r.stdout
+    assert "no RPE: " in r.stdout and out["rpe"]["absent_reason"] in r.stdout
+
+
+def test_warnings_are_shown_and_listed_in_json(files, tmp_path):
+    """A comma-separated TUM estimate: read as TUM with one warning naming the file, in the
+    terminal (one line through the entry point) and in --json's ``warnings``; the same
+    numbers as the TUM file. Nanosecond stamps in it: one error line, exit status 1."""
+    d, gt_dir, est = files
+    rows = np.column_stack([est.t, est.position, est.quat_xyzw]).tolist()
+    (tmp_path / "est.csv").write_text("".join(",".join(repr(v) for v in r) + "\n" for r in rows))
+    ref = _json(str(gt_dir), str(d / "est.tum"))
+    assert ref["warnings"] == []
+    r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(tmp_path / "est.csv"), "--json"])
+    assert r.exit_code == 0, r.output
+    assert r.stderr.startswith("warning: ") and "read as TUM" in r.stderr
+    out = json.loads(r.stdout)
+    assert len(out["warnings"]) == 1 and "est.csv" in out["warnings"][0]
+    assert out["ape"] == ref["ape"] and out["rpe"] == ref["rpe"]
+
+    def entry_point(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, "-c", "from rtsgt.cli.main import main; main()", "evaluate", *args],
+            capture_output=True, text=True, timeout=120,
+        )
+
+    p = entry_point(str(gt_dir), str(tmp_path / "est.csv"), "--json")
+    assert p.returncode == 0, p.stderr
+    assert p.stderr.startswith("warning: ") and p.stderr.count("\n") == 1
+    assert "est.csv" in p.stderr
+    assert json.loads(p.stdout)["warnings"] == out["warnings"]
+    ns = (np.round(est.t * 1e6).astype(np.int64) * 1000).tolist()
+    (tmp_path / "ns.tum").write_text(
+        "".join(
+            f"{t} " + " ".join(repr(v) for v in r[1:]) + "\n"
+            for t, r in zip(ns, rows, strict=True)
+        )
+    )
+    p = entry_point(str(gt_dir), str(tmp_path / "ns.tum"))
+    assert p.returncode == 1
+    assert p.stderr.startswith("error: ") and p.stderr.count("\n") == 1
+    assert "ns.tum:1: " in p.stderr and "nanoseconds" in p.stderr

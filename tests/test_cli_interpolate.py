@@ -15,9 +15,8 @@ from typer.testing import CliRunner
 from rtsgt.cli import main as cli_main
 from rtsgt.cli.interpolate import rate_times
 from rtsgt.cli.main import app
-from rtsgt.errors import InputError
 from rtsgt.interpolation import fit_track
-from rtsgt.io.track_csv import read_track_csv, write_track_csv
+from rtsgt.io.track_csv import TRACK_COLUMNS, read_track_csv, write_track_csv
 
 HEADER = "t,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz"
 runner = CliRunner()
@@ -200,21 +199,22 @@ def test_bad_track_gives_one_error_line_and_no_output(case, track_file, tmp_path
     assert not list(tmp_path.glob(".out.csv.*"))  # no temporary file left behind
     # CliRunner: the same InputError, exit code 1
     result = invoke(bad, "--rate", 5, "--out", out)
-    assert result.exit_code == 1 and isinstance(result.exception, InputError)
+    assert result.exit_code == 1 and result.stderr.startswith("error: ")
     assert not out.exists()
 
 
 def test_existing_out_file_is_left_untouched_on_error(track_file, tmp_path, monkeypatch,
                                                       capsys):
     out = tmp_path / "out.csv"
-    out.write_text("previous\n")
+    previous = ",".join(TRACK_COLUMNS) + "\n1,0,0,0,1,0,0,1,0,1\n"  # an earlier output
+    out.write_text(previous)
     tf = tmp_path / "times.txt"
     t = read_track_csv(track_file).t
     tf.write_text(f"{float(t[1])!r}\n{float(t[2])!r}\n{float(t[-1]) + 100.0!r}\n")
     code, _, stderr = run_main(monkeypatch, capsys, track_file, "--at", tf, "--out", out)
     assert code == 1
     assert stderr.startswith(f"error: {tf}:3: query time ") and "outside the track" in stderr
-    assert out.read_text() == "previous\n"
+    assert out.read_text() == previous
 
 
 @pytest.mark.parametrize(

@@ -4,6 +4,7 @@ from pathlib import Path
 
 import pytest
 
+from _paths import EXAMPLE_TOML
 from rtsgt.errors import ConfigError
 from rtsgt.io.config import load_config
 
@@ -83,10 +84,7 @@ def test_missing_configuration_file(tmp_path):
 
 
 def test_real_excerpt_configuration_loads():
-    shared = Path(__file__).resolve().parents[2] / "shared" / "data" / "rts_20221110"
-    if not shared.is_dir():
-        pytest.skip("shared/data/rts_20221110 is not beside this checkout")
-    cfg = load_config(Path(__file__).resolve().parents[1] / "examples/rts_20221110/deployment.toml")
+    cfg = load_config(EXAMPLE_TOML)
     assert cfg.weather is not None and cfg.weather.format == "eccc"
     assert cfg.weather.utc_offset_hours == -5.0
     assert all(s.additive_constant_m == 0.01 for s in cfg.stations)

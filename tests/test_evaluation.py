@@ -3,11 +3,13 @@ covariance, association with an uncertain ground truth, and the errors on bad in
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 from scipy import stats
 
-from rtsgt.errors import GeometryError, InputError
+from rtsgt.errors import GeometryError, InputError, RtsgtWarning
 from rtsgt.evaluation import associate, evaluate
 from rtsgt.evaluation.associate import interpolate_trajectory
 from rtsgt.evaluation.metrics import (
@@ -323,6 +325,51 @@ def test_rpe_pairs_by_seconds():
         rpe_pairs(p, t, 1.5, "f")
 
 
+def _path_of_steps(step: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Positions (N + 1, 3) whose consecutive distances are ``step`` (random directions)."""
+    d = rng.normal(size=(step.size, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    return np.concatenate([[np.zeros(3)], np.cumsum(d * step[:, None], axis=0)])
+
+
+@pytest.mark.parametrize("ulps", [0, 1, 3])
+def test_rpe_pairs_resolve_ties_to_reaching_delta(ulps):
+    """A path since the last selected pose equal to delta up to rounding reaches delta: 10 steps
+    of 0.1 m against 1 m give a pair every 10 steps, however the step lengths round (here: each
+    0.1 m step moved by up to ``ulps`` units in the last place, up or down, as different BLAS
+    kernels or norms would), and the same for times at 10 Hz on an epoch clock. A path short
+    of delta by far more than rounding (1e-7 relative) is not a tie."""
+    rng = np.random.default_rng(3)
+    for trial in range(20):
+        step = np.full(300, 0.1)
+        if ulps:
+            step = step + rng.integers(-ulps, ulps + 1, step.size) * np.spacing(0.1)
+        # stationary stretches (zero steps) must not change the pairs either
+        step = np.insert(step, rng.integers(0, 300, 30), 0.0)
+        p = _path_of_steps(step, rng)
+        cum = np.concatenate([[0.0], np.cumsum(np.hypot.reduce(np.diff(p, axis=0), axis=1))])
+        for delta, every in ((1.0, 10), (0.3, 3), (2.0, 20)):
+            pairs = rpe_pairs(p, None, delta, "m")
+            # the selected poses are the first at each multiple of delta (0.1 m units)
+            units = np.round(cum[pairs.ravel()] / 0.1).astype(int).reshape(-1, 2)
+            np.testing.assert_array_equal(units[:, 1] - units[:, 0], every, err_msg=str(trial))
+            assert pairs.shape[0] == 300 // every
+            moving = np.r_[True, np.diff(np.round(cum / 0.1)) > 0]
+            assert np.all(moving[pairs[:, 1]])  # never a pose later on a stationary stretch
+    short = _path_of_steps(np.full(300, 0.1 * (1 - 1e-7)), rng)
+    pairs = rpe_pairs(short, None, 1.0, "m")
+    np.testing.assert_array_equal(np.diff(pairs, axis=1), 11)
+    t0 = 1_668_095_037.0
+    for trial in range(20):
+        k = np.arange(301)
+        t = t0 + k * 0.1 + rng.integers(-ulps, ulps + 1, k.size) * np.spacing(t0)
+        pairs = rpe_pairs(np.zeros((t.size, 3)), t, 1.0, "s")
+        np.testing.assert_array_equal(pairs[:, 0], np.arange(0, 300, 10), err_msg=str(trial))
+        np.testing.assert_array_equal(pairs[:, 1], np.arange(10, 301, 10))
+    t = t0 + np.arange(301) * 0.1 * (1 - 1e-5)
+    np.testing.assert_array_equal(np.diff(rpe_pairs(np.zeros((301, 3)), t, 1.0, "s")), 11)
+
+
 # ----------------------------------------------------------------------------- association
 
 
@@ -383,8 +430,6 @@ def test_bad_input_gives_clear_errors(truth):
     few = trajectory(t[:2], p[:2], R[:2])
     with pytest.raises(InputError, match="at least 3 associated poses"):
         evaluate(gt, few, align="se3", delta=1, delta_unit="f")
-    with pytest.raises(InputError, match="no pose pair"):
-        evaluate(gt, trajectory(t[:20], p[:20], R[:20]), delta=100.0, delta_unit="m")
     q = trajectory(t[:200], p[:200], R[:200]).quat_xyzw * 1.1
     with pytest.raises(InputError, match="unit estimate quaternions"):
         evaluate(gt, PoseTrajectory(t[:200], p[:200], q))
@@ -417,3 +462,61 @@ def test_nees_section_is_null_without_ground_truth_covariance(truth):
     assert r.ape.translation_m.max < 1e-9
     # consistent with the chi2 helper of scipy for dof checks
     assert stats.chi2.ppf(0.95, 3) == pytest.approx(7.8147, abs=1e-4)
+
+
+def test_no_rpe_pair_still_gives_ape_and_nees_and_says_why(truth):
+    """A robot that moved less than the RPE delta: APE and NEES, no RPE, and the reason."""
+    t, p, R = truth
+    cov = random_covariances(len(t), np.random.default_rng(5))
+    gt = trajectory(t, p, R, cov)
+    est = trajectory(t[:30], p[:30], R[:30])
+    moved = float(np.sum(np.linalg.norm(np.diff(p[:30], axis=0), axis=1)))
+    r = evaluate(gt, est, delta=100.0, delta_unit="m")
+    assert r.rpe is None
+    assert "100 m" in r.rpe_absent_reason and f"{moved:.3g} m" in r.rpe_absent_reason
+    assert r.ape.translation_m.max < 1e-9 and r.nees.position.n == 30
+    assert r.nees.relative_pose is None and r.noise_floor.rpe_translation_m is None
+    d = r.to_dict()
+    assert d["rpe"]["n_pairs"] == 0 and d["rpe"]["translation_m"] is None
+    assert d["rpe"]["absent_reason"] == r.rpe_absent_reason
+    assert d["nees"]["relative_position"]["mean"] is None and d["nees"]["pose"]["mean"] > 0
+    for delta, unit, what in ((50, "f", "30 associated poses"), (10.0, "s", "2.9 s")):
+        r = evaluate(gt, est, delta=delta, delta_unit=unit)
+        assert r.rpe is None and what in r.rpe_absent_reason
+    assert evaluate(gt, est, delta=1.0).to_dict()["rpe"]["absent_reason"] is None
+
+
+def test_rpe_pairs_across_a_ground_truth_gap_are_counted_in_a_warning(truth):
+    """A 10 s hole in a discrete ground truth: the RPE pairs reaching into it (an end pose
+    interpolated across it, or the ends on both sides) are counted, with the longest gap; the
+    pairs stay evo's (not excluded). Gaps within the limit are not."""
+    t, p, R = truth
+    s = t - t[0]
+    hole = (s > 30.05) & (s < 40.05)  # ground-truth samples 30.0 and 40.1 s: a 10.1 s gap
+    gt = trajectory(t[~hole], p[~hole], R[~hole])
+    est = trajectory(t[:600], p[:600], R[:600])
+    with pytest.warns(RtsgtWarning) as rec:
+        r = evaluate(gt, est, align="none", delta=5.0, delta_unit="m", max_dt=0.5)
+    msgs = [str(w.message) for w in rec if issubclass(w.category, RtsgtWarning)]
+    assert len(msgs) == 1
+    ti, tj = r.t[r.rpe.pairs[:, 0]] - t[0], r.t[r.rpe.pairs[:, 1]] - t[0]
+    n_in = np.count_nonzero((tj > 30.05) & (ti < 40.05))  # the pairs overlapping the hole
+    assert np.count_nonzero((ti < 30.6) & (tj > 39.5)) == 1  # one across the dropped poses
+    n = r.rpe.pairs.shape[0]
+    assert msgs[0].startswith(f"{n_in} of {n} RPE pairs span a gap of the ground truth (gap "
+                              "limit 0.5 s; longest 10.1 s")
+    # an estimate that has no pose in the hole either (nothing dropped): the samples' spacing
+    cut = ~hole[:600]
+    lost = trajectory(t[:600][cut], p[:600][cut], R[:600][cut])
+    with pytest.warns(RtsgtWarning, match="longest 10.1 s"):
+        r = evaluate(gt, lost, align="none", delta=5.0, delta_unit="m", max_dt=0.5)
+    assert r.association.n_gap == 0
+    # no gap; a hole within twice the limit (every pose within max_dt of a sample); a sparse
+    # estimate (keyframes 0.7 s apart) on a dense ground truth; no limit: no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RtsgtWarning)
+        evaluate(trajectory(t, p, R), est, align="none", delta=5.0, delta_unit="m")
+        evaluate(gt, est, align="none", delta=5.0, delta_unit="m", max_dt=5.1)
+        sparse = trajectory(t[:600:7], p[:600:7], R[:600:7])
+        evaluate(trajectory(t, p, R), sparse, delta=5.0, delta_unit="m", max_dt=0.06)
+        evaluate(gt, est, align="none", delta=5.0, delta_unit="m", max_dt=None)

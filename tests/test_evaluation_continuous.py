@@ -16,7 +16,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from rtsgt.cli.evaluate import register
+from rtsgt.cli.main import app as main_app
 from rtsgt.errors import InputError
 from rtsgt.evaluation import evaluate
 from rtsgt.evaluation.associate import ValidatedGroundTruth
@@ -37,14 +37,8 @@ runner = CliRunner()
 
 
 def _app() -> typer.Typer:
-    app = typer.Typer()
-
-    @app.callback()
-    def _root() -> None:
-        """rtsgt (test)."""
-
-    register(app)
-    return app
+    """The application, with its rule for errors and exit statuses."""
+    return main_app
 
 
 def _simulate_run(tmp: Path, seed: int, **options):
@@ -276,7 +270,7 @@ def test_cli_discrete_fallback_and_modes(linear_run, offset_estimate, tmp_path):
     shutil.copy(out / "groundtruth_covariance.csv", bare)
     assert _cli_json(str(bare), *est)["association"]["ground_truth"] == "discrete"
     r = runner.invoke(_app(), ["evaluate", str(bare), *est, "--gt-mode", "continuous"])
-    assert isinstance(r.exception, InputError) and "measurements/" in str(r.exception)
+    assert r.stderr.startswith("error: ") and "measurements/" in r.stderr
     r = runner.invoke(_app(), ["evaluate", str(out), *est, "--gt-engine", "exact"])
     assert r.exit_code == 2 and "--gt-engine" in r.output
     mc = _cli_json(str(out), *est, "--gt-engine", "mc")
@@ -358,6 +352,35 @@ def test_errors_name_the_problem(linear_run, tmp_path):
         ContinuousGroundTruth.from_run_dir(broken)
     with pytest.raises(InputError, match="measurements/"):
         ContinuousGroundTruth.from_run_dir(tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        (lambda s: [1, 2], "expected a JSON object"),
+        (lambda s: {**s, "parameters": [1]}, "'parameters': expected a JSON object"),
+        (lambda s: {**s, "parameters": {**s["parameters"], "max_gap_s": "abc"}},
+         "parameters.max_gap_s: expected a positive number"),
+        (lambda s: {**s, "parameters": {**s["parameters"], "max_gap_s": -1}},
+         "parameters.max_gap_s: expected a positive number"),
+        (lambda s: {**s, "reference": [1]}, "'reference': expected a JSON object"),
+        (lambda s: {**s, "gates": "x"}, "'gates': expected a JSON object"),
+        (lambda s: {**s, "calibration": [1]}, "'calibration': expected a JSON object"),
+    ],
+)
+def test_malformed_summary_is_an_input_error_naming_it(linear_run, tmp_path, change, match):
+    """A summary.json edited by hand: one InputError naming the file (CLI exit status 1), never
+    an AttributeError or ValueError from deep inside."""
+    _, _, out = linear_run
+    broken = tmp_path / "broken"
+    shutil.copytree(out, broken)
+    summary = json.loads((broken / "summary.json").read_text())
+    (broken / "summary.json").write_text(json.dumps(change(summary)))
+    with pytest.raises(InputError, match=match) as exc:
+        ContinuousGroundTruth.from_run_dir(broken)
+    assert exc.value.path == str(broken / "summary.json")
+    r = runner.invoke(_app(), ["evaluate", str(broken), str(out / "groundtruth.tum")])
+    assert r.stderr.startswith("error: ")
 
 
 def test_rpe_uses_the_correlation_between_ground_truth_poses(tmp_path):

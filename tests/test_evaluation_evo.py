@@ -235,10 +235,31 @@ def _evo_pairs(p, delta, unit, all_pairs):
     return filters.filter_pairs_by_path(poses, delta, delta * 0.1, all_pairs)
 
 
+def _tie_margin(p: np.ndarray, delta: float) -> float:
+    """Smallest ``|path since the last selected pose - delta| / delta`` met by evo's consecutive
+    selection (sequential sums, as evo): how far the data stays from an exact tie."""
+    acc, margin = 0.0, np.inf
+    for step in np.linalg.norm(np.diff(p, axis=0), axis=1):
+        acc += float(step)
+        margin = min(margin, abs(acc - delta) / delta)
+        if acc >= delta:
+            acc = 0.0
+    return margin
+
+
 @pytest.mark.parametrize("all_pairs", [False, True])
 def test_rpe_pair_selection_equals_evo_on_hard_paths(all_pairs):
-    """Stationary stretches (plateaus of the path length), exactly regular steps (float ties
-    such as 10 x 0.1 m against 1 m) and random steps: the same pairs as evo's filters."""
+    """Stationary stretches (plateaus of the path length), exactly regular steps and random
+    steps: the same pairs as evo's filters.
+
+    Consecutive pairs are compared where the data has no tie (a path since the last selected
+    pose equal to delta up to rounding, such as 10 x 0.1 m against 1 m): at a tie evo's choice
+    depends on the last bit of its one-vector-at-a-time norms, i.e. on the BLAS kernel, and
+    rtsgt resolves it on purpose (``test_rpe_pairs_resolve_ties_*`` in test_evaluation.py).
+    The regular paths are compared at deltas between two multiples of their step, and every
+    consecutive case checks its own distance from a tie. The all-pairs mode has the same
+    arithmetic as evo (vectorised norms, cumulative sum; no BLAS) and is compared everywhere.
+    """
     from rtsgt.evaluation.metrics import rpe_pairs
 
     rng = np.random.default_rng(9)
@@ -254,8 +275,13 @@ def test_rpe_pair_selection_equals_evo_on_hard_paths(all_pairs):
         paths.append(np.concatenate([[np.zeros(3)], np.cumsum(d, axis=0)]))
     x = np.repeat(np.arange(60) * 0.1, 3)  # a straight line at 0.1 m steps, each pose 3 times
     paths.append(np.c_[x, 0 * x, 0 * x])
-    for p in paths:
-        for delta, unit in ((1.0, "m"), (0.3, "m"), (2.0, "m"), (4, "f")):
+    regular = (True, False, False, True)
+    for p, reg in zip(paths, regular, strict=True):
+        deltas = (1.05, 0.35, 2.05) if reg and not all_pairs else (1.0, 0.3, 2.0)
+        for delta, unit in [(d, "m") for d in deltas] + [(4, "f")]:
+            if unit == "m" and not all_pairs:
+                assert _tie_margin(p, delta) > 1e-6, f"a tie in the data at delta {delta}"
             mine = rpe_pairs(p, None, delta, unit, all_pairs=all_pairs)
             ref = np.array(_evo_pairs(p, delta, unit, all_pairs), dtype=int).reshape(-1, 2)
+            assert mine.shape[0] >= 2
             np.testing.assert_array_equal(mine, ref, err_msg=f"{delta} {unit}")

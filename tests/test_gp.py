@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import math
 from fractions import Fraction
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,6 +25,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy import stats
 
+from _paths import EXAMPLE_TOML as EXAMPLE
 from rtsgt.errors import ExtrapolationError, InputError
 from rtsgt.interpolation import (
     GPTrack,
@@ -790,15 +790,9 @@ def test_bad_query_times():
 # The real excerpt (Vaidis et al. 2023, 2022-11-10): modules 1 and 2, then the GP
 # --------------------------------------------------------------------------------------------
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "rts_20221110"
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "rts_20221110" / "deployment.toml"
-
 
 @pytest.fixture(scope="module")
 def real_run():
-    if not SHARED.is_dir():
-        pytest.skip(f"real excerpt {SHARED} not available (../shared is not beside the "
-                    "repository)")
     from rtsgt.io.deployment import load_deployment
     from rtsgt.pipeline import run_pipeline
 

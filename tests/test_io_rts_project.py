@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from _paths import EXCERPT as DATA
 from rtsgt.errors import InputError
 from rtsgt.io import rts_project
 from rtsgt.io.gcp_csv import detect_gcp_format, read_gcp_csv, read_gcp_shots, write_gcp_csv
@@ -20,18 +21,13 @@ from rtsgt.io.rts_project import (
 from rtsgt.measurement.polar import polar_to_cartesian
 from rtsgt.types import GcpShots, Observations
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-DATA = SHARED / "data" / "rts_20221110"
 GCP_HEADER = (
     "theodolite_number , marker_number , status , elevation , azimuth , distance , sec , nsec\n"
 )
 
 
 def real(name: str) -> Path:
-    p = DATA / name
-    if not p.exists():
-        pytest.skip(f"real excerpt {p} not available (../shared is not beside the repository)")
-    return p
+    return DATA / name
 
 
 def write(tmp_path: Path, text: str, name: str = "f.txt") -> Path:
@@ -337,3 +333,61 @@ def test_gcp_csv_bad_input(tmp_path, text, line, pattern):
     with pytest.raises(InputError, match=pattern) as info:
         read_gcp_csv(p)
     assert info.value.path == str(p) and info.value.line == line
+
+
+# ---------------------------------------------------------------- times that are not seconds
+
+NS = "1668095037077000000"  # 2022-11-10 15:43:57.077 UTC in nanoseconds
+TRACK_HEAD = "t,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz\n"
+TRACK_ROW = ",1,2,3,1e-6,0,0,1e-6,0,1e-6\n"
+
+
+def _read_track(p):
+    from rtsgt.io.track_csv import read_track_csv
+
+    return read_track_csv(p)
+
+
+def _read_weather(p):
+    from rtsgt.io.weather import read_weather_csv
+
+    return read_weather_csv(p)
+
+
+def _read_query_times(p):
+    from rtsgt.io.track_csv import read_query_times
+
+    return read_query_times(p)
+
+
+@pytest.mark.parametrize(
+    "reader, text, line, unit",
+    [
+        (lambda p: read_prism_file(p, station=1, prism=1),
+         f"1668095036.5 10.0 1.5 0.3\n{NS} 10.0 1.5 0.3\n", 2, "nanoseconds"),
+        (lambda p: read_prism_file(p, station=1, prism=1),
+         "# ms\n1668095037077 10.0 1.5 0.3\n", 2, "milliseconds"),
+        (read_gcp_rts_project,
+         GCP_HEADER + f"1 , 1 , 0 , 1.5627 , 4.59018 , 4.70579 , {NS} , 0\n", 2, "nanoseconds"),
+        (read_gcp_csv, f"station,marker,hz_rad,v_rad,d_m,t_s\n1,1,0.5,1.5,3,\n1,2,0.5,1.5,3,{NS}\n",
+         3, "nanoseconds"),
+        (_read_track, TRACK_HEAD + "1668095036" + TRACK_ROW + NS + TRACK_ROW, 3, "nanoseconds"),
+        (_read_weather, f"t_s,temperature_c,pressure_hpa,humidity_pct\n{NS},2,937,90\n", 2,
+         "nanoseconds"),
+        (_read_query_times, "1668095037077000\n", 1, "microseconds"),
+    ],
+)
+def test_times_that_look_like_nanoseconds_are_refused(tmp_path, reader, text, line, unit):
+    """Every reader of measurement times refuses times far beyond any Unix time in seconds
+    (>= 1e11 s, the year 5138), saying which unit they look like and what to do."""
+    p = write(tmp_path, text, "times.csv")
+    with pytest.raises(InputError, match=rf"looks like {unit} .* seconds") as info:
+        reader(p)
+    assert info.value.path == str(p) and info.value.line == line
+    assert "2022-11-10 15:43:57" in str(info.value)
+
+
+def test_unix_seconds_and_relative_seconds_are_accepted(tmp_path):
+    for t0 in ("0.0", "1668095037.077", "99999999999"):
+        obs = read_prism_file(write(tmp_path, f"{t0} 10.0 1.5 0.3\n"), station=1, prism=1)
+        assert obs.t[0] == float(t0)

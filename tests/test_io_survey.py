@@ -1,10 +1,10 @@
 """Readers of the static robot survey, calibration_results.csv and reference-point CSV files."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from _paths import EXCERPT as DATA
 from rtsgt.errors import InputError
 from rtsgt.io.survey import (
     read_calibration_results,
@@ -14,16 +14,7 @@ from rtsgt.io.survey import (
 )
 from rtsgt.pose import ReferencePoints, reference_from_survey
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-DATA = SHARED / "data" / "rts_20221110"
 ARCSEC = np.pi / (180 * 3600)
-
-
-def need(name):
-    p = DATA / name
-    if not p.exists():
-        pytest.skip(f"real data not available: {p} is missing")
-    return p
 
 
 def write(tmp_path, text, name="survey.csv"):
@@ -33,8 +24,8 @@ def write(tmp_path, text, name="survey.csv"):
 
 
 def test_real_survey_reproduces_the_published_inter_prism_distances():
-    s = read_survey_raw(need("calibration_raw.csv"))
-    c = read_calibration_results(need("calibration_results.csv"))
+    s = read_survey_raw(DATA / "calibration_raw.csv")
+    c = read_calibration_results(DATA / "calibration_results.csv")
     np.testing.assert_allclose(c.prism_distances, [0.73555, 0.90303, 1.03046], atol=5e-6)
     ref = reference_from_survey(s.xyz, s.cov, [s.index("prism1"), s.index("prism2"),
                                                s.index("prism3")])
@@ -52,8 +43,8 @@ def test_real_survey_reproduces_the_published_inter_prism_distances():
 
 def test_real_survey_matches_the_authors_cartesian_points():
     """Rows 1-6 of sensor_positions.csv are the same shots converted by the reference code."""
-    s = read_survey_raw(need("calibration_raw.csv"))
-    authors = np.loadtxt(need("sensor_positions.csv"))[:6, :3]
+    s = read_survey_raw(DATA / "calibration_raw.csv")
+    authors = np.loadtxt(DATA / "sensor_positions.csv")[:6, :3]
     np.testing.assert_allclose(s.xyz[:6], authors, atol=1e-9)
     # first row: Hz = 0 00 16, sigma Hz = 0 00 04.769, V = 88 29 47, d = 10.761 +- 0.0006
     assert s.hz[0] == pytest.approx(16 * ARCSEC, rel=1e-12)

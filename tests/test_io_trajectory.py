@@ -7,12 +7,13 @@ input (file and line named).
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from rtsgt.errors import InputError
+from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.io.trajectory import (
     attach_covariance,
     detect_format,
@@ -196,6 +197,96 @@ def test_other_bad_files(tmp_path, traj):
         read_covariance_csv(_write(tmp_path, "c3.csv", "t,x,y\n" + "\n".join(lines[1:]) + "\n"))
     with pytest.raises(InputError, match="cannot recognise"):
         detect_format(_write(tmp_path, "w.txt", "1 2 3\n"))
+
+
+# ----------------------------------------------------------------------------- misread units
+
+
+TUM = ("t", "x", "y", "z", "qx", "qy", "qz", "qw")
+
+
+def _ns(t: np.ndarray) -> list[int]:
+    """Integer nanoseconds of times in s (to the microsecond, exactly representable)."""
+    return (np.round(t * 1e6).astype(np.int64) * 1000).tolist()
+
+
+def _text(stamps: list, rows: list[list[float]], sep: str) -> str:
+    """Lines ``stamp sep v1 sep v2 ...`` (shortest exact floats)."""
+    return "".join(
+        sep.join([str(a)] + [repr(v) for v in r]) + "\n" for a, r in zip(stamps, rows, strict=True)
+    )
+
+
+def test_nanosecond_stamps_in_seconds_formats_are_refused_naming_file_and_line(traj, tmp_path):
+    """TUM, KITTI times and the rtsgt CSV are seconds: a stamp beyond 1e11 s (the year 5138)
+    is refused, naming the file, the line, the value and the unit it looks like; EuRoC,
+    documented as nanoseconds, reads the same stamps."""
+    ns = _ns(traj.t)
+    rows = np.column_stack([traj.position, traj.quat_xyzw]).tolist()
+    tum = _text(ns, rows, " ")
+    p = _write(tmp_path, "ns.tum", "# t[ns] x y z qx qy qz qw\n" + tum)
+    with pytest.raises(InputError, match=r"too large for seconds.*looks like nanoseconds") as exc:
+        read_trajectory(p)
+    assert exc.value.path == str(p) and exc.value.line == 2
+    assert f"{float(ns[0])!r}" in str(exc.value)
+    write_kitti(tmp_path / "k.kitti", traj)
+    _write(tmp_path, "times_ns.txt", "".join(f"{a}\n" for a in ns))
+    with pytest.raises(InputError, match="nanoseconds") as exc:
+        read_kitti(tmp_path / "k.kitti", tmp_path / "times_ns.txt")
+    assert exc.value.path == str(tmp_path / "times_ns.txt") and exc.value.line == 1
+    write_covariance_csv(tmp_path / "c.csv", traj)
+    lines = (tmp_path / "c.csv").read_text().splitlines()
+    for i, a in enumerate(ns, start=1):
+        lines[i] = str(a) + lines[i][lines[i].index(","):]
+    with pytest.raises(InputError, match="nanoseconds") as exc:
+        read_covariance_csv(_write(tmp_path, "c_ns.csv", "\n".join(lines) + "\n"))
+    assert exc.value.path == str(tmp_path / "c_ns.csv") and exc.value.line == 2
+    write_euroc(tmp_path / "e.csv", traj)
+    e = read_trajectory(tmp_path / "e.csv")
+    np.testing.assert_allclose(e.t, traj.t, rtol=0, atol=1e-6)
+
+
+def test_comma_separated_tum_is_not_taken_for_euroc(traj, tmp_path):
+    """A comma-separated 't,x,y,z,qx,qy,qz,qw' file (seconds, qw last) is read as TUM, with a
+    warning saying so; EuRoC (integer ns, qw first) stays EuRoC without a warning."""
+    rows = np.column_stack([traj.t, traj.position, traj.quat_xyzw]).tolist()
+    text = "".join(",".join(repr(v) for v in r) + "\n" for r in rows)
+    p = _write(tmp_path, "comma.csv", text)
+    with pytest.warns(RtsgtWarning, match="comma.csv: .*read as TUM") as rec:
+        assert detect_format(p) == "tum"
+    assert "qw last" in str(rec[0].message)
+    with pytest.warns(RtsgtWarning, match="read as TUM"):
+        got = read_trajectory(p)
+    assert_same_poses(got, traj, atol=1e-15)
+    np.testing.assert_array_equal(read_tum(p).quat_xyzw, got.quat_xyzw)  # --format tum
+    # integer seconds (1 s apart: a pose rate of 1 GHz if they were nanoseconds)
+    ints = "".join(f"{k}," + ",".join(repr(v) for v in r[1:]) + "\n" for k, r in enumerate(rows))
+    with pytest.warns(RtsgtWarning, match="read as TUM"):
+        got = read_trajectory(_write(tmp_path, "ints.csv", ints))
+    np.testing.assert_array_equal(got.t, np.arange(len(rows)))
+    np.testing.assert_array_equal(got.quat_xyzw[:, 3] > 0, traj.quat_xyzw[:, 3] > 0)
+    # a header naming the TUM columns: TUM, no warning needed; EuRoC (with or without its
+    # header comment) stays EuRoC, without a warning
+    write_euroc(tmp_path / "e.csv", traj)
+    bare = "".join((tmp_path / "e.csv").read_text().splitlines(keepends=True)[1:])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RtsgtWarning)
+        h = read_trajectory(_write(tmp_path, "h.csv", ",".join(TUM) + "\n" + text))
+        assert_same_poses(h, traj, atol=1e-15)
+        for name in ("e.csv", "e_bare.csv"):
+            if name == "e_bare.csv":
+                _write(tmp_path, name, bare)
+            assert detect_format(tmp_path / name) == "euroc"
+            assert_same_poses(read_trajectory(tmp_path / name), traj, atol=1e-14, t_atol=1e-6)
+        # integer-nanosecond rows whose header comment puts qw last: TUM (the header says so),
+        # so the nanoseconds are refused instead of a silent w-first (EuRoC) reading
+        ns = _ns(traj.t)
+        qlast = _text(ns, [r[1:] for r in rows], ",")
+        q = _write(tmp_path, "q.csv", "# t[ns], x, y, z, qx, qy, qz, qw\n" + qlast)
+        assert detect_format(q) == "tum"
+        with pytest.raises(InputError, match="nanoseconds") as exc:
+            read_trajectory(q)
+        assert exc.value.line == 2
 
 
 # ----------------------------------------------------------------------------- bags

@@ -10,12 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from _paths import EXCERPT as DATA
 from rtsgt.errors import InputError
 from rtsgt.io.weather import read_weather_csv, read_weather_eccc, write_weather_csv
 from rtsgt.types import WeatherSeries
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-DATA = SHARED / "data" / "rts_20221110"
 ECCC = DATA / "weather_ECCC_raw_excerpt.csv"
 SORTED = DATA / "weather_sorted_excerpt.txt"
 
@@ -26,14 +25,8 @@ EN_HEADERS = {
 }
 
 
-def need(p: Path) -> Path:
-    if not p.exists():
-        pytest.skip(f"real excerpt {p} not available (../shared is not beside the repository)")
-    return p
-
-
 def raw_rows() -> list[list[str]]:
-    return list(csv.reader(io.StringIO(need(ECCC).read_text(encoding="utf-8-sig"))))
+    return list(csv.reader(io.StringIO(ECCC.read_text(encoding="utf-8-sig"))))
 
 
 def write_rows(path: Path, rows, encoding="utf-8") -> Path:
@@ -44,7 +37,7 @@ def write_rows(path: Path, rows, encoding="utf-8") -> Path:
 
 
 def test_real_eccc_excerpt():
-    w = read_weather_eccc(ECCC if ECCC.exists() else need(ECCC))
+    w = read_weather_eccc(ECCC)
     assert len(w.t) == 24
     # 2022-11-10 00:00 HNL = 05:00 UTC
     assert w.t[0] == 1668056400.0
@@ -69,8 +62,8 @@ def reference_bug_hpa(field: str) -> float:
 
 
 def test_differs_from_reference_sorted_file_exactly_where_it_is_wrong():
-    w = read_weather_eccc(need(ECCC))
-    ref = np.loadtxt(need(SORTED), usecols=(0, 1, 2, 3))
+    w = read_weather_eccc(ECCC)
+    ref = np.loadtxt(SORTED, usecols=(0, 1, 2, 3))
     t_ref, temp_ref, hum_ref, p_ref = ref.T
     # the reference took local standard time as UTC-4 instead of UTC-5: its epochs are 1 h early
     idx = np.searchsorted(t_ref, w.t - 3600.0)
@@ -96,7 +89,7 @@ def test_english_headers_decimal_points_and_cp1252(tmp_path):
     rows[0] = [EN_HEADERS.get(h, h) for h in rows[0]]
     rows[1:] = [[f.replace(",", ".") for f in r] for r in rows[1:]]
     en = read_weather_eccc(write_rows(tmp_path / "en.csv", rows))
-    fr = read_weather_eccc(need(ECCC))
+    fr = read_weather_eccc(ECCC)
     for name in ("t", "temperature_c", "pressure_hpa", "humidity_pct"):
         np.testing.assert_array_equal(getattr(en, name), getattr(fr, name))
     latin = read_weather_eccc(write_rows(tmp_path / "cp.csv", raw_rows(), encoding="cp1252"))
@@ -106,7 +99,7 @@ def test_english_headers_decimal_points_and_cp1252(tmp_path):
 
 
 def test_utc_offset_is_applied():
-    a = read_weather_eccc(need(ECCC))
+    a = read_weather_eccc(ECCC)
     b = read_weather_eccc(ECCC, utc_offset_hours=0.0)
     c = read_weather_eccc(ECCC, utc_offset_hours=-4.0)
     np.testing.assert_array_equal(a.t - b.t, 5 * 3600.0)
@@ -124,7 +117,7 @@ def test_rows_with_missing_values_are_skipped_and_counted(tmp_path):
     with pytest.warns(UserWarning, match=r"skipped 2 row\(s\) .* \(lines 4, 6\)"):
         w = read_weather_eccc(p)
     assert len(w.t) == 22
-    full = read_weather_eccc(need(ECCC))
+    full = read_weather_eccc(ECCC)
     np.testing.assert_array_equal(w.t, np.delete(full.t, [2, 4]))
     for r in rows[1:]:
         r[h.index("Hum. rel (%)")] = ""
@@ -172,7 +165,7 @@ def test_eccc_empty_and_missing(tmp_path):
 
 
 def test_native_csv_round_trip(tmp_path):
-    w = read_weather_eccc(need(ECCC))
+    w = read_weather_eccc(ECCC)
     out = tmp_path / "weather.csv"
     write_weather_csv(out, w)
     assert out.read_text().splitlines()[0] == "t_s,temperature_c,pressure_hpa,humidity_pct"
@@ -205,3 +198,63 @@ def test_native_csv_bad_input(tmp_path, text, line, pattern):
     with pytest.raises(InputError, match=pattern) as info:
         read_weather_csv(p)
     assert info.value.path == str(p) and info.value.line == line
+
+
+# -- coverage of the measurement times ---------------------------------------------------------
+
+HOURLY = WeatherSeries(1668056400.0 + 3600.0 * np.arange(6), np.full(6, 2.0), np.full(6, 937.0),
+                       np.full(6, 80.0), source="hourly.csv")
+
+
+def test_coverage_tolerance_is_the_record_interval():
+    """A time is covered when a record lies within one sampling interval (the median spacing
+    of the records: 1 h for hourly files) of it."""
+    from rtsgt.io.weather import weather_coverage
+
+    last = HOURLY.t[-1]
+    near = weather_coverage(HOURLY, last + 20 * 60.0 + np.arange(10.0))
+    assert near["covered"] and near["uncovered_measurements"] == 0
+    assert near["sampling_interval_s"] == 3600.0
+    assert near["after_last_s"] == pytest.approx(20 * 60.0 + 9.0)
+    far = weather_coverage(HOURLY, last + 3 * 3600.0 + np.arange(10.0))
+    assert not far["covered"] and far["uncovered_measurements"] == 10
+    assert far["after_last_s"] == pytest.approx(3 * 3600.0 + 9.0)
+    assert far["before_first_s"] == 0.0
+    assert (far["first_t_s"], far["last_t_s"], far["records"]) == (HOURLY.t[0], last, 6)
+    assert far["first_utc"] == "2022-11-10 05:00:00" and far["file"] == "hourly.csv"
+    early = weather_coverage(HOURLY, HOURLY.t[0] - np.array([7200.0, 0.0]))
+    assert not early["covered"] and early["before_first_s"] == 7200.0
+    assert early["uncovered_measurements"] == 1
+    # one record has no interval: it is the deployment's constant weather (module docstring)
+    one = WeatherSeries(HOURLY.t[:1], HOURLY.temperature_c[:1], HOURLY.pressure_hpa[:1],
+                        HOURLY.humidity_pct[:1], source="one.csv")
+    single = weather_coverage(one, one.t[0] + 5 * 3600.0 + np.arange(3.0))
+    assert single["sampling_interval_s"] is None and single["covered"]
+    assert single["after_last_s"] == 5 * 3600.0 + 2.0
+
+
+def test_coverage_sees_a_gap_inside_the_record():
+    from rtsgt.io.weather import weather_coverage
+
+    hours = np.array([0, 1, 2, 3, 7, 8, 9])  # hours 4-6 missing: 4 h between two records
+    w = WeatherSeries(1668056400.0 + 3600.0 * hours, np.full(7, 2.0), np.full(7, 937.0),
+                      np.full(7, 80.0), source="gappy.csv")
+    mid = weather_coverage(w, np.array([w.t[3] + 2 * 3600.0]))
+    assert mid["sampling_interval_s"] == 3600.0
+    assert not mid["covered"] and mid["max_distance_to_record_s"] == 2 * 3600.0
+    assert mid["before_first_s"] == mid["after_last_s"] == 0.0
+    assert weather_coverage(w, np.array([w.t[3] + 0.5 * 3600.0]))["covered"]
+
+
+def test_check_warns_naming_the_file_and_how_far():
+    from rtsgt.errors import RtsgtWarning
+    from rtsgt.io.weather import check_weather_coverage
+
+    with pytest.warns(RtsgtWarning, match=r"hourly\.csv.*3\.0 h after the last record"):
+        info = check_weather_coverage(HOURLY, HOURLY.t[-1] + 3 * 3600.0 + np.arange(60.0))
+    assert not info["covered"]
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert check_weather_coverage(HOURLY, HOURLY.t[2] + np.arange(60.0))["covered"]

@@ -2,16 +2,16 @@
 
 Closed forms for the norm and the binning, the one-liner of the API, and the real excerpt:
 the instrument source of the Trimble S7 at the excerpt's ranges (3 m to 90 m) lands near the
-paper's 2.1 mm (DESIGN.md section 3), with the other sources in the published order.
+paper's 2.1 mm (docs/paper-figures.md#per-source-medians), with the other sources in the
+published order.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
+from _paths import EXCERPT as DATA
 from rtsgt.calibration import calibrate
 from rtsgt.errors import InputError
 from rtsgt.io.rts_project import read_gcp_rts_project, read_prism_file
@@ -28,8 +28,6 @@ from rtsgt.noise import (
     summarize_sources,
 )
 from rtsgt.types import Observations
-
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "rts_20221110"
 
 
 def test_frobenius_norm_closed_form():
@@ -113,22 +111,16 @@ def test_authors_variant_equals_each_source_alone_for_the_linear_engine():
         authors_source_norms_mm(obs, model, base="calibration")
 
 
-def _need(p: Path) -> Path:
-    if not p.exists():
-        pytest.skip(f"real excerpt {p} not available (../shared is not beside the repository)")
-    return p
-
-
 @pytest.fixture(scope="module")
 def real_tracks():
     """The three prism excerpts, all five sources, both engines (world = station 1)."""
-    weather = read_weather_eccc(_need(DATA / "weather_ECCC_raw_excerpt.csv"))
-    calib = calibrate(read_gcp_rts_project(_need(DATA / "GCP.txt")), samples=2000,
+    weather = read_weather_eccc(DATA / "weather_ECCC_raw_excerpt.csv")
+    calib = calibrate(read_gcp_rts_project(DATA / "GCP.txt"), samples=2000,
                       rng=np.random.default_rng(0))
     model = NoiseModel(TRIMBLE_S7)
     out = {}
     for k in ("1", "2", "3"):
-        obs = read_prism_file(_need(DATA / f"prism{k}.csv"), station=k, prism=k,
+        obs = read_prism_file(DATA / f"prism{k}.csv", station=k, prism=k,
                               additive_constant=0.01)
         kw = dict(T_world_station=calib.transforms[k], weather=weather)
         out[k] = (

@@ -225,7 +225,8 @@ def test_calibration_from_a_covariance_only():
 
 
 def test_sample_gaussian_reproduces_a_singular_covariance():
-    # DESIGN.md pitfall 1: eigenvectors are the columns of V; a cloud must reproduce the covariance
+    # pitfall 1 (docs/noise-model.md#reference-code-pitfalls): eigenvectors are the columns of V;
+    # a cloud must reproduce the covariance
     A = np.random.default_rng(0).standard_normal((6, 4))
     cov = A @ A.T  # rank 4
     x = mc.sample_gaussian(cov, 200_000, np.random.default_rng(1))

@@ -217,7 +217,8 @@ def test_bad_inputs():
 
 def test_psd_factor_columns_reproduce_the_covariance():
     """Cholesky where possible; for a singular covariance the eigen-factor uses the COLUMNS of
-    the eigenvector matrix (the reference code used the rows: DESIGN.md pitfall 1)."""
+    the eigenvector matrix (the reference code used the rows: pitfall 1 of
+    docs/noise-model.md#reference-code-pitfalls)."""
     rng = np.random.default_rng(80)
     A = rng.normal(size=(6, 2))
     singular = A @ A.T  # rank 2

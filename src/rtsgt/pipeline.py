@@ -32,6 +32,14 @@ Two stations calibrated from the same reference shots have correlated calibratio
 (:func:`joint_prism_covariance`), since errors that move the prisms together are not averaged
 out by the registration. On simulated deployments this took the position NEES / dof from
 1.15-1.25 to 1.11-1.12 (README, section Honesty).
+
+Checks that warn
+----------------
+A run says what it cannot vouch for as :class:`~rtsgt.errors.RtsgtWarning` (recorded in
+:attr:`RunResult.warnings`, hence ``summary.json``): a weather record that does not cover the
+measurement times (:func:`rtsgt.io.weather.check_weather_coverage`), a surveyed inter-prism
+distance that the tracked distances disagree with beyond its predicted sigma
+(:func:`rtsgt.filtering.gates.surveyed_distance_check`), rate gates that reject motion.
 """
 
 from __future__ import annotations
@@ -40,17 +48,18 @@ import os
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from rtsgt.calibration import CalibrationResult, calibrate
-from rtsgt.errors import InputError
+from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.filtering import FilterParams, module1, module2
-from rtsgt.filtering.gates import GateReport, apply_gates
+from rtsgt.filtering.gates import GateReport, apply_gates, surveyed_distance_check
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
 from rtsgt.interpolation import GPTrack, fit_track
 from rtsgt.interpolation.loo import fit_qc_loo
+from rtsgt.io.weather import check_weather_coverage
 from rtsgt.measurement.instruments import InstrumentProfile
 from rtsgt.noise import NoiseModel, propagate
 from rtsgt.pose import PoseEstimate, ReferencePoints, estimate_poses
@@ -115,8 +124,15 @@ class RunOptions:
     def __post_init__(self) -> None:
         if self.engine not in ("mc", "ut", "linear"):
             raise InputError(f"Expected engine mc, ut or linear, got {self.engine!r}")
-        if self.samples < 10:
-            raise InputError(f"Expected at least 10 samples, got {self.samples}")
+        if isinstance(self.samples, bool) or not isinstance(self.samples, (int, np.integer)) \
+                or self.samples < 10:
+            raise InputError(f"Expected an integer of at least 10 samples, got {self.samples!r}")
+        if not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
+            raise InputError(f"Expected a finite rate_hz > 0 Hz, got {self.rate_hz!r}")
+        for name in ("max_gap_s", "distance_gate_m", "uncertainty_gate_m"):
+            value = getattr(self, name)
+            if not value > 0:  # infinity switches the limit off; nan is refused
+                raise InputError(f"Expected {name} > 0, got {value!r}")
         if isinstance(self.qc, str) and self.qc not in QC_METHODS:
             raise InputError(
                 f"Expected qc {', '.join(QC_METHODS)} or a number (m^2/s^3), got {self.qc!r}")
@@ -188,6 +204,13 @@ class RunResult:
     timings_s: dict[str, float]
     qc_info: dict[str, dict] = field(default_factory=dict)
     coupling: StationCoupling | None = None
+    #: Every warning of the run (:class:`~rtsgt.errors.RtsgtWarning` and other
+    #: :class:`UserWarning`), once each, in order (``summary.json`` ``warnings``).
+    warnings: list[str] = field(default_factory=list)
+    #: :func:`rtsgt.io.weather.weather_coverage` of the filtered measurements (None: no weather).
+    weather_coverage: dict | None = None
+    #: :func:`rtsgt.filtering.gates.surveyed_distance_check` of the kept poses, per prism pair.
+    distance_check: dict = field(default_factory=dict)
 
     @property
     def rejection_reasons(self) -> np.ndarray:
@@ -253,7 +276,7 @@ def warn_tight_rate_gates(obs: Observations, report, params: FilterParams) -> No
             f"tau_r = {params.tau_r:g} m/s, tau_a = {np.degrees(params.tau_a):g} deg/s, "
             f"tau_e = {np.degrees(params.tau_e):g} deg/s): that is motion, not outliers, if the "
             "robot is fast or close to the station; raise the [filter] gates of the "
-            "configuration", stacklevel=3)
+            "configuration", RtsgtWarning, stacklevel=3)
 
 
 def gcp_atmospheric_correction(
@@ -271,8 +294,6 @@ def gcp_atmospheric_correction(
     """
     if weather is None:
         return gcp
-    from dataclasses import replace
-
     from rtsgt.measurement.atmosphere import instrument_correction_ppm
 
     n = len(gcp.d)
@@ -311,7 +332,7 @@ def fit_gps(
                 loo = fit_qc_loo(data, mode="per-axis", max_gap_s=options.max_gap_s)
             except InputError as exc:  # too few interior measurements to cross-validate
                 warnings.warn(f"prism {pid}: {exc.bare_message}; Qc by the marginal "
-                              "likelihood instead", stacklevel=2)
+                              "likelihood instead", RtsgtWarning, stacklevel=2)
                 return fit_track(data, fit_qc=True, max_gap_s=options.max_gap_s), {
                     "method": "likelihood", "note": "too few measurements for leave-one-out"}
             return fit_track(data, qc=loo.qc, max_gap_s=options.max_gap_s), {
@@ -501,7 +522,40 @@ def run_pipeline(
     Returns
     -------
     RunResult
+        With :attr:`RunResult.warnings`: every :class:`UserWarning` (the
+        :class:`~rtsgt.errors.RtsgtWarning` of the checks included) the stages raised, once
+        each. They are recorded while the stages run and then issued again, once each, so a
+        caller (the CLI's ``warning: ...`` lines) sees every one once, even if the run fails.
     """
+    caught: list[warnings.WarningMessage] = []
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")  # a second run must record what the first did
+            result = _run_stages(data, options, progress)
+    finally:
+        said = _reissue(caught)
+    return replace(result, warnings=said)
+
+
+def _reissue(caught: list[warnings.WarningMessage]) -> list[str]:
+    """Issue recorded warnings again, once each; the texts of the user warnings among them."""
+    seen: set[tuple[type, str]] = set()
+    said: list[str] = []
+    for w in caught:
+        key = (w.category, str(w.message))
+        if key in seen:
+            continue
+        seen.add(key)
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+        if issubclass(w.category, UserWarning):
+            said.append(str(w.message))
+    return said
+
+
+def _run_stages(
+    data: DeploymentData, options: RunOptions | None, progress: Progress | None
+) -> RunResult:
+    """The stages of :func:`run_pipeline` (their warnings not yet recorded)."""
     options = RunOptions() if options is None else options
     say = progress or (lambda stage: None)
     rng = np.random.default_rng(options.seed)
@@ -526,6 +580,8 @@ def run_pipeline(
         filtered.append(kept)
         reports[f"module1_station{obs.station}"] = rep
         warn_tight_rate_gates(obs, rep, fparams)
+    weather_coverage = None if data.weather is None else check_weather_coverage(
+        data.weather, np.concatenate([o.t for o in filtered]))
     lap("filter_module1")
 
     say("extrinsic calibration")
@@ -592,6 +648,11 @@ def run_pipeline(
     gt = PoseTrajectory(
         t_query[keep], est.t[keep], matrix_to_quat_xyzw(est.R[keep]), est.cov[keep]
     )
+    # a surveyed distance the tracking disagrees with biases every pose: say so
+    distance_check = surveyed_distance_check(
+        prisms.xyz[keep], prisms.pose_covariance[keep], reference.xyz, reference.cov,
+        reference.names)
     lap("gates")
     return RunResult(data, options, reports, calib, tracks, intervals, gps, prisms, est, keep,
-                     gate_report, gt, model, timings, qc_info, coupling)
+                     gate_report, gt, model, timings, qc_info, coupling,
+                     weather_coverage=weather_coverage, distance_check=distance_check)

@@ -55,7 +55,7 @@ from itertools import combinations
 
 import numpy as np
 
-from rtsgt.errors import GeometryError, InputError
+from rtsgt.errors import GeometryError, InputError, RtsgtWarning
 from rtsgt.geometry.kabsch import kabsch
 from rtsgt.geometry.transform import RigidTransform, perturbation
 from rtsgt.measurement.instruments import TRIMBLE_S7, InstrumentProfile
@@ -229,7 +229,7 @@ def _setup(shots: GcpShots, reference_station: str, instrument: InstrumentProfil
         warnings.warn(
             f"{shots.source or 'GCP shots'}: marker(s) {', '.join(skipped)} shot validly by "
             "fewer than 2 stations are not used",
-            UserWarning, stacklevel=3,
+            RtsgtWarning, stacklevel=3,
         )
     hz = np.asarray(shots.hz[valid])
     v = np.asarray(shots.v[valid])

@@ -65,27 +65,32 @@ def print_analysis(analysis: Analysis, console: Console | None = None) -> None:
 def run_analyze(run_dir: Path, *, bins: str = "0,75,150", out: Path | None = None,
                 engine: str | None = None, samples: int | None = None,
                 pose_measure: str = "sqrt_trace", figures: bool = True,
-                formats: tuple[str, ...] = ("png", "svg")) -> tuple[Analysis, list[Path]]:
+                formats: tuple[str, ...] = ("png", "svg"),
+                force: bool = False) -> tuple[Analysis, list[Path]]:
     """Analyse a run directory; write the figures and ``analysis.json`` into ``out``.
 
     Returns the analysis and the written files (``out`` defaults to ``RUN_DIR/analysis``).
+    ``out`` is written whole or not at all; ``force`` replaces an earlier output of rtsgt
+    there (:mod:`rtsgt.io.output_dir`).
     """
+    from rtsgt.io.output_dir import OutputDir
     from rtsgt.io.run_reader import read_run
     from rtsgt.report.analysis import analyze
     from rtsgt.report.figures import draw_all, save_figures
 
+    folder = Path(run_dir) / "analysis" if out is None else Path(out)
+    output = OutputDir(folder, "analysis", force=force, inputs=[run_dir])
     data = read_run(run_dir)
     analysis = analyze(data, bins=bins, engine=engine, samples=samples,
                        pose_measure=pose_measure)
-    folder = Path(run_dir) / "analysis" if out is None else Path(out)
-    folder.mkdir(parents=True, exist_ok=True)
-    written: list[Path] = []
-    if figures:
-        written += save_figures(draw_all(data, analysis), folder, formats)
-    js = folder / "analysis.json"
-    js.write_text(json.dumps(analysis.to_dict(), indent=2) + "\n", encoding="utf-8")
-    written.append(js)
-    return analysis, written
+    with output as tmp:
+        names: list[str] = []
+        if figures:
+            names += [p.name for p in save_figures(draw_all(data, analysis), tmp, formats)]
+        (tmp / "analysis.json").write_text(json.dumps(analysis.to_dict(), indent=2) + "\n",
+                                           encoding="utf-8")
+        names.append("analysis.json")
+    return analysis, [output.final / n for n in names]
 
 
 def register(app: typer.Typer) -> None:
@@ -110,6 +115,9 @@ def register(app: typer.Typer) -> None:
                  "(sqrt of the largest eigenvalue)."),
         no_figures: bool = typer.Option(False, "--no-figures", help="Write no figures."),
         formats: str = typer.Option("png,svg", "--formats", help="Figure formats."),
+        force: bool = typer.Option(False, "--force",
+                                   help="Replace an earlier output of rtsgt at --out (never a "
+                                        "directory holding anything else)."),
     ) -> None:
         """Per-source noise analysis of a run, next to the paper's medians, with figures."""
         fmts = tuple(f.strip().lower() for f in formats.split(",") if f.strip())
@@ -119,7 +127,7 @@ def register(app: typer.Typer) -> None:
                                      param_hint="--formats")
         analysis, written = run_analyze(run_dir, bins=bins, out=out, engine=engine,
                                         samples=samples, pose_measure=pose_measure,
-                                        figures=not no_figures, formats=fmts)
+                                        figures=not no_figures, formats=fmts, force=force)
         if as_json:
             d = analysis.to_dict()
             d["files"] = [str(p) for p in written]
@@ -145,21 +153,21 @@ def register(app: typer.Typer) -> None:
                                           help="Embedded figures: svg or png."),
     ) -> None:
         """Write a single self-contained HTML report of a run (opens offline)."""
+        from rtsgt.io.output_dir import check_output_file, record_files
         from rtsgt.io.run_reader import read_run
         from rtsgt.report.analysis import analyze
-        from rtsgt.report.html import write_report_file
+        from rtsgt.report.html import is_report_html, write_report_file
 
         if figure_format not in ("svg", "png"):
             raise typer.BadParameter(f"expected svg or png, got {figure_format!r}",
                                      param_hint="--figure-format")
+        path = Path(run_dir) / "report.html" if out is None else Path(out)
+        check_output_file(path, option="--out", written_by_rtsgt=is_report_html)
         data = read_run(run_dir)
         analysis = analyze(data, bins=bins, engine=engine, samples=samples)
-        path = Path(run_dir) / "report.html" if out is None else Path(out)
         info = write_report_file(data, analysis, path, figure_format=figure_format)
+        record_files(path.parent, [path])  # part of the run directory's output, if it is one
         err = Console(stderr=True)
-        if not info.view3d:
-            err.print("[yellow]warning:[/yellow] plotly is not installed: the report has no "
-                      "3D view (pip install 'rtsgt[report]')")
         typer.echo(str(info.path))
         if open_:
             # the system's browser (the BROWSER environment variable overrides the choice)

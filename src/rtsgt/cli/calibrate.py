@@ -24,12 +24,13 @@ from rtsgt.calibration import CalibrationResult, calibrate
 from rtsgt.errors import InputError
 from rtsgt.io._parse import atomic_write_text
 from rtsgt.io.gcp_csv import GCP_FORMATS, read_gcp_shots
+from rtsgt.io.output_dir import check_output_file
 from rtsgt.measurement.instruments import get_instrument
 
 #: Name of the packaged example GCP file (in ``rtsgt/data``).
 EXAMPLE_GCP = "example_gcp.txt"
 
-_RAD_TO_MDEG = 180.0 / np.pi * 1e3
+_RAD_TO_MRAD = 1e3
 
 
 def _station_id(s: str) -> int | str:
@@ -42,7 +43,7 @@ def result_to_json(result: CalibrationResult, **extra) -> dict:
     ``stations`` holds every station except the reference (whose transform is the identity):
     ``matrix`` (4x4 ``T_world_station``), ``yaw_deg``, ``translation_m``, ``covariance`` (6x6,
     x, y, z, rx, ry, rz, m^2 / rad^2, left perturbation in the world frame; null without
-    samples), the 1-sigma values in mm and mdeg, and the markers used.
+    samples), the 1-sigma values in mm and mrad, and the markers used.
     """
     stations = {}
     for s, T in result.transforms.items():
@@ -57,7 +58,7 @@ def result_to_json(result: CalibrationResult, **extra) -> dict:
         if T.covariance is not None:
             sig = np.sqrt(np.diag(T.covariance))
             entry["sigma_translation_mm"] = (sig[:3] * 1e3).tolist()
-            entry["sigma_rotation_mdeg"] = (sig[3:] * _RAD_TO_MDEG).tolist()
+            entry["sigma_rotation_mrad"] = (sig[3:] * _RAD_TO_MRAD).tolist()
         entry["markers_used"] = list(result.markers_used[s])
         stations[s] = entry
     res = result.residuals
@@ -86,7 +87,7 @@ def _print_table(result: CalibrationResult, source: str, console: Console) -> No
     table = Table(title=f"T_world_station, world = station {result.reference_station} ({source})")
     for name, justify in (
         ("station", "left"), ("markers", "right"), ("yaw (deg)", "right"), ("axis", "center"),
-        ("t (m)", "right"), ("1σ t (mm)", "right"), ("1σ rot (mdeg)", "right"),
+        ("t (m)", "right"), ("1σ t (mm)", "right"), ("1σ rot (mrad)", "right"),
     ):
         table.add_column(name, justify=justify)
     for s, T in result.transforms.items():
@@ -100,7 +101,7 @@ def _print_table(result: CalibrationResult, source: str, console: Console) -> No
                 axis,
                 f"{T.translation[k]:.4f}",
                 "-" if sig is None else f"{sig[k] * 1e3:.2f}",
-                "-" if sig is None else f"{sig[3 + k] * _RAD_TO_MDEG:.2f}",
+                "-" if sig is None else f"{sig[3 + k] * _RAD_TO_MRAD:.3g}",
             )
         table.add_section()
     console.print(table)
@@ -155,21 +156,10 @@ def run_calibrate(
     return result, source
 
 
-def check_output_path(out: Path) -> Path:
-    """Refuse, before any work, an output file that could not be written.
-
-    Raises
-    ------
-    InputError
-        When ``out`` is a directory or its directory does not exist.
-    """
-    out = Path(out)
-    if out.is_dir():
-        raise InputError("--out names a directory; give a file name (e.g. calibration.json)", out)
-    parent = out.parent if str(out.parent) else Path(".")
-    if not parent.is_dir():
-        raise InputError(f"cannot write: the directory {parent} does not exist", out)
-    return out
+def is_calibration_json(head: str) -> bool:
+    """Whether a file's first characters are those of ``rtsgt calibrate``'s JSON object."""
+    return head.lstrip().startswith("{") and all(
+        f'"{k}"' in head for k in ("reference_station", "stations", "residuals_mm"))
 
 
 def register(app: typer.Typer) -> None:
@@ -197,7 +187,7 @@ def register(app: typer.Typer) -> None:
         samples: int = typer.Option(
             1000, "--samples", min=0, help="Monte Carlo samples (0: fit only)."
         ),
-        seed: int = typer.Option(0, "--seed", help="Seed of the random generator."),
+        seed: int = typer.Option(0, "--seed", min=0, help="Seed of the random generator (>= 0)."),
         weighted: bool = typer.Option(
             False, "--weighted", help="Weight markers by their measurement covariance."
         ),
@@ -214,7 +204,7 @@ def register(app: typer.Typer) -> None:
         if samples == 1:
             raise typer.BadParameter("use 0 (fit only) or at least 2", param_hint="--samples")
         if out is not None:
-            check_output_path(out)
+            check_output_file(out, option="--out", written_by_rtsgt=is_calibration_json)
         result, source = run_calibrate(
             gcp_file, format=format, reference_station=reference_station,
             additive_constant=additive_constant, samples=samples, seed=seed,

@@ -10,6 +10,14 @@ from rich.console import Console
 from rich.table import Table
 
 
+def usage_error(message: str, option: str) -> typer.BadParameter:
+    """A bad value of a command-line option, for ``raise`` (exit status 2, see
+    :mod:`rtsgt.cli.main`)."""
+    if message[:1].isupper() and message[1:2].islower():  # "Expected ..." -> "expected ..."
+        message = message[0].lower() + message[1:]
+    return typer.BadParameter(message, param_hint=option)
+
+
 def echo_err(msg: str) -> None:
     """A line on stderr."""
     typer.echo(msg, err=True)
@@ -61,12 +69,13 @@ def print_run_summary(result, out) -> None:
     table.add_row("poses kept / queried", f"{len(gt)} / {len(result.estimate)}")
     if len(gt):
         sig_t = np.sqrt(np.trace(gt.cov[:, :3, :3], axis1=1, axis2=2)) * 1e3
-        sig_r = np.degrees(np.sqrt(np.trace(gt.cov[:, 3:, 3:], axis1=1, axis2=2))) * 1e3
-        table.add_row("median sigma translation", f"{np.median(sig_t):.2f} mm")
-        table.add_row("median sigma rotation", f"{np.median(sig_r):.1f} mdeg")
+        sig_r = np.sqrt(np.trace(gt.cov[:, 3:, 3:], axis1=1, axis2=2)) * 1e3
+        table.add_row("median sigma translation (sqrt trace)", f"{np.median(sig_t):.2f} mm")
+        table.add_row("median sigma rotation (sqrt trace)", f"{np.median(sig_r):.3f} mrad")
         table.add_row("time span", f"{gt.t[-1] - gt.t[0]:.1f} s")
     for pid, g in result.gps.items():
-        table.add_row(f"Qc prism {pid}", np.array2string(np.diag(g.qc), precision=3) + " m^2/s^3")
+        table.add_row(f"Qc prism {pid} (x, y, z)",
+                      ", ".join(f"{q:.2e}" for q in np.diag(g.qc)) + " m^2/s^3")
     rej = result.rejection_reasons[~result.keep]
     for reason in np.unique(rej):
         table.add_row(f"rejected: {reason}", str(int(np.sum(rej == reason))))

@@ -8,20 +8,33 @@ A thin wrapper over :func:`rtsgt.io.trajectory.read_trajectory`,
 estimate time from the run's GP tracks, and the run's gates); otherwise (or with
 ``--gt-mode discrete``) its stored poses (``groundtruth_covariance.csv`` preferred, else
 ``groundtruth.tum``) are interpolated.
+
+``--max-gap`` (the largest distance, s, from an estimate time to the nearest ground-truth
+measurement) defaults to the run's own gap limit when ``GT_DIR`` is a run directory
+(``parameters.max_gap_s`` of its ``summary.json``, 3 s by default; the continuous ground truth
+falls back to the run's default when the summary lacks it), so that every pose the run
+produced is evaluated; for a trajectory file, or a directory without that limit, it defaults
+to :data:`DEFAULT_MAX_GAP_FILE_S`. An explicit value always wins.
+
+Every :class:`~rtsgt.errors.RtsgtWarning` of the reading and the evaluation is shown as one
+``warning: ...`` line on stderr and, with ``--json``, listed under ``warnings``.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import warnings
 from pathlib import Path
 
 import typer
 from rich.console import Console
 from rich.table import Table
 
-from rtsgt.errors import InputError
+from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.evaluation import ALIGN_METHODS, DELTA_UNITS, EvaluationResult, evaluate
 from rtsgt.evaluation.associate import GroundTruthQuery, ValidatedGroundTruth
+from rtsgt.io.output_dir import check_target
 from rtsgt.io.trajectory import (
     FORMATS,
     attach_covariance,
@@ -35,6 +48,47 @@ from rtsgt.types import PoseTrajectory
 GT_MODES = ("auto", "continuous", "discrete")
 #: Pose engines of ``--gt-engine`` (``run``: the run's own).
 GT_ENGINES = ("run", "mc", "ut", "linear")
+#: Default ``--max-gap`` (s) for a ground-truth trajectory file (distance to the nearest stored
+#: pose): a few samples of a 5-10 Hz ground truth.
+DEFAULT_MAX_GAP_FILE_S = 0.5
+
+
+def run_gap_limit(gt: object, gt_dir: str | Path) -> float | None:
+    """The run's own gap limit, s: ``max_gap_s`` of a continuous ground truth, else
+    ``parameters.max_gap_s`` of ``GT_DIR/summary.json``; None for a trajectory file or a
+    directory without it.
+
+    Raises
+    ------
+    InputError
+        ``summary.json`` is not valid JSON, or its ``max_gap_s`` is not a positive number.
+    """
+    options = getattr(gt, "options", None)
+    if options is not None and getattr(options, "max_gap_s", None) is not None:
+        return float(options.max_gap_s)
+    path = Path(gt_dir) / "summary.json"
+    if not path.is_file():
+        return None
+    try:
+        summary = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise InputError(f"invalid JSON: {exc.msg}", path, exc.lineno) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read the file: {exc}", path) from None
+    params = summary.get("parameters") if isinstance(summary, dict) else summary
+    if params is not None and not isinstance(params, dict):
+        raise InputError("parameters: expected a JSON object of the run's parameters", path)
+    value = None if params is None else params.get("max_gap_s")
+    if value is None:
+        return None
+    try:
+        limit = float(value)
+    except (TypeError, ValueError):
+        limit = math.nan
+    if not (math.isfinite(limit) and limit > 0):
+        raise InputError(f"parameters.max_gap_s: expected a positive number of s, got {value!r}",
+                         path)
+    return limit
 
 
 def load_ground_truth(
@@ -80,7 +134,7 @@ def run_evaluate(
     delta_unit: str = "m",
     all_pairs: bool = False,
     time_offset: float = 0.0,
-    max_dt: float | None = 0.5,
+    max_dt: float | None = None,
     gt_mode: str = "auto",
     gt_engine: str | None = None,
 ) -> EvaluationResult:
@@ -88,8 +142,9 @@ def run_evaluate(
 
     ``time_offset`` (s) is added to the estimate's times; ``max_dt`` (s) is the largest
     distance to the nearest ground-truth measurement (continuous: of every prism; discrete:
-    the nearest stored pose); ``gt_mode`` and ``gt_engine``: :func:`load_ground_truth`
-    (``gt_engine`` ``"run"`` or None: the run's engine).
+    the nearest stored pose), by default the run's own gap limit (:func:`run_gap_limit`) or
+    :data:`DEFAULT_MAX_GAP_FILE_S` (module docstring); ``gt_mode`` and ``gt_engine``:
+    :func:`load_ground_truth` (``gt_engine`` ``"run"`` or None: the run's engine).
     """
     if gt_engine is not None and gt_engine not in GT_ENGINES:
         raise InputError(
@@ -105,6 +160,9 @@ def run_evaluate(
     )
     if est_cov is not None:
         est = attach_covariance(est, read_covariance_csv(est_cov), source=str(est_cov))
+    if max_dt is None:
+        limit = run_gap_limit(gt, gt_dir) if Path(gt_dir).is_dir() else None
+        max_dt = DEFAULT_MAX_GAP_FILE_S if limit is None else limit
     return evaluate(
         gt,
         est,
@@ -160,15 +218,24 @@ def print_report(
     table.add_row(*_stats_row("APE translation (mm)", result.ape.translation_m, 1e3, 3))
     table.add_row(*_stats_row("APE rotation (deg)", result.ape.rotation_deg, 1.0, 4))
     unit = {"m": "m", "s": "s", "f": "frames"}[result.rpe_delta_unit]
-    pairs = f"{result.rpe.pairs.shape[0]} {'all' if result.rpe_all_pairs else 'consecutive'} pairs"
     table.add_section()
-    table.add_row(
-        *_stats_row(
-            f"RPE translation (mm), {result.rpe_delta:g} {unit}", result.rpe.translation_m, 1e3, 3
+    if result.rpe is None:
+        table.add_row(f"RPE, {result.rpe_delta:g} {unit}", *(["-"] * 6))
+    else:
+        kind = "all" if result.rpe_all_pairs else "consecutive"
+        pairs = f"{result.rpe.pairs.shape[0]} {kind} pairs"
+        table.add_row(
+            *_stats_row(
+                f"RPE translation (mm), {result.rpe_delta:g} {unit}",
+                result.rpe.translation_m,
+                1e3,
+                3,
+            )
         )
-    )
-    table.add_row(*_stats_row(f"RPE rotation (deg), {pairs}", result.rpe.rotation_deg, 1.0, 4))
+        table.add_row(*_stats_row(f"RPE rotation (deg), {pairs}", result.rpe.rotation_deg, 1.0, 4))
     console.print(table)
+    if result.rpe is None:
+        console.print(f"no RPE: {result.rpe_absent_reason}", highlight=False)
     n = result.nees
     if n.position is None:
         console.print(f"NEES: {n.covariance}")
@@ -182,6 +249,8 @@ def print_report(
         ("relative position", n.relative_position),
         ("relative pose", n.relative_pose),
     ):
+        if r is None:
+            continue
         verdict = "[green]consistent[/green]" if r.consistent else "[red]inconsistent[/red]"
         nt.add_row(
             name,
@@ -202,16 +271,39 @@ def print_report(
         f"{1e3 * f.ape_translation_rmse_floor_removed_m:.3f} mm, "
         f"{f.ape_rotation_rmse_floor_removed_deg:.4f} deg"
     )
-    console.print(
-        f"RPE floor {1e3 * f.rpe_translation_m:.3f} mm, {f.rpe_rotation_deg:.4f} deg; "
-        f"RPE rmse with the floor removed {1e3 * f.rpe_translation_rmse_floor_removed_m:.3f} mm, "
-        f"{f.rpe_rotation_rmse_floor_removed_deg:.4f} deg"
-    )
+    if f.rpe_translation_m is not None:
+        console.print(
+            f"RPE floor {1e3 * f.rpe_translation_m:.3f} mm, {f.rpe_rotation_deg:.4f} deg; "
+            f"RPE rmse with the floor removed "
+            f"{1e3 * f.rpe_translation_rmse_floor_removed_m:.3f} mm, "
+            f"{f.rpe_rotation_rmse_floor_removed_deg:.4f} deg"
+        )
     if a.cov_interpolated.any():
         console.print(
             f"note: {int(a.cov_interpolated.sum())} ground-truth covariances were interpolated "
             "linearly between samples"
         )
+
+
+class _collect_warnings:
+    """Record the warnings of a block, then show every one again (``warning: ...`` lines on
+    stderr through the CLI's handler) also when the block raises; the messages of the
+    :class:`~rtsgt.errors.RtsgtWarning` ones are the list the block gives (``--json``)."""
+
+    def __enter__(self) -> list[str]:
+        self._ctx = warnings.catch_warnings(record=True)
+        self._caught = self._ctx.__enter__()
+        warnings.simplefilter("always")
+        self.notes: list[str] = []
+        return self.notes
+
+    def __exit__(self, *exc) -> bool:
+        self._ctx.__exit__(*exc)
+        for w in self._caught:
+            if issubclass(w.category, RtsgtWarning):
+                self.notes.append(str(w.message))
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+        return False
 
 
 def register(app: typer.Typer) -> None:
@@ -264,12 +356,14 @@ def register(app: typer.Typer) -> None:
         time_offset: float = typer.Option(
             0.0, "--t-offset", "--time-offset", help="Seconds added to the estimate's times."
         ),
-        max_dt: float = typer.Option(
-            0.5,
+        max_dt: float | None = typer.Option(
+            None,
             "--max-gap",
             "--max-dt",
             help="Max distance (s) to the nearest ground-truth measurement (continuous: of "
-            "every prism; discrete: the nearest stored pose); poses farther are dropped.",
+            "every prism; discrete: the nearest stored pose); poses farther are dropped. "
+            "Default: the run's own gap limit (summary.json parameters.max_gap_s) for a run "
+            f"directory, {DEFAULT_MAX_GAP_FILE_S} s for a trajectory file.",
         ),
         gt_mode: str = typer.Option(
             "auto",
@@ -284,7 +378,11 @@ def register(app: typer.Typer) -> None:
             "linear (fastest).",
         ),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
-        plot: Path | None = typer.Option(None, "--plot", help="Write PNG and SVG figures here."),
+        plot: Path | None = typer.Option(None, "--plot",
+                                         help="Write PNG and SVG figures into this directory."),
+        force: bool = typer.Option(False, "--force",
+                                   help="Replace an earlier output of rtsgt at --plot (never a "
+                                        "directory holding anything else)."),
     ) -> None:
         """Evaluate an estimated trajectory against the uncertain ground truth (APE, RPE, NEES)."""
         if align not in ALIGN_METHODS:
@@ -303,34 +401,37 @@ def register(app: typer.Typer) -> None:
             raise typer.BadParameter(
                 f"expected one of {', '.join(GT_ENGINES)}", param_hint="--gt-engine"
             )
-        if not max_dt > 0:
+        if max_dt is not None and not max_dt > 0:
             raise typer.BadParameter("expected a positive number of seconds", param_hint="--max-gap")
-        result = run_evaluate(
-            gt_dir,
-            est_file,
-            fmt=fmt,
-            topic=topic,
-            child_frame=child_frame,
-            timestamps=timestamps,
-            est_cov=est_cov,
-            align=align,
-            n_align=n_align,
-            weighted=weighted,
-            delta=delta,
-            delta_unit=delta_unit,
-            all_pairs=all_pairs,
-            time_offset=time_offset,
-            max_dt=max_dt,
-            gt_mode=gt_mode,
-            gt_engine=gt_engine,
-        )
+        if plot is not None:
+            check_target(plot, force=force)  # before any work
+        with _collect_warnings() as notes:
+            result = run_evaluate(
+                gt_dir,
+                est_file,
+                fmt=fmt,
+                topic=topic,
+                child_frame=child_frame,
+                timestamps=timestamps,
+                est_cov=est_cov,
+                align=align,
+                n_align=n_align,
+                weighted=weighted,
+                delta=delta,
+                delta_unit=delta_unit,
+                all_pairs=all_pairs,
+                time_offset=time_offset,
+                max_dt=max_dt,
+                gt_mode=gt_mode,
+                gt_engine=gt_engine,
+            )
         written = None
         if plot is not None:
             from rtsgt.report.eval_plots import plot_evaluation
 
-            written = plot_evaluation(result, plot)
+            written = plot_evaluation(result, plot, force=force)
         if as_json:
-            typer.echo(json.dumps(result.to_dict()))
+            typer.echo(json.dumps({**result.to_dict(), "warnings": notes}))
             return
         console = Console()
         print_report(result, console, gt_source=str(gt_dir), est_source=str(est_file))

@@ -18,7 +18,8 @@ from rtsgt.errors import InputError
 from rtsgt.interpolation import DEFAULT_MAX_GAP_S, GPTrack, fit_track
 from rtsgt.interpolation.loo import fit_qc_loo
 from rtsgt.io._parse import atomic_write_text
-from rtsgt.io.track_csv import read_query_times, read_track_csv, track_csv_text
+from rtsgt.io.output_dir import check_output_file
+from rtsgt.io.track_csv import TRACK_COLUMNS, read_query_times, read_track_csv, track_csv_text
 
 
 def rate_times(gp: GPTrack, rate_hz: float) -> tuple[np.ndarray, int]:
@@ -190,6 +191,9 @@ def register(app: typer.Typer) -> None:
         ),
     ) -> None:
         """Interpolate a prism track (exact GP, WNOA prior) at query times, with covariance."""
+        if out is not None:
+            check_output_file(out, option="--out", inputs=[p for p in (track, at) if p],
+                              written_by_rtsgt=_is_track_csv)
         text, gp, n_skipped = interpolate_file(
             track, at=at, rate=rate, qc=qc, fit_qc=fit_qc, qc_mode=qc_mode, max_gap=max_gap,
             qc_method=qc_method,
@@ -203,6 +207,12 @@ def register(app: typer.Typer) -> None:
             typer.echo(text, nl=False)
         else:
             atomic_write_text(out, text)
+
+
+def _is_track_csv(head: str) -> bool:
+    """Whether a file's first line is the header of a track CSV (what --out writes)."""
+    first = head.split("\n", 1)[0].strip().lower()
+    return first.split(",")[: len(TRACK_COLUMNS)] == list(TRACK_COLUMNS)
 
 
 __all__ = ["interpolate_file", "rate_times", "register"]

@@ -7,7 +7,25 @@ from pathlib import Path
 
 import typer
 
-from rtsgt.cli.common import Stages, echo_err
+from rtsgt.cli.common import Stages, echo_err, print_run_summary, usage_error
+from rtsgt.errors import InputError
+
+#: The command-line options that override keys of the deployment's configuration.
+RUN_OPTION_NAMES = {"engine": "--engine", "samples": "--samples", "rate_hz": "--rate"}
+
+
+def option_overrides(**values) -> dict:
+    """The given (not None) option values, each checked by :class:`RunOptions`'s own rule
+    (the rule the configuration file's values meet); a bad one is a usage error."""
+    from rtsgt.pipeline import RunOptions
+
+    changes = {k: v for k, v in values.items() if v is not None}
+    for key, value in changes.items():
+        try:
+            RunOptions(**{key: value})
+        except InputError as exc:
+            raise usage_error(exc.bare_message, RUN_OPTION_NAMES[key]) from None
+    return changes
 
 
 def run_deployment(
@@ -20,30 +38,39 @@ def run_deployment(
     rate: float | None = None,
     force: bool = False,
     quiet: bool = False,
+    report: bool = False,
+    inputs: dict | None = None,
 ):
-    """Load, process and write one deployment; returns (RunResult, output directory)."""
+    """Load, process and write one deployment; returns (RunResult, output directory).
+
+    The options and the output directory are checked before any work; ``report`` adds the
+    HTML report to the run directory before it is put in place; ``inputs`` (default: the
+    configuration's absolute path) is what ``summary.json`` records as the run's inputs.
+    """
     from rtsgt.io.deployment import load_deployment
-    from rtsgt.io.run_output import prepare_output_dir, write_run
+    from rtsgt.io.output_dir import check_target
+    from rtsgt.io.run_output import write_run
     from rtsgt.pipeline import run_pipeline
 
-    # refuse an existing output before any work
-    _, tmp = prepare_output_dir(out, force)
-    tmp.rmdir()
+    changes = option_overrides(engine=engine, samples=samples, rate_hz=rate)
+    check_target(out, force=force, inputs=[config])
     with Stages(quiet) as stages:
         stages("reading inputs")
         data, options = load_deployment(config)
-        changes = {"seed": seed}
-        if engine is not None:
-            changes["engine"] = engine
-        if samples is not None:
-            changes["samples"] = samples
-        if rate is not None:
-            changes["rate_hz"] = rate
-        options = dataclasses.replace(options, **changes)
+        options = dataclasses.replace(options, seed=seed, **changes)
         result = run_pipeline(data, options, progress=stages)
         stages("writing outputs")
-        inputs = {"config": str(Path(config).resolve())}
-        final = write_run(result, out, force=force, inputs=inputs)
+
+        def add_report(tmp: Path, final: Path) -> None:
+            from rtsgt.report.html import write_report
+
+            stages("analysis, figures and HTML report")
+            write_report(tmp, shown_path=final)
+
+        if inputs is None:
+            inputs = {"config": str(Path(config).resolve())}
+        final = write_run(result, out, force=force, inputs=inputs, protect=[config],
+                          finish=add_report if report else None)
     return result, final
 
 
@@ -56,22 +83,18 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(Path("rtsgt-out"), "--out", "-o", help="Output directory."),
         engine: str = typer.Option(None, help="Pose engine: mc, ut or linear (default: config)."),
         samples: int = typer.Option(None, help="Monte Carlo samples M (default: config)."),
-        seed: int = typer.Option(0, help="Seed of every random draw."),
+        seed: int = typer.Option(0, min=0, help="Seed of every random draw (>= 0)."),
         rate: float = typer.Option(None, help="Query rate, Hz (default: config)."),
-        force: bool = typer.Option(False, "--force", help="Replace an existing output directory."),
+        force: bool = typer.Option(False, "--force",
+                                   help="Replace an earlier output of rtsgt at --out (never a "
+                                        "directory holding anything else)."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress, no table."),
         report: bool = typer.Option(False, "--report", help="Also write the HTML report."),
     ) -> None:
         """Compute the ground truth of a deployment: poses with 6x6 covariance."""
         result, final = run_deployment(config, out, engine=engine, samples=samples, seed=seed,
-                                       rate=rate, force=force, quiet=quiet)
-        if report:
-            from rtsgt.report.html import write_report
-
-            path = write_report(final)
-            if not quiet:
-                echo_err(f"report: {path}")
+                                       rate=rate, force=force, quiet=quiet, report=report)
         if not quiet:
-            from rtsgt.cli.common import print_run_summary
-
             print_run_summary(result, final)
+            if report:
+                echo_err(f"report: {final / 'report.html'}")

@@ -12,7 +12,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from rtsgt.errors import InputError
+from rtsgt.cli.common import usage_error
+from rtsgt.io.output_dir import check_target
 
 
 def run_simulate(
@@ -22,17 +23,11 @@ def run_simulate(
     """Simulate and write a deployment; returns ``(sim, path to deployment.toml)``."""
     from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 
-    out_dir = Path(out_dir)
-    # refuse early, before spending time on the simulation
-    if out_dir.exists() and not force:
-        if not out_dir.is_dir():
-            raise InputError("exists and is not a directory", out_dir)
-        if any(out_dir.iterdir()):
-            raise InputError("exists and is not empty; use --force to replace it", out_dir)
+    check_target(out_dir, force=force)  # refuse early, before spending time on the simulation
     try:
         config = SimulationConfig(duration_s=duration, n_stations=stations)
     except ValueError as exc:
-        raise InputError(str(exc)) from None
+        raise usage_error(str(exc), "--duration") from None
     sim = simulate_deployment(config, int(seed))  # an int seed is recorded in the result
     toml = write_deployment(sim, out_dir, overwrite=force)
     return sim, toml
@@ -85,13 +80,14 @@ def register(app: typer.Typer) -> None:
     def simulate_command(
         out_dir: Path = typer.Argument(..., metavar="OUT_DIR",
                                        help="Directory to create with the deployment's files."),
-        seed: int = typer.Option(0, "--seed", help="Seed of the random generator."),
+        seed: int = typer.Option(0, "--seed", min=0, help="Seed of the random generator (>= 0)."),
         duration: float = typer.Option(600.0, "--duration", min=1.0,
                                        help="Length of the tracking session, s."),
         stations: int = typer.Option(3, "--stations", min=3,
                                      help="Number of stations (each tracks its own prism)."),
         force: bool = typer.Option(False, "--force",
-                                   help="Replace OUT_DIR if it exists and is not empty."),
+                                   help="Replace OUT_DIR if it is an earlier output of rtsgt "
+                                        "(never a directory holding anything else)."),
     ) -> None:
         """Simulate a deployment with known truth and write it as a real one's files."""
         sim, toml = run_simulate(out_dir, seed=seed, duration=duration, stations=stations,

@@ -12,7 +12,8 @@ the JSON layout of ``rtsgt evaluate --json``::
     {"ape": {"translation_m": {rmse, mean, median, std, min, max},
              "rotation_deg": {...}, "full": {...}, "n": N},
      "rpe": {"translation_m": {...}, "rotation_deg": {...}, "full": {...},
-             "n_pairs": K, "delta": d, "delta_unit": "m", "all_pairs": false},
+             "n_pairs": K, "delta": d, "delta_unit": "m", "all_pairs": false,
+             "absent_reason": null},
      "nees": {"position": {mean, dof, fraction_inside_95, consistent, ...},
               "pose": {...}, "relative_position": {...}, "relative_pose": {...},
               "covariance": "...", "rpe_correlations": "..."},
@@ -26,7 +27,17 @@ the JSON layout of ``rtsgt evaluate --json``::
                      "ground_truth": "continuous" | "discrete" | "query",
                      "ground_truth_detail": {...},
                      "n_covariance_interpolated", "time_offset_s", "max_dt_s",
-                     "max_dt_nearest_s"}}
+                     "max_dt_nearest_s"},
+     "warnings": ["..."]}
+
+``warnings`` is added by ``rtsgt evaluate``: every :class:`~rtsgt.errors.RtsgtWarning` that
+reading the files and evaluating emitted (each also shown as a ``warning: ...`` line).
+
+When no RPE pair exists (a robot that moved less than ``delta``), the APE and the NEES of the
+poses are still given; ``rpe`` then holds ``null`` statistics, ``n_pairs`` 0 and
+``absent_reason`` (why, and what to change), and the relative NEES and the RPE noise floor are
+``null``. RPE pairs that span a gap of the ground truth are kept (the RPE stays evo's) and
+counted in a warning (:func:`evaluate`).
 
 The ground truth is best a :class:`~rtsgt.evaluation.groundtruth.ContinuousGroundTruth`
 (``ContinuousGroundTruth.from_run_dir(run)``): the pose and covariance at each estimate time
@@ -44,12 +55,14 @@ has no covariance. This module imports only numpy, scipy and rtsgt.
 
 from __future__ import annotations
 
+import dataclasses
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rtsgt.errors import InputError
+from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.evaluation.align import ALIGN_METHODS, Alignment, align_trajectories
 from rtsgt.evaluation.associate import (
     Association,
@@ -251,7 +264,8 @@ class EvaluationResult:
     alignment : Alignment
     association : Association
     ape : PoseErrors
-    rpe : PoseErrors
+    rpe : PoseErrors or None
+        None when no RPE pair exists (``rpe_absent_reason`` says why).
     nees : NeesSection
     noise_floor : NoiseFloor
     pose_error : ndarray, shape (N, 6)
@@ -261,6 +275,8 @@ class EvaluationResult:
     rpe_delta : float
     rpe_delta_unit : str
     rpe_all_pairs : bool
+    rpe_absent_reason : str or None
+        Why there is no RPE (None when there is one).
     """
 
     t: np.ndarray
@@ -269,7 +285,7 @@ class EvaluationResult:
     alignment: Alignment
     association: Association
     ape: PoseErrors
-    rpe: PoseErrors
+    rpe: PoseErrors | None
     nees: NeesSection
     noise_floor: NoiseFloor
     pose_error: np.ndarray
@@ -277,17 +293,22 @@ class EvaluationResult:
     rpe_delta: float
     rpe_delta_unit: str
     rpe_all_pairs: bool
+    rpe_absent_reason: str | None = None
 
     def to_dict(self) -> dict:
         """The JSON layout of ``rtsgt evaluate --json`` (module docstring)."""
         ape = self.ape.to_dict()
         ape["n"] = int(self.t.shape[0])
-        rpe = self.rpe.to_dict()
+        if self.rpe is None:
+            rpe = {"translation_m": None, "rotation_deg": None, "full": None}
+        else:
+            rpe = self.rpe.to_dict()
         rpe.update(
-            n_pairs=int(self.rpe.pairs.shape[0]),
+            n_pairs=0 if self.rpe is None else int(self.rpe.pairs.shape[0]),
             delta=float(self.rpe_delta),
             delta_unit=self.rpe_delta_unit,
             all_pairs=bool(self.rpe_all_pairs),
+            absent_reason=self.rpe_absent_reason,
         )
         return {
             "ape": ape,
@@ -328,6 +349,93 @@ def _nees(e: np.ndarray, S: np.ndarray, dof: int, what: str, t: np.ndarray) -> N
     except ValueError as exc:
         raise InputError(f"Cannot compute the {what} NEES: {exc} (t = {t})") from None
     return nees_consistency(d2, dof)
+
+
+def _no_pair_reason(source: PoseTrajectory, delta: float, unit: str) -> str:
+    """Why :func:`~rtsgt.evaluation.metrics.rpe_pairs` found no pair, and what to change."""
+    n = len(source)
+    if unit == "m":
+        path = float(np.sum(np.linalg.norm(np.diff(source.position, axis=0), axis=1)))
+        have, want = f"{path:.3g} m of path", f"{delta:g} m"
+    elif unit == "s":
+        span = float(source.t[-1] - source.t[0]) if n else 0.0
+        have, want = f"{span:.3g} s", f"{delta:g} s"
+    else:
+        have, want = f"{n} associated poses", f"{int(delta)} frames"
+    return (
+        f"no pose pair {want} apart: the {n} associated poses span {have}; "
+        "use a smaller RPE delta"
+    )
+
+
+def _range_max(values: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.ndarray:
+    """``max(values[start_k:stop_k])`` for every k (``start_k < stop_k <= values.size``)."""
+    v = np.append(values, 0.0)  # reduceat needs every index < size
+    return np.maximum.reduceat(v, np.ravel(np.column_stack([start, stop])))[::2]
+
+
+def gap_per_step(
+    tau: np.ndarray, index: np.ndarray, support: np.ndarray | None, limit: float
+) -> np.ndarray:
+    """Ground-truth gap between consecutive associated poses, s, shape (M - 1,); 0 where none.
+
+    Parameters
+    ----------
+    tau : ndarray, shape (M,)
+        Ground-truth times of the associated poses (estimate time + offset), increasing.
+    index : ndarray of int, shape (M,)
+        Their indices in the estimate.
+    support : ndarray, shape (K,), optional
+        Times the ground truth rests on (discrete samples, measurement times), sorted.
+    limit : float
+        The gap limit ``max_dt``, s.
+
+    Returns
+    -------
+    ndarray
+        The larger of: ``tau[k+1] - tau[k]`` when the association dropped estimate poses
+        between k and k + 1 and it exceeds ``limit``; the longest spacing of ``support`` over
+        ``[tau[k], tau[k+1]]`` when it exceeds ``2 limit`` (a stretch farther than ``limit``
+        from both samples: where the association would drop a pose).
+    """
+    dropped = np.diff(index) > 1
+    step = np.diff(tau)
+    gap = np.where(dropped & (step > limit), step, 0.0)
+    if support is not None and support.size > 1 and tau.size > 1:
+        spacing = np.diff(support)
+        last = spacing.size - 1
+        a = np.clip(np.searchsorted(support, tau[:-1], side="right") - 1, 0, last)
+        b = np.clip(np.searchsorted(support, tau[1:], side="left"), a + 1, last + 1)
+        longest = _range_max(spacing, a, b)
+        gap = np.maximum(gap, np.where(longest > 2.0 * limit, longest, 0.0))
+    return gap
+
+
+def _warn_gaps(assoc: Association, pairs: np.ndarray, support: np.ndarray | None) -> None:
+    """A :class:`~rtsgt.errors.RtsgtWarning` counting the RPE pairs across ground-truth gaps."""
+    limit = assoc.max_dt
+    if limit is None or pairs.shape[0] == 0 or len(assoc) < 2:
+        return
+    gap = gap_per_step(assoc.est.t + assoc.time_offset, assoc.index, support, limit)
+    over = gap > 0
+    if not np.any(over):
+        return
+    span = _range_max(over.astype(float), pairs[:, 0], pairs[:, 1]) > 0
+    n = int(np.count_nonzero(span))
+    if n == 0:
+        return
+    covered = np.zeros(gap.size + 1, dtype=int)
+    np.add.at(covered, pairs[span, 0], 1)
+    np.add.at(covered, pairs[span, 1], -1)
+    inside = (np.cumsum(covered)[:-1] > 0) & over
+    k = int(np.flatnonzero(inside)[np.argmax(gap[inside])])
+    warnings.warn(
+        f"{n} of {pairs.shape[0]} RPE pairs span a gap of the ground truth (gap limit "
+        f"{limit:g} s; longest {gap[k]:.3g} s, after the estimate pose at t = "
+        f"{assoc.est.t[k]:.6f} s): their relative errors include the motion through the gap",
+        RtsgtWarning,
+        stacklevel=3,
+    )
 
 
 def evaluate(
@@ -377,7 +485,8 @@ def evaluate(
         s added to the estimate's times (evo ``--t_offset``).
     max_dt : float or None
         Max distance (s) to the nearest ground-truth measurement time (for a continuous ground
-        truth: to the nearest measurement of every prism, ``--max-gap``).
+        truth: to the nearest measurement of every prism, ``--max-gap``); also the gap limit
+        of the RPE warning below (None: no limit).
     gt_measurement_times : array_like, optional
         Measurement times supporting a query ground truth (support and ``max_dt``).
     gt_cross_next : array_like, shape (N_gt - 1, 6, 6), optional
@@ -386,11 +495,24 @@ def evaluate(
     Returns
     -------
     EvaluationResult
+        ``rpe`` is None, with ``rpe_absent_reason``, when no RPE pair exists (the APE and
+        the NEES are still computed).
+
+    Warns
+    -----
+    RtsgtWarning
+        RPE pairs that span a gap of the ground truth, a stretch it cannot vouch for within
+        the gap limit ``max_dt``: between the pair's poses, two consecutive associated poses
+        more than ``max_dt`` apart with dropped estimate poses between them, or two
+        consecutive samples of a discrete ground truth (measurement times of a query ground
+        truth) more than ``2 max_dt`` apart, i.e. with a stretch farther than ``max_dt`` from
+        both (:func:`gap_per_step`). They are kept, so that the RPE stays evo's; the warning
+        counts them and gives the longest gap. No check with ``max_dt=None``.
 
     Raises
     ------
     InputError
-        No time overlap, too few associated poses for the alignment or the RPE, bad values.
+        No time overlap, too few associated poses for the alignment, bad values.
     GeometryError
         Degenerate alignment geometry.
     """
@@ -426,12 +548,19 @@ def evaluate(
     pairs = rpe_pairs(
         source.position, source.t, delta, delta_unit, all_pairs=all_pairs, rel_tol=rel_delta_tol
     )
+    rpe = None
+    no_rpe = None
     if pairs.shape[0] == 0:
-        raise InputError(
-            f"RPE delta = {delta} ({delta_unit}) produced no pose pair among {len(e)} associated "
-            f"poses; use a smaller delta"
-        )
-    rpe = PoseErrors.from_errors(rpe_errors(Rg, g.position, Re, e.position, pairs), pairs)
+        no_rpe = _no_pair_reason(source, float(delta), delta_unit)
+    else:
+        rpe = PoseErrors.from_errors(rpe_errors(Rg, g.position, Re, e.position, pairs), pairs)
+        if isinstance(gt, PoseTrajectory):
+            support = np.asarray(gt.t, dtype=float)
+        elif gt_measurement_times is not None and not isinstance(gt, ValidatedGroundTruth):
+            support = np.sort(np.asarray(gt_measurement_times, dtype=float))
+        else:
+            support = None
+        _warn_gaps(assoc, pairs, support)
 
     # Uncertainty-aware metrics
     xi = pose_error(Rg, g.position, Re, e.position)
@@ -445,7 +574,16 @@ def evaluate(
         what = "ground truth" + (" + estimate" if e.cov is not None else "")
         nees_pos = _nees(xi[:, :3], S[:, :3, :3], 3, "position", g.t)
         nees_pose = _nees(xi, S, 6, "pose", g.t)
-
+        f_t = noise_floor(g.cov[:, :3, :3])
+        f_r = float(np.degrees(noise_floor(g.cov[:, 3:, 3:])))
+        floor = NoiseFloor(
+            f_t,
+            remove_floor(ape.translation_m.rmse, f_t),
+            f_r,
+            remove_floor(ape.rotation_deg.rmse, f_r),
+        )
+        nees = NeesSection(nees_pos, nees_pose, None, None, what, "not applicable (no RPE pair)")
+    if g.cov is not None and rpe is not None:
         # Relative pose covariance of the ground truth (frame of the ground truth at i)
         i, j = pairs[:, 0], pairs[:, 1]
         cross = None
@@ -480,20 +618,14 @@ def evaluate(
             what + (" (relative: ground truth only)" if e.cov is not None else ""),
             correl,
         )
-
-        f_t = noise_floor(g.cov[:, :3, :3])
-        f_r = float(np.degrees(noise_floor(g.cov[:, 3:, 3:])))
         fr_t = noise_floor(S_rel[:, :3, :3])
         fr_r = float(np.degrees(noise_floor(S_rel[:, 3:, 3:])))
-        floor = NoiseFloor(
-            f_t,
-            remove_floor(ape.translation_m.rmse, f_t),
-            f_r,
-            remove_floor(ape.rotation_deg.rmse, f_r),
-            fr_t,
-            remove_floor(rpe.translation_m.rmse, fr_t),
-            fr_r,
-            remove_floor(rpe.rotation_deg.rmse, fr_r),
+        floor = dataclasses.replace(
+            floor,
+            rpe_translation_m=fr_t,
+            rpe_translation_rmse_floor_removed_m=remove_floor(rpe.translation_m.rmse, fr_t),
+            rpe_rotation_deg=fr_r,
+            rpe_rotation_rmse_floor_removed_deg=remove_floor(rpe.rotation_deg.rmse, fr_r),
         )
     return EvaluationResult(
         t=assoc.est.t,
@@ -510,4 +642,5 @@ def evaluate(
         rpe_delta=float(delta),
         rpe_delta_unit=delta_unit,
         rpe_all_pairs=bool(all_pairs),
+        rpe_absent_reason=no_rpe,
     )

@@ -231,7 +231,11 @@ class ContinuousGroundTruth:
         if not summary:
             raise InputError("missing or empty summary.json (the run's Qc and options)",
                              summary_path)
-        params = summary.get("parameters") or summary.get("options") or {}
+        if not isinstance(summary, dict):
+            raise InputError(f"expected a JSON object (the run's summary), got a "
+                             f"{type(summary).__name__}", summary_path)
+        params = (_section(summary, "parameters", summary_path)
+                  or _section(summary, "options", summary_path))
         gp_noise = run.gp_noise
         if gp_noise not in ("white", "all"):
             raise InputError(f"gp_noise: expected 'white' or 'all', got {gp_noise!r}",
@@ -271,24 +275,25 @@ class ContinuousGroundTruth:
             intervals = np.asarray(iv, dtype=float).reshape(-1, 2)
         except (TypeError, ValueError) as exc:
             raise InputError(f"bad intervals_s: {exc}", summary_path) from None
-        frame = (summary.get("reference") or {}).get("frame", "body")
+        frame = _section(summary, "reference", summary_path).get("frame", "body")
         reference = ReferencePoints(run.prism_ids, run.reference_xyz, run.reference_cov, frame)
         try:
             options = RunOptions(
                 engine=run.engine,
                 samples=run.samples,
                 seed=run.seed,
-                max_gap_s=float(params.get("max_gap_s", 3.0)),
+                max_gap_s=_positive(params, "max_gap_s", 3.0, summary_path),
                 gp_noise=gp_noise,
-                distance_gate_m=float(params.get("distance_gate_m", 0.10)),
-                uncertainty_gate_m=float(params.get("uncertainty_gate_m", 0.20)),
+                distance_gate_m=_positive(params, "distance_gate_m", 0.10, summary_path),
+                uncertainty_gate_m=_positive(params, "uncertainty_gate_m", 0.20, summary_path),
             )
         except InputError as exc:
             raise InputError(str(exc), summary_path) from None
         options = _override(options, engine, samples, seed)
-        measure = str((summary.get("gates") or {}).get("uncertainty_measure", "max_std"))
+        measure = str(_section(summary, "gates", summary_path).get("uncertainty_measure",
+                                                                    "max_std"))
         coupling = None
-        doc = (summary.get("calibration") or {}).get("coupling")
+        doc = _section(summary, "calibration", summary_path).get("coupling")
         if doc is not None:  # runs written before rtsgt carried it have none
             try:
                 coupling = StationCoupling.from_dict(doc)
@@ -464,6 +469,28 @@ class ContinuousGroundTruth:
             gated = idx[~keep]
             reason[gated] = np.char.add(GATE_PREFIX, report.reason[~keep].astype(str))
         return GroundTruthSample(tau.copy(), position, quat, cov, reason, nearest, None)
+
+
+def _section(summary: dict, key: str, path: Path) -> dict:
+    """``summary[key]``, a JSON object ({} when absent); an :class:`InputError` otherwise."""
+    value = summary.get(key)
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise InputError(f"{key!r}: expected a JSON object, got {value!r}"[:200], path)
+    return value
+
+
+def _positive(params: dict, key: str, default: float, path: Path) -> float:
+    """``params[key]`` (``default`` when absent) as a positive finite float."""
+    value = params.get(key, default)
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        x = float("nan")
+    if not (np.isfinite(x) and x > 0):
+        raise InputError(f"parameters.{key}: expected a positive number, got {value!r}", path)
+    return x
 
 
 def _override(options: RunOptions, engine: str | None, samples: int | None,

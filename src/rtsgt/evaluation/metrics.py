@@ -11,11 +11,13 @@ statistics, checked against evo in the tests):
   ``|log(R_E)|``, full ``||E - I||_F``. Pairs are selected as in evo
   (:func:`rpe_pairs`): every ``delta`` frames, or every ``delta`` metres of travelled path
   (consecutive, non-overlapping segments), or all pairs whose separation is ``delta`` within a
-  relative tolerance. rtsgt adds ``delta`` in seconds.
+  relative tolerance. rtsgt adds ``delta`` in seconds, and resolves exact ties of the
+  consecutive mode (10 steps of 0.1 m against 1 m) on purpose, where evo's choice depends on
+  rounding (:data:`RPE_TIE_RTOL`).
 - Statistics: ``rmse = sqrt(mean(e^2))``, ``mean``, ``median``, ``std`` (population, ddof 0),
   ``min``, ``max``.
 
-Uncertainty-aware metrics (DESIGN.md section 7):
+Uncertainty-aware metrics (docs/evaluation.md#nees):
 
 - pose error in the left-perturbation convention of :mod:`rtsgt.geometry.transform`,
   ``e_k = perturbation(gt_k, est_k) = (t_est - t_gt, log(R_est R_gt^T))`` (world frame,
@@ -51,6 +53,12 @@ STATISTICS = ("rmse", "mean", "median", "std", "min", "max")
 
 #: Units accepted for the RPE delta: metres of path, seconds, frames.
 DELTA_UNITS = ("m", "s", "f")
+
+#: Relative tolerance of the consecutive RPE pair selection: a path (time) since the last
+#: selected pose reaches ``delta`` when it is at least ``delta * (1 - RPE_TIE_RTOL)``
+#: (:func:`rpe_pairs`). Far above the rounding of a sum of steps (a few units in the last place
+#: per step), far below any meaningful distance.
+RPE_TIE_RTOL = 1e-9
 
 
 def error_statistics(errors: ArrayLike) -> dict[str, float]:
@@ -149,11 +157,11 @@ def rpe_errors(
     }
 
 
-def _consecutive_by_path(inc: np.ndarray, delta: float) -> np.ndarray:
-    """Start indices of consecutive segments of at least ``delta`` metres of path.
+def _consecutive_by_path(inc: np.ndarray, reach: float) -> np.ndarray:
+    """Start indices of consecutive segments whose path reaches ``reach`` metres.
 
-    The path since the last selected pose is summed sequentially from zero, exactly as evo's
-    ``filter_pairs_by_path`` does, so that ties resolve identically.
+    The path since the last selected pose is summed sequentially from zero, as evo's
+    ``filter_pairs_by_path`` does; ``reach`` is ``delta`` less the tie tolerance.
     """
     n = inc.size + 1
     ids = [0]
@@ -162,7 +170,7 @@ def _consecutive_by_path(inc: np.ndarray, delta: float) -> np.ndarray:
     while start < n - 1:
         stop = min(start + w, n - 1)
         cs = np.cumsum(inc[start:stop])
-        hit = np.flatnonzero(cs >= delta)
+        hit = np.flatnonzero(cs >= reach)
         if hit.size:
             start = start + int(hit[0]) + 1
             ids.append(start)
@@ -222,8 +230,9 @@ def rpe_pairs(
     all_pairs : bool
         ``False`` (evo's default): consecutive, non-overlapping pairs: every ``delta`` frames,
         or each time the path travelled (time elapsed) since the last selected pose reaches
-        ``delta``. ``True``: for every i, the pair (i, i + delta) in frames, or the j > i whose
-        path (time) separation is closest to ``delta``, kept if within ``rel_tol * delta``.
+        ``delta`` (ties: see Notes). ``True``: for every i, the pair (i, i + delta) in frames,
+        or the j > i whose path (time) separation is closest to ``delta``, kept if within
+        ``rel_tol * delta``.
     rel_tol : float
         Relative tolerance of the all-pairs mode (evo's ``--delta_tol``, default 0.1).
 
@@ -237,6 +246,17 @@ def rpe_pairs(
     evo ``filters.filter_pairs_by_index`` and ``filter_pairs_by_path``; the path is the sum of
     the distances between consecutive positions. The seconds unit (not in evo) uses the same
     rules with the elapsed time in place of the path.
+
+    Ties. Regular data makes the path since the last selected pose equal ``delta`` up to
+    rounding (10 steps of 0.1 m sum to 0.9999999999999999 or 1.0000000000000002 m depending
+    on the last bit of each step length; evo's one-vector-at-a-time norms change that bit with
+    the BLAS kernel). In the consecutive mode a path (elapsed time) therefore reaches
+    ``delta`` when it is at least ``delta - tol``, with ``tol = RPE_TIE_RTOL * delta``
+    (:data:`RPE_TIE_RTOL` = 1e-9) for the path, plus ``16 ulp(max |t|)`` for times (the
+    rounding of the time stamps themselves: 4e-6 s on a Unix-epoch clock): 10 x 0.1 m give a
+    pair every 10 steps on every machine. Without ties the pairs are evo's. The all-pairs
+    mode keeps evo's arithmetic exactly (vectorised norms, cumulative sum, first index of the
+    smallest ``|separation - delta|``), which involves no BLAS.
     """
     p = np.asarray(position, dtype=float)
     n = p.shape[0]
@@ -258,16 +278,21 @@ def rpe_pairs(
         if all_pairs:
             D = np.concatenate([[0.0], np.cumsum(inc)])
             return _all_pairs_nearest(D, float(delta), float(delta) * rel_tol)
-        ids = _consecutive_by_path(inc, float(delta))
+        ids = _consecutive_by_path(inc, float(delta) * (1.0 - RPE_TIE_RTOL))
         return np.stack([ids[:-1], ids[1:]], axis=1)
     if t is None:
         raise ValueError("Expected times for a delta in seconds")
     tt = np.asarray(t, dtype=float)
     if all_pairs:
         return _all_pairs_nearest(tt, float(delta), float(delta) * rel_tol)
+    if n == 0:
+        return np.zeros((0, 2), dtype=int)
+    reach = float(delta) * (1.0 - RPE_TIE_RTOL) - 16.0 * float(np.spacing(np.max(np.abs(tt))))
     ids = [0]
     while True:
-        k = int(np.searchsorted(tt, tt[ids[-1]] + delta, side="left"))
+        k = int(np.searchsorted(tt, tt[ids[-1]] + reach, side="left"))
+        if k <= ids[-1]:
+            k = ids[-1] + 1
         if k >= n:
             break
         ids.append(k)
@@ -588,7 +613,7 @@ def noise_floor(cov_pos: ArrayLike) -> float:
     """Ground-truth noise floor ``sqrt(mean_k tr Sigma_k)`` (m for positions, rad for rotations).
 
     The rmse of the error between a perfect estimate and a ground truth whose errors have
-    covariances ``Sigma_k`` (DESIGN.md section 7: ``E|dp|^2 = tr Sigma_gt`` when
+    covariances ``Sigma_k`` (docs/evaluation.md#noise-floor: ``E|dp|^2 = tr Sigma_gt`` when
     ``Sigma_est = 0`` and there is no bias).
 
     Parameters

@@ -1,5 +1,5 @@
 r"""Filtering modules 1 and 2 of Vaidis et al. (2022), "Accurate outdoor ground truth based on
-total stations" (CRV 2021/2022), with the parameters of the paper (DESIGN.md section 6).
+total stations" (CRV 2021/2022), with the parameters of the paper (docs/filtering.md).
 
 Module 1 (per station, on raw polar observations)
 -------------------------------------------------

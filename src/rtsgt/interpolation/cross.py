@@ -10,7 +10,7 @@ The smoothed posterior of the WNOA GP is Gauss-Markov along the knots, so for kn
 
 with ``S`` the knot marginals and ``C_k = Cov(x_k, x_{k+1})`` the lag-one cross-covariances
 (a product of ``b - a`` factors). A query time in the interval ``[t_k, t_{k+1}]`` is
-``x(tau) = W(tau) [x_k; x_{k+1}] + w(tau)`` (``W = [Lambda, Psi]``, DESIGN.md section 4) with a
+``x(tau) = W(tau) [x_k; x_{k+1}] + w(tau)`` (``W = [Lambda, Psi]``, docs/interpolation.md) with a
 bridge term ``w`` independent of every knot and of the bridge terms of other intervals; two
 times of the same interval share their bridge, whose cross-covariance for
 ``tau_1 <= tau_2`` is (condition the prior from ``x_k`` on ``x_{k+1}``)

@@ -1,6 +1,6 @@
 r"""Exact Gaussian-process interpolation of a prism track with a white-noise-on-acceleration prior.
 
-Model (DESIGN.md section 4; Barfoot, Tong and Särkkä 2014, "Batch continuous-time trajectory
+Model (docs/interpolation.md; Barfoot, Tong and Särkkä 2014, "Batch continuous-time trajectory
 estimation as exactly sparse Gaussian process regression", RSS)
 ---------------------------------------------------------------------------------------------
 The state of a prism is ``x = [p; v]`` (position, m, and velocity, m/s, in the frame of the
@@ -62,8 +62,8 @@ Kalman filter, ``log L = -3 log(t_1 - t_0) + sum_{k>=2} log N(e_k; 0, S_k)`` wit
 the innovations and their covariances (the first two measurements fix the state; the first
 term is the Jacobian of that change of variables); the tests check both identities.
 
-Queries (DESIGN.md section 4)
------------------------------
+Queries (docs/interpolation.md#queries)
+---------------------------------------
 At a time ``tau`` between knots ``k`` and ``k+1`` (``s = (tau - t_k) / (t_k+1 - t_k)``)
 the posterior is the conditional Gaussian given both knot states:
 ``Psi = Q(tau-t_k) Phi(t_k+1-tau)^T Q(t_k+1-t_k)^-1``,
@@ -220,7 +220,7 @@ def _qinv_coef(d: np.ndarray) -> np.ndarray:
 
 
 def wnoa_q(dt: ArrayLike, qc: ArrayLike) -> np.ndarray:
-    """Process-noise covariance ``Q(dt)`` of the WNOA prior (DESIGN.md section 4).
+    """Process-noise covariance ``Q(dt)`` of the WNOA prior (docs/interpolation.md).
 
     ``Q(dt) = [[dt^3/3 Qc, dt^2/2 Qc], [dt^2/2 Qc, dt Qc]]``.
 

@@ -7,6 +7,15 @@ place with :func:`os.replace`, so that a file is never left half-written.
 
 Conventions of the text formats read here: blank lines and lines whose first non-blank
 character is ``#`` are ignored (line numbers still count them).
+
+Times are seconds in every format read here (Unix time, UTC, where absolute). A time whose
+magnitude reaches :data:`MAX_SECONDS` (1e11 s, the year 5138 as Unix time; no relative time
+of a deployment comes near it) cannot be seconds: it is refused by :func:`check_seconds`, whose
+message says which unit it looks like (milliseconds, microseconds or nanoseconds since the
+epoch, the usual stamps of ROS and loggers) and by what to divide. rtsgt does not convert it:
+the formats document seconds, and a guessed unit would hide a wrong column. Every reader of
+measurement times (prism files, track CSV, GCP files, weather CSV, query times) calls it,
+through :func:`check_increasing` where the times must increase.
 """
 
 from __future__ import annotations
@@ -219,8 +228,53 @@ def check_zenith(
         )
 
 
-def check_increasing(t: np.ndarray, numbers: Sequence[int], path: str | PathLike) -> None:
-    """Timestamps must be strictly increasing; say how to fix a duplicate or a step back."""
+#: Largest magnitude of a time in seconds, s (module docstring): 1e11 s is the year 5138.
+MAX_SECONDS = 1e11
+
+#: Units a too-large time may be in, with their factor to seconds (module docstring).
+_SUBSECOND_UNITS = (("milliseconds", 1e3), ("microseconds", 1e6), ("nanoseconds", 1e9))
+
+
+def check_seconds(
+    t: np.ndarray, numbers: Sequence[int], path: str | PathLike, column: str = "t"
+) -> None:
+    """Times must be seconds: refuse one that looks like ms, us or ns since the epoch.
+
+    Raises
+    ------
+    InputError
+        Naming the file and the line of the first time with ``|t| >= MAX_SECONDS`` (NaN is
+        left to the other checks), the unit it looks like and the date it would then be.
+    """
+    t = np.asarray(t, dtype=float)
+    with np.errstate(invalid="ignore"):
+        i = first_bad(np.abs(t) >= MAX_SECONDS)
+    if i is None:
+        return
+    value = float(t[i])
+    hint = "is the column in seconds?"
+    for unit, factor in _SUBSECOND_UNITS:
+        if 1e8 <= abs(value) / factor < MAX_SECONDS:
+            from datetime import datetime, timezone
+
+            date = datetime.fromtimestamp(value / factor, timezone.utc)
+            hint = (f"it looks like {unit} since the Unix epoch "
+                    f"({date.strftime('%Y-%m-%d %H:%M:%S')} UTC), not seconds: divide the "
+                    f"column by {factor:.0e} (the format expects seconds)")
+            break
+    raise InputError(
+        f"time {value!r} in column {column!r} is too large for seconds (|t| >= "
+        f"{MAX_SECONDS:.0e} s, the year 5138): {hint}",
+        path, numbers[i],
+    )
+
+
+def check_increasing(
+    t: np.ndarray, numbers: Sequence[int], path: str | PathLike, column: str = "t"
+) -> None:
+    """Timestamps must be seconds (:func:`check_seconds`) and strictly increasing; say how to
+    fix a duplicate or a step back."""
+    check_seconds(t, numbers, path, column)
     dt = np.diff(t)
     i = first_bad(dt <= 0)
     if i is None:

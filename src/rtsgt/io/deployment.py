@@ -8,6 +8,7 @@ import numpy as np
 
 from rtsgt.errors import ConfigError, InputError
 from rtsgt.geometry import RigidTransform
+from rtsgt.io._parse import check_seconds
 from rtsgt.io.config import DeploymentConfig, load_config
 from rtsgt.io.gcp_csv import read_gcp_shots
 from rtsgt.io.rts_project import read_prism_file
@@ -100,6 +101,33 @@ def load_deployment(config: str | Path | DeploymentConfig) -> tuple[DeploymentDa
     """
     cfg = config if isinstance(config, DeploymentConfig) else load_config(config)
     instrument = instrument_from_config(cfg.instrument, cfg.path)
+    from rtsgt.filtering import FilterParams
+    from rtsgt.noise import NoiseModel
+
+    f = cfg.filter
+    n = cfg.noise
+    try:  # the options meet RunOptions' rule, the one the command line meets too
+        options = RunOptions(
+            engine=cfg.pose.engine,
+            samples=cfg.pose.samples,
+            rate_hz=cfg.interpolation.rate_hz or 5.0,
+            qc=cfg.interpolation.qc,
+            max_gap_s=cfg.interpolation.max_gap_s,
+            noise=NoiseModel(
+                instrument=instrument, sources=n.sources, time_sync_mean_s=n.time_sync_mean_s,
+                time_sync_std_s=n.time_sync_std_s, temperature_halfwidth_c=n.temperature_halfwidth_c,
+                pressure_halfwidth_hpa=n.pressure_halfwidth_hpa,
+                humidity_halfwidth_pct=n.humidity_halfwidth_pct,
+            ),
+            filter=FilterParams(
+                tau_r=f.tau_r_m_s, tau_a=np.radians(f.tau_a_deg_s), tau_e=np.radians(f.tau_e_deg_s),
+                tau_s=f.tau_s_s, tau_l=f.tau_l_s,
+            ),
+            distance_gate_m=cfg.pose.distance_gate_m,
+            uncertainty_gate_m=cfg.pose.uncertainty_gate_m,
+        )
+    except InputError as exc:
+        raise ConfigError(exc.bare_message, cfg.path) from None
     observations = tuple(
         read_prism_file(s.file, station=s.id, prism=s.prism, additive_constant=s.additive_constant_m)
         for s in cfg.stations
@@ -119,36 +147,12 @@ def load_deployment(config: str | Path | DeploymentConfig) -> tuple[DeploymentDa
         query_times = _read_times(cfg.interpolation.query_times)
     data = DeploymentData(cfg.name, instrument, observations, gcp, reference,
                           cfg.reference_station, weather, query_times)
-    from rtsgt.filtering import FilterParams
-    from rtsgt.noise import NoiseModel
-
-    f = cfg.filter
-    n = cfg.noise
-    options = RunOptions(
-        engine=cfg.pose.engine,
-        samples=cfg.pose.samples,
-        rate_hz=cfg.interpolation.rate_hz or 5.0,
-        qc=cfg.interpolation.qc,
-        max_gap_s=cfg.interpolation.max_gap_s,
-        noise=NoiseModel(
-            instrument=instrument, sources=n.sources, time_sync_mean_s=n.time_sync_mean_s,
-            time_sync_std_s=n.time_sync_std_s, temperature_halfwidth_c=n.temperature_halfwidth_c,
-            pressure_halfwidth_hpa=n.pressure_halfwidth_hpa,
-            humidity_halfwidth_pct=n.humidity_halfwidth_pct,
-        ),
-        filter=FilterParams(
-            tau_r=f.tau_r_m_s, tau_a=np.radians(f.tau_a_deg_s), tau_e=np.radians(f.tau_e_deg_s),
-            tau_s=f.tau_s_s, tau_l=f.tau_l_s,
-        ),
-        distance_gate_m=cfg.pose.distance_gate_m,
-        uncertainty_gate_m=cfg.pose.uncertainty_gate_m,
-    )
     return data, options
 
 
 def _read_times(path: Path) -> np.ndarray:
     """One time (s) per line; ``#`` comments and blank lines allowed."""
-    values = []
+    values, numbers = [], []
     for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
         s = line.split("#", 1)[0].strip()
         if not s:
@@ -160,6 +164,8 @@ def _read_times(path: Path) -> np.ndarray:
         if not np.isfinite(v):
             raise InputError(f"expected a finite time, got {s!r}", path, i)
         values.append(v)
+        numbers.append(i)
     if not values:
         raise InputError("no query time in the file", path)
+    check_seconds(np.array(values), numbers, path)
     return np.sort(np.array(values))

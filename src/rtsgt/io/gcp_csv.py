@@ -22,7 +22,8 @@ column        required  meaning
                         accepted instead)
 ``d_m``       yes       slope distance, m, as measured, **without** the additive (prism)
                         constant, which the reader takes as an argument
-``t_s``       no        time of the shot, s (Unix epoch, UTC); may be empty
+``t_s``       no        time of the shot, s (Unix epoch, UTC); may be empty; times that
+                        look like ms, us or ns are refused (:func:`~rtsgt.io._parse.check_seconds`)
 ``status``    no        0 = valid shot (default), anything else = instrument error code;
                         the calibration excludes and counts non-zero ones
 ============  ========  ==================================================================
@@ -45,6 +46,7 @@ from rtsgt.errors import InputError
 from rtsgt.io._parse import (
     atomic_write_text,
     check_distance,
+    check_seconds,
     check_zenith,
     find_columns,
     fmt_float,
@@ -151,6 +153,7 @@ def read_gcp_csv(path: str | PathLike, *, additive_constant: float = 0.0) -> Gcp
         t = to_float(t_tok, numbers, path, ("t_s",), finite=~empty[:, 0])[:, 0]
     else:
         t = np.full(len(rows), np.nan)
+    check_seconds(t, numbers, path, "t_s")
     check_distance(d, numbers, path, where=valid)
     check_zenith(v, numbers, path, where=valid)
     return GcpShots(

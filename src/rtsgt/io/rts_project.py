@@ -21,6 +21,10 @@ horizontal direction (rad), ``distance`` the raw slope distance (m, additive con
 applied), ``status`` 0 for a valid shot, and the time is ``sec + nsec * 1e-9`` with ``nsec``
 *not* zero-padded (``1119001`` means 0.001119001 s).
 
+Times are seconds in both (``sec`` too): values that look like milliseconds, microseconds or
+nanoseconds since the epoch (``|t| >= 1e11``) are refused with a message that says so
+(:func:`rtsgt.io._parse.check_seconds`).
+
 The additive (prism) constant is never hidden in the numbers: the readers store the raw
 distance and the constant separately (:attr:`Observations.additive_constant`,
 :attr:`GcpShots.additive_constant`), and the writers write the raw distance back, so that
@@ -39,6 +43,7 @@ from rtsgt.io._parse import (
     check_distance,
     check_header,
     check_increasing,
+    check_seconds,
     check_zenith,
     fmt_float,
     read_lines,
@@ -194,6 +199,7 @@ def read_gcp_rts_project(path: str | PathLike, *, additive_constant: float = 0.0
     check_distance(d, numbers, path, where=valid)
     check_zenith(v, numbers, path, where=valid)
     t = sec.astype(float) + nsec.astype(float) * 1e-9
+    check_seconds(t, numbers, path, "sec")
     return GcpShots(
         station=tokens[:, 0], marker=tokens[:, 1], hz=hz, v=v, d=d, t=t, status=status,
         additive_constant=c, source=str(path), lines=np.asarray(numbers),

@@ -18,23 +18,25 @@ Layout of ``OUT/`` (every number in SI units, stated in the headers)::
                                      every prism is tracked)
     reference.csv                    reference prisms in the body frame: name,x,y,z,cov_xx..cov_zz
     summary.json                     inputs, parameters, version, seed, counts removed per
-                                     filter and gate, Qc, calibration, medians, timings
+                                     filter and gate, Qc, calibration, medians, timings, the
+                                     weather file and its coverage, the tracked inter-prism
+                                     distances against the surveyed ones, warnings
+    .rtsgt-output.json               manifest of the files rtsgt wrote (rtsgt.io.output_dir)
 
-The directory is assembled under a temporary name beside ``OUT`` and renamed at the end: a
-crash never leaves a half-written run.
+The directory is assembled under a temporary name beside ``OUT`` and renamed at the end, and
+an existing ``OUT`` is replaced only if rtsgt wrote it (:mod:`rtsgt.io.output_dir`): a crash
+never leaves a half-written run, and ``--force`` never deletes a user's files.
 """
 
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
 
-from rtsgt.errors import InputError
+from rtsgt.io.output_dir import OutputDir
 
 COV3_NAMES = ("xx", "xy", "xz", "yy", "yz", "zz")
 _IU = np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2])
@@ -52,36 +54,6 @@ def columns_to_cov3(cols: np.ndarray) -> np.ndarray:
     out[:, _IU[0], _IU[1]] = cols
     out[:, _IU[1], _IU[0]] = cols
     return out
-
-
-def prepare_output_dir(out: str | Path, force: bool) -> tuple[Path, Path]:
-    """Check ``out`` and make a temporary sibling to write into.
-
-    Returns
-    -------
-    final, tmp : Path
-        Where the result goes, and the empty temporary directory to fill first.
-    """
-    final = Path(out).resolve()
-    if final.exists() and not force:
-        if final.is_dir() and not any(final.iterdir()):
-            pass
-        else:
-            raise InputError(f"output directory {final} exists; use --force to replace it")
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=final.parent))
-    return final, tmp
-
-
-def commit_output_dir(tmp: Path, final: Path) -> None:
-    """Move the finished temporary directory into place (replacing an older one)."""
-    if final.exists():
-        old = final.with_name(f".{final.name}.old-{os.getpid()}")
-        os.replace(final, old)
-        os.replace(tmp, final)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, final)
 
 
 def write_csv(path: Path, header: list[str], columns: list[np.ndarray], fmt: str = "%.17g") -> None:
@@ -137,10 +109,10 @@ def _report_dict(rep) -> dict:
 
 def _median_sigmas(traj) -> dict:
     if len(traj) == 0:
-        return {"translation_mm": None, "rotation_mdeg": None}
+        return {"translation_mm": None, "rotation_mrad": None}
     tr = np.sqrt(np.trace(traj.cov[:, :3, :3], axis1=1, axis2=2)) * 1e3
-    rot = np.sqrt(np.trace(traj.cov[:, 3:, 3:], axis1=1, axis2=2)) * 1e3 * 180 / np.pi
-    return {"translation_mm": float(np.median(tr)), "rotation_mdeg": float(np.median(rot))}
+    rot = np.sqrt(np.trace(traj.cov[:, 3:, 3:], axis1=1, axis2=2)) * 1e3
+    return {"translation_mm": float(np.median(tr)), "rotation_mrad": float(np.median(rot))}
 
 
 def gcp_world_positions(gcp, transforms) -> tuple[np.ndarray | None, tuple[str, ...]]:
@@ -170,7 +142,16 @@ def gcp_world_positions(gcp, transforms) -> tuple[np.ndarray | None, tuple[str, 
 
 
 def run_summary(result, inputs: dict | None = None) -> dict:
-    """The ``summary.json`` content of a run (see the module docstring)."""
+    """The ``summary.json`` content of a run (see the module docstring).
+
+    Besides the inputs, parameters and results: ``weather``, the weather record used (file,
+    span, sampling interval) and how it covers the measurements
+    (:func:`rtsgt.io.weather.weather_coverage`; null without weather);
+    ``inter_prism_distances``, per prism pair the median deviation of the tracked distance from
+    the surveyed one, its predicted sigma and their ratio
+    (:func:`rtsgt.filtering.gates.surveyed_distance_check`); ``warnings``, every warning of the
+    run, once each, as printed on the terminal.
+    """
     from rtsgt import __version__
 
     opt = result.options
@@ -187,7 +168,7 @@ def run_summary(result, inputs: dict | None = None) -> dict:
             "yaw_deg": float(np.degrees(T.yaw)),
             "translation_m": T.translation,
             "sigma_translation_mm": np.sqrt(np.diag(T.covariance)[:3]) * 1e3,
-            "sigma_rotation_mdeg": np.degrees(np.sqrt(np.diag(T.covariance)[3:])) * 1e3,
+            "sigma_rotation_mrad": np.sqrt(np.diag(T.covariance)[3:]) * 1e3,
         }
     prisms = {}
     for pid, tr in result.tracks.items():
@@ -245,6 +226,9 @@ def run_summary(result, inputs: dict | None = None) -> dict:
             # cross-covariances of the left perturbations (x, y, z, rx, ry, rz)
             "coupling": result.coupling.to_dict() if result.coupling is not None else None,
         },
+        "weather": getattr(result, "weather_coverage", None),
+        "inter_prism_distances": getattr(result, "distance_check", {}),
+        "warnings": list(getattr(result, "warnings", [])),
         "timings_s": result.timings_s,
     }
 
@@ -307,10 +291,19 @@ def _gcp_world_dict(result) -> dict[str, list[float]]:
     return {} if xyz is None else {n: [float(v) for v in p] for n, p in zip(names, xyz, strict=True)}
 
 
-def write_run(result, out: str | Path, *, force: bool = False, inputs: dict | None = None) -> Path:
-    """Write every file of a run directory atomically; returns the final directory."""
-    final, tmp = prepare_output_dir(out, force)
-    try:
+def write_run(result, out: str | Path, *, force: bool = False, inputs: dict | None = None,
+              protect: Iterable[str | Path] = (),
+              finish: Callable[[Path, Path], None] | None = None) -> Path:
+    """Write every file of a run directory atomically; returns the final directory.
+
+    ``force`` replaces an earlier rtsgt output at ``out`` (never anything else, nor a
+    directory holding one of the paths in ``protect``, the run's inputs); ``inputs`` is
+    recorded in ``summary.json``. ``finish(tmp, final)``, if given, is called once every file
+    of the run is in the temporary directory ``tmp``, to add more (the HTML report) before the
+    directory is put in place as ``final``: if it fails, nothing is left.
+    """
+    output = OutputDir(out, "run", force=force, inputs=protect)
+    with output as tmp:
         gt = result.groundtruth
         write_tum(tmp / "groundtruth.tum", gt.t, gt.position, gt.quat_xyzw)
         write_pose_covariance_csv(tmp / "groundtruth_covariance.csv", gt)
@@ -353,8 +346,6 @@ def write_run(result, out: str | Path, *, force: bool = False, inputs: dict | No
         summary["reference"] = {"names": list(ref.names), "xyz_m": ref.xyz, "cov_m2": ref.cov,
                                 "frame": ref.frame}
         write_json(tmp / "summary.json", summary)
-        commit_output_dir(tmp, final)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return final
+        if finish is not None:
+            finish(tmp, output.final)
+    return output.final

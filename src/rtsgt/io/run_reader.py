@@ -14,6 +14,23 @@ The layout is the one written by :mod:`rtsgt.io.run_output` (see its module docs
 Columns are located by their header names, so extra columns are ignored and the order of the
 columns does not matter. Every problem is an :class:`~rtsgt.errors.InputError` naming the file
 (and the line where it applies).
+
+Missing files
+-------------
+A run whose files are not all there is a damaged run (a file deleted, a copy cut short), and
+reading what is left would analyse part of it as if it were the whole. So:
+
+- a file that ``summary.json`` says was written is **required**: every prism listed under
+  ``prisms`` has ``measurements/prism<i>.csv``, ``prisms/prism<i>.csv`` and
+  ``prisms/prism<i>_sources.csv``; one missing is an :class:`~rtsgt.errors.InputError` naming
+  it;
+- ``rejected_poses.csv`` and ``measurements/removed.csv`` are **optional** (runs of older
+  versions lack ``removed.csv``; the analysis works without them): one missing from a run
+  written by rtsgt (its ``summary.json`` names the software) is a
+  :class:`~rtsgt.errors.RtsgtWarning` naming it;
+- without ``summary.json`` (a directory assembled by hand), nothing says which files were
+  written: a prism of ``prisms/`` without its ``measurements/prism<i>.csv`` is read with a
+  warning naming the file.
 """
 
 from __future__ import annotations
@@ -21,13 +38,14 @@ from __future__ import annotations
 import csv
 import json
 import re
+import warnings
 from dataclasses import dataclass, field
 from os import PathLike
 from pathlib import Path
 
 import numpy as np
 
-from rtsgt.errors import InputError
+from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.io.run_output import COV3_NAMES, columns_to_cov3
 from rtsgt.types import NOISE_SOURCES, PoseTrajectory, PrismTrack
 
@@ -436,6 +454,30 @@ def _gcp_from_summary(summary: dict) -> tuple[np.ndarray | None, tuple[str, ...]
     return arr, tuple(str(i + 1) for i in range(arr.shape[0]))
 
 
+def _check_files(root: Path, summary: dict) -> None:
+    """Refuse a run missing a file its summary says was written; warn for an optional one
+    (module docstring, section Missing files)."""
+    listed = summary.get("prisms") if isinstance(summary, dict) else None
+    for pid in listed if isinstance(listed, dict) else ():
+        for path, what in ((root / "measurements" / f"prism{pid}.csv", "measured track"),
+                           (root / "prisms" / f"prism{pid}.csv", "interpolated positions"),
+                           (root / "prisms" / f"prism{pid}_sources.csv",
+                            "per-source covariances")):
+            if not path.is_file():
+                raise InputError(
+                    f"missing: summary.json lists prism {pid}, whose {what} this file holds; "
+                    "the run directory is damaged (a file deleted or not copied): copy the "
+                    "whole directory again or rerun `rtsgt run`", path)
+    software = summary.get("software") if isinstance(summary, dict) else None
+    if isinstance(software, dict) and software.get("name") == "rtsgt":
+        for path, lost in ((root / "rejected_poses.csv", "the rejected poses"),
+                           (root / "measurements" / "removed.csv",
+                            "the measurements the filters removed")):
+            if not path.is_file():
+                warnings.warn(f"{path}: missing from this run of rtsgt; the analysis and the "
+                              f"figures go on without {lost}", RtsgtWarning, stacklevel=3)
+
+
 def read_run(run_dir: str | PathLike) -> RunData:
     """Read a run directory written by :mod:`rtsgt.io.run_output`.
 
@@ -452,7 +494,8 @@ def read_run(run_dir: str | PathLike) -> RunData:
     Raises
     ------
     InputError
-        A missing or malformed file, prisms whose query times disagree.
+        A missing or malformed file, prisms whose query times disagree (module docstring,
+        section Missing files; an optional file missing is a warning).
     """
     root = Path(run_dir)
     if not root.is_dir():
@@ -465,6 +508,8 @@ def read_run(run_dir: str | PathLike) -> RunData:
         except json.JSONDecodeError as exc:
             raise InputError(f"invalid JSON: {exc.msg}", summary_path, exc.lineno) from exc
 
+    _check_files(root, summary)
+
     # measurements
     meas_files = _prism_files(root / "measurements", _PRISM_FILE)
     measurements = {pid: _read_measurements(p, pid) for pid, p in meas_files.items()}
@@ -474,6 +519,11 @@ def read_run(run_dir: str | PathLike) -> RunData:
     if not prism_files:
         raise InputError("no prisms/prism<i>.csv files", root / "prisms")
     ids = tuple(prism_files)
+    for pid in ids:
+        if pid not in measurements:  # with a summary that lists it, _check_files refused
+            warnings.warn(f"{root / 'measurements' / f'prism{pid}.csv'}: missing; prism {pid} "
+                          "is read without its measured track (the analysis of the "
+                          "measurements leaves it out)", RtsgtWarning, stacklevel=2)
     source_files = _prism_files(root / "prisms", _SOURCES_FILE)
     t_ref = None
     xyz, cov, by_source, cov_gp = [], [], {}, []

@@ -7,7 +7,8 @@ A header line, then one comma-separated row per measurement, in strictly increas
     t,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz
 
 =========================================  ==================================================
-``t``                                      time, s (Unix epoch where known)
+``t``                                      time, s (Unix epoch where known; values
+                                           that look like ms, us or ns are refused)
 ``x``, ``y``, ``z``                        position, m, in the frame of the track
 ``cov_xx`` ... ``cov_zz``                  upper triangle of the symmetric positive definite
                                            covariance of the position, m^2
@@ -40,6 +41,7 @@ from rtsgt.errors import InputError
 from rtsgt.io._parse import (
     atomic_write_text,
     check_increasing,
+    check_seconds,
     fmt_float,
     read_lines,
     split_rows,
@@ -226,11 +228,12 @@ def read_query_times(path: str | PathLike, *, with_lines: bool = False):
     ------
     InputError
         Naming the file and line: empty file, more than one value on a line, a non-numeric
-        or non-finite value.
+        or non-finite value, a time that looks like ms, us or ns (not seconds).
     """
     numbers, lines = read_lines(path, "query times, one per line")
     tokens = split_rows(lines, numbers, path, ("t",), None)
     times = to_float(tokens, numbers, path, ("t",))[:, 0]
+    check_seconds(times, numbers, path)
     if with_lines:
         return times, np.asarray(numbers, dtype=int)
     return times

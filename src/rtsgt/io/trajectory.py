@@ -8,10 +8,17 @@ non-numbers, NaN or infinities, timestamps that are not strictly increasing, emp
 quaternions (rotation matrices) that are not unit (orthonormal) within 1e-3; those within the
 tolerance are renormalised (projected onto SO(3)).
 
+Times are seconds in every format but EuRoC (integer nanoseconds). A time beyond 1e11 s (the
+year 5138) in a seconds format is refused, naming the file, the line and the unit it looks like
+(:func:`rtsgt.io._parse.check_seconds`; nanosecond stamps of ROS or EuRoC in a TUM file, a
+KITTI ``times.txt`` or an rtsgt CSV): rtsgt does not guess a unit and convert.
+
 Formats
 -------
 ``tum``
     ``t x y z qx qy qz qw``, whitespace separated, ``#`` comments (TUM RGB-D benchmark, evo).
+    Comma-separated lines are read too (the separator of the first data line), with an
+    optional header line naming the columns ``t,x,y,z,qx,qy,qz,qw``.
 ``kitti``
     12 numbers per line, the 3x4 matrix ``[R | t]`` row-major (KITTI odometry). Poses carry no
     time: a timestamps file (one time in s per line, e.g. KITTI's ``times.txt``) is required.
@@ -19,6 +26,12 @@ Formats
     CSV ``#timestamp [ns], p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [],
     q_RS_y [], q_RS_z [], ...`` (EuRoC MAV dataset): integer nanoseconds, **w first**; extra
     columns (velocities, biases of ``state_groundtruth_estimate0``) are ignored.
+    Format detection (:func:`detect_format`) tells a comma-separated TUM file from EuRoC:
+    a header (or the ``#`` comment line just before the data) that places ``qw`` last or
+    ``q..w`` fifth decides; without one, 8 columns whose first is not an integer, or integers
+    less than 1 us apart as nanoseconds (a pose rate above 1 MHz), are TUM, read as such with
+    a :class:`~rtsgt.errors.RtsgtWarning` saying what was assumed. Integer nanoseconds
+    without a header are EuRoC (qw first): give ``--format`` for anything else.
 ``rtsgt``
     rtsgt covariance CSV ``t,x,y,z,qx,qy,qz,qw,cov_00,...,cov_55``: 36 values row-major,
     order (x, y, z, rx, ry, rz), m^2 / rad^2 (written by ``rtsgt run`` as
@@ -36,13 +49,15 @@ Formats
 
 from __future__ import annotations
 
+import re
+import warnings
 from collections.abc import Sequence
 from os import PathLike
 from pathlib import Path
 
 import numpy as np
 
-from rtsgt.errors import InputError
+from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
 from rtsgt.io._parse import (
     atomic_write_text,
@@ -132,6 +147,8 @@ def _is_number(token: str) -> bool:
 def read_tum(path: str | PathLike) -> PoseTrajectory:
     """Read a TUM trajectory ``t x y z qx qy qz qw`` (s, m, scalar-last quaternion).
 
+    Whitespace- or comma-separated (module docstring).
+
     Raises
     ------
     InputError
@@ -139,7 +156,12 @@ def read_tum(path: str | PathLike) -> PoseTrajectory:
         times not strictly increasing, empty file.
     """
     numbers, lines = _data_lines(path, "TUM poses 't x y z qx qy qz qw'")
-    tok = split_rows(lines, numbers, path, TUM_COLUMNS, None)
+    sep = "," if "," in lines[0] else None
+    if sep and [c.strip().lower() for c in lines[0].split(",")] == list(TUM_COLUMNS):
+        numbers, lines = numbers[1:], lines[1:]  # the header line of a comma-separated file
+        if not lines:
+            raise InputError("empty file: a header but no data line", path)
+    tok = split_rows(lines, numbers, path, TUM_COLUMNS, sep)
     a = to_float(tok, numbers, path, TUM_COLUMNS)
     q = _unit_quaternions(a[:, 4:8], numbers, path)
     return _times_and_poses(path, numbers, a[:, 0], a[:, 1:4], q)
@@ -544,23 +566,83 @@ def read_bag(
 # --------------------------------------------------------------------------- dispatch
 
 
+def _quaternion_order(names: Sequence[str]) -> str | None:
+    """``"tum"`` when column names put ``qw`` last (of 8), ``"euroc"`` when fifth, else None."""
+    key = [re.sub(r"\[.*?\]|[^a-z]", "", n.lower()) for n in names]
+
+    def is_w(k: str) -> bool:
+        return k == "w" or (k.startswith("q") and k.endswith("w"))
+
+    if len(key) >= 8 and is_w(key[4]):
+        return "euroc"
+    if len(key) == 8 and is_w(key[7]):
+        return "tum"
+    return None
+
+
+def _comma_format(text: str, lines: Sequence[str], p: Path) -> str:
+    """``"tum"`` or ``"euroc"`` for a comma-separated file of 8 or more columns that is not an
+    rtsgt CSV (module docstring: a header decides, else the time stamps)."""
+    first = [c.strip() for c in lines[0].split(",")]
+    header = None
+    if not _is_number(first[0]):
+        header, lines = first, lines[1:]
+    else:  # the '#' comment line just before the first data line, if any
+        before = text.split(lines[0], 1)[0].splitlines()
+        comment = before[-1].strip() if before else ""
+        if comment.startswith("#") and comment.count(",") >= 7:
+            header = [c.strip() for c in comment.lstrip("#").split(",")]
+    order = None if header is None else _quaternion_order(header)
+    if order is not None:
+        return order
+    if len(first) != 8 or not lines:
+        return "euroc"
+    stamps = [line.split(",", 1)[0].strip() for line in lines[:200]]
+    try:
+        ints = np.array([int(v) for v in stamps], dtype=np.int64)
+    except ValueError:
+        why = f"a time stamp {stamps[0]!r} that is not integer nanoseconds"
+    else:
+        steps = np.diff(ints)
+        if steps.size == 0 or np.median(steps) >= 1000:
+            return "euroc"
+        why = (f"integer time stamps {int(np.median(steps))} apart (a pose rate above 1 MHz "
+               "if they were nanoseconds)")
+    warnings.warn(
+        f"{p}: comma-separated, 8 columns and {why}: read as TUM (t [s], x, y, z, qx, qy, qz, "
+        "qw: qw last), not EuRoC (t [ns], x, y, z, qw, qx, qy, qz); give --format euroc if "
+        "it is EuRoC",
+        RtsgtWarning,
+        stacklevel=3,
+    )
+    return "tum"
+
+
 def detect_format(path: str | PathLike) -> str:
-    """Guess the format of a trajectory file from its extension and first data line."""
+    """Guess the format of a trajectory file from its extension and first data lines.
+
+    A comma-separated file of 8 columns is EuRoC or a comma-separated TUM file (module
+    docstring); a guess of TUM from the time stamps comes with a
+    :class:`~rtsgt.errors.RtsgtWarning`.
+    """
     p = Path(path)
     if p.is_dir() or p.suffix in (".bag", ".db3", ".mcap"):
         return "bag"
     if not p.exists():
         raise InputError("file not found", p)
-    numbers, lines = numbered_lines(read_text(p))
+    text = read_text(p)
+    numbers, lines = numbered_lines(text)
     if not lines:
         raise InputError("empty file: no data line to recognise the format from", p)
     first = lines[0]
     if "," in first:
         head = [c.strip().lower() for c in first.split(",")]
+        if head == list(TUM_COLUMNS):
+            return "tum"
         if head[:8] == list(TUM_COLUMNS) or len(head) == len(COV_COLUMNS):
             return "rtsgt"
         if len(head) >= 8:
-            return "euroc"
+            return _comma_format(text, lines, p)
     ncol = len(first.split())
     if ncol == 8:
         return "tum"

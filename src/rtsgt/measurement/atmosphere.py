@@ -27,7 +27,7 @@ humidity, and the partial water-vapour pressure ``e = RH/100 * E_w(t)`` from one
 Sources (the tags in the code):
 - [IAG99-1], [IAG99-2]: IAG resolution on refractive indices of light and near infrared waves
   in air (Birmingham 1999), as given in Rüeger, J. M. (2002) "Refractive indices of light,
-  infrared and radio waves in the atmosphere", UNISURV S-68, and in rtsgt DESIGN.md section 3.
+  infrared and radio waves in the atmosphere", UNISURV S-68, and in docs/noise-model.md#atmosphere.
 - [R02-K], [R02-D]: first-velocity correction, Rüeger (1996) "Electronic Distance Measurement",
   4th ed., chapter 6 (GeodePy ``first_vel_corrn`` implements the same formula without the
   ``1 + 10^-6 N_L`` denominator, a 10^-9 relative difference).

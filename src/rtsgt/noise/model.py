@@ -1,6 +1,6 @@
 r"""The per-measurement noise model shared by the Monte Carlo and the linearised engines.
 
-Model (Vaidis et al. 2023, section III; rtsgt DESIGN.md section 3). For one measurement
+Model (Vaidis et al. 2023, section III; docs/noise-model.md). For one measurement
 ``(Hz, V, d)`` of a prism by a station, with ``d`` including the additive constant and
 ``alpha(T, p, RH) = 1e-6 K(T, p, RH)`` the first-velocity correction
 (:mod:`rtsgt.measurement.atmosphere`):
@@ -22,8 +22,8 @@ Sources and distributions:
     ``e_tilt ~ N(0, sigma_tilt^2)``, entering V and Hz as above.
 ``atmosphere``
     Zero-mean uniform errors of the weather used for the correction:
-    ``e_T ~ U(-hT, hT)``, ``e_p ~ U(-hp, hp)``, ``e_RH ~ U(-hRH, hRH)`` (DESIGN.md: the paper
-    writes ``[0, x]``, a one-sided bias; the symmetric interval is the physical reading). The
+    ``e_T ~ U(-hT, hT)``, ``e_p ~ U(-hp, hp)``, ``e_RH ~ U(-hRH, hRH)`` (docs/noise-model.md: the
+    paper writes ``[0, x]``, a one-sided bias; the symmetric interval is the physical reading). The
     perturbed humidity is clipped to [0, 100] %.
 ``time_sync``
     A clock error ``e_ts`` displaces a prism moving at velocity ``v`` by ``e_ts v``. The

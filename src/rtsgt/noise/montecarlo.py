@@ -59,8 +59,8 @@ def sample_gaussian(cov: np.ndarray, n_samples: int, rng: np.random.Generator) -
     """Draw ``n_samples`` zero-mean Gaussian vectors with covariance ``cov`` (k, k).
 
     Uses the symmetric square root ``V sqrt(w)`` of ``cov = V diag(w) V^T`` (the *columns* of
-    ``V`` are the eigenvectors; DESIGN.md pitfall 1), so positive semi-definite (singular)
-    covariances are fine.
+    ``V`` are the eigenvectors; pitfall 1 of docs/noise-model.md#reference-code-pitfalls),
+    so positive semi-definite (singular) covariances are fine.
 
     Returns
     -------

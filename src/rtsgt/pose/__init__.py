@@ -1,4 +1,4 @@
-"""Poses with covariance from three or more prisms (DESIGN.md section 5).
+"""Poses with covariance from three or more prisms (docs/pose.md).
 
 - :mod:`rtsgt.pose.registration`: fast closed-form batched rigid registration and its Jacobian.
 - :mod:`rtsgt.pose.reference`: the reference prisms in the chosen body frame.

@@ -153,7 +153,8 @@ def psd_factor(cov: ArrayLike) -> np.ndarray:
 
     Cholesky where it succeeds for the whole batch; otherwise (a singular covariance, e.g. a
     reference known exactly) ``V diag(sqrt(max(w, 0)))`` from ``eigh``, scaling the *columns*
-    of the eigenvector matrix (the reference code used its rows: DESIGN.md pitfall 1).
+    of the eigenvector matrix (the reference code used its rows: pitfall 1 of
+    docs/noise-model.md#reference-code-pitfalls).
 
     Parameters
     ----------

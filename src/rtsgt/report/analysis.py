@@ -97,8 +97,8 @@ POSE_MEASURES = ("sqrt_trace", "max_std")
 PAPER_CITATION = (
     "Vaidis, Dubois, Daum, Pomerleau, Giguère, 'Uncertainty analysis for accurate ground truth "
     "trajectories with robotic total stations', IROS 2023: medians of sqrt(||Sigma||_F) per "
-    "noise source (Trimble S7, Forêt Montmorency deployments), as quoted in rtsgt DESIGN.md "
-    "section 3"
+    "noise source (Trimble S7, Forêt Montmorency deployments), as listed in rtsgt's "
+    "docs/paper-figures.md"
 )
 
 _INF = math.inf

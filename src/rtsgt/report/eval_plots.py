@@ -31,7 +31,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse
 from scipy import stats
 
-from rtsgt.errors import InputError
+from rtsgt.io.output_dir import OutputDir
 
 #: chi-square(2) 0.95 quantile: the 95 % ellipse of a 2-D Gaussian.
 CHI2_2_95 = float(stats.chi2.ppf(0.95, 2))
@@ -223,8 +223,12 @@ def plot_evaluation(
     *,
     max_ellipses: int = 60,
     ellipse_scale: float | None = None,
+    force: bool = False,
 ) -> EvalPlots:
-    """Write the evaluation figures (PNG and SVG) into ``out_dir`` (created if needed).
+    """Write the evaluation figures (PNG and SVG) into the directory ``out_dir``.
+
+    The directory is written whole or not at all; an existing one is replaced only with
+    ``force`` and only if rtsgt wrote it (:mod:`rtsgt.io.output_dir`).
 
     Parameters
     ----------
@@ -234,21 +238,21 @@ def plot_evaluation(
         Covariance ellipses drawn on the top view (evenly spaced poses).
     ellipse_scale : float, optional
         Magnification of the ellipses; chosen automatically (1-2-5 steps) when None.
+    force : bool
+        Replace an earlier output of rtsgt at ``out_dir``.
 
     Returns
     -------
     EvalPlots
     """
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"cannot create the plot directory ({exc.strerror})", out) from exc
-    files: list[Path] = []
-    fig, sig_norm, sig_xyz = _error_figure(result)
-    _save(fig, out, "translation_error", files)
-    fig, n_ell, scale = _top_view(result, max_ellipses, ellipse_scale)
-    _save(fig, out, "top_view", files)
-    fig, hist = _nees_figure(result)
-    _save(fig, out, "nees_histogram", files)
+    output = OutputDir(out_dir, "evaluation plots", force=force)
+    with output as tmp:
+        files: list[Path] = []
+        fig, sig_norm, sig_xyz = _error_figure(result)
+        _save(fig, tmp, "translation_error", files)
+        fig, n_ell, scale = _top_view(result, max_ellipses, ellipse_scale)
+        _save(fig, tmp, "top_view", files)
+        fig, hist = _nees_figure(result)
+        _save(fig, tmp, "nees_histogram", files)
+    files = [output.final / p.name for p in files]
     return EvalPlots(files, n_ell, scale, sig_norm, sig_xyz, hist)

@@ -16,9 +16,11 @@ the poses, magnified by a stated factor); every table of ``summary.json``.
 from __future__ import annotations
 
 import base64
+import dataclasses
 import html
 import json
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -28,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from rtsgt import __version__
+from rtsgt.errors import RtsgtWarning
 from rtsgt.io.run_reader import RunData, read_run
 from rtsgt.report.analysis import DEFAULT_BINS_M, PAPER_CITATION, Analysis, analyze
 from rtsgt.report.figures import (
@@ -471,6 +474,11 @@ def render_report(data: RunData, analysis: Analysis, *,
     return page, info
 
 
+def is_report_html(head: str) -> bool:
+    """Whether a file's first characters are those of an rtsgt report page."""
+    return head.startswith("<!DOCTYPE html>") and "<title>rtsgt report: " in head
+
+
 def write_report_file(data: RunData, analysis: Analysis, path: str | PathLike,
                       **kwargs) -> ReportInfo:
     """Write the report of ``data`` and ``analysis`` to ``path`` (atomically).
@@ -480,6 +488,9 @@ def write_report_file(data: RunData, analysis: Analysis, path: str | PathLike,
     from rtsgt.io._parse import atomic_write_text
 
     page, info = render_report(data, analysis, **kwargs)
+    if not info["view3d"]:
+        warnings.warn("plotly is not installed: the report has no interactive 3D view "
+                      "(pip install 'rtsgt[report]')", RtsgtWarning, stacklevel=2)
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(p, page)
@@ -490,7 +501,7 @@ def write_report_file(data: RunData, analysis: Analysis, path: str | PathLike,
 def write_report(run_dir: str | PathLike, out: str | PathLike | None = None, *,
                  bins: Sequence[float] | str = DEFAULT_BINS_M, engine: str | None = None,
                  samples: int | None = None, pose_measure: str = "sqrt_trace",
-                 **kwargs) -> Path:
+                 shown_path: str | PathLike | None = None, **kwargs) -> Path:
     """Read a run directory, analyse it and write its report (default ``RUN_DIR/report.html``).
 
     Parameters
@@ -501,6 +512,9 @@ def write_report(run_dir: str | PathLike, out: str | PathLike | None = None, *,
         The HTML file to write.
     bins, engine, samples, pose_measure
         As :func:`rtsgt.report.analysis.analyze`.
+    shown_path : path, optional
+        The run directory's path as the report states it (when ``run_dir`` is the temporary
+        directory of a run that is being written).
     **kwargs
         As :func:`render_report` (``figure_format``, ``max_ellipsoids``, ...).
 
@@ -510,6 +524,8 @@ def write_report(run_dir: str | PathLike, out: str | PathLike | None = None, *,
         The written file.
     """
     data = read_run(run_dir)
+    if shown_path is not None:
+        data = dataclasses.replace(data, path=Path(shown_path))
     analysis = analyze(data, bins=bins, engine=engine, samples=samples,
                        pose_measure=pose_measure)
     path = Path(run_dir) / "report.html" if out is None else Path(out)

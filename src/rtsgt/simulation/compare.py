@@ -47,9 +47,9 @@ class TruthComparison:
                 "median": float(np.median(pe) * 1e3),
                 "max": float(np.max(pe) * 1e3),
             },
-            "rotation_error_mdeg": {
-                "rmse": float(np.degrees(np.sqrt(np.mean(self.rotation_error_rad**2))) * 1e3),
-                "median": float(np.degrees(np.median(self.rotation_error_rad)) * 1e3),
+            "rotation_error_mrad": {
+                "rmse": float(np.sqrt(np.mean(self.rotation_error_rad**2)) * 1e3),
+                "median": float(np.median(self.rotation_error_rad) * 1e3),
             },
             "nees_position": self.nees_position.to_dict(),
             "nees_pose": self.nees_pose.to_dict(),

@@ -31,9 +31,9 @@ constant offset ``s |e|`` with ``e ~ N(mu_ts, sigma_ts)`` and a random sign ``s`
 (each station synchronises on its own; the authors measured the magnitude), plus a small
 jitter: the noise model's time-synchronisation assumption (:mod:`rtsgt.noise.model`). The position measured at
 the stamp ``t_rec`` is therefore ``p(t_rec + e_ts) ~ p(t_rec) + e_ts v``, the displacement of
-the paper's time-synchronisation model (DESIGN.md section 3).
+the paper's time-synchronisation model (docs/noise-model.md#time-synchronisation).
 
-Measurement model (inverse of the pipeline's, DESIGN.md section 3)
+Measurement model (inverse of the pipeline's, docs/noise-model.md)
 ------------------------------------------------------------------
 For the true station-frame position ``p`` of a prism, ``(Hz, V, D) = cartesian_to_polar(p)``.
 The stations do not apply an atmospheric correction (their distances are at the instrument's
@@ -482,8 +482,8 @@ def atmospheric_ppm(
     """Atmospheric correction (ppm) of an instrument at the given weather.
 
     :func:`rtsgt.measurement.atmosphere.instrument_correction_ppm` (IAG 1999 / Rueger 2002,
-    DESIGN.md section 3, Magnus vapour pressure), with the instrument's wavelength and reference
-    atmosphere: the corrected distance is ``D = D' (1 + K 1e-6)``.
+    docs/noise-model.md#atmosphere, Magnus vapour pressure), with the instrument's wavelength and
+    reference atmosphere: the corrected distance is ``D = D' (1 + K 1e-6)``.
     """
     return np.asarray(
         instrument_correction_ppm(profile, temperature_c, pressure_hpa, humidity_pct), dtype=float

@@ -25,24 +25,21 @@ r"""Write a simulated deployment as the files of a real one, plus its truth.
 
 Numbers are written at full precision (shortest round-trip ``repr``; DMS seconds to 1e-10
 arcsec, 5e-16 rad). Everything is written into a temporary directory next to ``OUT_DIR`` and
-renamed at the end, so that ``OUT_DIR`` is never half-written.
+renamed at the end, so that ``OUT_DIR`` is never half-written (:mod:`rtsgt.io.output_dir`).
 """
 
 from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
-import uuid
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from rtsgt import __version__
-from rtsgt.errors import InputError
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
+from rtsgt.io.output_dir import OutputDir
 from rtsgt.simulation.deployment import SimulatedDeployment
 
 __all__ = ["write_deployment", "DEPLOYMENT_FILES", "format_dms"]
@@ -266,7 +263,7 @@ def _toml_text(sim: SimulatedDeployment, name: str) -> str:
         "",
         "[filter]",
         "# rate gates from the simulated robot's limits: the paper's 1 deg/s (a slow robot, far",
-        "# stations) would reject true motion here; see the README, section Filtering",
+        "# stations) would reject true motion here; see rtsgt's docs/filtering.md, Module 1",
         f"tau_r_m_s = {tau_r!r}",
         f"tau_a_deg_s = {tau_ang!r}",
         f"tau_e_deg_s = {tau_ang!r}",
@@ -299,7 +296,8 @@ def write_deployment(
     out_dir : path
         Directory to create. An existing non-empty directory is refused unless ``overwrite``.
     overwrite : bool
-        Replace an existing directory (its content is removed).
+        Replace an earlier rtsgt output at ``out_dir``; a directory holding anything rtsgt did
+        not write is refused all the same (:mod:`rtsgt.io.output_dir`).
     name : str, optional
         Deployment name; default ``"sim-seed-<seed>"`` (``"sim"`` without a seed).
 
@@ -311,20 +309,15 @@ def write_deployment(
     Raises
     ------
     InputError
-        ``out_dir`` exists and is not an empty directory (without ``overwrite``), or is a file.
+        ``out_dir`` exists and is not an empty directory (without ``overwrite``), holds files
+        rtsgt did not write, or is a file.
     """
     if not isinstance(sim, SimulatedDeployment):
         raise ValueError(f"Expected a SimulatedDeployment, got {type(sim).__name__}")
     out_dir = Path(out_dir)
-    if out_dir.exists():
-        if not out_dir.is_dir():
-            raise InputError("exists and is not a directory", out_dir)
-        if any(out_dir.iterdir()) and not overwrite:
-            raise InputError("exists and is not empty; use --force to replace it", out_dir)
+    output = OutputDir(out_dir, "deployment", force=overwrite)  # checks out_dir before any work
     if name is None:
         name = "sim" if sim.seed is None else f"sim-seed-{sim.seed}"
-    parent = out_dir.absolute().parent
-    parent.mkdir(parents=True, exist_ok=True)
 
     texts = {f"prism{obs.prism}.csv": _prism_text(obs) for obs in sim.observations}
     texts["GCP.txt"] = _gcp_text(sim.gcp)
@@ -335,22 +328,8 @@ def write_deployment(
     texts["truth.json"] = _truth_json(sim, name)
     texts["deployment.toml"] = _toml_text(sim, name)
 
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=parent))
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o777 & ~umask)
+    with output as tmp:
         for fname, text in texts.items():
             with open(tmp / fname, "w", encoding="utf-8", newline="\n") as fh:
                 fh.write(text)
-        if out_dir.exists():
-            old = parent / f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}"
-            out_dir.rename(old)
-            tmp.rename(out_dir)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp.rename(out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out_dir / "deployment.toml"
