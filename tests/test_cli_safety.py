@@ -210,6 +210,10 @@ def test_demo_failing_after_its_simulation_leaves_nothing(tmp_path):
     assert list(tmp_path.iterdir()) == []
     r = invoke("demo", "-o", out, "--duration", 60, "--engine", "linear", "-q")
     assert r.exit_code == 0, r.output  # a retry needs no --force
+    # the demo is assembled in a temporary directory: what it writes names the final paths
+    for name in ("summary.json", "report.html"):
+        text = (out / "run" / name).read_text()
+        assert ".rtsgt-tmp-" not in text and str(out / "deployment") in text, name
 
 
 def test_the_console_entry_point_prints_one_line_not_a_traceback(deployment, tmp_path):

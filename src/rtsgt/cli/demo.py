@@ -27,7 +27,9 @@ def run_demo(out: Path, *, seed: int, duration: float, engine: str, samples: int
     otherwise; the options are checked before any work.
     """
     from rtsgt.cli.run import option_overrides, run_deployment
-    from rtsgt.io.output_dir import OutputDir
+    from rtsgt.io.output_dir import OutputDir, record_files
+    from rtsgt.io.run_output import relocate_summary
+    from rtsgt.report.html import write_report
     from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
     from rtsgt.simulation.compare import compare_to_truth
 
@@ -42,9 +44,14 @@ def run_demo(out: Path, *, seed: int, duration: float, engine: str, samples: int
             stages("simulating a deployment")
             sim = simulate_deployment(config, np.random.default_rng(seed))
             toml = write_deployment(sim, tmp / "deployment", name=f"demo-seed-{seed}")
-        result, _ = run_deployment(toml, tmp / "run", engine=engine, samples=samples, seed=seed,
-                                   quiet=quiet, report=report,
-                                   inputs={"config": "../deployment/deployment.toml"})
+        result, run_dir = run_deployment(toml, tmp / "run", engine=engine, samples=samples,
+                                         seed=seed, quiet=quiet,
+                                         inputs={"config": "../deployment/deployment.toml"})
+        relocate_summary(run_dir, tmp, output.final)  # the paths the run will have
+        if report:
+            with Stages(quiet) as stages:
+                stages("analysis, figures and HTML report")
+                record_files(run_dir, [write_report(run_dir, shown_path=output.final / "run")])
         gt = result.groundtruth
         if len(gt) == 0:
             raise InputError("no pose passed the quality gates")

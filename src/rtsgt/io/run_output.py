@@ -80,6 +80,23 @@ def write_json(path: Path, obj: dict) -> None:
     path.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n", encoding="utf-8")
 
 
+def relocate_summary(run_dir: Path, old: Path, new: Path) -> None:
+    """Rewrite the paths under ``old`` that ``run_dir/summary.json`` records as under ``new``
+    (a run written, with its inputs, in a temporary directory that becomes ``new``)."""
+
+    def moved(x):
+        if isinstance(x, dict):
+            return {k: moved(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [moved(v) for v in x]
+        if isinstance(x, str) and x.startswith(str(old)):
+            return str(new) + x[len(str(old)):]
+        return x
+
+    path = Path(run_dir) / "summary.json"
+    write_json(path, moved(json.loads(path.read_text(encoding="utf-8"))))
+
+
 def _json_default(o):
     if isinstance(o, np.ndarray):
         return o.tolist()
