@@ -801,7 +801,7 @@ def real_run():
 
 
 def test_real_excerpt_through_modules_1_2_and_the_gp(real_run):
-    from rtsgt.pipeline import gp_covariance, query_grid
+    from rtsgt.interpolation.prisms import gp_covariance, query_grid
 
     res = real_run
     reports = res.filter_reports

@@ -88,7 +88,8 @@ def test_too_few_interior_knots_is_a_clear_error():
 
 
 def test_pipeline_falls_back_to_the_likelihood_on_a_track_too_short_to_cross_validate():
-    from rtsgt.pipeline import RunOptions, fit_gps
+    from rtsgt.interpolation.prisms import fit_gps
+    from rtsgt.options import RunOptions
     from rtsgt.types import PrismTrack
 
     rng = np.random.default_rng(12)

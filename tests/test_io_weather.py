@@ -209,7 +209,7 @@ HOURLY = WeatherSeries(1668056400.0 + 3600.0 * np.arange(6), np.full(6, 2.0), np
 def test_coverage_tolerance_is_the_record_interval():
     """A time is covered when a record lies within one sampling interval (the median spacing
     of the records: 1 h for hourly files) of it."""
-    from rtsgt.io.weather import weather_coverage
+    from rtsgt.measurement.weather import weather_coverage
 
     last = HOURLY.t[-1]
     near = weather_coverage(HOURLY, last + 20 * 60.0 + np.arange(10.0))
@@ -234,7 +234,7 @@ def test_coverage_tolerance_is_the_record_interval():
 
 
 def test_coverage_sees_a_gap_inside_the_record():
-    from rtsgt.io.weather import weather_coverage
+    from rtsgt.measurement.weather import weather_coverage
 
     hours = np.array([0, 1, 2, 3, 7, 8, 9])  # hours 4-6 missing: 4 h between two records
     w = WeatherSeries(1668056400.0 + 3600.0 * hours, np.full(7, 2.0), np.full(7, 937.0),
@@ -248,7 +248,7 @@ def test_coverage_sees_a_gap_inside_the_record():
 
 def test_check_warns_naming_the_file_and_how_far():
     from rtsgt.errors import RtsgtWarning
-    from rtsgt.io.weather import check_weather_coverage
+    from rtsgt.measurement.weather import check_weather_coverage
 
     with pytest.warns(RtsgtWarning, match=r"hourly\.csv.*3\.0 h after the last record"):
         info = check_weather_coverage(HOURLY, HOURLY.t[-1] + 3 * 3600.0 + np.arange(60.0))

@@ -50,7 +50,7 @@ This module reads no files: the shots come from :mod:`rtsgt.io`.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from itertools import combinations
 
 import numpy as np
@@ -58,10 +58,12 @@ import numpy as np
 from rtsgt.errors import GeometryError, InputError, RtsgtWarning
 from rtsgt.geometry.kabsch import kabsch
 from rtsgt.geometry.transform import RigidTransform, perturbation
+from rtsgt.measurement.atmosphere import instrument_correction_ppm
 from rtsgt.measurement.instruments import TRIMBLE_S7, InstrumentProfile
 from rtsgt.measurement.polar import polar_jacobian, polar_to_cartesian
+from rtsgt.noise.model import NoiseModel
 from rtsgt.noise.perturb import sample_polar_errors
-from rtsgt.types import GcpShots
+from rtsgt.types import GcpShots, WeatherSeries
 
 #: A station's markers must stand off their best-fit line by more than this many times the
 #: point noise (1 sigma), or the rotation about that line is undetermined.
@@ -463,3 +465,30 @@ def calibrate(
         samples=M,
         weighted=weighted,
     )
+
+
+def gcp_atmospheric_correction(
+    gcp: GcpShots, model: NoiseModel, weather: WeatherSeries | None, fallback_t: float
+) -> GcpShots:
+    """GCP shots with the first-velocity correction applied to their distances.
+
+    The GCP distances need the same atmospheric correction as the tracking distances: at
+    100 m, the 5-10 ppm of a cold, high site is 0.5-1 mm of scale between stations, a bias of
+    the calibration that no covariance accounts for. Each shot takes the weather at its time
+    when that time lies inside the weather series, else the weather at ``fallback_t`` (the
+    start of tracking): a station whose clock was off (the GCP shots of station 1 in the
+    2022-11-10 data are months off) must not pick the weather of another season. Without
+    weather, the shots are returned unchanged (reference atmosphere, as for the tracks).
+    """
+    if weather is None:
+        return gcp
+    n = len(gcp.d)
+    t = np.full(n, float(fallback_t)) if gcp.t is None else np.asarray(gcp.t, dtype=float)
+    inside = np.isfinite(t) & (t >= weather.t[0]) & (t <= weather.t[-1])
+    t = np.where(inside, t, float(fallback_t))
+    temp, pres, hum = weather.at(t)
+    ppm = np.asarray(instrument_correction_ppm(model.instrument, temp, pres, hum,
+                                               model.vapour_formula), dtype=float)
+    c = float(gcp.additive_constant)
+    d = (np.asarray(gcp.d, dtype=float) + c) * (1.0 + 1e-6 * ppm) - c
+    return replace(gcp, d=d)

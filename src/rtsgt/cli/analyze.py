@@ -12,7 +12,11 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
-from rtsgt.report.analysis import PAPER_CITATION, Analysis
+from rtsgt.io.output_dir import OutputDir, check_output_file, record_files
+from rtsgt.io.run_reader import read_run
+from rtsgt.report.analysis import PAPER_CITATION, Analysis, analyze
+from rtsgt.report.figures import draw_all, save_figures
+from rtsgt.report.html import is_report_html, write_report_file
 
 _BINS_HELP = ("Lower edges of the range bins in m, comma separated; the last bin is open "
               "(default: the paper's 0-75, 75-150, > 150 m).")
@@ -73,10 +77,6 @@ def run_analyze(run_dir: Path, *, bins: str = "0,75,150", out: Path | None = Non
     ``out`` is written whole or not at all; ``force`` replaces an earlier output of rtsgt
     there (:mod:`rtsgt.io.output_dir`).
     """
-    from rtsgt.io.output_dir import OutputDir
-    from rtsgt.io.run_reader import read_run
-    from rtsgt.report.analysis import analyze
-    from rtsgt.report.figures import draw_all, save_figures
 
     folder = Path(run_dir) / "analysis" if out is None else Path(out)
     output = OutputDir(folder, "analysis", force=force, inputs=[run_dir])
@@ -153,10 +153,6 @@ def register(app: typer.Typer) -> None:
                                           help="Embedded figures: svg or png."),
     ) -> None:
         """Write a single self-contained HTML report of a run (opens offline)."""
-        from rtsgt.io.output_dir import check_output_file, record_files
-        from rtsgt.io.run_reader import read_run
-        from rtsgt.report.analysis import analyze
-        from rtsgt.report.html import is_report_html, write_report_file
 
         if figure_format not in ("svg", "png"):
             raise typer.BadParameter(f"expected svg or png, got {figure_format!r}",

@@ -12,7 +12,13 @@ from rich.console import Console
 from rich.table import Table
 
 from rtsgt.cli.common import Stages, usage_error
+from rtsgt.cli.run import option_overrides, run_deployment
 from rtsgt.errors import InputError
+from rtsgt.io.output_dir import OutputDir, record_files
+from rtsgt.io.run_output import relocate_summary
+from rtsgt.report.html import write_report
+from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
+from rtsgt.simulation.compare import compare_to_truth
 
 #: Simulations shorter than this (s) are too short for the demo to be meaningful.
 _SHORT_S = 60.0
@@ -26,12 +32,6 @@ def run_demo(out: Path, *, seed: int, duration: float, engine: str, samples: int
     ``out`` appears whole when everything succeeded (report included), and not at all
     otherwise; the options are checked before any work.
     """
-    from rtsgt.cli.run import option_overrides, run_deployment
-    from rtsgt.io.output_dir import OutputDir, record_files
-    from rtsgt.io.run_output import relocate_summary
-    from rtsgt.report.html import write_report
-    from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
-    from rtsgt.simulation.compare import compare_to_truth
 
     option_overrides(engine=engine, samples=samples)
     try:

@@ -34,6 +34,7 @@ from rich.table import Table
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.evaluation import ALIGN_METHODS, DELTA_UNITS, EvaluationResult, evaluate
 from rtsgt.evaluation.associate import GroundTruthQuery, ValidatedGroundTruth
+from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
 from rtsgt.io.output_dir import check_target
 from rtsgt.io.trajectory import (
     FORMATS,
@@ -42,6 +43,7 @@ from rtsgt.io.trajectory import (
     read_groundtruth_dir,
     read_trajectory,
 )
+from rtsgt.report.eval_plots import plot_evaluation
 from rtsgt.types import PoseTrajectory
 
 #: Ground-truth modes of ``--gt-mode``.
@@ -104,7 +106,6 @@ def load_ground_truth(
     gt_path = Path(gt_dir)
     run_dir = gt_path.is_dir() and not (gt_path / "metadata.yaml").exists()
     if run_dir and mode != "discrete" and (gt_path / "measurements").is_dir():
-        from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
 
         return ContinuousGroundTruth.from_run_dir(gt_path, engine=engine)
     if mode == "continuous":
@@ -427,7 +428,6 @@ def register(app: typer.Typer) -> None:
             )
         written = None
         if plot is not None:
-            from rtsgt.report.eval_plots import plot_evaluation
 
             written = plot_evaluation(result, plot, force=force)
         if as_json:

@@ -32,6 +32,7 @@ import typer
 from typer.core import TyperGroup
 
 from rtsgt import __version__
+from rtsgt.cli import analyze, calibrate, demo, evaluate, interpolate, run, simulate
 from rtsgt.errors import RtsgtError
 
 #: Exit statuses (see the module docstring).
@@ -121,14 +122,8 @@ def _main(
     """Robotic total station ground truth."""
 
 
-def _register_all() -> None:
-    from rtsgt.cli import analyze, calibrate, demo, evaluate, interpolate, run, simulate
-
-    for module in (calibrate, interpolate, simulate, run, demo, evaluate, analyze):
-        module.register(app)
-
-
-_register_all()
+for _command in (calibrate, interpolate, simulate, run, demo, evaluate, analyze):
+    _command.register(app)
 
 
 def main() -> None:  # pragma: no cover - console entry point

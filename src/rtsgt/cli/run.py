@@ -9,6 +9,12 @@ import typer
 
 from rtsgt.cli.common import Stages, echo_err, print_run_summary, usage_error
 from rtsgt.errors import InputError
+from rtsgt.io.deployment import load_deployment
+from rtsgt.io.output_dir import check_target
+from rtsgt.io.run_output import write_run
+from rtsgt.options import RunOptions
+from rtsgt.pipeline import run_pipeline
+from rtsgt.report.html import write_report
 
 #: The command-line options that override keys of the deployment's configuration.
 RUN_OPTION_NAMES = {"engine": "--engine", "samples": "--samples", "rate_hz": "--rate"}
@@ -17,7 +23,6 @@ RUN_OPTION_NAMES = {"engine": "--engine", "samples": "--samples", "rate_hz": "--
 def option_overrides(**values) -> dict:
     """The given (not None) option values, each checked by :class:`RunOptions`'s own rule
     (the rule the configuration file's values meet); a bad one is a usage error."""
-    from rtsgt.pipeline import RunOptions
 
     changes = {k: v for k, v in values.items() if v is not None}
     for key, value in changes.items():
@@ -47,10 +52,6 @@ def run_deployment(
     HTML report to the run directory before it is put in place; ``inputs`` (default: the
     configuration's absolute path) is what ``summary.json`` records as the run's inputs.
     """
-    from rtsgt.io.deployment import load_deployment
-    from rtsgt.io.output_dir import check_target
-    from rtsgt.io.run_output import write_run
-    from rtsgt.pipeline import run_pipeline
 
     changes = option_overrides(engine=engine, samples=samples, rate_hz=rate)
     check_target(out, force=force, inputs=[config])
@@ -62,7 +63,6 @@ def run_deployment(
         stages("writing outputs")
 
         def add_report(tmp: Path, final: Path) -> None:
-            from rtsgt.report.html import write_report
 
             stages("analysis, figures and HTML report")
             write_report(tmp, shown_path=final)

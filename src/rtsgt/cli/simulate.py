@@ -14,6 +14,7 @@ from rich.table import Table
 
 from rtsgt.cli.common import usage_error
 from rtsgt.io.output_dir import check_target
+from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 
 
 def run_simulate(
@@ -21,7 +22,6 @@ def run_simulate(
     force: bool = False,
 ):
     """Simulate and write a deployment; returns ``(sim, path to deployment.toml)``."""
-    from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 
     check_target(out_dir, force=force)  # refuse early, before spending time on the simulation
     try:

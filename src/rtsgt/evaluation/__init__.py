@@ -71,6 +71,7 @@ from rtsgt.evaluation.associate import (
     ValidatedGroundTruth,
     associate,
 )
+from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
 from rtsgt.evaluation.metrics import (
     DELTA_UNITS,
     STATISTICS,
@@ -113,7 +114,6 @@ __all__ = [
 def __getattr__(name: str):
     # imported lazily: it needs the pipeline, which the rest of this package does not
     if name == "ContinuousGroundTruth":
-        from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
 
         return ContinuousGroundTruth
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -53,6 +53,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
+from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.errors import InputError
 from rtsgt.evaluation.associate import (
     REASON_FAR,
@@ -62,10 +63,13 @@ from rtsgt.evaluation.associate import (
 )
 from rtsgt.filtering.gates import apply_gates
 from rtsgt.interpolation import GPTrack
+from rtsgt.interpolation.cross import gp_cross_covariance
+from rtsgt.interpolation.prisms import fit_gps, query_prisms
 from rtsgt.io.run_output import COV3_NAMES, columns_to_cov3
 from rtsgt.io.run_reader import read_run, read_table
-from rtsgt.pipeline import RunOptions, StationCoupling, fit_gps, query_prisms
+from rtsgt.options import RunOptions
 from rtsgt.pose import ReferencePoints, estimate_poses
+from rtsgt.pose.registration import registration_jacobian
 from rtsgt.types import PrismTrack
 
 __all__ = [
@@ -363,7 +367,6 @@ class ContinuousGroundTruth:
         return self._between(sa, sa), self._between(sb, sb), self._between(sa, sb)
 
     def _linearise(self, tau: ArrayLike) -> _Linearised:
-        from rtsgt.pose.registration import registration_jacobian
 
         tau = np.atleast_1d(np.asarray(tau, dtype=float))
         n = len(self.tracks)
@@ -377,7 +380,6 @@ class ContinuousGroundTruth:
                            J_r.reshape(tau.size, 6, 3 * n), velocity)
 
     def _between(self, a: _Linearised, b: _Linearised) -> np.ndarray:
-        from rtsgt.interpolation.cross import gp_cross_covariance
 
         ids = list(self.tracks)
         n, K = len(ids), a.t.size

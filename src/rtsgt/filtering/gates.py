@@ -56,6 +56,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rtsgt.errors import RtsgtWarning
+from rtsgt.pose.reference import block_diagonal
 
 #: The paper's distance gate, m.
 DEFAULT_DISTANCE_GATE_M = 0.10
@@ -330,7 +331,6 @@ def surveyed_distance_check(
     if q.ndim != 3 or q.shape[1:] != (n, 3) or len(names) != n:
         raise ValueError(f"Expected xyz of shape (T, {n}, 3) and {n} names, got {q.shape}")
     if c.shape == (T, n, 3, 3):
-        from rtsgt.pose.reference import block_diagonal
 
         c = block_diagonal(c)
     if c.shape != (T, 3 * n, 3 * n) or rc.shape != (3 * n, 3 * n):

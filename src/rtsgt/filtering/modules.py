@@ -38,16 +38,18 @@ Module 2 (across prisms, on time series of each prism)
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from rtsgt.errors import InputError
+from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.types import Observations, PrismTrack
 
 __all__ = [
     "FilterParams", "FilterReport", "MODULE1_REASONS", "MODULE2_REASONS", "module1", "module2",
+    "warn_tight_rate_gates",
 ]
 
 #: Reasons of module 1, in the order they are tested.
@@ -368,3 +370,26 @@ def module2(
         kept.append(s.select(keep))
     report = FilterReport("module2", n_in, n_kept, total, tuple(per_series), kept_iv.shape[0])
     return kept, kept_iv, report
+
+
+#: Share of a station's measurements that module 1 may reject for their rates before rtsgt
+#: warns that the gates look too tight for the robot (outliers are rare; motion is not).
+RATE_REJECTION_WARNING = 0.10
+
+
+def warn_tight_rate_gates(obs: Observations, report, params: FilterParams) -> None:
+    """Warn when module 1's rate gates remove much of a station's series.
+
+    The paper's gates (1 deg/s) suit a slow robot far from the stations; a robot at 2 m/s,
+    10 m from a station, turns the line of sight by 11 deg/s, and the gates then reject true
+    motion, not outliers: say so, with the numbers to change.
+    """
+    n_rate = sum(int(report.removed.get(k, 0)) for k in ("rate_distance", "rate_hz", "rate_v"))
+    if report.n_in and n_rate / report.n_in > RATE_REJECTION_WARNING:
+        warnings.warn(
+            f"station {obs.station}: module 1 rejected {n_rate} of {report.n_in} measurements "
+            f"({100 * n_rate / report.n_in:.0f} %) for their rate of change (gates "
+            f"tau_r = {params.tau_r:g} m/s, tau_a = {np.degrees(params.tau_a):g} deg/s, "
+            f"tau_e = {np.degrees(params.tau_e):g} deg/s): that is motion, not outliers, if the "
+            "robot is fast or close to the station; raise the [filter] gates of the "
+            "configuration", RtsgtWarning, stacklevel=3)

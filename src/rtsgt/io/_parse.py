@@ -23,6 +23,7 @@ from __future__ import annotations
 import os
 import tempfile
 from collections.abc import Iterable, Sequence
+from datetime import datetime, timezone
 from os import PathLike
 from pathlib import Path
 
@@ -255,7 +256,6 @@ def check_seconds(
     hint = "is the column in seconds?"
     for unit, factor in _SUBSECOND_UNITS:
         if 1e8 <= abs(value) / factor < MAX_SECONDS:
-            from datetime import datetime, timezone
 
             date = datetime.fromtimestamp(value / factor, timezone.utc)
             hint = (f"it looks like {unit} since the Unix epoch "

@@ -6,16 +6,20 @@ from pathlib import Path
 
 import numpy as np
 
+from rtsgt.deployment import DeploymentData
 from rtsgt.errors import ConfigError, InputError
+from rtsgt.filtering import FilterParams
 from rtsgt.geometry import RigidTransform
 from rtsgt.io._parse import check_seconds
 from rtsgt.io.config import DeploymentConfig, load_config
 from rtsgt.io.gcp_csv import read_gcp_shots
 from rtsgt.io.rts_project import read_prism_file
+from rtsgt.io.survey import read_reference_csv, read_survey_raw
 from rtsgt.io.weather import read_weather_csv, read_weather_eccc
 from rtsgt.measurement.instruments import InstrumentProfile
 from rtsgt.measurement.instruments import instrument_from_config as _instrument_from_table
-from rtsgt.pipeline import DeploymentData, RunOptions
+from rtsgt.noise import NoiseModel
+from rtsgt.options import RunOptions
 from rtsgt.pose.reference import ReferencePoints, reference_from_survey
 
 
@@ -61,7 +65,6 @@ def check_gcp_covers_stations(cfg: DeploymentConfig, gcp) -> None:
 
 def read_reference(cfg: DeploymentConfig) -> ReferencePoints:
     """Reference prisms in the body frame, from the survey file named by the configuration."""
-    from rtsgt.io.survey import read_reference_csv, read_survey_raw
 
     rc = cfg.reference
     names = list(rc.prisms)
@@ -101,8 +104,6 @@ def load_deployment(config: str | Path | DeploymentConfig) -> tuple[DeploymentDa
     """
     cfg = config if isinstance(config, DeploymentConfig) else load_config(config)
     instrument = instrument_from_config(cfg.instrument, cfg.path)
-    from rtsgt.filtering import FilterParams
-    from rtsgt.noise import NoiseModel
 
     f = cfg.filter
     n = cfg.noise

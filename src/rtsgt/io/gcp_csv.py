@@ -55,6 +55,7 @@ from rtsgt.io._parse import (
     to_float,
     to_int,
 )
+from rtsgt.io.rts_project import read_gcp_rts_project
 from rtsgt.measurement.units import to_radians
 from rtsgt.types import GcpShots
 
@@ -218,7 +219,6 @@ def read_gcp_shots(
         fmt = detect_gcp_format(path)
     kw = {} if additive_constant is None else {"additive_constant": additive_constant}
     if fmt == "rts-project":
-        from rtsgt.io.rts_project import read_gcp_rts_project
 
         return read_gcp_rts_project(path, **kw)
     return read_gcp_csv(path, **kw)

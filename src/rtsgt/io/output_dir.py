@@ -36,6 +36,7 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from types import TracebackType
 
+from rtsgt import __version__
 from rtsgt.errors import InputError
 
 #: Name of the manifest file in every directory rtsgt writes.
@@ -162,7 +163,6 @@ def check_output_file(path: str | os.PathLike, *, option: str,
 
 
 def _manifest_text(folder: Path, kind: str) -> str:
-    from rtsgt import __version__
 
     files = sorted(p.relative_to(folder).as_posix()
                    for p in folder.rglob("*") if not p.is_dir() or p.is_symlink())

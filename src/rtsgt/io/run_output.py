@@ -30,13 +30,18 @@ never leaves a half-written run, and ``--force`` never deletes a user's files.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
 
+from rtsgt import __version__
+from rtsgt.filtering import module1
+from rtsgt.interpolation.prisms import gp_covariance
 from rtsgt.io.output_dir import OutputDir
+from rtsgt.measurement.polar import polar_to_cartesian
 
 COV3_NAMES = ("xx", "xy", "xz", "yy", "yz", "zz")
 _IU = np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2])
@@ -111,7 +116,6 @@ def _json_default(o):
 
 def _report_dict(rep) -> dict:
     """A filter or gate report as plain JSON data (dataclass, mapping or object with counts)."""
-    import dataclasses
 
     if rep is None:
         return {}
@@ -139,7 +143,6 @@ def gcp_world_positions(gcp, transforms) -> tuple[np.ndarray | None, tuple[str, 
     (additive constant included) and mapped into the world frame by its station's transform;
     a marker's position is the mean over its shots. Returns ``(None, ())`` without GCPs.
     """
-    from rtsgt.measurement.polar import polar_to_cartesian
 
     if gcp is None or len(gcp) == 0:
         return None, ()
@@ -163,13 +166,12 @@ def run_summary(result, inputs: dict | None = None) -> dict:
 
     Besides the inputs, parameters and results: ``weather``, the weather record used (file,
     span, sampling interval) and how it covers the measurements
-    (:func:`rtsgt.io.weather.weather_coverage`; null without weather);
+    (:func:`rtsgt.measurement.weather.weather_coverage`; null without weather);
     ``inter_prism_distances``, per prism pair the median deviation of the tracked distance from
     the surveyed one, its predicted sigma and their ratio
     (:func:`rtsgt.filtering.gates.surveyed_distance_check`); ``warnings``, every warning of the
     run, once each, as printed on the terminal.
     """
-    from rtsgt import __version__
 
     opt = result.options
     cal = result.calibration
@@ -262,8 +264,6 @@ def removed_measurements(result) -> dict[str, np.ndarray]:
     dict with ``t`` (s), ``prism``, ``station`` (str), ``xyz`` (m, world) and ``stage``
     (``"module1"`` or ``"module2"``), one entry per removed measurement, sorted by time.
     """
-    from rtsgt.filtering import module1
-    from rtsgt.measurement.polar import polar_to_cartesian
 
     parts: dict[str, list] = {"t": [], "prism": [], "station": [], "xyz": [], "stage": []}
     transforms = result.calibration.transforms
@@ -343,8 +343,6 @@ def write_run(result, out: str | Path, *, force: bool = False, inputs: dict | No
                       [P.t, cov3_to_columns(P.cov_gp[:, i])]
                       + [cov3_to_columns(P.cov_by_source[s][:, i]) for s in srcs])
             tr = result.tracks[pid]
-            from rtsgt.pipeline import gp_covariance
-
             srcs = list(tr.cov_by_source)
             write_csv(tmp / "measurements" / f"prism{pid}.csv",
                       ["t", "x", "y", "z", *cov_cols, "range_m"]

@@ -34,6 +34,7 @@ shortest decimal text that reads back as the same float64, atomically (temporary
 from __future__ import annotations
 
 from os import PathLike
+from pathlib import Path
 
 import numpy as np
 
@@ -135,7 +136,6 @@ def read_track_csv(
 
 
 def _stem(path) -> str:
-    from pathlib import Path
 
     return Path(path).stem
 

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rtsgt.errors import InputError
+from rtsgt.noise.propagation import propagate
 
 #: The range bins of the paper, m.
 PAPER_RANGE_EDGES = (0.0, 75.0, 150.0, np.inf)
@@ -73,7 +74,6 @@ def authors_source_norms_mm(
     -------
     dict str -> ndarray, shape (N,)
     """
-    from rtsgt.noise import propagate
 
     if base not in model.sources:
         raise InputError(f"The base source {base!r} is not in the model's sources {model.sources}")

@@ -52,8 +52,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rtsgt.errors import InputError
-from rtsgt.measurement.atmosphere import VAPOUR_FORMULAS
+from rtsgt.measurement.atmosphere import VAPOUR_FORMULAS, instrument_correction_ppm
 from rtsgt.measurement.instruments import InstrumentProfile
+from rtsgt.measurement.polar import polar_to_cartesian
 from rtsgt.types import NOISE_SOURCES
 
 __all__ = ["NOISE_SOURCES", "NoiseModel", "prism_velocity", "check_strictly_increasing"]
@@ -325,8 +326,6 @@ def prepare_nominal(obs, model: NoiseModel, T_world_station=None, weather=None) 
     Without ``weather`` the atmosphere is the instrument's reference atmosphere (0 ppm); the
     ``atmosphere`` source then still accounts for the unknown weather within the half-widths.
     """
-    from rtsgt.measurement.atmosphere import instrument_correction_ppm
-    from rtsgt.measurement.polar import polar_to_cartesian
 
     validate_observations(obs)
     src = getattr(obs, "source", None)

@@ -59,6 +59,7 @@ from rtsgt.filtering.gates import position_uncertainty
 from rtsgt.io.run_output import gcp_world_positions, removed_measurements
 from rtsgt.io.run_reader import RunData, read_run
 from rtsgt.noise.analysis import bin_by_range, frobenius_norm_mm
+from rtsgt.pose import estimate_poses
 from rtsgt.types import NOISE_SOURCES, PoseTrajectory, PrismTrack
 
 __all__ = [
@@ -410,7 +411,6 @@ def nearest_psd(cov: np.ndarray) -> np.ndarray:
 
 
 def _pose_part(data: RunData, engine: str, samples: int, seed: int, measure: str):
-    from rtsgt.pose import estimate_poses
 
     idx = _pose_times(data)
     q = data.prisms_xyz[idx]

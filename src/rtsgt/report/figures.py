@@ -38,8 +38,10 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Ellipse, Patch
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from rtsgt.io.run_reader import RunData
+from rtsgt.pose import register, shape_ratio
 from rtsgt.report.analysis import ALL, GP, REFERENCE, Analysis, paper_median_mm, pose_sigmas
 
 __all__ = [
@@ -186,7 +188,6 @@ def _plain_log(ax) -> None:
 
     Minor ticks are labelled too when the axis spans less than about two decades.
     """
-    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     fmt = FuncFormatter(lambda v, _: f"{v:.10g}")
     ax.yaxis.set_major_formatter(fmt)
@@ -368,7 +369,6 @@ def _rejected_positions(data: RunData) -> tuple[np.ndarray, np.ndarray]:
 
     Rejected poses whose prisms are not all finite or nearly collinear are left out.
     """
-    from rtsgt.pose import register, shape_ratio
 
     if data.rejected_t.size == 0 or data.prisms_t.size == 0:
         return np.empty((0, 3)), np.empty(0, dtype=str)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import base64
 import dataclasses
 import html
+import io
 import json
 import math
 import warnings
@@ -28,9 +29,11 @@ from os import PathLike
 from pathlib import Path
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 
 from rtsgt import __version__
 from rtsgt.errors import RtsgtWarning
+from rtsgt.io._parse import atomic_write_text
 from rtsgt.io.run_reader import RunData, read_run
 from rtsgt.report.analysis import DEFAULT_BINS_M, PAPER_CITATION, Analysis, analyze
 from rtsgt.report.figures import (
@@ -223,9 +226,7 @@ def _summary_tables(summary: Mapping) -> str:
 
 
 def _figure_html(fig: DrawnFigure, fmt: str) -> str:
-    import io
 
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     FigureCanvasAgg(fig.figure)
     buf = io.BytesIO()
@@ -485,7 +486,6 @@ def write_report_file(data: RunData, analysis: Analysis, path: str | PathLike,
 
     Keyword arguments as :func:`render_report`.
     """
-    from rtsgt.io._parse import atomic_write_text
 
     page, info = render_report(data, analysis, **kwargs)
     if not info["view3d"]:

@@ -1,0 +1,47 @@
+"""What a deployment provides, read and validated: the input record of the pipeline.
+
+:func:`rtsgt.io.deployment.load_deployment` builds it from a deployment's files; nothing reads a
+file after it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rtsgt.measurement.instruments import InstrumentProfile
+from rtsgt.pose import ReferencePoints
+from rtsgt.types import GcpShots, Observations, WeatherSeries
+
+__all__ = ["DeploymentData"]
+
+
+@dataclass(frozen=True)
+class DeploymentData:
+    """Everything a deployment provides, already read and validated (no file access after).
+
+    Attributes
+    ----------
+    name : str
+    instrument : InstrumentProfile
+    observations : tuple of Observations
+        One per station; station ``obs.station`` tracks prism ``obs.prism``.
+    gcp : GcpShots
+    reference : ReferencePoints
+        Reference prisms in the body frame, with covariance.
+    reference_station : str
+        The world frame is this station's frame.
+    weather : WeatherSeries, optional
+    query_times : ndarray, optional
+        Times (s) at which to compute poses; otherwise a regular grid at ``rate_hz``.
+    """
+
+    name: str
+    instrument: InstrumentProfile
+    observations: tuple[Observations, ...]
+    gcp: GcpShots
+    reference: ReferencePoints
+    reference_station: str = "1"
+    weather: WeatherSeries | None = None
+    query_times: np.ndarray | None = None

@@ -1,0 +1,182 @@
+"""The per-prism GPs of a run: fitted to each prism track, queried together at the pose times.
+
+How the noise sources enter the GP: it treats measurement noise as independent from one
+measurement to the next, which is true of the white sources (instrument, tilt) only; the
+systematic ones (atmosphere, time synchronisation, calibration) are added to the interpolated
+position afterwards, at their full value (docs/interpolation.md). Qc is chosen by
+leave-one-out cross-validation per axis by default (:mod:`rtsgt.interpolation.loo`).
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from rtsgt.calibration.coupling import StationCoupling, joint_prism_covariance
+from rtsgt.errors import InputError, RtsgtWarning
+from rtsgt.interpolation.gp import GPTrack, fit_track
+from rtsgt.interpolation.loo import fit_qc_loo
+from rtsgt.options import RunOptions
+from rtsgt.types import PrismTrack
+
+__all__ = ["PrismsAtTimes", "fit_gps", "query_prisms", "query_grid", "gp_covariance",
+           "WHITE_SOURCES", "SYSTEMATIC_SOURCES"]
+
+#: Noise sources whose errors are independent between measurements (fed to the GP).
+WHITE_SOURCES = ("instrument", "tilt")
+#: Noise sources whose errors are shared by many measurements (added after the GP).
+SYSTEMATIC_SOURCES = ("atmosphere", "time_sync", "calibration")
+
+
+@dataclass(frozen=True)
+class PrismsAtTimes:
+    """The interpolated prisms at the query times.
+
+    Attributes
+    ----------
+    t : ndarray, shape (T,)
+    xyz : ndarray, shape (T, n, 3)
+        World positions, m.
+    cov : ndarray, shape (T, n, 3, 3)
+        Total covariance (GP posterior plus systematic sources), m^2.
+    cov_gp : ndarray, shape (T, n, 3, 3)
+        GP posterior covariance alone.
+    cov_by_source : dict str -> ndarray (T, n, 3, 3)
+        Each source's covariance, interpolated from the measurements.
+    nearest_dt : ndarray, shape (T, n)
+        Time to the nearest measurement of each prism, s.
+    cov_joint : ndarray, shape (T, 3n, 3n), optional
+        Joint covariance of the stacked prisms: the blocks of ``cov`` on the diagonal, and off
+        it the calibration errors two stations share (:class:`StationCoupling`).
+    """
+
+    t: np.ndarray
+    xyz: np.ndarray
+    cov: np.ndarray
+    cov_gp: np.ndarray
+    cov_by_source: dict[str, np.ndarray]
+    nearest_dt: np.ndarray
+    cov_joint: np.ndarray | None = None
+
+    @property
+    def pose_covariance(self) -> np.ndarray:
+        """What the pose engines take: the joint (T, 3n, 3n) covariance when the prisms share
+        errors (the station calibrations), else the per-prism blocks (T, n, 3, 3)."""
+        return self.cov if self.cov_joint is None else self.cov_joint
+
+
+def _interp_cov(track: PrismTrack, sources: tuple[str, ...], t: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-source covariance at times ``t``, linear between neighbouring measurements."""
+    out = {}
+    for s in sources:
+        c = track.cov_by_source.get(s)
+        if c is None:
+            continue
+        flat = c.reshape(len(track), 9)
+        vals = np.stack([np.interp(t, track.t, flat[:, j]) for j in range(9)], axis=-1)
+        out[s] = vals.reshape(t.shape + (3, 3))
+    return out
+
+
+def gp_covariance(track: PrismTrack, gp_noise: str) -> np.ndarray:
+    """Measurement covariance given to the GP: the white sources only, or the total."""
+    if gp_noise == "all" or not track.cov_by_source:
+        return track.cov
+    white = [track.cov_by_source[s] for s in WHITE_SOURCES if s in track.cov_by_source]
+    if not white:
+        raise InputError("No white noise source (instrument or tilt) to weight the GP with")
+    return np.sum(white, axis=0)
+
+
+def query_grid(intervals: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Regular query times at ``rate_hz`` inside each interval (aligned to whole periods)."""
+    step = 1.0 / rate_hz
+    parts = []
+    for a, b in np.asarray(intervals, dtype=float).reshape(-1, 2):
+        k0, k1 = np.ceil(a / step - 1e-9), np.floor(b / step + 1e-9)
+        if k1 >= k0:
+            parts.append(np.arange(k0, k1 + 1) * step)
+    return np.concatenate(parts) if parts else np.empty(0)
+
+
+def fit_gps(
+    tracks: dict[str, PrismTrack], options: RunOptions, qc: dict[str, object] | None = None,
+    info: dict[str, dict] | None = None,
+) -> dict[str, GPTrack]:
+    """Fit the GP of every prism track, its Qc chosen by ``options.qc``.
+
+    ``"loo"`` (default): leave-one-out cross-validation of a diagonal Qc (one PSD per world
+    axis), which calibrates the GP for interpolation (:mod:`rtsgt.interpolation.loo`);
+    ``"likelihood"``: the marginal likelihood; a number: that isotropic PSD, m^2/s^3. ``qc``
+    optionally gives each prism's Qc (scalar or 3x3), overriding ``options.qc``: refitting the
+    tracks of a written run with the Qc it found. ``info``, when given, receives per prism the
+    method and the fit's statistics. The prisms are fitted in parallel threads (numpy releases
+    the interpreter lock in its array operations); the result does not depend on it.
+    """
+
+    def fit_one(pid: str, tr: PrismTrack) -> tuple[GPTrack, dict]:
+        data = (tr.t, tr.xyz, gp_covariance(tr, options.gp_noise))
+        if qc is not None and pid in qc:
+            return fit_track(data, qc=qc[pid], max_gap_s=options.max_gap_s), {"method": "given"}
+        if options.qc == "loo":
+            try:
+                loo = fit_qc_loo(data, mode="per-axis", max_gap_s=options.max_gap_s)
+            except InputError as exc:  # too few interior measurements to cross-validate
+                warnings.warn(f"prism {pid}: {exc.bare_message}; Qc by the marginal "
+                              "likelihood instead", RtsgtWarning, stacklevel=2)
+                return fit_track(data, fit_qc=True, max_gap_s=options.max_gap_s), {
+                    "method": "likelihood", "note": "too few measurements for leave-one-out"}
+            return fit_track(data, qc=loo.qc, max_gap_s=options.max_gap_s), {
+                "method": "loo", "loo_log_predictive": loo.log_predictive,
+                "loo_knots": loo.n_used, "loo_nees_per_dof": loo.nees_mean}
+        if options.qc == "likelihood":
+            return fit_track(data, fit_qc=True, max_gap_s=options.max_gap_s), {
+                "method": "likelihood"}
+        return fit_track(data, qc=float(options.qc), max_gap_s=options.max_gap_s), {
+            "method": "given"}
+
+    with ThreadPoolExecutor(max_workers=max(1, min(len(tracks), os.cpu_count() or 1))) as ex:
+        futures = {pid: ex.submit(fit_one, pid, tr) for pid, tr in tracks.items()}
+        done = {pid: f.result() for pid, f in futures.items()}
+    if info is not None:
+        info.update({pid: entry for pid, (_, entry) in done.items()})
+    return {pid: gp for pid, (gp, _) in done.items()}
+
+
+def query_prisms(
+    tracks: dict[str, PrismTrack], gps: dict[str, GPTrack], t: np.ndarray, options: RunOptions,
+    coupling: StationCoupling | None = None,
+) -> PrismsAtTimes:
+    """Positions and covariances of every prism at the times ``t`` (inside every track).
+
+    With ``coupling`` (and the calibration among the noise sources), the joint covariance
+    across prisms is filled too (:attr:`PrismsAtTimes.cov_joint`).
+    """
+    ids = list(tracks)
+    T, n = t.shape[0], len(ids)
+    xyz = np.empty((T, n, 3))
+    cov_gp = np.empty((T, n, 3, 3))
+    nearest = np.empty((T, n))
+    by_source: dict[str, np.ndarray] = {}
+    systematic = SYSTEMATIC_SOURCES if options.gp_noise == "white" else ()
+    for i, pid in enumerate(ids):
+        q = gps[pid].query(t)
+        xyz[:, i] = q.position
+        cov_gp[:, i] = q.position_cov
+        nearest[:, i] = q.nearest_measurement_dt
+        all_sources = tuple(tracks[pid].cov_by_source)
+        for s, c in _interp_cov(tracks[pid], all_sources, t).items():
+            by_source.setdefault(s, np.zeros((T, n, 3, 3)))[:, i] = c
+    cov = cov_gp.copy()
+    for s in systematic:
+        if s in by_source:
+            cov += by_source[s]
+    joint = None
+    if coupling is not None and coupling.cross and "calibration" in by_source:
+        joint = joint_prism_covariance(xyz, cov, by_source["calibration"],
+                                       [tracks[p].station for p in ids], coupling)
+    return PrismsAtTimes(t, xyz, cov, cov_gp, by_source, nearest, joint)
