@@ -6,11 +6,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
+from rtsgt.errors import InputError
+from rtsgt.io import survey as io_survey
 from rtsgt.measurement.atmosphere import instrument_correction_ppm
 from rtsgt.measurement.instruments import ARCSEC
 from rtsgt.measurement.polar import polar_to_cartesian
 from rtsgt.simulation import SimulationConfig, simulate_deployment
-from rtsgt.types import NOISE_SOURCES
+from rtsgt.simulation import deployment as sim_deployment
+from rtsgt.types import NOISE_SOURCES, SurveyShots
 
 
 @pytest.fixture(scope="module")
@@ -82,7 +85,10 @@ def test_noise_free_gcp_and_survey(clean):
     n = len(tr.prism_ids)
     np.testing.assert_allclose(xyz[:n], tr.reference_body, rtol=0, atol=1e-12)
     np.testing.assert_allclose(xyz[n:], tr.gnss_body, rtol=0, atol=1e-12)
-    assert sv.label[:n] == ("prism1", "prism2", "prism3")
+    assert sv.names[:n] == ("prism1", "prism2", "prism3")
+    # one survey record for files and simulations, its points in the survey (body) frame
+    assert isinstance(sv, SurveyShots) and io_survey.SurveyShots is SurveyShots
+    np.testing.assert_allclose(sv.xyz, xyz, rtol=0, atol=1e-12)
 
 
 def test_station_frames(sim30):
@@ -301,6 +307,41 @@ def test_more_stations_and_validation():
         SimulationConfig(speed_min_m_s=3.0)
     with pytest.raises(ValueError, match="Generator"):
         simulate_deployment(SimulationConfig(), "seed")
+    # errors about the configuration are InputErrors (still ValueErrors)
+    for bad in ({"n_stations": 2}, {"outlier_probability": 1.0}, {"gcp_height_m": (1.0, 0.5)},
+                {"gnss_positions_robot_m": ((0.0, 0.0),)}, {"additive_constant_m": np.nan}):
+        with pytest.raises(InputError, match="Expected"):
+            SimulationConfig(**bad)
+
+
+def test_rejection_sampling_fails_loudly_instead_of_accepting_a_bad_draw():
+    # a station at the site centre cannot be pushed out of a loop around it
+    loop = 10.0 * np.stack([np.cos(np.linspace(0, 6.28, 100)), np.sin(np.linspace(0, 6.28, 100))],
+                           axis=-1)
+    st = np.array([[0.0, 0.0], [30.0, 0.0]])
+    with pytest.raises(InputError, match=r"station\(s\) 1 .*station_clearance_m"):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sim_deployment._clear_of_path(st.copy(), loop, 15.0)
+    with pytest.raises(InputError, match=r"station\(s\) 1 .*in 0 pushes"):
+        sim_deployment._clear_of_path(np.array([[12.0, 0.0]]), loop, 5.0, max_pushes=0)
+    pushed = sim_deployment._clear_of_path(np.array([[12.0, 0.0]]), loop, 5.0)
+    assert np.linalg.norm(pushed[:, None] - loop, axis=-1).min() >= 5.0
+    # no valid GCP visibility within the allowed draws: an error, never the last draw
+    with pytest.raises(InputError, match="gcp_blocked_max"):
+        sim_deployment._gcp_visibility(SimulationConfig(), np.random.default_rng(0), max_draws=0)
+    vis = sim_deployment._gcp_visibility(SimulationConfig(gcp_blocked_max=5, n_gcp=10),
+                                         np.random.default_rng(0))
+    assert np.all((vis & vis[0]).sum(axis=1) >= 5)
+
+
+def test_rotation_helper_matches_scipy():
+    # the simulation's numpy rotations (kept for bit-identical deployments) are scipy's ones
+    rng = np.random.default_rng(3)
+    angle = rng.uniform(-np.pi, np.pi, 20)
+    for axis, name in enumerate("xyz"):
+        np.testing.assert_allclose(sim_deployment._rotation(axis, angle),
+                                   Rotation.from_euler(name, angle[:, None]).as_matrix(),
+                                   rtol=0, atol=1e-15)
 
 
 def test_noise_sources_flags():

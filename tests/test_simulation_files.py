@@ -98,7 +98,7 @@ def test_survey_file_dms(written):
     sim, toml = written
     lines = (toml.parent / "calibration_raw.csv").read_text().splitlines()
     sv = sim.survey
-    assert len(lines) == len(sv.label) == 6
+    assert len(lines) == len(sv.names) == 6
     for i, ln in enumerate(lines):
         f = ln.split(" ")
         assert len(f) == 15 and f[14] == "0"
@@ -254,7 +254,7 @@ def test_round_trip_with_the_readers(written):
     survey = pytest.importorskip("rtsgt.io.survey")
     if hasattr(survey, "read_survey_raw"):
         s = survey.read_survey_raw(out / "calibration_raw.csv")
-        np.testing.assert_allclose(s.xyz, sim.survey.xyz(), rtol=0, atol=1e-13)
+        np.testing.assert_allclose(s.xyz, sim.survey.xyz, rtol=0, atol=1e-13)
         np.testing.assert_allclose(s.xyz[:3], sim.truth.reference_body, rtol=0, atol=5e-3)
 
 

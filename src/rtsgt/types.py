@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from rtsgt.errors import InputError
+from rtsgt.geometry.so3 import quat_xyzw_to_matrix
+from rtsgt.measurement.polar import survey_polar_jacobian, survey_polar_to_cartesian
 
 #: Names of the noise sources of the paper, in the order used in reports.
 NOISE_SOURCES = ("instrument", "tilt", "atmosphere", "time_sync", "calibration")
@@ -324,6 +326,76 @@ class PoseTrajectory:
     @property
     def rotation(self) -> np.ndarray:
         """``R_world_body``, shape (N, 3, 3)."""
-        from rtsgt.geometry.so3 import quat_xyzw_to_matrix
 
         return quat_xyzw_to_matrix(self.quat_xyzw)
+
+
+@dataclass(frozen=True)
+class SurveyShots:
+    """Static survey of points on the robot by one station, survey (manual-shot) convention.
+
+    The convention of the real ``calibration_raw.csv``:
+    ``x = d cos(hz) sin(v), y = -d sin(hz) sin(v), z = d cos(v)``
+    (:func:`rtsgt.measurement.polar.survey_polar_to_cartesian`). Read from a file by
+    :func:`rtsgt.io.survey.read_survey_raw`, produced by :mod:`rtsgt.simulation`.
+
+    Attributes
+    ----------
+    names : tuple of str, length K
+        Point names (``"prism1"``, ..., ``"gnss1"``, ...).
+    hz, sigma_hz : ndarray, shape (K,)
+        Horizontal direction (clockwise) and its standard deviation, rad.
+    v, sigma_v : ndarray, shape (K,)
+        Zenith angle and its standard deviation, rad.
+    d, sigma_d : ndarray, shape (K,)
+        Slope distance (additive constant applied; none for manual shots) and its standard
+        deviation, m.
+    source : str
+        File the shots were read from (for messages), or ``""``.
+    xyz : ndarray, shape (K, 3)
+        Points in the survey frame, m (computed).
+    cov : ndarray, shape (K, 3, 3)
+        First-order covariance of each point, ``J diag(s_hz^2, s_v^2, s_d^2) J^T``, m^2, survey
+        frame, points independent (computed).
+    """
+
+    names: tuple[str, ...]
+    hz: np.ndarray
+    sigma_hz: np.ndarray
+    v: np.ndarray
+    sigma_v: np.ndarray
+    d: np.ndarray
+    sigma_d: np.ndarray
+    source: str = ""
+    xyz: np.ndarray = field(init=False, repr=False)
+    cov: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        names = tuple(str(s) for s in self.names)
+        object.__setattr__(self, "names", names)
+        for name in ("hz", "sigma_hz", "v", "sigma_v", "d", "sigma_d"):
+            a = _frozen(getattr(self, name))
+            _check_len(name, a, len(names), self.source or None)
+            object.__setattr__(self, name, a)
+        J = survey_polar_jacobian(self.hz, self.v, self.d)
+        var = np.stack([self.sigma_hz**2, self.sigma_v**2, self.sigma_d**2], axis=-1)
+        object.__setattr__(self, "xyz", _frozen(survey_polar_to_cartesian(self.hz, self.v, self.d)))
+        object.__setattr__(self, "cov", _frozen(np.einsum("kij,kj,klj->kil", J, var, J)))
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def cov_stacked(self) -> np.ndarray:
+        """Covariance of the stacked points ``(x1, y1, z1, x2, ...)``, shape (3K, 3K)."""
+        k = len(self)
+        out = np.zeros((k, 3, k, 3))
+        out[np.arange(k), :, np.arange(k), :] = self.cov
+        return out.reshape(3 * k, 3 * k)
+
+    def index(self, name: str) -> int:
+        """0-based row of the point called ``name``."""
+        if name not in self.names:
+            raise InputError(
+                f"Expected a point among {self.names}, got {name!r}", self.source or None
+            )
+        return self.names.index(name)

@@ -59,7 +59,7 @@ def _print_summary(sim, toml: Path, console: Console) -> None:
     n_markers = len(set(sim.gcp.marker.tolist()))
     table.add_row("GCP.txt", f"{len(sim.gcp)} shots of {n_markers} markers", size("GCP.txt"))
     table.add_row("calibration_raw.csv",
-                  f"static survey, {len(sim.survey.label)} points (prisms, GNSS)",
+                  f"static survey, {len(sim.survey.names)} points (prisms, GNSS)",
                   size("calibration_raw.csv"))
     table.add_row("weather.csv", f"{len(sim.weather_reported.t)} hourly records",
                   size("weather.csv"))

@@ -7,8 +7,7 @@ Three formats:
     ``d m s``, sigma V as ``d m s``, slope distance (m), sigma distance (m), and a trailing
     field (0 in the files). Rows, by the RTS_project layout: prisms 1-3, GNSS antennas 1-3,
     then lidar points. The sigmas are read as one standard deviation. Manual shots use the
-    convention (a frame rotated by -90 deg about z from the tracking convention of
-    :mod:`rtsgt.measurement.polar`; no additive constant)::
+    survey convention of :mod:`rtsgt.measurement.polar` (no additive constant)::
 
         x = d cos(Hz) sin(V),   y = -d sin(Hz) sin(V),   z = d cos(V)
 
@@ -39,13 +38,9 @@ from rtsgt.io._parse import (
     split_rows,
     to_float,
 )
-from rtsgt.measurement.polar import polar_jacobian, polar_to_cartesian
 from rtsgt.measurement.units import dms_to_rad
 from rtsgt.pose.reference import ReferencePoints
-
-#: Rotation from the tracking convention (x = d sinV sinHz, y = d sinV cosHz) to the manual
-#: survey convention of RTS_project (x = d cosHz sinV, y = -d sinHz sinV): -90 deg about z.
-R_MANUAL_TRACKING = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+from rtsgt.types import SurveyShots
 
 SURVEY_COLUMNS = (
     "hz_d", "hz_m", "hz_s", "sigma_hz_d", "sigma_hz_m", "sigma_hz_s",
@@ -69,55 +64,6 @@ def default_survey_names(k: int) -> tuple[str, ...]:
         else:
             names.append(f"lidar{i - 5}")
     return tuple(names)
-
-
-@dataclass(frozen=True)
-class SurveyShots:
-    """Static survey of points on the robot, by one station.
-
-    Attributes
-    ----------
-    names : tuple of str, length K
-    hz, sigma_hz : ndarray, shape (K,)
-        Horizontal direction (clockwise) and its standard deviation, rad.
-    v, sigma_v : ndarray, shape (K,)
-        Zenith angle and its standard deviation, rad.
-    d, sigma_d : ndarray, shape (K,)
-        Slope distance (additive constant applied) and its standard deviation, m.
-    xyz : ndarray, shape (K, 3)
-        Points in the survey frame (manual-shot convention of the module docstring), m.
-    cov : ndarray, shape (K, 3, 3)
-        First-order covariance of each point, m^2, survey frame (points independent).
-    source : str
-    """
-
-    names: tuple[str, ...]
-    hz: np.ndarray
-    sigma_hz: np.ndarray
-    v: np.ndarray
-    sigma_v: np.ndarray
-    d: np.ndarray
-    sigma_d: np.ndarray
-    xyz: np.ndarray
-    cov: np.ndarray
-    source: str = ""
-
-    def __len__(self) -> int:
-        return len(self.names)
-
-    def cov_stacked(self) -> np.ndarray:
-        """Covariance of the stacked points ``(x1, y1, z1, x2, ...)``, shape (3K, 3K)."""
-        k = len(self)
-        out = np.zeros((3 * k, 3 * k))
-        for i in range(k):
-            out[3 * i:3 * i + 3, 3 * i:3 * i + 3] = self.cov[i]
-        return out
-
-    def index(self, name: str) -> int:
-        """0-based row of the point called ``name``."""
-        if name not in self.names:
-            raise ValueError(f"Expected a point among {self.names}, got {name!r}")
-        return self.names.index(name)
 
 
 def _dms_to_rad(
@@ -204,11 +150,7 @@ def read_survey_raw(
     if len(names) != k:
         raise InputError(f"expected {len(names)} survey rows (one per name), got {k}", path)
     d = d_raw + float(additive_constant)
-    xyz = polar_to_cartesian(hz, v, d) @ R_MANUAL_TRACKING.T
-    J = R_MANUAL_TRACKING @ polar_jacobian(hz, v, d)
-    var = np.stack([s_hz**2, s_v**2, s_d**2], axis=-1)
-    cov = np.einsum("kij,kj,klj->kil", J, var, J)
-    return SurveyShots(names, hz, s_hz, v, s_v, d, s_d, xyz, cov, str(path))
+    return SurveyShots(names, hz, s_hz, v, s_v, d, s_d, str(path))
 
 
 @dataclass(frozen=True)

@@ -11,12 +11,31 @@ Convention (RTS_project tracking convention; the one place it is defined)
     x = d \sin V \sin Hz,\quad y = d \sin V \cos Hz,\quad z = d \cos V
 
 The frame is right-handed with z up (x east-like when y points along Hz = 0).
+
+Survey (manual-shot) convention
+-------------------------------
+The static survey of the robot (RTS_project ``calibration_raw.csv``, manual shots, no
+additive constant) uses the same ``hz`` (clockwise), ``v`` (zenith) and ``d`` in another frame:
+
+.. math::
+
+    x = d \cos Hz \sin V,\quad y = -d \sin Hz \sin V,\quad z = d \cos V
+
+that is ``p_survey = Rz(-90 deg) p_tracking`` (:data:`R_SURVEY_TRACKING`): the survey x axis is
+the tracking y axis (``Hz = 0``), the survey y axis the tracking -x axis, z is shared. See
+:func:`survey_polar_to_cartesian`, :func:`cartesian_to_survey_polar` and
+:func:`survey_polar_jacobian`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike
+
+#: Rotation taking tracking-frame coordinates to survey (manual-shot) coordinates,
+#: ``p_survey = R_SURVEY_TRACKING @ p_tracking``: -90 deg about z.
+R_SURVEY_TRACKING = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+R_SURVEY_TRACKING.setflags(write=False)
 
 
 def polar_to_cartesian(hz: ArrayLike, v: ArrayLike, d: ArrayLike) -> np.ndarray:
@@ -71,3 +90,49 @@ def polar_jacobian(hz: ArrayLike, v: ArrayLike, d: ArrayLike) -> np.ndarray:
     J[..., 2, 1] = -d * sv
     J[..., 2, 2] = cv
     return J
+
+
+def survey_polar_to_cartesian(hz: ArrayLike, v: ArrayLike, d: ArrayLike) -> np.ndarray:
+    """Survey-frame Cartesian coordinates of manual shots (survey convention, module docstring).
+
+    ``x = d cos(hz) sin(v), y = -d sin(hz) sin(v), z = d cos(v)``, computed as
+    ``R_SURVEY_TRACKING @ polar_to_cartesian(hz, v, d)``.
+
+    Parameters
+    ----------
+    hz, v, d : array_like, broadcastable, rad / rad / m
+        Clockwise horizontal direction, zenith angle and slope distance.
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+        ``(x, y, z)`` in metres, survey frame.
+    """
+    return polar_to_cartesian(hz, v, d) @ R_SURVEY_TRACKING.T
+
+
+def cartesian_to_survey_polar(p: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Inverse of :func:`survey_polar_to_cartesian`: ``(hz in [0, 2pi), v in [0, pi], d)``.
+
+    Parameters
+    ----------
+    p : array_like, shape (..., 3)
+        Survey-frame points, m.
+
+    Returns
+    -------
+    hz, v, d : ndarray, shape (...)
+        Clockwise horizontal direction (rad), zenith angle (rad), distance (m).
+    """
+    return cartesian_to_polar(np.asarray(p, dtype=float) @ R_SURVEY_TRACKING)
+
+
+def survey_polar_jacobian(hz: ArrayLike, v: ArrayLike, d: ArrayLike) -> np.ndarray:
+    """Jacobian of :func:`survey_polar_to_cartesian` with respect to ``(hz, v, d)``.
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+        ``J[..., i, j] = d p_i / d (hz, v, d)_j``, survey frame.
+    """
+    return R_SURVEY_TRACKING @ polar_jacobian(hz, v, d)

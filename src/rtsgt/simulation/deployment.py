@@ -17,9 +17,10 @@ Frames (all right-handed, z up unless said otherwise)
 - ``robot``: x forward, y left, z along the terrain normal, origin on the ground under the
   robot's centre. The prisms are fixed in it (Warthog-like geometry).
 - ``body``: the frame of the static survey, i.e. the *manual-shot* frame of the survey station
-  (``x = d cosHz sinV, y = -d sinHz sinV, z = d cosV``, as in ``calibration_raw.csv``) at the
-  time of the survey, rigidly attached to the robot from then on. The surveyed points are
-  therefore the reference prism positions ``r_i`` in the body frame, and the true trajectory is
+  (``x = d cosHz sinV, y = -d sinHz sinV, z = d cosV``, as in ``calibration_raw.csv``; the
+  survey convention of :mod:`rtsgt.measurement.polar`) at the time of the survey, rigidly
+  attached to the robot from then on. The surveyed points are therefore the reference prism
+  positions ``r_i`` in the body frame, and the true trajectory is
   ``T_world_body(t)`` -- the pose that ``body_frame = "survey"`` asks the pipeline for. Its origin
   is the survey station, ~10 m from the robot (as in the real data).
 
@@ -54,17 +55,19 @@ within the paper's half-widths (+-1 degC, +-10 hPa, +-2 %).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 from scipy.interpolate import CubicHermiteSpline
 
+from rtsgt.errors import InputError
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
 from rtsgt.geometry.transform import RigidTransform
 from rtsgt.measurement.atmosphere import instrument_correction_ppm
 from rtsgt.measurement.instruments import ARCSEC, TRIMBLE_S7, InstrumentProfile
-from rtsgt.measurement.polar import cartesian_to_polar
+from rtsgt.measurement.polar import cartesian_to_polar, cartesian_to_survey_polar
 from rtsgt.noise.perturb import sample_polar_errors
-from rtsgt.types import GcpShots, Observations, PoseTrajectory, WeatherSeries
+from rtsgt.types import GcpShots, Observations, PoseTrajectory, SurveyShots, WeatherSeries
 
 __all__ = [
     "SimulationConfig",
@@ -95,6 +98,30 @@ WARTHOG_GNSS_ROBOT_M = (
     (-0.45, 0.20, 1.05),
     (-0.30, -0.30, 1.08),
 )
+
+
+#: Fields of :class:`SimulationConfig` that must be finite and > 0.
+_POSITIVE = ("duration_s", "rate_hz", "truth_rate_hz", "speed_min_m_s", "speed_max_m_s",
+             "accel_max_m_s2", "site_size_m", "min_turn_radius_m", "station_clearance_m",
+             "weather_interval_s", "pressure_hpa")
+#: Fields that must be finite and >= 0.
+_NON_NEGATIVE = ("dropout_rate_per_min", "common_dropout_rate_per_min", "time_sync_std_s",
+                 "time_sync_jitter_s", "sampling_jitter_s", "temperature_halfwidth_c",
+                 "pressure_halfwidth_hpa", "humidity_halfwidth_pct", "temperature_amplitude_c",
+                 "pressure_trend_hpa_h", "humidity_amplitude_pct", "terrain_max_slope_deg",
+                 "survey_tilt_deg", "station_spread_m", "gcp_lead_time_s")
+#: Ranges ``(a, b)`` that must have ``0 <= a <= b``, finite.
+_INTERVALS = ("initial_stop_s", "drive_segment_s", "stop_duration_s", "instrument_height_m",
+              "gcp_height_m", "gcp_shot_interval_s", "dropout_duration_s", "survey_distance_m",
+              "survey_instrument_height_m", "survey_sigma_angle_rad", "survey_sigma_distance_m")
+#: Probabilities, in [0, 1).
+_PROBABILITIES = ("stop_probability", "single_loss_probability", "outlier_probability")
+
+
+def _require(ok, message: str) -> None:
+    """Raise :class:`~rtsgt.errors.InputError` with ``message`` unless ``ok``."""
+    if not ok:
+        raise InputError(message)
 
 
 @dataclass(frozen=True)
@@ -281,83 +308,51 @@ class SimulationConfig:
     atmosphere: bool = True
 
     def __post_init__(self) -> None:
-        def positive(name: str) -> None:
+        """Check every parameter; raises :class:`~rtsgt.errors.InputError` (a ValueError)."""
+        for name in _POSITIVE:
             val = getattr(self, name)
-            if not (np.isfinite(val) and val > 0):
-                raise ValueError(f"Expected {name} > 0, got {val!r}")
-
-        def interval(name: str, low: float = 0.0) -> None:
+            _require(np.isfinite(val) and val > 0, f"Expected {name} > 0, got {val!r}")
+        _require(np.isfinite(self.additive_constant_m), "Expected a finite additive_constant_m")
+        for name in _INTERVALS:
             a, b = getattr(self, name)
-            if not (np.isfinite(a) and np.isfinite(b) and low <= a <= b):
-                raise ValueError(f"Expected {name} = (a, b) with {low} <= a <= b, got {(a, b)!r}")
-
-        for name in ("duration_s", "rate_hz", "truth_rate_hz", "speed_min_m_s", "speed_max_m_s",
-                     "accel_max_m_s2", "site_size_m", "min_turn_radius_m", "station_clearance_m",
-                     "weather_interval_s", "pressure_hpa", "additive_constant_m"):
-            if name == "additive_constant_m":
-                if not np.isfinite(self.additive_constant_m):
-                    raise ValueError("Expected a finite additive_constant_m")
-                continue
-            positive(name)
-        for name in ("initial_stop_s", "drive_segment_s", "stop_duration_s", "instrument_height_m",
-                     "gcp_height_m", "gcp_shot_interval_s", "dropout_duration_s",
-                     "survey_distance_m", "survey_instrument_height_m",
-                     "survey_sigma_angle_rad", "survey_sigma_distance_m"):
-            interval(name)
-        if self.drive_segment_s[0] <= 0:
-            raise ValueError(f"Expected drive_segment_s > 0, got {self.drive_segment_s!r}")
-        if self.survey_sigma_angle_rad[0] <= 0 or self.survey_sigma_distance_m[0] <= 0:
-            raise ValueError("Expected positive survey sigmas")
-        if self.speed_min_m_s > self.speed_max_m_s:
-            raise ValueError(
-                f"Expected speed_min_m_s <= speed_max_m_s, got {self.speed_min_m_s} > "
-                f"{self.speed_max_m_s}"
-            )
-        if int(self.n_stations) != self.n_stations or self.n_stations < 3:
-            raise ValueError(f"Expected n_stations >= 3 (a pose needs 3 prisms), got "
-                             f"{self.n_stations!r}")
+            _require(np.isfinite(a) and np.isfinite(b) and 0.0 <= a <= b,
+                     f"Expected {name} = (a, b) with 0.0 <= a <= b, got {(a, b)!r}")
+        _require(self.drive_segment_s[0] > 0,
+                 f"Expected drive_segment_s > 0, got {self.drive_segment_s!r}")
+        _require(self.survey_sigma_angle_rad[0] > 0 and self.survey_sigma_distance_m[0] > 0,
+                 "Expected positive survey sigmas")
+        _require(self.speed_min_m_s <= self.speed_max_m_s,
+                 f"Expected speed_min_m_s <= speed_max_m_s, got {self.speed_min_m_s} > "
+                 f"{self.speed_max_m_s}")
+        _require(int(self.n_stations) == self.n_stations and self.n_stations >= 3,
+                 f"Expected n_stations >= 3 (a pose needs 3 prisms), got {self.n_stations!r}")
         prisms = np.asarray(self.prism_positions_robot_m, dtype=float)
-        if prisms.ndim != 2 or prisms.shape[1] != 3:
-            raise ValueError(
-                f"Expected prism_positions_robot_m of shape (P, 3), got {prisms.shape}")
-        if self.n_stations > prisms.shape[0]:
-            raise ValueError(
-                f"Expected at most {prisms.shape[0]} stations (one per prism position in "
-                f"prism_positions_robot_m), got {self.n_stations}"
-            )
-        gnss = np.asarray(self.gnss_positions_robot_m, dtype=float).reshape(-1, 3)
-        if not np.all(np.isfinite(gnss)):
-            raise ValueError("Expected finite gnss_positions_robot_m")
-        if int(self.n_gcp) != self.n_gcp or self.n_gcp < 4:
-            raise ValueError(f"Expected n_gcp >= 4, got {self.n_gcp!r}")
-        if not 3 <= self.gcp_min_common <= self.n_gcp:
-            raise ValueError(
-                f"Expected 3 <= gcp_min_common <= n_gcp, got {self.gcp_min_common} "
-                f"(n_gcp = {self.n_gcp})"
-            )
-        if self.gcp_blocked_max < 0 or self.n_gcp - self.gcp_blocked_max < self.gcp_min_common:
-            raise ValueError(
-                f"Expected 0 <= gcp_blocked_max <= n_gcp - gcp_min_common, got "
-                f"{self.gcp_blocked_max}"
-            )
-        for name in ("stop_probability", "single_loss_probability", "outlier_probability"):
+        _require(prisms.ndim == 2 and prisms.shape[1] == 3,
+                 f"Expected prism_positions_robot_m of shape (P, 3), got {prisms.shape}")
+        _require(self.n_stations <= prisms.shape[0],
+                 f"Expected at most {prisms.shape[0]} stations (one per prism position in "
+                 f"prism_positions_robot_m), got {self.n_stations}")
+        gnss = np.asarray(self.gnss_positions_robot_m, dtype=float)
+        _require(gnss.size % 3 == 0 and np.all(np.isfinite(gnss)),
+                 f"Expected finite gnss_positions_robot_m of shape (G, 3), got {gnss.shape}")
+        _require(int(self.n_gcp) == self.n_gcp and self.n_gcp >= 4,
+                 f"Expected n_gcp >= 4, got {self.n_gcp!r}")
+        _require(3 <= self.gcp_min_common <= self.n_gcp,
+                 f"Expected 3 <= gcp_min_common <= n_gcp, got {self.gcp_min_common} "
+                 f"(n_gcp = {self.n_gcp})")
+        _require(0 <= self.gcp_blocked_max <= self.n_gcp - self.gcp_min_common,
+                 f"Expected 0 <= gcp_blocked_max <= n_gcp - gcp_min_common, got "
+                 f"{self.gcp_blocked_max}")
+        for name in _PROBABILITIES:
             p = getattr(self, name)
-            if not 0.0 <= p < 1.0:
-                raise ValueError(f"Expected 0 <= {name} < 1, got {p!r}")
-        for name in ("dropout_rate_per_min", "common_dropout_rate_per_min", "time_sync_std_s",
-                     "time_sync_jitter_s", "sampling_jitter_s", "temperature_halfwidth_c",
-                     "pressure_halfwidth_hpa", "humidity_halfwidth_pct",
-                     "temperature_amplitude_c", "pressure_trend_hpa_h", "humidity_amplitude_pct",
-                     "terrain_max_slope_deg", "survey_tilt_deg", "station_spread_m",
-                     "gcp_lead_time_s"):
+            _require(0.0 <= p < 1.0, f"Expected 0 <= {name} < 1, got {p!r}")
+        for name in _NON_NEGATIVE:
             val = getattr(self, name)
-            if not (np.isfinite(val) and val >= 0):
-                raise ValueError(f"Expected {name} >= 0, got {val!r}")
-        if self.sampling_jitter_s * 6 >= 1.0 / self.rate_hz:
-            raise ValueError("Expected sampling_jitter_s well below the measurement interval")
-        if self.terrain_max_slope_deg >= 30:
-            raise ValueError(
-                f"Expected terrain_max_slope_deg < 30, got {self.terrain_max_slope_deg}")
+            _require(np.isfinite(val) and val >= 0, f"Expected {name} >= 0, got {val!r}")
+        _require(self.sampling_jitter_s * 6 < 1.0 / self.rate_hz,
+                 "Expected sampling_jitter_s well below the measurement interval")
+        _require(self.terrain_max_slope_deg < 30,
+                 f"Expected terrain_max_slope_deg < 30, got {self.terrain_max_slope_deg}")
 
     def without_noise(self) -> SimulationConfig:
         """The same deployment with every noise source off (dropouts and atmosphere kept)."""
@@ -378,39 +373,6 @@ class SimulationConfig:
             "calibration": self.noise_instrument or self.noise_tilt,
         }
         return tuple(k for k, v in on.items() if v)
-
-
-@dataclass(frozen=True, eq=False)
-class SurveyShots:
-    """Static survey of points on the robot by one station, manual-shot convention.
-
-    ``x = d cos(hz) sin(v), y = -d sin(hz) sin(v), z = d cos(v)`` (the convention of the real
-    ``calibration_raw.csv``; no additive constant). Rows: the prisms 1..P, then the GNSS
-    antennas.
-
-    Attributes
-    ----------
-    label : tuple of str, length N
-        ``"prism1"``, ..., ``"gnss1"``, ...
-    hz, v, d : ndarray, shape (N,)
-        Horizontal direction (rad, in [0, 2pi)), zenith angle (rad), distance (m).
-    sigma_hz, sigma_v, sigma_d : ndarray, shape (N,)
-        One-sigma noise of each shot (rad, rad, m), the numbers the noise was drawn with.
-    """
-
-    label: tuple[str, ...]
-    hz: np.ndarray
-    v: np.ndarray
-    d: np.ndarray
-    sigma_hz: np.ndarray
-    sigma_v: np.ndarray
-    sigma_d: np.ndarray
-
-    def xyz(self) -> np.ndarray:
-        """Cartesian positions in the survey (= body) frame, shape (N, 3), m."""
-        sv = np.sin(self.v)
-        return np.stack([self.d * np.cos(self.hz) * sv, -self.d * np.sin(self.hz) * sv,
-                         self.d * np.cos(self.v)], axis=-1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -458,21 +420,66 @@ def _smoothstep_integral(x: np.ndarray) -> np.ndarray:
     return np.where(x > 1.0, x - 0.5, inside)
 
 
-def _rot_z(angle: np.ndarray | float) -> np.ndarray:
+def _rotation(axis: int, angle) -> np.ndarray:
+    """Rotations about the coordinate axis ``axis`` (0: x, 1: y, 2: z) by ``angle``, rad.
+
+    Parameters
+    ----------
+    axis : int
+    angle : float or ndarray, shape (...)
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+
+    Notes
+    -----
+    Written with numpy's ``cos``/``sin`` rather than
+    :class:`scipy.spatial.transform.Rotation`, whose matrices (built from quaternions) differ
+    in the last bits: the simulated deployments of a seed stay byte-identical.
+    """
+    angle = np.asarray(angle, dtype=float)
     c, s = np.cos(angle), np.sin(angle)
-    z, o = np.zeros_like(c), np.ones_like(c)
-    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1),
-                     np.stack([z, z, o], -1)], -2)
+    i, j = (axis + 1) % 3, (axis + 2) % 3
+    R = np.zeros(angle.shape + (3, 3))
+    R[..., axis, axis] = 1.0
+    R[..., i, i] = c
+    R[..., j, j] = c
+    R[..., i, j] = -s
+    R[..., j, i] = s
+    return R
 
 
-def _rot_y(angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+def _loop_points(loop, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Loop point and derivative with respect to ``u``, site frame, shapes (..., 2).
+
+    ``loop`` has the loop fields of :class:`TruthModel` (``radius``, ``harmonics``, ``scale``,
+    ``theta``): a :class:`TruthModel` or the :class:`_Loop` it is built from.
+    """
+    order, amp, phase = loop.harmonics.T
+    arg = order * u[..., None] + phase
+    rho = loop.radius * (1.0 + np.sum(amp * np.cos(arg), axis=-1))
+    drho = -loop.radius * np.sum(amp * order * np.sin(arg), axis=-1)
+    cu, su = np.cos(u), np.sin(u)
+    p = np.stack([loop.scale[0] * rho * cu, loop.scale[1] * rho * su], axis=-1)
+    dp = np.stack([loop.scale[0] * (drho * cu - rho * su),
+                   loop.scale[1] * (drho * su + rho * cu)], axis=-1)
+    c, s = np.cos(loop.theta), np.sin(loop.theta)
+    rot = np.array([[c, -s], [s, c]])
+    return p @ rot.T, dp @ rot.T
 
 
-def _rot_x(angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+def _ground_points(terrain: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Terrain height (m) and gradient (..., 2) at site-frame points (..., 2).
+
+    ``terrain`` rows are plane waves ``(A, kx, ky, psi)``: ``h = sum A sin(k . xy + psi)``.
+    """
+    amp, kx, ky, psi = terrain.T
+    arg = xy[..., :1] * kx + xy[..., 1:2] * ky + psi
+    h = np.sum(amp * np.sin(arg), axis=-1)
+    c = amp * np.cos(arg)
+    grad = np.stack([np.sum(c * kx, axis=-1), np.sum(c * ky, axis=-1)], axis=-1)
+    return h, grad
 
 
 def atmospheric_ppm(
@@ -555,36 +562,13 @@ class TruthModel:
              + (self.level[k + 1] - self.level[k]) * self.ramp_len[k] * _smoothstep_integral(x))
         return np.where(tau < self.ramp_t[0], 0.0, s)
 
-    def _loop(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Loop point and derivative with respect to u, site frame, shapes (..., 2)."""
-        order, amp, phase = self.harmonics.T
-        arg = order * u[..., None] + phase
-        rho = self.radius * (1.0 + np.sum(amp * np.cos(arg), axis=-1))
-        drho = -self.radius * np.sum(amp * order * np.sin(arg), axis=-1)
-        cu, su = np.cos(u), np.sin(u)
-        p = np.stack([self.scale[0] * rho * cu, self.scale[1] * rho * su], axis=-1)
-        dp = np.stack([self.scale[0] * (drho * cu - rho * su),
-                       self.scale[1] * (drho * su + rho * cu)], axis=-1)
-        c, s = np.cos(self.theta), np.sin(self.theta)
-        rot = np.array([[c, -s], [s, c]])
-        return p @ rot.T, dp @ rot.T
-
-    def _ground(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Terrain height (m) and gradient (..., 2) at site-frame points (..., 2)."""
-        amp, kx, ky, psi = self.terrain.T
-        arg = xy[..., :1] * kx + xy[..., 1:2] * ky + psi
-        h = np.sum(amp * np.sin(arg), axis=-1)
-        c = amp * np.cos(arg)
-        grad = np.stack([np.sum(c * kx, axis=-1), np.sum(c * ky, axis=-1)], axis=-1)
-        return h, grad
-
     def robot_at(self, t) -> tuple[np.ndarray, np.ndarray]:
         """``T_world_robot`` at times ``t``: rotation (..., 3, 3) and translation (..., 3), m."""
         s = self.arc_at(t)
         u = self.u0 + self.direction * self.w_of_s(np.mod(s, self.loop_length))
-        xy, dxy = self._loop(u)
+        xy, dxy = _loop_points(self, u)
         tangent = self.direction * dxy / np.linalg.norm(dxy, axis=-1, keepdims=True)
-        h, grad = self._ground(xy)
+        h, grad = _ground_points(self.terrain, xy)
         # x axis: direction of travel on the ground; z axis: terrain normal
         x_axis = np.concatenate([tangent, np.sum(grad * tangent, -1, keepdims=True)], axis=-1)
         x_axis /= np.linalg.norm(x_axis, axis=-1, keepdims=True)
@@ -690,7 +674,8 @@ class SimulatedDeployment:
     gcp : GcpShots
         GCP shots of every station (raw distances, station-clock times).
     survey : SurveyShots
-        Static survey of the prisms (and GNSS antennas) on the robot, manual-shot convention.
+        Static survey of the prisms (and GNSS antennas) on the robot, survey (manual-shot)
+        convention, rows ``prism1..P`` then ``gnss1..G`` (:class:`rtsgt.types.SurveyShots`).
     weather_true : WeatherSeries
         True weather every minute over the whole deployment.
     weather_reported : WeatherSeries
@@ -722,7 +707,7 @@ class SimulatedDeployment:
         elif frame == "body":
             R, p = self.truth.model.body_at(t)
         else:
-            raise ValueError(f"Expected frame 'robot' or 'body', got {frame!r}")
+            raise InputError(f"Expected frame 'robot' or 'body', got {frame!r}")
         return p, matrix_to_quat_xyzw(R)
 
 
@@ -731,7 +716,69 @@ class SimulatedDeployment:
 # --------------------------------------------------------------------------------------------
 
 
-def _speed_profile(cfg: SimulationConfig, rng: np.random.Generator):
+class _Speed(NamedTuple):
+    """Speed profile: the ramp fields of :class:`TruthModel` (see there)."""
+
+    ramp_t: np.ndarray
+    ramp_len: np.ndarray
+    level: np.ndarray
+    s_base: np.ndarray
+
+
+class _Loop(NamedTuple):
+    """Closed path of the robot centre: the loop fields of :class:`TruthModel` (see there)."""
+
+    radius: float
+    harmonics: np.ndarray
+    scale: np.ndarray
+    theta: float
+    direction: float
+    u0: float
+    loop_length: float
+    w_of_s: CubicHermiteSpline
+
+
+class _Stations(NamedTuple):
+    """True station set-ups (levelled) and the site frame.
+
+    ``R_world``, ``t_world`` (S, 3, 3), (S, 3): ``T_world_station`` of each station (station 1
+    is the identity); ``R_world_site``, ``t_world_site``: ``T_world_site``; ``radius`` (S,):
+    horizontal distance of each station from the site centre, m.
+    """
+
+    ids: tuple[str, ...]
+    R_world: np.ndarray
+    t_world: np.ndarray
+    R_world_site: np.ndarray
+    t_world_site: np.ndarray
+    radius: np.ndarray
+
+
+class _Robot(NamedTuple):
+    """Points on the robot and the body (survey) frame.
+
+    ``prisms_robot`` (P, 3) and the body-frame points ``reference_body`` (P, 3), ``gnss_body``
+    (G, 3), m; ``T_body_robot = (R_body_robot, t_body_robot)``.
+    """
+
+    prisms_robot: np.ndarray
+    R_body_robot: np.ndarray
+    t_body_robot: np.ndarray
+    reference_body: np.ndarray
+    gnss_body: np.ndarray
+
+
+class _Gcp(NamedTuple):
+    """GCP shots (station clocks), marker names, true marker positions (world, m) and the true
+    time of the first shot (s)."""
+
+    shots: GcpShots
+    markers: tuple[str, ...]
+    world: np.ndarray
+    first_shot_s: float
+
+
+def _speed_profile(cfg: SimulationConfig, rng: np.random.Generator) -> _Speed:
     """Plateaus and ramps of the speed, covering ``[0, duration]`` (s after the start)."""
     ramp_t, ramp_len, level = [], [], [0.0]
     tau = rng.uniform(*cfg.initial_stop_s)
@@ -758,10 +805,10 @@ def _speed_profile(cfg: SimulationConfig, rng: np.random.Generator):
     dv = np.diff(level)
     inc = level[:-2] * span + dv[:-1] * (span - 0.5 * ramp_len[:-1])
     s_base = np.concatenate([[0.0], np.cumsum(inc)])
-    return ramp_t, ramp_len, level, s_base
+    return _Speed(ramp_t, ramp_len, level, s_base)
 
 
-def _loop_shape(cfg: SimulationConfig, rng: np.random.Generator):
+def _loop_shape(cfg: SimulationConfig, rng: np.random.Generator) -> _Loop:
     """Random smooth closed loop meeting the curvature limit (rejection sampling)."""
     radius = cfg.site_size_m / 4.0
     u = np.linspace(0.0, 2.0 * np.pi, 8193)
@@ -787,7 +834,7 @@ def _loop_shape(cfg: SimulationConfig, rng: np.random.Generator):
         if 1.0 / curvature.max() >= cfg.min_turn_radius_m:
             break
     else:  # pragma: no cover - the defaults always succeed
-        raise ValueError(
+        raise InputError(
             f"Could not draw a loop with turn radius >= {cfg.min_turn_radius_m} m in a site of "
             f"{cfg.site_size_m} m; lower min_turn_radius_m or enlarge site_size_m"
         )
@@ -803,7 +850,7 @@ def _loop_shape(cfg: SimulationConfig, rng: np.random.Generator):
     seg = 0.5 * (speed_w[1:] + speed_w[:-1]) * np.diff(u)
     s = np.concatenate([[0.0], np.cumsum(seg)])
     w_of_s = CubicHermiteSpline(s, u, 1.0 / speed_w)
-    return radius, harmonics, scale, theta, direction, u0, float(s[-1]), w_of_s
+    return _Loop(radius, harmonics, scale, theta, direction, u0, float(s[-1]), w_of_s)
 
 
 def _terrain(cfg: SimulationConfig, rng: np.random.Generator) -> np.ndarray:
@@ -819,6 +866,7 @@ def _terrain(cfg: SimulationConfig, rng: np.random.Generator) -> np.ndarray:
 
 
 def _weather_params(cfg: SimulationConfig, rng: np.random.Generator) -> np.ndarray:
+    """Rows ``(mean, amplitude, phase, trend per hour)`` of the true T, P and RH."""
     phase = rng.uniform(0.0, 2.0 * np.pi, 3)
     p_trend = rng.uniform(-cfg.pressure_trend_hpa_h, cfg.pressure_trend_hpa_h)
     p_amp = rng.uniform(0.0, 1.0)
@@ -830,6 +878,7 @@ def _weather_params(cfg: SimulationConfig, rng: np.random.Generator) -> np.ndarr
 
 
 def _true_ppm(cfg: SimulationConfig, model: TruthModel, t: np.ndarray) -> np.ndarray:
+    """True atmospheric correction at times ``t``, ppm (0 with ``atmosphere`` off)."""
     if not cfg.atmosphere:
         return np.zeros_like(t)
     return atmospheric_ppm(*model.weather_at(t), cfg.instrument)
@@ -857,14 +906,308 @@ def _gaps_mask(t: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> np.nda
 
 
 def _draw_gaps(cfg: SimulationConfig, rng: np.random.Generator, rate_per_min: float):
+    """Starts (s after the start of tracking) and lengths (s) of Poisson line-of-sight losses."""
     n = rng.poisson(rate_per_min * cfg.duration_s / 60.0)
     return rng.uniform(0.0, cfg.duration_s, n), rng.uniform(*cfg.dropout_duration_s, n)
+
+
+def _place_stations(
+    cfg: SimulationConfig, rng: np.random.Generator, loop: _Loop, terrain: np.ndarray
+) -> _Stations:
+    """Levelled stations around the path, beyond ``station_clearance_m``; world = station 1."""
+    n_st = int(cfg.n_stations)
+    loop_xy, _ = _loop_points(loop, np.linspace(0.0, 2.0 * np.pi, 2048, endpoint=False))
+    loop_r = np.linalg.norm(loop_xy, axis=-1)
+    loop_ang = np.arctan2(loop_xy[:, 1], loop_xy[:, 0])
+    alpha = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(n_st) / n_st \
+        + rng.uniform(-0.35, 0.35, n_st)
+    # radius of the loop in each station's direction, then stand beyond it
+    diff = np.abs(np.angle(np.exp(1j * (loop_ang[None, :] - alpha[:, None]))))
+    reach = np.where(diff < 0.3, loop_r[None, :], 0.0).max(axis=1)
+    st_r = reach + cfg.station_clearance_m + rng.uniform(0.0, cfg.station_spread_m, n_st)
+    st_xy = _clear_of_path(
+        np.stack([st_r * np.cos(alpha), st_r * np.sin(alpha)], axis=-1), loop_xy,
+        cfg.station_clearance_m,
+    )
+    st_h, _ = _ground_points(terrain, st_xy)
+    st_z = st_h + rng.uniform(*cfg.instrument_height_m, n_st)
+    st_p = np.concatenate([st_xy, st_z[:, None]], axis=-1)
+    R_site_st = _rotation(2, rng.uniform(0.0, 2.0 * np.pi, n_st))
+    R_world_site = R_site_st[0].T
+    t_world_site = -R_world_site @ st_p[0]
+    R_world_st = R_world_site @ R_site_st
+    t_world_st = st_p @ R_world_site.T + t_world_site
+    R_world_st[0] = np.eye(3)
+    t_world_st[0] = 0.0
+    ids = tuple(str(k + 1) for k in range(n_st))
+    return _Stations(ids, R_world_st, t_world_st, R_world_site, t_world_site, st_r)
+
+
+def _clear_of_path(
+    st_xy: np.ndarray, loop_xy: np.ndarray, clearance: float, max_pushes: int = 50
+) -> np.ndarray:
+    """Push stations (S, 2) outwards until each is ``clearance`` (m) from the path points.
+
+    Raises
+    ------
+    InputError
+        A station is still too close after ``max_pushes`` pushes.
+    """
+    for push in range(max_pushes + 1):
+        dmin = np.linalg.norm(st_xy[:, None, :] - loop_xy[None], axis=-1).min(axis=1)
+        close = ~(dmin >= clearance)  # NaN (a station at the site centre) is not clear
+        if not close.any():
+            return st_xy
+        if push == max_pushes:
+            break
+        st_xy[close] *= 1.0 + (clearance - dmin[close, None]) / np.linalg.norm(
+            st_xy[close], axis=-1, keepdims=True) + 0.01
+    raise InputError(
+        f"Could not place station(s) {', '.join(str(k + 1) for k in np.flatnonzero(close))} "
+        f"at station_clearance_m = {clearance} m or more from the path in {max_pushes} pushes; "
+        "lower station_clearance_m or enlarge site_size_m"
+    )
+
+
+def _robot_geometry(cfg: SimulationConfig, rng: np.random.Generator) -> _Robot:
+    """Prisms and GNSS antennas on the robot, and the robot's pose in the survey (body) frame."""
+    prisms_robot = np.asarray(cfg.prism_positions_robot_m, dtype=float)[:int(cfg.n_stations)]
+    gnss_robot = np.asarray(cfg.gnss_positions_robot_m, dtype=float).reshape(-1, 3)
+    tilt = np.radians(cfg.survey_tilt_deg)
+    R_body_robot = (_rotation(2, rng.uniform(0.0, 2.0 * np.pi))
+                    @ _rotation(1, rng.uniform(-tilt, tilt))
+                    @ _rotation(0, rng.uniform(-tilt, tilt)))
+    t_body_robot = np.array([rng.uniform(*cfg.survey_distance_m), rng.uniform(-0.5, 0.5),
+                             -rng.uniform(*cfg.survey_instrument_height_m)])
+    return _Robot(prisms_robot, R_body_robot, t_body_robot,
+                  prisms_robot @ R_body_robot.T + t_body_robot,
+                  gnss_robot @ R_body_robot.T + t_body_robot)
+
+
+def _clock_offsets(cfg: SimulationConfig, rng: np.random.Generator) -> np.ndarray:
+    """Constant clock error of each station, s (zeros without ``noise_time_sync``).
+
+    ``|e| ~ N(mu, sigma)`` as the authors measured it; each station synchronises on its own,
+    leading or lagging: a random sign per station (the noise model's assumption).
+    """
+    n_st = int(cfg.n_stations)
+    if not cfg.noise_time_sync:
+        return np.zeros(n_st)
+    magnitude = np.abs(rng.normal(cfg.time_sync_mean_s, cfg.time_sync_std_s, n_st))
+    return rng.choice([-1.0, 1.0], n_st) * magnitude
+
+
+def _clock_errors(
+    cfg: SimulationConfig, rng: np.random.Generator, offsets: np.ndarray, station: np.ndarray
+) -> np.ndarray:
+    """``t_true - t_recorded`` of measurements by stations ``station`` (indices): offset plus
+    jitter, s (zeros without ``noise_time_sync``)."""
+    if not cfg.noise_time_sync:
+        return np.zeros(station.shape)
+    return offsets[station] + rng.normal(0.0, cfg.time_sync_jitter_s, station.shape)
+
+
+def _in_station_frames(stations: _Stations, station: np.ndarray, p_world: np.ndarray):
+    """World points (N, 3) in the frames of the stations ``station`` (N,) (indices), m."""
+    return np.einsum("nji,nj->ni", stations.R_world[station],
+                     p_world - stations.t_world[station])
+
+
+def _line_of_sight(cfg: SimulationConfig, rng: np.random.Generator, tau: np.ndarray):
+    """Measurements (S, N) at ``tau`` (s after the start) not lost: common and per-station
+    line-of-sight losses, then single losses."""
+    c_start, c_len = _draw_gaps(cfg, rng, cfg.common_dropout_rate_per_min)
+    keep = []
+    for k in range(tau.shape[0]):  # loop over stations
+        s_start, s_len = _draw_gaps(cfg, rng, cfg.dropout_rate_per_min)
+        keep.append(~_gaps_mask(tau[k], np.concatenate([s_start, c_start]),
+                                np.concatenate([s_len, c_len])))
+    return np.stack(keep) & (rng.random(tau.shape) >= cfg.single_loss_probability)
+
+
+def _tracking_epochs(cfg: SimulationConfig, rng: np.random.Generator):
+    """True epochs of the tracking measurements: station indices and Unix times (s), sorted by
+    station then time. Staggered stations, jittered sampling, line-of-sight losses."""
+    n_st = int(cfg.n_stations)
+    n_nom = int(np.floor(cfg.duration_s * cfg.rate_hz)) + 1
+    period = 1.0 / cfg.rate_hz
+    phase = (np.arange(n_st) + rng.uniform(-0.25, 0.25, n_st)) * period / n_st
+    phase = np.mod(phase, period)
+    tau = phase[:, None] + np.arange(n_nom)[None, :] * period
+    tau = tau + np.clip(rng.normal(0.0, cfg.sampling_jitter_s, tau.shape),
+                        -3 * cfg.sampling_jitter_s, 3 * cfg.sampling_jitter_s)
+    keep = (tau >= 0.0) & (tau <= cfg.duration_s)
+    if cfg.dropouts:
+        keep &= _line_of_sight(cfg, rng, tau)
+    station = np.broadcast_to(np.arange(n_st)[:, None], tau.shape)[keep]
+    t_true = float(cfg.start_time_s) + tau[keep]
+    order = np.lexsort((t_true, station))
+    return station[order], t_true[order]
+
+
+def _track(
+    cfg: SimulationConfig, rng: np.random.Generator, model: TruthModel, stations: _Stations,
+    offsets: np.ndarray,
+) -> tuple[list[Observations], dict[str, ObservationTruth]]:
+    """Tracking measurements of every station (station k tracks prism k) and their truth."""
+    station, t_true = _tracking_epochs(cfg, rng)
+    t_rec = t_true - _clock_errors(cfg, rng, offsets, station)
+    clock = t_true - t_rec  # exactly what the stored numbers imply
+    p_world = model.prisms_at(t_true)[np.arange(t_true.size), station]
+    ppm = _true_ppm(cfg, model, t_true)
+    (hz0, v0, d0), (hz, v, d) = _measure(
+        cfg, rng, _in_station_frames(stations, station, p_world), ppm)
+    outlier = rng.random(t_true.shape) < cfg.outlier_probability
+    d = d + outlier * rng.choice([-1.0, 1.0], t_true.shape) * rng.uniform(1.0, 5.0, t_true.shape)
+    observations, truth = [], {}
+    for k, sid in enumerate(stations.ids):  # loop over stations
+        m = station == k
+        observations.append(Observations(t_rec[m], hz[m], v[m], d[m], None, sid, sid,
+                                          cfg.additive_constant_m, None))
+        truth[sid] = ObservationTruth(t_true[m], clock[m], hz0[m], v0[m], d0[m], ppm[m],
+                                      p_world[m], outlier[m])
+    return observations, truth
+
+
+def _gcp_visibility(
+    cfg: SimulationConfig, rng: np.random.Generator, max_draws: int = 1000
+) -> np.ndarray:
+    """Markers each station sees (S, n_gcp): up to ``gcp_blocked_max`` hidden per station and at
+    least ``gcp_min_common`` in common with station 1 (rejection sampling).
+
+    Raises
+    ------
+    InputError
+        No valid draw in ``max_draws``.
+    """
+    n_st, n_gcp = int(cfg.n_stations), int(cfg.n_gcp)
+    for _ in range(max_draws):
+        visible = np.ones((n_st, n_gcp), dtype=bool)
+        for k in range(n_st):  # loop over stations
+            nb = rng.integers(0, cfg.gcp_blocked_max + 1)
+            visible[k, rng.choice(n_gcp, nb, replace=False)] = False
+        if np.all((visible & visible[0]).sum(axis=1) >= cfg.gcp_min_common):
+            return visible
+    raise InputError(
+        f"Could not hide up to gcp_blocked_max = {cfg.gcp_blocked_max} of the {n_gcp} markers "
+        f"per station and keep gcp_min_common = {cfg.gcp_min_common} in common with station 1 "
+        f"in {max_draws} draws; lower gcp_blocked_max or gcp_min_common"
+    )
+
+
+def _gcp_times(cfg: SimulationConfig, rng: np.random.Generator, station: np.ndarray):
+    """True times (s) of GCP shots by ``station`` (indices, station-major): each station's
+    session starts 120 s after the previous one's, the first ``gcp_lead_time_s`` before
+    tracking; one shot every ``gcp_shot_interval_s``."""
+    intervals = rng.uniform(*cfg.gcp_shot_interval_s, station.size)
+    session_start = float(cfg.start_time_s) - cfg.gcp_lead_time_s + 120.0 * station
+    first = np.concatenate([[True], station[1:] != station[:-1]])
+    csum = np.cumsum(np.where(first, 0.0, intervals))
+    csum -= np.maximum.accumulate(np.where(first, csum, 0.0))
+    return session_start + csum
+
+
+def _gcp(
+    cfg: SimulationConfig, rng: np.random.Generator, model: TruthModel, stations: _Stations,
+    offsets: np.ndarray,
+) -> _Gcp:
+    """Markers on the ground inside the station ring, shot by every station that sees them."""
+    n_gcp = int(cfg.n_gcp)
+    g_ang = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(n_gcp) / n_gcp \
+        + rng.uniform(-0.2, 0.2, n_gcp)
+    g_rad = rng.uniform(0.3, 1.0, n_gcp) * stations.radius.min()
+    g_xy = np.stack([g_rad * np.cos(g_ang), g_rad * np.sin(g_ang)], axis=-1)
+    g_h, _ = _ground_points(model.terrain, g_xy)
+    g_site = np.concatenate([g_xy, (g_h + rng.uniform(*cfg.gcp_height_m, n_gcp))[:, None]], -1)
+    gcp_world = g_site @ stations.R_world_site.T + stations.t_world_site
+    g_st, g_mk = np.nonzero(_gcp_visibility(cfg, rng))  # station-major, like the real GCP.txt
+    t_true = _gcp_times(cfg, rng, g_st)
+    t_rec = t_true - _clock_errors(cfg, rng, offsets, g_st)
+    p_station = _in_station_frames(stations, g_st, gcp_world[g_mk])
+    _, (hz, v, d) = _measure(cfg, rng, p_station, _true_ppm(cfg, model, t_true))
+    markers = tuple(str(i + 1) for i in range(n_gcp))
+    shots = GcpShots(np.asarray(stations.ids, dtype=object)[g_st], np.asarray(markers)[g_mk],
+                     hz, v, d, t_rec, None, cfg.additive_constant_m)
+    return _Gcp(shots, markers, gcp_world, float(t_true.min()))
+
+
+def _survey(cfg: SimulationConfig, rng: np.random.Generator, robot: _Robot) -> SurveyShots:
+    """Static survey of the prisms then the GNSS antennas, in the body (survey) frame."""
+    hz, v, d = cartesian_to_survey_polar(np.concatenate([robot.reference_body, robot.gnss_body]))
+    lo, hi = np.log(cfg.survey_sigma_angle_rad)
+    sig_hz = np.exp(rng.uniform(lo, hi, d.size))
+    sig_v = np.exp(rng.uniform(lo, hi, d.size))
+    sig_d = rng.uniform(*cfg.survey_sigma_distance_m, d.size)
+    if cfg.noise_survey:
+        e = rng.standard_normal((3, d.size))
+        hz = np.mod(hz + sig_hz * e[0], 2 * np.pi)
+        v = v + sig_v * e[1]
+        d = d + sig_d * e[2]
+    names = tuple(f"prism{i + 1}" for i in range(robot.reference_body.shape[0])) + tuple(
+        f"gnss{i + 1}" for i in range(robot.gnss_body.shape[0]))
+    return SurveyShots(names, hz, sig_hz, v, sig_v, d, sig_d)
+
+
+def _weather(
+    cfg: SimulationConfig, rng: np.random.Generator, model: TruthModel, t_first: float
+) -> tuple[WeatherSeries, WeatherSeries]:
+    """True weather every minute and reported weather (true plus uniform errors) every
+    ``weather_interval_s``, from before ``t_first`` to after the end of tracking."""
+    t_last = float(cfg.start_time_s) + cfg.duration_s
+    step = cfg.weather_interval_s
+    w_t = np.arange(np.floor(t_first / step) - 1, np.ceil(t_last / step) + 2) * step
+    T, P, H = model.weather_at(w_t)
+    if cfg.noise_weather:
+        T = T + rng.uniform(-cfg.temperature_halfwidth_c, cfg.temperature_halfwidth_c, w_t.size)
+        P = P + rng.uniform(-cfg.pressure_halfwidth_hpa, cfg.pressure_halfwidth_hpa, w_t.size)
+        H = np.clip(H + rng.uniform(-cfg.humidity_halfwidth_pct, cfg.humidity_halfwidth_pct,
+                                    w_t.size), 0.0, 100.0)
+    wt_t = np.arange(w_t[0], w_t[-1] + 1.0, 60.0)
+    return (WeatherSeries(wt_t, *model.weather_at(wt_t), "simulated (true)"),
+            WeatherSeries(w_t, T, P, H, "simulated (reported)"))
+
+
+def _truth(
+    cfg: SimulationConfig, model: TruthModel, stations: _Stations, robot: _Robot,
+    offsets: np.ndarray, gcp: _Gcp, observations: dict[str, ObservationTruth],
+) -> SimulationTruth:
+    """The exported truth: ``T_world_body`` and the prisms at ``truth_rate_hz``, and the rest."""
+    n_truth = int(np.floor(cfg.duration_s * cfg.truth_rate_hz + 1e-9)) + 1
+    t = model.t0 + np.arange(n_truth) / cfg.truth_rate_hz
+    R_wr, t_wr = model.robot_at(t)
+    R_wb, p_wb = model.body_from_robot(R_wr, t_wr)
+    ids = stations.ids
+    return SimulationTruth(
+        t=t,
+        body=PoseTrajectory(t, p_wb, matrix_to_quat_xyzw(R_wb)),
+        prisms_world=model.prisms_from_robot(R_wr, t_wr),
+        prism_ids=ids,
+        T_world_station={
+            sid: RigidTransform(stations.R_world[k], stations.t_world[k], None, "world",
+                                f"station{sid}")
+            for k, sid in enumerate(ids)
+        },
+        station_prism={sid: sid for sid in ids},
+        clock_offset_s={sid: float(offsets[k]) for k, sid in enumerate(ids)},
+        reference_body=robot.reference_body,
+        gnss_body=robot.gnss_body,
+        T_body_robot=RigidTransform(robot.R_body_robot, robot.t_body_robot, None, "body",
+                                    "robot"),
+        gcp_markers=gcp.markers,
+        gcp_world=gcp.world,
+        observations=observations,
+        additive_constant=cfg.additive_constant_m,
+        model=model,
+    )
 
 
 def simulate_deployment(
     config: SimulationConfig, rng: np.random.Generator | int
 ) -> SimulatedDeployment:
     """Simulate a deployment with known truth.
+
+    The stages draw from ``rng`` in this order: path, terrain, speed profile, stations, robot
+    and survey frame, weather, clocks, tracking, GCPs, survey shots, reported weather.
 
     Parameters
     ----------
@@ -877,231 +1220,40 @@ def simulate_deployment(
     SimulatedDeployment
         Observations, GCP shots, survey, weather and the truth. Nothing is written to disk
         (see :func:`rtsgt.simulation.files.write_deployment`).
+
+    Raises
+    ------
+    InputError
+        ``config`` is not a :class:`SimulationConfig`, ``rng`` neither a generator nor an int,
+        or the configuration leaves no valid path, station set-up or GCP visibility.
     """
     if not isinstance(config, SimulationConfig):
-        raise ValueError(f"Expected a SimulationConfig, got {type(config).__name__}")
+        raise InputError(f"Expected a SimulationConfig, got {type(config).__name__}")
     seed = None
     if isinstance(rng, (int, np.integer)) and not isinstance(rng, bool):
         seed = int(rng)
         rng = np.random.default_rng(seed)
     if not isinstance(rng, np.random.Generator):
-        raise ValueError(f"Expected a numpy.random.Generator or an int seed, got {rng!r}")
+        raise InputError(f"Expected a numpy.random.Generator or an int seed, got {rng!r}")
     cfg = config
-    n_st = int(cfg.n_stations)
-    t0 = float(cfg.start_time_s)
-
-    # --- robot path, terrain, speed profile ---------------------------------------------------
-    radius, harmonics, scale, theta, direction, u0, loop_length, w_of_s = _loop_shape(cfg, rng)
+    loop = _loop_shape(cfg, rng)
     terrain = _terrain(cfg, rng)
-    ramp_t, ramp_len, level, s_base = _speed_profile(cfg, rng)
-
-    # --- stations around the site (site frame) ------------------------------------------------
-    proto = TruthModel(
-        t0, ramp_t, ramp_len, level, s_base, radius, harmonics, scale, theta, direction, u0,
-        loop_length, w_of_s, terrain, np.eye(3), np.zeros(3), np.zeros((1, 3)), np.eye(3),
-        np.zeros(3), np.zeros((3, 4)),
-    )
-    u_grid = np.linspace(0.0, 2.0 * np.pi, 2048, endpoint=False)
-    loop_xy, _ = proto._loop(u_grid)
-    loop_r = np.linalg.norm(loop_xy, axis=-1)
-    loop_ang = np.arctan2(loop_xy[:, 1], loop_xy[:, 0])
-    alpha = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(n_st) / n_st \
-        + rng.uniform(-0.35, 0.35, n_st)
-    # radius of the loop in each station's direction, then stand beyond it
-    diff = np.abs(np.angle(np.exp(1j * (loop_ang[None, :] - alpha[:, None]))))
-    reach = np.where(diff < 0.3, loop_r[None, :], 0.0).max(axis=1)
-    st_r = reach + cfg.station_clearance_m + rng.uniform(0.0, cfg.station_spread_m, n_st)
-    st_xy = np.stack([st_r * np.cos(alpha), st_r * np.sin(alpha)], axis=-1)
-    # push out any station still too close to the path
-    for _ in range(50):
-        dmin = np.linalg.norm(st_xy[:, None, :] - loop_xy[None], axis=-1).min(axis=1)
-        close = dmin < cfg.station_clearance_m
-        if not close.any():
-            break
-        st_xy[close] *= 1.0 + (cfg.station_clearance_m - dmin[close, None]) / np.linalg.norm(
-            st_xy[close], axis=-1, keepdims=True) + 0.01
-    st_h, _ = proto._ground(st_xy)
-    st_z = st_h + rng.uniform(*cfg.instrument_height_m, n_st)
-    st_p = np.concatenate([st_xy, st_z[:, None]], axis=-1)
-    st_yaw = rng.uniform(0.0, 2.0 * np.pi, n_st)
-    R_site_st = _rot_z(st_yaw)
-    # world = station 1
-    R_world_site = R_site_st[0].T
-    t_world_site = -R_world_site @ st_p[0]
-    R_world_st = R_world_site @ R_site_st
-    t_world_st = st_p @ R_world_site.T + t_world_site
-    R_world_st[0] = np.eye(3)
-    t_world_st[0] = 0.0
-
-    # --- robot geometry and the body (survey) frame --------------------------------------------
-    prisms_robot = np.asarray(cfg.prism_positions_robot_m, dtype=float)[:n_st]
-    gnss_robot = np.asarray(cfg.gnss_positions_robot_m, dtype=float).reshape(-1, 3)
-    tilt = np.radians(cfg.survey_tilt_deg)
-    R_body_robot = (_rot_z(rng.uniform(0.0, 2.0 * np.pi)) @ _rot_y(rng.uniform(-tilt, tilt))
-                    @ _rot_x(rng.uniform(-tilt, tilt)))
-    t_body_robot = np.array([rng.uniform(*cfg.survey_distance_m), rng.uniform(-0.5, 0.5),
-                             -rng.uniform(*cfg.survey_instrument_height_m)])
-    R_robot_body = R_body_robot.T
-    t_robot_body = -R_robot_body @ t_body_robot
-
+    speed = _speed_profile(cfg, rng)
+    stations = _place_stations(cfg, rng, loop, terrain)
+    robot = _robot_geometry(cfg, rng)
+    R_robot_body = robot.R_body_robot.T
     model = TruthModel(
-        t0, ramp_t, ramp_len, level, s_base, radius, harmonics, scale, theta, direction, u0,
-        loop_length, w_of_s, terrain, R_world_site, t_world_site, prisms_robot, R_robot_body,
-        t_robot_body, _weather_params(cfg, rng),
+        t0=float(cfg.start_time_s), **speed._asdict(), **loop._asdict(), terrain=terrain,
+        R_world_site=stations.R_world_site, t_world_site=stations.t_world_site,
+        prisms_robot=robot.prisms_robot, R_robot_body=R_robot_body,
+        t_robot_body=-R_robot_body @ robot.t_body_robot, weather_params=_weather_params(cfg, rng),
     )
-    reference_body = prisms_robot @ R_body_robot.T + t_body_robot
-    gnss_body = gnss_robot @ R_body_robot.T + t_body_robot
-
-    # --- clocks -----------------------------------------------------------------------------
-    if cfg.noise_time_sync:
-        # |e| ~ N(mu, sigma) as the authors measured it; each station synchronises on its own,
-        # leading or lagging: a random sign per station (the noise model's assumption)
-        magnitude = np.abs(rng.normal(cfg.time_sync_mean_s, cfg.time_sync_std_s, n_st))
-        offsets = rng.choice([-1.0, 1.0], n_st) * magnitude
-    else:
-        offsets = np.zeros(n_st)
-
-    # --- tracking measurements (all stations at once) ------------------------------------------
-    n_nom = int(np.floor(cfg.duration_s * cfg.rate_hz)) + 1
-    period = 1.0 / cfg.rate_hz
-    phase = (np.arange(n_st) + rng.uniform(-0.25, 0.25, n_st)) * period / n_st
-    phase = np.mod(phase, period)
-    tau = phase[:, None] + np.arange(n_nom)[None, :] * period
-    tau = tau + np.clip(rng.normal(0.0, cfg.sampling_jitter_s, tau.shape),
-                        -3 * cfg.sampling_jitter_s, 3 * cfg.sampling_jitter_s)
-    keep = (tau >= 0.0) & (tau <= cfg.duration_s)
-    if cfg.dropouts:
-        c_start, c_len = _draw_gaps(cfg, rng, cfg.common_dropout_rate_per_min)
-        keep_rows = []
-        for k in range(n_st):  # loop over stations
-            s_start, s_len = _draw_gaps(cfg, rng, cfg.dropout_rate_per_min)
-            gap = _gaps_mask(tau[k], np.concatenate([s_start, c_start]),
-                             np.concatenate([s_len, c_len]))
-            keep_rows.append(~gap)
-        keep &= np.stack(keep_rows)
-        keep &= rng.random(tau.shape) >= cfg.single_loss_probability
-    station_idx = np.broadcast_to(np.arange(n_st)[:, None], tau.shape)[keep]
-    t_true = t0 + tau[keep]
-    order = np.lexsort((t_true, station_idx))
-    station_idx, t_true = station_idx[order], t_true[order]
-    if cfg.noise_time_sync:
-        clock = offsets[station_idx] + rng.normal(0.0, cfg.time_sync_jitter_s, t_true.shape)
-    else:
-        clock = np.zeros_like(t_true)
-    t_rec = t_true - clock
-    clock = t_true - t_rec  # exactly what the stored numbers imply
-    p_world = model.prisms_at(t_true)[np.arange(t_true.size), station_idx]
-    p_station = np.einsum("nji,nj->ni", R_world_st[station_idx],
-                          p_world - t_world_st[station_idx])
-    ppm = _true_ppm(cfg, model, t_true)
-    (hz0, v0, d0), (hz, v, d) = _measure(cfg, rng, p_station, ppm)
-    outlier = rng.random(t_true.shape) < cfg.outlier_probability
-    d = d + outlier * rng.choice([-1.0, 1.0], t_true.shape) * rng.uniform(1.0, 5.0, t_true.shape)
-
-    station_ids = tuple(str(k + 1) for k in range(n_st))
-    observations, obs_truth = [], {}
-    for k, sid in enumerate(station_ids):  # loop over stations
-        m = station_idx == k
-        observations.append(Observations(t_rec[m], hz[m], v[m], d[m], None, sid, sid,
-                                          cfg.additive_constant_m, None))
-        obs_truth[sid] = ObservationTruth(t_true[m], clock[m], hz0[m], v0[m], d0[m], ppm[m],
-                                          p_world[m], outlier[m])
-
-    # --- ground control points ---------------------------------------------------------------
-    n_gcp = int(cfg.n_gcp)
-    g_ang = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(n_gcp) / n_gcp \
-        + rng.uniform(-0.2, 0.2, n_gcp)
-    g_rad = rng.uniform(0.3, 1.0, n_gcp) * st_r.min()
-    g_xy = np.stack([g_rad * np.cos(g_ang), g_rad * np.sin(g_ang)], axis=-1)
-    g_h, _ = proto._ground(g_xy)
-    g_site = np.concatenate([g_xy, (g_h + rng.uniform(*cfg.gcp_height_m, n_gcp))[:, None]], -1)
-    gcp_world = g_site @ R_world_site.T + t_world_site
-    # visibility: a few markers hidden per station, enough in common with station 1
-    for _ in range(1000):
-        visible = np.ones((n_st, n_gcp), dtype=bool)
-        for k in range(n_st):
-            nb = rng.integers(0, cfg.gcp_blocked_max + 1)
-            visible[k, rng.choice(n_gcp, nb, replace=False)] = False
-        if np.all((visible & visible[0]).sum(axis=1) >= cfg.gcp_min_common):
-            break
-    g_st, g_mk = np.nonzero(visible)  # station-major, marker order, like the real GCP.txt
-    intervals = rng.uniform(*cfg.gcp_shot_interval_s, g_st.size)
-    session_start = t0 - cfg.gcp_lead_time_s + 120.0 * g_st
-    first = np.concatenate([[True], g_st[1:] != g_st[:-1]])
-    csum = np.cumsum(np.where(first, 0.0, intervals))
-    csum -= np.maximum.accumulate(np.where(first, csum, 0.0))
-    g_true = session_start + csum
-    if cfg.noise_time_sync:
-        g_clock = offsets[g_st] + rng.normal(0.0, cfg.time_sync_jitter_s, g_st.size)
-    else:
-        g_clock = np.zeros(g_st.size)
-    g_rec = g_true - g_clock
-    gp_station = np.einsum("nji,nj->ni", R_world_st[g_st], gcp_world[g_mk] - t_world_st[g_st])
-    _, (g_hz, g_v, g_d) = _measure(cfg, rng, gp_station, _true_ppm(cfg, model, g_true))
-    markers = tuple(str(i + 1) for i in range(n_gcp))
-    gcp = GcpShots(np.asarray(station_ids, dtype=object)[g_st], np.asarray(markers)[g_mk],
-                   g_hz, g_v, g_d, g_rec, None, cfg.additive_constant_m)
-
-    # --- static survey of the robot (manual-shot convention) -----------------------------------
-    pts = np.concatenate([reference_body, gnss_body])
-    s_d = np.linalg.norm(pts, axis=-1)
-    s_v = np.arccos(pts[:, 2] / s_d)
-    s_hz = np.mod(np.arctan2(-pts[:, 1], pts[:, 0]), 2 * np.pi)
-    lo, hi = np.log(cfg.survey_sigma_angle_rad)
-    sig_hz = np.exp(rng.uniform(lo, hi, s_d.size))
-    sig_v = np.exp(rng.uniform(lo, hi, s_d.size))
-    sig_d = rng.uniform(*cfg.survey_sigma_distance_m, s_d.size)
-    if cfg.noise_survey:
-        e = rng.standard_normal((3, s_d.size))
-        s_hz = np.mod(s_hz + sig_hz * e[0], 2 * np.pi)
-        s_v = s_v + sig_v * e[1]
-        s_d = s_d + sig_d * e[2]
-    labels = tuple(f"prism{i + 1}" for i in range(n_st)) + tuple(
-        f"gnss{i + 1}" for i in range(gnss_body.shape[0]))
-    survey = SurveyShots(labels, s_hz, s_v, s_d, sig_hz, sig_v, sig_d)
-
-    # --- weather -----------------------------------------------------------------------------
-    t_first = min(float(g_true.min()), t0)
-    t_last = t0 + cfg.duration_s
-    step = cfg.weather_interval_s
-    w_t = np.arange(np.floor(t_first / step) - 1, np.ceil(t_last / step) + 2) * step
-    T, P, H = model.weather_at(w_t)
-    if cfg.noise_weather:
-        T = T + rng.uniform(-cfg.temperature_halfwidth_c, cfg.temperature_halfwidth_c, w_t.size)
-        P = P + rng.uniform(-cfg.pressure_halfwidth_hpa, cfg.pressure_halfwidth_hpa, w_t.size)
-        H = np.clip(H + rng.uniform(-cfg.humidity_halfwidth_pct, cfg.humidity_halfwidth_pct,
-                                    w_t.size), 0.0, 100.0)
-    weather_reported = WeatherSeries(w_t, T, P, H, "simulated (reported)")
-    wt_t = np.arange(w_t[0], w_t[-1] + 1.0, 60.0)
-    weather_true = WeatherSeries(wt_t, *model.weather_at(wt_t), "simulated (true)")
-
-    # --- exported truth ----------------------------------------------------------------------
-    n_truth = int(np.floor(cfg.duration_s * cfg.truth_rate_hz + 1e-9)) + 1
-    t_truth = t0 + np.arange(n_truth) / cfg.truth_rate_hz
-    R_wr, t_wr = model.robot_at(t_truth)
-    R_wb, p_wb = model.body_from_robot(R_wr, t_wr)
-    body = PoseTrajectory(t_truth, p_wb, matrix_to_quat_xyzw(R_wb))
-    prisms_world = model.prisms_from_robot(R_wr, t_wr)
-    T_world_station = {
-        sid: RigidTransform(R_world_st[k], t_world_st[k], None, "world", f"station{sid}")
-        for k, sid in enumerate(station_ids)
-    }
-    truth = SimulationTruth(
-        t=t_truth,
-        body=body,
-        prisms_world=prisms_world,
-        prism_ids=station_ids,
-        T_world_station=T_world_station,
-        station_prism={sid: sid for sid in station_ids},
-        clock_offset_s={sid: float(offsets[k]) for k, sid in enumerate(station_ids)},
-        reference_body=reference_body,
-        gnss_body=gnss_body,
-        T_body_robot=RigidTransform(R_body_robot, t_body_robot, None, "body", "robot"),
-        gcp_markers=markers,
-        gcp_world=gcp_world,
-        observations=obs_truth,
-        additive_constant=cfg.additive_constant_m,
-        model=model,
-    )
-    return SimulatedDeployment(observations, gcp, survey, weather_true, weather_reported, truth,
-                               cfg, seed)
+    offsets = _clock_offsets(cfg, rng)
+    observations, observations_truth = _track(cfg, rng, model, stations, offsets)
+    gcp = _gcp(cfg, rng, model, stations, offsets)
+    survey = _survey(cfg, rng, robot)
+    weather_true, weather_reported = _weather(
+        cfg, rng, model, min(gcp.first_shot_s, float(cfg.start_time_s)))
+    truth = _truth(cfg, model, stations, robot, offsets, gcp, observations_truth)
+    return SimulatedDeployment(observations, gcp.shots, survey, weather_true, weather_reported,
+                               truth, cfg, seed)

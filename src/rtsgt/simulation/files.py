@@ -189,7 +189,7 @@ def _truth_json(sim: SimulatedDeployment, name: str) -> str:
         "reference_prisms_body_m": {pid: ref[i].tolist() for i, pid in enumerate(tr.prism_ids)},
         "reference_distances_m": pairs,
         "gnss_body_m": {str(i + 1): p.tolist() for i, p in enumerate(tr.gnss_body)},
-        "survey_rows": list(sim.survey.label),
+        "survey_rows": list(sim.survey.names),
         "T_body_robot": tr.T_body_robot.as_matrix().tolist(),
         "prisms_robot_m": {pid: tr.model.prisms_robot[i].tolist()
                            for i, pid in enumerate(tr.prism_ids)},
