@@ -345,11 +345,31 @@ class _Chunk:
         self.vel = np.ascontiguousarray(self.vel64, dtype=dtype)
 
 
+def _atmosphere_constants(model: NoiseModel) -> tuple[float, float]:
+    """``(N_gr, N_REF)`` of the instrument's wavelength and reference atmosphere, from
+    :mod:`rtsgt.measurement.atmosphere` (the constants :func:`_alpha_samples` takes)."""
+    prof = model.instrument
+    n_gr = float(group_refractivity(prof.wavelength_um))
+    n_ref = float(_refractivity_checked(
+        prof.reference_temperature_c, prof.reference_pressure_hpa, prof.reference_humidity_pct,
+        prof.wavelength_um, model.vapour_formula,
+    ))
+    return n_gr, n_ref
+
+
 def _alpha_samples(ws: _Workspace, ch: _Chunk, n_gr: float, n_ref: float):
     """``alpha = 1e-6 K`` at the perturbed weather into ``ws.u1`` ([R02-K] of atmosphere.py).
 
     ``ws.u0``, ``ws.u1``, ``ws.u2`` hold U[0, 1) draws for temperature, pressure, humidity;
     they are overwritten. Returns ``ws.u1``.
+
+    The formulas of :func:`rtsgt.measurement.atmosphere.correction_ppm` ([MAG] / [BUCK],
+    [IAG99-2], [R02-K]) evaluated in place in the workspace and in the working dtype: calling
+    atmosphere.py's allocating float64 functions instead makes the engine 30 to 58 % (float32)
+    and 14 % (float64) slower. tests/test_noise_engines.py pins this copy to
+    :func:`~rtsgt.measurement.atmosphere.instrument_correction_ppm` at the same perturbed
+    weather (both vapour formulas, several weathers and wavelengths) to the rounding of the
+    working dtype.
     """
     dt = ws.dtype
     model = ch.model
@@ -455,6 +475,17 @@ def _run_chunk(
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Monte Carlo of one chunk: total (world frame when ``cal`` is given, else station frame)
     and per-source covariances (station frame; calibration handled by the caller)."""
+    x, y, z, by_source = _sample_chunk(ws, ch, rng, cal, n_gr, n_ref)
+    return _cov_rows(x, y, z), by_source
+
+
+def _sample_chunk(
+    ws: _Workspace, ch: _Chunk, rng: np.random.Generator, cal: tuple | None,
+    n_gr: float, n_ref: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """Draws of one chunk: the total's displacement samples ``x, y, z`` ((n, M) views of the
+    workspace: from ``R p0 + t`` in the world frame when ``cal`` is given, else from ``p0`` in
+    the station frame) and the per-source covariances (station frame)."""
     model = ch.model
     prof = model.instrument
     srcs = model.sources
@@ -542,8 +573,7 @@ def _run_chunk(
             w += np.multiply(Rs[:, i, 1], y, out=a)
             w += np.multiply(Rs[:, i, 2], z, out=a)
         x, y, z = ws.wx, ws.wy, ws.wz
-    total = _cov_rows(x, y, z)
-    return total, by_source
+    return x, y, z, by_source
 
 
 def _rotate(R: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -618,12 +648,7 @@ def mc_covariances(
         )
     # the total is sampled in the world frame with the transform samples (R_m, t_m) when the
     # calibration source is on, and rotated by the mean rotation otherwise
-    n_gr = float(group_refractivity(model.instrument.wavelength_um))
-    prof = model.instrument
-    n_ref = float(_refractivity_checked(
-        prof.reference_temperature_c, prof.reference_pressure_hpa, prof.reference_humidity_pct,
-        prof.wavelength_um, model.vapour_formula,
-    ))
+    n_gr, n_ref = _atmosphere_constants(model)
 
     starts = list(range(0, N, chunk_size))
     seeds = rng.integers(0, 2**63 - 1, size=(len(starts), 2), dtype=np.int64)
