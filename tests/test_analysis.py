@@ -427,21 +427,20 @@ def test_run_directory_has_the_gcps_and_stations(pipeline_run):
 
 def test_removed_measurements_are_written_and_read_back(pipeline_run):
     """measurements/removed.csv: what modules 1 and 2 removed, counts as in the reports."""
-    from rtsgt.io.run_output import removed_measurements
     from rtsgt.report.figures import plot_top_view, plot_uncertainty_time
 
     _, result, run_dir = pipeline_run
-    removed = removed_measurements(result)
+    removed = result.removed
     rep = result.filter_reports
     n1 = sum(r.n_removed for k, r in rep.items() if k.startswith("module1"))
     n2 = rep["module2"].n_removed
-    assert np.sum(removed["stage"] == "module1") == n1
-    assert np.sum(removed["stage"] == "module2") == n2 and n1 + n2 > 0
+    assert np.sum(removed.stage == "module1") == n1
+    assert np.sum(removed.stage == "module2") == n2 and n1 + n2 > 0
     data = read_run(run_dir)
-    np.testing.assert_allclose(data.removed_t, removed["t"], atol=1e-9)
-    np.testing.assert_allclose(data.removed_xyz, removed["xyz"], atol=1e-6)
-    np.testing.assert_array_equal(data.removed_stage, removed["stage"])
-    np.testing.assert_array_equal(data.removed_prism, removed["prism"])
+    np.testing.assert_allclose(data.removed_t, removed.t, atol=1e-9)
+    np.testing.assert_allclose(data.removed_xyz, removed.xyz, atol=1e-6)
+    np.testing.assert_array_equal(data.removed_stage, removed.stage)
+    np.testing.assert_array_equal(data.removed_prism, removed.prism)
     # none of them is among the measurements kept for the prism
     for pid, tr in result.tracks.items():
         assert not np.isin(data.removed_t[data.removed_prism == pid], tr.t).any()

@@ -173,7 +173,7 @@ def test_analyze_options(run_dir, tmp_path, option, value):
 
 
 @FUZZ
-@given(option=st.sampled_from(["--rate", "--qc", "--max-gap", "--qc-method"]), value=BAD_TEXT)
+@given(option=st.sampled_from(["--rate", "--qc", "--max-gap"]), value=BAD_TEXT)
 def test_interpolate_options(run_dir, tmp_path, option, value):
     track = run_dir / "prisms" / "prism1.csv"
     out = tmp_path / "track.csv"

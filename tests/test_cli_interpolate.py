@@ -1,4 +1,4 @@
-"""`rtsgt interpolate TRACK.csv (--at TIMES.txt | --rate HZ) [--qc Q | --fit-qc] [--out OUT.csv]`."""
+"""`rtsgt interpolate TRACK.csv (--at TIMES.txt | --rate HZ) [--qc loo|likelihood|Q] [--out OUT.csv]`."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from rtsgt.cli import main as cli_main
 from rtsgt.cli.interpolate import rate_times
 from rtsgt.cli.main import app
 from rtsgt.interpolation import fit_track
+from rtsgt.interpolation.loo import fit_qc_loo
 from rtsgt.io.track_csv import TRACK_COLUMNS, read_track_csv, write_track_csv
 
 HEADER = "t,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz"
@@ -55,20 +56,29 @@ def invoke(*args):
     return runner.invoke(app, ["interpolate", *map(str, args)])
 
 
-def test_rate_with_fitted_qc_equals_the_library(track_file):
+def loo_qc(track_file):
+    """The Qc rtsgt run would choose for this track: leave-one-out, per axis."""
+    tr = read_track_csv(track_file)
+    return fit_qc_loo((tr.t, tr.xyz, tr.cov), mode="per-axis", max_gap_s=3.0).qc
+
+
+def test_rate_with_the_runs_qc_policy_equals_the_library(track_file):
+    """By default Qc is chosen as rtsgt run chooses it: leave-one-out, per axis."""
     result = invoke(track_file, "--rate", 5)
     assert result.exit_code == 0, result.output
     out = read_output(result.stdout)
-    gp, expected = library(track_file, [], fit_qc=True)
+    qc = loo_qc(track_file)
+    gp, _ = library(track_file, [], qc=qc)
     times, skipped = rate_times(gp, 5.0)
-    _, expected = library(track_file, times, fit_qc=True)
+    _, expected = library(track_file, times, qc=qc)
     np.testing.assert_array_equal(out, expected)  # shortest round-trip decimals: exact
     assert skipped > 0 and np.all(gp.supported(out[:, 0]))
     np.testing.assert_allclose(np.diff(out[:, 0])[:20], 0.2, atol=1e-6)
-    assert "fitted by maximum marginal likelihood" in result.stderr
-    assert f"{gp.qc[0, 0]:.6g} m^2/s^3" in result.stderr
+    assert "fitted by leave-one-out cross-validation" in result.stderr
+    assert "diag(" + ", ".join(f"{v:.6g}" for v in np.diag(qc)) in result.stderr
     assert f"skipped {skipped} grid times" in result.stderr
     assert HEADER not in result.stderr
+    assert invoke(track_file, "--rate", 5, "--qc", "loo").stdout == result.stdout
 
 
 def test_at_times_with_given_qc_and_out_file(track_file, tmp_path):
@@ -92,32 +102,27 @@ def test_at_times_with_given_qc_and_out_file(track_file, tmp_path):
     assert again.stdout == out.read_text()
 
 
-def test_fit_qc_flag_and_per_axis(track_file):
-    a = invoke(track_file, "--rate", 2, "--fit-qc")
-    b = invoke(track_file, "--rate", 2)
-    assert a.exit_code == 0 and a.stdout == b.stdout
-    c = invoke(track_file, "--rate", 2, "--fit-qc", "--qc-mode", "per-axis")
-    assert c.exit_code == 0 and "diag(" in c.stderr and "per-axis" in c.stderr
-    gp = fit_track(read_track_csv(track_file), fit_qc=True, qc_mode="per-axis")
+def test_likelihood_qc_equals_the_library(track_file):
+    a = invoke(track_file, "--rate", 2, "--qc", "likelihood")
+    assert a.exit_code == 0, a.output
+    assert "fitted by maximum marginal likelihood (isotropic" in a.stderr
+    gp, _ = library(track_file, [], fit_qc=True)
     times, _ = rate_times(gp, 2.0)
-    _, expected = library(track_file, times, fit_qc=True, qc_mode="per-axis")
-    np.testing.assert_array_equal(read_output(c.stdout), expected)
+    _, expected = library(track_file, times, fit_qc=True)
+    np.testing.assert_array_equal(read_output(a.stdout), expected)
+    bad = invoke(track_file, "--rate", 2, "--qc", "cv")
+    assert bad.exit_code == 2 and "--qc" in bad.stderr
 
 
-def test_leave_one_out_qc_method_equals_the_library(track_file):
-    from rtsgt.interpolation.loo import fit_qc_loo
+def test_the_same_qc_as_rtsgt_run_on_the_same_track(track_file):
+    """One Qc policy: rtsgt interpolate and the pipeline's fit_gps choose the same Qc."""
+    from rtsgt.interpolation.prisms import fit_gps
+    from rtsgt.options import RunOptions
 
-    r = invoke(track_file, "--rate", 2, "--qc-method", "loo", "--qc-mode", "per-axis")
-    assert r.exit_code == 0, r.output
-    assert "leave-one-out" in r.stderr and "diag(" in r.stderr
     tr = read_track_csv(track_file)
-    loo = fit_qc_loo((tr.t, tr.xyz, tr.cov), mode="per-axis", max_gap_s=3.0)
-    gp, _ = library(track_file, [], qc=loo.qc, max_gap_s=3.0)
-    times, _ = rate_times(gp, 2.0)
-    _, expected = library(track_file, times, qc=loo.qc, max_gap_s=3.0)
-    np.testing.assert_array_equal(read_output(r.stdout), expected)
-    bad = invoke(track_file, "--rate", 2, "--qc-method", "cv")
-    assert bad.exit_code != 0
+    gps = fit_gps({"1": tr}, RunOptions(gp_noise="all"))
+    r = invoke(track_file, "--rate", 2)
+    assert "diag(" + ", ".join(f"{v:.6g}" for v in np.diag(gps["1"].qc)) in r.stderr
 
 
 def test_max_gap_option(track_file):
@@ -243,16 +248,17 @@ def test_bad_query_times(times_text, pattern, track_file, tmp_path, monkeypatch,
     [
         ((), "exactly one of --at TIMES.txt and --rate HZ"),
         (("--rate", 5, "--at", "x.txt"), "exactly one of --at"),
-        (("--rate", 5, "--qc", 1, "--fit-qc"), "either --qc Q or --fit-qc"),
+        (("--rate", 5, "--qc", "cv"), "expected loo, likelihood or a number"),
         (("--rate", 0), r"--rate > 0 Hz"),
-        (("--rate", 5, "--qc", -1), r"--qc > 0"),
+        (("--rate", 5, "--qc", -1), r"expected qc > 0"),
         (("--rate", 5, "--max-gap", 0), r"--max-gap > 0"),
-        (("--rate", 5, "--qc-mode", "full"), r"--qc-mode isotropic or per-axis"),
     ],
 )
 def test_bad_options(args, pattern, track_file, monkeypatch, capsys):
+    """Bad option values are usage errors: exit status 2, one line."""
     code, _, stderr = run_main(monkeypatch, capsys, track_file, *args)
-    assert code == 1 and stderr.startswith("error: ") and pattern in stderr.replace("\\", "")
+    assert code == 2 and stderr.startswith("error: ") and stderr.count("\n") == 1
+    assert pattern in stderr.replace("\\", ""), stderr
 
 
 # --------------------------------------------------------------------------------------------

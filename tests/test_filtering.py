@@ -149,7 +149,31 @@ def assert_module1_matches_reference(o, p=P):
     assert rep.n_removed == len(o) - int(keep.sum())
     assert rep.n_blocks == blocks
     assert rep.per_series == (dict(rep.removed),)
+    # the mask of what was kept and the reason of each removal, indexed like the input
+    (mask,), (why,) = rep.kept_masks, rep.reasons
+    np.testing.assert_array_equal(mask, keep)
+    assert why.tolist() == ref
+    assert_masks_reproduce_counts(rep, [o], kept=[kept], names=MODULE1_REASONS)
     return kept, rep, ref
+
+
+def assert_masks_reproduce_counts(rep, series, kept, names):
+    """A report's masks and reasons say what its counts and its kept series say."""
+    assert len(rep.kept_masks) == len(rep.reasons) == len(series) == len(rep.per_series)
+    for s, k, mask, why, c in zip(series, kept, rep.kept_masks, rep.reasons, rep.per_series,
+                                  strict=True):
+        assert mask.dtype == bool and mask.shape == why.shape == (len(s),)
+        assert not mask.flags.writeable and not why.flags.writeable
+        np.testing.assert_array_equal(k.t, s.t[mask])
+        np.testing.assert_array_equal(why == "", mask)
+        assert set(why[~mask].tolist()) <= set(names)
+        assert {r: int(np.sum(why == r)) for r in names} == dict(c)
+    assert rep.n_kept == sum(int(m.sum()) for m in rep.kept_masks)
+    # summary.json holds the counts only, as before the masks existed
+    assert rep.as_dict() == {"module": rep.module, "n_in": rep.n_in, "n_kept": rep.n_kept,
+                             "removed": dict(rep.removed),
+                             "per_series": [dict(c) for c in rep.per_series],
+                             "n_blocks": rep.n_blocks}
 
 
 def random_observations(rng, n, *, outliers=0.05, bursts=2, gaps=2):
@@ -373,15 +397,19 @@ def assert_module2_matches_reference(series, p=P):
     times = [s.t.tolist() for s in series]
     ref_iv, masks, reasons = ref_module2(times, p)
     np.testing.assert_array_equal(iv, ref_iv)
-    for s, k, m in zip(series, kept, masks, strict=True):
+    for s, k, m, r, mask, why in zip(series, kept, masks, reasons, rep.kept_masks, rep.reasons,
+                                     strict=True):
         np.testing.assert_array_equal(k.t, s.t[m])
         assert type(k) is type(s)
+        np.testing.assert_array_equal(mask, m)
+        assert why.tolist() == list(r)
     per = tuple(counts(r, MODULE2_REASONS) for r in reasons)
     assert tuple(dict(c) for c in rep.per_series) == per
     assert dict(rep.removed) == {r: sum(c[r] for c in per) for r in MODULE2_REASONS}
     assert rep.n_in == sum(len(s) for s in series)
     assert rep.n_kept == sum(int(m.sum()) for m in masks)
     assert rep.n_blocks == iv.shape[0]
+    assert_masks_reproduce_counts(rep, series, kept, MODULE2_REASONS)
     return kept, iv, rep
 
 

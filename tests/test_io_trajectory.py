@@ -127,6 +127,79 @@ def test_groundtruth_dir_prefers_the_covariance_file(traj, tmp_path):
         read_groundtruth_dir(tmp_path / "empty")
 
 
+def test_writers_text_is_pinned(tmp_path):
+    """The one TUM writer and the one covariance-CSV writer, in both styles: the shortest exact
+    text (the default) and the fixed formats of ``rtsgt run`` (``groundtruth.tum`` with 9 and
+    12 decimals, ``groundtruth_covariance.csv`` with 17 significant digits), byte for byte."""
+    traj = PoseTrajectory(
+        np.array([0.1, 1700000000.25]),
+        np.array([[1.0, -2.5, 1e-3], [-0.0, 123.456789012345, 7.0]]),
+        np.array([[0.0, 0.0, 0.0, 1.0], [0.5, -0.5, 0.5, 0.5]]),
+        np.stack([np.eye(6) * 0.1, np.eye(6) * 2e-6]),
+    )
+    write_tum(tmp_path / "a.tum", traj)
+    assert (tmp_path / "a.tum").read_text() == (
+        "# t[s] x[m] y[m] z[m] qx qy qz qw\n"
+        "0.1 1.0 -2.5 0.001 0.0 0.0 0.0 1.0\n"
+        "1700000000.25 -0.0 123.456789012345 7.0 0.5 -0.5 0.5 0.5\n"
+    )
+    write_tum(tmp_path / "run.tum", traj, decimals=(9, 12), comment="t[s] x[m] (world)")
+    assert (tmp_path / "run.tum").read_text() == (
+        "# t[s] x[m] (world)\n"
+        "0.100000000 1.000000000 -2.500000000 0.001000000 "
+        "0.000000000000 0.000000000000 0.000000000000 1.000000000000\n"
+        "1700000000.250000000 -0.000000000 123.456789012 7.000000000 "
+        "0.500000000000 -0.500000000000 0.500000000000 0.500000000000\n"
+    )
+
+    def cov_text(diag: str, zero: str) -> str:
+        return ",".join(diag if i == j else zero for i in range(6) for j in range(6))
+
+    header = "t,x,y,z,qx,qy,qz,qw," + ",".join(f"cov_{i}{j}" for i in range(6) for j in range(6))
+    write_covariance_csv(tmp_path / "a.csv", traj)
+    assert (tmp_path / "a.csv").read_text() == (
+        f"{header}\n"
+        f"0.1,1.0,-2.5,0.001,0.0,0.0,0.0,1.0,{cov_text('0.1', '0.0')}\n"
+        f"1700000000.25,-0.0,123.456789012345,7.0,0.5,-0.5,0.5,0.5,{cov_text('2e-06', '0.0')}\n"
+    )
+    write_covariance_csv(tmp_path / "run.csv", traj, digits=17)
+    assert (tmp_path / "run.csv").read_text() == (
+        f"{header}\n"
+        "0.10000000000000001,1,-2.5,0.001,0,0,0,1,"
+        f"{cov_text('0.10000000000000001', '0')}\n"
+        "1700000000.25,-0,123.456789012345,7,0.5,-0.5,0.5,0.5,"
+        f"{cov_text('1.9999999999999999e-06', '0')}\n"
+    )
+    for name in ("a.csv", "run.csv"):
+        back = read_covariance_csv(tmp_path / name)
+        np.testing.assert_array_equal(back.cov, traj.cov)
+        np.testing.assert_array_equal(back.position, traj.position)
+
+
+def test_run_file_reading_gives_back_what_the_run_wrote(tmp_path):
+    """``run_file=True`` (what rtsgt.io.run_reader reads ``groundtruth_covariance.csv`` with):
+    columns by name in any order, extra numeric columns ignored, NaN kept, no pose allowed,
+    nothing renormalised; the header is required and a comment line is an error."""
+    cols = ["t", "x", "y", "z", "qx", "qy", "qz", "qw"] + [
+        f"cov_{i}{j}" for i in range(6) for j in range(6)
+    ]
+    vals = {c: 0.0 for c in cols} | {"t": 2.5, "x": float("nan"), "qw": 0.9999, "cov_01": 1e-3}
+    order = ["extra"] + cols[::-1]
+    row = ",".join("7" if c == "extra" else repr(vals[c]) for c in order)
+    p = _write(tmp_path, "g.csv", ",".join(order) + "\n" + row + "\n")
+    g = read_covariance_csv(p, run_file=True)
+    assert g.t.tolist() == [2.5] and np.isnan(g.position[0, 0])
+    assert g.quat_xyzw[0].tolist() == [0.0, 0.0, 0.0, 0.9999]  # not renormalised
+    assert g.cov[0, 0, 1] == 1e-3 and g.cov[0, 1, 0] == 0.0  # not checked for symmetry
+    empty = read_covariance_csv(_write(tmp_path, "e.csv", ",".join(cols) + "\n"), run_file=True)
+    assert len(empty) == 0 and empty.cov.shape == (0, 6, 6)
+    with pytest.raises(InputError, match=r"missing column\(s\) t, x,"):
+        read_covariance_csv(_write(tmp_path, "n.csv", row + "\n"), run_file=True)
+    with pytest.raises(InputError, match=r"c\.csv:2: expected 45 ,-separated columns") as exc:
+        read_covariance_csv(_write(tmp_path, "c.csv", f"{','.join(order)}\n# x\n"), run_file=True)
+    assert exc.value.line == 2
+
+
 def test_attach_covariance(traj):
     sub = PoseTrajectory(traj.t[5:20], traj.position[5:20], traj.quat_xyzw[5:20])
     a = attach_covariance(sub, traj)

@@ -12,33 +12,56 @@ import numpy as np
 
 from rtsgt.errors import InputError
 from rtsgt.filtering import FilterParams
+from rtsgt.filtering.gates import DEFAULT_DISTANCE_GATE_M, DEFAULT_UNCERTAINTY_GATE_M
+from rtsgt.interpolation.gp import DEFAULT_MAX_GAP_S
 from rtsgt.noise import NoiseModel
+from rtsgt.pose.estimate import POSE_ENGINES, PoseEngine
+
+#: The stages that draw random numbers. Each draws from its own stream of the run's seed
+#: (:func:`stage_rng`), so that a stage's draws do not depend on how many the stages before it
+#: made, and a later reader of the run (the continuous ground truth of
+#: :mod:`rtsgt.evaluation.groundtruth`) can reproduce one stage's draws alone.
+RANDOM_STAGES = ("calibration", "noise", "pose", "analysis")
 
 #: How Qc is chosen when not given as a number (see :func:`rtsgt.interpolation.prisms.fit_gps`).
 QC_METHODS = ("loo", "likelihood")
 
-__all__ = ["RunOptions", "QC_METHODS"]
+__all__ = ["RunOptions", "QC_METHODS", "RANDOM_STAGES", "stage_rng"]
+
+
+def stage_rng(seed: int, stage: str) -> np.random.Generator:
+    """The random generator of one stage of a run with ``seed``.
+
+    Stream ``i`` of :data:`RANDOM_STAGES` is the ``i``-th child of
+    ``numpy.random.SeedSequence(seed)`` (what ``SeedSequence(seed).spawn(...)[i]`` gives):
+    independent streams, the same on every machine, one per stage.
+    """
+    return np.random.default_rng(
+        np.random.SeedSequence(int(seed), spawn_key=(RANDOM_STAGES.index(stage),)))
 
 
 @dataclass(frozen=True)
 class RunOptions:
     """Processing parameters of one run (defaults: the paper's where it has one)."""
 
-    engine: str = "mc"
+    engine: PoseEngine = "mc"
     samples: int = 1000
     seed: int = 0
     rate_hz: float = 5.0
     qc: float | str = "loo"
-    max_gap_s: float = 3.0
+    max_gap_s: float = DEFAULT_MAX_GAP_S
     noise: NoiseModel | None = None
     filter: FilterParams = field(default_factory=FilterParams)
-    distance_gate_m: float = 0.10
-    uncertainty_gate_m: float = 0.20
+    distance_gate_m: float = DEFAULT_DISTANCE_GATE_M
+    uncertainty_gate_m: float = DEFAULT_UNCERTAINTY_GATE_M
     gp_noise: str = "white"
 
     def __post_init__(self) -> None:
-        if self.engine not in ("mc", "ut", "linear"):
-            raise InputError(f"Expected engine mc, ut or linear, got {self.engine!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) \
+                or self.seed < 0:
+            raise InputError(f"Expected a seed that is an integer >= 0, got {self.seed!r}")
+        if self.engine not in POSE_ENGINES:
+            raise InputError(f"Expected engine {', '.join(POSE_ENGINES)}, got {self.engine!r}")
         if isinstance(self.samples, bool) or not isinstance(self.samples, (int, np.integer)) \
                 or self.samples < 10:
             raise InputError(f"Expected an integer of at least 10 samples, got {self.samples!r}")

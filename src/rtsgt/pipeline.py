@@ -53,18 +53,18 @@ import numpy as np
 
 from rtsgt.calibration import CalibrationResult, calibrate
 from rtsgt.calibration.coupling import StationCoupling
-from rtsgt.calibration.gcp import gcp_atmospheric_correction
+from rtsgt.calibration.gcp import gcp_atmospheric_correction, gcp_world_positions
 from rtsgt.deployment import DeploymentData
 from rtsgt.errors import InputError
 from rtsgt.filtering import module1, module2
 from rtsgt.filtering.gates import GateReport, apply_gates, surveyed_distance_check
-from rtsgt.filtering.modules import warn_tight_rate_gates
+from rtsgt.filtering.modules import RemovedMeasurements, removed_measurements, warn_tight_rate_gates
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
 from rtsgt.interpolation import GPTrack
 from rtsgt.interpolation.prisms import PrismsAtTimes, fit_gps, query_grid, query_prisms
 from rtsgt.measurement.weather import check_weather_coverage
 from rtsgt.noise import NoiseModel, propagate
-from rtsgt.options import RunOptions
+from rtsgt.options import RunOptions, stage_rng
 from rtsgt.pose import PoseEstimate, estimate_poses
 from rtsgt.types import PoseTrajectory, PrismTrack
 
@@ -98,6 +98,12 @@ class RunResult:
     weather_coverage: dict | None = None
     #: :func:`rtsgt.filtering.gates.surveyed_distance_check` of the kept poses, per prism pair.
     distance_check: dict = field(default_factory=dict)
+    #: What filtering modules 1 and 2 removed, with the module and the reason
+    #: (:func:`rtsgt.filtering.modules.removed_measurements`; ``measurements/removed.csv``).
+    removed: RemovedMeasurements | None = None
+    #: World position (m) of each ground control point, by marker name, in natural order
+    #: (:func:`rtsgt.calibration.gcp.gcp_world_positions`; ``summary.json`` ``gcp_world``).
+    gcp_world: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def rejection_reasons(self) -> np.ndarray:
@@ -160,7 +166,6 @@ def _run_stages(
     """The stages of :func:`run_pipeline` (their warnings not yet recorded)."""
     options = RunOptions() if options is None else options
     say = progress or (lambda stage: None)
-    rng = np.random.default_rng(options.seed)
     timings: dict[str, float] = {}
     tick = time.perf_counter()
 
@@ -172,7 +177,7 @@ def _run_stages(
 
     say("filtering (module 1)")
     fparams = options.filter
-    filtered, reports = [], {}
+    filtered, reports, reports1 = [], {}, []
     for obs in data.observations:
         kept, rep = module1(obs, fparams)
         if len(kept) < 2:
@@ -181,6 +186,7 @@ def _run_stages(
             )
         filtered.append(kept)
         reports[f"module1_station{obs.station}"] = rep
+        reports1.append(rep)
         warn_tight_rate_gates(obs, rep, fparams)
     weather_coverage = None if data.weather is None else check_weather_coverage(
         data.weather, np.concatenate([o.t for o in filtered]))
@@ -191,11 +197,15 @@ def _run_stages(
     t_start = min(float(o.t[0]) for o in filtered)
     gcp = gcp_atmospheric_correction(data.gcp, model, data.weather, t_start)
     calib = calibrate(gcp, reference_station=data.reference_station,
-                      instrument=data.instrument, samples=options.samples, rng=rng)
+                      instrument=data.instrument, samples=options.samples,
+                      rng=stage_rng(options.seed, "calibration"))
+    gcp_xyz, gcp_names = gcp_world_positions(data.gcp, calib.transforms)
+    gcp_world = {} if gcp_xyz is None else dict(zip(gcp_names, gcp_xyz, strict=True))
     lap("calibration")
 
     say("noise model")
     tracks: dict[str, PrismTrack] = {}
+    noise_rng = stage_rng(options.seed, "noise")
     for obs in filtered:
         if obs.station not in calib.transforms:
             raise InputError(
@@ -204,13 +214,18 @@ def _run_stages(
             )
         tracks[obs.prism] = propagate(
             obs, model, T_world_station=calib.transforms[obs.station], weather=data.weather,
-            engine=options.noise_engine, samples=options.samples, rng=rng,
+            engine=options.noise_engine, samples=options.samples, rng=noise_rng,
         )
     lap("noise_model")
 
     say("common intervals (module 2)")
     kept_tracks, intervals, rep2 = module2(list(tracks.values()), fparams)
     reports["module2"] = rep2
+    # module 2's masks per prism (one prism per station), indexed like module 1's kept
+    kept2 = dict(zip(tracks, zip(rep2.kept_masks, rep2.reasons, strict=True), strict=True))
+    removed = removed_measurements(
+        data.observations, reports1, [kept2[o.prism][0] for o in filtered],
+        [kept2[o.prism][1] for o in filtered], calib.transforms)
     tracks = {tr.prism: tr for tr in kept_tracks}
     lap("filter_module2")
 
@@ -239,7 +254,7 @@ def _run_stages(
     say("poses")
     reference = data.reference.select(list(tracks))
     est = estimate_poses(prisms.xyz, prisms.pose_covariance, reference, engine=options.engine,
-                         samples=options.samples, rng=rng)
+                         samples=options.samples, rng=stage_rng(options.seed, "pose"))
     lap("pose")
 
     say("quality gates (module 4)")
@@ -257,4 +272,5 @@ def _run_stages(
     lap("gates")
     return RunResult(data, options, reports, calib, tracks, intervals, gps, prisms, est, keep,
                      gate_report, gt, model, timings, qc_info, coupling,
-                     weather_coverage=weather_coverage, distance_check=distance_check)
+                     weather_coverage=weather_coverage, distance_check=distance_check,
+                     removed=removed, gcp_world=gcp_world)

@@ -492,3 +492,30 @@ def gcp_atmospheric_correction(
     c = float(gcp.additive_constant)
     d = (np.asarray(gcp.d, dtype=float) + c) * (1.0 + 1e-6 * ppm) - c
     return replace(gcp, d=d)
+
+
+def gcp_world_positions(
+    gcp: GcpShots | None, transforms: dict[str, RigidTransform]
+) -> tuple[np.ndarray | None, tuple[str, ...]]:
+    """World position of every ground control point, and the marker names.
+
+    Each valid shot (status 0) of a calibrated station is converted to Cartesian coordinates
+    (additive constant included) and mapped into the world frame by its station's transform;
+    a marker's position is the mean over its shots. Returns ``(None, ())`` without GCPs.
+    Markers are in natural order (``"2"`` before ``"10"``): by length, then by name.
+    """
+    if gcp is None or len(gcp) == 0:
+        return None, ()
+    ok = (np.asarray(gcp.status) == 0) & np.isin(gcp.station, list(transforms))
+    if not ok.any():
+        return None, ()
+    p_station = polar_to_cartesian(gcp.hz[ok], gcp.v[ok], gcp.distance[ok])
+    p_world = np.empty_like(p_station)
+    stations = gcp.station[ok]
+    for s in np.unique(stations):  # one transform per station (a handful)
+        m = stations == s
+        p_world[m] = transforms[str(s)].apply(p_station[m])
+    markers = gcp.marker[ok]
+    names = tuple(sorted(set(markers.tolist()), key=lambda x: (len(x), x)))
+    xyz = np.array([p_world[markers == k].mean(axis=0) for k in names])
+    return xyz, names

@@ -43,13 +43,14 @@ from rtsgt.io.trajectory import (
     read_groundtruth_dir,
     read_trajectory,
 )
+from rtsgt.pose import POSE_ENGINES
 from rtsgt.report.eval_plots import plot_evaluation
 from rtsgt.types import PoseTrajectory
 
 #: Ground-truth modes of ``--gt-mode``.
 GT_MODES = ("auto", "continuous", "discrete")
 #: Pose engines of ``--gt-engine`` (``run``: the run's own).
-GT_ENGINES = ("run", "mc", "ut", "linear")
+GT_ENGINES = ("run", *POSE_ENGINES)
 #: Default ``--max-gap`` (s) for a ground-truth trajectory file (distance to the nearest stored
 #: pose): a few samples of a 5-10 Hz ground truth.
 DEFAULT_MAX_GAP_FILE_S = 0.5

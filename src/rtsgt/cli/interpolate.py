@@ -1,9 +1,10 @@
 """``rtsgt interpolate``: GP interpolation of one prism track at query times.
 
 A thin wrapper over :func:`rtsgt.io.track_csv.read_track_csv`,
-:func:`rtsgt.interpolation.fit_track` and :func:`rtsgt.io.track_csv.write_track_csv`.
-The output has the header of the input (``t,x,y,z,cov_xx,...``): the posterior mean position
-and its covariance at each query time. The Qc used (given or fitted) is printed on stderr.
+:func:`rtsgt.interpolation.prisms.fit_prism_gp` (Qc chosen as ``rtsgt run`` chooses it:
+leave-one-out per axis by default) and :func:`rtsgt.io.track_csv.track_csv_text`. The output
+has the header of the input (``t,x,y,z,cov_xx,...``): the posterior mean position and its
+covariance at each query time. The Qc used (given or fitted) is printed on stderr.
 """
 
 from __future__ import annotations
@@ -14,12 +15,14 @@ from pathlib import Path
 import numpy as np
 import typer
 
+from rtsgt.cli.common import usage_error
 from rtsgt.errors import InputError
-from rtsgt.interpolation import DEFAULT_MAX_GAP_S, GPTrack, fit_track
-from rtsgt.interpolation.loo import fit_qc_loo
+from rtsgt.interpolation import GPTrack
+from rtsgt.interpolation.prisms import fit_prism_gp
 from rtsgt.io._parse import atomic_write_text
 from rtsgt.io.output_dir import check_output_file
 from rtsgt.io.track_csv import TRACK_COLUMNS, read_query_times, read_track_csv, track_csv_text
+from rtsgt.options import QC_METHODS, RunOptions
 
 
 def rate_times(gp: GPTrack, rate_hz: float) -> tuple[np.ndarray, int]:
@@ -43,50 +46,54 @@ def rate_times(gp: GPTrack, rate_hz: float) -> tuple[np.ndarray, int]:
     return times[ok], int(np.sum(~ok))
 
 
+def parse_qc(text: str | None) -> float | str:
+    """The value of ``--qc``: ``loo``, ``likelihood`` or a number (m^2/s^3), checked by the rule
+    the configuration's ``qc`` meets (:class:`rtsgt.options.RunOptions`); a usage error else."""
+    text = RunOptions.qc if text is None else str(text).strip()
+    if text in QC_METHODS:
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise usage_error(f"expected {', '.join(QC_METHODS)} or a number (m^2/s^3), got "
+                          f"{text!r}", "--qc") from None
+    if not (math.isfinite(value) and value > 0):
+        raise usage_error(f"expected qc > 0 m^2/s^3, got {text!r}", "--qc")
+    return value
+
+
 def interpolate_file(
     track_path: Path,
     *,
     at: Path | None = None,
     rate: float | None = None,
-    qc: float | None = None,
-    fit_qc: bool = False,
-    qc_mode: str = "isotropic",
-    max_gap: float = DEFAULT_MAX_GAP_S,
-    qc_method: str = "likelihood",
-) -> tuple[str, GPTrack, int]:
-    """Fit the track of ``track_path`` and answer the queries; return the CSV text.
+    qc: float | str = RunOptions.qc,
+    max_gap: float = RunOptions.max_gap_s,
+) -> tuple[str, GPTrack, dict, int]:
+    """Fit the track of ``track_path`` with rtsgt's Qc policy and answer the queries.
+
+    ``qc``: ``"loo"``, ``"likelihood"`` or a number (:func:`rtsgt.interpolation.prisms.
+    fit_prism_gp`, the policy ``rtsgt run`` uses).
 
     Returns
     -------
     text : str
         Prism track CSV of the posterior at the query times.
     gp : GPTrack
+    info : dict
+        How Qc was chosen (:func:`~rtsgt.interpolation.prisms.fit_prism_gp`).
     n_skipped : int
         Rate-grid times dropped in long gaps (0 with ``at``).
     """
     if (at is None) == (rate is None):
-        raise InputError("Give exactly one of --at TIMES.txt and --rate HZ")
-    if qc is not None and fit_qc:
-        raise InputError("Give either --qc Q or --fit-qc, not both")
-    if qc is not None and not (math.isfinite(qc) and qc > 0):
-        raise InputError(f"Expected --qc > 0 (m^2/s^3), got {qc!r}")
+        raise usage_error("give exactly one of --at TIMES.txt and --rate HZ", "--at / --rate")
     if rate is not None and not (math.isfinite(rate) and rate > 0):
-        raise InputError(f"Expected --rate > 0 Hz, got {rate!r}")
+        raise usage_error(f"expected --rate > 0 Hz, got {rate!r}", "--rate")
     if not max_gap > 0:  # inf allowed (no limit), NaN refused
-        raise InputError(f"Expected --max-gap > 0 s, got {max_gap!r}")
-    if qc_mode not in ("isotropic", "per-axis"):
-        raise InputError(f"Expected --qc-mode isotropic or per-axis, got {qc_mode!r}")
-    if qc_method not in ("likelihood", "loo"):
-        raise InputError(f"Expected --qc-method likelihood or loo, got {qc_method!r}")
+        raise usage_error(f"expected --max-gap > 0 s, got {max_gap!r}", "--max-gap")
     track = read_track_csv(track_path)
     try:
-        if qc is None and qc_method == "loo":
-            loo = fit_qc_loo((track.t, track.xyz, track.cov), mode=qc_mode, max_gap_s=max_gap)
-            gp = fit_track(track, qc=loo.qc, max_gap_s=max_gap)
-        else:
-            gp = fit_track(
-                track, qc=qc, fit_qc=fit_qc or qc is None, qc_mode=qc_mode, max_gap_s=max_gap
-            )
+        gp, info = fit_prism_gp(track, qc, max_gap, str(track_path))
     except InputError as exc:  # e.g. a single measurement: say which file
         if exc.path is None:
             raise InputError(exc.bare_message, track_path) from None
@@ -100,7 +107,7 @@ def interpolate_file(
         if times.size == 0:
             raise InputError(f"No --rate {rate} Hz grid time inside the track", track_path)
     res = gp.query(np.sort(times))
-    return track_csv_text((res.t, res.position, res.position_cov)), gp, n_skipped
+    return track_csv_text((res.t, res.position, res.position_cov)), gp, info, n_skipped
 
 
 def _check_query_times(gp: GPTrack, times: np.ndarray, lines: np.ndarray, path: Path) -> None:
@@ -136,22 +143,22 @@ def _check_query_times(gp: GPTrack, times: np.ndarray, lines: np.ndarray, path: 
     )
 
 
-def _describe_qc(gp: GPTrack, method: str = "likelihood") -> str:
+def _describe_qc(gp: GPTrack, info: dict) -> str:
     diag = np.diag(gp.qc)
     if np.allclose(gp.qc, diag[0] * np.eye(3), rtol=0, atol=0):
         value = f"{diag[0]:.6g} m^2/s^3 (isotropic)"
     else:
         value = "diag(" + ", ".join(f"{v:.6g}" for v in diag) + ") m^2/s^3"
-    if method == "loo":
+    if info["method"] == "loo":
         return (f"qc = {value}, fitted by leave-one-out cross-validation; log-likelihood "
                 f"{gp.log_likelihood:.3f}")
     if gp.qc_fit is None:
         return f"qc = {value}, given; log-likelihood {gp.log_likelihood:.3f}"
-    info = gp.qc_fit
-    state = "converged" if info.converged else f"NOT converged: {info.message}"
+    fit = gp.qc_fit
+    state = "converged" if fit.converged else f"NOT converged: {fit.message}"
     return (
-        f"qc = {value}, fitted by maximum marginal likelihood ({info.mode}, {state}, "
-        f"{info.n_evaluations} evaluations); log-likelihood {gp.log_likelihood:.3f}"
+        f"qc = {value}, fitted by maximum marginal likelihood ({fit.mode}, {state}, "
+        f"{fit.n_evaluations} evaluations); log-likelihood {gp.log_likelihood:.3f}"
     )
 
 
@@ -169,36 +176,27 @@ def register(app: typer.Typer) -> None:
         rate: float | None = typer.Option(
             None, "--rate", help="Query on a regular grid at this rate (Hz), skipping long gaps."
         ),
-        qc: float | None = typer.Option(
-            None, "--qc", help="Isotropic power spectral density Q (Qc = Q I), m^2/s^3."
-        ),
-        fit_qc: bool = typer.Option(
-            False, "--fit-qc", help="Estimate Qc by maximum marginal likelihood (default)."
-        ),
-        qc_mode: str = typer.Option(
-            "isotropic", "--qc-mode", help="Fitted Qc: 'isotropic' or 'per-axis'."
+        qc: str = typer.Option(
+            RunOptions.qc, "--qc",
+            help="Qc, as rtsgt run chooses it: 'loo' (leave-one-out per axis, calibrated for "
+                 "interpolation), 'likelihood' (maximum marginal likelihood, isotropic) or a "
+                 "number, the isotropic power spectral density in m^2/s^3.",
         ),
         max_gap: float = typer.Option(
-            DEFAULT_MAX_GAP_S, "--max-gap", help="Refuse queries across longer gaps (s)."
-        ),
-        qc_method: str = typer.Option(
-            "likelihood", "--qc-method",
-            help="How a fitted Qc is chosen: 'likelihood' (maximum marginal likelihood) or "
-                 "'loo' (leave-one-out, calibrated for interpolation; rtsgt run's default).",
+            RunOptions.max_gap_s, "--max-gap", help="Refuse queries across longer gaps (s)."
         ),
         out: Path | None = typer.Option(
             None, "--out", help="Output CSV (default: standard output)."
         ),
     ) -> None:
         """Interpolate a prism track (exact GP, WNOA prior) at query times, with covariance."""
+        qc_value = parse_qc(qc)
         if out is not None:
             check_output_file(out, option="--out", inputs=[p for p in (track, at) if p],
                               written_by_rtsgt=_is_track_csv)
-        text, gp, n_skipped = interpolate_file(
-            track, at=at, rate=rate, qc=qc, fit_qc=fit_qc, qc_mode=qc_mode, max_gap=max_gap,
-            qc_method=qc_method,
-        )
-        typer.echo(_describe_qc(gp, qc_method if qc is None else "given"), err=True)
+        text, gp, info, n_skipped = interpolate_file(track, at=at, rate=rate, qc=qc_value,
+                                                     max_gap=max_gap)
+        typer.echo(_describe_qc(gp, info), err=True)
         if n_skipped:
             typer.echo(
                 f"skipped {n_skipped} grid times inside gaps longer than {max_gap} s", err=True

@@ -10,16 +10,16 @@ instead redoes, at the requested times, what the pipeline did on its grid
 1. refit each prism's GP from ``measurements/prism<i>.csv`` (the filtered measured track in the
    world frame with the covariance the GP was given) with the ``Qc`` the run found
    (``summary.json``): the same posterior, since the GP with a given ``Qc`` is exact;
-2. query every prism at the times (:func:`rtsgt.pipeline.query_prisms`: GP posterior plus the
+2. query every prism at the times (:func:`rtsgt.interpolation.prisms.query_prisms`: GP posterior plus the
    systematic sources interpolated from the measurements when ``gp_noise = "white"``);
 3. compute the poses and their 6x6 covariances with the run's pose engine, samples and seed
    (:func:`rtsgt.pose.estimate_poses`), or another engine (``"linear"`` is the fastest);
 4. apply the run's quality gates (:func:`rtsgt.filtering.gates.apply_gates`).
 
-At the run's own grid times this reproduces ``groundtruth_covariance.csv`` (exactly for the
-``linear`` and ``ut`` engines; within Monte Carlo noise for ``mc``, whose draws depend on the
-set of query times). The Monte Carlo engine draws from ``numpy.random.default_rng(seed)`` at
-every call, so a query is reproducible.
+At the run's own grid times this reproduces ``groundtruth_covariance.csv``, for the Monte
+Carlo engine too: its draws come from the run's pose stream (:func:`rtsgt.options.stage_rng`,
+``"pose"``), the stream the run itself drew its poses from, at every call (a query is
+reproducible; at other sets of times the draws differ, since they depend on the set).
 
 Every time gets a reason when no pose is given there (``GroundTruthSample.reason``), checked in
 this order:
@@ -67,8 +67,8 @@ from rtsgt.interpolation.cross import gp_cross_covariance
 from rtsgt.interpolation.prisms import fit_gps, query_prisms
 from rtsgt.io.run_output import COV3_NAMES, columns_to_cov3
 from rtsgt.io.run_reader import read_run, read_table
-from rtsgt.options import RunOptions
-from rtsgt.pose import ReferencePoints, estimate_poses
+from rtsgt.options import RunOptions, stage_rng
+from rtsgt.pose import POSE_ENGINES, ReferencePoints, estimate_poses
 from rtsgt.pose.registration import registration_jacobian
 from rtsgt.types import PrismTrack
 
@@ -96,7 +96,6 @@ DROP_REASONS = (
     GATE_PREFIX + "uncertainty",
 )
 
-_ENGINES = ("mc", "ut", "linear")
 
 
 @dataclass(frozen=True)
@@ -458,7 +457,7 @@ class ContinuousGroundTruth:
             opt = self.options
             est = estimate_poses(
                 prisms.xyz, prisms.pose_covariance, self.reference, engine=opt.engine, samples=opt.samples,
-                rng=np.random.default_rng(opt.seed) if opt.engine == "mc" else None,
+                rng=stage_rng(opt.seed, "pose") if opt.engine == "mc" else None,
             )
             keep, report = apply_gates(
                 est, self.reference, distance_gate_m=opt.distance_gate_m,
@@ -497,8 +496,8 @@ def _positive(params: dict, key: str, default: float, path: Path) -> float:
 
 def _override(options: RunOptions, engine: str | None, samples: int | None,
               seed: int | None) -> RunOptions:
-    if engine is not None and engine not in _ENGINES:
-        raise InputError(f"Expected a ground-truth engine in {_ENGINES}, got {engine!r}")
+    if engine is not None and engine not in POSE_ENGINES:
+        raise InputError(f"Expected a ground-truth engine in {POSE_ENGINES}, got {engine!r}")
     changes = {}
     if engine is not None:
         changes["engine"] = engine

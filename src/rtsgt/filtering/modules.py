@@ -34,6 +34,14 @@ Module 2 (across prisms, on time series of each prism)
    at most ``tau_s`` apart): an interpolator can then be queried on the whole interval.
    Removed measurements are counted as ``"short_interval"`` (inside an intersection interval
    dropped for its duration) or ``"not_all_tracked"`` (anywhere else).
+
+Masks and reasons
+-----------------
+Both reports keep, for every series given, a boolean mask of what was kept and the reason of
+each removal (``""`` when kept, else one of the names the counts use), indexed like the
+input (:attr:`FilterReport.kept_masks`, :attr:`FilterReport.reasons`). From them,
+:func:`removed_measurements` lists what the filters removed, in the world frame (the run
+directory's ``measurements/removed.csv``), without filtering again.
 """
 
 from __future__ import annotations
@@ -41,15 +49,17 @@ from __future__ import annotations
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from rtsgt.errors import InputError, RtsgtWarning
+from rtsgt.measurement.polar import polar_to_cartesian
 from rtsgt.types import Observations, PrismTrack
 
 __all__ = [
-    "FilterParams", "FilterReport", "MODULE1_REASONS", "MODULE2_REASONS", "module1", "module2",
-    "warn_tight_rate_gates",
+    "FilterParams", "FilterReport", "MODULE1_REASONS", "MODULE2_REASONS", "RemovedMeasurements",
+    "module1", "module2", "removed_measurements", "warn_tight_rate_gates",
 ]
 
 #: Reasons of module 1, in the order they are tested.
@@ -124,6 +134,12 @@ class FilterReport:
         The same counts for each series given (module 2; module 1 has one series).
     n_blocks : int
         Module 1: blocks after splitting at gaps; module 2: intervals kept.
+    kept_masks : tuple of ndarray of bool
+        For each series given (module 1: one), shape (N_i,), indexed like its measurements:
+        true where kept.
+    reasons : tuple of ndarray of str
+        For each series given, shape (N_i,): ``""`` where kept, else the reason of the removal
+        (a key of ``removed``).
     """
 
     module: str
@@ -132,6 +148,8 @@ class FilterReport:
     removed: Mapping[str, int]
     per_series: tuple[Mapping[str, int], ...] = field(default=())
     n_blocks: int = 0
+    kept_masks: tuple[np.ndarray, ...] = field(default=(), repr=False, compare=False)
+    reasons: tuple[np.ndarray, ...] = field(default=(), repr=False, compare=False)
 
     @property
     def n_removed(self) -> int:
@@ -142,6 +160,17 @@ class FilterReport:
         """One line: ``module1: kept 200/215 (rate_hz 10, status 5)``."""
         parts = ", ".join(f"{k} {v}" for k, v in self.removed.items() if v)
         return f"{self.module}: kept {self.n_kept}/{self.n_in}" + (f" ({parts})" if parts else "")
+
+    def as_dict(self) -> dict[str, Any]:
+        """The counts as plain data (``summary.json`` ``filters``); the masks are left out."""
+        return {"module": self.module, "n_in": self.n_in, "n_kept": self.n_kept,
+                "removed": dict(self.removed), "per_series": [dict(c) for c in self.per_series],
+                "n_blocks": self.n_blocks}
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
@@ -227,7 +256,8 @@ def module1(
     kept : Observations
         The observations that pass, in the same order.
     report : FilterReport
-        Counts per reason (module docstring).
+        Counts per reason (module docstring), and the mask of what was kept and the reason of
+        every removal, indexed like ``obs`` (``kept_masks[0]``, ``reasons[0]``).
 
     Raises
     ------
@@ -261,7 +291,9 @@ def module1(
     reason[idx[code > 0]] = 3 + code[code > 0]
     counts = {r: int(np.sum(reason == i + 1)) for i, r in enumerate(MODULE1_REASONS)}
     keep = reason == 0
-    report = FilterReport("module1", n, int(keep.sum()), counts, (dict(counts),), n_blocks)
+    names = np.array(("",) + MODULE1_REASONS)
+    report = FilterReport("module1", n, int(keep.sum()), counts, (dict(counts),), n_blocks,
+                          (_frozen(keep),), (_frozen(names[reason]),))
     return obs.select(keep), report
 
 
@@ -310,7 +342,8 @@ def module2(
     intervals : ndarray, shape (K, 2)
         Kept intervals ``[a, b]``, s, sorted and disjoint.
     report : FilterReport
-        Counts per reason, total and per series.
+        Counts per reason, total and per series, and per series the mask of what was kept and
+        the reason of every removal (``kept_masks``, ``reasons``), indexed like its input.
 
     Raises
     ------
@@ -341,7 +374,7 @@ def module2(
     long_enough = duration >= p.tau_l
     kept_iv = common[long_enough]
     short_iv = common[~long_enough]
-    kept, per_series = [], []
+    kept, per_series, masks, reasons = [], [], [], []
     total = dict.fromkeys(MODULE2_REASONS, 0)
     n_in = n_kept = 0
     for s, t in zip(series, times, strict=True):
@@ -365,11 +398,105 @@ def module2(
         for r in MODULE2_REASONS:
             total[r] += counts[r]
         per_series.append(counts)
+        why = np.where(in_short, "short_interval", "not_all_tracked")
+        why[keep] = ""
+        masks.append(_frozen(keep))
+        reasons.append(_frozen(why))
         n_in += n
         n_kept += int(keep.sum())
         kept.append(s.select(keep))
-    report = FilterReport("module2", n_in, n_kept, total, tuple(per_series), kept_iv.shape[0])
+    report = FilterReport("module2", n_in, n_kept, total, tuple(per_series), kept_iv.shape[0],
+                          tuple(masks), tuple(reasons))
     return kept, kept_iv, report
+
+
+@dataclass(frozen=True)
+class RemovedMeasurements:
+    """The measurements that filtering modules 1 and 2 removed, sorted by time.
+
+    Attributes
+    ----------
+    t : ndarray, shape (M,)
+        Time, s.
+    prism, station : ndarray of str, shape (M,)
+    xyz : ndarray, shape (M, 3)
+        The raw polar measurement (additive constant included, no atmospheric correction)
+        mapped into the world frame by its station's calibration, m.
+    stage : ndarray of str, shape (M,)
+        ``"module1"`` or ``"module2"``: the module that removed it.
+    reason : ndarray of str, shape (M,)
+        Why: a name of :data:`MODULE1_REASONS` or :data:`MODULE2_REASONS`.
+    """
+
+    t: np.ndarray
+    prism: np.ndarray
+    station: np.ndarray
+    xyz: np.ndarray
+    stage: np.ndarray
+    reason: np.ndarray
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+
+def removed_measurements(
+    observations: Sequence[Observations],
+    module1_reports: Sequence[FilterReport],
+    module2_masks: Sequence[np.ndarray],
+    module2_reasons: Sequence[np.ndarray],
+    transforms: Mapping[str, Any],
+) -> RemovedMeasurements:
+    """What modules 1 and 2 removed, from their masks, in the world frame.
+
+    Parameters
+    ----------
+    observations : sequence of Observations
+        The raw observations of each station, as given to :func:`module1`.
+    module1_reports : sequence of FilterReport
+        The report of :func:`module1` on each of them (same order).
+    module2_masks, module2_reasons : sequences of ndarray
+        For each station (same order), :func:`module2`'s mask and reasons of its series,
+        indexed like the measurements module 1 kept.
+    transforms : mapping str -> transform
+        ``T_world_station`` of each station (an object with ``apply``).
+
+    Returns
+    -------
+    RemovedMeasurements
+        One entry per removed measurement, sorted by time (stable: station order, then
+        measurement order, for equal times).
+    """
+    parts: dict[str, list] = {k: [] for k in ("t", "prism", "station", "xyz", "stage", "reason")}
+    for obs, rep, keep2, why2 in zip(observations, module1_reports, module2_masks,
+                                     module2_reasons, strict=True):
+        keep1, why1 = rep.kept_masks[0], rep.reasons[0]
+        if keep1.shape != (len(obs),) or np.shape(keep2) != (int(keep1.sum()),):
+            raise ValueError(f"station {obs.station}: masks do not match its measurements")
+        stage = np.where(keep1, "", "module1").astype(object)
+        reason = np.asarray(why1, dtype=object).copy()
+        kept1 = np.flatnonzero(keep1)
+        gone2 = ~np.asarray(keep2, dtype=bool)
+        stage[kept1[gone2]] = "module2"
+        reason[kept1[gone2]] = np.asarray(why2)[gone2]
+        gone = stage != ""
+        if not gone.any():
+            continue
+        xyz = transforms[obs.station].apply(
+            polar_to_cartesian(obs.hz[gone], obs.v[gone], obs.distance[gone]))
+        m = int(gone.sum())
+        parts["t"].append(np.asarray(obs.t[gone], dtype=float))
+        parts["prism"].append(np.full(m, obs.prism, dtype=object))
+        parts["station"].append(np.full(m, obs.station, dtype=object))
+        parts["xyz"].append(xyz)
+        parts["stage"].append(stage[gone])
+        parts["reason"].append(reason[gone])
+    if not parts["t"]:
+        empty = np.empty(0, dtype=str)
+        return RemovedMeasurements(np.empty(0), empty, empty, np.empty((0, 3)), empty, empty)
+    out = {k: np.concatenate(v) for k, v in parts.items()}
+    order = np.argsort(out["t"], kind="stable")
+    return RemovedMeasurements(**{k: (v[order].astype(str) if v.dtype == object else v[order])
+                                  for k, v in out.items()})
 
 
 #: Share of a station's measurements that module 1 may reject for their rates before rtsgt

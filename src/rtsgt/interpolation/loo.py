@@ -47,7 +47,7 @@ import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
 from rtsgt.errors import InputError
-from rtsgt.interpolation.gp import QC_BOUNDS, fit_track
+from rtsgt.interpolation.gp import DEFAULT_MAX_GAP_S, QC_BOUNDS, fit_track
 
 __all__ = ["LooInfo", "fit_qc_loo", "loo_predictive"]
 
@@ -82,7 +82,7 @@ def _interior(t: np.ndarray, max_gap_s: float) -> np.ndarray:
     return ok
 
 
-def loo_predictive(track, qc, *, max_gap_s: float = 3.0):
+def loo_predictive(track, qc, *, max_gap_s: float = DEFAULT_MAX_GAP_S):
     """Leave-one-out predictive of every interior measurement.
 
     Parameters
@@ -134,7 +134,7 @@ def _score(track, qc, max_gap_s: float) -> tuple[float, float, int]:
 
 
 def fit_qc_loo(
-    track, *, mode: str = "isotropic", max_gap_s: float = 3.0,
+    track, *, mode: str = "isotropic", max_gap_s: float = DEFAULT_MAX_GAP_S,
     bounds: tuple[float, float] = QC_BOUNDS, xatol: float = 0.02,
 ) -> LooInfo:
     """``Qc`` maximising the leave-one-out log predictive density.

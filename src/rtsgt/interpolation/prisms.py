@@ -23,7 +23,7 @@ from rtsgt.interpolation.loo import fit_qc_loo
 from rtsgt.options import RunOptions
 from rtsgt.types import PrismTrack
 
-__all__ = ["PrismsAtTimes", "fit_gps", "query_prisms", "query_grid", "gp_covariance",
+__all__ = ["PrismsAtTimes", "fit_gps", "fit_prism_gp", "query_prisms", "query_grid", "gp_covariance",
            "WHITE_SOURCES", "SYSTEMATIC_SOURCES"]
 
 #: Noise sources whose errors are independent between measurements (fed to the GP).
@@ -103,41 +103,68 @@ def query_grid(intervals: np.ndarray, rate_hz: float) -> np.ndarray:
     return np.concatenate(parts) if parts else np.empty(0)
 
 
+def fit_prism_gp(data, qc: float | str, max_gap_s: float, name: str) -> tuple[GPTrack, dict]:
+    """Fit one prism's GP with rtsgt's Qc policy (the one every command uses).
+
+    Parameters
+    ----------
+    data : PrismTrack or tuple (t, xyz, cov)
+        The measurements and the covariance the GP is given.
+    qc : {"loo", "likelihood"} or float
+        ``"loo"`` (the default of :class:`rtsgt.options.RunOptions`): leave-one-out
+        cross-validation of a diagonal Qc (one PSD per world axis), which calibrates the GP for
+        interpolation (:mod:`rtsgt.interpolation.loo`); on a track too short to
+        cross-validate, the marginal likelihood, with a warning. ``"likelihood"``: the maximum
+        marginal likelihood of an isotropic Qc. A number: that isotropic PSD, m^2/s^3.
+    max_gap_s : float
+        Longest gap across which the GP answers queries, s.
+    name : str
+        The track's name in messages (``"prism 2"``, a file).
+
+    Returns
+    -------
+    gp : GPTrack
+    info : dict
+        JSON-ready: ``method`` (``"loo"``, ``"likelihood"`` or ``"given"``) and, for
+        ``"loo"``, the fit's statistics (``loo_log_predictive``, ``loo_knots``,
+        ``loo_nees_per_dof``); ``note`` when the policy fell back to the likelihood.
+    """
+    if isinstance(data, PrismTrack):
+        data = (data.t, data.xyz, data.cov)
+    if qc == "loo":
+        try:
+            loo = fit_qc_loo(data, mode="per-axis", max_gap_s=max_gap_s)
+        except InputError as exc:  # too few interior measurements to cross-validate
+            gp = fit_track(data, fit_qc=True, max_gap_s=max_gap_s)  # fails with < 2 of them
+            warnings.warn(f"{name}: {exc.bare_message}; Qc by the marginal likelihood instead",
+                          RtsgtWarning, stacklevel=2)
+            return gp, {"method": "likelihood", "note": "too few measurements for leave-one-out"}
+        return fit_track(data, qc=loo.qc, max_gap_s=max_gap_s), {
+            "method": "loo", "loo_log_predictive": loo.log_predictive,
+            "loo_knots": loo.n_used, "loo_nees_per_dof": loo.nees_mean}
+    if qc == "likelihood":
+        return fit_track(data, fit_qc=True, max_gap_s=max_gap_s), {"method": "likelihood"}
+    return fit_track(data, qc=float(qc), max_gap_s=max_gap_s), {"method": "given"}
+
+
 def fit_gps(
     tracks: dict[str, PrismTrack], options: RunOptions, qc: dict[str, object] | None = None,
     info: dict[str, dict] | None = None,
 ) -> dict[str, GPTrack]:
-    """Fit the GP of every prism track, its Qc chosen by ``options.qc``.
+    """Fit the GP of every prism track, its Qc chosen by ``options.qc`` (:func:`fit_prism_gp`).
 
-    ``"loo"`` (default): leave-one-out cross-validation of a diagonal Qc (one PSD per world
-    axis), which calibrates the GP for interpolation (:mod:`rtsgt.interpolation.loo`);
-    ``"likelihood"``: the marginal likelihood; a number: that isotropic PSD, m^2/s^3. ``qc``
-    optionally gives each prism's Qc (scalar or 3x3), overriding ``options.qc``: refitting the
-    tracks of a written run with the Qc it found. ``info``, when given, receives per prism the
-    method and the fit's statistics. The prisms are fitted in parallel threads (numpy releases
-    the interpreter lock in its array operations); the result does not depend on it.
+    ``qc`` optionally gives each prism's Qc (scalar or 3x3), overriding ``options.qc``:
+    refitting the tracks of a written run with the Qc it found. ``info``, when given, receives
+    per prism the method and the fit's statistics. The prisms are fitted in parallel threads
+    (numpy releases the interpreter lock in its array operations); the result does not depend
+    on it.
     """
 
     def fit_one(pid: str, tr: PrismTrack) -> tuple[GPTrack, dict]:
         data = (tr.t, tr.xyz, gp_covariance(tr, options.gp_noise))
         if qc is not None and pid in qc:
             return fit_track(data, qc=qc[pid], max_gap_s=options.max_gap_s), {"method": "given"}
-        if options.qc == "loo":
-            try:
-                loo = fit_qc_loo(data, mode="per-axis", max_gap_s=options.max_gap_s)
-            except InputError as exc:  # too few interior measurements to cross-validate
-                warnings.warn(f"prism {pid}: {exc.bare_message}; Qc by the marginal "
-                              "likelihood instead", RtsgtWarning, stacklevel=2)
-                return fit_track(data, fit_qc=True, max_gap_s=options.max_gap_s), {
-                    "method": "likelihood", "note": "too few measurements for leave-one-out"}
-            return fit_track(data, qc=loo.qc, max_gap_s=options.max_gap_s), {
-                "method": "loo", "loo_log_predictive": loo.log_predictive,
-                "loo_knots": loo.n_used, "loo_nees_per_dof": loo.nees_mean}
-        if options.qc == "likelihood":
-            return fit_track(data, fit_qc=True, max_gap_s=options.max_gap_s), {
-                "method": "likelihood"}
-        return fit_track(data, qc=float(options.qc), max_gap_s=options.max_gap_s), {
-            "method": "given"}
+        return fit_prism_gp(data, options.qc, options.max_gap_s, f"prism {pid}")
 
     with ThreadPoolExecutor(max_workers=max(1, min(len(tracks), os.cpu_count() or 1))) as ex:
         futures = {pid: ex.submit(fit_one, pid, tr) for pid, tr in tracks.items()}

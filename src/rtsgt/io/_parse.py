@@ -6,7 +6,8 @@ do. Every writer writes to a temporary file in the destination directory and mov
 place with :func:`os.replace`, so that a file is never left half-written.
 
 Conventions of the text formats read here: blank lines and lines whose first non-blank
-character is ``#`` are ignored (line numbers still count them).
+character is ``#`` are ignored (line numbers still count them). The tables of an ``rtsgt run``
+directory are the exception: :func:`read_table` reads every line after the header as data.
 
 Times are seconds in every format read here (Unix time, UTC, where absolute). A time whose
 magnitude reaches :data:`MAX_SECONDS` (1e11 s, the year 5138 as Unix time; no relative time
@@ -35,13 +36,19 @@ from rtsgt.errors import InputError
 ENCODINGS = ("utf-8-sig", "cp1252")
 
 
-def read_text(path: str | PathLike) -> str:
+def read_text(path: str | PathLike, encodings: Sequence[str] = ENCODINGS) -> str:
     """Whole text of a file, UTF-8 (with or without BOM) or Windows-1252.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    encodings : sequence of str
+        Encodings tried in turn (default :data:`ENCODINGS`).
 
     Raises
     ------
     InputError
-        The file does not exist, is a directory or cannot be read.
+        The file does not exist, is a directory, cannot be read or decoded.
     """
     p = Path(path)
     if not p.exists():
@@ -52,12 +59,12 @@ def read_text(path: str | PathLike) -> str:
         raw = p.read_bytes()
     except OSError as exc:
         raise InputError(f"cannot read the file ({exc.strerror})", p) from exc
-    for enc in ENCODINGS:
+    for enc in encodings:
         try:
             return raw.decode(enc)
         except UnicodeDecodeError:
             continue
-    raise InputError("cannot decode the file as UTF-8 or Windows-1252 text", p)  # pragma: no cover
+    raise InputError(f"cannot decode the file as {' or '.join(encodings)} text", p)
 
 
 def numbered_lines(text: str) -> tuple[list[int], list[str]]:
@@ -191,6 +198,77 @@ def to_int(
                         f"expected an integer in column {names[j]!r}, got {s!r}", path, numbers[i]
                     ) from None
     return out
+
+
+def csv_table(path: str | PathLike, required: Sequence[str] = ()) -> tuple[
+    list[str], list[int], list[str]
+]:
+    """Header and data lines of a comma-separated table of an ``rtsgt run`` directory.
+
+    The first line names the columns; every later line is a data line (no blank line, no
+    ``#`` comment: those are errors for the caller to report). UTF-8, without BOM.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    required : sequence of str
+        Column names that must be in the header (exact names).
+
+    Returns
+    -------
+    header : list of str
+        The column names, stripped.
+    numbers : list of int
+        1-based line number of each data line (2, 3, ...).
+    lines : list of str
+        The data lines.
+
+    Raises
+    ------
+    InputError
+        Missing file, no header line, a required column missing (line 1).
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError("file not found (is this an rtsgt run directory?)", p)
+    lines = read_text(p, ("utf-8",)).splitlines()
+    if not lines:
+        raise InputError("empty file, expected a header line", p)
+    header = [h.strip() for h in lines[0].split(",")]
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise InputError(
+            f"missing column(s) {', '.join(missing)}; header is {','.join(header)}", p, 1
+        )
+    return header, list(range(2, len(lines) + 1)), lines[1:]
+
+
+def read_table(
+    path: str | PathLike, required: Sequence[str] = ()
+) -> tuple[list[str], np.ndarray]:
+    """Read a numeric table of an ``rtsgt run`` directory (:func:`csv_table`).
+
+    Every field of every data line must be a number; NaN and infinities are numbers here (a
+    run writes NaN where a value is unknown, e.g. ``range_m``).
+
+    Returns
+    -------
+    header : list of str
+    data : ndarray, shape (N, len(header))
+
+    Raises
+    ------
+    InputError
+        Those of :func:`csv_table`, a wrong number of fields or a field that is not a number
+        (naming the line).
+    """
+    header, numbers, lines = csv_table(path, required)
+    tokens = split_rows(lines, numbers, path, header, ",")
+    try:
+        data = to_float(tokens, numbers, path, header, finite=False)
+    except InputError as exc:  # a run table's message has always begun "not a number"
+        raise InputError(f"not a number: {exc.bare_message}", path, exc.line) from None
+    return header, data
 
 
 def first_bad(mask: np.ndarray) -> int | None:
@@ -331,6 +409,43 @@ def find_columns(
 def fmt_float(x: float) -> str:
     """Shortest text that reads back as exactly the same float64."""
     return repr(float(x))
+
+
+def table_text(
+    data: np.ndarray,
+    *,
+    header: str | None = None,
+    sep: str = ",",
+    fmt: str | Sequence[str] | None = None,
+) -> str:
+    """Text of a table of numbers: an optional header line, then one line per row.
+
+    Parameters
+    ----------
+    data : array_like, shape (N, K)
+    header : str, optional
+        The first line, as written (column names, or a ``#`` comment).
+    sep : str
+        Separator of the values.
+    fmt : str or sequence of K str, optional
+        printf-style format of every value (``"%.17g"``) or of each column; None: the
+        shortest text that reads back as the same float64 (:func:`fmt_float`).
+
+    Returns
+    -------
+    str
+        Lines ending in ``"\\n"``.
+    """
+    a = np.asarray(data, dtype=float)
+    rows = a.tolist()
+    if fmt is None:
+        lines = [sep.join(map(fmt_float, r)) for r in rows]
+    else:
+        line = sep.join([fmt] * a.shape[1] if isinstance(fmt, str) else fmt)
+        lines = [line % tuple(r) for r in rows]
+    if header is not None:
+        lines.insert(0, header)
+    return "".join(line + "\n" for line in lines)
 
 
 def atomic_write_text(path: str | PathLike, text: str) -> None:

@@ -71,12 +71,17 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
 
 from __future__ import annotations
 
+import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from rtsgt.errors import ConfigError
+from rtsgt.filtering import FilterParams
+from rtsgt.noise import NoiseModel
+from rtsgt.options import QC_METHODS, RunOptions
+from rtsgt.pose.estimate import POSE_ENGINES
 from rtsgt.types import NOISE_SOURCES
 
 if sys.version_info >= (3, 11):
@@ -84,7 +89,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-ENGINES = ("mc", "ut", "linear")
+ENGINES = POSE_ENGINES
 STATION_FORMATS = ("rts-project",)
 GCP_FORMATS = ("rts-project", "csv")
 WEATHER_FORMATS = ("csv", "eccc")
@@ -127,45 +132,46 @@ class ReferenceConfig:
 
 @dataclass(frozen=True)
 class NoiseConfig:
-    """Noise sources to include and their parameters (see :class:`rtsgt.noise.NoiseModel`)."""
+    """Noise sources to include and their parameters (defaults: :class:`rtsgt.noise.NoiseModel`'s)."""
 
     sources: tuple[str, ...] = NOISE_SOURCES
-    time_sync_mean_s: float = 1.157e-3
-    time_sync_std_s: float = 0.815e-3
-    temperature_halfwidth_c: float = 1.0
-    pressure_halfwidth_hpa: float = 10.0
-    humidity_halfwidth_pct: float = 2.0
+    time_sync_mean_s: float = NoiseModel.time_sync_mean_s
+    time_sync_std_s: float = NoiseModel.time_sync_std_s
+    temperature_halfwidth_c: float = NoiseModel.temperature_halfwidth_c
+    pressure_halfwidth_hpa: float = NoiseModel.pressure_halfwidth_hpa
+    humidity_halfwidth_pct: float = NoiseModel.humidity_halfwidth_pct
 
 
 @dataclass(frozen=True)
 class FilterConfig:
-    """Parameters of the filtering modules (Vaidis et al. 2022 defaults)."""
+    """Parameters of the filtering modules (defaults: :class:`rtsgt.filtering.FilterParams`'s,
+    the paper's), with the units of the file (deg/s for the angular rates)."""
 
-    tau_r_m_s: float = 2.0
-    tau_a_deg_s: float = 1.0
-    tau_e_deg_s: float = 1.0
-    tau_s_s: float = 3.0
-    tau_l_s: float = 2.0
+    tau_r_m_s: float = FilterParams.tau_r
+    tau_a_deg_s: float = math.degrees(FilterParams.tau_a)
+    tau_e_deg_s: float = math.degrees(FilterParams.tau_e)
+    tau_s_s: float = FilterParams.tau_s
+    tau_l_s: float = FilterParams.tau_l
 
 
 @dataclass(frozen=True)
 class InterpolationConfig:
-    """Query times and GP settings."""
+    """Query times and GP settings (defaults: :class:`rtsgt.options.RunOptions`'s)."""
 
-    rate_hz: float | None = 5.0
+    rate_hz: float | None = RunOptions.rate_hz
     query_times: Path | None = None
-    qc: float | str = "loo"
-    max_gap_s: float = 3.0
+    qc: float | str = RunOptions.qc
+    max_gap_s: float = RunOptions.max_gap_s
 
 
 @dataclass(frozen=True)
 class PoseConfig:
-    """Pose engine and quality gates (module 4)."""
+    """Pose engine and quality gates (defaults: :class:`rtsgt.options.RunOptions`'s)."""
 
-    engine: str = "mc"
-    samples: int = 1000
-    distance_gate_m: float = 0.10
-    uncertainty_gate_m: float = 0.20
+    engine: str = RunOptions.engine
+    samples: int = RunOptions.samples
+    distance_gate_m: float = RunOptions.distance_gate_m
+    uncertainty_gate_m: float = RunOptions.uncertainty_gate_m
 
 
 @dataclass(frozen=True)
@@ -347,11 +353,9 @@ def load_config(path: str | Path) -> DeploymentConfig:
         )
     noise = NoiseConfig(
         sources=sources,
-        time_sync_mean_s=n.get("time_sync_mean_s", float, 1.157e-3),
-        time_sync_std_s=n.get("time_sync_std_s", float, 0.815e-3),
-        temperature_halfwidth_c=n.get("temperature_halfwidth_c", float, 1.0),
-        pressure_halfwidth_hpa=n.get("pressure_halfwidth_hpa", float, 10.0),
-        humidity_halfwidth_pct=n.get("humidity_halfwidth_pct", float, 2.0),
+        **{k: n.get(k, float, getattr(NoiseConfig, k)) for k in (
+            "time_sync_mean_s", "time_sync_std_s", "temperature_halfwidth_c",
+            "pressure_halfwidth_hpa", "humidity_halfwidth_pct")},
     )
     n.done()
 
@@ -362,26 +366,27 @@ def load_config(path: str | Path) -> DeploymentConfig:
 
     it = _Section(path, "interpolation", doc.get("interpolation", {}))
     query_times = it.file("query_times") if "query_times" in it.table else None
-    rate = it.positive("rate_hz", None if query_times is not None else 5.0)
+    rate = it.positive("rate_hz", None if query_times is not None else RunOptions.rate_hz)
     if query_times is not None and rate is not None:
         raise ConfigError("[interpolation] give rate_hz or query_times, not both", path)
-    qc = it.get("qc", (str, float, int), "loo")
-    if isinstance(qc, str) and qc not in ("loo", "likelihood"):
+    qc = it.get("qc", (str, float, int), RunOptions.qc)
+    if isinstance(qc, str) and qc not in QC_METHODS:
         raise ConfigError(
             f"[interpolation] qc must be 'loo', 'likelihood' or a number (m^2/s^3), got {qc!r}",
             path)
     if not isinstance(qc, str) and not qc > 0:
         raise ConfigError(f"[interpolation] qc must be > 0, got {qc}", path)
     interp = InterpolationConfig(rate, query_times, qc if isinstance(qc, str) else float(qc),
-                                 it.positive("max_gap_s", 3.0))
+                                 it.positive("max_gap_s", RunOptions.max_gap_s))
     it.done()
 
     p = _Section(path, "pose", doc.get("pose", {}))
-    samples = p.get("samples", int, 1000)
+    samples = p.get("samples", int, RunOptions.samples)
     if samples < 10:
         raise ConfigError(f"[pose] samples must be >= 10, got {samples}", path)
-    pose = PoseConfig(p.get("engine", str, "mc", ENGINES), samples,
-                      p.positive("distance_gate_m", 0.10), p.positive("uncertainty_gate_m", 0.20))
+    pose = PoseConfig(p.get("engine", str, RunOptions.engine, ENGINES), samples,
+                      p.positive("distance_gate_m", RunOptions.distance_gate_m),
+                      p.positive("uncertainty_gate_m", RunOptions.uncertainty_gate_m))
     p.done()
 
     return DeploymentConfig(path, name, reference_station, dict(instrument), tuple(stations), gcp,

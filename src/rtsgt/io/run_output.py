@@ -13,9 +13,10 @@ Layout of ``OUT/`` (every number in SI units, stated in the headers)::
                                      covariance given to the GP, the range and every source's
                                      covariance: t,x,y,z,cov_xx..cov_zz,range_m,<source>_xx..
     measurements/removed.csv         the measurements the filters removed, in the world frame:
-                                     t,prism,station,x,y,z,stage (stage: module1 = rates of
-                                     change or status, module2 = outside the intervals where
-                                     every prism is tracked)
+                                     t,prism,station,x,y,z,stage,reason (stage: module1 = rates
+                                     of change or status, module2 = outside the intervals where
+                                     every prism is tracked; reason: the filter's reason, e.g.
+                                     rate_hz, status, not_all_tracked, short_interval)
     reference.csv                    reference prisms in the body frame: name,x,y,z,cov_xx..cov_zz
     summary.json                     inputs, parameters, version, seed, counts removed per
                                      filter and gate, Qc, calibration, medians, timings, the
@@ -38,12 +39,14 @@ from pathlib import Path
 import numpy as np
 
 from rtsgt import __version__
-from rtsgt.filtering import module1
 from rtsgt.interpolation.prisms import gp_covariance
+from rtsgt.io._parse import atomic_write_text, table_text
 from rtsgt.io.output_dir import OutputDir
-from rtsgt.measurement.polar import polar_to_cartesian
+from rtsgt.io.trajectory import TUM_COMMENT, write_covariance_csv, write_tum
 
 COV3_NAMES = ("xx", "xy", "xz", "yy", "yz", "zz")
+#: The comment line of ``groundtruth.tum``.
+GROUNDTRUTH_TUM_COMMENT = f"{TUM_COMMENT} (world frame = reference station)"
 _IU = np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2])
 
 
@@ -62,23 +65,9 @@ def columns_to_cov3(cols: np.ndarray) -> np.ndarray:
 
 
 def write_csv(path: Path, header: list[str], columns: list[np.ndarray], fmt: str = "%.17g") -> None:
-    """Write columns of numbers with a one-line header (no comment character)."""
+    """Write columns of numbers with a one-line header (no comment character), atomically."""
     data = np.column_stack([np.asarray(c, dtype=float).reshape(len(columns[0]), -1) for c in columns])
-    np.savetxt(path, data, delimiter=",", header=",".join(header), comments="", fmt=fmt)
-
-
-def write_tum(path: Path, t: np.ndarray, xyz: np.ndarray, quat_xyzw: np.ndarray) -> None:
-    """TUM trajectory ``t x y z qx qy qz qw``, with a comment line giving the units."""
-    np.savetxt(
-        path, np.column_stack([t, xyz, quat_xyzw]), fmt="%.9f %.9f %.9f %.9f %.12f %.12f %.12f %.12f",
-        header="t[s] x[m] y[m] z[m] qx qy qz qw (world frame = reference station)",
-    )
-
-
-def write_pose_covariance_csv(path: Path, traj) -> None:
-    """rtsgt pose covariance CSV (see the module docstring)."""
-    header = ["t", "x", "y", "z", "qx", "qy", "qz", "qw"] + [f"cov_{i}{j}" for i in range(6) for j in range(6)]
-    write_csv(path, header, [traj.t, traj.position, traj.quat_xyzw, traj.cov.reshape(len(traj), 36)])
+    atomic_write_text(path, table_text(data, header=",".join(header), fmt=fmt))
 
 
 def write_json(path: Path, obj: dict) -> None:
@@ -134,31 +123,6 @@ def _median_sigmas(traj) -> dict:
     tr = np.sqrt(np.trace(traj.cov[:, :3, :3], axis1=1, axis2=2)) * 1e3
     rot = np.sqrt(np.trace(traj.cov[:, 3:, 3:], axis1=1, axis2=2)) * 1e3
     return {"translation_mm": float(np.median(tr)), "rotation_mrad": float(np.median(rot))}
-
-
-def gcp_world_positions(gcp, transforms) -> tuple[np.ndarray | None, tuple[str, ...]]:
-    """World position of every ground control point, and the marker names.
-
-    Each valid shot (status 0) of a calibrated station is converted to Cartesian coordinates
-    (additive constant included) and mapped into the world frame by its station's transform;
-    a marker's position is the mean over its shots. Returns ``(None, ())`` without GCPs.
-    """
-
-    if gcp is None or len(gcp) == 0:
-        return None, ()
-    ok = (np.asarray(gcp.status) == 0) & np.isin(gcp.station, list(transforms))
-    if not ok.any():
-        return None, ()
-    p_station = polar_to_cartesian(gcp.hz[ok], gcp.v[ok], gcp.distance[ok])
-    p_world = np.empty_like(p_station)
-    stations = gcp.station[ok]
-    for s in np.unique(stations):  # one transform per station (a handful)
-        m = stations == s
-        p_world[m] = transforms[str(s)].apply(p_station[m])
-    markers = gcp.marker[ok]
-    names = tuple(sorted(set(markers.tolist()), key=lambda x: (len(x), x)))
-    xyz = np.array([p_world[markers == k].mean(axis=0) for k in names])
-    return xyz, names
 
 
 def run_summary(result, inputs: dict | None = None) -> dict:
@@ -252,60 +216,19 @@ def run_summary(result, inputs: dict | None = None) -> dict:
     }
 
 
-def removed_measurements(result) -> dict[str, np.ndarray]:
-    """The measurements removed by filtering modules 1 and 2, in the world frame.
-
-    Module 1 is run again on each station's observations (it is deterministic and cheap) to
-    tell its removals from module 2's. Positions are the raw polar measurements (additive
-    constant included, no atmospheric correction) mapped by the station's calibration.
-
-    Returns
-    -------
-    dict with ``t`` (s), ``prism``, ``station`` (str), ``xyz`` (m, world) and ``stage``
-    (``"module1"`` or ``"module2"``), one entry per removed measurement, sorted by time.
-    """
-
-    parts: dict[str, list] = {"t": [], "prism": [], "station": [], "xyz": [], "stage": []}
-    transforms = result.calibration.transforms
-    for obs in result.data.observations:
-        T = transforms.get(obs.station)
-        if T is None or len(obs) == 0:
-            continue
-        kept1, _ = module1(obs, result.options.filter)
-        tr = result.tracks.get(obs.prism)
-        in1 = np.isin(obs.t, kept1.t)
-        in2 = np.isin(obs.t, tr.t) if tr is not None else np.zeros(len(obs), bool)
-        gone = ~in2
-        if not gone.any():
-            continue
-        xyz = T.apply(polar_to_cartesian(obs.hz[gone], obs.v[gone], obs.distance[gone]))
-        parts["t"].append(np.asarray(obs.t[gone], dtype=float))
-        parts["prism"].append(np.full(int(gone.sum()), obs.prism, dtype=object))
-        parts["station"].append(np.full(int(gone.sum()), obs.station, dtype=object))
-        parts["xyz"].append(xyz)
-        parts["stage"].append(np.where(in1[gone], "module2", "module1").astype(object))
-    if not parts["t"]:
-        return {"t": np.empty(0), "prism": np.empty(0, dtype=str),
-                "station": np.empty(0, dtype=str), "xyz": np.empty((0, 3)),
-                "stage": np.empty(0, dtype=str)}
-    out = {k: np.concatenate(v) for k, v in parts.items()}
-    order = np.argsort(out["t"], kind="stable")
-    return {k: (v[order].astype(str) if v.dtype == object else v[order])
-            for k, v in out.items()}
-
-
-def _write_removed(path: Path, removed: dict[str, np.ndarray]) -> None:
+def _write_removed(path: Path, removed) -> None:
+    """``measurements/removed.csv`` from the run's
+    :class:`~rtsgt.filtering.modules.RemovedMeasurements`."""
     with open(path, "w", encoding="utf-8") as fh:
-        fh.write("t,prism,station,x,y,z,stage\n")
-        for t, p, st, xyz, stage in zip(removed["t"], removed["prism"], removed["station"],
-                                        removed["xyz"], removed["stage"], strict=True):
-            fh.write(f"{t:.9f},{p},{st},{xyz[0]:.6f},{xyz[1]:.6f},{xyz[2]:.6f},{stage}\n")
+        fh.write("t,prism,station,x,y,z,stage,reason\n")
+        for t, p, st, xyz, stage, why in zip(removed.t, removed.prism, removed.station,
+                                             removed.xyz, removed.stage, removed.reason,
+                                             strict=True):
+            fh.write(f"{t:.9f},{p},{st},{xyz[0]:.6f},{xyz[1]:.6f},{xyz[2]:.6f},{stage},{why}\n")
 
 
 def _gcp_world_dict(result) -> dict[str, list[float]]:
-    xyz, names = gcp_world_positions(getattr(result.data, "gcp", None),
-                                     result.calibration.transforms)
-    return {} if xyz is None else {n: [float(v) for v in p] for n, p in zip(names, xyz, strict=True)}
+    return {n: [float(v) for v in p] for n, p in result.gcp_world.items()}
 
 
 def write_run(result, out: str | Path, *, force: bool = False, inputs: dict | None = None,
@@ -322,8 +245,8 @@ def write_run(result, out: str | Path, *, force: bool = False, inputs: dict | No
     output = OutputDir(out, "run", force=force, inputs=protect)
     with output as tmp:
         gt = result.groundtruth
-        write_tum(tmp / "groundtruth.tum", gt.t, gt.position, gt.quat_xyzw)
-        write_pose_covariance_csv(tmp / "groundtruth_covariance.csv", gt)
+        write_tum(tmp / "groundtruth.tum", gt, decimals=(9, 12), comment=GROUNDTRUTH_TUM_COMMENT)
+        write_covariance_csv(tmp / "groundtruth_covariance.csv", gt, digits=17)
         rej = ~result.keep
         with open(tmp / "rejected_poses.csv", "w", encoding="utf-8") as fh:
             fh.write("t,reason\n")
@@ -350,7 +273,7 @@ def write_run(result, out: str | Path, *, force: bool = False, inputs: dict | No
                       [tr.t, tr.xyz, cov3_to_columns(gp_covariance(tr, result.options.gp_noise)),
                        tr.range_m if tr.range_m is not None else np.full(len(tr), np.nan)]
                       + [cov3_to_columns(tr.cov_by_source[s]) for s in srcs])
-        _write_removed(tmp / "measurements" / "removed.csv", removed_measurements(result))
+        _write_removed(tmp / "measurements" / "removed.csv", result.removed)
         ref = result.data.reference
         with open(tmp / "reference.csv", "w", encoding="utf-8") as fh:
             fh.write("name,x,y,z," + ",".join(cov_cols) + "\n")

@@ -7,7 +7,8 @@ The layout is the one written by :mod:`rtsgt.io.run_output` (see its module docs
     prisms/prism<i>.csv          t,x,y,z,cov_xx..cov_zz (prisms at the query times, total cov)
     prisms/prism<i>_sources.csv  t,<source>_xx..<source>_zz (each source at the query times)
     measurements/prism<i>.csv    t,x,y,z,cov_xx..cov_zz,range_m,<source>_xx..<source>_zz
-    measurements/removed.csv     t,prism,station,x,y,z,stage (optional: what the filters removed)
+    measurements/removed.csv     t,prism,station,x,y,z,stage[,reason] (optional: what the
+                                 filters removed; older runs lack the reason column)
     reference.csv                name,x,y,z,cov_xx..cov_zz
     summary.json
 
@@ -46,7 +47,9 @@ from pathlib import Path
 import numpy as np
 
 from rtsgt.errors import InputError, RtsgtWarning
+from rtsgt.io._parse import csv_table, read_table, split_rows, to_float
 from rtsgt.io.run_output import COV3_NAMES, columns_to_cov3
+from rtsgt.io.trajectory import read_covariance_csv
 from rtsgt.types import NOISE_SOURCES, PoseTrajectory, PrismTrack
 
 __all__ = ["RunData", "read_run", "read_table", "station_positions_from_summary"]
@@ -189,49 +192,6 @@ def _natural_key(s: str) -> tuple:
     return tuple(int(p) if p.isdigit() else p for p in re.split(r"(\d+)", s) if p)
 
 
-def read_table(path: Path, required: tuple[str, ...] = ()) -> tuple[list[str], np.ndarray]:
-    """Read a numeric CSV with a one-line header.
-
-    Parameters
-    ----------
-    path : Path
-    required : tuple of str
-        Column names that must be present.
-
-    Returns
-    -------
-    header : list of str
-    data : ndarray, shape (N, len(header))
-
-    Raises
-    ------
-    InputError
-        Missing file, missing column, a wrong number of fields or a non-numeric value
-        (naming the line).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("file not found (is this an rtsgt run directory?)", path)
-    with path.open(encoding="utf-8", newline="") as fh:
-        rows = list(csv.reader(fh))
-    if not rows:
-        raise InputError("empty file, expected a header line", path)
-    header = [h.strip() for h in rows[0]]
-    missing = [c for c in required if c not in header]
-    if missing:
-        raise InputError(f"missing column(s) {', '.join(missing)}; header is {','.join(header)}",
-                         path, 1)
-    data = np.empty((len(rows) - 1, len(header)))
-    for k, row in enumerate(rows[1:]):
-        if len(row) != len(header):
-            raise InputError(f"expected {len(header)} fields, got {len(row)}", path, k + 2)
-        try:
-            data[k] = [float(x) for x in row]
-        except ValueError as exc:
-            raise InputError(f"not a number: {exc}", path, k + 2) from exc
-    return header, data
-
-
 def _col(header: list[str], data: np.ndarray, name: str) -> np.ndarray:
     return data[:, header.index(name)]
 
@@ -286,27 +246,13 @@ def _read_measurements(path: Path, pid: str) -> PrismTrack:
 
 
 def _read_reference(path: Path, ids: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-    if not path.is_file():
-        raise InputError("file not found (is this an rtsgt run directory?)", path)
-    with path.open(encoding="utf-8", newline="") as fh:
-        rows = list(csv.reader(fh))
-    if not rows:
-        raise InputError("empty file, expected a header line", path)
-    header = [h.strip() for h in rows[0]]
-    need = ["name", "x", "y", "z"] + [f"cov_{c}" for c in COV3_NAMES]
-    missing = [c for c in need if c not in header]
-    if missing:
-        raise InputError(f"missing column(s) {', '.join(missing)}", path, 1)
-    by_name = {}
-    for k, row in enumerate(rows[1:]):
-        if len(row) != len(header):
-            raise InputError(f"expected {len(header)} fields, got {len(row)}", path, k + 2)
-        rec = dict(zip(header, row, strict=True))
-        try:
-            vals = np.array([float(rec[c]) for c in need[1:]])
-        except ValueError as exc:
-            raise InputError(f"not a number: {exc}", path, k + 2) from exc
-        by_name[_strip_prism(rec["name"].strip())] = vals
+    need = ("name", "x", "y", "z") + tuple(f"cov_{c}" for c in COV3_NAMES)
+    header, numbers, lines = csv_table(path, need)
+    tokens = split_rows(lines, numbers, path, header, ",")
+    values = to_float(tokens[:, [header.index(c) for c in need[1:]]], numbers, path, need[1:],
+                      finite=False)
+    names = tokens[:, header.index("name")].tolist()
+    by_name = {_strip_prism(name): v for name, v in zip(names, values, strict=True)}
     n = len(ids)
     xyz = np.empty((n, 3))
     cov = np.zeros((3 * n, 3 * n))
@@ -346,26 +292,17 @@ def _full_reference_cov(summary: dict, ids: tuple[str, ...], blocks: np.ndarray)
 
 
 def _read_rejected(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    if not path.is_file():
+    """``rejected_poses.csv`` (optional, may be empty): times and reasons. Blank lines are
+    skipped; a line may lack the reason (read as ``""``) or carry more fields."""
+    if not path.is_file() or path.stat().st_size == 0:
         return np.empty(0), np.empty(0, dtype="<U32")
-    with path.open(encoding="utf-8", newline="") as fh:
-        rows = list(csv.reader(fh))
-    if not rows:
-        return np.empty(0), np.empty(0, dtype="<U32")
-    header = [h.strip() for h in rows[0]]
-    if "t" not in header or "reason" not in header:
-        raise InputError(f"expected columns t,reason, got {','.join(header)}", path, 1)
+    header, numbers, lines = csv_table(path, ("t", "reason"))
     it, ir = header.index("t"), header.index("reason")
-    t, reason = [], []
-    for k, row in enumerate(rows[1:]):
-        if not row:
-            continue
-        try:
-            t.append(float(row[it]))
-        except (ValueError, IndexError) as exc:
-            raise InputError(f"bad time: {exc}", path, k + 2) from exc
-        reason.append(row[ir].strip() if ir < len(row) else "")
-    return np.asarray(t, dtype=float), np.asarray(reason, dtype=str)
+    rows = [(k, line.split(",")) for k, line in zip(numbers, lines, strict=True) if line]
+    times = np.array([[r[it] if it < len(r) else ""] for _, r in rows], dtype=object)
+    t = to_float(times.reshape(-1, 1), [k for k, _ in rows], path, ("t",), finite=False)[:, 0]
+    reason = [r[ir].strip() if ir < len(r) else "" for _, r in rows]
+    return t, np.asarray(reason, dtype=str)
 
 
 _REMOVED_COLUMNS = ("t", "prism", "station", "x", "y", "z", "stage")
@@ -556,15 +493,7 @@ def read_run(run_dir: str | PathLike) -> RunData:
         prisms_by_source[s] = arr
 
     # poses
-    gt_path = root / "groundtruth_covariance.csv"
-    names = ["t", "x", "y", "z", "qx", "qy", "qz", "qw"]
-    covn = [f"cov_{i}{j}" for i in range(6) for j in range(6)]
-    header, data = read_table(gt_path, tuple(names + covn))
-    gt = PoseTrajectory(
-        _col(header, data, "t"), data[:, [header.index(c) for c in names[1:4]]],
-        data[:, [header.index(c) for c in names[4:8]]],
-        data[:, [header.index(c) for c in covn]].reshape(-1, 6, 6),
-    )
+    gt = read_covariance_csv(root / "groundtruth_covariance.csv", run_file=True)
     rej_t, rej_r = _read_rejected(root / "rejected_poses.csv")
     rm_t, rm_xyz, rm_prism, rm_stage = _read_removed(root / "measurements" / "removed.csv")
     ref_xyz, ref_cov = _read_reference(root / "reference.csv", ids)

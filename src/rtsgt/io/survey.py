@@ -11,7 +11,8 @@ Three formats:
 
         x = d cos(Hz) sin(V),   y = -d sin(Hz) sin(V),   z = d cos(V)
 
-    The Cartesian covariance is first order: ``J diag(s_Hz^2, s_V^2, s_d^2) J^T``.
+    The points and their first-order covariance ``J diag(s_Hz^2, s_V^2, s_d^2) J^T`` are
+    computed by :class:`rtsgt.types.SurveyShots` (this module only parses).
 ``calibration_results.csv`` (RTS_project)
     One line: the inter-prism distances d12 d13 d23, then the inter-GNSS distances
     g12 g13 g23 (m), space or comma separated.

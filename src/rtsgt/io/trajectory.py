@@ -64,8 +64,10 @@ from rtsgt.io._parse import (
     check_increasing,
     fmt_float,
     numbered_lines,
+    read_table,
     read_text,
     split_rows,
+    table_text,
     to_float,
     to_int,
 )
@@ -78,6 +80,8 @@ FORMATS = ("tum", "kitti", "euroc", "rtsgt", "bag")
 UNIT_TOL = 1e-3
 
 TUM_COLUMNS = ("t", "x", "y", "z", "qx", "qy", "qz", "qw")
+#: The comment line :func:`write_tum` writes first (without the ``# ``).
+TUM_COMMENT = "t[s] x[m] y[m] z[m] qx qy qz qw"
 COV_COLUMNS = TUM_COLUMNS + tuple(f"cov_{i}{j}" for i in range(6) for j in range(6))
 EUROC_COLUMNS = (
     "#timestamp [ns]",
@@ -167,15 +171,29 @@ def read_tum(path: str | PathLike) -> PoseTrajectory:
     return _times_and_poses(path, numbers, a[:, 0], a[:, 1:4], q)
 
 
-def _rows(traj: PoseTrajectory) -> list[list[float]]:
-    return np.column_stack([traj.t, traj.position, traj.quat_xyzw]).tolist()
+def write_tum(
+    path: str | PathLike,
+    traj: PoseTrajectory,
+    *,
+    decimals: tuple[int, int] | None = None,
+    comment: str = TUM_COMMENT,
+) -> None:
+    """Write ``t x y z qx qy qz qw`` after a ``#`` comment line, atomically.
 
-
-def write_tum(path: str | PathLike, traj: PoseTrajectory) -> None:
-    """Write ``t x y z qx qy qz qw`` (shortest exact float text), atomically."""
-    lines = ["# t[s] x[m] y[m] z[m] qx qy qz qw"]
-    lines += [" ".join(fmt_float(v) for v in row) for row in _rows(traj)]
-    atomic_write_text(path, "\n".join(lines) + "\n")
+    Parameters
+    ----------
+    path : str or PathLike
+    traj : PoseTrajectory
+    decimals : (int, int), optional
+        Fixed decimals of the times and positions, and of the quaternions (``rtsgt run``
+        writes ``groundtruth.tum`` with (9, 12): ns, nm, 1e-12); None: the shortest text that
+        reads back as the same float64.
+    comment : str
+        The comment line, without its ``# `` (default :data:`TUM_COMMENT`).
+    """
+    fmt = None if decimals is None else [f"%.{decimals[0]}f"] * 4 + [f"%.{decimals[1]}f"] * 4
+    data = np.column_stack([traj.t, traj.position, traj.quat_xyzw])
+    atomic_write_text(path, table_text(data, header=f"# {comment}", sep=" ", fmt=fmt))
 
 
 # --------------------------------------------------------------------------- KITTI
@@ -290,12 +308,27 @@ def write_euroc(path: str | PathLike, traj: PoseTrajectory) -> None:
 # --------------------------------------------------------------------------- rtsgt covariance CSV
 
 
-def read_covariance_csv(path: str | PathLike) -> PoseTrajectory:
+def read_covariance_csv(path: str | PathLike, *, run_file: bool = False) -> PoseTrajectory:
     """Read an rtsgt covariance CSV ``t,x,y,z,qx,qy,qz,qw,cov_00,...,cov_55``.
 
     The header line is optional; when present it must name the 44 columns in order. Each
     covariance must be finite, symmetric and positive semi-definite (relative tolerance 1e-9).
+
+    Parameters
+    ----------
+    path : str or PathLike
+    run_file : bool
+        Read the file as a table of an ``rtsgt run`` directory
+        (:func:`rtsgt.io.run_reader.read_run`, :func:`rtsgt.io._parse.read_table`) and give
+        back exactly what the run wrote: the header line is required and locates the columns
+        by name (any order, extra numeric columns ignored), every line after it is a pose (no
+        comment), NaN is read as such, there may be no pose, and quaternions, covariances and
+        times are neither checked nor renormalised.
     """
+    if run_file:
+        header, data = read_table(path, COV_COLUMNS)
+        a = data[:, [header.index(c) for c in COV_COLUMNS]]
+        return PoseTrajectory(a[:, 0], a[:, 1:4], a[:, 4:8], a[:, 8:].reshape(-1, 6, 6))
     numbers, lines = _data_lines(path, "poses with covariance 't,x,y,z,qx,qy,qz,qw,cov_00..cov_55'")
     first = [c.strip() for c in lines[0].split(",")]
     if not _is_number(first[0]):
@@ -331,13 +364,26 @@ def read_covariance_csv(path: str | PathLike) -> PoseTrajectory:
     return _times_and_poses(path, numbers, a[:, 0], a[:, 1:4], q, cov)
 
 
-def write_covariance_csv(path: str | PathLike, traj: PoseTrajectory) -> None:
-    """Write an rtsgt covariance CSV (header line, shortest exact floats), atomically."""
+def write_covariance_csv(
+    path: str | PathLike, traj: PoseTrajectory, *, digits: int | None = None
+) -> None:
+    """Write an rtsgt covariance CSV (header line, then one pose per line), atomically.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    traj : PoseTrajectory
+        With covariances.
+    digits : int, optional
+        Significant digits of every value (``rtsgt run`` writes
+        ``groundtruth_covariance.csv`` with 17, ``%.17g``); None: the shortest text that reads
+        back as the same float64.
+    """
     if traj.cov is None:
         raise ValueError("Expected a trajectory with covariances")
     data = np.column_stack([traj.t, traj.position, traj.quat_xyzw, traj.cov.reshape(-1, 36)])
-    lines = [",".join(COV_COLUMNS)] + [",".join(fmt_float(v) for v in r) for r in data.tolist()]
-    atomic_write_text(path, "\n".join(lines) + "\n")
+    fmt = None if digits is None else f"%.{digits}g"
+    atomic_write_text(path, table_text(data, header=",".join(COV_COLUMNS), fmt=fmt))
 
 
 def attach_covariance(

@@ -43,7 +43,7 @@ Degenerate poses (reported, never silently solved): a prism or its covariance is
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -62,9 +62,10 @@ from rtsgt.pose.registration import (
     small_rotation_vector,
 )
 
-#: The pose engines.
-POSE_ENGINES = ("mc", "ut", "linear")
+#: The pose engines, as a type: Monte Carlo, unscented transform, first order.
 PoseEngine = Literal["mc", "ut", "linear"]
+#: Their names (the one list every option, command and reader checks against).
+POSE_ENGINES: tuple[str, ...] = get_args(PoseEngine)
 
 #: Reason codes of :attr:`PoseEstimate.reason` ("" for a valid pose).
 REASON_OK = ""

@@ -56,10 +56,10 @@ import numpy as np
 
 from rtsgt.errors import InputError
 from rtsgt.filtering.gates import position_uncertainty
-from rtsgt.io.run_output import gcp_world_positions, removed_measurements
 from rtsgt.io.run_reader import RunData, read_run
 from rtsgt.noise.analysis import bin_by_range, frobenius_norm_mm
-from rtsgt.pose import estimate_poses
+from rtsgt.options import stage_rng
+from rtsgt.pose import POSE_ENGINES, estimate_poses
 from rtsgt.types import NOISE_SOURCES, PoseTrajectory, PrismTrack
 
 __all__ = [
@@ -416,7 +416,7 @@ def _pose_part(data: RunData, engine: str, samples: int, seed: int, measure: str
     q = data.prisms_xyz[idx]
     n = q.shape[1]
     zero_r = np.zeros((3 * n, 3 * n))
-    rng = np.random.default_rng(seed)
+    rng = stage_rng(seed, "analysis")
     cov: dict[str, np.ndarray] = {}
     if idx.size:
         for s, c in data.prisms_cov_by_source.items():
@@ -479,8 +479,8 @@ def analyze(
     if pose_measure not in POSE_MEASURES:
         raise InputError(f"Expected pose measure in {POSE_MEASURES}, got {pose_measure!r}")
     eng = data.engine if engine is None else engine
-    if eng not in ("mc", "ut", "linear"):
-        raise InputError(f"Expected engine mc, ut or linear, got {eng!r}")
+    if eng not in POSE_ENGINES:
+        raise InputError(f"Expected engine {', '.join(POSE_ENGINES)}, got {eng!r}")
     m = int(data.samples if samples is None else samples)
     sd = int(data.seed if seed is None else seed)
     (sources, prism, t, r, k, norm, binned, counts, shares) = _measurement_part(data, lower)
@@ -544,10 +544,11 @@ def run_data_from_result(result) -> RunData:
     if len(result.estimate) != keep.shape[0]:
         raise InputError("The run's pose estimate and its gate mask have different lengths")
     reason = _rejection_reasons(result)
-    gcp_xyz, gcp_names = gcp_world_positions(result.data.gcp, calib.transforms)
+    gcp_names = tuple(result.gcp_world)
+    gcp_xyz = np.array([result.gcp_world[n] for n in gcp_names]) if gcp_names else None
     gt = result.groundtruth
     opts = result.options
-    removed = removed_measurements(result)
+    removed = result.removed
     return RunData(
         name=result.data.name, prism_ids=ids, measurements=measurements,
         prisms_t=np.asarray(pr.t), prisms_xyz=np.asarray(pr.xyz)[:, order],
@@ -563,8 +564,8 @@ def run_data_from_result(result) -> RunData:
         stations=stations, gcp_xyz=gcp_xyz, gcp_names=gcp_names,
         engine=opts.engine, samples=int(opts.samples), seed=int(opts.seed),
         gp_noise=opts.gp_noise, summary={}, path=None,
-        removed_t=removed["t"], removed_xyz=removed["xyz"], removed_prism=removed["prism"],
-        removed_stage=removed["stage"],
+        removed_t=removed.t, removed_xyz=removed.xyz, removed_prism=removed.prism,
+        removed_stage=removed.stage,
     )
 
 

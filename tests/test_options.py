@@ -1,0 +1,74 @@
+"""rtsgt.options: the one rule every option value meets, and one random stream per stage."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rtsgt.errors import InputError
+from rtsgt.options import RANDOM_STAGES, RunOptions, stage_rng
+
+
+def test_each_stage_has_its_own_stream_the_children_of_the_seed():
+    children = np.random.SeedSequence(42).spawn(len(RANDOM_STAGES))
+    draws = {}
+    for stage, child in zip(RANDOM_STAGES, children, strict=True):
+        x = stage_rng(42, stage).standard_normal(8)
+        np.testing.assert_array_equal(x, np.random.default_rng(child).standard_normal(8))
+        draws[stage] = x
+    # distinct streams, and none is the plain default_rng(seed) the stages used to share
+    plain = np.random.default_rng(42).standard_normal(8)
+    for a in RANDOM_STAGES:
+        assert not np.allclose(draws[a], plain)
+        for b in RANDOM_STAGES:
+            assert a == b or not np.allclose(draws[a], draws[b])
+    with pytest.raises(ValueError):
+        stage_rng(42, "no-such-stage")
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"seed": -1}, "seed"), ({"seed": 1.5}, "seed"), ({"seed": True}, "seed"),
+    ({"samples": 9}, "samples"), ({"samples": 10.0}, "samples"),
+    ({"rate_hz": 0.0}, "rate_hz"), ({"rate_hz": float("nan")}, "rate_hz"),
+    ({"rate_hz": float("inf")}, "rate_hz"), ({"max_gap_s": 0.0}, "max_gap_s"),
+    ({"distance_gate_m": float("nan")}, "distance_gate_m"), ({"engine": "foo"}, "engine"),
+    ({"qc": -1.0}, "qc"), ({"qc": "maybe"}, "qc"), ({"gp_noise": "some"}, "gp_noise"),
+])
+def test_bad_values_are_refused_naming_the_option(change, match):
+    with pytest.raises(InputError, match=match):
+        RunOptions(**change)
+
+
+def test_limits_may_be_switched_off_with_infinity():
+    o = RunOptions(max_gap_s=float("inf"), distance_gate_m=float("inf"))
+    assert o.max_gap_s == float("inf") and o.distance_gate_m == float("inf")
+
+
+def test_a_configuration_without_options_gets_the_owners_defaults(tmp_path):
+    """Defaults are written once: a TOML without [noise], [filter], [interpolation] and [pose]
+    gives exactly RunOptions(), FilterParams() and NoiseModel()'s values."""
+    import re
+
+    from rtsgt.filtering import FilterParams
+    from rtsgt.io.deployment import load_deployment
+    from rtsgt.noise import NoiseModel
+    from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
+
+    sim = simulate_deployment(SimulationConfig(duration_s=30.0), np.random.default_rng(1))
+    toml = write_deployment(sim, tmp_path / "dep")
+    text = toml.read_text()
+    for table in ("noise", "filter", "interpolation", "pose"):
+        text = re.sub(rf"(?ms)^\[{table}\]\n.*?(?=^\[|\Z)", "", text)
+    assert "[pose]" not in text and "tau_r_m_s" not in text
+    bare = tmp_path / "dep" / "bare.toml"
+    bare.write_text(text)
+    _, o = load_deployment(bare)
+    d = RunOptions()
+    for name in ("engine", "samples", "rate_hz", "qc", "max_gap_s", "distance_gate_m",
+                 "uncertainty_gate_m", "gp_noise"):
+        assert getattr(o, name) == getattr(d, name), name
+    assert o.filter == FilterParams()
+    model = NoiseModel(instrument=o.noise.instrument)
+    for name in ("sources", "time_sync_mean_s", "time_sync_std_s", "temperature_halfwidth_c",
+                 "pressure_halfwidth_hpa", "humidity_halfwidth_pct"):
+        assert getattr(o.noise, name) == getattr(model, name), name
