@@ -250,6 +250,10 @@ def test_errors(files, tmp_path):
     assert r.stderr.startswith("error: ") and "at least 3 associated poses" in r.stderr
     r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(d / "est.tum"), "--align", "7dof"])
     assert r.exit_code == 2 and "--align" in r.output
+    for args, option in ((["--delta", "1.5", "--delta-unit", "f"], "--delta"),
+                         (["--delta", "-1"], "--delta"), (["--t-offset", "nan"], "--t-offset")):
+        r = runner.invoke(_app(), ["evaluate", "no-such-gt", "no-such-est", *args])
+        assert r.exit_code == 2 and option in r.output, (args, r.output)  # before any reading
     (tmp_path / "bad.tum").write_text("1 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 2\n")
     r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(tmp_path / "bad.tum")])
     assert r.stderr.startswith("error: ") and ":2:" in r.stderr

@@ -10,8 +10,8 @@ import pytest
 from scipy import stats
 
 from rtsgt.errors import GeometryError, InputError, RtsgtWarning
-from rtsgt.evaluation import associate, evaluate
-from rtsgt.evaluation.associate import interpolate_trajectory
+from rtsgt.evaluation import EvaluationOptions, associate, evaluate
+from rtsgt.evaluation.associate import PairCovarianceGroundTruth, interpolate_trajectory
 from rtsgt.evaluation.metrics import (
     chain_cross_covariance,
     error_statistics,
@@ -520,3 +520,50 @@ def test_rpe_pairs_across_a_ground_truth_gap_are_counted_in_a_warning(truth):
         sparse = trajectory(t[:600:7], p[:600:7], R[:600:7])
         evaluate(trajectory(t, p, R), sparse, delta=5.0, delta_unit="m", max_dt=0.06)
         evaluate(gt, est, align="none", delta=5.0, delta_unit="m", max_dt=None)
+
+
+# ----------------------------------------------------------------------------- options record
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("align", "7dof", "alignment"),
+    ("n_align", 0, "n_align"),
+    ("delta", 0.0, "positive RPE delta"),
+    ("delta", np.nan, "positive RPE delta"),
+    ("delta_unit", "km", "delta unit"),
+    ("rel_delta_tol", -0.1, "rel_delta_tol"),
+    ("time_offset", np.inf, "finite time offset"),
+    ("max_dt", -1.0, "positive max_dt"),
+])
+def test_evaluation_options_check_every_value(field, value, match):
+    with pytest.raises(InputError, match=match):
+        EvaluationOptions(**{field: value})
+
+
+def test_evaluation_options_check_combinations_and_allow_no_limit():
+    with pytest.raises(InputError, match="integer RPE delta in frames"):
+        EvaluationOptions(delta=1.5, delta_unit="f")
+    assert EvaluationOptions(max_dt=None).max_dt is None
+
+
+def test_evaluate_takes_an_options_record_or_its_fields(truth):
+    t, p, R = truth
+    gt = trajectory(t[:300], p[:300], R[:300])
+    est = trajectory(t[:300], p[:300] + 0.01 * np.sin(t[:300, None]), R[:300])
+    by_fields = evaluate(gt, est, align="sim3", delta=5, delta_unit="f").to_dict()
+    options = EvaluationOptions(align="sim3", delta=5, delta_unit="f")
+    assert evaluate(gt, est, options).to_dict() == by_fields
+    assert evaluate(gt, est, EvaluationOptions(align="none"), align="sim3", delta=5,
+                    delta_unit="f").to_dict() == by_fields
+    with pytest.raises(TypeError):
+        evaluate(gt, est, no_such_option=1)
+
+
+def test_pair_covariance_ground_truth_is_an_explicit_capability():
+    class Pairs:
+        def pair_covariances(self, tau_a, tau_b):
+            return np.eye(6)[None], np.eye(6)[None], np.zeros((1, 6, 6))
+
+    assert isinstance(Pairs(), PairCovarianceGroundTruth)
+    assert not isinstance(trajectory(np.arange(3.0), np.zeros((3, 3)), np.stack([np.eye(3)] * 3)),
+                          PairCovarianceGroundTruth)

@@ -26,7 +26,8 @@ from rtsgt.filtering.gates import position_uncertainty
 from rtsgt.geometry.so3 import quat_xyzw_to_matrix
 from rtsgt.geometry.transform import perturbation
 from rtsgt.io.deployment import load_deployment
-from rtsgt.io.run_output import write_run
+from rtsgt.io.run_output import COV3_NAMES, columns_to_cov3, write_run
+from rtsgt.io.run_reader import read_table
 from rtsgt.io.trajectory import read_covariance_csv, write_covariance_csv, write_tum
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
@@ -107,6 +108,23 @@ def test_reproduces_the_run_at_its_grid_times_linear_engine(linear_run):
     s2 = ContinuousGroundTruth.from_result(result).query_poses(result.prisms.t)
     np.testing.assert_allclose(s2.position[v], s.position[v], rtol=0, atol=1e-9)
     assert np.max(np.abs(s2.cov[v] - gt.cov) / scale) < 1e-9
+
+
+def test_gp_noise_all_refits_on_the_covariance_of_the_measurement_file(linear_run, tmp_path):
+    """gp_noise = "all": the GP is given the cov_* columns of measurements/prism<i>.csv as
+    written (read once, by rtsgt.io.run_reader.read_run), not the sum of the sources."""
+    _, _, out = linear_run
+    run = tmp_path / "all"
+    shutil.copytree(out, run)
+    summary = json.loads((run / "summary.json").read_text())
+    summary["parameters"]["gp_noise"] = "all"
+    (run / "summary.json").write_text(json.dumps(summary))
+    cgt = ContinuousGroundTruth.from_run_dir(run)
+    assert cgt.options.gp_noise == "all"
+    for pid, tr in cgt.tracks.items():
+        header, data = read_table(run / "measurements" / f"prism{pid}.csv")
+        cols = [header.index(f"cov_{c}") for c in COV3_NAMES]
+        np.testing.assert_array_equal(tr.cov, columns_to_cov3(data[:, cols]))
 
 
 def test_reproduces_the_run_at_its_grid_times_monte_carlo(mc_run):

@@ -54,6 +54,7 @@ def test_run_directory_files(demo_run):
         assert head == "t,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz"
     summary = json.loads((out / "summary.json").read_text())
     assert summary["parameters"]["seed"] == 11
+    assert summary["schema"] == {"name": "rtsgt-run", "version": 1}
     assert summary["poses"]["kept"] == len(gt)
     assert set(summary["prisms"]) == {"1", "2", "3"}
     assert "module1_station1" in summary["filters"] and "module2" in summary["filters"]

@@ -4,13 +4,15 @@ refuse, each error naming the file and the line."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from rtsgt.errors import InputError
-from rtsgt.io.run_reader import read_run, read_table
+from rtsgt.io.run_output import SUMMARY_SCHEMA_NAME, SUMMARY_SCHEMA_VERSION
+from rtsgt.io.run_reader import read_run, read_summary, read_table
 from rtsgt.io.trajectory import write_covariance_csv
 from test_analysis import make_run_data, write_run_dir
 
@@ -89,3 +91,74 @@ def test_run_files_read_back_and_their_errors(run_data, tmp_path):
     ref.write_text("\n".join([lines[0], lines[1].replace(",", ",y", 1), *lines[2:]]) + "\n")
     with pytest.raises(InputError, match=r"reference\.csv:2: expected a number in column 'x'"):
         read_run(run)
+
+
+def _summary(folder: Path, doc) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "summary.json").write_text(json.dumps(doc), encoding="utf-8")
+    return folder
+
+
+def test_summary_without_schema_and_with_version_1_are_both_read(tmp_path):
+    """read_summary is the one reader of summary.json: the layout before the schema key
+    (version 0, with its older names) and version 1 give the same record."""
+    current = {"deployment": "d", "software": {"name": "rtsgt", "version": "x"},
+               "parameters": {"engine": "mc", "samples": 50, "seed": 7, "max_gap_s": 2.5,
+                              "gp_noise": "all", "distance_gate_m": 0.2,
+                              "uncertainty_gate_m": 0.3},
+               "gates": {"uncertainty_measure": "trace"},
+               "intervals_s": [[1.0, 2.0], [3.0, 4.0]],
+               "prisms": {"1": {"station": 2, "qc_m2_s3": 0.5}, "2": {"qc_m2_s3": 0.25}},
+               "reference": {"names": ["prism1", "prism2"], "frame": "world"},
+               "calibration": {"reference_station": "1",
+                               "stations": {"2": {"translation_m": [1, 2, 3]}},
+                               "gcp_world": {"A": [1, 1, 1]}}}
+    v1 = read_summary(_summary(tmp_path / "v1", {
+        "schema": {"name": SUMMARY_SCHEMA_NAME, "version": SUMMARY_SCHEMA_VERSION}, **current}))
+    v0 = read_summary(_summary(tmp_path / "v0", current))
+    older = {k: v for k, v in current.items() if k not in ("deployment", "parameters")}
+    older.update(name="d", options={"max_gap_s": 2.5, "distance_gate_m": 0.2,
+                                    "uncertainty_gate_m": 0.3},
+                 engine="mc", samples=50, seed=7, gp_noise="all")
+    old = read_summary(_summary(tmp_path / "old", older))
+    assert (v1.schema_version, v0.schema_version, old.schema_version) == (1, 0, 0)
+    for s in (v1, v0, old):
+        assert s.exists and s.written_by_rtsgt and s.name == "d"
+        assert (s.engine, s.samples, s.seed, s.gp_noise) == ("mc", 50, 7, "all")
+        assert (s.max_gap_s, s.distance_gate_m, s.uncertainty_gate_m) == (2.5, 0.2, 0.3)
+        assert s.uncertainty_measure == "trace"
+        assert s.intervals_s.tolist() == [[1.0, 2.0], [3.0, 4.0]]
+        assert s.prisms["1"].station == "2" and s.prisms["2"].station is None
+        assert float(s.prisms["1"].qc_m2_s3) == 0.5
+        assert s.reference_names == ("prism1", "prism2") and s.reference_frame == "world"
+        assert s.stations["2"].tolist() == [1, 2, 3] and s.gcp_names == ("A",)
+    # no file: the defaults
+    none = read_summary(tmp_path / "empty")
+    assert not none.exists and none.document == {} and none.engine == "linear"
+    assert none.max_gap_s == 3.0 and none.intervals_s is None
+
+
+@pytest.mark.parametrize(
+    ("schema", "match"),
+    [
+        ({"name": SUMMARY_SCHEMA_NAME, "version": SUMMARY_SCHEMA_VERSION + 1},
+         rf"summary schema version {SUMMARY_SCHEMA_VERSION + 1} is newer than this rtsgt reads"),
+        ({"name": "other", "version": 1}, r"'schema': expected"),
+        ({"name": SUMMARY_SCHEMA_NAME, "version": "1"}, r"'schema': expected"),
+        ([1], r"'schema': expected"),
+    ],
+)
+def test_summary_of_an_unknown_schema_is_refused_naming_the_file(run_data, tmp_path, schema,
+                                                                   match):
+    run = write_run_dir(run_data, tmp_path / "run")
+    doc = json.loads((run / "summary.json").read_text())
+    read_run(run)  # the older layout of the fixture reads
+    (run / "summary.json").write_text(json.dumps({"schema": schema, **doc}))
+    for read in (read_summary, read_run):
+        with pytest.raises(InputError, match=match) as exc:
+            read(run)
+        assert exc.value.path == str(run / "summary.json")
+    (run / "summary.json").write_text(json.dumps(
+        {"schema": {"name": SUMMARY_SCHEMA_NAME, "version": 1}, **doc}))
+    data = read_run(run)
+    assert data.summary_record.schema_version == 1 and data.engine == run_data.engine

@@ -22,8 +22,8 @@ Every :class:`~rtsgt.errors.RtsgtWarning` of the reading and the evaluation is s
 
 from __future__ import annotations
 
+import dataclasses
 import json
-import math
 import warnings
 from pathlib import Path
 
@@ -31,11 +31,13 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from rtsgt.cli.common import usage_error
 from rtsgt.errors import InputError, RtsgtWarning
-from rtsgt.evaluation import ALIGN_METHODS, DELTA_UNITS, EvaluationResult, evaluate
+from rtsgt.evaluation import ALIGN_METHODS, EvaluationOptions, EvaluationResult, evaluate
 from rtsgt.evaluation.associate import GroundTruthQuery, ValidatedGroundTruth
 from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
 from rtsgt.io.output_dir import check_target
+from rtsgt.io.run_reader import read_summary
 from rtsgt.io.trajectory import (
     FORMATS,
     attach_covariance,
@@ -54,44 +56,53 @@ GT_ENGINES = ("run", *POSE_ENGINES)
 #: Default ``--max-gap`` (s) for a ground-truth trajectory file (distance to the nearest stored
 #: pose): a few samples of a 5-10 Hz ground truth.
 DEFAULT_MAX_GAP_FILE_S = 0.5
+#: The command-line options of the fields of :class:`~rtsgt.evaluation.EvaluationOptions`.
+EVALUATION_OPTION_NAMES = {
+    "align": "--align",
+    "n_align": "--n-align",
+    "weighted": "--weighted",
+    "delta": "--delta",
+    "delta_unit": "--delta-unit",
+    "all_pairs": "--all-pairs",
+    "time_offset": "--t-offset",
+    "max_dt": "--max-gap",
+}
+
+
+def evaluation_options(**values) -> EvaluationOptions:
+    """The :class:`~rtsgt.evaluation.EvaluationOptions` of the given (not None) command-line
+    values, each checked by the record's own rule first; a bad one is a usage error naming its
+    option (a bad combination names the first option it involves: ``--delta`` with
+    ``--delta-unit f``)."""
+    changes = {k: v for k, v in values.items() if v is not None}
+    for key, value in changes.items():
+        try:
+            EvaluationOptions(**{key: value})
+        except InputError as exc:
+            raise usage_error(exc.bare_message, EVALUATION_OPTION_NAMES[key]) from None
+    try:
+        return EvaluationOptions(**changes)
+    except InputError as exc:
+        raise usage_error(exc.bare_message, EVALUATION_OPTION_NAMES["delta"]) from None
 
 
 def run_gap_limit(gt: object, gt_dir: str | Path) -> float | None:
-    """The run's own gap limit, s: ``max_gap_s`` of a continuous ground truth, else
-    ``parameters.max_gap_s`` of ``GT_DIR/summary.json``; None for a trajectory file or a
-    directory without it.
+    """The run's own gap limit, s: ``max_gap_s`` of a continuous ground truth, else that of
+    ``GT_DIR/summary.json`` (:func:`rtsgt.io.run_reader.read_summary`); None for a trajectory
+    file or a directory without a summary.
 
     Raises
     ------
     InputError
-        ``summary.json`` is not valid JSON, or its ``max_gap_s`` is not a positive number.
+        ``summary.json`` cannot be read (naming it).
     """
     options = getattr(gt, "options", None)
     if options is not None and getattr(options, "max_gap_s", None) is not None:
         return float(options.max_gap_s)
-    path = Path(gt_dir) / "summary.json"
-    if not path.is_file():
+    if not Path(gt_dir).is_dir():
         return None
-    try:
-        summary = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise InputError(f"invalid JSON: {exc.msg}", path, exc.lineno) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read the file: {exc}", path) from None
-    params = summary.get("parameters") if isinstance(summary, dict) else summary
-    if params is not None and not isinstance(params, dict):
-        raise InputError("parameters: expected a JSON object of the run's parameters", path)
-    value = None if params is None else params.get("max_gap_s")
-    if value is None:
-        return None
-    try:
-        limit = float(value)
-    except (TypeError, ValueError):
-        limit = math.nan
-    if not (math.isfinite(limit) and limit > 0):
-        raise InputError(f"parameters.max_gap_s: expected a positive number of s, got {value!r}",
-                         path)
-    return limit
+    summary = read_summary(gt_dir)
+    return float(summary.max_gap_s) if summary.exists else None
 
 
 def load_ground_truth(
@@ -129,24 +140,20 @@ def run_evaluate(
     child_frame: str | None = None,
     timestamps: str | Path | None = None,
     est_cov: str | Path | None = None,
-    align: str = "se3",
-    n_align: int | None = None,
-    weighted: bool = False,
-    delta: float = 1.0,
-    delta_unit: str = "m",
-    all_pairs: bool = False,
-    time_offset: float = 0.0,
-    max_dt: float | None = None,
+    options: EvaluationOptions | None = None,
+    max_gap: float | None = None,
     gt_mode: str = "auto",
     gt_engine: str | None = None,
 ) -> EvaluationResult:
-    """Read the ground truth and the estimate, then :func:`rtsgt.evaluation.evaluate`.
+    """Read the ground truth and the estimate, then :func:`rtsgt.evaluation.evaluate` with
+    ``options`` (default: ``EvaluationOptions()``).
 
-    ``time_offset`` (s) is added to the estimate's times; ``max_dt`` (s) is the largest
-    distance to the nearest ground-truth measurement (continuous: of every prism; discrete:
-    the nearest stored pose), by default the run's own gap limit (:func:`run_gap_limit`) or
-    :data:`DEFAULT_MAX_GAP_FILE_S` (module docstring); ``gt_mode`` and ``gt_engine``:
-    :func:`load_ground_truth` (``gt_engine`` ``"run"`` or None: the run's engine).
+    ``max_gap`` (s), the largest distance to the nearest ground-truth measurement
+    (continuous: of every prism; discrete: the nearest stored pose), replaces
+    ``options.max_dt``; its default depends on the ground truth: the run's own gap limit
+    (:func:`run_gap_limit`) or :data:`DEFAULT_MAX_GAP_FILE_S` (module docstring).
+    ``gt_mode`` and ``gt_engine``: :func:`load_ground_truth` (``gt_engine`` ``"run"`` or
+    None: the run's engine).
     """
     if gt_engine is not None and gt_engine not in GT_ENGINES:
         raise InputError(
@@ -162,21 +169,11 @@ def run_evaluate(
     )
     if est_cov is not None:
         est = attach_covariance(est, read_covariance_csv(est_cov), source=str(est_cov))
-    if max_dt is None:
+    if max_gap is None:
         limit = run_gap_limit(gt, gt_dir) if Path(gt_dir).is_dir() else None
-        max_dt = DEFAULT_MAX_GAP_FILE_S if limit is None else limit
-    return evaluate(
-        gt,
-        est,
-        align=align,
-        n_align=n_align,
-        weighted=weighted,
-        delta=delta,
-        delta_unit=delta_unit,
-        all_pairs=all_pairs,
-        time_offset=time_offset,
-        max_dt=max_dt,
-    )
+        max_gap = DEFAULT_MAX_GAP_FILE_S if limit is None else limit
+    options = EvaluationOptions() if options is None else options
+    return evaluate(gt, est, dataclasses.replace(options, max_dt=max_gap))
 
 
 def _stats_row(name: str, s, scale: float, digits: int) -> list[str]:
@@ -387,14 +384,16 @@ def register(app: typer.Typer) -> None:
                                         "directory holding anything else)."),
     ) -> None:
         """Evaluate an estimated trajectory against the uncertain ground truth (APE, RPE, NEES)."""
-        if align not in ALIGN_METHODS:
-            raise typer.BadParameter(
-                f"expected one of {', '.join(ALIGN_METHODS)}", param_hint="--align"
-            )
-        if delta_unit not in DELTA_UNITS:
-            raise typer.BadParameter(
-                f"expected one of {', '.join(DELTA_UNITS)}", param_hint="--delta-unit"
-            )
+        options = evaluation_options(
+            align=align,
+            n_align=n_align,
+            weighted=weighted,
+            delta=delta,
+            delta_unit=delta_unit,
+            all_pairs=all_pairs,
+            time_offset=time_offset,
+            max_dt=max_dt,  # None: the run's own limit (run_evaluate), checked here when given
+        )
         if fmt is not None and fmt not in FORMATS:
             raise typer.BadParameter(f"expected one of {', '.join(FORMATS)}", param_hint="--format")
         if gt_mode not in GT_MODES:
@@ -403,8 +402,6 @@ def register(app: typer.Typer) -> None:
             raise typer.BadParameter(
                 f"expected one of {', '.join(GT_ENGINES)}", param_hint="--gt-engine"
             )
-        if max_dt is not None and not max_dt > 0:
-            raise typer.BadParameter("expected a positive number of seconds", param_hint="--max-gap")
         if plot is not None:
             check_target(plot, force=force)  # before any work
         with _collect_warnings() as notes:
@@ -416,14 +413,8 @@ def register(app: typer.Typer) -> None:
                 child_frame=child_frame,
                 timestamps=timestamps,
                 est_cov=est_cov,
-                align=align,
-                n_align=n_align,
-                weighted=weighted,
-                delta=delta,
-                delta_unit=delta_unit,
-                all_pairs=all_pairs,
-                time_offset=time_offset,
-                max_dt=max_dt,
+                options=options,
+                max_gap=max_dt,
                 gt_mode=gt_mode,
                 gt_engine=gt_engine,
             )

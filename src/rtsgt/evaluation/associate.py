@@ -120,6 +120,21 @@ class ValidatedGroundTruth(Protocol):
         ...
 
 
+@runtime_checkable
+class PairCovarianceGroundTruth(Protocol):
+    """A ground truth that knows the covariances of pairs of its poses, cross-covariance
+    included (e.g. :class:`rtsgt.evaluation.groundtruth.ContinuousGroundTruth`: the errors two
+    poses share, from one first-order model). The RPE's relative-pose covariance then uses
+    them instead of assuming independent poses or chaining ``cross_next``."""
+
+    def pair_covariances(
+        self, tau_a: ArrayLike, tau_b: ArrayLike
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``Cov(xi(tau_a))``, ``Cov(xi(tau_b))`` and ``Cov(xi(tau_a), xi(tau_b))``, each of
+        shape (K, 6, 6), at ground-truth times (the ground truth's clock)."""
+        ...
+
+
 @dataclass(frozen=True)
 class Association:
     """Estimate poses paired with the ground truth at the same (offset) times.

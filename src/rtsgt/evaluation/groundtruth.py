@@ -65,8 +65,7 @@ from rtsgt.filtering.gates import apply_gates
 from rtsgt.interpolation import GPTrack
 from rtsgt.interpolation.cross import gp_cross_covariance
 from rtsgt.interpolation.prisms import fit_gps, query_prisms
-from rtsgt.io.run_output import COV3_NAMES, columns_to_cov3
-from rtsgt.io.run_reader import read_run, read_table
+from rtsgt.io.run_reader import read_run
 from rtsgt.options import RunOptions, stage_rng
 from rtsgt.pose import POSE_ENGINES, ReferencePoints, estimate_poses
 from rtsgt.pose.registration import registration_jacobian
@@ -210,9 +209,9 @@ class ContinuousGroundTruth:
         Parameters
         ----------
         run_dir : path
-            Needs ``measurements/prism<i>.csv``, ``reference.csv`` and ``summary.json`` (with
-            each prism's ``qc_m2_s3``) besides the files :func:`rtsgt.io.run_reader.read_run`
-            reads.
+            Read by :func:`rtsgt.io.run_reader.read_run` (the only reader of its files,
+            ``summary.json`` through :func:`~rtsgt.io.run_reader.read_summary`); needs
+            ``measurements/prism<i>.csv`` and ``summary.json`` with each prism's ``qc_m2_s3``.
         engine : {"mc", "ut", "linear"}, optional
             Pose engine (default: the run's). ``"linear"`` is the fastest.
         samples, seed : int, optional
@@ -229,81 +228,53 @@ class ContinuousGroundTruth:
                 "no measurements/ folder: not an rtsgt run directory with measured tracks", root
             )
         run = read_run(root)
-        summary = run.summary
-        summary_path = root / "summary.json"
-        if not summary:
+        summary = run.summary_record  # summary.json, parsed by rtsgt.io.run_reader
+        summary_path = summary.path
+        if not summary.document:
             raise InputError("missing or empty summary.json (the run's Qc and options)",
                              summary_path)
-        if not isinstance(summary, dict):
-            raise InputError(f"expected a JSON object (the run's summary), got a "
-                             f"{type(summary).__name__}", summary_path)
-        params = (_section(summary, "parameters", summary_path)
-                  or _section(summary, "options", summary_path))
-        gp_noise = run.gp_noise
-        if gp_noise not in ("white", "all"):
-            raise InputError(f"gp_noise: expected 'white' or 'all', got {gp_noise!r}",
-                             summary_path)
+        gp_noise = summary.gp_noise
         tracks: dict[str, PrismTrack] = {}
         qc: dict[str, np.ndarray] = {}
-        prisms_info = summary.get("prisms") or {}
         for pid in run.prism_ids:
             tr = run.measurements.get(pid)
             path = root / "measurements" / f"prism{pid}.csv"
             if tr is None:
                 raise InputError(f"no measured track of prism {pid}", path)
-            if gp_noise == "all":
+            if gp_noise == "all" and pid in run.measurements_gp_cov:
                 # the GP was given the total covariance: the file's cov_* columns
-                header, data = read_table(path)
-                if all(f"cov_{c}" in header for c in COV3_NAMES):
-                    cols = [header.index(f"cov_{c}") for c in COV3_NAMES]
-                    tr = dataclasses.replace(tr, cov=columns_to_cov3(data[:, cols]))
-            info = prisms_info.get(pid) if isinstance(prisms_info, dict) else None
-            if isinstance(info, dict) and info.get("station") is not None:
-                tr = dataclasses.replace(tr, station=str(info["station"]))
+                tr = dataclasses.replace(tr, cov=run.measurements_gp_cov[pid])
+            info = summary.prisms.get(pid)
+            if info is not None and info.station is not None:
+                tr = dataclasses.replace(tr, station=info.station)
             tracks[pid] = tr
-            q = info.get("qc_m2_s3") if isinstance(info, dict) else None
-            if q is None:
+            if info is None or info.qc_m2_s3 is None:
                 raise InputError(f"no qc_m2_s3 for prism {pid} under 'prisms'", summary_path)
-            try:
-                qc[pid] = np.asarray(q, dtype=float)
-            except (TypeError, ValueError) as exc:
-                raise InputError(f"prism {pid}: bad qc_m2_s3 {q!r}: {exc}", summary_path) from None
-        iv = summary.get("intervals_s")
-        if iv is None:
+            qc[pid] = info.qc_m2_s3
+        intervals = summary.intervals_s
+        if intervals is None:
             # an older summary: the span every prism covers
             lo = max(float(tr.t[0]) for tr in tracks.values())
             hi = min(float(tr.t[-1]) for tr in tracks.values())
-            iv = [[lo, hi]] if hi > lo else []
-        try:
-            intervals = np.asarray(iv, dtype=float).reshape(-1, 2)
-        except (TypeError, ValueError) as exc:
-            raise InputError(f"bad intervals_s: {exc}", summary_path) from None
-        frame = _section(summary, "reference", summary_path).get("frame", "body")
-        reference = ReferencePoints(run.prism_ids, run.reference_xyz, run.reference_cov, frame)
+            intervals = np.asarray([[lo, hi]] if hi > lo else [], dtype=float).reshape(-1, 2)
+        reference = ReferencePoints(run.prism_ids, run.reference_xyz, run.reference_cov,
+                                    summary.reference_frame)
         try:
             options = RunOptions(
-                engine=run.engine,
-                samples=run.samples,
-                seed=run.seed,
-                max_gap_s=_positive(params, "max_gap_s", 3.0, summary_path),
+                engine=summary.engine,
+                samples=summary.samples,
+                seed=summary.seed,
+                max_gap_s=summary.max_gap_s,
                 gp_noise=gp_noise,
-                distance_gate_m=_positive(params, "distance_gate_m", 0.10, summary_path),
-                uncertainty_gate_m=_positive(params, "uncertainty_gate_m", 0.20, summary_path),
+                distance_gate_m=summary.distance_gate_m,
+                uncertainty_gate_m=summary.uncertainty_gate_m,
             )
         except InputError as exc:
             raise InputError(str(exc), summary_path) from None
         options = _override(options, engine, samples, seed)
-        measure = str(_section(summary, "gates", summary_path).get("uncertainty_measure",
-                                                                    "max_std"))
-        coupling = None
-        doc = _section(summary, "calibration", summary_path).get("coupling")
-        if doc is not None:  # runs written before rtsgt carried it have none
-            try:
-                coupling = StationCoupling.from_dict(doc)
-            except (KeyError, TypeError, ValueError) as exc:
-                raise InputError(f"bad calibration.coupling: {exc}", summary_path) from None
         return cls.from_tracks(tracks, qc, intervals, reference, options,
-                               uncertainty_measure=measure, source=str(root), coupling=coupling)
+                               uncertainty_measure=summary.uncertainty_measure,
+                               source=str(root), coupling=summary.coupling)
 
     # ---------------------------------------------------------------------------------------
     # queries
@@ -470,28 +441,6 @@ class ContinuousGroundTruth:
             gated = idx[~keep]
             reason[gated] = np.char.add(GATE_PREFIX, report.reason[~keep].astype(str))
         return GroundTruthSample(tau.copy(), position, quat, cov, reason, nearest, None)
-
-
-def _section(summary: dict, key: str, path: Path) -> dict:
-    """``summary[key]``, a JSON object ({} when absent); an :class:`InputError` otherwise."""
-    value = summary.get(key)
-    if value is None:
-        return {}
-    if not isinstance(value, dict):
-        raise InputError(f"{key!r}: expected a JSON object, got {value!r}"[:200], path)
-    return value
-
-
-def _positive(params: dict, key: str, default: float, path: Path) -> float:
-    """``params[key]`` (``default`` when absent) as a positive finite float."""
-    value = params.get(key, default)
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        x = float("nan")
-    if not (np.isfinite(x) and x > 0):
-        raise InputError(f"parameters.{key}: expected a positive number, got {value!r}", path)
-    return x
 
 
 def _override(options: RunOptions, engine: str | None, samples: int | None,

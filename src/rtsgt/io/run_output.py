@@ -18,10 +18,11 @@ Layout of ``OUT/`` (every number in SI units, stated in the headers)::
                                      every prism is tracked; reason: the filter's reason, e.g.
                                      rate_hz, status, not_all_tracked, short_interval)
     reference.csv                    reference prisms in the body frame: name,x,y,z,cov_xx..cov_zz
-    summary.json                     inputs, parameters, version, seed, counts removed per
-                                     filter and gate, Qc, calibration, medians, timings, the
-                                     weather file and its coverage, the tracked inter-prism
-                                     distances against the surveyed ones, warnings
+    summary.json                     schema (name, version), inputs, parameters, version,
+                                     seed, counts removed per filter and gate, Qc, calibration,
+                                     medians, timings, the weather file and its coverage, the
+                                     tracked inter-prism distances against the surveyed ones,
+                                     warnings (read back only by rtsgt.io.run_reader.read_summary)
     .rtsgt-output.json               manifest of the files rtsgt wrote (rtsgt.io.output_dir)
 
 The directory is assembled under a temporary name beside ``OUT`` and renamed at the end, and
@@ -45,6 +46,11 @@ from rtsgt.io.output_dir import OutputDir
 from rtsgt.io.trajectory import TUM_COMMENT, write_covariance_csv, write_tum
 
 COV3_NAMES = ("xx", "xy", "xz", "yy", "yz", "zz")
+#: Name and version of the layout of ``summary.json`` (its ``schema`` key); read back by
+#: :func:`rtsgt.io.run_reader.read_summary`, which refuses a newer version. A summary without
+#: the key is of the layout before it (version 0).
+SUMMARY_SCHEMA_NAME = "rtsgt-run"
+SUMMARY_SCHEMA_VERSION = 1
 #: The comment line of ``groundtruth.tum``.
 GROUNDTRUTH_TUM_COMMENT = f"{TUM_COMMENT} (world frame = reference station)"
 _IU = np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2])
@@ -166,6 +172,7 @@ def run_summary(result, inputs: dict | None = None) -> dict:
         }
     res = cal.residuals
     return {
+        "schema": {"name": SUMMARY_SCHEMA_NAME, "version": SUMMARY_SCHEMA_VERSION},
         "software": {"name": "rtsgt", "version": __version__},
         "deployment": result.data.name,
         "inputs": inputs or {},

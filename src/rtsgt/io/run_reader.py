@@ -16,6 +16,16 @@ Columns are located by their header names, so extra columns are ignored and the 
 columns does not matter. Every problem is an :class:`~rtsgt.errors.InputError` naming the file
 (and the line where it applies).
 
+summary.json
+------------
+:func:`read_summary` is the only reader of ``summary.json``: it checks the layout's
+``schema`` (``{"name": "rtsgt-run", "version": 1}``; a summary without it is of the layout
+before, read as version 0; a newer version is refused), applies the fallbacks for older layouts
+(``options`` for ``parameters``, engine, samples, seed and gp_noise at the top level, ``name``
+for ``deployment``, ``gcp_world`` outside ``calibration``) and returns a typed
+:class:`RunSummary`. :func:`read_run`, :meth:`rtsgt.evaluation.ContinuousGroundTruth.from_run_dir`
+and the report take what they need from it.
+
 Missing files
 -------------
 A run whose files are not all there is a damaged run (a file deleted, a copy cut short), and
@@ -46,13 +56,21 @@ from pathlib import Path
 
 import numpy as np
 
+from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.io._parse import csv_table, read_table, split_rows, to_float
-from rtsgt.io.run_output import COV3_NAMES, columns_to_cov3
+from rtsgt.io.run_output import (
+    COV3_NAMES,
+    SUMMARY_SCHEMA_NAME,
+    SUMMARY_SCHEMA_VERSION,
+    columns_to_cov3,
+)
 from rtsgt.io.trajectory import read_covariance_csv
+from rtsgt.options import RunOptions
 from rtsgt.types import NOISE_SOURCES, PoseTrajectory, PrismTrack
 
-__all__ = ["RunData", "read_run", "read_table", "station_positions_from_summary"]
+__all__ = ["PrismSummary", "RunData", "RunSummary", "read_run", "read_summary", "read_table",
+           "station_positions_from_summary"]
 
 _PRISM_FILE = re.compile(r"^prism(?P<id>.+?)\.csv$")
 _SOURCES_FILE = re.compile(r"^prism(?P<id>.+?)_sources\.csv$")
@@ -119,6 +137,11 @@ class RunData:
     removed_prism : ndarray of str, shape (M,)
     removed_stage : ndarray of str, shape (M,)
         ``"module1"`` or ``"module2"``: the filter that removed each.
+    summary_record : RunSummary, optional
+        ``summary`` parsed by :func:`read_summary` (None for an in-memory run).
+    measurements_gp_cov : dict str -> ndarray (N, 3, 3)
+        Per prism, the covariance the GP was given (the ``cov_*`` columns of
+        ``measurements/prism<i>.csv``), when the file has them.
     """
 
     name: str
@@ -147,6 +170,8 @@ class RunData:
     removed_xyz: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
     removed_prism: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=str))
     removed_stage: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=str))
+    summary_record: RunSummary | None = None
+    measurements_gp_cov: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         n = len(self.prism_ids)
@@ -227,10 +252,14 @@ def _prism_files(folder: Path, pattern: re.Pattern) -> dict[str, Path]:
     return dict(sorted(out.items(), key=lambda kv: _natural_key(kv[0])))
 
 
-def _read_measurements(path: Path, pid: str) -> PrismTrack:
+def _read_measurements(path: Path, pid: str) -> tuple[PrismTrack, np.ndarray | None]:
+    """The measured track, and the file's ``cov_*`` columns (the covariance given to the GP;
+    None without them)."""
     header, data = read_table(path, ("t", "x", "y", "z"))
     sources = _source_prefixes(header)
     by_source = {s: _cov_from(header, data, s) for s in sources}
+    file_cov = (_cov_from(header, data, "cov") if all(f"cov_{c}" in header for c in COV3_NAMES)
+                else None)
     if by_source:
         cov = np.sum(list(by_source.values()), axis=0)
     elif "cov_xx" in header:
@@ -240,7 +269,7 @@ def _read_measurements(path: Path, pid: str) -> PrismTrack:
     rng = _col(header, data, "range_m") if "range_m" in header else None
     try:
         return PrismTrack(_col(header, data, "t"), data[:, [header.index(c) for c in "xyz"]],
-                          cov, by_source, pid, "world", None, rng)
+                          cov, by_source, pid, "world", None, rng), file_cov
     except ValueError as exc:
         raise InputError(str(exc), path) from exc
 
@@ -270,15 +299,15 @@ def _strip_prism(name: str) -> str:
     return name[5:] if name.lower().startswith("prism") and len(name) > 5 else name
 
 
-def _full_reference_cov(summary: dict, ids: tuple[str, ...], blocks: np.ndarray) -> np.ndarray:
+def _full_reference_cov(summary: RunSummary, ids: tuple[str, ...],
+                        blocks: np.ndarray) -> np.ndarray:
     """The joint reference covariance of ``summary.json`` (``reference.cov_m2``, correlated
     between prisms when the body frame is defined by surveyed points), reordered to ``ids``;
     the block-diagonal one of ``reference.csv`` when it is absent or does not match."""
-    ref = summary.get("reference") if isinstance(summary, dict) else None
-    if not isinstance(ref, dict) or ref.get("cov_m2") is None or ref.get("names") is None:
+    if summary.reference_cov is None or summary.reference_names is None:
         return blocks
-    names = [_strip_prism(str(x)) for x in ref["names"]]
-    full = np.asarray(ref["cov_m2"], dtype=float)
+    names = [_strip_prism(x) for x in summary.reference_names]
+    full = summary.reference_cov
     if full.shape != (3 * len(names), 3 * len(names)) or not set(ids) <= set(names):
         return blocks
     idx = np.concatenate([[3 * names.index(p) + j for j in range(3)] for p in ids])
@@ -391,11 +420,221 @@ def _gcp_from_summary(summary: dict) -> tuple[np.ndarray | None, tuple[str, ...]
     return arr, tuple(str(i + 1) for i in range(arr.shape[0]))
 
 
-def _check_files(root: Path, summary: dict) -> None:
+@dataclass(frozen=True)
+class PrismSummary:
+    """What ``summary.json`` says of one prism (``prisms.<id>``)."""
+
+    #: The station that tracked it (None when not recorded).
+    station: str | None = None
+    #: The GP's power spectral density Qc, m^2/s^3 (None when not recorded).
+    qc_m2_s3: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """``summary.json`` of a run, parsed by :func:`read_summary` (the defaults are those of a
+    run without the entry: an older layout, or a directory assembled by hand).
+
+    ``document`` is the whole JSON object as read (``{}`` without the file), for display.
+    """
+
+    path: Path
+    document: dict = field(default_factory=dict)
+    #: Whether the file exists.
+    exists: bool = False
+    #: Layout version (``schema.version``; 0 for a summary written before it had one).
+    schema_version: int = 0
+    #: Whether ``software.name`` is ``"rtsgt"`` (a run written by rtsgt).
+    written_by_rtsgt: bool = False
+    #: Deployment name (``deployment``, or ``name`` of older layouts); None when absent.
+    name: str | None = None
+    engine: str = "linear"
+    samples: int = RunOptions.samples
+    seed: int = 0
+    rate_hz: object = None
+    qc: object = None
+    max_gap_s: float = RunOptions.max_gap_s
+    gp_noise: str = RunOptions.gp_noise
+    distance_gate_m: float = RunOptions.distance_gate_m
+    uncertainty_gate_m: float = RunOptions.uncertainty_gate_m
+    #: ``gates.uncertainty_measure``.
+    uncertainty_measure: str = "max_std"
+    #: Prisms listed under ``prisms``, in the file's order.
+    prisms: dict[str, PrismSummary] = field(default_factory=dict)
+    #: ``intervals_s`` (K, 2), s; None when absent (an older summary).
+    intervals_s: np.ndarray | None = None
+    #: ``reference``: names, body-frame positions (n, 3) m, joint covariance (3n, 3n) m^2,
+    #: frame; None when absent.
+    reference_names: tuple[str, ...] | None = None
+    reference_xyz: np.ndarray | None = None
+    reference_cov: np.ndarray | None = None
+    reference_frame: str = "body"
+    #: Station positions of ``calibration`` (:func:`station_positions_from_summary`), m.
+    stations: dict[str, np.ndarray] = field(default_factory=dict)
+    #: GCPs in the world frame (G, 3) m and their names (``calibration.gcp_world``).
+    gcp_xyz: np.ndarray | None = None
+    gcp_names: tuple[str, ...] = ()
+    #: ``calibration.coupling`` (None for runs written before rtsgt carried it).
+    coupling: StationCoupling | None = None
+
+
+def _section(doc: dict, key: str, path: Path) -> dict:
+    """``doc[key]``, a JSON object ({} when absent); an :class:`InputError` otherwise."""
+    value = doc.get(key)
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise InputError(f"{key!r}: expected a JSON object, got {value!r}"[:200], path)
+    return value
+
+
+def _positive(params: dict, key: str, default: float, path: Path) -> float:
+    """``params[key]`` (``default`` when absent) as a positive finite float."""
+    value = params.get(key, default)
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        x = float("nan")
+    if not (np.isfinite(x) and x > 0):
+        raise InputError(f"parameters.{key}: expected a positive number, got {value!r}", path)
+    return x
+
+
+def _array(value, what: str, path: Path) -> np.ndarray:
+    try:
+        return np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{what}: expected numbers, got {value!r}: {exc}"[:300], path) from None
+
+
+def _schema_version(doc: dict, path: Path) -> int:
+    """``schema.version`` (0 without ``schema``); a newer version than this rtsgt's is
+    refused."""
+    schema = doc.get("schema")
+    if schema is None:
+        return 0
+    version = schema.get("version") if isinstance(schema, dict) else None
+    if (not isinstance(schema, dict) or schema.get("name") != SUMMARY_SCHEMA_NAME
+            or not isinstance(version, int) or isinstance(version, bool) or version < 0):
+        raise InputError(f"'schema': expected {{\"name\": \"{SUMMARY_SCHEMA_NAME}\", "
+                         f"\"version\": <integer>}}, got {schema!r}"[:300], path)
+    if version > SUMMARY_SCHEMA_VERSION:
+        raise InputError(f"summary schema version {version} is newer than this rtsgt reads "
+                         f"(version {SUMMARY_SCHEMA_VERSION}): the run was written by a later "
+                         "rtsgt; upgrade rtsgt to read it", path)
+    return version
+
+
+def read_summary(run_dir: str | PathLike) -> RunSummary:
+    """Read ``run_dir/summary.json``: the only reader of that file (module docstring).
+
+    Returns
+    -------
+    RunSummary
+        The defaults (and ``exists`` False) when the file is absent.
+
+    Raises
+    ------
+    InputError
+        Naming the file: not valid JSON, not a JSON object, a newer schema version, or an
+        entry of the wrong type (a section that is not an object, a non-positive
+        ``max_gap_s`` or gate, a ``gp_noise`` other than ``white`` or ``all``, a bad Qc,
+        interval or coupling).
+    """
+    path = Path(run_dir) / "summary.json"
+    if not path.is_file():
+        return RunSummary(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise InputError(f"invalid JSON: {exc.msg}", path, exc.lineno) from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read the file: {exc}", path) from None
+    if not isinstance(doc, dict):
+        raise InputError(f"expected a JSON object (the run's summary), got a "
+                         f"{type(doc).__name__}", path)
+    version = _schema_version(doc, path)
+    # older layouts: "options" for "parameters"; engine, samples, seed, gp_noise at the top
+    params = _section(doc, "parameters", path) or _section(doc, "options", path)
+
+    def param(key, default):
+        return params[key] if key in params else doc.get(key, default)
+
+    try:
+        samples = int(param("samples", 1000))
+        seed = param("seed", 0)
+        seed = int(seed) if seed is not None else 0
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"parameters: samples and seed must be integers: {exc}", path) from None
+    gp_noise = str(param("gp_noise", "white"))
+    if gp_noise not in ("white", "all"):
+        raise InputError(f"gp_noise: expected 'white' or 'all', got {gp_noise!r}", path)
+    name = _find(doc, "name", "deployment", default=None)
+    if isinstance(name, dict):
+        name = name.get("name")
+    software = doc.get("software")
+
+    prisms: dict[str, PrismSummary] = {}
+    listed = doc.get("prisms")
+    for pid, info in (listed.items() if isinstance(listed, dict) else ()):
+        info = info if isinstance(info, dict) else {}
+        q = info.get("qc_m2_s3")
+        if q is not None:
+            try:
+                q = np.asarray(q, dtype=float)
+            except (TypeError, ValueError) as exc:
+                raise InputError(f"prism {pid}: bad qc_m2_s3 {q!r}: {exc}", path) from None
+        station = info.get("station")
+        prisms[str(pid)] = PrismSummary(None if station is None else str(station), q)
+
+    iv = doc.get("intervals_s")
+    if iv is not None:
+        try:
+            iv = np.asarray(iv, dtype=float).reshape(-1, 2)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"bad intervals_s: {exc}", path) from None
+
+    ref = _section(doc, "reference", path)
+    ref_names = ref.get("names")
+    if ref_names is not None:
+        if not isinstance(ref_names, list):
+            raise InputError(f"reference.names: expected a list, got {ref_names!r}"[:200], path)
+        ref_names = tuple(str(x) for x in ref_names)
+    ref_xyz = None if ref.get("xyz_m") is None else _array(ref["xyz_m"], "reference.xyz_m", path)
+    ref_cov = (None if ref.get("cov_m2") is None
+               else _array(ref["cov_m2"], "reference.cov_m2", path))
+
+    calibration = _section(doc, "calibration", path)
+    coupling = None
+    if calibration.get("coupling") is not None:  # runs written before rtsgt carried it
+        try:
+            coupling = StationCoupling.from_dict(calibration["coupling"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"bad calibration.coupling: {exc}", path) from None
+    gcp_xyz, gcp_names = _gcp_from_summary(doc)
+
+    return RunSummary(
+        path=path, document=doc, exists=True, schema_version=version,
+        written_by_rtsgt=isinstance(software, dict) and software.get("name") == "rtsgt",
+        name=None if name is None else str(name),
+        engine=str(param("engine", "linear")), samples=samples, seed=seed,
+        rate_hz=params.get("rate_hz"), qc=params.get("qc"),
+        max_gap_s=_positive(params, "max_gap_s", 3.0, path), gp_noise=gp_noise,
+        distance_gate_m=_positive(params, "distance_gate_m", 0.10, path),
+        uncertainty_gate_m=_positive(params, "uncertainty_gate_m", 0.20, path),
+        uncertainty_measure=str(_section(doc, "gates", path).get("uncertainty_measure",
+                                                                  "max_std")),
+        prisms=prisms, intervals_s=iv, reference_names=ref_names, reference_xyz=ref_xyz,
+        reference_cov=ref_cov, reference_frame=str(ref.get("frame", "body")),
+        stations=station_positions_from_summary(doc), gcp_xyz=gcp_xyz, gcp_names=gcp_names,
+        coupling=coupling,
+    )
+
+
+def _check_files(root: Path, summary: RunSummary) -> None:
     """Refuse a run missing a file its summary says was written; warn for an optional one
     (module docstring, section Missing files)."""
-    listed = summary.get("prisms") if isinstance(summary, dict) else None
-    for pid in listed if isinstance(listed, dict) else ():
+    for pid in summary.prisms:
         for path, what in ((root / "measurements" / f"prism{pid}.csv", "measured track"),
                            (root / "prisms" / f"prism{pid}.csv", "interpolated positions"),
                            (root / "prisms" / f"prism{pid}_sources.csv",
@@ -405,8 +644,7 @@ def _check_files(root: Path, summary: dict) -> None:
                     f"missing: summary.json lists prism {pid}, whose {what} this file holds; "
                     "the run directory is damaged (a file deleted or not copied): copy the "
                     "whole directory again or rerun `rtsgt run`", path)
-    software = summary.get("software") if isinstance(summary, dict) else None
-    if isinstance(software, dict) and software.get("name") == "rtsgt":
+    if summary.written_by_rtsgt:
         for path, lost in ((root / "rejected_poses.csv", "the rejected poses"),
                            (root / "measurements" / "removed.csv",
                             "the measurements the filters removed")):
@@ -437,19 +675,14 @@ def read_run(run_dir: str | PathLike) -> RunData:
     root = Path(run_dir)
     if not root.is_dir():
         raise InputError("run directory not found", root)
-    summary_path = root / "summary.json"
-    summary: dict = {}
-    if summary_path.is_file():
-        try:
-            summary = json.loads(summary_path.read_text(encoding="utf-8"))
-        except json.JSONDecodeError as exc:
-            raise InputError(f"invalid JSON: {exc.msg}", summary_path, exc.lineno) from exc
-
+    summary = read_summary(root)
     _check_files(root, summary)
 
     # measurements
     meas_files = _prism_files(root / "measurements", _PRISM_FILE)
-    measurements = {pid: _read_measurements(p, pid) for pid, p in meas_files.items()}
+    read = {pid: _read_measurements(p, pid) for pid, p in meas_files.items()}
+    measurements = {pid: tr for pid, (tr, _) in read.items()}
+    gp_cov = {pid: c for pid, (_, c) in read.items() if c is not None}
 
     # prisms at the query times
     prism_files = _prism_files(root / "prisms", _PRISM_FILE)
@@ -498,16 +731,8 @@ def read_run(run_dir: str | PathLike) -> RunData:
     rm_t, rm_xyz, rm_prism, rm_stage = _read_removed(root / "measurements" / "removed.csv")
     ref_xyz, ref_cov = _read_reference(root / "reference.csv", ids)
     ref_cov = _full_reference_cov(summary, ids, ref_cov)
-    gcp_xyz, gcp_names = _gcp_from_summary(summary)
-    opts = _find(summary, "options", "parameters", default={}) or {}
-    engine = str(_find(opts, "engine", default=_find(summary, "engine", default="linear")))
-    samples = int(_find(opts, "samples", default=_find(summary, "samples", default=1000)))
-    seed = _find(opts, "seed", default=_find(summary, "seed", default=0))
-    gp_noise = str(_find(opts, "gp_noise", default=_find(summary, "gp_noise", default="white")))
-    name = _find(summary, "name", "deployment", default=root.name)
-    name = str(name.get("name", root.name) if isinstance(name, dict) else name)
     return RunData(
-        name=name, prism_ids=ids,
+        name=summary.name if summary.name is not None else root.name, prism_ids=ids,
         measurements={pid: measurements[pid] for pid in ids if pid in measurements},
         prisms_t=t_ref, prisms_xyz=np.stack(xyz, axis=1), prisms_cov=np.stack(cov, axis=1),
         prisms_cov_by_source=dict(zip(_ordered_sources(prisms_by_source),
@@ -515,10 +740,11 @@ def read_run(run_dir: str | PathLike) -> RunData:
                                        _ordered_sources(prisms_by_source)], strict=True)),
         groundtruth=gt, rejected_t=rej_t, rejected_reason=rej_r,
         reference_xyz=ref_xyz, reference_cov=ref_cov,
-        stations=station_positions_from_summary(summary),
-        prisms_cov_gp=np.stack(cov_gp, axis=1) if len(cov_gp) == n else None, gcp_xyz=gcp_xyz,
-        gcp_names=gcp_names, engine=engine, samples=samples,
-        seed=int(seed) if seed is not None else 0, gp_noise=gp_noise,
-        summary=summary, path=root, removed_t=rm_t, removed_xyz=rm_xyz,
-        removed_prism=rm_prism, removed_stage=rm_stage,
+        stations=summary.stations,
+        prisms_cov_gp=np.stack(cov_gp, axis=1) if len(cov_gp) == n else None,
+        gcp_xyz=summary.gcp_xyz, gcp_names=summary.gcp_names, engine=summary.engine,
+        samples=summary.samples, seed=summary.seed, gp_noise=summary.gp_noise,
+        summary=summary.document, path=root, removed_t=rm_t, removed_xyz=rm_xyz,
+        removed_prism=rm_prism, removed_stage=rm_stage, summary_record=summary,
+        measurements_gp_cov={pid: gp_cov[pid] for pid in ids if pid in gp_cov},
     )

@@ -1,0 +1,79 @@
+"""Options of an evaluation (one owner of their defaults and of the rule they meet).
+
+:func:`rtsgt.evaluation.evaluate` and ``rtsgt evaluate`` both map onto
+:class:`EvaluationOptions`; its ``__post_init__`` is the one check every value meets.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rtsgt.errors import InputError
+from rtsgt.evaluation.align import ALIGN_METHODS
+from rtsgt.evaluation.metrics import DELTA_UNITS
+
+__all__ = ["EvaluationOptions"]
+
+
+@dataclass(frozen=True)
+class EvaluationOptions:
+    """How an estimate is associated, aligned and compared (evo's options).
+
+    Attributes
+    ----------
+    align : str
+        ``none``, ``se3``, ``sim3``, ``4dof``, ``scale`` or ``origin``
+        (:mod:`rtsgt.evaluation.align`).
+    n_align : int, optional
+        Align on the first ``n_align`` associated poses only (None: all).
+    weighted : bool
+        Covariance-weighted alignment (weights ``1 / tr Sigma_pos``).
+    delta, delta_unit, all_pairs, rel_delta_tol, pairs_from_reference :
+        RPE pair selection as evo (:func:`~rtsgt.evaluation.metrics.rpe_pairs`); units
+        ``m`` (path), ``s``, ``f`` (frames, an integer ``delta``); pairs from the aligned
+        estimate unless ``pairs_from_reference``.
+    time_offset : float
+        s added to the estimate's times (evo ``--t_offset``).
+    max_dt : float or None
+        Max distance (s) to the nearest ground-truth measurement time (for a continuous ground
+        truth: to the nearest measurement of every prism, ``--max-gap``); also the gap limit
+        of the RPE's gap warning (None: no limit).
+
+    Raises
+    ------
+    InputError
+        A value outside its rule (``bare_message`` says which and why).
+    """
+
+    align: str = "se3"
+    n_align: int | None = None
+    weighted: bool = False
+    delta: float = 1.0
+    delta_unit: str = "m"
+    all_pairs: bool = False
+    rel_delta_tol: float = 0.1
+    pairs_from_reference: bool = False
+    time_offset: float = 0.0
+    max_dt: float | None = 0.5
+
+    def __post_init__(self) -> None:
+        if self.align not in ALIGN_METHODS:
+            raise InputError(f"Expected an alignment in {ALIGN_METHODS}, got {self.align!r}")
+        if self.n_align is not None and (
+            int(self.n_align) != self.n_align or self.n_align < 1
+        ):
+            raise InputError(f"Expected a positive integer n_align, got {self.n_align}")
+        if self.delta_unit not in DELTA_UNITS:
+            raise InputError(f"Expected a delta unit in {DELTA_UNITS}, got {self.delta_unit!r}")
+        if not (np.isfinite(self.delta) and self.delta > 0):
+            raise InputError(f"Expected a positive RPE delta, got {self.delta}")
+        if self.delta_unit == "f" and float(self.delta) != int(self.delta):
+            raise InputError(f"Expected an integer RPE delta in frames, got {self.delta}")
+        if not (np.isfinite(self.rel_delta_tol) and self.rel_delta_tol >= 0):
+            raise InputError(f"Expected a finite rel_delta_tol >= 0, got {self.rel_delta_tol}")
+        if not np.isfinite(self.time_offset):
+            raise InputError(f"Expected a finite time offset, got {self.time_offset}")
+        if self.max_dt is not None and not self.max_dt > 0:
+            raise InputError(f"Expected a positive max_dt, got {self.max_dt}")

@@ -1,0 +1,218 @@
+"""What :func:`rtsgt.evaluation.evaluate` returns: APE / RPE statistics, NEES, noise floor and
+:class:`EvaluationResult` (whose :meth:`~EvaluationResult.to_dict` is the JSON layout of
+``rtsgt evaluate --json``, described in :mod:`rtsgt.evaluation`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from rtsgt.evaluation.align import Alignment
+from rtsgt.evaluation.associate import Association
+from rtsgt.evaluation.metrics import STATISTICS, NeesResult, error_statistics
+from rtsgt.types import PoseTrajectory
+
+__all__ = ["ErrorStatistics", "EvaluationResult", "NeesSection", "NoiseFloor", "PoseErrors"]
+
+
+@dataclass(frozen=True)
+class ErrorStatistics:
+    """evo's statistics of one error array (units of the array)."""
+
+    rmse: float
+    mean: float
+    median: float
+    std: float
+    min: float
+    max: float
+
+    @classmethod
+    def from_errors(cls, errors: ArrayLike) -> ErrorStatistics:
+        return cls(**error_statistics(errors))
+
+    def to_dict(self) -> dict[str, float]:
+        return {k: float(getattr(self, k)) for k in STATISTICS}
+
+
+@dataclass(frozen=True)
+class PoseErrors:
+    """APE or RPE: per-pose (per-pair) errors and their statistics.
+
+    Attributes
+    ----------
+    translation_m, rotation_deg, full : ErrorStatistics
+        evo's translation part (m), rotation angle (deg) and full transformation (unitless).
+    translation_error : ndarray, shape (K,)
+        m.
+    rotation_error_deg : ndarray, shape (K,)
+    full_error : ndarray, shape (K,)
+    pairs : ndarray of int, shape (K, 2) or None
+        RPE index pairs into the associated poses (None for the APE).
+    """
+
+    translation_m: ErrorStatistics
+    rotation_deg: ErrorStatistics
+    full: ErrorStatistics
+    translation_error: np.ndarray
+    rotation_error_deg: np.ndarray
+    full_error: np.ndarray
+    pairs: np.ndarray | None = None
+
+    @classmethod
+    def from_errors(
+        cls, errs: dict[str, np.ndarray], pairs: np.ndarray | None = None
+    ) -> PoseErrors:
+        rot_deg = np.degrees(errs["rotation_rad"])
+        return cls(
+            ErrorStatistics.from_errors(errs["translation"]),
+            ErrorStatistics.from_errors(rot_deg),
+            ErrorStatistics.from_errors(errs["full"]),
+            errs["translation"],
+            rot_deg,
+            errs["full"],
+            pairs,
+        )
+
+    def to_dict(self) -> dict:
+        return {
+            "translation_m": self.translation_m.to_dict(),
+            "rotation_deg": self.rotation_deg.to_dict(),
+            "full": self.full.to_dict(),
+        }
+
+
+@dataclass(frozen=True)
+class NeesSection:
+    """Normalised estimation error squared of positions, poses and relative poses.
+
+    Each field is None when the covariances needed are not available.
+    ``covariance`` says which covariances entered ``S``; ``rpe_correlations`` whether the
+    relative-pose covariance used known cross-covariances between the two ground-truth poses.
+    """
+
+    position: NeesResult | None
+    pose: NeesResult | None
+    relative_position: NeesResult | None
+    relative_pose: NeesResult | None
+    covariance: str
+    rpe_correlations: str
+
+    def to_dict(self) -> dict:
+        def one(r: NeesResult | None, dof: int) -> dict:
+            if r is None:
+                return {"mean": None, "dof": dof, "fraction_inside_95": None, "consistent": None}
+            return r.to_dict()
+
+        return {
+            "position": one(self.position, 3),
+            "pose": one(self.pose, 6),
+            "relative_position": one(self.relative_position, 3),
+            "relative_pose": one(self.relative_pose, 6),
+            "covariance": self.covariance,
+            "rpe_correlations": self.rpe_correlations,
+        }
+
+
+@dataclass(frozen=True)
+class NoiseFloor:
+    """The errors a perfect estimate would show against this ground truth, and the APE/RPE
+    with that floor removed (``sqrt(max(rmse^2 - floor^2, 0))``). None without covariances.
+
+    Attributes
+    ----------
+    ape_translation_m : float
+        ``sqrt(mean tr Sigma_gt,pos)``, m.
+    ape_translation_rmse_floor_removed_m : float
+    ape_rotation_deg : float
+        ``sqrt(mean tr Sigma_gt,rot)`` in degrees (small-angle rms of the rotation angle).
+    ape_rotation_rmse_floor_removed_deg : float
+    rpe_translation_m : float
+        ``sqrt(mean tr Sigma_rel,pos)`` over the RPE pairs, m.
+    rpe_translation_rmse_floor_removed_m : float
+    rpe_rotation_deg, rpe_rotation_rmse_floor_removed_deg : float
+    """
+
+    ape_translation_m: float | None = None
+    ape_translation_rmse_floor_removed_m: float | None = None
+    ape_rotation_deg: float | None = None
+    ape_rotation_rmse_floor_removed_deg: float | None = None
+    rpe_translation_m: float | None = None
+    rpe_translation_rmse_floor_removed_m: float | None = None
+    rpe_rotation_deg: float | None = None
+    rpe_rotation_rmse_floor_removed_deg: float | None = None
+
+    def to_dict(self) -> dict:
+        return {k: (None if v is None else float(v)) for k, v in self.__dict__.items()}
+
+
+@dataclass(frozen=True)
+class EvaluationResult:
+    """Everything :func:`evaluate` computed.
+
+    Attributes
+    ----------
+    t : ndarray, shape (N,)
+        Times of the associated estimate poses, s (estimate clock).
+    gt : PoseTrajectory
+        Ground truth at those times (world frame, with ``cov`` when available).
+    est : PoseTrajectory
+        The associated estimate after alignment (world frame; ``cov`` mapped too).
+    alignment : Alignment
+    association : Association
+    ape : PoseErrors
+    rpe : PoseErrors or None
+        None when no RPE pair exists (``rpe_absent_reason`` says why).
+    nees : NeesSection
+    noise_floor : NoiseFloor
+    pose_error : ndarray, shape (N, 6)
+        ``perturbation(gt, est)``: (x, y, z, rx, ry, rz), m and rad, world frame.
+    cov_error : ndarray, shape (N, 6, 6) or None
+        ``S_k`` used for the NEES (ground truth + estimate when it has one).
+    rpe_delta : float
+    rpe_delta_unit : str
+    rpe_all_pairs : bool
+    rpe_absent_reason : str or None
+        Why there is no RPE (None when there is one).
+    """
+
+    t: np.ndarray
+    gt: PoseTrajectory
+    est: PoseTrajectory
+    alignment: Alignment
+    association: Association
+    ape: PoseErrors
+    rpe: PoseErrors | None
+    nees: NeesSection
+    noise_floor: NoiseFloor
+    pose_error: np.ndarray
+    cov_error: np.ndarray | None
+    rpe_delta: float
+    rpe_delta_unit: str
+    rpe_all_pairs: bool
+    rpe_absent_reason: str | None = None
+
+    def to_dict(self) -> dict:
+        """The JSON layout of ``rtsgt evaluate --json`` (module docstring)."""
+        ape = self.ape.to_dict()
+        ape["n"] = int(self.t.shape[0])
+        if self.rpe is None:
+            rpe = {"translation_m": None, "rotation_deg": None, "full": None}
+        else:
+            rpe = self.rpe.to_dict()
+        rpe.update(
+            n_pairs=0 if self.rpe is None else int(self.rpe.pairs.shape[0]),
+            delta=float(self.rpe_delta),
+            delta_unit=self.rpe_delta_unit,
+            all_pairs=bool(self.rpe_all_pairs),
+            absent_reason=self.rpe_absent_reason,
+        )
+        return {
+            "ape": ape,
+            "rpe": rpe,
+            "nees": self.nees.to_dict(),
+            "noise_floor": self.noise_floor.to_dict(),
+            "alignment": self.alignment.to_dict(),
+            "association": self.association.to_dict(),
+        }
