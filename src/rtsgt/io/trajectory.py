@@ -191,9 +191,15 @@ def write_tum(
     comment : str
         The comment line, without its ``# `` (default :data:`TUM_COMMENT`).
     """
+    atomic_write_text(path, tum_text(traj, decimals=decimals, comment=comment))
+
+
+def tum_text(traj: PoseTrajectory, *, decimals: tuple[int, int] | None = None,
+             comment: str = TUM_COMMENT) -> str:
+    """The text :func:`write_tum` writes (arguments as there)."""
     fmt = None if decimals is None else [f"%.{decimals[0]}f"] * 4 + [f"%.{decimals[1]}f"] * 4
     data = np.column_stack([traj.t, traj.position, traj.quat_xyzw])
-    atomic_write_text(path, table_text(data, header=f"# {comment}", sep=" ", fmt=fmt))
+    return table_text(data, header=f"# {comment}", sep=" ", fmt=fmt)
 
 
 # --------------------------------------------------------------------------- KITTI

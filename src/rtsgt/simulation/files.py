@@ -39,8 +39,11 @@ import numpy as np
 
 from rtsgt import __version__
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
+from rtsgt.io._parse import table_text
 from rtsgt.io.output_dir import OutputDir
+from rtsgt.io.trajectory import tum_text
 from rtsgt.simulation.deployment import SimulatedDeployment
+from rtsgt.types import PoseTrajectory
 
 __all__ = ["write_deployment", "DEPLOYMENT_FILES", "format_dms"]
 
@@ -74,9 +77,7 @@ def format_dms(angle_rad: float, pad_degrees: bool = True) -> str:
 
 def _rows(columns, sep: str = " ") -> str:
     """Rows of floats at full precision (shortest round-trip repr), newline-terminated."""
-    arr = np.column_stack([np.asarray(c, dtype=float) for c in columns])
-    fmt = sep.join(["%r"] * arr.shape[1])
-    return "".join([fmt % tuple(r) + "\n" for r in arr.tolist()])
+    return table_text(np.column_stack([np.asarray(c, dtype=float) for c in columns]), sep=sep)
 
 
 def _prism_text(obs) -> str:
@@ -116,8 +117,7 @@ def _weather_text(weather) -> str:
 
 def _tum_text(truth) -> str:
     R, p = truth.model.robot_at(truth.t)
-    q = matrix_to_quat_xyzw(R)
-    return "# t[s] x[m] y[m] z[m] qx qy qz qw\n" + _rows([truth.t, *p.T, *q.T])
+    return tum_text(PoseTrajectory(truth.t, p, matrix_to_quat_xyzw(R)))
 
 
 def _truth_prisms_text(truth) -> str:
