@@ -9,6 +9,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from rtsgt.errors import InputError
+
 
 def usage_error(message: str, option: str) -> typer.BadParameter:
     """A bad value of a command-line option, for ``raise`` (exit status 2, see
@@ -16,6 +18,20 @@ def usage_error(message: str, option: str) -> typer.BadParameter:
     if message[:1].isupper() and message[1:2].islower():  # "Expected ..." -> "expected ..."
         message = message[0].lower() + message[1:]
     return typer.BadParameter(message, param_hint=option)
+
+
+def checked_options(record: type, names: dict[str, str], **values) -> dict:
+    """The given (not None) command-line values, each checked by the rule of the options
+    ``record`` (a dataclass whose ``__post_init__`` raises :class:`~rtsgt.errors.InputError`:
+    the rule the configuration file's values meet too); a bad one is a usage error naming
+    its option (``names``: field -> option)."""
+    changes = {k: v for k, v in values.items() if v is not None}
+    for key, value in changes.items():
+        try:
+            record(**{key: value})
+        except InputError as exc:
+            raise usage_error(exc.bare_message, names[key]) from None
+    return changes
 
 
 def echo_err(msg: str) -> None:

@@ -31,7 +31,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from rtsgt.cli.common import usage_error
+from rtsgt.cli.common import checked_options, usage_error
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.evaluation import ALIGN_METHODS, EvaluationOptions, EvaluationResult, evaluate
 from rtsgt.evaluation.associate import GroundTruthQuery, ValidatedGroundTruth
@@ -74,12 +74,7 @@ def evaluation_options(**values) -> EvaluationOptions:
     values, each checked by the record's own rule first; a bad one is a usage error naming its
     option (a bad combination names the first option it involves: ``--delta`` with
     ``--delta-unit f``)."""
-    changes = {k: v for k, v in values.items() if v is not None}
-    for key, value in changes.items():
-        try:
-            EvaluationOptions(**{key: value})
-        except InputError as exc:
-            raise usage_error(exc.bare_message, EVALUATION_OPTION_NAMES[key]) from None
+    changes = checked_options(EvaluationOptions, EVALUATION_OPTION_NAMES, **values)
     try:
         return EvaluationOptions(**changes)
     except InputError as exc:

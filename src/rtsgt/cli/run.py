@@ -7,8 +7,7 @@ from pathlib import Path
 
 import typer
 
-from rtsgt.cli.common import Stages, echo_err, print_run_summary, usage_error
-from rtsgt.errors import InputError
+from rtsgt.cli.common import Stages, checked_options, echo_err, print_run_summary
 from rtsgt.io.deployment import load_deployment
 from rtsgt.io.output_dir import check_target
 from rtsgt.io.run_output import write_run
@@ -23,14 +22,7 @@ RUN_OPTION_NAMES = {"engine": "--engine", "samples": "--samples", "rate_hz": "--
 def option_overrides(**values) -> dict:
     """The given (not None) option values, each checked by :class:`RunOptions`'s own rule
     (the rule the configuration file's values meet); a bad one is a usage error."""
-
-    changes = {k: v for k, v in values.items() if v is not None}
-    for key, value in changes.items():
-        try:
-            RunOptions(**{key: value})
-        except InputError as exc:
-            raise usage_error(exc.bare_message, RUN_OPTION_NAMES[key]) from None
-    return changes
+    return checked_options(RunOptions, RUN_OPTION_NAMES, **values)
 
 
 def run_deployment(
