@@ -34,6 +34,7 @@ Implementation notes
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
 
 import numpy as np
 
@@ -145,18 +146,72 @@ def calibration_covariance_from_samples(
     return out
 
 
+class _BufferGroup(NamedTuple):
+    """Named (n, M) buffers of the workspace that play one role (internal)."""
+
+    names: tuple[str, ...]
+    doc: str
+
+
+#: The workspace's buffers, by role (allocation order: the order of :attr:`_Workspace.NAMES`).
+_BUFFER_GROUPS = {
+    "normals": _BufferGroup(
+        ("z0", "z1", "z2", "z3"),
+        "Standard normal draws, scaled in place into the errors: ``z0`` e_d (distance, m), "
+        "``z1`` e_V and ``z2`` e_H (angles, rad) of ``instrument``; ``z3`` e_t of ``tilt``.",
+    ),
+    "uniforms": _BufferGroup(
+        ("u0", "u1", "u2"),
+        "U[0, 1) draws of temperature, pressure, humidity for ``atmosphere``, overwritten by "
+        ":func:`_alpha_samples` (``u1`` holds the alpha samples afterwards); before them, the "
+        "float32 Box-Muller of :func:`_standard_normals` uses ``u0``, ``u1`` as scratch.",
+    ),
+    "time_sync": _BufferGroup(
+        ("ts",), "``ts``: the signed time-synchronisation error e_ts (s) of ``time_sync``."
+    ),
+    "scratch": _BufferGroup(
+        ("a", "b"),
+        "Short-lived temporaries of every step (``a`` also takes the uniforms of the sign "
+        "of e_ts).",
+    ),
+    "vertical": _BufferGroup(
+        ("dsv", "dcv", "sv", "cv"),
+        "Perturbed V: ``sin V^ - sin V``, ``cos V^ - cos V``, ``sin V^``, ``cos V^``.",
+    ),
+    "tilt_hz": _BufferGroup(
+        ("tl",), "``tl``: the Hz perturbation ``e_t cot V^`` (plus the other one, if any)."
+    ),
+    "horizontal": _BufferGroup(
+        ("dsh", "dch", "sh", "ch"),
+        "Perturbed Hz: ``sin Hz^ - sin Hz``, ``cos Hz^ - cos Hz``, ``sin Hz^``, ``cos Hz^``.",
+    ),
+    "distances": _BufferGroup(
+        ("dr", "dd"),
+        "``dr``: horizontal distance ``r^ - r0``; ``dd``: corrected slope distance "
+        "``d^ - d0``.",
+    ),
+    "station": _BufferGroup(
+        ("x", "y", "z"), "Station-frame displacement samples (the output of :func:`_deltas`)."
+    ),
+    "world": _BufferGroup(
+        ("wx", "wy", "wz"),
+        "World-frame displacement samples of the total with calibration samples; ``wx`` "
+        "holds ``dV = e_V + e_t`` before that.",
+    ),
+}
+
+
 class _Workspace:
     """Scratch arrays of shape (n, M) reused from chunk to chunk (internal).
 
     Allocating fresh half-megabyte temporaries for every operation costs page faults that
     double the run time; every (n, M) operation of the engine writes into these buffers with
     ``out=`` instead. The last, shorter chunk uses the leading rows (views stay contiguous).
+    Every buffer is a plain attribute (``ws.z0``, ...); :data:`_BUFFER_GROUPS` says what each
+    holds. ``mask`` is a boolean (n, M) buffer (the sign of e_ts).
     """
 
-    NAMES = (
-        "z0", "z1", "z2", "z3", "u0", "u1", "u2", "ts", "a", "b", "dsv", "dcv", "sv", "cv",
-        "tl", "dsh", "dch", "sh", "ch", "dr", "dd", "x", "y", "z", "wx", "wy", "wz",
-    )
+    NAMES = tuple(name for group in _BUFFER_GROUPS.values() for name in group.names)
 
     def __init__(self, n: int, M: int, dtype):
         self.n_max = n
@@ -479,18 +534,27 @@ def _run_chunk(
     return _cov_rows(x, y, z), by_source
 
 
-def _sample_chunk(
-    ws: _Workspace, ch: _Chunk, rng: np.random.Generator, cal: tuple | None,
-    n_gr: float, n_ref: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-    """Draws of one chunk: the total's displacement samples ``x, y, z`` ((n, M) views of the
-    workspace: from ``R p0 + t`` in the world frame when ``cal`` is given, else from ``p0`` in
-    the station frame) and the per-source covariances (station frame)."""
+class _Draws(NamedTuple):
+    """The errors of one chunk, (n, M) views of the workspace (None: source off)."""
+
+    e_d: np.ndarray | None  # instrument: slope distance (m)
+    e_V: np.ndarray | None  # instrument: vertical angle (rad)
+    e_H: np.ndarray | None  # instrument: horizontal angle (rad)
+    e_t: np.ndarray | None  # tilt (rad)
+    e_ts: np.ndarray | None  # time_sync (s)
+    alpha: np.ndarray | None  # atmosphere: 1e-6 K at the perturbed weather
+
+
+def _draw_errors(
+    ws: _Workspace, ch: _Chunk, rng: np.random.Generator, n_gr: float, n_ref: float
+) -> _Draws:
+    """Draw the errors of every active source, in a fixed order (the order of the draws
+    fixes the result for a seed): the normals of ``instrument`` and ``tilt``, then
+    ``time_sync``, then the uniforms of ``atmosphere``."""
     model = ch.model
     prof = model.instrument
     srcs = model.sources
     dt = ws.dtype
-    # ---- draws, in a fixed order -----------------------------------------------------------
     e_d = e_V = e_H = e_t = None
     normals = []
     if "instrument" in srcs:
@@ -521,21 +585,37 @@ def _sample_chunk(
         for buf in (ws.u0, ws.u1, ws.u2):
             rng.random(out=buf, dtype=dt)
         alpha = _alpha_samples(ws, ch, n_gr, n_ref)
+    return _Draws(e_d, e_V, e_H, e_t, e_ts, alpha)
 
+
+def _single_source_covariances(
+    ws: _Workspace, ch: _Chunk, draws: _Draws
+) -> dict[str, np.ndarray]:
+    """Station-frame covariance of each source alone (calibration excepted): by sampling for
+    ``instrument`` and ``tilt``, by the exact one-direction reductions for ``atmosphere`` and
+    ``time_sync``. Leaves the draws unchanged."""
+    srcs = ch.model.sources
     by_source: dict[str, np.ndarray] = {}
-    # ---- each source alone ------------------------------------------------------------------
     if "instrument" in srcs:
-        dd = np.multiply(e_d, ch.one_alpha0, out=ws.dd)
-        by_source["instrument"] = _cov_rows(*_deltas(ws, ch, dd, e_V, None, e_H))
+        dd = np.multiply(draws.e_d, ch.one_alpha0, out=ws.dd)
+        by_source["instrument"] = _cov_rows(*_deltas(ws, ch, dd, draws.e_V, None, draws.e_H))
     if "tilt" in srcs:
-        by_source["tilt"] = _cov_rows(*_deltas(ws, ch, None, e_t, e_t, None))
+        by_source["tilt"] = _cov_rows(*_deltas(ws, ch, None, draws.e_t, draws.e_t, None))
     if "atmosphere" in srcs:
-        var = _var_rows(alpha) * ch.d64**2
+        var = _var_rows(draws.alpha) * ch.d64**2
         by_source["atmosphere"] = _outer(ch.u_los) * var[:, None, None]
     if "time_sync" in srcs:
-        by_source["time_sync"] = _outer(ch.vel64) * _var_rows(e_ts)[:, None, None]
+        by_source["time_sync"] = _outer(ch.vel64) * _var_rows(draws.e_ts)[:, None, None]
+    return by_source
 
-    # ---- total ------------------------------------------------------------------------------
+
+def _total_displacements(
+    ws: _Workspace, ch: _Chunk, draws: _Draws
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Station-frame displacement samples of all the sources together, into ws.x, ws.y, ws.z
+    (``draws.alpha`` is overwritten)."""
+    dt = ws.dtype
+    e_d, e_V, e_H, e_t, e_ts, alpha = draws
     dV = None
     if e_V is not None and e_t is not None:
         dV = np.add(e_V, e_t, out=ws.wx)  # wx is only used after _deltas
@@ -559,25 +639,161 @@ def _sample_chunk(
         x += np.multiply(e_ts, ch.vel[:, 0:1], out=ws.a)
         y += np.multiply(e_ts, ch.vel[:, 1:2], out=ws.a)
         z += np.multiply(e_ts, ch.vel[:, 2:3], out=ws.a)
+    return x, y, z
+
+
+def _to_world_samples(
+    ws: _Workspace, ch: _Chunk, cal: tuple, x, y, z
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World-frame displacement samples from ``R p0 + t`` with the transform samples, into
+    ws.wx, ws.wy, ws.wz. ``cal = (R_m - R, t_m - t, R_m)`` in the working dtype."""
+    dR, dtr, Rs = cal
+    p0 = ch.p0
+    # R_m (p0 + d) + t_m - (R p0 + t) = (R_m - R) p0 + (t_m - t) + R_m d
+    a = ws.a
+    for i, w in enumerate((ws.wx, ws.wy, ws.wz)):
+        np.multiply(dR[:, i, 0], p0[:, 0:1], out=w)
+        w += np.multiply(dR[:, i, 1], p0[:, 1:2], out=a)
+        w += np.multiply(dR[:, i, 2], p0[:, 2:3], out=a)
+        w += dtr[:, i]
+        w += np.multiply(Rs[:, i, 0], x, out=a)
+        w += np.multiply(Rs[:, i, 1], y, out=a)
+        w += np.multiply(Rs[:, i, 2], z, out=a)
+    return ws.wx, ws.wy, ws.wz
+
+
+def _sample_chunk(
+    ws: _Workspace, ch: _Chunk, rng: np.random.Generator, cal: tuple | None,
+    n_gr: float, n_ref: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """Draws of one chunk: the total's displacement samples ``x, y, z`` ((n, M) views of the
+    workspace: from ``R p0 + t`` in the world frame when ``cal`` is given, else from ``p0`` in
+    the station frame) and the per-source covariances (station frame)."""
+    draws = _draw_errors(ws, ch, rng, n_gr, n_ref)
+    by_source = _single_source_covariances(ws, ch, draws)
+    x, y, z = _total_displacements(ws, ch, draws)
     if cal is not None:
-        dR, dtr, Rs = cal  # R_m - R, t_m - t, R_m in the working dtype
-        p0 = ch.p0
-        # R_m (p0 + d) + t_m - (R p0 + t) = (R_m - R) p0 + (t_m - t) + R_m d
-        a = ws.a
-        for i, w in enumerate((ws.wx, ws.wy, ws.wz)):
-            np.multiply(dR[:, i, 0], p0[:, 0:1], out=w)
-            w += np.multiply(dR[:, i, 1], p0[:, 1:2], out=a)
-            w += np.multiply(dR[:, i, 2], p0[:, 2:3], out=a)
-            w += dtr[:, i]
-            w += np.multiply(Rs[:, i, 0], x, out=a)
-            w += np.multiply(Rs[:, i, 1], y, out=a)
-            w += np.multiply(Rs[:, i, 2], z, out=a)
-        x, y, z = ws.wx, ws.wy, ws.wz
+        x, y, z = _to_world_samples(ws, ch, cal, x, y, z)
     return x, y, z, by_source
 
 
 def _rotate(R: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return np.einsum("ij,njk,lk->nil", R, cov, R, optimize=True)
+
+
+def _checked_arguments(samples, rng, chunk_size, workers, dtype) -> tuple[int, int, int, type]:
+    """``(M, chunk_size, workers, dtype)`` of :func:`mc_covariances`, checked and defaulted.
+
+    Raises
+    ------
+    InputError
+        On fewer than 2 samples, an ``rng`` that is no Generator, a chunk size below 1, or a
+        dtype other than float64 / float32.
+    """
+    M = int(samples)
+    if M < 2:
+        raise InputError(f"Expected samples >= 2 for the Monte Carlo engine, got {samples!r}")
+    if not isinstance(rng, np.random.Generator):
+        raise InputError(
+            "The Monte Carlo engine needs rng = numpy.random.Generator "
+            f"(e.g. np.random.default_rng(seed)), got {type(rng).__name__}"
+        )
+    if chunk_size is None:
+        chunk_size = max(1, CHUNK_ELEMENTS // M)
+    chunk_size = int(chunk_size)
+    if chunk_size < 1:
+        raise InputError(f"Expected chunk_size >= 1, got {chunk_size}")
+    workers = max(1, int(workers))
+    dtype = np.dtype(dtype).type
+    if dtype not in (np.float64, np.float32):
+        raise InputError(f"Expected dtype float64 or float32, got {dtype}")
+    return M, chunk_size, workers, dtype
+
+
+class _ChunkPlan(NamedTuple):
+    """How the N measurements are cut into chunks and spread over the threads (internal)."""
+
+    N: int
+    chunk_size: int
+    starts: list[int]  # first measurement of each chunk
+    seeds: np.ndarray  # (n_chunks, 2) int64: the seed of each chunk's child generator
+    bitgen: type  # the bit generator of the rng passed in (the children use the same kind)
+    groups: list[range]  # the chunks of each thread (contiguous)
+
+    def chunk(self, k: int) -> slice:
+        """The measurements of chunk ``k``."""
+        return slice(self.starts[k], min(self.starts[k] + self.chunk_size, self.N))
+
+    def generator(self, k: int) -> np.random.Generator:
+        """The child generator of chunk ``k`` (independent of the thread that runs it)."""
+        seq = np.random.SeedSequence([int(s) for s in self.seeds[k]])
+        return np.random.Generator(self.bitgen(seq))
+
+
+def _plan_chunks(N: int, chunk_size: int, workers: int, rng: np.random.Generator) -> _ChunkPlan:
+    """Chunks of ``chunk_size`` measurements, one seed each drawn from ``rng``, and contiguous
+    groups of chunks per thread; each chunk has its own generator, so the result does not
+    depend on the number of threads."""
+    starts = list(range(0, N, chunk_size))
+    seeds = rng.integers(0, 2**63 - 1, size=(len(starts), 2), dtype=np.int64)
+    workers = min(workers, len(starts))
+    bounds = np.linspace(0, len(starts), workers + 1).astype(int)
+    groups = [range(bounds[i], bounds[i + 1]) for i in range(workers)]
+    return _ChunkPlan(N, chunk_size, starts, seeds, type(rng.bit_generator), groups)
+
+
+def _run_chunks(
+    nom: Nominal, model: NoiseModel, plan: _ChunkPlan, cal_work: tuple | None,
+    atmosphere: tuple[float, float], M: int, dtype,
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Run every chunk of ``plan`` (one thread per group, each with its own workspace):
+    total and per-source covariances, in the frames :func:`_run_chunk` returns.
+    ``atmosphere`` is ``(N_gr, N_REF)`` of :func:`_atmosphere_constants`."""
+    N = plan.N
+    n_gr, n_ref = atmosphere
+    total = np.empty((N, 3, 3))
+    by_source = {s: np.zeros((N, 3, 3)) for s in model.sources}
+
+    def work(ks: range) -> None:
+        ws = _Workspace(min(plan.chunk_size, N), M, dtype)
+        for k in ks:
+            sl = plan.chunk(k)
+            ws.rows(sl.stop - sl.start)
+            tot, bys = _run_chunk(ws, _Chunk(nom, model, sl, dtype), plan.generator(k),
+                                  cal_work, n_gr, n_ref)
+            total[sl] = tot
+            for s, c in bys.items():
+                by_source[s][sl] = c
+
+    if len(plan.groups) == 1:
+        work(plan.groups[0])
+    else:
+        with ThreadPoolExecutor(max_workers=len(plan.groups)) as ex:
+            list(ex.map(work, plan.groups))
+    return total, by_source
+
+
+def _to_world(
+    nom: Nominal, model: NoiseModel, cal: tuple | None, total: np.ndarray,
+    by_source: dict[str, np.ndarray],
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Rotate the station-frame covariances into the world frame (the total only when it was
+    not sampled in the world frame) and add the calibration source's covariance."""
+    R = nom.R
+    srcs = model.sources
+    for s in srcs:
+        if s != "calibration":
+            by_source[s] = _rotate(R, by_source[s])
+    if cal is None:
+        total = _rotate(R, total)
+    if "calibration" in srcs:
+        if cal is None:
+            by_source["calibration"] = np.zeros((nom.d.shape[0], 3, 3))
+        else:
+            by_source["calibration"] = calibration_covariance_from_samples(
+                nom.xyz_station, cal[0], cal[1]
+            )
+    return total, by_source
 
 
 def mc_covariances(
@@ -619,80 +835,17 @@ def mc_covariances(
     by_source : dict str -> ndarray (N, 3, 3)
         One entry per source of ``model.sources``, each the covariance with that source alone.
     """
-    M = int(samples)
-    if M < 2:
-        raise InputError(f"Expected samples >= 2 for the Monte Carlo engine, got {samples!r}")
-    if not isinstance(rng, np.random.Generator):
-        raise InputError(
-            "The Monte Carlo engine needs rng = numpy.random.Generator "
-            f"(e.g. np.random.default_rng(seed)), got {type(rng).__name__}"
-        )
-    N = nom.d.shape[0]
-    if chunk_size is None:
-        chunk_size = max(1, CHUNK_ELEMENTS // M)
-    chunk_size = int(chunk_size)
-    if chunk_size < 1:
-        raise InputError(f"Expected chunk_size >= 1, got {chunk_size}")
-    workers = max(1, int(workers))
-    dtype = np.dtype(dtype).type
-    if dtype not in (np.float64, np.float32):
-        raise InputError(f"Expected dtype float64 or float32, got {dtype}")
-    R = nom.R
-    srcs = model.sources
-
-    cal = transform_samples(T_world_station, M, rng) if "calibration" in srcs else None
+    M, chunk_size, workers, dtype = _checked_arguments(samples, rng, chunk_size, workers, dtype)
+    # the total is sampled in the world frame with the transform samples (R_m, t_m) when the
+    # calibration source is on, and rotated by the mean rotation otherwise
+    cal = transform_samples(T_world_station, M, rng) if "calibration" in model.sources else None
     cal_work = None
     if cal is not None:
         cal_work = (
-            (cal[0] - R).astype(dtype), (cal[1] - nom.t_ws).astype(dtype), cal[0].astype(dtype)
+            (cal[0] - nom.R).astype(dtype), (cal[1] - nom.t_ws).astype(dtype),
+            cal[0].astype(dtype),
         )
-    # the total is sampled in the world frame with the transform samples (R_m, t_m) when the
-    # calibration source is on, and rotated by the mean rotation otherwise
-    n_gr, n_ref = _atmosphere_constants(model)
-
-    starts = list(range(0, N, chunk_size))
-    seeds = rng.integers(0, 2**63 - 1, size=(len(starts), 2), dtype=np.int64)
-    bitgen = type(rng.bit_generator)
-
-    total = np.empty((N, 3, 3))
-    by_source = {s: np.zeros((N, 3, 3)) for s in srcs}
-    workers = min(workers, len(starts))
-
-    def work(ks: range) -> None:
-        ws = _Workspace(min(chunk_size, N), M, dtype)
-        for k in ks:
-            sl = slice(starts[k], min(starts[k] + chunk_size, N))
-            ws.rows(sl.stop - sl.start)
-            child = np.random.Generator(
-                bitgen(np.random.SeedSequence([int(s) for s in seeds[k]]))
-            )
-            tot, bys = _run_chunk(ws, _Chunk(nom, model, sl, dtype), child, cal_work, n_gr,
-                                  n_ref)
-            total[sl] = tot
-            for s, c in bys.items():
-                by_source[s][sl] = c
-
-    # contiguous groups of chunks per thread; each chunk has its own generator, so the
-    # result does not depend on the number of threads
-    bounds = np.linspace(0, len(starts), workers + 1).astype(int)
-    groups = [range(bounds[i], bounds[i + 1]) for i in range(workers)]
-    if workers == 1:
-        work(groups[0])
-    else:
-        with ThreadPoolExecutor(max_workers=workers) as ex:
-            list(ex.map(work, groups))
-
-    # station frame -> world frame
-    for s in srcs:
-        if s != "calibration":
-            by_source[s] = _rotate(R, by_source[s])
-    if cal is None:
-        total = _rotate(R, total)
-    if "calibration" in srcs:
-        if cal is None:
-            by_source["calibration"] = np.zeros((N, 3, 3))
-        else:
-            by_source["calibration"] = calibration_covariance_from_samples(
-                nom.xyz_station, cal[0], cal[1]
-            )
-    return total, by_source
+    atmosphere = _atmosphere_constants(model)
+    plan = _plan_chunks(nom.d.shape[0], chunk_size, workers, rng)
+    total, by_source = _run_chunks(nom, model, plan, cal_work, atmosphere, M, dtype)
+    return _to_world(nom, model, cal, total, by_source)
