@@ -7,6 +7,7 @@ The command line and the deployment's TOML both map onto :class:`RunOptions`; it
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -24,9 +25,13 @@ from rtsgt.pose.estimate import POSE_ENGINES, PoseEngine
 RANDOM_STAGES = ("calibration", "noise", "pose", "analysis")
 
 #: How Qc is chosen when not given as a number (see :func:`rtsgt.interpolation.prisms.fit_gps`).
-QC_METHODS = ("loo", "likelihood")
+QcMethod = Literal["loo", "likelihood"]
+QC_METHODS: tuple[str, ...] = get_args(QcMethod)
+#: What the GP is given: the white noise sources only (rtsgt), or every source (the paper).
+GpNoise = Literal["white", "all"]
+GP_NOISE: tuple[str, ...] = get_args(GpNoise)
 
-__all__ = ["RunOptions", "QC_METHODS", "RANDOM_STAGES", "stage_rng"]
+__all__ = ["RunOptions", "QC_METHODS", "GP_NOISE", "RANDOM_STAGES", "stage_rng"]
 
 
 def stage_rng(seed: int, stage: str) -> np.random.Generator:
@@ -48,13 +53,13 @@ class RunOptions:
     samples: int = 1000
     seed: int = 0
     rate_hz: float = 5.0
-    qc: float | str = "loo"
+    qc: float | QcMethod = "loo"
     max_gap_s: float = DEFAULT_MAX_GAP_S
     noise: NoiseModel | None = None
     filter: FilterParams = field(default_factory=FilterParams)
     distance_gate_m: float = DEFAULT_DISTANCE_GATE_M
     uncertainty_gate_m: float = DEFAULT_UNCERTAINTY_GATE_M
-    gp_noise: str = "white"
+    gp_noise: GpNoise = "white"
 
     def __post_init__(self) -> None:
         if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) \
@@ -76,8 +81,9 @@ class RunOptions:
                 f"Expected qc {', '.join(QC_METHODS)} or a number (m^2/s^3), got {self.qc!r}")
         if not isinstance(self.qc, str) and not (np.isfinite(self.qc) and self.qc > 0):
             raise InputError(f"Expected qc > 0 m^2/s^3, got {self.qc!r}")
-        if self.gp_noise not in ("white", "all"):
-            raise InputError(f"Expected gp_noise 'white' or 'all', got {self.gp_noise!r}")
+        if self.gp_noise not in GP_NOISE:
+            raise InputError(f"Expected gp_noise {' or '.join(map(repr, GP_NOISE))}, got "
+                             f"{self.gp_noise!r}")
 
     @property
     def noise_engine(self) -> str:

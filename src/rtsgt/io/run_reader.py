@@ -66,7 +66,7 @@ from rtsgt.io.run_output import (
     columns_to_cov3,
 )
 from rtsgt.io.trajectory import read_covariance_csv
-from rtsgt.options import RunOptions
+from rtsgt.options import GP_NOISE, RunOptions
 from rtsgt.types import NOISE_SOURCES, PoseTrajectory, PrismTrack
 
 __all__ = ["PrismSummary", "RunData", "RunSummary", "read_run", "read_summary", "read_table",
@@ -566,9 +566,10 @@ def read_summary(run_dir: str | PathLike) -> RunSummary:
         seed = int(seed) if seed is not None else 0
     except (TypeError, ValueError) as exc:
         raise InputError(f"parameters: samples and seed must be integers: {exc}", path) from None
-    gp_noise = str(param("gp_noise", "white"))
-    if gp_noise not in ("white", "all"):
-        raise InputError(f"gp_noise: expected 'white' or 'all', got {gp_noise!r}", path)
+    gp_noise = str(param("gp_noise", RunOptions.gp_noise))
+    if gp_noise not in GP_NOISE:
+        raise InputError(f"gp_noise: expected {' or '.join(map(repr, GP_NOISE))}, got "
+                         f"{gp_noise!r}", path)
     name = _find(doc, "name", "deployment", default=None)
     if isinstance(name, dict):
         name = name.get("name")
