@@ -36,6 +36,7 @@ from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.evaluation import ALIGN_METHODS, EvaluationOptions, EvaluationResult, evaluate
 from rtsgt.evaluation.associate import GroundTruthQuery, ValidatedGroundTruth
 from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
+from rtsgt.evaluation.options import DEFAULT_MAX_DT_S
 from rtsgt.io.output_dir import check_target
 from rtsgt.io.run_reader import read_summary
 from rtsgt.io.trajectory import (
@@ -55,7 +56,7 @@ GT_MODES = ("auto", "continuous", "discrete")
 GT_ENGINES = ("run", *POSE_ENGINES)
 #: Default ``--max-gap`` (s) for a ground-truth trajectory file (distance to the nearest stored
 #: pose): a few samples of a 5-10 Hz ground truth.
-DEFAULT_MAX_GAP_FILE_S = 0.5
+DEFAULT_MAX_GAP_FILE_S = DEFAULT_MAX_DT_S
 #: The command-line options of the fields of :class:`~rtsgt.evaluation.EvaluationOptions`.
 EVALUATION_OPTION_NAMES = {
     "align": "--align",

@@ -14,7 +14,12 @@ from rtsgt.errors import InputError
 from rtsgt.evaluation.align import ALIGN_METHODS
 from rtsgt.evaluation.metrics import DELTA_UNITS
 
-__all__ = ["EvaluationOptions"]
+__all__ = ["EvaluationOptions", "DEFAULT_MAX_DT_S"]
+
+#: Default max distance (s) from an estimate time to the ground truth's nearest measurement,
+#: for a ground truth without a gap limit of its own (a trajectory file); a run directory's
+#: own limit is used for a run (``rtsgt evaluate``).
+DEFAULT_MAX_DT_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -56,7 +61,7 @@ class EvaluationOptions:
     rel_delta_tol: float = 0.1
     pairs_from_reference: bool = False
     time_offset: float = 0.0
-    max_dt: float | None = 0.5
+    max_dt: float | None = DEFAULT_MAX_DT_S
 
     def __post_init__(self) -> None:
         if self.align not in ALIGN_METHODS:
