@@ -114,7 +114,6 @@ def load_ground_truth(
     gt_path = Path(gt_dir)
     run_dir = gt_path.is_dir() and not (gt_path / "metadata.yaml").exists()
     if run_dir and mode != "discrete" and (gt_path / "measurements").is_dir():
-
         return ContinuousGroundTruth.from_run_dir(gt_path, engine=engine)
     if mode == "continuous":
         raise InputError(
@@ -416,7 +415,6 @@ def register(app: typer.Typer) -> None:
             )
         written = None
         if plot is not None:
-
             written = plot_evaluation(result, plot, force=force)
         if as_json:
             typer.echo(json.dumps({**result.to_dict(), "warnings": notes}))

@@ -55,7 +55,6 @@ def run_deployment(
         stages("writing outputs")
 
         def add_report(tmp: Path, final: Path) -> None:
-
             stages("analysis, figures and HTML report")
             write_report(tmp, shown_path=final)
 

@@ -337,7 +337,6 @@ class ContinuousGroundTruth:
         return self._between(sa, sa), self._between(sb, sb), self._between(sa, sb)
 
     def _linearise(self, tau: ArrayLike) -> _Linearised:
-
         tau = np.atleast_1d(np.asarray(tau, dtype=float))
         n = len(self.tracks)
         pr = query_prisms(self.tracks, self.gps, tau, self.options, self.coupling)
@@ -350,7 +349,6 @@ class ContinuousGroundTruth:
                            J_r.reshape(tau.size, 6, 3 * n), velocity)
 
     def _between(self, a: _Linearised, b: _Linearised) -> np.ndarray:
-
         ids = list(self.tracks)
         n, K = len(ids), a.t.size
         stations = [self.tracks[p].station for p in ids]

@@ -331,7 +331,6 @@ def surveyed_distance_check(
     if q.ndim != 3 or q.shape[1:] != (n, 3) or len(names) != n:
         raise ValueError(f"Expected xyz of shape (T, {n}, 3) and {n} names, got {q.shape}")
     if c.shape == (T, n, 3, 3):
-
         c = block_diagonal(c)
     if c.shape != (T, 3 * n, 3 * n) or rc.shape != (3 * n, 3 * n):
         raise ValueError(f"Expected cov (T, {3 * n}, {3 * n}) and reference_cov "

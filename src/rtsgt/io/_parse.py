@@ -334,7 +334,6 @@ def check_seconds(
     hint = "is the column in seconds?"
     for unit, factor in _SUBSECOND_UNITS:
         if 1e8 <= abs(value) / factor < MAX_SECONDS:
-
             date = datetime.fromtimestamp(value / factor, timezone.utc)
             hint = (f"it looks like {unit} since the Unix epoch "
                     f"({date.strftime('%Y-%m-%d %H:%M:%S')} UTC), not seconds: divide the "

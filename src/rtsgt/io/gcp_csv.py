@@ -219,6 +219,5 @@ def read_gcp_shots(
         fmt = detect_gcp_format(path)
     kw = {} if additive_constant is None else {"additive_constant": additive_constant}
     if fmt == "rts-project":
-
         return read_gcp_rts_project(path, **kw)
     return read_gcp_csv(path, **kw)

@@ -43,8 +43,8 @@ from rtsgt.errors import InputError
 MANIFEST = ".rtsgt-output.json"
 
 
-def _listed_files(folder: Path) -> set[Path] | None:
-    """Files listed by the manifest of ``folder`` (absolute), or None if it has no valid one."""
+def _manifest(folder: Path) -> dict | None:
+    """The manifest of ``folder`` as read, or None if it has no valid rtsgt manifest."""
     try:
         doc = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
     except (OSError, ValueError):
@@ -54,7 +54,13 @@ def _listed_files(folder: Path) -> set[Path] | None:
     files = doc.get("files")
     if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
         return None
-    return {folder / f for f in files}
+    return doc
+
+
+def _listed_files(folder: Path) -> set[Path] | None:
+    """Files listed by the manifest of ``folder`` (absolute), or None if it has no valid one."""
+    doc = _manifest(folder)
+    return None if doc is None else {folder / f for f in doc["files"]}
 
 
 def foreign_files(target: Path) -> list[Path]:
@@ -163,7 +169,6 @@ def check_output_file(path: str | os.PathLike, *, option: str,
 
 
 def _manifest_text(folder: Path, kind: str) -> str:
-
     files = sorted(p.relative_to(folder).as_posix()
                    for p in folder.rglob("*") if not p.is_dir() or p.is_symlink())
     doc = {"written_by": "rtsgt", "version": __version__, "kind": kind,
@@ -177,11 +182,10 @@ def record_files(folder: str | os.PathLike, paths: Iterable[str | os.PathLike]) 
     Nothing is done when ``folder`` is not an rtsgt output (it has no manifest).
     """
     folder = Path(folder)
-    listed = _listed_files(folder)
-    if listed is None:
+    doc = _manifest(folder)
+    if doc is None:
         return
-    doc = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
-    names = {p.relative_to(folder).as_posix() for p in listed}
+    names = set(doc["files"])
     names |= {Path(os.path.abspath(p)).relative_to(folder.absolute()).as_posix() for p in paths}
     doc["files"] = sorted(names)
     tmp = folder / f"{MANIFEST}.{secrets.token_hex(4)}.tmp"

@@ -136,7 +136,6 @@ def read_track_csv(
 
 
 def _stem(path) -> str:
-
     return Path(path).stem
 
 

@@ -411,7 +411,6 @@ def nearest_psd(cov: np.ndarray) -> np.ndarray:
 
 
 def _pose_part(data: RunData, engine: str, samples: int, seed: int, measure: str):
-
     idx = _pose_times(data)
     q = data.prisms_xyz[idx]
     n = q.shape[1]

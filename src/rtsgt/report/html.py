@@ -227,7 +227,6 @@ def _summary_tables(summary: Mapping) -> str:
 
 def _figure_html(fig: DrawnFigure, fmt: str) -> str:
 
-
     FigureCanvasAgg(fig.figure)
     buf = io.BytesIO()
     fig.figure.savefig(buf, format=fmt, dpi=110, bbox_inches="tight",
