@@ -20,7 +20,6 @@ engine (``analyze_run`` + figures + report).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import platform
 import statistics
@@ -67,8 +66,7 @@ def main() -> None:
                                   np.random.default_rng(args.seed))
         config = write_deployment(sim, tmp / "deployment", name="bench-analysis")
         data, options = load_deployment(config)
-        options = dataclasses.replace(options, engine=args.engine, samples=args.samples,
-                                      seed=args.seed)
+        options = options.updated(engine=args.engine, samples=args.samples, seed=args.seed)
         result = run_pipeline(data, options)
         run_dir = write_run(result, tmp / "run")
         n_meas = sum(len(tr) for tr in result.tracks.values())

@@ -18,7 +18,6 @@ instrument's noise; ``no-<source>`` drops one), to see which one drives a discre
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import tempfile
 import time
 import warnings
@@ -54,8 +53,7 @@ def pooled(engine: str, seeds, duration: float, samples: int, flags: dict, tmp: 
         data, opts = load_deployment(write_deployment(sim, tmp / f"{engine}-{seed}"))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            result = run_pipeline(data, dataclasses.replace(opts, seed=seed, engine=engine,
-                                                            samples=samples))
+            result = run_pipeline(data, opts.updated(seed=seed, engine=engine, samples=samples))
         p, q = sim.truth_at(result.groundtruth.t)
         c = compare_to_truth(result.groundtruth, p, q)
         n3.append(c.nees_position.values)

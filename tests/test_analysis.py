@@ -350,7 +350,6 @@ def test_station_positions_from_calibrate_json():
 @pytest.fixture(scope="module")
 def pipeline_run(tmp_path_factory):
     """A 90 s simulated deployment through the pipeline (Monte Carlo engine), written out."""
-    import dataclasses
 
     from rtsgt.io.deployment import load_deployment
     from rtsgt.io.run_output import write_run
@@ -360,7 +359,7 @@ def pipeline_run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("pipeline-run")
     sim = simulate_deployment(SimulationConfig(duration_s=90.0), np.random.default_rng(5))
     data, opts = load_deployment(write_deployment(sim, tmp / "deployment"))
-    result = run_pipeline(data, dataclasses.replace(opts, engine="mc", samples=200, seed=5))
+    result = run_pipeline(data, opts.updated(engine="mc", samples=200, seed=5))
     return sim, result, write_run(result, tmp / "run")
 
 

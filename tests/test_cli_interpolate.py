@@ -117,10 +117,10 @@ def test_likelihood_qc_equals_the_library(track_file):
 def test_the_same_qc_as_rtsgt_run_on_the_same_track(track_file):
     """One Qc policy: rtsgt interpolate and the pipeline's fit_gps choose the same Qc."""
     from rtsgt.interpolation.prisms import fit_gps
-    from rtsgt.options import RunOptions
+    from rtsgt.options import InterpolationOptions
 
     tr = read_track_csv(track_file)
-    gps = fit_gps({"1": tr}, RunOptions(gp_noise="all"))
+    gps = fit_gps({"1": tr}, InterpolationOptions(gp_noise="all"))
     r = invoke(track_file, "--rate", 2)
     assert "diag(" + ", ".join(f"{v:.6g}" for v in np.diag(gps["1"].qc)) in r.stderr
 
@@ -249,9 +249,9 @@ def test_bad_query_times(times_text, pattern, track_file, tmp_path, monkeypatch,
         ((), "exactly one of --at TIMES.txt and --rate HZ"),
         (("--rate", 5, "--at", "x.txt"), "exactly one of --at"),
         (("--rate", 5, "--qc", "cv"), "expected loo, likelihood or a number"),
-        (("--rate", 0), r"--rate > 0 Hz"),
+        (("--rate", 0), r"--rate: expected a finite rate_hz > 0 Hz"),
         (("--rate", 5, "--qc", -1), r"expected qc > 0"),
-        (("--rate", 5, "--max-gap", 0), r"--max-gap > 0"),
+        (("--rate", 5, "--max-gap", 0), r"--max-gap: expected max_gap_s > 0"),
     ],
 )
 def test_bad_options(args, pattern, track_file, monkeypatch, capsys):

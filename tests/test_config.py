@@ -2,6 +2,7 @@
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from _paths import EXAMPLE_TOML
@@ -44,9 +45,12 @@ def test_minimal_configuration_takes_the_paper_defaults(deployment):
     cfg = load_config(deployment)
     assert [s.prism for s in cfg.stations] == ["1", "2", "3"]
     assert cfg.stations[0].file == deployment.parent / "p1.csv"
-    assert cfg.filter.tau_r_m_s == 2.0 and cfg.filter.tau_s_s == 3.0 and cfg.filter.tau_l_s == 2.0
-    assert cfg.pose.distance_gate_m == 0.10 and cfg.pose.uncertainty_gate_m == 0.20
-    assert cfg.interpolation.qc == "loo" and cfg.interpolation.rate_hz == 5.0
+    o = cfg.options
+    assert o.filter.tau_r == 2.0 and o.filter.tau_s == 3.0 and o.filter.tau_l == 2.0
+    assert o.filter.tau_a == np.radians(1.0) and o.filter.tau_e == np.radians(1.0)
+    assert o.pose.distance_gate_m == 0.10 and o.pose.uncertainty_gate_m == 0.20
+    assert o.interpolation.qc == "loo" and o.interpolation.rate_hz == 5.0
+    assert cfg.query_times is None
     assert cfg.weather is None
 
 
@@ -56,14 +60,14 @@ def test_minimal_configuration_takes_the_paper_defaults(deployment):
         (lambda s: s.replace('file = "p2.csv"', 'file = "nope.csv"'), r"no such file"),
         (lambda s: s.replace('reference_station = "1"', 'reference_station = "7"'),
          r"reference_station = '7' is not a station; known: 1, 2, 3"),
-        (lambda s: s + '[pose]\nengine = "fast"\n', r"engine = 'fast' is not one of"),
+        (lambda s: s + '[pose]\nengine = "fast"\n', r"\[pose\] engine = 'fast': expected engine mc, ut, linear"),
         (lambda s: s + '[pose]\nsamples = "many"\n', r"samples must be int"),
         (lambda s: s + "[noise]\nsources = ['instrument', 'gravity']\n", r"unknown source\(s\) 'gravity'"),
-        (lambda s: s + "[interpolation]\nqc = -1.0\n", r"qc must be > 0"),
-        (lambda s: s + "[interpolation]\nqc = 'auto'\n", r"qc must be 'loo', 'likelihood' or a number"),
+        (lambda s: s + "[interpolation]\nqc = -1.0\n", r"\[interpolation\] qc = -1.0: expected qc > 0"),
+        (lambda s: s + "[interpolation]\nqc = 'auto'\n", r"qc = 'auto': expected qc loo, likelihood or a number"),
         (lambda s: s.replace('prisms = { "1" = 1, "2" = 2, "3" = 3 }', 'prisms = { "1" = 1, "2" = 2 }'),
          r"no survey row for tracked prism\(s\) 3"),
-        (lambda s: s + "[filter]\ntau_r_m_s = 0\n", r"tau_r_m_s must be > 0"),
+        (lambda s: s + "[filter]\ntau_r_m_s = 0\n", r"\[filter\] tau_r_m_s = 0.0: expected tau_r > 0"),
         (lambda s: s + "[filter]\ntau_x = 1\n", r"unknown key\(s\) tau_x"),
         (lambda s: s + "[cameras]\nx = 1\n", r"unknown section\(s\) cameras"),
         (lambda s: s.replace('prism = "2"', 'prism = "1"'), r"different prism"),

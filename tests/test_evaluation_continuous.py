@@ -6,7 +6,6 @@ written as run directories; the continuous ground truth is rebuilt from those fi
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -45,7 +44,7 @@ def _app() -> typer.Typer:
 def _simulate_run(tmp: Path, seed: int, **options):
     sim = simulate_deployment(SimulationConfig(duration_s=120.0), np.random.default_rng(seed))
     data, opts = load_deployment(write_deployment(sim, tmp / f"dep{seed}"))
-    result = run_pipeline(data, dataclasses.replace(opts, seed=seed, **options))
+    result = run_pipeline(data, opts.updated(seed=seed, **options))
     out = write_run(result, tmp / f"run{seed}")
     return sim, result, out
 
@@ -83,7 +82,7 @@ def test_reproduces_the_run_at_its_grid_times_linear_engine(linear_run):
     sim, result, out = linear_run
     cgt = ContinuousGroundTruth.from_run_dir(out)
     assert isinstance(cgt, ValidatedGroundTruth)
-    assert cgt.options.engine == "linear" and cgt.prism_ids == ("1", "2", "3")
+    assert cgt.options.pose.engine == "linear" and cgt.prism_ids == ("1", "2", "3")
     # the refitted GPs are the run's (same Qc, same measurements read back exactly)
     for pid, g in cgt.gps.items():
         np.testing.assert_array_equal(g.qc, result.gps[pid].qc)
@@ -120,7 +119,7 @@ def test_gp_noise_all_refits_on_the_covariance_of_the_measurement_file(linear_ru
     summary["parameters"]["gp_noise"] = "all"
     (run / "summary.json").write_text(json.dumps(summary))
     cgt = ContinuousGroundTruth.from_run_dir(run)
-    assert cgt.options.gp_noise == "all"
+    assert cgt.options.interpolation.gp_noise == "all"
     for pid, tr in cgt.tracks.items():
         header, data = read_table(run / "measurements" / f"prism{pid}.csv")
         cols = [header.index(f"cov_{c}") for c in COV3_NAMES]
@@ -132,7 +131,7 @@ def test_reproduces_the_run_at_its_grid_times_monte_carlo(mc_run):
     truth draws from the run's pose stream (rtsgt.options.stage_rng)."""
     sim, result, out = mc_run
     cgt = ContinuousGroundTruth.from_run_dir(out)
-    assert (cgt.options.engine, cgt.options.samples, cgt.options.seed) == ("mc", 400, 6)
+    assert (cgt.options.pose.engine, cgt.options.pose.samples, cgt.options.seed) == ("mc", 400, 6)
     s = cgt.query_poses(result.prisms.t)
     np.testing.assert_array_equal(s.valid, result.keep)
     gt = result.groundtruth
@@ -405,7 +404,6 @@ def test_rpe_uses_the_correlation_between_ground_truth_poses(tmp_path):
     clock offsets, weather, reference, the GP's smoothing): with the cross-covariance the
     continuous ground truth computes, an exact estimate's RPE NEES is near its dof; treating the
     two poses as independent overstates the relative covariance (NEES well below the dof)."""
-    import dataclasses
     import warnings
 
     from scipy.stats import chi2
@@ -430,7 +428,7 @@ def test_rpe_uses_the_correlation_between_ground_truth_poses(tmp_path):
         data, opts = load_deployment(write_deployment(sim, tmp_path / f"dep{seed}"))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            result = run_pipeline(data, dataclasses.replace(opts, engine="linear", seed=seed))
+            result = run_pipeline(data, opts.updated(engine="linear", seed=seed))
         cgt = ContinuousGroundTruth.from_run_dir(write_run(result, tmp_path / f"run{seed}"))
         t = np.arange(result.groundtruth.t[0], result.groundtruth.t[-1], 0.1)
         est = PoseTrajectory(t, *sim.truth_at(t))  # exact: the RPE error is the GT's own

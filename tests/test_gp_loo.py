@@ -89,7 +89,7 @@ def test_too_few_interior_knots_is_a_clear_error():
 
 def test_pipeline_falls_back_to_the_likelihood_on_a_track_too_short_to_cross_validate():
     from rtsgt.interpolation.prisms import fit_gps
-    from rtsgt.options import RunOptions
+    from rtsgt.options import InterpolationOptions
     from rtsgt.types import PrismTrack
 
     rng = np.random.default_rng(12)
@@ -97,7 +97,7 @@ def test_pipeline_falls_back_to_the_likelihood_on_a_track_too_short_to_cross_val
     long_ = _track(rng, 60, 0.02)
     tracks = {"1": PrismTrack(t, y, R, prism="1"), "2": PrismTrack(*long_[:3], prism="2")}
     info = {}
-    opts = RunOptions(max_gap_s=0.45)  # knots 0.3-0.5 s apart: track 1 keeps < 5 to score
+    opts = InterpolationOptions(max_gap_s=0.45)  # knots 0.3-0.5 s apart: track 1 keeps < 5 to score
     with pytest.warns(UserWarning, match="prism 1: .* marginal likelihood instead"):
         gps = fit_gps(tracks, opts, info=info)
     assert info["1"]["method"] == "likelihood" and info["2"]["method"] == "loo"

@@ -16,7 +16,6 @@ tolerances as they are (each prism is pooled over all 40 deployments and is far 
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
 
 import numpy as np
@@ -37,7 +36,7 @@ def _run(tmp, seed, **options):
     data, opts = load_deployment(write_deployment(sim, tmp / f"dep{seed}"))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # markers seen by one station only, by design
-        result = run_pipeline(data, dataclasses.replace(opts, seed=seed, **options))
+        result = run_pipeline(data, opts.updated(seed=seed, **options))
     p, q = sim.truth_at(result.groundtruth.t)
     return (result, compare_to_truth(result.groundtruth, p, q)), sim
 

@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from rtsgt.errors import InputError
-from rtsgt.options import RANDOM_STAGES, RunOptions, stage_rng
+from rtsgt.options import (
+    RANDOM_STAGES,
+    InterpolationOptions,
+    PoseOptions,
+    RunOptions,
+    stage_rng,
+)
 
 
 def test_each_stage_has_its_own_stream_the_children_of_the_seed():
@@ -36,12 +42,23 @@ def test_each_stage_has_its_own_stream_the_children_of_the_seed():
 ])
 def test_bad_values_are_refused_naming_the_option(change, match):
     with pytest.raises(InputError, match=match):
-        RunOptions(**change)
+        RunOptions().updated(**change)
+
+
+def test_the_nested_records_take_the_flat_names_of_the_command_line():
+    o = RunOptions().updated(engine="ut", samples=50, seed=3, rate_hz=2.0, qc="likelihood",
+                             gp_noise="all", distance_gate_m=0.5)
+    assert o == RunOptions(seed=3, interpolation=InterpolationOptions(2.0, "likelihood",
+                                                                      gp_noise="all"),
+                           pose=PoseOptions("ut", 50, distance_gate_m=0.5))
+    assert RunOptions().updated() == RunOptions()
+    with pytest.raises(TypeError, match="no_such"):
+        RunOptions().updated(no_such=1)
 
 
 def test_limits_may_be_switched_off_with_infinity():
-    o = RunOptions(max_gap_s=float("inf"), distance_gate_m=float("inf"))
-    assert o.max_gap_s == float("inf") and o.distance_gate_m == float("inf")
+    o = RunOptions().updated(max_gap_s=float("inf"), distance_gate_m=float("inf"))
+    assert o.interpolation.max_gap_s == float("inf") and o.pose.distance_gate_m == float("inf")
 
 
 def test_a_configuration_without_options_gets_the_owners_defaults(tmp_path):
@@ -63,10 +80,7 @@ def test_a_configuration_without_options_gets_the_owners_defaults(tmp_path):
     bare = tmp_path / "dep" / "bare.toml"
     bare.write_text(text)
     _, o = load_deployment(bare)
-    d = RunOptions()
-    for name in ("engine", "samples", "rate_hz", "qc", "max_gap_s", "distance_gate_m",
-                 "uncertainty_gate_m", "gp_noise"):
-        assert getattr(o, name) == getattr(d, name), name
+    assert o.interpolation == InterpolationOptions() and o.pose == PoseOptions()
     assert o.filter == FilterParams()
     model = NoiseModel(instrument=o.noise.instrument)
     for name in ("sources", "time_sync_mean_s", "time_sync_std_s", "temperature_halfwidth_c",

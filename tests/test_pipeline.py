@@ -21,9 +21,8 @@ def _simulate_and_run(tmp_path: Path, seed: int, duration: float, **options):
     sim = simulate_deployment(SimulationConfig(duration_s=duration), np.random.default_rng(seed))
     cfg = write_deployment(sim, tmp_path / f"dep{seed}")
     data, opts = load_deployment(cfg)
-    import dataclasses
 
-    opts = dataclasses.replace(opts, seed=seed, **options)
+    opts = opts.updated(seed=seed, **options)
     result = run_pipeline(data, opts)
     p, q = sim.truth_at(result.groundtruth.t)
     return sim, result, compare_to_truth(result.groundtruth, p, q)
@@ -91,9 +90,8 @@ def test_existing_output_directory_is_refused(demo_run):
 
 def test_real_excerpt_end_to_end(tmp_path):
     data, opts = load_deployment(EXAMPLE)
-    import dataclasses
 
-    result = run_pipeline(data, dataclasses.replace(opts, samples=300))
+    result = run_pipeline(data, opts.updated(samples=300))
     gt = result.groundtruth
     assert len(gt) > 100
     # the registered prisms keep the reference inter-prism distances
@@ -161,18 +159,17 @@ def test_station_coupling_reproduces_the_sampled_cross_covariance_of_prisms(tmp_
 def test_rate_gates_too_tight_for_the_robot_are_reported(tmp_path):
     """The paper's 1 deg/s gates on a 0.5-2 m/s robot passing 8 m from the stations: module 1
     rejects true motion, and the run says so (with the configuration keys to change)."""
-    import dataclasses
 
     from rtsgt.filtering import FilterParams
 
     sim = simulate_deployment(SimulationConfig(duration_s=120.0), np.random.default_rng(11))
     data, opts = load_deployment(write_deployment(sim, tmp_path / "dep"))
     with pytest.warns(UserWarning, match=r"rejected \d+ of \d+ measurements .* \[filter\]"):
-        run_pipeline(data, dataclasses.replace(opts, filter=FilterParams(), engine="linear"))
+        run_pipeline(data, opts.updated(filter=FilterParams(), engine="linear"))
     # with the simulator's gates (from its robot's speed limits) nothing is said
     import warnings
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        run_pipeline(data, dataclasses.replace(opts, engine="linear"))
+        run_pipeline(data, opts.updated(engine="linear"))
     assert not [w for w in caught if "module 1 rejected" in str(w.message)]

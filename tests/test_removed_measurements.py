@@ -74,7 +74,7 @@ def outlier_run(tmp_path_factory):
         observations.append(new)
         injected[o.station], outliers[o.station] = expected, outlier
     data = dataclasses.replace(data, observations=tuple(observations))
-    opts = dataclasses.replace(opts, engine="linear", seed=4)
+    opts = opts.updated(engine="linear", seed=4)
     result = run_pipeline(data, opts)
     out = write_run(result, tmp / "run")
     with open(out / "measurements" / "removed.csv", encoding="utf-8", newline="") as fh:

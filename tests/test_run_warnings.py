@@ -37,7 +37,7 @@ def _deployment(tmp_path: Path, seed: int, duration: float) -> Path:
 
 
 def _run(data, opts, seed: int):
-    return run_pipeline(data, dataclasses.replace(opts, engine="linear", seed=seed))
+    return run_pipeline(data, opts.updated(engine="linear", seed=seed))
 
 
 def _stale_weather(cfg: Path, hours_before_end: float) -> WeatherSeries:

@@ -1,12 +1,23 @@
-"""Processing options of a run (one owner of their defaults and of the rule they meet).
+"""Processing options of a run: one set of typed, nested records, each default written once.
 
-The command line and the deployment's TOML both map onto :class:`RunOptions`; its
-``__post_init__`` is the one check every value meets, wherever it came from.
+Layout (each record is what one stage takes, and one table of the deployment's TOML)::
+
+    RunOptions
+        seed                              the run's random streams (:func:`stage_rng`)
+        filter         FilterParams       [filter]         filtering modules 1 and 2
+        noise          NoiseModel | None  [noise]          None: the default model of the
+                                                           deployment's instrument
+        interpolation  InterpolationOptions [interpolation] query grid, Qc, gaps, GP noise
+        pose           PoseOptions        [pose]           engine, Monte Carlo samples, gates
+
+The command line and the TOML both map onto these records (:meth:`RunOptions.updated` takes
+the flat names the command line uses); the ``__post_init__`` of each is the one check every
+value meets, wherever it came from.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from typing import Literal, get_args
 
 import numpy as np
@@ -31,7 +42,8 @@ QC_METHODS: tuple[str, ...] = get_args(QcMethod)
 GpNoise = Literal["white", "all"]
 GP_NOISE: tuple[str, ...] = get_args(GpNoise)
 
-__all__ = ["RunOptions", "QC_METHODS", "GP_NOISE", "RANDOM_STAGES", "stage_rng"]
+__all__ = ["GP_NOISE", "QC_METHODS", "RANDOM_STAGES", "InterpolationOptions", "PoseOptions", "RunOptions",
+           "stage_rng"]
 
 
 def stage_rng(seed: int, stage: str) -> np.random.Generator:
@@ -46,36 +58,35 @@ def stage_rng(seed: int, stage: str) -> np.random.Generator:
 
 
 @dataclass(frozen=True)
-class RunOptions:
-    """Processing parameters of one run (defaults: the paper's where it has one)."""
+class InterpolationOptions:
+    """Query times and the GP of each prism (TOML ``[interpolation]``).
 
-    engine: PoseEngine = "mc"
-    samples: int = 1000
-    seed: int = 0
+    Attributes
+    ----------
+    rate_hz : float
+        Rate of the query grid over the common intervals, Hz (used when the deployment gives
+        no query times).
+    qc : float or {"loo", "likelihood"}
+        The GP's power spectral density, m^2/s^3, or how to choose it per prism
+        (:func:`rtsgt.interpolation.prisms.fit_prism_gp`): by leave-one-out, the default of every
+        command, or by the marginal likelihood.
+    max_gap_s : float
+        No pose across a gap between measurements longer than this, s (``inf``: no limit).
+    gp_noise : {"white", "all"}
+        What the GP is given: the white sources (rtsgt; the systematic ones are added after the
+        GP) or every source (the paper).
+    """
+
     rate_hz: float = 5.0
     qc: float | QcMethod = "loo"
     max_gap_s: float = DEFAULT_MAX_GAP_S
-    noise: NoiseModel | None = None
-    filter: FilterParams = field(default_factory=FilterParams)
-    distance_gate_m: float = DEFAULT_DISTANCE_GATE_M
-    uncertainty_gate_m: float = DEFAULT_UNCERTAINTY_GATE_M
     gp_noise: GpNoise = "white"
 
     def __post_init__(self) -> None:
-        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) \
-                or self.seed < 0:
-            raise InputError(f"Expected a seed that is an integer >= 0, got {self.seed!r}")
-        if self.engine not in POSE_ENGINES:
-            raise InputError(f"Expected engine {', '.join(POSE_ENGINES)}, got {self.engine!r}")
-        if isinstance(self.samples, bool) or not isinstance(self.samples, (int, np.integer)) \
-                or self.samples < 10:
-            raise InputError(f"Expected an integer of at least 10 samples, got {self.samples!r}")
         if not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
             raise InputError(f"Expected a finite rate_hz > 0 Hz, got {self.rate_hz!r}")
-        for name in ("max_gap_s", "distance_gate_m", "uncertainty_gate_m"):
-            value = getattr(self, name)
-            if not value > 0:  # infinity switches the limit off; nan is refused
-                raise InputError(f"Expected {name} > 0, got {value!r}")
+        if not self.max_gap_s > 0:  # infinity switches the limit off; nan is refused
+            raise InputError(f"Expected max_gap_s > 0, got {self.max_gap_s!r}")
         if isinstance(self.qc, str) and self.qc not in QC_METHODS:
             raise InputError(
                 f"Expected qc {', '.join(QC_METHODS)} or a number (m^2/s^3), got {self.qc!r}")
@@ -85,7 +96,78 @@ class RunOptions:
             raise InputError(f"Expected gp_noise {' or '.join(map(repr, GP_NOISE))}, got "
                              f"{self.gp_noise!r}")
 
+
+@dataclass(frozen=True)
+class PoseOptions:
+    """Pose engine, Monte Carlo samples and the quality gates of module 4 (TOML ``[pose]``).
+
+    Attributes
+    ----------
+    engine : {"mc", "ut", "linear"}
+        Pose engine (:func:`rtsgt.pose.estimate_poses`); it also picks the per-measurement
+        engine (:attr:`RunOptions.noise_engine`).
+    samples : int
+        Monte Carlo samples of every sampling stage (calibration, noise, pose), at least 10.
+    distance_gate_m, uncertainty_gate_m : float
+        Module 4's gates, m (``inf``: off).
+    """
+
+    engine: PoseEngine = "mc"
+    samples: int = 1000
+    distance_gate_m: float = DEFAULT_DISTANCE_GATE_M
+    uncertainty_gate_m: float = DEFAULT_UNCERTAINTY_GATE_M
+
+    def __post_init__(self) -> None:
+        if self.engine not in POSE_ENGINES:
+            raise InputError(f"Expected engine {', '.join(POSE_ENGINES)}, got {self.engine!r}")
+        if isinstance(self.samples, bool) or not isinstance(self.samples, (int, np.integer)) \
+                or self.samples < 10:
+            raise InputError(f"Expected an integer of at least 10 samples, got {self.samples!r}")
+        for name in ("distance_gate_m", "uncertainty_gate_m"):
+            value = getattr(self, name)
+            if not value > 0:  # infinity switches the gate off; nan is refused
+                raise InputError(f"Expected {name} > 0, got {value!r}")
+
+
+#: The nested records of :class:`RunOptions`, by field name.
+_NESTED = {"interpolation": InterpolationOptions, "pose": PoseOptions}
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """Processing parameters of one run (defaults: the paper's where it has one)."""
+
+    seed: int = 0
+    filter: FilterParams = field(default_factory=FilterParams)
+    noise: NoiseModel | None = None
+    interpolation: InterpolationOptions = field(default_factory=InterpolationOptions)
+    pose: PoseOptions = field(default_factory=PoseOptions)
+
+    def __post_init__(self) -> None:
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) \
+                or self.seed < 0:
+            raise InputError(f"Expected a seed that is an integer >= 0, got {self.seed!r}")
+
+    def updated(self, **changes) -> RunOptions:
+        """A copy with ``changes``, keyed by the flat names of the command line: ``seed``,
+        ``filter``, ``noise``, or a field of a nested record (``engine``, ``samples``,
+        ``rate_hz``, ``qc``, ``max_gap_s``, ``gp_noise``, the gates); each value meets its
+        record's rule (:class:`~rtsgt.errors.InputError` otherwise)."""
+        top = {k: v for k, v in changes.items() if k in _TOP_FIELDS}
+        for part, record in _NESTED.items():
+            mine = {k: v for k, v in changes.items() if k in _FIELDS[record]}
+            if mine:
+                top[part] = replace(getattr(self, part), **mine)
+        unknown = set(changes) - _TOP_FIELDS - set().union(*_FIELDS.values())
+        if unknown:
+            raise TypeError(f"unknown option(s): {', '.join(sorted(unknown))}")
+        return replace(self, **top)
+
     @property
     def noise_engine(self) -> str:
         """The per-measurement engine: Monte Carlo for the MC pose engine, else first order."""
-        return "mc" if self.engine == "mc" else "linear"
+        return "mc" if self.pose.engine == "mc" else "linear"
+
+
+_FIELDS = {record: {f.name for f in fields(record)} for record in _NESTED.values()}
+_TOP_FIELDS = {f.name for f in fields(RunOptions)} - set(_NESTED)

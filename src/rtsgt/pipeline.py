@@ -197,7 +197,7 @@ def _run_stages(
     t_start = min(float(o.t[0]) for o in filtered)
     gcp = gcp_atmospheric_correction(data.gcp, model, data.weather, t_start)
     calib = calibrate(gcp, reference_station=data.reference_station,
-                      instrument=data.instrument, samples=options.samples,
+                      instrument=data.instrument, samples=options.pose.samples,
                       rng=stage_rng(options.seed, "calibration"))
     gcp_xyz, gcp_names = gcp_world_positions(data.gcp, calib.transforms)
     gcp_world = {} if gcp_xyz is None else dict(zip(gcp_names, gcp_xyz, strict=True))
@@ -214,7 +214,7 @@ def _run_stages(
             )
         tracks[obs.prism] = propagate(
             obs, model, T_world_station=calib.transforms[obs.station], weather=data.weather,
-            engine=options.noise_engine, samples=options.samples, rng=noise_rng,
+            engine=options.noise_engine, samples=options.pose.samples, rng=noise_rng,
         )
     lap("noise_model")
 
@@ -231,7 +231,7 @@ def _run_stages(
 
     say("GP interpolation")
     qc_info: dict[str, dict] = {}
-    gps = fit_gps(tracks, options, info=qc_info)
+    gps = fit_gps(tracks, options.interpolation, info=qc_info)
     if data.query_times is not None:
         t_query = np.asarray(data.query_times, dtype=float)
         inside = np.zeros(t_query.shape, bool)
@@ -239,7 +239,7 @@ def _run_stages(
             inside |= (t_query >= a) & (t_query <= b)
         t_query = t_query[inside]
     else:
-        t_query = query_grid(intervals, options.rate_hz)
+        t_query = query_grid(intervals, options.interpolation.rate_hz)
     # queries across a gap longer than max_gap_s in any prism are not poses we can vouch for
     ok = np.ones(t_query.shape, bool)
     for g in gps.values():
@@ -248,19 +248,19 @@ def _run_stages(
     if t_query.size == 0:
         raise InputError("No query time falls inside the intervals common to all prisms")
     coupling = StationCoupling.from_calibration(calib)
-    prisms = query_prisms(tracks, gps, t_query, options, coupling)
+    prisms = query_prisms(tracks, gps, t_query, options.interpolation, coupling)
     lap("interpolation")
 
     say("poses")
     reference = data.reference.select(list(tracks))
-    est = estimate_poses(prisms.xyz, prisms.pose_covariance, reference, engine=options.engine,
-                         samples=options.samples, rng=stage_rng(options.seed, "pose"))
+    est = estimate_poses(prisms.xyz, prisms.pose_covariance, reference, engine=options.pose.engine,
+                         samples=options.pose.samples, rng=stage_rng(options.seed, "pose"))
     lap("pose")
 
     say("quality gates (module 4)")
     keep, gate_report = apply_gates(
-        est, reference, distance_gate_m=options.distance_gate_m,
-        uncertainty_gate_m=options.uncertainty_gate_m,
+        est, reference, distance_gate_m=options.pose.distance_gate_m,
+        uncertainty_gate_m=options.pose.uncertainty_gate_m,
     )
     gt = PoseTrajectory(
         t_query[keep], est.t[keep], matrix_to_quat_xyzw(est.R[keep]), est.cov[keep]

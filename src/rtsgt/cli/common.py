@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 import typer
@@ -20,15 +21,15 @@ def usage_error(message: str, option: str) -> typer.BadParameter:
     return typer.BadParameter(message, param_hint=option)
 
 
-def checked_options(record: type, names: dict[str, str], **values) -> dict:
+def checked_options(build: Callable[..., object], names: dict[str, str], **values) -> dict:
     """The given (not None) command-line values, each checked by the rule of the options
-    ``record`` (a dataclass whose ``__post_init__`` raises :class:`~rtsgt.errors.InputError`:
+    ``build`` makes (a record whose ``__post_init__`` raises :class:`~rtsgt.errors.InputError`:
     the rule the configuration file's values meet too); a bad one is a usage error naming
     its option (``names``: field -> option)."""
     changes = {k: v for k, v in values.items() if v is not None}
     for key, value in changes.items():
         try:
-            record(**{key: value})
+            build(**{key: value})
         except InputError as exc:
             raise usage_error(exc.bare_message, names[key]) from None
     return changes

@@ -110,7 +110,7 @@ def print_demo_table(result, comparison, run_dir: Path) -> None:
         t.add_row(f"NEES {n.dof} dof: mean / dof", f"{n.mean / n.dof:.2f}", f"{lo:.2f}-{hi:.2f}")
         t.add_row(f"NEES {n.dof} dof: inside 95 % region", f"{100 * n.fraction_inside_95:.1f} %",
                   f"{100 * flo:.1f}-{100 * fhi:.1f} %")
-    t.add_row("engine / samples", f"{result.options.engine} / {result.options.samples}", "")
+    t.add_row("engine / samples", f"{result.options.pose.engine} / {result.options.pose.samples}", "")
     console = Console()
     console.print(t)
     console.print("Expected ranges: two-sided 95 % acceptance intervals of a chi-square test that "

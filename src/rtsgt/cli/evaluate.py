@@ -93,8 +93,8 @@ def run_gap_limit(gt: object, gt_dir: str | Path) -> float | None:
         ``summary.json`` cannot be read (naming it).
     """
     options = getattr(gt, "options", None)
-    if options is not None and getattr(options, "max_gap_s", None) is not None:
-        return float(options.max_gap_s)
+    if options is not None:  # a continuous ground truth: its run's options
+        return float(options.interpolation.max_gap_s)
     if not Path(gt_dir).is_dir():
         return None
     summary = read_summary(gt_dir)

@@ -15,14 +15,14 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from rtsgt.cli.common import usage_error
+from rtsgt.cli.common import checked_options, usage_error
 from rtsgt.errors import InputError
 from rtsgt.interpolation import GPTrack
 from rtsgt.interpolation.prisms import fit_prism_gp
 from rtsgt.io._parse import atomic_write_text
 from rtsgt.io.output_dir import check_output_file
 from rtsgt.io.track_csv import TRACK_COLUMNS, read_query_times, read_track_csv, track_csv_text
-from rtsgt.options import QC_METHODS, RunOptions
+from rtsgt.options import QC_METHODS, InterpolationOptions
 
 
 def rate_times(gp: GPTrack, rate_hz: float) -> tuple[np.ndarray, int]:
@@ -48,17 +48,18 @@ def rate_times(gp: GPTrack, rate_hz: float) -> tuple[np.ndarray, int]:
 
 def parse_qc(text: str | None) -> float | str:
     """The value of ``--qc``: ``loo``, ``likelihood`` or a number (m^2/s^3), checked by the rule
-    the configuration's ``qc`` meets (:class:`rtsgt.options.RunOptions`); a usage error else."""
-    text = RunOptions.qc if text is None else str(text).strip()
-    if text in QC_METHODS:
-        return text
+    the configuration's ``qc`` meets (:class:`rtsgt.options.InterpolationOptions`); a usage
+    error else."""
+    text = InterpolationOptions.qc if text is None else str(text).strip()
     try:
-        value = float(text)
+        value = text if text in QC_METHODS else float(text)
     except ValueError:
         raise usage_error(f"expected {', '.join(QC_METHODS)} or a number (m^2/s^3), got "
                           f"{text!r}", "--qc") from None
-    if not (math.isfinite(value) and value > 0):
-        raise usage_error(f"expected qc > 0 m^2/s^3, got {text!r}", "--qc")
+    try:
+        InterpolationOptions(qc=value)
+    except InputError as exc:
+        raise usage_error(exc.bare_message, "--qc") from None
     return value
 
 
@@ -67,8 +68,8 @@ def interpolate_file(
     *,
     at: Path | None = None,
     rate: float | None = None,
-    qc: float | str = RunOptions.qc,
-    max_gap: float = RunOptions.max_gap_s,
+    qc: float | str = InterpolationOptions.qc,
+    max_gap: float = InterpolationOptions.max_gap_s,
 ) -> tuple[str, GPTrack, dict, int]:
     """Fit the track of ``track_path`` with rtsgt's Qc policy and answer the queries.
 
@@ -87,10 +88,9 @@ def interpolate_file(
     """
     if (at is None) == (rate is None):
         raise usage_error("give exactly one of --at TIMES.txt and --rate HZ", "--at / --rate")
-    if rate is not None and not (math.isfinite(rate) and rate > 0):
-        raise usage_error(f"expected --rate > 0 Hz, got {rate!r}", "--rate")
-    if not max_gap > 0:  # inf allowed (no limit), NaN refused
-        raise usage_error(f"expected --max-gap > 0 s, got {max_gap!r}", "--max-gap")
+    # the rule [interpolation] meets (inf: no gap limit)
+    checked_options(InterpolationOptions, {"rate_hz": "--rate", "max_gap_s": "--max-gap"},
+                    rate_hz=rate, max_gap_s=max_gap)
     track = read_track_csv(track_path)
     try:
         gp, info = fit_prism_gp(track, qc, max_gap, str(track_path))
@@ -177,13 +177,13 @@ def register(app: typer.Typer) -> None:
             None, "--rate", help="Query on a regular grid at this rate (Hz), skipping long gaps."
         ),
         qc: str = typer.Option(
-            RunOptions.qc, "--qc",
+            InterpolationOptions.qc, "--qc",
             help="Qc, as rtsgt run chooses it: 'loo' (leave-one-out per axis, calibrated for "
                  "interpolation), 'likelihood' (maximum marginal likelihood, isotropic) or a "
                  "number, the isotropic power spectral density in m^2/s^3.",
         ),
         max_gap: float = typer.Option(
-            RunOptions.max_gap_s, "--max-gap", help="Refuse queries across longer gaps (s)."
+            InterpolationOptions.max_gap_s, "--max-gap", help="Refuse queries across longer gaps (s)."
         ),
         out: Path | None = typer.Option(
             None, "--out", help="Output CSV (default: standard output)."

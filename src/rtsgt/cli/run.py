@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import typer
@@ -22,7 +21,7 @@ RUN_OPTION_NAMES = {"engine": "--engine", "samples": "--samples", "rate_hz": "--
 def option_overrides(**values) -> dict:
     """The given (not None) option values, each checked by :class:`RunOptions`'s own rule
     (the rule the configuration file's values meet); a bad one is a usage error."""
-    return checked_options(RunOptions, RUN_OPTION_NAMES, **values)
+    return checked_options(RunOptions().updated, RUN_OPTION_NAMES, **values)
 
 
 def run_deployment(
@@ -50,7 +49,7 @@ def run_deployment(
     with Stages(quiet) as stages:
         stages("reading inputs")
         data, options = load_deployment(config)
-        options = dataclasses.replace(options, seed=seed, **changes)
+        options = options.updated(seed=seed, **changes)
         result = run_pipeline(data, options, progress=stages)
         stages("writing outputs")
 

@@ -170,7 +170,7 @@ class ContinuousGroundTruth:
         missing = [p for p in tracks if p not in qc]
         if missing:
             raise InputError(f"{source or 'ground truth'}: no Qc for prism(s) {', '.join(missing)}")
-        gps = fit_gps(tracks, options, qc={p: qc[p] for p in tracks})
+        gps = fit_gps(tracks, options.interpolation, qc={p: qc[p] for p in tracks})
         return cls(dict(tracks), gps, np.asarray(intervals, dtype=float),
                    reference.select(list(tracks)), options, uncertainty_measure, source,
                    coupling)
@@ -260,7 +260,7 @@ class ContinuousGroundTruth:
         reference = ReferencePoints(run.prism_ids, run.reference_xyz, run.reference_cov,
                                     summary.reference_frame)
         try:
-            options = RunOptions(
+            options = RunOptions().updated(
                 engine=summary.engine,
                 samples=summary.samples,
                 seed=summary.seed,
@@ -287,17 +287,17 @@ class ContinuousGroundTruth:
     @property
     def info(self) -> dict:
         """JSON-ready description (source, engine, samples, seed, prisms, run limits)."""
-        o = self.options
+        o, p = self.options, self.options.pose
         return {
             "source": self.source,
-            "engine": o.engine,
-            "samples": o.samples if o.engine == "mc" else None,
-            "seed": o.seed if o.engine == "mc" else None,
+            "engine": p.engine,
+            "samples": p.samples if p.engine == "mc" else None,
+            "seed": o.seed if p.engine == "mc" else None,
             "prisms": list(self.prism_ids),
             "intervals": int(self.intervals.shape[0]),
-            "run_max_gap_s": float(o.max_gap_s),
-            "distance_gate_m": float(o.distance_gate_m),
-            "uncertainty_gate_m": float(o.uncertainty_gate_m),
+            "run_max_gap_s": float(o.interpolation.max_gap_s),
+            "distance_gate_m": float(p.distance_gate_m),
+            "uncertainty_gate_m": float(p.uncertainty_gate_m),
         }
 
     @property
@@ -339,7 +339,7 @@ class ContinuousGroundTruth:
     def _linearise(self, tau: ArrayLike) -> _Linearised:
         tau = np.atleast_1d(np.asarray(tau, dtype=float))
         n = len(self.tracks)
-        pr = query_prisms(self.tracks, self.gps, tau, self.options, self.coupling)
+        pr = query_prisms(self.tracks, self.gps, tau, self.options.interpolation, self.coupling)
         est = estimate_poses(pr.xyz, pr.pose_covariance, self.reference, engine="linear")
         J_q, J_r = registration_jacobian(np.broadcast_to(self.reference.xyz, pr.xyz.shape),
                                          pr.xyz, est.R)
@@ -353,7 +353,7 @@ class ContinuousGroundTruth:
         n, K = len(ids), a.t.size
         stations = [self.tracks[p].station for p in ids]
         C = np.zeros((K, 3 * n, 3 * n))
-        systematic = self.options.gp_noise == "white"
+        systematic = self.options.interpolation.gp_noise == "white"
         for i, pid in enumerate(ids):
             blk = gp_cross_covariance(self.gps[pid], a.t, b.t)[:, :3, :3]
             if systematic:
@@ -422,11 +422,13 @@ class ContinuousGroundTruth:
         cov = np.full((M, 6, 6), np.nan)
         idx = np.flatnonzero(reason == "")
         if idx.size:
-            prisms = query_prisms(self.tracks, self.gps, tau[idx], self.options, self.coupling)
-            opt = self.options
+            prisms = query_prisms(self.tracks, self.gps, tau[idx], self.options.interpolation,
+                                  self.coupling)
+            opt = self.options.pose
             est = estimate_poses(
-                prisms.xyz, prisms.pose_covariance, self.reference, engine=opt.engine, samples=opt.samples,
-                rng=stage_rng(opt.seed, "pose") if opt.engine == "mc" else None,
+                prisms.xyz, prisms.pose_covariance, self.reference, engine=opt.engine,
+                samples=opt.samples,
+                rng=stage_rng(self.options.seed, "pose") if opt.engine == "mc" else None,
             )
             keep, report = apply_gates(
                 est, self.reference, distance_gate_m=opt.distance_gate_m,
@@ -445,14 +447,9 @@ def _override(options: RunOptions, engine: str | None, samples: int | None,
               seed: int | None) -> RunOptions:
     if engine is not None and engine not in POSE_ENGINES:
         raise InputError(f"Expected a ground-truth engine in {POSE_ENGINES}, got {engine!r}")
-    changes = {}
-    if engine is not None:
-        changes["engine"] = engine
-    if samples is not None:
-        changes["samples"] = int(samples)
-    if seed is not None:
-        changes["seed"] = int(seed)
-    return dataclasses.replace(options, **changes) if changes else options
+    changes = {"engine": engine, "samples": None if samples is None else int(samples),
+               "seed": None if seed is None else int(seed)}
+    return options.updated(**{k: v for k, v in changes.items() if v is not None})
 
 
 @dataclass(frozen=True)

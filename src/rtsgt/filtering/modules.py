@@ -104,16 +104,14 @@ class FilterParams:
             raise InputError(f"Expected tau_l >= 0, got {self.tau_l!r}")
 
     @classmethod
-    def from_degrees(
-        cls,
-        tau_r: float = 2.0,
-        tau_a_deg: float = 1.0,
-        tau_e_deg: float = 1.0,
-        tau_s: float = 3.0,
-        tau_l: float = 2.0,
-    ) -> FilterParams:
-        """Parameters with the angular rates given in deg/s."""
-        return cls(tau_r, float(np.deg2rad(tau_a_deg)), float(np.deg2rad(tau_e_deg)), tau_s, tau_l)
+    def from_degrees(cls, tau_a_deg: float | None = None, tau_e_deg: float | None = None,
+                     **others: float) -> FilterParams:
+        """Parameters with the angular rates given in deg/s (``others``: ``tau_r``, ``tau_s``,
+        ``tau_l``; the defaults where absent)."""
+        for name, deg in (("tau_a", tau_a_deg), ("tau_e", tau_e_deg)):
+            if deg is not None:
+                others[name] = float(np.deg2rad(deg))
+        return cls(**others)
 
 
 @dataclass(frozen=True)

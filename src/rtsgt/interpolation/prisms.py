@@ -20,7 +20,7 @@ from rtsgt.calibration.coupling import StationCoupling, joint_prism_covariance
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.interpolation.gp import GPTrack, fit_track
 from rtsgt.interpolation.loo import fit_qc_loo
-from rtsgt.options import RunOptions
+from rtsgt.options import InterpolationOptions
 from rtsgt.types import PrismTrack
 
 __all__ = ["PrismsAtTimes", "fit_gps", "fit_prism_gp", "query_prisms", "query_grid", "gp_covariance",
@@ -111,7 +111,7 @@ def fit_prism_gp(data, qc: float | str, max_gap_s: float, name: str) -> tuple[GP
     data : PrismTrack or tuple (t, xyz, cov)
         The measurements and the covariance the GP is given.
     qc : {"loo", "likelihood"} or float
-        ``"loo"`` (the default of :class:`rtsgt.options.RunOptions`): leave-one-out
+        ``"loo"`` (the default of :class:`rtsgt.options.InterpolationOptions`): leave-one-out
         cross-validation of a diagonal Qc (one PSD per world axis), which calibrates the GP for
         interpolation (:mod:`rtsgt.interpolation.loo`); on a track too short to
         cross-validate, the marginal likelihood, with a warning. ``"likelihood"``: the maximum
@@ -148,7 +148,7 @@ def fit_prism_gp(data, qc: float | str, max_gap_s: float, name: str) -> tuple[GP
 
 
 def fit_gps(
-    tracks: dict[str, PrismTrack], options: RunOptions, qc: dict[str, object] | None = None,
+    tracks: dict[str, PrismTrack], options: InterpolationOptions, qc: dict[str, object] | None = None,
     info: dict[str, dict] | None = None,
 ) -> dict[str, GPTrack]:
     """Fit the GP of every prism track, its Qc chosen by ``options.qc`` (:func:`fit_prism_gp`).
@@ -175,7 +175,7 @@ def fit_gps(
 
 
 def query_prisms(
-    tracks: dict[str, PrismTrack], gps: dict[str, GPTrack], t: np.ndarray, options: RunOptions,
+    tracks: dict[str, PrismTrack], gps: dict[str, GPTrack], t: np.ndarray, options: InterpolationOptions,
     coupling: StationCoupling | None = None,
 ) -> PrismsAtTimes:
     """Positions and covariances of every prism at the times ``t`` (inside every track).

@@ -61,6 +61,7 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
     qc = "loo"                       # "loo" (leave-one-out, default), "likelihood", or a
                                      # number: isotropic PSD, m^2/s^3
     max_gap_s = 3.0
+    gp_noise = "white"               # what the GP is given: "white" sources (default) or "all"
 
     [pose]
     engine = "mc"                    # mc | ut | linear
@@ -72,16 +73,17 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
 from __future__ import annotations
 
 import math
+import re
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rtsgt.errors import ConfigError
+from rtsgt.errors import ConfigError, InputError
 from rtsgt.filtering import FilterParams
+from rtsgt.measurement.instruments import InstrumentProfile, instrument_from_config
 from rtsgt.noise import NoiseModel
-from rtsgt.options import QC_METHODS, RunOptions
-from rtsgt.pose.estimate import POSE_ENGINES
+from rtsgt.options import InterpolationOptions, PoseOptions, RunOptions
 from rtsgt.types import NOISE_SOURCES
 
 if sys.version_info >= (3, 11):
@@ -89,7 +91,6 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover
     import tomli as tomllib
 
-ENGINES = POSE_ENGINES
 STATION_FORMATS = ("rts-project",)
 GCP_FORMATS = ("rts-project", "csv")
 WEATHER_FORMATS = ("csv", "eccc")
@@ -131,65 +132,22 @@ class ReferenceConfig:
 
 
 @dataclass(frozen=True)
-class NoiseConfig:
-    """Noise sources to include and their parameters (defaults: :class:`rtsgt.noise.NoiseModel`'s)."""
-
-    sources: tuple[str, ...] = NOISE_SOURCES
-    time_sync_mean_s: float = NoiseModel.time_sync_mean_s
-    time_sync_std_s: float = NoiseModel.time_sync_std_s
-    temperature_halfwidth_c: float = NoiseModel.temperature_halfwidth_c
-    pressure_halfwidth_hpa: float = NoiseModel.pressure_halfwidth_hpa
-    humidity_halfwidth_pct: float = NoiseModel.humidity_halfwidth_pct
-
-
-@dataclass(frozen=True)
-class FilterConfig:
-    """Parameters of the filtering modules (defaults: :class:`rtsgt.filtering.FilterParams`'s,
-    the paper's), with the units of the file (deg/s for the angular rates)."""
-
-    tau_r_m_s: float = FilterParams.tau_r
-    tau_a_deg_s: float = math.degrees(FilterParams.tau_a)
-    tau_e_deg_s: float = math.degrees(FilterParams.tau_e)
-    tau_s_s: float = FilterParams.tau_s
-    tau_l_s: float = FilterParams.tau_l
-
-
-@dataclass(frozen=True)
-class InterpolationConfig:
-    """Query times and GP settings (defaults: :class:`rtsgt.options.RunOptions`'s)."""
-
-    rate_hz: float | None = RunOptions.rate_hz
-    query_times: Path | None = None
-    qc: float | str = RunOptions.qc
-    max_gap_s: float = RunOptions.max_gap_s
-
-
-@dataclass(frozen=True)
-class PoseConfig:
-    """Pose engine and quality gates (defaults: :class:`rtsgt.options.RunOptions`'s)."""
-
-    engine: str = RunOptions.engine
-    samples: int = RunOptions.samples
-    distance_gate_m: float = RunOptions.distance_gate_m
-    uncertainty_gate_m: float = RunOptions.uncertainty_gate_m
-
-
-@dataclass(frozen=True)
 class DeploymentConfig:
     """A validated deployment configuration; every path is absolute."""
 
     path: Path
     name: str
     reference_station: str
-    instrument: dict[str, Any]
+    instrument: InstrumentProfile
     stations: tuple[StationConfig, ...]
     gcp: FileConfig
     reference: ReferenceConfig
     weather: FileConfig | None = None
-    noise: NoiseConfig = field(default_factory=NoiseConfig)
-    filter: FilterConfig = field(default_factory=FilterConfig)
-    interpolation: InterpolationConfig = field(default_factory=InterpolationConfig)
-    pose: PoseConfig = field(default_factory=PoseConfig)
+    #: ``[noise]``, ``[filter]``, ``[interpolation]`` and ``[pose]``, mapped onto the option
+    #: records (their defaults where a key is absent).
+    options: RunOptions = field(default_factory=RunOptions)
+    #: ``[interpolation] query_times``: a file of query times (None: the grid of ``rate_hz``).
+    query_times: Path | None = None
 
 
 class _Section:
@@ -220,6 +178,26 @@ class _Section:
                 self.path,
             )
         return val
+
+    def record(self, cls: type, spec: dict[str, tuple], **fixed) -> Any:
+        """The record ``cls`` built from the keys of this table: ``spec`` maps each key to
+        (field, type, conversion or None); an absent key takes the record's default, and a
+        value the record refuses is a :class:`ConfigError` naming the section."""
+        values, given = dict(fixed), {}
+        for key, (name, kind, convert) in spec.items():
+            value = self.get(key, kind, None)
+            if value is not None:
+                given[name] = (key, value)
+                values[name] = convert(value) if convert is not None else value
+        try:
+            return cls(**values)
+        except InputError as exc:
+            msg = exc.bare_message
+            msg = msg[0].lower() + msg[1:] if msg[:1].isupper() and msg[1:2].islower() else msg
+            # name the key and the value as the file has them (units and all)
+            culprit = [kv for name, kv in given.items() if re.search(rf"\b{name}\b", msg)]
+            where = f"{culprit[0][0]} = {culprit[0][1]!r}: " if culprit else ""
+            raise ConfigError(f"[{self.name}] {where}{msg}", self.path) from None
 
     def positive(self, key: str, default: Any = ...) -> float:
         val = self.get(key, float, default)
@@ -271,9 +249,13 @@ def load_config(path: str | Path) -> DeploymentConfig:
     reference_station = dep.get("reference_station", str, "1")
     dep.done()
 
-    instrument = doc.get("instrument", {"profile": "trimble-s7"})
-    if not isinstance(instrument, dict):
+    table = doc.get("instrument", {"profile": "trimble-s7"})
+    if not isinstance(table, dict):
         raise ConfigError("[instrument] must be a table", path)
+    try:
+        instrument = instrument_from_config(table)
+    except InputError as exc:
+        raise ConfigError(f"[instrument] {exc.bare_message}", path) from None
 
     raw_stations = doc.get("stations")
     if not isinstance(raw_stations, list) or not raw_stations:
@@ -344,53 +326,48 @@ def load_config(path: str | Path) -> DeploymentConfig:
     r.done()
 
     n = _Section(path, "noise", doc.get("noise", {}))
-    sources = tuple(n.get("sources", list, list(NOISE_SOURCES)))
-    bad = [s for s in sources if s not in NOISE_SOURCES]
+    sources = n.get("sources", list, None)
+    bad = [x for x in sources or () if x not in NOISE_SOURCES]
     if bad:
         raise ConfigError(
             f"[noise] unknown source(s) {', '.join(map(repr, bad))}; known: {', '.join(NOISE_SOURCES)}",
             path,
         )
-    noise = NoiseConfig(
-        sources=sources,
-        **{k: n.get(k, float, getattr(NoiseConfig, k)) for k in (
-            "time_sync_mean_s", "time_sync_std_s", "temperature_halfwidth_c",
-            "pressure_halfwidth_hpa", "humidity_halfwidth_pct")},
-    )
+    noise = n.record(NoiseModel, {"sources": ("sources", list, tuple)} | {
+        k: (k, float, None) for k in ("time_sync_mean_s", "time_sync_std_s",
+                                      "temperature_halfwidth_c", "pressure_halfwidth_hpa",
+                                      "humidity_halfwidth_pct")}, instrument=instrument)
     n.done()
 
     f = _Section(path, "filter", doc.get("filter", {}))
-    filt = FilterConfig(*(f.positive(k, getattr(FilterConfig, k)) for k in
-                          ("tau_r_m_s", "tau_a_deg_s", "tau_e_deg_s", "tau_s_s", "tau_l_s")))
+    filt = f.record(FilterParams, {  # the file's angular rates in deg/s, FilterParams' in rad/s
+        "tau_r_m_s": ("tau_r", float, None), "tau_a_deg_s": ("tau_a", float, math.radians),
+        "tau_e_deg_s": ("tau_e", float, math.radians), "tau_s_s": ("tau_s", float, None),
+        "tau_l_s": ("tau_l", float, None)})
     f.done()
 
     it = _Section(path, "interpolation", doc.get("interpolation", {}))
     query_times = it.file("query_times") if "query_times" in it.table else None
-    rate = it.positive("rate_hz", None if query_times is not None else RunOptions.rate_hz)
-    if query_times is not None and rate is not None:
+    if query_times is not None and "rate_hz" in it.table:
         raise ConfigError("[interpolation] give rate_hz or query_times, not both", path)
-    qc = it.get("qc", (str, float, int), RunOptions.qc)
-    if isinstance(qc, str) and qc not in QC_METHODS:
-        raise ConfigError(
-            f"[interpolation] qc must be 'loo', 'likelihood' or a number (m^2/s^3), got {qc!r}",
-            path)
-    if not isinstance(qc, str) and not qc > 0:
-        raise ConfigError(f"[interpolation] qc must be > 0, got {qc}", path)
-    interp = InterpolationConfig(rate, query_times, qc if isinstance(qc, str) else float(qc),
-                                 it.positive("max_gap_s", RunOptions.max_gap_s))
+    interp = it.record(InterpolationOptions, {
+        "rate_hz": ("rate_hz", float, None), "qc": ("qc", (str, float, int), _qc_value),
+        "max_gap_s": ("max_gap_s", float, None), "gp_noise": ("gp_noise", str, None)})
     it.done()
 
     p = _Section(path, "pose", doc.get("pose", {}))
-    samples = p.get("samples", int, RunOptions.samples)
-    if samples < 10:
-        raise ConfigError(f"[pose] samples must be >= 10, got {samples}", path)
-    pose = PoseConfig(p.get("engine", str, RunOptions.engine, ENGINES), samples,
-                      p.positive("distance_gate_m", RunOptions.distance_gate_m),
-                      p.positive("uncertainty_gate_m", RunOptions.uncertainty_gate_m))
+    pose = p.record(PoseOptions, {k: (k, kind, None) for k, kind in (
+        ("engine", str), ("samples", int), ("distance_gate_m", float),
+        ("uncertainty_gate_m", float))})
     p.done()
 
-    return DeploymentConfig(path, name, reference_station, dict(instrument), tuple(stations), gcp,
-                            reference, weather, noise, filt, interp, pose)
+    options = RunOptions(filter=filt, noise=noise, interpolation=interp, pose=pose)
+    return DeploymentConfig(path, name, reference_station, instrument, tuple(stations), gcp,
+                            reference, weather, options, query_times)
+
+
+def _qc_value(value: str | float | int) -> str | float:
+    return value if isinstance(value, str) else float(value)
 
 
 def _missing(path: Path, section: str):

@@ -8,7 +8,6 @@ import numpy as np
 
 from rtsgt.deployment import DeploymentData
 from rtsgt.errors import ConfigError, InputError
-from rtsgt.filtering import FilterParams
 from rtsgt.geometry import RigidTransform
 from rtsgt.io._parse import check_seconds
 from rtsgt.io.config import DeploymentConfig, load_config
@@ -16,31 +15,8 @@ from rtsgt.io.gcp_csv import read_gcp_shots
 from rtsgt.io.rts_project import read_prism_file
 from rtsgt.io.survey import read_reference_csv, read_survey_raw
 from rtsgt.io.weather import read_weather_csv, read_weather_eccc
-from rtsgt.measurement.instruments import InstrumentProfile
-from rtsgt.measurement.instruments import instrument_from_config as _instrument_from_table
-from rtsgt.noise import NoiseModel
 from rtsgt.options import RunOptions
 from rtsgt.pose.reference import ReferencePoints, reference_from_survey
-
-
-def instrument_from_config(table: dict, path: Path | None = None) -> InstrumentProfile:
-    """The instrument profile of an ``[instrument]`` table (errors name the configuration file).
-
-    - ``profile = "trimble-s7"``: a built-in profile;
-    - ``profile`` with some fields (e.g. ``angle_arcsec = 1.0``): the built-in profile with
-      those fields overridden (named ``"<profile>-custom"`` unless ``name`` is given);
-    - every field of :meth:`~rtsgt.measurement.instruments.InstrumentProfile.from_dict`
-      (``name``, ``distance_constant_mm``, ``distance_ppm``, ``angle_arcsec``,
-      ``tilt_arcsec``, ``confidence_sigma``, ``wavelength_um``, ``reference_temperature_c``,
-      ``reference_pressure_hpa``, ``reference_humidity_pct``, optional ``description``): a
-      user-defined profile.
-
-    See :func:`rtsgt.measurement.instruments.instrument_from_config`.
-    """
-    try:
-        return _instrument_from_table(table)
-    except InputError as exc:
-        raise ConfigError(f"[instrument] {exc.bare_message}", path) from None
 
 
 def check_gcp_covers_stations(cfg: DeploymentConfig, gcp) -> None:
@@ -103,32 +79,6 @@ def load_deployment(config: str | Path | DeploymentConfig) -> tuple[DeploymentDa
         The processing parameters of the configuration (the CLI may override some).
     """
     cfg = config if isinstance(config, DeploymentConfig) else load_config(config)
-    instrument = instrument_from_config(cfg.instrument, cfg.path)
-
-    f = cfg.filter
-    n = cfg.noise
-    try:  # the options meet RunOptions' rule, the one the command line meets too
-        options = RunOptions(
-            engine=cfg.pose.engine,
-            samples=cfg.pose.samples,
-            rate_hz=cfg.interpolation.rate_hz or 5.0,
-            qc=cfg.interpolation.qc,
-            max_gap_s=cfg.interpolation.max_gap_s,
-            noise=NoiseModel(
-                instrument=instrument, sources=n.sources, time_sync_mean_s=n.time_sync_mean_s,
-                time_sync_std_s=n.time_sync_std_s, temperature_halfwidth_c=n.temperature_halfwidth_c,
-                pressure_halfwidth_hpa=n.pressure_halfwidth_hpa,
-                humidity_halfwidth_pct=n.humidity_halfwidth_pct,
-            ),
-            filter=FilterParams(
-                tau_r=f.tau_r_m_s, tau_a=np.radians(f.tau_a_deg_s), tau_e=np.radians(f.tau_e_deg_s),
-                tau_s=f.tau_s_s, tau_l=f.tau_l_s,
-            ),
-            distance_gate_m=cfg.pose.distance_gate_m,
-            uncertainty_gate_m=cfg.pose.uncertainty_gate_m,
-        )
-    except InputError as exc:
-        raise ConfigError(exc.bare_message, cfg.path) from None
     observations = tuple(
         read_prism_file(s.file, station=s.id, prism=s.prism, additive_constant=s.additive_constant_m)
         for s in cfg.stations
@@ -144,11 +94,11 @@ def load_deployment(config: str | Path | DeploymentConfig) -> tuple[DeploymentDa
             weather = read_weather_csv(cfg.weather.file)
     reference = read_reference(cfg)
     query_times = None
-    if cfg.interpolation.query_times is not None:
-        query_times = _read_times(cfg.interpolation.query_times)
-    data = DeploymentData(cfg.name, instrument, observations, gcp, reference,
+    if cfg.query_times is not None:
+        query_times = _read_times(cfg.query_times)
+    data = DeploymentData(cfg.name, cfg.instrument, observations, gcp, reference,
                           cfg.reference_station, weather, query_times)
-    return data, options
+    return data, cfg.options
 
 
 def _read_times(path: Path) -> np.ndarray:

@@ -177,18 +177,18 @@ def run_summary(result, inputs: dict | None = None) -> dict:
         "deployment": result.data.name,
         "inputs": inputs or {},
         "parameters": {
-            "engine": opt.engine,
-            "samples": opt.samples,
+            "engine": opt.pose.engine,
+            "samples": opt.pose.samples,
             "seed": opt.seed,
-            "rate_hz": opt.rate_hz,
-            "qc": opt.qc,
-            "max_gap_s": opt.max_gap_s,
-            "gp_noise": opt.gp_noise,
+            "rate_hz": opt.interpolation.rate_hz,
+            "qc": opt.interpolation.qc,
+            "max_gap_s": opt.interpolation.max_gap_s,
+            "gp_noise": opt.interpolation.gp_noise,
             "noise_sources": list(result.noise_model.sources),
             "instrument": result.data.instrument.name,
             "filter": _report_dict(opt.filter),
-            "distance_gate_m": opt.distance_gate_m,
-            "uncertainty_gate_m": opt.uncertainty_gate_m,
+            "distance_gate_m": opt.pose.distance_gate_m,
+            "uncertainty_gate_m": opt.pose.uncertainty_gate_m,
         },
         "filters": {k: _report_dict(v) for k, v in result.filter_reports.items()},
         "gates": _report_dict(result.gate_report),
@@ -277,7 +277,7 @@ def write_run(result, out: str | Path, *, force: bool = False, inputs: dict | No
             write_csv(tmp / "measurements" / f"prism{pid}.csv",
                       ["t", "x", "y", "z", *cov_cols, "range_m"]
                       + [f"{s}_{c}" for s in srcs for c in COV3_NAMES],
-                      [tr.t, tr.xyz, cov3_to_columns(gp_covariance(tr, result.options.gp_noise)),
+                      [tr.t, tr.xyz, cov3_to_columns(gp_covariance(tr, result.options.interpolation.gp_noise)),
                        tr.range_m if tr.range_m is not None else np.full(len(tr), np.nan)]
                       + [cov3_to_columns(tr.cov_by_source[s]) for s in srcs])
         _write_removed(tmp / "measurements" / "removed.csv", result.removed)

@@ -66,7 +66,7 @@ from rtsgt.io.run_output import (
     columns_to_cov3,
 )
 from rtsgt.io.trajectory import read_covariance_csv
-from rtsgt.options import GP_NOISE, RunOptions
+from rtsgt.options import GP_NOISE, InterpolationOptions, PoseOptions
 from rtsgt.types import NOISE_SOURCES, PoseTrajectory, PrismTrack
 
 __all__ = ["PrismSummary", "RunData", "RunSummary", "read_run", "read_summary", "read_table",
@@ -449,14 +449,14 @@ class RunSummary:
     #: Deployment name (``deployment``, or ``name`` of older layouts); None when absent.
     name: str | None = None
     engine: str = "linear"
-    samples: int = RunOptions.samples
+    samples: int = PoseOptions.samples
     seed: int = 0
     rate_hz: object = None
     qc: object = None
-    max_gap_s: float = RunOptions.max_gap_s
-    gp_noise: str = RunOptions.gp_noise
-    distance_gate_m: float = RunOptions.distance_gate_m
-    uncertainty_gate_m: float = RunOptions.uncertainty_gate_m
+    max_gap_s: float = InterpolationOptions.max_gap_s
+    gp_noise: str = InterpolationOptions.gp_noise
+    distance_gate_m: float = PoseOptions.distance_gate_m
+    uncertainty_gate_m: float = PoseOptions.uncertainty_gate_m
     #: ``gates.uncertainty_measure``.
     uncertainty_measure: str = "max_std"
     #: Prisms listed under ``prisms``, in the file's order.
@@ -561,12 +561,12 @@ def read_summary(run_dir: str | PathLike) -> RunSummary:
         return params[key] if key in params else doc.get(key, default)
 
     try:
-        samples = int(param("samples", 1000))
+        samples = int(param("samples", PoseOptions.samples))
         seed = param("seed", 0)
         seed = int(seed) if seed is not None else 0
     except (TypeError, ValueError) as exc:
         raise InputError(f"parameters: samples and seed must be integers: {exc}", path) from None
-    gp_noise = str(param("gp_noise", RunOptions.gp_noise))
+    gp_noise = str(param("gp_noise", InterpolationOptions.gp_noise))
     if gp_noise not in GP_NOISE:
         raise InputError(f"gp_noise: expected {' or '.join(map(repr, GP_NOISE))}, got "
                          f"{gp_noise!r}", path)
@@ -620,9 +620,10 @@ def read_summary(run_dir: str | PathLike) -> RunSummary:
         name=None if name is None else str(name),
         engine=str(param("engine", "linear")), samples=samples, seed=seed,
         rate_hz=params.get("rate_hz"), qc=params.get("qc"),
-        max_gap_s=_positive(params, "max_gap_s", 3.0, path), gp_noise=gp_noise,
-        distance_gate_m=_positive(params, "distance_gate_m", 0.10, path),
-        uncertainty_gate_m=_positive(params, "uncertainty_gate_m", 0.20, path),
+        max_gap_s=_positive(params, "max_gap_s", InterpolationOptions.max_gap_s, path), gp_noise=gp_noise,
+        distance_gate_m=_positive(params, "distance_gate_m", PoseOptions.distance_gate_m, path),
+        uncertainty_gate_m=_positive(params, "uncertainty_gate_m",
+                                     PoseOptions.uncertainty_gate_m, path),
         uncertainty_measure=str(_section(doc, "gates", path).get("uncertainty_measure",
                                                                   "max_std")),
         prisms=prisms, intervals_s=iv, reference_names=ref_names, reference_xyz=ref_xyz,

@@ -561,8 +561,8 @@ def run_data_from_result(result) -> RunData:
         reference_xyz=np.asarray(ref.xyz)[rorder],
         reference_cov=np.asarray(ref.cov)[np.ix_(ridx, ridx)],
         stations=stations, gcp_xyz=gcp_xyz, gcp_names=gcp_names,
-        engine=opts.engine, samples=int(opts.samples), seed=int(opts.seed),
-        gp_noise=opts.gp_noise, summary={}, path=None,
+        engine=opts.pose.engine, samples=int(opts.pose.samples), seed=int(opts.seed),
+        gp_noise=opts.interpolation.gp_noise, summary={}, path=None,
         removed_t=removed.t, removed_xyz=removed.xyz, removed_prism=removed.prism,
         removed_stage=removed.stage,
     )
