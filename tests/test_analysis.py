@@ -19,9 +19,16 @@ import pytest
 from rtsgt.errors import InputError
 from rtsgt.geometry.so3 import exp_so3, matrix_to_quat_xyzw
 from rtsgt.geometry.transform import check_covariance
-from rtsgt.io.run_output import COV3_NAMES, cov3_to_columns, write_csv
-from rtsgt.io.run_reader import RunData, read_run, station_positions_from_summary
-from rtsgt.pose import estimate_poses
+from rtsgt.io.run_dir import (
+    COV3_NAMES,
+    cov3_to_columns,
+    read_run,
+    station_positions_from_summary,
+    write_csv,
+)
+from rtsgt.options import RunOptions
+from rtsgt.pose import ReferencePoints, estimate_poses
+from rtsgt.record import RunRecord
 from rtsgt.report.analysis import (
     ALL,
     GP,
@@ -29,7 +36,6 @@ from rtsgt.report.analysis import (
     REFERENCE,
     analyze,
     analyze_dir,
-    analyze_run,
     bin_labels,
     nearest_psd,
     paper_median_mm,
@@ -53,7 +59,7 @@ def source_sigma(s: str, r: np.ndarray) -> np.ndarray:
 
 
 def make_run_data(seed: int = 0, n_meas: int = 240, n_query: int = 150,
-                  ref_sigma: float = 2e-4, reject_every: int = 25) -> RunData:
+                  ref_sigma: float = 2e-4, reject_every: int = 25) -> RunRecord:
     """A synthetic run: a robot driving away from station 1 to ~230 m, three prisms.
 
     Covariances are isotropic, ``sigma_s(range)^2 I`` per source, so every number of the
@@ -101,20 +107,20 @@ def make_run_data(seed: int = 0, n_meas: int = 240, n_query: int = 150,
     keep[::reject_every] = False
     reasons = np.where(np.arange(n_query) % (2 * reject_every) == 0, "distance", "uncertainty")
     gt = PoseTrajectory(tq[keep], est.t[keep], matrix_to_quat_xyzw(est.R[keep]), est.cov[keep])
-    return RunData(
+    return RunRecord(
         name="synthetic", prism_ids=ids, measurements=measurements, prisms_t=tq,
         prisms_xyz=q, prisms_cov=cov_q, prisms_cov_by_source=by_source_q, prisms_cov_gp=cov_gp,
         groundtruth=gt,
-        rejected_t=tq[~keep], rejected_reason=reasons[~keep], reference_xyz=R_BODY.copy(),
-        reference_cov=ref_cov, stations=stations,
+        rejected_t=tq[~keep], rejected_reason=reasons[~keep],
+        reference=ReferencePoints(ids, R_BODY.copy(), ref_cov),
+        options=RunOptions(seed=seed).updated(engine="linear", samples=200), stations=stations,
         gcp_xyz=np.array([[10.0, 5.0, 0.0], [50.0, -12.0, 0.5], [120.0, 8.0, 1.0]]),
-        gcp_names=("1", "2", "3"), engine="linear", samples=200, seed=seed,
-        summary={"name": "synthetic"},
+        gcp_names=("1", "2", "3"), summary={"name": "synthetic"},
     )
 
 
-def write_run_dir(data: RunData, out: Path) -> Path:
-    """Write ``data`` in the layout documented in :mod:`rtsgt.io.run_output`."""
+def write_run_dir(data: RunRecord, out: Path) -> Path:
+    """Write ``data`` in the layout documented in :mod:`rtsgt.io.run_dir`."""
     (out / "prisms").mkdir(parents=True)
     (out / "measurements").mkdir()
     gt = data.groundtruth
@@ -149,10 +155,10 @@ def write_run_dir(data: RunData, out: Path) -> Path:
             c = cov3_to_columns(data.reference_cov[3 * i:3 * i + 3, 3 * i:3 * i + 3][None])[0]
             fh.write(",".join([pid] + [repr(float(v)) for v in
                                                   np.r_[data.reference_xyz[i], c]]) + "\n")
-    summary = {  # the keys rtsgt.io.run_output.run_summary writes
+    summary = {  # the keys rtsgt.io.run_dir.run_summary writes
         "deployment": data.name,
-        "parameters": {"engine": data.engine, "samples": data.samples, "seed": data.seed,
-                       "gp_noise": "white"},
+        "parameters": {"engine": data.options.pose.engine, "samples": data.options.pose.samples,
+                       "seed": data.options.seed, "gp_noise": "white"},
         "calibration": {"reference_station": "1", "stations": {
             s: {"translation_m": p.tolist()} for s, p in data.stations.items() if s != "1"}},
         "reference": {"names": list(data.prism_ids), "xyz_m": data.reference_xyz.tolist(),
@@ -163,7 +169,7 @@ def write_run_dir(data: RunData, out: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def run_data() -> RunData:
+def run_data() -> RunRecord:
     return make_run_data()
 
 
@@ -352,7 +358,7 @@ def pipeline_run(tmp_path_factory):
     """A 90 s simulated deployment through the pipeline (Monte Carlo engine), written out."""
 
     from rtsgt.io.deployment import load_deployment
-    from rtsgt.io.run_output import write_run
+    from rtsgt.io.run_dir import write_run
     from rtsgt.pipeline import run_pipeline
     from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 
@@ -390,11 +396,11 @@ def test_pipeline_run_in_memory_equals_run_directory(pipeline_run):
     """The per-source covariances of a real run (rank-deficient sources included) go through
     the pose engine, and reading the directory gives the analysis of the in-memory run."""
     _, result, run_dir = pipeline_run
-    mem = analyze_run(result)
+    mem = analyze(result)
     disk = analyze_dir(run_dir)
     assert mem.engine == disk.engine == "mc" and mem.samples == 200
     assert mem.sources == disk.sources == NOISE_SOURCES + (ALL,)
-    assert mem.n_measurements == sum(len(tr) for tr in result.tracks.values())
+    assert mem.n_measurements == sum(len(tr) for tr in result.computation.tracks.values())
     for s in mem.sources:
         np.testing.assert_allclose(disk.norm_mm[s], mem.norm_mm[s], rtol=1e-12)
     assert mem.pose_sources == disk.pose_sources
@@ -404,7 +410,7 @@ def test_pipeline_run_in_memory_equals_run_directory(pipeline_run):
         assert np.all(np.isfinite(disk.translation_mm[s])), s
     # the files hold the upper triangle of each 3x3 (in memory: symmetric to round-off), which
     # can change the Monte Carlo draws of rank-deficient sources; first order is exact
-    mem, disk = analyze_run(result, engine="linear"), analyze_dir(run_dir, engine="linear")
+    mem, disk = analyze(result, engine="linear"), analyze_dir(run_dir, engine="linear")
     for s in mem.pose_sources:
         v = mem.translation_mm[s]
         np.testing.assert_allclose(disk.translation_mm[s], v, rtol=1e-9, atol=1e-12 * v.max())
@@ -430,25 +436,25 @@ def test_removed_measurements_are_written_and_read_back(pipeline_run):
 
     _, result, run_dir = pipeline_run
     removed = result.removed
-    rep = result.filter_reports
+    rep = result.computation.filter_reports
     n1 = sum(r.n_removed for k, r in rep.items() if k.startswith("module1"))
     n2 = rep["module2"].n_removed
     assert np.sum(removed.stage == "module1") == n1
     assert np.sum(removed.stage == "module2") == n2 and n1 + n2 > 0
     data = read_run(run_dir)
-    np.testing.assert_allclose(data.removed_t, removed.t, atol=1e-9)
-    np.testing.assert_allclose(data.removed_xyz, removed.xyz, atol=1e-6)
-    np.testing.assert_array_equal(data.removed_stage, removed.stage)
-    np.testing.assert_array_equal(data.removed_prism, removed.prism)
+    np.testing.assert_allclose(data.removed.t, removed.t, atol=1e-9)
+    np.testing.assert_allclose(data.removed.xyz, removed.xyz, atol=1e-6)
+    np.testing.assert_array_equal(data.removed.stage, removed.stage)
+    np.testing.assert_array_equal(data.removed.prism, removed.prism)
     # none of them is among the measurements kept for the prism
-    for pid, tr in result.tracks.items():
-        assert not np.isin(data.removed_t[data.removed_prism == pid], tr.t).any()
+    for pid, tr in result.computation.tracks.items():
+        assert not np.isin(data.removed.t[data.removed.prism == pid], tr.t).any()
     # removed measurements lie on the robot's path: within a few metres of a kept one
-    kept = np.concatenate([tr.xyz for tr in result.tracks.values()])
-    d = np.min(np.linalg.norm(data.removed_xyz[:, None] - kept[None], axis=-1), axis=1)
+    kept = np.concatenate([tr.xyz for tr in result.computation.tracks.values()])
+    d = np.min(np.linalg.norm(data.removed.xyz[:, None] - kept[None], axis=-1), axis=1)
     assert np.median(d) < 2.0
     top, along = plot_top_view(data), plot_uncertainty_time(data)
     for stage in ("module1", "module2"):
-        n = int(np.sum(data.removed_stage == stage))
+        n = int(np.sum(data.removed.stage == stage))
         if n:
             assert top.points[f"removed: {stage}"] == n == along.points[f"removed: {stage}"]

@@ -25,8 +25,7 @@ from rtsgt.filtering.gates import position_uncertainty
 from rtsgt.geometry.so3 import quat_xyzw_to_matrix
 from rtsgt.geometry.transform import perturbation
 from rtsgt.io.deployment import load_deployment
-from rtsgt.io.run_output import COV3_NAMES, columns_to_cov3, write_run
-from rtsgt.io.run_reader import read_table
+from rtsgt.io.run_dir import COV3_NAMES, columns_to_cov3, read_table, write_run
 from rtsgt.io.trajectory import read_covariance_csv, write_covariance_csv, write_tum
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
@@ -85,13 +84,13 @@ def test_reproduces_the_run_at_its_grid_times_linear_engine(linear_run):
     assert cgt.options.pose.engine == "linear" and cgt.prism_ids == ("1", "2", "3")
     # the refitted GPs are the run's (same Qc, same measurements read back exactly)
     for pid, g in cgt.gps.items():
-        np.testing.assert_array_equal(g.qc, result.gps[pid].qc)
-        np.testing.assert_allclose(g.mean, result.gps[pid].mean, rtol=0, atol=1e-9)
-    s = cgt.query_poses(result.prisms.t)  # every queried grid time, kept or gated
-    np.testing.assert_array_equal(s.valid, result.keep)
-    gated = ~result.keep
+        np.testing.assert_array_equal(g.qc, result.computation.gps[pid].qc)
+        np.testing.assert_allclose(g.mean, result.computation.gps[pid].mean, rtol=0, atol=1e-9)
+    s = cgt.query_poses(result.computation.prisms.t)  # every queried grid time, kept or gated
+    np.testing.assert_array_equal(s.valid, result.computation.keep)
+    gated = ~result.computation.keep
     np.testing.assert_array_equal(
-        s.reason[gated], np.char.add("gate_", result.rejection_reasons[gated])
+        s.reason[gated], np.char.add("gate_", result.computation.gate_report.reason[gated])
     )
     gt = read_covariance_csv(out / "groundtruth_covariance.csv")
     v = s.valid
@@ -104,14 +103,14 @@ def test_reproduces_the_run_at_its_grid_times_linear_engine(linear_run):
     scale = np.sqrt(np.einsum("kii,kjj->kij", gt.cov, gt.cov))
     assert np.max(np.abs(s.cov[v] - gt.cov) / scale) < 1e-9
     # the in-memory variant answers the same
-    s2 = ContinuousGroundTruth.from_result(result).query_poses(result.prisms.t)
+    s2 = ContinuousGroundTruth.from_record(result).query_poses(result.computation.prisms.t)
     np.testing.assert_allclose(s2.position[v], s.position[v], rtol=0, atol=1e-9)
     assert np.max(np.abs(s2.cov[v] - gt.cov) / scale) < 1e-9
 
 
 def test_gp_noise_all_refits_on_the_covariance_of_the_measurement_file(linear_run, tmp_path):
     """gp_noise = "all": the GP is given the cov_* columns of measurements/prism<i>.csv as
-    written (read once, by rtsgt.io.run_reader.read_run), not the sum of the sources."""
+    written (read once, by rtsgt.io.run_dir.read_run), not the sum of the sources."""
     _, _, out = linear_run
     run = tmp_path / "all"
     shutil.copytree(out, run)
@@ -132,8 +131,8 @@ def test_reproduces_the_run_at_its_grid_times_monte_carlo(mc_run):
     sim, result, out = mc_run
     cgt = ContinuousGroundTruth.from_run_dir(out)
     assert (cgt.options.pose.engine, cgt.options.pose.samples, cgt.options.seed) == ("mc", 400, 6)
-    s = cgt.query_poses(result.prisms.t)
-    np.testing.assert_array_equal(s.valid, result.keep)
+    s = cgt.query_poses(result.computation.prisms.t)
+    np.testing.assert_array_equal(s.valid, result.computation.keep)
     gt = result.groundtruth
     v = s.valid
     np.testing.assert_allclose(s.position[v], gt.position, rtol=0, atol=1e-9)
@@ -142,10 +141,10 @@ def test_reproduces_the_run_at_its_grid_times_monte_carlo(mc_run):
     scale = np.sqrt(np.einsum("kii,kjj->kij", gt.cov, gt.cov))
     assert np.max(np.abs(s.cov[v] - gt.cov) / scale) < 1e-6
     # a query is reproducible (its own generator from the run's seed)
-    again = cgt.query_poses(result.prisms.t)
+    again = cgt.query_poses(result.computation.prisms.t)
     np.testing.assert_array_equal(again.cov, s.cov)
     # the linear engine agrees with the Monte Carlo one to its noise
-    lin = ContinuousGroundTruth.from_run_dir(out, engine="linear").query_poses(result.prisms.t)
+    lin = ContinuousGroundTruth.from_run_dir(out, engine="linear").query_poses(result.computation.prisms.t)
     r_lin = np.einsum("kii->ki", s.cov[v]) / np.einsum("kii->ki", lin.cov[v]) - 1.0
     assert np.all(np.abs(np.mean(r_lin, axis=0)) < 0.05)
 
@@ -410,7 +409,7 @@ def test_rpe_uses_the_correlation_between_ground_truth_poses(tmp_path):
 
     from rtsgt.evaluation import evaluate
     from rtsgt.io.deployment import load_deployment
-    from rtsgt.io.run_output import write_run
+    from rtsgt.io.run_dir import write_run
     from rtsgt.pipeline import run_pipeline
     from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
     from rtsgt.types import PoseTrajectory

@@ -804,7 +804,7 @@ def test_real_excerpt_through_modules_1_2_and_the_gp(real_run):
     from rtsgt.interpolation.prisms import gp_covariance, query_grid
 
     res = real_run
-    reports = res.filter_reports
+    reports = res.computation.filter_reports
     assert {f"module1_station{s}" for s in "123"} <= set(reports)
     for s in "123":
         rep = reports[f"module1_station{s}"]
@@ -813,14 +813,14 @@ def test_real_excerpt_through_modules_1_2_and_the_gp(real_run):
     assert iv.shape[1] == 2 and np.all(iv[:, 1] - iv[:, 0] >= 2.0)
     grid = query_grid(iv, 5.0)
     assert grid.size > 400
-    for pid, tr in res.tracks.items():
+    for pid, tr in res.computation.tracks.items():
         # the marginal-likelihood Qc of this issue, on the white noise the pipeline feeds the GP
         gp = fit_track((tr.t, tr.xyz, gp_covariance(tr, "white")), fit_qc=True, max_gap_s=3.0)
         q = gp.qc[0, 0]
         assert np.isfinite(q) and 1e-5 < q < 1.0, q
         assert gp.qc_fit.converged and not gp.qc_fit.at_bound
         # the pipeline's own GP (whichever Qc it chose) is sane too
-        assert np.all(np.isfinite(res.gps[pid].qc)) and res.gps[pid].qc[0, 0] > 0
+        assert np.all(np.isfinite(res.computation.gps[pid].qc)) and res.computation.gps[pid].qc[0, 0] > 0
         # every 5 Hz time of the common intervals is supported (module 2 kept the brackets)
         assert np.all(gp.supported(grid))
         sigma = gp.query(grid).position_sigma

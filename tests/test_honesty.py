@@ -53,8 +53,8 @@ def test_every_interpolated_prism_is_consistent(pooled):
     nees = {}
     for result, sim in ((r, s) for (r, _), s in pooled):
         ids = list(sim.truth.prism_ids)
-        P = result.prisms
-        for i, pid in enumerate(result.tracks):
+        P = result.computation.prisms
+        for i, pid in enumerate(result.computation.tracks):
             e = P.xyz[:, i] - sim.truth.model.prisms_at(P.t)[:, ids.index(pid)]
             d2 = np.einsum("ni,nij,nj->n", e, np.linalg.inv(P.cov[:, i]), e)
             nees.setdefault(pid, []).append(d2)

@@ -177,7 +177,7 @@ def test_writers_text_is_pinned(tmp_path):
 
 
 def test_run_file_reading_gives_back_what_the_run_wrote(tmp_path):
-    """``run_file=True`` (what rtsgt.io.run_reader reads ``groundtruth_covariance.csv`` with):
+    """``run_file=True`` (what rtsgt.io.run_dir reads ``groundtruth_covariance.csv`` with):
     columns by name in any order, extra numeric columns ignored, NaN kept, no pose allowed,
     nothing renormalised; the header is required and a comment line is an error."""
     cols = ["t", "x", "y", "z", "qx", "qy", "qz", "qw"] + [

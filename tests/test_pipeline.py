@@ -11,7 +11,7 @@ import pytest
 from _paths import EXAMPLE_TOML as EXAMPLE
 from rtsgt.errors import InputError
 from rtsgt.io.deployment import load_deployment
-from rtsgt.io.run_output import write_run
+from rtsgt.io.run_dir import write_run
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 from rtsgt.simulation.compare import compare_to_truth
@@ -97,7 +97,7 @@ def test_real_excerpt_end_to_end(tmp_path):
     # the registered prisms keep the reference inter-prism distances
     # (docs/paper-figures.md#the-real-excerpt)
     ref = np.array([0.73555, 0.90303, 1.03046])
-    kept = result.estimate.inter_prism_distance[result.keep]
+    kept = result.computation.estimate.inter_prism_distance[result.computation.keep]
     dev = np.abs(kept - ref)
     assert np.median(dev) < 0.005
     out = write_run(result, tmp_path / "real")

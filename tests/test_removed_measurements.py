@@ -1,4 +1,4 @@
-"""What the filters removed: module masks -> RunResult.removed -> measurements/removed.csv.
+"""What the filters removed: module masks -> RunRecord.removed -> measurements/removed.csv.
 
 A simulated deployment with gross outliers, to which invalid statuses, a non-finite distance
 and a duplicated time are added, is run through the pipeline. ``removed.csv`` must list exactly
@@ -19,8 +19,7 @@ from rtsgt.filtering import FilterParams, module1
 from rtsgt.filtering.modules import removed_measurements
 from rtsgt.geometry.transform import RigidTransform
 from rtsgt.io.deployment import load_deployment
-from rtsgt.io.run_output import write_run
-from rtsgt.io.run_reader import read_run
+from rtsgt.io.run_dir import read_run, write_run
 from rtsgt.measurement.polar import polar_to_cartesian
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
@@ -87,13 +86,13 @@ def _expected(result):
     sequential references of test_filtering (no mask of the modules is used)."""
     p = result.options.filter
     expected, kept1 = {}, {}
-    for o in result.data.observations:
+    for o in result.computation.data.observations:
         why, _ = ref_module1(o.t.tolist(), o.hz.tolist(), o.v.tolist(), o.distance.tolist(),
                              o.status.tolist(), p)
         expected[o.station] = [("module1", r) if r else ("", "") for r in why]
         kept1[o.station] = [i for i, r in enumerate(why) if not r]
-    stations = [o.station for o in result.data.observations]
-    times = [[float(result.data.observations[k].t[i]) for i in kept1[s]]
+    stations = [o.station for o in result.computation.data.observations]
+    times = [[float(result.computation.data.observations[k].t[i]) for i in kept1[s]]
              for k, s in enumerate(stations)]
     _, _, reasons2 = ref_module2(times, p)
     for s, why2 in zip(stations, reasons2, strict=True):
@@ -105,8 +104,8 @@ def _expected(result):
 
 def test_masks_reproduce_the_counts_and_the_kept_series(outlier_run):
     result, *_ = outlier_run
-    reps = result.filter_reports
-    for o in result.data.observations:
+    reps = result.computation.filter_reports
+    for o in result.computation.data.observations:
         rep = reps[f"module1_station{o.station}"]
         (mask,), (why,) = rep.kept_masks, rep.reasons
         assert mask.shape == why.shape == (len(o),) and int(mask.sum()) == rep.n_kept
@@ -114,9 +113,9 @@ def test_masks_reproduce_the_counts_and_the_kept_series(outlier_run):
         kept, _ = module1(o, result.options.filter)
         np.testing.assert_array_equal(o.t[mask], kept.t)
     rep2 = reps["module2"]
-    assert len(rep2.kept_masks) == len(result.tracks)
+    assert len(rep2.kept_masks) == len(result.computation.tracks)
     for mask, why, c, tr in zip(rep2.kept_masks, rep2.reasons, rep2.per_series,
-                                result.tracks.values(), strict=True):
+                                result.computation.tracks.values(), strict=True):
         assert int(mask.sum()) == len(tr)
         assert {r: int(np.sum(why == r)) for r in c} == dict(c)
     n1 = sum(r.n_removed for k, r in reps.items() if k.startswith("module1"))
@@ -124,14 +123,14 @@ def test_masks_reproduce_the_counts_and_the_kept_series(outlier_run):
     assert np.sum(result.removed.stage == "module2") == rep2.n_removed
     # the injected faults and the outliers are all there to be removed
     assert all(reps[f"module1_station{o.station}"].removed[r] > 0
-               for o in result.data.observations for r in ("status", "non_finite",
+               for o in result.computation.data.observations for r in ("status", "non_finite",
                                                              "duplicate_time", "rate_distance"))
 
 
 def test_removed_csv_lists_exactly_what_is_not_in_the_tracks(outlier_run):
     result, _, rows, _, _ = outlier_run
-    raw = Counter((o.prism, f"{t:.9f}") for o in result.data.observations for t in o.t)
-    tracked = Counter((tr.prism, f"{t:.9f}") for tr in result.tracks.values() for t in tr.t)
+    raw = Counter((o.prism, f"{t:.9f}") for o in result.computation.data.observations for t in o.t)
+    tracked = Counter((tr.prism, f"{t:.9f}") for tr in result.computation.tracks.values() for t in tr.t)
     listed = Counter((r["prism"], r["t"]) for r in rows)
     assert tracked + listed == raw
     assert sum(listed.values()) == len(rows) == len(result.removed) > 0
@@ -142,8 +141,8 @@ def test_removed_csv_lists_exactly_what_is_not_in_the_tracks(outlier_run):
 def test_removed_csv_gives_the_stage_and_reason_of_each(outlier_run):
     result, _, rows, injected, outliers = outlier_run
     expected = _expected(result)
-    by_station = {o.station: o for o in result.data.observations}
-    T = result.calibration.transforms
+    by_station = {o.station: o for o in result.computation.data.observations}
+    T = result.computation.calibration.transforms
     got: dict[str, list] = {s: [] for s in by_station}
     out_rows = []
     for r in rows:
@@ -174,10 +173,12 @@ def test_the_reader_takes_removed_csv_with_and_without_the_reason_column(outlier
     result, out, rows, _, _ = outlier_run
     data = read_run(out)
     rm = result.removed
-    np.testing.assert_allclose(data.removed_t, rm.t, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(data.removed_xyz, rm.xyz, atol=1e-6)
-    np.testing.assert_array_equal(data.removed_stage, rm.stage)
-    np.testing.assert_array_equal(data.removed_prism, rm.prism)
+    np.testing.assert_allclose(data.removed.t, rm.t, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(data.removed.xyz, rm.xyz, atol=1e-6)
+    np.testing.assert_array_equal(data.removed.stage, rm.stage)
+    np.testing.assert_array_equal(data.removed.prism, rm.prism)
+    np.testing.assert_array_equal(data.removed.station, rm.station)
+    np.testing.assert_array_equal(data.removed.reason, rm.reason)  # the record keeps them
     assert [r["reason"] for r in rows] == rm.reason.tolist()
     # a run of an earlier version: no reason column
     old = tmp_path / "old"
@@ -192,9 +193,11 @@ def test_the_reader_takes_removed_csv_with_and_without_the_reason_column(outlier
     assert lines[0] == "t,prism,station,x,y,z,stage,reason"
     path.write_text("".join(ln.rsplit(",", 1)[0] + "\n" for ln in lines), encoding="utf-8")
     again = read_run(old)
-    np.testing.assert_array_equal(again.removed_t, data.removed_t)
-    np.testing.assert_array_equal(again.removed_xyz, data.removed_xyz)
-    np.testing.assert_array_equal(again.removed_stage, data.removed_stage)
+    np.testing.assert_array_equal(again.removed.t, data.removed.t)
+    np.testing.assert_array_equal(again.removed.xyz, data.removed.xyz)
+    np.testing.assert_array_equal(again.removed.stage, data.removed.stage)
+    np.testing.assert_array_equal(again.removed.station, data.removed.station)
+    assert set(again.removed.reason.tolist()) == {""}  # what the older file did not say
 
 
 def test_removed_measurements_from_masks_by_hand():

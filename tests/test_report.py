@@ -32,7 +32,7 @@ from matplotlib.patches import Ellipse, PathPatch
 from typer.testing import CliRunner
 
 from rtsgt.cli.main import app
-from rtsgt.io.run_reader import read_run
+from rtsgt.io.run_dir import read_run
 from rtsgt.report.analysis import ALL, analyze
 from rtsgt.report.figures import (
     CHI2_2_95,

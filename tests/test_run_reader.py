@@ -1,5 +1,5 @@
 """The tables of a run directory, read with rtsgt.io._parse (one parsing stack): what
-:func:`rtsgt.io.run_reader.read_table` and :func:`~rtsgt.io.run_reader.read_run` accept and
+:func:`rtsgt.io.run_dir.read_table` and :func:`~rtsgt.io.run_dir.read_run` accept and
 refuse, each error naming the file and the line."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from rtsgt.errors import InputError
-from rtsgt.io.run_output import SUMMARY_SCHEMA_NAME, SUMMARY_SCHEMA_VERSION
-from rtsgt.io.run_reader import read_run, read_summary, read_table
+from rtsgt.io.run_dir import read_run, read_summary, read_table
 from rtsgt.io.trajectory import write_covariance_csv
+from rtsgt.record import RUN_SCHEMA_NAME, RUN_SCHEMA_VERSION
 from test_analysis import make_run_data, write_run_dir
 
 
@@ -114,7 +114,7 @@ def test_summary_without_schema_and_with_version_1_are_both_read(tmp_path):
                                "stations": {"2": {"translation_m": [1, 2, 3]}},
                                "gcp_world": {"A": [1, 1, 1]}}}
     v1 = read_summary(_summary(tmp_path / "v1", {
-        "schema": {"name": SUMMARY_SCHEMA_NAME, "version": SUMMARY_SCHEMA_VERSION}, **current}))
+        "schema": {"name": RUN_SCHEMA_NAME, "version": RUN_SCHEMA_VERSION}, **current}))
     v0 = read_summary(_summary(tmp_path / "v0", current))
     older = {k: v for k, v in current.items() if k not in ("deployment", "parameters")}
     older.update(name="d", options={"max_gap_s": 2.5, "distance_gate_m": 0.2,
@@ -124,8 +124,11 @@ def test_summary_without_schema_and_with_version_1_are_both_read(tmp_path):
     assert (v1.schema_version, v0.schema_version, old.schema_version) == (1, 0, 0)
     for s in (v1, v0, old):
         assert s.exists and s.written_by_rtsgt and s.name == "d"
-        assert (s.engine, s.samples, s.seed, s.gp_noise) == ("mc", 50, 7, "all")
-        assert (s.max_gap_s, s.distance_gate_m, s.uncertainty_gate_m) == (2.5, 0.2, 0.3)
+        o = s.options
+        assert (o.pose.engine, o.pose.samples, o.seed, o.interpolation.gp_noise) == \
+            ("mc", 50, 7, "all")
+        assert (o.interpolation.max_gap_s, o.pose.distance_gate_m, o.pose.uncertainty_gate_m) \
+            == (2.5, 0.2, 0.3)
         assert s.uncertainty_measure == "trace"
         assert s.intervals_s.tolist() == [[1.0, 2.0], [3.0, 4.0]]
         assert s.prisms["1"].station == "2" and s.prisms["2"].station is None
@@ -134,17 +137,17 @@ def test_summary_without_schema_and_with_version_1_are_both_read(tmp_path):
         assert s.stations["2"].tolist() == [1, 2, 3] and s.gcp_names == ("A",)
     # no file: the defaults
     none = read_summary(tmp_path / "empty")
-    assert not none.exists and none.document == {} and none.engine == "linear"
-    assert none.max_gap_s == 3.0 and none.intervals_s is None
+    assert not none.exists and none.document == {} and none.options.pose.engine == "linear"
+    assert none.options.interpolation.max_gap_s == 3.0 and none.intervals_s is None
 
 
 @pytest.mark.parametrize(
     ("schema", "match"),
     [
-        ({"name": SUMMARY_SCHEMA_NAME, "version": SUMMARY_SCHEMA_VERSION + 1},
-         rf"summary schema version {SUMMARY_SCHEMA_VERSION + 1} is newer than this rtsgt reads"),
+        ({"name": RUN_SCHEMA_NAME, "version": RUN_SCHEMA_VERSION + 1},
+         rf"summary schema version {RUN_SCHEMA_VERSION + 1} is newer than this rtsgt reads"),
         ({"name": "other", "version": 1}, r"'schema': expected"),
-        ({"name": SUMMARY_SCHEMA_NAME, "version": "1"}, r"'schema': expected"),
+        ({"name": RUN_SCHEMA_NAME, "version": "1"}, r"'schema': expected"),
         ([1], r"'schema': expected"),
     ],
 )
@@ -159,6 +162,6 @@ def test_summary_of_an_unknown_schema_is_refused_naming_the_file(run_data, tmp_p
             read(run)
         assert exc.value.path == str(run / "summary.json")
     (run / "summary.json").write_text(json.dumps(
-        {"schema": {"name": SUMMARY_SCHEMA_NAME, "version": 1}, **doc}))
+        {"schema": {"name": RUN_SCHEMA_NAME, "version": 1}, **doc}))
     data = read_run(run)
-    assert data.summary_record.schema_version == 1 and data.engine == run_data.engine
+    assert data.schema_version == 1 and data.options.pose.engine == run_data.options.pose.engine

@@ -20,8 +20,7 @@ from typer.testing import CliRunner
 from rtsgt.cli.main import app
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.io.deployment import load_deployment
-from rtsgt.io.run_output import run_summary, write_run
-from rtsgt.io.run_reader import read_run
+from rtsgt.io.run_dir import read_run, run_summary, write_run
 from rtsgt.io.weather import read_weather_csv, write_weather_csv
 from rtsgt.pipeline import run_pipeline
 from rtsgt.pose.reference import ReferencePoints
@@ -137,7 +136,7 @@ def test_consistent_survey_distances_pass_silently(sim_data):
     for p in pairs.values():
         assert abs(p["ratio"]) < 3.0
         assert 0.1 < p["predicted_sigma_mm"] < 20.0
-        assert p["poses"] == int(result.keep.sum())
+        assert p["poses"] == int(result.computation.keep.sum())
 
 
 def test_a_survey_off_by_3_cm_warns_and_is_recorded(sim_data, tmp_path):
@@ -217,7 +216,7 @@ def test_a_missing_optional_file_warns(written_run, tmp_path):
     (run / "measurements" / "removed.csv").unlink()
     with pytest.warns(RtsgtWarning, match=r"removed\.csv.*missing"):
         data = read_run(run)
-    assert data.removed_t.size == 0
+    assert data.removed.t.size == 0
 
 
 def test_a_missing_measurement_file_without_summary_warns(written_run, tmp_path):

@@ -36,7 +36,7 @@ out by the registration. On simulated deployments this took the position NEES / 
 Checks that warn
 ----------------
 A run says what it cannot vouch for as :class:`~rtsgt.errors.RtsgtWarning` (recorded in
-:attr:`RunResult.warnings`, hence ``summary.json``): a weather record that does not cover the
+:attr:`rtsgt.record.RunRecord.warnings`, hence ``summary.json``): a weather record that does not cover the
 measurement times (:func:`rtsgt.measurement.weather.check_weather_coverage`), a surveyed inter-prism
 distance that the tracked distances disagree with beyond its predicted sigma
 (:func:`rtsgt.filtering.gates.surveyed_distance_check`), rate gates that reject motion.
@@ -47,77 +47,33 @@ from __future__ import annotations
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 
-from rtsgt.calibration import CalibrationResult, calibrate
+from rtsgt.calibration import calibrate
 from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.calibration.gcp import gcp_atmospheric_correction, gcp_world_positions
 from rtsgt.deployment import DeploymentData
 from rtsgt.errors import InputError
 from rtsgt.filtering import module1, module2
-from rtsgt.filtering.gates import GateReport, apply_gates, surveyed_distance_check
+from rtsgt.filtering.gates import apply_gates, surveyed_distance_check
 from rtsgt.filtering.modules import RemovedMeasurements, removed_measurements, warn_tight_rate_gates
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
-from rtsgt.interpolation import GPTrack
-from rtsgt.interpolation.prisms import PrismsAtTimes, fit_gps, query_grid, query_prisms
+from rtsgt.interpolation.prisms import fit_gps, gp_covariance, query_grid, query_prisms
 from rtsgt.measurement.weather import check_weather_coverage
 from rtsgt.noise import NoiseModel, propagate
 from rtsgt.options import RunOptions, stage_rng
-from rtsgt.pose import PoseEstimate, estimate_poses
+from rtsgt.pose import estimate_poses
+from rtsgt.record import RunComputation, RunRecord, ordered_sources
 from rtsgt.types import PoseTrajectory, PrismTrack
 
 Progress = Callable[[str], None]
 
 
-@dataclass(frozen=True)
-class RunResult:
-    """Everything a run computed; the writers in :mod:`rtsgt.io.run_output` turn it into files."""
-
-    data: DeploymentData
-    options: RunOptions
-    filter_reports: dict[str, object]
-    calibration: CalibrationResult
-    tracks: dict[str, PrismTrack]
-    intervals: np.ndarray
-    gps: dict[str, GPTrack]
-    prisms: PrismsAtTimes
-    estimate: PoseEstimate
-    keep: np.ndarray
-    gate_report: GateReport
-    groundtruth: PoseTrajectory
-    noise_model: NoiseModel
-    timings_s: dict[str, float]
-    qc_info: dict[str, dict] = field(default_factory=dict)
-    coupling: StationCoupling | None = None
-    #: Every warning of the run (:class:`~rtsgt.errors.RtsgtWarning` and other
-    #: :class:`UserWarning`), once each, in order (``summary.json`` ``warnings``).
-    warnings: list[str] = field(default_factory=list)
-    #: :func:`rtsgt.measurement.weather.weather_coverage` of the filtered measurements (None: no weather).
-    weather_coverage: dict | None = None
-    #: :func:`rtsgt.filtering.gates.surveyed_distance_check` of the kept poses, per prism pair.
-    distance_check: dict = field(default_factory=dict)
-    #: What filtering modules 1 and 2 removed, with the module and the reason
-    #: (:func:`rtsgt.filtering.modules.removed_measurements`; ``measurements/removed.csv``).
-    removed: RemovedMeasurements | None = None
-    #: World position (m) of each ground control point, by marker name, in natural order
-    #: (:func:`rtsgt.calibration.gcp.gcp_world_positions`; ``summary.json`` ``gcp_world``).
-    gcp_world: dict[str, np.ndarray] = field(default_factory=dict)
-
-    @property
-    def rejection_reasons(self) -> np.ndarray:
-        """Per queried pose: ``""`` when kept, else the first gate it failed."""
-        return self.gate_report.reason
-
-    @property
-    def prism_ids(self) -> list[str]:
-        return [o.prism for o in self.data.observations]
-
-
 def run_pipeline(
     data: DeploymentData, options: RunOptions | None = None, progress: Progress | None = None
-) -> RunResult:
+) -> RunRecord:
     """Compute the ground truth of a deployment.
 
     Parameters
@@ -129,8 +85,9 @@ def run_pipeline(
 
     Returns
     -------
-    RunResult
-        With :attr:`RunResult.warnings`: every :class:`UserWarning` (the
+    RunRecord
+        The run record (:mod:`rtsgt.record`), with :attr:`~rtsgt.record.RunRecord.computation`
+        (what only exists in memory) and :attr:`~rtsgt.record.RunRecord.warnings`: every :class:`UserWarning` (the
         :class:`~rtsgt.errors.RtsgtWarning` of the checks included) the stages raised, once
         each. They are recorded while the stages run and then issued again, once each, so a
         caller (the CLI's ``warning: ...`` lines) sees every one once, even if the run fails.
@@ -142,7 +99,7 @@ def run_pipeline(
             result = _run_stages(data, options, progress)
     finally:
         said = _reissue(caught)
-    return replace(result, warnings=said)
+    return replace(result, warnings=tuple(said))
 
 
 def _reissue(caught: list[warnings.WarningMessage]) -> list[str]:
@@ -162,7 +119,7 @@ def _reissue(caught: list[warnings.WarningMessage]) -> list[str]:
 
 def _run_stages(
     data: DeploymentData, options: RunOptions | None, progress: Progress | None
-) -> RunResult:
+) -> RunRecord:
     """The stages of :func:`run_pipeline` (their warnings not yet recorded)."""
     options = RunOptions() if options is None else options
     say = progress or (lambda stage: None)
@@ -270,7 +227,44 @@ def _run_stages(
         prisms.xyz[keep], prisms.pose_covariance[keep], reference.xyz, reference.cov,
         reference.names)
     lap("gates")
-    return RunResult(data, options, reports, calib, tracks, intervals, gps, prisms, est, keep,
-                     gate_report, gt, model, timings, qc_info, coupling,
-                     weather_coverage=weather_coverage, distance_check=distance_check,
-                     removed=removed, gcp_world=gcp_world)
+    computation = RunComputation(data, calib, model, reports, tracks, gps, prisms, est, keep,
+                                 gate_report, timings, qc_info)
+    return _record(computation, options, intervals, coupling, removed, gt, gcp_world,
+                   weather_coverage, distance_check)
+
+
+def _record(c: RunComputation, options: RunOptions, intervals: np.ndarray,
+            coupling: StationCoupling, removed: RemovedMeasurements, groundtruth: PoseTrajectory,
+            gcp_world: dict[str, np.ndarray], weather_coverage: dict | None,
+            distance_check: dict) -> RunRecord:
+    """The run record of what the stages computed (the prisms in the order of the tracks)."""
+    ids = tuple(c.tracks)
+    stations = {s: np.asarray(T.translation, dtype=float)
+                for s, T in c.calibration.transforms.items()}
+    measurements = {}
+    for pid, tr in c.tracks.items():
+        rng_m = tr.range_m
+        if rng_m is None and tr.station in stations:
+            rng_m = np.linalg.norm(tr.xyz - stations[tr.station], axis=1)
+        cov = np.sum(list(tr.cov_by_source.values()), axis=0) if tr.cov_by_source else tr.cov
+        measurements[pid] = PrismTrack(tr.t, tr.xyz, cov, tr.cov_by_source, pid, tr.frame,
+                                       tr.station, rng_m)
+    pr = c.prisms
+    reject = ~c.keep
+    gcp_names = tuple(gcp_world)
+    return RunRecord(
+        name=c.data.name, prism_ids=ids, measurements=measurements,
+        prisms_t=pr.t, prisms_xyz=pr.xyz, prisms_cov=pr.cov,
+        prisms_cov_by_source={s: pr.cov_by_source[s] for s in ordered_sources(pr.cov_by_source)},
+        groundtruth=groundtruth, rejected_t=pr.t[reject],
+        rejected_reason=np.asarray(c.gate_report.reason, dtype=str)[reject],
+        reference=c.data.reference, options=options, stations=stations,
+        prisms_cov_gp=pr.cov_gp,
+        gcp_xyz=np.array([gcp_world[n] for n in gcp_names]) if gcp_names else None,
+        gcp_names=gcp_names, qc={pid: np.asarray(g.qc) for pid, g in c.gps.items()},
+        intervals=intervals, uncertainty_measure=c.gate_report.uncertainty_measure,
+        coupling=coupling, removed=removed,
+        measurements_gp_cov={pid: gp_covariance(tr, options.interpolation.gp_noise)
+                             for pid, tr in c.tracks.items()},
+        weather_coverage=weather_coverage, distance_check=distance_check, computation=c,
+    )

@@ -13,7 +13,7 @@ from rich.console import Console
 from rich.table import Table
 
 from rtsgt.io.output_dir import OutputDir, check_output_file, record_files
-from rtsgt.io.run_reader import read_run
+from rtsgt.io.run_dir import read_run
 from rtsgt.report.analysis import PAPER_CITATION, Analysis, analyze
 from rtsgt.report.figures import draw_all, save_figures
 from rtsgt.report.html import is_report_html, write_report_file

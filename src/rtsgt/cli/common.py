@@ -11,6 +11,7 @@ from rich.console import Console
 from rich.table import Table
 
 from rtsgt.errors import InputError
+from rtsgt.record import RunRecord
 
 
 def usage_error(message: str, option: str) -> typer.BadParameter:
@@ -78,23 +79,23 @@ class Stages:
             self._status.__exit__(*exc)
 
 
-def print_run_summary(result, out) -> None:
+def print_run_summary(record: RunRecord, out) -> None:
     """A short table of what a run produced."""
-    gt = result.groundtruth
+    gt = record.groundtruth
     console = Console()
-    table = Table(title=f"rtsgt run: {result.data.name}", show_header=False)
-    table.add_row("poses kept / queried", f"{len(gt)} / {len(result.estimate)}")
+    table = Table(title=f"rtsgt run: {record.name}", show_header=False)
+    table.add_row("poses kept / queried", f"{len(gt)} / {record.prisms_t.shape[0]}")
     if len(gt):
         sig_t = np.sqrt(np.trace(gt.cov[:, :3, :3], axis1=1, axis2=2)) * 1e3
         sig_r = np.sqrt(np.trace(gt.cov[:, 3:, 3:], axis1=1, axis2=2)) * 1e3
         table.add_row("median sigma translation (sqrt trace)", f"{np.median(sig_t):.2f} mm")
         table.add_row("median sigma rotation (sqrt trace)", f"{np.median(sig_r):.3f} mrad")
         table.add_row("time span", f"{gt.t[-1] - gt.t[0]:.1f} s")
-    for pid, g in result.gps.items():
+    for pid, qc in record.qc.items():
         table.add_row(f"Qc prism {pid} (x, y, z)",
-                      ", ".join(f"{q:.2e}" for q in np.diag(g.qc)) + " m^2/s^3")
-    rej = result.rejection_reasons[~result.keep]
-    for reason in np.unique(rej):
-        table.add_row(f"rejected: {reason}", str(int(np.sum(rej == reason))))
+                      ", ".join(f"{q:.2e}" for q in np.diag(qc)) + " m^2/s^3")
+    reasons, counts = np.unique(record.rejected_reason, return_counts=True)
+    for reason, count in zip(reasons, counts, strict=True):
+        table.add_row(f"rejected: {reason}", str(int(count)))
     table.add_row("output", str(out))
     console.print(table)

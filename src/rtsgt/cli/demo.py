@@ -15,7 +15,7 @@ from rtsgt.cli.common import Stages, usage_error
 from rtsgt.cli.run import option_overrides, run_deployment
 from rtsgt.errors import InputError
 from rtsgt.io.output_dir import OutputDir, record_files
-from rtsgt.io.run_output import relocate_summary
+from rtsgt.io.run_dir import relocate_summary
 from rtsgt.report.html import write_report
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 from rtsgt.simulation.compare import compare_to_truth
@@ -100,7 +100,7 @@ def print_demo_table(result, comparison, run_dir: Path) -> None:
     t.add_column("quantity")
     t.add_column("value", justify="right")
     t.add_column("expected", justify="right")
-    t.add_row("poses kept / queried", f"{len(gt)} / {len(result.estimate)}", "")
+    t.add_row("poses kept / queried", f"{len(gt)} / {result.prisms_t.shape[0]}", "")
     t.add_row("position error RMSE", f"{d['position_error_mm']['rmse']:.2f} mm", "")
     t.add_row("median position sigma (sqrt trace)", f"{np.median(sig):.2f} mm", "~ RMSE")
     t.add_row("rotation error RMSE", f"{d['rotation_error_mrad']['rmse']:.3f} mrad", "")

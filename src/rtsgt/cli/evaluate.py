@@ -38,7 +38,7 @@ from rtsgt.evaluation.associate import GroundTruthQuery, ValidatedGroundTruth
 from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
 from rtsgt.evaluation.options import DEFAULT_MAX_DT_S
 from rtsgt.io.output_dir import check_target
-from rtsgt.io.run_reader import read_summary
+from rtsgt.io.run_dir import read_summary
 from rtsgt.io.trajectory import (
     FORMATS,
     attach_covariance,
@@ -84,7 +84,7 @@ def evaluation_options(**values) -> EvaluationOptions:
 
 def run_gap_limit(gt: object, gt_dir: str | Path) -> float | None:
     """The run's own gap limit, s: ``max_gap_s`` of a continuous ground truth, else that of
-    ``GT_DIR/summary.json`` (:func:`rtsgt.io.run_reader.read_summary`); None for a trajectory
+    ``GT_DIR/summary.json`` (:func:`rtsgt.io.run_dir.read_summary`); None for a trajectory
     file or a directory without a summary.
 
     Raises
@@ -98,7 +98,7 @@ def run_gap_limit(gt: object, gt_dir: str | Path) -> float | None:
     if not Path(gt_dir).is_dir():
         return None
     summary = read_summary(gt_dir)
-    return float(summary.max_gap_s) if summary.exists else None
+    return float(summary.options.interpolation.max_gap_s) if summary.exists else None
 
 
 def load_ground_truth(

@@ -9,7 +9,7 @@ import typer
 from rtsgt.cli.common import Stages, checked_options, echo_err, print_run_summary
 from rtsgt.io.deployment import load_deployment
 from rtsgt.io.output_dir import check_target
-from rtsgt.io.run_output import write_run
+from rtsgt.io.run_dir import write_run
 from rtsgt.options import RunOptions
 from rtsgt.pipeline import run_pipeline
 from rtsgt.report.html import write_report
@@ -37,7 +37,7 @@ def run_deployment(
     report: bool = False,
     inputs: dict | None = None,
 ):
-    """Load, process and write one deployment; returns (RunResult, output directory).
+    """Load, process and write one deployment; returns (RunRecord, output directory).
 
     The options and the output directory are checked before any work; ``report`` adds the
     HTML report to the run directory before it is put in place; ``inputs`` (default: the

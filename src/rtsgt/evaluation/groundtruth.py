@@ -65,10 +65,11 @@ from rtsgt.filtering.gates import apply_gates
 from rtsgt.interpolation import GPTrack
 from rtsgt.interpolation.cross import gp_cross_covariance
 from rtsgt.interpolation.prisms import fit_gps, query_prisms
-from rtsgt.io.run_reader import read_run
+from rtsgt.io.run_dir import read_run
 from rtsgt.options import RunOptions, stage_rng
 from rtsgt.pose import POSE_ENGINES, ReferencePoints, estimate_poses
 from rtsgt.pose.registration import registration_jacobian
+from rtsgt.record import RunRecord
 from rtsgt.types import PrismTrack
 
 __all__ = [
@@ -176,24 +177,57 @@ class ContinuousGroundTruth:
                    coupling)
 
     @classmethod
-    def from_result(
+    def from_record(
         cls,
-        result,
+        record: RunRecord,
         *,
         engine: str | None = None,
         samples: int | None = None,
         seed: int | None = None,
     ) -> ContinuousGroundTruth:
-        """From an in-memory :class:`rtsgt.pipeline.RunResult` (its GPs are reused as fitted).
+        """From a run record: one just computed by :func:`rtsgt.pipeline.run_pipeline` (its
+        GPs are reused as fitted) or one read back by :func:`rtsgt.io.run_dir.read_run` (the
+        GPs fitted again to the measured tracks, with the covariance and the Qc the run gave
+        them: the same GPs).
 
         ``engine``, ``samples``, ``seed``: override the run's.
+
+        Raises
+        ------
+        InputError
+            A prism without its measured track or its Qc, a bad engine.
         """
-        opts = _override(result.options, engine, samples, seed)
-        tracks = dict(result.tracks)
-        return cls(tracks, {p: result.gps[p] for p in tracks}, np.asarray(result.intervals),
-                   result.data.reference.select(list(tracks)), opts,
-                   result.gate_report.uncertainty_measure, result.data.name,
-                   getattr(result, "coupling", None))
+        opts = _override(record.options, engine, samples, seed)
+        source = record.name if record.path is None else str(record.path)
+        summary_path = None if record.path is None else record.path / "summary.json"
+        tracks: dict[str, PrismTrack] = {}
+        for pid in record.prism_ids:
+            tr = record.measurements.get(pid)
+            if tr is None:
+                raise InputError(f"no measured track of prism {pid}",
+                                 None if record.path is None
+                                 else record.path / "measurements" / f"prism{pid}.csv")
+            if opts.interpolation.gp_noise == "all" and pid in record.measurements_gp_cov:
+                # the GP was given the total covariance (the file's cov_* columns)
+                tr = dataclasses.replace(tr, cov=record.measurements_gp_cov[pid])
+            tracks[pid] = tr
+        intervals = record.intervals
+        if intervals is None:
+            # an older summary: the span every prism covers
+            lo = max(float(tr.t[0]) for tr in tracks.values())
+            hi = min(float(tr.t[-1]) for tr in tracks.values())
+            intervals = np.asarray([[lo, hi]] if hi > lo else [], dtype=float).reshape(-1, 2)
+        reference = record.tracked_reference
+        if record.computation is not None:
+            gps = record.computation.gps
+            return cls(tracks, {p: gps[p] for p in tracks}, np.asarray(intervals), reference,
+                       opts, record.uncertainty_measure, source, record.coupling)
+        for pid in tracks:
+            if pid not in record.qc:
+                raise InputError(f"no qc_m2_s3 for prism {pid} under 'prisms'", summary_path)
+        return cls.from_tracks(tracks, record.qc, intervals, reference, opts,
+                               uncertainty_measure=record.uncertainty_measure, source=source,
+                               coupling=record.coupling)
 
     @classmethod
     def from_run_dir(
@@ -204,18 +238,9 @@ class ContinuousGroundTruth:
         samples: int | None = None,
         seed: int | None = None,
     ) -> ContinuousGroundTruth:
-        """From a run directory written by :mod:`rtsgt.io.run_output`.
-
-        Parameters
-        ----------
-        run_dir : path
-            Read by :func:`rtsgt.io.run_reader.read_run` (the only reader of its files,
-            ``summary.json`` through :func:`~rtsgt.io.run_reader.read_summary`); needs
-            ``measurements/prism<i>.csv`` and ``summary.json`` with each prism's ``qc_m2_s3``.
-        engine : {"mc", "ut", "linear"}, optional
-            Pose engine (default: the run's). ``"linear"`` is the fastest.
-        samples, seed : int, optional
-            Monte Carlo samples and seed (default: the run's).
+        """From a run directory: :meth:`from_record` of :func:`rtsgt.io.run_dir.read_run`
+        (the only reader of its files), which needs ``measurements/prism<i>.csv`` and
+        ``summary.json`` with each prism's ``qc_m2_s3``.
 
         Raises
         ------
@@ -227,54 +252,11 @@ class ContinuousGroundTruth:
             raise InputError(
                 "no measurements/ folder: not an rtsgt run directory with measured tracks", root
             )
-        run = read_run(root)
-        summary = run.summary_record  # summary.json, parsed by rtsgt.io.run_reader
-        summary_path = summary.path
-        if not summary.document:
+        record = read_run(root)
+        if not record.summary:
             raise InputError("missing or empty summary.json (the run's Qc and options)",
-                             summary_path)
-        gp_noise = summary.gp_noise
-        tracks: dict[str, PrismTrack] = {}
-        qc: dict[str, np.ndarray] = {}
-        for pid in run.prism_ids:
-            tr = run.measurements.get(pid)
-            path = root / "measurements" / f"prism{pid}.csv"
-            if tr is None:
-                raise InputError(f"no measured track of prism {pid}", path)
-            if gp_noise == "all" and pid in run.measurements_gp_cov:
-                # the GP was given the total covariance: the file's cov_* columns
-                tr = dataclasses.replace(tr, cov=run.measurements_gp_cov[pid])
-            info = summary.prisms.get(pid)
-            if info is not None and info.station is not None:
-                tr = dataclasses.replace(tr, station=info.station)
-            tracks[pid] = tr
-            if info is None or info.qc_m2_s3 is None:
-                raise InputError(f"no qc_m2_s3 for prism {pid} under 'prisms'", summary_path)
-            qc[pid] = info.qc_m2_s3
-        intervals = summary.intervals_s
-        if intervals is None:
-            # an older summary: the span every prism covers
-            lo = max(float(tr.t[0]) for tr in tracks.values())
-            hi = min(float(tr.t[-1]) for tr in tracks.values())
-            intervals = np.asarray([[lo, hi]] if hi > lo else [], dtype=float).reshape(-1, 2)
-        reference = ReferencePoints(run.prism_ids, run.reference_xyz, run.reference_cov,
-                                    summary.reference_frame)
-        try:
-            options = RunOptions().updated(
-                engine=summary.engine,
-                samples=summary.samples,
-                seed=summary.seed,
-                max_gap_s=summary.max_gap_s,
-                gp_noise=gp_noise,
-                distance_gate_m=summary.distance_gate_m,
-                uncertainty_gate_m=summary.uncertainty_gate_m,
-            )
-        except InputError as exc:
-            raise InputError(str(exc), summary_path) from None
-        options = _override(options, engine, samples, seed)
-        return cls.from_tracks(tracks, qc, intervals, reference, options,
-                               uncertainty_measure=summary.uncertainty_measure,
-                               source=str(root), coupling=summary.coupling)
+                             root / "summary.json")
+        return cls.from_record(record, engine=engine, samples=samples, seed=seed)
 
     # ---------------------------------------------------------------------------------------
     # queries

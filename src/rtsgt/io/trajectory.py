@@ -325,7 +325,7 @@ def read_covariance_csv(path: str | PathLike, *, run_file: bool = False) -> Pose
     path : str or PathLike
     run_file : bool
         Read the file as a table of an ``rtsgt run`` directory
-        (:func:`rtsgt.io.run_reader.read_run`, :func:`rtsgt.io._parse.read_table`) and give
+        (:func:`rtsgt.io.run_dir.read_run`, :func:`rtsgt.io._parse.read_table`) and give
         back exactly what the run wrote: the header line is required and locates the columns
         by name (any order, extra numeric columns ignored), every line after it is a pose (no
         comment), NaN is read as such, there may be no pose, and quaternions, covariances and

@@ -38,9 +38,9 @@ the default measure ``"sqrt_trace"``; ``pose_measure="max_std"`` uses the square
 largest eigenvalue instead (the standard deviation along the worst direction). Both are
 :func:`rtsgt.filtering.gates.position_uncertainty` applied to each 3x3 block.
 
-Nothing here reads files or prints: :func:`analyze_dir` reads through
-:func:`rtsgt.io.run_reader.read_run`, :func:`analyze_run` takes the in-memory result of
-:func:`rtsgt.pipeline.run_pipeline`, and both go through :func:`analyze`.
+Nothing here reads files or prints: :func:`analyze` takes a run record
+(:class:`rtsgt.record.RunRecord`), the one :func:`rtsgt.pipeline.run_pipeline` returns or the
+one :func:`rtsgt.io.run_dir.read_run` reads back; :func:`analyze_dir` reads it first.
 """
 
 from __future__ import annotations
@@ -56,11 +56,12 @@ import numpy as np
 
 from rtsgt.errors import InputError
 from rtsgt.filtering.gates import position_uncertainty
-from rtsgt.io.run_reader import RunData, read_run
+from rtsgt.io.run_dir import read_run
 from rtsgt.noise.analysis import bin_by_range, frobenius_norm_mm
 from rtsgt.options import stage_rng
 from rtsgt.pose import POSE_ENGINES, estimate_poses
-from rtsgt.types import NOISE_SOURCES, PoseTrajectory, PrismTrack
+from rtsgt.record import RunRecord
+from rtsgt.types import NOISE_SOURCES
 
 __all__ = [
     "ALL",
@@ -73,14 +74,12 @@ __all__ = [
     "Analysis",
     "analyze",
     "analyze_dir",
-    "analyze_run",
     "bin_edges",
     "bin_labels",
     "nearest_psd",
     "paper_median_mm",
     "parse_bins",
     "pose_sigmas",
-    "run_data_from_result",
 ]
 
 #: Name of the entry that combines every source.
@@ -337,7 +336,7 @@ class Analysis:
         return out
 
 
-def _measurement_part(data: RunData, lower: tuple[float, ...]):
+def _measurement_part(data: RunRecord, lower: tuple[float, ...]):
     prisms, ts, ranges = [], [], []
     per_source: dict[str, list[np.ndarray]] = {}
     sources = data.sources
@@ -369,7 +368,7 @@ def _measurement_part(data: RunData, lower: tuple[float, ...]):
             k, norm, binned, counts, shares)
 
 
-def _pose_times(data: RunData) -> np.ndarray:
+def _pose_times(data: RunRecord) -> np.ndarray:
     """Indices into ``data.prisms_t`` of the kept poses."""
     gt_t = data.groundtruth.t
     pt = data.prisms_t
@@ -410,7 +409,7 @@ def nearest_psd(cov: np.ndarray) -> np.ndarray:
     return flat.reshape(c.shape)
 
 
-def _pose_part(data: RunData, engine: str, samples: int, seed: int, measure: str):
+def _pose_part(data: RunRecord, engine: str, samples: int, seed: int, measure: str):
     idx = _pose_times(data)
     q = data.prisms_xyz[idx]
     n = q.shape[1]
@@ -445,7 +444,7 @@ def _pose_part(data: RunData, engine: str, samples: int, seed: int, measure: str
 
 
 def analyze(
-    data: RunData,
+    data: RunRecord,
     *,
     bins: Sequence[float] | str = DEFAULT_BINS_M,
     engine: str | None = None,
@@ -453,12 +452,13 @@ def analyze(
     seed: int | None = None,
     pose_measure: str = "sqrt_trace",
 ) -> Analysis:
-    """Per-source analysis of a run's arrays.
+    """Per-source analysis of a run.
 
     Parameters
     ----------
-    data : RunData
-        From :func:`rtsgt.io.run_reader.read_run` or :func:`run_data_from_result`.
+    data : RunRecord
+        Of a run just computed (:func:`rtsgt.pipeline.run_pipeline`) or read back
+        (:func:`rtsgt.io.run_dir.read_run`): the same numbers either way.
     bins : sequence of float or str
         Lower edges of the range bins, m (``"0,75,150"``; the last bin is open).
     engine : {"mc", "ut", "linear"}, optional
@@ -477,11 +477,11 @@ def analyze(
     lower = parse_bins(bins)
     if pose_measure not in POSE_MEASURES:
         raise InputError(f"Expected pose measure in {POSE_MEASURES}, got {pose_measure!r}")
-    eng = data.engine if engine is None else engine
+    eng = data.options.pose.engine if engine is None else engine
     if eng not in POSE_ENGINES:
         raise InputError(f"Expected engine {', '.join(POSE_ENGINES)}, got {eng!r}")
-    m = int(data.samples if samples is None else samples)
-    sd = int(data.seed if seed is None else seed)
+    m = int(data.options.pose.samples if samples is None else samples)
+    sd = int(data.options.seed if seed is None else seed)
     (sources, prism, t, r, k, norm, binned, counts, shares) = _measurement_part(data, lower)
     pose_sources, pose_t, pose_cov, trans, rot = _pose_part(data, eng, m, sd, pose_measure)
     return Analysis(
@@ -507,92 +507,6 @@ def analyze(
         engine=eng,
         samples=m if eng == "mc" else None,
     )
-
-
-def run_data_from_result(result) -> RunData:
-    """The :class:`~rtsgt.io.run_reader.RunData` of an in-memory run (no file access).
-
-    Parameters
-    ----------
-    result : rtsgt.pipeline.RunResult
-    """
-    ids = tuple(result.prism_ids)
-    ids = tuple(p for p in ids if p in result.tracks) or tuple(result.tracks)
-    calib = result.calibration
-    stations = {s: np.asarray(T.translation, dtype=float)
-                for s, T in calib.transforms.items()}
-    measurements = {}
-    for pid in ids:
-        tr = result.tracks[pid]
-        rng_m = tr.range_m
-        if rng_m is None and tr.station in stations:
-            rng_m = np.linalg.norm(tr.xyz - stations[tr.station], axis=1)
-        cov = np.sum(list(tr.cov_by_source.values()), axis=0) if tr.cov_by_source else tr.cov
-        measurements[pid] = PrismTrack(tr.t, tr.xyz, cov, tr.cov_by_source, pid, tr.frame,
-                                       tr.station, rng_m)
-    pr = result.prisms
-    order = [list(result.tracks).index(p) for p in ids]
-    ref = result.data.reference
-    ref_ids = list(ref.names)
-    try:
-        rorder = [ref_ids.index(p) for p in ids]
-    except ValueError as exc:
-        raise InputError(f"A tracked prism has no reference point: {exc}") from exc
-    ridx = np.concatenate([[3 * k, 3 * k + 1, 3 * k + 2] for k in rorder])
-    keep = np.asarray(result.keep, dtype=bool)
-    if len(result.estimate) != keep.shape[0]:
-        raise InputError("The run's pose estimate and its gate mask have different lengths")
-    reason = _rejection_reasons(result)
-    gcp_names = tuple(result.gcp_world)
-    gcp_xyz = np.array([result.gcp_world[n] for n in gcp_names]) if gcp_names else None
-    gt = result.groundtruth
-    opts = result.options
-    removed = result.removed
-    return RunData(
-        name=result.data.name, prism_ids=ids, measurements=measurements,
-        prisms_t=np.asarray(pr.t), prisms_xyz=np.asarray(pr.xyz)[:, order],
-        prisms_cov=np.asarray(pr.cov)[:, order],
-        prisms_cov_gp=None if getattr(pr, "cov_gp", None) is None
-        else np.asarray(pr.cov_gp)[:, order],
-        prisms_cov_by_source={s: np.asarray(c)[:, order] for s, c in
-                              _ordered(pr.cov_by_source).items()},
-        groundtruth=PoseTrajectory(gt.t, gt.position, gt.quat_xyzw, gt.cov),
-        rejected_t=np.asarray(pr.t)[~keep], rejected_reason=reason[~keep],
-        reference_xyz=np.asarray(ref.xyz)[rorder],
-        reference_cov=np.asarray(ref.cov)[np.ix_(ridx, ridx)],
-        stations=stations, gcp_xyz=gcp_xyz, gcp_names=gcp_names,
-        engine=opts.pose.engine, samples=int(opts.pose.samples), seed=int(opts.seed),
-        gp_noise=opts.interpolation.gp_noise, summary={}, path=None,
-        removed_t=removed.t, removed_xyz=removed.xyz, removed_prism=removed.prism,
-        removed_stage=removed.stage,
-    )
-
-
-def _ordered(d: dict) -> dict:
-    keys = [s for s in NOISE_SOURCES if s in d] + sorted(s for s in d if s not in NOISE_SOURCES)
-    return {k: d[k] for k in keys}
-
-
-def _rejection_reasons(result) -> np.ndarray:
-    """Per query time, why the pose was rejected ("" when kept), as ``rejected_poses.csv``."""
-    reasons = getattr(result, "rejection_reasons", None)
-    if reasons is None:
-        reasons = getattr(result.gate_report, "reason", None)
-    T = len(result.estimate)
-    if reasons is None or len(reasons) != T:
-        out = np.full(T, "rejected", dtype=object)
-        out[np.asarray(result.keep, dtype=bool)] = ""
-        return out.astype(str)
-    return np.asarray(reasons, dtype=str)
-
-
-def analyze_run(result, *, bins: Sequence[float] | str = DEFAULT_BINS_M, **kwargs) -> Analysis:
-    """Per-source analysis of an in-memory :class:`~rtsgt.pipeline.RunResult`.
-
-    Reuses the run's inputs (tracks, prisms at the query times, reference, engine, seed);
-    nothing is re-read. Keyword arguments as :func:`analyze`.
-    """
-    return analyze(run_data_from_result(result), bins=bins, **kwargs)
 
 
 def analyze_dir(run_dir: str | PathLike, *, bins: Sequence[float] | str = DEFAULT_BINS_M,

@@ -40,8 +40,8 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Ellipse, Patch
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-from rtsgt.io.run_reader import RunData
 from rtsgt.pose import register, shape_ratio
+from rtsgt.record import RunRecord
 from rtsgt.report.analysis import ALL, GP, REFERENCE, Analysis, paper_median_mm, pose_sigmas
 
 __all__ = [
@@ -364,7 +364,7 @@ def _break_gaps(t: np.ndarray, xy: np.ndarray, max_dt: float) -> np.ndarray:
     return np.insert(xy.astype(float), cut, np.nan, axis=0)
 
 
-def _rejected_positions(data: RunData) -> tuple[np.ndarray, np.ndarray]:
+def _rejected_positions(data: RunRecord) -> tuple[np.ndarray, np.ndarray]:
     """Body positions of the rejected poses (fit of the reference onto the prisms), reasons.
 
     Rejected poses whose prisms are not all finite or nearly collinear are left out.
@@ -387,7 +387,7 @@ def _rejected_positions(data: RunData) -> tuple[np.ndarray, np.ndarray]:
     return t_body, data.rejected_reason[ok]
 
 
-def _body_origin_offset(data: RunData) -> float:
+def _body_origin_offset(data: RunRecord) -> float:
     """Distance of the body origin from the reference prisms' centroid, m."""
     r = np.asarray(data.reference_xyz, dtype=float)
     return float(np.linalg.norm(r.mean(axis=0))) if r.size else 0.0
@@ -413,13 +413,13 @@ def _label_offsets(xy: np.ndarray, dist: float = 22.0) -> np.ndarray:
     return dist * np.column_stack([np.cos(ang), np.sin(ang)])
 
 
-def plot_top_view(data: RunData, *, max_ellipses: int = 60,
+def plot_top_view(data: RunRecord, *, max_ellipses: int = 60,
                   ellipse_scale: float | None = None) -> DrawnFigure:
     """Top view of the deployment (world x-y, m).
 
     Parameters
     ----------
-    data : RunData
+    data : RunRecord
     max_ellipses : int
         Ellipses are drawn at most at this many kept poses, evenly spread in index.
     ellipse_scale : float, optional
@@ -465,13 +465,13 @@ def plot_top_view(data: RunData, *, max_ellipses: int = 60,
                 mfc="none", label="ground control points")
         drawn.points["ground control points"] = int(len(data.gcp_xyz))
         everything.append(data.gcp_xyz[:, :2])
-    for stage in sorted(set(data.removed_stage.tolist())):
-        m = data.removed_stage == stage
-        ax.plot(data.removed_xyz[m, 0], data.removed_xyz[m, 1], _STAGE_MARKERS.get(stage, "x"),
+    for stage in sorted(set(data.removed.stage.tolist())):
+        m = data.removed.stage == stage
+        ax.plot(data.removed.xyz[m, 0], data.removed.xyz[m, 1], _STAGE_MARKERS.get(stage, "x"),
                 ms=4, ls="", color="#7F7F7F", mew=0.8,
                 label=f"{_STAGE_LABELS.get(stage, stage)} ({int(m.sum())})")
         drawn.points[f"removed: {stage}"] = int(m.sum())
-        everything.append(data.removed_xyz[m, :2])
+        everything.append(data.removed.xyz[m, :2])
     pos_r, reason_r = _rejected_positions(data)
     for reason in sorted(set(reason_r.tolist())):
         m = reason_r == reason
@@ -543,14 +543,14 @@ def _intersect_intervals(sets: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-def default_gap_s(data: RunData) -> float:
+def default_gap_s(data: RunRecord) -> float:
     """Gap threshold: three times the median measurement interval, at least 1 s."""
     dts = [np.diff(tr.t) for tr in data.measurements.values() if len(tr) > 1]
     med = float(np.median(np.concatenate(dts))) if dts else 0.4
     return max(1.0, 3.0 * med)
 
 
-def _time_origin(data: RunData) -> float:
+def _time_origin(data: RunRecord) -> float:
     starts = [tr.t[0] for tr in data.measurements.values() if len(tr)]
     if data.prisms_t.size:
         starts.append(data.prisms_t[0])
@@ -564,7 +564,7 @@ def _time_label(t0: float) -> str:
     return f"time since t = {t0:g} s (s)"
 
 
-def plot_uncertainty_time(data: RunData, *, gap_s: float | None = None,
+def plot_uncertainty_time(data: RunRecord, *, gap_s: float | None = None,
                           pose_measure: str = "sqrt_trace") -> DrawnFigure:
     """Uncertainty along time, with each prism's measurement gaps shaded.
 
@@ -597,9 +597,9 @@ def plot_uncertainty_time(data: RunData, *, gap_s: float | None = None,
             y = _break_gaps(gt.t, np.column_stack([gt.t - t0, v]), max_dt)
             ax.plot(y[:, 0], y[:, 1], "-", lw=1.0, color="black", label=name)
             drawn.points[name] = int(np.count_nonzero(np.isfinite(v)))
-    for stage in sorted(set(data.removed_stage.tolist())):
-        m = data.removed_stage == stage
-        axes[0].plot(data.removed_t[m] - t0, np.zeros(int(m.sum())), "|", ms=12, mew=1.2,
+    for stage in sorted(set(data.removed.stage.tolist())):
+        m = data.removed.stage == stage
+        axes[0].plot(data.removed.t[m] - t0, np.zeros(int(m.sum())), "|", ms=12, mew=1.2,
                      color="#7F7F7F" if stage == "module2" else "#000000",
                      transform=axes[0].get_xaxis_transform(), clip_on=False,
                      label=f"removed by {stage.replace('module', 'module ')} "
@@ -651,7 +651,7 @@ def plot_uncertainty_time(data: RunData, *, gap_s: float | None = None,
     return drawn
 
 
-def draw_all(data: RunData, analysis: Analysis, **kwargs) -> dict[str, DrawnFigure]:
+def draw_all(data: RunRecord, analysis: Analysis, **kwargs) -> dict[str, DrawnFigure]:
     """The four figures, keyed by :data:`FIGURE_NAMES`."""
     return {
         "source_norms": plot_source_norms(analysis),

@@ -34,7 +34,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from rtsgt import __version__
 from rtsgt.errors import RtsgtWarning
 from rtsgt.io._parse import atomic_write_text
-from rtsgt.io.run_reader import RunData, read_run
+from rtsgt.io.run_dir import read_run
+from rtsgt.record import RunRecord
 from rtsgt.report.analysis import DEFAULT_BINS_M, PAPER_CITATION, Analysis, analyze
 from rtsgt.report.figures import (
     SOURCE_LABELS,
@@ -297,7 +298,7 @@ def _nan_breaks(t: np.ndarray, xyz: np.ndarray) -> np.ndarray:
     return np.insert(xyz.astype(float), cut, np.nan, axis=0)
 
 
-def _view3d(data: RunData, max_ellipsoids: int, scale: float | None):
+def _view3d(data: RunRecord, max_ellipsoids: int, scale: float | None):
     """The plotly div (with plotly.js inline), the number of ellipsoids and their scale."""
     try:
         import plotly.graph_objects as go
@@ -390,7 +391,7 @@ def _view3d(data: RunData, max_ellipsoids: int, scale: float | None):
     return div, n_ell, used_scale
 
 
-def _kpis(data: RunData, a: Analysis) -> str:
+def _kpis(data: RunRecord, a: Analysis) -> str:
     n_kept = len(data.groundtruth)
     n_rej = int(data.rejected_t.size)
     items = [
@@ -408,7 +409,7 @@ def _kpis(data: RunData, a: Analysis) -> str:
                                          for k, v in items) + "</div>"
 
 
-def render_report(data: RunData, analysis: Analysis, *,
+def render_report(data: RunRecord, analysis: Analysis, *,
                   figures: Mapping[str, DrawnFigure] | None = None,
                   figure_format: str = "svg", max_ellipsoids: int = 150,
                   ellipsoid_scale: float | None = None) -> tuple[str, dict]:
@@ -416,7 +417,7 @@ def render_report(data: RunData, analysis: Analysis, *,
 
     Parameters
     ----------
-    data : RunData
+    data : RunRecord
     analysis : Analysis
     figures : mapping, optional
         Figures to embed (default :func:`rtsgt.report.figures.draw_all`).
@@ -479,7 +480,7 @@ def is_report_html(head: str) -> bool:
     return head.startswith("<!DOCTYPE html>") and "<title>rtsgt report: " in head
 
 
-def write_report_file(data: RunData, analysis: Analysis, path: str | PathLike,
+def write_report_file(data: RunRecord, analysis: Analysis, path: str | PathLike,
                       **kwargs) -> ReportInfo:
     """Write the report of ``data`` and ``analysis`` to ``path`` (atomically).
 

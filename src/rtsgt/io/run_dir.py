@@ -1,0 +1,942 @@
+"""The run directory: the run record (:class:`rtsgt.record.RunRecord`) on disk, written by
+:func:`write_run` and read back by :func:`read_run` (the only writer and reader of its files).
+
+Layout of ``OUT/`` (every number in SI units, stated in the headers)::
+
+    groundtruth.tum                  t x y z qx qy qz qw (s, m, unit quaternion scalar last)
+    groundtruth_covariance.csv       t,x,y,z,qx,qy,qz,qw,cov_00,...,cov_55
+                                     6x6 row-major, order (x, y, z, rx, ry, rz), m^2 / rad^2,
+                                     left perturbation in the world frame
+    rejected_poses.csv               t,reason for every pose removed by a gate
+    prisms/prism<i>.csv              interpolated track: t,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz
+    prisms/prism<i>_sources.csv      per-source covariance at the same times: t,<source>_xx,...
+    measurements/prism<i>.csv        measured track (world frame) after filtering, with the
+                                     covariance given to the GP, the range and every source's
+                                     covariance: t,x,y,z,cov_xx..cov_zz,range_m,<source>_xx..
+    measurements/removed.csv         the measurements the filters removed, in the world frame:
+                                     t,prism,station,x,y,z,stage,reason (stage: module1 = rates
+                                     of change or status, module2 = outside the intervals where
+                                     every prism is tracked; reason: the filter's reason, e.g.
+                                     rate_hz, status, not_all_tracked, short_interval)
+    reference.csv                    reference prisms in the body frame: name,x,y,z,cov_xx..cov_zz
+    summary.json                     schema (name, version), inputs, parameters, version,
+                                     seed, counts removed per filter and gate, Qc, calibration,
+                                     medians, timings, the weather file and its coverage, the
+                                     tracked inter-prism distances against the surveyed ones,
+                                     warnings (read back only by read_summary)
+    .rtsgt-output.json               manifest of the files rtsgt wrote (rtsgt.io.output_dir)
+
+The directory is assembled under a temporary name beside ``OUT`` and renamed at the end, and
+an existing ``OUT`` is replaced only if rtsgt wrote it (:mod:`rtsgt.io.output_dir`): a crash
+never leaves a half-written run, and ``--force`` never deletes a user's files.
+
+Reading
+-------
+Columns are located by their header names, so extra columns are ignored and the order of the
+columns does not matter. Every problem is an :class:`~rtsgt.errors.InputError` naming the file
+(and the line where it applies).
+
+summary.json
+------------
+:func:`read_summary` is the only reader of ``summary.json``: it checks the layout's
+``schema`` (``{"name": "rtsgt-run", "version": 1}``; a summary without it is of the layout
+before, read as version 0; a newer version is refused), applies the fallbacks for older layouts
+(``options`` for ``parameters``, engine, samples, seed and gp_noise at the top level, ``name``
+for ``deployment``, ``gcp_world`` outside ``calibration``) and returns a typed
+:class:`RunSummary`, from which :func:`read_run` builds the :class:`~rtsgt.record.RunRecord`
+(the analysis, the report and the continuous ground truth take that record).
+
+Missing files
+-------------
+A run whose files are not all there is a damaged run (a file deleted, a copy cut short), and
+reading what is left would analyse part of it as if it were the whole. So:
+
+- a file that ``summary.json`` says was written is **required**: every prism listed under
+  ``prisms`` has ``measurements/prism<i>.csv``, ``prisms/prism<i>.csv`` and
+  ``prisms/prism<i>_sources.csv``; one missing is an :class:`~rtsgt.errors.InputError` naming
+  it;
+- ``rejected_poses.csv`` and ``measurements/removed.csv`` are **optional** (runs of older
+  versions lack ``removed.csv``; the analysis works without them): one missing from a run
+  written by rtsgt (its ``summary.json`` names the software) is a
+  :class:`~rtsgt.errors.RtsgtWarning` naming it;
+- without ``summary.json`` (a directory assembled by hand), nothing says which files were
+  written: a prism of ``prisms/`` without its ``measurements/prism<i>.csv`` is read with a
+  warning naming the file.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import re
+import warnings
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from os import PathLike
+from pathlib import Path
+
+import numpy as np
+
+from rtsgt import __version__
+from rtsgt.calibration.coupling import StationCoupling
+from rtsgt.errors import InputError, RtsgtWarning
+from rtsgt.filtering import FilterParams
+from rtsgt.filtering.modules import RemovedMeasurements
+from rtsgt.io._parse import (
+    atomic_write_text,
+    csv_table,
+    read_table,
+    split_rows,
+    table_text,
+    to_float,
+)
+from rtsgt.io.output_dir import OutputDir
+from rtsgt.io.trajectory import (
+    TUM_COMMENT,
+    read_covariance_csv,
+    write_covariance_csv,
+    write_tum,
+)
+from rtsgt.options import GP_NOISE, InterpolationOptions, PoseOptions, RunOptions
+from rtsgt.pose.reference import ReferencePoints
+from rtsgt.record import (
+    RUN_SCHEMA_NAME,
+    RUN_SCHEMA_VERSION,
+    RunComputation,
+    RunRecord,
+    no_removed_measurements,
+    ordered_sources,
+)
+from rtsgt.types import PrismTrack
+
+__all__ = ["COV3_NAMES", "PrismSummary", "RunSummary", "columns_to_cov3", "cov3_to_columns",
+           "read_run", "read_summary", "read_table", "relocate_summary", "run_summary",
+           "station_positions_from_summary", "write_csv", "write_run"]
+
+COV3_NAMES = ("xx", "xy", "xz", "yy", "yz", "zz")
+#: The comment line of ``groundtruth.tum``.
+GROUNDTRUTH_TUM_COMMENT = f"{TUM_COMMENT} (world frame = reference station)"
+_IU = np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2])
+
+
+def cov3_to_columns(cov: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) -> (N, 6) upper-triangle columns xx, xy, xz, yy, yz, zz."""
+    return cov[:, _IU[0], _IU[1]]
+
+
+def columns_to_cov3(cols: np.ndarray) -> np.ndarray:
+    """(N, 6) upper-triangle columns -> (N, 3, 3) symmetric matrices."""
+    cols = np.asarray(cols, dtype=float)
+    out = np.empty((cols.shape[0], 3, 3))
+    out[:, _IU[0], _IU[1]] = cols
+    out[:, _IU[1], _IU[0]] = cols
+    return out
+
+
+def write_csv(path: Path, header: list[str], columns: list[np.ndarray], fmt: str = "%.17g") -> None:
+    """Write columns of numbers with a one-line header (no comment character), atomically."""
+    data = np.column_stack([np.asarray(c, dtype=float).reshape(len(columns[0]), -1) for c in columns])
+    atomic_write_text(path, table_text(data, header=",".join(header), fmt=fmt))
+
+
+def write_json(path: Path, obj: dict) -> None:
+    path.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n", encoding="utf-8")
+
+
+def relocate_summary(run_dir: Path, old: Path, new: Path) -> None:
+    """Rewrite the paths under ``old`` that ``run_dir/summary.json`` records as under ``new``
+    (a run written, with its inputs, in a temporary directory that becomes ``new``)."""
+
+    def moved(x):
+        if isinstance(x, dict):
+            return {k: moved(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [moved(v) for v in x]
+        if isinstance(x, str) and x.startswith(str(old)):
+            return str(new) + x[len(str(old)):]
+        return x
+
+    path = Path(run_dir) / "summary.json"
+    write_json(path, moved(json.loads(path.read_text(encoding="utf-8"))))
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _report_dict(rep) -> dict:
+    """A filter or gate report as plain JSON data (dataclass, mapping or object with counts)."""
+
+    if rep is None:
+        return {}
+    if hasattr(rep, "as_dict"):
+        return json.loads(json.dumps(rep.as_dict(), default=_json_default))
+    if dataclasses.is_dataclass(rep):
+        return json.loads(json.dumps(dataclasses.asdict(rep), default=_json_default))
+    if isinstance(rep, dict):
+        return json.loads(json.dumps(rep, default=_json_default))
+    return {"counts": getattr(rep, "counts", str(rep))}
+
+
+def _median_sigmas(traj) -> dict:
+    if len(traj) == 0:
+        return {"translation_mm": None, "rotation_mrad": None}
+    tr = np.sqrt(np.trace(traj.cov[:, :3, :3], axis1=1, axis2=2)) * 1e3
+    rot = np.sqrt(np.trace(traj.cov[:, 3:, 3:], axis1=1, axis2=2)) * 1e3
+    return {"translation_mm": float(np.median(tr)), "rotation_mrad": float(np.median(rot))}
+
+
+def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
+    """The ``summary.json`` content of a run just computed (see the module docstring).
+
+    Besides the inputs, parameters and results: ``weather``, the weather record used (file,
+    span, sampling interval) and how it covers the measurements
+    (:func:`rtsgt.measurement.weather.weather_coverage`; null without weather);
+    ``inter_prism_distances``, per prism pair the median deviation of the tracked distance from
+    the surveyed one, its predicted sigma and their ratio
+    (:func:`rtsgt.filtering.gates.surveyed_distance_check`); ``warnings``, every warning of the
+    run, once each, as printed on the terminal.
+
+    Raises
+    ------
+    ValueError
+        ``record`` was read from files (it has no :attr:`~rtsgt.record.RunRecord.computation`).
+    """
+    c = _computation(record)
+    opt = record.options
+    cal = c.calibration
+    gt = record.groundtruth
+    reasons, counts = np.unique(record.rejected_reason, return_counts=True)
+    stations = {}
+    for sid, T in cal.transforms.items():
+        stations[sid] = {
+            "matrix": T.as_matrix(),
+            "yaw_deg": float(np.degrees(T.yaw)),
+            "translation_m": T.translation,
+            "sigma_translation_mm": np.sqrt(np.diag(T.covariance)[:3]) * 1e3,
+            "sigma_rotation_mrad": np.sqrt(np.diag(T.covariance)[3:]) * 1e3,
+        }
+    prisms = {}
+    for i, (pid, tr) in enumerate(record.measurements.items()):
+        sig = np.sqrt(np.trace(record.prisms_cov[:, i], axis1=1, axis2=2))
+        prisms[pid] = {
+            "station": tr.station,
+            "measurements_used": len(tr),
+            "qc_m2_s3": record.qc[pid],
+            "qc_fit": c.qc_info.get(pid, {}),
+            "median_sigma_mm": float(np.median(sig) * 1e3),
+        }
+    res = cal.residuals
+    ref = record.reference
+    return {
+        "schema": {"name": RUN_SCHEMA_NAME, "version": RUN_SCHEMA_VERSION},
+        "software": {"name": "rtsgt", "version": __version__},
+        "deployment": record.name,
+        "inputs": inputs or {},
+        "parameters": {
+            "engine": opt.pose.engine,
+            "samples": opt.pose.samples,
+            "seed": opt.seed,
+            "rate_hz": opt.interpolation.rate_hz,
+            "qc": opt.interpolation.qc,
+            "max_gap_s": opt.interpolation.max_gap_s,
+            "gp_noise": opt.interpolation.gp_noise,
+            "noise_sources": list(c.noise_model.sources),
+            "instrument": c.data.instrument.name,
+            "filter": _report_dict(opt.filter),
+            "distance_gate_m": opt.pose.distance_gate_m,
+            "uncertainty_gate_m": opt.pose.uncertainty_gate_m,
+        },
+        "filters": {k: _report_dict(v) for k, v in c.filter_reports.items()},
+        "gates": _report_dict(c.gate_report),
+        "intervals_s": record.intervals,
+        "poses": {
+            "queried": int(record.prisms_t.shape[0]),
+            "kept": int(len(gt)),
+            "rejected_by_reason": {str(r): int(n) for r, n in zip(reasons, counts, strict=True)},
+            "first_t": float(gt.t[0]) if len(gt) else None,
+            "last_t": float(gt.t[-1]) if len(gt) else None,
+        },
+        "median_uncertainty": _median_sigmas(gt),
+        "prisms": prisms,
+        "calibration": {
+            "reference_station": cal.reference_station,
+            "stations": stations,
+            "residuals_mm": {
+                "median": float(np.median(res.distance_m) * 1e3) if len(res) else None,
+                "max": float(np.max(res.distance_m) * 1e3) if len(res) else None,
+                "count": int(len(res)),
+            },
+            # world position of each GCP (m), for the figures and the report
+            "gcp_world": {n: [float(v) for v in p]
+                          for n, p in zip(record.gcp_names, _gcp_rows(record), strict=True)},
+            # correlation of the station calibrations (calibration.coupling.StationCoupling):
+            # origins m, cross-covariances of the left perturbations (x, y, z, rx, ry, rz)
+            "coupling": record.coupling.to_dict() if record.coupling is not None else None,
+        },
+        "weather": record.weather_coverage,
+        "inter_prism_distances": record.distance_check,
+        "warnings": list(record.warnings),
+        "timings_s": c.timings_s,
+        "reference": {"names": list(ref.names), "xyz_m": ref.xyz, "cov_m2": ref.cov,
+                      "frame": ref.frame},
+    }
+
+
+def _computation(record: RunRecord) -> RunComputation:
+    if record.computation is None:
+        raise ValueError("This run record was read from files: only a run just computed "
+                         "(rtsgt.pipeline.run_pipeline) is written")
+    return record.computation
+
+
+def _gcp_rows(record: RunRecord) -> np.ndarray:
+    return np.empty((0, 3)) if record.gcp_xyz is None else record.gcp_xyz
+
+
+def _write_removed(path: Path, removed: RemovedMeasurements) -> None:
+    """``measurements/removed.csv`` from the run's
+    :class:`~rtsgt.filtering.modules.RemovedMeasurements`."""
+    with open(path, "w", encoding="utf-8") as fh:
+        fh.write("t,prism,station,x,y,z,stage,reason\n")
+        for t, p, st, xyz, stage, why in zip(removed.t, removed.prism, removed.station,
+                                             removed.xyz, removed.stage, removed.reason,
+                                             strict=True):
+            fh.write(f"{t:.9f},{p},{st},{xyz[0]:.6f},{xyz[1]:.6f},{xyz[2]:.6f},{stage},{why}\n")
+
+
+def write_run(record: RunRecord, out: str | Path, *, force: bool = False,
+              inputs: dict | None = None, protect: Iterable[str | Path] = (),
+              finish: Callable[[Path, Path], None] | None = None) -> Path:
+    """Write every file of a run directory atomically; returns the final directory.
+
+    ``record`` is a run just computed (:func:`rtsgt.pipeline.run_pipeline`). ``force``
+    replaces an earlier rtsgt output at ``out`` (never anything else, nor a directory holding
+    one of the paths in ``protect``, the run's inputs); ``inputs`` is recorded in
+    ``summary.json``. ``finish(tmp, final)``, if given, is called once every file of the run is
+    in the temporary directory ``tmp``, to add more (the HTML report) before the directory is
+    put in place as ``final``: if it fails, nothing is left.
+    """
+    summary = run_summary(record, inputs)
+    output = OutputDir(out, "run", force=force, inputs=protect)
+    with output as tmp:
+        gt = record.groundtruth
+        write_tum(tmp / "groundtruth.tum", gt, decimals=(9, 12), comment=GROUNDTRUTH_TUM_COMMENT)
+        write_covariance_csv(tmp / "groundtruth_covariance.csv", gt, digits=17)
+        with open(tmp / "rejected_poses.csv", "w", encoding="utf-8") as fh:
+            fh.write("t,reason\n")
+            for t, r in zip(record.rejected_t, record.rejected_reason, strict=True):
+                fh.write(f"{t:.9f},{r}\n")
+        (tmp / "prisms").mkdir()
+        (tmp / "measurements").mkdir()
+        cov_cols = [f"cov_{c}" for c in COV3_NAMES]
+        t = record.prisms_t
+        for i, pid in enumerate(record.prism_ids):
+            write_csv(tmp / "prisms" / f"prism{pid}.csv", ["t", "x", "y", "z", *cov_cols],
+                      [t, record.prisms_xyz[:, i], cov3_to_columns(record.prisms_cov[:, i])])
+            srcs = list(record.prisms_cov_by_source)
+            write_csv(tmp / "prisms" / f"prism{pid}_sources.csv",
+                      ["t", "gp_xx", "gp_xy", "gp_xz", "gp_yy", "gp_yz", "gp_zz"]
+                      + [f"{s}_{c}" for s in srcs for c in COV3_NAMES],
+                      [t, cov3_to_columns(record.prisms_cov_gp[:, i])]
+                      + [cov3_to_columns(record.prisms_cov_by_source[s][:, i]) for s in srcs])
+            tr = record.measurements[pid]
+            srcs = list(tr.cov_by_source)
+            write_csv(tmp / "measurements" / f"prism{pid}.csv",
+                      ["t", "x", "y", "z", *cov_cols, "range_m"]
+                      + [f"{s}_{c}" for s in srcs for c in COV3_NAMES],
+                      [tr.t, tr.xyz, cov3_to_columns(record.measurements_gp_cov[pid]),
+                       tr.range_m if tr.range_m is not None else np.full(len(tr), np.nan)]
+                      + [cov3_to_columns(tr.cov_by_source[s]) for s in srcs])
+        _write_removed(tmp / "measurements" / "removed.csv", record.removed)
+        ref = record.reference
+        with open(tmp / "reference.csv", "w", encoding="utf-8") as fh:
+            fh.write("name,x,y,z," + ",".join(cov_cols) + "\n")
+            blocks = cov3_to_columns(ref.cov_blocks())
+            for name, p, c in zip(ref.names, ref.xyz, blocks, strict=True):
+                fh.write(",".join([name] + [f"{v:.17g}" for v in (*p, *c)]) + "\n")
+        write_json(tmp / "summary.json", summary)
+        if finish is not None:
+            finish(tmp, output.final)
+    return output.final
+
+
+# ------------------------------------------------------------------------------------------
+# reading
+# ------------------------------------------------------------------------------------------
+
+_PRISM_FILE = re.compile(r"^prism(?P<id>.+?)\.csv$")
+_SOURCES_FILE = re.compile(r"^prism(?P<id>.+?)_sources\.csv$")
+
+
+def _natural_key(s: str) -> tuple:
+    return tuple(int(p) if p.isdigit() else p for p in re.split(r"(\d+)", s) if p)
+
+
+def _col(header: list[str], data: np.ndarray, name: str) -> np.ndarray:
+    return data[:, header.index(name)]
+
+
+def _cov_from(header: list[str], data: np.ndarray, prefix: str) -> np.ndarray:
+    cols = np.column_stack([_col(header, data, f"{prefix}_{c}") for c in COV3_NAMES])
+    return columns_to_cov3(cols)
+
+
+#: Covariance column prefixes that are not noise sources: the total, the GP posterior.
+_NOT_SOURCES = ("cov", "gp")
+
+
+def _source_prefixes(header: list[str]) -> tuple[str, ...]:
+    """Sources with all six ``<source>_xx .. <source>_zz`` columns (not ``cov`` or ``gp``)."""
+    found = []
+    for h in header:
+        if h.endswith("_xx"):
+            s = h[:-3]
+            if s not in _NOT_SOURCES and all(f"{s}_{c}" in header for c in COV3_NAMES):
+                found.append(s)
+    return ordered_sources(found)
+
+
+def _prism_files(folder: Path, pattern: re.Pattern) -> dict[str, Path]:
+    if not folder.is_dir():
+        raise InputError("folder not found (is this an rtsgt run directory?)", folder)
+    out = {}
+    for p in folder.iterdir():
+        m = pattern.match(p.name)
+        if m and not (pattern is _PRISM_FILE and p.name.endswith("_sources.csv")):
+            out[m.group("id")] = p
+    return dict(sorted(out.items(), key=lambda kv: _natural_key(kv[0])))
+
+
+def _read_measurements(path: Path, pid: str) -> tuple[PrismTrack, np.ndarray | None]:
+    """The measured track, and the file's ``cov_*`` columns (the covariance given to the GP;
+    None without them)."""
+    header, data = read_table(path, ("t", "x", "y", "z"))
+    sources = _source_prefixes(header)
+    by_source = {s: _cov_from(header, data, s) for s in sources}
+    file_cov = (_cov_from(header, data, "cov") if all(f"cov_{c}" in header for c in COV3_NAMES)
+                else None)
+    if by_source:
+        cov = np.sum(list(by_source.values()), axis=0)
+    elif "cov_xx" in header:
+        cov = _cov_from(header, data, "cov")
+    else:
+        raise InputError("no covariance columns (cov_xx.. or <source>_xx..)", path, 1)
+    rng = _col(header, data, "range_m") if "range_m" in header else None
+    try:
+        return PrismTrack(_col(header, data, "t"), data[:, [header.index(c) for c in "xyz"]],
+                          cov, by_source, pid, "world", None, rng), file_cov
+    except ValueError as exc:
+        raise InputError(str(exc), path) from exc
+
+
+def _read_reference(path: Path, summary: RunSummary) -> ReferencePoints:
+    """Every reference prism of ``reference.csv`` (names as ``"2"`` for ``"prism2"``), with the
+    joint covariance of ``summary.json`` (``reference.cov_m2``, correlated between prisms when
+    the body frame is defined by surveyed points) when it matches the file's blocks, else the
+    block-diagonal one of the file."""
+    need = ("name", "x", "y", "z") + tuple(f"cov_{c}" for c in COV3_NAMES)
+    header, numbers, lines = csv_table(path, need)
+    tokens = split_rows(lines, numbers, path, header, ",")
+    values = to_float(tokens[:, [header.index(c) for c in need[1:]]], numbers, path, need[1:],
+                      finite=False)
+    names = tuple(_strip_prism(x) for x in tokens[:, header.index("name")].tolist())
+    blocks = columns_to_cov3(values[:, 3:])
+    n = len(names)
+    cov = np.zeros((3 * n, 3 * n))
+    for i in range(n):
+        cov[3 * i:3 * i + 3, 3 * i:3 * i + 3] = blocks[i]
+    full = summary.reference_cov
+    listed = (None if summary.reference_names is None
+              else tuple(_strip_prism(x) for x in summary.reference_names))
+    # the joint covariance must be of these names, with the blocks of reference.csv on its
+    # diagonal; else the files disagree and the file's blocks are what is known
+    if (full is not None and listed == names and full.shape == (3 * n, 3 * n)
+            and np.allclose(np.diagonal(full.reshape(n, 3, n, 3), axis1=0, axis2=2),
+                            np.diagonal(cov.reshape(n, 3, n, 3), axis1=0, axis2=2),
+                            rtol=1e-9, atol=1e-15)):
+        cov = full
+    try:
+        return ReferencePoints(names, values[:, :3], cov, summary.reference_frame)
+    except ValueError as exc:
+        raise InputError(str(exc), path) from None
+
+
+def _strip_prism(name: str) -> str:
+    """``"prism2"`` and ``"2"`` both name prism ``"2"``."""
+    return name[5:] if name.lower().startswith("prism") and len(name) > 5 else name
+
+
+def _read_rejected(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """``rejected_poses.csv`` (optional, may be empty): times and reasons. Blank lines are
+    skipped; a line may lack the reason (read as ``""``) or carry more fields."""
+    if not path.is_file() or path.stat().st_size == 0:
+        return np.empty(0), np.empty(0, dtype="<U32")
+    header, numbers, lines = csv_table(path, ("t", "reason"))
+    it, ir = header.index("t"), header.index("reason")
+    rows = [(k, line.split(",")) for k, line in zip(numbers, lines, strict=True) if line]
+    times = np.array([[r[it] if it < len(r) else ""] for _, r in rows], dtype=object)
+    t = to_float(times.reshape(-1, 1), [k for k, _ in rows], path, ("t",), finite=False)[:, 0]
+    reason = [r[ir].strip() if ir < len(r) else "" for _, r in rows]
+    return t, np.asarray(reason, dtype=str)
+
+
+_REMOVED_COLUMNS = ("t", "prism", "station", "x", "y", "z", "stage")
+
+
+def _read_removed(path: Path) -> RemovedMeasurements:
+    """``measurements/removed.csv`` (optional; older runs lack the ``reason`` column)."""
+    if not path.is_file():
+        return no_removed_measurements()
+    with path.open(encoding="utf-8", newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows:
+        return no_removed_measurements()
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in _REMOVED_COLUMNS if c not in header]
+    if missing:
+        raise InputError(f"missing column(s) {', '.join(missing)}; header is "
+                         f"{','.join(header)}", path, 1)
+    idx = {c: header.index(c) for c in (*_REMOVED_COLUMNS, "reason") if c in header}
+    t, xyz, text = [], [], {c: [] for c in ("prism", "station", "stage", "reason")}
+    for k, row in enumerate(rows[1:]):
+        if not row:
+            continue
+        if len(row) != len(header):
+            raise InputError(f"expected {len(header)} fields, got {len(row)}", path, k + 2)
+        try:
+            t.append(float(row[idx["t"]]))
+            xyz.append([float(row[idx[c]]) for c in "xyz"])
+        except ValueError as exc:
+            raise InputError(f"not a number: {exc}", path, k + 2) from exc
+        for c, values in text.items():
+            values.append(row[idx[c]].strip() if c in idx else "")
+    strings = {c: np.asarray(v, dtype=str) for c, v in text.items()}
+    return RemovedMeasurements(np.asarray(t, dtype=float), strings["prism"], strings["station"],
+                               np.asarray(xyz, dtype=float).reshape(-1, 3), strings["stage"],
+                               strings["reason"])
+
+
+def _find(d: dict, *keys, default=None):
+    """First value found among nested key paths (tuples) or keys of ``d``."""
+    for key in keys:
+        path = key if isinstance(key, tuple) else (key,)
+        cur = d
+        for k in path:
+            if isinstance(cur, dict) and k in cur:
+                cur = cur[k]
+            else:
+                break
+        else:
+            return cur
+    return default
+
+
+def station_positions_from_summary(summary: dict) -> dict[str, np.ndarray]:
+    """Station positions (m, world frame) from the calibration block of ``summary.json``.
+
+    Accepts the object of ``rtsgt calibrate --json`` (``stations`` with ``translation_m`` or a
+    4x4 ``matrix``) under ``calibration``; the reference station is at the origin.
+    """
+    calib = _find(summary, "calibration", default=None)
+    if not isinstance(calib, dict):
+        return {}
+    out: dict[str, np.ndarray] = {}
+    ref = calib.get("reference_station")
+    if ref is not None:
+        out[str(ref)] = np.zeros(3)
+    stations = calib.get("stations", {})
+    if isinstance(stations, dict):
+        for sid, entry in stations.items():
+            if not isinstance(entry, dict):
+                continue
+            if entry.get("translation_m") is not None:
+                out[str(sid)] = np.asarray(entry["translation_m"], dtype=float).reshape(3)
+            elif entry.get("matrix") is not None:
+                out[str(sid)] = np.asarray(entry["matrix"], dtype=float)[:3, 3]
+    return dict(sorted(out.items(), key=lambda kv: _natural_key(kv[0])))
+
+
+def _gcp_from_summary(summary: dict) -> tuple[np.ndarray | None, tuple[str, ...]]:
+    g = _find(summary, ("calibration", "gcp_world"), "gcp_world", default=None)
+    if not g:
+        return None, ()
+    if isinstance(g, dict):
+        names = tuple(str(k) for k in g)
+        return np.asarray(list(g.values()), dtype=float).reshape(-1, 3), names
+    arr = np.asarray(g, dtype=float).reshape(-1, 3)
+    return arr, tuple(str(i + 1) for i in range(arr.shape[0]))
+
+
+@dataclass(frozen=True)
+class PrismSummary:
+    """What ``summary.json`` says of one prism (``prisms.<id>``)."""
+
+    #: The station that tracked it (None when not recorded).
+    station: str | None = None
+    #: The GP's power spectral density Qc, m^2/s^3 (None when not recorded).
+    qc_m2_s3: np.ndarray | None = None
+
+
+#: The options of a run whose summary does not say them (the engine was the linear one).
+_OLDEST_OPTIONS = RunOptions().updated(engine="linear")
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """``summary.json`` of a run, parsed by :func:`read_summary` (the defaults are those of a
+    run without the entry: an older layout, or a directory assembled by hand).
+
+    ``document`` is the whole JSON object as read (``{}`` without the file), for display.
+    """
+
+    path: Path
+    document: dict = field(default_factory=dict)
+    #: Whether the file exists.
+    exists: bool = False
+    #: Layout version (``schema.version``; 0 for a summary written before it had one).
+    schema_version: int = 0
+    #: Whether ``software.name`` is ``"rtsgt"`` (a run written by rtsgt).
+    written_by_rtsgt: bool = False
+    #: Deployment name (``deployment``, or ``name`` of older layouts); None when absent.
+    name: str | None = None
+    #: ``parameters`` (``options`` in older layouts) as options; a summary without them is of a
+    #: run before rtsgt recorded the engine, which was the linear one.
+    options: RunOptions = field(default_factory=lambda: _OLDEST_OPTIONS)
+    #: ``gates.uncertainty_measure``.
+    uncertainty_measure: str = "max_std"
+    #: Prisms listed under ``prisms``, in the file's order.
+    prisms: dict[str, PrismSummary] = field(default_factory=dict)
+    #: ``intervals_s`` (K, 2), s; None when absent (an older summary).
+    intervals_s: np.ndarray | None = None
+    #: ``reference``: names, body-frame positions (n, 3) m, joint covariance (3n, 3n) m^2,
+    #: frame; None when absent.
+    reference_names: tuple[str, ...] | None = None
+    reference_xyz: np.ndarray | None = None
+    reference_cov: np.ndarray | None = None
+    reference_frame: str = "body"
+    #: Station positions of ``calibration`` (:func:`station_positions_from_summary`), m.
+    stations: dict[str, np.ndarray] = field(default_factory=dict)
+    #: GCPs in the world frame (G, 3) m and their names (``calibration.gcp_world``).
+    gcp_xyz: np.ndarray | None = None
+    gcp_names: tuple[str, ...] = ()
+    #: ``calibration.coupling`` (None for runs written before rtsgt carried it).
+    coupling: StationCoupling | None = None
+    #: ``warnings``, ``weather`` and ``inter_prism_distances`` (empty when absent).
+    warnings: tuple[str, ...] = ()
+    weather_coverage: dict | None = None
+    distance_check: dict = field(default_factory=dict)
+
+
+def _section(doc: dict, key: str, path: Path) -> dict:
+    """``doc[key]``, a JSON object ({} when absent); an :class:`InputError` otherwise."""
+    value = doc.get(key)
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise InputError(f"{key!r}: expected a JSON object, got {value!r}"[:200], path)
+    return value
+
+
+def _positive(params: dict, key: str, default: float, path: Path) -> float:
+    """``params[key]`` (``default`` when absent) as a positive finite float."""
+    value = params.get(key, default)
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        x = float("nan")
+    if not (np.isfinite(x) and x > 0):
+        raise InputError(f"parameters.{key}: expected a positive number, got {value!r}", path)
+    return x
+
+
+def _array(value, what: str, path: Path) -> np.ndarray:
+    try:
+        return np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{what}: expected numbers, got {value!r}: {exc}"[:300], path) from None
+
+
+def _schema_version(doc: dict, path: Path) -> int:
+    """``schema.version`` (0 without ``schema``); a newer version than this rtsgt's is
+    refused."""
+    schema = doc.get("schema")
+    if schema is None:
+        return 0
+    version = schema.get("version") if isinstance(schema, dict) else None
+    if (not isinstance(schema, dict) or schema.get("name") != RUN_SCHEMA_NAME
+            or not isinstance(version, int) or isinstance(version, bool) or version < 0):
+        raise InputError(f"'schema': expected {{\"name\": \"{RUN_SCHEMA_NAME}\", "
+                         f"\"version\": <integer>}}, got {schema!r}"[:300], path)
+    if version > RUN_SCHEMA_VERSION:
+        raise InputError(f"summary schema version {version} is newer than this rtsgt reads "
+                         f"(version {RUN_SCHEMA_VERSION}): the run was written by a later "
+                         "rtsgt; upgrade rtsgt to read it", path)
+    return version
+
+
+def read_summary(run_dir: str | PathLike) -> RunSummary:
+    """Read ``run_dir/summary.json``: the only reader of that file (module docstring).
+
+    Returns
+    -------
+    RunSummary
+        The defaults (and ``exists`` False) when the file is absent.
+
+    Raises
+    ------
+    InputError
+        Naming the file: not valid JSON, not a JSON object, a newer schema version, or an
+        entry of the wrong type (a section that is not an object, a non-positive
+        ``max_gap_s`` or gate, a ``gp_noise`` other than ``white`` or ``all``, a bad Qc,
+        interval or coupling).
+    """
+    path = Path(run_dir) / "summary.json"
+    if not path.is_file():
+        return RunSummary(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise InputError(f"invalid JSON: {exc.msg}", path, exc.lineno) from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read the file: {exc}", path) from None
+    if not isinstance(doc, dict):
+        raise InputError(f"expected a JSON object (the run's summary), got a "
+                         f"{type(doc).__name__}", path)
+    version = _schema_version(doc, path)
+    # older layouts: "options" for "parameters"; engine, samples, seed, gp_noise at the top
+    params = _section(doc, "parameters", path) or _section(doc, "options", path)
+
+    def param(key, default):
+        return params[key] if key in params else doc.get(key, default)
+
+    name = _find(doc, "name", "deployment", default=None)
+    if isinstance(name, dict):
+        name = name.get("name")
+    software = doc.get("software")
+
+    prisms: dict[str, PrismSummary] = {}
+    listed = doc.get("prisms")
+    for pid, info in (listed.items() if isinstance(listed, dict) else ()):
+        info = info if isinstance(info, dict) else {}
+        q = info.get("qc_m2_s3")
+        if q is not None:
+            try:
+                q = np.asarray(q, dtype=float)
+            except (TypeError, ValueError) as exc:
+                raise InputError(f"prism {pid}: bad qc_m2_s3 {q!r}: {exc}", path) from None
+        station = info.get("station")
+        prisms[str(pid)] = PrismSummary(None if station is None else str(station), q)
+
+    iv = doc.get("intervals_s")
+    if iv is not None:
+        try:
+            iv = np.asarray(iv, dtype=float).reshape(-1, 2)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"bad intervals_s: {exc}", path) from None
+
+    ref = _section(doc, "reference", path)
+    ref_names = ref.get("names")
+    if ref_names is not None:
+        if not isinstance(ref_names, list):
+            raise InputError(f"reference.names: expected a list, got {ref_names!r}"[:200], path)
+        ref_names = tuple(str(x) for x in ref_names)
+    ref_xyz = None if ref.get("xyz_m") is None else _array(ref["xyz_m"], "reference.xyz_m", path)
+    ref_cov = (None if ref.get("cov_m2") is None
+               else _array(ref["cov_m2"], "reference.cov_m2", path))
+
+    calibration = _section(doc, "calibration", path)
+    coupling = None
+    if calibration.get("coupling") is not None:  # runs written before rtsgt carried it
+        try:
+            coupling = StationCoupling.from_dict(calibration["coupling"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"bad calibration.coupling: {exc}", path) from None
+    gcp_xyz, gcp_names = _gcp_from_summary(doc)
+
+    options = _summary_options(params, param, path)
+    return RunSummary(
+        path=path, document=doc, exists=True, schema_version=version,
+        written_by_rtsgt=isinstance(software, dict) and software.get("name") == "rtsgt",
+        name=None if name is None else str(name), options=options,
+        uncertainty_measure=str(_section(doc, "gates", path).get("uncertainty_measure",
+                                                                  "max_std")),
+        prisms=prisms, intervals_s=iv, reference_names=ref_names, reference_xyz=ref_xyz,
+        reference_cov=ref_cov, reference_frame=str(ref.get("frame", "body")),
+        stations=station_positions_from_summary(doc), gcp_xyz=gcp_xyz, gcp_names=gcp_names,
+        coupling=coupling, warnings=tuple(str(w) for w in doc.get("warnings") or ()),
+        weather_coverage=doc.get("weather"),
+        distance_check=doc.get("inter_prism_distances") or {},
+    )
+
+
+def _summary_options(params: dict, param: Callable, path: Path) -> RunOptions:
+    """The run's options from ``parameters`` (``param``: a parameter, or its older top-level
+    key); each value meets the rule of :class:`~rtsgt.options.RunOptions`."""
+    try:
+        samples = int(param("samples", PoseOptions.samples))
+        seed = param("seed", 0)
+        seed = int(seed) if seed is not None else 0
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"parameters: samples and seed must be integers: {exc}", path) from None
+    gp_noise = str(param("gp_noise", InterpolationOptions.gp_noise))
+    if gp_noise not in GP_NOISE:
+        raise InputError(f"gp_noise: expected {' or '.join(map(repr, GP_NOISE))}, got "
+                         f"{gp_noise!r}", path)
+    changes = {
+        "engine": str(param("engine", _OLDEST_OPTIONS.pose.engine)), "samples": samples,
+        "seed": seed, "gp_noise": gp_noise,
+        "max_gap_s": _positive(params, "max_gap_s", InterpolationOptions.max_gap_s, path),
+        "distance_gate_m": _positive(params, "distance_gate_m", PoseOptions.distance_gate_m,
+                                     path),
+        "uncertainty_gate_m": _positive(params, "uncertainty_gate_m",
+                                        PoseOptions.uncertainty_gate_m, path),
+    }
+    if params.get("rate_hz") is not None:
+        changes["rate_hz"] = _positive(params, "rate_hz", InterpolationOptions.rate_hz, path)
+    if params.get("qc") is not None:
+        changes["qc"] = params["qc"]
+    if isinstance(params.get("filter"), dict):
+        try:
+            changes["filter"] = FilterParams(**params["filter"])
+        except (TypeError, InputError) as exc:
+            raise InputError(f"parameters.filter: {exc}", path) from None
+    try:
+        return _OLDEST_OPTIONS.updated(**changes)
+    except InputError as exc:
+        raise InputError(f"parameters: {exc.bare_message}", path) from None
+
+
+def _check_files(root: Path, summary: RunSummary) -> None:
+    """Refuse a run missing a file its summary says was written; warn for an optional one
+    (module docstring, section Missing files)."""
+    for pid in summary.prisms:
+        for path, what in ((root / "measurements" / f"prism{pid}.csv", "measured track"),
+                           (root / "prisms" / f"prism{pid}.csv", "interpolated positions"),
+                           (root / "prisms" / f"prism{pid}_sources.csv",
+                            "per-source covariances")):
+            if not path.is_file():
+                raise InputError(
+                    f"missing: summary.json lists prism {pid}, whose {what} this file holds; "
+                    "the run directory is damaged (a file deleted or not copied): copy the "
+                    "whole directory again or rerun `rtsgt run`", path)
+    if summary.written_by_rtsgt:
+        for path, lost in ((root / "rejected_poses.csv", "the rejected poses"),
+                           (root / "measurements" / "removed.csv",
+                            "the measurements the filters removed")):
+            if not path.is_file():
+                warnings.warn(f"{path}: missing from this run of rtsgt; the analysis and the "
+                              f"figures go on without {lost}", RtsgtWarning, stacklevel=3)
+
+
+def read_run(run_dir: str | PathLike) -> RunRecord:
+    """Read a run directory written by :func:`write_run` back into its record.
+
+    Parameters
+    ----------
+    run_dir : path
+        The ``OUT`` directory of ``rtsgt run``.
+
+    Returns
+    -------
+    RunRecord
+        Without :attr:`~rtsgt.record.RunRecord.computation`; rejected poses, removed
+        measurements, GCPs and station positions are optional (empty when absent).
+
+    Raises
+    ------
+    InputError
+        A missing or malformed file, prisms whose query times disagree (module docstring,
+        section Missing files; an optional file missing is a warning).
+    """
+    root = Path(run_dir)
+    if not root.is_dir():
+        raise InputError("run directory not found", root)
+    summary = read_summary(root)
+    _check_files(root, summary)
+
+    # measurements
+    meas_files = _prism_files(root / "measurements", _PRISM_FILE)
+    read = {pid: _read_measurements(p, pid) for pid, p in meas_files.items()}
+    measurements = {pid: tr for pid, (tr, _) in read.items()}
+    gp_cov = {pid: c for pid, (_, c) in read.items() if c is not None}
+
+    # prisms at the query times
+    prism_files = _prism_files(root / "prisms", _PRISM_FILE)
+    if not prism_files:
+        raise InputError("no prisms/prism<i>.csv files", root / "prisms")
+    ids = tuple(prism_files)
+    for pid in ids:
+        if pid not in measurements:  # with a summary that lists it, _check_files refused
+            warnings.warn(f"{root / 'measurements' / f'prism{pid}.csv'}: missing; prism {pid} "
+                          "is read without its measured track (the analysis of the "
+                          "measurements leaves it out)", RtsgtWarning, stacklevel=2)
+    source_files = _prism_files(root / "prisms", _SOURCES_FILE)
+    t_ref = None
+    xyz, cov, by_source, cov_gp = [], [], {}, []
+    for pid, p in prism_files.items():
+        header, data = read_table(p, ("t", "x", "y", "z") + tuple(f"cov_{c}" for c in COV3_NAMES))
+        t = _col(header, data, "t")
+        if t_ref is None:
+            t_ref = t
+        elif t.shape != t_ref.shape or np.max(np.abs(t - t_ref), initial=0.0) > 1e-6:
+            raise InputError(f"query times differ from those of prism {ids[0]}", p)
+        xyz.append(data[:, [header.index(c) for c in "xyz"]])
+        cov.append(_cov_from(header, data, "cov"))
+        sp = source_files.get(pid)
+        if sp is not None:
+            sh, sd = read_table(sp, ("t",))
+            ts = _col(sh, sd, "t")
+            if ts.shape != t_ref.shape or np.max(np.abs(ts - t_ref), initial=0.0) > 1e-6:
+                raise InputError(f"times differ from those of {p.name}", sp)
+            for s in _source_prefixes(sh):
+                by_source.setdefault(s, {})[pid] = _cov_from(sh, sd, s)
+            if all(f"gp_{c}" in sh for c in COV3_NAMES):
+                cov_gp.append(_cov_from(sh, sd, "gp"))
+    T, n = t_ref.shape[0], len(ids)
+    prisms_by_source = {}
+    for s in ordered_sources(by_source):
+        arr = np.zeros((T, n, 3, 3))
+        for i, pid in enumerate(ids):
+            if pid in by_source[s]:
+                arr[:, i] = by_source[s][pid]
+        prisms_by_source[s] = arr
+
+    reference = _read_reference(root / "reference.csv", summary)
+    missing = [p for p in ids if p not in reference.names]
+    if missing:
+        raise InputError(f"no reference for prism {missing[0]}; names: "
+                         f"{', '.join(reference.names)}", root / "reference.csv")
+    for pid, tr in measurements.items():  # the station of each track, as summary.json says
+        info = summary.prisms.get(pid)
+        if info is not None and info.station is not None:
+            measurements[pid] = dataclasses.replace(tr, station=info.station)
+    rej_t, rej_r = _read_rejected(root / "rejected_poses.csv")
+    return RunRecord(
+        name=summary.name if summary.name is not None else root.name, prism_ids=ids,
+        measurements={pid: measurements[pid] for pid in ids if pid in measurements},
+        prisms_t=t_ref, prisms_xyz=np.stack(xyz, axis=1), prisms_cov=np.stack(cov, axis=1),
+        prisms_cov_by_source=prisms_by_source,
+        groundtruth=read_covariance_csv(root / "groundtruth_covariance.csv", run_file=True),
+        rejected_t=rej_t, rejected_reason=rej_r, reference=reference,
+        options=summary.options, schema_version=summary.schema_version,
+        stations=summary.stations,
+        prisms_cov_gp=np.stack(cov_gp, axis=1) if len(cov_gp) == n else None,
+        gcp_xyz=summary.gcp_xyz, gcp_names=summary.gcp_names,
+        qc={pid: info.qc_m2_s3 for pid, info in summary.prisms.items()
+            if info.qc_m2_s3 is not None},
+        intervals=summary.intervals_s, uncertainty_measure=summary.uncertainty_measure,
+        coupling=summary.coupling, removed=_read_removed(root / "measurements" / "removed.csv"),
+        measurements_gp_cov={pid: gp_cov[pid] for pid in ids if pid in gp_cov},
+        warnings=summary.warnings, weather_coverage=summary.weather_coverage,
+        distance_check=summary.distance_check, summary=summary.document, path=root,
+    )

@@ -1,0 +1,122 @@
+"""The run record: one record for a run just computed and for the same run read back.
+
+:func:`rtsgt.pipeline.run_pipeline` returns a :class:`~rtsgt.record.RunRecord`;
+:func:`rtsgt.io.run_dir.write_run` writes it and :func:`rtsgt.io.run_dir.read_run` reads it
+back. Every field a consumer uses must survive the round trip (to the precision of the files:
+17 significant digits, times to the nanosecond), and only the in-memory part may be lost.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from rtsgt.evaluation import ContinuousGroundTruth
+from rtsgt.io.deployment import load_deployment
+from rtsgt.io.run_dir import read_run, write_run
+from rtsgt.pipeline import run_pipeline
+from rtsgt.record import RUN_SCHEMA_VERSION, RunRecord
+from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
+
+
+@pytest.fixture(scope="module")
+def records(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("record")
+    sim = simulate_deployment(SimulationConfig(duration_s=90.0), np.random.default_rng(21))
+    data, opts = load_deployment(write_deployment(sim, tmp / "dep"))
+    mem = run_pipeline(data, opts.updated(engine="mc", samples=100, seed=8, qc="likelihood"))
+    disk = read_run(write_run(mem, tmp / "run"))
+    return mem, disk
+
+
+def _close(a, b, what):
+    np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-15, err_msg=what)
+
+
+def _same(a, b, what: str = "") -> None:
+    """Nested JSON-like values equal, numbers to 1e-12 (relative)."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and list(a) == list(b), what
+        for k in a:
+            _same(a[k], b[k], f"{what}.{k}")
+    elif isinstance(a, str) or a is None:
+        assert a == b, what
+    else:
+        np.testing.assert_allclose(np.asarray(b, dtype=float), np.asarray(a, dtype=float),
+                                   rtol=1e-12, atol=0, err_msg=what)
+
+
+def test_the_pipeline_returns_the_record_with_its_computation(records):
+    mem, disk = records
+    assert isinstance(mem, RunRecord) and isinstance(disk, RunRecord)
+    assert mem.computation is not None and disk.computation is None
+    assert mem.schema_version == disk.schema_version == RUN_SCHEMA_VERSION
+    assert mem.path is None and disk.path is not None and disk.summary
+    # a record read from files is not written again: only a computed run is
+    with pytest.raises(ValueError, match="read from files"):
+        write_run(disk, disk.path.parent / "again")
+    assert not (disk.path.parent / "again").exists()
+
+
+def test_every_field_survives_the_round_trip(records):
+    mem, disk = records
+    assert disk.name == mem.name and disk.prism_ids == mem.prism_ids
+    np.testing.assert_allclose(disk.prisms_t, mem.prisms_t, rtol=0, atol=1e-9)
+    for what in ("prisms_xyz", "prisms_cov", "prisms_cov_gp"):
+        _close(getattr(disk, what), getattr(mem, what), what)
+    assert list(disk.prisms_cov_by_source) == list(mem.prisms_cov_by_source)
+    for s, c in mem.prisms_cov_by_source.items():
+        _close(disk.prisms_cov_by_source[s], c, s)
+    for pid, tr in mem.measurements.items():
+        got = disk.measurements[pid]
+        assert got.station == tr.station
+        np.testing.assert_allclose(got.t, tr.t, rtol=0, atol=1e-9)
+        _close(got.xyz, tr.xyz, "xyz")
+        _close(got.cov, tr.cov, "cov (the sum of the sources)")
+        _close(got.range_m, tr.range_m, "range")
+        assert list(got.cov_by_source) == list(tr.cov_by_source)
+        _close(disk.measurements_gp_cov[pid], mem.measurements_gp_cov[pid], "GP covariance")
+        _close(disk.qc[pid], mem.qc[pid], "Qc")
+    gt_m, gt_d = mem.groundtruth, disk.groundtruth
+    np.testing.assert_allclose(gt_d.t, gt_m.t, rtol=0, atol=1e-9)
+    _close(gt_d.position, gt_m.position, "positions")
+    _close(gt_d.cov, gt_m.cov, "pose covariances")
+    np.testing.assert_allclose(disk.rejected_t, mem.rejected_t, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(disk.rejected_reason, mem.rejected_reason)
+    assert disk.reference.names == mem.reference.names
+    _close(disk.reference.cov, mem.reference.cov, "joint reference covariance")
+    _close(disk.reference_xyz, mem.reference_xyz, "tracked reference")
+    # the options, except the noise model (summary.json keeps its sources, not the model)
+    o_m, o_d = mem.options, disk.options
+    assert (o_d.seed, o_d.filter, o_d.interpolation, o_d.pose) == \
+        (o_m.seed, o_m.filter, o_m.interpolation, o_m.pose)
+    _close(disk.intervals, mem.intervals, "intervals")
+    assert disk.uncertainty_measure == mem.uncertainty_measure
+    _same(disk.coupling.to_dict(), mem.coupling.to_dict(), "coupling")
+    for s, p in mem.stations.items():
+        _close(disk.stations[s], p, f"station {s}")
+    assert disk.gcp_names == mem.gcp_names
+    _close(disk.gcp_xyz, mem.gcp_xyz, "GCPs")
+    for f in ("t", "xyz"):
+        np.testing.assert_allclose(getattr(disk.removed, f), getattr(mem.removed, f), atol=1e-6)
+    for f in ("prism", "station", "stage", "reason"):
+        np.testing.assert_array_equal(getattr(disk.removed, f), getattr(mem.removed, f))
+    assert disk.warnings == mem.warnings
+    _same(json.loads(json.dumps(mem.distance_check)), disk.distance_check, "distances")
+    _same(json.loads(json.dumps(mem.weather_coverage, default=str)), disk.weather_coverage,
+          "weather")
+
+
+def test_the_continuous_ground_truth_is_the_same_from_either_record(records):
+    """From memory the run's GPs are reused; from the files they are fitted again with the
+    run's Qc and covariance: the same poses at the same times."""
+    mem, disk = records
+    a = ContinuousGroundTruth.from_record(mem, engine="linear").query_poses(mem.prisms_t)
+    b = ContinuousGroundTruth.from_record(disk, engine="linear").query_poses(mem.prisms_t)
+    np.testing.assert_array_equal(a.reason, b.reason)
+    ok = a.valid
+    assert ok.sum() > 100
+    np.testing.assert_allclose(b.position[ok], a.position[ok], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(b.cov[ok], a.cov[ok], rtol=1e-6, atol=1e-16)
