@@ -276,3 +276,22 @@ def test_errors_shared_between_prisms_need_the_joint_covariance(engine):
         res[name] = np.mean(np.einsum("ti,tij,tj->t", xi, np.linalg.inv(est.cov), xi)) / 6
     assert abs(res["joint"] - 1.0) < 0.1, res
     assert res["blocks"] > 1.2, res
+
+
+@pytest.mark.parametrize("engine", ["mc", "ut", "linear"])
+def test_a_single_pose_is_the_same_as_in_a_batch(engine):
+    """A batch of one pose (the broadcast reference view is read-only) gives what the same
+    pose gives inside a larger batch."""
+    rng = np.random.default_rng(12)
+    r = warthog_reference()
+    _, _, q, cov_q = simulate(rng, 4, r)
+    cov_r = correlated_reference_cov(rng)
+    kw = dict(engine=engine, samples=200)
+    one = estimate_poses(q[2:3], cov_q[2:3], r, cov_r, rng=np.random.default_rng(3), **kw)
+    batch = estimate_poses(q, cov_q, r, cov_r, rng=np.random.default_rng(3), **kw)
+    np.testing.assert_allclose(one.t[0], batch.t[2], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(one.R[0], batch.R[2], rtol=0, atol=1e-12)
+    if engine != "mc":  # the Monte Carlo draws depend on the batch; its covariance is tested
+        np.testing.assert_allclose(one.cov[0], batch.cov[2], rtol=1e-10, atol=0)
+    else:
+        assert np.all(np.linalg.eigvalsh(one.cov[0]) > 0)

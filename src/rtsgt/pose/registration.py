@@ -122,9 +122,11 @@ def shape_ratio(points: ArrayLike) -> np.ndarray:
 def _qcp_chunk(p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closed-form solve of a chunk: ``p, q`` (B, N, 3) -> R (B, 3, 3), t (B, 3), ok (B,)."""
     B, N, _ = p.shape
-    # structure of arrays: row 3 i + k is component k of point i, the batch along the row
-    X = np.ascontiguousarray(p.reshape(B, 3 * N).T)
-    Y = np.ascontiguousarray(q.reshape(B, 3 * N).T)
+    # structure of arrays: row 3 i + k is component k of point i, the batch along the row;
+    # copies, as they are centred in place (p may be a read-only broadcast view, and with
+    # B = 1 the transpose is contiguous already, so ascontiguousarray would not copy)
+    X = p.reshape(B, 3 * N).T.copy()
+    Y = q.reshape(B, 3 * N).T.copy()
     inv_n = 1.0 / N
     pc = [X[k::3].sum(axis=0) * inv_n for k in range(3)]
     qc = [Y[k::3].sum(axis=0) * inv_n for k in range(3)]
