@@ -104,6 +104,9 @@ def test_every_field_survives_the_round_trip(records):
     for f in ("prism", "station", "stage", "reason"):
         np.testing.assert_array_equal(getattr(disk.removed, f), getattr(mem.removed, f))
     assert disk.warnings == mem.warnings
+    _same(json.loads(json.dumps(mem.self_checks)), disk.self_checks, "self-checks")
+    assert set(mem.self_checks["inter_prism_distances"]["regimes"]) == {
+        "static", "manoeuvring", "cruising", "far"}
     _same(json.loads(json.dumps(mem.distance_check)), disk.distance_check, "distances")
     _same(json.loads(json.dumps(mem.weather_coverage, default=str)), disk.weather_coverage,
           "weather")

@@ -54,6 +54,7 @@ import numpy as np
 from rtsgt.calibration import calibrate
 from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.calibration.gcp import gcp_atmospheric_correction, gcp_world_positions
+from rtsgt.checks import inter_prism_check
 from rtsgt.deployment import DeploymentData
 from rtsgt.errors import InputError
 from rtsgt.filtering import module1, module2
@@ -227,16 +228,23 @@ def _run_stages(
         prisms.xyz[keep], prisms.pose_covariance[keep], reference.xyz, reference.cov,
         reference.names)
     lap("gates")
+
+    say("self-checks")
+    self_checks = {"inter_prism_distances": inter_prism_check(
+        gt.t, gt.position, prisms.xyz[keep], prisms.pose_covariance[keep],
+        prisms.nearest_dt[keep], reference.xyz, reference.cov, reference.names,
+        varying_cov=prisms.cov_gp[keep])}
+    lap("self_checks")
     computation = RunComputation(data, calib, model, reports, tracks, gps, prisms, est, keep,
                                  gate_report, timings, qc_info)
     return _record(computation, options, intervals, coupling, removed, gt, gcp_world,
-                   weather_coverage, distance_check)
+                   weather_coverage, distance_check, self_checks)
 
 
 def _record(c: RunComputation, options: RunOptions, intervals: np.ndarray,
             coupling: StationCoupling, removed: RemovedMeasurements, groundtruth: PoseTrajectory,
             gcp_world: dict[str, np.ndarray], weather_coverage: dict | None,
-            distance_check: dict) -> RunRecord:
+            distance_check: dict, self_checks: dict) -> RunRecord:
     """The run record of what the stages computed (the prisms in the order of the tracks)."""
     ids = tuple(c.tracks)
     stations = {s: np.asarray(T.translation, dtype=float)
@@ -266,5 +274,6 @@ def _record(c: RunComputation, options: RunOptions, intervals: np.ndarray,
         coupling=coupling, removed=removed,
         measurements_gp_cov={pid: gp_covariance(tr, options.interpolation.gp_noise)
                              for pid, tr in c.tracks.items()},
-        weather_coverage=weather_coverage, distance_check=distance_check, computation=c,
+        weather_coverage=weather_coverage, distance_check=distance_check,
+        self_checks=self_checks, computation=c,
     )

@@ -141,6 +141,10 @@ class RunRecord:
         How the weather record covers the measurements (None without weather).
     distance_check : dict
         Tracked inter-prism distances against the surveyed ones, per prism pair.
+    self_checks : dict
+        What the data say about the run's uncertainty (:mod:`rtsgt.checks`), JSON-ready:
+        ``inter_prism_distances`` (:func:`rtsgt.checks.inter_prism_check`). Empty for a run
+        written before rtsgt made them.
     summary : dict
         The run's ``summary.json`` as read (empty for a record not read from files).
     path : Path, optional
@@ -175,6 +179,7 @@ class RunRecord:
     warnings: tuple[str, ...] = ()
     weather_coverage: dict | None = None
     distance_check: dict = field(default_factory=dict)
+    self_checks: dict = field(default_factory=dict)
     summary: dict = field(default_factory=dict)
     path: Path | None = None
     computation: RunComputation | None = None

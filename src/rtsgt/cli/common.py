@@ -97,5 +97,12 @@ def print_run_summary(record: RunRecord, out) -> None:
     reasons, counts = np.unique(record.rejected_reason, return_counts=True)
     for reason, count in zip(reasons, counts, strict=True):
         table.add_row(f"rejected: {reason}", str(int(count)))
+    # the inter-prism distance self-check (rtsgt.checks): mean z^2 and its 95 % interval
+    check = record.self_checks.get("inter_prism_distances", {})
+    for name, v in [("whole run", check.get("overall")), *check.get("regimes", {}).items()]:
+        if v and v.get("interval_95"):
+            lo, hi = v["interval_95"]
+            table.add_row(f"self-check z^2, {name} ({v['poses']} poses)",
+                          f"{v['mean_z2']:.2f}, 95 % [{lo:.2f}, {hi:.2f}]: {v['verdict']}")
     table.add_row("output", str(out))
     console.print(table)

@@ -284,7 +284,7 @@ def apply_gates(
 SURVEY_DISTANCE_WARNING_SIGMA = 3.0
 
 
-def _pair_variance(u: np.ndarray, cov: np.ndarray, i: int, j: int) -> np.ndarray:
+def pair_distance_variance(u: np.ndarray, cov: np.ndarray, i: int, j: int) -> np.ndarray:
     """``u^T (C_ii + C_jj - C_ij - C_ji) u`` for (..., 3) unit vectors and (..., 3n, 3n)."""
     a, b = slice(3 * i, 3 * i + 3), slice(3 * j, 3 * j + 3)
     S = cov[..., a, a] + cov[..., b, b] - cov[..., a, b] - np.swapaxes(cov[..., a, b], -1, -2)
@@ -342,10 +342,10 @@ def surveyed_distance_check(
         for j in range(i + 1, n):
             diff = q[:, i] - q[:, j]
             d = np.linalg.norm(diff, axis=-1)
-            var_t = _pair_variance(diff / d[:, None], c, i, j)
+            var_t = pair_distance_variance(diff / d[:, None], c, i, j)
             dr = r[i] - r[j]
             d_ref = float(np.linalg.norm(dr))
-            var_r = float(_pair_variance(dr / d_ref, rc, i, j))
+            var_r = float(pair_distance_variance(dr / d_ref, rc, i, j))
             sigma = float(np.sqrt(max(float(np.median(var_t)) + var_r, 0.0)))
             dev = float(np.median(d - d_ref))
             ratio = dev / sigma if sigma > 0 else (0.0 if dev == 0 else np.copysign(np.inf, dev))

@@ -285,6 +285,7 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
         },
         "weather": record.weather_coverage,
         "inter_prism_distances": record.distance_check,
+        "self_checks": record.self_checks,
         "warnings": list(record.warnings),
         "timings_s": c.timings_s,
         "reference": {"names": list(ref.names), "xyz_m": ref.xyz, "cov_m2": ref.cov,
@@ -635,6 +636,8 @@ class RunSummary:
     warnings: tuple[str, ...] = ()
     weather_coverage: dict | None = None
     distance_check: dict = field(default_factory=dict)
+    #: ``self_checks`` (empty for a run written before rtsgt made them).
+    self_checks: dict = field(default_factory=dict)
 
 
 def _section(doc: dict, key: str, path: Path) -> dict:
@@ -776,6 +779,7 @@ def read_summary(run_dir: str | PathLike) -> RunSummary:
         coupling=coupling, warnings=tuple(str(w) for w in doc.get("warnings") or ()),
         weather_coverage=doc.get("weather"),
         distance_check=doc.get("inter_prism_distances") or {},
+        self_checks=_section(doc, "self_checks", path),
     )
 
 
@@ -938,5 +942,6 @@ def read_run(run_dir: str | PathLike) -> RunRecord:
         coupling=summary.coupling, removed=_read_removed(root / "measurements" / "removed.csv"),
         measurements_gp_cov={pid: gp_cov[pid] for pid in ids if pid in gp_cov},
         warnings=summary.warnings, weather_coverage=summary.weather_coverage,
-        distance_check=summary.distance_check, summary=summary.document, path=root,
+        distance_check=summary.distance_check, self_checks=summary.self_checks,
+        summary=summary.document, path=root,
     )
