@@ -381,3 +381,33 @@ def test_calibration_does_not_read_files():
         warnings.simplefilter("error")
         hz, v, d, st, mk = true_polar()
         calibrate(shots_of(hz, v, d, st, mk), samples=0)  # clean input: no warning at all
+
+
+# ---------------------------------------------------------------- fit check (variance factor)
+
+
+def test_fit_check_variance_factor_follows_its_chi_square_law():
+    """Shots drawn with the instrument model (this file's independent noise): s0^2 has mean 1
+    and its 95 % interval holds about 95 % of 300 deployments (binomial sd 1.3 %); with a
+    1 mm vertical error per shot (pole heights) the z factor and the verdict see it."""
+    rng = np.random.default_rng(31)
+    hz0, v0, d0, st, mk = true_polar()
+    factors, inside = [], []
+    for _ in range(300):
+        c = calibrate(shots_of(*noisy_polar(hz0, v0, d0, rng), st, mk), samples=0)
+        for s in ("2", "3"):
+            f = c.fit_checks[s]
+            assert (f.markers, f.dof) == (10, 24)
+            factors.append(f.variance_factor)
+            inside.append(f.verdict == "consistent")
+    # the dof is exact for generalised least squares; the unweighted fit is close to it
+    assert np.mean(factors) == pytest.approx(1.0, abs=0.08)
+    assert 0.90 <= np.mean(inside) <= 0.985
+    # a vertical error of 1 mm on every shot, which the model does not have
+    pts = polar_to_cartesian(*noisy_polar(hz0, v0, d0, rng))
+    pts[:, 2] += rng.normal(0.0, 1e-3, pts.shape[0])
+    c = calibrate(shots_of(*cartesian_to_polar(pts), st, mk), samples=0)
+    for s in ("2", "3"):
+        f = c.fit_checks[s]
+        assert f.verdict == "optimistic" and f.axis_factors[2] > 5 * max(f.axis_factors[:2])
+    assert c.fit_checks.keys() == {"2", "3"}  # not the reference

@@ -54,7 +54,7 @@ import numpy as np
 from rtsgt.calibration import calibrate
 from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.calibration.gcp import gcp_atmospheric_correction, gcp_world_positions
-from rtsgt.checks import inter_prism_check
+from rtsgt.checks import gcp_fit_check, inter_prism_check
 from rtsgt.deployment import DeploymentData
 from rtsgt.errors import InputError
 from rtsgt.filtering import module1, module2
@@ -230,7 +230,7 @@ def _run_stages(
     lap("gates")
 
     say("self-checks")
-    self_checks = {"inter_prism_distances": inter_prism_check(
+    self_checks = {"gcp_fit": gcp_fit_check(calib), "inter_prism_distances": inter_prism_check(
         gt.t, gt.position, prisms.xyz[keep], prisms.pose_covariance[keep],
         prisms.nearest_dt[keep], reference.xyz, reference.cov, reference.names,
         varying_cov=prisms.cov_gp[keep])}

@@ -143,8 +143,9 @@ class RunRecord:
         Tracked inter-prism distances against the surveyed ones, per prism pair.
     self_checks : dict
         What the data say about the run's uncertainty (:mod:`rtsgt.checks`), JSON-ready:
-        ``inter_prism_distances`` (:func:`rtsgt.checks.inter_prism_check`). Empty for a run
-        written before rtsgt made them.
+        ``gcp_fit`` (:func:`rtsgt.checks.gcp_fit_check`) and ``inter_prism_distances``
+        (:func:`rtsgt.checks.inter_prism_check`). Empty for a run written before rtsgt made
+        them.
     summary : dict
         The run's ``summary.json`` as read (empty for a record not read from files).
     path : Path, optional

@@ -44,19 +44,37 @@ samples of different stations are correlated through the reference's shots, as t
 Residuals. For every marker and every pair of stations that both shot it, the distance between
 the two stations' positions of the marker after mapping both into the world frame.
 
+Fit check (:class:`FitCheck`, a Type A evaluation). The residuals of each station's fit,
+``r_i = p_ref,i - R p_s,i - t``, are compared with their predicted covariance
+``C_i = C_ref,i + R C_s,i R^T`` (the instrument and tilt model above). The residuals are those
+of the generalised least-squares fit (weights ``C_i^-1``; one Gauss-Newton step from the
+Kabsch fit, in the left perturbation): those of the Kabsch fit itself are not chi-square with
+``3 K - 6`` degrees of freedom, since its unweighted rotation leaks the large range errors into
+the directions where ``C_i`` is small (twice the expected sum on simulated shots). The
+a-posteriori variance factor is ``s0^2 = sum_i r_i^T C_i^-1 r_i / (3 K - 6)`` over the
+station's ``K`` markers, and per world axis ``sum_i r_ia^2 / C_i,aa / (K - 2)`` (the 6
+parameters shared evenly among the 3 axes), with the chi-square test of ``s0^2``: consistent
+when it lies inside ``chi2_dof(0.025, 0.975) / dof``.
+A factor well above 1 says the shots disagree more than the instrument model predicts
+(centring and height of the prism poles, marker stability, refraction), so the calibration
+covariance, which the Monte Carlo draws from the same model, is too small by about that
+factor.
+
 This module reads no files: the shots come from :mod:`rtsgt.io`.
 """
 
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from itertools import combinations
 
 import numpy as np
+from scipy import stats
 
 from rtsgt.errors import GeometryError, InputError, RtsgtWarning
 from rtsgt.geometry.kabsch import kabsch
+from rtsgt.geometry.so3 import hat
 from rtsgt.geometry.transform import RigidTransform, perturbation
 from rtsgt.measurement.atmosphere import instrument_correction_ppm
 from rtsgt.measurement.instruments import TRIMBLE_S7, InstrumentProfile
@@ -103,6 +121,49 @@ class MarkerResiduals:
 
 
 @dataclass(frozen=True)
+class FitCheck:
+    """What a station's GCP residuals say of the predicted covariance (module docstring).
+
+    Attributes
+    ----------
+    markers : int
+        Markers of the fit, K.
+    dof : int
+        ``3 K - 6``.
+    variance_factor : float
+        ``s0^2``, 1 if the instrument model is right (NaN without degrees of freedom).
+    axis_factors : ndarray, shape (3,)
+        The same per world axis x, y, z.
+    interval_95 : tuple of float
+        Where ``s0^2`` falls 95 % of the time if the model is right.
+    """
+
+    markers: int
+    dof: int
+    variance_factor: float
+    axis_factors: np.ndarray
+    interval_95: tuple[float, float]
+
+    @property
+    def verdict(self) -> str:
+        """``consistent``, ``optimistic`` (residuals larger than predicted: the covariance is
+        too small), ``pessimistic``, or ``no redundancy`` (3 markers: no degrees of
+        freedom)."""
+        if not self.dof > 0:
+            return "no redundancy"
+        lo, hi = self.interval_95
+        f = self.variance_factor
+        return "consistent" if lo <= f <= hi else ("optimistic" if f > hi else "pessimistic")
+
+    def as_dict(self) -> dict:
+        """JSON-ready."""
+        return {"markers": self.markers, "dof": self.dof,
+                "variance_factor": self.variance_factor,
+                "axis_factors_xyz": [float(x) for x in self.axis_factors],
+                "interval_95": list(self.interval_95), "verdict": self.verdict}
+
+
+@dataclass(frozen=True)
 class CalibrationResult:
     """Extrinsic calibration of all stations into the reference station's frame.
 
@@ -127,6 +188,9 @@ class CalibrationResult:
         Number of Monte Carlo samples M (0: no uncertainty computed).
     weighted : bool
         Whether the fits used the covariance (trace) weights.
+    fit_checks : dict str -> FitCheck
+        For every station but the reference, its residuals against their predicted
+        covariance (module docstring).
     """
 
     reference_station: str
@@ -137,6 +201,7 @@ class CalibrationResult:
     excluded_shots: int
     samples: int
     weighted: bool
+    fit_checks: dict[str, FitCheck] = field(default_factory=dict)
 
 
 def polar_point_covariance(
@@ -361,6 +426,34 @@ def fit_stations(
     return out
 
 
+def _fit_checks(setup: _Setup, R: dict, t: dict, instrument) -> dict[str, FitCheck]:
+    """:class:`FitCheck` of every fitted station (module docstring)."""
+    C = polar_point_covariance(setup.hz, setup.v, setup.d, instrument)
+    out = {}
+    for s, (idx_s, idx_r, markers) in setup.pairs.items():
+        Ci = C[idx_r] + R[s] @ C[idx_s] @ R[s].T
+        W = np.linalg.inv(Ci)
+        # the generalised least-squares residuals: one Gauss-Newton step from the fit, in the
+        # left perturbation (R p ~ R p - [R p]x dphi, t ~ t + dt)
+        Rp = setup.points[idx_s] @ R[s].T
+        r = setup.points[idx_r] - Rp - t[s]
+        J = np.concatenate([hat(Rp), np.broadcast_to(-np.eye(3), Rp.shape + (3,))], axis=2)
+        JW = np.swapaxes(J, 1, 2) @ W
+        step = np.linalg.lstsq(np.sum(JW @ J, axis=0), -np.sum(JW @ r[..., None], axis=0),
+                               rcond=None)[0]
+        r = r + (J @ step)[..., 0]
+        K = len(markers)
+        dof = 3 * K - 6
+        chi2 = float(np.einsum("ki,kij,kj->", r, W, r))
+        axes = np.sum(r ** 2 / np.diagonal(Ci, axis1=-2, axis2=-1), axis=0)
+        if dof > 0:
+            lo, hi = (float(stats.chi2.ppf(q, dof) / dof) for q in (0.025, 0.975))
+            out[s] = FitCheck(K, dof, chi2 / dof, axes / (K - 2), (lo, hi))
+        else:
+            out[s] = FitCheck(K, dof, float("nan"), np.full(3, np.nan), (np.nan, np.nan))
+    return out
+
+
 def _residuals(setup: _Setup, R: dict, t: dict) -> MarkerResiduals:
     markers, sa, sb, dist = [], [], [], []
     for a, b in combinations(setup.stations, 2):
@@ -464,6 +557,7 @@ def calibrate(
         excluded_shots=setup.excluded,
         samples=M,
         weighted=weighted,
+        fit_checks=_fit_checks(setup, R, t, instrument),
     )
 
 
