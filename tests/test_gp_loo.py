@@ -103,3 +103,24 @@ def test_pipeline_falls_back_to_the_likelihood_on_a_track_too_short_to_cross_val
     assert info["1"]["method"] == "likelihood" and info["2"]["method"] == "loo"
     ml, _, _ = fit_qc((t, y, R))
     np.testing.assert_allclose(gps["1"].qc, ml, rtol=1e-9)
+
+
+def test_the_per_axis_search_stays_inside_the_bounds(monkeypatch):
+    """A static track drives every q towards 0: the search never tries a q below the floor
+    of QC_BOUNDS (it tried 4e-20 m^2/s^3 on a real static deployment) and ends on it."""
+    from rtsgt.interpolation import QC_BOUNDS, loo
+
+    tried = []
+    score = loo._score
+
+    def recording(track, qc, max_gap_s):
+        tried.append(np.diag(qc) if np.ndim(qc) == 2 else np.full(3, qc))
+        return score(track, qc, max_gap_s)
+
+    monkeypatch.setattr(loo, "_score", recording)
+    rng = np.random.default_rng(5)
+    t = np.cumsum(rng.uniform(0.3, 0.5, 300))
+    xyz = np.array([3.0, 1.5, 0.9]) + rng.normal(0.0, 1e-3, (300, 3))
+    info = loo.fit_qc_loo((t, xyz, np.tile(1e-6 * np.eye(3), (300, 1, 1))), mode="per-axis")
+    assert np.min(tried) >= QC_BOUNDS[0] * (1 - 1e-9) and np.max(tried) <= QC_BOUNDS[1]
+    assert np.min(np.diag(info.qc)) == pytest.approx(QC_BOUNDS[0], rel=1e-6)

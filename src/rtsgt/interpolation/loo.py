@@ -177,10 +177,14 @@ def fit_qc_loo(
     qc: float | np.ndarray = float(np.exp(res.x))
     if mode == "per-axis":
         x0 = np.full(3, float(res.x))
+        # the search stays inside the bounds: a static track drives q towards 0, and a q far
+        # below the floor (4e-20 was seen) makes the track's information matrix singular
+        simplex = np.clip(x0 + np.vstack([np.zeros(3), np.eye(3)]), lo, hi)
+        simplex[1:] -= 2.0 * np.eye(3) * (simplex[1:] == simplex[0])  # at the upper bound
         best = minimize(lambda lq: -_score(track, np.diag(np.exp(lq)), max_gap_s)[0], x0,
-                        method="Nelder-Mead",
+                        method="Nelder-Mead", bounds=[(lo, hi)] * 3,
                         options={"xatol": xatol, "fatol": 1e-2, "maxiter": 400,
-                                 "initial_simplex": x0 + np.vstack([np.zeros(3), np.eye(3)])})
+                                 "initial_simplex": simplex})
         qc = np.diag(np.exp(np.clip(best.x, lo, hi)))
     ll, nees, n = _score(track, qc, max_gap_s)
     return LooInfo(qc, ll, n, nees)
