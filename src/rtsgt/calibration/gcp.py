@@ -60,6 +60,20 @@ A factor well above 1 says the shots disagree more than the instrument model pre
 covariance, which the Monte Carlo draws from the same model, is too small by about that
 factor.
 
+Variance components (:func:`extra_shot_variance`). Where the residuals show it, the
+calibration's Monte Carlo adds to every shot, in each station's levelled frame, a horizontal
+and a vertical variance component: the values that bring the pooled per-axis variance factors
+of the fits (all stations, ``K - 2`` degrees of freedom per station and axis) to 1, found by
+bisection with the generalised least-squares residuals. A group (horizontal, vertical) gets a
+component only when its factor is above its chi-square 95 % interval, so a deployment that
+agrees with the instrument model keeps it unchanged. These are the errors the instrument model
+does not have (pole heights and centring of the GCP prisms, marker stability, refraction); the
+estimate is the deployment's own (Type A), nothing is carried from one deployment to another.
+Being two numbers for all stations, it is a variance-component estimate in the sense of
+Helmert and Foerstner, not a bootstrap over markers: with 10-12 markers a bootstrap of six
+parameters per station is too noisy, and the residuals say where the model fails (the
+vertical) well enough to carry it.
+
 This module reads no files: the shots come from :mod:`rtsgt.io`.
 """
 
@@ -191,6 +205,9 @@ class CalibrationResult:
     fit_checks : dict str -> FitCheck
         For every station but the reference, its residuals against their predicted
         covariance (module docstring).
+    extra_shot_sigma_m : (float, float)
+        The variance components added to every shot, horizontal and vertical, as standard
+        deviations, m (module docstring; zeros when the residuals agree with the model).
     """
 
     reference_station: str
@@ -202,6 +219,7 @@ class CalibrationResult:
     samples: int
     weighted: bool
     fit_checks: dict[str, FitCheck] = field(default_factory=dict)
+    extra_shot_sigma_m: tuple[float, float] = (0.0, 0.0)
 
 
 def polar_point_covariance(
@@ -426,25 +444,31 @@ def fit_stations(
     return out
 
 
-def _fit_checks(setup: _Setup, R: dict, t: dict, instrument) -> dict[str, FitCheck]:
-    """:class:`FitCheck` of every fitted station (module docstring)."""
-    C = polar_point_covariance(setup.hz, setup.v, setup.d, instrument)
+def _gls_residuals(setup: _Setup, R: dict, t: dict, C: np.ndarray,
+                   s: str) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals of station ``s``'s generalised least-squares fit (one Gauss-Newton step from
+    the fit ``R, t``, in the left perturbation: ``R p ~ R p - [R p]x dphi``, ``t ~ t + dt``)
+    and their covariance ``C_ref,i + R C_s,i R^T``, from the shots' covariance ``C``."""
+    idx_s, idx_r, _ = setup.pairs[s]
+    Ci = C[idx_r] + R[s] @ C[idx_s] @ R[s].T
+    W = np.linalg.inv(Ci)
+    Rp = setup.points[idx_s] @ R[s].T
+    r = setup.points[idx_r] - Rp - t[s]
+    J = np.concatenate([hat(Rp), np.broadcast_to(-np.eye(3), Rp.shape + (3,))], axis=2)
+    JW = np.swapaxes(J, 1, 2) @ W
+    step = np.linalg.lstsq(np.sum(JW @ J, axis=0), -np.sum(JW @ r[..., None], axis=0),
+                           rcond=None)[0]
+    return r + (J @ step)[..., 0], Ci
+
+
+def _fit_checks(setup: _Setup, R: dict, t: dict, C: np.ndarray) -> dict[str, FitCheck]:
+    """:class:`FitCheck` of every fitted station (module docstring), shots' covariance ``C``."""
     out = {}
-    for s, (idx_s, idx_r, markers) in setup.pairs.items():
-        Ci = C[idx_r] + R[s] @ C[idx_s] @ R[s].T
-        W = np.linalg.inv(Ci)
-        # the generalised least-squares residuals: one Gauss-Newton step from the fit, in the
-        # left perturbation (R p ~ R p - [R p]x dphi, t ~ t + dt)
-        Rp = setup.points[idx_s] @ R[s].T
-        r = setup.points[idx_r] - Rp - t[s]
-        J = np.concatenate([hat(Rp), np.broadcast_to(-np.eye(3), Rp.shape + (3,))], axis=2)
-        JW = np.swapaxes(J, 1, 2) @ W
-        step = np.linalg.lstsq(np.sum(JW @ J, axis=0), -np.sum(JW @ r[..., None], axis=0),
-                               rcond=None)[0]
-        r = r + (J @ step)[..., 0]
+    for s, (_, _, markers) in setup.pairs.items():
+        r, Ci = _gls_residuals(setup, R, t, C, s)
         K = len(markers)
         dof = 3 * K - 6
-        chi2 = float(np.einsum("ki,kij,kj->", r, W, r))
+        chi2 = float(np.einsum("ki,kij,kj->", r, np.linalg.inv(Ci), r))
         axes = np.sum(r ** 2 / np.diagonal(Ci, axis1=-2, axis2=-1), axis=0)
         if dof > 0:
             lo, hi = (float(stats.chi2.ppf(q, dof) / dof) for q in (0.025, 0.975))
@@ -452,6 +476,48 @@ def _fit_checks(setup: _Setup, R: dict, t: dict, instrument) -> dict[str, FitChe
         else:
             out[s] = FitCheck(K, dof, float("nan"), np.full(3, np.nan), (np.nan, np.nan))
     return out
+
+
+def _with_extra(C: np.ndarray, extra: np.ndarray) -> np.ndarray:
+    """Shot covariances plus the extra variances ``(horizontal, vertical)`` (station frame)."""
+    return C + np.diag([extra[0], extra[0], extra[1]])
+
+
+def extra_shot_variance(setup: _Setup, R: dict, t: dict, C: np.ndarray) -> np.ndarray:
+    """Variance components (m^2) to add to every shot, horizontal and vertical, so that the
+    pooled per-axis variance factors of the fits are 1 (module docstring, section Variance
+    components); 0 for a group whose factor is inside its 95 % interval."""
+    extra = np.zeros(2)
+    checks = [(0, (0, 1)), (1, (2,))]
+    dof = sum(len(m) - 2 for (_, _, m) in setup.pairs.values())
+    if dof <= 0:
+        return extra
+
+    def factor(group: int, x: float) -> float:
+        e = extra.copy()
+        e[group] = x
+        Cx = _with_extra(C, e)
+        total = 0.0
+        for s in setup.pairs:
+            r, Ci = _gls_residuals(setup, R, t, Cx, s)
+            total += float(np.sum(r[:, axes] ** 2 / np.diagonal(Ci, axis1=-2, axis2=-1)[:, axes]))
+        return total / (dof * len(axes))
+
+    for _ in range(3):  # the two groups interact a little through the fit: alternate
+        for group, axes in checks:
+            n = dof * len(axes)
+            if factor(group, 0.0) <= stats.chi2.ppf(0.975, n) / n:
+                extra[group] = 0.0
+                continue
+            hi = 1e-8
+            while factor(group, hi) > 1.0 and hi < 1.0:
+                hi *= 4.0
+            lo = 0.0
+            for _ in range(50):  # bisection on the variance, to 1e-15 relative
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if factor(group, mid) > 1.0 else (lo, mid)
+            extra[group] = hi
+    return extra
 
 
 def _residuals(setup: _Setup, R: dict, t: dict) -> MarkerResiduals:
@@ -484,6 +550,7 @@ def calibrate(
     samples: int = 1000,
     rng: np.random.Generator | None = None,
     weighted: bool = False,
+    variance_components: bool = True,
 ) -> CalibrationResult:
     """Calibrate all stations from GCP shots, with a Monte Carlo 6x6 covariance per station.
 
@@ -500,6 +567,10 @@ def calibrate(
         Source of every random draw (a fresh unseeded one when None).
     weighted : bool
         Trace-weighted fits (module docstring), for the nominal fit and every sample.
+    variance_components : bool
+        Add to every shot the variance the residuals show beyond the instrument model
+        (module docstring, section Variance components); False: the instrument model alone,
+        as the paper.
 
     Returns
     -------
@@ -523,12 +594,16 @@ def calibrate(
     t = {ref: np.zeros(3)}
     for s, (Rs, ts, _) in nominal.items():
         R[s], t[s] = Rs, ts
+    C = polar_point_covariance(setup.hz, setup.v, setup.d, instrument)
+    extra = extra_shot_variance(setup, R, t, C) if variance_components else np.zeros(2)
 
     M = int(samples)
     if M:
         # Perturb every valid shot of every station: (M, N) -> points (M, N, 3)
         hz_m, v_m, d_m = sample_polar_errors(setup.hz, setup.v, setup.d, instrument, M, rng)
         points_m = polar_to_cartesian(hz_m, v_m, d_m)
+        if extra.any():  # the variance components, in each station's (levelled) frame
+            points_m += rng.standard_normal(points_m.shape) * np.sqrt(extra[[0, 0, 1]])
     transforms = {}
     for s in setup.stations:
         if s == ref:
@@ -557,7 +632,8 @@ def calibrate(
         excluded_shots=setup.excluded,
         samples=M,
         weighted=weighted,
-        fit_checks=_fit_checks(setup, R, t, instrument),
+        fit_checks=_fit_checks(setup, R, t, C),
+        extra_shot_sigma_m=(float(np.sqrt(extra[0])), float(np.sqrt(extra[1]))),
     )
 
 
