@@ -123,3 +123,31 @@ def test_the_continuous_ground_truth_is_the_same_from_either_record(records):
     assert ok.sum() > 100
     np.testing.assert_allclose(b.position[ok], a.position[ok], rtol=0, atol=1e-9)
     np.testing.assert_allclose(b.cov[ok], a.cov[ok], rtol=1e-6, atol=1e-16)
+
+
+def test_the_run_says_what_its_self_checks_found_on_the_real_excerpt(tmp_path):
+    """The terminal table, summary.json and the warnings of `rtsgt run` on the real excerpt:
+    the GCP shots disagree in height beyond the instrument model, the calibration carries a
+    vertical variance component, and the inter-prism check is given per regime."""
+    from typer.testing import CliRunner
+
+    from _paths import EXAMPLE_TOML
+    from rtsgt.cli.main import app
+
+    out = tmp_path / "run"
+    r = CliRunner().invoke(app, ["run", str(EXAMPLE_TOML), "-o", str(out), "--engine",
+                                 "linear"])
+    assert r.exit_code == 0, r.output
+    text = " ".join(r.output.split())
+    for station in ("2", "3"):
+        assert f"self-check GCP fit, station {station}" in text
+        assert f"warning: self-check, GCP fit of station {station}" in text
+    assert "calibration: added per shot" in text and "self-check z^2, whole run" in text
+    doc = json.loads((out / "summary.json").read_text())
+    gcp = doc["self_checks"]["gcp_fit"]
+    assert {v["verdict"] for v in gcp["stations"].values()} == {"optimistic"}
+    assert gcp["added_shot_sigma_mm"]["vertical"] > 0.3
+    assert gcp["added_shot_sigma_mm"]["horizontal"] < gcp["added_shot_sigma_mm"]["vertical"]
+    regimes = doc["self_checks"]["inter_prism_distances"]["regimes"]
+    assert {k: v["poses"] for k, v in regimes.items()}["static"] > 30
+    assert any(w.startswith("self-check") for w in doc["warnings"])

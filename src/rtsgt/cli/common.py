@@ -97,7 +97,18 @@ def print_run_summary(record: RunRecord, out) -> None:
     reasons, counts = np.unique(record.rejected_reason, return_counts=True)
     for reason, count in zip(reasons, counts, strict=True):
         table.add_row(f"rejected: {reason}", str(int(count)))
-    # the inter-prism distance self-check (rtsgt.checks): mean z^2 and its 95 % interval
+    # the self-checks (rtsgt.checks): the GCP fit's variance factor per station, and the
+    # inter-prism distances' mean z^2, each with its 95 % interval
+    gcp = record.self_checks.get("gcp_fit", {})
+    for s, v in gcp.get("stations", {}).items():
+        if v.get("dof"):
+            lo, hi = v["interval_95"]
+            table.add_row(f"self-check GCP fit, station {s}",
+                          f"{v['variance_factor']:.2f}, 95 % [{lo:.2f}, {hi:.2f}]: {v['verdict']}")
+    added = gcp.get("added_shot_sigma_mm", {})
+    if any(added.values()):
+        table.add_row("calibration: added per shot", f"{added['horizontal']:.2f} mm horizontal, "
+                      f"{added['vertical']:.2f} mm vertical")
     check = record.self_checks.get("inter_prism_distances", {})
     for name, v in [("whole run", check.get("overall")), *check.get("regimes", {}).items()]:
         if v and v.get("interval_95"):
