@@ -136,7 +136,7 @@ def test_the_run_says_what_its_self_checks_found_on_the_real_excerpt(tmp_path):
 
     out = tmp_path / "run"
     r = CliRunner().invoke(app, ["run", str(EXAMPLE_TOML), "-o", str(out), "--engine",
-                                 "linear"])
+                                 "linear", "--report"])
     assert r.exit_code == 0, r.output
     text = " ".join(r.output.split())
     for station in ("2", "3"):
@@ -151,3 +151,10 @@ def test_the_run_says_what_its_self_checks_found_on_the_real_excerpt(tmp_path):
     regimes = doc["self_checks"]["inter_prism_distances"]["regimes"]
     assert {k: v["poses"] for k, v in regimes.items()}["static"] > 30
     assert any(w.startswith("self-check") for w in doc["warnings"])
+    # the report's self-check section: the same verdicts
+    page = next(out.glob("*.html")).read_text(encoding="utf-8")
+    section = page[page.index("<section id=\"checks\">"):]
+    section = section[:section.index("</section>")]
+    assert section.count("<td class='verdict'>optimistic</td>") >= 2 + 1  # 2 stations, a regime
+    for regime in ("whole run", "static", "manoeuvring", "cruising", "far"):
+        assert f"<td class='s'>{regime}</td>" in section

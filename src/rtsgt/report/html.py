@@ -163,6 +163,49 @@ def _pose_table(a: Analysis) -> str:
             "the 6x6 pose covariance.</small></p>")
 
 
+def _interval(v: Mapping) -> str:
+    iv = v.get("interval_95")
+    return "-" if not iv else f"{_fmt(iv[0], 3)} - {_fmt(iv[1], 3)}"
+
+
+def _self_checks_html(checks: Mapping) -> str:
+    """The run's self-checks (:mod:`rtsgt.checks`): the inter-prism distances by regime and
+    the GCP fit per station, each with its 95 % interval and verdict."""
+    if not checks:
+        return "<p class='note'>This run was written before rtsgt made self-checks.</p>"
+    parts = []
+    d = checks.get("inter_prism_distances", {})
+    rows = [("whole run", d.get("overall")), *d.get("regimes", {}).items()]
+    body = "".join(
+        f"<tr><td class='s'>{html.escape(k)}</td><td>{v['poses']}</td>"
+        f"<td>{_fmt(v['mean_z2'], 3)}</td><td>{_fmt(v.get('n_eff'), 3)}</td>"
+        f"<td>{_interval(v)}</td><td class='verdict'>{html.escape(v['verdict'])}</td></tr>"
+        for k, v in rows if v)
+    parts.append(
+        "<h3>Inter-prism distances</h3><table id='check-distances'><tr><th class='k'>regime"
+        "</th><th>poses</th><th>mean z²</th><th>n_eff</th><th>95 % interval</th>"
+        f"<th>verdict</th></tr>{body}</table><p><small>z = (tracked − surveyed inter-prism "
+        "distance) / its predicted sigma; the mean of z² is 1 if the covariance is honest, "
+        "below it pessimistic, above optimistic. n_eff counts the errors shared by the run. "
+        "Method: rtsgt's docs/self-checks.md.</small></p>")
+    g = checks.get("gcp_fit", {})
+    body = "".join(
+        f"<tr><td class='s'>station {html.escape(str(s))}</td><td>{v['markers']}</td>"
+        f"<td>{_fmt(v['variance_factor'], 3)}</td>"
+        + "".join(f"<td>{_fmt(x, 3)}</td>" for x in v["axis_factors_xyz"])
+        + f"<td>{_interval(v)}</td><td class='verdict'>{html.escape(v['verdict'])}</td></tr>"
+        for s, v in g.get("stations", {}).items())
+    added = g.get("added_shot_sigma_mm", {})
+    parts.append(
+        "<h3>GCP fit</h3><table id='check-gcp'><tr><th class='k'>station</th><th>markers</th>"
+        "<th>variance factor</th><th>x</th><th>y</th><th>z</th><th>95 % interval</th>"
+        f"<th>verdict</th></tr>{body}</table><p><small>The residuals of each station's fit "
+        "against the instrument model's covariance (1 if the model is right). Added to every "
+        f"shot by the calibration: {_fmt(added.get('horizontal'), 3)} mm horizontal, "
+        f"{_fmt(added.get('vertical'), 3)} mm vertical.</small></p>")
+    return "".join(parts)
+
+
 def _flatten(obj, prefix: str = "") -> list[tuple[str, object]]:
     out: list[tuple[str, object]] = []
     if isinstance(obj, Mapping):
@@ -454,10 +497,13 @@ def render_report(data: RunRecord, analysis: Analysis, *,
     body = f"""<main>
 <header><h1>{html.escape(title)}</h1>
 <p>Generated {now} by rtsgt {html.escape(__version__)}{where}.</p>
-<nav><a href="#key">key numbers</a><a href="#sources">noise sources</a>
+<nav><a href="#key">key numbers</a><a href="#checks">self-checks</a>
+<a href="#sources">noise sources</a>
 <a href="#pose">pose</a><a href="#figures">figures</a><a href="#view">3D view</a>
 <a href="#summary">summary.json</a></nav></header>
 <section id="key"><h2>Key numbers</h2>{_kpis(data, analysis)}</section>
+<section id="checks"><h2>Self-checks: what the data say about the uncertainty</h2>
+{_self_checks_html(data.self_checks)}</section>
 <section id="sources"><h2>Noise sources at the prisms, next to the paper</h2>
 {_sources_table(analysis)}</section>
 <section id="pose"><h2>Pose uncertainty per noise source</h2>{_pose_table(analysis)}</section>
