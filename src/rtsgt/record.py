@@ -19,6 +19,7 @@ the world frame (:mod:`rtsgt.types`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -201,9 +202,10 @@ class RunRecord:
         if self.rejected_t.shape != self.rejected_reason.shape:
             raise ValueError("Expected one rejection reason per rejected time")
 
-    @property
+    @cached_property
     def tracked_reference(self) -> ReferencePoints:
-        """The reference points of the tracked prisms, in the order of ``prism_ids``."""
+        """The reference points of the tracked prisms, in the order of ``prism_ids`` (selected
+        once: ``reference_xyz`` and ``reference_cov`` are read many times)."""
         return self.reference.select(list(self.prism_ids))
 
     @property

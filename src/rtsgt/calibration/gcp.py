@@ -84,7 +84,6 @@ from dataclasses import dataclass, field, replace
 from itertools import combinations
 
 import numpy as np
-from scipy import stats
 
 from rtsgt.errors import GeometryError, InputError, RtsgtWarning
 from rtsgt.geometry.kabsch import kabsch
@@ -95,6 +94,7 @@ from rtsgt.measurement.instruments import TRIMBLE_S7, InstrumentProfile
 from rtsgt.measurement.polar import polar_jacobian, polar_to_cartesian
 from rtsgt.noise.model import NoiseModel
 from rtsgt.noise.perturb import sample_polar_errors
+from rtsgt.stats import ratio_interval, ratio_verdict
 from rtsgt.types import GcpShots, WeatherSeries
 
 #: A station's markers must stand off their best-fit line by more than this many times the
@@ -165,9 +165,7 @@ class FitCheck:
         freedom)."""
         if not self.dof > 0:
             return "no redundancy"
-        lo, hi = self.interval_95
-        f = self.variance_factor
-        return "consistent" if lo <= f <= hi else ("optimistic" if f > hi else "pessimistic")
+        return ratio_verdict(self.variance_factor, self.interval_95)
 
     def as_dict(self) -> dict:
         """JSON-ready."""
@@ -471,8 +469,7 @@ def _fit_checks(setup: _Setup, R: dict, t: dict, C: np.ndarray) -> dict[str, Fit
         chi2 = float(np.einsum("ki,kij,kj->", r, np.linalg.inv(Ci), r))
         axes = np.sum(r ** 2 / np.diagonal(Ci, axis1=-2, axis2=-1), axis=0)
         if dof > 0:
-            lo, hi = (float(stats.chi2.ppf(q, dof) / dof) for q in (0.025, 0.975))
-            out[s] = FitCheck(K, dof, chi2 / dof, axes / (K - 2), (lo, hi))
+            out[s] = FitCheck(K, dof, chi2 / dof, axes / (K - 2), ratio_interval(dof))
         else:
             out[s] = FitCheck(K, dof, float("nan"), np.full(3, np.nan), (np.nan, np.nan))
     return out
@@ -505,8 +502,7 @@ def extra_shot_variance(setup: _Setup, R: dict, t: dict, C: np.ndarray) -> np.nd
 
     for _ in range(3):  # the two groups interact a little through the fit: alternate
         for group, axes in checks:
-            n = dof * len(axes)
-            if factor(group, 0.0) <= stats.chi2.ppf(0.975, n) / n:
+            if factor(group, 0.0) <= ratio_interval(dof * len(axes))[1]:
                 extra[group] = 0.0
                 continue
             hi = 1e-8

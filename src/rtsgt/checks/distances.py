@@ -58,11 +58,11 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import stats
 
 from rtsgt.errors import RtsgtWarning
-from rtsgt.filtering.gates import pair_distance_variance
+from rtsgt.filtering.gates import pair_distance_terms, pair_distance_variance
 from rtsgt.pose.reference import block_diagonal
+from rtsgt.stats import ratio_interval, ratio_verdict
 
 __all__ = ["REGIMES", "STATIC_SPEED_M_S", "CRUISING_SPEED_M_S", "FAR_FROM_MEASUREMENT_S",
            "effective_sample_size", "inter_prism_check", "inter_prism_z", "mean_z2_verdict",
@@ -145,14 +145,8 @@ def inter_prism_z(xyz: ArrayLike, cov: ArrayLike, reference_xyz: ArrayLike,
     z = np.empty((T, len(pairs)))
     shared = np.ones((T, len(pairs)))
     for k, (i, j) in enumerate(pairs):
-        diff = q[:, i] - q[:, j]
-        d = np.linalg.norm(diff, axis=-1)
-        dr = r[i] - r[j]
-        d_ref = float(np.linalg.norm(dr))
-        u = diff / d[:, None]
-        var = np.maximum(pair_distance_variance(u, c, i, j)
-                         + float(pair_distance_variance(dr / d_ref, rc, i, j)),
-                         np.finfo(float).tiny)
+        d, u, var_t, d_ref, var_r = pair_distance_terms(q, c, r, rc, i, j)
+        var = np.maximum(var_t + var_r, np.finfo(float).tiny)
         z[:, k] = (d - d_ref) / np.sqrt(var)
         if v is not None:
             shared[:, k] = np.clip(1.0 - pair_distance_variance(u, v, i, j) / var, 0.0, 1.0)
@@ -215,11 +209,9 @@ def mean_z2_verdict(z: np.ndarray, shared: np.ndarray) -> dict[str, Any]:
     f = float(np.mean(shared))
     n_data = effective_sample_size(z)
     n_eff = min(n_data, 1.0 / (f * f + (1.0 - f * f) / n_data))
-    lo, hi = (float(stats.chi2.ppf(p, n_eff) / n_eff) for p in (0.025, 0.975))
-    m = out["mean_z2"]
-    out.update(n_eff=round(n_eff, 1), interval_95=[lo, hi],
-               verdict="consistent" if lo <= m <= hi else
-               ("pessimistic" if m < lo else "optimistic"))
+    interval = ratio_interval(n_eff)
+    out.update(n_eff=round(n_eff, 1), interval_95=list(interval),
+               verdict=ratio_verdict(out["mean_z2"], interval))
     return out
 
 

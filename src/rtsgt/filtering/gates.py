@@ -291,6 +291,42 @@ def pair_distance_variance(u: np.ndarray, cov: np.ndarray, i: int, j: int) -> np
     return np.einsum("...i,...ij,...j->...", u, S, u)
 
 
+def pair_distance_terms(
+    q: np.ndarray, cov: np.ndarray, r: np.ndarray, reference_cov: np.ndarray, i: int, j: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """The tracked and surveyed distances of prisms ``i`` and ``j`` and their variances.
+
+    Parameters
+    ----------
+    q : ndarray, shape (T, n, 3)
+        World prism positions, m.
+    cov : ndarray, shape (T, 3n, 3n)
+        Their joint covariance, m^2.
+    r : ndarray, shape (n, 3)
+        Surveyed prisms (body frame), m.
+    reference_cov : ndarray, shape (3n, 3n)
+        Their covariance, m^2.
+
+    Returns
+    -------
+    d : ndarray, shape (T,)
+        Tracked distances ``|q_i - q_j|``, m.
+    u : ndarray, shape (T, 3)
+        Unit vectors from ``q_j`` to ``q_i``.
+    var_t : ndarray, shape (T,)
+        Variance of ``d`` (:func:`pair_distance_variance`), m^2.
+    d_ref, var_r : float
+        The surveyed distance and its variance, m and m^2.
+    """
+    diff = q[:, i] - q[:, j]
+    d = np.linalg.norm(diff, axis=-1)
+    u = diff / d[:, None]
+    dr = r[i] - r[j]
+    d_ref = float(np.linalg.norm(dr))
+    return (d, u, pair_distance_variance(u, cov, i, j), d_ref,
+            float(pair_distance_variance(dr / d_ref, reference_cov, i, j)))
+
+
 def surveyed_distance_check(
     xyz: ArrayLike, cov: ArrayLike, reference_xyz: ArrayLike, reference_cov: ArrayLike,
     names: Sequence[str], *, threshold_sigma: float = SURVEY_DISTANCE_WARNING_SIGMA,
@@ -340,12 +376,7 @@ def surveyed_distance_check(
         return out
     for i in range(n):
         for j in range(i + 1, n):
-            diff = q[:, i] - q[:, j]
-            d = np.linalg.norm(diff, axis=-1)
-            var_t = pair_distance_variance(diff / d[:, None], c, i, j)
-            dr = r[i] - r[j]
-            d_ref = float(np.linalg.norm(dr))
-            var_r = float(pair_distance_variance(dr / d_ref, rc, i, j))
+            d, _, var_t, d_ref, var_r = pair_distance_terms(q, c, r, rc, i, j)
             sigma = float(np.sqrt(max(float(np.median(var_t)) + var_r, 0.0)))
             dev = float(np.median(d - d_ref))
             ratio = dev / sigma if sigma > 0 else (0.0 if dev == 0 else np.copysign(np.inf, dev))

@@ -1,0 +1,28 @@
+"""The chi-square test shared by the self-checks and the calibration's fit check.
+
+A variance ratio (an observed mean of squared normalised errors) is 1 if the predicted
+covariance is right; with ``dof`` independent unit-variance Gaussian terms it is distributed
+as ``chi2_dof / dof``. :func:`ratio_interval` is where it falls 95 % of the time, and
+:func:`ratio_verdict` names where a value lies against that interval.
+"""
+
+from __future__ import annotations
+
+from scipy import stats
+
+__all__ = ["VERDICTS", "ratio_interval", "ratio_verdict"]
+
+#: Inside the interval, below it (the covariance too large), above it (too small).
+VERDICTS = ("consistent", "pessimistic", "optimistic")
+
+
+def ratio_interval(dof: float) -> tuple[float, float]:
+    """``(chi2_dof(0.025), chi2_dof(0.975)) / dof``; ``dof`` may be a non-integer effective
+    number of degrees of freedom."""
+    return float(stats.chi2.ppf(0.025, dof) / dof), float(stats.chi2.ppf(0.975, dof) / dof)
+
+
+def ratio_verdict(value: float, interval: tuple[float, float]) -> str:
+    """``"consistent"`` inside ``interval``, ``"pessimistic"`` below, ``"optimistic"`` above."""
+    lo, hi = interval
+    return VERDICTS[0] if lo <= value <= hi else (VERDICTS[1] if value < lo else VERDICTS[2])
