@@ -304,6 +304,8 @@ def first_order_lag(path: Callable[[np.ndarray], np.ndarray], t: ArrayLike,
     ndarray, shape (N, 3)
     """
     t = np.asarray(t, dtype=float)
+    if lag_s == 0:
+        return path(t[:, None])[:, 0]
     x, w = np.polynomial.laguerre.laggauss(nodes)
     p = path(t[:, None] - lag_s * x[None, :])
     return np.einsum("m,nmi->ni", w, p)
