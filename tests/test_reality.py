@@ -11,7 +11,9 @@ import warnings
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
+from rtsgt.cli.main import app
 from rtsgt.errors import InputError
 from rtsgt.io.deployment import load_deployment
 from rtsgt.measurement.atmosphere import instrument_correction_ppm
@@ -396,3 +398,17 @@ def test_an_effect_goes_through_the_files_and_the_pipeline(tmp_path):
         runs[name] = compare_to_truth(result.groundtruth, p, q)
     # a 5 cm lag at up to 2 m/s: far outside the run's covariance
     assert runs["lag"].nees_position.mean > 5.0 * max(runs["none"].nees_position.mean, 1.0)
+
+
+def test_rtsgt_simulate_switches_effects_on(tmp_path):
+    runner = CliRunner()
+    out = tmp_path / "dep"
+    r = runner.invoke(app, ["simulate", str(out), "--duration", "30", "--seed", "3",
+                            "--reality", "tracking_lag", "--reality", "clock_drift"])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((out / "truth.json").read_text())
+    assert doc["reality_effects"]["enabled"] == ["tracking_lag", "clock_drift"]
+    assert doc["reality_effects"]["effects"]["tracking_lag_s"] == 0.01
+    r = runner.invoke(app, ["simulate", str(tmp_path / "bad"), "--reality", "fog"])
+    assert r.exit_code == 2 and "fog" in r.output
+    assert not (tmp_path / "bad").exists()

@@ -1218,7 +1218,7 @@ def _polar_change(p_station: np.ndarray, q_station: np.ndarray, ppm: np.ndarray)
 
 
 def _reality_draws(
-    cfg: SimulationConfig, rng: np.random.Generator, gcp: _Gcp
+    cfg: SimulationConfig, rng: np.random.Generator, ids: tuple[str, ...], gcp: _Gcp
 ) -> tuple[RealityTruth, dict[str, np.random.Generator]]:
     """The per-station draws of the reality effects that are on, and each effect's stream."""
     fx = cfg.reality
@@ -1239,7 +1239,6 @@ def _reality_draws(
     setup = np.full(n_st, np.inf)
     np.minimum.at(setup, gcp.station, gcp.t_true)  # a station is set up at its first GCP shot
     setup = np.where(np.isfinite(setup), setup, float(cfg.start_time_s))
-    ids = tuple(str(k + 1) for k in range(n_st))
     return RealityTruth(fx, ids, clock_rate, sync_phase, setup, twist, sink, phase), draw
 
 
@@ -1294,7 +1293,7 @@ def _reality(
     tracking measurements and their stamps, the GCP shots (tripod settling) and the reported
     weather. Returns them in the same form, with the :class:`RealityTruth`."""
     fx = cfg.reality
-    reality, draw = _reality_draws(cfg, rng, gcp)
+    reality, draw = _reality_draws(cfg, rng, stations.ids, gcp)
     new_obs, new_truth = [], {}
     for k, obs in enumerate(observations):  # loop over stations
         o, ot = _reality_track(cfg, reality, draw, model, stations, k, obs,
