@@ -237,14 +237,13 @@ def test_tracking_lag_error_is_speed_times_lag_at_constant_speed():
         h = 1e-3
         v_prism = np.linalg.norm(model.prisms_at(t + h)[:, k] - model.prisms_at(t - h)[:, k],
                                  axis=1) / (2 * h)
-        cruise = ((model.speed_at(t) > 0.3)
-                  & (model.speed_at(t) == model.speed_at(t - 30 * lag)))  # a plateau
+        cruise = ((model.speed_at(t) > 0.3)  # a plateau: the same speed 0.6 s earlier
+                  & (np.abs(model.speed_at(t) - model.speed_at(t - 30 * lag)) < 1e-9))
         assert cruise.sum() > 50
         # along a plateau the path still curves (radius >= 8 m): lag^2 |a| < 0.2 mm
         np.testing.assert_allclose(err[cruise], v_prism[cruise] * lag, rtol=0.02, atol=0.2e-3)
         # standing still there is no lag
-        still = model.speed_at(t + 1.0) == 0.0
-        still &= model.speed_at(t - 30 * lag) == 0.0
+        still = (model.speed_at(t + 1.0) < 1e-12) & (model.speed_at(t - 30 * lag) < 1e-12)
         if still.any():
             assert np.max(err[still]) < 1e-9
         n_checked += cruise.sum()

@@ -50,6 +50,11 @@ so that ``(d_raw + c)(1 + K 1e-6) = D`` when the noise is off. ``e_d ~ N(0, sigm
 instrument profile (the Trimble S7 numbers are quoted at 2 sigma and halved there). GCP shots
 follow the same model. The reported (hourly) weather is the true weather plus a uniform error
 within the paper's half-widths (+-1 degC, +-10 hPa, +-2 %).
+
+These errors are the estimator's own model. Errors it does not have (time-correlated noise,
+the prisms' cyclic error, tracking lag, clock drift, jerky starts and stops, a remote weather
+station, tripod settling) are the reality effects of :mod:`rtsgt.simulation.reality`, switched
+by ``SimulationConfig.reality`` and applied after the stages above (docs/simulation.md).
 """
 
 from __future__ import annotations
