@@ -338,7 +338,9 @@ def split_nees(
     """The absolute NEES with the split verdict when the ground truth gives its shared factor
     (:func:`~rtsgt.evaluation.metrics.shared_error_test`; ``consistent`` becomes its verdict,
     ``mean`` and ``fraction_inside_95`` stay those of the NEES against the total covariance);
-    unchanged otherwise (the verdict of the NEES series' autocorrelation)."""
+    unchanged otherwise (the verdict of the NEES series' autocorrelation). For an estimate
+    without covariance the tests are one-sided: is the error significant against the ground
+    truth's own uncertainty?"""
     if not isinstance(gt, SharedFactorGroundTruth):
         return absolute
     split = gt.shared_split(g.t + assoc.time_offset)
@@ -347,7 +349,7 @@ def split_nees(
     D = split.varying_cov + (0.0 if e.cov is None else e.cov)
     try:
         pos, pose = shared_error_test(xi, D, split.factor, alignment_sensitivity(g.position, align),
-                                      names=split.names)
+                                      names=split.names, upper=e.cov is None)
     except ValueError as exc:
         raise InputError(f"Cannot test the errors against the shared factor: {exc}") from None
     return (dataclasses.replace(absolute[0], consistent=pos.consistent, split=pos),

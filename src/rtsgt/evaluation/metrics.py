@@ -45,7 +45,7 @@ This module imports only numpy, scipy and rtsgt.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -728,7 +728,11 @@ class SharedTest:
     absorbed : int
         Parameters of the alignment projected out.
     consistent : bool
+        ``statistic`` inside ``interval`` (two-sided), or below its upper end (``upper``).
     alpha : float
+    upper : bool
+        One-sided: only errors too large for the covariance fail (an estimate without
+        covariance: is its error significant against the ground truth's uncertainty?).
     """
 
     theta: np.ndarray
@@ -740,9 +744,11 @@ class SharedTest:
     absorbed: int
     consistent: bool
     alpha: float
+    upper: bool = False
 
     def to_dict(self) -> dict:
         return {"statistic": float(self.statistic), "dof": int(self.dof),
+                "test": "one-sided (upper)" if self.upper else "two-sided",
                 "interval": [float(v) for v in self.interval], "p_value": float(self.p_value),
                 "consistent": bool(self.consistent), "alpha": float(self.alpha),
                 "time_correlation": float(self.tau), "alignment_parameters": int(self.absorbed),
@@ -804,6 +810,7 @@ def shared_error_test(
     *,
     alpha: float = 0.05,
     names: tuple[str, ...] = (),
+    upper: bool = False,
 ) -> tuple[SplitVerdict, SplitVerdict]:
     r"""Consistency of errors with a covariance ``C = blockdiag(D_k) + L L^T`` (the split test).
 
@@ -834,7 +841,12 @@ def shared_error_test(
        (``H_k``: the first ``k`` columns of ``H^-1``; ``A_d``: ``A`` over the position rows
        only for ``d = 3``), then :func:`nees_consistency` at ``alpha / 2``.
 
-    The verdict is consistent when both pass.
+    The verdict is consistent when both pass. With ``upper`` both tests are one-sided, against
+    the upper ends of the same intervals (for the varying NEES: the mean below its interval's
+    upper end and the share inside the 95 % region above its interval's lower end): only
+    errors too large fail. That is the question for an estimate without covariance (is its
+    error significant against the ground truth's own uncertainty?), where errors smaller
+    than the ground truth's uncertainty are no fault of the estimate.
 
     Parameters
     ----------
@@ -850,6 +862,8 @@ def shared_error_test(
         Significance of the whole verdict.
     names : tuple of str
         Names of the shared parameters (for the report).
+    upper : bool
+        One-sided tests (above).
 
     Returns
     -------
@@ -893,15 +907,19 @@ def shared_error_test(
     if dof:
         interval = (float(stats.chi2.ppf(a_s / 2, dof)), float(stats.chi2.ppf(1 - a_s / 2, dof)))
         p_value = float(stats.chi2.sf(stat, dof))
-        ok = interval[0] <= stat <= interval[1]
+        ok = stat <= interval[1] and (upper or interval[0] <= stat)
     else:
         interval, p_value, ok = (0.0, 0.0), 1.0, True
-    shared = SharedTest(theta, stat, dof, interval, p_value, tau, m, bool(ok), alpha)
+    shared = SharedTest(theta, stat, dof, interval, p_value, tau, m, bool(ok), alpha, upper)
     Hk = Hinv[:, :k]
     M = 2 * Hinv - Hinv @ A @ Hinv - Hk @ Hk.T
     out = []
     for d, r, Ad in ((3, r3, A3), (6, rt, A)):
         expected = (d * N - float(np.trace(M @ Ad))) / (d * N)
         varying = nees_consistency(np.einsum("ni,ni->n", r, r) / expected, d, alpha=a_s)
+        if upper:
+            varying = replace(varying, consistent=bool(
+                varying.mean <= varying.mean_interval[1]
+                and varying.fraction_inside_95 >= varying.fraction_interval[0]))
         out.append(SplitVerdict(shared, varying, bool(ok and varying.consistent), tuple(names)))
     return out[0], out[1]
