@@ -70,7 +70,7 @@ from rtsgt.options import RunOptions, stage_rng
 from rtsgt.pose import POSE_ENGINES, ReferencePoints, estimate_poses
 from rtsgt.pose.registration import registration_jacobian
 from rtsgt.record import RunRecord
-from rtsgt.shared import SharedFactor, split_ground_truth
+from rtsgt.shared import SharedFactor, rank_one_factor, split_ground_truth
 from rtsgt.types import PrismTrack
 
 __all__ = [
@@ -381,8 +381,8 @@ class ContinuousGroundTruth:
                 ):
                     if src not in a.prisms.cov_by_source:
                         continue
-                    fa = _rank_one_factor(a.prisms.cov_by_source[src][:, i], da)
-                    fb = _rank_one_factor(b.prisms.cov_by_source[src][:, i], db)
+                    fa = rank_one_factor(a.prisms.cov_by_source[src][:, i], da)
+                    fb = rank_one_factor(b.prisms.cov_by_source[src][:, i], db)
                     blk = blk + fa[:, :, None] * fb[:, None, :]
             C[:, 3 * i:3 * i + 3, 3 * i:3 * i + 3] = blk
         if systematic and self.coupling is not None and "calibration" in a.prisms.cov_by_source:
@@ -477,10 +477,3 @@ class _Linearised:
     J_q: np.ndarray  # (K, 6, 3n) pose Jacobian on the stacked prisms
     J_r: np.ndarray  # (K, 6, 3n) pose Jacobian on the stacked reference
     velocity: list  # per prism, (K, 3) GP velocity, m/s
-
-
-def _rank_one_factor(cov: np.ndarray, direction: np.ndarray) -> np.ndarray:
-    """``f`` with ``f f^T`` the rank-one ``cov`` (K, 3, 3), signed along ``direction``."""
-    norm = np.linalg.norm(direction, axis=-1, keepdims=True)
-    u = np.divide(direction, norm, out=np.zeros_like(direction), where=norm > 0)
-    return np.sqrt(np.clip(np.trace(cov, axis1=1, axis2=2), 0.0, None))[:, None] * u
