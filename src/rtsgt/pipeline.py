@@ -51,7 +51,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from rtsgt.calibration import calibrate
+from rtsgt.calibration import CalibrationResult, calibrate
 from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.calibration.gcp import gcp_atmospheric_correction, gcp_world_positions
 from rtsgt.checks import gcp_fit_check, inter_prism_check
@@ -61,11 +61,18 @@ from rtsgt.filtering import module1, module2
 from rtsgt.filtering.gates import apply_gates, surveyed_distance_check
 from rtsgt.filtering.modules import RemovedMeasurements, removed_measurements, warn_tight_rate_gates
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
-from rtsgt.interpolation.prisms import fit_gps, gp_covariance, query_grid, query_prisms
+from rtsgt.interpolation import GPTrack
+from rtsgt.interpolation.prisms import (
+    PrismsAtTimes,
+    fit_gps,
+    gp_covariance,
+    query_grid,
+    query_prisms,
+)
 from rtsgt.measurement.weather import check_weather_coverage
 from rtsgt.noise import NoiseModel, propagate
 from rtsgt.options import RunOptions, stage_rng
-from rtsgt.pose import estimate_poses
+from rtsgt.pose import PoseEstimate, ReferencePoints, estimate_poses
 from rtsgt.record import RunComputation, RunRecord, ordered_sources
 from rtsgt.shared import SharedFactor, select_prisms, split_ground_truth
 from rtsgt.types import PoseTrajectory, PrismTrack
@@ -247,8 +254,10 @@ def _run_stages(
     return replace(record, groundtruth_split=split)
 
 
-def _split(options: RunOptions, prisms, gps, tracks, calib, coupling: StationCoupling,
-           reference, est, keep: np.ndarray) -> SharedFactor | None:
+def _split(options: RunOptions, prisms: PrismsAtTimes, gps: dict[str, GPTrack],
+           tracks: dict[str, PrismTrack], calib: CalibrationResult, coupling: StationCoupling,
+           reference: ReferencePoints, est: PoseEstimate,
+           keep: np.ndarray) -> SharedFactor | None:
     """The kept poses' error split into varying and shared parts (:mod:`rtsgt.shared`); None
     when the GP was given the total covariance (``gp_noise = "all"``: no separate shared
     sources)."""
