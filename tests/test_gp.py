@@ -181,13 +181,16 @@ def dense_reference(t, y, R, qc, z, P0=None, m0=None, exact=False):
     return mean.astype(float), cov.astype(float), cross.astype(float), loglik
 
 
-def kalman_loglik(t, y, R, qc, P0=None, m0=None):
-    """Prediction-error decomposition of a Kalman filter (diffuse: exact start at t1)."""
+def kalman_loglik(t, y, R, qc, P0=None, m0=None, scale=None):
+    """Prediction-error decomposition of a Kalman filter (diffuse: exact start at t1);
+    ``scale``: a multiplier of Qc per interval."""
     H = np.hstack([np.eye(3), np.zeros((3, 3))])
     qc = as_qc(qc)
+    scale = np.ones(len(t) - 1) if scale is None else np.asarray(scale, dtype=float)
 
-    def q(d):
-        return np.kron([[d**3 / 3, d**2 / 2], [d**2 / 2, d]], qc)
+    def q(k):  # interval k, from t_k to t_k+1
+        d = t[k + 1] - t[k]
+        return scale[k] * np.kron([[d**3 / 3, d**2 / 2], [d**2 / 2, d]], qc)
 
     def phi(d):
         return np.kron([[1.0, d], [0.0, 1.0]], np.eye(3))
@@ -195,7 +198,7 @@ def kalman_loglik(t, y, R, qc, P0=None, m0=None):
     ll = 0.0
     if P0 is None:
         d = t[1] - t[0]
-        Qi, F = np.linalg.inv(q(d)), phi(d)
+        Qi, F = np.linalg.inv(q(0)), phi(d)
         r0i, r1i = np.linalg.inv(R[0]), np.linalg.inv(R[1])
         J00 = F.T @ Qi @ F + H.T @ r0i @ H
         J01 = -F.T @ Qi
@@ -213,7 +216,7 @@ def kalman_loglik(t, y, R, qc, P0=None, m0=None):
         if k > 0:
             d = t[k] - t[k - 1]
             m = phi(d) @ m
-            P = phi(d) @ P @ phi(d).T + q(d)
+            P = phi(d) @ P @ phi(d).T + q(k - 1)
         e = y[k] - m[:3]
         S = P[:3, :3] + R[k]
         ll += stats.multivariate_normal(np.zeros(3), S).logpdf(e)
@@ -438,6 +441,66 @@ def test_likelihood_is_the_kalman_prediction_error_decomposition(prior):
             kw = {"initial_state_cov": P0, "initial_state_mean": m0}
         ll = log_marginal_likelihood((t, y, R), qc, **kw)
         assert ll == pytest.approx(kalman_loglik(t, y, R, qc, P0, m0), rel=1e-8, abs=1e-8)
+
+
+def dense_chain_posterior(t, y, R, qc, scale, extra):
+    """Posterior of the states at the knots ``t`` and at the ``extra`` times (no measurement
+    there), from the dense information matrix of the Markov chain: increments
+    ``x_j+1 - Phi x_j ~ N(0, Q(dt, s Qc))`` with ``s`` the scale of the knot interval holding
+    them, diffuse first state, measurements at the knots. Returns (times, mean, cov)."""
+    times = np.unique(np.concatenate([t, extra]))
+    n = times.size
+    H = np.hstack([np.eye(3), np.zeros((3, 3))])
+    J = np.zeros((6 * n, 6 * n))
+    h = np.zeros(6 * n)
+    for j in range(n - 1):
+        d = times[j + 1] - times[j]
+        k = int(np.clip(np.searchsorted(t, times[j], side="right") - 1, 0, len(t) - 2))
+        A = np.zeros((6, 6 * n))
+        A[:, 6 * j:6 * j + 6] = -wnoa_phi(d)
+        A[:, 6 * j + 6:6 * j + 12] = np.eye(6)
+        J += A.T @ np.linalg.inv(wnoa_q(d, scale[k] * as_qc(qc))) @ A
+    for i, tk in enumerate(t):
+        j = int(np.searchsorted(times, tk))
+        ri = np.linalg.inv(R[i])
+        J[6 * j:6 * j + 6, 6 * j:6 * j + 6] += H.T @ ri @ H
+        h[6 * j:6 * j + 6] += H.T @ ri @ y[i]
+    cov = np.linalg.inv(J)
+    mean = cov @ h
+    blocks = np.array([cov[6 * j:6 * j + 6, 6 * j:6 * j + 6] for j in range(n)])
+    return times, mean.reshape(n, 6), blocks
+
+
+def test_a_qc_scaled_per_interval_is_the_dense_chain_and_the_kalman_likelihood():
+    """``qc_scale``: interval k has Qc_k = s_k Qc. Knots, queries between knots and beyond the
+    ends against the dense information form of the chain; the marginal likelihood against a
+    Kalman filter with the same per-interval process noise; scales of 1 change nothing."""
+    rng = np.random.default_rng(41)
+    t, y, R, qc = random_problem(rng, 12, "diag")
+    y = y - y[0]  # centred: the dense float64 solve keeps its digits
+    scale = np.exp(rng.uniform(-4.0, 3.0, t.size - 1))
+    gp = fit_track((t, y, R), qc=qc, max_gap_s=np.inf, qc_scale=scale)
+    tq = np.sort(np.concatenate([
+        rng.uniform(t[0], t[-1], 15), [t[0] - 0.7, t[-1] + 0.4]]))
+    times, mean, cov = dense_chain_posterior(t, y, R, qc, scale, tq)
+    at = np.searchsorted(times, t)
+    np.testing.assert_allclose(gp.mean, mean[at], rtol=0, atol=1e-7 * np.abs(mean).max())
+    assert cov_err(gp.cov, cov[at], diag(cov[at]), diag(cov[at])) < 1e-7
+    res = gp.query(tq, with_velocity=True, allow_gaps=True)
+    aq = np.searchsorted(times, tq)
+    np.testing.assert_allclose(res.position, mean[aq, :3], rtol=0, atol=1e-7 * np.abs(mean).max())
+    assert cov_err(res.state_cov, cov[aq], diag(cov[aq]), diag(cov[aq])) < 1e-7
+    ll = log_marginal_likelihood((t, y, R), qc)
+    assert gp.log_likelihood == pytest.approx(kalman_loglik(t, y, R, qc, scale=scale), rel=1e-8)
+    assert gp.log_likelihood != pytest.approx(ll, rel=1e-3)
+    same = fit_track((t, y, R), qc=qc, max_gap_s=np.inf, qc_scale=np.ones(t.size - 1))
+    plain = fit_track((t, y, R), qc=qc, max_gap_s=np.inf)
+    np.testing.assert_allclose(same.cov, plain.cov, rtol=1e-14, atol=0)
+    assert same.log_likelihood == pytest.approx(plain.log_likelihood, rel=1e-14)
+    with pytest.raises(InputError, match="qc_scale"):
+        fit_track((t, y, R), qc=qc, qc_scale=np.ones(t.size))
+    with pytest.raises(InputError, match="qc_scale needs a given qc"):
+        fit_track((t, y, R), qc_scale=np.ones(t.size - 1))
 
 
 def test_diffuse_is_the_limit_of_a_wide_proper_prior():

@@ -18,21 +18,29 @@ def _track(rng, n=30, qc=0.05):
     return t, measure(rng, x[:, :3], R), R
 
 
-def _augmented(t, y, R, qc, taus):
-    """Exact reference: the query times as knots with an uninformative measurement; the
-    posterior is Markov along the knots, so Cov between knots is the chained lag-one one."""
+def _augmented(t, y, R, qc, taus, scale=None):
+    """Exact reference: the query times as knots with an uninformative measurement (each new
+    interval with the scale of Qc of the interval it splits); the posterior is Markov along
+    the knots, so Cov between knots is the chained lag-one one."""
     ta = np.concatenate([t, taus])
     order = np.argsort(ta, kind="stable")
     ya = np.concatenate([y, np.zeros((taus.size, 3))])[order]
     Ra = np.concatenate([R, np.tile(np.eye(3) * 1e8, (taus.size, 1, 1))])[order]
-    return fit_track((ta[order], ya, Ra), qc=qc, max_gap_s=1e9), np.argsort(order)
+    sa = None
+    if scale is not None:
+        k = np.clip(np.searchsorted(t, ta[order][:-1], side="right") - 1, 0, t.size - 2)
+        sa = scale[k]
+    return fit_track((ta[order], ya, Ra), qc=qc, max_gap_s=1e9, qc_scale=sa), np.argsort(order)
 
 
-def test_cross_covariance_equals_the_augmented_posterior():
+@pytest.mark.parametrize("scaled", [False, True])
+def test_cross_covariance_equals_the_augmented_posterior(scaled):
+    """Also with a Qc scaled per interval (a motion prior): the bridge scales with it."""
     rng = np.random.default_rng(3)
     t, y, R = _track(rng)
     qc = 0.05
-    gp = fit_track((t, y, R), qc=qc, max_gap_s=1e9)
+    scale = np.exp(rng.uniform(-3.0, 2.0, t.size - 1)) if scaled else None
+    gp = fit_track((t, y, R), qc=qc, max_gap_s=1e9, qc_scale=scale)
     # pairs: same interval (both orders), adjacent intervals, far apart, on knots, equal times
     k = 10
     pairs = [(t[k] + 0.1, t[k] + 0.2), (t[k] + 0.2, t[k] + 0.1), (t[k] + 0.1, t[k + 1] + 0.1),
@@ -40,7 +48,7 @@ def test_cross_covariance_equals_the_augmented_posterior():
     for a, b in pairs:
         taus = np.unique([a, b])
         taus = taus[~np.isin(taus, t)]
-        aug, pos = _augmented(t, y, R, qc, taus)
+        aug, pos = _augmented(t, y, R, qc, taus, scale)
         ia = int(np.flatnonzero(np.isclose(aug.t, a, rtol=0, atol=0))[0])
         ib = int(np.flatnonzero(np.isclose(aug.t, b, rtol=0, atol=0))[0])
         lo, hi = min(ia, ib), max(ia, ib)

@@ -111,13 +111,13 @@ def test_the_per_axis_search_stays_inside_the_bounds(monkeypatch):
     from rtsgt.interpolation import QC_BOUNDS, loo
 
     tried = []
-    score = loo._score
+    score = loo.loo_score
 
     def recording(track, qc, max_gap_s):
         tried.append(np.diag(qc) if np.ndim(qc) == 2 else np.full(3, qc))
         return score(track, qc, max_gap_s)
 
-    monkeypatch.setattr(loo, "_score", recording)
+    monkeypatch.setattr(loo, "loo_score", recording)
     rng = np.random.default_rng(5)
     t = np.cumsum(rng.uniform(0.3, 0.5, 300))
     xyz = np.array([3.0, 1.5, 0.9]) + rng.normal(0.0, 1e-3, (300, 3))

@@ -21,12 +21,15 @@ from rtsgt.record import RUN_SCHEMA_VERSION, RunRecord
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 
 
-@pytest.fixture(scope="module")
-def records(tmp_path_factory):
+@pytest.fixture(scope="module", params=["likelihood", "loo"])
+def records(request, tmp_path_factory):
+    """A run with one Qc per track (by the likelihood), and one whose Qc follows the motion
+    (leave-one-out and motion classes, the default)."""
     tmp = tmp_path_factory.mktemp("record")
     sim = simulate_deployment(SimulationConfig(duration_s=90.0), np.random.default_rng(21))
     data, opts = load_deployment(write_deployment(sim, tmp / "dep"))
-    mem = run_pipeline(data, opts.updated(engine="mc", samples=100, seed=8, qc="likelihood"))
+    mem = run_pipeline(data, opts.updated(engine="mc", samples=100, seed=8, qc=request.param))
+    assert bool(mem.qc_scale) == (request.param == "loo")
     disk = read_run(write_run(mem, tmp / "run"))
     return mem, disk
 
@@ -79,6 +82,9 @@ def test_every_field_survives_the_round_trip(records):
         assert list(got.cov_by_source) == list(tr.cov_by_source)
         _close(disk.measurements_gp_cov[pid], mem.measurements_gp_cov[pid], "GP covariance")
         _close(disk.qc[pid], mem.qc[pid], "Qc")
+    assert list(disk.qc_scale) == list(mem.qc_scale)
+    for pid, scale in mem.qc_scale.items():
+        _close(disk.qc_scale[pid], scale, "Qc scale per interval")
     gt_m, gt_d = mem.groundtruth, disk.groundtruth
     np.testing.assert_allclose(gt_d.t, gt_m.t, rtol=0, atol=1e-9)
     _close(gt_d.position, gt_m.position, "positions")
@@ -148,13 +154,21 @@ def test_the_run_says_what_its_self_checks_found_on_the_real_excerpt(tmp_path):
     assert {v["verdict"] for v in gcp["stations"].values()} == {"optimistic"}
     assert gcp["added_shot_sigma_mm"]["vertical"] > 0.3
     assert gcp["added_shot_sigma_mm"]["horizontal"] < gcp["added_shot_sigma_mm"]["vertical"]
-    regimes = doc["self_checks"]["inter_prism_distances"]["regimes"]
+    distances = doc["self_checks"]["inter_prism_distances"]
+    regimes = distances["regimes"]
     assert {k: v["poses"] for k, v in regimes.items()}["static"] > 30
     assert any(w.startswith("self-check") for w in doc["warnings"])
+    # with Qc following the robot's motion, the inter-prism distances agree with the
+    # predicted uncertainty in every regime (with one Qc per track: 0.15 standing, 4.2
+    # manoeuvring, 2.2 far from a measurement)
+    assert 0.7 <= distances["overall"]["mean_z2"] <= 1.4
+    for name, v in regimes.items():
+        if v["poses"] >= 30:
+            assert 0.5 <= v["mean_z2"] <= 2.0, name
     # the report's self-check section: the same verdicts
     page = next(out.glob("*.html")).read_text(encoding="utf-8")
     section = page[page.index("<section id=\"checks\">"):]
     section = section[:section.index("</section>")]
-    assert section.count("<td class='verdict'>optimistic</td>") >= 2 + 1  # 2 stations, a regime
+    assert section.count("<td class='verdict'>optimistic</td>") == 2  # the 2 stations
     for regime in ("whole run", "static", "manoeuvring", "cruising", "far"):
         assert f"<td class='s'>{regime}</td>" in section

@@ -41,8 +41,10 @@ QC_METHODS: tuple[str, ...] = get_args(QcMethod)
 #: What the GP is given: the white noise sources only (rtsgt), or every source (the paper).
 GpNoise = Literal["white", "all"]
 GP_NOISE: tuple[str, ...] = get_args(GpNoise)
+MotionPrior = Literal["classes", "constant"]
+MOTION_PRIORS: tuple[str, ...] = get_args(MotionPrior)
 
-__all__ = ["GP_NOISE", "QC_METHODS", "RANDOM_STAGES", "InterpolationOptions", "PoseOptions", "RunOptions",
+__all__ = ["GP_NOISE", "MOTION_PRIORS", "QC_METHODS", "RANDOM_STAGES", "InterpolationOptions", "PoseOptions", "RunOptions",
            "stage_rng"]
 
 
@@ -75,12 +77,17 @@ class InterpolationOptions:
     gp_noise : {"white", "all"}
         What the GP is given: the white sources (rtsgt; the systematic ones are added after the
         GP) or every source (the paper).
+    motion_prior : {"classes", "constant"}
+        With ``qc = "loo"``: scale ``Qc`` per class of the robot's motion (standing, then by
+        acceleration) where that predicts held-out measurements better
+        (:mod:`rtsgt.interpolation.motion`), or one ``Qc`` per track (the paper).
     """
 
     rate_hz: float = 5.0
     qc: float | QcMethod = "loo"
     max_gap_s: float = DEFAULT_MAX_GAP_S
     gp_noise: GpNoise = "white"
+    motion_prior: MotionPrior = "classes"
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
@@ -95,6 +102,9 @@ class InterpolationOptions:
         if self.gp_noise not in GP_NOISE:
             raise InputError(f"Expected gp_noise {' or '.join(map(repr, GP_NOISE))}, got "
                              f"{self.gp_noise!r}")
+        if self.motion_prior not in MOTION_PRIORS:
+            raise InputError(f"Expected motion_prior {' or '.join(map(repr, MOTION_PRIORS))}, "
+                             f"got {self.motion_prior!r}")
 
 
 @dataclass(frozen=True)

@@ -126,6 +126,9 @@ class RunRecord:
     gcp_names : tuple of str
     qc : dict str -> ndarray
         Each prism's GP power spectral density Qc, m^2/s^3.
+    qc_scale : dict str -> ndarray (N-1,)
+        Per prism whose ``Qc`` follows the motion, the scale of each interval between its
+        measurements (:mod:`rtsgt.interpolation.motion`); absent: one ``Qc``.
     intervals : ndarray, shape (K, 2), optional
         The intervals every prism is tracked in (module 2), s; None for an older run.
     uncertainty_measure : str
@@ -179,6 +182,7 @@ class RunRecord:
     gcp_xyz: np.ndarray | None = None
     gcp_names: tuple[str, ...] = ()
     qc: dict[str, np.ndarray] = field(default_factory=dict)
+    qc_scale: dict[str, np.ndarray] = field(default_factory=dict)
     intervals: np.ndarray | None = None
     uncertainty_measure: str = "max_std"
     coupling: StationCoupling | None = None

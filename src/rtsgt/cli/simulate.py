@@ -15,17 +15,26 @@ from rich.table import Table
 from rtsgt.cli.common import usage_error
 from rtsgt.io.output_dir import check_target
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
+from rtsgt.simulation.reality import REALITY_EFFECTS, RealityEffects
 
 
 def run_simulate(
     out_dir: Path, *, seed: int = 0, duration: float = 600.0, stations: int = 3,
-    force: bool = False,
+    force: bool = False, reality: tuple[str, ...] = (),
 ):
-    """Simulate and write a deployment; returns ``(sim, path to deployment.toml)``."""
+    """Simulate and write a deployment; returns ``(sim, path to deployment.toml)``.
 
+    ``reality``: reality effects (:data:`rtsgt.simulation.reality.REALITY_EFFECTS`) to switch
+    on at their default sizes.
+    """
+    unknown = [e for e in reality if e not in REALITY_EFFECTS]
+    if unknown:
+        raise usage_error(f"Expected reality effects among {', '.join(REALITY_EFFECTS)}, got "
+                          f"{', '.join(map(repr, unknown))}", "--reality")
     check_target(out_dir, force=force)  # refuse early, before spending time on the simulation
     try:
-        config = SimulationConfig(duration_s=duration, n_stations=stations)
+        config = SimulationConfig(duration_s=duration, n_stations=stations,
+                                  reality=RealityEffects(**dict.fromkeys(reality, True)))
     except ValueError as exc:
         raise usage_error(str(exc), "--duration") from None
     sim = simulate_deployment(config, int(seed))  # an int seed is recorded in the result
@@ -88,8 +97,12 @@ def register(app: typer.Typer) -> None:
         force: bool = typer.Option(False, "--force",
                                    help="Replace OUT_DIR if it is an earlier output of rtsgt "
                                         "(never a directory holding anything else)."),
+        reality: list[str] = typer.Option(
+            [], "--reality", metavar="EFFECT",
+            help="Switch a reality effect on at its default size (repeatable; see "
+                 "docs/simulation.md): " + ", ".join(REALITY_EFFECTS) + "."),
     ) -> None:
         """Simulate a deployment with known truth and write it as a real one's files."""
         sim, toml = run_simulate(out_dir, seed=seed, duration=duration, stations=stations,
-                                 force=force)
+                                 force=force, reality=tuple(reality))
         _print_summary(sim, toml, Console())

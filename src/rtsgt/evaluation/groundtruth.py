@@ -174,14 +174,17 @@ class ContinuousGroundTruth:
         uncertainty_measure: str = "max_std",
         source: str = "",
         coupling: StationCoupling | None = None,
+        qc_scale: dict[str, ArrayLike] | None = None,
         station_origins: dict[str, np.ndarray] | None = None,
         split: bool = False,
     ) -> ContinuousGroundTruth:
-        """Fit the GPs of ``tracks`` with the given per-prism ``Qc`` (m^2/s^3)."""
+        """Fit the GPs of ``tracks`` with the given per-prism ``Qc`` (m^2/s^3) and, where
+        given, its scale per interval between measurements."""
         missing = [p for p in tracks if p not in qc]
         if missing:
             raise InputError(f"{source or 'ground truth'}: no Qc for prism(s) {', '.join(missing)}")
-        gps = fit_gps(tracks, options.interpolation, qc={p: qc[p] for p in tracks})
+        gps = fit_gps(tracks, options.interpolation, qc={p: qc[p] for p in tracks},
+                      qc_scale=qc_scale)
         return cls(dict(tracks), gps, np.asarray(intervals, dtype=float),
                    reference.select(list(tracks)), options, uncertainty_measure, source,
                    coupling, dict(station_origins or {}), split)
@@ -239,8 +242,8 @@ class ContinuousGroundTruth:
                 raise InputError(f"no qc_m2_s3 for prism {pid} under 'prisms'", summary_path)
         return cls.from_tracks(tracks, record.qc, intervals, reference, opts,
                                uncertainty_measure=record.uncertainty_measure, source=source,
-                               coupling=record.coupling, station_origins=record.stations,
-                               split=split)
+                               coupling=record.coupling, qc_scale=record.qc_scale,
+                               station_origins=record.stations, split=split)
 
     @classmethod
     def from_run_dir(

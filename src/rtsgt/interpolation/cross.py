@@ -18,8 +18,9 @@ times of the same interval share their bridge, whose cross-covariance for
     ``Q(tau_1 - t_k) Phi(tau_2 - tau_1)^T
       - Q(tau_1 - t_k) Phi(t_{k+1} - tau_1)^T Q(t_{k+1} - t_k)^-1 Phi(t_{k+1} - tau_2) Q(tau_2 - t_k)``,
 
-which for ``tau_1 = tau_2`` is the query's own bridge variance. A time on a knot is that
-knot (``W = [I, 0]``, no bridge).
+which for ``tau_1 = tau_2`` is the query's own bridge variance (times the interval's scale of
+``Qc`` where it follows the motion, :attr:`GPTrack.qc_scale`; ``W`` does not depend on it).
+A time on a knot is that knot (``W = [I, 0]``, no bridge).
 """
 
 from __future__ import annotations
@@ -124,5 +125,5 @@ def gp_cross_covariance(gp: GPTrack, tau_1: ArrayLike, tau_2: ArrayLike) -> np.n
         bridge = (q1 @ np.swapaxes(wnoa_phi(d2 - d1), 1, 2)
                   - q1 @ np.swapaxes(wnoa_phi(d - d1), 1, 2) @ np.linalg.solve(
                       qd, wnoa_phi(d - d2) @ q2))
-        out[same] += bridge
+        out[same] += gp.interval_scale(k)[:, None, None] * bridge
     return np.where(swap[:, None, None], np.swapaxes(out, 1, 2), out)

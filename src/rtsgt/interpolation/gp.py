@@ -398,14 +398,18 @@ def _prepare(track, initial_state_cov=None, initial_state_mean=None) -> _Data:
 # --------------------------------------------------------------------------------------------
 
 
-def _build_system(data: _Data, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _build_system(data: _Data, w: np.ndarray, scale: np.ndarray | None = None,
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Blocks of the information matrix and information vector (module docstring).
 
+    ``scale`` (N-1,), optional: interval ``k`` has ``Qc_k = scale_k Qc`` (:func:`fit_track`).
     Returns D (N, 6, 6), B (N-1, 6, 6) with ``B_k = J_k,k+1``, h (N, 6).
     """
     n = data.t.shape[0]
     dt = np.diff(data.t)
     a, b, c, e = 12.0 / dt**3, 6.0 / dt**2, 4.0 / dt, 2.0 / dt
+    if scale is not None:
+        a, b, c, e = a / scale, b / scale, c / scale, e / scale
     coef_d = np.zeros((n, 2, 2))
     # Qinv_{k-1} = kron([[a, -b], [-b, c]], W) enters D_k
     coef_d[1:, 0, 0] += a
@@ -521,13 +525,15 @@ def _bcr(D: np.ndarray, B: np.ndarray, h: np.ndarray, want_cov: bool):
     return mean, logdet, S, C
 
 
-def _solve(data: _Data, qc: np.ndarray, want_cov: bool):
-    """Posterior (centred) and log marginal likelihood for one Qc."""
+def _solve(data: _Data, qc: np.ndarray, want_cov: bool, scale: np.ndarray | None = None):
+    """Posterior (centred) and log marginal likelihood for one Qc (times ``scale`` per
+    interval, when given)."""
     w = _spd_inv(qc)
-    D, B, h = _build_system(data, w)
+    D, B, h = _build_system(data, w, scale)
     mean, logdet_j, S, C = _bcr(D, B, h, want_cov)
     n = data.t.shape[0]
     dt = np.diff(data.t)
+    inv_s = 1.0 if scale is None else 1.0 / scale
     # whitened residuals at the posterior mean: c - h^T J^-1 h
     r = data.y - mean[:, :3]
     quad = float(np.einsum("ni,nij,nj->", r, data.r_inv, r))
@@ -536,11 +542,13 @@ def _solve(data: _Data, qc: np.ndarray, want_cov: bool):
     epw = ep @ w
     evw = ev @ w
     quad += float(
-        np.sum(12.0 / dt**3 * np.einsum("ni,ni->n", epw, ep))
-        - np.sum(12.0 / dt**2 * np.einsum("ni,ni->n", epw, ev))
-        + np.sum(4.0 / dt * np.einsum("ni,ni->n", evw, ev))
+        np.sum(inv_s * 12.0 / dt**3 * np.einsum("ni,ni->n", epw, ep))
+        - np.sum(inv_s * 12.0 / dt**2 * np.einsum("ni,ni->n", epw, ev))
+        + np.sum(inv_s * 4.0 / dt * np.einsum("ni,ni->n", evw, ev))
     )
     logdet_q = float(np.sum(3.0 * np.log(dt**4 / 12.0))) + 2.0 * (n - 1) * _chol_logdet(qc)
+    if scale is not None:  # |Q(dt, s Qc)| = s^6 |Q(dt, Qc)|
+        logdet_q += 6.0 * float(np.sum(np.log(scale)))
     if data.prior_inv is None:
         const = (3.0 - 1.5 * n) * _LOG_2PI
     else:
@@ -818,6 +826,10 @@ class GPTrack:
         Whether the prior on ``x(t_0)`` was diffuse.
     qc_fit : QcFitInfo or None
         The estimation report when ``qc`` was estimated.
+    qc_scale : ndarray, shape (N-1,), or None
+        Per-interval multiplier of ``qc`` (interval ``k`` between knots ``k`` and ``k+1`` has
+        ``Qc_k = qc_scale[k] qc``); None: 1 everywhere. Extrapolation uses the scale of the
+        first or the last interval.
     """
 
     t: np.ndarray
@@ -831,6 +843,13 @@ class GPTrack:
     frame: str = "world"
     diffuse_prior: bool = True
     qc_fit: QcFitInfo | None = field(default=None, repr=False)
+    qc_scale: np.ndarray | None = None
+
+    def interval_scale(self, k: ArrayLike) -> np.ndarray:
+        """The scale of ``qc`` on the intervals ``k`` (indices from 0 to N-2), shape of ``k``:
+        ``qc_scale[k]``, or ones without a ``qc_scale``."""
+        k = np.asarray(k, dtype=int)
+        return np.ones(k.shape) if self.qc_scale is None else self.qc_scale[k]
 
     def __len__(self) -> int:
         return self.t.shape[0]
@@ -987,7 +1006,7 @@ class GPTrack:
             cov[idx] = (
                 t1 @ np.swapaxes(wl, 1, 2)
                 + t2 @ np.swapaxes(wp, 1, 2)
-                + _kron2(qq, self.qc)[:, :dim, :dim]
+                + (self.interval_scale(k)[:, None, None] * _kron2(qq, self.qc))[:, :dim, :dim]
             )
         # after the end: prediction from the last knot
         idx = np.flatnonzero(after)
@@ -995,7 +1014,8 @@ class GPTrack:
             d = tau[idx] - t[-1]
             phi = wnoa_phi(d)
             mean[idx] = np.einsum("nij,j->ni", phi, m[-1])
-            full = phi @ S[-1] @ np.swapaxes(phi, 1, 2) + _kron2(_q_coef(d), self.qc)
+            last = self.interval_scale(np.full(idx.size, t.shape[0] - 2))[:, None, None]
+            full = phi @ S[-1] @ np.swapaxes(phi, 1, 2) + last * _kron2(_q_coef(d), self.qc)
             cov[idx] = full[:, :dim, :dim]
         # before the start: flat prior at the query time, conditioned on the first knot
         idx = np.flatnonzero(before)
@@ -1003,7 +1023,8 @@ class GPTrack:
             d = t[0] - tau[idx]
             phi_b = wnoa_phi(-d)
             mean[idx] = np.einsum("nij,j->ni", phi_b, m[0])
-            inner = S[0] + _kron2(_q_coef(d), self.qc)
+            first = self.interval_scale(np.zeros(idx.size, int))[:, None, None]
+            inner = S[0] + first * _kron2(_q_coef(d), self.qc)
             full = phi_b @ inner @ np.swapaxes(phi_b, 1, 2)
             cov[idx] = full[:, :dim, :dim]
         return mean, cov
@@ -1027,6 +1048,7 @@ def fit_track(
     qc_bounds: tuple[float, float] = QC_BOUNDS,
     max_iter: int = 200,
     tol: float = 1e-4,
+    qc_scale: ArrayLike | None = None,
 ) -> GPTrack:
     """Fit the exact WNOA GP posterior of one prism track.
 
@@ -1051,6 +1073,10 @@ def fit_track(
         Longest gap between measurements across which queries are answered, s.
     qc_bounds, max_iter, tol
         Passed to :func:`fit_qc`.
+    qc_scale : array_like, shape (N-1,), optional
+        A prior whose strength follows the motion: interval ``k`` (between measurements ``k``
+        and ``k+1``) gets ``Qc_k = qc_scale[k] Qc``, each > 0 (e.g. a smaller ``Qc`` while
+        the robot stands; :mod:`rtsgt.interpolation.motion`). Needs a given ``qc``.
 
     Returns
     -------
@@ -1072,13 +1098,21 @@ def fit_track(
     if not mg > 0:
         raise InputError(f"Expected max_gap_s > 0 s, got {max_gap_s!r}")
     data = _prepare(track, initial_state_cov, initial_state_mean)
+    scale = None
+    if qc_scale is not None:
+        scale = np.asarray(qc_scale, dtype=float)
+        if qc is None or fit_qc:
+            raise InputError("qc_scale needs a given qc (it scales that Qc per interval)")
+        if scale.shape != (data.t.shape[0] - 1,) or not np.all(np.isfinite(scale) & (scale > 0)):
+            raise InputError(f"Expected qc_scale of shape ({data.t.shape[0] - 1},), finite and "
+                             f"> 0, got shape {scale.shape}")
     info = None
     if qc is None or fit_qc:
         info = _fit_qc_data(data, qc_mode, qc, qc_bounds, max_iter, tol)
         qc_m = np.array(info.qc)
     else:
         qc_m = as_qc(qc)
-    mean, S, C, loglik = _solve(data, qc_m, want_cov=True)
+    mean, S, C, loglik = _solve(data, qc_m, want_cov=True, scale=scale)
     mean[:, :3] += data.y_ref
     return GPTrack(
         t=_readonly(data.t.copy()),
@@ -1092,4 +1126,5 @@ def fit_track(
         frame=data.frame,
         diffuse_prior=data.prior_inv is None,
         qc_fit=info,
+        qc_scale=_readonly(None if scale is None else scale.copy()),
     )

@@ -49,7 +49,7 @@ from scipy.optimize import minimize, minimize_scalar
 from rtsgt.errors import InputError
 from rtsgt.interpolation.gp import DEFAULT_MAX_GAP_S, QC_BOUNDS, fit_track
 
-__all__ = ["LooInfo", "fit_qc_loo", "loo_predictive"]
+__all__ = ["LooInfo", "fit_qc_loo", "loo_predictive", "loo_score"]
 
 
 @dataclass(frozen=True)
@@ -82,7 +82,7 @@ def _interior(t: np.ndarray, max_gap_s: float) -> np.ndarray:
     return ok
 
 
-def loo_predictive(track, qc, *, max_gap_s: float = DEFAULT_MAX_GAP_S):
+def loo_predictive(track, qc, *, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=None):
     """Leave-one-out predictive of every interior measurement.
 
     Parameters
@@ -93,6 +93,8 @@ def loo_predictive(track, qc, *, max_gap_s: float = DEFAULT_MAX_GAP_S):
         Power spectral density, m^2/s^3 (a scalar means ``qc I``).
     max_gap_s : float
         Knots with a neighbour farther than this are not scored.
+    qc_scale : array_like, shape (N-1,), optional
+        Per-interval multiplier of ``qc`` (:func:`rtsgt.interpolation.gp.fit_track`).
 
     Returns
     -------
@@ -103,7 +105,7 @@ def loo_predictive(track, qc, *, max_gap_s: float = DEFAULT_MAX_GAP_S):
         ``Sigma_-k + R_k``, m^2.
     """
     t, y, R = (np.asarray(a, dtype=float) for a in track)
-    gp = fit_track((t, y, R), qc=qc, max_gap_s=1e300)
+    gp = fit_track((t, y, R), qc=qc, max_gap_s=1e300, qc_scale=qc_scale)
     used = _interior(t, max_gap_s)
     P = gp.cov[used, :3, :3]
     m = gp.mean[used, :3]
@@ -123,8 +125,20 @@ def loo_predictive(track, qc, *, max_gap_s: float = DEFAULT_MAX_GAP_S):
     return used, yu - mu, sigma + Ru
 
 
-def _score(track, qc, max_gap_s: float) -> tuple[float, float, int]:
-    _, r, S = loo_predictive(track, qc, max_gap_s=max_gap_s)
+def loo_score(track, qc, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=None,
+              ) -> tuple[float, float, int]:
+    """Leave-one-out score of ``qc`` (and ``qc_scale``, :func:`loo_predictive`).
+
+    Returns
+    -------
+    log_predictive : float
+        ``L_LOO``: the sum of the log predictive densities of the scored measurements.
+    nees_per_dof : float
+        Mean of their normalised squared residuals over 3.
+    n_used : int
+        Measurements scored.
+    """
+    _, r, S = loo_predictive(track, qc, max_gap_s=max_gap_s, qc_scale=qc_scale)
     L = np.linalg.cholesky(S)
     z = np.linalg.solve(L, r[..., None])[..., 0]
     nees = np.einsum("ni,ni->n", z, z)
@@ -172,7 +186,7 @@ def fit_qc_loo(
             f"to fit Qc by leave-one-out, got {n_used}"
         )
     lo, hi = (float(np.log(b)) for b in bounds)
-    res = minimize_scalar(lambda lq: -_score(track, np.exp(lq), max_gap_s)[0],
+    res = minimize_scalar(lambda lq: -loo_score(track, np.exp(lq), max_gap_s)[0],
                           bounds=(lo, hi), method="bounded", options={"xatol": xatol})
     qc: float | np.ndarray = float(np.exp(res.x))
     if mode == "per-axis":
@@ -181,10 +195,10 @@ def fit_qc_loo(
         # below the floor (4e-20 was seen) makes the track's information matrix singular
         simplex = np.clip(x0 + np.vstack([np.zeros(3), np.eye(3)]), lo, hi)
         simplex[1:] -= 2.0 * np.eye(3) * (simplex[1:] == simplex[0])  # at the upper bound
-        best = minimize(lambda lq: -_score(track, np.diag(np.exp(lq)), max_gap_s)[0], x0,
+        best = minimize(lambda lq: -loo_score(track, np.diag(np.exp(lq)), max_gap_s)[0], x0,
                         method="Nelder-Mead", bounds=[(lo, hi)] * 3,
                         options={"xatol": xatol, "fatol": 1e-2, "maxiter": 400,
                                  "initial_simplex": simplex})
         qc = np.diag(np.exp(np.clip(best.x, lo, hi)))
-    ll, nees, n = _score(track, qc, max_gap_s)
+    ll, nees, n = loo_score(track, qc, max_gap_s)
     return LooInfo(qc, ll, n, nees)

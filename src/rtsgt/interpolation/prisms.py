@@ -4,7 +4,9 @@ How the noise sources enter the GP: it treats measurement noise as independent f
 measurement to the next, which is true of the white sources (instrument, tilt) only; the
 systematic ones (atmosphere, time synchronisation, calibration) are added to the interpolated
 position afterwards, at their full value (docs/interpolation.md). Qc is chosen by
-leave-one-out cross-validation per axis by default (:mod:`rtsgt.interpolation.loo`).
+leave-one-out cross-validation per axis by default (:mod:`rtsgt.interpolation.loo`), then
+scaled per class of the robot's motion where that predicts held-out measurements better
+(:mod:`rtsgt.interpolation.motion`).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from rtsgt.calibration.coupling import StationCoupling, joint_prism_covariance
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.interpolation.gp import GPTrack, fit_track
 from rtsgt.interpolation.loo import fit_qc_loo
+from rtsgt.interpolation.motion import fit_motion_prior, motion_events
 from rtsgt.options import InterpolationOptions
 from rtsgt.types import PrismTrack
 
@@ -147,28 +150,54 @@ def fit_prism_gp(data, qc: float | str, max_gap_s: float, name: str) -> tuple[GP
     return fit_track(data, qc=float(qc), max_gap_s=max_gap_s), {"method": "given"}
 
 
+def _each_prism(fit, tracks: dict[str, PrismTrack]) -> dict[str, tuple[GPTrack, dict]]:
+    """``fit(pid, track)`` for every prism, in parallel threads (numpy releases the
+    interpreter lock in its array operations; the result does not depend on it)."""
+    with ThreadPoolExecutor(max_workers=max(1, min(len(tracks), os.cpu_count() or 1))) as ex:
+        futures = {pid: ex.submit(fit, pid, tr) for pid, tr in tracks.items()}
+        return {pid: f.result() for pid, f in futures.items()}
+
+
 def fit_gps(
     tracks: dict[str, PrismTrack], options: InterpolationOptions, qc: dict[str, object] | None = None,
-    info: dict[str, dict] | None = None,
+    info: dict[str, dict] | None = None, qc_scale: dict[str, np.ndarray] | None = None,
 ) -> dict[str, GPTrack]:
-    """Fit the GP of every prism track, its Qc chosen by ``options.qc`` (:func:`fit_prism_gp`).
+    """Fit the GP of every prism track, its Qc chosen by ``options.qc`` (:func:`fit_prism_gp`)
+    and, with ``options.motion_prior = "classes"`` and leave-one-out, scaled per class of the
+    robot's motion (:mod:`rtsgt.interpolation.motion`; the motion comes from all the prisms'
+    GPs with one Qc, fitted first).
 
-    ``qc`` optionally gives each prism's Qc (scalar or 3x3), overriding ``options.qc``:
-    refitting the tracks of a written run with the Qc it found. ``info``, when given, receives
-    per prism the method and the fit's statistics. The prisms are fitted in parallel threads
-    (numpy releases the interpreter lock in its array operations); the result does not depend
-    on it.
+    ``qc`` optionally gives each prism's Qc (scalar or 3x3), overriding ``options.qc``, and
+    ``qc_scale`` its scale per interval: refitting the tracks of a written run with the Qc it
+    found. ``info``, when given, receives per prism the method and the fit's statistics.
     """
 
-    def fit_one(pid: str, tr: PrismTrack) -> tuple[GPTrack, dict]:
-        data = (tr.t, tr.xyz, gp_covariance(tr, options.gp_noise))
-        if qc is not None and pid in qc:
-            return fit_track(data, qc=qc[pid], max_gap_s=options.max_gap_s), {"method": "given"}
-        return fit_prism_gp(data, options.qc, options.max_gap_s, f"prism {pid}")
+    def gp_data(tr: PrismTrack) -> tuple:
+        return tr.t, tr.xyz, gp_covariance(tr, options.gp_noise)
 
-    with ThreadPoolExecutor(max_workers=max(1, min(len(tracks), os.cpu_count() or 1))) as ex:
-        futures = {pid: ex.submit(fit_one, pid, tr) for pid, tr in tracks.items()}
-        done = {pid: f.result() for pid, f in futures.items()}
+    def fit_one(pid: str, tr: PrismTrack) -> tuple[GPTrack, dict]:
+        if qc is not None and pid in qc:
+            scale = None if qc_scale is None else qc_scale.get(pid)
+            return fit_track(gp_data(tr), qc=qc[pid], max_gap_s=options.max_gap_s,
+                             qc_scale=scale), {"method": "given"}
+        return fit_prism_gp(gp_data(tr), options.qc, options.max_gap_s, f"prism {pid}")
+
+    done = _each_prism(fit_one, tracks)
+    by_loo = [pid for pid, (_, entry) in done.items() if entry["method"] == "loo"]
+    if options.motion_prior == "classes" and by_loo:
+        events = motion_events({pid: gp for pid, (gp, _) in done.items()})
+
+        def refit(pid: str, tr: PrismTrack) -> tuple[GPTrack, dict]:
+            gp, entry = done[pid]
+            fit = fit_motion_prior(gp_data(tr), gp.qc, events, max_gap_s=options.max_gap_s,
+                                   loo_constant=entry["loo_log_predictive"])
+            entry = {**entry, "motion_prior": fit.as_dict()}
+            if fit.qc_scale is None:
+                return gp, entry
+            return fit_track(gp_data(tr), qc=gp.qc, max_gap_s=options.max_gap_s,
+                             qc_scale=fit.qc_scale), entry
+
+        done.update(_each_prism(refit, {pid: tracks[pid] for pid in by_loo}))
     if info is not None:
         info.update({pid: entry for pid, (_, entry) in done.items()})
     return {pid: gp for pid, (gp, _) in done.items()}

@@ -62,6 +62,7 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
                                      # number: isotropic PSD, m^2/s^3
     max_gap_s = 3.0
     gp_noise = "white"               # what the GP is given: "white" sources (default) or "all"
+    motion_prior = "classes"         # Qc per class of the robot's motion, or "constant"
 
     [pose]
     engine = "mc"                    # mc | ut | linear
@@ -352,7 +353,8 @@ def load_config(path: str | Path) -> DeploymentConfig:
         raise ConfigError("[interpolation] give rate_hz or query_times, not both", path)
     interp = it.record(InterpolationOptions, {
         "rate_hz": ("rate_hz", float, None), "qc": ("qc", (str, float, int), _qc_value),
-        "max_gap_s": ("max_gap_s", float, None), "gp_noise": ("gp_noise", str, None)})
+        "max_gap_s": ("max_gap_s", float, None), "gp_noise": ("gp_noise", str, None),
+        "motion_prior": ("motion_prior", str, None)})
     it.done()
 
     p = _Section(path, "pose", doc.get("pose", {}))

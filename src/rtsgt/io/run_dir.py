@@ -104,7 +104,7 @@ from rtsgt.io.trajectory import (
     write_covariance_csv,
     write_tum,
 )
-from rtsgt.options import GP_NOISE, InterpolationOptions, PoseOptions, RunOptions
+from rtsgt.options import GP_NOISE, MOTION_PRIORS, InterpolationOptions, PoseOptions, RunOptions
 from rtsgt.pose.reference import ReferencePoints
 from rtsgt.record import (
     RUN_SCHEMA_NAME,
@@ -257,6 +257,7 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
             "qc": opt.interpolation.qc,
             "max_gap_s": opt.interpolation.max_gap_s,
             "gp_noise": opt.interpolation.gp_noise,
+            "motion_prior": opt.interpolation.motion_prior,
             "noise_sources": list(c.noise_model.sources),
             "instrument": c.data.instrument.name,
             "filter": _report_dict(opt.filter),
@@ -398,12 +399,17 @@ def write_run(record: RunRecord, out: str | Path, *, force: bool = False,
                       + [cov3_to_columns(record.prisms_cov_by_source[s][:, i]) for s in srcs])
             tr = record.measurements[pid]
             srcs = list(tr.cov_by_source)
+            # the scale of Qc on the interval that starts at each measurement (none after
+            # the last one)
+            scale = ([] if pid not in record.qc_scale
+                     else [np.append(record.qc_scale[pid], np.nan)])
             write_csv(tmp / "measurements" / f"prism{pid}.csv",
                       ["t", "x", "y", "z", *cov_cols, "range_m"]
-                      + [f"{s}_{c}" for s in srcs for c in COV3_NAMES],
+                      + [f"{s}_{c}" for s in srcs for c in COV3_NAMES]
+                      + ["qc_scale"] * len(scale),
                       [tr.t, tr.xyz, cov3_to_columns(record.measurements_gp_cov[pid]),
                        tr.range_m if tr.range_m is not None else np.full(len(tr), np.nan)]
-                      + [cov3_to_columns(tr.cov_by_source[s]) for s in srcs])
+                      + [cov3_to_columns(tr.cov_by_source[s]) for s in srcs] + scale)
         _write_removed(tmp / "measurements" / "removed.csv", record.removed)
         ref = record.reference
         with open(tmp / "reference.csv", "w", encoding="utf-8") as fh:
@@ -464,9 +470,10 @@ def _prism_files(folder: Path, pattern: re.Pattern) -> dict[str, Path]:
     return dict(sorted(out.items(), key=lambda kv: _natural_key(kv[0])))
 
 
-def _read_measurements(path: Path, pid: str) -> tuple[PrismTrack, np.ndarray | None]:
-    """The measured track, and the file's ``cov_*`` columns (the covariance given to the GP;
-    None without them)."""
+def _read_measurements(path: Path, pid: str,
+                       ) -> tuple[PrismTrack, np.ndarray | None, np.ndarray | None]:
+    """The measured track, the file's ``cov_*`` columns (the covariance given to the GP;
+    None without them) and its ``qc_scale`` per interval (None without the column)."""
     header, data = read_table(path, ("t", "x", "y", "z"))
     sources = _source_prefixes(header)
     by_source = {s: _cov_from(header, data, s) for s in sources}
@@ -479,9 +486,16 @@ def _read_measurements(path: Path, pid: str) -> tuple[PrismTrack, np.ndarray | N
     else:
         raise InputError("no covariance columns (cov_xx.. or <source>_xx..)", path, 1)
     rng = _col(header, data, "range_m") if "range_m" in header else None
+    scale = None
+    if "qc_scale" in header:
+        scale = _col(header, data, "qc_scale")[:-1]
+        bad = np.flatnonzero(~(np.isfinite(scale) & (scale > 0)))
+        if bad.size:
+            raise InputError(f"qc_scale: expected a finite number > 0, got {scale[bad[0]]!r}",
+                             path, int(bad[0]) + 2)
     try:
         return PrismTrack(_col(header, data, "t"), data[:, [header.index(c) for c in "xyz"]],
-                          cov, by_source, pid, "world", None, rng), file_cov
+                          cov, by_source, pid, "world", None, rng), file_cov, scale
     except ValueError as exc:
         raise InputError(str(exc), path) from exc
 
@@ -842,9 +856,14 @@ def _summary_options(params: dict, param: Callable, path: Path) -> RunOptions:
     if gp_noise not in GP_NOISE:
         raise InputError(f"gp_noise: expected {' or '.join(map(repr, GP_NOISE))}, got "
                          f"{gp_noise!r}", path)
+    # a run written before the motion prior had one Qc per track
+    motion_prior = str(param("motion_prior", "constant"))
+    if motion_prior not in MOTION_PRIORS:
+        raise InputError(f"motion_prior: expected {' or '.join(map(repr, MOTION_PRIORS))}, "
+                         f"got {motion_prior!r}", path)
     changes = {
         "engine": str(param("engine", _OLDEST_OPTIONS.pose.engine)), "samples": samples,
-        "seed": seed, "gp_noise": gp_noise,
+        "seed": seed, "gp_noise": gp_noise, "motion_prior": motion_prior,
         "max_gap_s": _positive(params, "max_gap_s", InterpolationOptions.max_gap_s, path),
         "distance_gate_m": _positive(params, "distance_gate_m", PoseOptions.distance_gate_m,
                                      path),
@@ -917,8 +936,9 @@ def read_run(run_dir: str | PathLike) -> RunRecord:
     # measurements
     meas_files = _prism_files(root / "measurements", _PRISM_FILE)
     read = {pid: _read_measurements(p, pid) for pid, p in meas_files.items()}
-    measurements = {pid: tr for pid, (tr, _) in read.items()}
-    gp_cov = {pid: c for pid, (_, c) in read.items() if c is not None}
+    measurements = {pid: tr for pid, (tr, _, _) in read.items()}
+    gp_cov = {pid: c for pid, (_, c, _) in read.items() if c is not None}
+    qc_scale = {pid: s for pid, (_, _, s) in read.items() if s is not None}
 
     # prisms at the query times
     prism_files = _prism_files(root / "prisms", _PRISM_FILE)
@@ -984,6 +1004,7 @@ def read_run(run_dir: str | PathLike) -> RunRecord:
         gcp_xyz=summary.gcp_xyz, gcp_names=summary.gcp_names,
         qc={pid: info.qc_m2_s3 for pid, info in summary.prisms.items()
             if info.qc_m2_s3 is not None},
+        qc_scale={pid: qc_scale[pid] for pid in ids if pid in qc_scale},
         intervals=summary.intervals_s, uncertainty_measure=summary.uncertainty_measure,
         coupling=summary.coupling, removed=_read_removed(root / "measurements" / "removed.csv"),
         measurements_gp_cov={pid: gp_cov[pid] for pid in ids if pid in gp_cov},

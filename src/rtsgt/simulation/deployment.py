@@ -50,6 +50,11 @@ so that ``(d_raw + c)(1 + K 1e-6) = D`` when the noise is off. ``e_d ~ N(0, sigm
 instrument profile (the Trimble S7 numbers are quoted at 2 sigma and halved there). GCP shots
 follow the same model. The reported (hourly) weather is the true weather plus a uniform error
 within the paper's half-widths (+-1 degC, +-10 hPa, +-2 %).
+
+These errors are the estimator's own model. Errors it does not have (time-correlated noise,
+the prisms' cyclic error, tracking lag, clock drift, jerky starts and stops, a remote weather
+station, tripod settling) are the reality effects of :mod:`rtsgt.simulation.reality`, switched
+by ``SimulationConfig.reality`` and applied after the stages above (docs/simulation.md).
 """
 
 from __future__ import annotations
@@ -67,6 +72,17 @@ from rtsgt.measurement.atmosphere import instrument_correction_ppm
 from rtsgt.measurement.instruments import ARCSEC, TRIMBLE_S7, InstrumentProfile
 from rtsgt.measurement.polar import cartesian_to_polar, cartesian_to_survey_polar
 from rtsgt.noise.perturb import sample_polar_errors
+from rtsgt.simulation.reality import (
+    RealityEffects,
+    RealityTruth,
+    effect_rng,
+    first_order_lag,
+    gauss_markov,
+    prism_cyclic_error,
+    remote_weather,
+    settle_points,
+    settling_fraction,
+)
 from rtsgt.types import GcpShots, Observations, PoseTrajectory, SurveyShots, WeatherSeries
 
 __all__ = [
@@ -238,6 +254,9 @@ class SimulationConfig:
     atmosphere : bool
         Whether the true atmosphere scales the distances (the stations report at 0 ppm). Off:
         the true atmosphere is the instrument's reference atmosphere (0 ppm) at all times.
+    reality : RealityEffects
+        Errors the estimator's noise model does not have (:mod:`rtsgt.simulation.reality`),
+        each off by default; with all off the deployment is the same, draw for draw.
     """
 
     duration_s: float = 600.0
@@ -306,6 +325,7 @@ class SimulationConfig:
     noise_time_sync: bool = True
     noise_survey: bool = True
     atmosphere: bool = True
+    reality: RealityEffects = field(default_factory=RealityEffects)
 
     def __post_init__(self) -> None:
         """Check every parameter; raises :class:`~rtsgt.errors.InputError` (a ValueError)."""
@@ -353,6 +373,8 @@ class SimulationConfig:
                  "Expected sampling_jitter_s well below the measurement interval")
         _require(self.terrain_max_slope_deg < 30,
                  f"Expected terrain_max_slope_deg < 30, got {self.terrain_max_slope_deg}")
+        _require(isinstance(self.reality, RealityEffects),
+                 f"Expected reality to be a RealityEffects, got {type(self.reality).__name__}")
 
     def without_noise(self) -> SimulationConfig:
         """The same deployment with every noise source off (dropouts and atmosphere kept)."""
@@ -643,6 +665,10 @@ class SimulationTruth:
         m.
     model : TruthModel
         Exact evaluator at any time.
+    reality : RealityTruth or None
+        What the reality effects drew (None when none is on). With an effect on, the residual
+        ``measured - (hz, v, d)`` of :class:`ObservationTruth` holds the effect as well, and
+        ``T_world_station`` is each station's set-up before any settling.
     """
 
     t: np.ndarray
@@ -660,6 +686,7 @@ class SimulationTruth:
     observations: dict[str, ObservationTruth]
     additive_constant: float
     model: TruthModel = field(repr=False)
+    reality: RealityTruth | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -769,13 +796,16 @@ class _Robot(NamedTuple):
 
 
 class _Gcp(NamedTuple):
-    """GCP shots (station clocks), marker names, true marker positions (world, m) and the true
-    time of the first shot (s)."""
+    """GCP shots (station clocks), marker names, true marker positions (world, m), the true
+    time of the first shot (s), and per shot its true time (s), station and marker indices."""
 
     shots: GcpShots
     markers: tuple[str, ...]
     world: np.ndarray
     first_shot_s: float
+    t_true: np.ndarray
+    station: np.ndarray
+    marker: np.ndarray
 
 
 def _speed_profile(cfg: SimulationConfig, rng: np.random.Generator) -> _Speed:
@@ -800,12 +830,29 @@ def _speed_profile(cfg: SimulationConfig, rng: np.random.Generator) -> _Speed:
     ramp_t = np.asarray(ramp_t)
     ramp_len = np.asarray(ramp_len)
     level = np.asarray(level)
-    # arc length at each ramp start (closed form; the ramps do not overlap)
+    return _Speed(ramp_t, ramp_len, level, _ramp_arc_lengths(ramp_t, ramp_len, level))
+
+
+def _ramp_arc_lengths(ramp_t: np.ndarray, ramp_len: np.ndarray, level: np.ndarray) -> np.ndarray:
+    """Arc length at each ramp start, m (closed form; the ramps do not overlap)."""
     span = np.diff(ramp_t)
     dv = np.diff(level)
     inc = level[:-2] * span + dv[:-1] * (span - 0.5 * ramp_len[:-1])
-    s_base = np.concatenate([[0.0], np.cumsum(inc)])
-    return _Speed(ramp_t, ramp_len, level, s_base)
+    return np.concatenate([[0.0], np.cumsum(inc)])
+
+
+def _jerky_ramps(speed: _Speed, accel_m_s2: float) -> _Speed:
+    """The speed profile with its starts and stops (ramps from or to 0) at the peak
+    acceleration ``accel_m_s2`` (reality effect ``jerky_ramps``); same ramp start times, so
+    the plateaus that follow are longer. No random draw."""
+    level = speed.level
+    dv = np.abs(np.diff(level))
+    start_stop = (level[:-1] == 0.0) | (level[1:] == 0.0)
+    # quintic smoothstep: peak acceleration 15/8 dv / T
+    ramp_len = np.where(start_stop, np.maximum(1.875 * dv / accel_m_s2, 1e-3), speed.ramp_len)
+    ramp_len = np.minimum(ramp_len, speed.ramp_len)
+    return _Speed(speed.ramp_t, ramp_len, level,
+                  _ramp_arc_lengths(speed.ramp_t, ramp_len, level))
 
 
 def _loop_shape(cfg: SimulationConfig, rng: np.random.Generator) -> _Loop:
@@ -1128,7 +1175,7 @@ def _gcp(
     markers = tuple(str(i + 1) for i in range(n_gcp))
     shots = GcpShots(np.asarray(stations.ids, dtype=object)[g_st], np.asarray(markers)[g_mk],
                      hz, v, d, t_rec, None, cfg.additive_constant_m)
-    return _Gcp(shots, markers, gcp_world, float(t_true.min()))
+    return _Gcp(shots, markers, gcp_world, float(t_true.min()), t_true, g_st, g_mk)
 
 
 def _survey(cfg: SimulationConfig, rng: np.random.Generator, robot: _Robot) -> SurveyShots:
@@ -1167,9 +1214,119 @@ def _weather(
             WeatherSeries(w_t, T, P, H, "simulated (reported)"))
 
 
+def _polar_change(p_station: np.ndarray, q_station: np.ndarray, ppm: np.ndarray):
+    """Change of the raw polar values (rad, rad, m at 0 ppm) when a station sees ``q``
+    instead of ``p`` (station frame, (N, 3), m)."""
+    hz0, v0, d0 = cartesian_to_polar(p_station)
+    hz1, v1, d1 = cartesian_to_polar(q_station)
+    return np.angle(np.exp(1j * (hz1 - hz0))), v1 - v0, (d1 - d0) / (1.0 + ppm * 1e-6)
+
+
+def _reality_draws(
+    cfg: SimulationConfig, rng: np.random.Generator, ids: tuple[str, ...], gcp: _Gcp
+) -> tuple[RealityTruth, dict[str, np.random.Generator]]:
+    """The per-station draws of the reality effects that are on, and each effect's stream."""
+    fx = cfg.reality
+    n_st = int(cfg.n_stations)
+    entropy = int(rng.integers(0, 2**63 - 1))  # after every stage: the base draws are unchanged
+    draw = {name: effect_rng(entropy, name) for name in fx.enabled}
+    zeros = np.zeros(n_st)
+    clock_rate, sync_phase, twist, sink = zeros, zeros, zeros, zeros
+    if fx.clock_drift:
+        g = draw["clock_drift"]
+        clock_rate = fx.clock_drift_rate * g.choice([-1.0, 1.0], n_st)
+        sync_phase = g.uniform(0.0, fx.clock_resync_interval_s, n_st)
+    if fx.tripod_settling:
+        twist = fx.settling_twist_rad * draw["tripod_settling"].choice([-1.0, 1.0], n_st)
+        sink = np.full(n_st, float(fx.settling_sink_m))
+    phase = (draw["prism_cyclic"].uniform(0.0, 2.0 * np.pi, (n_st, 2)) if fx.prism_cyclic
+             else np.zeros((n_st, 2)))
+    setup = np.full(n_st, np.inf)
+    np.minimum.at(setup, gcp.station, gcp.t_true)  # a station is set up at its first GCP shot
+    setup = np.where(np.isfinite(setup), setup, float(cfg.start_time_s))
+    return RealityTruth(fx, ids, clock_rate, sync_phase, setup, twist, sink, phase), draw
+
+
+def _reality_track(
+    cfg: SimulationConfig, reality: RealityTruth, draw: dict[str, np.random.Generator],
+    model: TruthModel, stations: _Stations, k: int, obs: Observations, ot: ObservationTruth,
+) -> tuple[Observations, ObservationTruth]:
+    """One station's tracking measurements with the reality effects (vectorised over them)."""
+    fx = cfg.reality
+    t, p_world = ot.t_true, ot.xyz_world
+    R, t_station = stations.R_world[k], stations.t_world[k]
+    zero = np.zeros(t.shape)
+    dhz, dv, dd = zero, zero, zero
+    if fx.tracking_lag or fx.tripod_settling:
+        q_world = p_world
+        if fx.tracking_lag:
+            q_world = first_order_lag(lambda tt: model.prisms_at(tt)[..., k, :], t,
+                                      fx.tracking_lag_s)
+        q_station = (q_world - t_station) @ R
+        if fx.tripod_settling:
+            q_station = settle_points(q_station, *reality.settling_at(k, t))
+        dhz, dv, dd = _polar_change((p_world - t_station) @ R, q_station, ot.ppm)
+    if fx.prism_cyclic:
+        R_world_robot, _ = model.robot_at(t)
+        # azimuth, in the robot frame, of the line of sight from the prism to the station
+        los_robot = np.einsum("nji,nj->ni", R_world_robot, t_station - p_world)
+        alpha = np.arctan2(los_robot[:, 1], los_robot[:, 0])
+        _, v0, d0 = cartesian_to_polar((p_world - t_station) @ R)
+        e_range = prism_cyclic_error(alpha, fx.prism_cyclic_range_m, fx.prism_cyclic_period_rad,
+                                     reality.prism_phase_rad[k, 0])
+        e_across = prism_cyclic_error(alpha, fx.prism_cyclic_across_m,
+                                      fx.prism_cyclic_period_rad, reality.prism_phase_rad[k, 1])
+        dd = dd + e_range / (1.0 + ot.ppm * 1e-6)
+        dhz = dhz + e_across / (d0 * np.sin(v0))
+    if fx.correlated_noise:
+        x = gauss_markov(t, fx.correlated_time_s,
+                         [fx.correlated_sigma_angle_rad, fx.correlated_sigma_angle_rad,
+                          fx.correlated_sigma_distance_m], draw["correlated_noise"])
+        dhz, dv, dd = dhz + x[:, 0], dv + x[:, 1], dd + x[:, 2]
+    t_rec = obs.t - reality.clock_error_s(k, t) if fx.clock_drift else obs.t
+    return (Observations(t_rec, np.mod(obs.hz + dhz, 2.0 * np.pi), obs.v + dv, obs.d + dd,
+                         obs.status, obs.station, obs.prism, obs.additive_constant, obs.source),
+            replace(ot, clock_error_s=t - t_rec))
+
+
+def _reality(
+    cfg: SimulationConfig, rng: np.random.Generator, model: TruthModel, stations: _Stations,
+    observations: list[Observations], observations_truth: dict[str, ObservationTruth],
+    gcp: _Gcp, weather_reported: WeatherSeries,
+):
+    """Apply the reality effects of ``cfg.reality`` (:mod:`rtsgt.simulation.reality`) to the
+    tracking measurements and their stamps, the GCP shots (tripod settling) and the reported
+    weather. Returns them in the same form, with the :class:`RealityTruth`."""
+    fx = cfg.reality
+    reality, draw = _reality_draws(cfg, rng, stations.ids, gcp)
+    new_obs, new_truth = [], {}
+    for k, obs in enumerate(observations):  # loop over stations
+        o, ot = _reality_track(cfg, reality, draw, model, stations, k, obs,
+                               observations_truth[obs.station])
+        new_obs.append(o)
+        new_truth[obs.station] = ot
+    if fx.tripod_settling:
+        shots = gcp.shots
+        p_station = _in_station_frames(stations, gcp.station, gcp.world[gcp.marker])
+        f = settling_fraction(gcp.t_true, reality.settling_start_s[gcp.station],
+                              fx.settling_time_s)
+        q_station = settle_points(p_station, reality.settling_sink_m[gcp.station] * f,
+                                  reality.settling_twist_rad[gcp.station] * f)
+        dhz, dv, dd = _polar_change(p_station, q_station, _true_ppm(cfg, model, gcp.t_true))
+        gcp = gcp._replace(shots=replace(shots, hz=np.mod(shots.hz + dhz, 2.0 * np.pi),
+                                         v=shots.v + dv, d=shots.d + dd))
+    if fx.remote_weather:
+        w = weather_reported
+        T, P = remote_weather(w.temperature_c, w.pressure_hpa, fx.remote_temperature_bias_c,
+                              fx.remote_altitude_difference_m)
+        weather_reported = WeatherSeries(w.t, T, P, w.humidity_pct, w.source)
+    return new_obs, new_truth, gcp, weather_reported, reality
+
+
 def _truth(
     cfg: SimulationConfig, model: TruthModel, stations: _Stations, robot: _Robot,
     offsets: np.ndarray, gcp: _Gcp, observations: dict[str, ObservationTruth],
+    reality: RealityTruth | None = None,
 ) -> SimulationTruth:
     """The exported truth: ``T_world_body`` and the prisms at ``truth_rate_hz``, and the rest."""
     n_truth = int(np.floor(cfg.duration_s * cfg.truth_rate_hz + 1e-9)) + 1
@@ -1198,6 +1355,7 @@ def _truth(
         observations=observations,
         additive_constant=cfg.additive_constant_m,
         model=model,
+        reality=reality,
     )
 
 
@@ -1207,7 +1365,10 @@ def simulate_deployment(
     """Simulate a deployment with known truth.
 
     The stages draw from ``rng`` in this order: path, terrain, speed profile, stations, robot
-    and survey frame, weather, clocks, tracking, GCPs, survey shots, reported weather.
+    and survey frame, weather, clocks, tracking, GCPs, survey shots, reported weather; then,
+    only when a reality effect is on (``config.reality``), one integer that seeds the effects'
+    own streams (:func:`rtsgt.simulation.reality.effect_rng`), and the effects are applied to
+    the measurements, the time stamps, the GCP shots and the reported weather.
 
     Parameters
     ----------
@@ -1239,6 +1400,8 @@ def simulate_deployment(
     loop = _loop_shape(cfg, rng)
     terrain = _terrain(cfg, rng)
     speed = _speed_profile(cfg, rng)
+    if cfg.reality.jerky_ramps:
+        speed = _jerky_ramps(speed, cfg.reality.jerky_accel_m_s2)
     stations = _place_stations(cfg, rng, loop, terrain)
     robot = _robot_geometry(cfg, rng)
     R_robot_body = robot.R_body_robot.T
@@ -1254,6 +1417,10 @@ def simulate_deployment(
     survey = _survey(cfg, rng, robot)
     weather_true, weather_reported = _weather(
         cfg, rng, model, min(gcp.first_shot_s, float(cfg.start_time_s)))
-    truth = _truth(cfg, model, stations, robot, offsets, gcp, observations_truth)
+    reality = None
+    if cfg.reality.enabled:
+        observations, observations_truth, gcp, weather_reported, reality = _reality(
+            cfg, rng, model, stations, observations, observations_truth, gcp, weather_reported)
+    truth = _truth(cfg, model, stations, robot, offsets, gcp, observations_truth, reality)
     return SimulatedDeployment(observations, gcp.shots, survey, weather_true, weather_reported,
                                truth, cfg, seed)

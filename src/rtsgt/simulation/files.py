@@ -19,7 +19,8 @@ r"""Write a simulated deployment as the files of a real one, plus its truth.
 ``truth.tum``           true ``T_world_robot`` at ``truth_rate_hz``, TUM ``t x y z qx qy qz qw``
                         (the frame ``deployment.toml`` asks the ground truth in)
 ``truth_prisms.csv``    true prism positions, ``t_s,prism,x_m,y_m,z_m`` (world frame)
-``truth.json``          station transforms, clock offsets, reference points, seed, config
+``truth.json``          station transforms, clock offsets, reference points, seed, config,
+                        and the reality effects with their draws when one is on
 ``deployment.toml``     the configuration ``rtsgt run`` reads (paths relative to it)
 =====================  ========================================================================
 
@@ -197,6 +198,11 @@ def _truth_json(sim: SimulatedDeployment, name: str) -> str:
         "noise_sources": list(sim.config.noise_sources),
         "config": asdict(sim.config),
     }
+    # the reality effects (rtsgt.simulation.reality) appear only when one is on, so that a
+    # deployment without them is written as before, byte for byte
+    del doc["config"]["reality"]
+    if tr.reality is not None:
+        doc["reality_effects"] = tr.reality.to_dict()
     return json.dumps(_jsonable(doc), indent=2) + "\n"
 
 

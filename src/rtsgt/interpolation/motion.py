@@ -1,0 +1,240 @@
+r"""A motion prior whose strength follows the motion: ``Qc`` per class of the robot's motion.
+
+Why
+---
+One power spectral density ``Qc`` for a whole track (:mod:`rtsgt.interpolation.loo`) is an
+average over everything the robot did. Where it stands, the prism does not move at all and the
+average ``Qc`` lets the GP follow the measurement noise instead of averaging it out; where it
+brakes, starts or swerves, the average ``Qc`` is too small and the GP smooths the manoeuvre
+away. On the real excerpt of the 2022-11-10 deployment the inter-prism self-check
+(:mod:`rtsgt.checks.distances`) shows exactly this with one ``Qc`` per track: mean ``z^2`` 0.15
+while standing (pessimistic) and 4.2 between 0.05 and 0.8 m/s (optimistic).
+
+Model
+-----
+Interval ``k`` of a track (between its measurements ``k`` and ``k+1``) has
+``Qc_k = s_c Qc``: ``Qc`` is the track's constant leave-one-out ``Qc`` (per axis) and ``s_c``
+the scale of the interval's motion class ``c``:
+
+- ``standing``: the robot's speed is below :data:`STANDING_SPEED_M_S` throughout the interval;
+- otherwise the class of the largest acceleration of the robot during the interval, in
+  half-decade bins with edges :data:`ACCELERATION_EDGES_M_S2` (0.1, 0.3 and 1 m/s^2).
+
+The motion is the robot's, not the prism's: speed and acceleration come from the *pilot* GPs
+(constant ``Qc``) of every prism, at every measurement of every prism. So an interval of one
+prism's track that bridges a gap takes the class of what the other prisms saw meanwhile (the
+robot braked while one station had lost its prism). The acceleration at a measurement is
+``|v_k+1 - v_k| / (t_k+1 - t_k)`` from the pilot's posterior mean velocities, the larger of the
+measurement's two intervals; the speed is ``|v_k|``.
+
+Fit and choice
+--------------
+The scales maximise the leave-one-out log predictive density of the track (the criterion of the
+constant ``Qc``: each measurement predicted from all the others, what a query between
+measurements does), by L-BFGS-B in ``log s_c``, bounded to a factor of about 10^6 either way and so that the
+largest axis of every ``s_c Qc`` stays in :data:`rtsgt.interpolation.gp.QC_BOUNDS`. A class with fewer than :data:`MIN_INTERVALS`
+intervals joins the next slower class (a scale needs data). The classes are kept only where
+they predict the held-out measurements better than the constant ``Qc`` by more than one unit
+of log density per added scale; else the track keeps its constant ``Qc``. ``Qc`` is then no
+longer one number per axis but follows the motion, and the check above decides whether that
+made the covariance honest (docs/interpolation.md#motion-prior).
+
+The thresholds are physical round numbers (a robot standing still; half-decades of
+acceleration), chosen before looking at any deployment and the same for all; what adapts to a
+deployment is the scale of each class, fitted on its own measurements.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.optimize import minimize
+
+from rtsgt.interpolation.gp import QC_BOUNDS, GPTrack
+from rtsgt.interpolation.loo import loo_score
+
+__all__ = ["ACCELERATION_EDGES_M_S2", "CLASS_NAMES", "MIN_INTERVALS", "STANDING_SPEED_M_S",
+           "MotionEvents", "MotionPriorFit", "fit_motion_prior", "interval_classes",
+           "motion_events"]
+
+#: Below this speed the robot stands, m/s.
+STANDING_SPEED_M_S = 0.05
+#: Edges of the acceleration classes of a moving robot, m/s^2 (half-decades).
+ACCELERATION_EDGES_M_S2 = (0.1, 0.3, 1.0)
+#: The motion classes, in order (index = class number).
+CLASS_NAMES = ("standing", "below 0.1 m/s^2", "0.1-0.3 m/s^2", "0.3-1 m/s^2", "above 1 m/s^2")
+#: Fewest intervals for a class to get its own scale.
+MIN_INTERVALS = 5
+#: Log predictive density a class model must gain per added scale to replace the constant Qc.
+GAIN_PER_SCALE = 1.0
+#: Largest |log| of a class's scale: a class's Qc stays within a factor e^14 (1.2e6) of the
+#: track's, and the largest axis of every class above the floor of QC_BOUNDS.
+SCALE_RANGE = 14.0
+
+
+@dataclass(frozen=True)
+class MotionEvents:
+    """The robot's motion class at the measurement times of all prisms, in time order.
+
+    Attributes
+    ----------
+    t : ndarray, shape (E,)
+        Times, s (every knot of every pilot GP), sorted.
+    motion_class : ndarray of int, shape (E,)
+        Class at each time (index into :data:`CLASS_NAMES`).
+    """
+
+    t: np.ndarray
+    motion_class: np.ndarray
+
+
+def _knot_classes(gp: GPTrack) -> np.ndarray:
+    v = gp.mean[:, 3:]
+    speed = np.linalg.norm(v, axis=1)
+    acc = np.zeros(speed.shape)
+    if len(gp) > 1:
+        a = np.linalg.norm(np.diff(v, axis=0), axis=1) / np.diff(gp.t)
+        acc[:-1] = a
+        acc[1:] = np.maximum(acc[1:], a)
+    moving = 1 + np.searchsorted(np.asarray(ACCELERATION_EDGES_M_S2), acc, side="right")
+    return np.where(speed < STANDING_SPEED_M_S, 0, moving)
+
+
+def motion_events(pilots: Mapping[str, GPTrack]) -> MotionEvents:
+    """The robot's motion class at every knot of every pilot GP (module docstring)."""
+    t = np.concatenate([g.t for g in pilots.values()])
+    c = np.concatenate([_knot_classes(g) for g in pilots.values()])
+    order = np.argsort(t, kind="stable")
+    return MotionEvents(t[order], c[order])
+
+
+def interval_classes(t: ArrayLike, events: MotionEvents) -> np.ndarray:
+    """Class of each interval ``[t_k, t_k+1]`` of a track: the fastest class of the robot at
+    any event inside it, ends included (module docstring).
+
+    Parameters
+    ----------
+    t : array_like, shape (N,)
+        The track's measurement times, s, increasing.
+    events : MotionEvents
+
+    Returns
+    -------
+    ndarray of int, shape (N-1,)
+        0 (standing) for an interval without any event (cannot happen for a pilot's own
+        track, whose knots are events).
+    """
+    t = np.asarray(t, dtype=float)
+    if t.size < 2:
+        return np.zeros(0, dtype=int)
+    lab = np.append(events.motion_class, 0)  # a sentinel: reduceat may index one past the end
+    i0 = np.searchsorted(events.t, t[:-1], side="left")
+    i1 = np.searchsorted(events.t, t[1:], side="right")
+    empty = i1 <= i0
+    idx = np.minimum(np.ravel(np.column_stack([i0, np.maximum(i1, i0 + 1)])), lab.size - 1)
+    out = np.maximum.reduceat(lab, idx)[0::2]
+    return np.where(empty, 0, out).astype(int)
+
+
+@dataclass(frozen=True)
+class MotionPriorFit:
+    """A track's motion prior (:func:`fit_motion_prior`).
+
+    Attributes
+    ----------
+    qc_scale : ndarray, shape (N-1,) or None
+        Scale of each interval's ``Qc``; None when the constant ``Qc`` was kept.
+    scales : dict str -> float
+        Scale per class name (classes with intervals only; merged classes share a scale).
+    intervals : dict str -> int
+        Intervals per class name.
+    loo_constant, loo_classes : float
+        Leave-one-out log predictive density of the constant ``Qc`` and of the classes.
+    chosen : str
+        ``"classes"`` or ``"constant"``.
+    """
+
+    qc_scale: np.ndarray | None
+    scales: dict[str, float]
+    intervals: dict[str, int]
+    loo_constant: float
+    loo_classes: float
+    chosen: str
+
+    def as_dict(self) -> dict:
+        """JSON-ready."""
+        return {"chosen": self.chosen, "scales": self.scales, "intervals": self.intervals,
+                "loo_log_predictive_constant": self.loo_constant,
+                "loo_log_predictive_classes": self.loo_classes}
+
+
+def _merged(classes: np.ndarray) -> np.ndarray:
+    """Each class with fewer than MIN_INTERVALS intervals joins the next slower populated one
+    (the fastest ones may join down to ``standing``; a lone slow class joins upwards)."""
+    counts = np.bincount(classes, minlength=len(CLASS_NAMES))
+    target = np.arange(len(CLASS_NAMES))
+    populated = [c for c in range(len(CLASS_NAMES)) if counts[c] >= MIN_INTERVALS]
+    if not populated:
+        return np.zeros_like(classes)
+    for c in range(len(CLASS_NAMES)):
+        if c not in populated:
+            lower = [p for p in populated if p < c]
+            target[c] = lower[-1] if lower else populated[0]
+    return target[classes]
+
+
+def fit_motion_prior(
+    track, qc: ArrayLike, events: MotionEvents, *, max_gap_s: float,
+    loo_constant: float | None = None,
+) -> MotionPriorFit:
+    """Scale of ``Qc`` per motion class of a track, by leave-one-out (module docstring).
+
+    Parameters
+    ----------
+    track : (t, xyz, cov)
+        The measurements as given to the GP (times s, positions m, covariances m^2).
+    qc : array_like, shape (3, 3)
+        The track's constant ``Qc``, m^2/s^3.
+    events : MotionEvents
+        The robot's motion (:func:`motion_events` of the pilot GPs).
+    max_gap_s : float
+        Knots next to a longer gap are not scored (as for the constant ``Qc``).
+    loo_constant : float, optional
+        The constant ``Qc``'s leave-one-out score, if already known.
+
+    Returns
+    -------
+    MotionPriorFit
+    """
+    t = np.asarray(track[0], dtype=float)
+    qc = np.asarray(qc, dtype=float)
+    raw = interval_classes(t, events)
+    cls = _merged(raw)
+    present = np.unique(cls)
+    if loo_constant is None:
+        loo_constant = loo_score(track, qc, max_gap_s)[0]
+    counts = {CLASS_NAMES[c]: int(np.sum(raw == c)) for c in np.unique(raw)}
+    if present.size < 2:
+        return MotionPriorFit(None, {}, counts, float(loo_constant), float(loo_constant),
+                              "constant")
+    q = np.diag(qc)
+    lo = max(float(np.log(QC_BOUNDS[0] / q.max())), -SCALE_RANGE)
+    hi = min(float(np.log(QC_BOUNDS[1] / q.min())), SCALE_RANGE)
+    pos = np.searchsorted(present, cls)
+
+    def scale_of(x: np.ndarray) -> np.ndarray:
+        return np.exp(np.clip(x, lo, hi))[pos]
+
+    res = minimize(lambda x: -loo_score(track, qc, max_gap_s, scale_of(x))[0],
+                   np.zeros(present.size), method="L-BFGS-B", bounds=[(lo, hi)] * present.size,
+                   options={"eps": 1e-3})
+    loo_classes = -float(res.fun)
+    s = np.exp(np.clip(res.x, lo, hi))
+    scales = {CLASS_NAMES[c]: float(s[np.searchsorted(present, cls[raw == c][0])])
+              for c in np.unique(raw)}
+    better = loo_classes - loo_constant > GAIN_PER_SCALE * (present.size - 1)
+    return MotionPriorFit(scale_of(res.x) if better else None, scales, counts,
+                          float(loo_constant), loo_classes, "classes" if better else "constant")
