@@ -51,7 +51,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from rtsgt.calibration import calibrate
+from rtsgt.calibration import CalibrationResult, calibrate
 from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.calibration.gcp import gcp_atmospheric_correction, gcp_world_positions
 from rtsgt.checks import gcp_fit_check, inter_prism_check
@@ -61,12 +61,20 @@ from rtsgt.filtering import module1, module2
 from rtsgt.filtering.gates import apply_gates, surveyed_distance_check
 from rtsgt.filtering.modules import RemovedMeasurements, removed_measurements, warn_tight_rate_gates
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
-from rtsgt.interpolation.prisms import fit_gps, gp_covariance, query_grid, query_prisms
+from rtsgt.interpolation import GPTrack
+from rtsgt.interpolation.prisms import (
+    PrismsAtTimes,
+    fit_gps,
+    gp_covariance,
+    query_grid,
+    query_prisms,
+)
 from rtsgt.measurement.weather import check_weather_coverage
 from rtsgt.noise import NoiseModel, propagate
 from rtsgt.options import RunOptions, stage_rng
-from rtsgt.pose import estimate_poses
+from rtsgt.pose import PoseEstimate, ReferencePoints, estimate_poses
 from rtsgt.record import RunComputation, RunRecord, ordered_sources
+from rtsgt.shared import SharedFactor, select_prisms, split_ground_truth
 from rtsgt.types import PoseTrajectory, PrismTrack
 
 Progress = Callable[[str], None]
@@ -229,6 +237,10 @@ def _run_stages(
         reference.names)
     lap("gates")
 
+    say("shared errors")
+    split = _split(options, prisms, gps, tracks, calib, coupling, reference, est, keep)
+    lap("shared_errors")
+
     say("self-checks")
     self_checks = {"gcp_fit": gcp_fit_check(calib), "inter_prism_distances": inter_prism_check(
         gt.t, gt.position, prisms.xyz[keep], prisms.pose_covariance[keep],
@@ -237,8 +249,29 @@ def _run_stages(
     lap("self_checks")
     computation = RunComputation(data, calib, model, reports, tracks, gps, prisms, est, keep,
                                  gate_report, timings, qc_info)
-    return _record(computation, options, intervals, coupling, removed, gt, gcp_world,
-                   weather_coverage, distance_check, self_checks)
+    record = _record(computation, options, intervals, coupling, removed, gt, gcp_world,
+                     weather_coverage, distance_check, self_checks)
+    return replace(record, groundtruth_split=split)
+
+
+def _split(options: RunOptions, prisms: PrismsAtTimes, gps: dict[str, GPTrack],
+           tracks: dict[str, PrismTrack], calib: CalibrationResult, coupling: StationCoupling,
+           reference: ReferencePoints, est: PoseEstimate,
+           keep: np.ndarray) -> SharedFactor | None:
+    """The kept poses' error split into varying and shared parts (:mod:`rtsgt.shared`); None
+    when the GP was given the total covariance (``gp_noise = "all"``: no separate shared
+    sources)."""
+    if options.interpolation.gp_noise != "white":
+        return None
+    idx = np.flatnonzero(keep)
+    kept = select_prisms(prisms, idx)
+    velocity = np.stack([gps[p].query(kept.t, with_velocity=True, allow_gaps=True).velocity
+                         for p in tracks], axis=1)
+    origins = {s: np.asarray(T.translation, dtype=float) for s, T in calib.transforms.items()}
+    return split_ground_truth(
+        kept, velocity, [tracks[p].station for p in tracks], origins, coupling, reference,
+        est.R[idx], engine=options.pose.engine, samples=options.pose.samples,
+        rng=stage_rng(options.seed, "pose"))
 
 
 def _record(c: RunComputation, options: RunOptions, intervals: np.ndarray,

@@ -35,6 +35,7 @@ from rtsgt.noise import NoiseModel
 from rtsgt.options import RunOptions
 from rtsgt.pose import PoseEstimate
 from rtsgt.pose.reference import ReferencePoints
+from rtsgt.shared import SharedFactor
 from rtsgt.types import NOISE_SOURCES, PoseTrajectory, PrismTrack
 
 __all__ = ["RUN_SCHEMA_NAME", "RUN_SCHEMA_VERSION", "RunComputation", "RunRecord",
@@ -150,6 +151,11 @@ class RunRecord:
         ``gcp_fit`` (:func:`rtsgt.checks.gcp_fit_check`) and ``inter_prism_distances``
         (:func:`rtsgt.checks.inter_prism_check`). Empty for a run written before rtsgt made
         them.
+    groundtruth_split : SharedFactor, optional
+        The kept poses' error split into the part that varies from pose to pose and the part
+        the whole deployment shares (:mod:`rtsgt.shared`): the varying covariance and the
+        low-rank factor of the shared one, with the names of its parameters. None for a run
+        written before rtsgt made it, or with ``gp_noise = "all"``.
     summary : dict
         The run's ``summary.json`` as read (empty for a record not read from files).
     path : Path, optional
@@ -186,6 +192,7 @@ class RunRecord:
     weather_coverage: dict | None = None
     distance_check: dict = field(default_factory=dict)
     self_checks: dict = field(default_factory=dict)
+    groundtruth_split: SharedFactor | None = None
     summary: dict = field(default_factory=dict)
     path: Path | None = None
     computation: RunComputation | None = None
@@ -203,6 +210,10 @@ class RunRecord:
         missing = [p for p in self.prism_ids if p not in self.reference.names]
         if missing:
             raise ValueError(f"No reference point for prism(s) {', '.join(missing)}")
+        split = self.groundtruth_split
+        if split is not None and split.t.shape != self.groundtruth.t.shape:
+            raise ValueError(f"Expected the split of the {len(self.groundtruth.t)} kept poses, "
+                             f"got {split.t.shape[0]}")
         if self.rejected_t.shape != self.rejected_reason.shape:
             raise ValueError("Expected one rejection reason per rejected time")
 

@@ -257,6 +257,19 @@ def print_report(
             verdict,
         )
     console.print(nt)
+    sp = n.pose.split
+    if sp is None:
+        console.print("absolute verdict: autocorrelation of the NEES series (the ground truth "
+                      "has no shared factor: errors constant over the run are not tested "
+                      "apart)", highlight=False)
+    else:
+        sh, v = sp.shared, sp.varying
+        console.print(
+            f"absolute verdict, shared and varying parts apart ({'one' if sh.upper else 'two'}-"
+            f"sided): shared {sh.statistic:.1f} on {sh.dof} dof (accepted <= "
+            f"{sh.interval[1]:.1f}{'' if sh.upper else f', >= {sh.interval[0]:.1f}'}), "
+            f"varying NEES {v.mean:.2f} / {v.dof} (accepted <= {v.mean_interval[1]:.2f})",
+            highlight=False)
     console.print(f"relative poses: ground-truth correlations {n.rpe_correlations}")
     f = result.noise_floor
     console.print(

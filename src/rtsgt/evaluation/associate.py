@@ -135,6 +135,19 @@ class PairCovarianceGroundTruth(Protocol):
         ...
 
 
+@runtime_checkable
+class SharedFactorGroundTruth(Protocol):
+    """A ground truth that splits its pose errors into a varying part and a part shared by
+    the whole deployment (:class:`rtsgt.shared.SharedFactor`), e.g.
+    :class:`rtsgt.evaluation.groundtruth.ContinuousGroundTruth` of a run that wrote it. The
+    NEES verdict then tests the two apart (:func:`rtsgt.evaluation.metrics.shared_error_test`).
+    """
+
+    def shared_split(self, times: ArrayLike):
+        """The split at ground-truth times (valid poses), or None when it is not known."""
+        ...
+
+
 @dataclass(frozen=True)
 class Association:
     """Estimate poses paired with the ground truth at the same (offset) times.

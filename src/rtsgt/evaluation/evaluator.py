@@ -24,11 +24,13 @@ from rtsgt.evaluation.associate import (
     Association,
     GroundTruthQuery,
     PairCovarianceGroundTruth,
+    SharedFactorGroundTruth,
     ValidatedGroundTruth,
     associate,
 )
 from rtsgt.evaluation.metrics import (
     NeesResult,
+    alignment_sensitivity,
     ape_errors,
     chain_cross_covariance,
     nees_consistency,
@@ -39,6 +41,7 @@ from rtsgt.evaluation.metrics import (
     remove_floor,
     rpe_errors,
     rpe_pairs,
+    shared_error_test,
     squared_mahalanobis,
 )
 from rtsgt.evaluation.options import EvaluationOptions
@@ -323,6 +326,36 @@ def absolute_nees(
     return _nees(xi[:, :3], S[:, :3, :3], 3, "position", t), _nees(xi, S, 6, "pose", t)
 
 
+def split_nees(
+    gt: GroundTruth,
+    g: PoseTrajectory,
+    e: PoseTrajectory,
+    assoc: Association,
+    xi: np.ndarray,
+    absolute: tuple[NeesResult, NeesResult],
+    align: str,
+) -> tuple[NeesResult, NeesResult]:
+    """The absolute NEES with the split verdict when the ground truth gives its shared factor
+    (:func:`~rtsgt.evaluation.metrics.shared_error_test`; ``consistent`` becomes its verdict,
+    ``mean`` and ``fraction_inside_95`` stay those of the NEES against the total covariance);
+    unchanged otherwise (the verdict of the NEES series' autocorrelation). For an estimate
+    without covariance the tests are one-sided: is the error significant against the ground
+    truth's own uncertainty?"""
+    if not isinstance(gt, SharedFactorGroundTruth):
+        return absolute
+    split = gt.shared_split(g.t + assoc.time_offset)
+    if split is None:
+        return absolute
+    D = split.varying_cov + (0.0 if e.cov is None else e.cov)
+    try:
+        pos, pose = shared_error_test(xi, D, split.factor, alignment_sensitivity(g.position, align),
+                                      names=split.names, upper=e.cov is None)
+    except ValueError as exc:
+        raise InputError(f"Cannot test the errors against the shared factor: {exc}") from None
+    return (dataclasses.replace(absolute[0], consistent=pos.consistent, split=pos),
+            dataclasses.replace(absolute[1], consistent=pose.consistent, split=pose))
+
+
 def nees_section(
     g: PoseTrajectory,
     e: PoseTrajectory,
@@ -458,6 +491,8 @@ def evaluate(
     xi = pose_error(g.rotation, g.position, e.rotation, e.position)
     S = error_covariance(g, e)
     absolute = None if S is None else absolute_nees(xi, S, g.t)
+    if absolute is not None:
+        absolute = split_nees(gt, g, e, assoc, xi, absolute, options.align)
     relative = None if S is None or rpe is None else relative_covariance(gt, g, assoc, pairs)
     return EvaluationResult(
         t=assoc.est.t,

@@ -70,6 +70,7 @@ from rtsgt.options import RunOptions, stage_rng
 from rtsgt.pose import POSE_ENGINES, ReferencePoints, estimate_poses
 from rtsgt.pose.registration import registration_jacobian
 from rtsgt.record import RunRecord
+from rtsgt.shared import SharedFactor, rank_one_factor, split_ground_truth
 from rtsgt.types import PrismTrack
 
 __all__ = [
@@ -124,6 +125,11 @@ class ContinuousGroundTruth:
         Where it comes from (for messages).
     coupling : StationCoupling, optional
         Correlation of the station calibrations (the run's), for the joint prism covariance.
+    station_origins : dict str -> ndarray (3,)
+        World position of each station, m (the lever arm of the shared errors).
+    split : bool
+        Whether the run split its errors into varying and shared parts (it wrote
+        ``groundtruth_shared.csv``); :meth:`shared_split` then gives the split at any time.
     """
 
     tracks: dict[str, PrismTrack]
@@ -134,6 +140,8 @@ class ContinuousGroundTruth:
     uncertainty_measure: str = "max_std"
     source: str = ""
     coupling: StationCoupling | None = None
+    station_origins: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    split: bool = False
 
     def __post_init__(self) -> None:
         if not self.tracks:
@@ -167,6 +175,8 @@ class ContinuousGroundTruth:
         source: str = "",
         coupling: StationCoupling | None = None,
         qc_scale: dict[str, ArrayLike] | None = None,
+        station_origins: dict[str, np.ndarray] | None = None,
+        split: bool = False,
     ) -> ContinuousGroundTruth:
         """Fit the GPs of ``tracks`` with the given per-prism ``Qc`` (m^2/s^3) and, where
         given, its scale per interval between measurements."""
@@ -177,7 +187,7 @@ class ContinuousGroundTruth:
                       qc_scale=qc_scale)
         return cls(dict(tracks), gps, np.asarray(intervals, dtype=float),
                    reference.select(list(tracks)), options, uncertainty_measure, source,
-                   coupling)
+                   coupling, dict(station_origins or {}), split)
 
     @classmethod
     def from_record(
@@ -221,16 +231,19 @@ class ContinuousGroundTruth:
             hi = min(float(tr.t[-1]) for tr in tracks.values())
             intervals = np.asarray([[lo, hi]] if hi > lo else [], dtype=float).reshape(-1, 2)
         reference = record.tracked_reference
+        split = record.groundtruth_split is not None
         if record.computation is not None:
             gps = record.computation.gps
             return cls(tracks, {p: gps[p] for p in tracks}, np.asarray(intervals), reference,
-                       opts, record.uncertainty_measure, source, record.coupling)
+                       opts, record.uncertainty_measure, source, record.coupling,
+                       dict(record.stations), split)
         for pid in tracks:
             if pid not in record.qc:
                 raise InputError(f"no qc_m2_s3 for prism {pid} under 'prisms'", summary_path)
         return cls.from_tracks(tracks, record.qc, intervals, reference, opts,
                                uncertainty_measure=record.uncertainty_measure, source=source,
-                               coupling=record.coupling, qc_scale=record.qc_scale)
+                               coupling=record.coupling, qc_scale=record.qc_scale,
+                               station_origins=record.stations, split=split)
 
     @classmethod
     def from_run_dir(
@@ -321,6 +334,27 @@ class ContinuousGroundTruth:
         sa, sb = self._linearise(tau_a), self._linearise(tau_b)
         return self._between(sa, sa), self._between(sb, sb), self._between(sa, sb)
 
+    def shared_split(self, times: ArrayLike) -> SharedFactor | None:
+        """The poses' error split into varying and shared parts at valid times (first order,
+        :func:`rtsgt.shared.split_ground_truth`, the varying covariance by the linear engine);
+        None when the run did not split its errors (an older run, ``gp_noise = "all"``).
+
+        The shared parameters are the run's (``groundtruth_shared.csv``): the same names, and
+        at the run's own times the same factor to first order.
+        """
+        if not self.split or self.options.interpolation.gp_noise != "white":
+            return None
+        tau = np.atleast_1d(np.asarray(times, dtype=float))
+        pr = query_prisms(self.tracks, self.gps, tau, self.options.interpolation, self.coupling)
+        est = estimate_poses(pr.xyz, pr.pose_covariance, self.reference, engine="linear")
+        velocity = np.stack([self.gps[p].query(tau, with_velocity=True, allow_gaps=True).velocity
+                             for p in self.tracks], axis=1)
+        origins = dict(self.station_origins)
+        if self.coupling is not None:
+            origins.update(self.coupling.origin)
+        return split_ground_truth(pr, velocity, [tr.station for tr in self.tracks.values()],
+                                  origins, self.coupling, self.reference, est.R)
+
     def _linearise(self, tau: ArrayLike) -> _Linearised:
         tau = np.atleast_1d(np.asarray(tau, dtype=float))
         n = len(self.tracks)
@@ -350,8 +384,8 @@ class ContinuousGroundTruth:
                 ):
                     if src not in a.prisms.cov_by_source:
                         continue
-                    fa = _rank_one_factor(a.prisms.cov_by_source[src][:, i], da)
-                    fb = _rank_one_factor(b.prisms.cov_by_source[src][:, i], db)
+                    fa = rank_one_factor(a.prisms.cov_by_source[src][:, i], da)
+                    fb = rank_one_factor(b.prisms.cov_by_source[src][:, i], db)
                     blk = blk + fa[:, :, None] * fb[:, None, :]
             C[:, 3 * i:3 * i + 3, 3 * i:3 * i + 3] = blk
         if systematic and self.coupling is not None and "calibration" in a.prisms.cov_by_source:
@@ -446,10 +480,3 @@ class _Linearised:
     J_q: np.ndarray  # (K, 6, 3n) pose Jacobian on the stacked prisms
     J_r: np.ndarray  # (K, 6, 3n) pose Jacobian on the stacked reference
     velocity: list  # per prism, (K, 3) GP velocity, m/s
-
-
-def _rank_one_factor(cov: np.ndarray, direction: np.ndarray) -> np.ndarray:
-    """``f`` with ``f f^T`` the rank-one ``cov`` (K, 3, 3), signed along ``direction``."""
-    norm = np.linalg.norm(direction, axis=-1, keepdims=True)
-    u = np.divide(direction, norm, out=np.zeros_like(direction), where=norm > 0)
-    return np.sqrt(np.clip(np.trace(cov, axis1=1, axis2=2), 0.0, None))[:, None] * u

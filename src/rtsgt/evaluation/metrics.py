@@ -30,6 +30,11 @@ Uncertainty-aware metrics (docs/evaluation.md#nees):
   *Estimation with Applications to Tracking and Navigation*, 2001, sec. 5.4.2: the sum of N
   independent NEES values is chi-square(N dof)), made robust to the correlation between
   consecutive poses by an effective sample size;
+- with a ground truth that splits its error into a varying and a shared part
+  (:mod:`rtsgt.shared`: ``C = blockdiag(V_k) + L L^T``), the split test of
+  :func:`shared_error_test`: the shared parameters' generalised-least-squares estimate
+  against its own covariance (chi-square), and the varying residual's NEES, with what an
+  alignment absorbs projected out (:func:`alignment_sensitivity`);
 - the ground-truth noise floor ``sqrt(mean_k tr Sigma_gt,pos,k)``: the APE rmse a perfect
   estimate would get, from ``E|dp|^2 = tr Sigma_est + tr Sigma_gt + |bias|^2``;
 - the covariance of the relative ground-truth pose ``Q_i^-1 Q_j`` for the RPE, with the
@@ -40,7 +45,7 @@ This module imports only numpy, scipy and rtsgt.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -504,8 +509,12 @@ class NeesResult:
     fraction_interval : tuple of float
         Two-sided ``1 - alpha`` acceptance interval of ``fraction_inside_95``.
     consistent : bool
-        Both ``mean`` and ``fraction_inside_95`` inside their intervals.
+        Both ``mean`` and ``fraction_inside_95`` inside their intervals; with ``split``, the
+        split test's verdict instead.
     alpha : float
+    split : SplitVerdict, optional
+        The test that accounts for the errors shared by the deployment (when the ground truth
+        gives its shared factor); ``consistent`` is then its verdict.
     """
 
     values: np.ndarray
@@ -519,6 +528,7 @@ class NeesResult:
     fraction_interval: tuple[float, float]
     consistent: bool
     alpha: float = 0.05
+    split: SplitVerdict | None = None
 
     @property
     def mean_ok(self) -> bool:
@@ -541,6 +551,10 @@ class NeesResult:
             "fraction_interval": [float(v) for v in self.fraction_interval],
             "quantile_95": float(self.quantile_95),
             "alpha": float(self.alpha),
+            "verdict": ("shared and varying parts tested apart (shared factor of the ground "
+                        "truth)" if self.split is not None else
+                        "autocorrelation of the NEES series (no shared factor)"),
+            **({} if self.split is None else {"split": self.split.to_dict()}),
         }
 
 
@@ -627,3 +641,285 @@ def noise_floor(cov_pos: ArrayLike) -> float:
 def remove_floor(rmse: float, floor: float) -> float:
     """``sqrt(max(rmse^2 - floor^2, 0))``: the rmse with the ground truth's own noise removed."""
     return float(np.sqrt(max(rmse * rmse - floor * floor, 0.0)))
+
+
+
+# --------------------------------------------------------------------------------------------
+# errors shared by the deployment: the split test
+# --------------------------------------------------------------------------------------------
+
+#: Alignment methods and the number of parameters each absorbs (:func:`alignment_sensitivity`).
+ALIGNMENT_PARAMETERS = {"none": 0, "se3": 6, "origin": 6, "sim3": 7, "4dof": 4, "scale": 1}
+
+#: A shared direction is tested when the data determine at least this share of its prior
+#: variance (eigenvalue of the estimate's covariance, whitened units): below it the direction
+#: is (nearly) unobservable, e.g. absorbed by the alignment, and left out of the chi-square.
+MIN_OBSERVED_VARIANCE = 1e-2
+
+
+def alignment_sensitivity(position: ArrayLike, method: str) -> np.ndarray | None:
+    r"""``K_k = d e_k / d a``: how an alignment's small change moves the pose errors.
+
+    The alignment maps the estimate by ``p -> s R p + t``; a small change ``a`` of it about the
+    fitted one moves the aligned position ``p_k`` by ``dt - [p_k]x dphi + ds p_k`` and the
+    rotation error by ``dphi`` (left perturbation, world frame, :func:`pose_error`). Columns
+    (positions centred on their mean, which changes the translation columns only, not the
+    span):
+
+    ``se3``, ``origin``: ``(dt, dphi)``, 6; ``sim3``: and ``ds``, 7; ``4dof``: ``dt`` and the
+    yaw ``dphi_z``, 4; ``scale``: ``ds`` about the world origin, 1 (not centred); ``none``:
+    None.
+
+    Parameters
+    ----------
+    position : array_like, shape (N, 3)
+        Ground-truth positions at the poses, m.
+    method : str
+        A method of :data:`ALIGNMENT_PARAMETERS`.
+
+    Returns
+    -------
+    ndarray, shape (N, 6, m), or None
+    """
+    if method not in ALIGNMENT_PARAMETERS:
+        raise ValueError(f"Expected an alignment in {tuple(ALIGNMENT_PARAMETERS)}, got {method!r}")
+    if method == "none":
+        return None
+    p = np.asarray(position, dtype=float)
+    N = p.shape[0]
+    if method == "scale":
+        K = np.zeros((N, 6, 1))
+        K[:, :3, 0] = p
+        return K
+    c = p - p.mean(axis=0)
+    rigid = np.zeros((N, 6, 6))
+    rigid[:, :3, :3] = np.eye(3)
+    rigid[:, :3, 3:] = -hat(c)
+    rigid[:, 3:, 3:] = np.eye(3)
+    if method == "4dof":
+        return rigid[:, :, [0, 1, 2, 5]]
+    if method == "sim3":
+        scale = np.zeros((N, 6, 1))
+        scale[:, :3, 0] = c
+        return np.concatenate([rigid, scale], axis=2)
+    return rigid
+
+
+@dataclass(frozen=True)
+class SharedTest:
+    """The shared parameters' estimate tested against its own covariance.
+
+    Attributes
+    ----------
+    theta : ndarray, shape (k,)
+        GLS estimate of the whitened shared parameters.
+    statistic : float
+        ``theta^T Sigma_theta^+ theta`` over the observed directions.
+    dof : int
+        Number of observed directions (eigenvalue of ``Sigma_theta`` above
+        :data:`MIN_OBSERVED_VARIANCE`).
+    interval : tuple of float
+        Two-sided ``1 - alpha`` chi-square(dof) acceptance interval of ``statistic``.
+    p_value : float
+        Upper tail ``P(chi2(dof) > statistic)``.
+    tau : float
+        Integrated autocorrelation time of the whitened varying residual (the inflation of
+        the varying part's contribution to ``Sigma_theta``).
+    absorbed : int
+        Parameters of the alignment projected out.
+    consistent : bool
+        ``statistic`` inside ``interval`` (two-sided), or below its upper end (``upper``).
+    alpha : float
+    upper : bool
+        One-sided: only errors too large for the covariance fail (an estimate without
+        covariance: is its error significant against the ground truth's uncertainty?).
+    """
+
+    theta: np.ndarray
+    statistic: float
+    dof: int
+    interval: tuple[float, float]
+    p_value: float
+    tau: float
+    absorbed: int
+    consistent: bool
+    alpha: float
+    upper: bool = False
+
+    def to_dict(self) -> dict:
+        return {"statistic": float(self.statistic), "dof": int(self.dof),
+                "test": "one-sided (upper)" if self.upper else "two-sided",
+                "interval": [float(v) for v in self.interval], "p_value": float(self.p_value),
+                "consistent": bool(self.consistent), "alpha": float(self.alpha),
+                "time_correlation": float(self.tau), "alignment_parameters": int(self.absorbed),
+                "k": int(self.theta.size)}
+
+
+@dataclass(frozen=True)
+class SplitVerdict:
+    """The verdict of the split test for one NEES (position or pose).
+
+    Attributes
+    ----------
+    shared : SharedTest
+    varying : NeesResult
+        NEES of the varying residual ``e - L theta - K a`` against ``V`` (scaled by its exact
+        expectation under consistency, so that its mean is ``dof``), tested with the effective
+        sample size of :func:`nees_consistency`.
+    consistent : bool
+        Both passed (each at half the significance).
+    names : tuple of str
+        The shared parameters.
+    """
+
+    shared: SharedTest
+    varying: NeesResult
+    consistent: bool
+    names: tuple[str, ...] = ()
+
+    def to_dict(self) -> dict:
+        v = self.varying
+        top = np.argsort(-np.abs(self.shared.theta))[:5]
+        return {
+            "consistent": bool(self.consistent),
+            "shared": {**self.shared.to_dict(),
+                       "largest": {(self.names[j] if j < len(self.names) else str(j)):
+                                   float(self.shared.theta[j]) for j in top}},
+            "varying": {"mean": float(v.mean), "dof": int(v.dof),
+                        "fraction_inside_95": float(v.fraction_inside_95),
+                        "consistent": bool(v.consistent), "n_eff": float(v.n_eff),
+                        "mean_interval": [float(x) for x in v.mean_interval],
+                        "fraction_interval": [float(x) for x in v.fraction_interval],
+                        "alpha": float(v.alpha)},
+        }
+
+
+def _whiten(D: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """``chol(D)^-1 X`` for (N, d, d) covariances and (N, d, ...) right-hand sides."""
+    Lc = np.linalg.cholesky(D)
+    if X.ndim == 2:
+        return np.linalg.solve(Lc, X[..., None])[..., 0]
+    return np.linalg.solve(Lc, X)
+
+
+def shared_error_test(
+    e: ArrayLike,
+    D: ArrayLike,
+    L: ArrayLike,
+    K: ArrayLike | None = None,
+    *,
+    alpha: float = 0.05,
+    names: tuple[str, ...] = (),
+    upper: bool = False,
+) -> tuple[SplitVerdict, SplitVerdict]:
+    r"""Consistency of errors with a covariance ``C = blockdiag(D_k) + L L^T`` (the split test).
+
+    Model: ``e_k = nu_k + L_k theta + K_k a`` with ``nu_k ~ N(0, D_k)`` (the varying error:
+    the ground truth's, plus the estimate's own when it has one), ``theta ~ N(0, I_k)`` the
+    whitened shared parameters (:mod:`rtsgt.shared`) and ``a`` the alignment's small change,
+    unknown (flat prior: what the alignment absorbs is projected out, and nothing else).
+
+    With ``U = [L, K]``, ``A = U^T D^-1 U``, ``Lambda = diag(I_k, 0)`` and ``H = Lambda + A``
+    (Woodbury: every sum is over poses of 6 x (k + m) blocks, no 6N x 6N matrix), the GLS
+    estimate is ``(theta, a) = H^-1 U^T D^-1 e``; it does not depend on ``a`` (the alignment
+    is projected out exactly). Under consistency its covariance is
+
+    .. math::
+
+        \mathrm{Cov} = \tau (H^{-1} - H^{-1} \Lambda H^{-1}) + (E - H^{-1} E)(E - H^{-1} E)^T,
+        \qquad E = [I_k; 0],
+
+    where ``tau`` (the integrated autocorrelation time of the whitened residual, averaged over
+    the six components) accounts for the correlation of the varying error between nearby poses.
+
+    1. **Shared**: ``theta^T Sigma_theta^+ theta ~ chi2(dof)`` over the directions the data
+       observe (``Sigma_theta``'s eigenvalues above :data:`MIN_OBSERVED_VARIANCE`), tested
+       two-sided at ``alpha / 2``.
+    2. **Varying**: ``r_k = e_k - L_k theta - K_k a``, ``NEES_k = r_k^T D_k^-1 r_k``, divided by
+       its expectation under consistency per degree of freedom,
+       ``(d N - tr(M A_d)) / (d N)`` with ``M = 2 H^-1 - H^-1 A H^-1 - H_k H_k^T``
+       (``H_k``: the first ``k`` columns of ``H^-1``; ``A_d``: ``A`` over the position rows
+       only for ``d = 3``), then :func:`nees_consistency` at ``alpha / 2``.
+
+    The verdict is consistent when both pass. With ``upper`` both tests are one-sided, against
+    the upper ends of the same intervals (for the varying NEES: the mean below its interval's
+    upper end and the share inside the 95 % region above its interval's lower end): only
+    errors too large fail. That is the question for an estimate without covariance (is its
+    error significant against the ground truth's own uncertainty?), where errors smaller
+    than the ground truth's uncertainty are no fault of the estimate.
+
+    Parameters
+    ----------
+    e : array_like, shape (N, 6)
+        Pose errors (:func:`pose_error`), m and rad.
+    D : array_like, shape (N, 6, 6)
+        Varying covariances, positive definite.
+    L : array_like, shape (N, 6, k)
+        Shared factor.
+    K : array_like, shape (N, 6, m), optional
+        Alignment sensitivity (:func:`alignment_sensitivity`); None: no alignment.
+    alpha : float
+        Significance of the whole verdict.
+    names : tuple of str
+        Names of the shared parameters (for the report).
+    upper : bool
+        One-sided tests (above).
+
+    Returns
+    -------
+    position, pose : SplitVerdict
+        The verdicts with the position NEES (3 dof) and the pose NEES (6 dof); the shared test
+        is the same in both.
+    """
+    e = np.asarray(e, dtype=float)
+    D = np.asarray(D, dtype=float)
+    L = np.asarray(L, dtype=float)
+    N = e.shape[0]
+    k = L.shape[2]
+    U = L if K is None else np.concatenate([L, np.asarray(K, dtype=float)], axis=2)
+    m = U.shape[2] - k
+    try:
+        Ut = _whiten(D, U)
+        et = _whiten(D, e)
+        Ut3 = _whiten(D[:, :3, :3], U[:, :3])
+        et3 = _whiten(D[:, :3, :3], e[:, :3])
+    except np.linalg.LinAlgError:
+        raise ValueError("Expected positive definite varying covariances") from None
+    A = np.einsum("nip,niq->pq", Ut, Ut)
+    A3 = np.einsum("nip,niq->pq", Ut3, Ut3)
+    b = np.einsum("nip,ni->p", Ut, et)
+    Lam = np.diag(np.r_[np.ones(k), np.zeros(m)])
+    Hinv = np.linalg.pinv(Lam + A, hermitian=True)
+    est = Hinv @ b
+    theta = est[:k]
+    rt = et - Ut @ est
+    r3 = et3 - Ut3 @ est
+    tau = float(np.mean([integrated_autocorrelation_time(rt[:, c]) for c in range(6)]))
+    E = np.eye(k + m)[:, :k]
+    GL = E - Hinv[:, :k]
+    cov = tau * (Hinv - Hinv @ Lam @ Hinv) + GL @ GL.T
+    w, Q = np.linalg.eigh(cov[:k, :k])
+    keep = w > MIN_OBSERVED_VARIANCE
+    z = Q[:, keep].T @ theta
+    stat = float(np.sum(z * z / w[keep]))
+    dof = int(np.count_nonzero(keep))
+    a_s = alpha / 2
+    if dof:
+        interval = (float(stats.chi2.ppf(a_s / 2, dof)), float(stats.chi2.ppf(1 - a_s / 2, dof)))
+        p_value = float(stats.chi2.sf(stat, dof))
+        ok = stat <= interval[1] and (upper or interval[0] <= stat)
+    else:
+        interval, p_value, ok = (0.0, 0.0), 1.0, True
+    shared = SharedTest(theta, stat, dof, interval, p_value, tau, m, bool(ok), alpha, upper)
+    Hk = Hinv[:, :k]
+    M = 2 * Hinv - Hinv @ A @ Hinv - Hk @ Hk.T
+    out = []
+    for d, r, Ad in ((3, r3, A3), (6, rt, A)):
+        expected = (d * N - float(np.trace(M @ Ad))) / (d * N)
+        varying = nees_consistency(np.einsum("ni,ni->n", r, r) / expected, d, alpha=a_s)
+        if upper:
+            varying = replace(varying, consistent=bool(
+                varying.mean <= varying.mean_interval[1]
+                and varying.fraction_inside_95 >= varying.fraction_interval[0]))
+        out.append(SplitVerdict(shared, varying, bool(ok and varying.consistent), tuple(names)))
+    return out[0], out[1]

@@ -7,6 +7,12 @@ Layout of ``OUT/`` (every number in SI units, stated in the headers)::
     groundtruth_covariance.csv       t,x,y,z,qx,qy,qz,qw,cov_00,...,cov_55
                                      6x6 row-major, order (x, y, z, rx, ry, rz), m^2 / rad^2,
                                      left perturbation in the world frame
+    groundtruth_shared.csv           the kept poses' error split (rtsgt.shared), one row per
+                                     pose of groundtruth.tum: t, varying_00..varying_55 (the
+                                     varying covariance, 6x6 row-major like cov_*), then
+                                     shared.<name>.<x|y|z|rx|ry|rz>: column <name> of the
+                                     shared factor L (m or rad per unit of the whitened
+                                     parameter <name>); absent for older runs and gp_noise = all
     rejected_poses.csv               t,reason for every pose removed by a gate
     prisms/prism<i>.csv              interpolated track: t,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz
     prisms/prism<i>_sources.csv      per-source covariance at the same times: t,<source>_xx,...
@@ -108,6 +114,7 @@ from rtsgt.record import (
     no_removed_measurements,
     ordered_sources,
 )
+from rtsgt.shared import POSE_COMPONENTS, SharedFactor
 from rtsgt.types import PrismTrack
 
 __all__ = ["COV3_NAMES", "PrismSummary", "RunSummary", "columns_to_cov3", "cov3_to_columns",
@@ -316,6 +323,43 @@ def _write_removed(path: Path, removed: RemovedMeasurements) -> None:
             fh.write(f"{t:.9f},{p},{st},{xyz[0]:.6f},{xyz[1]:.6f},{xyz[2]:.6f},{stage},{why}\n")
 
 
+#: The file of the ground truth's error split (:mod:`rtsgt.shared`).
+SPLIT_FILE = "groundtruth_shared.csv"
+_VARYING = tuple(f"varying_{i}{j}" for i in range(6) for j in range(6))
+
+
+def _write_split(path: Path, split: SharedFactor) -> None:
+    """``groundtruth_shared.csv``: t, the varying covariance, the shared factor's columns."""
+    shared = [f"shared.{name}.{c}" for name in split.names for c in POSE_COMPONENTS]
+    # column (name, component) of the file is L[:, component, name]
+    factor = np.swapaxes(split.factor, 1, 2).reshape(len(split), -1)
+    write_csv(path, ["t", *_VARYING, *shared],
+              [split.t, split.varying_cov.reshape(-1, 36), factor])
+
+
+def _read_split(path: Path, t_gt: np.ndarray) -> SharedFactor | None:
+    """The split written by :func:`_write_split`, None when the file is absent (older run)."""
+    if not path.is_file():
+        return None
+    header, data = read_table(path, ("t", *_VARYING))
+    t = _col(header, data, "t")
+    if t.shape != t_gt.shape or np.max(np.abs(t - t_gt), initial=0.0) > 1e-6:
+        raise InputError("times differ from those of groundtruth_covariance.csv", path)
+    V = data[:, [header.index(c) for c in _VARYING]].reshape(-1, 6, 6)
+    names: list[str] = []
+    for col in header:
+        if col.startswith("shared."):
+            name = col[len("shared."):].rsplit(".", 1)[0]
+            if name not in names:
+                names.append(name)
+    cols = [f"shared.{n}.{c}" for n in names for c in POSE_COMPONENTS]
+    missing = [c for c in cols if c not in header]
+    if missing:
+        raise InputError(f"missing column {missing[0]}", path)
+    L = data[:, [header.index(c) for c in cols]].reshape(-1, len(names), 6)
+    return SharedFactor(t, np.ascontiguousarray(np.swapaxes(L, 1, 2)), tuple(names), V)
+
+
 def write_run(record: RunRecord, out: str | Path, *, force: bool = False,
               inputs: dict | None = None, protect: Iterable[str | Path] = (),
               finish: Callable[[Path, Path], None] | None = None) -> Path:
@@ -334,6 +378,8 @@ def write_run(record: RunRecord, out: str | Path, *, force: bool = False,
         gt = record.groundtruth
         write_tum(tmp / "groundtruth.tum", gt, decimals=(9, 12), comment=GROUNDTRUTH_TUM_COMMENT)
         write_covariance_csv(tmp / "groundtruth_covariance.csv", gt, digits=17)
+        if record.groundtruth_split is not None:
+            _write_split(tmp / SPLIT_FILE, record.groundtruth_split)
         with open(tmp / "rejected_poses.csv", "w", encoding="utf-8") as fh:
             fh.write("t,reason\n")
             for t, r in zip(record.rejected_t, record.rejected_reason, strict=True):
@@ -945,13 +991,13 @@ def read_run(run_dir: str | PathLike) -> RunRecord:
         if info is not None and info.station is not None:
             measurements[pid] = dataclasses.replace(tr, station=info.station)
     rej_t, rej_r = _read_rejected(root / "rejected_poses.csv")
+    groundtruth = read_covariance_csv(root / "groundtruth_covariance.csv", run_file=True)
     return RunRecord(
         name=summary.name if summary.name is not None else root.name, prism_ids=ids,
         measurements={pid: measurements[pid] for pid in ids if pid in measurements},
         prisms_t=t_ref, prisms_xyz=np.stack(xyz, axis=1), prisms_cov=np.stack(cov, axis=1),
         prisms_cov_by_source=prisms_by_source,
-        groundtruth=read_covariance_csv(root / "groundtruth_covariance.csv", run_file=True),
-        rejected_t=rej_t, rejected_reason=rej_r, reference=reference,
+        groundtruth=groundtruth, rejected_t=rej_t, rejected_reason=rej_r, reference=reference,
         options=summary.options, schema_version=summary.schema_version,
         stations=summary.stations,
         prisms_cov_gp=np.stack(cov_gp, axis=1) if len(cov_gp) == n else None,
@@ -964,5 +1010,6 @@ def read_run(run_dir: str | PathLike) -> RunRecord:
         measurements_gp_cov={pid: gp_cov[pid] for pid in ids if pid in gp_cov},
         warnings=summary.warnings, weather_coverage=summary.weather_coverage,
         distance_check=summary.distance_check, self_checks=summary.self_checks,
+        groundtruth_split=_read_split(root / SPLIT_FILE, groundtruth.t),
         summary=summary.document, path=root,
     )
