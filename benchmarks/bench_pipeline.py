@@ -34,7 +34,8 @@ def main(argv=None) -> None:
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args(argv)
     exe = shutil.which("rtsgt")
-    cmd = [exe] if exe else [sys.executable, "-m", "rtsgt.cli.main"]
+    # without the console script on PATH (a venv not activated), its entry point
+    cmd = [exe] if exe else [sys.executable, "-c", "from rtsgt.cli.main import main; main()"]
     walls, stages = [], []
     for k in range(args.repeat):
         with tempfile.TemporaryDirectory() as tmp:
