@@ -172,15 +172,16 @@ def fit_gps(
     found. ``info``, when given, receives per prism the method and the fit's statistics.
     """
 
-    def gp_data(tr: PrismTrack) -> tuple:
-        return tr.t, tr.xyz, gp_covariance(tr, options.gp_noise)
+    # what each GP is given, once for the fit with one Qc and the refit with the classes
+    data = {pid: (tr.t, tr.xyz, gp_covariance(tr, options.gp_noise))
+            for pid, tr in tracks.items()}
 
     def fit_one(pid: str, tr: PrismTrack) -> tuple[GPTrack, dict]:
         if qc is not None and pid in qc:
             scale = None if qc_scale is None else qc_scale.get(pid)
-            return fit_track(gp_data(tr), qc=qc[pid], max_gap_s=options.max_gap_s,
+            return fit_track(data[pid], qc=qc[pid], max_gap_s=options.max_gap_s,
                              qc_scale=scale), {"method": "given"}
-        return fit_prism_gp(gp_data(tr), options.qc, options.max_gap_s, f"prism {pid}")
+        return fit_prism_gp(data[pid], options.qc, options.max_gap_s, f"prism {pid}")
 
     done = _each_prism(fit_one, tracks)
     by_loo = [pid for pid, (_, entry) in done.items() if entry["method"] == "loo"]
@@ -189,12 +190,12 @@ def fit_gps(
 
         def refit(pid: str, tr: PrismTrack) -> tuple[GPTrack, dict]:
             gp, entry = done[pid]
-            fit = fit_motion_prior(gp_data(tr), gp.qc, events, max_gap_s=options.max_gap_s,
+            fit = fit_motion_prior(data[pid], gp.qc, events, max_gap_s=options.max_gap_s,
                                    loo_constant=entry["loo_log_predictive"])
             entry = {**entry, "motion_prior": fit.as_dict()}
             if fit.qc_scale is None:
                 return gp, entry
-            return fit_track(gp_data(tr), qc=gp.qc, max_gap_s=options.max_gap_s,
+            return fit_track(data[pid], qc=gp.qc, max_gap_s=options.max_gap_s,
                              qc_scale=fit.qc_scale), entry
 
         done.update(_each_prism(refit, {pid: tracks[pid] for pid in by_loo}))
