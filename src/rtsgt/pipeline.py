@@ -66,6 +66,7 @@ from rtsgt.interpolation.prisms import (
     PrismsAtTimes,
     fit_gps,
     gp_covariance,
+    gp_velocities,
     query_grid,
     query_prisms,
 )
@@ -265,8 +266,7 @@ def _split(options: RunOptions, prisms: PrismsAtTimes, gps: dict[str, GPTrack],
         return None
     idx = np.flatnonzero(keep)
     kept = select_prisms(prisms, idx)
-    velocity = np.stack([gps[p].query(kept.t, with_velocity=True, allow_gaps=True).velocity
-                         for p in tracks], axis=1)
+    velocity = gp_velocities({p: gps[p] for p in tracks}, kept.t)
     origins = {s: np.asarray(T.translation, dtype=float) for s, T in calib.transforms.items()}
     return split_ground_truth(
         kept, velocity, [tracks[p].station for p in tracks], origins, coupling, reference,

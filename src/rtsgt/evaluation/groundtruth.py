@@ -64,7 +64,7 @@ from rtsgt.evaluation.associate import (
 from rtsgt.filtering.gates import apply_gates
 from rtsgt.interpolation import GPTrack
 from rtsgt.interpolation.cross import gp_cross_covariance
-from rtsgt.interpolation.prisms import fit_gps, query_prisms
+from rtsgt.interpolation.prisms import fit_gps, gp_velocities, query_prisms
 from rtsgt.io.run_dir import read_run
 from rtsgt.options import RunOptions, stage_rng
 from rtsgt.pose import POSE_ENGINES, ReferencePoints, estimate_poses
@@ -347,8 +347,7 @@ class ContinuousGroundTruth:
         tau = np.atleast_1d(np.asarray(times, dtype=float))
         pr = query_prisms(self.tracks, self.gps, tau, self.options.interpolation, self.coupling)
         est = estimate_poses(pr.xyz, pr.pose_covariance, self.reference, engine="linear")
-        velocity = np.stack([self.gps[p].query(tau, with_velocity=True, allow_gaps=True).velocity
-                             for p in self.tracks], axis=1)
+        velocity = gp_velocities({p: self.gps[p] for p in self.tracks}, tau)
         origins = dict(self.station_origins)
         if self.coupling is not None:
             origins.update(self.coupling.origin)
@@ -362,8 +361,8 @@ class ContinuousGroundTruth:
         est = estimate_poses(pr.xyz, pr.pose_covariance, self.reference, engine="linear")
         J_q, J_r = registration_jacobian(np.broadcast_to(self.reference.xyz, pr.xyz.shape),
                                          pr.xyz, est.R)
-        velocity = [self.gps[p].query(tau, with_velocity=True, allow_gaps=True).velocity
-                    for p in self.tracks]
+        velocity = list(np.moveaxis(gp_velocities({p: self.gps[p] for p in self.tracks}, tau),
+                                    1, 0))
         return _Linearised(tau, pr, J_q.reshape(tau.size, 6, 3 * n),
                            J_r.reshape(tau.size, 6, 3 * n), velocity)
 

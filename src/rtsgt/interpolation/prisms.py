@@ -27,6 +27,7 @@ from rtsgt.options import InterpolationOptions
 from rtsgt.types import PrismTrack
 
 __all__ = ["PrismsAtTimes", "fit_gps", "fit_prism_gp", "query_prisms", "query_grid", "gp_covariance",
+           "gp_velocities",
            "WHITE_SOURCES", "SYSTEMATIC_SOURCES"]
 
 #: Noise sources whose errors are independent between measurements (fed to the GP).
@@ -202,6 +203,13 @@ def fit_gps(
     if info is not None:
         info.update({pid: entry for pid, (_, entry) in done.items()})
     return {pid: gp for pid, (gp, _) in done.items()}
+
+
+def gp_velocities(gps: dict[str, GPTrack], t: np.ndarray) -> np.ndarray:
+    """Posterior mean velocity of every prism's GP at the times ``t``, m/s, shape (T, n, 3)
+    (prisms in the order of ``gps``; times across a gap are answered, as the GP would)."""
+    return np.stack([g.query(t, with_velocity=True, allow_gaps=True).velocity
+                     for g in gps.values()], axis=1)
 
 
 def query_prisms(
