@@ -219,7 +219,10 @@ def query_prisms(
     """Positions and covariances of every prism at the times ``t`` (inside every track).
 
     With ``coupling`` (and the calibration among the noise sources), the joint covariance
-    across prisms is filled too (:attr:`PrismsAtTimes.cov_joint`).
+    across prisms is filled too (:attr:`PrismsAtTimes.cov_joint`). Not with
+    ``gp_noise = "all"`` (the paper's setting): the GP has then averaged the calibration error
+    with the white noise, and the full calibration covariance off the diagonal would not fit
+    the smaller one left on it (the joint matrix would not be positive semi-definite).
     """
     ids = list(tracks)
     T, n = t.shape[0], len(ids)
@@ -241,7 +244,8 @@ def query_prisms(
         if s in by_source:
             cov += by_source[s]
     joint = None
-    if coupling is not None and coupling.cross and "calibration" in by_source:
+    if (coupling is not None and coupling.cross and "calibration" in by_source
+            and options.gp_noise == "white"):
         joint = joint_prism_covariance(xyz, cov, by_source["calibration"],
                                        [tracks[p].station for p in ids], coupling)
     return PrismsAtTimes(t, xyz, cov, cov_gp, by_source, nearest, joint)
