@@ -70,8 +70,8 @@ measurements of those windows out of the GP fits and fits again:
   other prisms lose nothing but a few seconds of their Qc fit.
 
 The refit is gated again; a pose flagged now (a wrong measurement the first fit hid) adds its
-window, up to :data:`MAX_OUTLIER_REFITS` fits. The poses of a window stay rejected, with the
-values and the reason of the fit that flagged them. A pose outside the windows that the new
+window, up to :data:`MAX_OUTLIER_REFITS` fits after the first. The poses of a window stay
+rejected, with the values and the reason of the fit that flagged them. A pose outside the windows that the new
 GPs cannot vouch for (the window left a gap longer than ``max_gap_s``) is dropped, as every
 query across such a gap is. :class:`OutlierWindowReport` counts what was removed (stage
 ``"module4"``, reason ``"distance_window"`` in the run's removed measurements).
