@@ -50,6 +50,7 @@ def test_minimal_configuration_takes_the_paper_defaults(deployment):
     assert o.filter.tau_a == np.radians(1.0) and o.filter.tau_e == np.radians(1.0)
     assert o.pose.distance_gate_m == 0.10 and o.pose.uncertainty_gate_m == 0.20
     assert o.interpolation.qc == "loo" and o.interpolation.rate_hz == 5.0
+    assert o.interpolation.outlier_windows == "remove"
     assert cfg.query_times is None
     assert cfg.weather is None
 
@@ -65,6 +66,8 @@ def test_minimal_configuration_takes_the_paper_defaults(deployment):
         (lambda s: s + "[noise]\nsources = ['instrument', 'gravity']\n", r"unknown source\(s\) 'gravity'"),
         (lambda s: s + "[interpolation]\nqc = -1.0\n", r"\[interpolation\] qc = -1.0: expected qc > 0"),
         (lambda s: s + "[interpolation]\nqc = 'auto'\n", r"qc = 'auto': expected qc loo, likelihood or a number"),
+        (lambda s: s + "[interpolation]\noutlier_windows = 'drop'\n",
+         r"outlier_windows = 'drop': expected outlier_windows 'remove' or 'keep'"),
         (lambda s: s.replace('prisms = { "1" = 1, "2" = 2, "3" = 3 }', 'prisms = { "1" = 1, "2" = 2 }'),
          r"no survey row for tracked prism\(s\) 3"),
         (lambda s: s + "[filter]\ntau_r_m_s = 0\n", r"\[filter\] tau_r_m_s = 0.0: expected tau_r > 0"),
@@ -92,3 +95,8 @@ def test_real_excerpt_configuration_loads():
     assert cfg.weather is not None and cfg.weather.format == "eccc"
     assert cfg.weather.utc_offset_hours == -5.0
     assert all(s.additive_constant_m == 0.01 for s in cfg.stations)
+
+
+def test_the_outlier_windows_of_the_paper_stay_reachable(deployment):
+    deployment.write_text(MINIMAL + "[interpolation]\noutlier_windows = \"keep\"\n")
+    assert load_config(deployment).options.interpolation.outlier_windows == "keep"

@@ -3,7 +3,9 @@
 A simulated deployment with gross outliers, to which invalid statuses, a non-finite distance
 and a duplicated time are added, is run through the pipeline. ``removed.csv`` must list exactly
 the measurements that are not in the tracks, each with the module that removed it and its
-reason, as the sequential references of ``test_filtering`` give them.
+reason, as the sequential references of ``test_filtering`` give them. The outliers module 1
+lets through (the first measurement of a block is never compared) give poses the distance gate
+rejects, and the measurements of their windows are left out of the GP fits (module 4).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import numpy as np
 import pytest
 
 from rtsgt.filtering import FilterParams, module1
+from rtsgt.filtering.gates import in_windows
 from rtsgt.filtering.modules import removed_measurements
 from rtsgt.geometry.transform import RigidTransform
 from rtsgt.io.deployment import load_deployment
@@ -95,10 +98,14 @@ def _expected(result):
     times = [[float(result.computation.data.observations[k].t[i]) for i in kept1[s]]
              for k, s in enumerate(stations)]
     _, _, reasons2 = ref_module2(times, p)
-    for s, why2 in zip(stations, reasons2, strict=True):
-        for i, r in zip(kept1[s], why2, strict=True):
+    windows = result.computation.filter_reports["module4"].windows
+    for k, (s, why2) in enumerate(zip(stations, reasons2, strict=True)):
+        inside = in_windows(times[k], windows)
+        for i, r, w in zip(kept1[s], why2, inside, strict=True):
             if r:
                 expected[s][i] = ("module2", r)
+            elif w:
+                expected[s][i] = ("module4", "distance_window")
     return expected
 
 
@@ -112,15 +119,17 @@ def test_masks_reproduce_the_counts_and_the_kept_series(outlier_run):
         assert {r: int(np.sum(why == r)) for r in rep.removed} == dict(rep.removed)
         kept, _ = module1(o, result.options.filter)
         np.testing.assert_array_equal(o.t[mask], kept.t)
-    rep2 = reps["module2"]
-    assert len(rep2.kept_masks) == len(result.computation.tracks)
-    for mask, why, c, tr in zip(rep2.kept_masks, rep2.reasons, rep2.per_series,
-                                result.computation.tracks.values(), strict=True):
-        assert int(mask.sum()) == len(tr)
+    rep2, rep4 = reps["module2"], reps["module4"]
+    assert len(rep2.kept_masks) == len(rep4.kept_masks) == len(result.computation.tracks)
+    for mask, why, c, mask4, tr in zip(rep2.kept_masks, rep2.reasons, rep2.per_series,
+                                       rep4.kept_masks, result.computation.tracks.values(),
+                                       strict=True):
+        assert int(mask.sum()) == mask4.size and int(mask4.sum()) == len(tr)
         assert {r: int(np.sum(why == r)) for r in c} == dict(c)
     n1 = sum(r.n_removed for k, r in reps.items() if k.startswith("module1"))
     assert np.sum(result.removed.stage == "module1") == n1
     assert np.sum(result.removed.stage == "module2") == rep2.n_removed
+    assert np.sum(result.removed.stage == "module4") == rep4.n_removed > 0
     # the injected faults and the outliers are all there to be removed
     assert all(reps[f"module1_station{o.station}"].removed[r] > 0
                for o in result.computation.data.observations for r in ("status", "non_finite",
@@ -166,7 +175,8 @@ def test_removed_csv_gives_the_stage_and_reason_of_each(outlier_run):
     assert out_rows.count(("module1", "rate_distance")) >= 0.7 * len(out_rows) > 10
     stages = {(r["stage"], r["reason"]) for r in rows}
     assert {("module1", "status"), ("module1", "non_finite"), ("module1", "duplicate_time"),
-            ("module1", "rate_distance"), ("module2", "not_all_tracked")} <= stages
+            ("module1", "rate_distance"), ("module2", "not_all_tracked"),
+            ("module4", "distance_window")} <= stages
 
 
 def test_the_reader_takes_removed_csv_with_and_without_the_reason_column(outlier_run, tmp_path):
@@ -228,5 +238,13 @@ def test_removed_measurements_from_masks_by_hand():
     empty = removed_measurements([b], [rb], [np.ones(len(kb), bool)], [np.full(len(kb), "")],
                                  T)
     assert len(empty) == 0 and empty.xyz.shape == (0, 3)
+    # module 4: measurements module 2 kept, left out of the GP fits
+    m4 = [np.zeros(int(m.sum()), bool) for m in m2]
+    m4[1][0] = True  # station 2's first measurement module 2 kept (t = 2.5)
+    rm = removed_measurements([a, b], [ra, rb], m2, why2, T, m4)
+    assert rm.t.tolist() == [0.5, 1.5, 2.5, 3.0, 6.0, 9.0]
+    assert rm.stage.tolist()[2] == "module4" and rm.reason.tolist()[2] == "distance_window"
+    with pytest.raises(ValueError, match="outlier mask"):
+        removed_measurements([a, b], [ra, rb], m2, why2, T, [m4[0], m4[1][1:]])
     with pytest.raises(ValueError, match="masks do not match"):
         removed_measurements([a], [ra], [np.ones(3, bool)], [np.full(3, "")], T)

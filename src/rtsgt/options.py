@@ -43,9 +43,13 @@ GpNoise = Literal["white", "all"]
 GP_NOISE: tuple[str, ...] = get_args(GpNoise)
 MotionPrior = Literal["classes", "constant"]
 MOTION_PRIORS: tuple[str, ...] = get_args(MotionPrior)
+#: What the GPs do with the measurements inside the windows of distance rejections: leave them
+#: out and fit again (rtsgt), or keep them (the paper).
+OutlierWindows = Literal["remove", "keep"]
+OUTLIER_WINDOWS: tuple[str, ...] = get_args(OutlierWindows)
 
-__all__ = ["GP_NOISE", "MOTION_PRIORS", "QC_METHODS", "RANDOM_STAGES", "InterpolationOptions", "PoseOptions", "RunOptions",
-           "stage_rng"]
+__all__ = ["GP_NOISE", "MOTION_PRIORS", "OUTLIER_WINDOWS", "QC_METHODS", "RANDOM_STAGES",
+           "InterpolationOptions", "PoseOptions", "RunOptions", "stage_rng"]
 
 
 def stage_rng(seed: int, stage: str) -> np.random.Generator:
@@ -81,6 +85,10 @@ class InterpolationOptions:
         With ``qc = "loo"``: scale ``Qc`` per class of the robot's motion (standing, then by
         acceleration) where that predicts held-out measurements better
         (:mod:`rtsgt.interpolation.motion`), or one ``Qc`` per track (the paper).
+    outlier_windows : {"remove", "keep"}
+        The measurements inside the windows of poses the distance gate rejects (a station
+        tracking another prism): left out of the GP fits, which are fitted again
+        (:mod:`rtsgt.filtering.gates`), or kept in them (the paper).
     """
 
     rate_hz: float = 5.0
@@ -88,6 +96,7 @@ class InterpolationOptions:
     max_gap_s: float = DEFAULT_MAX_GAP_S
     gp_noise: GpNoise = "white"
     motion_prior: MotionPrior = "classes"
+    outlier_windows: OutlierWindows = "remove"
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
@@ -105,6 +114,9 @@ class InterpolationOptions:
         if self.motion_prior not in MOTION_PRIORS:
             raise InputError(f"Expected motion_prior {' or '.join(map(repr, MOTION_PRIORS))}, "
                              f"got {self.motion_prior!r}")
+        if self.outlier_windows not in OUTLIER_WINDOWS:
+            raise InputError(f"Expected outlier_windows {' or '.join(map(repr, OUTLIER_WINDOWS))}"
+                             f", got {self.outlier_windows!r}")
 
 
 @dataclass(frozen=True)
@@ -161,7 +173,8 @@ class RunOptions:
     def updated(self, **changes) -> RunOptions:
         """A copy with ``changes``, keyed by the flat names of the command line: ``seed``,
         ``filter``, ``noise``, or a field of a nested record (``engine``, ``samples``,
-        ``rate_hz``, ``qc``, ``max_gap_s``, ``gp_noise``, the gates); each value meets its
+        ``rate_hz``, ``qc``, ``max_gap_s``, ``gp_noise``, ``motion_prior``,
+        ``outlier_windows``, the gates); each value meets its
         record's rule (:class:`~rtsgt.errors.InputError` otherwise)."""
         top = {k: v for k, v in changes.items() if k in _TOP_FIELDS}
         for part, record in _NESTED.items():

@@ -8,6 +8,7 @@ Stages (data flows one way; nothing here reads files or prints)::
     prism tracks --module 2--> common intervals --GP per prism--> prisms at the query times
     prisms + reference prisms on the robot --registration--> poses with 6x6 covariance
     poses --module 4 gates--> kept poses
+    (poses off the survey's distances --> their measurements out of the GPs --> GP again ...)
 
 How the noise sources enter the GP
 ----------------------------------
@@ -24,6 +25,11 @@ reproduces the paper, which fed the total covariance to the GP.
 Qc is chosen by leave-one-out cross-validation per axis (:mod:`rtsgt.interpolation.loo`):
 the ground truth is an interpolation, and the marginal likelihood, which scores predictions,
 overstates its error.
+
+Qc is fitted on the measurements the gates keep: the measurements inside the windows of the
+poses that the distance gate rejects (a station tracking another prism) are left out of the
+GP fits, which are fitted again (:mod:`rtsgt.filtering.gates`; ``outlier_windows = "keep"``
+keeps them, as the paper did). A run without such a pose is not touched.
 
 Errors shared between prisms
 ----------------------------
@@ -47,7 +53,8 @@ from __future__ import annotations
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import fields, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -56,9 +63,19 @@ from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.calibration.gcp import gcp_atmospheric_correction, gcp_world_positions
 from rtsgt.checks import gcp_fit_check, inter_prism_check
 from rtsgt.deployment import DeploymentData
-from rtsgt.errors import InputError
+from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.filtering import module1, module2
-from rtsgt.filtering.gates import apply_gates, surveyed_distance_check
+from rtsgt.filtering.gates import (
+    MAX_OUTLIER_REFITS,
+    REASON_DISTANCE_WINDOW,
+    GateReport,
+    OutlierWindowReport,
+    apply_gates,
+    distance_outliers,
+    in_windows,
+    outlier_windows,
+    surveyed_distance_check,
+)
 from rtsgt.filtering.modules import RemovedMeasurements, removed_measurements, warn_tight_rate_gates
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
 from rtsgt.interpolation import GPTrack
@@ -190,9 +207,9 @@ def _run_stages(
     reports["module2"] = rep2
     # module 2's masks per prism (one prism per station), indexed like module 1's kept
     kept2 = dict(zip(tracks, zip(rep2.kept_masks, rep2.reasons, strict=True), strict=True))
-    removed = removed_measurements(
-        data.observations, reports1, [kept2[o.prism][0] for o in filtered],
-        [kept2[o.prism][1] for o in filtered], calib.transforms)
+    removal = (data.observations, reports1, [kept2[o.prism][0] for o in filtered],
+               [kept2[o.prism][1] for o in filtered], calib.transforms)
+    removed = removed_measurements(*removal)
     tracks = {tr.prism: tr for tr in kept_tracks}
     lap("filter_module2")
 
@@ -229,6 +246,15 @@ def _run_stages(
         est, reference, distance_gate_m=options.pose.distance_gate_m,
         uncertainty_gate_m=options.pose.uncertainty_gate_m,
     )
+    if options.interpolation.outlier_windows == "remove":
+        start = time.perf_counter()
+        refit = _refit_outlier_windows(options, tracks, prisms, est, reference, coupling, say)
+        if refit is not None:
+            tracks, gps, qc_info, prisms, est, keep, gate_report, masks, reports["module4"] = refit
+            t_query = prisms.t
+            removed = removed_measurements(*removal, [masks[o.prism] for o in filtered])
+            timings["outlier_windows"] = time.perf_counter() - start
+            tick += timings["outlier_windows"]  # its own stage, not counted in "gates"
     gt = PoseTrajectory(
         t_query[keep], est.t[keep], matrix_to_quat_xyzw(est.R[keep]), est.cov[keep]
     )
@@ -253,6 +279,123 @@ def _run_stages(
     record = _record(computation, options, intervals, coupling, removed, gt, gcp_world,
                      weather_coverage, distance_check, self_checks)
     return replace(record, groundtruth_split=split)
+
+
+class _Refit(NamedTuple):
+    """What :func:`_refit_outlier_windows` changes in a run."""
+
+    tracks: dict[str, PrismTrack]
+    gps: dict[str, GPTrack]
+    qc_info: dict[str, dict]
+    prisms: PrismsAtTimes
+    estimate: PoseEstimate
+    keep: np.ndarray
+    gate_report: GateReport
+    left_out: dict[str, np.ndarray]
+    report: OutlierWindowReport
+
+
+def _refit_outlier_windows(options: RunOptions, tracks: dict[str, PrismTrack],
+                           prisms: PrismsAtTimes, est: PoseEstimate,
+                           reference: ReferencePoints, coupling: StationCoupling,
+                           say: Progress) -> _Refit | None:
+    """The GPs fitted again without the measurements inside the windows of the poses that
+    disagree with the survey beyond the distance gate, and what follows from them
+    (:mod:`rtsgt.filtering.gates`, section on the windows).
+
+    None, at no cost, when no pose disagrees (or every pose does: no pose to gain). The poses
+    inside a window keep the values of the fit that flagged them (they fail the gate); the
+    others are queried, estimated and gated again; a pose the new GPs cannot answer (a window
+    left a gap longer than ``max_gap_s``) is dropped. ``left_out``: per prism, indexed like its
+    track, the measurements left out. A fit that fails (a window took nearly all of a track)
+    ends the refits with a warning: the last good one stands, or none.
+    """
+    gate = options.pose.distance_gate_m
+    flagged = distance_outliers(est, reference, gate)
+    if not flagged.any() or flagged.all():
+        return None
+    say("outlier windows (module 4)")
+    t_all = prisms.t
+    present = np.arange(t_all.size)  # the poses still queried, indices into t_all
+    done: _Refit | None = None
+    fits, dropped = 0, 0
+    while fits < MAX_OUTLIER_REFITS:
+        windows = outlier_windows(t_all, flagged)
+        left_out = {pid: in_windows(tr.t, windows) for pid, tr in tracks.items()}
+        clean = {pid: tr.select(~left_out[pid]) for pid, tr in tracks.items()}
+        qc_info: dict[str, dict] = {}
+        try:
+            gps = fit_gps(clean, options.interpolation, info=qc_info)
+        except InputError as exc:
+            warnings.warn(f"outlier windows: the GPs cannot be fitted without the "
+                          f"measurements of {windows.shape[0]} windows of distance rejections "
+                          f"({exc.bare_message}); "
+                          + ("they stay in the fits" if done is None else
+                             "the windows of the previous fit stand"),
+                          RtsgtWarning, stacklevel=2)
+            break
+        fits += 1
+        supported = np.ones(present.size, bool)
+        for g in gps.values():
+            supported &= g.supported(t_all[present])
+        old = flagged[present]  # flagged by an earlier fit: its values stay
+        fresh = present[~old & supported]
+        dropped += int(np.sum(~old & ~supported))
+        present = present[old | supported]
+        prisms, est = _take(prisms, old), _take(est, old)
+        more = np.zeros(0, bool)
+        if fresh.size:
+            new_prisms = query_prisms(clean, gps, t_all[fresh], options.interpolation, coupling)
+            new_est = estimate_poses(new_prisms.xyz, new_prisms.pose_covariance, reference,
+                                     engine=options.pose.engine, samples=options.pose.samples,
+                                     rng=stage_rng(options.seed, "pose"))
+            from_old = flagged[present]
+            prisms = _assemble(prisms, new_prisms, from_old)
+            est = _assemble(est, new_est, from_old)
+            more = distance_outliers(new_est, reference, gate)
+            flagged[fresh[more]] = True
+        keep, report = apply_gates(est, reference, distance_gate_m=gate,
+                                   uncertainty_gate_m=options.pose.uncertainty_gate_m)
+        per_prism = [{REASON_DISTANCE_WINDOW: int(m.sum())} for m in left_out.values()]
+        n_in = sum(len(tr) for tr in tracks.values())
+        n_out = sum(c[REASON_DISTANCE_WINDOW] for c in per_prism)
+        summary = OutlierWindowReport(
+            "module4", n_in, n_in - n_out, {REASON_DISTANCE_WINDOW: n_out}, tuple(per_prism),
+            int(windows.shape[0]), tuple(~m for m in left_out.values()),
+            tuple(np.where(m, REASON_DISTANCE_WINDOW, "") for m in left_out.values()),
+            windows=windows, fits=fits, converged=not more.any(),
+            poses_flagged=int(flagged[present].sum()), poses_dropped=dropped)
+        done = _Refit(clean, gps, qc_info, prisms, est, keep, report, left_out, summary)
+        if not more.any():
+            break
+    return done
+
+
+def _take(result, idx: np.ndarray):
+    """The rows ``idx`` of a per-time result (:class:`PrismsAtTimes`, :class:`PoseEstimate`):
+    every array field, and every array in a dict field, is indexed along its first axis."""
+    def rows(v):
+        if isinstance(v, np.ndarray):
+            return v[idx]
+        return {k: rows(x) for k, x in v.items()} if isinstance(v, dict) else v
+    return type(result)(**{f.name: rows(getattr(result, f.name)) for f in fields(result)})
+
+
+def _assemble(first, second, from_first: np.ndarray):
+    """Two per-time results of one type merged: row ``i`` from ``first`` (in order) where
+    ``from_first[i]``, else from ``second``; their other fields must agree."""
+    def merge(a, b):
+        if isinstance(a, np.ndarray):
+            out = np.empty((from_first.size,) + a.shape[1:], dtype=np.result_type(a, b))
+            out[from_first], out[~from_first] = a, b
+            return out
+        if isinstance(a, dict):
+            return {k: merge(a[k], b[k]) for k in a}
+        if a != b:
+            raise ValueError(f"cannot merge results that differ in {a!r} and {b!r}")
+        return a
+    return type(first)(**{f.name: merge(getattr(first, f.name), getattr(second, f.name))
+                          for f in fields(first)})
 
 
 def _split(options: RunOptions, prisms: PrismsAtTimes, gps: dict[str, GPTrack],

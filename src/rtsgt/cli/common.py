@@ -97,6 +97,9 @@ def print_run_summary(record: RunRecord, out) -> None:
     reasons, counts = np.unique(record.rejected_reason, return_counts=True)
     for reason, count in zip(reasons, counts, strict=True):
         table.add_row(f"rejected: {reason}", str(int(count)))
+    n_left = int(np.sum(record.removed.stage == "module4"))
+    if n_left:
+        table.add_row("measurements left out of the GPs (distance windows)", str(n_left))
     # the self-checks (rtsgt.checks): the GCP fit's variance factor per station, and the
     # inter-prism distances' mean z^2, each with its 95 % interval
     gcp = record.self_checks.get("gcp_fit", {})

@@ -43,19 +43,52 @@ consistent pairs for Gaussian errors, fewer here as sigma is overstated) is warn
 The price of that safety: the part of the error that does average out over the run (the GP's,
 from the instrument noise) is counted in full, so a disagreement is flagged from three
 per-time sigmas of the distance on (on the real excerpt, 3-4.5 mm per pair: about 1 cm).
+
+Measurements inside the windows of distance rejections
+------------------------------------------------------
+A pose whose inter-prism distances disagree with the survey by more than the distance gate
+(10 cm, a hundred times the noise) was built from a wrong measurement: a station tracking
+another prism, a reflection. The gate rejects the pose, but the measurement stays in the GP of
+its prism, where it inflates the Qc that leave-one-out finds (a jump of a metre is a huge
+acceleration) and bends the track next to the window. So the pipeline
+(:func:`rtsgt.pipeline.run_pipeline`, ``[interpolation] outlier_windows = "remove"``) leaves the
+measurements of those windows out of the GP fits and fits again:
+
+- :func:`distance_outliers`: the poses whose finite inter-prism distances disagree with the
+  survey beyond the gate, whatever the gate's reason (a station locked on another prism of the
+  robot makes two prisms coincide: such a pose is rejected as ``"collinear"`` before the
+  distance gate, and is as wrong).
+- :func:`outlier_windows`: each flagged query time ``t_i`` stands for the open interval
+  ``(t_i - a_i, t_i + b_i)``, padded on each side up to the neighbouring query time but by at
+  most one sampling interval of the queries (their median spacing). A wrong measurement at a
+  time ``t_m`` gives a wrong pose at ``t_m`` (the GP follows measurements of millimetre noise),
+  so a flagged run of poses contains every wrong measurement up to the neighbouring query
+  times, which passed the gate; the padding reaches, but not includes, them. The intervals
+  are merged.
+- Every prism's measurements inside a window are left out (:func:`in_windows`): the gate says
+  the geometry is wrong, not which station was; the poses inside are rejected anyway, so the
+  other prisms lose nothing but a few seconds of their Qc fit.
+
+The refit is gated again; a pose flagged now (a wrong measurement the first fit hid) adds its
+window, up to :data:`MAX_OUTLIER_REFITS` fits after the first. The poses of a window stay
+rejected, with the values and the reason of the fit that flagged them. A pose outside the windows that the new
+GPs cannot vouch for (the window left a gap longer than ``max_gap_s``) is dropped, as every
+query across such a gap is. :class:`OutlierWindowReport` counts what was removed (stage
+``"module4"``, reason ``"distance_window"`` in the run's removed measurements).
 """
 
 from __future__ import annotations
 
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from rtsgt.errors import RtsgtWarning
+from rtsgt.filtering.modules import MODULE4_REASONS, FilterReport
 from rtsgt.pose.reference import block_diagonal
 
 #: The paper's distance gate, m.
@@ -69,6 +102,11 @@ REASON_KEPT = ""
 REASON_DEGENERATE = "degenerate"
 REASON_DISTANCE = "distance"
 REASON_UNCERTAINTY = "uncertainty"
+
+#: Reason of a measurement left out of the GP fits as inside a window of distance rejections.
+REASON_DISTANCE_WINDOW = MODULE4_REASONS[0]
+#: Most GP fits that leave out the windows of distance rejections (module docstring).
+MAX_OUTLIER_REFITS = 3
 
 
 def position_uncertainty(cov: ArrayLike, measure: str = "max_std") -> np.ndarray:
@@ -235,6 +273,19 @@ def quality_gates(
                       float(uncertainty_gate_m), uncertainty_measure)
 
 
+def _reference_distances(estimate: Any, reference: Any) -> np.ndarray:
+    """The reference distances of ``estimate.pairs`` (see :func:`apply_gates`)."""
+    x = np.asarray(getattr(reference, "xyz", reference), dtype=float)
+    pairs = tuple(estimate.pairs)
+    if x.ndim == 2 and x.shape[1] == 3:
+        return np.array([np.linalg.norm(x[i] - x[j]) for i, j in pairs])
+    if x.ndim == 1 and x.shape[0] == len(pairs):
+        return x
+    raise ValueError(
+        f"Expected reference points (n, 3) or {len(pairs)} distances, got shape {x.shape}"
+    )
+
+
 def apply_gates(
     estimate: Any,
     reference: Any,
@@ -260,23 +311,132 @@ def apply_gates(
     keep : ndarray of bool, shape (T,)
     report : GateReport
     """
-    xyz = getattr(reference, "xyz", reference)
-    x = np.asarray(xyz, dtype=float)
-    pairs = tuple(estimate.pairs)
-    if x.ndim == 2 and x.shape[1] == 3:
-        ref_d = np.array([np.linalg.norm(x[i] - x[j]) for i, j in pairs])
-    elif x.ndim == 1 and x.shape[0] == len(pairs):
-        ref_d = x
-    else:
-        raise ValueError(
-            f"Expected reference points (n, 3) or {len(pairs)} distances, got shape {x.shape}"
-        )
     report = quality_gates(
-        estimate.inter_prism_distance, estimate.cov, ref_d, degenerate=estimate.degenerate,
+        estimate.inter_prism_distance, estimate.cov, _reference_distances(estimate, reference),
+        degenerate=estimate.degenerate,
         distance_gate_m=distance_gate_m, uncertainty_gate_m=uncertainty_gate_m,
         uncertainty_measure=uncertainty_measure,
     )
     return report.keep, report
+
+
+def distance_outliers(
+    estimate: Any, reference: Any, distance_gate_m: float = DEFAULT_DISTANCE_GATE_M
+) -> np.ndarray:
+    """Poses whose inter-prism distances disagree with the reference beyond the gate.
+
+    Unlike the distance gate, a degenerate pose counts when its distances are finite: a
+    station tracking another prism of the robot makes two prisms coincide, and the pose is
+    rejected as collinear before the distance gate is tried (module docstring).
+
+    Parameters
+    ----------
+    estimate : PoseEstimate
+        Uses ``inter_prism_distance`` and ``pairs``.
+    reference : ReferencePoints, array_like (n, 3) or array_like (P,)
+        As for :func:`apply_gates`.
+    distance_gate_m : float
+        The distance gate, m.
+
+    Returns
+    -------
+    ndarray of bool, shape (T,)
+        True where every distance is finite and one disagrees by more than the gate.
+    """
+    d = np.asarray(estimate.inter_prism_distance, dtype=float)
+    err = np.abs(d - _reference_distances(estimate, reference))
+    with np.errstate(invalid="ignore"):  # a row with a NaN is not flagged
+        return np.all(np.isfinite(err), axis=1) & (np.max(err, axis=1, initial=0.0)
+                                                   > distance_gate_m)
+
+
+def outlier_windows(t: ArrayLike, flagged: ArrayLike, step: float | None = None) -> np.ndarray:
+    """The open time windows of flagged poses, padded towards their neighbours.
+
+    Parameters
+    ----------
+    t : array_like, shape (T,)
+        Query times, s, increasing.
+    flagged : array_like of bool, shape (T,)
+        The poses whose measurements are outliers (:func:`distance_outliers`).
+    step : float, optional
+        Largest padding on each side, s: by default the sampling interval of the queries, the
+        median of ``diff(t)``.
+
+    Returns
+    -------
+    ndarray, shape (K, 2)
+        Disjoint open intervals ``(start, end)``, s, sorted: each flagged ``t_i`` padded by
+        ``min(t_i - t_i-1, step)`` before and ``min(t_i+1 - t_i, step)`` after (``step`` at
+        either end), overlapping or touching ones merged.
+    """
+    t = np.asarray(t, dtype=float)
+    flag = np.asarray(flagged, dtype=bool)
+    if t.ndim != 1 or flag.shape != t.shape:
+        raise ValueError(f"Expected t and flagged of one shape (T,), got {t.shape}, {flag.shape}")
+    if not flag.any():
+        return np.zeros((0, 2))
+    dt = np.diff(t)
+    if np.any(dt <= 0):
+        raise ValueError("Expected increasing query times")
+    if step is None:
+        step = float(np.median(dt)) if dt.size else 0.0
+    if not (np.isfinite(step) and step > 0):
+        raise ValueError(f"Expected a sampling interval > 0 s, got {step!r}")
+    gap = np.minimum(np.concatenate([[np.inf], dt, [np.inf]]), step)
+    idx = np.flatnonzero(flag)
+    lo, hi = t[idx] - gap[idx], t[idx] + gap[idx + 1]  # both increasing
+    first = np.concatenate([[True], lo[1:] > hi[:-1]])  # touching intervals merge
+    starts = np.flatnonzero(first)
+    ends = np.append(starts[1:], idx.size) - 1
+    return np.stack([lo[starts], hi[ends]], axis=1)
+
+
+def in_windows(t: ArrayLike, windows: ArrayLike) -> np.ndarray:
+    """Whether each time lies strictly inside one of the windows of :func:`outlier_windows`."""
+    t = np.asarray(t, dtype=float)
+    w = np.asarray(windows, dtype=float).reshape(-1, 2)
+    if w.shape[0] == 0:
+        return np.zeros(t.shape, dtype=bool)
+    k = np.searchsorted(w[:, 0], t, side="right") - 1
+    kk = np.clip(k, 0, None)
+    return (k >= 0) & (t > w[kk, 0]) & (t < w[kk, 1])
+
+
+@dataclass(frozen=True)
+class OutlierWindowReport(FilterReport):
+    """What leaving the windows of distance rejections out of the GP fits removed.
+
+    The counts of :class:`~rtsgt.filtering.modules.FilterReport` (``module = "module4"``, one
+    series per prism, reason :data:`REASON_DISTANCE_WINDOW`, ``n_blocks`` the windows), and:
+
+    Attributes
+    ----------
+    windows : ndarray, shape (K, 2)
+        The windows, open intervals of time, s.
+    fits : int
+        GP fits without the windows (at most :data:`MAX_OUTLIER_REFITS`).
+    converged : bool
+        Whether the last fit flagged no new pose.
+    poses_flagged : int
+        Poses inside the windows (rejected).
+    poses_dropped : int
+        Poses outside the windows dropped because the new GPs cannot answer them (a window
+        left a gap longer than ``max_gap_s``).
+    """
+
+    windows: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False,
+                                compare=False)
+    fits: int = 0
+    converged: bool = True
+    poses_flagged: int = 0
+    poses_dropped: int = 0
+
+    def as_dict(self) -> dict[str, Any]:
+        """The counts, the windows (s) and the fits, for ``summary.json`` ``filters``."""
+        return {**super().as_dict(), "windows_s": self.windows.tolist(), "fits": self.fits,
+                "converged": self.converged, "poses_flagged": self.poses_flagged,
+                "poses_dropped": self.poses_dropped}
 
 
 #: Median deviation of a tracked inter-prism distance from the surveyed one, in predicted

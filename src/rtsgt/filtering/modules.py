@@ -58,7 +58,8 @@ from rtsgt.measurement.polar import polar_to_cartesian
 from rtsgt.types import Observations, PrismTrack
 
 __all__ = [
-    "FilterParams", "FilterReport", "MODULE1_REASONS", "MODULE2_REASONS", "RemovedMeasurements",
+    "FilterParams", "FilterReport", "MODULE1_REASONS", "MODULE2_REASONS", "MODULE4_REASONS",
+    "RemovedMeasurements",
     "module1", "module2", "removed_measurements", "warn_tight_rate_gates",
 ]
 
@@ -67,6 +68,10 @@ MODULE1_REASONS = ("status", "non_finite", "duplicate_time", "rate_distance", "r
 
 #: Reasons of module 2.
 MODULE2_REASONS = ("not_all_tracked", "short_interval")
+
+#: Reason of the measurements module 4 leaves out of the GP fits: inside a window of poses
+#: the distance gate rejected (:mod:`rtsgt.filtering.gates`).
+MODULE4_REASONS = ("distance_window",)
 
 _TWO_PI = 2.0 * np.pi
 
@@ -421,9 +426,12 @@ class RemovedMeasurements:
         The raw polar measurement (additive constant included, no atmospheric correction)
         mapped into the world frame by its station's calibration, m.
     stage : ndarray of str, shape (M,)
-        ``"module1"`` or ``"module2"``: the module that removed it.
+        ``"module1"`` or ``"module2"``: the module that removed it; ``"module4"``: left out of
+        the GP fits as inside a window of poses the distance gate rejected
+        (:mod:`rtsgt.filtering.gates`).
     reason : ndarray of str, shape (M,)
-        Why: a name of :data:`MODULE1_REASONS` or :data:`MODULE2_REASONS`.
+        Why: a name of :data:`MODULE1_REASONS` or :data:`MODULE2_REASONS`, or
+        ``"distance_window"``.
     """
 
     t: np.ndarray
@@ -443,8 +451,10 @@ def removed_measurements(
     module2_masks: Sequence[np.ndarray],
     module2_reasons: Sequence[np.ndarray],
     transforms: Mapping[str, Any],
+    outlier_masks: Sequence[np.ndarray] | None = None,
 ) -> RemovedMeasurements:
-    """What modules 1 and 2 removed, from their masks, in the world frame.
+    """What modules 1 and 2 (and the windows of distance rejections) removed, from their masks,
+    in the world frame.
 
     Parameters
     ----------
@@ -457,6 +467,10 @@ def removed_measurements(
         indexed like the measurements module 1 kept.
     transforms : mapping str -> transform
         ``T_world_station`` of each station (an object with ``apply``).
+    outlier_masks : sequence of ndarray of bool, optional
+        For each station (same order), indexed like the measurements module 2 kept: true
+        where left out of the GP fits as inside a window of distance rejections (stage
+        ``"module4"``, reason ``"distance_window"``).
 
     Returns
     -------
@@ -465,8 +479,9 @@ def removed_measurements(
         measurement order, for equal times).
     """
     parts: dict[str, list] = {k: [] for k in ("t", "prism", "station", "xyz", "stage", "reason")}
-    for obs, rep, keep2, why2 in zip(observations, module1_reports, module2_masks,
-                                     module2_reasons, strict=True):
+    outliers = [None] * len(observations) if outlier_masks is None else outlier_masks
+    for obs, rep, keep2, why2, out4 in zip(observations, module1_reports, module2_masks,
+                                           module2_reasons, outliers, strict=True):
         keep1, why1 = rep.kept_masks[0], rep.reasons[0]
         if keep1.shape != (len(obs),) or np.shape(keep2) != (int(keep1.sum()),):
             raise ValueError(f"station {obs.station}: masks do not match its measurements")
@@ -476,6 +491,14 @@ def removed_measurements(
         gone2 = ~np.asarray(keep2, dtype=bool)
         stage[kept1[gone2]] = "module2"
         reason[kept1[gone2]] = np.asarray(why2)[gone2]
+        if out4 is not None:
+            kept2 = kept1[~gone2]
+            if np.shape(out4) != kept2.shape:
+                raise ValueError(f"station {obs.station}: outlier mask does not match its "
+                                 "measurements")
+            gone4 = kept2[np.asarray(out4, dtype=bool)]
+            stage[gone4] = "module4"
+            reason[gone4] = MODULE4_REASONS[0]
         gone = stage != ""
         if not gone.any():
             continue

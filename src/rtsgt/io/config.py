@@ -63,6 +63,8 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
     max_gap_s = 3.0
     gp_noise = "white"               # what the GP is given: "white" sources (default) or "all"
     motion_prior = "classes"         # Qc per class of the robot's motion, or "constant"
+    outlier_windows = "remove"       # measurements of distance-rejected windows: out of the
+                                     # GP fits ("remove", default) or kept in them ("keep")
 
     [pose]
     engine = "mc"                    # mc | ut | linear
@@ -354,7 +356,8 @@ def load_config(path: str | Path) -> DeploymentConfig:
     interp = it.record(InterpolationOptions, {
         "rate_hz": ("rate_hz", float, None), "qc": ("qc", (str, float, int), _qc_value),
         "max_gap_s": ("max_gap_s", float, None), "gp_noise": ("gp_noise", str, None),
-        "motion_prior": ("motion_prior", str, None)})
+        "motion_prior": ("motion_prior", str, None),
+        "outlier_windows": ("outlier_windows", str, None)})
     it.done()
 
     p = _Section(path, "pose", doc.get("pose", {}))

@@ -22,8 +22,10 @@ Layout of ``OUT/`` (every number in SI units, stated in the headers)::
     measurements/removed.csv         the measurements the filters removed, in the world frame:
                                      t,prism,station,x,y,z,stage,reason (stage: module1 = rates
                                      of change or status, module2 = outside the intervals where
-                                     every prism is tracked; reason: the filter's reason, e.g.
-                                     rate_hz, status, not_all_tracked, short_interval)
+                                     every prism is tracked, module4 = left out of the GP fits
+                                     inside a window of distance rejections; reason: the
+                                     filter's reason, e.g. rate_hz, status, not_all_tracked,
+                                     short_interval, distance_window)
     reference.csv                    reference prisms in the body frame: name,x,y,z,cov_xx..cov_zz
     summary.json                     schema (name, version), inputs, parameters, version,
                                      seed, counts removed per filter and gate, Qc, calibration,
@@ -104,7 +106,14 @@ from rtsgt.io.trajectory import (
     write_covariance_csv,
     write_tum,
 )
-from rtsgt.options import GP_NOISE, MOTION_PRIORS, InterpolationOptions, PoseOptions, RunOptions
+from rtsgt.options import (
+    GP_NOISE,
+    MOTION_PRIORS,
+    OUTLIER_WINDOWS,
+    InterpolationOptions,
+    PoseOptions,
+    RunOptions,
+)
 from rtsgt.pose.reference import ReferencePoints
 from rtsgt.record import (
     RUN_SCHEMA_NAME,
@@ -258,6 +267,7 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
             "max_gap_s": opt.interpolation.max_gap_s,
             "gp_noise": opt.interpolation.gp_noise,
             "motion_prior": opt.interpolation.motion_prior,
+            "outlier_windows": opt.interpolation.outlier_windows,
             "noise_sources": list(c.noise_model.sources),
             "instrument": c.data.instrument.name,
             "filter": _report_dict(opt.filter),
@@ -861,9 +871,15 @@ def _summary_options(params: dict, param: Callable, path: Path) -> RunOptions:
     if motion_prior not in MOTION_PRIORS:
         raise InputError(f"motion_prior: expected {' or '.join(map(repr, MOTION_PRIORS))}, "
                          f"got {motion_prior!r}", path)
+    # a run written before rtsgt left the windows of distance rejections out kept them
+    outlier_windows = str(param("outlier_windows", "keep"))
+    if outlier_windows not in OUTLIER_WINDOWS:
+        raise InputError(f"outlier_windows: expected {' or '.join(map(repr, OUTLIER_WINDOWS))}, "
+                         f"got {outlier_windows!r}", path)
     changes = {
         "engine": str(param("engine", _OLDEST_OPTIONS.pose.engine)), "samples": samples,
         "seed": seed, "gp_noise": gp_noise, "motion_prior": motion_prior,
+        "outlier_windows": outlier_windows,
         "max_gap_s": _positive(params, "max_gap_s", InterpolationOptions.max_gap_s, path),
         "distance_gate_m": _positive(params, "distance_gate_m", PoseOptions.distance_gate_m,
                                      path),

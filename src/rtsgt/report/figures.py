@@ -97,9 +97,10 @@ _PRISM_COLORS = ("#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9
 _REASON_MARKERS = {"distance": "X", "uncertainty": "P", "degenerate": "v",
                    "missing_prism": "v", "collinear": "d"}
 #: Markers and legend texts of the measurements removed by the filters, per module.
-_STAGE_MARKERS = {"module1": "x", "module2": "1"}
+_STAGE_MARKERS = {"module1": "x", "module2": "1", "module4": "+"}
 _STAGE_LABELS = {"module1": "measurements removed by module 1 (rates, status)",
-                 "module2": "measurements removed by module 2 (not every prism tracked)"}
+                 "module2": "measurements removed by module 2 (not every prism tracked)",
+                 "module4": "measurements left out of the GPs (windows of distance rejections)"}
 _BOX_STYLE = dict(whis=(5, 95), showfliers=False, patch_artist=True, manage_ticks=False)
 
 

@@ -445,6 +445,9 @@ def _kpis(data: RunRecord, a: Analysis) -> str:
         ("median pose rotation", f"{_fmt(a.pose_median_rotation_mrad.get('all'), 3)} mrad"),
         ("median prism sqrt(||Σ||F)", f"{_fmt(a.median_mm.get('all'), 3)} mm"),
     ]
+    n_left = int(np.sum(data.removed.stage == "module4"))
+    if n_left:  # measurements inside windows of distance rejections, out of the GP fits
+        items.insert(3, ("measurements left out (distance windows)", f"{n_left}"))
     if n_kept > 1:
         dur = float(data.groundtruth.t[-1] - data.groundtruth.t[0])
         items.insert(0, ("span of the ground truth", f"{dur:.0f} s"))
