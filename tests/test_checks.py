@@ -17,7 +17,7 @@ from rtsgt.checks.distances import (
     mean_z2_verdict,
     pose_speed,
 )
-from rtsgt.errors import RtsgtWarning
+from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.interpolation.cross import gp_cross_covariance
 from rtsgt.interpolation.gp import fit_track
 from rtsgt.types import PrismTrack
@@ -319,3 +319,22 @@ def test_block_cv_warns_when_a_regime_fails():
     assert out["overall"]["verdict"] == "optimistic"
     assert set(out["tracks"]) == {"1", "2", "3"} and "verdict" not in out["tracks"]["1"]
     assert out["block_lengths_s"] == [1.0, 2.0]
+
+
+def test_block_cv_of_short_tracks_says_too_few_blocks():
+    """A track too short to score a window, and one with a single window: no verdict, and
+    the statistic where there is one."""
+    rng = np.random.default_rng(8)
+    t, y, R, _ = _prior_track(rng, 3)  # 3 measurements within 1.2 s: one window, no neighbour
+    gp = fit_track((t, y, R), qc=_QC)
+    out = block_cv_check({"1": PrismTrack(t, y, R)}, {"1": gp}, max_gap_s=3.0, warn=False)
+    assert out["overall"] == {"blocks": 0, "measurements": 0, "nees_per_dof": None,
+                              "n_eff": None, "interval_95": None, "verdict": "too few blocks"}
+    t = 0.4 * np.arange(10)  # windows [0, 1), [1, 3), [3, 4): only the middle one is inside
+    R = np.tile(_R, (10, 1, 1))
+    y = _draw(rng, t, R, np.ones(9))
+    w = cv_windows((t, y, R), fit_track((t, y, R), qc=_QC), 3.0)
+    assert (w["first"].tolist(), w["last"].tolist()) == ([3], [7])
+    assert w["into_gap"][0] == pytest.approx(1.2) and np.all(w["pair_var"] == 0.0)
+    with pytest.raises(InputError, match="knots"):
+        cv_windows((t[1:], y[1:], R[1:]), fit_track((t, y, R), qc=_QC), 3.0)

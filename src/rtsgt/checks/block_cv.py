@@ -240,8 +240,8 @@ def cv_windows(track, gp: GPTrack, max_gap_s: float,
                                  out["t_after"] - out["centre"])
     if k == 0:
         return out
-    width = int(max(m.max(), *(np.max(last[lag:] - first[:-lag]) + 1
-                               for lag in range(1, PAIR_LAGS + 1) if k > lag)))
+    width = int(max([m.max(), *(np.max(last[lag:] - first[:-lag]) + 1
+                                for lag in range(1, PAIR_LAGS + 1) if k > lag)]))
     band = _position_band(gp, width)
     resid = y - gp.mean[:, :3]
     # per window: M = R_w - P_w, the covariance of its residuals in the fit with all the
