@@ -503,6 +503,54 @@ def test_a_qc_scaled_per_interval_is_the_dense_chain_and_the_kalman_likelihood()
         fit_track((t, y, R), qc_scale=np.ones(t.size - 1))
 
 
+@pytest.mark.parametrize("prior", ["diffuse", "proper"])
+def test_held_out_measurements_are_knots_without_weight(prior):
+    """``held_out`` (cross-validation): with one Qc, the posterior at a held-out knot and the
+    joint covariance of two of them are the prediction of the fit without those measurements,
+    and so is the log likelihood; with a Qc per interval, the dense chain with those
+    measurements given (almost) no weight."""
+    from rtsgt.interpolation.cross import gp_cross_covariance
+
+    rng = np.random.default_rng(43)
+    t, y, R, qc = random_problem(rng, 30, "diag")
+    y = y - y[0]
+    held = np.zeros(t.size, bool)
+    held[[3, 4, 5, 17, 29]] = True  # a window, a point, the last one (extrapolated)
+    kw = {}
+    if prior == "proper":
+        P0, m0 = random_prior(rng, y[0])
+        kw = {"initial_state_cov": P0, "initial_state_mean": m0}
+    else:
+        held[0] = True  # the first one too (before the track of the others)
+    gp = fit_track((t, y, R), qc=qc, max_gap_s=np.inf, held_out=held, **kw)
+    ref = fit_track((t[~held], y[~held], R[~held]), qc=qc, max_gap_s=np.inf, **kw) \
+        if prior == "diffuse" else None
+    if ref is not None:
+        q = ref.query(t[held], with_velocity=True, allow_gaps=True)
+        np.testing.assert_allclose(gp.mean[held], np.column_stack([q.position, q.velocity]),
+                                   rtol=0, atol=1e-9 * np.abs(y).max())
+        assert cov_err(gp.cov[held], q.state_cov, diag(q.state_cov), diag(q.state_cov)) < 1e-8
+        c = gp_cross_covariance(ref, t[[3, 4]], t[[4, 5]])  # consecutive held-out knots
+        assert cov_err(gp.cross_cov[[3, 4]], c, diag(gp.cov[[3, 4]]), diag(gp.cov[[4, 5]])) < 1e-8
+        assert gp.log_likelihood == pytest.approx(ref.log_likelihood, rel=1e-10)
+    else:
+        # the first knot keeps its measurement: the proper prior is on the same state
+        assert gp.log_likelihood == pytest.approx(
+            kalman_loglik(t[~held], y[~held], R[~held], qc, P0=kw["initial_state_cov"],
+                          m0=kw["initial_state_mean"]), rel=1e-8)
+    scale = np.exp(rng.uniform(-3.0, 2.0, t.size - 1))
+    gp = fit_track((t, y, R), qc=qc, max_gap_s=np.inf, qc_scale=scale, held_out=held, **kw)
+    if prior == "diffuse":
+        R_w = np.where(held[:, None, None], 1e12 * R, R)
+        _, mean, cov = dense_chain_posterior(t, y, R_w, qc, scale, np.empty(0))
+        np.testing.assert_allclose(gp.mean, mean, rtol=0, atol=1e-6 * np.abs(mean).max())
+        assert cov_err(gp.cov, cov, diag(cov), diag(cov)) < 1e-6
+    with pytest.raises(InputError, match="held_out as a boolean mask"):
+        fit_track((t, y, R), qc=qc, held_out=np.zeros(t.size))
+    with pytest.raises(InputError, match="at least 2 measurements left"):
+        fit_track((t, y, R), qc=qc, held_out=np.arange(t.size) > 0)
+
+
 def test_diffuse_is_the_limit_of_a_wide_proper_prior():
     rng = np.random.default_rng(2)
     t, y, R, qc = random_problem(rng, 20, "diag")

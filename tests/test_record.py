@@ -113,6 +113,9 @@ def test_every_field_survives_the_round_trip(records):
     _same(json.loads(json.dumps(mem.self_checks)), disk.self_checks, "self-checks")
     assert set(mem.self_checks["inter_prism_distances"]["regimes"]) == {
         "static", "manoeuvring", "cruising", "far"}
+    assert set(mem.self_checks["block_cv"]["regimes"]) == {
+        "standing", "steady", "accelerating", "near", "far"}
+    assert mem.self_checks["block_cv"]["overall"]["blocks"] >= 30
     _same(json.loads(json.dumps(mem.distance_check)), disk.distance_check, "distances")
     _same(json.loads(json.dumps(mem.weather_coverage, default=str)), disk.weather_coverage,
           "weather")
@@ -149,6 +152,7 @@ def test_the_run_says_what_its_self_checks_found_on_the_real_excerpt(tmp_path):
         assert f"self-check GCP fit, station {station}" in text
         assert f"warning: self-check, GCP fit of station {station}" in text
     assert "calibration: added per shot" in text and "self-check z^2, whole run" in text
+    assert "self-check block CV, whole run" in text
     doc = json.loads((out / "summary.json").read_text())
     gcp = doc["self_checks"]["gcp_fit"]
     assert {v["verdict"] for v in gcp["stations"].values()} == {"optimistic"}
@@ -172,3 +176,12 @@ def test_the_run_says_what_its_self_checks_found_on_the_real_excerpt(tmp_path):
     assert section.count("<td class='verdict'>optimistic</td>") == 2  # the 2 stations
     for regime in ("whole run", "static", "manoeuvring", "cruising", "far"):
         assert f"<td class='s'>{regime}</td>" in section
+    # the block cross-validation of the tracks, by regime (docs/self-checks.md: on the real
+    # excerpt the white covariance is too large while the robot stands)
+    cv = doc["self_checks"]["block_cv"]
+    assert cv["overall"]["blocks"] > 100 and set(cv["tracks"]) == {"1", "2", "3"}
+    assert cv["regimes"]["standing"]["verdict"] == "pessimistic"
+    table = section[section.index("id='check-block-cv'"):]
+    table = table[:table.index("</table>")]
+    for regime in ("whole run", "standing", "steady", "accelerating", "near", "far"):
+        assert f"<td class='s'>{regime}</td>" in table

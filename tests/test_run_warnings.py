@@ -68,7 +68,10 @@ def test_weather_that_covers_the_run_is_recorded_without_warning(tmp_path):
     assert w["first_t_s"] == data.weather.t[0] and w["last_t_s"] == data.weather.t[-1]
     assert w["sampling_interval_s"] == 3600.0
     assert w["covered"] is True and w["uncovered_measurements"] == 0
-    assert summary["warnings"] == []
+    # the block cross-validation may find the motion prior too cautious while the simulated
+    # robot drives steadily (its smooth motion is not a WNOA process; docs/self-checks.md)
+    assert [m for m in summary["warnings"]
+            if not m.startswith("self-check, block cross-validation")] == []
 
 
 def test_weather_ending_hours_before_the_run_warns_through_the_cli(tmp_path):

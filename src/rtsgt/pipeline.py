@@ -62,6 +62,7 @@ from rtsgt.calibration import CalibrationResult, calibrate
 from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.calibration.gcp import gcp_atmospheric_correction, gcp_world_positions
 from rtsgt.checks import gcp_fit_check, inter_prism_check
+from rtsgt.checks.block_cv import block_cv_check
 from rtsgt.deployment import DeploymentData
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.filtering import module1, module2
@@ -272,7 +273,9 @@ def _run_stages(
     self_checks = {"gcp_fit": gcp_fit_check(calib), "inter_prism_distances": inter_prism_check(
         gt.t, gt.position, prisms.xyz[keep], prisms.pose_covariance[keep],
         prisms.nearest_dt[keep], reference.xyz, reference.cov, reference.names,
-        varying_cov=prisms.cov_gp[keep])}
+        varying_cov=prisms.cov_gp[keep]),
+        "block_cv": block_cv_check(tracks, gps, gp_noise=options.interpolation.gp_noise,
+                                   max_gap_s=options.interpolation.max_gap_s)}
     lap("self_checks")
     computation = RunComputation(data, calib, model, reports, tracks, gps, prisms, est, keep,
                                  gate_report, timings, qc_info)

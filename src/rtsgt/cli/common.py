@@ -118,5 +118,12 @@ def print_run_summary(record: RunRecord, out) -> None:
             lo, hi = v["interval_95"]
             table.add_row(f"self-check z^2, {name} ({v['poses']} poses)",
                           f"{v['mean_z2']:.2f}, 95 % [{lo:.2f}, {hi:.2f}]: {v['verdict']}")
+    # block cross-validation of the tracks (held-out windows), NEES / dof by regime
+    cv = record.self_checks.get("block_cv", {})
+    for name, v in [("whole run", cv.get("overall")), *cv.get("regimes", {}).items()]:
+        if v and v.get("interval_95"):
+            lo, hi = v["interval_95"]
+            table.add_row(f"self-check block CV, {name} ({v['blocks']} windows)",
+                          f"{v['nees_per_dof']:.2f}, 95 % [{lo:.2f}, {hi:.2f}]: {v['verdict']}")
     table.add_row("output", str(out))
     console.print(table)

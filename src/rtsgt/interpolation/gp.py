@@ -84,7 +84,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -288,6 +288,7 @@ class _Data:
     logdet_p0: float
     prism: str
     frame: str
+    n_obs: int | None = None  # measurements with weight (None: all; see _held_out)
 
 
 def _track_arrays(track) -> tuple[np.ndarray, np.ndarray, np.ndarray, str, str]:
@@ -391,6 +392,21 @@ def _prepare(track, initial_state_cov=None, initial_state_mean=None) -> _Data:
             "initial_state_mean needs initial_state_cov (the default prior is diffuse)"
         )
     return _Data(t, y, y_ref, r_inv, logdet_r, prior_inv, prior_mean, logdet_p0, prism, frame)
+
+
+def _held_out(data: _Data, held_out: ArrayLike, cov: np.ndarray) -> _Data:
+    """The same knots, the measurements in ``held_out`` given no weight (zero information)."""
+    mask = np.asarray(held_out)
+    n = data.t.shape[0]
+    if mask.shape != (n,) or mask.dtype != bool:
+        raise InputError(f"Expected held_out as a boolean mask of shape ({n},), got "
+                         f"{mask.dtype} of shape {mask.shape}")
+    kept = n - int(mask.sum())
+    if kept < 2:
+        raise InputError(f"Expected at least 2 measurements left after holding out, got {kept}")
+    logdet = float(np.linalg.slogdet(cov[~mask])[1].sum())
+    return replace(data, r_inv=np.where(mask[:, None, None], 0.0, data.r_inv),
+                   logdet_r=logdet, n_obs=kept)
 
 
 # --------------------------------------------------------------------------------------------
@@ -532,6 +548,7 @@ def _solve(data: _Data, qc: np.ndarray, want_cov: bool, scale: np.ndarray | None
     D, B, h = _build_system(data, w, scale)
     mean, logdet_j, S, C = _bcr(D, B, h, want_cov)
     n = data.t.shape[0]
+    n_obs = n if data.n_obs is None else data.n_obs
     dt = np.diff(data.t)
     inv_s = 1.0 if scale is None else 1.0 / scale
     # whitened residuals at the posterior mean: c - h^T J^-1 h
@@ -550,11 +567,11 @@ def _solve(data: _Data, qc: np.ndarray, want_cov: bool, scale: np.ndarray | None
     if scale is not None:  # |Q(dt, s Qc)| = s^6 |Q(dt, Qc)|
         logdet_q += 6.0 * float(np.sum(np.log(scale)))
     if data.prior_inv is None:
-        const = (3.0 - 1.5 * n) * _LOG_2PI
+        const = (3.0 - 1.5 * n_obs) * _LOG_2PI
     else:
         e0 = mean[0] - data.prior_mean
         quad += float(e0 @ data.prior_inv @ e0)
-        const = -1.5 * n * _LOG_2PI - 0.5 * data.logdet_p0
+        const = -1.5 * n_obs * _LOG_2PI - 0.5 * data.logdet_p0
     loglik = -0.5 * quad - 0.5 * data.logdet_r - 0.5 * logdet_q - 0.5 * logdet_j + const
     return mean, S, C, loglik
 
@@ -1049,6 +1066,7 @@ def fit_track(
     max_iter: int = 200,
     tol: float = 1e-4,
     qc_scale: ArrayLike | None = None,
+    held_out: ArrayLike | None = None,
 ) -> GPTrack:
     """Fit the exact WNOA GP posterior of one prism track.
 
@@ -1077,6 +1095,12 @@ def fit_track(
         A prior whose strength follows the motion: interval ``k`` (between measurements ``k``
         and ``k+1``) gets ``Qc_k = qc_scale[k] Qc``, each > 0 (e.g. a smaller ``Qc`` while
         the robot stands; :mod:`rtsgt.interpolation.motion`). Needs a given ``qc``.
+    held_out : array_like of bool, shape (N,), optional
+        Measurements given no weight (cross-validation): their times stay knots, so the
+        intervals of ``qc_scale`` and the prior between the others are unchanged, but their
+        values are ignored; the posterior at such a knot is the prediction from the other
+        measurements, and ``log_likelihood`` is that of the others alone. At least 2 must be
+        left; ``qc`` is then estimated (if asked) from those.
 
     Returns
     -------
@@ -1098,6 +1122,8 @@ def fit_track(
     if not mg > 0:
         raise InputError(f"Expected max_gap_s > 0 s, got {max_gap_s!r}")
     data = _prepare(track, initial_state_cov, initial_state_mean)
+    if held_out is not None:
+        data = _held_out(data, held_out, _track_arrays(track)[2])
     scale = None
     if qc_scale is not None:
         scale = np.asarray(qc_scale, dtype=float)

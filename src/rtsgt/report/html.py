@@ -169,8 +169,9 @@ def _interval(v: Mapping) -> str:
 
 
 def _self_checks_html(checks: Mapping) -> str:
-    """The run's self-checks (:mod:`rtsgt.checks`): the inter-prism distances by regime and
-    the GCP fit per station, each with its 95 % interval and verdict."""
+    """The run's self-checks (:mod:`rtsgt.checks`): the inter-prism distances by regime, the
+    block cross-validation of the tracks by regime and the GCP fit per station, each with its
+    95 % interval and verdict."""
     if not checks:
         return "<p class='note'>This run was written before rtsgt made self-checks.</p>"
     parts = []
@@ -188,6 +189,27 @@ def _self_checks_html(checks: Mapping) -> str:
         "distance) / its predicted sigma; the mean of z² is 1 if the covariance is honest, "
         "below it pessimistic, above optimistic. n_eff counts the errors shared by the run. "
         "Method: rtsgt's docs/self-checks.md.</small></p>")
+    cv = checks.get("block_cv", {})
+    if cv:
+        rows = [("whole run", cv.get("overall")), *cv.get("regimes", {}).items()]
+        body = "".join(
+            f"<tr><td class='s'>{html.escape(k)}</td><td>{v['blocks']}</td>"
+            f"<td>{v['measurements']}</td><td>{_fmt(v['nees_per_dof'], 3)}</td>"
+            f"<td>{_fmt(v.get('n_eff'), 3)}</td><td>{_interval(v)}</td>"
+            f"<td class='verdict'>{html.escape(v['verdict'])}</td></tr>"
+            for k, v in rows if v)
+        lengths = " and ".join(f"{x:g} s" for x in cv.get("block_lengths_s", []))
+        parts.append(
+            "<h3>Block cross-validation of the tracks</h3><table id='check-block-cv'><tr>"
+            "<th class='k'>regime</th><th>windows</th><th>measurements</th><th>NEES / dof</th>"
+            f"<th>n_eff</th><th>95 % interval</th><th>verdict</th></tr>{body}</table><p><small>"
+            f"Windows of {lengths} of each prism track held out in turn and predicted by its GP "
+            "refitted on the rest with the run's Qc; the prediction error against the GP's "
+            "covariance plus the white measurement covariance (1 if honest, below it "
+            "pessimistic, above optimistic). Regimes: the robot's motion across the window "
+            "(standing, steady, accelerating from 0.1 m/s²) and its centre's distance to the "
+            "nearest kept measurement (near: under 1 s). Method: rtsgt's docs/self-checks.md."
+            "</small></p>")
     g = checks.get("gcp_fit", {})
     body = "".join(
         f"<tr><td class='s'>station {html.escape(str(s))}</td><td>{v['markers']}</td>"
