@@ -384,7 +384,9 @@ def block_cv_check(
                     f"self-check, block cross-validation over {name} ({v['blocks']} held-out "
                     f"windows): NEES / dof = {v['nees_per_dof']:.2f}, outside [{lo:.2f}, "
                     f"{hi:.2f}] (95 %, {v['n_eff']:.0f} effective samples); the predicted "
-                    f"uncertainty of the interpolated track is {what} there",
+                    f"uncertainty of the track across gaps of 1-3 s is {what} there (poses "
+                    f"bridging such gaps inherit it; poses near a measurement are tested by "
+                    f"the inter-prism distances)",
                     RtsgtWarning, stacklevel=2)
     return out
 
