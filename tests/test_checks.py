@@ -129,3 +129,58 @@ def test_inter_prism_check_on_a_robot_with_known_errors():
                                 varying_cov=cov)
     assert out["overall"]["verdict"] == "optimistic"
     assert out["overall"]["mean_z2"] == pytest.approx(2.25, rel=0.15)
+
+
+def _static_track(rng, phi, scale, n=400, dt=0.3):
+    """A prism standing 45 m from its station for two stretches, its noise an AR(1) (phi)
+    of ``scale`` times the stated white covariance (range 2 mm, across 0.5 and 0.3 mm)."""
+    from rtsgt.types import PrismTrack
+
+    t = np.r_[np.arange(n // 2) * dt, 200.0 + np.arange(n // 2) * dt]
+    u = np.array([0.6, 0.8, 0.0])
+    E = np.stack([u, np.cross([0, 0, 1.0], u), np.cross(u, np.cross([0, 0, 1.0], u))])
+    sig = np.array([2e-3, 0.5e-3, 0.3e-3])
+    C = E.T @ np.diag(sig ** 2) @ E
+    e = lfilter([np.sqrt(1 - phi ** 2)], [1, -phi], rng.standard_normal((n, 3)), axis=0)
+    xyz = 45.0 * u + scale * (e * sig) @ E
+    cov = np.tile(C, (n, 1, 1))
+    track = PrismTrack(t, xyz, cov, {"instrument": 0.8 * cov, "tilt": 0.2 * cov}, "1",
+                       "world", "1", None)
+    return track, np.array([[0.0, t[n // 2 - 1]], [200.0, t[-1]]])
+
+
+def test_static_noise_check_measures_scatter_and_correlation_time():
+    from rtsgt.checks.static import static_noise_check
+
+    rng = np.random.default_rng(4)
+    stations = {"1": np.zeros(3)}
+    track, stretches = _static_track(rng, 0.0, 1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = static_noise_check({"1": track}, stations, stretches)
+    e = out["prisms"]["1"]
+    assert e["samples"] == 400
+    for c, sigma in (("range", 2.0), ("horizontal", 0.5), ("vertical", 0.3)):
+        assert e[c]["predicted_sigma_mm"] == pytest.approx(sigma, rel=1e-9)
+        assert e[c]["variance_ratio"] == pytest.approx(1.0, abs=0.2)
+        assert e[c]["verdict"] == "consistent" and e[c]["correlation_time_s"] < 0.2
+    # noise that wanders (AR(1), phi = 0.9: correlation time 0.3 / -ln 0.9 = 2.8 s) and a
+    # range noise 3 times the model: both seen
+    track, stretches = _static_track(rng, 0.9, 3.0)
+    with pytest.warns(RtsgtWarning, match="static stretches: prism 1"):
+        e = static_noise_check({"1": track}, stations, stretches)["prisms"]["1"]
+    assert e["range"]["variance_ratio"] == pytest.approx(9.0, rel=0.35)
+    assert e["range"]["verdict"] == "optimistic"
+    assert e["range"]["correlation_time_s"] == pytest.approx(0.3 / -np.log(0.9), rel=0.3)
+
+
+def test_static_stretches_end_at_motion_and_at_gaps():
+    from rtsgt.checks.static import static_stretches
+
+    t = np.r_[np.arange(0, 30, 0.2), np.arange(40, 60, 0.2)]
+    x = np.where(t < 20, 0.0, np.where(t < 40, 0.5 * (t - 20), 0.0))
+    iv = static_stretches(t, np.column_stack([x, 0 * x, 0 * x])[:, None, :])
+    # 0-20 s static, then moving; after the gap, static again for 20 s (a new stretch)
+    assert iv.shape == (2, 2)
+    assert iv[0, 0] == 0.0 and 19.0 < iv[0, 1] < 20.0
+    assert iv[1, 0] == pytest.approx(40.0) and iv[1, 1] == pytest.approx(59.8)

@@ -165,6 +165,8 @@ def test_the_run_says_what_its_self_checks_found_on_the_real_excerpt(tmp_path):
     for name, v in regimes.items():
         if v["poses"] >= 30:
             assert 0.5 <= v["mean_z2"] <= 2.0, name
+    static = doc["self_checks"]["static_noise"]
+    assert len(static["stretches_s"]) == 2 and set(static["prisms"]) == {"1", "2", "3"}
     # the report's self-check section: the same verdicts
     page = next(out.glob("*.html")).read_text(encoding="utf-8")
     section = page[page.index("<section id=\"checks\">"):]

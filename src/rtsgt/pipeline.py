@@ -54,7 +54,7 @@ import numpy as np
 from rtsgt.calibration import CalibrationResult, calibrate
 from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.calibration.gcp import gcp_atmospheric_correction, gcp_world_positions
-from rtsgt.checks import gcp_fit_check, inter_prism_check
+from rtsgt.checks import gcp_fit_check, inter_prism_check, static_noise_check, static_stretches
 from rtsgt.deployment import DeploymentData
 from rtsgt.errors import InputError
 from rtsgt.filtering import module1, module2
@@ -246,7 +246,9 @@ def _run_stages(
     self_checks = {"gcp_fit": gcp_fit_check(calib), "inter_prism_distances": inter_prism_check(
         gt.t, gt.position, prisms.xyz[keep], prisms.pose_covariance[keep],
         prisms.nearest_dt[keep], reference.xyz, reference.cov, reference.names,
-        varying_cov=prisms.cov_gp[keep])}
+        varying_cov=prisms.cov_gp[keep]), "static_noise": static_noise_check(
+        tracks, {s: T.translation for s, T in calib.transforms.items()},
+        static_stretches(gt.t, prisms.xyz[keep]))}
     lap("self_checks")
     computation = RunComputation(data, calib, model, reports, tracks, gps, prisms, est, keep,
                                  gate_report, timings, qc_info)

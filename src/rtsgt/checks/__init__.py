@@ -3,10 +3,14 @@
 - :mod:`rtsgt.checks.distances`: the tracked inter-prism distances against the survey, overall
   and by regime (static, manoeuvring, cruising, far from a measurement);
 - :mod:`rtsgt.checks.calibration`: each station's GCP residuals against their predicted
-  covariance (the variance factor and its chi-square test).
+  covariance (the variance factor and its chi-square test);
+- :mod:`rtsgt.checks.static`: the measurement noise on the run's static stretches (scatter
+  and correlation time along and across the line of sight) against the instrument model.
 """
 
 from rtsgt.checks.calibration import gcp_fit_check
 from rtsgt.checks.distances import REGIMES, effective_sample_size, inter_prism_check
+from rtsgt.checks.static import static_noise_check, static_stretches
 
-__all__ = ["REGIMES", "effective_sample_size", "gcp_fit_check", "inter_prism_check"]
+__all__ = ["REGIMES", "effective_sample_size", "gcp_fit_check", "inter_prism_check",
+           "static_noise_check", "static_stretches"]
