@@ -39,7 +39,7 @@ white sigma ``sqrt(e_i^T C_i e_i)`` (``C_i``: the white covariance, ``e_i`` the 
   (``sum dz^2 - 2 sum z^2`` has mean 0 and variance ``4 sum (n_k - 2)``, and the ratio is
   independent of ``sum z^2``), and ``(1 - r_1) / 2`` is close to a symmetric beta
   distribution of that variance (von Neumann 1941; the beta approximation matches the
-  simulated tail probabilities to a few per cent down to 0.1 %). Above the interval the noise
+  simulated tail probabilities to a few per cent down to 0.3 %). Above the interval the noise
   wanders: the GP, which takes the measurements as independent, averages errors that do not
   average out (``optimistic``); below, successive errors alternate (``pessimistic``).
 - **correlation time**: the noise modelled as white plus a first-order Gauss-Markov process,
@@ -47,9 +47,9 @@ white sigma ``sqrt(e_i^T C_i e_i)`` (``C_i``: the white covariance, ``e_i`` the 
   maximum likelihood (the mean of each stretch unknown; ``v`` in closed form; ``f`` and
   ``log tau`` on a grid, then on a grid four times finer around its best point), at the
   measurements' own irregular times, with the 95 % profile-likelihood interval of ``tau``
-  (open above where the noise wanders over the whole stretch). ``f`` is the
-  correlated share of the variance. Both are given only where the correlation test finds
-  correlation: for white noise ``f`` and ``tau`` trade off (a short ``tau`` with a large ``f``
+  (open above where the noise wanders over the whole stretch). ``f`` is the correlated share
+  of the variance, overstated on stretches of a few tens of samples. Both are given only
+  where the correlation test finds correlation: for white noise ``f`` and ``tau`` trade off (a short ``tau`` with a large ``f``
   is white noise too) and the fit has nothing to measure. Stretches longer than
   :data:`FIT_BLOCK` samples are fitted in blocks of that size.
 
@@ -327,7 +327,7 @@ def static_noise_check(
     stations : dict str -> array_like (3,)
         Station positions (world frame), m.
     stretches : array_like, shape (K, 2)
-        Static intervals (:func:`static_stretches`), s.
+        Static intervals (:func:`static_stretches`), s, in time order and disjoint.
     warn : bool
         One :class:`~rtsgt.errors.RtsgtWarning` per prism with a verdict other than
         consistent.
