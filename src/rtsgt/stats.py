@@ -16,11 +16,11 @@ __all__ = ["VERDICTS", "ratio_interval", "ratio_verdict"]
 VERDICTS = ("consistent", "pessimistic", "optimistic")
 
 
-def ratio_interval(dof: float, confidence: float = 0.95) -> tuple[float, float]:
-    """``(chi2_dof(0.025), chi2_dof(0.975)) / dof`` (for the default ``confidence``, equal
-    tails otherwise); ``dof`` may be a non-integer effective number of degrees of freedom."""
-    a = 0.5 * (1.0 - confidence)
-    return float(stats.chi2.ppf(a, dof) / dof), float(stats.chi2.ppf(1.0 - a, dof) / dof)
+def ratio_interval(dof: float, tail: float = 0.025) -> tuple[float, float]:
+    """``(chi2_dof(tail), chi2_dof(1 - tail)) / dof``: by default the 95 % interval
+    ``(chi2_dof(0.025), chi2_dof(0.975)) / dof``; ``dof`` may be a non-integer effective
+    number of degrees of freedom."""
+    return float(stats.chi2.ppf(tail, dof) / dof), float(stats.chi2.ppf(1.0 - tail, dof) / dof)
 
 
 def ratio_verdict(value: float, interval: tuple[float, float]) -> str:

@@ -301,7 +301,7 @@ def _component(z: np.ndarray, pred: np.ndarray, t: np.ndarray, k: np.ndarray,
         for name in ("level", "correlation"):
             out[name].update(interval=None, verdict="too few samples")
         return out
-    interval = ratio_interval(n_eff, confidence)
+    interval = ratio_interval(n_eff, 0.5 * (1.0 - confidence))
     verdict = ratio_verdict(r1, r1_interval)
     out["level"].update(interval=list(interval), verdict=ratio_verdict(ratio, interval))
     out["correlation"].update(interval=list(r1_interval), verdict=verdict)
