@@ -85,3 +85,29 @@ def test_errors_are_millimetric_and_the_engines_agree(pooled, tmp_path):
     for a, b in (("mc", "linear"), ("ut", "linear")):
         rel = np.linalg.norm(covs[a] - covs[b], axis=(1, 2)) / np.linalg.norm(covs[b], axis=(1, 2))
         assert np.median(rel) < 0.10, (a, b, np.median(rel))
+
+
+def test_the_static_noise_check_rarely_flags_an_honest_run(pooled):
+    """The static-stretch noise check (rtsgt.checks.static) on the same 40 deployments: the
+    measurement noise is the model's, so the scatter pooled over every static stretch matches
+    the predicted white variance per component, and a run is flagged (any verdict but
+    consistent, on any prism) about 5 % of the time (the check's Bonferroni level)."""
+    from rtsgt.checks.static import COMPONENTS
+
+    ratio, dof, checked, flagged = np.zeros(3), 0, 0, 0
+    for (result, _), _ in pooled:
+        out = result.self_checks["static_noise"]
+        if not out["prisms"]:
+            continue  # line-of-sight losses cut the first stop short
+        checked += 1
+        verdicts = set()
+        for e in out["prisms"].values():
+            m = e["samples"] - e["stretches"]
+            ratio += [e[c]["level"]["variance_ratio"] * m for c in COMPONENTS]
+            dof += m
+            verdicts |= {e[c][t]["verdict"] for c in COMPONENTS for t in ("level", "correlation")}
+        flagged += bool(verdicts & {"optimistic", "pessimistic"})
+    assert checked >= 30
+    # about 2500 degrees of freedom per component: +-0.03 at one sigma
+    np.testing.assert_allclose(ratio / dof, 1.0, atol=0.08)
+    assert flagged / checked <= 0.1, (flagged, checked)

@@ -61,8 +61,13 @@ import numpy as np
 from rtsgt.calibration import CalibrationResult, calibrate
 from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.calibration.gcp import gcp_atmospheric_correction, gcp_world_positions
-from rtsgt.checks import gcp_fit_check, inter_prism_check
-from rtsgt.checks.block_cv import block_cv_check
+from rtsgt.checks import (
+    block_cv_check,
+    gcp_fit_check,
+    inter_prism_check,
+    static_noise_check,
+    static_stretches,
+)
 from rtsgt.deployment import DeploymentData
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.filtering import module1, module2
@@ -275,7 +280,10 @@ def _run_stages(
         prisms.nearest_dt[keep], reference.xyz, reference.cov, reference.names,
         varying_cov=prisms.cov_gp[keep]),
         "block_cv": block_cv_check(tracks, gps, gp_noise=options.interpolation.gp_noise,
-                                   max_gap_s=options.interpolation.max_gap_s)}
+                                   max_gap_s=options.interpolation.max_gap_s),
+        "static_noise": static_noise_check(
+            tracks, {s: T.translation for s, T in calib.transforms.items()},
+            static_stretches(gt.t, prisms.xyz[keep]))}
     lap("self_checks")
     computation = RunComputation(data, calib, model, reports, tracks, gps, prisms, est, keep,
                                  gate_report, timings, qc_info)

@@ -2,8 +2,8 @@
 
 A variance ratio (an observed mean of squared normalised errors) is 1 if the predicted
 covariance is right; with ``dof`` independent unit-variance Gaussian terms it is distributed
-as ``chi2_dof / dof``. :func:`ratio_interval` is where it falls 95 % of the time, and
-:func:`ratio_verdict` names where a value lies against that interval.
+as ``chi2_dof / dof``. :func:`ratio_interval` is where it falls 95 % of the time (or with
+another probability), and :func:`ratio_verdict` names where a value lies against that interval.
 """
 
 from __future__ import annotations
@@ -16,10 +16,11 @@ __all__ = ["VERDICTS", "ratio_interval", "ratio_verdict"]
 VERDICTS = ("consistent", "pessimistic", "optimistic")
 
 
-def ratio_interval(dof: float) -> tuple[float, float]:
-    """``(chi2_dof(0.025), chi2_dof(0.975)) / dof``; ``dof`` may be a non-integer effective
+def ratio_interval(dof: float, tail: float = 0.025) -> tuple[float, float]:
+    """``(chi2_dof(tail), chi2_dof(1 - tail)) / dof``: by default the 95 % interval
+    ``(chi2_dof(0.025), chi2_dof(0.975)) / dof``; ``dof`` may be a non-integer effective
     number of degrees of freedom."""
-    return float(stats.chi2.ppf(0.025, dof) / dof), float(stats.chi2.ppf(0.975, dof) / dof)
+    return float(stats.chi2.ppf(tail, dof) / dof), float(stats.chi2.ppf(1.0 - tail, dof) / dof)
 
 
 def ratio_verdict(value: float, interval: tuple[float, float]) -> str:

@@ -14,6 +14,16 @@ from rtsgt.errors import InputError
 from rtsgt.record import RunRecord
 
 
+def tau_text(correlation: dict) -> str:
+    """A static-noise correlation time with its 95 % interval (:mod:`rtsgt.checks.static`),
+    e.g. ``"2.5 s (1.1-6.0 s)"`` or ``"5.0 s (at least 2.1 s)"``."""
+    tau, iv = correlation["correlation_time_s"], correlation.get("correlation_time_95_s")
+    if not iv:
+        return f"{tau:.1f} s"
+    return f"{tau:.1f} s (" + (f"{iv[0]:.1f}-{iv[1]:.1f} s)" if iv[1] is not None
+                               else f"at least {iv[0]:.1f} s)")
+
+
 def usage_error(message: str, option: str) -> typer.BadParameter:
     """A bad value of a command-line option, for ``raise`` (exit status 2, see
     :mod:`rtsgt.cli.main`)."""
@@ -100,8 +110,10 @@ def print_run_summary(record: RunRecord, out) -> None:
     n_left = int(np.sum(record.removed.stage == "module4"))
     if n_left:
         table.add_row("measurements left out of the GPs (distance windows)", str(n_left))
-    # the self-checks (rtsgt.checks): the GCP fit's variance factor per station, and the
-    # inter-prism distances' mean z^2, each with its 95 % interval
+    # the self-checks (rtsgt.checks): the GCP fit's variance factor per station, the
+    # inter-prism distances' mean z^2 and the block cross-validation's NEES / dof, each with
+    # its 95 % interval, and the noise on the static stretches per prism and component
+    # (Bonferroni intervals)
     gcp = record.self_checks.get("gcp_fit", {})
     for s, v in gcp.get("stations", {}).items():
         if v.get("dof"):
@@ -125,5 +137,28 @@ def print_run_summary(record: RunRecord, out) -> None:
             lo, hi = v["interval_95"]
             table.add_row(f"self-check block CV, {name} ({v['blocks']} windows)",
                           f"{v['nees_per_dof']:.2f}, 95 % [{lo:.2f}, {hi:.2f}]: {v['verdict']}")
+    static = record.self_checks.get("static_noise", {})
+    if static and not static.get("prisms"):
+        table.add_row("self-check static", static.get("note", "no static stretch"))
+    for pid, e in static.get("prisms", {}).items():
+        for name in ("range", "horizontal", "vertical"):
+            c = e[name]
+            text = f"{c['observed_sigma_mm']:.2f} / {c['predicted_sigma_mm']:.2f} mm"
+            lv, co = c["level"], c["correlation"]
+            if lv.get("interval"):
+                (lo, hi), (rlo, rhi) = lv["interval"], co["interval"]
+                text += (f", ratio {lv['variance_ratio']:.2f} [{lo:.2f}, {hi:.2f}]: "
+                         f"{lv['verdict']}; lag-1 {co['lag1']:.2f} [{rlo:.2f}, {rhi:.2f}]: "
+                         f"{co['verdict']}")
+                if co.get("correlation_time_s") is not None:
+                    text += f", correlation time {tau_text(co)}"
+            else:
+                text += f": {lv['verdict']}"
+            table.add_row(f"self-check static, prism {pid} {name}",
+                          f"{e['samples']} samples, {text}")
+    if static.get("confidence"):
+        table.add_row("self-check static: intervals",
+                      f"{100 * static['confidence']:.2f} % each ({static['tests']} tests, "
+                      f"{100 * static['family_false_alarm']:.0f} % false alarms per run)")
     table.add_row("output", str(out))
     console.print(table)

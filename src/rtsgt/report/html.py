@@ -171,7 +171,7 @@ def _interval(v: Mapping) -> str:
 def _self_checks_html(checks: Mapping) -> str:
     """The run's self-checks (:mod:`rtsgt.checks`): the inter-prism distances by regime, the
     block cross-validation of the tracks by regime and the GCP fit per station, each with its
-    95 % interval and verdict."""
+    95 % interval and verdict, and the noise on the static stretches."""
     if not checks:
         return "<p class='note'>This run was written before rtsgt made self-checks.</p>"
     parts = []
@@ -225,7 +225,66 @@ def _self_checks_html(checks: Mapping) -> str:
         "against the instrument model's covariance (1 if the model is right). Added to every "
         f"shot by the calibration: {_fmt(added.get('horizontal'), 3)} mm horizontal, "
         f"{_fmt(added.get('vertical'), 3)} mm vertical.</small></p>")
+    parts.append(_static_noise_html(checks.get("static_noise")))
     return "".join(parts)
+
+
+def _tau(co: Mapping) -> str:
+    """A correlation time with its 95 % interval, or a dash."""
+    tau, iv = co.get("correlation_time_s"), co.get("correlation_time_95_s")
+    if tau is None:
+        return "–"
+    if not iv:
+        return _fmt(tau, 2)
+    return f"{_fmt(tau, 2)} ({_fmt(iv[0], 2)} – " + ("…)" if iv[1] is None
+                                                     else f"{_fmt(iv[1], 2)})")
+
+
+def _static_noise_html(s: Mapping | None) -> str:
+    """The static-stretch noise check: per prism and component, the scatter against the
+    predicted white sigma, its variance ratio and lag-one correlation with their intervals and
+    verdicts, and the correlation time where correlation is found."""
+    if s is None:
+        return ""
+    head = "<h3>Noise on the static stretches</h3>"
+    if not s.get("prisms"):
+        return head + f"<p>{html.escape(s.get('note', 'no static stretch'))}.</p>"
+
+    def iv(v: Mapping) -> str:
+        i = v.get("interval")
+        return "-" if not i else f"{_fmt(i[0], 3)} - {_fmt(i[1], 3)}"
+
+    rows = []
+    for pid, e in s["prisms"].items():
+        for name in ("range", "horizontal", "vertical"):
+            c = e[name]
+            lv, co = c["level"], c["correlation"]
+            rows.append(
+                f"<tr><td class='s'>{html.escape(str(pid))} (station "
+                f"{html.escape(str(e['station']))})</td><td class='s'>{name}</td>"
+                f"<td>{e['samples']}</td><td>{_fmt(c['observed_sigma_mm'], 3)}</td>"
+                f"<td>{_fmt(c['predicted_sigma_mm'], 3)}</td>"
+                f"<td>{_fmt(lv['variance_ratio'], 3)}</td><td>{iv(lv)}</td>"
+                f"<td class='verdict'>{html.escape(lv['verdict'])}</td>"
+                f"<td>{_fmt(co['lag1'], 2)}</td><td>{iv(co)}</td>"
+                f"<td class='verdict'>{html.escape(co['verdict'])}</td>"
+                f"<td>{_tau(co)}</td></tr>")
+    spans = ", ".join(f"{b - a:.1f}" for a, b in s["stretches_s"])
+    conf = s.get("confidence")
+    level = "" if not conf else (
+        f" Each interval holds {100 * conf:.2f} % ({s['tests']} tests: a run whose noise "
+        f"model is right is flagged {100 * s['family_false_alarm']:.0f} % of the time).")
+    return (head + "<table id='check-static'><tr><th class='k'>prism</th><th>component</th>"
+            "<th>samples</th><th>scatter (mm)</th><th>predicted (mm)</th><th>variance ratio"
+            "</th><th>interval</th><th>verdict</th><th>lag-1 correlation</th><th>interval</th>"
+            f"<th>verdict</th><th>correlation time, 95 % (s)</th></tr>{''.join(rows)}</table>"
+            f"<p><small>Static stretches of {spans} s. The scatter of each prism's "
+            "measurements about their mean while the robot stands, along the line of sight "
+            "(range) and across it, against the white noise the run predicts (instrument and "
+            "tilt); a variance ratio above its interval: the model's noise is too small "
+            "(optimistic), below: too large (pessimistic). A lag-one correlation above its "
+            "interval: the noise wanders, and the GP averages errors that do not average out "
+            f"(optimistic).{level} Method: rtsgt's docs/self-checks.md.</small></p>")
 
 
 def _flatten(obj, prefix: str = "") -> list[tuple[str, object]]:
