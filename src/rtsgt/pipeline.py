@@ -55,6 +55,7 @@ from rtsgt.calibration import CalibrationResult, calibrate
 from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.calibration.gcp import gcp_atmospheric_correction, gcp_world_positions
 from rtsgt.checks import gcp_fit_check, inter_prism_check
+from rtsgt.checks.structure import run_structure_check
 from rtsgt.deployment import DeploymentData
 from rtsgt.errors import InputError
 from rtsgt.filtering import module1, module2
@@ -247,6 +248,9 @@ def _run_stages(
         gt.t, gt.position, prisms.xyz[keep], prisms.pose_covariance[keep],
         prisms.nearest_dt[keep], reference.xyz, reference.cov, reference.names,
         varying_cov=prisms.cov_gp[keep])}
+    self_checks["inter_prism_structure"] = run_structure_check(
+        prisms, gps, tracks, calib, coupling, reference, est.R, keep, model,
+        options.interpolation.gp_noise)
     lap("self_checks")
     computation = RunComputation(data, calib, model, reports, tracks, gps, prisms, est, keep,
                                  gate_report, timings, qc_info)

@@ -115,5 +115,26 @@ def print_run_summary(record: RunRecord, out) -> None:
             lo, hi = v["interval_95"]
             table.add_row(f"self-check z^2, {name} ({v['poses']} poses)",
                           f"{v['mean_z2']:.2f}, 95 % [{lo:.2f}, {hi:.2f}]: {v['verdict']}")
+    _structure_rows(table, record.self_checks.get("inter_prism_structure", {}))
     table.add_row("output", str(out))
     console.print(table)
+
+
+def _structure_rows(table: Table, check: dict) -> None:
+    """The inter-prism residual structure check (:mod:`rtsgt.checks.structure`): each test's
+    chi2 / dof with its interval, and the clock offsets of the whole run."""
+    for key, name in (("clock", "clock offsets"), ("prism_orientation", "prism orientation")):
+        v = check.get(key)
+        if not v or v.get("verdict") is None:
+            continue
+        if v.get("interval"):
+            lo, hi = v["interval"]
+            table.add_row(f"self-check {name} ({v['dof']} dof)",
+                          f"chi2/dof {v['chi2_per_dof']:.2f}, {100 * v['level']:.1f} % "
+                          f"[{lo:.2f}, {hi:.2f}]: {v['verdict']}")
+        else:
+            table.add_row(f"self-check {name}", v["verdict"])
+    offsets = check.get("clock", {}).get("offsets_ms", {})
+    if offsets:
+        table.add_row("clock offsets, whole run", ", ".join(
+            f"{k}: {v['run']:+.2f} +- {v['sigma']:.2f} ms" for k, v in offsets.items()))

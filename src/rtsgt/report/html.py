@@ -203,7 +203,59 @@ def _self_checks_html(checks: Mapping) -> str:
         "against the instrument model's covariance (1 if the model is right). Added to every "
         f"shot by the calibration: {_fmt(added.get('horizontal'), 3)} mm horizontal, "
         f"{_fmt(added.get('vertical'), 3)} mm vertical.</small></p>")
+    parts.append(_structure_html(checks.get("inter_prism_structure")))
     return "".join(parts)
+
+
+def _structure_html(check: Mapping | None) -> str:
+    """The inter-prism residual structure check (:mod:`rtsgt.checks.structure`): its two
+    tests, the clock offsets (whole run and per window) and the prisms' harmonic
+    amplitudes."""
+    if not check or "clock" not in check:
+        return ""
+    rows = [("clock offsets", check["clock"]), ("prism orientation", check["prism_orientation"])]
+    body = "".join(
+        f"<tr><td class='s'>{k}</td><td>{_fmt(v.get('dof'))}</td>"
+        f"<td>{_fmt(v.get('chi2_per_dof'), 3)}</td><td>{_fmt(v.get('p_value'), 2)}</td>"
+        f"<td>{_interval({'interval_95': v.get('interval')})}</td>"
+        f"<td class='verdict'>{html.escape(str(v.get('verdict') or '–'))}</td></tr>"
+        for k, v in rows)
+    out = [
+        "<h3>Inter-prism residual structure</h3><table id='check-structure'><tr>"
+        "<th class='k'>test</th><th>dof</th><th>χ² / dof</th><th>p</th>"
+        f"<th>{100 * check.get('family_level', 0.95):.0f} % family interval</th>"
+        f"<th>verdict</th></tr>{body}</table>"]
+    clock = check["clock"]
+    if clock.get("offsets_ms"):
+        pairs = list(clock["offsets_ms"])
+        head = "".join(f"<th>{html.escape(p)}</th>" for p in pairs)
+        run = "".join(f"<td>{_fmt(v['run'], 3)} ± {_fmt(v['sigma'], 2)}</td>"
+                      for v in clock["offsets_ms"].values())
+        win = "".join(
+            f"<tr><td class='s'>{_fmt(w['t_start'] - clock['by_window'][0]['t_start'], 4)} s"
+            "</td>" + "".join(f"<td>{_fmt(w['offsets_ms'][p], 3)} ± "
+                              f"{_fmt(w['sigma_ms'][p], 2)}</td>" for p in pairs) + "</tr>"
+            for w in clock.get("by_window", []))
+        out.append(
+            "<table id='check-clock-offsets'><tr><th class='k'>clock offsets, ms</th>"
+            f"{head}</tr><tr><td class='s'>whole run</td>{run}</tr>{win}</table>")
+    amp = check["prism_orientation"].get("amplitudes", {})
+    if amp:
+        body = "".join(
+            f"<tr><td class='s'>prism {html.escape(str(p))}, {html.escape(k)}</td>"
+            f"<td>{_fmt(a['range_mm'], 3)} ± {_fmt(a['range_sigma_mm'], 2)}</td>"
+            f"<td>{_fmt(a['across_mm'], 3)} ± {_fmt(a['across_sigma_mm'], 2)}</td></tr>"
+            for p, per in amp.items() for k, a in per.items())
+        out.append("<table id='check-prism-harmonics'><tr><th class='k'>harmonic (per turn)"
+                   "</th><th>range, mm</th><th>across, mm</th></tr>" + body + "</table>")
+    out.append(
+        "<p><small>GLS regression of the inter-prism distance residuals, with the run's own "
+        "covariance (the GP's, window by window, and the errors shared by the run), on the "
+        "clock offsets of the stations relative to the first per window of "
+        f"{_fmt(check.get('window_s'), 3)} s, and on harmonics of each prism's viewing angle. "
+        "χ² / dof is 1 if the covariance is honest; each test at half the family's risk. "
+        "Method: rtsgt's docs/self-checks.md.</small></p>")
+    return "".join(out)
 
 
 def _flatten(obj, prefix: str = "") -> list[tuple[str, object]]:
