@@ -3,9 +3,10 @@ r"""Self-check of the structure of the inter-prism distance residuals: clocks an
 The inter-prism distance check (:mod:`rtsgt.checks.distances`) looks at the size of
 ``r_ij(t) = |q_i - q_j| - |r_i - r_j|`` (tracked minus surveyed distance) against its
 predicted variance. Two errors of a real deployment hide in the *structure* of ``r`` rather
-than in its size, and this check tests for them by regression: it estimates their parameters
-by generalised least squares (GLS) with the run's own covariance of the residuals, and asks
-whether the estimates are what the noise model predicts.
+than in its size: a station clock that drifts, and a 360-degree prism whose error follows
+its orientation. This check tests for them by regression: it estimates their parameters by
+generalised least squares (GLS) with the run's own covariance of the residuals, and asks
+whether the estimates are what the noise model allows.
 
 Residuals and their covariance
 ------------------------------
@@ -18,38 +19,42 @@ the residual by
 The run predicts the errors of ``q`` and ``r`` in two parts (:mod:`rtsgt.shared`):
 
 - **varying**: the GP posterior of each prism, correlated from pose to pose over a few
-  measurements. Its covariance between any two times is exact
+  measurements (a few seconds). Its covariance between any two times is exact
   (:func:`rtsgt.interpolation.cross.gp_joint_covariance`); the prisms' GPs are independent.
-  Within a window of ``WINDOW_S`` the covariance ``S_w`` of the stacked residuals is that of
-  the GPs mapped by ``H``; between windows it is neglected (the GP correlation lasts a few
-  measurement intervals, a window is tens of them).
+  Within a block of ``BLOCK_S`` the covariance ``S_b`` of the stacked residuals is that of
+  the GPs mapped by ``H``; between blocks it is neglected (a minute against a correlation of
+  seconds).
 - **shared**: one draw for the run, ``theta ~ N(0, I)`` whitened parameters (the station
   calibrations, each station's clock offset and atmospheric scale, the survey), each moving
   the prisms by the sensitivity ``F(t)`` of :func:`rtsgt.shared.prism_shared_factor` and the
   survey by :func:`rtsgt.shared.reference_factor`: ``r`` gets ``G(t) theta``,
-  ``G = [H F, -H_r A_r]``, the same ``theta`` at every pose.
+  ``G = [H F, -H_r A_r]``, the same ``theta`` at every pose. The clock offsets' columns are
+  taken along the GP velocity, ``sqrt(E[e_ts^2]) H v_s``, the same vectors as the clock
+  regressors below (the factor's own, scaled from the measurements' differenced velocity,
+  differ from them by noise that the GP's smooth covariance would take for information).
 
 So the residuals ``y`` of a run (all poses and pairs) have, if the run's covariance is honest,
-``y ~ N(0, V)`` with ``V = S + G G^T`` (``S`` block-diagonal by window). The GLS products
-``X^T V^-1 y`` are computed by whitening each window with its Cholesky factor ``L_w``
-(``y~ = L^-1 y``, ``G~``, ``X~`` alike) and Woodbury's identity,
-``V^-1 = L^-T (I - G~ (I + G~^T G~)^-1 G~^T) L^-1``: the shared errors enter exactly, as the
-``k`` columns of ``G``, with no time-correlation model to choose.
+``y ~ N(0, V)`` with ``V = S + G G^T``. The GLS products ``X^T V^-1 y`` are computed by
+whitening each block with its Cholesky factor ``L_b`` (``y~ = L^-1 y``, ``G~``, ``X~`` alike)
+and Woodbury's identity, ``V^-1 = L^-T (I - G~ (I + G~^T G~)^-1 G~^T) L^-1``: the shared
+errors enter exactly, as the ``k`` columns of ``G``, with no time-correlation model to choose.
 
-The test
---------
-For regressors ``X`` (columns: the effect's parameters) the GLS estimate and its covariance
-under the run's model are ``b = N^+ X^T V^-1 y``, ``Cov b = N^+`` with ``N = X^T V^-1 X``; the
-score statistic ``c = b^T N b`` is ``chi2_p`` distributed if ``y ~ N(0, V)``, with ``p`` the
-rank of ``N`` (the directions the data determine: eigenvalues of the scaled ``N`` above
-``RANK_TOL`` of the largest). The regressors soak up whatever part of the shared errors
-resembles them, and ``V`` says how much: a shared error that looks like the effect raises
-``Cov b`` instead of raising a false alarm. ``c / p`` is compared with
-``chi2_p(a / 2) / p`` and ``chi2_p(1 - a / 2) / p``: ``consistent`` inside, ``optimistic``
-above (the residuals have structure the covariance does not allow: it is too small),
-``pessimistic`` below (less than the covariance predicts: it is too large). The two tests
-share the family level ``1 - alpha = 95 %`` by Bonferroni (``a = alpha / 2`` each), so an
-honest run fails the check in at most 5 % of deployments.
+The tests
+---------
+For regressors ``X`` (the effect's parameters) and nuisance regressors ``Z`` (estimated along,
+without a prior) the GLS estimate and its covariance under the run's model are
+``b = N^+ s``, ``Cov b = N^+``, with ``N`` and ``s`` the information and the score of ``X``
+once ``Z`` is projected out (the Schur complement of ``[X Z]^T V^-1 [X Z]``); the statistic
+``c = b^T N b`` is ``chi2_p`` if ``y ~ N(0, V)``, with ``p`` the rank of ``N`` (eigenvalues of
+the scaled ``N`` above ``RANK_TOL`` of the largest). The regressors soak up whatever part of
+the shared errors resembles them, and ``V`` says how much: a shared error that looks like the
+effect raises ``Cov b`` instead of raising a false alarm.
+
+Both tests are one-sided: they look for structure that the covariance does not allow
+(``optimistic``: the covariance is too small); a covariance too large is the size check's
+business (:mod:`rtsgt.checks.distances`). Each is made at ``1 - alpha / 2`` with
+``alpha = 1 - FAMILY_LEVEL`` (Bonferroni), so an honest run fails the check in at most 5 % of
+deployments.
 
 Clock offsets (``clock``)
 -------------------------
@@ -57,18 +62,19 @@ A station's clock off by ``delta_s`` (``t_true - t_recorded``) moves the prism i
 ``v_i delta_s`` (``v_i``: the GP velocity), so ``r_ij`` gets
 ``u_ij . (v_i delta_s(i) - v_j delta_s(j))``. A common offset of all clocks does not change a
 distance (a rigid motion has ``u_ij . (v_i - v_j) = 0``): only the offsets relative to the
-first station, ``delta_s - delta_1``, are estimated, one pair per window of ``WINDOW_S``
-(columns ``X_w,s = H v_s`` on the poses of window ``w``, zero elsewhere). The noise model has
-one constant offset per station, zero-mean with variance ``E[e_ts^2] = mu^2 + sigma^2``
-(:mod:`rtsgt.noise.model`), which is in ``V`` through the shared ``time_sync`` parameters;
-the test therefore asks at once whether the offsets are as large as the model allows and
-constant over the run. A clock that drifts, or is re-synchronised during the run, gives
-offsets that change from window to window. Windows where the robot stands carry no
-information (``v = 0``) and are left out: a window enters if the robot moves (speed
-``STATIC_SPEED_M_S`` or more, :func:`rtsgt.checks.distances.pose_speed`) over at least half of
-its length (its moving kept poses times the median pose interval). The estimates are reported per window and for the whole run, in ms, with their
-sigma, both with the model's clock prior left out of ``V`` (so they are the data's own
-estimates of the relative offsets).
+first station, ``delta_s - delta_1``, are estimated, one pair per window (columns
+``X_w,s = H v_s`` on the poses of window ``w``, zero elsewhere). A window is ``WINDOW_S`` of
+*motion*: the poses are cut where the time the robot has moved (speed ``STATIC_SPEED_M_S`` or
+more, :func:`rtsgt.checks.distances.pose_speed`, counted at the median pose interval) passes a
+multiple of ``WINDOW_S``, so every moving pose is in a window and standstills, which carry no
+information (``v = 0``), cost none; a last window with less than half of ``WINDOW_S`` of motion
+joins the one before. The noise model has one constant offset per station, zero-mean with
+variance ``E[e_ts^2] = mu^2 + sigma^2`` (:mod:`rtsgt.noise.model`), in ``V`` through the
+clock columns of ``G``; the test therefore asks at once whether the offsets stay within what
+the model allows and whether they are constant over the run. A clock that drifts, or is
+re-synchronised during the run, gives offsets that change from window to window. The
+estimates are reported per window and for the whole run, in ms, with their sigma, with the
+model's clock prior left out of ``V`` (the data's own estimates of the relative offsets).
 
 Prism orientation (``prism_orientation``)
 -----------------------------------------
@@ -76,16 +82,36 @@ A 360-degree prism is several corner cubes glued around a vertical axis; where i
 centre lies depends on which cube faces the station, so its error is periodic in the angle
 ``alpha_i`` between the station's line of sight and the prism's orientation (the robot's
 heading: ``alpha_i`` is the azimuth, in the body frame of the pose, of the direction from the
-prism to its station). The error is regressed, per prism, on the harmonics ``HARMONICS`` of
-``alpha_i`` (6 cycles per turn: six cubes, a 60-degree period, e.g. Lackner & Lienhart 2016,
-"Impact of prism type and prism orientation on the accuracy of automated total station
-measurements", JISDM; and 1 per turn: an eccentric or tilted mounting), along the line of sight
-``l_i`` (range) and across it horizontally ``c_i``: four columns per harmonic and prism,
-``H (l_i sin k alpha_i)``, ``H (l_i cos k alpha_i)``, ``H (c_i sin k alpha_i)``,
-``H (c_i cos k alpha_i)``. The harmonics are fixed by the prism's construction, not fitted to
-a deployment. A harmonic ``k`` of a prism enters only if the prism's viewing angles cover at
-least one period, ``360 / k`` degrees (else it is a constant, the survey's business). The
-estimated amplitudes (mm) are reported per prism and harmonic.
+prism to its station). A prism of six corner cubes (the usual 360-degree prism) repeats
+itself every 60 degrees, so its error is a Fourier series in multiples of 6 cycles per turn
+(orientation-dependent errors of 360-degree prisms of a few millimetres: Lackner & Lienhart
+2016, "Impact of prism type and prism orientation on the accuracy of automated total station
+measurements", JISDM, Vienna). The check regresses the residuals on the fundamental (6 per
+turn) and its first overtone (12 per turn: the pattern is not a pure sine), ``HARMONICS``,
+along the line of sight ``l_i`` (range) and across it horizontally ``c_i``: four columns per
+harmonic and prism, ``H (l_i sin k alpha_i)``, ``H (l_i cos k alpha_i)``,
+``H (c_i sin k alpha_i)``, ``H (c_i cos k alpha_i)``. The harmonics are fixed by the prism's
+construction, not fitted to a deployment. One cycle per turn (an eccentric mounting) is left
+out on purpose: along the line of sight it holds a constant and a term in the robot's heading,
+which the clock offsets and the survey produce as well. A prism enters only if its viewing
+angle swept at least one period of the pattern, 60 degrees (its span, unwrapped along the
+time, :func:`viewing_span`).
+
+Over a short span a harmonic is a smooth trend in time, and a smooth error that the GP's
+covariance understates (a start or a stop: the motion prior's weak point) shows up in any
+smooth regressor. The test therefore compares the harmonics with harmonics that no prism of
+six cubes has, ``PLACEBO_HARMONICS`` (4, 5, 7, 8 per turn: as smooth, in the same band),
+fitted with the prism's harmonics and the clock offsets as nuisance:
+``F = (c / p) / (c_0 / p_0)``, which is ``F(p, p_0)`` distributed if the residuals have no
+structure at the prism's harmonics beyond what they have beside them, whatever the scale of
+the covariance in that band; the verdict is ``optimistic`` above its ``1 - alpha / 2``
+quantile. The amplitudes (mm) of each prism and harmonic are reported, with sigmas scaled by
+``c_0 / p_0`` where that exceeds 1.
+
+The clock test takes the prisms' harmonics out as nuisance where the orientation test finds
+them (``prism_harmonics_removed``): a prism error then does not pass for clock offsets, and
+where there is none the clock test keeps its power. The orientation test always takes the
+clock offsets out.
 
 Neither effect changes a common translation of the robot, and neither test sees a first-order
 lag common to all instruments (it moves every prism by nearly the same amount).
@@ -104,23 +130,28 @@ from scipy.linalg import solve_triangular
 
 from rtsgt.checks.distances import STATIC_SPEED_M_S, pose_speed
 from rtsgt.errors import RtsgtWarning
-from rtsgt.stats import ratio_verdict
 
-__all__ = ["FAMILY_LEVEL", "HARMONICS", "RANK_TOL", "WINDOW_S", "GlsTest", "gls_test",
+__all__ = ["BLOCK_S", "FAMILY_LEVEL", "HARMONICS", "PLACEBO_HARMONICS", "RANK_TOL",
+           "WINDOW_S", "GlsTest", "gls_test", "whiten", "whitened_gls_test",
            "inter_prism_structure_check", "pair_jacobian", "run_structure_check",
-           "viewing_azimuth"]
+           "viewing_azimuth", "viewing_span"]
 
 #: Length of the windows of the clock offsets, s.
 WINDOW_S = 10.0
-#: Harmonics of the prism's viewing angle, cycles per turn (six corner cubes; a mounting).
-HARMONICS = (1, 6)
+#: Length of the blocks of the varying covariance (their correlation between blocks is
+#: neglected), s.
+BLOCK_S = 60.0
+#: Harmonics of the prism's viewing angle, cycles per turn: six corner cubes repeat every
+#: 60 degrees, and the fundamental of that period and its first overtone.
+HARMONICS = (6, 12)
+#: Harmonics beside them that no prism of six cubes has: the scale of the smooth residuals.
+PLACEBO_HARMONICS = (4, 5, 7, 8)
 #: Family level of the check's two tests (Bonferroni: each at ``1 - (1 - level) / 2``).
 FAMILY_LEVEL = 0.95
 #: Directions of the information matrix below this fraction of its largest (scaled)
 #: eigenvalue are not determined by the data.
 RANK_TOL = 1e-9
-#: A window's clock offsets are estimated if the robot moves over at least this share of its
-#: length (counting the kept poses at the median pose interval).
+#: A last clock window with less motion than this share of ``WINDOW_S`` joins the one before.
 MOVING_SHARE = 0.5
 
 
@@ -142,11 +173,9 @@ class GlsTest:
     def __init__(self, beta: np.ndarray, cov: np.ndarray, chi2: float, dof: int) -> None:
         self.beta, self.cov, self.chi2, self.dof = beta, cov, chi2, dof
 
-    def interval(self, level: float) -> tuple[float, float]:
-        """Where ``chi2 / dof`` falls with probability ``level`` if ``y ~ N(0, V)``."""
-        a = 1.0 - level
-        return (float(stats.chi2.ppf(a / 2, self.dof) / self.dof),
-                float(stats.chi2.ppf(1 - a / 2, self.dof) / self.dof))
+    def critical(self, level: float) -> float:
+        """The ``level`` quantile of ``chi2 / dof`` if ``y ~ N(0, V)``."""
+        return float(stats.chi2.ppf(level, self.dof) / self.dof)
 
     def p_value(self) -> float:
         """Upper-tail probability of ``chi2`` (``chi2_dof`` distribution)."""
@@ -290,25 +319,33 @@ def viewing_azimuth(xyz: ArrayLike, R_world_body: ArrayLike, station_xyz: ArrayL
     return np.arctan2(body[..., 1], body[..., 0])
 
 
-def _covered(alpha: np.ndarray) -> float:
-    """Angle covered by the directions ``alpha`` (rad): a turn minus the largest gap."""
-    a = np.sort(np.mod(alpha, 2 * np.pi))
-    if a.size < 2:
-        return 0.0
-    gaps = np.diff(np.concatenate([a, [a[0] + 2 * np.pi]]))
-    return float(2 * np.pi - gaps.max())
+def viewing_span(alpha: ArrayLike) -> float:
+    """Span of the viewing angles ``alpha`` (rad, in time order), unwrapped along the time:
+    what the angle swept, more than a turn when the robot turned more than once."""
+    a = np.unwrap(np.asarray(alpha, dtype=float))
+    return float(a.max() - a.min()) if a.size else 0.0
+
+
+def _runs(t: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """Start and end (exclusive) indices of the poses in consecutive intervals of
+    ``length`` from the first pose."""
+    if t.size == 0:
+        return np.zeros(0, int), np.zeros(0, int)
+    k = np.floor((t - t[0]) / length).astype(int)
+    starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+    return starts, np.r_[starts[1:], t.size].astype(int)
 
 
 def _verdict(test: GlsTest, level: float) -> dict[str, Any]:
-    """The JSON of a test and its verdict."""
+    """The JSON of a chi-square test and its one-sided verdict at ``level``."""
     if test.dof == 0:
         return {"dof": 0, "chi2": None, "chi2_per_dof": None, "p_value": None,
-                "level": level, "interval": None, "verdict": None}
-    lo, hi = test.interval(level)
+                "level": level, "critical": None, "verdict": None}
+    crit = test.critical(level)
     ratio = test.chi2 / test.dof
     return {"dof": test.dof, "chi2": round(test.chi2, 3), "chi2_per_dof": round(ratio, 4),
-            "p_value": test.p_value(), "level": level, "interval": [lo, hi],
-            "verdict": ratio_verdict(ratio, (lo, hi))}
+            "p_value": test.p_value(), "level": level, "critical": crit,
+            "verdict": "optimistic" if ratio > crit else "consistent"}
 
 
 def inter_prism_structure_check(
@@ -352,14 +389,20 @@ def inter_prism_structure_check(
     time_sync_sigma_s : float
         The noise model's ``sqrt(E[e_ts^2])``, s (0 without the ``time_sync`` source).
     warn : bool
-        One :class:`~rtsgt.errors.RtsgtWarning` per test judged optimistic or pessimistic.
+        One :class:`~rtsgt.errors.RtsgtWarning` per test judged optimistic.
 
     Returns
     -------
     dict
-        JSON-ready: ``clock`` and ``prism_orientation`` (each: ``dof``, ``chi2``,
-        ``chi2_per_dof``, ``p_value``, ``interval``, ``verdict`` and the estimates), and the
-        settings.
+        JSON-ready (module docstring): ``clock`` (``dof``, ``chi2``, ``chi2_per_dof``,
+        ``p_value``, ``level``, ``critical`` (of ``chi2_per_dof``), ``verdict``, the windows,
+        ``offsets_ms`` of the whole run and ``by_window``, each with its sigma) and
+        ``prism_orientation`` (the same for the prisms' harmonics, and ``placebo_dof``,
+        ``placebo_chi2_per_dof``, ``f``, whose ``p_value`` and ``critical`` the verdict
+        uses, ``viewing_span_deg`` and ``amplitudes``), and the settings. A verdict is
+        ``consistent`` or ``optimistic``; ``too few moving windows`` or
+        ``too few orientations`` where the data cannot tell (a robot that never moves or
+        never turns).
     """
     t = np.asarray(t, dtype=float)
     q = np.asarray(xyz, dtype=float)
@@ -392,69 +435,85 @@ def inter_prism_structure_check(
                         clock_prior], axis=2).reshape(T * P, -1)
     is_ts = np.r_[np.zeros(G.shape[1] - clock_prior.shape[2], bool),
                   np.ones(clock_prior.shape[2], bool)]
-    # windows and the varying covariance, block by block
-    window = np.floor((t - t[0]) / WINDOW_S).astype(int) if T else np.zeros(0, int)
-    starts = np.flatnonzero(np.r_[True, window[1:] != window[:-1]]) if T else np.zeros(0, int)
-    ends = np.r_[starts[1:], T].astype(int)
+    # the blocks of the varying covariance
     blocks = []
-    for a, b in zip(starts, ends, strict=True):  # loop over windows
+    for a, b in zip(*_runs(t, BLOCK_S), strict=True):  # loop over blocks
         S = np.zeros((b - a, P, b - a, P))
         for i in range(n):
             C = varying_cov(i, t[a:b])
             Hi = H[a:b, :, 3 * i:3 * i + 3]
             S += np.einsum("apx,abxq->apbq", Hi, C @ np.swapaxes(Hi, 1, 2)[None])
         blocks.append(S.reshape((b - a) * P, (b - a) * P))
-    Xc, clock_info = _clock_regressors(t, q, H, per_station, starts, ends)
-    Xo, orient_info, labels = _orientation_regressors(q, H, R_world_body, station_xyz, names)
-    # whiten once: the residuals, the shared columns and both sets of regressors
-    k, pc = G.shape[1], Xc.shape[1]
-    w = whiten(blocks, np.concatenate([y[:, None], G, Xc, Xo], axis=1))
-    yw, Gw, Xcw, Xow = w[:, 0], w[:, 1:1 + k], w[:, 1 + k:1 + k + pc], w[:, 1 + k + pc:]
-    out["clock"] = _clock(t, starts, ends, per_station, yw, Gw, is_ts, Xcw, Xow, clock_info,
-                          time_sync_sigma_s, level)
-    out["prism_orientation"] = _orientation(yw, Gw, Xow, Xcw, orient_info, labels, level)
+    Xc, clock_info, starts, ends = _clock_regressors(t, q, H, per_station)
+    Xo, orient_info, labels = _orientation_regressors(q, H, R_world_body, station_xyz, names,
+                                                      HARMONICS)
+    Xp, _, _ = _orientation_regressors(q, H, R_world_body, station_xyz, names,
+                                       PLACEBO_HARMONICS)
+    # whiten once: the residuals, the shared columns and the three sets of regressors
+    k, pc, po = G.shape[1], Xc.shape[1], Xo.shape[1]
+    w = whiten(blocks, np.concatenate([y[:, None], G, Xc, Xo, Xp], axis=1))
+    yw, Gw = w[:, 0], w[:, 1:1 + k]
+    Xcw, Xow, Xpw = np.split(w[:, 1 + k:], [pc, pc + po], axis=1)
+    out["prism_orientation"] = _orientation(yw, Gw, Xow, Xcw, Xpw, orient_info, labels, level)
+    # the prisms' harmonics leave the clock test only where the orientation test found them
+    found = out["prism_orientation"]["verdict"] == "optimistic"
+    out["clock"] = _clock(t, starts, ends, per_station, yw, Gw, is_ts, Xcw,
+                          Xow if found else None, clock_info, time_sync_sigma_s, level)
     if warn:
-        for key, what in (("clock", "clock offsets"),
-                          ("prism_orientation", "prism-orientation harmonics")):
-            v = out[key]
-            if v["verdict"] in ("optimistic", "pessimistic"):
-                lo, hi = v["interval"]
-                tail = ("the residuals have structure the covariance does not allow: it is too "
-                        "small" if v["verdict"] == "optimistic" else
-                        "less than the covariance predicts: it is too large")
-                warnings.warn(
-                    f"self-check, inter-prism residual structure ({what}): chi2 / dof = "
-                    f"{v['chi2_per_dof']:.2f}, outside [{lo:.2f}, {hi:.2f}] ({level:.1%}, "
-                    f"{v['dof']} dof); {tail}", RtsgtWarning, stacklevel=2)
+        ck, po = out["clock"], out["prism_orientation"]
+        if ck["verdict"] == "optimistic":
+            warnings.warn(
+                f"self-check, inter-prism residual structure: the clock offsets change over the "
+                f"run or exceed the noise model (chi2 / dof = {ck['chi2_per_dof']:.2f} over "
+                f"{ck['dof']} dof, above {ck['critical']:.2f}, its {level:.1%} quantile): a "
+                "drifting or re-synchronised clock; the covariance is too small",
+                RtsgtWarning, stacklevel=2)
+        if po["verdict"] == "optimistic":
+            warnings.warn(
+                f"self-check, inter-prism residual structure: the residuals follow the prisms' "
+                f"orientation (F = {po['f']:.2f} over {po['dof']} and {po['placebo_dof']} dof, "
+                f"above {po['critical']:.2f}, its {level:.1%} quantile): an orientation-"
+                "dependent prism error; the covariance is too small", RtsgtWarning,
+                stacklevel=2)
     return out
 
 
-def _clock_regressors(t, q, H, per_station, starts, ends) -> tuple[np.ndarray, dict]:
-    """Columns of the offsets relative to the first station, per moving window, (T P, W S')."""
+def _clock_regressors(t, q, H, per_station):
+    """Columns of the offsets relative to the first station, one pair per window of
+    ``WINDOW_S`` of motion, (T P, W S'), and the windows' first and last (exclusive) poses."""
     T, P = H.shape[:2]
     ids = list(per_station)
     moving = pose_speed(t, q.mean(axis=1)) >= STATIC_SPEED_M_S
     step = float(np.median(np.diff(t))) if T > 1 else 0.0
-    used = [w for w, (a, b) in enumerate(zip(starts, ends, strict=True))
-            if step * np.count_nonzero(moving[a:b]) >= MOVING_SHARE * WINDOW_S]
-    X = np.zeros((T, P, len(used), len(ids) - 1))
-    for c, w in enumerate(used):  # loop over windows
-        a, b = starts[w], ends[w]
+    motion = np.cumsum(moving * step)  # time in motion up to each pose
+    window = np.floor(np.maximum(motion - 0.5 * step, 0.0) / WINDOW_S).astype(int)
+    n = int(window.max(initial=-1)) + 1
+    if n and motion[-1] - (n - 1) * WINDOW_S < MOVING_SHARE * WINDOW_S:
+        window[window == n - 1] = n - 2  # a last window short of motion joins the one before
+        n -= 1
+    if n <= 0 or motion[-1] < MOVING_SHARE * WINDOW_S:
+        starts = ends = np.zeros(0, int)
+    else:
+        starts = np.flatnonzero(np.r_[True, window[1:] != window[:-1]])
+        ends = np.r_[starts[1:], T].astype(int)
+    X = np.zeros((T, P, starts.size, len(ids) - 1))
+    for c, (a, b) in enumerate(zip(starts, ends, strict=True)):  # loop over windows
         for m, s in enumerate(ids[1:]):
             X[a:b, :, c, m] = per_station[s][a:b]
-    info = {"reference_station": ids[0], "windows": int(len(starts)),
-            "windows_used": len(used), "used": used}
-    return X.reshape(T * P, -1), info
+    info = {"reference_station": ids[0], "windows": int(starts.size),
+            "moving_s": round(float(motion[-1]) if T else 0.0, 1)}
+    return X.reshape(T * P, -1), info, starts, ends
 
 
 def _clock(t, starts, ends, per_station, yw, Gw, is_ts, Xw, Xow, info, sigma_ts,
            level) -> dict[str, Any]:
     """The clock-offset test (module docstring), on whitened arrays; ``per_station``: ``H v``
-    of each station's prisms, (T, P); ``Xow``: the orientation regressors (nuisance)."""
+    of each station's prisms, (T, P); ``Xow``: the orientation regressors (nuisance), or
+    None."""
     ids = list(per_station)
-    base, others, used = ids[0], ids[1:], info["used"]
-    out: dict[str, Any] = {"model_sigma_ms": 1e3 * sigma_ts,
-                           **{k: v for k, v in info.items() if k != "used"}}
+    base, others = ids[0], ids[1:]
+    out: dict[str, Any] = {"model_sigma_ms": 1e3 * sigma_ts, **info,
+                           "prism_harmonics_removed": Xow is not None}
     test = whitened_gls_test(yw, Gw, Xw, Xow)
     out.update(_verdict(test, level))
     if test.dof == 0:
@@ -463,7 +522,7 @@ def _clock(t, starts, ends, per_station, yw, Gw, is_ts, Xw, Xow, info, sigma_ts,
     # the data's own estimates: the model's clock prior left out
     est = whitened_gls_test(yw, Gw[:, ~is_ts], Xw, Xow)
     est_run = whitened_gls_test(yw, Gw[:, ~is_ts],
-                                Xw.reshape(-1, len(used), len(others)).sum(axis=1), Xow)
+                                Xw.reshape(-1, len(starts), len(others)).sum(axis=1), Xow)
     # contrasts of every pair of stations from the offsets relative to the first
     combos = [(s, base) for s in others] + [(others[b], others[a])
                                             for a in range(len(others))
@@ -482,8 +541,7 @@ def _clock(t, starts, ends, per_station, yw, Gw, is_ts, Xw, Xow, info, sigma_ts,
     run = contrast(est_run.beta, est_run.cov, 0)
     out["offsets_ms"] = {k: {"run": round(b, 3), "sigma": round(s, 3)} for k, (b, s) in run.items()}
     rows = []
-    for c, w in enumerate(used):
-        a, b = starts[w], ends[w]
+    for c, (a, b) in enumerate(zip(starts, ends, strict=True)):
         cw = contrast(est.beta, est.cov, c * len(others))
         rows.append({"t_start": float(t[a]), "t_end": float(t[b - 1]),
                      "offsets_ms": {k: round(x, 3) for k, (x, _) in cw.items()},
@@ -492,9 +550,9 @@ def _clock(t, starts, ends, per_station, yw, Gw, is_ts, Xw, Xow, info, sigma_ts,
     return out
 
 
-def _orientation_regressors(q, H, R_world_body, station_xyz, names):
-    """Columns of the harmonics of each prism's viewing angle, (T P, m), with the angles
-    covered and the columns' labels."""
+def _orientation_regressors(q, H, R_world_body, station_xyz, names, harmonics):
+    """Columns of the ``harmonics`` of each prism's viewing angle, (T P, m), with the spans
+    of the angles and the columns' labels."""
     T, P = H.shape[:2]
     n = q.shape[1]
     o = np.asarray(station_xyz, dtype=float)
@@ -504,31 +562,39 @@ def _orientation_regressors(q, H, R_world_body, station_xyz, names):
     across = np.cross(np.array([0.0, 0.0, 1.0]), los)
     across /= np.maximum(np.linalg.norm(across, axis=-1, keepdims=True), np.finfo(float).tiny)
     cols, labels = [], []
-    covered = {}
+    span = {}
     for i in range(n):
-        cov_i = _covered(alpha[:, i])
-        covered[str(names[i])] = round(float(np.degrees(cov_i)), 1)
+        cov_i = viewing_span(alpha[:, i])
+        span[str(names[i])] = round(float(np.degrees(cov_i)), 1)
         Hi = H[:, :, 3 * i:3 * i + 3]
-        for k in HARMONICS:
-            if cov_i < 2 * np.pi / k:
-                continue
+        if cov_i < 2 * np.pi / min(HARMONICS):
+            continue  # not one period of the prism's pattern
+        for k in harmonics:
             for trig, f in (("sin", np.sin), ("cos", np.cos)):
                 for comp, e in (("range", los[:, i]), ("across", across[:, i])):
                     cols.append(np.einsum("tpx,tx->tp", Hi, e * f(k * alpha[:, i])[:, None]))
                     labels.append((str(names[i]), k, comp, trig))
     X = np.stack(cols, axis=-1).reshape(T * P, -1) if cols else np.zeros((T * P, 0))
-    return X, {"covered_deg": covered}, labels
+    return X, {"viewing_span_deg": span}, labels
 
 
-def _orientation(yw, Gw, Xw, Xcw, info, labels, level) -> dict[str, Any]:
+def _orientation(yw, Gw, Xw, Xcw, Xpw, info, labels, level) -> dict[str, Any]:
     """The prism-orientation test (module docstring), on whitened arrays; ``Xcw``: the clock
-    regressors (nuisance)."""
+    regressors (nuisance); ``Xpw``: the placebo harmonics (the scale)."""
     out: dict[str, Any] = dict(info)
     test = whitened_gls_test(yw, Gw, Xw, Xcw)
+    placebo = whitened_gls_test(yw, Gw, Xpw, np.concatenate([Xcw, Xw], axis=1))
     out.update(_verdict(test, level))
-    if test.dof == 0:
+    if test.dof == 0 or placebo.dof == 0:
         out["verdict"] = "too few orientations"
         return out
+    scale = placebo.chi2 / placebo.dof
+    f = (test.chi2 / test.dof) / scale if scale > 0 else np.inf
+    crit = float(stats.f.ppf(level, test.dof, placebo.dof))
+    out.update(placebo_dof=placebo.dof, placebo_chi2_per_dof=round(scale, 4),
+               f=round(float(f), 4), p_value=float(stats.f.sf(f, test.dof, placebo.dof)),
+               critical=crit, verdict="optimistic" if f > crit else "consistent")
+    inflate = max(1.0, scale)  # the residuals' own scale in the band, where larger
     amp: dict[str, dict[str, dict[str, float]]] = {}
     for m in range(0, len(labels), 4):  # the four columns of a prism and harmonic
         prism, k, _, _ = labels[m]
@@ -538,7 +604,7 @@ def _orientation(yw, Gw, Xw, Xcw, info, labels, level) -> dict[str, Any]:
             b = test.beta[idx]
             entry[f"{comp}_mm"] = round(1e3 * float(np.hypot(*b)), 3)
             entry[f"{comp}_sigma_mm"] = round(1e3 * float(np.sqrt(
-                np.trace(test.cov[np.ix_(idx, idx)]) / 2)), 3)
+                inflate * np.trace(test.cov[np.ix_(idx, idx)]) / 2)), 3)
         amp.setdefault(prism, {})[f"k{k}"] = entry
     out["amplitudes"] = amp
     return out

@@ -171,11 +171,11 @@ def gp_joint_covariance(gp: GPTrack, tau: ArrayLike) -> np.ndarray:
         J[a, a + d] = J[a, a + d - 1] @ step[a + d - 1]
         J[a + d, a] = np.swapaxes(J[a, a + d], 1, 2)
     i = k - lo
-    big = np.empty((m, m, 12, 12))
-    for u, du in ((0, 0), (6, 1)):
-        for v, dv in ((0, 0), (6, 1)):
-            big[:, :, u:u + 6, v:v + 6] = J[(i + du)[:, None], (i + dv)[None, :]]
-    out = np.einsum("aij,abjk,blk->abil", W[:, :3], big, W[:, :3])
+    # Cov(p(tau_a), x_c) for every knot c, then against the knots of tau_b
+    left = (np.einsum("aij,acjk->acik", W[:, :3, :6], J[i])
+            + np.einsum("aij,acjk->acik", W[:, :3, 6:], J[i + 1]))  # (m, K, 3, 6)
+    out = (np.einsum("abik,blk->abil", left[:, i], W[:, :3, :6])
+           + np.einsum("abik,blk->abil", left[:, i + 1], W[:, :3, 6:]))
     same = interior[:, None] & interior[None, :] & (k[:, None] == k[None, :])
     a_idx, b_idx = np.nonzero(same)
     if a_idx.size:

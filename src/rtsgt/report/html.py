@@ -213,17 +213,19 @@ def _structure_html(check: Mapping | None) -> str:
     amplitudes."""
     if not check or "clock" not in check:
         return ""
-    rows = [("clock offsets", check["clock"]), ("prism orientation", check["prism_orientation"])]
+    ck, po = check["clock"], check["prism_orientation"]
+    rows = [("clock offsets", "χ² / dof", ck.get("chi2_per_dof"), ck),
+            ("prism orientation", "F", po.get("f"), po)]
     body = "".join(
-        f"<tr><td class='s'>{k}</td><td>{_fmt(v.get('dof'))}</td>"
-        f"<td>{_fmt(v.get('chi2_per_dof'), 3)}</td><td>{_fmt(v.get('p_value'), 2)}</td>"
-        f"<td>{_interval({'interval_95': v.get('interval')})}</td>"
+        f"<tr><td class='s'>{k}</td><td>{stat}</td><td>{_fmt(x, 3)}</td>"
+        f"<td>{_fmt(v.get('critical'), 3)}</td><td>{_fmt(v.get('p_value'), 2)}</td>"
+        f"<td>{_fmt(v.get('dof'))}</td>"
         f"<td class='verdict'>{html.escape(str(v.get('verdict') or '–'))}</td></tr>"
-        for k, v in rows)
+        for k, stat, x, v in rows)
     out = [
         "<h3>Inter-prism residual structure</h3><table id='check-structure'><tr>"
-        "<th class='k'>test</th><th>dof</th><th>χ² / dof</th><th>p</th>"
-        f"<th>{100 * check.get('family_level', 0.95):.0f} % family interval</th>"
+        "<th class='k'>test</th><th>statistic</th><th>value</th>"
+        f"<th>critical ({100 * ck.get('level', 0.975):.1f} %)</th><th>p</th><th>dof</th>"
         f"<th>verdict</th></tr>{body}</table>"]
     clock = check["clock"]
     if clock.get("offsets_ms"):
@@ -250,11 +252,12 @@ def _structure_html(check: Mapping | None) -> str:
                    "</th><th>range, mm</th><th>across, mm</th></tr>" + body + "</table>")
     out.append(
         "<p><small>GLS regression of the inter-prism distance residuals, with the run's own "
-        "covariance (the GP's, window by window, and the errors shared by the run), on the "
-        "clock offsets of the stations relative to the first per window of "
-        f"{_fmt(check.get('window_s'), 3)} s, and on harmonics of each prism's viewing angle. "
-        "χ² / dof is 1 if the covariance is honest; each test at half the family's risk. "
-        "Method: rtsgt's docs/self-checks.md.</small></p>")
+        "covariance (the GP's and the errors shared by the run), on the clock offsets of the "
+        "stations relative to the first per window of "
+        f"{_fmt(check.get('window_s'), 3)} s of motion (χ² / dof is 1 if the covariance is "
+        "honest), and on the 6 and 12 per turn harmonics of each prism's viewing angle "
+        "against harmonics no six-cube prism has (F is 1 without a prism error). One-sided, "
+        "each at half the family's 5 %. Method: rtsgt's docs/self-checks.md.</small></p>")
     return "".join(out)
 
 
