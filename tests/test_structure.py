@@ -231,3 +231,66 @@ def test_a_robot_that_stands_still_gives_no_verdict():
     assert out["clock"]["verdict"] == "too few moving windows"
     assert out["prism_orientation"]["verdict"] == "too few orientations"
     assert out["clock"]["windows"] == 0 and out["clock"]["moving_s"] == 0
+
+
+# ----------------------------------------------------------------- simulated deployments
+
+
+def _deployment_check(tmp, effect, seed, duration):
+    """The structure check of a simulated deployment with one reality effect (or none),
+    through the files and the whole pipeline (linear engine, few calibration samples)."""
+    from rtsgt.io.deployment import load_deployment
+    from rtsgt.pipeline import run_pipeline
+    from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
+    from rtsgt.simulation.reality import RealityEffects
+
+    fx = RealityEffects() if effect == "none" else RealityEffects.only(effect)
+    sim = simulate_deployment(SimulationConfig(duration_s=duration, reality=fx),
+                              np.random.default_rng(seed))
+    data, opts = load_deployment(write_deployment(sim, tmp / f"{effect}-{seed}"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        record = run_pipeline(data, opts.updated(seed=seed, engine="linear", samples=100))
+    return record.self_checks["inter_prism_structure"]
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("structure")
+    return {
+        "none": [_deployment_check(tmp, "none", s, 60.0) for s in range(4000, 4030)],
+        "clock_drift": [_deployment_check(tmp, "clock_drift", s, 120.0)
+                        for s in range(4100, 4106)],
+        "prism_cyclic": [_deployment_check(tmp, "prism_cyclic", s, 120.0)
+                         for s in range(4200, 4206)],
+    }
+
+
+def _flagged(check, key=None):
+    keys = (key,) if key else ("clock", "prism_orientation")
+    return any(check[k]["verdict"] in FLAGGED for k in keys)
+
+
+@pytest.mark.slow
+def test_false_alarms_on_deployments_without_reality_effects(simulated):
+    """30 simulated deployments of 60 s that follow the noise model: the check fails at most
+    3 of them (nominal 5 %: 1.5 expected), its clock statistic is not above 1 pooled, and its
+    orientation F is about 1 or below (the placebo harmonics carry the smooth residuals)."""
+    runs = simulated["none"]
+    assert sum(_flagged(c) for c in runs) <= 3
+    ck = [c["clock"] for c in runs if c["clock"]["dof"]]
+    assert len(ck) >= 25
+    assert sum(c["chi2"] for c in ck) / sum(c["dof"] for c in ck) < 1.2
+    f = [c["prism_orientation"]["f"] for c in runs if c["prism_orientation"].get("f")]
+    assert len(f) >= 20 and np.median(f) < 1.3
+
+
+@pytest.mark.slow
+def test_a_drifting_clock_and_a_cyclic_prism_are_flagged(simulated):
+    """Clock drift (50 ppm, re-synchronised every minute) is flagged by the clock test, the
+    prisms' 60-degree cyclic error (2 mm) by the orientation test and not taken for clock
+    offsets: each in at least 5 of 6 deployments of 120 s."""
+    drift, cyclic = simulated["clock_drift"], simulated["prism_cyclic"]
+    assert sum(_flagged(c, "clock") for c in drift) >= 5
+    assert sum(_flagged(c, "prism_orientation") for c in cyclic) >= 5
+    assert sum(_flagged(c, "clock") for c in cyclic) <= 1
