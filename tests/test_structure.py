@@ -160,18 +160,18 @@ def test_the_clock_offsets_are_recovered_per_window_and_a_drift_is_flagged():
     def offsets(tt):
         return base + np.floor((tt - tt[0]) / WINDOW_S)[:, None] * rate
 
-    nees, dof = [], 0
+    nees = []
     for _ in range(30):  # draws of the noise
         out = _check(t, q, R, v, rng, offsets_s=offsets)
         ck = out["clock"]
         assert ck["verdict"] == "optimistic"
-        for w in ck["by_window"]:
-            truth = offsets(np.array([t[0], w["t_start"]]))[1] * 1e3
-            for pair, est in w["offsets_ms"].items():
+        bw = ck["by_window"]
+        for w, t0 in enumerate(bw["t_start"]):
+            truth = offsets(np.array([t[0], t0]))[1] * 1e3
+            for pair, est in bw["offsets_ms"].items():
                 a, b = (int(x) - 1 for x in pair.split("-"))
-                nees.append(((est - (truth[a] - truth[b])) / w["sigma_ms"][pair]) ** 2)
-        dof += 1
-    assert len(ck["by_window"]) == 10
+                nees.append(((est[w] - (truth[a] - truth[b])) / bw["sigma_ms"][pair][w]) ** 2)
+    assert len(bw["t_start"]) == ck["windows"] == 10
     # three pairs of two independent estimates: the NEES of each pair is chi2_1
     assert np.mean(nees) == pytest.approx(1.0, abs=0.15)
     with pytest.warns(RtsgtWarning, match="clock offsets.*too small"):
@@ -223,7 +223,7 @@ def test_a_prism_cyclic_error_is_flagged_and_its_amplitude_recovered():
         assert per["k12"]["range_mm"] < 3 * per["k12"]["range_sigma_mm"] + 0.05
 
 
-def test_a_robot_that_stands_still_gives_no_verdict():
+def test_a_robot_that_stands_still_or_is_seen_briefly_gives_no_verdict():
     t, q, v, R = _robot(moving=False)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -231,6 +231,9 @@ def test_a_robot_that_stands_still_gives_no_verdict():
     assert out["clock"]["verdict"] == "too few moving windows"
     assert out["prism_orientation"]["verdict"] == "too few orientations"
     assert out["clock"]["windows"] == 0 and out["clock"]["moving_s"] == 0
+    t, q, v, R = _robot(duration=4.0)  # 20 poses
+    out = _check(t, q, R, v, np.random.default_rng(9))
+    assert out["clock"]["verdict"] == out["prism_orientation"]["verdict"] == "too few poses"
 
 
 # ----------------------------------------------------------------- simulated deployments
@@ -259,9 +262,9 @@ def simulated(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("structure")
     return {
         "none": [_deployment_check(tmp, "none", s, 60.0) for s in range(4000, 4030)],
-        "clock_drift": [_deployment_check(tmp, "clock_drift", s, 120.0)
+        "clock_drift": [_deployment_check(tmp, "clock_drift", s, 150.0)
                         for s in range(4100, 4106)],
-        "prism_cyclic": [_deployment_check(tmp, "prism_cyclic", s, 120.0)
+        "prism_cyclic": [_deployment_check(tmp, "prism_cyclic", s, 150.0)
                          for s in range(4200, 4206)],
     }
 
@@ -289,7 +292,8 @@ def test_false_alarms_on_deployments_without_reality_effects(simulated):
 def test_a_drifting_clock_and_a_cyclic_prism_are_flagged(simulated):
     """Clock drift (50 ppm, re-synchronised every minute) is flagged by the clock test, the
     prisms' 60-degree cyclic error (2 mm) by the orientation test and not taken for clock
-    offsets: each in at least 5 of 6 deployments of 120 s."""
+    offsets: each in at least 5 of 6 deployments of 150 s (the benchmark's length; on other
+    seeds 85 % and 100 %, docs/self-checks.md)."""
     drift, cyclic = simulated["clock_drift"], simulated["prism_cyclic"]
     assert sum(_flagged(c, "clock") for c in drift) >= 5
     assert sum(_flagged(c, "prism_orientation") for c in cyclic) >= 5

@@ -128,10 +128,11 @@ from numpy.typing import ArrayLike
 from scipy import stats
 from scipy.linalg import solve_triangular
 
+from rtsgt.checks.distances import MIN_POSES as DISTANCE_MIN_POSES
 from rtsgt.checks.distances import STATIC_SPEED_M_S, pose_speed
 from rtsgt.errors import RtsgtWarning
 
-__all__ = ["BLOCK_S", "FAMILY_LEVEL", "HARMONICS", "PLACEBO_HARMONICS", "RANK_TOL",
+__all__ = ["BLOCK_S", "FAMILY_LEVEL", "HARMONICS", "PLACEBO_HARMONICS", "RANK_TOL", "TEST_LEVEL",
            "WINDOW_S", "GlsTest", "gls_test", "whiten", "whitened_gls_test",
            "inter_prism_structure_check", "pair_jacobian", "run_structure_check",
            "viewing_azimuth", "viewing_span"]
@@ -146,13 +147,17 @@ BLOCK_S = 60.0
 HARMONICS = (6, 12)
 #: Harmonics beside them that no prism of six cubes has: the scale of the smooth residuals.
 PLACEBO_HARMONICS = (4, 5, 7, 8)
-#: Family level of the check's two tests (Bonferroni: each at ``1 - (1 - level) / 2``).
+#: Family level of the check's two tests.
 FAMILY_LEVEL = 0.95
+#: The level of each (Bonferroni), one-sided.
+TEST_LEVEL = 1.0 - (1.0 - FAMILY_LEVEL) / 2.0
 #: Directions of the information matrix below this fraction of its largest (scaled)
 #: eigenvalue are not determined by the data.
 RANK_TOL = 1e-9
 #: A last clock window with less motion than this share of ``WINDOW_S`` joins the one before.
 MOVING_SHARE = 0.5
+#: Fewest kept poses for a verdict (those of the inter-prism distance check).
+MIN_POSES = DISTANCE_MIN_POSES
 
 
 class GlsTest:
@@ -188,7 +193,7 @@ def whiten(blocks: Sequence[np.ndarray], a: ArrayLike) -> np.ndarray:
     a = np.asarray(a, dtype=float)
     out = np.empty_like(a)
     start = 0
-    for S in blocks:  # loop over windows
+    for S in blocks:  # loop over blocks
         n = S.shape[0]
         out[start:start + n] = solve_triangular(_cholesky(S), a[start:start + n], lower=True)
         start += n
@@ -336,6 +341,24 @@ def _runs(t: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
     return starts, np.r_[starts[1:], t.size].astype(int)
 
 
+def _settings(poses: int) -> dict[str, Any]:
+    """The JSON head of the check: what it computes and its settings."""
+    return {"statistic": "GLS regression of the inter-prism distance residuals on clock "
+                         "offsets per window of motion (chi2 / dof, 1 if the covariance is "
+                         "honest) and on harmonics of each prism's viewing angle against "
+                         "placebo harmonics (F, 1 without a prism error)",
+            "window_s": WINDOW_S, "block_s": BLOCK_S, "harmonics_per_turn": list(HARMONICS),
+            "placebo_harmonics_per_turn": list(PLACEBO_HARMONICS),
+            "family_level": FAMILY_LEVEL, "poses": int(poses)}
+
+
+def _without_verdicts(clock: str | None, orientation: str | None) -> dict[str, Any]:
+    """Both tests without a verdict, saying why."""
+    empty = _verdict(GlsTest(np.zeros(0), np.zeros((0, 0)), 0.0, 0), TEST_LEVEL)
+    return {"clock": {**empty, "verdict": clock},
+            "prism_orientation": {**empty, "verdict": orientation}}
+
+
 def _verdict(test: GlsTest, level: float) -> dict[str, Any]:
     """The JSON of a chi-square test and its one-sided verdict at ``level``."""
     if test.dof == 0:
@@ -396,7 +419,9 @@ def inter_prism_structure_check(
     dict
         JSON-ready (module docstring): ``clock`` (``dof``, ``chi2``, ``chi2_per_dof``,
         ``p_value``, ``level``, ``critical`` (of ``chi2_per_dof``), ``verdict``, the windows,
-        ``offsets_ms`` of the whole run and ``by_window``, each with its sigma) and
+        ``offsets_ms`` of the whole run per station pair (``run``, ``sigma``) and
+        ``by_window``, columns of one value per window: ``t_start``, ``t_end``, and per
+        station pair ``offsets_ms`` and ``sigma_ms``) and
         ``prism_orientation`` (the same for the prisms' harmonics, and ``placebo_dof``,
         ``placebo_chi2_per_dof``, ``f``, whose ``p_value`` and ``critical`` the verdict
         uses, ``viewing_span_deg`` and ``amplitudes``), and the settings. A verdict is
@@ -408,14 +433,11 @@ def inter_prism_structure_check(
     q = np.asarray(xyz, dtype=float)
     T, n, _ = q.shape
     stations = [str(s) for s in stations]
-    out: dict[str, Any] = {
-        "statistic": "GLS regression of the inter-prism distance residuals on clock offsets "
-                     "per window and on harmonics of each prism's viewing angle; chi2 / dof "
-                     "is 1 if the covariance is honest",
-        "window_s": WINDOW_S, "harmonics_per_turn": list(HARMONICS),
-        "family_level": FAMILY_LEVEL, "poses": int(T),
-    }
-    level = 1.0 - (1.0 - FAMILY_LEVEL) / 2.0
+    out, level = _settings(T), TEST_LEVEL
+    if T < MIN_POSES:
+        return out | _without_verdicts("too few poses", "too few poses")
+    if len(set(stations)) < 2:  # one clock: nothing to compare it with
+        return out | _without_verdicts("too few stations", None)
     d, H, pairs = pair_jacobian(q)
     P = len(pairs)
     r = np.asarray(reference_xyz, dtype=float)
@@ -540,13 +562,11 @@ def _clock(t, starts, ends, per_station, yw, Gw, is_ts, Xw, Xow, info, sigma_ts,
 
     run = contrast(est_run.beta, est_run.cov, 0)
     out["offsets_ms"] = {k: {"run": round(b, 3), "sigma": round(s, 3)} for k, (b, s) in run.items()}
-    rows = []
-    for c, (a, b) in enumerate(zip(starts, ends, strict=True)):
-        cw = contrast(est.beta, est.cov, c * len(others))
-        rows.append({"t_start": float(t[a]), "t_end": float(t[b - 1]),
-                     "offsets_ms": {k: round(x, 3) for k, (x, _) in cw.items()},
-                     "sigma_ms": {k: round(s, 3) for k, (_, s) in cw.items()}})
-    out["by_window"] = rows
+    per = [contrast(est.beta, est.cov, c * len(others)) for c in range(len(starts))]
+    out["by_window"] = {  # columns: one value per window
+        "t_start": [float(t[a]) for a in starts], "t_end": [float(t[b - 1]) for b in ends],
+        "offsets_ms": {k: [round(w[k][0], 3) for w in per] for k in run},
+        "sigma_ms": {k: [round(w[k][1], 3) for w in per] for k in run}}
     return out
 
 
@@ -648,6 +668,8 @@ def run_structure_check(prisms, gps, tracks, calibration, coupling, reference, R
         return {"verdict": None, "note": "not made: the GPs were given every noise source "
                                          "(gp_noise = 'all'), the shared errors are not apart"}
     idx = np.flatnonzero(keep)
+    if idx.size < MIN_POSES:
+        return _settings(idx.size) | _without_verdicts("too few poses", "too few poses")
     kept = select_prisms(prisms, idx)
     stations = [tracks[p].station for p in tracks]
     origins = {s: np.asarray(T.translation, dtype=float)

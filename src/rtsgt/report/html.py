@@ -233,11 +233,13 @@ def _structure_html(check: Mapping | None) -> str:
         head = "".join(f"<th>{html.escape(p)}</th>" for p in pairs)
         run = "".join(f"<td>{_fmt(v['run'], 3)} ± {_fmt(v['sigma'], 2)}</td>"
                       for v in clock["offsets_ms"].values())
+        bw = clock.get("by_window", {})
+        starts = bw.get("t_start", [])
         win = "".join(
-            f"<tr><td class='s'>{_fmt(w['t_start'] - clock['by_window'][0]['t_start'], 4)} s"
-            "</td>" + "".join(f"<td>{_fmt(w['offsets_ms'][p], 3)} ± "
-                              f"{_fmt(w['sigma_ms'][p], 2)}</td>" for p in pairs) + "</tr>"
-            for w in clock.get("by_window", []))
+            f"<tr><td class='s'>from {_fmt(t0 - starts[0], 4)} s</td>"
+            + "".join(f"<td>{_fmt(bw['offsets_ms'][p][w], 3)} ± "
+                      f"{_fmt(bw['sigma_ms'][p][w], 2)}</td>" for p in pairs) + "</tr>"
+            for w, t0 in enumerate(starts))
         out.append(
             "<table id='check-clock-offsets'><tr><th class='k'>clock offsets, ms</th>"
             f"{head}</tr><tr><td class='s'>whole run</td>{run}</tr>{win}</table>")
