@@ -65,6 +65,7 @@ from rtsgt.checks import (
     block_cv_check,
     gcp_fit_check,
     inter_prism_check,
+    run_structure_check,
     static_noise_check,
     static_stretches,
 )
@@ -284,6 +285,9 @@ def _run_stages(
         "static_noise": static_noise_check(
             tracks, {s: T.translation for s, T in calib.transforms.items()},
             static_stretches(gt.t, prisms.xyz[keep]))}
+    self_checks["inter_prism_structure"] = run_structure_check(
+        prisms, gps, tracks, calib, coupling, reference, est.R, keep, model,
+        options.interpolation.gp_noise)
     lap("self_checks")
     computation = RunComputation(data, calib, model, reports, tracks, gps, prisms, est, keep,
                                  gate_report, timings, qc_info)

@@ -150,8 +150,9 @@ class RunRecord:
         What the data say about the run's uncertainty (:mod:`rtsgt.checks`), JSON-ready:
         ``gcp_fit`` (:func:`rtsgt.checks.gcp_fit_check`), ``inter_prism_distances``
         (:func:`rtsgt.checks.inter_prism_check`), ``block_cv``
-        (:func:`rtsgt.checks.block_cv_check`) and ``static_noise``
-        (:func:`rtsgt.checks.static_noise_check`). Empty for a run written before rtsgt made
+        (:func:`rtsgt.checks.block_cv_check`), ``static_noise``
+        (:func:`rtsgt.checks.static_noise_check`) and ``inter_prism_structure``
+        (:func:`rtsgt.checks.inter_prism_structure_check`). Empty for a run written before rtsgt made
         them.
     groundtruth_split : SharedFactor, optional
         The kept poses' error split into the part that varies from pose to pose and the part

@@ -160,5 +160,26 @@ def print_run_summary(record: RunRecord, out) -> None:
         table.add_row("self-check static: intervals",
                       f"{100 * static['confidence']:.2f} % each ({static['tests']} tests, "
                       f"{100 * static['family_false_alarm']:.0f} % false alarms per run)")
+    _structure_rows(table, record.self_checks.get("inter_prism_structure", {}))
     table.add_row("output", str(out))
     console.print(table)
+
+
+def _structure_rows(table: Table, check: dict) -> None:
+    """The inter-prism residual structure check (:mod:`rtsgt.checks.structure`): each test's
+    statistic against its critical value, and the clock offsets of the whole run."""
+    ck, po = check.get("clock"), check.get("prism_orientation")
+    if ck and ck.get("verdict"):
+        table.add_row(f"self-check clock offsets ({ck.get('windows', 0)} windows)",
+                      f"chi2/dof {ck['chi2_per_dof']:.2f}, critical {ck['critical']:.2f} "
+                      f"({100 * ck['level']:.1f} %): {ck['verdict']}"
+                      if ck.get("critical") else ck["verdict"])
+    if po and po.get("verdict"):
+        table.add_row("self-check prism orientation",
+                      f"F {po['f']:.2f}, critical {po['critical']:.2f} "
+                      f"({100 * po['level']:.1f} %): {po['verdict']}"
+                      if po.get("f") is not None else po["verdict"])
+    offsets = (ck or {}).get("offsets_ms", {})
+    if offsets:
+        table.add_row("clock offsets, whole run", ", ".join(
+            f"{k}: {v['run']:+.2f} +- {v['sigma']:.2f} ms" for k, v in offsets.items()))

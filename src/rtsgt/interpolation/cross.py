@@ -21,6 +21,11 @@ times of the same interval share their bridge, whose cross-covariance for
 which for ``tau_1 = tau_2`` is the query's own bridge variance (times the interval's scale of
 ``Qc`` where it follows the motion, :attr:`GPTrack.qc_scale`; ``W`` does not depend on it).
 A time on a knot is that knot (``W = [I, 0]``, no bridge).
+
+The joint covariance of many times (:func:`gp_joint_covariance`) fills the knot covariances
+between every pair of the knots involved diagonal by diagonal, ``Cov(x_a, x_{a+m}) =
+Cov(x_a, x_{a+m-1}) S_{a+m-1}^-1 C_{a+m-1}`` (one batched product per diagonal), rather than
+walking the chain once per pair of times.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ from numpy.typing import ArrayLike
 from rtsgt.errors import InputError
 from rtsgt.interpolation.gp import GPTrack, wnoa_phi, wnoa_q
 
-__all__ = ["gp_cross_covariance"]
+__all__ = ["gp_cross_covariance", "gp_joint_covariance"]
 
 _EYE6 = np.eye(6)
 
@@ -127,3 +132,63 @@ def gp_cross_covariance(gp: GPTrack, tau_1: ArrayLike, tau_2: ArrayLike) -> np.n
                       qd, wnoa_phi(d - d2) @ q2))
         out[same] += gp.interval_scale(k)[:, None, None] * bridge
     return np.where(swap[:, None, None], np.swapaxes(out, 1, 2), out)
+
+
+def gp_joint_covariance(gp: GPTrack, tau: ArrayLike) -> np.ndarray:
+    """Joint posterior covariance of the positions at the times ``tau`` (module docstring).
+
+    Parameters
+    ----------
+    gp : GPTrack
+    tau : array_like, shape (m,)
+        Times, s, inside the track, in any order.
+
+    Returns
+    -------
+    ndarray, shape (m, m, 3, 3)
+        ``Cov(p(tau_a), p(tau_b))``, m^2: the position blocks of
+        :func:`gp_cross_covariance` for every pair, computed at the cost of the knots between
+        the first and the last time (their number squared), not of the pairs times the lags.
+    """
+    tau = np.atleast_1d(np.asarray(tau, dtype=float))
+    if tau.ndim != 1:
+        raise InputError(f"Expected times of shape (m,), got {tau.shape}")
+    m = tau.size
+    if m == 0:
+        return np.zeros((0, 0, 3, 3))
+    lo_t, hi_t = gp.t[0], gp.t[-1]
+    if np.any((tau < lo_t) | (tau > hi_t)):
+        raise InputError(f"Expected times inside the track [{lo_t!r}, {hi_t!r}] s")
+    k, W, interior = _weights(gp, tau)
+    lo, hi = int(k.min()), int(k.max()) + 1  # the knots involved
+    K = hi - lo + 1
+    S = gp.cov[lo:hi + 1]
+    step = np.linalg.solve(S[:-1], gp.cross_cov[lo:hi])  # S_c^-1 C_c
+    J = np.zeros((K, K, 6, 6))
+    J[np.arange(K), np.arange(K)] = S
+    for d in range(1, K):  # loop over the diagonals of the knot covariance
+        a = np.arange(K - d)
+        J[a, a + d] = J[a, a + d - 1] @ step[a + d - 1]
+        J[a + d, a] = np.swapaxes(J[a, a + d], 1, 2)
+    i = k - lo
+    # Cov(p(tau_a), x_c) for every knot c, then against the knots of tau_b
+    left = (np.einsum("aij,acjk->acik", W[:, :3, :6], J[i])
+            + np.einsum("aij,acjk->acik", W[:, :3, 6:], J[i + 1]))  # (m, K, 3, 6)
+    out = (np.einsum("abik,blk->abil", left[:, i], W[:, :3, :6])
+           + np.einsum("abik,blk->abil", left[:, i + 1], W[:, :3, 6:]))
+    same = interior[:, None] & interior[None, :] & (k[:, None] == k[None, :])
+    a_idx, b_idx = np.nonzero(same)
+    if a_idx.size:
+        first = tau[a_idx] <= tau[b_idx]
+        t1 = np.where(first, tau[a_idx], tau[b_idx])
+        t2 = np.where(first, tau[b_idx], tau[a_idx])
+        kk = k[a_idx]
+        tk, dk = gp.t[kk], gp.t[kk + 1] - gp.t[kk]
+        d1, d2 = t1 - tk, t2 - tk
+        q1, q2, qd = wnoa_q(d1, gp.qc), wnoa_q(d2, gp.qc), wnoa_q(dk, gp.qc)
+        bridge = (q1 @ np.swapaxes(wnoa_phi(d2 - d1), 1, 2)
+                  - q1 @ np.swapaxes(wnoa_phi(dk - d1), 1, 2) @ np.linalg.solve(
+                      qd, wnoa_phi(dk - d2) @ q2))[:, :3, :3]
+        bridge = np.where(first[:, None, None], bridge, np.swapaxes(bridge, 1, 2))
+        out[a_idx, b_idx] += gp.interval_scale(kk)[:, None, None] * bridge
+    return out
