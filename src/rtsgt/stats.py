@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from scipy import stats
 
-__all__ = ["VERDICTS", "ratio_interval", "ratio_verdict"]
+__all__ = ["VERDICTS", "failed_regimes", "ratio_interval", "ratio_verdict", "verdict_meaning"]
 
 #: Inside the interval, below it (the covariance too large), above it (too small).
 VERDICTS = ("consistent", "pessimistic", "optimistic")
@@ -27,3 +27,17 @@ def ratio_verdict(value: float, interval: tuple[float, float]) -> str:
     """``"consistent"`` inside ``interval``, ``"pessimistic"`` below, ``"optimistic"`` above."""
     lo, hi = interval
     return VERDICTS[0] if lo <= value <= hi else (VERDICTS[1] if value < lo else VERDICTS[2])
+
+
+def verdict_meaning(verdict: str) -> str:
+    """What a failed verdict says about the predicted uncertainty, for a warning."""
+    return ("smaller than the errors: the covariance is too small" if verdict == VERDICTS[2]
+            else "larger than the errors: the covariance is too large")
+
+
+def failed_regimes(check: dict, unit: str):
+    """``(name, result)`` of a check's ``overall`` and each of its ``regimes`` whose verdict is
+    not consistent (``name``: "the whole run" or "the <regime> <unit>"), in that order."""
+    parts = (("the whole run", check["overall"]),
+             *((f"the {k} {unit}", v) for k, v in check["regimes"].items()))
+    return [(name, v) for name, v in parts if v["verdict"] in VERDICTS[1:]]

@@ -108,7 +108,7 @@ from rtsgt.interpolation.motion import (
     motion_events,
 )
 from rtsgt.interpolation.prisms import gp_covariance
-from rtsgt.stats import ratio_interval, ratio_verdict
+from rtsgt.stats import failed_regimes, ratio_interval, ratio_verdict, verdict_meaning
 from rtsgt.types import PrismTrack
 
 __all__ = ["BLOCK_LENGTHS_S", "FAR_INTO_GAP_S", "MIN_BLOCKS", "PAIR_LAGS", "REGIMES", "block_cv_check",
@@ -373,21 +373,16 @@ def block_cv_check(
                           "far_into_gap_from_s": FAR_INTO_GAP_S},
     }
     if warn:
-        for name, v in (("the whole run", out["overall"]),
-                        *((f"the {k} windows", v) for k, v in out["regimes"].items())):
-            if v["verdict"] in ("optimistic", "pessimistic"):
-                lo, hi = v["interval_95"]
-                what = ("smaller than the errors: the covariance is too small"
-                        if v["verdict"] == "optimistic"
-                        else "larger than the errors: the covariance is too large")
-                warnings.warn(
-                    f"self-check, block cross-validation over {name} ({v['blocks']} held-out "
-                    f"windows): NEES / dof = {v['nees_per_dof']:.2f}, outside [{lo:.2f}, "
-                    f"{hi:.2f}] (95 %, {v['n_eff']:.0f} effective samples); the predicted "
-                    f"uncertainty of the track across gaps of 1-3 s is {what} there (poses "
-                    f"bridging such gaps inherit it; poses near a measurement are tested by "
-                    f"the inter-prism distances)",
-                    RtsgtWarning, stacklevel=2)
+        for name, v in failed_regimes(out, "windows"):
+            lo, hi = v["interval_95"]
+            warnings.warn(
+                f"self-check, block cross-validation over {name} ({v['blocks']} held-out "
+                f"windows): NEES / dof = {v['nees_per_dof']:.2f}, outside [{lo:.2f}, "
+                f"{hi:.2f}] (95 %, {v['n_eff']:.0f} effective samples); the predicted "
+                f"uncertainty of the track across gaps of 1-3 s is "
+                f"{verdict_meaning(v['verdict'])} there (poses bridging such gaps inherit it; "
+                f"poses near a measurement are tested by the inter-prism distances)",
+                RtsgtWarning, stacklevel=2)
     return out
 
 

@@ -62,7 +62,7 @@ from numpy.typing import ArrayLike
 from rtsgt.errors import RtsgtWarning
 from rtsgt.filtering.gates import pair_distance_terms, pair_distance_variance
 from rtsgt.pose.reference import block_diagonal
-from rtsgt.stats import ratio_interval, ratio_verdict
+from rtsgt.stats import failed_regimes, ratio_interval, ratio_verdict, verdict_meaning
 
 __all__ = ["REGIMES", "STATIC_SPEED_M_S", "CRUISING_SPEED_M_S", "FAR_FROM_MEASUREMENT_S",
            "effective_sample_size", "inter_prism_check", "inter_prism_z", "mean_z2_verdict",
@@ -274,16 +274,11 @@ def inter_prism_check(
                           "far_from_s": FAR_FROM_MEASUREMENT_S},
     }
     if warn:
-        for name, v in (("the whole run", out["overall"]),
-                        *((f"the {k} poses", v) for k, v in out["regimes"].items())):
-            if v["verdict"] in ("optimistic", "pessimistic"):
-                lo, hi = v["interval_95"]
-                what = ("smaller than the errors: the covariance is too small"
-                        if v["verdict"] == "optimistic"
-                        else "larger than the errors: the covariance is too large")
-                warnings.warn(
-                    f"self-check, inter-prism distances over {name} ({v['poses']} poses): "
-                    f"mean z^2 = {v['mean_z2']:.2f}, outside [{lo:.2f}, {hi:.2f}] (95 %, "
-                    f"{v['n_eff']:.0f} effective samples); the predicted uncertainty is "
-                    f"{what} there", RtsgtWarning, stacklevel=2)
+        for name, v in failed_regimes(out, "poses"):
+            lo, hi = v["interval_95"]
+            warnings.warn(
+                f"self-check, inter-prism distances over {name} ({v['poses']} poses): "
+                f"mean z^2 = {v['mean_z2']:.2f}, outside [{lo:.2f}, {hi:.2f}] (95 %, "
+                f"{v['n_eff']:.0f} effective samples); the predicted uncertainty is "
+                f"{verdict_meaning(v['verdict'])} there", RtsgtWarning, stacklevel=2)
     return out
