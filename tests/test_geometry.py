@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from rtsgt.errors import GeometryError
-from rtsgt.geometry import RigidTransform, exp_so3, hat, kabsch, log_so3
+from rtsgt.geometry import RigidTransform, exp_so3, hat, kabsch, kabsch_yaw, log_so3
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from rtsgt.geometry.transform import check_covariance, perturb, perturbation
 
@@ -108,3 +108,38 @@ def test_kabsch_rejects_degenerate_input():
         kabsch(p, p)
     with pytest.raises(GeometryError, match="at least 3"):
         kabsch(p[:2], p[:2])
+
+
+def test_kabsch_yaw_recovers_yaw_and_minimises_the_weighted_cost():
+    """Exact data: the yaw and translation back, batched; noisy data: no rotation about z
+    nearby gives a smaller weighted cost (a second engine: brute force over the yaw)."""
+    rng = np.random.default_rng(8)
+    yaw = rng.uniform(-np.pi, np.pi, 50)
+    R = exp_so3(np.stack([np.zeros(50), np.zeros(50), yaw], axis=1))
+    t = rng.normal(size=(50, 3)) * 20
+    p = rng.normal(size=(50, 5, 3)) * 10
+    q = np.einsum("bij,bnj->bni", R, p) + t[:, None]
+    R2, t2 = kabsch_yaw(p, q)
+    np.testing.assert_allclose(R2, R, atol=1e-10)
+    np.testing.assert_allclose(t2, t, atol=1e-8)
+    w = rng.uniform(0.5, 2.0, 5)
+    qn = q[0] + rng.normal(size=(5, 3))
+    R3, t3 = kabsch_yaw(p[0], qn, w)
+
+    def cost(Rz):
+        r = qn - p[0] @ Rz.T
+        r -= (w @ r) / w.sum()  # the best translation for this rotation
+        return float(w @ np.sum(r ** 2, axis=1))
+
+    best = cost(R3)
+    psi = np.arctan2(R3[1, 0], R3[0, 0])
+    for d in np.linspace(-0.05, 0.05, 41):
+        if abs(d) > 1e-9:
+            assert cost(exp_so3([0.0, 0.0, psi + d])) > best
+    np.testing.assert_allclose(R3[2], [0.0, 0.0, 1.0])
+
+
+def test_kabsch_yaw_rejects_points_without_horizontal_spread():
+    p = np.array([[0.0, 0, 0], [0, 0, 1], [0, 0, 2]])
+    with pytest.raises(GeometryError, match="no horizontal spread"):
+        kabsch_yaw(p, p)

@@ -96,9 +96,12 @@ def test_station_frames(sim30):
     T1 = tr.T_world_station["1"]
     np.testing.assert_array_equal(T1.rotation, np.eye(3))
     np.testing.assert_array_equal(T1.translation, np.zeros(3))
-    for T in tr.T_world_station.values():  # levelled: yaw only
-        np.testing.assert_allclose(T.rotation[2], [0, 0, 1], atol=1e-15)
-        np.testing.assert_allclose(T.rotation[:, 2], [0, 0, 1], atol=1e-15)
+    for T in tr.T_world_station.values():
+        # levelled: each z axis is the vertical of a sphere of the Earth's radius below
+        # station 1 (a few microradians from station 1's), and the rest is a yaw
+        up = np.r_[T.translation[:2], 6.371e6 + T.translation[2]]
+        np.testing.assert_allclose(T.rotation[:, 2], up / np.linalg.norm(up), atol=1e-12)
+        np.testing.assert_allclose(T.rotation[2], [0, 0, 1], atol=5e-5)
     # stations around a site: pairwise distances of tens of metres, ranges of up to ~100 m
     pos = np.stack([T.translation for T in tr.T_world_station.values()])
     dist = np.linalg.norm(pos[:, None] - pos[None], axis=-1)[np.triu_indices(3, 1)]

@@ -7,6 +7,7 @@ Layout (each record is what one stage takes, and one table of the deployment's T
         filter         FilterParams       [filter]         filtering modules 1 and 2
         noise          NoiseModel | None  [noise]          None: the default model of the
                                                            deployment's instrument
+        calibration    CalibrationOptions [calibration]    the model of the stations' transforms
         interpolation  InterpolationOptions [interpolation] query grid, Qc, gaps, GP noise
         pose           PoseOptions        [pose]           engine, Monte Carlo samples, gates
 
@@ -22,6 +23,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
+from rtsgt.calibration.gcp import CALIBRATION_MODELS
 from rtsgt.errors import InputError
 from rtsgt.filtering import FilterParams
 from rtsgt.filtering.gates import DEFAULT_DISTANCE_GATE_M, DEFAULT_UNCERTAINTY_GATE_M
@@ -120,6 +122,26 @@ class InterpolationOptions:
 
 
 @dataclass(frozen=True)
+class CalibrationOptions:
+    """The extrinsic calibration from the GCPs (TOML ``[calibration]``).
+
+    Attributes
+    ----------
+    model : {"6dof", "4dof"}
+        Each station's transform: a free rotation (the paper), or levelled stations (yaw only,
+        the tilt that of the Earth's curvature and the compensators' errors;
+        :mod:`rtsgt.calibration.gcp`, section Models).
+    """
+
+    model: str = "6dof"
+
+    def __post_init__(self) -> None:
+        if self.model not in CALIBRATION_MODELS:
+            raise InputError(f"Expected a calibration model {' or '.join(map(repr, CALIBRATION_MODELS))}"
+                             f", got {self.model!r}")
+
+
+@dataclass(frozen=True)
 class PoseOptions:
     """Pose engine, Monte Carlo samples and the quality gates of module 4 (TOML ``[pose]``).
 
@@ -152,7 +174,8 @@ class PoseOptions:
 
 
 #: The nested records of :class:`RunOptions`, by field name.
-_NESTED = {"interpolation": InterpolationOptions, "pose": PoseOptions}
+_NESTED = {"calibration": CalibrationOptions, "interpolation": InterpolationOptions,
+           "pose": PoseOptions}
 
 
 @dataclass(frozen=True)
@@ -162,6 +185,7 @@ class RunOptions:
     seed: int = 0
     filter: FilterParams = field(default_factory=FilterParams)
     noise: NoiseModel | None = None
+    calibration: CalibrationOptions = field(default_factory=CalibrationOptions)
     interpolation: InterpolationOptions = field(default_factory=InterpolationOptions)
     pose: PoseOptions = field(default_factory=PoseOptions)
 
@@ -172,7 +196,7 @@ class RunOptions:
 
     def updated(self, **changes) -> RunOptions:
         """A copy with ``changes``, keyed by the flat names of the command line: ``seed``,
-        ``filter``, ``noise``, or a field of a nested record (``engine``, ``samples``,
+        ``filter``, ``noise``, or a field of a nested record (``model``, ``engine``, ``samples``,
         ``rate_hz``, ``qc``, ``max_gap_s``, ``gp_noise``, ``motion_prior``,
         ``outlier_windows``, the gates); each value meets its
         record's rule (:class:`~rtsgt.errors.InputError` otherwise)."""

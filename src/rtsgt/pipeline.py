@@ -189,7 +189,8 @@ def _run_stages(
     gcp = gcp_atmospheric_correction(data.gcp, model, data.weather, t_start)
     calib = calibrate(gcp, reference_station=data.reference_station,
                       instrument=data.instrument, samples=options.pose.samples,
-                      rng=stage_rng(options.seed, "calibration"))
+                      rng=stage_rng(options.seed, "calibration"),
+                      model=options.calibration.model)
     gcp_xyz, gcp_names = gcp_world_positions(data.gcp, calib.transforms)
     gcp_world = {} if gcp_xyz is None else dict(zip(gcp_names, gcp_xyz, strict=True))
     lap("calibration")

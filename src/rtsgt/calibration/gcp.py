@@ -74,6 +74,32 @@ Helmert and Foerstner, not a bootstrap over markers: with 10-12 markers a bootst
 parameters per station is too noisy, and the residuals say where the model fails (the
 vertical) well enough to carry it.
 
+Models (``model``). ``"6dof"`` (the paper) fits the rotation freely. ``"4dof"`` is for
+levelled instruments: a station's dual-axis compensator refers every angle to its local
+vertical, so its frame has no free tilt and only ``x, y, z`` and the yaw are fitted (fewer
+parameters from the same shots: a smaller covariance, and the tilt no longer absorbs the shots'
+vertical errors). The verticals of two stations are not parallel, though: on a sphere of radius
+:data:`EARTH_RADIUS_M` a station ``d`` (horizontal, in the reference's frame) from the
+reference has its vertical turned by ``omega = e_z x d / R_E`` (16 microradians, 3.2 arcsec,
+per 100 m: 1.6 mm of height at 100 m range, more than the compensator's error), so the 4-DOF
+transform is ``T_world_s = (exp([omega]x) R_z(psi), t)``: the yaw and translation are the
+closed-form weighted fit (:func:`rtsgt.geometry.kabsch.kabsch_yaw`) of the shots against the
+reference's shots turned by ``exp(-[omega]x)``, with ``omega`` from the fitted translation
+(twice: a millimetre of ``t`` moves ``omega`` by 1e-10 rad). The deflection of the vertical
+between stations (under an arcsecond over a few hundred metres, except in mountains) is not
+modelled. The compensator's own error (:attr:`InstrumentProfile.sigma_tilt`) is a tilt of each
+station's frame about its vertical: the Monte Carlo draws one per station and sample
+(reference included, whose frame is the world's), so the tilt of a station against the world
+has a variance of ``2 sigma_tilt^2`` and stations are correlated through the reference; the fit
+of each sample is conditioned on its drawn tilt. Whichever the model, every station's
+levelling is tested (:class:`LevellingCheck`): one 6-DOF Gauss-Newton step from the levelled
+transform gives the tilt the shots ask for beyond the curvature, with its covariance (the
+generalised least-squares fit's, variance components included, plus ``2 sigma_tilt^2``), and
+``chi2 = tilt^T Sigma^-1 tilt`` has 2 degrees of freedom if the stations are levelled; where it
+is not, the 4-DOF model is wrong for that deployment (a compensator off, a station not
+levelled). The fit check and the variance components count 4 parameters: ``3 K - 4`` degrees of freedom, ``K - 1.5`` per horizontal axis (3
+parameters on 2 axes) and ``K - 1`` on the vertical.
+
 This module reads no files: the shots come from :mod:`rtsgt.io`.
 """
 
@@ -86,8 +112,8 @@ from itertools import combinations
 import numpy as np
 
 from rtsgt.errors import GeometryError, InputError, RtsgtWarning
-from rtsgt.geometry.kabsch import kabsch
-from rtsgt.geometry.so3 import hat
+from rtsgt.geometry.kabsch import kabsch, kabsch_yaw
+from rtsgt.geometry.so3 import exp_so3, hat
 from rtsgt.geometry.transform import RigidTransform, perturbation
 from rtsgt.measurement.atmosphere import instrument_correction_ppm
 from rtsgt.measurement.instruments import TRIMBLE_S7, InstrumentProfile
@@ -96,6 +122,15 @@ from rtsgt.noise.model import NoiseModel
 from rtsgt.noise.perturb import sample_polar_errors
 from rtsgt.stats import ratio_interval, ratio_verdict
 from rtsgt.types import GcpShots, WeatherSeries
+
+#: The models of a station's transform (module docstring, section Models).
+CALIBRATION_MODELS = ("6dof", "4dof")
+#: What each model is, in words (for tables and reports).
+CALIBRATION_MODEL_NAMES = {"6dof": "6 DOF: free rotation",
+                           "4dof": "4 DOF: levelled stations, yaw only"}
+#: Mean radius of the Earth (IUGG), m: the verticals of two levelled instruments ``d`` metres
+#: apart differ by ``d / EARTH_RADIUS_M`` rad (16 microradians per 100 m).
+EARTH_RADIUS_M = 6_371_000.0
 
 #: A station's markers must stand off their best-fit line by more than this many times the
 #: point noise (1 sigma), or the rotation about that line is undetermined.
@@ -206,6 +241,11 @@ class CalibrationResult:
     extra_shot_sigma_m : (float, float)
         The variance components added to every shot, horizontal and vertical, as standard
         deviations, m (module docstring; zeros when the residuals agree with the model).
+    model : {"6dof", "4dof"}
+        The model of each station's transform (module docstring, section Models).
+    levelling : dict str -> LevellingCheck
+        For every station but the reference, whether the shots agree with a levelled frame
+        (whichever the model).
     """
 
     reference_station: str
@@ -218,6 +258,8 @@ class CalibrationResult:
     weighted: bool
     fit_checks: dict[str, FitCheck] = field(default_factory=dict)
     extra_shot_sigma_m: tuple[float, float] = (0.0, 0.0)
+    model: str = "6dof"
+    levelling: dict[str, LevellingCheck] = field(default_factory=dict)
 
 
 def polar_point_covariance(
@@ -375,20 +417,55 @@ def _weights(setup: _Setup, idx_s, idx_r, instrument) -> np.ndarray:
     return 1.0 / (tr[idx_s] + tr[idx_r])
 
 
-def _nominal(setup: _Setup, weighted: bool, instrument) -> dict[str, tuple]:
+def curvature_tilt(t_world_station: np.ndarray) -> np.ndarray:
+    """Rotation vector ``omega = e_z x d / R_E`` (rad) that turns the reference's vertical into
+    that of a levelled station at ``t_world_station`` (``d``: its horizontal part), module
+    docstring, section Models. Shape (..., 3)."""
+    t = np.asarray(t_world_station, dtype=float)
+    return np.stack([-t[..., 1], t[..., 0], np.zeros(t.shape[:-1])], axis=-1) / EARTH_RADIUS_M
+
+
+def _fit_4dof(p: np.ndarray, q: np.ndarray, w, tilt: np.ndarray | None = None, *,
+              check: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """``q ~ exp([omega + tilt]x) R_z(psi) p + t`` with ``omega`` the curvature tilt of ``t``
+    (module docstring, section Models); batched over leading axes of ``p``, ``q``, ``tilt``."""
+    t = kabsch_yaw(p, q, w, check=check)[1]
+    for _ in range(2):
+        omega = curvature_tilt(t)
+        if tilt is not None:
+            omega = omega + tilt
+        T = exp_so3(omega)
+        Rz, t_tilted = kabsch_yaw(p, q @ T, w, check=check)  # rows q T = (T^T q)^T
+        t = np.einsum("...ij,...j->...i", T, t_tilted)
+    return T @ Rz, t
+
+
+def _fit(setup: _Setup, s: str, p: np.ndarray, q: np.ndarray, w, model: str,
+         tilt: np.ndarray | None = None, check: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """The fit of station ``s``'s points ``p`` onto the reference's ``q`` under ``model``."""
+    try:
+        if model == "4dof":
+            return _fit_4dof(p, q, w, tilt, check=check)
+        return kabsch(p, q, w, check=check)
+    except GeometryError as exc:
+        raise GeometryError(f"station {s} (markers {', '.join(setup.pairs[s][2])}): {exc}"
+                            ) from None
+
+
+def _nominal(setup: _Setup, weighted: bool, instrument, model: str) -> dict[str, tuple]:
     """Nominal fit of each non-reference station: ``{s: (R, t, weights or None)}``."""
     out = {}
-    for s, (idx_s, idx_r, markers) in setup.pairs.items():
+    for s, (idx_s, idx_r, _) in setup.pairs.items():
         w = _weights(setup, idx_s, idx_r, instrument) if weighted else None
-        try:
-            R, t = kabsch(setup.points[idx_s], setup.points[idx_r], w)
-        except GeometryError as exc:
-            raise GeometryError(f"station {s} (markers {', '.join(markers)}): {exc}") from None
+        R, t = _fit(setup, s, setup.points[idx_s], setup.points[idx_r], w, model)
         out[s] = (R, t, w)
     return out
 
 
-def _check_args(instrument, weighted) -> None:
+def _check_args(instrument, weighted, model: str = "6dof") -> None:
+    if model not in CALIBRATION_MODELS:
+        raise InputError(f"Expected a calibration model {' or '.join(CALIBRATION_MODELS)}, "
+                         f"got {model!r}")
     if not isinstance(instrument, InstrumentProfile):
         raise TypeError(f"Expected an InstrumentProfile, got {type(instrument).__name__}")
     if not isinstance(weighted, bool):
@@ -401,6 +478,7 @@ def fit_stations(
     reference_station: str = "1",
     weighted: bool = False,
     instrument: InstrumentProfile = TRIMBLE_S7,
+    model: str = "6dof",
 ) -> dict[str, RigidTransform]:
     """Rigid fit of every station into the reference station's frame, matched by marker.
 
@@ -414,6 +492,8 @@ def fit_stations(
         Weight each marker by ``1 / (tr C_ref + tr C_s)`` (module docstring).
     instrument : InstrumentProfile
         Noise model for the weights and the collinearity check.
+    model : {"6dof", "4dof"}
+        Free rotation, or levelled stations (module docstring, section Models).
 
     Returns
     -------
@@ -430,10 +510,10 @@ def fit_stations(
         A station sharing fewer than 3 valid markers with the reference, or (nearly)
         collinear markers.
     """
-    _check_args(instrument, weighted)
+    _check_args(instrument, weighted, model)
     ref = str(reference_station)
     setup = _setup(shots, ref, instrument)
-    nominal = _nominal(setup, weighted, instrument)
+    nominal = _nominal(setup, weighted, instrument, model)
     out = {ref: RigidTransform(np.eye(3), np.zeros(3), np.zeros((6, 6)), "world", f"station_{ref}")}
     for s in setup.stations:
         if s != ref:
@@ -442,34 +522,102 @@ def fit_stations(
     return out
 
 
-def _gls_residuals(setup: _Setup, R: dict, t: dict, C: np.ndarray,
-                   s: str) -> tuple[np.ndarray, np.ndarray]:
-    """Residuals of station ``s``'s generalised least-squares fit (one Gauss-Newton step from
-    the fit ``R, t``, in the left perturbation: ``R p ~ R p - [R p]x dphi``, ``t ~ t + dt``)
-    and their covariance ``C_ref,i + R C_s,i R^T``, from the shots' covariance ``C``."""
+def _gls_step(setup: _Setup, R: dict, t: dict, C: np.ndarray, s: str, model: str = "6dof"):
+    """One Gauss-Newton step of station ``s``'s generalised least-squares fit from the fit
+    ``R, t`` (in the left perturbation: ``R p ~ R p - [R p]x dphi``, ``t ~ t + dt``; under
+    ``"4dof"`` ``dphi`` along the station's vertical only), from the shots' covariance ``C``.
+
+    Returns the residuals after the step, their covariance ``C_ref,i + R C_s,i R^T``, the step
+    ``(dphi, dt)`` (``(dpsi, dt)`` under ``"4dof"``) and the normal matrix ``J^T C^-1 J``, whose
+    inverse is the covariance of the fitted parameters."""
     idx_s, idx_r, _ = setup.pairs[s]
     Ci = C[idx_r] + R[s] @ C[idx_s] @ R[s].T
     W = np.linalg.inv(Ci)
     Rp = setup.points[idx_s] @ R[s].T
     r = setup.points[idx_r] - Rp - t[s]
-    J = np.concatenate([hat(Rp), np.broadcast_to(-np.eye(3), Rp.shape + (3,))], axis=2)
+    rot = hat(Rp) if model == "6dof" else hat(Rp) @ R[s][:, 2:3]
+    J = np.concatenate([rot, np.broadcast_to(-np.eye(3), Rp.shape + (3,))], axis=2)
     JW = np.swapaxes(J, 1, 2) @ W
-    step = np.linalg.lstsq(np.sum(JW @ J, axis=0), -np.sum(JW @ r[..., None], axis=0),
-                           rcond=None)[0]
-    return r + (J @ step)[..., 0], Ci
+    N = np.sum(JW @ J, axis=0)
+    step = np.linalg.lstsq(N, -np.sum(JW @ r[..., None], axis=0), rcond=None)[0]
+    return r + (J @ step)[..., 0], Ci, step[:, 0], N
 
 
-def _fit_checks(setup: _Setup, R: dict, t: dict, C: np.ndarray) -> dict[str, FitCheck]:
+def _gls_residuals(setup: _Setup, R: dict, t: dict, C: np.ndarray,
+                   s: str, model: str = "6dof") -> tuple[np.ndarray, np.ndarray]:
+    """Residuals of station ``s``'s generalised least-squares fit and their covariance
+    (:func:`_gls_step`)."""
+    r, Ci, _, _ = _gls_step(setup, R, t, C, s, model)
+    return r, Ci
+
+
+@dataclass(frozen=True)
+class LevellingCheck:
+    """Whether a station's frame is levelled with the reference's (module docstring, section
+    Models): the tilt that a free rotation fits beyond the Earth's curvature, tested against
+    the fit's covariance and the compensators' errors.
+
+    Attributes
+    ----------
+    tilt_rad : ndarray, shape (2,)
+        The free fit's tilt about the world x and y axes minus the curvature's, rad.
+    sigma_rad : ndarray, shape (2,)
+        Its standard deviations (the generalised least-squares fit with the run's shot
+        covariance, variance components included, and ``2 sigma_tilt^2`` of the
+        compensators), rad.
+    chi2 : float
+        ``tilt^T Sigma^-1 tilt``, chi-square with 2 degrees of freedom if levelled.
+    p_value : float
+    """
+
+    tilt_rad: np.ndarray
+    sigma_rad: np.ndarray
+    chi2: float
+    p_value: float
+
+    def as_dict(self) -> dict:
+        """JSON-ready (microradians)."""
+        return {"tilt_urad": [float(x) * 1e6 for x in self.tilt_rad],
+                "sigma_urad": [float(x) * 1e6 for x in self.sigma_rad],
+                "chi2": self.chi2, "p_value": self.p_value}
+
+
+def _levelling_checks(setup: _Setup, R: dict, t: dict, C: np.ndarray,
+                      sigma_tilt: float) -> dict[str, LevellingCheck]:
+    """:class:`LevellingCheck` of every fitted station: one 6-DOF Gauss-Newton step from the
+    fit ``R, t`` with the curvature's tilt (a 4-DOF fit, or a 6-DOF one turned to it)."""
+    out = {}
+    for s in setup.pairs:
+        yaw = np.arctan2(R[s][1, 0] - R[s][0, 1], R[s][0, 0] + R[s][1, 1])
+        Rl = {s: exp_so3(curvature_tilt(t[s])) @ exp_so3(np.array([0.0, 0.0, yaw]))}
+        _, _, step, N = _gls_step(setup, Rl, t, C, s)
+        cov = np.linalg.inv(N)[:2, :2] + 2.0 * sigma_tilt**2 * np.eye(2)
+        tilt = step[:2]
+        chi2 = float(tilt @ np.linalg.solve(cov, tilt))
+        out[s] = LevellingCheck(tilt, np.sqrt(np.diag(cov)), chi2, float(np.exp(-0.5 * chi2)))
+    return out
+
+
+def _axis_dof(markers: int, model: str) -> np.ndarray:
+    """Degrees of freedom per world axis of a fit of ``markers`` markers: the 6 parameters
+    shared evenly among the axes, or the 4 of ``"4dof"`` (x, y and the yaw on the
+    horizontal axes, z on the vertical)."""
+    return markers - (np.full(3, 2.0) if model == "6dof" else np.array([1.5, 1.5, 1.0]))
+
+
+def _fit_checks(setup: _Setup, R: dict, t: dict, C: np.ndarray,
+                model: str = "6dof") -> dict[str, FitCheck]:
     """:class:`FitCheck` of every fitted station (module docstring), shots' covariance ``C``."""
     out = {}
     for s, (_, _, markers) in setup.pairs.items():
-        r, Ci = _gls_residuals(setup, R, t, C, s)
+        r, Ci = _gls_residuals(setup, R, t, C, s, model)
         K = len(markers)
-        dof = 3 * K - 6
+        dof = 3 * K - (6 if model == "6dof" else 4)
         chi2 = float(np.einsum("ki,kij,kj->", r, np.linalg.inv(Ci), r))
         axes = np.sum(r ** 2 / np.diagonal(Ci, axis1=-2, axis2=-1), axis=0)
         if dof > 0:
-            out[s] = FitCheck(K, dof, chi2 / dof, axes / (K - 2), ratio_interval(dof))
+            out[s] = FitCheck(K, dof, chi2 / dof, axes / _axis_dof(K, model),
+                              ratio_interval(dof))
         else:
             out[s] = FitCheck(K, dof, float("nan"), np.full(3, np.nan), (np.nan, np.nan))
     return out
@@ -480,14 +628,15 @@ def _with_extra(C: np.ndarray, extra: np.ndarray) -> np.ndarray:
     return C + np.diag([extra[0], extra[0], extra[1]])
 
 
-def extra_shot_variance(setup: _Setup, R: dict, t: dict, C: np.ndarray) -> np.ndarray:
+def extra_shot_variance(setup: _Setup, R: dict, t: dict, C: np.ndarray,
+                        model: str = "6dof") -> np.ndarray:
     """Variance components (m^2) to add to every shot, horizontal and vertical, so that the
     pooled per-axis variance factors of the fits are 1 (module docstring, section Variance
     components); 0 for a group whose factor is inside its 95 % interval."""
     extra = np.zeros(2)
-    checks = [(0, (0, 1)), (1, (2,))]
-    dof = sum(len(m) - 2 for (_, _, m) in setup.pairs.values())
-    if dof <= 0:
+    checks = [(0, [0, 1]), (1, [2])]
+    dof = sum(_axis_dof(len(m), model) for (_, _, m) in setup.pairs.values())
+    if np.any(dof <= 0):
         return extra
 
     def factor(group: int, x: float) -> float:
@@ -496,13 +645,13 @@ def extra_shot_variance(setup: _Setup, R: dict, t: dict, C: np.ndarray) -> np.nd
         Cx = _with_extra(C, e)
         total = 0.0
         for s in setup.pairs:
-            r, Ci = _gls_residuals(setup, R, t, Cx, s)
+            r, Ci = _gls_residuals(setup, R, t, Cx, s, model)
             total += float(np.sum(r[:, axes] ** 2 / np.diagonal(Ci, axis1=-2, axis2=-1)[:, axes]))
-        return total / (dof * len(axes))
+        return total / float(dof[axes].sum())
 
     for _ in range(3):  # the two groups interact a little through the fit: alternate
         for group, axes in checks:
-            if factor(group, 0.0) <= ratio_interval(dof * len(axes))[1]:
+            if factor(group, 0.0) <= ratio_interval(float(dof[axes].sum()))[1]:
                 extra[group] = 0.0
                 continue
             hi = 1e-8
@@ -547,6 +696,7 @@ def calibrate(
     rng: np.random.Generator | None = None,
     weighted: bool = False,
     variance_components: bool = True,
+    model: str = "6dof",
 ) -> CalibrationResult:
     """Calibrate all stations from GCP shots, with a Monte Carlo 6x6 covariance per station.
 
@@ -567,6 +717,8 @@ def calibrate(
         Add to every shot the variance the residuals show beyond the instrument model
         (module docstring, section Variance components); False: the instrument model alone,
         as the paper.
+    model : {"6dof", "4dof"}
+        Free rotation (the paper), or levelled stations (module docstring, section Models).
 
     Returns
     -------
@@ -577,7 +729,7 @@ def calibrate(
     InputError, GeometryError
         As :func:`fit_stations`.
     """
-    _check_args(instrument, weighted)
+    _check_args(instrument, weighted, model)
     if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)):
         raise TypeError(f"Expected an integer number of samples, got {samples!r}")
     if samples < 0 or samples == 1:
@@ -585,13 +737,13 @@ def calibrate(
     rng = np.random.default_rng() if rng is None else rng
     ref = str(reference_station)
     setup = _setup(shots, ref, instrument)
-    nominal = _nominal(setup, weighted, instrument)
+    nominal = _nominal(setup, weighted, instrument, model)
     R = {ref: np.eye(3)}
     t = {ref: np.zeros(3)}
     for s, (Rs, ts, _) in nominal.items():
         R[s], t[s] = Rs, ts
     C = polar_point_covariance(setup.hz, setup.v, setup.d, instrument)
-    extra = extra_shot_variance(setup, R, t, C) if variance_components else np.zeros(2)
+    extra = extra_shot_variance(setup, R, t, C, model) if variance_components else np.zeros(2)
 
     M = int(samples)
     if M:
@@ -600,6 +752,11 @@ def calibrate(
         points_m = polar_to_cartesian(hz_m, v_m, d_m)
         if extra.any():  # the variance components, in each station's (levelled) frame
             points_m += rng.standard_normal(points_m.shape) * np.sqrt(extra[[0, 0, 1]])
+        if model == "4dof":  # each compensator's error, a tilt of its station's frame
+            comp = rng.standard_normal((M, len(setup.stations), 2)) * instrument.sigma_tilt
+            comp = np.concatenate([comp, np.zeros((M, len(setup.stations), 1))], axis=2)
+            tilt_of = {st: comp[:, k] - comp[:, setup.stations.index(ref)]
+                       for k, st in enumerate(setup.stations)}
     transforms = {}
     for s in setup.stations:
         if s == ref:
@@ -608,7 +765,8 @@ def calibrate(
             tm = np.zeros((M, 3)) if M else None
         elif M:
             idx_s, idx_r, _ = setup.pairs[s]
-            Rm, tm = kabsch(points_m[:, idx_s], points_m[:, idx_r], nominal[s][2], check=False)
+            Rm, tm = _fit(setup, s, points_m[:, idx_s], points_m[:, idx_r], nominal[s][2], model,
+                          tilt_of[s] if model == "4dof" else None, check=False)
             xi = perturbation(R[s], t[s], Rm, tm)  # (M, 6), (x, y, z, rx, ry, rz)
             cov = np.cov(xi, rowvar=False)
             cov = 0.5 * (cov + cov.T)
@@ -628,8 +786,10 @@ def calibrate(
         excluded_shots=setup.excluded,
         samples=M,
         weighted=weighted,
-        fit_checks=_fit_checks(setup, R, t, C),
+        fit_checks=_fit_checks(setup, R, t, C, model),
         extra_shot_sigma_m=(float(np.sqrt(extra[0])), float(np.sqrt(extra[1]))),
+        model=model,
+        levelling=_levelling_checks(setup, R, t, _with_extra(C, extra), instrument.sigma_tilt),
     )
 
 

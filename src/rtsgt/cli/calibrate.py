@@ -79,6 +79,7 @@ def result_to_json(result: CalibrationResult, **extra) -> dict:
         "excluded_shots": result.excluded_shots,
         "samples": result.samples,
         "weighted": result.weighted,
+        "model": result.model,
         **extra,
     }
 
@@ -134,6 +135,7 @@ def run_calibrate(
     seed: int = 0,
     weighted: bool = False,
     instrument: str = "trimble-s7",
+    model: str = "6dof",
 ) -> tuple[CalibrationResult, str]:
     """Read the GCP file (or the packaged example) and calibrate; returns the result and source."""
     profile = get_instrument(instrument)
@@ -152,6 +154,7 @@ def run_calibrate(
             result = calibrate(
                 shots, reference_station=reference_station, instrument=profile,
                 samples=samples, rng=np.random.default_rng(seed), weighted=weighted,
+                model=model,
             )
     return result, source
 
@@ -194,6 +197,11 @@ def register(app: typer.Typer) -> None:
         instrument: str = typer.Option(
             "trimble-s7", "--instrument", help="Instrument profile for the noise model."
         ),
+        model: str = typer.Option(
+            "6dof", "--model",
+            help="Each station's transform: 6dof (free rotation) or 4dof (levelled stations: "
+            "yaw only, the tilt that of the Earth's curvature).",
+        ),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
         out: Path | None = typer.Option(
             None, "--out", "-o",
@@ -208,7 +216,7 @@ def register(app: typer.Typer) -> None:
         result, source = run_calibrate(
             gcp_file, format=format, reference_station=reference_station,
             additive_constant=additive_constant, samples=samples, seed=seed,
-            weighted=weighted, instrument=instrument,
+            weighted=weighted, instrument=instrument, model=model,
         )
         obj = result_to_json(result, source=source, seed=seed)
         if out is not None:

@@ -10,6 +10,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from rtsgt.calibration.gcp import CALIBRATION_MODEL_NAMES
 from rtsgt.errors import InputError
 from rtsgt.record import RunRecord
 
@@ -115,6 +116,8 @@ def print_run_summary(record: RunRecord, out) -> None:
     # its 95 % interval, and the noise on the static stretches per prism and component
     # (Bonferroni intervals)
     gcp = record.self_checks.get("gcp_fit", {})
+    if gcp.get("model"):
+        table.add_row("calibration model", CALIBRATION_MODEL_NAMES[gcp["model"]])
     for s, v in gcp.get("stations", {}).items():
         if v.get("dof"):
             lo, hi = v["interval_95"]

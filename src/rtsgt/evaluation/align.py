@@ -55,6 +55,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rtsgt.errors import GeometryError, InputError
+from rtsgt.geometry.kabsch import kabsch_yaw
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
 from rtsgt.types import PoseTrajectory
 
@@ -249,34 +250,19 @@ def align_yaw(
 
     Notes
     -----
-    After removing the weighted centroids (``x0``, ``y0``), the cost depends on ``psi`` only
-    through the horizontal components, and its minimiser is::
-
-        psi = atan2( sum w (x0_x y0_y - x0_y y0_x),  sum w (x0_x y0_x + x0_y y0_y) )
-        t = mu_y - R_z(psi) mu_x
+    The closed form of :func:`rtsgt.geometry.kabsch.kabsch_yaw`.
     """
     x, y = _check_points(p_est, p_gt)
     n = x.shape[0]
     if n < 2:
         raise GeometryError(f"A 4-DOF alignment needs at least 2 poses, got {n}")
-    w = _normalised_weights(n, weights)
-    mu_x = w @ x
-    mu_y = w @ y
-    x0 = x - mu_x
-    y0 = y - mu_y
-    spread = float(w @ np.einsum("ij,ij->i", x0[:, :2], x0[:, :2]))
-    total = float(w @ np.einsum("ij,ij->i", x0, x0)) + float(w @ np.einsum("ij,ij->i", y0, y0))
-    if spread <= 1e-20 or spread <= 1e-12 * total:
+    try:
+        return kabsch_yaw(x, y, _normalised_weights(n, weights))
+    except GeometryError:
         raise GeometryError(
             "Degenerate 4-DOF alignment: the estimate has no horizontal motion, so the yaw is "
             "not determined"
-        )
-    num = w @ (x0[:, 0] * y0[:, 1] - x0[:, 1] * y0[:, 0])
-    den = w @ (x0[:, 0] * y0[:, 0] + x0[:, 1] * y0[:, 1])
-    psi = np.arctan2(num, den)
-    c, s = np.cos(psi), np.sin(psi)
-    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return R, mu_y - R @ mu_x
+        ) from None
 
 
 def alignment_weights(cov_gt: ArrayLike, cov_est: ArrayLike | None = None) -> np.ndarray:

@@ -3,6 +3,14 @@ r"""Least-squares rigid fit of point sets (Kabsch / Umeyama without scale).
 Solves, for each batch element, ``argmin_{R, t} sum_i w_i ||q_i - (R p_i + t)||^2`` over proper
 rotations (``det R = +1``: the reflection case is guarded by flipping the smallest singular
 direction, Umeyama 1991, eq. 39).
+
+:func:`kabsch_yaw` solves the same problem over rotations about z only (4 DOF: x, y, z, yaw),
+for frames that share the vertical (levelled instruments, gravity-aligned trajectories). After
+removing the weighted centroids ``p0``, ``q0`` the cost depends on the yaw ``psi`` only through
+the horizontal components, and its minimiser is closed-form::
+
+    psi = atan2( sum w (p0_x q0_y - p0_y q0_x),  sum w (p0_x q0_x + p0_y q0_y) )
+    t = q_c - R_z(psi) p_c
 """
 
 from __future__ import annotations
@@ -68,5 +76,66 @@ def kabsch(
     D[..., 1, 1] = 1.0
     D[..., 2, 2] = d
     R = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
+    t = qc - np.einsum("...ij,...j->...i", R, pc)
+    return R, t
+
+
+def kabsch_yaw(
+    p_b: ArrayLike, q_a: ArrayLike, weights: ArrayLike | None = None, *, check: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid transform ``T_a_b`` about z only (4 DOF) that maps points ``p_b`` onto ``q_a``
+    (module docstring).
+
+    Parameters
+    ----------
+    p_b, q_a : array_like, shape (..., N, 3)
+        The same points in the source frame b and the target frame a; both frames have z
+        along the same vertical.
+    weights : array_like, shape (..., N), optional
+        Non-negative weights (uniform when None).
+    check : bool
+        Raise :class:`GeometryError` when a batch element has no horizontal spread (the yaw
+        is not determined).
+
+    Returns
+    -------
+    R_a_b : ndarray, shape (..., 3, 3)
+        Rotations about z.
+    t_a_b : ndarray, shape (..., 3)
+    """
+    p = np.asarray(p_b, dtype=float)
+    q = np.asarray(q_a, dtype=float)
+    if p.shape != q.shape or p.shape[-1] != 3 or p.ndim < 2:
+        raise ValueError(f"Expected two arrays of shape (..., N, 3), got {p.shape} and {q.shape}")
+    n = p.shape[-2]
+    if n < 2:
+        raise GeometryError(f"A 4-DOF fit needs at least 2 points, got {n}")
+    if weights is None:
+        w = np.full(p.shape[:-1], 1.0 / n)
+    else:
+        w = np.broadcast_to(np.asarray(weights, dtype=float), p.shape[:-1])
+        if np.any(w < 0) or not np.all(np.isfinite(w)):
+            raise ValueError("Expected finite non-negative weights")
+        w = w / w.sum(axis=-1, keepdims=True)
+    pc = np.einsum("...i,...ij->...j", w, p)
+    qc = np.einsum("...i,...ij->...j", w, q)
+    p0 = p - pc[..., None, :]
+    q0 = q - qc[..., None, :]
+    if check:
+        spread = np.einsum("...i,...i->...", w, np.sum(p0[..., :2] ** 2, axis=-1))
+        total = (np.einsum("...i,...i->...", w, np.sum(p0 ** 2, axis=-1))
+                 + np.einsum("...i,...i->...", w, np.sum(q0 ** 2, axis=-1)))
+        if np.any((spread <= 1e-20) | (spread <= 1e-12 * total)):
+            raise GeometryError("Degenerate 4-DOF fit: the points have no horizontal spread, "
+                                "so the yaw is not determined")
+    num = np.einsum("...i,...i->...", w, p0[..., 0] * q0[..., 1] - p0[..., 1] * q0[..., 0])
+    den = np.einsum("...i,...i->...", w, p0[..., 0] * q0[..., 0] + p0[..., 1] * q0[..., 1])
+    psi = np.arctan2(num, den)
+    c, s = np.cos(psi), np.sin(psi)
+    R = np.zeros(psi.shape + (3, 3))
+    R[..., 0, 0] = R[..., 1, 1] = c
+    R[..., 0, 1] = -s
+    R[..., 1, 0] = s
+    R[..., 2, 2] = 1.0
     t = qc - np.einsum("...ij,...j->...i", R, pc)
     return R, t

@@ -49,6 +49,10 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
     pressure_halfwidth_hpa = 10.0
     humidity_halfwidth_pct = 2.0
 
+    [calibration]
+    model = "6dof"                   # stations' transforms: free rotation ("6dof", default) or
+                                     # levelled stations, yaw only ("4dof")
+
     [filter]
     tau_r_m_s = 2.0
     tau_a_deg_s = 1.0
@@ -86,7 +90,7 @@ from rtsgt.errors import ConfigError, InputError
 from rtsgt.filtering import FilterParams
 from rtsgt.measurement.instruments import InstrumentProfile, instrument_from_config
 from rtsgt.noise import NoiseModel
-from rtsgt.options import InterpolationOptions, PoseOptions, RunOptions
+from rtsgt.options import CalibrationOptions, InterpolationOptions, PoseOptions, RunOptions
 from rtsgt.types import NOISE_SOURCES
 
 if sys.version_info >= (3, 11):
@@ -242,7 +246,7 @@ def load_config(path: str | Path) -> DeploymentConfig:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"invalid TOML: {exc}", path) from None
     known = {"deployment", "instrument", "stations", "gcp", "weather", "reference", "noise",
-             "filter", "interpolation", "pose"}
+             "calibration", "filter", "interpolation", "pose"}
     unknown = sorted(set(doc) - known)
     if unknown:
         raise ConfigError(f"unknown section(s) {', '.join(unknown)}", path)
@@ -349,6 +353,10 @@ def load_config(path: str | Path) -> DeploymentConfig:
         "tau_l_s": ("tau_l", float, None)})
     f.done()
 
+    c = _Section(path, "calibration", doc.get("calibration", {}))
+    calibration = c.record(CalibrationOptions, {"model": ("model", str, None)})
+    c.done()
+
     it = _Section(path, "interpolation", doc.get("interpolation", {}))
     query_times = it.file("query_times") if "query_times" in it.table else None
     if query_times is not None and "rate_hz" in it.table:
@@ -366,7 +374,8 @@ def load_config(path: str | Path) -> DeploymentConfig:
         ("uncertainty_gate_m", float))})
     p.done()
 
-    options = RunOptions(filter=filt, noise=noise, interpolation=interp, pose=pose)
+    options = RunOptions(filter=filt, noise=noise, calibration=calibration,
+                         interpolation=interp, pose=pose)
     return DeploymentConfig(path, name, reference_station, instrument, tuple(stations), gcp,
                             reference, weather, options, query_times)
 

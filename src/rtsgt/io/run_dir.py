@@ -262,6 +262,7 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
             "engine": opt.pose.engine,
             "samples": opt.pose.samples,
             "seed": opt.seed,
+            "calibration_model": opt.calibration.model,
             "rate_hz": opt.interpolation.rate_hz,
             "qc": opt.interpolation.qc,
             "max_gap_s": opt.interpolation.max_gap_s,

@@ -12,7 +12,11 @@ Frames (all right-handed, z up unless said otherwise)
 - ``site``: internal frame in which the site is generated (not exported).
 - ``station k``: the levelled tracking frame of station k, RTS_project tracking convention
   (:mod:`rtsgt.measurement.polar`): ``x = d sinV sinHz, y = d sinV cosHz, z = d cosV``.
-  Levelled: ``T_world_station`` is a rotation about z (yaw) and a translation.
+  Levelled: each station's z axis is its local vertical. The site is flat but the verticals
+  are those of a sphere of radius ``EARTH_RADIUS_M``: a station ``d`` metres (horizontally)
+  from station 1 has its vertical turned by ``d / EARTH_RADIUS_M`` rad towards ``d``
+  (:func:`_local_vertical`), so ``T_world_station`` is that small tilt after a rotation about z
+  (yaw), and a translation.
 - ``world``: the frame of station 1 (``T_world_station1 = identity``).
 - ``robot``: x forward, y left, z along the terrain normal, origin on the ground under the
   robot's centre. The prisms are fixed in it (Warthog-like geometry).
@@ -958,6 +962,26 @@ def _draw_gaps(cfg: SimulationConfig, rng: np.random.Generator, rate_per_min: fl
     return rng.uniform(0.0, cfg.duration_s, n), rng.uniform(*cfg.dropout_duration_s, n)
 
 
+#: Radius of the sphere whose verticals the levelled stations follow, m (mean Earth radius).
+EARTH_RADIUS_M = 6_371_000.0
+
+
+def _local_vertical(t_world_st: np.ndarray) -> np.ndarray:
+    """Rotations (S, 3, 3) taking station 1's vertical to each station's: the vertical at a
+    point of a sphere of radius ``EARTH_RADIUS_M`` whose centre is below station 1, turned
+    about ``e_z x up`` by the angle between ``e_z`` and ``up`` (Rodrigues)."""
+    up = np.concatenate([t_world_st[:, :2], EARTH_RADIUS_M + t_world_st[:, 2:]], axis=1)
+    up /= np.linalg.norm(up, axis=1, keepdims=True)
+    axis = np.stack([-up[:, 1], up[:, 0], np.zeros(len(up))], axis=1)  # e_z x up
+    s = np.linalg.norm(axis, axis=1)
+    c = up[:, 2]
+    k = np.divide(axis, s[:, None], out=np.zeros_like(axis), where=s[:, None] > 0)
+    K = np.zeros((len(up), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K -= np.swapaxes(K, 1, 2)
+    return np.eye(3) + s[:, None, None] * K + (1.0 - c)[:, None, None] * (K @ K)
+
+
 def _place_stations(
     cfg: SimulationConfig, rng: np.random.Generator, loop: _Loop, terrain: np.ndarray
 ) -> _Stations:
@@ -986,6 +1010,7 @@ def _place_stations(
     t_world_st = st_p @ R_world_site.T + t_world_site
     R_world_st[0] = np.eye(3)
     t_world_st[0] = 0.0
+    R_world_st = _local_vertical(t_world_st) @ R_world_st
     ids = tuple(str(k + 1) for k in range(n_st))
     return _Stations(ids, R_world_st, t_world_st, R_world_site, t_world_site, st_r)
 
