@@ -21,6 +21,29 @@ from numpy.typing import ArrayLike
 from rtsgt.errors import GeometryError
 
 
+def _centred(p_b: ArrayLike, q_a: ArrayLike, weights: ArrayLike | None, min_points: int,
+             what: str):
+    """Validated inputs of a fit: normalised weights (..., N), the weighted centroids
+    (..., 3) of both clouds and the centred clouds (..., N, 3)."""
+    p = np.asarray(p_b, dtype=float)
+    q = np.asarray(q_a, dtype=float)
+    if p.shape != q.shape or p.shape[-1] != 3 or p.ndim < 2:
+        raise ValueError(f"Expected two arrays of shape (..., N, 3), got {p.shape} and {q.shape}")
+    n = p.shape[-2]
+    if n < min_points:
+        raise GeometryError(f"{what} needs at least {min_points} points, got {n}")
+    if weights is None:
+        w = np.full(p.shape[:-1], 1.0 / n)
+    else:
+        w = np.broadcast_to(np.asarray(weights, dtype=float), p.shape[:-1])
+        if np.any(w < 0) or not np.all(np.isfinite(w)):
+            raise ValueError("Expected finite non-negative weights")
+        w = w / w.sum(axis=-1, keepdims=True)
+    pc = np.einsum("...i,...ij->...j", w, p)
+    qc = np.einsum("...i,...ij->...j", w, q)
+    return w, pc, qc, p - pc[..., None, :], q - qc[..., None, :]
+
+
 def kabsch(
     p_b: ArrayLike, q_a: ArrayLike, weights: ArrayLike | None = None, *, check: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -44,24 +67,7 @@ def kabsch(
     t_a_b : ndarray, shape (..., 3)
         With ``q_a ~= R_a_b @ p_b + t_a_b``.
     """
-    p = np.asarray(p_b, dtype=float)
-    q = np.asarray(q_a, dtype=float)
-    if p.shape != q.shape or p.shape[-1] != 3 or p.ndim < 2:
-        raise ValueError(f"Expected two arrays of shape (..., N, 3), got {p.shape} and {q.shape}")
-    n = p.shape[-2]
-    if n < 3:
-        raise GeometryError(f"A rigid fit needs at least 3 points, got {n}")
-    if weights is None:
-        w = np.full(p.shape[:-1], 1.0 / n)
-    else:
-        w = np.broadcast_to(np.asarray(weights, dtype=float), p.shape[:-1])
-        if np.any(w < 0) or not np.all(np.isfinite(w)):
-            raise ValueError("Expected finite non-negative weights")
-        w = w / w.sum(axis=-1, keepdims=True)
-    pc = np.einsum("...i,...ij->...j", w, p)
-    qc = np.einsum("...i,...ij->...j", w, q)
-    p0 = p - pc[..., None, :]
-    q0 = q - qc[..., None, :]
+    w, pc, qc, p0, q0 = _centred(p_b, q_a, weights, 3, "A rigid fit")
     H = np.einsum("...i,...ij,...ik->...jk", w, p0, q0)  # cross-covariance, sum w p q^T
     U, S, Vt = np.linalg.svd(H)
     if check:
@@ -103,24 +109,7 @@ def kabsch_yaw(
         Rotations about z.
     t_a_b : ndarray, shape (..., 3)
     """
-    p = np.asarray(p_b, dtype=float)
-    q = np.asarray(q_a, dtype=float)
-    if p.shape != q.shape or p.shape[-1] != 3 or p.ndim < 2:
-        raise ValueError(f"Expected two arrays of shape (..., N, 3), got {p.shape} and {q.shape}")
-    n = p.shape[-2]
-    if n < 2:
-        raise GeometryError(f"A 4-DOF fit needs at least 2 points, got {n}")
-    if weights is None:
-        w = np.full(p.shape[:-1], 1.0 / n)
-    else:
-        w = np.broadcast_to(np.asarray(weights, dtype=float), p.shape[:-1])
-        if np.any(w < 0) or not np.all(np.isfinite(w)):
-            raise ValueError("Expected finite non-negative weights")
-        w = w / w.sum(axis=-1, keepdims=True)
-    pc = np.einsum("...i,...ij->...j", w, p)
-    qc = np.einsum("...i,...ij->...j", w, q)
-    p0 = p - pc[..., None, :]
-    q0 = q - qc[..., None, :]
+    w, pc, qc, p0, q0 = _centred(p_b, q_a, weights, 2, "A 4-DOF fit")
     if check:
         spread = np.einsum("...i,...i->...", w, np.sum(p0[..., :2] ** 2, axis=-1))
         total = (np.einsum("...i,...i->...", w, np.sum(p0 ** 2, axis=-1))
