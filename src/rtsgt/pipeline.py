@@ -245,6 +245,7 @@ def _run_stages(
     say("poses")
     reference = data.reference.select(list(tracks))
     est = estimate_poses(prisms.xyz, prisms.pose_covariance, reference, engine=options.pose.engine,
+                         registration=options.pose.registration,
                          samples=options.pose.samples, rng=stage_rng(options.seed, "pose"))
     lap("pose")
 
@@ -362,7 +363,9 @@ def _refit_outlier_windows(options: RunOptions, tracks: dict[str, PrismTrack],
         if fresh.size:
             new_prisms = query_prisms(clean, gps, t_all[fresh], options.interpolation, coupling)
             new_est = estimate_poses(new_prisms.xyz, new_prisms.pose_covariance, reference,
-                                     engine=options.pose.engine, samples=options.pose.samples,
+                                     engine=options.pose.engine,
+                                     registration=options.pose.registration,
+                                     samples=options.pose.samples,
                                      rng=stage_rng(options.seed, "pose"))
             from_old = flagged[present]
             prisms = _assemble(prisms, new_prisms, from_old)
@@ -428,8 +431,8 @@ def _split(options: RunOptions, prisms: PrismsAtTimes, gps: dict[str, GPTrack],
     origins = {s: np.asarray(T.translation, dtype=float) for s, T in calib.transforms.items()}
     return split_ground_truth(
         kept, velocity, [tracks[p].station for p in tracks], origins, coupling, reference,
-        est.R[idx], engine=options.pose.engine, samples=options.pose.samples,
-        rng=stage_rng(options.seed, "pose"))
+        est.R[idx], engine=options.pose.engine, registration=options.pose.registration,
+        samples=options.pose.samples, rng=stage_rng(options.seed, "pose"))
 
 
 def _record(c: RunComputation, options: RunOptions, intervals: np.ndarray,
