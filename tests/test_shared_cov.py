@@ -20,8 +20,8 @@ from rtsgt.geometry.so3 import exp_so3, matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from rtsgt.io.deployment import load_deployment
 from rtsgt.io.run_dir import SPLIT_FILE, read_run, write_run
 from rtsgt.pipeline import run_pipeline
-from rtsgt.pose.reference import block_diagonal
 from rtsgt.pose.estimate import pose_jacobians
+from rtsgt.pose.reference import block_diagonal
 from rtsgt.shared import prism_shared_factor
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 from rtsgt.types import PoseTrajectory

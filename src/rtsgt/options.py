@@ -135,21 +135,21 @@ class PoseOptions:
     engine : {"mc", "ut", "linear"}
         Pose engine (:func:`rtsgt.pose.estimate_poses`); it also picks the per-measurement
         engine (:attr:`RunOptions.noise_engine`).
-    registration : {"weighted", "unweighted"}
-        The fit of the prisms onto the reference: weighted by the inverse covariance of the
-        residual (generalised least squares, :mod:`rtsgt.pose.weighted`), or the paper's
-        unweighted point-to-point fit.
     samples : int
         Monte Carlo samples of every sampling stage (calibration, noise, pose), at least 10.
     distance_gate_m, uncertainty_gate_m : float
         Module 4's gates, m (``inf``: off).
+    registration : {"weighted", "unweighted"}
+        The fit of the prisms onto the reference: weighted by the inverse covariance of the
+        residual (generalised least squares, :mod:`rtsgt.pose.weighted`), or the paper's
+        unweighted point-to-point fit.
     """
 
     engine: PoseEngine = "mc"
-    registration: Registration = DEFAULT_REGISTRATION
     samples: int = 1000
     distance_gate_m: float = DEFAULT_DISTANCE_GATE_M
     uncertainty_gate_m: float = DEFAULT_UNCERTAINTY_GATE_M
+    registration: Registration = DEFAULT_REGISTRATION
 
     def __post_init__(self) -> None:
         if self.engine not in POSE_ENGINES:

@@ -7,7 +7,14 @@ covariance each, independent between prisms and between times (what the GP inter
 gives); the reference positions ``r_i`` of the same prisms in the body frame (the static
 survey) are Gaussian with a full ``(3n, 3n)`` covariance (correlated between prisms when the
 body frame is defined by surveyed points), the same draw for every pose. The pose is the
-least-squares rigid fit (:func:`rtsgt.pose.registration.register`)::
+least-squares rigid fit, ``registration="weighted"`` (:mod:`rtsgt.pose.weighted`)::
+
+    T_world_body,k = argmin_T  e_k^T W_k e_k,   e_k = (q_ki - T r_i)_i  stacked (3n)
+
+with ``W_k`` the inverse of the residual's covariance ``Sigma_q,k + (I (x) R_k) Sigma_r
+(I (x) R_k)^T``, evaluated once per pose at the closed-form rotation of the mean inputs and
+held fixed for every sample and sigma point of that pose; or ``registration="unweighted"``,
+the paper's point-to-point fit (:func:`rtsgt.pose.registration.register`)::
 
     T_world_body,k = argmin_T  sum_i || q_ki - T r_i ||^2
 
@@ -22,8 +29,9 @@ Engines
 ``"mc"``
     The paper's Monte Carlo: ``M`` samples of every prism (Cholesky factor of each covariance)
     and of the stacked reference (Cholesky factor of the full covariance, one draw per sample
-    m shared by all poses), each solved with the closed-form registration, vectorised over
-    poses and samples in chunks. ``mean_offset`` reports the sample mean of ``xi``: the
+    m shared by all poses), each solved with the registration (the closed form; the weighted
+    fit by Newton steps from its first-order prediction), vectorised over poses and samples
+    in chunks. ``mean_offset`` reports the sample mean of ``xi``: the
     one-step estimate of the SE(3) mean of the samples about the reported pose (it differs from
     it by a second-order bias, far below the noise).
 ``"ut"``
@@ -33,7 +41,8 @@ Engines
     centre weight 0). ``mean_offset`` is the weighted mean of the sigma points' ``xi``.
 ``"linear"``
     First order: ``cov = J_q Sigma_q J_q^T + J_r Sigma_r J_r^T`` with the analytic Jacobian of
-    the fit (:func:`rtsgt.pose.registration.registration_jacobian`, implicit function theorem).
+    the fit (:func:`rtsgt.pose.registration.registration_jacobian`, or
+    :func:`rtsgt.pose.weighted.weighted_registration_jacobian`; implicit function theorem).
 
 Degenerate poses (reported, never silently solved): a prism or its covariance is not finite
 (``"missing_prism"``), or the world prisms are nearly collinear (:func:`shape_ratio` below
