@@ -152,7 +152,7 @@ def test_the_default_tolerance_reaches_round_off():
     assert np.abs(t - t_tight).max() < 1e-10
     # Monte Carlo: the engine's samples against the same samples solved tightly
     est = estimate_poses(q[:5], cov_q[:5], r, np.zeros((9, 9)), engine="mc", samples=2000,
-                         rng=np.random.default_rng(9))
+                         registration="weighted", rng=np.random.default_rng(9))
     tight = _mc_reference(q[:5], cov_q[:5], r, est, rng=np.random.default_rng(9), M=2000)
     np.testing.assert_allclose(est.cov, tight, rtol=1e-6)
 
@@ -338,11 +338,13 @@ def test_weights_and_bad_inputs():
     with pytest.raises(ValueError, match="registration"):
         estimate_poses(q, cov_q, r, cov_r, engine="linear", registration="svd")
     with pytest.raises(ValueError, match="weight_cov_q"):
-        estimate_poses(q, cov_q, r, cov_r, engine="linear", weight_cov_q=cov_q[:, :3, :3])
+        estimate_poses(q, cov_q, r, cov_r, engine="linear", registration="weighted",
+                       weight_cov_q=cov_q[:, :3, :3])
     # weights from the total, a part propagated: the fit is the total's
-    part = estimate_poses(q, 0.5 * cov_q, r, cov_r, engine="linear", weight_cov_q=cov_q,
-                          weight_cov_r=cov_r)
-    whole = estimate_poses(q, cov_q, r, cov_r, engine="linear")
+    fit = {"engine": "linear", "registration": "weighted"}
+    part = estimate_poses(q, 0.5 * cov_q, r, cov_r, weight_cov_q=cov_q, weight_cov_r=cov_r,
+                          **fit)
+    whole = estimate_poses(q, cov_q, r, cov_r, **fit)
     np.testing.assert_allclose(part.R, whole.R, atol=1e-14)
-    assert not np.allclose(estimate_poses(q, 0.5 * cov_q, r, cov_r, engine="linear").R,
-                           whole.R, atol=1e-9, rtol=0)
+    assert not np.allclose(estimate_poses(q, 0.5 * cov_q, r, cov_r, **fit).R, whole.R,
+                           atol=1e-9, rtol=0)
