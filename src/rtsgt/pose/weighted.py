@@ -54,9 +54,15 @@ with ``u = tilde W (q - a)``,
 The first term of ``N`` is the Gauss-Newton matrix; the other two are the residual's
 curvature, which makes the convergence quadratic (they are of the order of the residual over
 the prisms' spread, a few 1e-3, and vanish for exact data). From the closed-form start (about
-the pose's own uncertainty away, milliradians) the steps are typically 1e-3, 1e-6, 1e-12 rad:
-the iteration stops when every step of a batch is below :data:`GLS_TOL` (at most
-:data:`GLS_MAX_ITER` steps; the elements that did not get there are reported).
+the pose's own uncertainty away, milliradians) the steps are typically 1e-3, 1e-6, 1e-12 rad.
+Once the largest step of a batch is below 1e-3 rad, the next steps keep the last ``N``
+(chord steps: its error is then of the order of that step, so each step still shrinks the
+error by that factor) and skip its computation, the largest part of a step. The iteration
+stops when every step of a batch is below :data:`GLS_TOL` = 1e-6 rad: what is left is below
+1e-10 rad (tests/test_pose_weighted.py); at most :data:`GLS_MAX_ITER` steps, the elements that
+did not get there are reported. Samples of a pose (Monte Carlo draws, sigma points) start
+from their first-order prediction about the pose's fit instead (``xi0`` of
+:func:`refine_batches`), within about the square of their perturbation: two steps.
 
 Vectorised over poses and over the samples of a pose (the Monte Carlo draws, the sigma
 points), sharing the pose's weights: the samples of a pose are the columns of matrix products
@@ -99,9 +105,10 @@ from rtsgt.pose.registration import register
 __all__ = ["GLS_MAX_ITER", "GLS_TOL", "WeightedInfo", "gls_weights", "register_weighted",
            "weighted_registration_jacobian"]
 
-#: Rotation step (rad) under which the Newton iteration of a batch has converged.
+#: Rotation step (rad) under which the Newton iteration of a batch has converged (the error
+#: left is then below 1e-10 rad, module docstring).
 GLS_TOL = 1e-6
-#: Newton steps at most (typically 3 are taken: 1e-3, 1e-6, 1e-12 rad).
+#: Newton steps at most (typically 3 are taken from the closed form, 2 for samples).
 GLS_MAX_ITER = 8
 #: Registrations refined at once (poses times samples): the working set stays in cache.
 GLS_CHUNK = 8192
