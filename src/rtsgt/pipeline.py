@@ -287,7 +287,7 @@ def _run_stages(
             tracks, {s: T.translation for s, T in calib.transforms.items()},
             static_stretches(gt.t, prisms.xyz[keep]))}
     self_checks["inter_prism_structure"] = run_structure_check(
-        prisms, gps, tracks, calib, coupling, reference, est.R, keep, model,
+        prisms, gps, tracks, calib, coupling, reference, keep, model,
         options.interpolation.gp_noise)
     lap("self_checks")
     computation = RunComputation(data, calib, model, reports, tracks, gps, prisms, est, keep,
