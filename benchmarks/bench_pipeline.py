@@ -1,6 +1,7 @@
 """End-to-end benchmark: ``rtsgt demo`` on a 30-minute simulated deployment, M = 1000.
 
-Run: ``python benchmarks/bench_pipeline.py [--duration 1800] [--samples 1000] [--repeat 3]``.
+Run: ``python benchmarks/bench_pipeline.py [--duration 1800] [--samples 1000] [--repeat 3]
+[--registration weighted]``.
 
 Times, as medians over ``--repeat`` runs on fresh output directories:
 
@@ -31,6 +32,7 @@ def main(argv=None) -> None:
     ap.add_argument("--duration", type=float, default=1800.0, help="simulated time, s")
     ap.add_argument("--samples", type=int, default=1000, help="Monte Carlo samples M")
     ap.add_argument("--engine", default="mc")
+    ap.add_argument("--registration", default="weighted", choices=["weighted", "unweighted"])
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args(argv)
     exe = shutil.which("rtsgt")
@@ -43,13 +45,15 @@ def main(argv=None) -> None:
             t0 = time.perf_counter()
             subprocess.run(cmd + ["demo", "--out", str(out), "--seed", str(k),
                                   "--duration", str(args.duration), "--samples", str(args.samples),
-                                  "--engine", args.engine, "--no-report", "--quiet"],
+                                  "--engine", args.engine, "--registration", args.registration,
+                                  "--no-report", "--quiet"],
                            check=True, capture_output=True, text=True)
             walls.append(time.perf_counter() - t0)
             summary = json.loads((out / "run" / "summary.json").read_text())
             stages.append(summary["timings_s"])
             n_poses = summary["poses"]["kept"]
     print(f"rtsgt demo, {args.duration / 60:.0f} min simulated, engine {args.engine}, "
+          f"{args.registration} registration, "
           f"M = {args.samples}, {n_poses} poses kept (last run)")
     print(f"  wall time of the command: median {np.median(walls):.1f} s over {len(walls)} runs "
           f"({', '.join(f'{w:.1f}' for w in walls)})")

@@ -1,7 +1,7 @@
 """Honesty of the ground truth's covariance, per pose engine, pooled over simulated deployments.
 
 Run: ``python benchmarks/honesty.py [--deployments 120] [--duration 150] [--engines mc ut linear]
-[--samples 300] [--first-seed 5000] [--sources all]``
+[--samples 300] [--first-seed 5000] [--sources all] [--registration weighted|unweighted]``
 
 For each engine, every deployment ``first_seed + k`` is simulated (:mod:`rtsgt.simulation`),
 written as files, read back and run through the whole pipeline; its ground truth is compared
@@ -11,7 +11,9 @@ pooled over all poses of all deployments: ``mean / dof`` should be 1 and the sha
 weather) is drawn once per deployment, so the spread of the pooled figures is set by the
 number of deployments, not of poses: about +-0.04 on ``mean / dof`` for 120 deployments.
 
-``--sources`` turns the simulated noise sources off one by one (``instrument`` keeps only the
+``--registration`` picks the fit of the prisms onto their surveyed positions
+(:mod:`rtsgt.pose.weighted` or the paper's unweighted one; default: the ``[pose]`` default,
+:data:`rtsgt.pose.estimate.DEFAULT_REGISTRATION`). ``--sources`` turns the simulated noise sources off one by one (``instrument`` keeps only the
 instrument's noise; ``no-<source>`` drops one), to see which one drives a discrepancy.
 """
 
@@ -28,6 +30,7 @@ from scipy.stats import chi2
 
 from rtsgt.io.deployment import load_deployment
 from rtsgt.pipeline import run_pipeline
+from rtsgt.pose.estimate import DEFAULT_REGISTRATION, REGISTRATIONS
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 from rtsgt.simulation.compare import compare_to_truth
 
@@ -45,7 +48,8 @@ def _flags(sources: str) -> dict:
     raise SystemExit(f"unknown --sources {sources!r}")
 
 
-def pooled(engine: str, seeds, duration: float, samples: int, flags: dict, tmp: Path) -> dict:
+def pooled(engine: str, seeds, duration: float, samples: int, flags: dict, tmp: Path,
+           registration: str = DEFAULT_REGISTRATION) -> dict:
     n3, n6, err = [], [], []
     for seed in seeds:
         sim = simulate_deployment(SimulationConfig(duration_s=duration, **flags),
@@ -53,7 +57,8 @@ def pooled(engine: str, seeds, duration: float, samples: int, flags: dict, tmp: 
         data, opts = load_deployment(write_deployment(sim, tmp / f"{engine}-{seed}"))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            result = run_pipeline(data, opts.updated(seed=seed, engine=engine, samples=samples))
+            result = run_pipeline(data, opts.updated(seed=seed, engine=engine, samples=samples,
+                                                     registration=registration))
         p, q = sim.truth_at(result.groundtruth.t)
         c = compare_to_truth(result.groundtruth, p, q)
         n3.append(c.nees_position.values)
@@ -73,15 +78,18 @@ def main(argv=None) -> None:
     ap.add_argument("--samples", type=int, default=300)
     ap.add_argument("--first-seed", type=int, default=5000)
     ap.add_argument("--sources", default="all")
+    ap.add_argument("--registration", choices=REGISTRATIONS, default=DEFAULT_REGISTRATION)
     args = ap.parse_args(argv)
     seeds = range(args.first_seed, args.first_seed + args.deployments)
-    print(f"{args.deployments} deployments x {args.duration:g} s, sources {args.sources}")
+    print(f"{args.deployments} deployments x {args.duration:g} s, sources {args.sources}, "
+          f"{args.registration} registration")
     print(f"{'engine':<7} {'poses':>7} {'NEES3/3':>8} {'in 95%':>7} {'NEES6/6':>8} "
           f"{'in 95%':>7} {'median err':>11} {'time':>7}")
     with tempfile.TemporaryDirectory() as tmp:
         for engine in args.engines:
             t0 = time.perf_counter()
-            r = pooled(engine, seeds, args.duration, args.samples, _flags(args.sources), Path(tmp))
+            r = pooled(engine, seeds, args.duration, args.samples, _flags(args.sources), Path(tmp),
+                       args.registration)
             print(f"{engine:<7} {r['poses']:>7d} {r['nees3']:>8.3f} {r['in3']:>7.3f} "
                   f"{r['nees6']:>8.3f} {r['in6']:>7.3f} {r['err_mm']:>8.2f} mm "
                   f"{time.perf_counter() - t0:>6.0f}s")

@@ -10,6 +10,7 @@ as the arrays it was written from.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -62,8 +63,8 @@ def make_run_data(seed: int = 0, n_meas: int = 240, n_query: int = 150,
                   ref_sigma: float = 2e-4, reject_every: int = 25) -> RunRecord:
     """A synthetic run: a robot driving away from station 1 to ~230 m, three prisms.
 
-    Covariances are isotropic, ``sigma_s(range)^2 I`` per source, so every number of the
-    analysis has a closed form. Measurements of prism i are 1/3 of a period out of phase; two
+    Covariances are isotropic, ``sigma_s(range)^2 I`` per source, and the fit the paper's
+    unweighted one, so every number of the analysis has a closed form. Measurements of prism i are 1/3 of a period out of phase; two
     gaps of 5 s are cut from prism 2's measurements.
     """
     rng = np.random.default_rng(seed)
@@ -102,7 +103,7 @@ def make_run_data(seed: int = 0, n_meas: int = 240, n_query: int = 150,
     cov_gp = 0.7 * (by_source_q["instrument"] + by_source_q["tilt"])
     cov_q = cov_gp + sum(by_source_q[s] for s in ("atmosphere", "time_sync", "calibration"))
     ref_cov = ref_sigma ** 2 * np.eye(9)
-    est = estimate_poses(q, cov_q, R_BODY, ref_cov, engine="linear")
+    est = estimate_poses(q, cov_q, R_BODY, ref_cov, engine="linear", registration="unweighted")
     keep = np.ones(n_query, bool)
     keep[::reject_every] = False
     reasons = np.where(np.arange(n_query) % (2 * reject_every) == 0, "distance", "uncertainty")
@@ -113,7 +114,8 @@ def make_run_data(seed: int = 0, n_meas: int = 240, n_query: int = 150,
         groundtruth=gt,
         rejected_t=tq[~keep], rejected_reason=reasons[~keep],
         reference=ReferencePoints(ids, R_BODY.copy(), ref_cov),
-        options=RunOptions(seed=seed).updated(engine="linear", samples=200), stations=stations,
+        options=RunOptions(seed=seed).updated(engine="linear", samples=200,
+                                              registration="unweighted"), stations=stations,
         gcp_xyz=np.array([[10.0, 5.0, 0.0], [50.0, -12.0, 0.5], [120.0, 8.0, 1.0]]),
         gcp_names=("1", "2", "3"), summary={"name": "synthetic"},
     )
@@ -255,9 +257,27 @@ def test_pose_sources_add_up_to_first_order(run_data, analysis):
     q = run_data.prisms_xyz[idx]
     total_q = sum(run_data.prisms_cov_by_source[s][idx] for s in NOISE_SOURCES)
     expect = estimate_poses(q, total_q, run_data.reference_xyz, run_data.reference_cov,
-                            engine="linear").cov
+                            engine="linear", registration="unweighted").cov
     got = sum(analysis.pose_cov[s] for s in NOISE_SOURCES + (REFERENCE,))
     np.testing.assert_allclose(got, expect, rtol=1e-9, atol=1e-18)
+    # a weighted run: every source through the run's fit (the weights of the total), so the
+    # sources still add up, and differ from the unweighted fit's
+    weighted = dataclasses.replace(run_data,
+                                   options=run_data.options.updated(registration="weighted"))
+    w = analyze(weighted)
+    fit = {"engine": "linear", "registration": "weighted",
+           "weight_cov_q": run_data.prisms_cov[idx], "weight_cov_r": run_data.reference_cov}
+    expect_w = estimate_poses(q, total_q, run_data.reference_xyz, run_data.reference_cov,
+                              **fit).cov
+    np.testing.assert_allclose(sum(w.pose_cov[s] for s in NOISE_SOURCES + (REFERENCE,)),
+                               expect_w, rtol=1e-9, atol=1e-18)
+    parts_w = sum(w.pose_cov[s] for s in (GP, "atmosphere", "time_sync", "calibration",
+                                         REFERENCE))
+    np.testing.assert_allclose(parts_w, estimate_poses(q, run_data.prisms_cov[idx],
+                                                       run_data.reference_xyz,
+                                                       run_data.reference_cov, **fit).cov,
+                               rtol=1e-9, atol=1e-18)
+    assert not np.allclose(expect_w, expect, rtol=1e-3, atol=0)
     assert analysis.pose_sources == NOISE_SOURCES + (GP, REFERENCE, ALL)
     np.testing.assert_array_equal(analysis.pose_cov[ALL], run_data.groundtruth.cov)
     # the run's total = GP posterior + systematic sources + reference, to first order

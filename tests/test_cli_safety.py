@@ -181,6 +181,7 @@ def test_bad_rate_in_the_configuration_names_the_file(rate, deployment, tmp_path
     (["demo", "--duration", "-5"], "--duration"),
     (["demo", "--samples", "1"], "--samples"),
     (["demo", "--engine", "foo"], "--engine"),
+    (["demo", "--registration", "best"], "--registration"),
     (["simulate", "{out}", "--duration", "-1"], "--duration"),
     (["evaluate", "{run}", "{run}/groundtruth.tum", "--align", "se4"], "--align"),
     (["evaluate", "{run}", "{run}/groundtruth.tum", "--max-gap", "-1"], "--max-gap"),

@@ -62,6 +62,8 @@ def test_minimal_configuration_takes_the_paper_defaults(deployment):
         (lambda s: s.replace('reference_station = "1"', 'reference_station = "7"'),
          r"reference_station = '7' is not a station; known: 1, 2, 3"),
         (lambda s: s + '[pose]\nengine = "fast"\n', r"\[pose\] engine = 'fast': expected engine mc, ut, linear"),
+        (lambda s: s + '[pose]\nregistration = "best"\n',
+         r"\[pose\] registration = 'best': expected registration 'weighted' or 'unweighted'"),
         (lambda s: s + '[pose]\nsamples = "many"\n', r"samples must be int"),
         (lambda s: s + "[noise]\nsources = ['instrument', 'gravity']\n", r"unknown source\(s\) 'gravity'"),
         (lambda s: s + "[interpolation]\nqc = -1.0\n", r"\[interpolation\] qc = -1.0: expected qc > 0"),

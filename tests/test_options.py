@@ -39,6 +39,7 @@ def test_each_stage_has_its_own_stream_the_children_of_the_seed():
     ({"rate_hz": float("inf")}, "rate_hz"), ({"max_gap_s": 0.0}, "max_gap_s"),
     ({"distance_gate_m": float("nan")}, "distance_gate_m"), ({"engine": "foo"}, "engine"),
     ({"qc": -1.0}, "qc"), ({"qc": "maybe"}, "qc"), ({"gp_noise": "some"}, "gp_noise"),
+    ({"registration": "svd"}, "registration"),
 ])
 def test_bad_values_are_refused_naming_the_option(change, match):
     with pytest.raises(InputError, match=match):
@@ -47,10 +48,11 @@ def test_bad_values_are_refused_naming_the_option(change, match):
 
 def test_the_nested_records_take_the_flat_names_of_the_command_line():
     o = RunOptions().updated(engine="ut", samples=50, seed=3, rate_hz=2.0, qc="likelihood",
-                             gp_noise="all", distance_gate_m=0.5)
+                             gp_noise="all", distance_gate_m=0.5, registration="unweighted")
     assert o == RunOptions(seed=3, interpolation=InterpolationOptions(2.0, "likelihood",
                                                                       gp_noise="all"),
-                           pose=PoseOptions("ut", 50, distance_gate_m=0.5))
+                           pose=PoseOptions("ut", 50, distance_gate_m=0.5,
+                                            registration="unweighted"))
     assert RunOptions().updated() == RunOptions()
     with pytest.raises(TypeError, match="no_such"):
         RunOptions().updated(no_such=1)

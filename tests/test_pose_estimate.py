@@ -8,6 +8,8 @@ from rtsgt.errors import GeometryError
 from rtsgt.geometry import kabsch
 from rtsgt.geometry.transform import perturbation
 from rtsgt.pose import REASON_COLLINEAR, REASON_MISSING, estimate_poses, psd_factor
+from rtsgt.pose.estimate import pose_weights
+from rtsgt.pose.weighted import register_weighted
 
 CHI2_95 = {3: 7.815, 6: 12.592}
 
@@ -69,7 +71,8 @@ def test_honest_uncertainty_nees_and_coverage(engine):
     """Known truth: NEES / dof averages 1 +- 15 %, the 95 % regions hold the truth 95 +- 3 %.
 
     Each of 100 simulated deployments has its own reference survey error (shared by its 40
-    poses, as in reality); 4000 poses in all.
+    poses, as in reality); 4000 poses in all. The paper's unweighted fit; the weighted one:
+    tests/test_pose_weighted.py.
     """
     rng = np.random.default_rng(20)
     r_true = warthog_reference()
@@ -79,7 +82,8 @@ def test_honest_uncertainty_nees_and_coverage(engine):
     for _ in range(100):
         r_meas = r_true + (L_r @ rng.standard_normal(9)).reshape(3, 3)
         R, t, q, cov_q = simulate(rng, 40, r_true)
-        est = estimate_poses(q, cov_q, r_meas, cov_r, engine=engine, samples=600, rng=rng)
+        est = estimate_poses(q, cov_q, r_meas, cov_r, engine=engine, samples=600, rng=rng,
+                             registration="unweighted")
         xi = perturbation(est.R, est.t, R, t)
         nees6.append(np.einsum("ti,tij,tj->t", xi, np.linalg.inv(est.cov), xi))
         nees3.append(np.einsum("ti,tij,tj->t", xi[:, :3], np.linalg.inv(est.cov[:, :3, :3]),
@@ -90,21 +94,25 @@ def test_honest_uncertainty_nees_and_coverage(engine):
         assert abs(np.mean(nees < CHI2_95[dof]) - 0.95) < 0.03, (dof, np.mean(nees < CHI2_95[dof]))
 
 
-def test_sampled_cloud_reproduces_reported_covariance():
-    """Convention pin: solve independently sampled inputs with the SVD Kabsch, take the left
-    perturbations with geometry.transform.perturbation: their covariance is the reported one."""
+@pytest.mark.parametrize("registration", ["unweighted", "weighted"])
+def test_sampled_cloud_reproduces_reported_covariance(registration):
+    """Convention pin: solve independently sampled inputs (with the SVD Kabsch, or the weighted
+    fit with the pose's weights), take the left perturbations with
+    geometry.transform.perturbation: their covariance is the reported one."""
     rng = np.random.default_rng(30)
     r = warthog_reference()
     cov_r = correlated_reference_cov(rng)
     _, _, q, cov_q = simulate(rng, 3, r)
-    est = estimate_poses(q, cov_q, r, cov_r, engine="linear")
+    est = estimate_poses(q, cov_q, r, cov_r, engine="linear", registration=registration)
+    W = pose_weights(q, cov_q, r, cov_r)
     M = 40_000
     z_r = rng.standard_normal((M, 9)) @ np.linalg.cholesky(cov_r).T
     r_s = r + z_r.reshape(M, 3, 3)
     for k in range(3):
         L = np.linalg.cholesky(cov_q[k])
         q_s = q[k] + np.einsum("nij,mnj->mni", L, rng.standard_normal((M, 3, 3)))
-        R_s, t_s = kabsch(r_s, q_s)
+        R_s, t_s = (kabsch(r_s, q_s) if registration == "unweighted"
+                    else register_weighted(r_s, q_s, W[k]))
         xi = perturbation(est.R[k], est.t[k], R_s, t_s)
         cloud = xi.T @ xi / M
         assert rel_frobenius(cloud, est.cov[k]) < 0.04

@@ -105,7 +105,7 @@ def test_summary_without_schema_and_with_version_1_are_both_read(tmp_path):
     current = {"deployment": "d", "software": {"name": "rtsgt", "version": "x"},
                "parameters": {"engine": "mc", "samples": 50, "seed": 7, "max_gap_s": 2.5,
                               "gp_noise": "all", "distance_gate_m": 0.2,
-                              "uncertainty_gate_m": 0.3},
+                              "uncertainty_gate_m": 0.3, "registration": "weighted"},
                "gates": {"uncertainty_measure": "trace"},
                "intervals_s": [[1.0, 2.0], [3.0, 4.0]],
                "prisms": {"1": {"station": 2, "qc_m2_s3": 0.5}, "2": {"qc_m2_s3": 0.25}},
@@ -119,7 +119,7 @@ def test_summary_without_schema_and_with_version_1_are_both_read(tmp_path):
     older = {k: v for k, v in current.items() if k not in ("deployment", "parameters")}
     older.update(name="d", options={"max_gap_s": 2.5, "distance_gate_m": 0.2,
                                     "uncertainty_gate_m": 0.3},
-                 engine="mc", samples=50, seed=7, gp_noise="all")
+                 engine="mc", samples=50, seed=7, gp_noise="all", registration="weighted")
     old = read_summary(_summary(tmp_path / "old", older))
     assert (v1.schema_version, v0.schema_version, old.schema_version) == (1, 0, 0)
     for s in (v1, v0, old):
@@ -127,6 +127,7 @@ def test_summary_without_schema_and_with_version_1_are_both_read(tmp_path):
         o = s.options
         assert (o.pose.engine, o.pose.samples, o.seed, o.interpolation.gp_noise) == \
             ("mc", 50, 7, "all")
+        assert o.pose.registration == "weighted"
         assert (o.interpolation.max_gap_s, o.pose.distance_gate_m, o.pose.uncertainty_gate_m) \
             == (2.5, 0.2, 0.3)
         assert s.uncertainty_measure == "trace"
@@ -138,6 +139,11 @@ def test_summary_without_schema_and_with_version_1_are_both_read(tmp_path):
     # no file: the defaults
     none = read_summary(tmp_path / "empty")
     assert not none.exists and none.document == {} and none.options.pose.engine == "linear"
+    # a run from before the weighted registration: the paper's unweighted fit
+    assert none.options.pose.registration == "unweighted"
+    del current["parameters"]["registration"]
+    assert read_summary(_summary(tmp_path / "pre", current)).options.pose.registration == \
+        "unweighted"
     assert none.options.interpolation.max_gap_s == 3.0 and none.intervals_s is None
 
 

@@ -20,8 +20,8 @@ from rtsgt.geometry.so3 import exp_so3, matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from rtsgt.io.deployment import load_deployment
 from rtsgt.io.run_dir import SPLIT_FILE, read_run, write_run
 from rtsgt.pipeline import run_pipeline
+from rtsgt.pose.estimate import pose_jacobians
 from rtsgt.pose.reference import block_diagonal
-from rtsgt.pose.registration import registration_jacobian
 from rtsgt.shared import prism_shared_factor
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 from rtsgt.types import PoseTrajectory
@@ -109,9 +109,10 @@ def test_the_linear_split_is_exact_given_the_factors_prism_covariance(linear):
     pr, F, _ = _prism_factor(linear)
     sp = linear.groundtruth_split
     ref = linear.tracked_reference
-    J_q, _ = registration_jacobian(np.broadcast_to(ref.xyz, pr.xyz[keep].shape), pr.xyz[keep],
-                                   linear.groundtruth.rotation)
-    J_q = J_q.reshape(len(sp), 6, -1)
+    # the run's fit (weighted by default: its weights from the total covariance)
+    J_q, _ = pose_jacobians(pr.xyz[keep], ref.xyz, linear.groundtruth.rotation,
+                            registration=linear.options.pose.registration,
+                            cov_q=pr.pose_covariance[keep], cov_r=ref.cov)
     gap = (pr.pose_covariance - block_diagonal(pr.cov_gp))[keep] - F[keep] @ np.swapaxes(
         F[keep], 1, 2)
     expected = J_q @ gap @ np.swapaxes(J_q, 1, 2)

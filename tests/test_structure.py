@@ -14,6 +14,7 @@ from rtsgt.checks.structure import (
     WINDOW_S,
     gls_test,
     inter_prism_structure_check,
+    pair_jacobian,
     viewing_azimuth,
 )
 from rtsgt.errors import RtsgtWarning
@@ -236,12 +237,51 @@ def test_a_robot_that_stands_still_or_is_seen_briefly_gives_no_verdict():
     assert out["clock"]["verdict"] == out["prism_orientation"]["verdict"] == "too few poses"
 
 
+# ------------------------------------------------------------------------ the viewing angles
+
+
+def test_the_closed_form_rotation_does_not_move_with_the_residuals_and_the_weighted_one_does():
+    """The rotation the viewing angles are read from (the closed-form fit) does not move with
+    the prisms' shape, which the distance residuals see (module docstring): a displacement
+    orthogonal to the rigid motions moves the distances to first order and leaves the closed
+    form's rotation where it was, to round-off, however large; the weighted fit's rotation
+    moves to first order, by the rotation part of ``K_w e``."""
+    from rtsgt.geometry.so3 import exp_so3, hat, log_so3
+    from rtsgt.pose.registration import register
+    from rtsgt.pose.weighted import register_weighted
+
+    rng = np.random.default_rng(12)
+    R0 = exp_so3(rng.normal(0.0, 1.0, 3))
+    q0 = BODY @ R0.T + np.array([40.0, -25.0, 1.0])
+    a = BODY @ R0.T
+    Hp = np.concatenate([np.concatenate([np.eye(3), -hat(ai)], axis=1) for ai in a])  # (9, 6)
+    shape = np.linalg.svd(Hp, full_matrices=True)[0][:, 6:]  # the complement of rigid motions
+    e = shape @ rng.standard_normal(3)
+    e *= 1e-3 / np.sqrt(np.mean(e**2))  # a misfit of 1 mm RMS
+    A = rng.standard_normal((9, 9))
+    W = np.linalg.inv(A @ A.T * 1e-6 + 1e-7 * np.eye(9))  # anisotropic, correlated weights
+    K = np.linalg.solve(Hp.T @ W @ Hp, Hp.T @ W)
+    closed, weighted, dist = [], [], []
+    for s in (1.0, 0.5, 50.0):  # 50: a misfit of 5 cm
+        q = q0 + s * e.reshape(3, 3)
+        closed.append(np.linalg.norm(log_so3(register(BODY, q)[0] @ R0.T)))
+        weighted.append(log_so3(register_weighted(BODY, q, W)[0] @ R0.T))
+        dist.append(pair_jacobian(q[None])[0][0] - pair_jacobian(q0[None])[0][0])
+    assert np.sqrt(np.mean(dist[0] ** 2)) > 3e-4  # the shape changed: the residuals moved
+    np.testing.assert_allclose(dist[1], 0.5 * dist[0], rtol=0.02)  # to first order
+    assert max(closed) < 1e-12
+    np.testing.assert_allclose(weighted[0], (K @ e)[3:], rtol=0.02)
+    np.testing.assert_allclose(weighted[1], 0.5 * weighted[0], rtol=0.02)
+    assert np.linalg.norm(weighted[0]) > 1e-3
+
+
 # ----------------------------------------------------------------- simulated deployments
 
 
 def _deployment_check(tmp, effect, seed, duration):
     """The structure check of a simulated deployment with one reality effect (or none),
-    through the files and the whole pipeline (linear engine, few calibration samples)."""
+    through the files and the whole pipeline (linear engine, few calibration samples; the
+    check reads the viewing angles from the closed-form fit whatever the registration)."""
     from rtsgt.io.deployment import load_deployment
     from rtsgt.pipeline import run_pipeline
     from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment

@@ -9,7 +9,8 @@ Layout (each record is what one stage takes, and one table of the deployment's T
                                                            deployment's instrument
         calibration    CalibrationOptions [calibration]    the model of the stations' transforms
         interpolation  InterpolationOptions [interpolation] query grid, Qc, gaps, GP noise
-        pose           PoseOptions        [pose]           engine, Monte Carlo samples, gates
+        pose           PoseOptions        [pose]           engine, registration, Monte Carlo
+                                                           samples, gates
 
 The command line and the TOML both map onto these records (:meth:`RunOptions.updated` takes
 the flat names the command line uses); the ``__post_init__`` of each is the one check every
@@ -29,7 +30,13 @@ from rtsgt.filtering import FilterParams
 from rtsgt.filtering.gates import DEFAULT_DISTANCE_GATE_M, DEFAULT_UNCERTAINTY_GATE_M
 from rtsgt.interpolation.gp import DEFAULT_MAX_GAP_S
 from rtsgt.noise import NoiseModel
-from rtsgt.pose.estimate import POSE_ENGINES, PoseEngine
+from rtsgt.pose.estimate import (
+    DEFAULT_REGISTRATION,
+    POSE_ENGINES,
+    REGISTRATIONS,
+    PoseEngine,
+    Registration,
+)
 
 #: The stages that draw random numbers. Each draws from its own stream of the run's seed
 #: (:func:`stage_rng`), so that a stage's draws do not depend on how many the stages before it
@@ -154,16 +161,24 @@ class PoseOptions:
         Monte Carlo samples of every sampling stage (calibration, noise, pose), at least 10.
     distance_gate_m, uncertainty_gate_m : float
         Module 4's gates, m (``inf``: off).
+    registration : {"weighted", "unweighted"}
+        The fit of the prisms onto the reference: weighted by the inverse covariance of the
+        residual (generalised least squares, :mod:`rtsgt.pose.weighted`), or the paper's
+        unweighted point-to-point fit.
     """
 
     engine: PoseEngine = "mc"
     samples: int = 1000
     distance_gate_m: float = DEFAULT_DISTANCE_GATE_M
     uncertainty_gate_m: float = DEFAULT_UNCERTAINTY_GATE_M
+    registration: Registration = DEFAULT_REGISTRATION
 
     def __post_init__(self) -> None:
         if self.engine not in POSE_ENGINES:
             raise InputError(f"Expected engine {', '.join(POSE_ENGINES)}, got {self.engine!r}")
+        if self.registration not in REGISTRATIONS:
+            raise InputError(f"Expected registration {' or '.join(map(repr, REGISTRATIONS))}, "
+                             f"got {self.registration!r}")
         if isinstance(self.samples, bool) or not isinstance(self.samples, (int, np.integer)) \
                 or self.samples < 10:
             raise InputError(f"Expected an integer of at least 10 samples, got {self.samples!r}")
@@ -196,10 +211,10 @@ class RunOptions:
 
     def updated(self, **changes) -> RunOptions:
         """A copy with ``changes``, keyed by the flat names of the command line: ``seed``,
-        ``filter``, ``noise``, or a field of a nested record (``model``, ``engine``, ``samples``,
-        ``rate_hz``, ``qc``, ``max_gap_s``, ``gp_noise``, ``motion_prior``,
-        ``outlier_windows``, the gates); each value meets its
-        record's rule (:class:`~rtsgt.errors.InputError` otherwise)."""
+        ``filter``, ``noise``, or a field of a nested record (``model``, ``engine``,
+        ``registration``, ``samples``, ``rate_hz``, ``qc``, ``max_gap_s``, ``gp_noise``,
+        ``motion_prior``, ``outlier_windows``, the gates); each value meets its record's rule
+        (:class:`~rtsgt.errors.InputError` otherwise)."""
         top = {k: v for k, v in changes.items() if k in _TOP_FIELDS}
         for part, record in _NESTED.items():
             mine = {k: v for k, v in changes.items() if k in _FIELDS[record]}

@@ -246,6 +246,7 @@ def _run_stages(
     say("poses")
     reference = data.reference.select(list(tracks))
     est = estimate_poses(prisms.xyz, prisms.pose_covariance, reference, engine=options.pose.engine,
+                         registration=options.pose.registration,
                          samples=options.pose.samples, rng=stage_rng(options.seed, "pose"))
     lap("pose")
 
@@ -287,7 +288,7 @@ def _run_stages(
             tracks, {s: T.translation for s, T in calib.transforms.items()},
             static_stretches(gt.t, prisms.xyz[keep]))}
     self_checks["inter_prism_structure"] = run_structure_check(
-        prisms, gps, tracks, calib, coupling, reference, est.R, keep, model,
+        prisms, gps, tracks, calib, coupling, reference, keep, model,
         options.interpolation.gp_noise)
     lap("self_checks")
     computation = RunComputation(data, calib, model, reports, tracks, gps, prisms, est, keep,
@@ -363,7 +364,9 @@ def _refit_outlier_windows(options: RunOptions, tracks: dict[str, PrismTrack],
         if fresh.size:
             new_prisms = query_prisms(clean, gps, t_all[fresh], options.interpolation, coupling)
             new_est = estimate_poses(new_prisms.xyz, new_prisms.pose_covariance, reference,
-                                     engine=options.pose.engine, samples=options.pose.samples,
+                                     engine=options.pose.engine,
+                                     registration=options.pose.registration,
+                                     samples=options.pose.samples,
                                      rng=stage_rng(options.seed, "pose"))
             from_old = flagged[present]
             prisms = _assemble(prisms, new_prisms, from_old)
@@ -429,8 +432,8 @@ def _split(options: RunOptions, prisms: PrismsAtTimes, gps: dict[str, GPTrack],
     origins = {s: np.asarray(T.translation, dtype=float) for s, T in calib.transforms.items()}
     return split_ground_truth(
         kept, velocity, [tracks[p].station for p in tracks], origins, coupling, reference,
-        est.R[idx], engine=options.pose.engine, samples=options.pose.samples,
-        rng=stage_rng(options.seed, "pose"))
+        est.R[idx], engine=options.pose.engine, registration=options.pose.registration,
+        samples=options.pose.samples, rng=stage_rng(options.seed, "pose"))
 
 
 def _record(c: RunComputation, options: RunOptions, intervals: np.ndarray,

@@ -40,7 +40,8 @@ per-source covariance the noise model gave (interpolated at ``t``): both sources
 (:func:`rank_one_factor`, the factor :meth:`~rtsgt.evaluation.ContinuousGroundTruth.
 cross_covariance` uses). Stacking the prisms, ``dq_i = F_i theta_q`` with ``F_i`` of shape
 ``(3n, k_q)``; the pose follows the prisms and the reference through the registration's
-Jacobian (:func:`rtsgt.pose.registration.registration_jacobian`, the linear engine's):
+Jacobian (:func:`rtsgt.pose.estimate.pose_jacobians`, the linear engine's, for the run's
+weighted or unweighted fit):
 
 .. math::
 
@@ -49,7 +50,8 @@ Jacobian (:func:`rtsgt.pose.registration.registration_jacobian`, the linear engi
 The shared covariance of pose ``i`` is ``L_i L_i^T``, the cross-covariance of poses ``i`` and
 ``j`` through the shared errors ``L_i L_j^T``. The varying covariance ``V_i`` is the pose
 engine's covariance of the prisms' GP part alone (``cov_gp``, without the survey's
-covariance). For the linear engine ``V_i + L_i L_i^T`` is the total covariance exactly where
+covariance), with the weights of the whole (the fit is the run's: only what is propagated
+through it changes). For the linear engine ``V_i + L_i L_i^T`` is the total covariance exactly where
 ``F_i F_i^T`` is the systematic part of the joint prism covariance the engine took; the two
 differ only by the factor's choices (tests/test_shared_cov.py, a simulated deployment): the
 calibration and atmosphere blocks at the query position instead of interpolated between
@@ -71,9 +73,8 @@ import numpy as np
 from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.geometry.so3 import hat
 from rtsgt.interpolation.prisms import PrismsAtTimes
-from rtsgt.pose.estimate import estimate_poses, psd_factor
+from rtsgt.pose.estimate import DEFAULT_REGISTRATION, estimate_poses, pose_jacobians, psd_factor
 from rtsgt.pose.reference import ReferencePoints
-from rtsgt.pose.registration import registration_jacobian
 
 __all__ = ["POSE_COMPONENTS", "SharedFactor", "prism_shared_factor", "rank_one_factor",
            "reference_factor", "select_prisms", "shared_pose_factor", "split_ground_truth",
@@ -252,32 +253,36 @@ def shared_pose_factor(
     coupling: StationCoupling | None,
     reference: ReferencePoints,
     R_world_body: np.ndarray,
+    registration: str = DEFAULT_REGISTRATION,
 ) -> tuple[np.ndarray, tuple[str, ...]]:
     """``L_i = J_q,i F_i + J_r,i A_r`` (T, 6, k) and the parameter names (module docstring).
 
-    ``R_world_body`` (T, 3, 3): the poses' rotations (the fit of the mean prisms). The poses
-    must not be degenerate (:func:`~rtsgt.pose.registration.registration_jacobian` raises
-    :class:`~rtsgt.errors.GeometryError` for collinear prisms).
+    ``R_world_body`` (T, 3, 3): the poses' rotations (the fit of the mean prisms);
+    ``registration``: the fit's (:func:`rtsgt.pose.estimate.pose_jacobians`, its weights from
+    the prisms' ``pose_covariance`` and the reference's). The poses must not be degenerate
+    (the Jacobian raises :class:`~rtsgt.errors.GeometryError` for collinear prisms).
     """
-    T, n, _ = prisms.xyz.shape
     F, names_q = prism_shared_factor(prisms, velocity, stations, origins, coupling)
     A_r, names_r = reference_factor(reference)
-    J_q, J_r = registration_jacobian(np.broadcast_to(reference.xyz, prisms.xyz.shape),
-                                     prisms.xyz, R_world_body)
-    L_q = J_q.reshape(T, 6, 3 * n) @ F
-    L_r = J_r.reshape(T, 6, 3 * n) @ A_r
-    return np.concatenate([L_q, L_r], axis=2), names_q + names_r
+    J_q, J_r = pose_jacobians(prisms.xyz, reference.xyz, R_world_body,
+                              registration=registration, cov_q=prisms.pose_covariance,
+                              cov_r=reference.cov)
+    return np.concatenate([J_q @ F, J_r @ A_r], axis=2), names_q + names_r
 
 
 def varying_pose_covariance(
     prisms: PrismsAtTimes, reference: ReferencePoints, engine: str = "linear",
     samples: int = 1000, rng: np.random.Generator | None = None,
+    registration: str = DEFAULT_REGISTRATION,
 ) -> np.ndarray:
     """``V_i`` (T, 6, 6): the pose engine run on the prisms' GP covariance alone, the reference
-    taken as exact (:func:`rtsgt.pose.estimate_poses`; ``rng`` for ``engine="mc"``)."""
+    taken as exact (:func:`rtsgt.pose.estimate_poses`; ``rng`` for ``engine="mc"``); the
+    weighted fit keeps the weights of the total covariance (the run's fit)."""
     n = prisms.xyz.shape[1]
     est = estimate_poses(prisms.xyz, prisms.cov_gp, reference.xyz, np.zeros((3 * n, 3 * n)),
-                         engine=engine, samples=samples, rng=rng)
+                         engine=engine, registration=registration,
+                         weight_cov_q=prisms.pose_covariance, weight_cov_r=reference.cov,
+                         samples=samples, rng=rng)
     return est.cov
 
 
@@ -299,6 +304,7 @@ def split_ground_truth(
     R_world_body: np.ndarray,
     *,
     engine: str = "linear",
+    registration: str = DEFAULT_REGISTRATION,
     samples: int = 1000,
     rng: np.random.Generator | None = None,
 ) -> SharedFactor:
@@ -322,8 +328,10 @@ def split_ground_truth(
         The poses' rotations.
     engine, samples, rng
         The pose engine of the varying covariance (:func:`varying_pose_covariance`).
+    registration : {"weighted", "unweighted"}
+        The fit of the poses (the run's).
     """
     L, names = shared_pose_factor(prisms, velocity, stations, origins, coupling, reference,
-                                  R_world_body)
-    V = varying_pose_covariance(prisms, reference, engine, samples, rng)
+                                  R_world_body, registration)
+    V = varying_pose_covariance(prisms, reference, engine, samples, rng, registration)
     return SharedFactor(np.asarray(prisms.t, dtype=float), L, names, V)

@@ -108,6 +108,28 @@ the covariance in that band; the verdict is ``optimistic`` above its ``1 - alpha
 quantile. The amplitudes (mm) of each prism and harmonic are reported, with sigmas scaled by
 ``c_0 / p_0`` where that exceeds 1.
 
+The rotation the viewing angles are read from must not be a function of the residuals
+``y`` it is regressed against: a regressor that moves with ``y`` correlates with ``y`` whatever
+the prisms do. :func:`run_structure_check` therefore takes the closed-form (unweighted) fit of
+the kept prisms onto the survey (:func:`rtsgt.pose.registration.register`), whatever the run's
+registration. Its rotation does not move with the prisms' shape: with ``a_i = R r_i`` the
+fitted survey, any displacement ``e`` of the prisms orthogonal to the rigid motions
+(``sum_i e_i = 0``, ``sum_i a_i x e_i = 0``: the normal equations of the fit) leaves the fit's
+cross-covariance matrix ``R^T M`` symmetric, hence the rotation exactly where it was; its own
+residual is such a displacement. The distances, on the other hand, see only that part (the
+distances of three or more prisms fix their shape, ``H`` vanishes on the rigid motions): the
+rotation and ``y`` are read from orthogonal parts of the same data. The weighted fit
+(:mod:`rtsgt.pose.weighted`) is not: with ``e_u`` the closed form's residual (the prisms'
+misfit to the survey, to first order a linear function of ``y``), its rotation is the closed
+form's plus the rotation part of ``K_w e_u``, ``K_w = (H_p^T W H_p)^-1 H_p^T W``, with
+weights ``W`` that change from pose to pose with the time to the nearest measurement. Its
+viewing angles then carry a term proportional to the residuals, and the harmonic regressors
+``k cos(k alpha)`` times it: the higher the harmonic ``k``, the more, so the prism's harmonics
+(up to 12 per turn) pick up more of the residuals than the placebo's (up to 8), and F grows
+with the square of the misfit. Where the residuals are as small as the model says (a
+millimetre) this is negligible; where they are not, it is a false alarm of exactly the kind a
+self-check must not give (the figures of the real excerpt: docs/self-checks.md).
+
 The clock test takes the prisms' harmonics out as nuisance where the orientation test finds
 them (``prism_harmonics_removed``): a prism error then does not pass for clock offsets, and
 where there is none the clock test keeps its power. The orientation test always takes the
@@ -388,7 +410,9 @@ def inter_prism_structure_check(
     xyz : array_like, shape (T, n, 3)
         The prisms at those times (world), m.
     R_world_body : array_like, shape (T, 3, 3)
-        The poses' rotations.
+        The rotations the viewing angles are read from: not a function of the residuals
+        (the closed-form fit of the prisms, or the truth; not the weighted fit, module
+        docstring).
     velocity : array_like, shape (T, n, 3)
         The prisms' GP velocities, m/s.
     station_xyz : array_like, shape (n, 3)
@@ -630,8 +654,8 @@ def _orientation(yw, Gw, Xw, Xcw, Xpw, info, labels, level) -> dict[str, Any]:
     return out
 
 
-def run_structure_check(prisms, gps, tracks, calibration, coupling, reference, R_world_body,
-                        keep, noise_model, gp_noise: str = "white", *,
+def run_structure_check(prisms, gps, tracks, calibration, coupling, reference, keep,
+                        noise_model, gp_noise: str = "white", *,
                         warn: bool = True) -> dict[str, Any]:
     """:func:`inter_prism_structure_check` on the quantities of a run (the pipeline's).
 
@@ -649,8 +673,6 @@ def run_structure_check(prisms, gps, tracks, calibration, coupling, reference, R
         The joint covariance of the calibrations.
     reference : ReferencePoints
         The tracked reference prisms, in the order of the prisms.
-    R_world_body : ndarray, shape (T_all, 3, 3)
-        The poses' rotations at every query time.
     keep : ndarray of bool, shape (T_all,)
         The kept poses.
     noise_model : rtsgt.noise.NoiseModel
@@ -662,6 +684,7 @@ def run_structure_check(prisms, gps, tracks, calibration, coupling, reference, R
     """
     from rtsgt.interpolation.cross import gp_joint_covariance
     from rtsgt.interpolation.prisms import gp_velocities
+    from rtsgt.pose.registration import register
     from rtsgt.shared import prism_shared_factor, reference_factor, select_prisms
 
     if gp_noise != "white":
@@ -680,8 +703,10 @@ def run_structure_check(prisms, gps, tracks, calibration, coupling, reference, R
     gp_list = list(gps.values())
     sigma = (float(np.sqrt(noise_model.time_sync_second_moment_s2))
              if "time_sync" in noise_model.sources else 0.0)
+    # the viewing angles from the closed-form fit, whatever the run's (module docstring)
+    R_world_body, _ = register(np.broadcast_to(reference.xyz, kept.xyz.shape), kept.xyz)
     return inter_prism_structure_check(
-        kept.t, kept.xyz, np.asarray(R_world_body)[idx], velocity,
+        kept.t, kept.xyz, R_world_body, velocity,
         np.array([origins[s] for s in stations]), stations,
         lambda i, tau: gp_joint_covariance(gp_list[i], tau), F, f_names, reference.xyz, A,
         reference.names, time_sync_sigma_s=sigma, warn=warn)

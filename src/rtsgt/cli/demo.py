@@ -25,7 +25,7 @@ _SHORT_S = 60.0
 
 
 def run_demo(out: Path, *, seed: int, duration: float, engine: str, samples: int,
-             force: bool, quiet: bool, report: bool = True):
+             force: bool, quiet: bool, report: bool = True, registration: str | None = None):
     """Simulate into ``out/deployment``, run into ``out/run``; returns (result, run directory,
     comparison with the truth).
 
@@ -33,7 +33,7 @@ def run_demo(out: Path, *, seed: int, duration: float, engine: str, samples: int
     otherwise; the options are checked before any work.
     """
 
-    option_overrides(engine=engine, samples=samples)
+    option_overrides(engine=engine, registration=registration, samples=samples)
     try:
         config = SimulationConfig(duration_s=duration)
     except ValueError as exc:
@@ -45,7 +45,7 @@ def run_demo(out: Path, *, seed: int, duration: float, engine: str, samples: int
             sim = simulate_deployment(config, np.random.default_rng(seed))
             toml = write_deployment(sim, tmp / "deployment", name=f"demo-seed-{seed}")
         result, run_dir = run_deployment(toml, tmp / "run", engine=engine, samples=samples,
-                                         seed=seed, quiet=quiet,
+                                         seed=seed, quiet=quiet, registration=registration,
                                          inputs={"config": "../deployment/deployment.toml"})
         relocate_summary(run_dir, tmp, output.final)  # the paths the run will have
         if report:
@@ -110,7 +110,9 @@ def print_demo_table(result, comparison, run_dir: Path) -> None:
         t.add_row(f"NEES {n.dof} dof: mean / dof", f"{n.mean / n.dof:.2f}", f"{lo:.2f}-{hi:.2f}")
         t.add_row(f"NEES {n.dof} dof: inside 95 % region", f"{100 * n.fraction_inside_95:.1f} %",
                   f"{100 * flo:.1f}-{100 * fhi:.1f} %")
-    t.add_row("engine / samples", f"{result.options.pose.engine} / {result.options.pose.samples}", "")
+    p = result.options.pose
+    t.add_row("engine / registration / samples",
+              f"{p.engine} / {p.registration} / {p.samples}", "")
     console = Console()
     console.print(t)
     console.print("Expected ranges: two-sided 95 % acceptance intervals of a chi-square test that "
@@ -138,6 +140,9 @@ def register(app: typer.Typer) -> None:
         seed: int = typer.Option(0, min=0, help="Seed of the simulation and of the run (>= 0)."),
         duration: float = typer.Option(600.0, help="Simulated tracking time, s."),
         engine: str = typer.Option("mc", help="Pose engine: mc, ut or linear."),
+        registration: str = typer.Option(
+            None, help="Fit of the prisms: weighted (by their covariance) or unweighted (the "
+                       "paper's) (default: weighted)."),
         samples: int = typer.Option(1000, help="Monte Carlo samples M."),
         force: bool = typer.Option(False, "--force",
                                    help="Replace an earlier output of rtsgt at --out (never a "
@@ -148,5 +153,5 @@ def register(app: typer.Typer) -> None:
         """Simulate a deployment, compute its ground truth and compare it with the truth."""
         result, run_dir, comparison = run_demo(out, seed=seed, duration=duration, engine=engine,
                                                samples=samples, force=force, quiet=quiet,
-                                               report=report)
+                                               report=report, registration=registration)
         print_demo_table(result, comparison, run_dir)

@@ -15,7 +15,8 @@ from rtsgt.pipeline import run_pipeline
 from rtsgt.report.html import write_report
 
 #: The command-line options that override keys of the deployment's configuration.
-RUN_OPTION_NAMES = {"engine": "--engine", "samples": "--samples", "rate_hz": "--rate"}
+RUN_OPTION_NAMES = {"engine": "--engine", "registration": "--registration",
+                    "samples": "--samples", "rate_hz": "--rate"}
 
 
 def option_overrides(**values) -> dict:
@@ -31,6 +32,7 @@ def run_deployment(
     engine: str | None = None,
     samples: int | None = None,
     seed: int = 0,
+    registration: str | None = None,
     rate: float | None = None,
     force: bool = False,
     quiet: bool = False,
@@ -44,7 +46,8 @@ def run_deployment(
     configuration's absolute path) is what ``summary.json`` records as the run's inputs.
     """
 
-    changes = option_overrides(engine=engine, samples=samples, rate_hz=rate)
+    changes = option_overrides(engine=engine, registration=registration, samples=samples,
+                               rate_hz=rate)
     check_target(out, force=force, inputs=[config])
     with Stages(quiet) as stages:
         stages("reading inputs")
@@ -72,6 +75,9 @@ def register(app: typer.Typer) -> None:
         config: Path = typer.Argument(..., help="Deployment configuration (TOML)."),
         out: Path = typer.Option(Path("rtsgt-out"), "--out", "-o", help="Output directory."),
         engine: str = typer.Option(None, help="Pose engine: mc, ut or linear (default: config)."),
+        registration: str = typer.Option(
+            None, help="Fit of the prisms: weighted (by their covariance) or unweighted (the "
+                       "paper's) (default: config)."),
         samples: int = typer.Option(None, help="Monte Carlo samples M (default: config)."),
         seed: int = typer.Option(0, min=0, help="Seed of every random draw (>= 0)."),
         rate: float = typer.Option(None, help="Query rate, Hz (default: config)."),
@@ -83,7 +89,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Compute the ground truth of a deployment: poses with 6x6 covariance."""
         result, final = run_deployment(config, out, engine=engine, samples=samples, seed=seed,
-                                       rate=rate, force=force, quiet=quiet, report=report)
+                                       rate=rate, force=force, quiet=quiet, report=report,
+                                       registration=registration)
         if not quiet:
             print_run_summary(result, final)
             if report:

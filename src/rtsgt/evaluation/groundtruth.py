@@ -68,7 +68,7 @@ from rtsgt.interpolation.prisms import fit_gps, gp_velocities, query_prisms
 from rtsgt.io.run_dir import read_run
 from rtsgt.options import RunOptions, stage_rng
 from rtsgt.pose import POSE_ENGINES, ReferencePoints, estimate_poses
-from rtsgt.pose.registration import registration_jacobian
+from rtsgt.pose.estimate import pose_jacobians
 from rtsgt.record import RunRecord
 from rtsgt.shared import SharedFactor, rank_one_factor, split_ground_truth
 from rtsgt.types import PrismTrack
@@ -289,6 +289,7 @@ class ContinuousGroundTruth:
         return {
             "source": self.source,
             "engine": p.engine,
+            "registration": p.registration,
             "samples": p.samples if p.engine == "mc" else None,
             "seed": o.seed if p.engine == "mc" else None,
             "prisms": list(self.prism_ids),
@@ -346,25 +347,28 @@ class ContinuousGroundTruth:
             return None
         tau = np.atleast_1d(np.asarray(times, dtype=float))
         pr = query_prisms(self.tracks, self.gps, tau, self.options.interpolation, self.coupling)
-        est = estimate_poses(pr.xyz, pr.pose_covariance, self.reference, engine="linear")
+        registration = self.options.pose.registration
+        est = estimate_poses(pr.xyz, pr.pose_covariance, self.reference, engine="linear",
+                             registration=registration)
         velocity = gp_velocities({p: self.gps[p] for p in self.tracks}, tau)
         origins = dict(self.station_origins)
         if self.coupling is not None:
             origins.update(self.coupling.origin)
         return split_ground_truth(pr, velocity, [tr.station for tr in self.tracks.values()],
-                                  origins, self.coupling, self.reference, est.R)
+                                  origins, self.coupling, self.reference, est.R,
+                                  registration=registration)
 
     def _linearise(self, tau: ArrayLike) -> _Linearised:
         tau = np.atleast_1d(np.asarray(tau, dtype=float))
-        n = len(self.tracks)
         pr = query_prisms(self.tracks, self.gps, tau, self.options.interpolation, self.coupling)
-        est = estimate_poses(pr.xyz, pr.pose_covariance, self.reference, engine="linear")
-        J_q, J_r = registration_jacobian(np.broadcast_to(self.reference.xyz, pr.xyz.shape),
-                                         pr.xyz, est.R)
+        registration = self.options.pose.registration
+        est = estimate_poses(pr.xyz, pr.pose_covariance, self.reference, engine="linear",
+                             registration=registration)
+        J_q, J_r = pose_jacobians(pr.xyz, self.reference.xyz, est.R, registration=registration,
+                                  cov_q=pr.pose_covariance, cov_r=self.reference.cov)
         velocity = list(np.moveaxis(gp_velocities({p: self.gps[p] for p in self.tracks}, tau),
                                     1, 0))
-        return _Linearised(tau, pr, J_q.reshape(tau.size, 6, 3 * n),
-                           J_r.reshape(tau.size, 6, 3 * n), velocity)
+        return _Linearised(tau, pr, J_q, J_r, velocity)
 
     def _between(self, a: _Linearised, b: _Linearised) -> np.ndarray:
         ids = list(self.tracks)
@@ -445,7 +449,7 @@ class ContinuousGroundTruth:
             opt = self.options.pose
             est = estimate_poses(
                 prisms.xyz, prisms.pose_covariance, self.reference, engine=opt.engine,
-                samples=opt.samples,
+                registration=opt.registration, samples=opt.samples,
                 rng=stage_rng(self.options.seed, "pose") if opt.engine == "mc" else None,
             )
             keep, report = apply_gates(

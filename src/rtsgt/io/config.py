@@ -72,6 +72,7 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
 
     [pose]
     engine = "mc"                    # mc | ut | linear
+    registration = "weighted"        # weighted (by the residual's covariance) | unweighted
     samples = 1000
     distance_gate_m = 0.10
     uncertainty_gate_m = 0.20
@@ -370,7 +371,7 @@ def load_config(path: str | Path) -> DeploymentConfig:
 
     p = _Section(path, "pose", doc.get("pose", {}))
     pose = p.record(PoseOptions, {k: (k, kind, None) for k, kind in (
-        ("engine", str), ("samples", int), ("distance_gate_m", float),
+        ("engine", str), ("registration", str), ("samples", int), ("distance_gate_m", float),
         ("uncertainty_gate_m", float))})
     p.done()
 

@@ -260,6 +260,7 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
         "inputs": inputs or {},
         "parameters": {
             "engine": opt.pose.engine,
+            "registration": opt.pose.registration,
             "samples": opt.pose.samples,
             "seed": opt.seed,
             "calibration_model": opt.calibration.model,
@@ -659,8 +660,9 @@ class PrismSummary:
     qc_m2_s3: np.ndarray | None = None
 
 
-#: The options of a run whose summary does not say them (the engine was the linear one).
-_OLDEST_OPTIONS = RunOptions().updated(engine="linear")
+#: The options of a run whose summary does not say them (the engine was the linear one, the
+#: registration unweighted).
+_OLDEST_OPTIONS = RunOptions().updated(engine="linear", registration="unweighted")
 
 
 @dataclass(frozen=True)
@@ -879,6 +881,7 @@ def _summary_options(params: dict, param: Callable, path: Path) -> RunOptions:
                          f"got {outlier_windows!r}", path)
     changes = {
         "engine": str(param("engine", _OLDEST_OPTIONS.pose.engine)), "samples": samples,
+        "registration": str(param("registration", _OLDEST_OPTIONS.pose.registration)),
         "seed": seed, "gp_noise": gp_noise, "motion_prior": motion_prior,
         "outlier_windows": outlier_windows,
         "max_gap_s": _positive(params, "max_gap_s", InterpolationOptions.max_gap_s, path),

@@ -7,7 +7,14 @@ covariance each, independent between prisms and between times (what the GP inter
 gives); the reference positions ``r_i`` of the same prisms in the body frame (the static
 survey) are Gaussian with a full ``(3n, 3n)`` covariance (correlated between prisms when the
 body frame is defined by surveyed points), the same draw for every pose. The pose is the
-least-squares rigid fit (:func:`rtsgt.pose.registration.register`)::
+least-squares rigid fit, ``registration="weighted"`` (:mod:`rtsgt.pose.weighted`)::
+
+    T_world_body,k = argmin_T  e_k^T W_k e_k,   e_k = (q_ki - T r_i)_i  stacked (3n)
+
+with ``W_k`` the inverse of the residual's covariance ``Sigma_q,k + (I (x) R_k) Sigma_r
+(I (x) R_k)^T``, evaluated once per pose at the closed-form rotation of the mean inputs and
+held fixed for every sample and sigma point of that pose; or ``registration="unweighted"``,
+the paper's point-to-point fit (:func:`rtsgt.pose.registration.register`)::
 
     T_world_body,k = argmin_T  sum_i || q_ki - T r_i ||^2
 
@@ -22,8 +29,9 @@ Engines
 ``"mc"``
     The paper's Monte Carlo: ``M`` samples of every prism (Cholesky factor of each covariance)
     and of the stacked reference (Cholesky factor of the full covariance, one draw per sample
-    m shared by all poses), each solved with the closed-form registration, vectorised over
-    poses and samples in chunks. ``mean_offset`` reports the sample mean of ``xi``: the
+    m shared by all poses), each solved with the registration (the closed form; the weighted
+    fit by Newton steps from its first-order prediction), vectorised over poses and samples
+    in chunks. ``mean_offset`` reports the sample mean of ``xi``: the
     one-step estimate of the SE(3) mean of the samples about the reported pose (it differs from
     it by a second-order bias, far below the noise).
 ``"ut"``
@@ -33,7 +41,8 @@ Engines
     centre weight 0). ``mean_offset`` is the weighted mean of the sigma points' ``xi``.
 ``"linear"``
     First order: ``cov = J_q Sigma_q J_q^T + J_r Sigma_r J_r^T`` with the analytic Jacobian of
-    the fit (:func:`rtsgt.pose.registration.registration_jacobian`, implicit function theorem).
+    the fit (:func:`rtsgt.pose.registration.registration_jacobian`, or
+    :func:`rtsgt.pose.weighted.weighted_registration_jacobian`; implicit function theorem).
 
 Degenerate poses (reported, never silently solved): a prism or its covariance is not finite
 (``"missing_prism"``), or the world prisms are nearly collinear (:func:`shape_ratio` below
@@ -42,13 +51,14 @@ Degenerate poses (reported, never silently solved): a prism or its covariance is
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Literal, get_args
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rtsgt.errors import GeometryError
+from rtsgt.errors import GeometryError, RtsgtWarning
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
 from rtsgt.geometry.transform import check_covariance
 from rtsgt.pose.reference import ReferencePoints, block_diagonal
@@ -61,11 +71,23 @@ from rtsgt.pose.registration import (
     shape_ratio,
     small_rotation_vector,
 )
+from rtsgt.pose.weighted import (
+    GLS_MAX_ITER,
+    gls_weights,
+    refine_batches,
+    weighted_registration_jacobian,
+)
 
 #: The pose engines, as a type: Monte Carlo, unscented transform, first order.
 PoseEngine = Literal["mc", "ut", "linear"]
 #: Their names (the one list every option, command and reader checks against).
 POSE_ENGINES: tuple[str, ...] = get_args(PoseEngine)
+#: The registrations, as a type: weighted by the residual's covariance, or the paper's.
+Registration = Literal["weighted", "unweighted"]
+#: Their names.
+REGISTRATIONS: tuple[str, ...] = get_args(Registration)
+#: The registration of every engine unless told otherwise (the default of ``[pose]``).
+DEFAULT_REGISTRATION: Registration = "weighted"
 
 #: Reason codes of :attr:`PoseEstimate.reason` ("" for a valid pose).
 REASON_OK = ""
@@ -107,6 +129,8 @@ class PoseEstimate:
     mean_offset : ndarray, shape (T, 6), or None
         Mean perturbation of the samples (sigma points) about the reported pose: how far the
         SE(3) mean of the samples is from the fit of the mean inputs. None for ``"linear"``.
+    registration : {"weighted", "unweighted"}
+        The fit of every pose, sample and sigma point (module docstring).
     """
 
     R: np.ndarray
@@ -121,6 +145,7 @@ class PoseEstimate:
     engine: str
     samples: int | None = None
     mean_offset: np.ndarray | None = None
+    registration: str = "unweighted"
 
     def __len__(self) -> int:
         return self.t.shape[0]
@@ -206,6 +231,9 @@ def estimate_poses(
     cov_r: ArrayLike | None = None,
     *,
     engine: PoseEngine = "mc",
+    registration: Registration = DEFAULT_REGISTRATION,
+    weight_cov_q: ArrayLike | None = None,
+    weight_cov_r: ArrayLike | None = None,
     samples: int = 1000,
     rng: np.random.Generator | None = None,
     chunk_size: int | None = None,
@@ -229,6 +257,15 @@ def estimate_poses(
         (None when ``r_body`` is a :class:`ReferencePoints`).
     engine : {"mc", "ut", "linear"}
         Uncertainty engine (module docstring).
+    registration : {"weighted", "unweighted"}
+        The fit: weighted by the inverse covariance of the residual
+        (:mod:`rtsgt.pose.weighted`), or the paper's unweighted point-to-point fit.
+    weight_cov_q, weight_cov_r : array_like, optional
+        The covariances the weights are built from (``"weighted"`` only), shaped like
+        ``cov_q`` and ``cov_r``; default ``cov_q`` and ``cov_r``. Give the total covariances
+        here when ``cov_q`` and ``cov_r`` are a part of them to propagate (one source, the
+        varying part): the fit is then the same as the total's, and only the propagated
+        covariance changes.
     samples : int
         Monte Carlo samples M (``"mc"`` only).
     rng : numpy.random.Generator
@@ -268,6 +305,19 @@ def estimate_poses(
         raise GeometryError(f"A pose needs at least 3 prisms, got {n}")
     if engine not in POSE_ENGINES:
         raise ValueError(f"Expected engine in {POSE_ENGINES}, got {engine!r}")
+    if registration not in REGISTRATIONS:
+        raise ValueError(f"Expected registration in {REGISTRATIONS}, got {registration!r}")
+    weighted = registration == "weighted"
+    wq, wr = cq, cr
+    if weighted and weight_cov_q is not None:
+        wq = np.asarray(weight_cov_q, dtype=float)
+        if wq.shape == (T, n, 3, 3):
+            wq = block_diagonal(wq)
+        elif wq.shape != (T, 3 * n, 3 * n):
+            raise ValueError(f"Expected weight_cov_q of shape ({T}, {n}, 3, 3) or "
+                             f"({T}, {3 * n}, {3 * n}), got {wq.shape}")
+    if weighted and weight_cov_r is not None:
+        wr = _reference_inputs(r, weight_cov_r)[1]
     if engine == "mc":
         if not isinstance(rng, np.random.Generator):
             raise ValueError(f"Expected a numpy.random.Generator for engine 'mc', got {rng!r}")
@@ -286,8 +336,12 @@ def estimate_poses(
 
     # per-pose validity
     finite = np.all(np.isfinite(q), axis=(1, 2)) & np.all(np.isfinite(cq), axis=(1, 2))
+    if wq is not cq:
+        finite &= np.all(np.isfinite(wq), axis=(1, 2))
     if finite.any():
         check_covariance(cq[finite], 3 * n, "cov_q")
+        if wq is not cq:
+            check_covariance(wq[finite], 3 * n, "weight_cov_q")
     shape = shape_ratio(q)
     collinear = finite & ~(shape >= min_shape)
     reason = np.full(T, REASON_OK, dtype="<U16")
@@ -313,9 +367,19 @@ def estimate_poses(
         n_samples = 12 * n
 
     qv, cqv = q[valid], cq[valid]
+    gls = None
+    unconverged = 0
     if valid.size:
         rb = np.broadcast_to(r, qv.shape)
         Rv, tv = register(rb, qv)
+        if weighted:
+            W = gls_weights(wq[valid], wr, Rv)
+            Rv, tv, conv, _ = refine_batches(rb[:, None], qv[:, None], W, Rv[:, None],
+                                             tv[:, None])
+            Rv, tv = Rv[:, 0], tv[:, 0]
+            unconverged += int(np.sum(~conv))
+            J_q, J_r = weighted_registration_jacobian(rb, qv, W, Rv, tv)
+            gls = (W, J_q.reshape(valid.size, 6, 3 * n), J_r.reshape(valid.size, 6, 3 * n))
         res = qv - (np.einsum("kij,nj->kni", Rv, r) + tv[:, None, :])
         rms[valid] = np.sqrt(np.mean(np.sum(res * res, axis=-1), axis=-1))
         R[valid], t[valid] = Rv, tv
@@ -324,21 +388,74 @@ def estimate_poses(
         z_r = rng.standard_normal((samples, 3 * n))  # drawn even when no pose is valid
         if valid.size:
             r_samples = (r.reshape(3 * n) + z_r @ Lr.T).reshape(samples, n, 3)
-            c, o = _mc(qv, psd_factor(cqv), r_samples, Rv, tv, rng, chunk)
+            c, o, u = _mc(qv, psd_factor(cqv), r_samples, r, Rv, tv, rng, chunk, gls)
             cov[valid], offset[valid] = c, o
+            unconverged += u
     elif valid.size and engine == "ut":
-        c, o = _ut(qv, psd_factor(cqv), r, psd_factor(cr), Rv, tv)
+        c, o, u = _ut(qv, psd_factor(cqv), r, psd_factor(cr), Rv, tv, gls)
         cov[valid], offset[valid] = c, o
+        unconverged += u
     elif valid.size:
-        J_q, J_r = registration_jacobian(np.broadcast_to(r, qv.shape), qv, Rv)
-        Jq = J_q.reshape(valid.size, 6, 3 * n)
+        if gls is None:
+            J_q, J_r = registration_jacobian(np.broadcast_to(r, qv.shape), qv, Rv)
+            Jq = J_q.reshape(valid.size, 6, 3 * n)
+            Jr = J_r.reshape(valid.size, 6, 3 * n)
+        else:
+            Jq, Jr = gls[1], gls[2]
         c = Jq @ cqv @ np.swapaxes(Jq, 1, 2)
-        Jr = J_r.reshape(valid.size, 6, 3 * n)
         c = c + np.einsum("kai,ij,kbj->kab", Jr, cr, Jr)
         cov[valid] = c
+    if unconverged:
+        warnings.warn(f"The weighted registration did not converge for {unconverged} fits "
+                      f"(poses, samples or sigma points) in {GLS_MAX_ITER} Newton steps",
+                      RtsgtWarning, stacklevel=2)
     cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
     return PoseEstimate(R, t, cov, degenerate, reason, dist, rms, shape, pairs, engine,
-                        n_samples, offset)
+                        n_samples, offset, registration)
+
+
+def pose_weights(q_world: ArrayLike, cov_q: ArrayLike, r_body: ArrayLike,
+                 cov_r: ArrayLike) -> np.ndarray:
+    """The weights ``W`` (T, 3n, 3n) the weighted fit gives each pose (:func:`estimate_poses`):
+    :func:`rtsgt.pose.weighted.gls_weights` at the rotation of the closed-form fit of the mean
+    inputs. ``q_world`` (T, n, 3) and ``cov_q`` (T, 3n, 3n) or (T, n, 3, 3), valid poses only;
+    ``r_body`` (n, 3), ``cov_r`` (3n, 3n)."""
+    q = np.asarray(q_world, dtype=float)
+    T, n, _ = q.shape
+    cq = np.asarray(cov_q, dtype=float)
+    if cq.shape == (T, n, 3, 3):
+        cq = block_diagonal(cq)
+    r = np.asarray(r_body, dtype=float)
+    R0 = register(np.broadcast_to(r, q.shape), q)[0]
+    return gls_weights(cq, np.asarray(cov_r, dtype=float), R0)
+
+
+def pose_jacobians(
+    q_world: ArrayLike, r_body: ArrayLike, R_world_body: ArrayLike, *,
+    registration: Registration = DEFAULT_REGISTRATION, cov_q: ArrayLike | None = None,
+    cov_r: ArrayLike | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``J_q, J_r`` (T, 6, 3n): the first-order sensitivity of the poses' fit to the stacked
+    prisms and reference, for either registration (the linear engine's Jacobians).
+
+    ``q_world`` (T, n, 3), ``r_body`` (n, 3), ``R_world_body`` (T, 3, 3) the poses' rotations;
+    ``cov_q`` (T, 3n, 3n) or (T, n, 3, 3) and ``cov_r`` (3n, 3n): the total covariances the
+    weights are built from (:func:`pose_weights`), ``"weighted"`` only. The poses must be
+    valid (not degenerate).
+    """
+    q = np.asarray(q_world, dtype=float)
+    T, n, _ = q.shape
+    rb = np.broadcast_to(np.asarray(r_body, dtype=float), q.shape)
+    if registration == "weighted":
+        if cov_q is None or cov_r is None:
+            raise ValueError("The weighted registration's Jacobian needs cov_q and cov_r")
+        W = pose_weights(q, cov_q, r_body, cov_r)
+        J_q, J_r = weighted_registration_jacobian(rb, q, W, R_world_body)
+    elif registration == "unweighted":
+        J_q, J_r = registration_jacobian(rb, q, R_world_body)
+    else:
+        raise ValueError(f"Expected registration in {REGISTRATIONS}, got {registration!r}")
+    return J_q.reshape(T, 6, 3 * n), J_r.reshape(T, 6, 3 * n)
 
 
 def _perturbations(R: np.ndarray, t: np.ndarray, R0: np.ndarray, t0: np.ndarray) -> np.ndarray:
@@ -350,29 +467,55 @@ def _perturbations(R: np.ndarray, t: np.ndarray, R0: np.ndarray, t0: np.ndarray)
     return xi
 
 
-def _mc(q, Lq, r_samples, R0, t0, rng, chunk):
+def _fit_samples(P, Q, q, r, R0, t0, gls):
+    """The fits of (K, S) perturbed problems ``P`` (body, may be broadcast) and ``Q`` (world),
+    (K, S, n, 3), of the poses ``q`` (K, n, 3) / ``r`` (n, 3) fitted at ``R0``, ``t0``.
+
+    Unweighted: the closed form of each. Weighted (``gls = (W, J_q, J_r)`` of the poses):
+    Newton from the first-order prediction ``exp(J_q dq + J_r dr) (R0, t0)`` of each, which
+    is within the square of the perturbation of the sample's own fit (two steps instead of
+    three from the closed form). Returns ``R`` (K, S, 3, 3), ``t`` (K, S, 3) and the number
+    of fits that did not converge.
+    """
+    K, S, n, _ = Q.shape
+    if gls is None:
+        Pb = np.broadcast_to(P, Q.shape)
+        Rs, ts, _ = _register_flat(Pb.reshape(-1, n, 3), Q.reshape(-1, n, 3), DEFAULT_CHUNK)
+        return Rs.reshape(K, S, 3, 3), ts.reshape(K, S, 3), 0
+    W, J_q, J_r = gls
+    dq = (Q - q[:, None]).reshape(K, S, 3 * n)
+    dr = (P - r).reshape(P.shape[:-2] + (3 * n,))
+    xi0 = dq @ np.swapaxes(J_q, 1, 2) + dr @ np.swapaxes(J_r, 1, 2)
+    Rs, ts, conv, _ = refine_batches(P, Q, W, R0[:, None], t0[:, None], xi0)
+    return Rs, ts, int(np.sum(~conv))
+
+
+def _mc(q, Lq, r_samples, r, R0, t0, rng, chunk, gls):
     """Monte Carlo second moment and mean of the perturbations, chunked over poses.
 
-    ``Lq`` (K, 3n, 3n) factors the joint prism covariance of each pose.
+    ``Lq`` (K, 3n, 3n) factors the joint prism covariance of each pose; ``gls``: the weights
+    and Jacobians of the weighted fit, or None (:func:`_fit_samples`).
     """
     K, n, _ = q.shape
     M = r_samples.shape[0]
     per = max(1, chunk // M)
     cov = np.empty((K, 6, 6))
     off = np.empty((K, 6))
+    unconverged = 0
     for s in range(0, K, per):
         e = min(K, s + per)
         z = rng.standard_normal((e - s, M, n, 3)).reshape(e - s, M, 3 * n)
         qs = q[s:e, None] + np.einsum("kab,kmb->kma", Lq[s:e], z).reshape(e - s, M, n, 3)
-        ps = np.broadcast_to(r_samples, qs.shape)
-        Rs, ts, _ = _register_flat(ps.reshape(-1, n, 3), qs.reshape(-1, n, 3), DEFAULT_CHUNK)
-        xi = _perturbations(Rs.reshape(e - s, M, 3, 3), ts.reshape(e - s, M, 3), R0[s:e], t0[s:e])
+        part = None if gls is None else tuple(g[s:e] for g in gls)
+        Rs, ts, u = _fit_samples(r_samples[None], qs, q[s:e], r, R0[s:e], t0[s:e], part)
+        xi = _perturbations(Rs, ts, R0[s:e], t0[s:e])
         cov[s:e] = np.einsum("kmi,kmj->kij", xi, xi) / M
         off[s:e] = xi.mean(axis=1)
-    return cov, off
+        unconverged += u
+    return cov, off, unconverged
 
 
-def _ut(q, Lq, r, Lr, R0, t0):
+def _ut(q, Lq, r, Lr, R0, t0, gls):
     """Unscented transform over (q_1..q_n, r_1..r_n): 2 L sigma points, L = 6 n."""
     K, n, _ = q.shape
     L = 6 * n
@@ -387,8 +530,7 @@ def _ut(q, Lq, r, Lr, R0, t0):
     q_sig_r = np.broadcast_to(q[:, None], p_sig_r.shape)
     P = np.concatenate([p_sig_q, p_sig_r], axis=1)
     Q = np.concatenate([q_sig, q_sig_r], axis=1)
-    S = P.shape[1]  # 12 n = 2 L
-    Rs, ts, _ = _register_flat(P.reshape(-1, n, 3), Q.reshape(-1, n, 3), DEFAULT_CHUNK)
-    xi = _perturbations(Rs.reshape(K, S, 3, 3), ts.reshape(K, S, 3), R0, t0)
+    Rs, ts, unconverged = _fit_samples(P, Q, q, r, R0, t0, gls)
+    xi = _perturbations(Rs, ts, R0, t0)
     w = 1.0 / (2 * L)
-    return w * np.einsum("kmi,kmj->kij", xi, xi), w * xi.sum(axis=1)
+    return w * np.einsum("kmi,kmj->kij", xi, xi), w * xi.sum(axis=1), unconverged

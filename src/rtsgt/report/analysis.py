@@ -22,7 +22,9 @@ covariances (the covariance of the sum of independent errors).
 **How much of it reaches the pose?** The run's pose engine (``mc``, ``ut`` or ``linear``) is run
 again at the kept pose times with each source's prism covariance alone
 (``PrismsAtTimes.cov_by_source[s]``, interpolated from the measurements) and an exactly known
-reference (zero covariance), which isolates that source. Three further entries: ``"gp"`` (the
+reference (zero covariance), which isolates that source; the run's fit is kept (a weighted
+registration keeps the weights of the total covariance, the per-prism blocks the run recorded,
+so only what is propagated changes). Three further entries: ``"gp"`` (the
 GP posterior covariance alone: the white sources after interpolation, with the motion model's
 uncertainty between measurements; present when the run has it), ``"reference"`` (the survey of
 the reference prisms on the robot alone, prisms exact) and ``"all"``, the run's own pose
@@ -415,19 +417,22 @@ def _pose_part(data: RunRecord, engine: str, samples: int, seed: int, measure: s
     n = q.shape[1]
     zero_r = np.zeros((3 * n, 3 * n))
     rng = stage_rng(seed, "analysis")
+    # the run's fit: a weighted one keeps the weights of the total covariance for every source
+    fit = {"registration": data.options.pose.registration,
+           "weight_cov_q": nearest_psd(data.prisms_cov[idx]), "weight_cov_r": data.reference_cov}
     cov: dict[str, np.ndarray] = {}
     if idx.size:
         for s, c in data.prisms_cov_by_source.items():
             cov[s] = estimate_poses(q, nearest_psd(c[idx]), data.reference_xyz, zero_r,
-                                    engine=engine, samples=samples, rng=rng).cov
+                                    engine=engine, samples=samples, rng=rng, **fit).cov
         if data.prisms_cov_gp is not None:
             cov[GP] = estimate_poses(q, nearest_psd(data.prisms_cov_gp[idx]),
                                      data.reference_xyz, zero_r, engine=engine,
-                                     samples=samples, rng=rng).cov
+                                     samples=samples, rng=rng, **fit).cov
         if np.any(data.reference_cov != 0):
             cov[REFERENCE] = estimate_poses(q, np.zeros(q.shape + (3,)), data.reference_xyz,
                                             data.reference_cov, engine=engine,
-                                            samples=samples, rng=rng).cov
+                                            samples=samples, rng=rng, **fit).cov
     else:
         for s in data.prisms_cov_by_source:
             cov[s] = np.empty((0, 6, 6))
