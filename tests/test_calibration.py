@@ -41,11 +41,12 @@ def truth(s):
     return exp_so3(np.array(rv)), np.array(t, dtype=float)
 
 
-def true_polar(markers=MARKERS, stations=("1", "2", "3")):
-    """Noise-free (hz, v, d with constant) of every marker from every station, station order."""
+def true_polar(markers=MARKERS, stations=("1", "2", "3"), transforms=None):
+    """Noise-free (hz, v, d with constant) of every marker from every station, station order;
+    ``transforms``: station -> (R, t), the synthetic ``TRUTH`` when None."""
     hz, v, d, st, mk = [], [], [], [], []
     for s in stations:
-        R, t = truth(s)
+        R, t = truth(s) if transforms is None else transforms[s]
         h, z, r = cartesian_to_polar((markers - t) @ R)
         hz.append(h)
         v.append(z)
@@ -463,21 +464,14 @@ def levelled_deployment(rng):
     sigma_tilt = TRIMBLE_S7.tilt_rad / TRIMBLE_S7.confidence_sigma
     comp = rng.normal(0.0, sigma_tilt, (3, 2))
     markers = MARKERS * 2.0
-    truth_T, hz, v, d, st, mk = {}, [], [], [], [], []
+    truth_T = {}
     for j, (s, (yaw, t)) in enumerate(LEVELLED.items()):
         t = np.array(t, dtype=float)
         up = np.array([t[0], t[1], EARTH_RADIUS_M]) / np.hypot(np.hypot(t[0], t[1]), EARTH_RADIUS_M)
         # the vertical of a sphere, and the compensator's tilt relative to the reference's
         tilt = np.array([-up[1], up[0], 0.0]) + np.r_[comp[j] - comp[0], 0.0]
-        R = exp_so3(tilt) @ exp_so3(np.array([0.0, 0.0, yaw]))
-        truth_T[s] = (R, t)
-        h, z, r = cartesian_to_polar((markers - t) @ R)
-        hz.append(h)
-        v.append(z)
-        d.append(r)
-        st += [s] * len(markers)
-        mk += [str(i + 1) for i in range(len(markers))]
-    hz, v, d = (np.concatenate(a) for a in (hz, v, d))
+        truth_T[s] = (exp_so3(tilt) @ exp_so3(np.array([0.0, 0.0, yaw])), t)
+    hz, v, d, st, mk = true_polar(markers, tuple(LEVELLED), truth_T)
     return shots_of(*noisy_polar(hz, v, d, rng), st, mk), truth_T
 
 

@@ -72,6 +72,12 @@ def stage_rng(seed: int, stage: str) -> np.random.Generator:
         np.random.SeedSequence(int(seed), spawn_key=(RANDOM_STAGES.index(stage),)))
 
 
+def _one_of(name: str, value, choices: tuple[str, ...]) -> None:
+    """Refuse ``value`` unless it is one of ``choices``, naming them."""
+    if value not in choices:
+        raise InputError(f"Expected {name} {' or '.join(map(repr, choices))}, got {value!r}")
+
+
 @dataclass(frozen=True)
 class InterpolationOptions:
     """Query times and the GP of each prism (TOML ``[interpolation]``).
@@ -117,15 +123,9 @@ class InterpolationOptions:
                 f"Expected qc {', '.join(QC_METHODS)} or a number (m^2/s^3), got {self.qc!r}")
         if not isinstance(self.qc, str) and not (np.isfinite(self.qc) and self.qc > 0):
             raise InputError(f"Expected qc > 0 m^2/s^3, got {self.qc!r}")
-        if self.gp_noise not in GP_NOISE:
-            raise InputError(f"Expected gp_noise {' or '.join(map(repr, GP_NOISE))}, got "
-                             f"{self.gp_noise!r}")
-        if self.motion_prior not in MOTION_PRIORS:
-            raise InputError(f"Expected motion_prior {' or '.join(map(repr, MOTION_PRIORS))}, "
-                             f"got {self.motion_prior!r}")
-        if self.outlier_windows not in OUTLIER_WINDOWS:
-            raise InputError(f"Expected outlier_windows {' or '.join(map(repr, OUTLIER_WINDOWS))}"
-                             f", got {self.outlier_windows!r}")
+        _one_of("gp_noise", self.gp_noise, GP_NOISE)
+        _one_of("motion_prior", self.motion_prior, MOTION_PRIORS)
+        _one_of("outlier_windows", self.outlier_windows, OUTLIER_WINDOWS)
 
 
 @dataclass(frozen=True)
@@ -143,9 +143,7 @@ class CalibrationOptions:
     model: str = "6dof"
 
     def __post_init__(self) -> None:
-        if self.model not in CALIBRATION_MODELS:
-            raise InputError(f"Expected a calibration model {' or '.join(map(repr, CALIBRATION_MODELS))}"
-                             f", got {self.model!r}")
+        _one_of("a calibration model", self.model, CALIBRATION_MODELS)
 
 
 @dataclass(frozen=True)
@@ -176,9 +174,7 @@ class PoseOptions:
     def __post_init__(self) -> None:
         if self.engine not in POSE_ENGINES:
             raise InputError(f"Expected engine {', '.join(POSE_ENGINES)}, got {self.engine!r}")
-        if self.registration not in REGISTRATIONS:
-            raise InputError(f"Expected registration {' or '.join(map(repr, REGISTRATIONS))}, "
-                             f"got {self.registration!r}")
+        _one_of("registration", self.registration, REGISTRATIONS)
         if isinstance(self.samples, bool) or not isinstance(self.samples, (int, np.integer)) \
                 or self.samples < 10:
             raise InputError(f"Expected an integer of at least 10 samples, got {self.samples!r}")

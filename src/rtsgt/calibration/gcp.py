@@ -464,8 +464,8 @@ def _nominal(setup: _Setup, weighted: bool, instrument, model: str) -> dict[str,
 
 def _check_args(instrument, weighted, model: str = "6dof") -> None:
     if model not in CALIBRATION_MODELS:
-        raise InputError(f"Expected a calibration model {' or '.join(CALIBRATION_MODELS)}, "
-                         f"got {model!r}")
+        raise InputError("Expected a calibration model "
+                         f"{' or '.join(map(repr, CALIBRATION_MODELS))}, got {model!r}")
     if not isinstance(instrument, InstrumentProfile):
         raise TypeError(f"Expected an InstrumentProfile, got {type(instrument).__name__}")
     if not isinstance(weighted, bool):

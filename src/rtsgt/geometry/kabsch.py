@@ -21,10 +21,17 @@ from numpy.typing import ArrayLike
 from rtsgt.errors import GeometryError
 
 
-def _centred(p_b: ArrayLike, q_a: ArrayLike, weights: ArrayLike | None, min_points: int,
-             what: str):
-    """Validated inputs of a fit: normalised weights (..., N), the weighted centroids
-    (..., 3) of both clouds and the centred clouds (..., N, 3)."""
+def point_pairs(p_b: ArrayLike, q_a: ArrayLike, min_points: int = 0,
+                what: str = "A rigid fit") -> tuple[np.ndarray, np.ndarray]:
+    """The two point clouds of a fit as float arrays of the same shape (..., N, 3).
+
+    Raises
+    ------
+    ValueError
+        Shapes that differ or are not (..., N, 3).
+    GeometryError
+        Fewer than ``min_points`` points (the message starts with ``what``).
+    """
     p = np.asarray(p_b, dtype=float)
     q = np.asarray(q_a, dtype=float)
     if p.shape != q.shape or p.shape[-1] != 3 or p.ndim < 2:
@@ -32,6 +39,15 @@ def _centred(p_b: ArrayLike, q_a: ArrayLike, weights: ArrayLike | None, min_poin
     n = p.shape[-2]
     if n < min_points:
         raise GeometryError(f"{what} needs at least {min_points} points, got {n}")
+    return p, q
+
+
+def _centred(p_b: ArrayLike, q_a: ArrayLike, weights: ArrayLike | None, min_points: int,
+             what: str):
+    """Validated inputs of a fit: normalised weights (..., N), the weighted centroids
+    (..., 3) of both clouds and the centred clouds (..., N, 3)."""
+    p, q = point_pairs(p_b, q_a, min_points, what)
+    n = p.shape[-2]
     if weights is None:
         w = np.full(p.shape[:-1], 1.0 / n)
     else:

@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rtsgt.errors import GeometryError
-from rtsgt.geometry.kabsch import kabsch
+from rtsgt.geometry.kabsch import kabsch, point_pairs
 from rtsgt.geometry.so3 import hat, log_so3
 
 #: Default threshold on the shape ratio (second / largest singular value of the centred points)
@@ -328,13 +328,8 @@ def register(
     GeometryError
         Fewer than 3 points.
     """
-    p = np.asarray(p_body, dtype=float)
-    q = np.asarray(q_world, dtype=float)
-    if p.shape != q.shape or p.ndim < 2 or p.shape[-1] != 3:
-        raise ValueError(f"Expected two arrays of shape (..., N, 3), got {p.shape} and {q.shape}")
+    p, q = point_pairs(p_body, q_world, 3)
     n = p.shape[-2]
-    if n < 3:
-        raise GeometryError(f"A rigid fit needs at least 3 points, got {n}")
     chunk = DEFAULT_CHUNK if chunk_size is None else int(chunk_size)
     if chunk < 1:
         raise ValueError(f"Expected a positive chunk_size, got {chunk_size}")
@@ -403,10 +398,7 @@ def registration_jacobian(
     GeometryError
         If ``A`` is singular (collinear points) for some element.
     """
-    p = np.asarray(p_body, dtype=float)
-    q = np.asarray(q_world, dtype=float)
-    if p.shape != q.shape or p.ndim < 2 or p.shape[-1] != 3:
-        raise ValueError(f"Expected two arrays of shape (..., N, 3), got {p.shape} and {q.shape}")
+    p, q = point_pairs(p_body, q_world)
     n = p.shape[-2]
     R = register(p, q)[0] if R_world_body is None else np.asarray(R_world_body, dtype=float)
     p_mean = p.mean(axis=-2)

@@ -99,6 +99,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rtsgt.errors import GeometryError
+from rtsgt.geometry.kabsch import point_pairs
 from rtsgt.geometry.so3 import hat
 from rtsgt.pose.registration import register
 
@@ -373,13 +374,8 @@ def register_weighted(
     info : WeightedInfo
         Only with ``return_info=True``.
     """
-    p = np.asarray(p_body, dtype=float)
-    q = np.asarray(q_world, dtype=float)
-    if p.shape != q.shape or p.ndim < 2 or p.shape[-1] != 3:
-        raise ValueError(f"Expected two arrays of shape (..., N, 3), got {p.shape} and {q.shape}")
+    p, q = point_pairs(p_body, q_world, 3)
     n = p.shape[-2]
-    if n < 3:
-        raise GeometryError(f"A rigid fit needs at least 3 points, got {n}")
     batch = p.shape[:-2]
     W = np.broadcast_to(np.asarray(weights, dtype=float), batch + (3 * n, 3 * n))
     R0, t0 = register(p, q)
@@ -422,10 +418,7 @@ def weighted_registration_jacobian(
     GeometryError
         If ``K`` is singular (collinear points) for some element.
     """
-    p = np.asarray(p_body, dtype=float)
-    q = np.asarray(q_world, dtype=float)
-    if p.shape != q.shape or p.ndim < 2 or p.shape[-1] != 3:
-        raise ValueError(f"Expected two arrays of shape (..., N, 3), got {p.shape} and {q.shape}")
+    p, q = point_pairs(p_body, q_world)
     n = p.shape[-2]
     m = 3 * n
     R = np.asarray(R_world_body, dtype=float)
