@@ -24,7 +24,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from rtsgt.calibration.gcp import CALIBRATION_MODELS
+from rtsgt.calibration.gcp import CALIBRATION_METHODS, CALIBRATION_MODELS
 from rtsgt.errors import InputError
 from rtsgt.filtering import FilterParams
 from rtsgt.filtering.gates import DEFAULT_DISTANCE_GATE_M, DEFAULT_UNCERTAINTY_GATE_M
@@ -130,7 +130,7 @@ class InterpolationOptions:
 
 @dataclass(frozen=True)
 class CalibrationOptions:
-    """The extrinsic calibration from the GCPs (TOML ``[calibration]``).
+    """The extrinsic calibration of the stations (TOML ``[calibration]``).
 
     Attributes
     ----------
@@ -138,12 +138,18 @@ class CalibrationOptions:
         Each station's transform: a free rotation (the paper), or levelled stations (yaw only,
         the tilt that of the Earth's curvature and the compensators' errors;
         :mod:`rtsgt.calibration.gcp`, section Models).
+    method : {"gcp", "dynamic", "joint"}
+        What the transforms are fitted to: the ground control points
+        (:mod:`rtsgt.calibration.gcp`), the robot's motion through the surveyed inter-prism
+        distances, or both (:mod:`rtsgt.calibration.dynamic`).
     """
 
     model: str = "6dof"
+    method: str = "gcp"
 
     def __post_init__(self) -> None:
         _one_of("a calibration model", self.model, CALIBRATION_MODELS)
+        _one_of("a calibration method", self.method, CALIBRATION_METHODS)
 
 
 @dataclass(frozen=True)
@@ -207,7 +213,7 @@ class RunOptions:
 
     def updated(self, **changes) -> RunOptions:
         """A copy with ``changes``, keyed by the flat names of the command line: ``seed``,
-        ``filter``, ``noise``, or a field of a nested record (``model``, ``engine``,
+        ``filter``, ``noise``, or a field of a nested record (``model``, ``method``, ``engine``,
         ``registration``, ``samples``, ``rate_hz``, ``qc``, ``max_gap_s``, ``gp_noise``,
         ``motion_prior``, ``outlier_windows``, the gates); each value meets its record's rule
         (:class:`~rtsgt.errors.InputError` otherwise)."""

@@ -4,6 +4,8 @@ Stages (data flows one way; nothing here reads files or prints)::
 
     observations per station --module 1--> filtered observations
     GCP shots --> extrinsic calibration (+ Monte Carlo samples of every station transform)
+      (or: filtered observations in the stations' frames --module 2, GP per prism--> the
+      inter-prism distances --> dynamic calibration, with or without the GCP shots)
     filtered observations + calibration + weather --noise model--> prism tracks (world frame)
     prism tracks --module 2--> common intervals --GP per prism--> prisms at the query times
     prisms + reference prisms on the robot --registration--> poses with 6x6 covariance
@@ -60,9 +62,16 @@ import numpy as np
 
 from rtsgt.calibration import CalibrationResult, calibrate
 from rtsgt.calibration.coupling import StationCoupling
+from rtsgt.calibration.dynamic import (
+    DistanceSamples,
+    calibrate_dynamic,
+    distance_samples,
+    sample_times,
+)
 from rtsgt.calibration.gcp import gcp_atmospheric_correction, gcp_world_positions
 from rtsgt.checks import (
     block_cv_check,
+    dynamic_calibration_check,
     gcp_fit_check,
     inter_prism_check,
     run_structure_check,
@@ -70,7 +79,7 @@ from rtsgt.checks import (
     static_stretches,
 )
 from rtsgt.deployment import DeploymentData
-from rtsgt.errors import InputError, RtsgtWarning
+from rtsgt.errors import GeometryError, InputError, RtsgtWarning
 from rtsgt.filtering import module1, module2
 from rtsgt.filtering.gates import (
     MAX_OUTLIER_REFITS,
@@ -100,7 +109,7 @@ from rtsgt.options import RunOptions, stage_rng
 from rtsgt.pose import PoseEstimate, ReferencePoints, estimate_poses
 from rtsgt.record import RunComputation, RunRecord, ordered_sources
 from rtsgt.shared import SharedFactor, select_prisms, split_ground_truth
-from rtsgt.types import PoseTrajectory, PrismTrack
+from rtsgt.types import Observations, PoseTrajectory, PrismTrack
 
 Progress = Callable[[str], None]
 
@@ -185,12 +194,7 @@ def _run_stages(
 
     say("extrinsic calibration")
     model = options.noise if options.noise is not None else NoiseModel(instrument=data.instrument)
-    t_start = min(float(o.t[0]) for o in filtered)
-    gcp = gcp_atmospheric_correction(data.gcp, model, data.weather, t_start)
-    calib = calibrate(gcp, reference_station=data.reference_station,
-                      instrument=data.instrument, samples=options.pose.samples,
-                      rng=stage_rng(options.seed, "calibration"),
-                      model=options.calibration.model)
+    calib, gcp_calib = calibrate_stations(data, options, filtered, model)
     gcp_xyz, gcp_names = gcp_world_positions(data.gcp, calib.transforms)
     gcp_world = {} if gcp_xyz is None else dict(zip(gcp_names, gcp_xyz, strict=True))
     lap("calibration")
@@ -278,7 +282,8 @@ def _run_stages(
     lap("shared_errors")
 
     say("self-checks")
-    self_checks = {"gcp_fit": gcp_fit_check(calib), "inter_prism_distances": inter_prism_check(
+    self_checks = {"gcp_fit": gcp_fit_check(calib if gcp_calib is None else gcp_calib),
+                   "inter_prism_distances": inter_prism_check(
         gt.t, gt.position, prisms.xyz[keep], prisms.pose_covariance[keep],
         prisms.nearest_dt[keep], reference.xyz, reference.cov, reference.names,
         varying_cov=prisms.cov_gp[keep]),
@@ -287,6 +292,8 @@ def _run_stages(
         "static_noise": static_noise_check(
             tracks, {s: T.translation for s, T in calib.transforms.items()},
             static_stretches(gt.t, prisms.xyz[keep]))}
+    if calib.dynamic is not None:
+        self_checks["dynamic_calibration"] = dynamic_calibration_check(calib, gcp_calib)
     self_checks["inter_prism_structure"] = run_structure_check(
         prisms, gps, tracks, calib, coupling, reference, keep, model,
         options.interpolation.gp_noise)
@@ -296,6 +303,66 @@ def _run_stages(
     record = _record(computation, options, intervals, coupling, removed, gt, gcp_world,
                      weather_coverage, distance_check, self_checks)
     return replace(record, groundtruth_split=split)
+
+
+def calibration_samples(data: DeploymentData, filtered: list[Observations], model: NoiseModel,
+                        options: RunOptions) -> DistanceSamples:
+    """The observations of the dynamic calibration (:mod:`rtsgt.calibration.dynamic`): each
+    station's filtered observations as a track in its own frame (first-order noise model, the
+    instrument, tilt and atmosphere sources: no calibration yet, and the clock offsets are
+    estimated), module 2's common intervals, each track's GP (the run's interpolation options,
+    given the white sources), sampled every :data:`~rtsgt.calibration.dynamic.SAMPLE_STEP_S`
+    seconds. The scale error shared by the tracks is the atmosphere source's: its variance
+    ``tr(C_atm) / d^2`` averaged over the measurements."""
+    station_model = model.with_sources(
+        [s for s in model.sources if s in ("instrument", "tilt", "atmosphere")])
+    tracks = {obs.prism: propagate(obs, station_model, weather=data.weather) for obs in filtered}
+    kept, intervals, _ = module2(list(tracks.values()), options.filter)
+    tracks = {tr.prism: tr for tr in kept}
+    gps = fit_gps(tracks, replace(options.interpolation, gp_noise="white"))
+    t = sample_times(gps, intervals)
+    scale = [np.trace(tr.cov_by_source["atmosphere"], axis1=1, axis2=2) / tr.range_m ** 2
+             for tr in tracks.values() if "atmosphere" in tr.cov_by_source]
+    return distance_samples(gps, {o.prism: o.station for o in filtered}, data.reference, t,
+                            scale_variance=float(np.mean(np.concatenate(scale))) if scale else 0.0)
+
+
+def calibrate_stations(
+    data: DeploymentData, options: RunOptions, filtered: list[Observations], model: NoiseModel,
+) -> tuple[CalibrationResult, CalibrationResult | None]:
+    """The stations' calibration by ``options.calibration.method``
+    (:mod:`rtsgt.calibration.gcp`, :mod:`rtsgt.calibration.dynamic`), from the stage's random
+    stream.
+
+    Returns the calibration the run uses and, for ``"dynamic"`` and ``"joint"``, the GCP
+    calibration of the same deployment (``"dynamic"``: with its Monte Carlo covariance, for the
+    agreement check; None when the GCP shots cannot calibrate the stations); None for
+    ``"gcp"``. The GCP shots get the atmospheric correction first
+    (:func:`~rtsgt.calibration.gcp.gcp_atmospheric_correction`).
+    """
+    opt = options.calibration
+    rng = stage_rng(options.seed, "calibration")
+    t_start = min(float(o.t[0]) for o in filtered)
+    gcp = gcp_atmospheric_correction(data.gcp, model, data.weather, t_start)
+    kw = {"reference_station": data.reference_station, "instrument": data.instrument,
+          "model": opt.model}
+    if opt.method == "gcp":
+        return calibrate(gcp, samples=options.pose.samples, rng=rng, **kw), None
+    samples = calibration_samples(data, filtered, model, options)
+    dyn = {"engine": options.noise_engine, "n_samples": options.pose.samples,
+           "gate_m": options.pose.distance_gate_m, **kw}
+    if opt.method == "joint":
+        gcp_calib = calibrate(gcp, samples=0, **kw)
+        return calibrate_dynamic(samples, gcp=gcp, gcp_calibration=gcp_calib, rng=rng,
+                                 **dyn), gcp_calib
+    try:
+        gcp_calib = calibrate(gcp, samples=options.pose.samples, rng=rng, **kw)
+    except (InputError, GeometryError) as exc:
+        warnings.warn(f"dynamic calibration: the GCP shots cannot calibrate the stations "
+                      f"({exc}); no comparison with the GCP calibration", RtsgtWarning,
+                      stacklevel=2)
+        gcp_calib = None
+    return calibrate_dynamic(samples, rng=rng, **dyn), gcp_calib
 
 
 class _Refit(NamedTuple):

@@ -108,6 +108,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass, field, replace
 from itertools import combinations
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -123,11 +124,20 @@ from rtsgt.noise.perturb import sample_polar_errors
 from rtsgt.stats import ratio_interval, ratio_verdict
 from rtsgt.types import GcpShots, WeatherSeries
 
+if TYPE_CHECKING:
+    from rtsgt.calibration.dynamic import DynamicFit
+
 #: The models of a station's transform (module docstring, section Models).
 CALIBRATION_MODELS = ("6dof", "4dof")
 #: What each model is, in words (for tables and reports).
 CALIBRATION_MODEL_NAMES = {"6dof": "6 DOF: free rotation",
                            "4dof": "4 DOF: levelled stations, yaw only"}
+#: What the stations are calibrated from (:mod:`rtsgt.calibration.dynamic`).
+CALIBRATION_METHODS = ("gcp", "dynamic", "joint")
+#: What each method is, in words (for tables and reports).
+CALIBRATION_METHOD_NAMES = {"gcp": "ground control points",
+                            "dynamic": "the robot's motion (inter-prism distances)",
+                            "joint": "ground control points and the robot's motion"}
 #: Mean radius of the Earth (IUGG), m: the verticals of two levelled instruments ``d`` metres
 #: apart differ by ``d / EARTH_RADIUS_M`` rad (16 microradians per 100 m).
 EARTH_RADIUS_M = 6_371_000.0
@@ -246,6 +256,13 @@ class CalibrationResult:
     levelling : dict str -> LevellingCheck
         For every station but the reference, whether the shots agree with a levelled frame
         (whichever the model).
+    method : {"gcp", "dynamic", "joint"}
+        What the transforms were fitted to: the GCPs (this module), the robot's motion, or
+        both (:mod:`rtsgt.calibration.dynamic`; the GCP fields then hold the GCP fit's
+        checks, and are empty for ``"dynamic"``).
+    dynamic : DynamicFit or None
+        The dynamic or joint fit's own results (:class:`rtsgt.calibration.dynamic.DynamicFit`:
+        clock offsets, variance factor), None for ``"gcp"``.
     """
 
     reference_station: str
@@ -260,6 +277,8 @@ class CalibrationResult:
     extra_shot_sigma_m: tuple[float, float] = (0.0, 0.0)
     model: str = "6dof"
     levelling: dict[str, LevellingCheck] = field(default_factory=dict)
+    method: str = "gcp"
+    dynamic: DynamicFit | None = None
 
 
 def polar_point_covariance(

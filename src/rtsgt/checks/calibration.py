@@ -1,19 +1,41 @@
-"""Self-check of the extrinsic calibration: each station's GCP residuals against their
-predicted covariance (:class:`rtsgt.calibration.gcp.FitCheck`: the a-posteriori variance
-factor with its chi-square test, and per world axis)."""
+"""Self-checks of the extrinsic calibration.
+
+- :func:`gcp_fit_check`: each station's GCP residuals against their predicted covariance
+  (:class:`rtsgt.calibration.gcp.FitCheck`: the a-posteriori variance factor with its
+  chi-square test, and per world axis);
+- :func:`dynamic_calibration_check`: the dynamic (or joint) calibration's distance residuals
+  against their predicted covariance (:class:`rtsgt.calibration.dynamic.DynamicFit`), the
+  clock offsets it found, and, for a dynamic calibration, its agreement with the GCP
+  calibration of the same deployment: the two are fitted to independent data (the tracks, the
+  GCP shots), so for every station the difference ``e`` of the two transforms (left
+  perturbation, world frame) has the covariance ``C = C_dynamic + C_gcp`` and
+  ``chi2 = e^T C^-1 e`` has 6 degrees of freedom (4 under the 4-DOF model: x, y, z and the yaw;
+  the tilts of both are the compensators', shared) if both covariances are right. A station
+  whose p-value is below 5 % over the stations (Bonferroni) is ``disagree``.
+"""
 
 from __future__ import annotations
 
 import warnings
 from typing import Any
 
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
 from rtsgt.calibration import CalibrationResult
 from rtsgt.errors import RtsgtWarning
+from rtsgt.geometry.transform import perturbation
 
-__all__ = ["LEVELLING_FALSE_ALARM", "gcp_fit_check"]
+__all__ = ["AGREEMENT_FALSE_ALARM", "LEVELLING_FALSE_ALARM", "dynamic_calibration_check",
+           "gcp_fit_check"]
 
 #: False-alarm rate of the levelling test over a run's stations (Bonferroni).
 LEVELLING_FALSE_ALARM = 0.05
+#: False-alarm rate of the dynamic-against-GCP agreement test over a run's stations.
+AGREEMENT_FALSE_ALARM = 0.05
+_AXES = ("x", "y", "z", "rx", "ry", "rz")
+#: The components compared under each model (x, y, z, rx, ry, rz).
+_COMPARED = {"6dof": [0, 1, 2, 3, 4, 5], "4dof": [0, 1, 2, 5]}
 
 
 def gcp_fit_check(calibration: CalibrationResult, *, warn: bool = True) -> dict[str, Any]:
@@ -69,3 +91,75 @@ def gcp_fit_check(calibration: CalibrationResult, *, warn: bool = True) -> dict[
                 RtsgtWarning, stacklevel=2)
     return {"model": calibration.model, "stations": stations,
             "added_shot_sigma_mm": {"horizontal": h, "vertical": v}, "levelling": levelling}
+
+
+def calibration_agreement(a: CalibrationResult, b: CalibrationResult) -> dict[str, Any]:
+    """Per station, the difference of two calibrations fitted to independent data, in units of
+    their combined covariance (module docstring), JSON-ready: ``difference_mm_mrad`` (x, y, z in
+    mm, rx, ry, rz in mrad; ``b`` relative to ``a``), ``sigma_mm_mrad`` (the combined standard
+    deviations), ``z`` (their ratio, the compared components), ``chi2``, ``dof``, ``p_value``,
+    ``verdict`` (``agree`` or ``disagree``)."""
+    idx = _COMPARED[a.model]
+    out = {}
+    common = [s for s in a.transforms if s != a.reference_station and s in b.transforms]
+    for s in common:
+        Ta, Tb = a.transforms[s], b.transforms[s]
+        if Ta.covariance is None or Tb.covariance is None:
+            continue
+        e = perturbation(Ta.rotation, Ta.translation, Tb.rotation, Tb.translation)
+        C = Ta.covariance + Tb.covariance
+        sub = C[np.ix_(idx, idx)]
+        c2 = float(e[idx] @ np.linalg.solve(sub, e[idx]))
+        p = float(chi2_dist.sf(c2, len(idx)))
+        sig = np.sqrt(np.diag(C))
+        out[s] = {"difference_mm_mrad": (1e3 * e).tolist(),
+                  "sigma_mm_mrad": (1e3 * sig).tolist(),
+                  "z": {_AXES[k]: float(e[k] / sig[k]) for k in idx},
+                  "chi2": c2, "dof": len(idx), "p_value": p,
+                  "verdict": "disagree" if p < AGREEMENT_FALSE_ALARM / max(len(common), 1)
+                  else "agree"}
+    return out
+
+
+def dynamic_calibration_check(calibration: CalibrationResult,
+                              gcp: CalibrationResult | None = None, *,
+                              warn: bool = True) -> dict[str, Any]:
+    """The dynamic (or joint) calibration's self-check, JSON-ready.
+
+    Returns
+    -------
+    dict
+        :meth:`rtsgt.calibration.dynamic.DynamicFit.as_dict` (``method``, ``engine``,
+        ``samples``, ``clock_offset_ms``, ``clock_sigma_ms``, ``variance_factor``, ``dof``,
+        ``interval_95``, ``verdict``, ``pairs``, ``worst_sigma_mm``, ``height_margin``), the
+        ``model``, and, for a dynamic calibration with ``gcp`` (the GCP calibration of the
+        same deployment), ``gcp_agreement`` (:func:`calibration_agreement`).
+
+    With ``warn``, a :class:`~rtsgt.errors.RtsgtWarning` when the distance residuals are
+    larger than predicted (``optimistic``; a ``pessimistic`` factor is reported, not warned
+    about: the GPs' covariance, which weights the fit, is somewhat pessimistic on simulated
+    deployments, docs/calibration.md), and one per station that disagrees with the GCPs.
+    """
+    fit = calibration.dynamic
+    out = {"model": calibration.model, **fit.as_dict()}
+    if warn and fit.verdict == "optimistic":
+        lo, hi = fit.interval_95
+        warnings.warn(
+            f"self-check, {fit.method} calibration: variance factor of the inter-prism "
+            f"distances {fit.variance_factor:.2f} outside [{lo:.2f}, {hi:.2f}] (95 %, "
+            f"{fit.dof:.0f} effective degrees of freedom): the tracked distances disagree with "
+            "the survey more than the tracks' covariance predicts; the calibration covariance "
+            "is too small by about that factor", RtsgtWarning, stacklevel=2)
+    if gcp is not None and fit.method == "dynamic":
+        agree = calibration_agreement(gcp, calibration)
+        out["gcp_agreement"] = agree
+        for s, v in agree.items():
+            if warn and v["verdict"] == "disagree":
+                worst = max(v["z"].items(), key=lambda kv: abs(kv[1]))
+                warnings.warn(
+                    f"self-check, calibration of station {s}: the dynamic and the GCP "
+                    f"calibrations differ by chi2 {v['chi2']:.1f} ({v['dof']} dof, "
+                    f"p = {v['p_value']:.2g}; largest along {worst[0]}, {worst[1]:+.1f} "
+                    "combined sigma): one of them, or its covariance, is wrong",
+                    RtsgtWarning, stacklevel=2)
+    return out

@@ -52,6 +52,9 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
     [calibration]
     model = "6dof"                   # stations' transforms: free rotation ("6dof", default) or
                                      # levelled stations, yaw only ("4dof")
+    method = "gcp"                   # fitted to the GCPs ("gcp", default), to the robot's
+                                     # motion through the inter-prism distances ("dynamic"),
+                                     # or to both ("joint")
 
     [filter]
     tau_r_m_s = 2.0
@@ -355,7 +358,8 @@ def load_config(path: str | Path) -> DeploymentConfig:
     f.done()
 
     c = _Section(path, "calibration", doc.get("calibration", {}))
-    calibration = c.record(CalibrationOptions, {"model": ("model", str, None)})
+    calibration = c.record(CalibrationOptions, {"model": ("model", str, None),
+                                                "method": ("method", str, None)})
     c.done()
 
     it = _Section(path, "interpolation", doc.get("interpolation", {}))

@@ -1,0 +1,1191 @@
+r"""Dynamic self-calibration of the stations from the robot's motion (and jointly with GCPs).
+
+The prisms are bolted to the robot, so the distance between two of them is the surveyed one
+whatever the robot does (Vaidis et al., "Extrinsic calibration for highly accurate trajectories
+reconstruction", ICRA 2023). Each prism is tracked by its own station, in that station's frame;
+the transforms ``T_world_s`` of the stations (world = the reference station's frame, as in
+:mod:`rtsgt.calibration.gcp`) and the relative clock offsets ``delta_s`` are what make the
+tracked distances agree with the survey at every time. This module fits them.
+
+Observations
+------------
+Each prism's track is interpolated by its GP in its station's frame
+(:mod:`rtsgt.interpolation.prisms`, the white sources only), at sample times ``t_a`` every
+:data:`SAMPLE_STEP_S` seconds where every track is supported. With ``p_i``, ``v_i`` the GP's
+position and velocity of prism ``i`` (station ``s``) at ``t_a``, the prism in the world frame is
+
+.. math::
+
+    q_i(t_a) = R_s \,(p_i(t_a) - \delta_s v_i(t_a)) + t_s
+
+(a station whose clock reads ``delta_s`` late relative to the reference's, ``delta_s = e_s -
+e_ref`` with ``e = t_true - t_stamped`` as in :mod:`rtsgt.simulation.deployment`, saw at its
+stamp ``t`` where the prism was at the reference's ``t + delta_s``; first order in ``delta_s``,
+a few milliseconds). The residual of the pair ``k = (i, j)`` is
+
+.. math::
+
+    r_{ak} = \| q_i(t_a) - q_j(t_a) \| - d_k
+
+with ``d_k`` the surveyed distance (:class:`rtsgt.pose.ReferencePoints`). The reference station
+is the identity with no clock offset: distances do not change under a rigid motion of all the
+stations, nor under a clock offset common to all of them, so those are fixed by the
+reference station and cannot be seen (the world frame of a dynamic calibration is the reference
+station's frame, exactly as for the GCPs; the time is the reference station's clock).
+
+Unknowns: for every other station the 6-DOF left perturbation ``(dx, dphi)`` of its transform,
+or under ``model = "4dof"`` (levelled stations, :mod:`rtsgt.calibration.gcp`, section Models)
+``(dx, dpsi)`` with ``R_s = exp([omega(t_s)]x) R_z(psi_s)``, ``omega`` the Earth's curvature
+(:func:`rtsgt.calibration.gcp.curvature_tilt`); and its clock offset ``delta_s``.
+
+Weights: the GP errors are correlated in time (0.9 at 0.2 s, 0.3 at 1 s while driving, much
+longer while the robot stands, where the GP's Qc is small), so samples close in time are not
+independent. Rather than thinning the samples until they are (which throws the stops'
+information away with the correlation), the fit takes the GPs' joint posterior covariance of
+all the samples of a window of :data:`WINDOW_S` seconds
+(:func:`rtsgt.interpolation.cross.gp_joint_covariance`), first order through the distances:
+
+.. math::
+
+    \mathrm{Cov}(r_{ak}, r_{bl}) = \sum_i c_{aki}^T \, \mathrm{Cov}(p_i(t_a), p_i(t_b)) \, c_{bli},
+    \qquad c_{aki} = \pm R_s^T u_{ak}
+
+(``u`` the unit vector from ``q_j`` to ``q_i``, ``+`` for the pair's first prism, ``-`` for its
+second; the tracks of different stations are independent), and whitens each window with its
+Cholesky factor (plus ``1e-8`` of each variance on the diagonal, so that the samples of a long
+stop, which are nearly one, stay a well-conditioned system). Windows are independent: the
+correlation that crosses a window's edge (a couple of seconds) is left out.
+
+Joint calibration (``method = "joint"``). The GCP shots of :mod:`rtsgt.calibration.gcp` are
+stacked with the distances: each valid shot of a marker ``m`` shared with the reference station
+gives ``x_m - (R_s p_{s,m} + t_s)`` with covariance ``R_s C_{s,m} R_s^T`` (the instrument and
+tilt model, plus the variance components that the GCP calibration found), the world positions
+``x_m`` of the markers being nuisance unknowns. Eliminating ``x_m`` gives the generalised
+least-squares fit of :mod:`rtsgt.calibration.gcp` (whose variance factor is that fit's), so a
+joint calibration with no distance is the GCP one.
+
+Solution: Levenberg-Marquardt from an initial guess (the GCP calibration for ``"joint"``; for
+``"dynamic"`` the rigid fit of each station's prism trajectory onto the reference station's,
+wrong by about the prisms' spacing, a metre), first unweighted, then weighted and weighted
+again with the whitening of the solution. Samples with a pair residual beyond ``gate_m`` (the
+distance gate of module 4, 10 cm: a station tracking another prism) are dropped and the fit
+redone.
+
+Covariance (``engine``)
+-----------------------
+Errors shared by every sample do not average down with their number, so they are not weights
+but *consider parameters* ``c``: the errors of the surveyed distances (covariance from the
+survey), a scale error ``alpha`` of all the tracked distances (the atmospheric correction, one
+weather for all stations; variance from the tracks' ``atmosphere`` source) and, under
+``"4dof"``, each station's compensator error (a tilt of its frame, ``sigma_tilt`` per axis, the
+reference's included, as in the GCP calibration). With ``J`` and ``B`` the whitened Jacobians
+of the residuals in the unknowns and in ``c``, ``N = J^T J``:
+
+.. math::
+
+    \mathrm{Cov}(\hat\theta) = N^{-1} + S C_c S^T, \qquad S = N^{-1} J^T B,
+    \qquad \mathrm{Cov}(\hat\theta, c) = -S C_c,
+
+and the station transforms' 6x6 left perturbations (world frame, x, y, z, rx, ry, rz, as
+everywhere in rtsgt) follow linearly, jointly for all stations. ``engine = "linear"`` is that,
+and its Monte Carlo samples (which the prism Monte Carlo and the coupling of the stations,
+:class:`rtsgt.calibration.coupling.StationCoupling`, use) are drawn from it jointly.
+``engine = "mc"`` follows the GCP calibration: M perturbed data sets (the GP errors drawn from
+their joint posterior covariance per window, the survey, ``alpha``, the compensators, and in
+``"joint"`` every GCP shot as :func:`rtsgt.calibration.gcp.calibrate` perturbs it) are fitted
+again (Gauss-Newton from the solution with its Jacobian and weights, :data:`MC_ITERATIONS`
+steps), and the transforms' samples summarised by their covariance. It captures the
+non-linearity of the fit; the two agree on the simulated deployments (docs/calibration.md).
+
+Checks
+------
+Observability: a trajectory that does not excite the extrinsics (a straight line, no rotation)
+leaves combinations of them undetermined. The fit refuses (:class:`GeometryError`) when its
+normal matrix is singular, or when the calibration's own standard deviation of some station's
+prism positions exceeds :data:`MAX_SIGMA_M` (1 cm: the distance's second-order term
+``delta^2 / 2 d`` over the prisms' spacing ``d ~ 1 m`` is then no longer negligible against
+the tracking noise, so neither the fit nor its covariance can be trusted).
+
+Fit check (a Type A evaluation, as :class:`rtsgt.calibration.gcp.FitCheck`): the whitened
+distance residuals after the fit, ``s0^2 = r^T r / E[r^T r]``, 1 if the GPs' covariance and the
+consider parameters describe the residuals. The post-fit residuals ``r = (I - P)(e + B c)``
+(``P`` the projection on ``J``) have ``E[r^T r] = tr((I - P)(I + B C_c B^T)(I - P))`` over the
+distance rows, and ``s0^2`` is compared with ``chi2_nu / nu`` for Satterthwaite's effective
+degrees of freedom ``nu = 2 E^2 / Var(r^T r)`` (few when the shared errors dominate).
+
+What it cannot see: the frame (the reference station's), a clock offset common to all
+stations, and anything the trajectory does not excite (refused, above). The clock offsets are
+reported, not applied: the tracks keep their stamps and the ``time_sync`` source its model.
+
+This module reads no files and prints nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.linalg import lapack
+
+from rtsgt.calibration.gcp import (
+    CALIBRATION_METHOD_NAMES,
+    CALIBRATION_METHODS,
+    CALIBRATION_MODELS,
+    CalibrationResult,
+    MarkerResiduals,
+    _residuals,
+    _setup,
+    _with_extra,
+    curvature_tilt,
+    polar_point_covariance,
+)
+from rtsgt.errors import GeometryError, InputError
+from rtsgt.geometry.kabsch import kabsch_yaw
+from rtsgt.geometry.so3 import exp_so3, hat
+from rtsgt.geometry.transform import RigidTransform, perturb, perturbation
+from rtsgt.interpolation.cross import gp_joint_covariance
+from rtsgt.interpolation.gp import GPTrack
+from rtsgt.measurement.instruments import TRIMBLE_S7, InstrumentProfile
+from rtsgt.measurement.polar import polar_to_cartesian
+from rtsgt.noise.montecarlo import sample_gaussian
+from rtsgt.noise.perturb import sample_polar_errors
+from rtsgt.pose.reference import ReferencePoints
+from rtsgt.stats import ratio_interval, ratio_verdict
+from rtsgt.types import GcpShots
+
+__all__ = ["CALIBRATION_METHODS", "CALIBRATION_METHOD_NAMES", "DYNAMIC_ENGINES", "DistanceSamples",
+           "DynamicFit", "MAX_SIGMA_M", "SAMPLE_STEP_S", "WINDOW_S", "calibrate_dynamic",
+           "distance_samples", "sample_times"]
+
+#: How the covariance of a dynamic calibration is computed (module docstring).
+DYNAMIC_ENGINES = ("linear", "mc")
+#: Time between the samples of the tracks, s (0.5 s: about one per measurement of a station
+#: at 2.5 Hz; their correlation is in the weights, so a finer step adds little).
+SAMPLE_STEP_S = 0.5
+#: Length of the windows whose samples are weighted jointly, s.
+WINDOW_S = 60.0
+#: The largest standard deviation of a station's prism positions due to the calibration that
+#: the fit accepts, m (module docstring, section Checks).
+MAX_SIGMA_M = 0.01
+#: The fit with the heights of some stations mirrored must be worse than the best by at least
+#: this much in ``-2 log`` likelihood (module docstring, section Solution).
+HEIGHT_MARGIN = 100.0
+#: Gauss-Newton steps of each Monte Carlo refit (from the solution, with its Jacobian).
+MC_ITERATIONS = 4
+#: Relative jitter added to each variance of a window's joint covariance.
+_JITTER = 1e-8
+#: Largest condition number of the (Jacobi-scaled) normal matrix taken as regular.
+_MAX_CONDITION = 1e12
+
+
+# ------------------------------------------------------------------------------ observations
+
+
+@dataclass(frozen=True)
+class DistanceSamples:
+    """The tracked prisms at the sample times, each in its station's frame (module docstring).
+
+    Attributes
+    ----------
+    t : ndarray, shape (K,)
+        Sample times, s (the tracks' stamps).
+    prisms, stations : tuple of str, length n
+        Each prism and the station that tracks it.
+    xyz, velocity : ndarray, shape (K, n, 3)
+        GP posterior mean position (m) and velocity (m/s), station frames.
+    windows : tuple of ndarray
+        Sample indices of each window weighted jointly.
+    window_cov : tuple of ndarray
+        Per window, ``(n, m, m, 3, 3)``: each prism's joint GP covariance of its positions at
+        the window's ``m`` samples, m^2, station frame.
+    pairs : tuple of (int, int)
+        The prism pairs ``(i, j)``, ``i < j``.
+    reference_distance : ndarray, shape (P,)
+        Surveyed distance of each pair, m.
+    reference_distance_cov : ndarray, shape (P, P)
+        Their covariance (first order through the survey's), m^2.
+    scale_variance : float
+        Variance of the scale error common to all tracked distances (the atmospheric
+        correction's), dimensionless.
+    """
+
+    t: np.ndarray
+    prisms: tuple[str, ...]
+    stations: tuple[str, ...]
+    xyz: np.ndarray
+    velocity: np.ndarray
+    windows: tuple[np.ndarray, ...]
+    window_cov: tuple[np.ndarray, ...]
+    pairs: tuple[tuple[int, int], ...]
+    reference_distance: np.ndarray
+    reference_distance_cov: np.ndarray
+    scale_variance: float = 0.0
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+    def select(self, keep: np.ndarray) -> DistanceSamples:
+        """The samples where ``keep`` (bool, (K,)), windows and their covariances cut to them."""
+        keep = np.asarray(keep, bool)
+        new_index = np.cumsum(keep) - 1
+        windows, covs = [], []
+        for idx, cov in zip(self.windows, self.window_cov, strict=True):
+            k = keep[idx]
+            if k.any():
+                windows.append(new_index[idx[k]])
+                covs.append(cov[:, k][:, :, k])
+        return replace(self, t=self.t[keep], xyz=self.xyz[keep], velocity=self.velocity[keep],
+                       windows=tuple(windows), window_cov=tuple(covs))
+
+
+def sample_times(gps: dict[str, GPTrack], intervals: np.ndarray,
+                 step_s: float = SAMPLE_STEP_S) -> np.ndarray:
+    """Times every ``step_s`` seconds inside the ``intervals`` (K, 2) where every GP answers
+    (:meth:`rtsgt.interpolation.gp.GPTrack.supported`), s."""
+    parts = []
+    for a, b in np.asarray(intervals, dtype=float).reshape(-1, 2):
+        k0, k1 = np.ceil(a / step_s - 1e-9), np.floor(b / step_s + 1e-9)
+        if k1 >= k0:
+            parts.append(np.arange(k0, k1 + 1) * step_s)
+    t = np.concatenate(parts) if parts else np.empty(0)
+    ok = np.ones(t.shape, bool)
+    for g in gps.values():
+        ok &= g.supported(t)
+    return t[ok]
+
+
+def _windows(t: np.ndarray, window_s: float) -> tuple[np.ndarray, ...]:
+    """Consecutive samples, cut at gaps longer than 1.5 sample steps and every ``window_s``."""
+    if t.size == 0:
+        return ()
+    step = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    cuts = [0]
+    for k in np.flatnonzero(np.diff(t) > 1.5 * step) + 1:
+        cuts.append(int(k))
+    cuts.append(t.size)
+    out = []
+    for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+        start = a
+        while start < b:
+            stop = start + int(np.searchsorted(t[start:b], t[start] + window_s, side="left"))
+            stop = max(stop, start + 1)
+            out.append(np.arange(start, stop))
+            start = stop
+    return tuple(out)
+
+
+def distance_samples(
+    gps: dict[str, GPTrack], stations: dict[str, str], reference: ReferencePoints,
+    t: np.ndarray, *, scale_variance: float = 0.0, window_s: float = WINDOW_S,
+) -> DistanceSamples:
+    """The observations of the dynamic fit (module docstring).
+
+    Parameters
+    ----------
+    gps : dict str -> GPTrack
+        Each prism's GP, in its station's frame (the white sources only).
+    stations : dict str -> str
+        The station of each prism.
+    reference : ReferencePoints
+        The survey of the prisms on the robot (every prism of ``gps`` in it).
+    t : ndarray, shape (K,)
+        Sample times where every GP answers (:func:`sample_times`), s.
+    scale_variance : float
+        Variance of the common scale error of the tracked distances.
+    window_s : float
+        Length of the windows weighted jointly, s.
+    """
+    prisms = tuple(gps)
+    t = np.asarray(t, dtype=float)
+    if t.size < 2:
+        raise InputError(f"the dynamic calibration needs tracks common to all prisms: "
+                         f"{t.size} sample time(s) where every prism's GP answers")
+    ref = reference.select(prisms)
+    xyz = np.empty((t.size, len(prisms), 3))
+    vel = np.empty_like(xyz)
+    for i, pid in enumerate(prisms):
+        q = gps[pid].query(t, with_velocity=True)
+        xyz[:, i], vel[:, i] = q.position, q.velocity
+    windows = _windows(t, window_s)
+    covs = tuple(np.stack([gp_joint_covariance(gps[pid], t[idx]) for pid in prisms])
+                 for idx in windows)
+    n = len(prisms)
+    pairs = tuple((i, j) for i in range(n) for j in range(i + 1, n))
+    D = np.zeros((len(pairs), 3 * n))
+    d_ref = np.empty(len(pairs))
+    for k, (i, j) in enumerate(pairs):
+        diff = ref.xyz[i] - ref.xyz[j]
+        d_ref[k] = np.linalg.norm(diff)
+        D[k, 3 * i:3 * i + 3] = diff / d_ref[k]
+        D[k, 3 * j:3 * j + 3] = -diff / d_ref[k]
+    return DistanceSamples(t, prisms, tuple(str(stations[p]) for p in prisms), xyz, vel, windows,
+                           covs, pairs, d_ref, D @ ref.cov @ D.T, float(scale_variance))
+
+
+# ------------------------------------------------------------------------------ the problem
+
+
+def _inverse_cholesky(c: np.ndarray) -> np.ndarray:
+    """``L^-1`` for ``c = L L^T`` (lower triangular; LAPACK's triangular inverse)."""
+    inv, info = lapack.dtrtri(np.linalg.cholesky(c), lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"singular Cholesky factor (dtrtri info {info})")
+    return inv
+
+
+@dataclass
+class _State:
+    """Batched unknowns (leading axis M) and the drawn compensator tilts."""
+
+    R: np.ndarray  # (M, S, 3, 3)
+    t: np.ndarray  # (M, S, 3)
+    psi: np.ndarray  # (M, S), 4dof
+    clock: np.ndarray  # (M, S), s
+    x: np.ndarray  # (M, G, 3) markers (joint)
+    tilt: np.ndarray  # (M, S, 3) relative tilt (tau_s - tau_ref, z = 0), 4dof
+
+    def copy(self) -> _State:
+        return _State(*(a.copy() for a in (self.R, self.t, self.psi, self.clock, self.x,
+                                           self.tilt)))
+
+
+def _yaw(R: np.ndarray) -> np.ndarray:
+    return np.arctan2(R[..., 1, 0] - R[..., 0, 1], R[..., 0, 0] + R[..., 1, 1])
+
+
+@dataclass
+class _Data:
+    """What the residuals are computed from (leading axis M or 1)."""
+
+    p: np.ndarray  # (M, K, n, 3)
+    d_ref: np.ndarray  # (M, P)
+    shots: np.ndarray  # (M, G_shots, 3) GCP points, station frames
+
+
+class _Problem:
+    """The layout of the unknowns, the consider parameters and the residuals."""
+
+    def __init__(self, samples: DistanceSamples | None, stations: list[str], ref: str,
+                 model: str, gcp: dict | None, sigma_tilt: float):
+        self.samples = samples
+        self.stations = stations
+        self.S = len(stations)
+        self.ref = stations.index(ref)
+        self.model = model
+        self.width = 6 if model == "6dof" else 4
+        cols = 0
+        self.pose_col = np.full(self.S, -1)
+        for s in range(self.S):
+            if s != self.ref:
+                self.pose_col[s] = cols
+                cols += self.width
+        self.clock_col = np.full(self.S, -1)
+        if samples is not None:
+            self.prism_station = np.array([stations.index(s) for s in samples.stations])
+            for s in sorted(set(self.prism_station.tolist())):
+                if s != self.ref:
+                    self.clock_col[s] = cols
+                    cols += 1
+            self.pairs = np.array(samples.pairs, dtype=int).reshape(-1, 2)
+        self.gcp = gcp
+        self.marker_col = cols
+        if gcp is not None:
+            cols += 3 * gcp["markers"]
+        self.p = cols
+        # consider parameters: survey distances, the scale, the compensators (4dof)
+        c, blocks = 0, []
+        self.survey_col = self.scale_col = self.tilt_col = -1
+        if samples is not None:
+            self.survey_col, self.scale_col = 0, len(samples.pairs)
+            c = len(samples.pairs) + 1
+            blocks += [samples.reference_distance_cov, np.array([[samples.scale_variance]])]
+        if model == "4dof":
+            self.tilt_col = c
+            c += 2 * self.S
+            blocks.append(sigma_tilt ** 2 * np.eye(2 * self.S))
+        self.c = c
+        self.Cc = np.zeros((c, c))
+        k = 0
+        for b in blocks:
+            self.Cc[k:k + b.shape[0], k:k + b.shape[0]] = b
+            k += b.shape[0]
+        self.whiten = None  # per window: inverse Cholesky factors (distances)
+        self.shot_whiten = None  # (G_shots, 3, 3) (GCP)
+
+    # -- state ---------------------------------------------------------------------------
+
+    def rotations(self, st: _State) -> None:
+        """Under 4dof, ``R = exp([omega(t) + tilt]x) R_z(psi)`` (the reference stays I)."""
+        if self.model != "4dof":
+            return
+        c, s = np.cos(st.psi), np.sin(st.psi)
+        Rz = np.zeros(st.psi.shape + (3, 3))
+        Rz[..., 0, 0], Rz[..., 0, 1], Rz[..., 1, 0], Rz[..., 1, 1] = c, -s, s, c
+        Rz[..., 2, 2] = 1.0
+        st.R = exp_so3(curvature_tilt(st.t) + st.tilt) @ Rz
+        st.R[:, self.ref] = np.eye(3)
+
+    def update(self, st: _State, step: np.ndarray) -> _State:
+        """The state moved by ``step`` (M, p)."""
+        new = st.copy()
+        for s in range(self.S):
+            a = self.pose_col[s]
+            if a < 0:
+                continue
+            new.t[:, s] += step[:, a:a + 3]
+            if self.model == "6dof":
+                new.R[:, s] = exp_so3(step[:, a + 3:a + 6]) @ st.R[:, s]
+            else:
+                new.psi[:, s] += step[:, a + 3]
+            if self.clock_col[s] >= 0:
+                new.clock[:, s] += step[:, self.clock_col[s]]
+        if self.gcp is not None:
+            G = self.gcp["markers"]
+            new.x += step[:, self.marker_col:self.marker_col + 3 * G].reshape(-1, G, 3)
+        self.rotations(new)
+        return new
+
+    # -- residuals -----------------------------------------------------------------------
+
+    def distance_rows(self, st: _State, data: _Data, jac: bool, consider: bool):
+        """Unwhitened distance residuals (M, K, P) and their Jacobians (M, K, P, p|c)."""
+        smp = self.samples
+        ps = self.prism_station
+        R = st.R[:, ps]  # (M, n, 3, 3)
+        pt = data.p - st.clock[:, ps][:, None, :, None] * smp.velocity[None]
+        w = np.einsum("mnij,mknj->mkni", R, pt)  # R p~ (M, K, n, 3)
+        q = w + st.t[:, ps][:, None]
+        i, j = self.pairs[:, 0], self.pairs[:, 1]
+        diff = q[:, :, i] - q[:, :, j]  # (M, K, P, 3)
+        dist = np.linalg.norm(diff, axis=-1)
+        r = dist - data.d_ref[:, None, :]
+        if not jac and not consider:
+            return r, None, None
+        u = diff / dist[..., None]
+        M, K, P = r.shape
+        J = np.zeros((M, K, P, self.p)) if jac else None
+        B = np.zeros((M, K, P, self.c)) if consider else None
+        if consider:
+            B[..., self.survey_col:self.survey_col + P] = -np.eye(P)
+            Rp = np.einsum("mnij,mknj->mkni", R, data.p)
+        for k in range(P):
+            for end, sign in ((i[k], 1.0), (j[k], -1.0)):
+                s = ps[end]
+                if s == self.ref:
+                    continue
+                g = sign * u[:, :, k]  # (M, K, 3)
+                wxg = np.cross(w[:, :, end], g)
+                if jac:
+                    a = self.pose_col[s]
+                    J[:, :, k, a:a + 3] += g
+                    if self.model == "6dof":
+                        J[:, :, k, a + 3:a + 6] += wxg
+                    else:
+                        J[:, :, k, a + 3] += np.einsum("mki,mi->mk", wxg, st.R[:, s, :, 2])
+                    rv = np.einsum("mij,kj->mki", st.R[:, s], smp.velocity[:, end])
+                    J[:, :, k, self.clock_col[s]] -= np.sum(g * rv, axis=-1)
+                if consider:
+                    if self.tilt_col >= 0:
+                        B[:, :, k, self.tilt_col + 2 * s:self.tilt_col + 2 * s + 2] += wxg[..., :2]
+                        r0 = self.tilt_col + 2 * self.ref
+                        B[:, :, k, r0:r0 + 2] -= wxg[..., :2]
+            if consider:
+                B[:, :, k, self.scale_col] = (np.sum(u[:, :, k] * Rp[:, :, i[k]], axis=-1)
+                                              - np.sum(u[:, :, k] * Rp[:, :, j[k]], axis=-1))
+        return r, J, B
+
+    def distance_covariance(self, st: _State, data: _Data) -> list[np.ndarray]:
+        """Per window, the covariance of the residuals (m P, m P) from the GPs' (at ``st``)."""
+        smp = self.samples
+        ps = self.prism_station
+        R = st.R[0, ps]
+        pt = data.p[0] - st.clock[0, ps][None, :, None] * smp.velocity
+        q = np.einsum("nij,knj->kni", R, pt) + st.t[0, ps][None]
+        i, j = self.pairs[:, 0], self.pairs[:, 1]
+        diff = q[:, i] - q[:, j]
+        u = diff / np.linalg.norm(diff, axis=-1, keepdims=True)  # (K, P, 3)
+        out = []
+        for idx, G in zip(smp.windows, smp.window_cov, strict=True):
+            m, P = idx.size, self.pairs.shape[0]
+            cov = np.zeros((m, P, m, P))
+            for e in range(len(ps)):
+                coef = np.zeros((m, P, 3))
+                coef[:, i == e] += u[idx][:, i == e]
+                coef[:, j == e] -= u[idx][:, j == e]
+                coef = coef @ R[e]  # station frame: c^T = u^T R
+                cov += np.einsum("aki,abij,blj->akbl", coef, G[e], coef)
+            cov = cov.reshape(m * P, m * P)
+            cov = 0.5 * (cov + cov.T)
+            cov[np.diag_indices_from(cov)] *= 1.0 + _JITTER
+            out.append(cov)
+        return out
+
+    def set_weights(self, st: _State, data: _Data, unit: float | None = None) -> None:
+        """The whitening of the residuals at ``st`` (``unit``: identity scaled by it, m)."""
+        if self.samples is not None:
+            if unit is not None:
+                self.whiten = [np.eye(idx.size * len(self.samples.pairs)) / unit
+                               for idx in self.samples.windows]
+            else:
+                self.whiten = [_inverse_cholesky(c) for c in self.distance_covariance(st, data)]
+        if self.gcp is not None:
+            R = st.R[0, self.gcp["station"]]  # (G, 3, 3)
+            if unit is not None:
+                self.shot_whiten = np.broadcast_to(np.eye(3) / unit, R.shape).copy()
+            else:
+                L = np.linalg.cholesky(self.gcp["cov"])
+                self.shot_whiten = np.linalg.inv(L) @ np.swapaxes(R, 1, 2)
+
+    def gcp_rows(self, st: _State, data: _Data, jac: bool, consider: bool):
+        """Unwhitened GCP residuals (M, G, 3) and their Jacobians (M, G, 3, p|c)."""
+        g = self.gcp
+        s_of = g["station"]
+        R = st.R[:, s_of]
+        w = np.einsum("mgij,mgj->mgi", R, data.shots)
+        r = st.x[:, g["marker"]] - w - st.t[:, s_of]
+        M, Gs = r.shape[:2]
+        J = B = None
+        W = hat(w)  # d r / d dphi = [R p]x
+        if jac:
+            J = np.zeros((M, Gs, 3, self.p))
+            rows = np.arange(Gs)
+            for a in range(3):
+                J[:, rows, a, self.marker_col + 3 * g["marker"] + a] = 1.0
+            for s in range(self.S):
+                c0 = self.pose_col[s]
+                sel = s_of == s
+                if c0 < 0 or not sel.any():
+                    continue
+                J[:, sel, :, c0:c0 + 3] = -np.eye(3)
+                if self.model == "6dof":
+                    J[:, sel, :, c0 + 3:c0 + 6] = W[:, sel]
+                else:
+                    J[..., c0 + 3][:, sel] = np.einsum("mgij,mj->mgi", W[:, sel],
+                                                       st.R[:, s, :, 2])
+        if consider:
+            B = np.zeros((M, Gs, 3, self.c))
+            if self.tilt_col >= 0:
+                for s in range(self.S):
+                    sel = s_of == s
+                    if s == self.ref or not sel.any():
+                        continue
+                    a, r0 = self.tilt_col + 2 * s, self.tilt_col + 2 * self.ref
+                    B[:, sel, :, a:a + 2] += W[:, sel, :, :2]
+                    B[:, sel, :, r0:r0 + 2] -= W[:, sel, :, :2]
+        return r, J, B
+
+    def evaluate(self, st: _State, data: _Data, jac: bool = True, consider: bool = False):
+        """Whitened residuals (M, n), Jacobian (M, n, p) and consider Jacobian (M, n, c); the
+        distance rows first."""
+        rs, Js, Bs = [], [], []
+        if self.samples is not None:
+            r, J, B = self.distance_rows(st, data, jac, consider)
+            P = r.shape[2]
+            for idx, L in zip(self.samples.windows, self.whiten, strict=True):
+                rs.append(r[:, idx].reshape(r.shape[0], -1) @ L.T)
+                if jac:
+                    Js.append(L @ J[:, idx].reshape(J.shape[0], idx.size * P, -1))
+                if consider:
+                    Bs.append(L @ B[:, idx].reshape(B.shape[0], idx.size * P, -1))
+        if self.gcp is not None:
+            r, J, B = self.gcp_rows(st, data, jac, consider)
+            Wh = self.shot_whiten
+            rs.append(np.einsum("gij,mgj->mgi", Wh, r).reshape(r.shape[0], -1))
+            if jac:
+                Js.append(np.einsum("gij,mgjp->mgip", Wh, J).reshape(J.shape[0], -1, self.p))
+            if consider:
+                Bs.append(np.einsum("gij,mgjp->mgip", Wh, B).reshape(B.shape[0], -1, self.c))
+        r = np.concatenate(rs, axis=1)
+        J = np.concatenate(Js, axis=1) if jac else None
+        B = np.concatenate(Bs, axis=1) if consider else None
+        return r, J, B
+
+    @property
+    def distance_rows_count(self) -> int:
+        if self.samples is None:
+            return 0
+        return len(self.samples) * len(self.samples.pairs)
+
+    # -- the transforms' errors ------------------------------------------------------------
+
+    def output_map(self, st: _State) -> tuple[np.ndarray, np.ndarray]:
+        """Linear maps ``A_theta`` (6 S' + S'', p) and ``A_c`` (.., c) from the unknowns' and
+        the consider parameters' errors to the stacked left perturbations of the non-reference
+        stations (x, y, z, rx, ry, rz each) followed by their clock offsets."""
+        free = [s for s in range(self.S) if s != self.ref]
+        clocks = [s for s in free if self.clock_col[s] >= 0]
+        n_out = 6 * len(free) + len(clocks)
+        A = np.zeros((n_out, self.p))
+        Ac = np.zeros((n_out, self.c))
+        for k, s in enumerate(free):
+            a = self.pose_col[s]
+            A[6 * k:6 * k + 3, a:a + 3] = np.eye(3)
+            if self.model == "6dof":
+                A[6 * k + 3:6 * k + 6, a + 3:a + 6] = np.eye(3)
+            else:
+                A[6 * k + 3:6 * k + 6, a + 3] = st.R[0, s, :, 2]
+                t0, r0 = self.tilt_col + 2 * s, self.tilt_col + 2 * self.ref
+                Ac[6 * k + 3:6 * k + 5, t0:t0 + 2] += np.eye(2)
+                Ac[6 * k + 3:6 * k + 5, r0:r0 + 2] -= np.eye(2)
+        for k, s in enumerate(clocks):
+            A[6 * len(free) + k, self.clock_col[s]] = 1.0
+        return A, Ac
+
+
+# ------------------------------------------------------------------------------ solving
+
+
+def _lm(problem: _Problem, st: _State, data: _Data, max_iter: int = 100) -> tuple[_State, int]:
+    """Levenberg-Marquardt on the whitened residuals (M = 1)."""
+    r, J, _ = problem.evaluate(st, data)
+    cost = float(r @ r.T) if r.ndim == 1 else float(np.sum(r * r))
+    lam = 1e-3
+    for it in range(max_iter):
+        N = J[0].T @ J[0]
+        g = J[0].T @ r[0]
+        D = np.diag(np.maximum(np.diag(N), 1e-30))
+        try:
+            step = np.linalg.solve(N + lam * D, -g)
+        except np.linalg.LinAlgError:
+            lam *= 10.0
+            continue
+        new = problem.update(st, step[None])
+        r2, J2, _ = problem.evaluate(new, data)
+        cost2 = float(np.sum(r2 * r2))
+        if cost2 <= cost:
+            done = cost - cost2 <= 1e-12 * max(cost, 1e-30) or float(
+                np.max(np.abs(step))) < 1e-11
+            st, r, J, cost = new, r2, J2, cost2
+            lam = max(lam / 10.0, 1e-12)
+            if done:
+                return st, it + 1
+        else:
+            lam *= 10.0
+            if lam > 1e12:
+                return st, it + 1
+    return st, max_iter
+
+
+def _solve(problem: _Problem, st: _State, data: _Data) -> tuple[_State, int, float]:
+    """The fit from ``st``: unweighted, then weighted twice (module docstring, section
+    Solution); returns the state, the last solve's iterations and ``-2 log`` of the
+    likelihood (whitened cost plus the log-determinant of the residuals' covariance)."""
+    problem.set_weights(st, data, unit=1e-3)
+    st, _ = _lm(problem, st, data)
+    for _ in range(2):
+        problem.set_weights(st, data)
+        st, iterations = _lm(problem, st, data)
+    r, _, _ = problem.evaluate(st, data, jac=False)
+    logdet = -2.0 * sum(float(np.sum(np.log(np.abs(np.diag(L))))) for L in problem.whiten)
+    return st, iterations, float(np.sum(r * r)) + logdet
+
+
+def _distinct(a: _State, b: _State) -> bool:
+    """Whether two solutions differ by more than the calibration's accepted uncertainty."""
+    return bool(np.max(np.abs(a.t[0] - b.t[0])) > MAX_SIGMA_M)
+
+
+def _heights(problem: _Problem, st: _State, data: _Data,
+             nll: float) -> tuple[tuple[float, _State], tuple[float, _State] | None]:
+    """The fits from ``st`` with the heights of every subset of the stations mirrored (module
+    docstring, section Solution): the best ``(-2 log likelihood, state)``, and the best of
+    those distinct from it (None if none is)."""
+    smp = problem.samples
+    ps = problem.prism_station
+    q = np.einsum("nij,knj->kni", st.R[0, ps], smp.xyz - st.clock[0, ps][None, :, None]
+                  * smp.velocity) + st.t[0, ps][None]
+    ref_prism = int(np.flatnonzero(ps == problem.ref)[0])
+    free = [s for s in range(problem.S) if s != problem.ref and np.any(ps == s)]
+    height = {s: float(np.mean(q[:, np.flatnonzero(ps == s)[0], 2] - q[:, ref_prism, 2]))
+              for s in free}
+    fits = [(nll, st)]
+    for flips in range(1, 2 ** len(free)):
+        cand = st.copy()
+        for b, s in enumerate(free):
+            if flips >> b & 1:
+                cand.t[:, s, 2] -= 2.0 * height[s]
+        problem.rotations(cand)
+        c_st, _, c_nll = _solve(problem, cand, data)
+        fits.append((c_nll, c_st))
+    fits.sort(key=lambda f: f[0])
+    other = [f for f in fits[1:] if _distinct(f[1], fits[0][1])]
+    return fits[0], (other[0] if other else None)
+
+
+def _gauss_newton(problem: _Problem, st: _State, data: _Data, iterations: int,
+                  gain: np.ndarray) -> _State:
+    """Batched Gauss-Newton steps with the solution's Jacobian (the Monte Carlo refits): each
+    step is ``-gain r`` with ``gain = N^-1 J^T`` of the solution, the residuals ``r`` those of
+    each sample's perturbed data at its current state (a modified Newton iteration: it
+    converges to each sample's own least-squares solution, linearly, at the rate of the
+    Jacobian's change, tiny for perturbations of millimetres)."""
+    for _ in range(iterations):
+        r, _, _ = problem.evaluate(st, data, jac=False)
+        st = problem.update(st, -(r @ gain.T))
+    return st
+
+
+# ------------------------------------------------------------------------------ result
+
+
+@dataclass(frozen=True)
+class DynamicFit:
+    """What the dynamic (or joint) fit found besides the transforms (module docstring).
+
+    Attributes
+    ----------
+    method : {"dynamic", "joint"}
+    engine : {"linear", "mc"}
+    samples : int
+        Sample times used.
+    rejected : int
+        Sample times left out (a pair residual beyond the gate).
+    pairs : tuple of str
+        The prism pairs, ``"a-b"``.
+    stations : tuple of str
+        The non-reference stations, in the order of ``covariance``.
+    clock_offset_s, clock_sigma_s : dict str -> float
+        Each non-reference station's clock offset relative to the reference's
+        (``e_s - e_ref``, ``e = t_true - t_stamped``) and its standard deviation, s.
+    covariance : ndarray
+        Joint covariance of the stations' left perturbations (6 each, in ``stations``' order)
+        and the clock offsets.
+    variance_factor : float
+        ``s0^2`` of the distance residuals (module docstring, section Checks).
+    dof : float
+        Its effective degrees of freedom.
+    interval_95 : (float, float)
+    pair_mean_mm, pair_rms_mm : dict str -> float
+        Mean and RMS of each pair's residual, mm (a mean far from 0: a surveyed distance the
+        tracking disagrees with).
+    worst_sigma_m : dict str -> float
+        Each station's largest standard deviation of its prism positions due to the
+        calibration (the observability check), m.
+    iterations : int
+        Levenberg-Marquardt iterations of the last solve.
+    height_margin : float
+        How much worse (``-2 log`` likelihood) the best fit with mirrored station heights is
+        (``inf``: none, or the joint fit, whose GCPs fix the heights).
+    """
+
+    method: str
+    engine: str
+    samples: int
+    rejected: int
+    pairs: tuple[str, ...]
+    stations: tuple[str, ...]
+    clock_offset_s: dict[str, float]
+    clock_sigma_s: dict[str, float]
+    covariance: np.ndarray
+    variance_factor: float
+    dof: float
+    interval_95: tuple[float, float]
+    pair_mean_mm: dict[str, float] = field(default_factory=dict)
+    pair_rms_mm: dict[str, float] = field(default_factory=dict)
+    worst_sigma_m: dict[str, float] = field(default_factory=dict)
+    iterations: int = 0
+    height_margin: float = float("inf")
+
+    @property
+    def verdict(self) -> str:
+        """``consistent``, ``optimistic`` or ``pessimistic`` (:func:`rtsgt.stats.ratio_verdict`)."""
+        return ratio_verdict(self.variance_factor, self.interval_95)
+
+    def as_dict(self) -> dict:
+        """JSON-ready (clock offsets in ms)."""
+        return {"method": self.method, "engine": self.engine, "samples": self.samples,
+                "rejected_samples": self.rejected,
+                "clock_offset_ms": {s: 1e3 * v for s, v in self.clock_offset_s.items()},
+                "clock_sigma_ms": {s: 1e3 * v for s, v in self.clock_sigma_s.items()},
+                "variance_factor": self.variance_factor, "dof": self.dof,
+                "interval_95": list(self.interval_95), "verdict": self.verdict,
+                "pairs": {p: {"mean_mm": self.pair_mean_mm[p], "rms_mm": self.pair_rms_mm[p]}
+                          for p in self.pairs},
+                "worst_sigma_mm": {s: 1e3 * v for s, v in self.worst_sigma_m.items()},
+                "iterations": self.iterations,
+                "height_margin": None if not np.isfinite(self.height_margin)
+                else self.height_margin}
+
+
+def _variance_factor(r: np.ndarray, J: np.ndarray, B: np.ndarray, Cc: np.ndarray,
+                     rows: int) -> tuple[float, float]:
+    """``s0^2`` of the first ``rows`` whitened residuals and Satterthwaite's degrees of
+    freedom (module docstring, section Checks)."""
+    Q = J @ _inverse_cholesky(J.T @ J).T  # J = Q R, R = chol(J^T J)^T
+    w, V = np.linalg.eigh(Cc)
+    Lc = V * np.sqrt(np.clip(w, 0.0, None))
+    Bl = B @ Lc
+    Bl = Bl - Q @ (Q.T @ Bl)  # (I - P) B Lc
+    Qd, Bd = Q[:rows], Bl[:rows]
+    qq = Qd.T @ Qd
+    tr_ip = rows - np.trace(qq)
+    tr_ip2 = rows - 2.0 * np.trace(qq) + np.sum(qq * qq)
+    bb = Bd.T @ Bd
+    b_ip_b = np.trace(bb) - np.sum((Qd.T @ Bd) ** 2)
+    mean = tr_ip + np.trace(bb)
+    var = 2.0 * (tr_ip2 + 2.0 * b_ip_b + np.sum(bb * bb))
+    dof = 2.0 * mean * mean / var
+    return float(np.sum(r[:rows] ** 2) / mean), float(dof)
+
+
+def _initial(samples: DistanceSamples, stations: list[str], ref: str):
+    """Each station's prism trajectory fitted onto the reference station's, levelled (yaw and
+    translation; module docstring, section Solution)."""
+    st_of = list(samples.stations)
+    if ref not in st_of:
+        raise InputError(f"the dynamic calibration needs the reference station {ref} to track "
+                         "a prism (its frame is the world frame)")
+    q = samples.xyz[:, st_of.index(ref)]
+    out = {ref: (np.eye(3), np.zeros(3))}
+    for s in stations:
+        if s == ref:
+            continue
+        if s not in st_of:
+            raise InputError(f"station {s} tracks no prism: the robot's motion cannot "
+                             "calibrate it (use [calibration] method = \"gcp\" or \"joint\")")
+        p = samples.xyz[:, st_of.index(s)]
+        try:
+            R, t = kabsch_yaw(p, q)
+        except GeometryError as exc:
+            raise GeometryError(
+                f"dynamic calibration of station {s}: the trajectory does not determine the "
+                f"stations' transforms ({exc}); drive a path that turns, or calibrate from "
+                "the GCPs") from None
+        out[s] = (R, t)
+    return out
+
+
+def _levelled_start(samples: DistanceSamples, stations: list[str], ref: str,
+                    sigma_tilt: float) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The levelled (4-DOF) fit from :func:`_initial`, its heights settled by :func:`_heights`
+    (module docstring, section Solution): the start of a 6-DOF dynamic fit."""
+    init = _initial(samples, stations, ref)
+    problem = _Problem(samples, stations, ref, "4dof", None, sigma_tilt)
+    S = len(stations)
+    st = _State(np.stack([init[s][0] for s in stations])[None],
+                np.stack([init[s][1] for s in stations])[None], np.zeros((1, S)),
+                np.zeros((1, S)), np.zeros((1, 0, 3)), np.zeros((1, S, 3)))
+    st.psi = _yaw(st.R)
+    problem.rotations(st)
+    data = _Data(samples.xyz[None], samples.reference_distance[None], np.zeros((1, 0, 3)))
+    st, _, nll = _solve(problem, st, data)
+    best = _heights(problem, st, data, nll)[0][1]
+    return {s: (best.R[0, k], best.t[0, k]) for k, s in enumerate(stations)}
+
+
+def _gcp_layout(shots: GcpShots, ref: str, stations: list[str], instrument: InstrumentProfile,
+                extra: np.ndarray) -> tuple[dict, object]:
+    """The valid GCP shots of the markers shared with the reference, as
+    :func:`rtsgt.calibration.gcp.calibrate` uses them."""
+    setup = _setup(shots, ref, instrument)
+    markers = sorted(setup.used_markers, key=lambda m: (len(m), m))
+    idx, st, mk = [], [], []
+    for (s, m), k in setup.shot.items():
+        if m in setup.used_markers and s in stations:
+            idx.append(k)
+            st.append(stations.index(s))
+            mk.append(markers.index(m))
+    idx = np.array(idx)
+    C = _with_extra(polar_point_covariance(setup.hz[idx], setup.v[idx], setup.d[idx],
+                                           instrument), extra)
+    return {"index": idx, "station": np.array(st), "marker": np.array(mk),
+            "markers": len(markers), "points": setup.points[idx], "cov": C,
+            "hz": setup.hz[idx], "v": setup.v[idx], "d": setup.d[idx]}, setup
+
+
+def calibrate_dynamic(
+    samples: DistanceSamples | None,
+    *,
+    reference_station: str = "1",
+    model: str = "6dof",
+    instrument: InstrumentProfile = TRIMBLE_S7,
+    gcp: GcpShots | None = None,
+    gcp_calibration: CalibrationResult | None = None,
+    engine: str = "linear",
+    n_samples: int = 1000,
+    rng: np.random.Generator | None = None,
+    gate_m: float = 0.10,
+    max_sigma_m: float = MAX_SIGMA_M,
+) -> CalibrationResult:
+    """Calibrate the stations from the inter-prism distances, alone or with the GCPs.
+
+    Parameters
+    ----------
+    samples : DistanceSamples or None
+        The tracked prisms at the sample times (:func:`distance_samples`); None: the GCPs
+        alone (the GCP calibration's generalised least-squares fit, for tests).
+    reference_station : str
+        The station whose frame is the world frame (and whose clock is the time).
+    model : {"6dof", "4dof"}
+        The model of each station's transform (:mod:`rtsgt.calibration.gcp`).
+    instrument : InstrumentProfile
+        The stations' instrument (the GCP shots' covariance, the compensators).
+    gcp : GcpShots, optional
+        With ``gcp_calibration``: the joint calibration (module docstring).
+    gcp_calibration : CalibrationResult, optional
+        The GCP calibration of the same shots: the initial guess, its variance components
+        and its checks (kept in the result).
+    engine : {"linear", "mc"}
+        How the covariance is computed (module docstring, section Covariance).
+    n_samples : int
+        Monte Carlo samples of the transforms (M >= 2).
+    rng : numpy.random.Generator, optional
+    gate_m : float
+        Samples with a pair residual beyond this are left out, m.
+    max_sigma_m : float
+        The observability refusal's bound, m (module docstring, section Checks; ``inf``: no
+        refusal, for diagnostics).
+
+    Returns
+    -------
+    CalibrationResult
+        ``method`` ``"dynamic"`` or ``"joint"``, ``dynamic`` the :class:`DynamicFit`.
+
+    Raises
+    ------
+    GeometryError
+        The trajectory does not determine the transforms (module docstring, section Checks).
+    InputError
+        A station tracks no prism (dynamic), too few samples, bad arguments.
+    """
+    if model not in CALIBRATION_MODELS:
+        raise InputError(f"Expected a calibration model {' or '.join(map(repr, CALIBRATION_MODELS))}"
+                         f", got {model!r}")
+    if engine not in DYNAMIC_ENGINES:
+        raise InputError(f"Expected engine {' or '.join(map(repr, DYNAMIC_ENGINES))}, "
+                         f"got {engine!r}")
+    if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) \
+            or n_samples < 2:
+        raise InputError(f"Expected n_samples >= 2, got {n_samples!r}")
+    joint = gcp is not None
+    if joint and gcp_calibration is None:
+        raise InputError("the joint calibration needs the GCP calibration of the same shots")
+    if samples is None and not joint:
+        raise InputError("nothing to calibrate from: no distance samples and no GCPs")
+    rng = np.random.default_rng() if rng is None else rng
+    ref = str(reference_station)
+    names = set() if samples is None else set(samples.stations)
+    if joint:
+        names |= set(gcp_calibration.transforms)
+    names.add(ref)
+    stations = sorted(names, key=lambda s: (0, int(s), s) if s.isdigit() else (1, 0, s))
+    if joint:
+        extra = np.array(gcp_calibration.extra_shot_sigma_m) ** 2
+        layout, setup = _gcp_layout(gcp, ref, stations, instrument, extra)
+    else:
+        layout, setup, extra = None, None, np.zeros(2)
+    S = len(stations)
+    rejected = 0
+    for _ in range(4):  # the fit, then again from the start without the samples beyond the gate
+        problem = _Problem(samples, stations, ref, model, layout, instrument.sigma_tilt)
+        if joint:
+            init = {s: (T.rotation, T.translation) for s, T in gcp_calibration.transforms.items()}
+        else:
+            init = (_levelled_start(samples, stations, ref, instrument.sigma_tilt)
+                    if model == "6dof" else _initial(samples, stations, ref))
+        st = _State(np.stack([init[s][0] for s in stations])[None],
+                    np.stack([init[s][1] for s in stations])[None],
+                    np.zeros((1, S)), np.zeros((1, S)), np.zeros((1, 0, 3)), np.zeros((1, S, 3)))
+        st.psi = _yaw(st.R)
+        problem.rotations(st)
+        data = _Data(np.zeros((1, 0, 0, 3)) if samples is None else samples.xyz[None],
+                     np.zeros((1, 0)) if samples is None else samples.reference_distance[None],
+                     np.zeros((1, 0, 3)) if layout is None else layout["points"][None])
+        if joint:  # markers: the mean of their shots in the world frame
+            w = np.einsum("gij,gj->gi", st.R[0, layout["station"]], layout["points"]) \
+                + st.t[0, layout["station"]]
+            x = np.zeros((layout["markers"], 3))
+            np.add.at(x, layout["marker"], w)
+            x /= np.bincount(layout["marker"], minlength=layout["markers"])[:, None]
+            st.x = x[None]
+        st, iterations, nll = _solve(problem, st, data)
+        ambiguity = float("inf")
+        if not joint:  # the mirrored heights
+            (nll, st), alternative = _heights(problem, st, data, nll)
+            problem.set_weights(st, data)
+            if alternative is not None:
+                ambiguity = alternative[0] - nll
+        if samples is None:
+            break
+        r = problem.distance_rows(st, data, False, False)[0][0]
+        bad = np.any(np.abs(r) > gate_m, axis=1)
+        if not bad.any():
+            break
+        if bad.all() or len(samples) - bad.sum() < 2:
+            raise GeometryError(f"dynamic calibration: every sample disagrees with the surveyed "
+                                f"distances by more than {gate_m} m after the fit: the fit did "
+                                "not converge, or the tracks are not of the surveyed prisms")
+        rejected += int(bad.sum())
+        samples = samples.select(~bad)
+
+    # linearisation at the solution
+    r, J, B = problem.evaluate(st, data, consider=True)
+    r, J, B = r[0], J[0], B[0]
+    N = J.T @ J
+    d = np.sqrt(np.maximum(np.diag(N), 1e-300))
+    Ns = N / np.outer(d, d)
+    cond = np.linalg.cond(Ns)
+    if not np.isfinite(cond) or cond > _MAX_CONDITION:
+        raise GeometryError(
+            f"dynamic calibration: the trajectory does not determine the stations' transforms "
+            f"(normal matrix singular, condition number {cond:.3g}); drive a path that turns "
+            "and changes direction, or calibrate from the GCPs (method \"gcp\" or \"joint\")")
+    Ninv = np.linalg.inv(N)
+    Sm = Ninv @ J.T @ B
+    cov_theta = Ninv + Sm @ problem.Cc @ Sm.T
+    cov_tc = -Sm @ problem.Cc
+    A, Ac = problem.output_map(st)
+    full = np.block([[cov_theta, cov_tc], [cov_tc.T, problem.Cc]])
+    Aall = np.concatenate([A, Ac], axis=1)
+    cov_out = Aall @ full @ Aall.T
+    cov_out = 0.5 * (cov_out + cov_out.T)
+    free = [s for s in stations if s != ref]
+    clocks = [s for s in free if problem.clock_col[stations.index(s)] >= 0]
+
+    worst = {}
+    if samples is not None:
+        for k, s in enumerate(free):
+            si = stations.index(s)
+            mine = np.flatnonzero(problem.prism_station == si)
+            if mine.size == 0:
+                continue
+            Rs = st.R[0, si]
+            p = samples.xyz[:, mine] - st.clock[0, si] * samples.velocity[:, mine]
+            w = p @ Rs.T  # (K, k, 3)
+            rows = [6 * k + a for a in range(6)]
+            if s in clocks:
+                rows.append(6 * len(free) + clocks.index(s))
+            C = cov_out[np.ix_(rows, rows)]
+            Jq = np.concatenate([np.broadcast_to(np.eye(3), w.shape + (3,)), -hat(w)], axis=-1)
+            if s in clocks:
+                Jq = np.concatenate([Jq, -(samples.velocity[:, mine] @ Rs.T)[..., None]], axis=-1)
+            Cq = Jq @ C @ np.swapaxes(Jq, -1, -2)
+            worst[s] = float(np.sqrt(np.max(np.linalg.eigvalsh(Cq))))
+        bad = {s: v for s, v in worst.items() if v > max_sigma_m}
+        if bad and not joint:
+            s, v = max(bad.items(), key=lambda kv: kv[1])
+            raise GeometryError(
+                f"dynamic calibration: the trajectory does not determine station {s}'s transform "
+                f"well enough (its prism positions uncertain by {v * 1e3:.3g} mm from the "
+                f"calibration, more than {max_sigma_m * 1e3:.3g} mm); drive a path that turns "
+                "and changes direction, or calibrate from the GCPs (method \"gcp\" or \"joint\")")
+    if ambiguity < HEIGHT_MARGIN:
+        raise GeometryError(
+            f"dynamic calibration: the heights of the stations are ambiguous (the fit with "
+            f"mirrored heights is worse by only {ambiguity:.3g} in -2 log likelihood, less "
+            f"than {HEIGHT_MARGIN:g}): the robot drove on (nearly) flat ground, where the "
+            "distances cannot tell a prism above another from one below it; calibrate from "
+            "the GCPs (method \"gcp\" or \"joint\")")
+
+    # the samples of the transforms (and of the clocks)
+    M = int(n_samples)
+    if engine == "linear":
+        z = sample_gaussian(full, M, rng) @ Aall.T  # (M, 6 S' + clocks)
+    else:
+        z = _monte_carlo(problem, st, data, layout, extra, instrument, M, rng, free,
+                         Ninv @ J.T)
+        cov_out = np.cov(z, rowvar=False)
+        cov_out = 0.5 * (cov_out + cov_out.T)
+    transforms = {}
+    for s in stations:
+        si = stations.index(s)
+        if s == ref:
+            transforms[s] = RigidTransform(np.eye(3), np.zeros(3), np.zeros((6, 6)), "world",
+                                           f"station_{s}", np.broadcast_to(np.eye(3), (M, 3, 3)).copy(),
+                                           np.zeros((M, 3)))
+            continue
+        k = free.index(s)
+        xi = z[:, 6 * k:6 * k + 6]
+        Rm, tm = perturb(st.R[0, si], st.t[0, si], xi)
+        transforms[s] = RigidTransform(st.R[0, si], st.t[0, si],
+                                       cov_out[6 * k:6 * k + 6, 6 * k:6 * k + 6], "world",
+                                       f"station_{s}", Rm, tm)
+    n_free = 6 * len(free)
+    clock = {s: float(st.clock[0, stations.index(s)]) for s in clocks}
+    clock_sigma = {s: float(np.sqrt(cov_out[n_free + k, n_free + k]))
+                   for k, s in enumerate(clocks)}
+
+    vf, dof, pair_mean, pair_rms = float("nan"), float("nan"), {}, {}
+    pair_names = ()
+    if samples is not None:
+        rows = problem.distance_rows_count
+        vf, dof = _variance_factor(r, J, B, problem.Cc, rows)
+        rd = problem.distance_rows(st, data, False, False)[0][0]
+        pair_names = tuple(f"{samples.prisms[i]}-{samples.prisms[j]}" for i, j in samples.pairs)
+        pair_mean = {p: float(1e3 * rd[:, k].mean()) for k, p in enumerate(pair_names)}
+        pair_rms = {p: float(1e3 * np.sqrt(np.mean(rd[:, k] ** 2)))
+                    for k, p in enumerate(pair_names)}
+    fit = DynamicFit("joint" if joint else "dynamic", engine,
+                     0 if samples is None else len(samples), rejected, pair_names, tuple(free),
+                     clock, clock_sigma, cov_out, vf, dof,
+                     ratio_interval(dof) if np.isfinite(dof) else (float("nan"), float("nan")),
+                     pair_mean, pair_rms, worst, iterations, ambiguity)
+    if joint:
+        R = {s: st.R[0, stations.index(s)] for s in stations}
+        t = {s: st.t[0, stations.index(s)] for s in stations}
+        residuals = _residuals(setup, R, t)
+        return replace(gcp_calibration, transforms=transforms, residuals=residuals, samples=M,
+                       method="joint", dynamic=fit)
+    return CalibrationResult(
+        reference_station=ref, transforms=transforms,
+        residuals=MarkerResiduals(*(np.zeros(0, dtype=object),) * 3, np.zeros(0)),
+        markers_used={s: () for s in stations}, markers_skipped=(), excluded_shots=0,
+        samples=M, weighted=False, model=model, method="dynamic", dynamic=fit)
+
+
+def _monte_carlo(problem: _Problem, st: _State, data: _Data, layout: dict | None,
+                 extra: np.ndarray, instrument: InstrumentProfile, M: int,
+                 rng: np.random.Generator, free: list[str], gain: np.ndarray) -> np.ndarray:
+    """(M, 6 S' + clocks) left perturbations and clock offsets of the refitted samples
+    (module docstring, section Covariance)."""
+    smp = problem.samples
+    stations = problem.stations
+    S = problem.S
+    # every draw first, in a fixed order: GP errors per window and prism, survey, scale,
+    # compensators, GCP shots
+    p = data.p
+    if smp is not None:
+        e = np.zeros((M,) + smp.xyz.shape)
+        for idx, G in zip(smp.windows, smp.window_cov, strict=True):
+            m = idx.size
+            for i in range(G.shape[0]):
+                cov = np.swapaxes(G[i], 1, 2).reshape(3 * m, 3 * m)  # (a, x), (b, y)
+                e[:, idx, i] = sample_gaussian(cov, M, rng).reshape(M, m, 3)
+        d_ref = data.d_ref + sample_gaussian(smp.reference_distance_cov, M, rng)
+        alpha = rng.standard_normal(M) * np.sqrt(smp.scale_variance)
+        p = data.p + e + alpha[:, None, None, None] * data.p
+    else:
+        d_ref = np.broadcast_to(data.d_ref, (M,) + data.d_ref.shape[1:])
+    tilt = np.zeros((M, S, 3))
+    if problem.model == "4dof":
+        comp = rng.standard_normal((M, S, 2)) * instrument.sigma_tilt
+        tilt[..., :2] = comp - comp[:, problem.ref:problem.ref + 1]
+    shots = data.shots
+    if layout is not None:
+        hz, v, d = sample_polar_errors(layout["hz"], layout["v"], layout["d"], instrument, M, rng)
+        shots = polar_to_cartesian(hz, v, d)
+        if extra.any():
+            shots = shots + rng.standard_normal(shots.shape) * np.sqrt(extra[[0, 0, 1]])
+    # refits, in chunks that keep the residuals' intermediate arrays near 2e7 numbers
+    rows = problem.distance_rows_count + (0 if layout is None else 3 * layout["index"].size)
+    chunk = max(1, int(2e7 // max(1, rows * 12)))
+    out = []
+    for a in range(0, M, chunk):
+        sl = slice(a, min(M, a + chunk))
+        m = sl.stop - sl.start
+        s0 = _State(*(np.repeat(x, m, axis=0) for x in (st.R, st.t, st.psi, st.clock, st.x)),
+                    tilt[sl].copy())
+        problem.rotations(s0)
+        dm = _Data(p[sl] if p.shape[0] > 1 else p, d_ref[sl] if d_ref.shape[0] > 1 else d_ref,
+                   shots[sl] if shots.shape[0] > 1 else shots)
+        sm = _gauss_newton(problem, s0, dm, MC_ITERATIONS, gain)
+        parts = []
+        for s in free:
+            si = stations.index(s)
+            parts.append(perturbation(st.R[0, si], st.t[0, si], sm.R[:, si], sm.t[:, si]))
+        for s in free:
+            si = stations.index(s)
+            if problem.clock_col[si] >= 0:
+                parts.append(sm.clock[:, si:si + 1] - st.clock[0, si])
+        out.append(np.concatenate(parts, axis=1))
+    return np.concatenate(out, axis=0)

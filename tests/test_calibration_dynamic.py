@@ -1,0 +1,251 @@
+"""Dynamic self-calibration of the stations from the inter-prism distances (and joint with the
+GCPs): exact recovery, the covariance's consistency pooled over noise draws, the Monte Carlo
+against the linear covariance, the refusals, and on simulated deployments with known truth.
+
+The synthetic samples here are built from an analytic robot trajectory (a figure of eight with
+roll and pitch of the terrain) seen by three stations, with white noise of known covariance:
+they test the fit and its covariance without the GPs. The simulated deployments test the whole
+chain (the GPs' weights included); ``benchmarks/calibration_dynamic.py`` pools 60 of them.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from rtsgt.calibration import calibrate
+from rtsgt.calibration.dynamic import DistanceSamples, calibrate_dynamic
+from rtsgt.calibration.gcp import curvature_tilt
+from rtsgt.errors import GeometryError, InputError
+from rtsgt.geometry.so3 import exp_so3
+from rtsgt.geometry.transform import perturbation
+from rtsgt.measurement.polar import cartesian_to_polar
+from rtsgt.types import GcpShots
+
+#: Prisms on the robot (robot frame, m): the simulator's Warthog-like three.
+PRISMS = np.array([(0.40, 0.30, 0.80), (0.40, -0.42, 0.64), (-0.45, 0.05, 0.95)])
+#: Station 2 and 3: yaw (rad), translation (m), tilt (rad) when not levelled.
+SETUP = {"2": (2.0, (35.0, -20.0, 0.7), (0.002, -0.004)),
+         "3": (-1.1, (-25.0, 30.0, -0.4), (-0.003, 0.001))}
+#: Clock offsets of stations 1, 2, 3 (t_true - t_stamped), s.
+CLOCKS = (0.4e-3, 1.9e-3, -2.1e-3)
+STATIONS = ("1", "2", "3")
+
+
+def robot(t, *, flat=False, straight=False):
+    """Robot pose (R_world_robot, centre) at times ``t``: a figure of eight of 40 x 20 m, the
+    heading along the path, roll and pitch of +-3 degrees and 0.5 m of relief (``flat``: none;
+    ``straight``: a straight line, no rotation)."""
+    if straight:
+        return (np.broadcast_to(np.eye(3), t.shape + (3, 3)),
+                np.stack([1.0 * t, 0.3 * t, 0.0 * t], -1))
+    w = 2 * np.pi / 120.0
+    c = np.stack([20 * np.sin(w * t), 10 * np.sin(2 * w * t), np.zeros_like(t)], -1)
+    yaw = np.arctan2(10 * 2 * w * np.cos(2 * w * t), 20 * w * np.cos(w * t))
+    tilt = 0.0 if flat else np.radians(3.0)
+    if not flat:
+        c[:, 2] = 0.5 * np.sin(0.05 * t)
+    zero = np.zeros_like(t)
+    R = (exp_so3(np.stack([tilt * np.sin(0.31 * t), tilt * np.cos(0.17 * t), zero], -1))
+         @ exp_so3(np.stack([zero, zero, yaw], -1)))
+    return R, c
+
+
+def stations(levelled=True):
+    """True ``T_world_station``: levelled (the Earth's curvature only) or tilted a little."""
+    out = {"1": (np.eye(3), np.zeros(3))}
+    for s, (yaw, t, tilt) in SETUP.items():
+        t = np.array(t)
+        om = curvature_tilt(t) if levelled else np.array([*tilt, 0.0])
+        out[s] = (exp_so3(om) @ exp_so3(np.array([0.0, 0.0, yaw])), t)
+    return out
+
+
+def synthetic(rng, *, K=120, sigma=1e-3, levelled=True, survey_sigma=0.0, scale_sigma=0.0,
+              noise=True, flat=False, straight=False):
+    """DistanceSamples of the robot seen by the stations every second, with white noise of
+    ``sigma`` per axis (the windows' covariance says so), a common scale error of
+    ``scale_sigma``, survey errors of ``survey_sigma`` per distance; and the truth."""
+    T = stations(levelled)
+    t = 10.0 + np.arange(K, dtype=float)
+    xyz, vel = np.empty((K, 3, 3)), np.empty((K, 3, 3))
+    for i, s in enumerate(STATIONS):
+        def q(tt, i=i):
+            R, c = robot(tt, flat=flat, straight=straight)
+            return np.einsum("kij,j->ki", R, PRISMS[i]) + c
+        tt = t + CLOCKS[i] - CLOCKS[0]  # a stamp of station s, in the reference's time
+        R_s, t_s = T[s]
+        xyz[:, i] = (q(tt) - t_s) @ R_s
+        vel[:, i] = ((q(tt + 1e-4) - q(tt - 1e-4)) / 2e-4) @ R_s
+    pairs = ((0, 1), (0, 2), (1, 2))
+    d = np.array([np.linalg.norm(PRISMS[i] - PRISMS[j]) for i, j in pairs])
+    if noise:
+        xyz = xyz * (1.0 + scale_sigma * rng.standard_normal()) \
+            + sigma * rng.standard_normal(xyz.shape)
+        d = d + survey_sigma * rng.standard_normal(3)
+    windows, covs = [], []
+    for a in range(0, K, 30):
+        idx = np.arange(a, min(K, a + 30))
+        G = np.zeros((3, idx.size, idx.size, 3, 3))
+        G[:, np.arange(idx.size), np.arange(idx.size)] = sigma ** 2 * np.eye(3)
+        windows.append(idx)
+        covs.append(G)
+    smp = DistanceSamples(t, STATIONS, STATIONS, xyz, vel, tuple(windows), tuple(covs), pairs,
+                          d, survey_sigma ** 2 * np.eye(3), scale_sigma ** 2)
+    return smp, T
+
+
+def errors(result, T):
+    """Stacked left perturbations of stations 2, 3 (estimate against truth) and the errors of
+    their relative clock offsets."""
+    e = [perturbation(*T[s], result.transforms[s].rotation, result.transforms[s].translation)
+         for s in ("2", "3")]
+    clk = [result.dynamic.clock_offset_s[s] - (CLOCKS[k] - CLOCKS[0])
+           for k, s in ((1, "2"), (2, "3"))]
+    return np.concatenate(e + [clk])
+
+
+@pytest.mark.parametrize("model", ["6dof", "4dof"])
+def test_noise_free_distances_recover_the_stations_and_the_clocks(model):
+    smp, T = synthetic(np.random.default_rng(0), noise=False)
+    r = calibrate_dynamic(smp, model=model, n_samples=10, rng=np.random.default_rng(0))
+    e = errors(r, T)
+    # exact but for the clock's first-order model (0.5 a delta^2: about 1e-6 m)
+    assert np.max(np.abs(e[:12])) < 1e-5, e
+    assert np.max(np.abs(e[12:])) < 1e-6, e
+    assert r.method == "dynamic" and r.model == model and r.dynamic.rejected == 0
+    assert r.transforms["1"].covariance.sum() == 0.0
+    assert r.transforms["2"].samples_rotation.shape == (10, 3, 3)
+
+
+def test_tilted_stations_under_the_six_dof_model():
+    """Stations off level by a few milliradians (what a bubble gives without a compensator):
+    the levelled start still leads the 6-DOF fit to them."""
+    smp, T = synthetic(np.random.default_rng(0), noise=False, levelled=False)
+    r = calibrate_dynamic(smp, model="6dof", n_samples=10, rng=np.random.default_rng(0))
+    assert np.max(np.abs(errors(r, T)[:12])) < 1e-5
+
+
+@pytest.mark.slow
+def test_linear_covariance_is_consistent_pooled_over_noise_draws():
+    """NEES / dof of the stations' poses and clocks (14 dof) pooled over 60 draws of the
+    noise, the survey and the scale (840 dof: +-0.05 at one sigma), so 1.25 fails."""
+    nees, factors = [], []
+    for k in range(60):
+        smp, T = synthetic(np.random.default_rng(k), survey_sigma=0.7e-3, scale_sigma=2e-6)
+        r = calibrate_dynamic(smp, model="6dof", n_samples=10, rng=np.random.default_rng(k))
+        e = errors(r, T)
+        nees.append(e @ np.linalg.solve(r.dynamic.covariance, e))
+        factors.append(r.dynamic.variance_factor)
+    assert 0.85 < np.mean(nees) / 14 < 1.15, np.mean(nees) / 14
+    # the fit check's variance factor is 1 on average (Satterthwaite's dof: about 340 each)
+    assert abs(np.mean(factors) - 1.0) < 0.03, np.mean(factors)
+
+
+@pytest.mark.parametrize("model", ["6dof", "4dof"])
+def test_monte_carlo_and_linear_covariances_agree(model):
+    smp, _ = synthetic(np.random.default_rng(3), survey_sigma=0.7e-3, scale_sigma=2e-6)
+    lin = calibrate_dynamic(smp, model=model, n_samples=2000, rng=np.random.default_rng(1))
+    mc = calibrate_dynamic(smp, model=model, engine="mc", n_samples=2000,
+                           rng=np.random.default_rng(1))
+    idx = [0, 1, 2, 3, 4, 5] if model == "6dof" else [0, 1, 2, 5]
+    for s in ("2", "3"):
+        a = np.sqrt(np.diag(lin.transforms[s].covariance))[idx]
+        b = np.sqrt(np.diag(mc.transforms[s].covariance))[idx]
+        np.testing.assert_allclose(b / a, 1.0, atol=0.08)  # MC error: 1.6 % per sigma
+        # the samples are those of the covariance (the prism Monte Carlo uses them)
+        xi = perturbation(lin.transforms[s].rotation, lin.transforms[s].translation,
+                          lin.transforms[s].samples_rotation,
+                          lin.transforms[s].samples_translation)
+        np.testing.assert_allclose(np.std(xi, axis=0)[idx], a, rtol=0.08)
+    for s in ("2", "3"):
+        assert mc.dynamic.clock_sigma_s[s] == pytest.approx(lin.dynamic.clock_sigma_s[s],
+                                                            rel=0.08)
+
+
+def test_straight_line_is_refused():
+    smp, _ = synthetic(np.random.default_rng(0), straight=True)
+    with pytest.raises(GeometryError, match="does not determine"):
+        calibrate_dynamic(smp, n_samples=10, rng=np.random.default_rng(0))
+
+
+@pytest.mark.parametrize("model", ["6dof", "4dof"])
+def test_flat_ground_leaves_the_heights_ambiguous(model):
+    """Driving on a plane, a prism above another and one below it give the same distances:
+    the fit says so instead of picking one."""
+    smp, _ = synthetic(np.random.default_rng(0), flat=True)
+    with pytest.raises(GeometryError, match="heights of the stations are ambiguous"):
+        calibrate_dynamic(smp, model=model, n_samples=10, rng=np.random.default_rng(0))
+
+
+def test_samples_beyond_the_gate_are_left_out():
+    smp, T = synthetic(np.random.default_rng(0), noise=False)
+    xyz = smp.xyz.copy()
+    xyz[40:43, 1] += 0.5  # station 2 on another prism for 3 s
+    bad = DistanceSamples(smp.t, smp.prisms, smp.stations, xyz, smp.velocity, smp.windows,
+                          smp.window_cov, smp.pairs, smp.reference_distance,
+                          smp.reference_distance_cov)
+    r = calibrate_dynamic(bad, n_samples=10, rng=np.random.default_rng(0), gate_m=0.1)
+    assert r.dynamic.rejected == 3 and r.dynamic.samples == 117
+    assert np.max(np.abs(errors(r, T)[:12])) < 1e-5
+
+
+def gcp_shots(T, rng, sigma=0.0):
+    """Every station shoots ten markers (noise-free, or with ``sigma`` per axis)."""
+    markers = np.array([[4.0, 3.0, -0.6], [-18.0, 7.0, 0.9], [25.0, 20.0, 1.8],
+                        [40.0, -15.0, 0.1], [-10.0, -30.0, -1.3], [6.0, 50.0, 2.6],
+                        [-45.0, -28.0, -0.2], [60.0, 25.0, 2.2], [-30.0, 35.0, 3.5],
+                        [15.0, -42.0, -2.0]])
+    hz, v, d, st, mk = [], [], [], [], []
+    for s in STATIONS:
+        R, t = T[s]
+        p = (markers - t) @ R + sigma * rng.standard_normal(markers.shape)
+        h, z, r = cartesian_to_polar(p)
+        hz.append(h)
+        v.append(z)
+        d.append(r)
+        st += [s] * len(markers)
+        mk += [str(i + 1) for i in range(len(markers))]
+    return GcpShots(st, mk, np.concatenate(hz), np.concatenate(v), np.concatenate(d),
+                    additive_constant=0.0)
+
+
+@pytest.mark.parametrize("model", ["6dof", "4dof"])
+def test_joint_calibration_is_exact_without_noise_and_sharper_than_the_gcps(model):
+    rng = np.random.default_rng(0)
+    smp, T = synthetic(rng, noise=False)
+    shots = gcp_shots(T, rng)
+    gcp = calibrate(shots, samples=2000, rng=np.random.default_rng(1), model=model)
+    joint = calibrate_dynamic(smp, gcp=shots, gcp_calibration=calibrate(shots, samples=0,
+                                                                        model=model),
+                              model=model, n_samples=10, rng=np.random.default_rng(0))
+    assert joint.method == "joint" and joint.dynamic.method == "joint"
+    assert np.max(np.abs(errors(joint, T)[:12])) < 1e-5
+    assert len(joint.residuals) == 30 and joint.fit_checks  # the GCP fit's checks are kept
+    for s in ("2", "3"):
+        tr_joint = np.trace(joint.transforms[s].covariance[:3, :3])
+        tr_gcp = np.trace(gcp.transforms[s].covariance[:3, :3])
+        assert tr_joint < 0.8 * tr_gcp, (s, tr_joint, tr_gcp)
+
+
+def test_bad_arguments_are_refused():
+    smp, _ = synthetic(np.random.default_rng(0), noise=False, K=20)
+    with pytest.raises(InputError, match="calibration model"):
+        calibrate_dynamic(smp, model="5dof")
+    with pytest.raises(InputError, match="engine"):
+        calibrate_dynamic(smp, engine="ut")
+    with pytest.raises(InputError, match="n_samples"):
+        calibrate_dynamic(smp, n_samples=1)
+    with pytest.raises(InputError, match="GCP calibration"):
+        calibrate_dynamic(smp, gcp=gcp_shots(stations(), np.random.default_rng(0)))
+    with pytest.raises(InputError, match="nothing to calibrate"):
+        calibrate_dynamic(None)
+    no_ref = DistanceSamples(smp.t, smp.prisms, ("4", "2", "3"), smp.xyz, smp.velocity,
+                             smp.windows, smp.window_cov, smp.pairs, smp.reference_distance,
+                             smp.reference_distance_cov)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match="reference station 1 to track"):
+            calibrate_dynamic(no_ref)
