@@ -249,3 +249,113 @@ def test_bad_arguments_are_refused():
         warnings.simplefilter("error")
         with pytest.raises(InputError, match="reference station 1 to track"):
             calibrate_dynamic(no_ref)
+
+
+# ------------------------------------------------------------------ pipeline, options, CLI
+
+
+def test_the_method_is_an_option_with_its_choices():
+    from rtsgt.options import CalibrationOptions, RunOptions
+
+    assert CalibrationOptions().method == "gcp"
+    assert RunOptions().updated(method="joint").calibration.method == "joint"
+    with pytest.raises(InputError, match="calibration method 'gcp' or 'dynamic' or 'joint'"):
+        CalibrationOptions(method="motion")
+
+
+def test_the_toml_sets_the_method(tmp_path):
+    from rtsgt.errors import ConfigError
+    from rtsgt.io.config import load_config
+
+    files = ("p1.csv", "p2.csv", "p3.csv", "gcp.txt", "survey.csv")
+    for name in files:
+        (tmp_path / name).write_text("x\n")
+    stations = "".join(f'[[stations]]\nid = "{k}"\nprism = "{k}"\nfile = "p{k}.csv"\n'
+                       for k in (1, 2, 3))
+    base = (f'[deployment]\nreference_station = "1"\n{stations}[gcp]\nfile = "gcp.txt"\n'
+            '[reference]\nfile = "survey.csv"\nprisms = { "1" = 1, "2" = 2, "3" = 3 }\n')
+    cfg = tmp_path / "deployment.toml"
+    cfg.write_text(base)
+    assert load_config(cfg).options.calibration.method == "gcp"
+    for method in ("dynamic", "joint"):
+        cfg.write_text(base + f'[calibration]\nmethod = "{method}"\nmodel = "4dof"\n')
+        c = load_config(cfg).options.calibration
+        assert (c.method, c.model) == (method, "4dof")
+    cfg.write_text(base + '[calibration]\nmethod = "motion"\n')
+    with pytest.raises(ConfigError, match=r"\[calibration\] method = 'motion'"):
+        load_config(cfg)
+
+
+def test_a_joint_run_records_its_calibration(tmp_path):
+    """The pipeline with the joint calibration: its self-check, the coupling of the stations
+    from its samples, summary.json's method and a run read back with it."""
+    from rtsgt.io.deployment import load_deployment
+    from rtsgt.io.run_dir import read_run, write_run
+    from rtsgt.pipeline import run_pipeline
+    from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
+
+    sim = simulate_deployment(SimulationConfig(duration_s=60.0), np.random.default_rng(21))
+    data, opts = load_deployment(write_deployment(sim, tmp_path / "dep"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rec = run_pipeline(data, opts.updated(method="joint", engine="linear", samples=50,
+                                              seed=3))
+    check = rec.self_checks["dynamic_calibration"]
+    assert check["method"] == "joint" and check["engine"] == "linear"
+    assert set(check["clock_offset_ms"]) == {"2", "3"} and "gcp_agreement" not in check
+    calib = rec.computation.calibration
+    assert calib.method == "joint" and calib.transforms["2"].samples_rotation.shape[0] == 50
+    assert ("2", "3") in rec.coupling.cross  # the stations' errors, jointly
+    for s in ("2", "3"):  # the truth, within a few sigma
+        e = perturbation(sim.truth.T_world_station[s].rotation,
+                         sim.truth.T_world_station[s].translation,
+                         calib.transforms[s].rotation, calib.transforms[s].translation)
+        assert e @ np.linalg.solve(calib.transforms[s].covariance, e) < 40.0
+    out = write_run(rec, tmp_path / "run")
+    import json
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["parameters"]["calibration_method"] == "joint"
+    assert summary["calibration"]["method"] == "joint"
+    assert summary["self_checks"]["dynamic_calibration"]["method"] == "joint"
+    assert read_run(out).options.calibration.method == "joint"
+
+
+def test_calibrate_command_on_the_excerpt():
+    """``rtsgt calibrate`` with a deployment's TOML: the joint calibration (clock offsets of a
+    few milliseconds), and the dynamic one refused with its reason (86 s of track do not
+    determine the stations to a centimetre)."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from _paths import EXAMPLE_TOML
+    from rtsgt.cli.main import app
+
+    runner = CliRunner()
+    res = runner.invoke(app, ["calibrate", str(EXAMPLE_TOML), "--method", "joint",
+                              "--samples", "50", "--json"])
+    assert res.exit_code == 0, res.output
+    out = json.loads(res.stdout)
+    assert out["method"] == "joint" and out["dynamic"]["method"] == "joint"
+    assert all(abs(v) < 5.0 for v in out["dynamic"]["clock_offset_ms"].values())
+    # the GCPs' transforms (test_calibration: SOURCE.md's figures) within a few millimetres
+    np.testing.assert_allclose(out["stations"]["2"]["translation_m"], [-0.659, -1.301, 0.286],
+                               atol=0.005)
+    res = runner.invoke(app, ["calibrate", "--dynamic", str(EXAMPLE_TOML), "--samples", "50"])
+    assert res.exit_code == 1
+    assert "does not determine station" in res.output and "drive a path" in res.output
+
+
+def test_calibrate_command_refuses_what_it_cannot_do():
+    from typer.testing import CliRunner
+
+    from _paths import EXAMPLE_TOML, EXCERPT
+    from rtsgt.cli.main import app
+
+    runner = CliRunner()
+    res = runner.invoke(app, ["calibrate", str(EXCERPT / "GCP.txt"), "--dynamic"])
+    assert res.exit_code == 2 and "deployment's TOML" in res.output
+    res = runner.invoke(app, ["calibrate", str(EXAMPLE_TOML), "--dynamic", "--method", "joint"])
+    assert res.exit_code == 2 and "give one" in res.output
+    res = runner.invoke(app, ["calibrate", str(EXAMPLE_TOML), "--method", "motion"])
+    assert res.exit_code == 2 and "gcp or dynamic or joint" in res.output

@@ -63,6 +63,7 @@ import numpy as np
 from rtsgt.calibration import CalibrationResult, calibrate
 from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.calibration.dynamic import (
+    SAMPLE_STEP_S,
     DistanceSamples,
     calibrate_dynamic,
     distance_samples,
@@ -306,13 +307,13 @@ def _run_stages(
 
 
 def calibration_samples(data: DeploymentData, filtered: list[Observations], model: NoiseModel,
-                        options: RunOptions) -> DistanceSamples:
+                        options: RunOptions, step_s: float = SAMPLE_STEP_S) -> DistanceSamples:
     """The observations of the dynamic calibration (:mod:`rtsgt.calibration.dynamic`): each
     station's filtered observations as a track in its own frame (first-order noise model, the
     instrument, tilt and atmosphere sources: no calibration yet, and the clock offsets are
     estimated), module 2's common intervals, each track's GP (the run's interpolation options,
-    given the white sources), sampled every :data:`~rtsgt.calibration.dynamic.SAMPLE_STEP_S`
-    seconds. The scale error shared by the tracks is the atmosphere source's: its variance
+    given the white sources), sampled every ``step_s`` seconds
+    (:data:`~rtsgt.calibration.dynamic.SAMPLE_STEP_S`). The scale error shared by the tracks is the atmosphere source's: its variance
     ``tr(C_atm) / d^2`` averaged over the measurements."""
     station_model = model.with_sources(
         [s for s in model.sources if s in ("instrument", "tilt", "atmosphere")])
@@ -320,7 +321,7 @@ def calibration_samples(data: DeploymentData, filtered: list[Observations], mode
     kept, intervals, _ = module2(list(tracks.values()), options.filter)
     tracks = {tr.prism: tr for tr in kept}
     gps = fit_gps(tracks, replace(options.interpolation, gp_noise="white"))
-    t = sample_times(gps, intervals)
+    t = sample_times(gps, intervals, step_s)
     scale = [np.trace(tr.cov_by_source["atmosphere"], axis1=1, axis2=2) / tr.range_m ** 2
              for tr in tracks.values() if "atmosphere" in tr.cov_by_source]
     return distance_samples(gps, {o.prism: o.station for o in filtered}, data.reference, t,

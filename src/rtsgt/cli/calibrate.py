@@ -1,10 +1,15 @@
-"""``rtsgt calibrate``: extrinsic calibration of the stations from GCP shots.
+"""``rtsgt calibrate``: extrinsic calibration of the stations.
 
-A thin wrapper over :func:`rtsgt.io.gcp_csv.read_gcp_shots` and
-:func:`rtsgt.calibration.calibrate`. ``GCP_FILE`` may be the word ``example`` for the small
-synthetic example shipped in the package (three stations, eight markers). ``--out FILE``
-writes the JSON object to a file, atomically (complete or not at all: a failed run leaves no
-file and keeps a previous one), which a shell redirection of ``--json`` cannot promise.
+From GCP shots, a thin wrapper over :func:`rtsgt.io.gcp_csv.read_gcp_shots` and
+:func:`rtsgt.calibration.calibrate`; ``GCP_FILE`` may be the word ``example`` for the small
+synthetic example shipped in the package (three stations, eight markers). From a deployment's
+TOML (``rtsgt calibrate --dynamic DEPLOYMENT.toml``, or ``--method dynamic|joint|gcp``), the
+pipeline's own calibration stage (:func:`rtsgt.pipeline.calibrate_stations`: module 1, and for
+``dynamic`` and ``joint`` the tracks, their GPs and the inter-prism distances,
+:mod:`rtsgt.calibration.dynamic`); the method and the model default to the TOML's
+``[calibration]``. ``--out FILE`` writes the JSON object to a file, atomically (complete or not
+at all: a failed run leaves no file and keeps a previous one), which a shell redirection of
+``--json`` cannot promise.
 """
 
 from __future__ import annotations
@@ -21,11 +26,17 @@ from rich.console import Console
 from rich.table import Table
 
 from rtsgt.calibration import CalibrationResult, calibrate
+from rtsgt.calibration.gcp import CALIBRATION_METHOD_NAMES, CALIBRATION_METHODS
+from rtsgt.checks.calibration import dynamic_calibration_check
 from rtsgt.errors import InputError
+from rtsgt.filtering import module1
 from rtsgt.io._parse import atomic_write_text
+from rtsgt.io.deployment import load_deployment
 from rtsgt.io.gcp_csv import GCP_FORMATS, read_gcp_shots
 from rtsgt.io.output_dir import check_output_file
 from rtsgt.measurement.instruments import get_instrument
+from rtsgt.noise import NoiseModel
+from rtsgt.pipeline import calibrate_stations
 
 #: Name of the packaged example GCP file (in ``rtsgt/data``).
 EXAMPLE_GCP = "example_gcp.txt"
@@ -43,7 +54,10 @@ def result_to_json(result: CalibrationResult, **extra) -> dict:
     ``stations`` holds every station except the reference (whose transform is the identity):
     ``matrix`` (4x4 ``T_world_station``), ``yaw_deg``, ``translation_m``, ``covariance`` (6x6,
     x, y, z, rx, ry, rz, m^2 / rad^2, left perturbation in the world frame; null without
-    samples), the 1-sigma values in mm and mrad, and the markers used.
+    samples), the 1-sigma values in mm and mrad, and the markers used (none for a dynamic
+    calibration). ``method`` says what the stations were fitted to; a dynamic or joint
+    calibration adds ``dynamic`` (:func:`rtsgt.checks.calibration.dynamic_calibration_check`:
+    the clock offsets, the fit check and, for ``dynamic``, the agreement with the GCPs).
     """
     stations = {}
     for s, T in result.transforms.items():
@@ -80,11 +94,13 @@ def result_to_json(result: CalibrationResult, **extra) -> dict:
         "samples": result.samples,
         "weighted": result.weighted,
         "model": result.model,
+        "method": result.method,
         **extra,
     }
 
 
-def _print_table(result: CalibrationResult, source: str, console: Console) -> None:
+def _print_table(result: CalibrationResult, source: str, console: Console,
+                 dynamic: dict | None = None) -> None:
     table = Table(title=f"T_world_station, world = station {result.reference_station} ({source})")
     for name, justify in (
         ("station", "left"), ("markers", "right"), ("yaw (deg)", "right"), ("axis", "center"),
@@ -97,7 +113,8 @@ def _print_table(result: CalibrationResult, source: str, console: Console) -> No
             first = k == 0
             table.add_row(
                 s if first else "",
-                str(len(result.markers_used[s])) if first else "",
+                (str(len(result.markers_used[s])) if result.markers_used.get(s) else "-")
+                if first else "",
                 f"{np.degrees(T.yaw):.4f}" if first else "",
                 axis,
                 f"{T.translation[k]:.4f}",
@@ -114,6 +131,19 @@ def _print_table(result: CalibrationResult, source: str, console: Console) -> No
             f"max {res.max_m * 1e3:.2f} mm (marker {res.marker[worst]}, stations "
             f"{res.station_a[worst]}-{res.station_b[worst]})"
         )
+    console.print(f"calibrated from {CALIBRATION_METHOD_NAMES[result.method]}, model "
+                  f"{result.model}")
+    if dynamic is not None:
+        clocks = ", ".join(f"station {s} {v:+.2f} +- {dynamic['clock_sigma_ms'][s]:.2f} ms"
+                           for s, v in dynamic["clock_offset_ms"].items())
+        lo, hi = dynamic["interval_95"]
+        console.print(f"clock offsets against station {result.reference_station}: {clocks}")
+        console.print(f"inter-prism distances: {dynamic['samples']} samples, variance factor "
+                      f"{dynamic['variance_factor']:.2f}, 95 % [{lo:.2f}, {hi:.2f}]: "
+                      f"{dynamic['verdict']}")
+        for s, v in dynamic.get("gcp_agreement", {}).items():
+            console.print(f"station {s} against the GCP calibration: chi2 {v['chi2']:.1f} "
+                          f"({v['dof']} dof, p = {v['p_value']:.2g}): {v['verdict']}")
     sampled = f"{result.samples} Monte Carlo samples" if result.samples else "no Monte Carlo"
     console.print(f"{sampled}; {'trace-weighted' if result.weighted else 'unweighted'} fits.")
     if result.excluded_shots:
@@ -159,6 +189,30 @@ def run_calibrate(
     return result, source
 
 
+def run_calibrate_deployment(
+    config: Path, *, method: str | None = None, model: str | None = None, samples: int = 1000,
+    seed: int = 0,
+) -> tuple[CalibrationResult, dict | None]:
+    """Calibrate the stations of a deployment as its run would (its TOML's ``[calibration]``,
+    ``method`` and ``model`` overriding it); returns the result and, for a dynamic or joint
+    calibration, its self-check (:func:`rtsgt.checks.calibration.dynamic_calibration_check`)."""
+    data, options = load_deployment(config)
+    changes = {k: v for k, v in (("method", method), ("model", model)) if v is not None}
+    options = options.updated(seed=seed, samples=samples, **changes)
+    noise = options.noise if options.noise is not None else NoiseModel(instrument=data.instrument)
+    filtered = []
+    for obs in data.observations:
+        kept = module1(obs, options.filter)[0]
+        if len(kept) < 2:
+            raise InputError(f"station {obs.station}: fewer than 2 measurements left after "
+                             "module 1", obs.source)
+        filtered.append(kept)
+    result, gcp = calibrate_stations(data, options, filtered, noise)
+    check = None if result.dynamic is None else dynamic_calibration_check(result, gcp,
+                                                                          warn=False)
+    return result, check
+
+
 def is_calibration_json(head: str) -> bool:
     """Whether a file's first characters are those of ``rtsgt calibrate``'s JSON object."""
     return head.lstrip().startswith("{") and all(
@@ -172,7 +226,8 @@ def register(app: typer.Typer) -> None:
     def calibrate_command(
         gcp_file: str = typer.Argument(
             ..., metavar="GCP_FILE",
-            help="GCP shots file, or `example` for the small example shipped with rtsgt.",
+            help="GCP shots file, `example` for the small example shipped with rtsgt, or a "
+            "deployment's TOML (the calibration of its run: its [calibration], or --method).",
         ),
         format: str = typer.Option(
             "auto", "--format",
@@ -197,10 +252,19 @@ def register(app: typer.Typer) -> None:
         instrument: str = typer.Option(
             "trimble-s7", "--instrument", help="Instrument profile for the noise model."
         ),
-        model: str = typer.Option(
-            "6dof", "--model",
+        model: str | None = typer.Option(
+            None, "--model",
             help="Each station's transform: 6dof (free rotation) or 4dof (levelled stations: "
-            "yaw only, the tilt that of the Earth's curvature).",
+            "yaw only, the tilt that of the Earth's curvature). Default: 6dof, or the TOML's.",
+        ),
+        method: str | None = typer.Option(
+            None, "--method",
+            help=f"What to fit the stations to: {' | '.join(CALIBRATION_METHODS)} (the GCPs, "
+            "the robot's motion through the inter-prism distances, or both; dynamic and "
+            "joint need a deployment's TOML). Default: gcp, or the TOML's.",
+        ),
+        dynamic: bool = typer.Option(
+            False, "--dynamic", help="The same as --method dynamic (a deployment's TOML).",
         ),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
         out: Path | None = typer.Option(
@@ -211,14 +275,35 @@ def register(app: typer.Typer) -> None:
         """Calibrate every station into the reference station's frame from GCP shots."""
         if samples == 1:
             raise typer.BadParameter("use 0 (fit only) or at least 2", param_hint="--samples")
+        if dynamic:
+            if method not in (None, "dynamic"):
+                raise typer.BadParameter(f"--dynamic with --method {method}: give one",
+                                         param_hint="--dynamic")
+            method = "dynamic"
+        if method is not None and method not in CALIBRATION_METHODS:
+            raise typer.BadParameter(f"expected {' or '.join(CALIBRATION_METHODS)}, got "
+                                     f"{method!r}", param_hint="--method")
+        deployment = gcp_file.lower().endswith(".toml")
+        if not deployment and method not in (None, "gcp"):
+            raise typer.BadParameter(
+                f"method {method} fits the stations to the tracked prisms: give a deployment's "
+                "TOML (its tracks and the survey of the prisms), not a GCP file",
+                param_hint="GCP_FILE")
         if out is not None:
             check_output_file(out, option="--out", written_by_rtsgt=is_calibration_json)
-        result, source = run_calibrate(
-            gcp_file, format=format, reference_station=reference_station,
-            additive_constant=additive_constant, samples=samples, seed=seed,
-            weighted=weighted, instrument=instrument, model=model,
-        )
-        obj = result_to_json(result, source=source, seed=seed)
+        check = None
+        if deployment:
+            result, check = run_calibrate_deployment(Path(gcp_file), method=method, model=model,
+                                                     samples=samples, seed=seed)
+            source = gcp_file
+        else:
+            result, source = run_calibrate(
+                gcp_file, format=format, reference_station=reference_station,
+                additive_constant=additive_constant, samples=samples, seed=seed,
+                weighted=weighted, instrument=instrument, model=model or "6dof",
+            )
+        extra = {} if check is None else {"dynamic": check}
+        obj = result_to_json(result, source=source, seed=seed, **extra)
         if out is not None:
             try:
                 atomic_write_text(out, json.dumps(obj) + "\n")
@@ -227,6 +312,6 @@ def register(app: typer.Typer) -> None:
         if as_json:
             typer.echo(json.dumps(obj))
         else:
-            _print_table(result, source, Console())
+            _print_table(result, source, Console(), check)
             if out is not None:
                 Console().print(f"written: {out}")

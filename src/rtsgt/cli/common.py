@@ -10,7 +10,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from rtsgt.calibration.gcp import CALIBRATION_MODEL_NAMES
+from rtsgt.calibration.gcp import CALIBRATION_METHOD_NAMES, CALIBRATION_MODEL_NAMES
 from rtsgt.errors import InputError
 from rtsgt.record import RunRecord
 
@@ -118,6 +118,21 @@ def print_run_summary(record: RunRecord, out) -> None:
     gcp = record.self_checks.get("gcp_fit", {})
     if gcp.get("model"):
         table.add_row("calibration model", CALIBRATION_MODEL_NAMES[gcp["model"]])
+    table.add_row("calibration method",
+                  CALIBRATION_METHOD_NAMES[record.options.calibration.method])
+    dyn = record.self_checks.get("dynamic_calibration")
+    if dyn:
+        lo, hi = dyn["interval_95"]
+        table.add_row(f"self-check {dyn['method']} calibration ({dyn['samples']} samples)",
+                      f"{dyn['variance_factor']:.2f}, 95 % [{lo:.2f}, {hi:.2f}]: "
+                      f"{dyn['verdict']}")
+        for s, v in dyn["clock_offset_ms"].items():
+            table.add_row(f"clock offset, station {s}",
+                          f"{v:+.2f} ± {dyn['clock_sigma_ms'][s]:.2f} ms")
+        for s, v in dyn.get("gcp_agreement", {}).items():
+            table.add_row(f"dynamic against GCP calibration, station {s}",
+                          f"chi2 {v['chi2']:.1f} ({v['dof']} dof), p = {v['p_value']:.2g}: "
+                          f"{v['verdict']}")
     for s, v in gcp.get("stations", {}).items():
         if v.get("dof"):
             lo, hi = v["interval_95"]

@@ -291,6 +291,8 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
         "prisms": prisms,
         "calibration": {
             "reference_station": cal.reference_station,
+            "method": cal.method,
+            "model": cal.model,
             "stations": stations,
             "residuals_mm": {
                 "median": float(np.median(res.distance_m) * 1e3) if len(res) else None,
@@ -885,6 +887,9 @@ def _summary_options(params: dict, param: Callable, path: Path) -> RunOptions:
         "registration": str(param("registration", _OLDEST_OPTIONS.pose.registration)),
         "seed": seed, "gp_noise": gp_noise, "motion_prior": motion_prior,
         "outlier_windows": outlier_windows,
+        # runs written before the 4-DOF and the dynamic calibrations: 6 DOF, from the GCPs
+        "model": str(param("calibration_model", "6dof")),
+        "method": str(param("calibration_method", "gcp")),
         "max_gap_s": _positive(params, "max_gap_s", InterpolationOptions.max_gap_s, path),
         "distance_gate_m": _positive(params, "distance_gate_m", PoseOptions.distance_gate_m,
                                      path),

@@ -227,9 +227,53 @@ def _self_checks_html(checks: Mapping) -> str:
         "against the instrument model's covariance (1 if the model is right). Added to every "
         f"shot by the calibration: {_fmt(added.get('horizontal'), 3)} mm horizontal, "
         f"{_fmt(added.get('vertical'), 3)} mm vertical.</small></p>")
+    parts.append(_dynamic_calibration_html(checks.get("dynamic_calibration")))
     parts.append(_static_noise_html(checks.get("static_noise")))
     parts.append(_structure_html(checks.get("inter_prism_structure")))
     return "".join(parts)
+
+
+def _dynamic_calibration_html(check: Mapping | None) -> str:
+    """The dynamic (or joint) calibration's self-check
+    (:func:`rtsgt.checks.calibration.dynamic_calibration_check`): the clock offsets, the
+    variance factor of the inter-prism distances and the agreement with the GCPs."""
+    if not check:
+        return ""
+    clocks = "".join(
+        f"<tr><td class='s'>station {html.escape(str(s))}</td><td>{_fmt(v, 3)} ± "
+        f"{_fmt(check['clock_sigma_ms'][s], 2)}</td></tr>"
+        for s, v in check.get("clock_offset_ms", {}).items())
+    out = [
+        f"<h3>{html.escape(check['method'].capitalize())} calibration</h3>"
+        "<table id='check-dynamic-calibration'><tr><th class='k'>samples</th>"
+        "<th>variance factor</th><th>effective dof</th><th>95 % interval</th><th>verdict</th>"
+        f"</tr><tr><td class='s'>{check['samples']}</td>"
+        f"<td>{_fmt(check['variance_factor'], 3)}</td><td>{_fmt(check['dof'], 3)}</td>"
+        f"<td>{_interval(check)}</td><td class='verdict'>{html.escape(check['verdict'])}</td>"
+        "</tr></table>"
+        "<table id='check-dynamic-clocks'><tr><th class='k'>clock offset (ms)</th><th>against "
+        f"the reference station</th></tr>{clocks}</table>"]
+    agree = check.get("gcp_agreement")
+    if agree:
+        body = "".join(
+            f"<tr><td class='s'>station {html.escape(str(s))}</td><td>{_fmt(v['chi2'], 3)}</td>"
+            f"<td>{v['dof']}</td><td>{_fmt(v['p_value'], 2)}</td>"
+            f"<td>{_fmt(max(abs(z) for z in v['z'].values()), 3)}</td>"
+            f"<td class='verdict'>{html.escape(v['verdict'])}</td></tr>"
+            for s, v in agree.items())
+        out.append(
+            "<table id='check-dynamic-gcp'><tr><th class='k'>against the GCPs</th><th>χ²</th>"
+            "<th>dof</th><th>p</th><th>largest |z|</th><th>verdict</th></tr>"
+            f"{body}</table>")
+    out.append(
+        "<p><small>The stations fitted to the robot's motion through the surveyed inter-prism "
+        "distances (with the GCPs for a joint calibration). The variance factor compares the "
+        "distance residuals with the tracks' covariance and the shared errors (1 if honest); "
+        "the clock offsets are those of each station relative to the reference station's "
+        "(reported, not applied); a dynamic calibration is compared with the GCP calibration "
+        "of the same deployment in units of their combined covariance. Method: rtsgt's "
+        "docs/calibration.md.</small></p>")
+    return "".join(out)
 
 
 def _structure_html(check: Mapping | None) -> str:
