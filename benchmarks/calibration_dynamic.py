@@ -17,7 +17,11 @@ its Monte Carlo), from the robot's motion (``dynamic``) and from both (``joint``
 - the same with the relative clock offsets (dynamic, joint), and the clock offsets' mean
   ``z^2``;
 - the ratio of the joint calibration's sigma to the GCPs' (per station, ``sqrt`` of the
-  trace of the position block; and of the yaw), its median over stations and deployments;
+  trace of the position block; and of the yaw), its median over stations and deployments:
+  against the GCP calibration (its Kabsch fit and Monte Carlo), and against the GCPs'
+  generalised least-squares fit alone (``gcp_gls``: the joint fit without the distances,
+  which weights each shot by its full covariance), which separates the distances' gain from
+  the weighting's;
 - the deployments the dynamic fit refuses (the trajectory does not determine the stations),
   and the timings.
 
@@ -79,7 +83,7 @@ def _scores(result, sim, model: str) -> dict:
                          for s in stations],
            "sigma_yaw": [float(np.sqrt(result.transforms[s].covariance[5, 5]))
                          for s in stations]}
-    if result.dynamic is not None:
+    if result.dynamic is not None and result.dynamic.clock_offset_s:
         fit = result.dynamic
         clk = np.array([fit.clock_offset_s[s] - (truth.clock_offset_s[s]
                                                  - truth.clock_offset_s[ref])
@@ -113,6 +117,9 @@ def deployment(seed: int, duration: float, models, samples: int, mc: bool, tmp: 
                   "model": m}
             rng = np.random.default_rng(seed)
             res = {"gcp": calibrate(gcp, samples=samples, rng=rng, **kw)}
+            gcp0 = calibrate(gcp, samples=0, **kw)
+            res["gcp_gls"] = calibrate_dynamic(None, gcp=gcp, gcp_calibration=gcp0,
+                                               n_samples=samples, rng=rng, **kw)
             t0 = time.perf_counter()
             try:
                 res["dynamic"] = calibrate_dynamic(smp, n_samples=samples, rng=rng, **kw)
@@ -121,8 +128,7 @@ def deployment(seed: int, duration: float, models, samples: int, mc: bool, tmp: 
             out["time"][f"{m}_dynamic"] = time.perf_counter() - t0
             t0 = time.perf_counter()
             res["joint"] = calibrate_dynamic(smp, gcp=gcp, rng=rng, n_samples=samples,
-                                             gcp_calibration=calibrate(gcp, samples=0, **kw),
-                                             **kw)
+                                             gcp_calibration=gcp0, **kw)
             out["time"][f"{m}_joint"] = time.perf_counter() - t0
             for name, r in res.items():
                 out[f"{m}_{name}"] = _scores(r, sim, m)
@@ -142,7 +148,7 @@ def summary(rows: list[dict], models) -> None:
         print(f"\nmodel {m}")
         print(f"{'method':<8} {'deployments':>11} {'NEES/dof':>9} {'in 95%':>7} "
               f"{'+clocks':>8} {'clock z^2':>9} {'median sigma pos mm':>20}")
-        for name in ("gcp", "dynamic", "joint"):
+        for name in ("gcp", "gcp_gls", "dynamic", "joint"):
             got = [r[f"{m}_{name}"] for r in rows if f"{m}_{name}" in r]
             if not got:
                 continue
@@ -166,6 +172,12 @@ def summary(rows: list[dict], models) -> None:
                                   / np.array(r[f"{m}_gcp"]["sigma_yaw"]) for r in both])
         print(f"joint / GCP sigma, median over stations: position {np.median(ratio_p):.3f} "
               f"(max {ratio_p.max():.3f}), yaw {np.median(ratio_y):.3f}")
+        ratio_g = np.concatenate([np.array(r[f"{m}_joint"]["sigma_pos"])
+                                  / np.array(r[f"{m}_gcp_gls"]["sigma_pos"]) for r in both])
+        ratio_gy = np.concatenate([np.array(r[f"{m}_joint"]["sigma_yaw"])
+                                   / np.array(r[f"{m}_gcp_gls"]["sigma_yaw"]) for r in both])
+        print(f"joint / GCP least-squares sigma: position {np.median(ratio_g):.3f} "
+              f"(max {ratio_g.max():.3f}), yaw {np.median(ratio_gy):.3f}")
         dyn = [r for r in rows if f"{m}_dynamic" in r]
         if dyn:
             ratio_d = np.concatenate([np.array(r[f"{m}_dynamic"]["sigma_pos"])
@@ -209,7 +221,7 @@ def main(argv=None) -> None:
             r = rows[-1]
             print(f"seed {seed}: " + ", ".join(
                 f"{m} {n} {r[f'{m}_{n}']['nees'] / r[f'{m}_{n}']['dof']:.2f}"
-                for m in args.models for n in ("gcp", "dynamic", "joint")
+                for m in args.models for n in ("gcp", "gcp_gls", "dynamic", "joint")
                 if f"{m}_{n}" in r), flush=True)
     print(f"\n{args.deployments} deployments x {args.duration:g} s, seeds "
           f"{args.first_seed}-{args.first_seed + args.deployments - 1}, "

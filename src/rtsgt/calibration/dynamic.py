@@ -60,42 +60,67 @@ Joint calibration (``method = "joint"``). The GCP shots of :mod:`rtsgt.calibrati
 stacked with the distances: each valid shot of a marker ``m`` shared with the reference station
 gives ``x_m - (R_s p_{s,m} + t_s)`` with covariance ``R_s C_{s,m} R_s^T`` (the instrument and
 tilt model, plus the variance components that the GCP calibration found), the world positions
-``x_m`` of the markers being nuisance unknowns. Eliminating ``x_m`` gives the generalised
-least-squares fit of :mod:`rtsgt.calibration.gcp` (whose variance factor is that fit's), so a
-joint calibration with no distance is the GCP one.
+``x_m`` of the markers being nuisance unknowns (the reference station's shots included, with
+the identity: so the stations' fits share the reference's shots, as in the GCP calibration's
+Monte Carlo). Without the distances this is the generalised least-squares fit of all the
+stations to the GCPs at once; the GCP calibration's own checks (fit check, variance
+components, levelling) are kept in the result. That fit weights each shot by its full
+covariance, which for a shot is a thin ellipsoid (the angles give 0.02-0.25 mm across the line
+of sight at 10-100 m, the distance 1 mm along it), so it leans on the angular precision that
+the GCP calibration's Kabsch fit, weighting every direction alike, does not use. Real GCP shots
+are not that precise across the line of sight (the poles' centring and plumbing): on the real
+excerpt its variance factor is 24 with the GCP calibration's variance components, most of it
+across the lines of sight, which the per-axis factors of the GCP fit check do not show. So the
+joint fit adds a horizontal variance component of its own: where the factor of the GCPs'
+generalised least-squares fit alone is above its 95 % interval, the horizontal variance that
+brings it to 1 (bisection), on top of the GCP calibration's components.
 
-Solution: Levenberg-Marquardt from an initial guess (the GCP calibration for ``"joint"``; for
-``"dynamic"`` the rigid fit of each station's prism trajectory onto the reference station's,
-wrong by about the prisms' spacing, a metre), first unweighted, then weighted and weighted
-again with the whitening of the solution. Samples with a pair residual beyond ``gate_m`` (the
-distance gate of module 4, 10 cm: a station tracking another prism) are dropped and the fit
-redone.
+Solution
+--------
+Levenberg-Marquardt from an initial guess: the GCP calibration for ``"joint"``; for
+``"dynamic"`` the levelled (yaw and translation) fit of each station's prism trajectory onto
+the reference station's, wrong by about the prisms' spacing (a metre), refined under
+``"4dof"`` and, for ``"6dof"``, used as the start of the free rotation (total stations are
+levelled to arcminutes; a start from a few milliradians off level converges, one from a degree
+may not, and its variance factor then says so). Every fit is made unweighted, then weighted,
+and weighted again with the whitening of its solution. Because driving on nearly flat ground
+leaves the heights of the stations nearly mirrored about the reference's prism (section Checks),
+the fit is started again from every combination of mirrored heights and the best kept. Samples
+with a pair residual beyond ``gate_m`` (the distance gate of module 4, 10 cm: a station
+tracking another prism) are dropped and the whole fit made again from its start.
+
+Errors shared by every sample
+-----------------------------
+Errors shared by every sample do not average down with their number: the errors of the
+surveyed distances (covariance from the survey), a scale error ``alpha`` of all the tracked
+distances (the atmospheric correction, one weather for all stations; variance from the tracks'
+``atmosphere`` source) and, under ``"4dof"``, each station's compensator error (a tilt of its
+frame, ``sigma_tilt`` per axis, the reference's included, as in the GCP calibration). They are
+estimated with the unknowns as nuisance parameters ``c`` with their prior: ``c = L z`` with
+``L L^T = C_c`` and ``z ~ N(0, I)``, each ``z`` a residual row of its own (the generalised
+least-squares fit of the data and the prior together). The distances then read
+``|q_i - q_j| - (d_k + c_k)`` with ``q_i = R_s ((1 + alpha) p_i - delta_s v_i) + t_s``, and
+under ``"4dof"`` ``R_s = exp([omega + tau_s - tau_ref]x) R_z(psi_s)``. (Holding them at their
+prior mean and only propagating them, *consider* parameters, makes the fit trust the many
+samples more than their shared error allows: a joint calibration could then be worse than
+the GCPs alone.)
 
 Covariance (``engine``)
 -----------------------
-Errors shared by every sample do not average down with their number, so they are not weights
-but *consider parameters* ``c``: the errors of the surveyed distances (covariance from the
-survey), a scale error ``alpha`` of all the tracked distances (the atmospheric correction, one
-weather for all stations; variance from the tracks' ``atmosphere`` source) and, under
-``"4dof"``, each station's compensator error (a tilt of its frame, ``sigma_tilt`` per axis, the
-reference's included, as in the GCP calibration). With ``J`` and ``B`` the whitened Jacobians
-of the residuals in the unknowns and in ``c``, ``N = J^T J``:
-
-.. math::
-
-    \mathrm{Cov}(\hat\theta) = N^{-1} + S C_c S^T, \qquad S = N^{-1} J^T B,
-    \qquad \mathrm{Cov}(\hat\theta, c) = -S C_c,
-
-and the station transforms' 6x6 left perturbations (world frame, x, y, z, rx, ry, rz, as
-everywhere in rtsgt) follow linearly, jointly for all stations. ``engine = "linear"`` is that,
-and its Monte Carlo samples (which the prism Monte Carlo and the coupling of the stations,
+With ``J`` the whitened Jacobian of all the rows (distances, GCP shots, priors) in all the
+parameters, the covariance of the parameters is ``N^-1``, ``N = J^T J``, and the station
+transforms' 6x6 left perturbations (world frame, x, y, z, rx, ry, rz, as everywhere in rtsgt;
+under ``"4dof"`` the rotation's is the yaw's along the vertical plus the estimated tilt's)
+follow linearly, jointly for all stations, with the clock offsets. ``engine = "linear"`` is
+that, and its Monte Carlo samples (which the prism Monte Carlo and the coupling of the stations,
 :class:`rtsgt.calibration.coupling.StationCoupling`, use) are drawn from it jointly.
 ``engine = "mc"`` follows the GCP calibration: M perturbed data sets (the GP errors drawn from
-their joint posterior covariance per window, the survey, ``alpha``, the compensators, and in
-``"joint"`` every GCP shot as :func:`rtsgt.calibration.gcp.calibrate` perturbs it) are fitted
-again (Gauss-Newton from the solution with its Jacobian and weights, :data:`MC_ITERATIONS`
-steps), and the transforms' samples summarised by their covariance. It captures the
-non-linearity of the fit; the two agree on the simulated deployments (docs/calibration.md).
+their joint posterior covariance per window, the priors' observations ``z_obs ~ N(0, I)``, and
+in ``"joint"`` every GCP shot as :func:`rtsgt.calibration.gcp.calibrate` perturbs it) are
+fitted again (Gauss-Newton from the solution with its Jacobian and weights,
+:data:`MC_ITERATIONS` steps), and the transforms' samples summarised by their covariance. It
+captures the non-linearity of the fit; the two agree within the Monte Carlo's error on the
+simulated deployments (docs/calibration.md).
 
 Checks
 ------
@@ -104,14 +129,20 @@ leaves combinations of them undetermined. The fit refuses (:class:`GeometryError
 normal matrix is singular, or when the calibration's own standard deviation of some station's
 prism positions exceeds :data:`MAX_SIGMA_M` (1 cm: the distance's second-order term
 ``delta^2 / 2 d`` over the prisms' spacing ``d ~ 1 m`` is then no longer negligible against
-the tracking noise, so neither the fit nor its covariance can be trusted).
+the tracking noise, so neither the fit nor its covariance can be trusted). On (nearly) flat
+ground the distances cannot tell a prism above another from one below it: the fit with the
+heights of some stations mirrored about the reference's prism fits nearly as well. The fit is
+made from every such start (section Solution) and refuses when the best other solution is
+less than :data:`HEIGHT_MARGIN` worse in ``-2 log`` likelihood (the whitened cost plus the log
+determinant of the weights): the chance of picking the wrong one is then no longer negligible
+(``Phi(-sqrt(100) / 2)``, 3e-7, for two Gaussian hypotheses at that distance).
 
-Fit check (a Type A evaluation, as :class:`rtsgt.calibration.gcp.FitCheck`): the whitened
-distance residuals after the fit, ``s0^2 = r^T r / E[r^T r]``, 1 if the GPs' covariance and the
-consider parameters describe the residuals. The post-fit residuals ``r = (I - P)(e + B c)``
-(``P`` the projection on ``J``) have ``E[r^T r] = tr((I - P)(I + B C_c B^T)(I - P))`` over the
-distance rows, and ``s0^2`` is compared with ``chi2_nu / nu`` for Satterthwaite's effective
-degrees of freedom ``nu = 2 E^2 / Var(r^T r)`` (few when the shared errors dominate).
+Fit check (a Type A evaluation, as :class:`rtsgt.calibration.gcp.FitCheck`): the a-posteriori
+variance factor ``s0^2 = r^T r / (n - p)`` of the whitened residuals (all the rows, ``p``
+parameters), 1 if the GPs' covariance (and the GCP shots' and the priors) describe the
+residuals, with the chi-square test of ``n - p`` degrees of freedom. The GPs' correlation in
+time is a model too: on simulated deployments ``s0^2`` comes out near 0.9 with samples every
+second (docs/calibration.md).
 
 What it cannot see: the frame (the reference station's), a clock offset common to all
 stations, and anything the trajectory does not excite (refused, above). The clock offsets are
@@ -159,9 +190,11 @@ __all__ = ["CALIBRATION_METHODS", "CALIBRATION_METHOD_NAMES", "DYNAMIC_ENGINES",
 
 #: How the covariance of a dynamic calibration is computed (module docstring).
 DYNAMIC_ENGINES = ("linear", "mc")
-#: Time between the samples of the tracks, s (0.5 s: about one per measurement of a station
-#: at 2.5 Hz; their correlation is in the weights, so a finer step adds little).
-SAMPLE_STEP_S = 0.5
+#: Time between the samples of the tracks, s. Their correlation is in the weights; on simulated
+#: deployments a step of 0.5 s (about one per measurement at 2.5 Hz) gains 5 % of sigma over
+#: 1 s but leans harder on the GPs' model of that correlation (variance factor 0.70 against
+#: 0.92), and costs three times as much (docs/calibration.md).
+SAMPLE_STEP_S = 1.0
 #: Length of the windows whose samples are weighted jointly, s.
 WINDOW_S = 60.0
 #: The largest standard deviation of a station's prism positions due to the calibration that
@@ -335,18 +368,18 @@ def _inverse_cholesky(c: np.ndarray) -> np.ndarray:
 
 @dataclass
 class _State:
-    """Batched unknowns (leading axis M) and the drawn compensator tilts."""
+    """Batched unknowns (leading axis M)."""
 
     R: np.ndarray  # (M, S, 3, 3)
     t: np.ndarray  # (M, S, 3)
     psi: np.ndarray  # (M, S), 4dof
     clock: np.ndarray  # (M, S), s
     x: np.ndarray  # (M, G, 3) markers (joint)
-    tilt: np.ndarray  # (M, S, 3) relative tilt (tau_s - tau_ref, z = 0), 4dof
+    z: np.ndarray  # (M, k) whitened nuisance parameters
 
     def copy(self) -> _State:
         return _State(*(a.copy() for a in (self.R, self.t, self.psi, self.clock, self.x,
-                                           self.tilt)))
+                                           self.z)))
 
 
 def _yaw(R: np.ndarray) -> np.ndarray:
@@ -360,10 +393,13 @@ class _Data:
     p: np.ndarray  # (M, K, n, 3)
     d_ref: np.ndarray  # (M, P)
     shots: np.ndarray  # (M, G_shots, 3) GCP points, station frames
+    z_obs: np.ndarray  # (M, k) the nuisance parameters' prior observation (0; drawn in MC)
 
 
 class _Problem:
-    """The layout of the unknowns, the consider parameters and the residuals."""
+    """The layout of the unknowns (stations, clocks, markers, then the whitened nuisance
+    parameters ``z``, with ``c = L z`` the survey errors, the scale and the compensators' tilts
+    and ``z ~ N(0, I)`` a priori) and the residuals."""
 
     def __init__(self, samples: DistanceSamples | None, stations: list[str], ref: str,
                  model: str, gcp: dict | None, sigma_tilt: float):
@@ -391,8 +427,8 @@ class _Problem:
         self.marker_col = cols
         if gcp is not None:
             cols += 3 * gcp["markers"]
-        self.p = cols
-        # consider parameters: survey distances, the scale, the compensators (4dof)
+        self.p = cols  # the parameters of interest (and the markers)
+        # nuisance parameters c: survey distances, the scale, the compensators (4dof)
         c, blocks = 0, []
         self.survey_col = self.scale_col = self.tilt_col = -1
         if samples is not None:
@@ -404,30 +440,52 @@ class _Problem:
             c += 2 * self.S
             blocks.append(sigma_tilt ** 2 * np.eye(2 * self.S))
         self.c = c
-        self.Cc = np.zeros((c, c))
+        Cc = np.zeros((c, c))
         k = 0
         for b in blocks:
-            self.Cc[k:k + b.shape[0], k:k + b.shape[0]] = b
+            Cc[k:k + b.shape[0], k:k + b.shape[0]] = b
             k += b.shape[0]
+        self.Cc = Cc
+        w, V = np.linalg.eigh(0.5 * (Cc + Cc.T)) if c else (np.zeros(0), np.zeros((0, 0)))
+        keep = w > 1e-12 * max(float(w.max(initial=0.0)), 1e-300)
+        self.L = V[:, keep] * np.sqrt(w[keep])  # c = L z
+        self.k = int(keep.sum())
+        self.z_col = cols
+        self.n_par = cols + self.k
         self.whiten = None  # per window: inverse Cholesky factors (distances)
         self.shot_whiten = None  # (G_shots, 3, 3) (GCP)
 
     # -- state ---------------------------------------------------------------------------
 
+    def nuisance(self, st: _State) -> np.ndarray:
+        """``c = L z`` (M, c)."""
+        return st.z @ self.L.T
+
     def rotations(self, st: _State) -> None:
-        """Under 4dof, ``R = exp([omega(t) + tilt]x) R_z(psi)`` (the reference stays I)."""
+        """Under 4dof, ``R = exp([omega(t) + tau_s - tau_ref]x) R_z(psi)`` (the reference
+        stays I)."""
         if self.model != "4dof":
             return
         c, s = np.cos(st.psi), np.sin(st.psi)
         Rz = np.zeros(st.psi.shape + (3, 3))
         Rz[..., 0, 0], Rz[..., 0, 1], Rz[..., 1, 0], Rz[..., 1, 1] = c, -s, s, c
         Rz[..., 2, 2] = 1.0
-        st.R = exp_so3(curvature_tilt(st.t) + st.tilt) @ Rz
+        st.R = exp_so3(curvature_tilt(st.t) + self.tilts(st)) @ Rz
         st.R[:, self.ref] = np.eye(3)
 
+    def tilts(self, st: _State) -> np.ndarray:
+        """Each station's tilt against the reference, ``tau_s - tau_ref`` (M, S, 3), z = 0."""
+        out = np.zeros(st.t.shape)
+        if self.tilt_col >= 0:
+            tau = self.nuisance(st)[:, self.tilt_col:self.tilt_col + 2 * self.S]
+            tau = tau.reshape(-1, self.S, 2)
+            out[..., :2] = tau - tau[:, self.ref:self.ref + 1]
+        return out
+
     def update(self, st: _State, step: np.ndarray) -> _State:
-        """The state moved by ``step`` (M, p)."""
+        """The state moved by ``step`` (M, n_par)."""
         new = st.copy()
+        new.z += step[:, self.z_col:self.z_col + self.k]
         for s in range(self.S):
             a = self.pose_col[s]
             if a < 0:
@@ -447,52 +505,51 @@ class _Problem:
 
     # -- residuals -----------------------------------------------------------------------
 
-    def distance_rows(self, st: _State, data: _Data, jac: bool, consider: bool):
-        """Unwhitened distance residuals (M, K, P) and their Jacobians (M, K, P, p|c)."""
+    def distance_rows(self, st: _State, data: _Data, jac: bool):
+        """Unwhitened distance residuals (M, K, P) and their Jacobian (M, K, P, n_par)."""
         smp = self.samples
         ps = self.prism_station
+        c = self.nuisance(st)
+        alpha = c[:, self.scale_col] if self.c else np.zeros(st.t.shape[0])
         R = st.R[:, ps]  # (M, n, 3, 3)
-        pt = data.p - st.clock[:, ps][:, None, :, None] * smp.velocity[None]
+        pt = data.p * (1.0 + alpha[:, None, None, None]) \
+            - st.clock[:, ps][:, None, :, None] * smp.velocity[None]
         w = np.einsum("mnij,mknj->mkni", R, pt)  # R p~ (M, K, n, 3)
         q = w + st.t[:, ps][:, None]
         i, j = self.pairs[:, 0], self.pairs[:, 1]
         diff = q[:, :, i] - q[:, :, j]  # (M, K, P, 3)
         dist = np.linalg.norm(diff, axis=-1)
-        r = dist - data.d_ref[:, None, :]
-        if not jac and not consider:
-            return r, None, None
+        P = diff.shape[2]
+        r = dist - data.d_ref[:, None, :] - c[:, None, self.survey_col:self.survey_col + P]
+        if not jac:
+            return r, None
         u = diff / dist[..., None]
-        M, K, P = r.shape
-        J = np.zeros((M, K, P, self.p)) if jac else None
-        B = np.zeros((M, K, P, self.c)) if consider else None
-        if consider:
-            B[..., self.survey_col:self.survey_col + P] = -np.eye(P)
-            Rp = np.einsum("mnij,mknj->mkni", R, data.p)
+        M, K = r.shape[:2]
+        J = np.zeros((M, K, P, self.n_par))
+        B = np.zeros((M, K, P, self.c))
+        B[..., self.survey_col:self.survey_col + P] = -np.eye(P)
+        Rp = np.einsum("mnij,mknj->mkni", R, data.p)
         for k in range(P):
             for end, sign in ((i[k], 1.0), (j[k], -1.0)):
+                B[:, :, k, self.scale_col] += sign * np.sum(u[:, :, k] * Rp[:, :, end], axis=-1)
                 s = ps[end]
                 if s == self.ref:
                     continue
                 g = sign * u[:, :, k]  # (M, K, 3)
                 wxg = np.cross(w[:, :, end], g)
-                if jac:
-                    a = self.pose_col[s]
-                    J[:, :, k, a:a + 3] += g
-                    if self.model == "6dof":
-                        J[:, :, k, a + 3:a + 6] += wxg
-                    else:
-                        J[:, :, k, a + 3] += np.einsum("mki,mi->mk", wxg, st.R[:, s, :, 2])
-                    rv = np.einsum("mij,kj->mki", st.R[:, s], smp.velocity[:, end])
-                    J[:, :, k, self.clock_col[s]] -= np.sum(g * rv, axis=-1)
-                if consider:
-                    if self.tilt_col >= 0:
-                        B[:, :, k, self.tilt_col + 2 * s:self.tilt_col + 2 * s + 2] += wxg[..., :2]
-                        r0 = self.tilt_col + 2 * self.ref
-                        B[:, :, k, r0:r0 + 2] -= wxg[..., :2]
-            if consider:
-                B[:, :, k, self.scale_col] = (np.sum(u[:, :, k] * Rp[:, :, i[k]], axis=-1)
-                                              - np.sum(u[:, :, k] * Rp[:, :, j[k]], axis=-1))
-        return r, J, B
+                a = self.pose_col[s]
+                J[:, :, k, a:a + 3] += g
+                if self.model == "6dof":
+                    J[:, :, k, a + 3:a + 6] += wxg
+                else:
+                    J[:, :, k, a + 3] += np.einsum("mki,mi->mk", wxg, st.R[:, s, :, 2])
+                    t0, r0 = self.tilt_col + 2 * s, self.tilt_col + 2 * self.ref
+                    B[:, :, k, t0:t0 + 2] += wxg[..., :2]
+                    B[:, :, k, r0:r0 + 2] -= wxg[..., :2]
+                rv = np.einsum("mij,kj->mki", st.R[:, s], smp.velocity[:, end])
+                J[:, :, k, self.clock_col[s]] -= np.sum(g * rv, axis=-1)
+        J[..., self.z_col:] = B @ self.L
+        return r, J
 
     def distance_covariance(self, st: _State, data: _Data) -> list[np.ndarray]:
         """Per window, the covariance of the residuals (m P, m P) from the GPs' (at ``st``)."""
@@ -536,69 +593,63 @@ class _Problem:
                 L = np.linalg.cholesky(self.gcp["cov"])
                 self.shot_whiten = np.linalg.inv(L) @ np.swapaxes(R, 1, 2)
 
-    def gcp_rows(self, st: _State, data: _Data, jac: bool, consider: bool):
-        """Unwhitened GCP residuals (M, G, 3) and their Jacobians (M, G, 3, p|c)."""
+    def gcp_rows(self, st: _State, data: _Data, jac: bool):
+        """Unwhitened GCP residuals (M, G, 3) and their Jacobian (M, G, 3, n_par)."""
         g = self.gcp
         s_of = g["station"]
         R = st.R[:, s_of]
         w = np.einsum("mgij,mgj->mgi", R, data.shots)
         r = st.x[:, g["marker"]] - w - st.t[:, s_of]
+        if not jac:
+            return r, None
         M, Gs = r.shape[:2]
-        J = B = None
         W = hat(w)  # d r / d dphi = [R p]x
-        if jac:
-            J = np.zeros((M, Gs, 3, self.p))
-            rows = np.arange(Gs)
-            for a in range(3):
-                J[:, rows, a, self.marker_col + 3 * g["marker"] + a] = 1.0
-            for s in range(self.S):
-                c0 = self.pose_col[s]
-                sel = s_of == s
-                if c0 < 0 or not sel.any():
-                    continue
-                J[:, sel, :, c0:c0 + 3] = -np.eye(3)
-                if self.model == "6dof":
-                    J[:, sel, :, c0 + 3:c0 + 6] = W[:, sel]
-                else:
-                    J[..., c0 + 3][:, sel] = np.einsum("mgij,mj->mgi", W[:, sel],
-                                                       st.R[:, s, :, 2])
-        if consider:
-            B = np.zeros((M, Gs, 3, self.c))
-            if self.tilt_col >= 0:
-                for s in range(self.S):
-                    sel = s_of == s
-                    if s == self.ref or not sel.any():
-                        continue
-                    a, r0 = self.tilt_col + 2 * s, self.tilt_col + 2 * self.ref
-                    B[:, sel, :, a:a + 2] += W[:, sel, :, :2]
-                    B[:, sel, :, r0:r0 + 2] -= W[:, sel, :, :2]
-        return r, J, B
+        J = np.zeros((M, Gs, 3, self.n_par))
+        B = np.zeros((M, Gs, 3, self.c))
+        rows = np.arange(Gs)
+        for a in range(3):
+            J[:, rows, a, self.marker_col + 3 * g["marker"] + a] = 1.0
+        for s in range(self.S):
+            c0 = self.pose_col[s]
+            sel = s_of == s
+            if c0 < 0 or not sel.any():
+                continue
+            J[:, sel, :, c0:c0 + 3] = -np.eye(3)
+            if self.model == "6dof":
+                J[:, sel, :, c0 + 3:c0 + 6] = W[:, sel]
+            else:
+                J[..., c0 + 3][:, sel] = np.einsum("mgij,mj->mgi", W[:, sel],
+                                                   st.R[:, s, :, 2])
+                a, r0 = self.tilt_col + 2 * s, self.tilt_col + 2 * self.ref
+                B[:, sel, :, a:a + 2] += W[:, sel, :, :2]
+                B[:, sel, :, r0:r0 + 2] -= W[:, sel, :, :2]
+        J[..., self.z_col:] = B @ self.L
+        return r, J
 
-    def evaluate(self, st: _State, data: _Data, jac: bool = True, consider: bool = False):
-        """Whitened residuals (M, n), Jacobian (M, n, p) and consider Jacobian (M, n, c); the
-        distance rows first."""
-        rs, Js, Bs = [], [], []
+    def evaluate(self, st: _State, data: _Data, jac: bool = True):
+        """Whitened residuals (M, n) and Jacobian (M, n, n_par): the distance rows, the GCP
+        rows, then the nuisance parameters' prior rows ``z - z_obs``."""
+        rs, Js = [], []
+        M = st.t.shape[0]
         if self.samples is not None:
-            r, J, B = self.distance_rows(st, data, jac, consider)
+            r, J = self.distance_rows(st, data, jac)
             P = r.shape[2]
             for idx, L in zip(self.samples.windows, self.whiten, strict=True):
-                rs.append(r[:, idx].reshape(r.shape[0], -1) @ L.T)
+                rs.append(r[:, idx].reshape(M, -1) @ L.T)
                 if jac:
-                    Js.append(L @ J[:, idx].reshape(J.shape[0], idx.size * P, -1))
-                if consider:
-                    Bs.append(L @ B[:, idx].reshape(B.shape[0], idx.size * P, -1))
+                    Js.append(L @ J[:, idx].reshape(M, idx.size * P, -1))
         if self.gcp is not None:
-            r, J, B = self.gcp_rows(st, data, jac, consider)
+            r, J = self.gcp_rows(st, data, jac)
             Wh = self.shot_whiten
-            rs.append(np.einsum("gij,mgj->mgi", Wh, r).reshape(r.shape[0], -1))
+            rs.append(np.einsum("gij,mgj->mgi", Wh, r).reshape(M, -1))
             if jac:
-                Js.append(np.einsum("gij,mgjp->mgip", Wh, J).reshape(J.shape[0], -1, self.p))
-            if consider:
-                Bs.append(np.einsum("gij,mgjp->mgip", Wh, B).reshape(B.shape[0], -1, self.c))
-        r = np.concatenate(rs, axis=1)
-        J = np.concatenate(Js, axis=1) if jac else None
-        B = np.concatenate(Bs, axis=1) if consider else None
-        return r, J, B
+                Js.append(np.einsum("gij,mgjp->mgip", Wh, J).reshape(M, -1, self.n_par))
+        rs.append(st.z - data.z_obs)
+        if jac:
+            prior = np.zeros((M, self.k, self.n_par))
+            prior[:, :, self.z_col:] = np.eye(self.k)
+            Js.append(prior)
+        return np.concatenate(rs, axis=1), (np.concatenate(Js, axis=1) if jac else None)
 
     @property
     def distance_rows_count(self) -> int:
@@ -608,14 +659,14 @@ class _Problem:
 
     # -- the transforms' errors ------------------------------------------------------------
 
-    def output_map(self, st: _State) -> tuple[np.ndarray, np.ndarray]:
-        """Linear maps ``A_theta`` (6 S' + S'', p) and ``A_c`` (.., c) from the unknowns' and
-        the consider parameters' errors to the stacked left perturbations of the non-reference
-        stations (x, y, z, rx, ry, rz each) followed by their clock offsets."""
+    def output_map(self, st: _State) -> np.ndarray:
+        """Linear map (6 S' + S'', n_par) from the parameters' errors to the stacked left
+        perturbations of the non-reference stations (x, y, z, rx, ry, rz each) followed by
+        their clock offsets (under ``4dof`` the estimated tilts enter the rotations)."""
         free = [s for s in range(self.S) if s != self.ref]
         clocks = [s for s in free if self.clock_col[s] >= 0]
         n_out = 6 * len(free) + len(clocks)
-        A = np.zeros((n_out, self.p))
+        A = np.zeros((n_out, self.n_par))
         Ac = np.zeros((n_out, self.c))
         for k, s in enumerate(free):
             a = self.pose_col[s]
@@ -627,9 +678,10 @@ class _Problem:
                 t0, r0 = self.tilt_col + 2 * s, self.tilt_col + 2 * self.ref
                 Ac[6 * k + 3:6 * k + 5, t0:t0 + 2] += np.eye(2)
                 Ac[6 * k + 3:6 * k + 5, r0:r0 + 2] -= np.eye(2)
+        A[:, self.z_col:] = Ac @ self.L
         for k, s in enumerate(clocks):
             A[6 * len(free) + k, self.clock_col[s]] = 1.0
-        return A, Ac
+        return A
 
 
 # ------------------------------------------------------------------------------ solving
@@ -637,8 +689,8 @@ class _Problem:
 
 def _lm(problem: _Problem, st: _State, data: _Data, max_iter: int = 100) -> tuple[_State, int]:
     """Levenberg-Marquardt on the whitened residuals (M = 1)."""
-    r, J, _ = problem.evaluate(st, data)
-    cost = float(r @ r.T) if r.ndim == 1 else float(np.sum(r * r))
+    r, J = problem.evaluate(st, data)
+    cost = float(np.sum(r * r))
     lam = 1e-3
     for it in range(max_iter):
         N = J[0].T @ J[0]
@@ -650,7 +702,7 @@ def _lm(problem: _Problem, st: _State, data: _Data, max_iter: int = 100) -> tupl
             lam *= 10.0
             continue
         new = problem.update(st, step[None])
-        r2, J2, _ = problem.evaluate(new, data)
+        r2, J2 = problem.evaluate(new, data)
         cost2 = float(np.sum(r2 * r2))
         if cost2 <= cost:
             done = cost - cost2 <= 1e-12 * max(cost, 1e-30) or float(
@@ -675,8 +727,8 @@ def _solve(problem: _Problem, st: _State, data: _Data) -> tuple[_State, int, flo
     for _ in range(2):
         problem.set_weights(st, data)
         st, iterations = _lm(problem, st, data)
-    r, _, _ = problem.evaluate(st, data, jac=False)
-    logdet = -2.0 * sum(float(np.sum(np.log(np.abs(np.diag(L))))) for L in problem.whiten)
+    r, _ = problem.evaluate(st, data, jac=False)
+    logdet = -2.0 * sum(float(np.sum(np.log(np.abs(np.diag(L))))) for L in problem.whiten or ())
     return st, iterations, float(np.sum(r * r)) + logdet
 
 
@@ -720,7 +772,7 @@ def _gauss_newton(problem: _Problem, st: _State, data: _Data, iterations: int,
     converges to each sample's own least-squares solution, linearly, at the rate of the
     Jacobian's change, tiny for perturbations of millimetres)."""
     for _ in range(iterations):
-        r, _, _ = problem.evaluate(st, data, jac=False)
+        r, _ = problem.evaluate(st, data, jac=False)
         st = problem.update(st, -(r @ gain.T))
     return st
 
@@ -766,6 +818,9 @@ class DynamicFit:
     height_margin : float
         How much worse (``-2 log`` likelihood) the best fit with mirrored station heights is
         (``inf``: none, or the joint fit, whose GCPs fix the heights).
+    shot_sigma_m : (float, float) or None
+        The joint fit's variance components of the GCP shots, horizontal and vertical, as
+        standard deviations, m (module docstring, section Joint); None for ``"dynamic"``.
     """
 
     method: str
@@ -785,6 +840,7 @@ class DynamicFit:
     worst_sigma_m: dict[str, float] = field(default_factory=dict)
     iterations: int = 0
     height_margin: float = float("inf")
+    shot_sigma_m: tuple[float, float] | None = None
 
     @property
     def verdict(self) -> str:
@@ -804,28 +860,10 @@ class DynamicFit:
                 "worst_sigma_mm": {s: 1e3 * v for s, v in self.worst_sigma_m.items()},
                 "iterations": self.iterations,
                 "height_margin": None if not np.isfinite(self.height_margin)
-                else self.height_margin}
-
-
-def _variance_factor(r: np.ndarray, J: np.ndarray, B: np.ndarray, Cc: np.ndarray,
-                     rows: int) -> tuple[float, float]:
-    """``s0^2`` of the first ``rows`` whitened residuals and Satterthwaite's degrees of
-    freedom (module docstring, section Checks)."""
-    Q = J @ _inverse_cholesky(J.T @ J).T  # J = Q R, R = chol(J^T J)^T
-    w, V = np.linalg.eigh(Cc)
-    Lc = V * np.sqrt(np.clip(w, 0.0, None))
-    Bl = B @ Lc
-    Bl = Bl - Q @ (Q.T @ Bl)  # (I - P) B Lc
-    Qd, Bd = Q[:rows], Bl[:rows]
-    qq = Qd.T @ Qd
-    tr_ip = rows - np.trace(qq)
-    tr_ip2 = rows - 2.0 * np.trace(qq) + np.sum(qq * qq)
-    bb = Bd.T @ Bd
-    b_ip_b = np.trace(bb) - np.sum((Qd.T @ Bd) ** 2)
-    mean = tr_ip + np.trace(bb)
-    var = 2.0 * (tr_ip2 + 2.0 * b_ip_b + np.sum(bb * bb))
-    dof = 2.0 * mean * mean / var
-    return float(np.sum(r[:rows] ** 2) / mean), float(dof)
+                else self.height_margin,
+                "gcp_shot_sigma_mm": None if self.shot_sigma_m is None
+                else {"horizontal": 1e3 * self.shot_sigma_m[0],
+                      "vertical": 1e3 * self.shot_sigma_m[1]}}
 
 
 def _initial(samples: DistanceSamples, stations: list[str], ref: str):
@@ -864,10 +902,11 @@ def _levelled_start(samples: DistanceSamples, stations: list[str], ref: str,
     S = len(stations)
     st = _State(np.stack([init[s][0] for s in stations])[None],
                 np.stack([init[s][1] for s in stations])[None], np.zeros((1, S)),
-                np.zeros((1, S)), np.zeros((1, 0, 3)), np.zeros((1, S, 3)))
+                np.zeros((1, S)), np.zeros((1, 0, 3)), np.zeros((1, problem.k)))
     st.psi = _yaw(st.R)
     problem.rotations(st)
-    data = _Data(samples.xyz[None], samples.reference_distance[None], np.zeros((1, 0, 3)))
+    data = _Data(samples.xyz[None], samples.reference_distance[None], np.zeros((1, 0, 3)),
+                 np.zeros((1, problem.k)))
     st, _, nll = _solve(problem, st, data)
     best = _heights(problem, st, data, nll)[0][1]
     return {s: (best.R[0, k], best.t[0, k]) for k, s in enumerate(stations)}
@@ -886,11 +925,58 @@ def _gcp_layout(shots: GcpShots, ref: str, stations: list[str], instrument: Inst
             st.append(stations.index(s))
             mk.append(markers.index(m))
     idx = np.array(idx)
-    C = _with_extra(polar_point_covariance(setup.hz[idx], setup.v[idx], setup.d[idx],
-                                           instrument), extra)
+    C = polar_point_covariance(setup.hz[idx], setup.v[idx], setup.d[idx], instrument)
     return {"index": idx, "station": np.array(st), "marker": np.array(mk),
-            "markers": len(markers), "points": setup.points[idx], "cov": C,
-            "hz": setup.hz[idx], "v": setup.v[idx], "d": setup.d[idx]}, setup
+            "markers": len(markers), "points": setup.points[idx], "instrument_cov": C,
+            "cov": _with_extra(C, extra), "hz": setup.hz[idx], "v": setup.v[idx],
+            "d": setup.d[idx]}, setup
+
+
+def _gcp_horizontal_component(layout: dict, extra: np.ndarray, stations: list[str], ref: str,
+                              model: str, sigma_tilt: float, init: dict) -> np.ndarray:
+    """The shots' variance components for the joint fit (module docstring, section Joint):
+    the GCP calibration's ``(horizontal, vertical)``, with the horizontal one raised, where the
+    generalised least-squares fit of the GCPs alone has a variance factor above its 95 %
+    interval, to the value that brings it to 1 (bisection on the variance)."""
+    S = len(stations)
+
+    def factor(h: float) -> float:
+        e = np.array([extra[0] + h, extra[1]])
+        lay = {**layout, "cov": _with_extra(layout["instrument_cov"], e)}
+        problem = _Problem(None, stations, ref, model, lay, sigma_tilt)
+        st = _State(np.stack([init[s][0] for s in stations])[None],
+                    np.stack([init[s][1] for s in stations])[None], np.zeros((1, S)),
+                    np.zeros((1, S)), _marker_start(lay, init, stations)[None],
+                    np.zeros((1, problem.k)))
+        st.psi = _yaw(st.R)
+        problem.rotations(st)
+        data = _Data(np.zeros((1, 0, 0, 3)), np.zeros((1, 0)), lay["points"][None],
+                     np.zeros((1, problem.k)))
+        st, _, _ = _solve(problem, st, data)
+        r, _ = problem.evaluate(st, data, jac=False)
+        return float(np.sum(r * r)) / (r.size - problem.n_par), r.size - problem.n_par
+
+    f0, dof = factor(0.0)
+    if f0 <= ratio_interval(dof)[1]:
+        return extra
+    hi = 1e-8
+    while factor(hi)[0] > 1.0 and hi < 1.0:
+        hi *= 4.0
+    lo = 0.0
+    for _ in range(40):  # bisection on the variance, to 1e-12 relative
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if factor(mid)[0] > 1.0 else (lo, mid)
+    return np.array([extra[0] + hi, extra[1]])
+
+
+def _marker_start(layout: dict, init: dict, stations: list[str]) -> np.ndarray:
+    """Each marker's world position, the mean of its shots mapped by ``init``."""
+    R = np.stack([init[s][0] for s in stations])[layout["station"]]
+    t = np.stack([init[s][1] for s in stations])[layout["station"]]
+    w = np.einsum("gij,gj->gi", R, layout["points"]) + t
+    x = np.zeros((layout["markers"], 3))
+    np.add.at(x, layout["marker"], w)
+    return x / np.bincount(layout["marker"], minlength=layout["markers"])[:, None]
 
 
 def calibrate_dynamic(
@@ -972,6 +1058,10 @@ def calibrate_dynamic(
     if joint:
         extra = np.array(gcp_calibration.extra_shot_sigma_m) ** 2
         layout, setup = _gcp_layout(gcp, ref, stations, instrument, extra)
+        init = {s: (T.rotation, T.translation) for s, T in gcp_calibration.transforms.items()}
+        extra = _gcp_horizontal_component(layout, extra, stations, ref, model,
+                                          instrument.sigma_tilt, init)
+        layout["cov"] = _with_extra(layout["instrument_cov"], extra)
     else:
         layout, setup, extra = None, None, np.zeros(2)
     S = len(stations)
@@ -985,19 +1075,16 @@ def calibrate_dynamic(
                     if model == "6dof" else _initial(samples, stations, ref))
         st = _State(np.stack([init[s][0] for s in stations])[None],
                     np.stack([init[s][1] for s in stations])[None],
-                    np.zeros((1, S)), np.zeros((1, S)), np.zeros((1, 0, 3)), np.zeros((1, S, 3)))
+                    np.zeros((1, S)), np.zeros((1, S)), np.zeros((1, 0, 3)),
+                    np.zeros((1, problem.k)))
         st.psi = _yaw(st.R)
         problem.rotations(st)
         data = _Data(np.zeros((1, 0, 0, 3)) if samples is None else samples.xyz[None],
                      np.zeros((1, 0)) if samples is None else samples.reference_distance[None],
-                     np.zeros((1, 0, 3)) if layout is None else layout["points"][None])
+                     np.zeros((1, 0, 3)) if layout is None else layout["points"][None],
+                     np.zeros((1, problem.k)))
         if joint:  # markers: the mean of their shots in the world frame
-            w = np.einsum("gij,gj->gi", st.R[0, layout["station"]], layout["points"]) \
-                + st.t[0, layout["station"]]
-            x = np.zeros((layout["markers"], 3))
-            np.add.at(x, layout["marker"], w)
-            x /= np.bincount(layout["marker"], minlength=layout["markers"])[:, None]
-            st.x = x[None]
+            st.x = _marker_start(layout, init, stations)[None]
         st, iterations, nll = _solve(problem, st, data)
         ambiguity = float("inf")
         if not joint:  # the mirrored heights
@@ -1007,7 +1094,7 @@ def calibrate_dynamic(
                 ambiguity = alternative[0] - nll
         if samples is None:
             break
-        r = problem.distance_rows(st, data, False, False)[0][0]
+        r = problem.distance_rows(st, data, False)[0][0]
         bad = np.any(np.abs(r) > gate_m, axis=1)
         if not bad.any():
             break
@@ -1019,8 +1106,8 @@ def calibrate_dynamic(
         samples = samples.select(~bad)
 
     # linearisation at the solution
-    r, J, B = problem.evaluate(st, data, consider=True)
-    r, J, B = r[0], J[0], B[0]
+    r, J = problem.evaluate(st, data)
+    r, J = r[0], J[0]
     N = J.T @ J
     d = np.sqrt(np.maximum(np.diag(N), 1e-300))
     Ns = N / np.outer(d, d)
@@ -1031,13 +1118,9 @@ def calibrate_dynamic(
             f"(normal matrix singular, condition number {cond:.3g}); drive a path that turns "
             "and changes direction, or calibrate from the GCPs (method \"gcp\" or \"joint\")")
     Ninv = np.linalg.inv(N)
-    Sm = Ninv @ J.T @ B
-    cov_theta = Ninv + Sm @ problem.Cc @ Sm.T
-    cov_tc = -Sm @ problem.Cc
-    A, Ac = problem.output_map(st)
-    full = np.block([[cov_theta, cov_tc], [cov_tc.T, problem.Cc]])
-    Aall = np.concatenate([A, Ac], axis=1)
-    cov_out = Aall @ full @ Aall.T
+    Ninv = 0.5 * (Ninv + Ninv.T)
+    A = problem.output_map(st)
+    cov_out = A @ Ninv @ A.T
     cov_out = 0.5 * (cov_out + cov_out.T)
     free = [s for s in stations if s != ref]
     clocks = [s for s in free if problem.clock_col[stations.index(s)] >= 0]
@@ -1080,7 +1163,7 @@ def calibrate_dynamic(
     # the samples of the transforms (and of the clocks)
     M = int(n_samples)
     if engine == "linear":
-        z = sample_gaussian(full, M, rng) @ Aall.T  # (M, 6 S' + clocks)
+        z = sample_gaussian(Ninv, M, rng) @ A.T  # (M, 6 S' + clocks)
     else:
         z = _monte_carlo(problem, st, data, layout, extra, instrument, M, rng, free,
                          Ninv @ J.T)
@@ -1105,12 +1188,11 @@ def calibrate_dynamic(
     clock_sigma = {s: float(np.sqrt(cov_out[n_free + k, n_free + k]))
                    for k, s in enumerate(clocks)}
 
-    vf, dof, pair_mean, pair_rms = float("nan"), float("nan"), {}, {}
-    pair_names = ()
+    pair_mean, pair_rms, pair_names = {}, {}, ()
+    dof = float(r.size - problem.n_par)
+    vf = float(r @ r) / dof if dof > 0 else float("nan")
     if samples is not None:
-        rows = problem.distance_rows_count
-        vf, dof = _variance_factor(r, J, B, problem.Cc, rows)
-        rd = problem.distance_rows(st, data, False, False)[0][0]
+        rd = problem.distance_rows(st, data, False)[0][0]
         pair_names = tuple(f"{samples.prisms[i]}-{samples.prisms[j]}" for i, j in samples.pairs)
         pair_mean = {p: float(1e3 * rd[:, k].mean()) for k, p in enumerate(pair_names)}
         pair_rms = {p: float(1e3 * np.sqrt(np.mean(rd[:, k] ** 2)))
@@ -1119,7 +1201,8 @@ def calibrate_dynamic(
                      0 if samples is None else len(samples), rejected, pair_names, tuple(free),
                      clock, clock_sigma, cov_out, vf, dof,
                      ratio_interval(dof) if np.isfinite(dof) else (float("nan"), float("nan")),
-                     pair_mean, pair_rms, worst, iterations, ambiguity)
+                     pair_mean, pair_rms, worst, iterations, ambiguity,
+                     (float(np.sqrt(extra[0])), float(np.sqrt(extra[1]))) if joint else None)
     if joint:
         R = {s: st.R[0, stations.index(s)] for s in stations}
         t = {s: st.t[0, stations.index(s)] for s in stations}
@@ -1136,13 +1219,12 @@ def calibrate_dynamic(
 def _monte_carlo(problem: _Problem, st: _State, data: _Data, layout: dict | None,
                  extra: np.ndarray, instrument: InstrumentProfile, M: int,
                  rng: np.random.Generator, free: list[str], gain: np.ndarray) -> np.ndarray:
-    """(M, 6 S' + clocks) left perturbations and clock offsets of the refitted samples
+    """(M, 6 S' + clocks) left perturbations and clock-offset errors of the refitted samples
     (module docstring, section Covariance)."""
     smp = problem.samples
     stations = problem.stations
-    S = problem.S
-    # every draw first, in a fixed order: GP errors per window and prism, survey, scale,
-    # compensators, GCP shots
+    # every draw first, in a fixed order: the GP errors per window and prism, the nuisance
+    # parameters' prior observations, the GCP shots
     p = data.p
     if smp is not None:
         e = np.zeros((M,) + smp.xyz.shape)
@@ -1151,15 +1233,8 @@ def _monte_carlo(problem: _Problem, st: _State, data: _Data, layout: dict | None
             for i in range(G.shape[0]):
                 cov = np.swapaxes(G[i], 1, 2).reshape(3 * m, 3 * m)  # (a, x), (b, y)
                 e[:, idx, i] = sample_gaussian(cov, M, rng).reshape(M, m, 3)
-        d_ref = data.d_ref + sample_gaussian(smp.reference_distance_cov, M, rng)
-        alpha = rng.standard_normal(M) * np.sqrt(smp.scale_variance)
-        p = data.p + e + alpha[:, None, None, None] * data.p
-    else:
-        d_ref = np.broadcast_to(data.d_ref, (M,) + data.d_ref.shape[1:])
-    tilt = np.zeros((M, S, 3))
-    if problem.model == "4dof":
-        comp = rng.standard_normal((M, S, 2)) * instrument.sigma_tilt
-        tilt[..., :2] = comp - comp[:, problem.ref:problem.ref + 1]
+        p = data.p + e
+    z_obs = rng.standard_normal((M, problem.k))
     shots = data.shots
     if layout is not None:
         hz, v, d = sample_polar_errors(layout["hz"], layout["v"], layout["d"], instrument, M, rng)
@@ -1173,11 +1248,10 @@ def _monte_carlo(problem: _Problem, st: _State, data: _Data, layout: dict | None
     for a in range(0, M, chunk):
         sl = slice(a, min(M, a + chunk))
         m = sl.stop - sl.start
-        s0 = _State(*(np.repeat(x, m, axis=0) for x in (st.R, st.t, st.psi, st.clock, st.x)),
-                    tilt[sl].copy())
-        problem.rotations(s0)
-        dm = _Data(p[sl] if p.shape[0] > 1 else p, d_ref[sl] if d_ref.shape[0] > 1 else d_ref,
-                   shots[sl] if shots.shape[0] > 1 else shots)
+        s0 = _State(*(np.repeat(x, m, axis=0) for x in (st.R, st.t, st.psi, st.clock, st.x,
+                                                         st.z)))
+        dm = _Data(p[sl] if p.shape[0] > 1 else p, data.d_ref,
+                   shots[sl] if shots.shape[0] > 1 else shots, z_obs[sl])
         sm = _gauss_newton(problem, s0, dm, MC_ITERATIONS, gain)
         parts = []
         for s in free:
