@@ -359,3 +359,58 @@ def test_calibrate_command_refuses_what_it_cannot_do():
     assert res.exit_code == 2 and "give one" in res.output
     res = runner.invoke(app, ["calibrate", str(EXAMPLE_TOML), "--method", "motion"])
     assert res.exit_code == 2 and "gcp or dynamic or joint" in res.output
+
+
+@pytest.mark.slow
+def test_simulated_deployments_the_whole_chain(tmp_path):
+    """Six simulated deployments of 400 s whose clocks are 3 ms off (+-1 ms, signs at random),
+    through the pipeline's own inputs (the tracks in the stations' frames, their GPs): the
+    dynamic and the joint calibrations are near the truth in their own sigma, the clock offsets
+    are found, and the joint sigma is below the GCP calibration's for every station. The
+    pooled NEES of 6 deployments (72 dof) is only a coarse check (+-0.17 at one sigma);
+    benchmarks/calibration_dynamic.py pools 60."""
+    from rtsgt.filtering import module1
+    from rtsgt.io.deployment import load_deployment
+    from rtsgt.noise import NoiseModel
+    from rtsgt.pipeline import calibration_samples
+    from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
+
+    nees, dof, clock_z, refused = {"dynamic": 0.0, "joint": 0.0}, {"dynamic": 0, "joint": 0}, [], 0
+    for seed in range(9100, 9106):
+        cfg = SimulationConfig(duration_s=400.0, time_sync_mean_s=3e-3, time_sync_std_s=1e-3)
+        sim = simulate_deployment(cfg, np.random.default_rng(seed))
+        data, opts = load_deployment(write_deployment(sim, tmp_path / f"dep{seed}"))
+        truth = sim.truth
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            filtered = [module1(o, opts.filter)[0] for o in data.observations]
+            smp = calibration_samples(data, filtered, NoiseModel(instrument=data.instrument),
+                                      opts)
+            gcp = calibrate(data.gcp, samples=300, rng=np.random.default_rng(seed))
+            results = {"joint": calibrate_dynamic(
+                smp, gcp=data.gcp, gcp_calibration=calibrate(data.gcp, samples=0),
+                n_samples=10, rng=np.random.default_rng(seed))}
+            try:
+                results["dynamic"] = calibrate_dynamic(smp, n_samples=10,
+                                                       rng=np.random.default_rng(seed))
+            except GeometryError:
+                refused += 1
+        for name, r in results.items():
+            e = np.concatenate([perturbation(truth.T_world_station[s].rotation,
+                                             truth.T_world_station[s].translation,
+                                             r.transforms[s].rotation,
+                                             r.transforms[s].translation) for s in ("2", "3")])
+            clk = np.array([r.dynamic.clock_offset_s[s] - (truth.clock_offset_s[s]
+                                                         - truth.clock_offset_s["1"])
+                            for s in ("2", "3")])
+            x = np.concatenate([e, clk])
+            nees[name] += float(x @ np.linalg.solve(r.dynamic.covariance, x))
+            dof[name] += 14
+            clock_z += list(clk / np.array([r.dynamic.clock_sigma_s[s] for s in ("2", "3")]))
+        for s in ("2", "3"):
+            assert (np.trace(results["joint"].transforms[s].covariance[:3, :3])
+                    < np.trace(gcp.transforms[s].covariance[:3, :3])), (seed, s)
+    assert refused <= 2 and dof["dynamic"] >= 4 * 14
+    for name in ("dynamic", "joint"):
+        assert 0.5 < nees[name] / dof[name] < 1.6, (name, nees[name] / dof[name])
+    assert np.mean(np.square(clock_z)) < 2.0, np.round(clock_z, 2)
