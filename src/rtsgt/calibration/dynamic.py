@@ -161,9 +161,10 @@ from scipy.linalg import lapack
 from rtsgt.calibration.gcp import (
     CALIBRATION_METHOD_NAMES,
     CALIBRATION_METHODS,
-    CALIBRATION_MODELS,
     CalibrationResult,
     MarkerResiduals,
+    _check_args,
+    _natural_key,
     _residuals,
     _setup,
     _with_extra,
@@ -176,6 +177,7 @@ from rtsgt.geometry.so3 import exp_so3, hat
 from rtsgt.geometry.transform import RigidTransform, perturb, perturbation
 from rtsgt.interpolation.cross import gp_joint_covariance
 from rtsgt.interpolation.gp import GPTrack
+from rtsgt.interpolation.prisms import query_grid
 from rtsgt.measurement.instruments import TRIMBLE_S7, InstrumentProfile
 from rtsgt.measurement.polar import polar_to_cartesian
 from rtsgt.noise.montecarlo import sample_gaussian
@@ -273,14 +275,10 @@ class DistanceSamples:
 
 def sample_times(gps: dict[str, GPTrack], intervals: np.ndarray,
                  step_s: float = SAMPLE_STEP_S) -> np.ndarray:
-    """Times every ``step_s`` seconds inside the ``intervals`` (K, 2) where every GP answers
+    """Times every ``step_s`` seconds inside the ``intervals`` (K, 2)
+    (:func:`rtsgt.interpolation.prisms.query_grid`) where every GP answers
     (:meth:`rtsgt.interpolation.gp.GPTrack.supported`), s."""
-    parts = []
-    for a, b in np.asarray(intervals, dtype=float).reshape(-1, 2):
-        k0, k1 = np.ceil(a / step_s - 1e-9), np.floor(b / step_s + 1e-9)
-        if k1 >= k0:
-            parts.append(np.arange(k0, k1 + 1) * step_s)
-    t = np.concatenate(parts) if parts else np.empty(0)
+    t = query_grid(intervals, 1.0 / step_s)
     ok = np.ones(t.shape, bool)
     for g in gps.values():
         ok &= g.supported(t)
@@ -917,7 +915,7 @@ def _gcp_layout(shots: GcpShots, ref: str, stations: list[str], instrument: Inst
     """The valid GCP shots of the markers shared with the reference, as
     :func:`rtsgt.calibration.gcp.calibrate` uses them."""
     setup = _setup(shots, ref, instrument)
-    markers = sorted(setup.used_markers, key=lambda m: (len(m), m))
+    markers = sorted(setup.used_markers, key=_natural_key)
     idx, st, mk = [], [], []
     for (s, m), k in setup.shot.items():
         if m in setup.used_markers and s in stations:
@@ -1034,9 +1032,7 @@ def calibrate_dynamic(
     InputError
         A station tracks no prism (dynamic), too few samples, bad arguments.
     """
-    if model not in CALIBRATION_MODELS:
-        raise InputError(f"Expected a calibration model {' or '.join(map(repr, CALIBRATION_MODELS))}"
-                         f", got {model!r}")
+    _check_args(instrument, False, model)
     if engine not in DYNAMIC_ENGINES:
         raise InputError(f"Expected engine {' or '.join(map(repr, DYNAMIC_ENGINES))}, "
                          f"got {engine!r}")
@@ -1054,7 +1050,7 @@ def calibrate_dynamic(
     if joint:
         names |= set(gcp_calibration.transforms)
     names.add(ref)
-    stations = sorted(names, key=lambda s: (0, int(s), s) if s.isdigit() else (1, 0, s))
+    stations = sorted(names, key=_natural_key)
     if joint:
         extra = np.array(gcp_calibration.extra_shot_sigma_m) ** 2
         layout, setup = _gcp_layout(gcp, ref, stations, instrument, extra)
