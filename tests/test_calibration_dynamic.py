@@ -286,7 +286,7 @@ def test_the_toml_sets_the_method(tmp_path):
         load_config(cfg)
 
 
-def test_a_joint_run_records_its_calibration(tmp_path):
+def test_a_joint_run_records_its_calibration(tmp_path, capsys):
     """The pipeline with the joint calibration: its self-check, the coupling of the stations
     from its samples, summary.json's method and a run read back with it."""
     from rtsgt.io.deployment import load_deployment
@@ -318,6 +318,15 @@ def test_a_joint_run_records_its_calibration(tmp_path):
     assert summary["calibration"]["method"] == "joint"
     assert summary["self_checks"]["dynamic_calibration"]["method"] == "joint"
     assert read_run(out).options.calibration.method == "joint"
+    # the run's table and the report show it
+    from rtsgt.cli.common import print_run_summary
+    from rtsgt.report.html import _self_checks_html
+
+    html = _self_checks_html(summary["self_checks"])
+    assert "check-dynamic-calibration" in html and "check-dynamic-clocks" in html
+    print_run_summary(rec, out)
+    shown = capsys.readouterr().out
+    assert "calibration method" in shown and "clock offset, station 2" in shown
 
 
 def test_calibrate_command_on_the_excerpt():
