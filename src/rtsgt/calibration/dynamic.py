@@ -78,11 +78,15 @@ brings it to 1 (bisection), on top of the GCP calibration's components.
 Solution
 --------
 Levenberg-Marquardt from an initial guess: the GCP calibration for ``"joint"``; for
-``"dynamic"`` the levelled (yaw and translation) fit of each station's prism trajectory onto
-the reference station's, wrong by about the prisms' spacing (a metre), refined under
-``"4dof"`` and, for ``"6dof"``, used as the start of the free rotation (total stations are
-levelled to arcminutes; a start from a few milliradians off level converges, one from a degree
-may not, and its variance factor then says so). Every fit is made unweighted, then weighted,
+``"dynamic"`` a levelled transform of each station from the distance between its prism and the
+reference station's (:func:`_initial`: for the right yaw, the points
+``q_ref - R_z(psi) p_s`` lie at the surveyed distance from the station, on a horizontal circle
+while the robot turns; the yaw is found on a grid and the circle fitted in closed form, to a
+few centimetres and hundredths of a degree), refined under ``"4dof"`` and, for ``"6dof"``, used
+as the start of the free rotation (total stations are levelled to arcminutes; a start from a
+few milliradians off level converges, one from a degree may not, and its variance factor then
+says so). (A rigid fit of each station's prism trajectory onto the reference station's, wrong
+by the prisms' lever arm, a metre, led the fit astray on 1 of 60 simulated deployments.) Every fit is made unweighted, then weighted,
 and weighted again with the whitening of its solution. Because driving on nearly flat ground
 leaves the heights of the stations nearly mirrored about the reference's prism (section Checks),
 the fit is started again from every combination of mirrored heights and the best kept. Samples
@@ -172,7 +176,6 @@ from rtsgt.calibration.gcp import (
     polar_point_covariance,
 )
 from rtsgt.errors import GeometryError, InputError
-from rtsgt.geometry.kabsch import kabsch_yaw
 from rtsgt.geometry.so3 import exp_so3, hat
 from rtsgt.geometry.transform import RigidTransform, perturb, perturbation
 from rtsgt.interpolation.cross import gp_joint_covariance
@@ -864,14 +867,43 @@ class DynamicFit:
                       "vertical": 1e3 * self.shot_sigma_m[1]}}
 
 
+def _circle_fits(psi: np.ndarray, p: np.ndarray, q: np.ndarray):
+    """For each yaw ``psi`` (N,), the horizontal circle through ``c_k = q_k - R_z(psi) p_k``
+    (Kasa's algebraic fit): its RMS geometric residual (N,), centre (N, 2), radius (N,), the
+    mean height of the ``c_k`` (N,) and the condition number of the fit (N,)."""
+    c, s = np.cos(psi), np.sin(psi)
+    x = q[None, :, 0] - (c[:, None] * p[None, :, 0] - s[:, None] * p[None, :, 1])
+    y = q[None, :, 1] - (s[:, None] * p[None, :, 0] + c[:, None] * p[None, :, 1])
+    x0, y0 = x.mean(axis=1, keepdims=True), y.mean(axis=1, keepdims=True)
+    x, y = x - x0, y - y0  # centred: a well-conditioned fit
+    A = np.stack([2 * x, 2 * y, np.ones_like(x)], -1)  # (N, K, 3)
+    AtA = np.einsum("nki,nkj->nij", A, A)
+    cond = np.linalg.cond(AtA)
+    ridge = 1e-12 * np.trace(AtA, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+    sol = np.linalg.solve(AtA + ridge, np.einsum("nki,nk->ni", A, x * x + y * y)[..., None])[..., 0]
+    radius = np.sqrt(np.maximum(sol[:, 2] + np.sum(sol[:, :2] ** 2, axis=1), 0.0))
+    dist = np.hypot(x - sol[:, :1], y - sol[:, 1:2])
+    centre = sol[:, :2] + np.concatenate([x0, y0], axis=1)
+    cost = np.sqrt(np.mean((dist - radius[:, None]) ** 2, axis=1))
+    cz = np.mean(q[None, :, 2] - (p[None, :, 2]), axis=1) * np.ones_like(psi)
+    return cost, centre, radius, cz, cond
+
+
 def _initial(samples: DistanceSamples, stations: list[str], ref: str):
-    """Each station's prism trajectory fitted onto the reference station's, levelled (yaw and
-    translation; module docstring, section Solution)."""
+    """Each station's levelled transform from the distance between its prism and the reference
+    station's (module docstring, section Solution): with ``R = R_z(psi)``, the points
+    ``c_k = q_ref(t_k) - R p_s(t_k)`` lie at the surveyed distance ``d`` from the station's
+    position ``t``; while the robot turns they trace a horizontal circle about it. So for every
+    yaw on a grid of 0.5 degrees (then 0.025 degrees about the best) the circle through the
+    ``c_k`` is fitted (Kasa's algebraic fit), and the yaw whose points lie best on a circle is
+    taken, with ``t`` its centre, raised by ``sqrt(d^2 - r^2)`` (the sign is the height
+    ambiguity that :func:`_heights` settles)."""
     st_of = list(samples.stations)
     if ref not in st_of:
         raise InputError(f"the dynamic calibration needs the reference station {ref} to track "
                          "a prism (its frame is the world frame)")
-    q = samples.xyz[:, st_of.index(ref)]
+    i_ref = st_of.index(ref)
+    q = samples.xyz[:, i_ref]
     out = {ref: (np.eye(3), np.zeros(3))}
     for s in stations:
         if s == ref:
@@ -879,15 +911,25 @@ def _initial(samples: DistanceSamples, stations: list[str], ref: str):
         if s not in st_of:
             raise InputError(f"station {s} tracks no prism: the robot's motion cannot "
                              "calibrate it (use [calibration] method = \"gcp\" or \"joint\")")
-        p = samples.xyz[:, st_of.index(s)]
-        try:
-            R, t = kabsch_yaw(p, q)
-        except GeometryError as exc:
+        i_s = st_of.index(s)
+        k = list(samples.pairs).index((min(i_ref, i_s), max(i_ref, i_s)))
+        d = float(samples.reference_distance[k])
+        p = samples.xyz[:, i_s]
+        psi = np.radians(np.arange(-180.0, 180.0, 0.5))
+        best = psi[np.argmin(_circle_fits(psi, p, q)[0])]
+        psi = best + np.radians(np.arange(-0.5, 0.5001, 0.025))
+        cost, centre, radius, cz, cond = _circle_fits(psi, p, q)
+        j = int(np.argmin(cost))
+        if not cond[j] < _MAX_CONDITION:
             raise GeometryError(
                 f"dynamic calibration of station {s}: the trajectory does not determine the "
-                f"stations' transforms ({exc}); drive a path that turns, or calibrate from "
-                "the GCPs") from None
-        out[s] = (R, t)
+                "stations' transforms (the robot does not turn: the distance between the "
+                "prisms never changes direction); drive a path that turns and changes "
+                "direction, or calibrate from the GCPs (method \"gcp\" or \"joint\")")
+        height = np.sqrt(max(d * d - radius[j] ** 2, 0.0))
+        c, sn = np.cos(psi[j]), np.sin(psi[j])
+        R = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
+        out[s] = (R, np.array([centre[j, 0], centre[j, 1], cz[j] + height]))
     return out
 
 
