@@ -47,8 +47,13 @@ MOTION_PRIORS: tuple[str, ...] = get_args(MotionPrior)
 #: out and fit again (rtsgt), or keep them (the paper).
 OutlierWindows = Literal["remove", "keep"]
 OUTLIER_WINDOWS: tuple[str, ...] = get_args(OutlierWindows)
+#: The GP's motion prior: white noise on the acceleration (the paper's), on the jerk, or the
+#: one of the two whose held-out windows each track predicts better.
+MotionModel = Literal["select", "wnoa", "wnoj"]
+PRIOR_CHOICES: tuple[str, ...] = get_args(MotionModel)
 
-__all__ = ["GP_NOISE", "MOTION_PRIORS", "OUTLIER_WINDOWS", "QC_METHODS", "RANDOM_STAGES",
+__all__ = ["GP_NOISE", "MOTION_PRIORS", "OUTLIER_WINDOWS", "PRIOR_CHOICES", "QC_METHODS",
+           "RANDOM_STAGES",
            "InterpolationOptions", "PoseOptions", "RunOptions", "stage_rng"]
 
 
@@ -89,6 +94,11 @@ class InterpolationOptions:
         The measurements inside the windows of poses the distance gate rejects (a station
         tracking another prism): left out of the GP fits, which are fitted again
         (:mod:`rtsgt.filtering.gates`), or kept in them (the paper).
+    prior : {"wnoa", "select", "wnoj"}
+        The GP's motion prior: white noise on the acceleration (the paper's), on the jerk, or
+        per track the one whose held-out windows of 1-2 s it predicts better
+        (:func:`rtsgt.interpolation.prisms.fit_gps`; with a ``qc`` given as a number,
+        ``"select"`` is WNOA: the number is a WNOA PSD).
     """
 
     rate_hz: float = 5.0
@@ -97,6 +107,7 @@ class InterpolationOptions:
     gp_noise: GpNoise = "white"
     motion_prior: MotionPrior = "classes"
     outlier_windows: OutlierWindows = "remove"
+    prior: MotionModel = "wnoa"
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
@@ -117,6 +128,9 @@ class InterpolationOptions:
         if self.outlier_windows not in OUTLIER_WINDOWS:
             raise InputError(f"Expected outlier_windows {' or '.join(map(repr, OUTLIER_WINDOWS))}"
                              f", got {self.outlier_windows!r}")
+        if self.prior not in PRIOR_CHOICES:
+            raise InputError(f"Expected prior {', '.join(map(repr, PRIOR_CHOICES))}, got "
+                             f"{self.prior!r}")
 
 
 @dataclass(frozen=True)
@@ -174,7 +188,7 @@ class RunOptions:
         """A copy with ``changes``, keyed by the flat names of the command line: ``seed``,
         ``filter``, ``noise``, or a field of a nested record (``engine``, ``samples``,
         ``rate_hz``, ``qc``, ``max_gap_s``, ``gp_noise``, ``motion_prior``,
-        ``outlier_windows``, the gates); each value meets its
+        ``outlier_windows``, ``prior``, the gates); each value meets its
         record's rule (:class:`~rtsgt.errors.InputError` otherwise)."""
         top = {k: v for k, v in changes.items() if k in _TOP_FIELDS}
         for part, record in _NESTED.items():
