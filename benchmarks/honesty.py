@@ -15,8 +15,9 @@ number of deployments, not of poses: about +-0.04 on ``mean / dof`` for 120 depl
 instrument's noise; ``no-<source>`` drops one), to see which one drives a discrepancy.
 ``--prior`` sets the GP's motion prior (``[interpolation] prior``; default: the option's
 default). Also printed per engine: how many tracks got each prior, and per regime of the block
-cross-validation self-check the share of deployments it flags (optimistic or pessimistic; the
-simulation has none of the reality effects, so every flag is a false alarm or a model error).
+cross-validation self-check the pooled NEES / dof and the share of deployments it flags
+optimistic and pessimistic (the simulation has none of the reality effects, so every flag is a
+false alarm or a model error).
 """
 
 from __future__ import annotations
@@ -72,13 +73,18 @@ def pooled(engine: str, seeds, duration: float, samples: int, flags: dict, tmp: 
             priors[g] = priors.get(g, 0) + 1
         cv = result.self_checks["block_cv"]
         for name, v in [("overall", cv["overall"]), *cv["regimes"].items()]:
-            bad = v.get("verdict") in ("optimistic", "pessimistic")
-            cv_flags[name] = cv_flags.get(name, 0) + int(bad)
+            f = cv_flags.setdefault(name, {"optimistic": 0, "pessimistic": 0, "nees": 0.0,
+                                           "dof": 0})
+            if v.get("verdict") in ("optimistic", "pessimistic"):
+                f[v["verdict"]] += 1
+            if v.get("nees_per_dof") is not None:
+                f["nees"] += v["nees_per_dof"] * 3 * v["measurements"]
+                f["dof"] += 3 * v["measurements"]
     a3, a6 = np.concatenate(n3), np.concatenate(n6)
     return {"poses": a3.size, "nees3": a3.mean() / 3, "in3": np.mean(a3 <= chi2.ppf(0.95, 3)),
             "nees6": a6.mean() / 6, "in6": np.mean(a6 <= chi2.ppf(0.95, 6)),
             "err_mm": 1e3 * np.median(np.concatenate(err)), "priors": priors,
-            "cv_flags": {k: v / len(seeds) for k, v in cv_flags.items()}}
+            "cv": cv_flags, "deployments": len(seeds)}
 
 
 def main(argv=None) -> None:
@@ -104,8 +110,11 @@ def main(argv=None) -> None:
             print(f"{engine:<7} {r['poses']:>7d} {r['nees3']:>8.3f} {r['in3']:>7.3f} "
                   f"{r['nees6']:>8.3f} {r['in6']:>7.3f} {r['err_mm']:>8.2f} mm "
                   f"{time.perf_counter() - t0:>6.0f}s")
-            print(f"        priors of the tracks: {r['priors']}; block CV flagged: "
-                  + ", ".join(f"{k} {v:.0%}" for k, v in r["cv_flags"].items()))
+            n = r["deployments"]
+            print(f"        priors of the tracks: {r['priors']}; block CV, pooled NEES / dof "
+                  "(deployments flagged optimistic / pessimistic): " + ", ".join(
+                      f"{k} {v['nees'] / max(v['dof'], 1):.2f} ({v['optimistic'] / n:.0%} / "
+                      f"{v['pessimistic'] / n:.0%})" for k, v in r["cv"].items()))
 
 
 if __name__ == "__main__":
