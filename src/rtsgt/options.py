@@ -95,10 +95,12 @@ class InterpolationOptions:
         tracking another prism): left out of the GP fits, which are fitted again
         (:mod:`rtsgt.filtering.gates`), or kept in them (the paper).
     prior : {"wnoa", "select", "wnoj"}
-        The GP's motion prior: white noise on the acceleration (the paper's), on the jerk, or
-        per track the one whose held-out windows of 1-2 s it predicts better
-        (:func:`rtsgt.interpolation.prisms.fit_gps`; with a ``qc`` given as a number,
-        ``"select"`` is WNOA: the number is a WNOA PSD).
+        The GP's motion prior: white noise on the acceleration (``"wnoa"``, the paper's and
+        the default), on the jerk (``"wnoj"``), or per track the one of the two whose held-out
+        windows of 1-2 s it predicts better (``"select"``;
+        :func:`rtsgt.interpolation.prisms.fit_gps`; with a ``qc`` given as a number,
+        ``"select"`` is WNOA: the number is a WNOA PSD). docs/interpolation.md says why
+        ``"select"`` is not the default.
     """
 
     rate_hz: float = 5.0

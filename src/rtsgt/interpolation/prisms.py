@@ -30,7 +30,8 @@ from rtsgt.interpolation.windows import window_score
 from rtsgt.options import InterpolationOptions
 from rtsgt.types import PrismTrack
 
-__all__ = ["PrismsAtTimes", "fit_gps", "fit_prism_gp", "query_prisms", "query_grid", "gp_covariance",
+__all__ = ["PrismsAtTimes", "choose_prior", "fit_gps", "fit_prism_gp", "query_prisms", "query_grid",
+           "gp_covariance",
            "gp_velocities",
            "WHITE_SOURCES", "SYSTEMATIC_SOURCES"]
 
@@ -129,8 +130,9 @@ def fit_prism_gp(data, qc: float | str, max_gap_s: float, name: str,
         Longest gap across which the GP answers queries, s.
     name : str
         The track's name in messages (``"prism 2"``, a file).
-    prior : {"wnoa", "wnoj"}
-        The GP's motion prior (:mod:`rtsgt.interpolation.gp`).
+    prior : {"wnoa", "wnoj", "select"}
+        The GP's motion prior (:mod:`rtsgt.interpolation.gp`), or ``"select"``: both fitted,
+        the one whose held-out windows are predicted better kept (:func:`choose_prior`).
 
     Returns
     -------
@@ -142,6 +144,15 @@ def fit_prism_gp(data, qc: float | str, max_gap_s: float, name: str,
     """
     if isinstance(data, PrismTrack):
         data = (data.t, data.xyz, data.cov)
+    if prior == "select":
+        if not isinstance(qc, str):  # a given number is a WNOA PSD
+            return fit_prism_gp(data, qc, max_gap_s, name, "wnoa")
+        fits = {"wnoa": fit_prism_gp(data, qc, max_gap_s, name, "wnoa")}
+        try:
+            fits["wnoj"] = fit_prism_gp(data, qc, max_gap_s, name, "wnoj")
+        except InputError as exc:  # too short for WNOJ
+            fits["wnoj"] = None, {"note": exc.bare_message}
+        return choose_prior(data, fits, max_gap_s)
     if qc == "loo":
         try:
             loo = fit_qc_loo(data, mode="per-axis", max_gap_s=max_gap_s, prior=prior)
@@ -204,17 +215,25 @@ def fit_gps(
     else:
         both = {p: _fit_with(tracks, data, options, p, qc, qc_scale, prior)
                 for p in ("wnoa", "wnoj")}
-        done = {}
-        for pid in tracks:
-            scores = {p: _score(data[pid], both[p][pid], options.max_gap_s) for p in both}
-            ld = {p: -np.inf if v["log_density"] is None else v["log_density"]
-                  for p, v in scores.items()}
-            chosen = "wnoj" if ld["wnoj"] > ld["wnoa"] else "wnoa"
-            gp, entry = both[chosen][pid]
-            done[pid] = gp, {**entry, "prior_choice": {"chosen": chosen, **scores}}
+        done = {pid: choose_prior(data[pid], {p: both[p][pid] for p in both},
+                                  options.max_gap_s) for pid in tracks}
     if info is not None:
         info.update({pid: entry for pid, (_, entry) in done.items()})
     return {pid: gp for pid, (gp, _) in done.items()}
+
+
+def choose_prior(data, fits: dict[str, tuple[GPTrack | None, dict]],
+                 max_gap_s: float) -> tuple[GPTrack, dict]:
+    """The fit, among one per prior, whose held-out windows have the higher summed log
+    predictive density (:func:`rtsgt.interpolation.windows.window_score`; a tie, no window to
+    score, or a failed WNOJ fit (``gp`` None) keep WNOA), with its info entry and
+    ``prior_choice`` (``chosen`` and per prior its score and ``qc``)."""
+    scores = {p: _score(data, f, max_gap_s) for p, f in fits.items()}
+    ld = {p: -np.inf if v["log_density"] is None else v["log_density"]
+          for p, v in scores.items()}
+    chosen = "wnoj" if ld["wnoj"] > ld["wnoa"] else "wnoa"
+    gp, entry = fits[chosen]
+    return gp, {**entry, "prior": chosen, "prior_choice": {"chosen": chosen, **scores}}
 
 
 def _score(data, fitted: tuple[GPTrack | None, dict], max_gap_s: float) -> dict:
