@@ -122,7 +122,8 @@ def test_fixed_priors_and_given_qc():
         InterpolationOptions(prior="singer")
 
 
-def test_a_run_records_each_prior_and_its_directory_rebuilds_the_same_gps(tmp_path):
+def test_a_run_records_each_prior_and_its_directory_rebuilds_the_same_gps(tmp_path, capsys,
+                                                                         monkeypatch):
     """``prior = "select"`` through the pipeline: summary.json says per prism the prior it got,
     both window scores and both Qc; the run read back refits the same GPs (prior, Qc, scales)."""
     sim = simulate_deployment(SimulationConfig(duration_s=120.0), np.random.default_rng(11))
@@ -141,6 +142,16 @@ def test_a_run_records_each_prior_and_its_directory_rebuilds_the_same_gps(tmp_pa
             assert len(entry["qc_fit"]["prior_choice"][p]["qc"]) == 3
     back = read_run(out)
     assert back.prior == result.prior and back.options.interpolation.prior == "select"
+    # the run's table says each prism's prior (and the unit of its Qc)
+    from rtsgt.cli.common import print_run_summary
+
+    monkeypatch.setenv("COLUMNS", "200")  # one table row per line
+    print_run_summary(back, out)
+    table = capsys.readouterr().out
+    for pid, g in gps.items():
+        row = next(ln for ln in table.splitlines() if f"Qc prism {pid}" in ln)
+        assert g.prior.upper() in row
+        assert ("m^2/s^5" if g.prior == "wnoj" else "m^2/s^3") in row
     cgt = ContinuousGroundTruth.from_run_dir(out)
     for pid, g in cgt.gps.items():
         assert g.prior == gps[pid].prior
