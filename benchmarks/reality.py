@@ -1,7 +1,7 @@
 """Honesty of the ground truth when the simulation is wrong in the ways reality is.
 
 Run: ``python benchmarks/reality.py [--deployments 20] [--duration 150] [--engine mc]
-[--samples 300] [--first-seed 7000] [--effects none tracking_lag ...]``
+[--samples 300] [--first-seed 7000] [--effects none tracking_lag ...] [--prior select]``
 
 For every deployment ``first_seed + k`` and every reality effect alone
 (:mod:`rtsgt.simulation.reality`, default sizes), plus none, the deployment is simulated,
@@ -44,7 +44,7 @@ FLAGGED = ("optimistic", "pessimistic")
 
 
 def run_one(effect: str, seed: int, duration: float, engine: str, samples: int,
-            tmp: Path) -> dict:
+            tmp: Path, prior: str | None = None) -> dict:
     """One deployment with ``effect`` alone (``"none"``: no effect): errors and checks."""
     fx = RealityEffects() if effect == "none" else RealityEffects.only(effect)
     sim = simulate_deployment(SimulationConfig(duration_s=duration, reality=fx),
@@ -52,7 +52,9 @@ def run_one(effect: str, seed: int, duration: float, engine: str, samples: int,
     data, opts = load_deployment(write_deployment(sim, tmp / f"{effect}-{seed}"))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        record = run_pipeline(data, opts.updated(seed=seed, engine=engine, samples=samples))
+        extra = {} if prior is None else {"prior": prior}  # the GP's motion prior
+        record = run_pipeline(data, opts.updated(seed=seed, engine=engine, samples=samples,
+                                                 **extra))
     gt = record.groundtruth
     p, q = sim.truth_at(gt.t)
     c = compare_to_truth(gt, p, q)
@@ -106,6 +108,8 @@ def main(argv=None) -> None:
     ap.add_argument("--first-seed", type=int, default=7000)
     ap.add_argument("--effects", nargs="+", default=["none", *REALITY_EFFECTS],
                     choices=["none", *REALITY_EFFECTS])
+    ap.add_argument("--prior", default=None, choices=["wnoa", "wnoj", "select"],
+                    help="the GP's motion prior (default: the option's default)")
     args = ap.parse_args(argv)
     seeds = range(args.first_seed, args.first_seed + args.deployments)
     effects = ["none", *(e for e in args.effects if e != "none")]
@@ -116,8 +120,8 @@ def main(argv=None) -> None:
         bases = None
         for effect in effects:
             t0 = time.perf_counter()
-            runs = [run_one(effect, s, args.duration, args.engine, args.samples, Path(tmp))
-                    for s in seeds]
+            runs = [run_one(effect, s, args.duration, args.engine, args.samples, Path(tmp),
+                            args.prior) for s in seeds]
             if bases is None:
                 bases = runs
                 names = list(runs[0]["flags"])

@@ -56,8 +56,13 @@ MOTION_PRIORS: tuple[str, ...] = get_args(MotionPrior)
 #: out and fit again (rtsgt), or keep them (the paper).
 OutlierWindows = Literal["remove", "keep"]
 OUTLIER_WINDOWS: tuple[str, ...] = get_args(OutlierWindows)
+#: The GP's motion prior: white noise on the acceleration (the paper's), on the jerk, or the
+#: one of the two whose held-out windows each track predicts better.
+MotionModel = Literal["select", "wnoa", "wnoj"]
+PRIOR_CHOICES: tuple[str, ...] = get_args(MotionModel)
 
-__all__ = ["GP_NOISE", "MOTION_PRIORS", "OUTLIER_WINDOWS", "QC_METHODS", "RANDOM_STAGES",
+__all__ = ["GP_NOISE", "MOTION_PRIORS", "OUTLIER_WINDOWS", "PRIOR_CHOICES", "QC_METHODS",
+           "RANDOM_STAGES",
            "InterpolationOptions", "PoseOptions", "RunOptions", "stage_rng"]
 
 
@@ -104,6 +109,13 @@ class InterpolationOptions:
         The measurements inside the windows of poses the distance gate rejects (a station
         tracking another prism): left out of the GP fits, which are fitted again
         (:mod:`rtsgt.filtering.gates`), or kept in them (the paper).
+    prior : {"wnoa", "select", "wnoj"}
+        The GP's motion prior: white noise on the acceleration (``"wnoa"``, the paper's and
+        the default), on the jerk (``"wnoj"``), or per track the one of the two whose held-out
+        windows of 1-2 s it predicts better (``"select"``;
+        :func:`rtsgt.interpolation.prisms.fit_gps`; with a ``qc`` given as a number,
+        ``"select"`` is WNOA: the number is a WNOA PSD). docs/interpolation.md says why
+        ``"select"`` is not the default.
     """
 
     rate_hz: float = 5.0
@@ -112,6 +124,7 @@ class InterpolationOptions:
     gp_noise: GpNoise = "white"
     motion_prior: MotionPrior = "classes"
     outlier_windows: OutlierWindows = "remove"
+    prior: MotionModel = "wnoa"
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
@@ -126,6 +139,7 @@ class InterpolationOptions:
         _one_of("gp_noise", self.gp_noise, GP_NOISE)
         _one_of("motion_prior", self.motion_prior, MOTION_PRIORS)
         _one_of("outlier_windows", self.outlier_windows, OUTLIER_WINDOWS)
+        _one_of("prior", self.prior, PRIOR_CHOICES)
 
 
 @dataclass(frozen=True)
@@ -209,7 +223,7 @@ class RunOptions:
         """A copy with ``changes``, keyed by the flat names of the command line: ``seed``,
         ``filter``, ``noise``, or a field of a nested record (``model``, ``engine``,
         ``registration``, ``samples``, ``rate_hz``, ``qc``, ``max_gap_s``, ``gp_noise``,
-        ``motion_prior``, ``outlier_windows``, the gates); each value meets its record's rule
+        ``motion_prior``, ``outlier_windows``, ``prior``, the gates); each value meets its record's rule
         (:class:`~rtsgt.errors.InputError` otherwise)."""
         top = {k: v for k, v in changes.items() if k in _TOP_FIELDS}
         for part, record in _NESTED.items():

@@ -466,7 +466,7 @@ def _record(c: RunComputation, options: RunOptions, intervals: np.ndarray,
         gcp_xyz=np.array([gcp_world[n] for n in gcp_names]) if gcp_names else None,
         gcp_names=gcp_names, qc={pid: np.asarray(g.qc) for pid, g in c.gps.items()},
         qc_scale={pid: np.asarray(g.qc_scale) for pid, g in c.gps.items()
-                  if g.qc_scale is not None},
+                  if g.qc_scale is not None}, prior={pid: g.prior for pid, g in c.gps.items()},
         intervals=intervals, uncertainty_measure=c.gate_report.uncertainty_measure,
         coupling=coupling, removed=removed,
         measurements_gp_cov={pid: gp_covariance(tr, options.interpolation.gp_noise)

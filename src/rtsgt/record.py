@@ -129,6 +129,9 @@ class RunRecord:
     qc_scale : dict str -> ndarray (N-1,)
         Per prism whose ``Qc`` follows the motion, the scale of each interval between its
         measurements (:mod:`rtsgt.interpolation.motion`); absent: one ``Qc``.
+    prior : dict str -> str
+        Each prism's GP motion prior, ``"wnoa"`` or ``"wnoj"`` (:mod:`rtsgt.interpolation.gp`;
+        its ``qc`` is then m^2/s^5); absent: ``"wnoa"`` (a run written before the choice).
     intervals : ndarray, shape (K, 2), optional
         The intervals every prism is tracked in (module 2), s; None for an older run.
     uncertainty_measure : str
@@ -186,6 +189,7 @@ class RunRecord:
     gcp_names: tuple[str, ...] = ()
     qc: dict[str, np.ndarray] = field(default_factory=dict)
     qc_scale: dict[str, np.ndarray] = field(default_factory=dict)
+    prior: dict[str, str] = field(default_factory=dict)
     intervals: np.ndarray | None = None
     uncertainty_measure: str = "max_std"
     coupling: StationCoupling | None = None

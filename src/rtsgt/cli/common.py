@@ -103,8 +103,12 @@ def print_run_summary(record: RunRecord, out) -> None:
         table.add_row("median sigma rotation (sqrt trace)", f"{np.median(sig_r):.3f} mrad")
         table.add_row("time span", f"{gt.t[-1] - gt.t[0]:.1f} s")
     for pid, qc in record.qc.items():
-        table.add_row(f"Qc prism {pid} (x, y, z)",
-                      ", ".join(f"{q:.2e}" for q in np.diag(qc)) + " m^2/s^3")
+        # the prior of each prism's GP: white noise on the acceleration (Qc in m^2/s^3) or on
+        # the jerk (m^2/s^5)
+        prior = record.prior.get(pid, "wnoa")
+        unit = "m^2/s^5" if prior == "wnoj" else "m^2/s^3"
+        table.add_row(f"Qc prism {pid} (x, y, z), GP prior",
+                      ", ".join(f"{q:.2e}" for q in np.diag(qc)) + f" {unit}, {prior.upper()}")
     reasons, counts = np.unique(record.rejected_reason, return_counts=True)
     for reason, count in zip(reasons, counts, strict=True):
         table.add_row(f"rejected: {reason}", str(int(count)))

@@ -69,6 +69,9 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
     motion_prior = "classes"         # Qc per class of the robot's motion, or "constant"
     outlier_windows = "remove"       # measurements of distance-rejected windows: out of the
                                      # GP fits ("remove", default) or kept in them ("keep")
+    prior = "wnoa"                   # GP motion prior: "wnoa" (white noise on acceleration,
+                                     # the paper's, default), "wnoj" (on jerk), or "select"
+                                     # (per track, by held-out windows)
 
     [pose]
     engine = "mc"                    # mc | ut | linear
@@ -366,7 +369,7 @@ def load_config(path: str | Path) -> DeploymentConfig:
         "rate_hz": ("rate_hz", float, None), "qc": ("qc", (str, float, int), _qc_value),
         "max_gap_s": ("max_gap_s", float, None), "gp_noise": ("gp_noise", str, None),
         "motion_prior": ("motion_prior", str, None),
-        "outlier_windows": ("outlier_windows", str, None)})
+        "outlier_windows": ("outlier_windows", str, None), "prior": ("prior", str, None)})
     it.done()
 
     p = _Section(path, "pose", doc.get("pose", {}))

@@ -91,6 +91,7 @@ from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.filtering import FilterParams
 from rtsgt.filtering.modules import RemovedMeasurements
+from rtsgt.interpolation.gp import PRIORS
 from rtsgt.io._parse import (
     atomic_write_text,
     csv_table,
@@ -110,6 +111,7 @@ from rtsgt.options import (
     GP_NOISE,
     MOTION_PRIORS,
     OUTLIER_WINDOWS,
+    PRIOR_CHOICES,
     InterpolationOptions,
     PoseOptions,
     RunOptions,
@@ -248,6 +250,7 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
             "station": tr.station,
             "measurements_used": len(tr),
             "qc_m2_s3": record.qc[pid],
+            "prior": record.prior.get(pid, "wnoa"),
             "qc_fit": c.qc_info.get(pid, {}),
             "median_sigma_mm": float(np.median(sig) * 1e3),
         }
@@ -270,6 +273,7 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
             "gp_noise": opt.interpolation.gp_noise,
             "motion_prior": opt.interpolation.motion_prior,
             "outlier_windows": opt.interpolation.outlier_windows,
+            "prior": opt.interpolation.prior,
             "noise_sources": list(c.noise_model.sources),
             "instrument": c.data.instrument.name,
             "filter": _report_dict(opt.filter),
@@ -656,8 +660,11 @@ class PrismSummary:
 
     #: The station that tracked it (None when not recorded).
     station: str | None = None
-    #: The GP's power spectral density Qc, m^2/s^3 (None when not recorded).
+    #: The GP's power spectral density Qc, m^2/s^3 (m^2/s^5 for the WNOJ prior; None when
+    #: not recorded).
     qc_m2_s3: np.ndarray | None = None
+    #: The GP's motion prior, "wnoa" or "wnoj" ("wnoa" when not recorded: an older run).
+    prior: str = "wnoa"
 
 
 #: The options of a run whose summary does not say them (the engine was the linear one, the
@@ -811,7 +818,11 @@ def read_summary(run_dir: str | PathLike) -> RunSummary:
             except (TypeError, ValueError) as exc:
                 raise InputError(f"prism {pid}: bad qc_m2_s3 {q!r}: {exc}", path) from None
         station = info.get("station")
-        prisms[str(pid)] = PrismSummary(None if station is None else str(station), q)
+        prior = str(info.get("prior", "wnoa"))
+        if prior not in PRIORS:
+            raise InputError(f"prism {pid}: prior: expected {' or '.join(map(repr, PRIORS))}, "
+                             f"got {prior!r}", path)
+        prisms[str(pid)] = PrismSummary(None if station is None else str(station), q, prior)
 
     iv = doc.get("intervals_s")
     if iv is not None:
@@ -879,11 +890,16 @@ def _summary_options(params: dict, param: Callable, path: Path) -> RunOptions:
     if outlier_windows not in OUTLIER_WINDOWS:
         raise InputError(f"outlier_windows: expected {' or '.join(map(repr, OUTLIER_WINDOWS))}, "
                          f"got {outlier_windows!r}", path)
+    # a run written before the choice of the prior had the paper's, WNOA
+    prior = str(param("prior", "wnoa"))
+    if prior not in PRIOR_CHOICES:
+        raise InputError(f"prior: expected {', '.join(map(repr, PRIOR_CHOICES))}, got "
+                         f"{prior!r}", path)
     changes = {
         "engine": str(param("engine", _OLDEST_OPTIONS.pose.engine)), "samples": samples,
         "registration": str(param("registration", _OLDEST_OPTIONS.pose.registration)),
         "seed": seed, "gp_noise": gp_noise, "motion_prior": motion_prior,
-        "outlier_windows": outlier_windows,
+        "outlier_windows": outlier_windows, "prior": prior,
         "max_gap_s": _positive(params, "max_gap_s", InterpolationOptions.max_gap_s, path),
         "distance_gate_m": _positive(params, "distance_gate_m", PoseOptions.distance_gate_m,
                                      path),
@@ -1025,6 +1041,7 @@ def read_run(run_dir: str | PathLike) -> RunRecord:
         qc={pid: info.qc_m2_s3 for pid, info in summary.prisms.items()
             if info.qc_m2_s3 is not None},
         qc_scale={pid: qc_scale[pid] for pid in ids if pid in qc_scale},
+        prior={pid: info.prior for pid, info in summary.prisms.items()},
         intervals=summary.intervals_s, uncertainty_measure=summary.uncertainty_measure,
         coupling=summary.coupling, removed=_read_removed(root / "measurements" / "removed.csv"),
         measurements_gp_cov={pid: gp_cov[pid] for pid in ids if pid in gp_cov},

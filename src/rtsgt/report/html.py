@@ -585,6 +585,9 @@ def _kpis(data: RunRecord, a: Analysis) -> str:
         ("median pose rotation", f"{_fmt(a.pose_median_rotation_mrad.get('all'), 3)} mrad"),
         ("median prism sqrt(||Σ||F)", f"{_fmt(a.median_mm.get('all'), 3)} mm"),
     ]
+    if data.prior:  # each prism's GP motion prior (WNOA: the paper's; WNOJ: on the jerk)
+        items.append(("GP prior per prism", ", ".join(
+            f"{pid}: {p.upper()}" for pid, p in data.prior.items())))
     n_left = int(np.sum(data.removed.stage == "module4"))
     if n_left:  # measurements inside windows of distance rejections, out of the GP fits
         items.insert(3, ("measurements left out (distance windows)", f"{n_left}"))
