@@ -47,8 +47,13 @@ MOTION_PRIORS: tuple[str, ...] = get_args(MotionPrior)
 #: out and fit again (rtsgt), or keep them (the paper).
 OutlierWindows = Literal["remove", "keep"]
 OUTLIER_WINDOWS: tuple[str, ...] = get_args(OutlierWindows)
+#: What the GPs do with the time-correlated noise the static-stretch check finds: inflate the
+#: white covariance by the loss of independent samples (rtsgt), or take the measurements as
+#: independent (the paper).
+CorrelatedNoise = Literal["inflate", "ignore"]
+CORRELATED_NOISE: tuple[str, ...] = get_args(CorrelatedNoise)
 
-__all__ = ["GP_NOISE", "MOTION_PRIORS", "OUTLIER_WINDOWS", "QC_METHODS", "RANDOM_STAGES",
+__all__ = ["CORRELATED_NOISE", "GP_NOISE", "MOTION_PRIORS", "OUTLIER_WINDOWS", "QC_METHODS", "RANDOM_STAGES",
            "InterpolationOptions", "PoseOptions", "RunOptions", "stage_rng"]
 
 
@@ -89,6 +94,12 @@ class InterpolationOptions:
         The measurements inside the windows of poses the distance gate rejects (a station
         tracking another prism): left out of the GP fits, which are fitted again
         (:mod:`rtsgt.filtering.gates`), or kept in them (the paper).
+    correlated_noise : {"inflate", "ignore"}
+        Where the static-stretch check finds time-correlated measurement noise (a prism's
+        component whose lag-one correlation is ``optimistic``), its white covariance inflated
+        by the loss of independent samples and the GPs fitted again
+        (:mod:`rtsgt.noise.correlated`), or the measurements taken as independent (the
+        paper). Elsewhere nothing changes.
     """
 
     rate_hz: float = 5.0
@@ -97,6 +108,7 @@ class InterpolationOptions:
     gp_noise: GpNoise = "white"
     motion_prior: MotionPrior = "classes"
     outlier_windows: OutlierWindows = "remove"
+    correlated_noise: CorrelatedNoise = "inflate"
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
@@ -117,6 +129,10 @@ class InterpolationOptions:
         if self.outlier_windows not in OUTLIER_WINDOWS:
             raise InputError(f"Expected outlier_windows {' or '.join(map(repr, OUTLIER_WINDOWS))}"
                              f", got {self.outlier_windows!r}")
+        if self.correlated_noise not in CORRELATED_NOISE:
+            raise InputError(f"Expected correlated_noise "
+                             f"{' or '.join(map(repr, CORRELATED_NOISE))}, got "
+                             f"{self.correlated_noise!r}")
 
 
 @dataclass(frozen=True)
@@ -174,7 +190,7 @@ class RunOptions:
         """A copy with ``changes``, keyed by the flat names of the command line: ``seed``,
         ``filter``, ``noise``, or a field of a nested record (``engine``, ``samples``,
         ``rate_hz``, ``qc``, ``max_gap_s``, ``gp_noise``, ``motion_prior``,
-        ``outlier_windows``, the gates); each value meets its
+        ``outlier_windows``, ``correlated_noise``, the gates); each value meets its
         record's rule (:class:`~rtsgt.errors.InputError` otherwise)."""
         top = {k: v for k, v in changes.items() if k in _TOP_FIELDS}
         for part, record in _NESTED.items():

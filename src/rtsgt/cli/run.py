@@ -15,7 +15,8 @@ from rtsgt.pipeline import run_pipeline
 from rtsgt.report.html import write_report
 
 #: The command-line options that override keys of the deployment's configuration.
-RUN_OPTION_NAMES = {"engine": "--engine", "samples": "--samples", "rate_hz": "--rate"}
+RUN_OPTION_NAMES = {"engine": "--engine", "samples": "--samples", "rate_hz": "--rate",
+                    "correlated_noise": "--correlated-noise"}
 
 
 def option_overrides(**values) -> dict:
@@ -32,6 +33,7 @@ def run_deployment(
     samples: int | None = None,
     seed: int = 0,
     rate: float | None = None,
+    correlated_noise: str | None = None,
     force: bool = False,
     quiet: bool = False,
     report: bool = False,
@@ -44,7 +46,8 @@ def run_deployment(
     configuration's absolute path) is what ``summary.json`` records as the run's inputs.
     """
 
-    changes = option_overrides(engine=engine, samples=samples, rate_hz=rate)
+    changes = option_overrides(engine=engine, samples=samples, rate_hz=rate,
+                               correlated_noise=correlated_noise)
     check_target(out, force=force, inputs=[config])
     with Stages(quiet) as stages:
         stages("reading inputs")
@@ -75,6 +78,11 @@ def register(app: typer.Typer) -> None:
         samples: int = typer.Option(None, help="Monte Carlo samples M (default: config)."),
         seed: int = typer.Option(0, min=0, help="Seed of every random draw (>= 0)."),
         rate: float = typer.Option(None, help="Query rate, Hz (default: config)."),
+        correlated_noise: str = typer.Option(
+            None, "--correlated-noise",
+            help="Noise the static stretches find time-correlated: inflate the white "
+                 "covariance (inflate) or take the measurements as independent (ignore, the "
+                 "paper) (default: config, else inflate)."),
         force: bool = typer.Option(False, "--force",
                                    help="Replace an earlier output of rtsgt at --out (never a "
                                         "directory holding anything else)."),
@@ -83,7 +91,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Compute the ground truth of a deployment: poses with 6x6 covariance."""
         result, final = run_deployment(config, out, engine=engine, samples=samples, seed=seed,
-                                       rate=rate, force=force, quiet=quiet, report=report)
+                                       rate=rate, correlated_noise=correlated_noise,
+                                       force=force, quiet=quiet, report=report)
         if not quiet:
             print_run_summary(result, final)
             if report:
