@@ -61,8 +61,14 @@ OUTLIER_WINDOWS: tuple[str, ...] = get_args(OutlierWindows)
 MotionModel = Literal["select", "wnoa", "wnoj"]
 PRIOR_CHOICES: tuple[str, ...] = get_args(MotionModel)
 
-__all__ = ["GP_NOISE", "MOTION_PRIORS", "OUTLIER_WINDOWS", "PRIOR_CHOICES", "QC_METHODS",
-           "RANDOM_STAGES",
+#: What the GPs do with the time-correlated noise the static-stretch check finds: inflate the
+#: white covariance by the loss of independent samples (rtsgt), or take the measurements as
+#: independent (the paper).
+CorrelatedNoise = Literal["inflate", "ignore"]
+CORRELATED_NOISE: tuple[str, ...] = get_args(CorrelatedNoise)
+
+__all__ = ["CORRELATED_NOISE", "GP_NOISE", "MOTION_PRIORS", "OUTLIER_WINDOWS", "PRIOR_CHOICES",
+           "QC_METHODS", "RANDOM_STAGES",
            "InterpolationOptions", "PoseOptions", "RunOptions", "stage_rng"]
 
 
@@ -116,6 +122,12 @@ class InterpolationOptions:
         :func:`rtsgt.interpolation.prisms.fit_gps`; with a ``qc`` given as a number,
         ``"select"`` is WNOA: the number is a WNOA PSD). docs/interpolation.md says why
         ``"select"`` is not the default.
+    correlated_noise : {"inflate", "ignore"}
+        Where the static-stretch check finds time-correlated measurement noise (a prism's
+        component whose lag-one correlation is ``optimistic``), its white covariance inflated
+        by the loss of independent samples and the GPs fitted again
+        (:mod:`rtsgt.noise.correlated`), or the measurements taken as independent (the
+        paper). Elsewhere nothing changes.
     """
 
     rate_hz: float = 5.0
@@ -125,6 +137,7 @@ class InterpolationOptions:
     motion_prior: MotionPrior = "classes"
     outlier_windows: OutlierWindows = "remove"
     prior: MotionModel = "wnoa"
+    correlated_noise: CorrelatedNoise = "inflate"
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
@@ -140,6 +153,7 @@ class InterpolationOptions:
         _one_of("motion_prior", self.motion_prior, MOTION_PRIORS)
         _one_of("outlier_windows", self.outlier_windows, OUTLIER_WINDOWS)
         _one_of("prior", self.prior, PRIOR_CHOICES)
+        _one_of("correlated_noise", self.correlated_noise, CORRELATED_NOISE)
 
 
 @dataclass(frozen=True)
@@ -223,8 +237,8 @@ class RunOptions:
         """A copy with ``changes``, keyed by the flat names of the command line: ``seed``,
         ``filter``, ``noise``, or a field of a nested record (``model``, ``engine``,
         ``registration``, ``samples``, ``rate_hz``, ``qc``, ``max_gap_s``, ``gp_noise``,
-        ``motion_prior``, ``outlier_windows``, ``prior``, the gates); each value meets its record's rule
-        (:class:`~rtsgt.errors.InputError` otherwise)."""
+        ``motion_prior``, ``outlier_windows``, ``prior``, ``correlated_noise``, the gates); each
+        value meets its record's rule (:class:`~rtsgt.errors.InputError` otherwise)."""
         top = {k: v for k, v in changes.items() if k in _TOP_FIELDS}
         for part, record in _NESTED.items():
             mine = {k: v for k, v in changes.items() if k in _FIELDS[record]}

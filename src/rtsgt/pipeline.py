@@ -31,6 +31,18 @@ poses that the distance gate rejects (a station tracking another prism) are left
 GP fits, which are fitted again (:mod:`rtsgt.filtering.gates`; ``outlier_windows = "keep"``
 keeps them, as the paper did). A run without such a pose is not touched.
 
+Time-correlated measurement noise
+---------------------------------
+The static-stretch self-check (:mod:`rtsgt.checks.static`) needs the poses (the robot's
+standing stretches come from them), so it runs on the first fit. Where it finds a prism's
+noise correlated in time (a component whose lag-one correlation is ``optimistic``), the white
+covariance of that component is inflated by the loss of independent samples
+(:mod:`rtsgt.noise.correlated`) and everything from the GPs to the gates (the Qc search and
+the refits without the outlier windows included) is done once more on the inflated tracks;
+the other self-checks judge that final run. The static check reported stays the one on the
+measurements as given: what the data say about the noise model. ``correlated_noise =
+"ignore"`` (the paper) keeps the first fit; where nothing is found, both are the same run.
+
 Errors shared between prisms
 ----------------------------
 Two stations calibrated from the same reference shots have correlated calibration errors
@@ -96,6 +108,7 @@ from rtsgt.interpolation.prisms import (
 )
 from rtsgt.measurement.weather import check_weather_coverage
 from rtsgt.noise import NoiseModel, propagate
+from rtsgt.noise.correlated import correlated_noise_plan, inflate_tracks
 from rtsgt.options import RunOptions, stage_rng
 from rtsgt.pose import PoseEstimate, ReferencePoints, estimate_poses
 from rtsgt.record import RunComputation, RunRecord, ordered_sources
@@ -221,11 +234,97 @@ def _run_stages(
     tracks = {tr.prism: tr for tr in kept_tracks}
     lap("filter_module2")
 
+    coupling = StationCoupling.from_calibration(calib)
+    reference = data.reference.select(list(tracks))
+    origins = {s: np.asarray(T.translation, dtype=float) for s, T in calib.transforms.items()}
+    fit = _fit_to_gates(options, data.query_times, intervals, tracks, coupling, reference, say)
+    timings.update(fit.timings)
+    tick = time.perf_counter()
+
+    # the noise on the static stretches, with the measurements taken as independent: what
+    # the data say about the noise model; where it wanders, the white covariance is inflated
+    # and the GPs fitted again (rtsgt.noise.correlated)
+    say("self-check: static stretches")
+    static = static_noise_check(fit.tracks, origins,
+                                static_stretches(fit.groundtruth.t, fit.prisms.xyz[fit.keep]))
+    correlated = correlated_noise_plan(
+        static, tracks, apply=options.interpolation.correlated_noise == "inflate")
+    lap("static_noise")
+    if correlated["applied"]:
+        start = time.perf_counter()
+        fit = _fit_to_gates(options, data.query_times, intervals,
+                            inflate_tracks(tracks, origins, correlated), coupling, reference,
+                            lambda stage: say(f"{stage}, correlated noise inflated"))
+        timings["correlated_noise"] = time.perf_counter() - start
+        tick = time.perf_counter()
+    tracks, gps, qc_info, prisms, est, keep, gt = (
+        fit.tracks, fit.gps, fit.qc_info, fit.prisms, fit.estimate, fit.keep, fit.groundtruth)
+    if fit.outliers is not None:
+        masks, reports["module4"] = fit.outliers
+        removed = removed_measurements(*removal, [masks[o.prism] for o in filtered])
+
+    say("shared errors")
+    split = _split(options, prisms, gps, tracks, calib, coupling, reference, est, keep)
+    lap("shared_errors")
+
+    say("self-checks")
+    self_checks = {"gcp_fit": gcp_fit_check(calib), "inter_prism_distances": inter_prism_check(
+        gt.t, gt.position, prisms.xyz[keep], prisms.pose_covariance[keep],
+        prisms.nearest_dt[keep], reference.xyz, reference.cov, reference.names,
+        varying_cov=prisms.cov_gp[keep]),
+        "block_cv": block_cv_check(tracks, gps, gp_noise=options.interpolation.gp_noise,
+                                   max_gap_s=options.interpolation.max_gap_s),
+        "static_noise": static}
+    self_checks["inter_prism_structure"] = run_structure_check(
+        prisms, gps, tracks, calib, coupling, reference, keep, model,
+        options.interpolation.gp_noise)
+    lap("self_checks")
+    computation = RunComputation(data, calib, model, reports, tracks, gps, prisms, est, keep,
+                                 fit.gate_report, timings, qc_info)
+    record = _record(computation, options, intervals, coupling, removed, gt, gcp_world,
+                     weather_coverage, fit.distance_check, self_checks)
+    return replace(record, groundtruth_split=split, correlated_noise=correlated)
+
+
+class _Fit(NamedTuple):
+    """What :func:`_fit_to_gates` computes from the tracks."""
+
+    tracks: dict[str, PrismTrack]
+    gps: dict[str, GPTrack]
+    qc_info: dict[str, dict]
+    prisms: PrismsAtTimes
+    estimate: PoseEstimate
+    keep: np.ndarray
+    gate_report: GateReport
+    groundtruth: PoseTrajectory
+    distance_check: dict
+    #: The measurements left out of the GPs per prism and module 4's report, or None.
+    outliers: tuple[dict[str, np.ndarray], OutlierWindowReport] | None
+    timings: dict[str, float]
+
+
+def _fit_to_gates(options: RunOptions, query_times: np.ndarray | None, intervals: np.ndarray,
+                  tracks: dict[str, PrismTrack], coupling: StationCoupling,
+                  reference: ReferencePoints, say: Progress) -> _Fit:
+    """The GPs of the tracks (Qc search included), the prisms at the query times, the poses
+    and module 4's gates, with the GPs fitted again without the windows of distance
+    rejections (``outlier_windows = "remove"``); ``tracks`` are those the gates' windows
+    leave measurements out of (``outliers``). ``timings`` has the stages ``interpolation``,
+    ``pose``, ``gates`` and, where the windows were refitted, ``outlier_windows``, s."""
+    timings: dict[str, float] = {}
+    tick = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal tick
+        now = time.perf_counter()
+        timings[name] = now - tick
+        tick = now
+
     say("GP interpolation")
     qc_info: dict[str, dict] = {}
     gps = fit_gps(tracks, options.interpolation, info=qc_info)
-    if data.query_times is not None:
-        t_query = np.asarray(data.query_times, dtype=float)
+    if query_times is not None:
+        t_query = np.asarray(query_times, dtype=float)
         inside = np.zeros(t_query.shape, bool)
         for a, b in intervals:
             inside |= (t_query >= a) & (t_query <= b)
@@ -239,12 +338,10 @@ def _run_stages(
     t_query = t_query[ok]
     if t_query.size == 0:
         raise InputError("No query time falls inside the intervals common to all prisms")
-    coupling = StationCoupling.from_calibration(calib)
     prisms = query_prisms(tracks, gps, t_query, options.interpolation, coupling)
     lap("interpolation")
 
     say("poses")
-    reference = data.reference.select(list(tracks))
     est = estimate_poses(prisms.xyz, prisms.pose_covariance, reference, engine=options.pose.engine,
                          registration=options.pose.registration,
                          samples=options.pose.samples, rng=stage_rng(options.seed, "pose"))
@@ -255,13 +352,14 @@ def _run_stages(
         est, reference, distance_gate_m=options.pose.distance_gate_m,
         uncertainty_gate_m=options.pose.uncertainty_gate_m,
     )
+    outliers = None
     if options.interpolation.outlier_windows == "remove":
         start = time.perf_counter()
         refit = _refit_outlier_windows(options, tracks, prisms, est, reference, coupling, say)
         if refit is not None:
-            tracks, gps, qc_info, prisms, est, keep, gate_report, masks, reports["module4"] = refit
+            tracks, gps, qc_info, prisms, est, keep, gate_report, masks, report = refit
             t_query = prisms.t
-            removed = removed_measurements(*removal, [masks[o.prism] for o in filtered])
+            outliers = (masks, report)
             timings["outlier_windows"] = time.perf_counter() - start
             tick += timings["outlier_windows"]  # its own stage, not counted in "gates"
     gt = PoseTrajectory(
@@ -272,30 +370,8 @@ def _run_stages(
         prisms.xyz[keep], prisms.pose_covariance[keep], reference.xyz, reference.cov,
         reference.names)
     lap("gates")
-
-    say("shared errors")
-    split = _split(options, prisms, gps, tracks, calib, coupling, reference, est, keep)
-    lap("shared_errors")
-
-    say("self-checks")
-    self_checks = {"gcp_fit": gcp_fit_check(calib), "inter_prism_distances": inter_prism_check(
-        gt.t, gt.position, prisms.xyz[keep], prisms.pose_covariance[keep],
-        prisms.nearest_dt[keep], reference.xyz, reference.cov, reference.names,
-        varying_cov=prisms.cov_gp[keep]),
-        "block_cv": block_cv_check(tracks, gps, gp_noise=options.interpolation.gp_noise,
-                                   max_gap_s=options.interpolation.max_gap_s),
-        "static_noise": static_noise_check(
-            tracks, {s: T.translation for s, T in calib.transforms.items()},
-            static_stretches(gt.t, prisms.xyz[keep]))}
-    self_checks["inter_prism_structure"] = run_structure_check(
-        prisms, gps, tracks, calib, coupling, reference, keep, model,
-        options.interpolation.gp_noise)
-    lap("self_checks")
-    computation = RunComputation(data, calib, model, reports, tracks, gps, prisms, est, keep,
-                                 gate_report, timings, qc_info)
-    record = _record(computation, options, intervals, coupling, removed, gt, gcp_world,
-                     weather_coverage, distance_check, self_checks)
-    return replace(record, groundtruth_split=split)
+    return _Fit(tracks, gps, qc_info, prisms, est, keep, gate_report, gt, distance_check,
+                outliers, timings)
 
 
 class _Refit(NamedTuple):

@@ -157,6 +157,11 @@ class RunRecord:
         (:func:`rtsgt.checks.static_noise_check`) and ``inter_prism_structure``
         (:func:`rtsgt.checks.inter_prism_structure_check`). Empty for a run written before rtsgt made
         them.
+    correlated_noise : dict
+        How the run carried the time-correlated noise the static-stretch check found
+        (:func:`rtsgt.noise.correlated.correlated_noise_plan`, JSON-ready: per prism and
+        component the correlated share, the correlation time, ``rho``, the factor and whether
+        it was applied). Empty for a run written before rtsgt carried it.
     groundtruth_split : SharedFactor, optional
         The kept poses' error split into the part that varies from pose to pose and the part
         the whole deployment shares (:mod:`rtsgt.shared`): the varying covariance and the
@@ -199,6 +204,7 @@ class RunRecord:
     weather_coverage: dict | None = None
     distance_check: dict = field(default_factory=dict)
     self_checks: dict = field(default_factory=dict)
+    correlated_noise: dict = field(default_factory=dict)
     groundtruth_split: SharedFactor | None = None
     summary: dict = field(default_factory=dict)
     path: Path | None = None

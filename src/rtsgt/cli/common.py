@@ -167,9 +167,27 @@ def print_run_summary(record: RunRecord, out) -> None:
         table.add_row("self-check static: intervals",
                       f"{100 * static['confidence']:.2f} % each ({static['tests']} tests, "
                       f"{100 * static['family_false_alarm']:.0f} % false alarms per run)")
+    _correlated_rows(table, record.correlated_noise)
     _structure_rows(table, record.self_checks.get("inter_prism_structure", {}))
     table.add_row("output", str(out))
     console.print(table)
+
+
+def _correlated_rows(table: Table, plan: dict) -> None:
+    """The time-correlated noise the static-stretch check found, per prism, and whether the
+    GPs carried it (:mod:`rtsgt.noise.correlated`): each component's variance factor with the
+    correlated share and correlation time it comes from."""
+    for pid, e in plan.get("prisms", {}).items():
+        found = [(name, e[name]) for name in ("range", "horizontal", "vertical")
+                 if e[name].get("rho") is not None]
+        if not found:
+            continue
+        text = "; ".join(f"{name} x{c['factor']:.1f} (f {c['correlated_fraction']:.2f}, "
+                         f"tau {c['correlation_time_s']:.1f} s)" for name, c in found)
+        done = any(c["applied"] for _, c in found)
+        table.add_row(f"correlated noise, prism {pid}",
+                      f"white variance {'inflated' if done else 'not inflated (ignore)'}: "
+                      f"{text}")
 
 
 def _structure_rows(table: Table, check: dict) -> None:

@@ -16,7 +16,8 @@ from rtsgt.report.html import write_report
 
 #: The command-line options that override keys of the deployment's configuration.
 RUN_OPTION_NAMES = {"engine": "--engine", "registration": "--registration",
-                    "samples": "--samples", "rate_hz": "--rate", "prior": "--prior"}
+                    "samples": "--samples", "rate_hz": "--rate", "prior": "--prior",
+                    "correlated_noise": "--correlated-noise"}
 
 
 def option_overrides(**values) -> dict:
@@ -34,6 +35,7 @@ def run_deployment(
     seed: int = 0,
     registration: str | None = None,
     rate: float | None = None,
+    correlated_noise: str | None = None,
     force: bool = False,
     quiet: bool = False,
     report: bool = False,
@@ -48,7 +50,7 @@ def run_deployment(
     """
 
     changes = option_overrides(engine=engine, registration=registration, samples=samples,
-                               rate_hz=rate, prior=prior)
+                               rate_hz=rate, prior=prior, correlated_noise=correlated_noise)
     check_target(out, force=force, inputs=[config])
     with Stages(quiet) as stages:
         stages("reading inputs")
@@ -85,6 +87,11 @@ def register(app: typer.Typer) -> None:
         prior: str = typer.Option(None, help="GP motion prior: wnoa (the paper's), wnoj, or "
                                              "select (per track, by held-out windows) "
                                              "(default: config)."),
+        correlated_noise: str = typer.Option(
+            None, "--correlated-noise",
+            help="Noise the static stretches find time-correlated: inflate the white "
+                 "covariance (inflate) or take the measurements as independent (ignore, the "
+                 "paper) (default: config, else inflate)."),
         force: bool = typer.Option(False, "--force",
                                    help="Replace an earlier output of rtsgt at --out (never a "
                                         "directory holding anything else)."),
@@ -94,7 +101,8 @@ def register(app: typer.Typer) -> None:
         """Compute the ground truth of a deployment: poses with 6x6 covariance."""
         result, final = run_deployment(config, out, engine=engine, samples=samples, seed=seed,
                                        rate=rate, force=force, quiet=quiet, report=report,
-                                       registration=registration, prior=prior)
+                                       registration=registration, prior=prior,
+                                       correlated_noise=correlated_noise)
         if not quiet:
             print_run_summary(result, final)
             if report:

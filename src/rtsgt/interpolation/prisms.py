@@ -28,15 +28,17 @@ from rtsgt.interpolation.loo import fit_qc_loo
 from rtsgt.interpolation.motion import fit_motion_prior, motion_events
 from rtsgt.interpolation.windows import window_score
 from rtsgt.options import InterpolationOptions
-from rtsgt.types import PrismTrack
+from rtsgt.types import CORRELATED_NOISE_SOURCE, WHITE_NOISE_SOURCES, PrismTrack
 
 __all__ = ["PrismsAtTimes", "choose_prior", "fit_gps", "fit_prism_gp", "query_prisms", "query_grid",
            "gp_covariance",
            "gp_velocities",
            "WHITE_SOURCES", "SYSTEMATIC_SOURCES"]
 
-#: Noise sources whose errors are independent between measurements (fed to the GP).
-WHITE_SOURCES = ("instrument", "tilt")
+#: Noise sources whose errors are taken as independent between measurements (fed to the GP):
+#: the white ones and, where their noise is correlated in time, what its inflation adds
+#: (:mod:`rtsgt.noise.correlated`).
+WHITE_SOURCES = (*WHITE_NOISE_SOURCES, CORRELATED_NOISE_SOURCE)
 #: Noise sources whose errors are shared by many measurements (added after the GP).
 SYSTEMATIC_SOURCES = ("atmosphere", "time_sync", "calibration")
 

@@ -72,6 +72,9 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
     prior = "wnoa"                   # GP motion prior: "wnoa" (white noise on acceleration,
                                      # the paper's, default), "wnoj" (on jerk), or "select"
                                      # (per track, by held-out windows)
+    correlated_noise = "inflate"     # noise the static stretches find time-correlated:
+                                     # white covariance inflated ("inflate", default) or the
+                                     # measurements taken as independent ("ignore")
 
     [pose]
     engine = "mc"                    # mc | ut | linear
@@ -369,7 +372,8 @@ def load_config(path: str | Path) -> DeploymentConfig:
         "rate_hz": ("rate_hz", float, None), "qc": ("qc", (str, float, int), _qc_value),
         "max_gap_s": ("max_gap_s", float, None), "gp_noise": ("gp_noise", str, None),
         "motion_prior": ("motion_prior", str, None),
-        "outlier_windows": ("outlier_windows", str, None), "prior": ("prior", str, None)})
+        "outlier_windows": ("outlier_windows", str, None), "prior": ("prior", str, None),
+        "correlated_noise": ("correlated_noise", str, None)})
     it.done()
 
     p = _Section(path, "pose", doc.get("pose", {}))

@@ -108,6 +108,7 @@ from rtsgt.io.trajectory import (
     write_tum,
 )
 from rtsgt.options import (
+    CORRELATED_NOISE,
     GP_NOISE,
     MOTION_PRIORS,
     OUTLIER_WINDOWS,
@@ -274,6 +275,7 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
             "motion_prior": opt.interpolation.motion_prior,
             "outlier_windows": opt.interpolation.outlier_windows,
             "prior": opt.interpolation.prior,
+            "correlated_noise": opt.interpolation.correlated_noise,
             "noise_sources": list(c.noise_model.sources),
             "instrument": c.data.instrument.name,
             "filter": _report_dict(opt.filter),
@@ -310,6 +312,9 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
         "weather": record.weather_coverage,
         "inter_prism_distances": record.distance_check,
         "self_checks": record.self_checks,
+        # the time-correlated noise the static-stretch check found, as the GPs carried it
+        # (rtsgt.noise.correlated)
+        "interpolation": {"correlated_noise": record.correlated_noise},
         "warnings": list(record.warnings),
         "timings_s": c.timings_s,
         "reference": {"names": list(ref.names), "xyz_m": ref.xyz, "cov_m2": ref.cov,
@@ -718,6 +723,8 @@ class RunSummary:
     distance_check: dict = field(default_factory=dict)
     #: ``self_checks`` (empty for a run written before rtsgt made them).
     self_checks: dict = field(default_factory=dict)
+    #: ``interpolation.correlated_noise`` (empty for a run written before rtsgt carried it).
+    correlated_noise: dict = field(default_factory=dict)
 
 
 def _section(doc: dict, key: str, path: Path) -> dict:
@@ -864,6 +871,8 @@ def read_summary(run_dir: str | PathLike) -> RunSummary:
         weather_coverage=doc.get("weather"),
         distance_check=doc.get("inter_prism_distances") or {},
         self_checks=_section(doc, "self_checks", path),
+        correlated_noise=_section(_section(doc, "interpolation", path), "correlated_noise",
+                                  path),
     )
 
 
@@ -895,11 +904,18 @@ def _summary_options(params: dict, param: Callable, path: Path) -> RunOptions:
     if prior not in PRIOR_CHOICES:
         raise InputError(f"prior: expected {', '.join(map(repr, PRIOR_CHOICES))}, got "
                          f"{prior!r}", path)
+    # a run written before rtsgt carried the correlated noise took the measurements as
+    # independent
+    correlated_noise = str(param("correlated_noise", "ignore"))
+    if correlated_noise not in CORRELATED_NOISE:
+        raise InputError(f"correlated_noise: expected "
+                         f"{' or '.join(map(repr, CORRELATED_NOISE))}, got "
+                         f"{correlated_noise!r}", path)
     changes = {
         "engine": str(param("engine", _OLDEST_OPTIONS.pose.engine)), "samples": samples,
         "registration": str(param("registration", _OLDEST_OPTIONS.pose.registration)),
         "seed": seed, "gp_noise": gp_noise, "motion_prior": motion_prior,
-        "outlier_windows": outlier_windows, "prior": prior,
+        "outlier_windows": outlier_windows, "prior": prior, "correlated_noise": correlated_noise,
         "max_gap_s": _positive(params, "max_gap_s", InterpolationOptions.max_gap_s, path),
         "distance_gate_m": _positive(params, "distance_gate_m", PoseOptions.distance_gate_m,
                                      path),
@@ -1047,6 +1063,7 @@ def read_run(run_dir: str | PathLike) -> RunRecord:
         measurements_gp_cov={pid: gp_cov[pid] for pid in ids if pid in gp_cov},
         warnings=summary.warnings, weather_coverage=summary.weather_coverage,
         distance_check=summary.distance_check, self_checks=summary.self_checks,
+        correlated_noise=summary.correlated_noise,
         groundtruth_split=_read_split(root / SPLIT_FILE, groundtruth.t),
         summary=summary.document, path=root,
     )
