@@ -261,10 +261,10 @@ def test_where_nothing_is_found_the_run_is_bit_identical(tmp_path, name, config)
 
 # --- the option -----------------------------------------------------------------------------
 
-def test_the_option_is_checked_and_defaults_to_inflate():
-    assert InterpolationOptions().correlated_noise == "inflate"
-    assert RunOptions().updated(correlated_noise="ignore").interpolation.correlated_noise \
-        == "ignore"
+def test_the_option_is_checked_and_defaults_to_ignore():
+    assert InterpolationOptions().correlated_noise == "ignore"
+    assert RunOptions().updated(correlated_noise="inflate").interpolation.correlated_noise \
+        == "inflate"
     with pytest.raises(InputError, match="correlated_noise 'inflate' or 'ignore'"):
         InterpolationOptions(correlated_noise="augment")
 
@@ -311,7 +311,7 @@ def test_an_inflated_run_is_written_and_read_back_with_what_the_gps_were_given(t
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         rec = run_pipeline(data, opts.updated(seed=1, engine="linear", samples=20,
-                                              rate_hz=2.0))
+                                              rate_hz=2.0, correlated_noise="inflate"))
     assert rec.correlated_noise["applied"]
     out = write_run(rec, tmp_path / "run")
     back = read_run(out)

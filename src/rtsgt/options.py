@@ -137,7 +137,7 @@ class InterpolationOptions:
     motion_prior: MotionPrior = "classes"
     outlier_windows: OutlierWindows = "remove"
     prior: MotionModel = "wnoa"
-    correlated_noise: CorrelatedNoise = "inflate"
+    correlated_noise: CorrelatedNoise = "ignore"
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.rate_hz) and self.rate_hz > 0):

@@ -91,7 +91,7 @@ def register(app: typer.Typer) -> None:
             None, "--correlated-noise",
             help="Noise the static stretches find time-correlated: inflate the white "
                  "covariance (inflate) or take the measurements as independent (ignore, the "
-                 "paper) (default: config, else inflate)."),
+                 "paper) (default: config, else ignore)."),
         force: bool = typer.Option(False, "--force",
                                    help="Replace an earlier output of rtsgt at --out (never a "
                                         "directory holding anything else)."),

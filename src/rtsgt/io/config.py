@@ -72,9 +72,9 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
     prior = "wnoa"                   # GP motion prior: "wnoa" (white noise on acceleration,
                                      # the paper's, default), "wnoj" (on jerk), or "select"
                                      # (per track, by held-out windows)
-    correlated_noise = "inflate"     # noise the static stretches find time-correlated:
-                                     # white covariance inflated ("inflate", default) or the
-                                     # measurements taken as independent ("ignore")
+    correlated_noise = "ignore"      # noise the static stretches find time-correlated:
+                                     # measurements taken as independent ("ignore", default)
+                                     # or white covariance inflated ("inflate")
 
     [pose]
     engine = "mc"                    # mc | ut | linear
