@@ -24,7 +24,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from rtsgt.calibration.gcp import CALIBRATION_MODELS
+from rtsgt.calibration.gcp import CALIBRATION_MODELS, CALIBRATION_WEIGHTINGS, DEFAULT_WEIGHTING
 from rtsgt.errors import InputError
 from rtsgt.filtering import FilterParams
 from rtsgt.filtering.gates import DEFAULT_DISTANCE_GATE_M, DEFAULT_UNCERTAINTY_GATE_M
@@ -166,12 +166,18 @@ class CalibrationOptions:
         Each station's transform: a free rotation (the paper), or levelled stations (yaw only,
         the tilt that of the Earth's curvature and the compensators' errors;
         :mod:`rtsgt.calibration.gcp`, section Models).
+    weighting : {"gls", "trace", "none"}
+        The markers' weights in each station's fit: the inverse of the full covariance of its
+        residuals (generalised least squares), the inverse of its trace, or none (the paper)
+        (:mod:`rtsgt.calibration.gcp`, section Weights).
     """
 
     model: str = "6dof"
+    weighting: str = DEFAULT_WEIGHTING
 
     def __post_init__(self) -> None:
         _one_of("a calibration model", self.model, CALIBRATION_MODELS)
+        _one_of("a calibration weighting", self.weighting, CALIBRATION_WEIGHTINGS)
 
 
 @dataclass(frozen=True)

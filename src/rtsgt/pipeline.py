@@ -203,7 +203,8 @@ def _run_stages(
     calib = calibrate(gcp, reference_station=data.reference_station,
                       instrument=data.instrument, samples=options.pose.samples,
                       rng=stage_rng(options.seed, "calibration"),
-                      model=options.calibration.model)
+                      model=options.calibration.model,
+                      weighting=options.calibration.weighting)
     gcp_xyz, gcp_names = gcp_world_positions(data.gcp, calib.transforms)
     gcp_world = {} if gcp_xyz is None else dict(zip(gcp_names, gcp_xyz, strict=True))
     lap("calibration")

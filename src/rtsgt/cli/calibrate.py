@@ -21,6 +21,7 @@ from rich.console import Console
 from rich.table import Table
 
 from rtsgt.calibration import CalibrationResult, calibrate
+from rtsgt.calibration.gcp import CALIBRATION_WEIGHTING_NAMES, DEFAULT_WEIGHTING
 from rtsgt.errors import InputError
 from rtsgt.io._parse import atomic_write_text
 from rtsgt.io.gcp_csv import GCP_FORMATS, read_gcp_shots
@@ -78,7 +79,7 @@ def result_to_json(result: CalibrationResult, **extra) -> dict:
         "markers_skipped": list(result.markers_skipped),
         "excluded_shots": result.excluded_shots,
         "samples": result.samples,
-        "weighted": result.weighted,
+        "weighting": result.weighting,
         "model": result.model,
         **extra,
     }
@@ -115,7 +116,7 @@ def _print_table(result: CalibrationResult, source: str, console: Console) -> No
             f"{res.station_a[worst]}-{res.station_b[worst]})"
         )
     sampled = f"{result.samples} Monte Carlo samples" if result.samples else "no Monte Carlo"
-    console.print(f"{sampled}; {'trace-weighted' if result.weighted else 'unweighted'} fits.")
+    console.print(f"{sampled}; {CALIBRATION_WEIGHTING_NAMES[result.weighting]} fits.")
     if result.excluded_shots:
         console.print(f"note: {result.excluded_shots} shot(s) with non-zero status excluded")
     if result.markers_skipped:
@@ -133,7 +134,7 @@ def run_calibrate(
     additive_constant: float | None = None,
     samples: int = 1000,
     seed: int = 0,
-    weighted: bool = False,
+    weighting: str = DEFAULT_WEIGHTING,
     instrument: str = "trimble-s7",
     model: str = "6dof",
 ) -> tuple[CalibrationResult, str]:
@@ -153,7 +154,7 @@ def run_calibrate(
             warnings.simplefilter("ignore", UserWarning)
             result = calibrate(
                 shots, reference_station=reference_station, instrument=profile,
-                samples=samples, rng=np.random.default_rng(seed), weighted=weighted,
+                samples=samples, rng=np.random.default_rng(seed), weighting=weighting,
                 model=model,
             )
     return result, source
@@ -191,8 +192,10 @@ def register(app: typer.Typer) -> None:
             1000, "--samples", min=0, help="Monte Carlo samples (0: fit only)."
         ),
         seed: int = typer.Option(0, "--seed", min=0, help="Seed of the random generator (>= 0)."),
-        weighted: bool = typer.Option(
-            False, "--weighted", help="Weight markers by their measurement covariance."
+        weighting: str = typer.Option(
+            DEFAULT_WEIGHTING, "--weighting",
+            help="Markers' weights: gls (the full covariance of each shot), trace (its "
+            "trace) or none (the paper).",
         ),
         instrument: str = typer.Option(
             "trimble-s7", "--instrument", help="Instrument profile for the noise model."
@@ -216,7 +219,7 @@ def register(app: typer.Typer) -> None:
         result, source = run_calibrate(
             gcp_file, format=format, reference_station=reference_station,
             additive_constant=additive_constant, samples=samples, seed=seed,
-            weighted=weighted, instrument=instrument, model=model,
+            weighting=weighting, instrument=instrument, model=model,
         )
         obj = result_to_json(result, source=source, seed=seed)
         if out is not None:

@@ -10,7 +10,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from rtsgt.calibration.gcp import CALIBRATION_MODEL_NAMES
+from rtsgt.calibration.gcp import CALIBRATION_MODEL_NAMES, CALIBRATION_WEIGHTING_NAMES
 from rtsgt.errors import InputError
 from rtsgt.record import RunRecord
 
@@ -121,7 +121,9 @@ def print_run_summary(record: RunRecord, out) -> None:
     # (Bonferroni intervals)
     gcp = record.self_checks.get("gcp_fit", {})
     if gcp.get("model"):
-        table.add_row("calibration model", CALIBRATION_MODEL_NAMES[gcp["model"]])
+        table.add_row("calibration model", CALIBRATION_MODEL_NAMES[gcp["model"]]
+                      + (f"; {CALIBRATION_WEIGHTING_NAMES[gcp['weighting']]}"
+                         if gcp.get("weighting") else ""))
     for s, v in gcp.get("stations", {}).items():
         if v.get("dof"):
             lo, hi = v["interval_95"]

@@ -52,6 +52,8 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
     [calibration]
     model = "6dof"                   # stations' transforms: free rotation ("6dof", default) or
                                      # levelled stations, yaw only ("4dof")
+    weighting = "none"               # markers' weights: none ("none", the paper, default),
+                                     # the full covariance ("gls") or its trace ("trace")
 
     [filter]
     tau_r_m_s = 2.0
@@ -361,7 +363,8 @@ def load_config(path: str | Path) -> DeploymentConfig:
     f.done()
 
     c = _Section(path, "calibration", doc.get("calibration", {}))
-    calibration = c.record(CalibrationOptions, {"model": ("model", str, None)})
+    calibration = c.record(CalibrationOptions, {"model": ("model", str, None),
+                                                "weighting": ("weighting", str, None)})
     c.done()
 
     it = _Section(path, "interpolation", doc.get("interpolation", {}))

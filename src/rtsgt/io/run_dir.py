@@ -268,6 +268,7 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
             "samples": opt.pose.samples,
             "seed": opt.seed,
             "calibration_model": opt.calibration.model,
+            "calibration_weighting": opt.calibration.weighting,
             "rate_hz": opt.interpolation.rate_hz,
             "qc": opt.interpolation.qc,
             "max_gap_s": opt.interpolation.max_gap_s,

@@ -32,7 +32,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 
 from rtsgt import __version__
-from rtsgt.calibration.gcp import CALIBRATION_MODEL_NAMES
+from rtsgt.calibration.gcp import CALIBRATION_MODEL_NAMES, CALIBRATION_WEIGHTING_NAMES
 from rtsgt.errors import RtsgtWarning
 from rtsgt.io._parse import atomic_write_text
 from rtsgt.io.run_dir import read_run
@@ -223,7 +223,8 @@ def _self_checks_html(checks: Mapping) -> str:
         "<h3>GCP fit</h3><table id='check-gcp'><tr><th class='k'>station</th><th>markers</th>"
         "<th>variance factor</th><th>x</th><th>y</th><th>z</th><th>95 % interval</th>"
         f"<th>verdict</th></tr>{body}</table><p><small>The residuals of each station's fit "
-        f"({html.escape(CALIBRATION_MODEL_NAMES.get(g.get('model'), 'model unknown'))}) "
+        f"({html.escape(CALIBRATION_MODEL_NAMES.get(g.get('model'), 'model unknown'))}; "
+        f"{html.escape(CALIBRATION_WEIGHTING_NAMES.get(g.get('weighting'), 'weights unknown'))}) "
         "against the instrument model's covariance (1 if the model is right). Added to every "
         f"shot by the calibration: {_fmt(added.get('horizontal'), 3)} mm horizontal, "
         f"{_fmt(added.get('vertical'), 3)} mm vertical.</small></p>")
