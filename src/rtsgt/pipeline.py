@@ -182,6 +182,8 @@ def _run_stages(
     say("filtering (module 1)")
     fparams = options.filter
     filtered, reports, reports1 = [], {}, []
+    if data.input_report is not None:  # what the reader removed (a bag's statuses)
+        reports["input"] = data.input_report
     for obs in data.observations:
         kept, rep = module1(obs, fparams)
         if len(kept) < 2:

@@ -112,6 +112,11 @@ def print_run_summary(record: RunRecord, out) -> None:
     reasons, counts = np.unique(record.rejected_reason, return_counts=True)
     for reason, count in zip(reasons, counts, strict=True):
         table.add_row(f"rejected: {reason}", str(int(count)))
+    read = None if record.computation is None else record.computation.filter_reports.get("input")
+    if read is not None:  # the messages of a bag the reader removed, by status
+        gone = ", ".join(f"{k} {v}" for k, v in read.removed.items() if v)
+        table.add_row("bag messages valid / read", f"{read.n_kept} / {read.n_in}"
+                      + (f" (removed: {gone})" if gone else ""))
     n_left = int(np.sum(record.removed.stage == "module4"))
     if n_left:
         table.add_row("measurements left out of the GPs (distance windows)", str(n_left))
