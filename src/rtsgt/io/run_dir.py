@@ -886,32 +886,21 @@ def _summary_options(params: dict, param: Callable, path: Path) -> RunOptions:
         seed = int(seed) if seed is not None else 0
     except (TypeError, ValueError) as exc:
         raise InputError(f"parameters: samples and seed must be integers: {exc}", path) from None
-    gp_noise = str(param("gp_noise", InterpolationOptions.gp_noise))
-    if gp_noise not in GP_NOISE:
-        raise InputError(f"gp_noise: expected {' or '.join(map(repr, GP_NOISE))}, got "
-                         f"{gp_noise!r}", path)
-    # a run written before the motion prior had one Qc per track
-    motion_prior = str(param("motion_prior", "constant"))
-    if motion_prior not in MOTION_PRIORS:
-        raise InputError(f"motion_prior: expected {' or '.join(map(repr, MOTION_PRIORS))}, "
-                         f"got {motion_prior!r}", path)
-    # a run written before rtsgt left the windows of distance rejections out kept them
-    outlier_windows = str(param("outlier_windows", "keep"))
-    if outlier_windows not in OUTLIER_WINDOWS:
-        raise InputError(f"outlier_windows: expected {' or '.join(map(repr, OUTLIER_WINDOWS))}, "
-                         f"got {outlier_windows!r}", path)
-    # a run written before the choice of the prior had the paper's, WNOA
-    prior = str(param("prior", "wnoa"))
-    if prior not in PRIOR_CHOICES:
-        raise InputError(f"prior: expected {', '.join(map(repr, PRIOR_CHOICES))}, got "
-                         f"{prior!r}", path)
-    # a run written before rtsgt carried the correlated noise took the measurements as
-    # independent
-    correlated_noise = str(param("correlated_noise", "ignore"))
-    if correlated_noise not in CORRELATED_NOISE:
-        raise InputError(f"correlated_noise: expected "
-                         f"{' or '.join(map(repr, CORRELATED_NOISE))}, got "
-                         f"{correlated_noise!r}", path)
+
+    def choice(name: str, default: str, choices: tuple[str, ...]) -> str:
+        value = str(param(name, default))
+        if value not in choices:
+            raise InputError(f"{name}: expected {' or '.join(map(repr, choices))}, got "
+                             f"{value!r}", path)
+        return value
+
+    gp_noise = choice("gp_noise", InterpolationOptions.gp_noise, GP_NOISE)
+    # the defaults of a run written before each option: one Qc per track, the windows of
+    # distance rejections kept, the paper's WNOA prior, the measurements taken as independent
+    motion_prior = choice("motion_prior", "constant", MOTION_PRIORS)
+    outlier_windows = choice("outlier_windows", "keep", OUTLIER_WINDOWS)
+    prior = choice("prior", "wnoa", PRIOR_CHOICES)
+    correlated_noise = choice("correlated_noise", "ignore", CORRELATED_NOISE)
     changes = {
         "engine": str(param("engine", _OLDEST_OPTIONS.pose.engine)), "samples": samples,
         "registration": str(param("registration", _OLDEST_OPTIONS.pose.registration)),
