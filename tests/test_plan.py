@@ -402,3 +402,25 @@ def test_plan_file_errors_name_the_key(tmp_path):
     r = runner.invoke(app, ["plan", str(p), "-o", str(tmp_path / "o")])
     assert r.exit_code == 1 and "[robot] has unknown key(s) sped" in r.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_paths_from_waypoints_and_from_a_csv_with_times(tmp_path):
+    plan = _plan_file(tmp_path, "w")
+    text = plan.read_text()
+    text = text[:text.index("[area]")] + "[path]\nwaypoints_m = [[5, 5], [25, 5], [25, 20]]\n"
+    plan.write_text(text)
+    out = tmp_path / "w-out"
+    r = runner.invoke(app, ["plan", str(plan), "-o", str(out), "-q"])
+    assert r.exit_code == 0, r.output
+    table = np.loadtxt(out / "sigma.csv", delimiter=",", skiprows=1)
+    assert (out / "sigma.csv").read_text().startswith("x,y,z,sigma_mm")
+    assert table.shape[0] == 36  # every metre along 35 m, both ends
+    np.testing.assert_allclose(np.abs(np.diff(table[:, :2], axis=0)).sum(axis=1), 1.0)
+    assert np.all(table[:, 3] == table[:, 4])  # one heading: the direction of travel
+    csv = tmp_path / "p.csv"
+    csv.write_text("t,x,y\n0,5,5\n1,7,5\n2,9,5\n3,11,5\n")
+    r = runner.invoke(app, ["plan", str(plan), "--path", str(csv), "-o", str(tmp_path / "c"),
+                            "-q"])
+    assert r.exit_code == 0, r.output
+    lines = (tmp_path / "c" / "sigma.csv").read_text().splitlines()
+    assert lines[0].startswith("t,x,y,z,") and len(lines) == 5

@@ -33,6 +33,8 @@ from rtsgt.report.plan import draw_plan_map, plan_json_text, plan_table_text, re
 
 #: Points of an area's grid when the plan gives no step (about; the step is a round number).
 DEFAULT_GRID_POINTS = 2500
+#: Spacing of the points along waypoints when the plan gives no step, m.
+DEFAULT_WAYPOINT_STEP_M = 1.0
 
 
 def _round_step(raw: float) -> float:
@@ -82,12 +84,10 @@ def compute_plan(plan: Path, *, path: Path | None = None,
     z = z_default if inputs.z_m is None else inputs.z_m
     track = read_path(path) if path is not None else inputs.path_data
     if track is not None:
-        xyz = track.xyz
-        if track.quat_xyzw is None and inputs.path_step_m is not None:
-            xyz = waypoint_path(xyz, inputs.path_step_m)
-        xyz = np.where(np.isfinite(xyz), xyz, z)
+        xyz, t = np.where(np.isfinite(track.xyz), track.xyz, z), track.t
+        if path is None and track.source == "waypoints":
+            xyz, t = waypoint_path(xyz, inputs.path_step_m or DEFAULT_WAYPOINT_STEP_M), None
         R = None if track.quat_xyzw is None else quat_xyzw_to_matrix(track.quat_xyzw)
-        t = track.t if xyz.shape[0] == track.xyz.shape[0] else None
         return plan_path(layout, motion, xyz, t=t, R=R, forward_deg=inputs.forward_deg,
                          name=inputs.name)
     polygon = inputs.polygon

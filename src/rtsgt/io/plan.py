@@ -46,7 +46,7 @@ Plan coordinates are any levelled frame with z up (a site map's), in metres. Exa
     [path]
     file = "path.csv"                # x,y[,z][,t] with a header, or poses (TUM, a run's
                                      # groundtruth_covariance.csv, ...)
-    # waypoints_m = [[x, y], ...]    # or waypoints, with step_m = 1.0
+    # waypoints_m = [[x, y], ...]    # or waypoints, a point every step_m (default 1 m)
     # z_m = 0.8
 
     [noise], [calibration], [interpolation], [pose]   # as in a deployment TOML
@@ -298,7 +298,7 @@ def load_plan(path: str | Path) -> PlanInputs:
                 w = np.column_stack([w, np.full(w.shape[0], np.nan)])
             path_data = PathData(w, source="waypoints")
         path_step = pa.positive("step_m", None)
-        if path_step is not None and has_file:
+        if "step_m" in pa.table and has_file:
             raise ConfigError("[path] step_m is for waypoints_m", path)
         z = pa.get("z_m", float, None)
         pa.done()
