@@ -55,6 +55,8 @@ RANGE_LIMIT_M = 75.0
 MIN_MARKERS = 6
 #: Most points of an area's grid (the grid step is refused below it).
 MAX_POINTS = 40000
+#: Poses predicted in one vectorised batch (bounds the memory to a few hundred MB).
+POSE_CHUNK = 16384
 
 
 def inside_polygon(xy: ArrayLike, polygon: ArrayLike) -> np.ndarray:
@@ -228,16 +230,27 @@ def _nan_stat(fn, a: np.ndarray) -> np.ndarray:
 
 def _predict(layout: Layout, motion: RobotMotion, R: np.ndarray, t: np.ndarray,
              vel: np.ndarray, P: int, H: int):
-    """Predict the (P H) poses; sigmas (P, H), the max range (P,), the per-source medians."""
-    pred = predict_poses(layout, R, t, vel, motion)
-    sig = np.where(pred.valid, pred.sigma_m, np.nan).reshape(P, H)
-    rot = np.where(pred.valid, pred.rotation_sigma_rad, np.nan).reshape(P, H)
-    max_range = np.max(pred.ranges_m, axis=1).reshape(P, H).max(axis=1)
+    """Predict the (P H) poses, :data:`POSE_CHUNK` at a time (each chunk one vectorised
+    batch; the memory stays bounded); sigmas (P, H), the max range (P,), the per-source
+    medians."""
+    N = P * H
+    sig, rot, max_range = np.full(N, np.nan), np.full(N, np.nan), np.empty(N)
+    norms: dict[str, list[np.ndarray]] = {}
+    for lo in range(0, N, POSE_CHUNK):  # chunks of poses, not single poses
+        sl = slice(lo, min(lo + POSE_CHUNK, N))
+        pred = predict_poses(layout, R[sl], t[sl], vel[sl], motion)
+        sig[sl] = np.where(pred.valid, pred.sigma_m, np.nan)
+        rot[sl] = np.where(pred.valid, pred.rotation_sigma_rad, np.nan)
+        max_range[sl] = np.max(pred.ranges_m, axis=1)
+        for name, c in pred.prism_cov_by_source.items():
+            norms.setdefault(name, []).append(
+                np.sqrt(np.trace(c, axis1=-2, axis2=-1))[pred.valid])
     sources = {}
-    for s, c in pred.prism_cov_by_source.items():
-        v = np.sqrt(np.trace(c, axis1=-2, axis2=-1))[pred.valid]
-        sources[s] = [float(x) for x in np.median(v, axis=0) * 1e3] if v.size else []
-    return sig, rot, max_range, sources
+    for name, parts in norms.items():
+        v = np.concatenate(parts)
+        sources[name] = [float(x) for x in np.median(v, axis=0) * 1e3] if v.size else []
+    return (sig.reshape(P, H), rot.reshape(P, H), max_range.reshape(P, H).max(axis=1),
+            sources)
 
 
 def plan_area(layout: Layout, motion: RobotMotion, polygon: ArrayLike, step_m: float,
