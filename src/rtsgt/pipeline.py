@@ -149,6 +149,26 @@ def run_pipeline(
     return replace(result, warnings=tuple(said))
 
 
+def noise_model(data: DeploymentData, options: RunOptions) -> NoiseModel:
+    """The noise model of a run: the options' one, or every source with the deployment's
+    instrument."""
+    return options.noise if options.noise is not None else NoiseModel(instrument=data.instrument)
+
+
+def calibrate_stations(data: DeploymentData, options: RunOptions,
+                       t_start: float) -> CalibrationResult:
+    """The extrinsic calibration of a run (its own random stream, ``"calibration"``): the GCP
+    shots with the atmospheric correction (the weather at ``t_start``, the start of tracking,
+    for shots outside the weather series), fitted by :func:`rtsgt.calibration.calibrate`.
+    ``rtsgt plan`` calls it to get the very calibration a run of the deployment gets."""
+    gcp = gcp_atmospheric_correction(data.gcp, noise_model(data, options), data.weather, t_start)
+    return calibrate(gcp, reference_station=data.reference_station,
+                     instrument=data.instrument, samples=options.pose.samples,
+                     rng=stage_rng(options.seed, "calibration"),
+                     model=options.calibration.model,
+                     weighting=options.calibration.weighting)
+
+
 def _reissue(caught: list[warnings.WarningMessage]) -> list[str]:
     """Issue recorded warnings again, once each; the texts of the user warnings among them."""
     seen: set[tuple[type, str]] = set()
@@ -199,14 +219,8 @@ def _run_stages(
     lap("filter_module1")
 
     say("extrinsic calibration")
-    model = options.noise if options.noise is not None else NoiseModel(instrument=data.instrument)
-    t_start = min(float(o.t[0]) for o in filtered)
-    gcp = gcp_atmospheric_correction(data.gcp, model, data.weather, t_start)
-    calib = calibrate(gcp, reference_station=data.reference_station,
-                      instrument=data.instrument, samples=options.pose.samples,
-                      rng=stage_rng(options.seed, "calibration"),
-                      model=options.calibration.model,
-                      weighting=options.calibration.weighting)
+    model = noise_model(data, options)
+    calib = calibrate_stations(data, options, min(float(o.t[0]) for o in filtered))
     gcp_xyz, gcp_names = gcp_world_positions(data.gcp, calib.transforms)
     gcp_world = {} if gcp_xyz is None else dict(zip(gcp_names, gcp_xyz, strict=True))
     lap("calibration")

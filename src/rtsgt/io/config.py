@@ -296,13 +296,7 @@ def load_config(path: str | Path) -> DeploymentConfig:
     reference_station = dep.get("reference_station", str, "1")
     dep.done()
 
-    table = doc.get("instrument", {"profile": "trimble-s7"})
-    if not isinstance(table, dict):
-        raise ConfigError("[instrument] must be a table", path)
-    try:
-        instrument = instrument_from_config(table)
-    except InputError as exc:
-        raise ConfigError(f"[instrument] {exc.bare_message}", path) from None
+    instrument = read_instrument(path, doc)
 
     measurements = None
     if "measurements" in doc:
@@ -372,6 +366,28 @@ def load_config(path: str | Path) -> DeploymentConfig:
     reference = ReferenceConfig(ref_file, ref_format, rows, body_frame, body_points, T_sb)
     r.done()
 
+    options, query_times = read_options(path, doc, instrument)
+    return DeploymentConfig(path, name, reference_station, instrument, tuple(stations), gcp,
+                            reference, weather, options, query_times, measurements)
+
+
+def read_instrument(path: Path, doc: dict) -> InstrumentProfile:
+    """The ``[instrument]`` table of a configuration (default: the Trimble S7)."""
+    table = doc.get("instrument", {"profile": "trimble-s7"})
+    if not isinstance(table, dict):
+        raise ConfigError("[instrument] must be a table", path)
+    try:
+        return instrument_from_config(table)
+    except InputError as exc:
+        raise ConfigError(f"[instrument] {exc.bare_message}", path) from None
+
+
+def read_options(path: Path, doc: dict, instrument: InstrumentProfile,
+                 *, query_times: bool = True) -> tuple[RunOptions, Path | None]:
+    """The processing tables of a configuration (``[noise]``, ``[filter]``,
+    ``[calibration]``, ``[interpolation]``, ``[pose]``) as options, each key checked, and the
+    query-times file of ``[interpolation]`` (None without it; refused unless
+    ``query_times``)."""
     n = _Section(path, "noise", doc.get("noise", {}))
     sources = n.get("sources", list, None)
     bad = [x for x in sources or () if x not in NOISE_SOURCES]
@@ -399,8 +415,10 @@ def load_config(path: str | Path) -> DeploymentConfig:
     c.done()
 
     it = _Section(path, "interpolation", doc.get("interpolation", {}))
-    query_times = it.file("query_times") if "query_times" in it.table else None
-    if query_times is not None and "rate_hz" in it.table:
+    if "query_times" in it.table and not query_times:
+        raise ConfigError("[interpolation] query_times has no meaning here", path)
+    times = it.file("query_times") if "query_times" in it.table else None
+    if times is not None and "rate_hz" in it.table:
         raise ConfigError("[interpolation] give rate_hz or query_times, not both", path)
     interp = it.record(InterpolationOptions, {
         "rate_hz": ("rate_hz", float, None), "qc": ("qc", (str, float, int), _qc_value),
@@ -416,10 +434,8 @@ def load_config(path: str | Path) -> DeploymentConfig:
         ("uncertainty_gate_m", float))})
     p.done()
 
-    options = RunOptions(filter=filt, noise=noise, calibration=calibration,
-                         interpolation=interp, pose=pose)
-    return DeploymentConfig(path, name, reference_station, instrument, tuple(stations), gcp,
-                            reference, weather, options, query_times, measurements)
+    return RunOptions(filter=filt, noise=noise, calibration=calibration, interpolation=interp,
+                      pose=pose), times
 
 
 def _station(path: Path, i: int, table: Any,
