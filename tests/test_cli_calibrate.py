@@ -56,6 +56,13 @@ def test_json_on_real_gcp():
     assert res["median"] == pytest.approx(1.90, abs=0.1)
     assert res["max"] == pytest.approx(8.25, abs=0.1)
     assert len(out["residuals"]) == 36 and out["samples"] == 300 and out["seed"] == 0
+    assert out["weighting"] == "none"
+    # the generalised least squares: the angles fix the stations across the lines of sight
+    gls = invoke_json(real_gcp(), "--samples", "300", "--weighting", "gls")
+    assert gls["weighting"] == "gls"
+    for s in ("2", "3"):
+        assert np.all(np.array(gls["stations"][s]["sigma_translation_mm"][:2])
+                      < 0.5 * np.array(out["stations"][s]["sigma_translation_mm"][:2]))
 
 
 def test_json_is_reproducible_from_the_seed():

@@ -293,3 +293,24 @@ def test_console_script(track_file, tmp_path):
     assert proc.stderr == (f"error: {bad}:5: expected a finite number in column 'x', "
                            "got 'nan'\n")
     assert not out2.exists()
+
+
+def test_prior_option(track_file):
+    """--prior: the WNOJ prior's Qc is in m^2/s^5; "select" fits both and says their window
+    scores; the output is the library's fit with the prior chosen."""
+    from rtsgt.interpolation.prisms import fit_prism_gp
+
+    j = invoke(track_file, "--rate", 2, "--prior", "wnoj")
+    assert j.exit_code == 0, j.output
+    assert "m^2/s^5" in j.stderr and "WNOJ prior" in j.stderr
+    s = invoke(track_file, "--rate", 2, "--prior", "select")
+    assert s.exit_code == 0, s.output
+    assert "log predictive density of the held-out windows: WNOA" in s.stderr
+    tr = read_track_csv(track_file)
+    gp, info = fit_prism_gp(tr, "loo", 3.0, "t", "select")
+    assert info["prior_choice"]["chosen"] == gp.prior
+    times, _ = rate_times(gp, 2.0)
+    res = gp.query(np.sort(times))
+    np.testing.assert_array_equal(read_output(s.stdout)[:, 1:4], res.position)
+    bad = invoke(track_file, "--rate", 2, "--prior", "singer")
+    assert bad.exit_code == 2 and "--prior" in bad.stderr

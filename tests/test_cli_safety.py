@@ -1,6 +1,6 @@
 """Safe by default: what a command writes, how it fails, and what it says.
 
-Every command that writes a directory (``run``, ``simulate``, ``demo``, ``analyze``,
+Every command that writes a directory (``run``, ``simulate``, ``demo``, ``analyze``, ``plan``,
 ``evaluate --plot``) writes it whole or not at all, and ``--force`` replaces only what rtsgt
 wrote; every error is one ``error: ...`` line with the documented exit status (1: input,
 2: command line); the terminal output says what it should (units, verdicts, where things
@@ -116,7 +116,8 @@ def test_force_replaces_an_rtsgt_output_and_nothing_else(deployment, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
-@pytest.mark.parametrize("command", ["run", "simulate", "demo", "analyze", "evaluate"])
+@pytest.mark.parametrize("command", ["run", "simulate", "demo", "analyze", "evaluate",
+                                     "plan"])
 def test_every_directory_writer_refuses_a_folder_of_the_users(command, deployment, run_dir,
                                                               tmp_path):
     target = tmp_path / "target"
@@ -128,6 +129,7 @@ def test_every_directory_writer_refuses_a_folder_of_the_users(command, deploymen
         "demo": ["demo", "-o", target, "--duration", 30, "--engine", "linear"],
         "analyze": ["analyze", run_dir, "--out", target, "--no-figures"],
         "evaluate": ["evaluate", run_dir, run_dir / "groundtruth.tum", "--plot", target],
+        "plan": ["plan", deployment / "deployment.toml", "-o", target],
     }[command]
     assert_one_error(invoke(*args), 1, str(target), "--force")
     assert_one_error(invoke(*args, "--force"), 1, "thesis.tex, which rtsgt did not write")
@@ -261,7 +263,7 @@ def test_run_table_units_qc_and_report_progress(deployment, tmp_path):
 
 def test_help_shows_no_bool_placeholder():
     for command in ("run", "demo", "simulate", "analyze", "report", "evaluate", "interpolate",
-                    "calibrate"):
+                    "calibrate", "plan"):
         r = invoke(command, "--help")
         assert r.exit_code == 0, r.output
         assert "<bool>" not in r.output and "--help" in r.output

@@ -66,6 +66,9 @@ def test_minimal_configuration_takes_the_paper_defaults(deployment):
          r"\[pose\] registration = 'best': expected registration 'weighted' or 'unweighted'"),
         (lambda s: s + '[pose]\nsamples = "many"\n', r"samples must be int"),
         (lambda s: s + "[noise]\nsources = ['instrument', 'gravity']\n", r"unknown source\(s\) 'gravity'"),
+        (lambda s: s + '[calibration]\nweighting = "best"\n',
+         r"\[calibration\] weighting = 'best': expected a calibration weighting 'gls' or "
+         r"'trace' or 'none'"),
         (lambda s: s + "[interpolation]\nqc = -1.0\n", r"\[interpolation\] qc = -1.0: expected qc > 0"),
         (lambda s: s + "[interpolation]\nqc = 'auto'\n", r"qc = 'auto': expected qc loo, likelihood or a number"),
         (lambda s: s + "[interpolation]\noutlier_windows = 'drop'\n",
@@ -97,6 +100,12 @@ def test_real_excerpt_configuration_loads():
     assert cfg.weather is not None and cfg.weather.format == "eccc"
     assert cfg.weather.utc_offset_hours == -5.0
     assert all(s.additive_constant_m == 0.01 for s in cfg.stations)
+
+
+def test_the_calibration_weighting_is_the_papers_unless_asked(deployment):
+    assert load_config(deployment).options.calibration.weighting == "none"
+    deployment.write_text(MINIMAL + "[calibration]\nweighting = \"gls\"\n")
+    assert load_config(deployment).options.calibration.weighting == "gls"
 
 
 def test_the_outlier_windows_of_the_paper_stay_reachable(deployment):

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rtsgt.filtering.modules import FilterReport
 from rtsgt.measurement.instruments import InstrumentProfile
 from rtsgt.pose import ReferencePoints
 from rtsgt.types import GcpShots, Observations, WeatherSeries
@@ -35,6 +36,10 @@ class DeploymentData:
     weather : WeatherSeries, optional
     query_times : ndarray, optional
         Times (s) at which to compute poses; otherwise a regular grid at ``rate_hz``.
+    input_report : FilterReport, optional
+        What the reader of the measurements removed before module 1, by reason and station
+        (:class:`rtsgt.io.rts_bag.InputReport`: the statuses of a bag's messages); recorded as
+        ``filters.input`` of ``summary.json``. None for prism files.
     """
 
     name: str
@@ -45,3 +50,4 @@ class DeploymentData:
     reference_station: str = "1"
     weather: WeatherSeries | None = None
     query_times: np.ndarray | None = None
+    input_report: FilterReport | None = None

@@ -24,7 +24,12 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from rtsgt.calibration.gcp import CALIBRATION_METHODS, CALIBRATION_MODELS
+from rtsgt.calibration.gcp import (
+    CALIBRATION_METHODS,
+    CALIBRATION_MODELS,
+    CALIBRATION_WEIGHTINGS,
+    DEFAULT_WEIGHTING,
+)
 from rtsgt.errors import InputError
 from rtsgt.filtering import FilterParams
 from rtsgt.filtering.gates import DEFAULT_DISTANCE_GATE_M, DEFAULT_UNCERTAINTY_GATE_M
@@ -56,8 +61,19 @@ MOTION_PRIORS: tuple[str, ...] = get_args(MotionPrior)
 #: out and fit again (rtsgt), or keep them (the paper).
 OutlierWindows = Literal["remove", "keep"]
 OUTLIER_WINDOWS: tuple[str, ...] = get_args(OutlierWindows)
+#: The GP's motion prior: white noise on the acceleration (the paper's), on the jerk, or the
+#: one of the two whose held-out windows each track predicts better.
+MotionModel = Literal["select", "wnoa", "wnoj"]
+PRIOR_CHOICES: tuple[str, ...] = get_args(MotionModel)
 
-__all__ = ["GP_NOISE", "MOTION_PRIORS", "OUTLIER_WINDOWS", "QC_METHODS", "RANDOM_STAGES",
+#: What the GPs do with the time-correlated noise the static-stretch check finds: inflate the
+#: white covariance by the loss of independent samples (rtsgt), or take the measurements as
+#: independent (the paper).
+CorrelatedNoise = Literal["inflate", "ignore"]
+CORRELATED_NOISE: tuple[str, ...] = get_args(CorrelatedNoise)
+
+__all__ = ["CORRELATED_NOISE", "GP_NOISE", "MOTION_PRIORS", "OUTLIER_WINDOWS", "PRIOR_CHOICES",
+           "QC_METHODS", "RANDOM_STAGES",
            "InterpolationOptions", "PoseOptions", "RunOptions", "stage_rng"]
 
 
@@ -104,6 +120,19 @@ class InterpolationOptions:
         The measurements inside the windows of poses the distance gate rejects (a station
         tracking another prism): left out of the GP fits, which are fitted again
         (:mod:`rtsgt.filtering.gates`), or kept in them (the paper).
+    prior : {"wnoa", "select", "wnoj"}
+        The GP's motion prior: white noise on the acceleration (``"wnoa"``, the paper's and
+        the default), on the jerk (``"wnoj"``), or per track the one of the two whose held-out
+        windows of 1-2 s it predicts better (``"select"``;
+        :func:`rtsgt.interpolation.prisms.fit_gps`; with a ``qc`` given as a number,
+        ``"select"`` is WNOA: the number is a WNOA PSD). docs/interpolation.md says why
+        ``"select"`` is not the default.
+    correlated_noise : {"inflate", "ignore"}
+        Where the static-stretch check finds time-correlated measurement noise (a prism's
+        component whose lag-one correlation is ``optimistic``), its white covariance inflated
+        by the loss of independent samples and the GPs fitted again
+        (:mod:`rtsgt.noise.correlated`), or the measurements taken as independent (the
+        paper). Elsewhere nothing changes.
     """
 
     rate_hz: float = 5.0
@@ -112,6 +141,8 @@ class InterpolationOptions:
     gp_noise: GpNoise = "white"
     motion_prior: MotionPrior = "classes"
     outlier_windows: OutlierWindows = "remove"
+    prior: MotionModel = "wnoa"
+    correlated_noise: CorrelatedNoise = "ignore"
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.rate_hz) and self.rate_hz > 0):
@@ -126,6 +157,8 @@ class InterpolationOptions:
         _one_of("gp_noise", self.gp_noise, GP_NOISE)
         _one_of("motion_prior", self.motion_prior, MOTION_PRIORS)
         _one_of("outlier_windows", self.outlier_windows, OUTLIER_WINDOWS)
+        _one_of("prior", self.prior, PRIOR_CHOICES)
+        _one_of("correlated_noise", self.correlated_noise, CORRELATED_NOISE)
 
 
 @dataclass(frozen=True)
@@ -138,6 +171,10 @@ class CalibrationOptions:
         Each station's transform: a free rotation (the paper), or levelled stations (yaw only,
         the tilt that of the Earth's curvature and the compensators' errors;
         :mod:`rtsgt.calibration.gcp`, section Models).
+    weighting : {"gls", "trace", "none"}
+        The markers' weights in each station's fit: the inverse of the full covariance of its
+        residuals (generalised least squares), the inverse of its trace, or none (the paper)
+        (:mod:`rtsgt.calibration.gcp`, section Weights).
     method : {"gcp", "dynamic", "joint"}
         What the transforms are fitted to: the ground control points
         (:mod:`rtsgt.calibration.gcp`), the robot's motion through the surveyed inter-prism
@@ -145,10 +182,12 @@ class CalibrationOptions:
     """
 
     model: str = "6dof"
+    weighting: str = DEFAULT_WEIGHTING
     method: str = "gcp"
 
     def __post_init__(self) -> None:
         _one_of("a calibration model", self.model, CALIBRATION_MODELS)
+        _one_of("a calibration weighting", self.weighting, CALIBRATION_WEIGHTINGS)
         _one_of("a calibration method", self.method, CALIBRATION_METHODS)
 
 
@@ -215,8 +254,8 @@ class RunOptions:
         """A copy with ``changes``, keyed by the flat names of the command line: ``seed``,
         ``filter``, ``noise``, or a field of a nested record (``model``, ``method``, ``engine``,
         ``registration``, ``samples``, ``rate_hz``, ``qc``, ``max_gap_s``, ``gp_noise``,
-        ``motion_prior``, ``outlier_windows``, the gates); each value meets its record's rule
-        (:class:`~rtsgt.errors.InputError` otherwise)."""
+        ``motion_prior``, ``outlier_windows``, ``prior``, ``correlated_noise``, the gates); each
+        value meets its record's rule (:class:`~rtsgt.errors.InputError` otherwise)."""
         top = {k: v for k, v in changes.items() if k in _TOP_FIELDS}
         for part, record in _NESTED.items():
             mine = {k: v for k, v in changes.items() if k in _FIELDS[record]}

@@ -33,6 +33,18 @@ poses that the distance gate rejects (a station tracking another prism) are left
 GP fits, which are fitted again (:mod:`rtsgt.filtering.gates`; ``outlier_windows = "keep"``
 keeps them, as the paper did). A run without such a pose is not touched.
 
+Time-correlated measurement noise
+---------------------------------
+The static-stretch self-check (:mod:`rtsgt.checks.static`) needs the poses (the robot's
+standing stretches come from them), so it runs on the first fit. Where it finds a prism's
+noise correlated in time (a component whose lag-one correlation is ``optimistic``), the white
+covariance of that component is inflated by the loss of independent samples
+(:mod:`rtsgt.noise.correlated`) and everything from the GPs to the gates (the Qc search and
+the refits without the outlier windows included) is done once more on the inflated tracks;
+the other self-checks judge that final run. The static check reported stays the one on the
+measurements as given: what the data say about the noise model. ``correlated_noise =
+"ignore"`` (the paper) keeps the first fit; where nothing is found, both are the same run.
+
 Errors shared between prisms
 ----------------------------
 Two stations calibrated from the same reference shots have correlated calibration errors
@@ -106,6 +118,7 @@ from rtsgt.interpolation.prisms import (
 )
 from rtsgt.measurement.weather import check_weather_coverage
 from rtsgt.noise import NoiseModel, propagate
+from rtsgt.noise.correlated import correlated_noise_plan, inflate_tracks
 from rtsgt.options import RunOptions, stage_rng
 from rtsgt.pose import PoseEstimate, ReferencePoints, estimate_poses
 from rtsgt.record import RunComputation, RunRecord, ordered_sources
@@ -146,6 +159,26 @@ def run_pipeline(
     return replace(result, warnings=tuple(said))
 
 
+def noise_model(data: DeploymentData, options: RunOptions) -> NoiseModel:
+    """The noise model of a run: the options' one, or every source with the deployment's
+    instrument."""
+    return options.noise if options.noise is not None else NoiseModel(instrument=data.instrument)
+
+
+def calibrate_stations(data: DeploymentData, options: RunOptions,
+                       t_start: float) -> CalibrationResult:
+    """The extrinsic calibration of a run (its own random stream, ``"calibration"``): the GCP
+    shots with the atmospheric correction (the weather at ``t_start``, the start of tracking,
+    for shots outside the weather series), fitted by :func:`rtsgt.calibration.calibrate`.
+    ``rtsgt plan`` calls it to get the very calibration a run of the deployment gets."""
+    gcp = gcp_atmospheric_correction(data.gcp, noise_model(data, options), data.weather, t_start)
+    return calibrate(gcp, reference_station=data.reference_station,
+                     instrument=data.instrument, samples=options.pose.samples,
+                     rng=stage_rng(options.seed, "calibration"),
+                     model=options.calibration.model,
+                     weighting=options.calibration.weighting)
+
+
 def _reissue(caught: list[warnings.WarningMessage]) -> list[str]:
     """Issue recorded warnings again, once each; the texts of the user warnings among them."""
     seen: set[tuple[type, str]] = set()
@@ -179,6 +212,8 @@ def _run_stages(
     say("filtering (module 1)")
     fparams = options.filter
     filtered, reports, reports1 = [], {}, []
+    if data.input_report is not None:  # what the reader removed (a bag's statuses)
+        reports["input"] = data.input_report
     for obs in data.observations:
         kept, rep = module1(obs, fparams)
         if len(kept) < 2:
@@ -194,8 +229,8 @@ def _run_stages(
     lap("filter_module1")
 
     say("extrinsic calibration")
-    model = options.noise if options.noise is not None else NoiseModel(instrument=data.instrument)
-    calib, gcp_calib = calibrate_stations(data, options, filtered, model)
+    model = noise_model(data, options)
+    calib, gcp_calib = calibrate_by_method(data, options, filtered)
     gcp_xyz, gcp_names = gcp_world_positions(data.gcp, calib.transforms)
     gcp_world = {} if gcp_xyz is None else dict(zip(gcp_names, gcp_xyz, strict=True))
     lap("calibration")
@@ -226,57 +261,34 @@ def _run_stages(
     tracks = {tr.prism: tr for tr in kept_tracks}
     lap("filter_module2")
 
-    say("GP interpolation")
-    qc_info: dict[str, dict] = {}
-    gps = fit_gps(tracks, options.interpolation, info=qc_info)
-    if data.query_times is not None:
-        t_query = np.asarray(data.query_times, dtype=float)
-        inside = np.zeros(t_query.shape, bool)
-        for a, b in intervals:
-            inside |= (t_query >= a) & (t_query <= b)
-        t_query = t_query[inside]
-    else:
-        t_query = query_grid(intervals, options.interpolation.rate_hz)
-    # queries across a gap longer than max_gap_s in any prism are not poses we can vouch for
-    ok = np.ones(t_query.shape, bool)
-    for g in gps.values():
-        ok &= g.supported(t_query)
-    t_query = t_query[ok]
-    if t_query.size == 0:
-        raise InputError("No query time falls inside the intervals common to all prisms")
     coupling = StationCoupling.from_calibration(calib)
-    prisms = query_prisms(tracks, gps, t_query, options.interpolation, coupling)
-    lap("interpolation")
-
-    say("poses")
     reference = data.reference.select(list(tracks))
-    est = estimate_poses(prisms.xyz, prisms.pose_covariance, reference, engine=options.pose.engine,
-                         registration=options.pose.registration,
-                         samples=options.pose.samples, rng=stage_rng(options.seed, "pose"))
-    lap("pose")
+    origins = {s: np.asarray(T.translation, dtype=float) for s, T in calib.transforms.items()}
+    fit = _fit_to_gates(options, data.query_times, intervals, tracks, coupling, reference, say)
+    timings.update(fit.timings)
+    tick = time.perf_counter()
 
-    say("quality gates (module 4)")
-    keep, gate_report = apply_gates(
-        est, reference, distance_gate_m=options.pose.distance_gate_m,
-        uncertainty_gate_m=options.pose.uncertainty_gate_m,
-    )
-    if options.interpolation.outlier_windows == "remove":
+    # the noise on the static stretches, with the measurements taken as independent: what
+    # the data say about the noise model; where it wanders, the white covariance is inflated
+    # and the GPs fitted again (rtsgt.noise.correlated)
+    say("self-check: static stretches")
+    static = static_noise_check(fit.tracks, origins,
+                                static_stretches(fit.groundtruth.t, fit.prisms.xyz[fit.keep]))
+    correlated = correlated_noise_plan(
+        static, tracks, apply=options.interpolation.correlated_noise == "inflate")
+    lap("static_noise")
+    if correlated["applied"]:
         start = time.perf_counter()
-        refit = _refit_outlier_windows(options, tracks, prisms, est, reference, coupling, say)
-        if refit is not None:
-            tracks, gps, qc_info, prisms, est, keep, gate_report, masks, reports["module4"] = refit
-            t_query = prisms.t
-            removed = removed_measurements(*removal, [masks[o.prism] for o in filtered])
-            timings["outlier_windows"] = time.perf_counter() - start
-            tick += timings["outlier_windows"]  # its own stage, not counted in "gates"
-    gt = PoseTrajectory(
-        t_query[keep], est.t[keep], matrix_to_quat_xyzw(est.R[keep]), est.cov[keep]
-    )
-    # a surveyed distance the tracking disagrees with biases every pose: say so
-    distance_check = surveyed_distance_check(
-        prisms.xyz[keep], prisms.pose_covariance[keep], reference.xyz, reference.cov,
-        reference.names)
-    lap("gates")
+        fit = _fit_to_gates(options, data.query_times, intervals,
+                            inflate_tracks(tracks, origins, correlated), coupling, reference,
+                            lambda stage: say(f"{stage}, correlated noise inflated"))
+        timings["correlated_noise"] = time.perf_counter() - start
+        tick = time.perf_counter()
+    tracks, gps, qc_info, prisms, est, keep, gt = (
+        fit.tracks, fit.gps, fit.qc_info, fit.prisms, fit.estimate, fit.keep, fit.groundtruth)
+    if fit.outliers is not None:
+        masks, reports["module4"] = fit.outliers
+        removed = removed_measurements(*removal, [masks[o.prism] for o in filtered])
 
     say("shared errors")
     split = _split(options, prisms, gps, tracks, calib, coupling, reference, est, keep)
@@ -290,9 +302,7 @@ def _run_stages(
         varying_cov=prisms.cov_gp[keep]),
         "block_cv": block_cv_check(tracks, gps, gp_noise=options.interpolation.gp_noise,
                                    max_gap_s=options.interpolation.max_gap_s),
-        "static_noise": static_noise_check(
-            tracks, {s: T.translation for s, T in calib.transforms.items()},
-            static_stretches(gt.t, prisms.xyz[keep]))}
+        "static_noise": static}
     if calib.dynamic is not None:
         self_checks["dynamic_calibration"] = dynamic_calibration_check(calib, gcp_calib)
     self_checks["inter_prism_structure"] = run_structure_check(
@@ -300,10 +310,98 @@ def _run_stages(
         options.interpolation.gp_noise)
     lap("self_checks")
     computation = RunComputation(data, calib, model, reports, tracks, gps, prisms, est, keep,
-                                 gate_report, timings, qc_info)
+                                 fit.gate_report, timings, qc_info)
     record = _record(computation, options, intervals, coupling, removed, gt, gcp_world,
-                     weather_coverage, distance_check, self_checks)
-    return replace(record, groundtruth_split=split)
+                     weather_coverage, fit.distance_check, self_checks)
+    return replace(record, groundtruth_split=split, correlated_noise=correlated)
+
+
+class _Fit(NamedTuple):
+    """What :func:`_fit_to_gates` computes from the tracks."""
+
+    tracks: dict[str, PrismTrack]
+    gps: dict[str, GPTrack]
+    qc_info: dict[str, dict]
+    prisms: PrismsAtTimes
+    estimate: PoseEstimate
+    keep: np.ndarray
+    gate_report: GateReport
+    groundtruth: PoseTrajectory
+    distance_check: dict
+    #: The measurements left out of the GPs per prism and module 4's report, or None.
+    outliers: tuple[dict[str, np.ndarray], OutlierWindowReport] | None
+    timings: dict[str, float]
+
+
+def _fit_to_gates(options: RunOptions, query_times: np.ndarray | None, intervals: np.ndarray,
+                  tracks: dict[str, PrismTrack], coupling: StationCoupling,
+                  reference: ReferencePoints, say: Progress) -> _Fit:
+    """The GPs of the tracks (Qc search included), the prisms at the query times, the poses
+    and module 4's gates, with the GPs fitted again without the windows of distance
+    rejections (``outlier_windows = "remove"``); ``tracks`` are those the gates' windows
+    leave measurements out of (``outliers``). ``timings`` has the stages ``interpolation``,
+    ``pose``, ``gates`` and, where the windows were refitted, ``outlier_windows``, s."""
+    timings: dict[str, float] = {}
+    tick = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal tick
+        now = time.perf_counter()
+        timings[name] = now - tick
+        tick = now
+
+    say("GP interpolation")
+    qc_info: dict[str, dict] = {}
+    gps = fit_gps(tracks, options.interpolation, info=qc_info)
+    if query_times is not None:
+        t_query = np.asarray(query_times, dtype=float)
+        inside = np.zeros(t_query.shape, bool)
+        for a, b in intervals:
+            inside |= (t_query >= a) & (t_query <= b)
+        t_query = t_query[inside]
+    else:
+        t_query = query_grid(intervals, options.interpolation.rate_hz)
+    # queries across a gap longer than max_gap_s in any prism are not poses we can vouch for
+    ok = np.ones(t_query.shape, bool)
+    for g in gps.values():
+        ok &= g.supported(t_query)
+    t_query = t_query[ok]
+    if t_query.size == 0:
+        raise InputError("No query time falls inside the intervals common to all prisms")
+    prisms = query_prisms(tracks, gps, t_query, options.interpolation, coupling)
+    lap("interpolation")
+
+    say("poses")
+    est = estimate_poses(prisms.xyz, prisms.pose_covariance, reference, engine=options.pose.engine,
+                         registration=options.pose.registration,
+                         samples=options.pose.samples, rng=stage_rng(options.seed, "pose"))
+    lap("pose")
+
+    say("quality gates (module 4)")
+    keep, gate_report = apply_gates(
+        est, reference, distance_gate_m=options.pose.distance_gate_m,
+        uncertainty_gate_m=options.pose.uncertainty_gate_m,
+    )
+    outliers = None
+    if options.interpolation.outlier_windows == "remove":
+        start = time.perf_counter()
+        refit = _refit_outlier_windows(options, tracks, prisms, est, reference, coupling, say)
+        if refit is not None:
+            tracks, gps, qc_info, prisms, est, keep, gate_report, masks, report = refit
+            t_query = prisms.t
+            outliers = (masks, report)
+            timings["outlier_windows"] = time.perf_counter() - start
+            tick += timings["outlier_windows"]  # its own stage, not counted in "gates"
+    gt = PoseTrajectory(
+        t_query[keep], est.t[keep], matrix_to_quat_xyzw(est.R[keep]), est.cov[keep]
+    )
+    # a surveyed distance the tracking disagrees with biases every pose: say so
+    distance_check = surveyed_distance_check(
+        prisms.xyz[keep], prisms.pose_covariance[keep], reference.xyz, reference.cov,
+        reference.names)
+    lap("gates")
+    return _Fit(tracks, gps, qc_info, prisms, est, keep, gate_report, gt, distance_check,
+                outliers, timings)
 
 
 def calibration_samples(data: DeploymentData, filtered: list[Observations], model: NoiseModel,
@@ -328,36 +426,39 @@ def calibration_samples(data: DeploymentData, filtered: list[Observations], mode
                             scale_variance=float(np.mean(np.concatenate(scale))) if scale else 0.0)
 
 
-def calibrate_stations(
-    data: DeploymentData, options: RunOptions, filtered: list[Observations], model: NoiseModel,
+def calibrate_by_method(
+    data: DeploymentData, options: RunOptions, filtered: list[Observations],
 ) -> tuple[CalibrationResult, CalibrationResult | None]:
-    """The stations' calibration by ``options.calibration.method``
-    (:mod:`rtsgt.calibration.gcp`, :mod:`rtsgt.calibration.dynamic`), from the stage's random
-    stream.
+    """The stations' calibration of a run by ``options.calibration.method``, from the stage's
+    random stream: :func:`calibrate_stations` for ``"gcp"``; for ``"dynamic"`` and ``"joint"``,
+    :func:`rtsgt.calibration.dynamic.calibrate_dynamic` on :func:`calibration_samples` of the
+    filtered observations (the GCP shots with the atmospheric correction, as
+    :func:`calibrate_stations` has them, for ``"joint"``).
 
     Returns the calibration the run uses and, for ``"dynamic"`` and ``"joint"``, the GCP
     calibration of the same deployment (``"dynamic"``: with its Monte Carlo covariance, for the
     agreement check; None when the GCP shots cannot calibrate the stations); None for
-    ``"gcp"``. The GCP shots get the atmospheric correction first
-    (:func:`~rtsgt.calibration.gcp.gcp_atmospheric_correction`).
+    ``"gcp"``.
     """
     opt = options.calibration
-    rng = stage_rng(options.seed, "calibration")
     t_start = min(float(o.t[0]) for o in filtered)
+    if opt.method == "gcp":
+        return calibrate_stations(data, options, t_start), None
+    model = noise_model(data, options)
+    rng = stage_rng(options.seed, "calibration")
     gcp = gcp_atmospheric_correction(data.gcp, model, data.weather, t_start)
     kw = {"reference_station": data.reference_station, "instrument": data.instrument,
           "model": opt.model}
-    if opt.method == "gcp":
-        return calibrate(gcp, samples=options.pose.samples, rng=rng, **kw), None
     samples = calibration_samples(data, filtered, model, options)
     dyn = {"engine": options.noise_engine, "n_samples": options.pose.samples,
            "gate_m": options.pose.distance_gate_m, **kw}
     if opt.method == "joint":
-        gcp_calib = calibrate(gcp, samples=0, **kw)
+        gcp_calib = calibrate(gcp, samples=0, weighting=opt.weighting, **kw)
         return calibrate_dynamic(samples, gcp=gcp, gcp_calibration=gcp_calib, rng=rng,
                                  **dyn), gcp_calib
     try:
-        gcp_calib = calibrate(gcp, samples=options.pose.samples, rng=rng, **kw)
+        gcp_calib = calibrate(gcp, samples=options.pose.samples, rng=rng,
+                              weighting=opt.weighting, **kw)
     except (InputError, GeometryError) as exc:
         warnings.warn(f"dynamic calibration: the GCP shots cannot calibrate the stations "
                       f"({exc}); no comparison with the GCP calibration", RtsgtWarning,
@@ -534,7 +635,7 @@ def _record(c: RunComputation, options: RunOptions, intervals: np.ndarray,
         gcp_xyz=np.array([gcp_world[n] for n in gcp_names]) if gcp_names else None,
         gcp_names=gcp_names, qc={pid: np.asarray(g.qc) for pid, g in c.gps.items()},
         qc_scale={pid: np.asarray(g.qc_scale) for pid, g in c.gps.items()
-                  if g.qc_scale is not None},
+                  if g.qc_scale is not None}, prior={pid: g.prior for pid, g in c.gps.items()},
         intervals=intervals, uncertainty_measure=c.gate_report.uncertainty_measure,
         coupling=coupling, removed=removed,
         measurements_gp_cov={pid: gp_covariance(tr, options.interpolation.gp_noise)

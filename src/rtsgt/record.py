@@ -129,6 +129,9 @@ class RunRecord:
     qc_scale : dict str -> ndarray (N-1,)
         Per prism whose ``Qc`` follows the motion, the scale of each interval between its
         measurements (:mod:`rtsgt.interpolation.motion`); absent: one ``Qc``.
+    prior : dict str -> str
+        Each prism's GP motion prior, ``"wnoa"`` or ``"wnoj"`` (:mod:`rtsgt.interpolation.gp`;
+        its ``qc`` is then m^2/s^5); absent: ``"wnoa"`` (a run written before the choice).
     intervals : ndarray, shape (K, 2), optional
         The intervals every prism is tracked in (module 2), s; None for an older run.
     uncertainty_measure : str
@@ -154,6 +157,11 @@ class RunRecord:
         (:func:`rtsgt.checks.static_noise_check`) and ``inter_prism_structure``
         (:func:`rtsgt.checks.inter_prism_structure_check`). Empty for a run written before rtsgt made
         them.
+    correlated_noise : dict
+        How the run carried the time-correlated noise the static-stretch check found
+        (:func:`rtsgt.noise.correlated.correlated_noise_plan`, JSON-ready: per prism and
+        component the correlated share, the correlation time, ``rho``, the factor and whether
+        it was applied). Empty for a run written before rtsgt carried it.
     groundtruth_split : SharedFactor, optional
         The kept poses' error split into the part that varies from pose to pose and the part
         the whole deployment shares (:mod:`rtsgt.shared`): the varying covariance and the
@@ -186,6 +194,7 @@ class RunRecord:
     gcp_names: tuple[str, ...] = ()
     qc: dict[str, np.ndarray] = field(default_factory=dict)
     qc_scale: dict[str, np.ndarray] = field(default_factory=dict)
+    prior: dict[str, str] = field(default_factory=dict)
     intervals: np.ndarray | None = None
     uncertainty_measure: str = "max_std"
     coupling: StationCoupling | None = None
@@ -195,6 +204,7 @@ class RunRecord:
     weather_coverage: dict | None = None
     distance_check: dict = field(default_factory=dict)
     self_checks: dict = field(default_factory=dict)
+    correlated_noise: dict = field(default_factory=dict)
     groundtruth_split: SharedFactor | None = None
     summary: dict = field(default_factory=dict)
     path: Path | None = None

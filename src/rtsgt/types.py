@@ -20,6 +20,11 @@ from rtsgt.measurement.polar import survey_polar_jacobian, survey_polar_to_carte
 
 #: Names of the noise sources of the paper, in the order used in reports.
 NOISE_SOURCES = ("instrument", "tilt", "atmosphere", "time_sync", "calibration")
+#: The sources whose errors change from one measurement to the next (the GP's white noise).
+WHITE_NOISE_SOURCES = ("instrument", "tilt")
+#: The covariance added to them where their noise is correlated in time
+#: (:mod:`rtsgt.noise.correlated`), a source of its own beside the paper's.
+CORRELATED_NOISE_SOURCE = "correlated_noise"
 
 
 def _frozen(a, dtype=float) -> np.ndarray:

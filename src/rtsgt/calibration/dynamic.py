@@ -86,10 +86,11 @@ few centimetres and hundredths of a degree), refined under ``"4dof"`` and, for `
 as the start of the free rotation (total stations are levelled to arcminutes; a start from a
 few milliradians off level converges, one from a degree may not, and its variance factor then
 says so). (A rigid fit of each station's prism trajectory onto the reference station's, wrong
-by the prisms' lever arm, a metre, led the fit astray on 1 of 60 simulated deployments.) Every fit is made unweighted, then weighted,
-and weighted again with the whitening of its solution. Because driving on nearly flat ground
-leaves the heights of the stations nearly mirrored about the reference's prism (section Checks),
-the fit is started again from every combination of mirrored heights and the best kept. Samples
+by the prisms' lever arm, a metre, led the fit astray on 1 of 60 simulated deployments.)
+Every fit is made unweighted, then weighted, and weighted again with the whitening of its
+solution. Because driving on nearly flat ground leaves the heights of the stations nearly
+mirrored about the reference's prism (section Checks), the fit is started again from every
+combination of mirrored heights and the best kept. Samples
 with a pair residual beyond ``gate_m`` (the distance gate of module 4, 10 cm: a station
 tracking another prism) are dropped and the whole fit made again from its start.
 
@@ -1074,7 +1075,7 @@ def calibrate_dynamic(
     InputError
         A station tracks no prism (dynamic), too few samples, bad arguments.
     """
-    _check_args(instrument, False, model)
+    _check_args(instrument, "none", model)
     if engine not in DYNAMIC_ENGINES:
         raise InputError(f"Expected engine {' or '.join(map(repr, DYNAMIC_ENGINES))}, "
                          f"got {engine!r}")
@@ -1251,7 +1252,7 @@ def calibrate_dynamic(
         reference_station=ref, transforms=transforms,
         residuals=MarkerResiduals(*(np.zeros(0, dtype=object),) * 3, np.zeros(0)),
         markers_used={s: () for s in stations}, markers_skipped=(), excluded_shots=0,
-        samples=M, weighted=False, model=model, method="dynamic", dynamic=fit)
+        samples=M, weighting="none", model=model, method="dynamic", dynamic=fit)
 
 
 def _monte_carlo(problem: _Problem, st: _State, data: _Data, layout: dict | None,

@@ -13,22 +13,33 @@ solved in closed form by :func:`rtsgt.geometry.kabsch` (Kabsch 1976 / Umeyama 19
 guarded). Markers are matched by their identifier, never by time (station clocks may be wrong:
 in the RTS_project data of 2022-11-10 station 1 is months off).
 
-Weights (``weighted=True``). Each point carries the first-order covariance of its polar
-measurement, ``C = J S J^T`` with ``J`` = :func:`rtsgt.measurement.polar.polar_jacobian` and
-``S`` the covariance of ``(Hz, V, d)`` under the instrument and tilt model of
-:mod:`rtsgt.noise.perturb` (``V^ = V + e_V + e_tilt``, ``Hz^ = Hz + e_Hz + e_tilt cot V``)::
+Weights (``weighting``, :data:`CALIBRATION_WEIGHTINGS`). Each point carries the first-order
+covariance of its polar measurement, ``C = J S J^T`` with ``J`` =
+:func:`rtsgt.measurement.polar.polar_jacobian` and ``S`` the covariance of ``(Hz, V, d)`` under
+the instrument and tilt model of :mod:`rtsgt.noise.perturb` (``V^ = V + e_V + e_tilt``,
+``Hz^ = Hz + e_Hz + e_tilt cot V``)::
 
     S = [[sa^2 + st^2 cot^2 V, st^2 cot V, 0],
          [st^2 cot V,          sa^2 + st^2, 0],
          [0,                   0,           sd(d)^2]]
 
-The residual of marker i, ``p_ref,i - R p_s,i - t``, has covariance ``C_ref,i + R C_s,i R^T``;
-rtsgt uses the isotropic approximation ``w_i = 1 / tr(C_ref,i + R C_s,i R^T)
-= 1 / (tr C_ref,i + tr C_s,i)``, which does not depend on R (the trace is rotation invariant),
-so the weighted fit stays a closed-form weighted Kabsch with no iteration. It down-weights the
-far markers, whose angular noise grows with range. The fully anisotropic generalised
-least-squares fit is not implemented (it needs an iterative solver); its residual gain over
-the trace weighting is small for the near-isotropic covariances of GCP shots at 5-100 m.
+The residual of marker i, ``p_ref,i - R p_s,i - t``, has covariance ``C_i = C_ref,i + R C_s,i
+R^T`` (the variance components below included).
+
+- ``"gls"``: the generalised least-squares fit, ``min sum_i r_i^T C_i^-1 r_i``,
+  the best linear unbiased fit: a shot known well across its line of sight and poorly along
+  it (or the reverse, at short range) counts for what it is worth in each direction. ``C_i``
+  is evaluated once, at the rotation of the trace-weighted fit, and held fixed (the same
+  choice as the pose's weighted registration); the 6-DOF fit is the Newton iteration on SO(3)
+  of :mod:`rtsgt.pose.weighted` (one solver for both), the 4-DOF fit a Gauss-Newton iteration
+  on the yaw and the translation (:func:`_gls_yaw`). Every Monte Carlo sample is fitted with
+  the same weights, starting from the nominal fit.
+- ``"trace"``: the isotropic approximation ``w_i = 1 / tr(C_ref,i + R C_s,i R^T) = 1 / (tr
+  C_ref,i + tr C_s,i)``, which does not depend on R (the trace is rotation invariant): a
+  closed-form weighted Kabsch. It down-weights the far markers, whose angular noise grows
+  with range, but not by direction.
+- ``"none"`` (the default, :data:`DEFAULT_WEIGHTING`): every marker alike (the paper's Kabsch
+  fit).
 
 Uncertainty (:func:`calibrate`). As in Vaidis et al. 2023 (section III-E), every GCP shot of
 every station is perturbed with the instrument and tilt noise
@@ -121,6 +132,7 @@ from rtsgt.measurement.instruments import TRIMBLE_S7, InstrumentProfile
 from rtsgt.measurement.polar import polar_jacobian, polar_to_cartesian
 from rtsgt.noise.model import NoiseModel
 from rtsgt.noise.perturb import sample_polar_errors
+from rtsgt.pose.weighted import gls_weights, refine_batches
 from rtsgt.stats import ratio_interval, ratio_verdict
 from rtsgt.types import GcpShots, WeatherSeries
 
@@ -138,6 +150,15 @@ CALIBRATION_METHODS = ("gcp", "dynamic", "joint")
 CALIBRATION_METHOD_NAMES = {"gcp": "ground control points",
                             "dynamic": "the robot's motion (inter-prism distances)",
                             "joint": "ground control points and the robot's motion"}
+#: How the markers of a station's fit are weighted (module docstring, section Weights).
+CALIBRATION_WEIGHTINGS = ("gls", "trace", "none")
+#: What each weighting is, in words (for tables and reports).
+CALIBRATION_WEIGHTING_NAMES = {"gls": "generalised least squares (full covariance)",
+                               "trace": "trace-weighted", "none": "unweighted"}
+#: The weighting of :func:`calibrate` and of a run's ``[calibration]``: the paper's. The
+#: generalised least squares is honest and sharper on simulated shots, but on the real excerpt
+#: it makes the standing poses' inter-prism distances optimistic (docs/noise-model.md).
+DEFAULT_WEIGHTING = "none"
 #: Mean radius of the Earth (IUGG), m: the verticals of two levelled instruments ``d`` metres
 #: apart differ by ``d / EARTH_RADIUS_M`` rad (16 microradians per 100 m).
 EARTH_RADIUS_M = 6_371_000.0
@@ -243,8 +264,8 @@ class CalibrationResult:
         Shots left out because their status was not 0.
     samples : int
         Number of Monte Carlo samples M (0: no uncertainty computed).
-    weighted : bool
-        Whether the fits used the covariance (trace) weights.
+    weighting : {"gls", "trace", "none"}
+        How the markers were weighted (module docstring, section Weights).
     fit_checks : dict str -> FitCheck
         For every station but the reference, its residuals against their predicted
         covariance (module docstring).
@@ -272,7 +293,7 @@ class CalibrationResult:
     markers_skipped: tuple[str, ...]
     excluded_shots: int
     samples: int
-    weighted: bool
+    weighting: str
     fit_checks: dict[str, FitCheck] = field(default_factory=dict)
     extra_shot_sigma_m: tuple[float, float] = (0.0, 0.0)
     model: str = "6dof"
@@ -471,31 +492,97 @@ def _fit(setup: _Setup, s: str, p: np.ndarray, q: np.ndarray, w, model: str,
                             ) from None
 
 
-def _nominal(setup: _Setup, weighted: bool, instrument, model: str) -> dict[str, tuple]:
-    """Nominal fit of each non-reference station: ``{s: (R, t, weights or None)}``."""
+def _nominal(setup: _Setup, weighting: str, instrument, model: str) -> dict[str, tuple]:
+    """Closed-form fit of each non-reference station: ``{s: (R, t, weights or None)}``; trace
+    weights for ``"gls"`` too (its start and the rotation its weights are evaluated at)."""
     out = {}
     for s, (idx_s, idx_r, _) in setup.pairs.items():
-        w = _weights(setup, idx_s, idx_r, instrument) if weighted else None
+        w = _weights(setup, idx_s, idx_r, instrument) if weighting != "none" else None
         R, t = _fit(setup, s, setup.points[idx_s], setup.points[idx_r], w, model)
         out[s] = (R, t, w)
     return out
 
 
-def _check_args(instrument, weighted, model: str = "6dof") -> None:
+def _gls_station_weights(setup: _Setup, s: str, R: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """``W = C^-1`` of station ``s``'s stacked residuals, ``C_i = C_ref,i + R C_s,i R^T``
+    (module docstring, section Weights), (3K, 3K)."""
+    idx_s, idx_r, _ = setup.pairs[s]
+    K = len(idx_s)
+    blocks = np.zeros((2, K, 3, K, 3))
+    blocks[0, range(K), :, range(K), :] = C[idx_r]
+    blocks[1, range(K), :, range(K), :] = C[idx_s]
+    return gls_weights(blocks[0].reshape(3 * K, 3 * K), blocks[1].reshape(3 * K, 3 * K), R)
+
+
+def _gls_yaw(p: np.ndarray, y: np.ndarray, W: np.ndarray, psi: np.ndarray, t: np.ndarray,
+             steps: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton of ``min e^T W e``, ``e = y - (R_z(psi) p + t)`` stacked, over the yaw and
+    the translation; ``p, y`` (S, K, 3), ``W`` (3K, 3K), the start ``psi`` (S,), ``t``
+    (S, 3). The problem is linear in ``t`` and nearly so in ``psi`` (a start within
+    milliradians): the steps fall quadratically, to round-off in three or four."""
+    S, K, _ = p.shape
+    psi, t = psi.astype(float).copy(), t.astype(float).copy()
+    J = np.zeros((S, K, 3, 4))
+    J[..., 1:] = np.eye(3)
+    for _ in range(steps):
+        c, sn = np.cos(psi)[:, None], np.sin(psi)[:, None]
+        a = np.stack([c * p[..., 0] - sn * p[..., 1], sn * p[..., 0] + c * p[..., 1],
+                      p[..., 2]], axis=-1)
+        e = (y - a - t[:, None, :]).reshape(S, 3 * K)
+        J[..., 0, 0], J[..., 1, 0] = -a[..., 1], a[..., 0]  # d(R_z p)/dpsi = e_z x R_z p
+        Jf = J.reshape(S, 3 * K, 4)
+        JW = np.swapaxes(Jf, 1, 2) @ W
+        step = np.linalg.solve(JW @ Jf, (JW @ e[..., None]))[..., 0]
+        psi += step[:, 0]
+        t += step[:, 1:]
+    return psi, t
+
+
+def _gls_fit(p: np.ndarray, q: np.ndarray, W: np.ndarray, R0: np.ndarray, t0: np.ndarray,
+             model: str, tilt: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The generalised least-squares fit of station points ``p`` onto the reference's ``q``
+    (S, K, 3) with the weights ``W`` (3K, 3K), from the start ``R0, t0`` (a station's nominal
+    fit), under ``model`` (the 4-DOF one with the compensators' ``tilt`` (S, 3), as
+    :func:`_fit_4dof`). Returns ``R`` (S, 3, 3), ``t`` (S, 3) and whether each converged (S,)
+    (else its last iterate: shots far from any rigid fit, e.g. a mirrored station)."""
+    S = q.shape[0]
+    if model == "6dof":
+        R, t, conv, _ = refine_batches(p[None], q[None], W[None], R0[None, None],
+                                       t0[None, None])
+        return R[0], t[0], conv[0]
+    # 4 DOF: R = exp([omega + tilt]x) R_z(psi); the weights, evaluated at the nominal rotation,
+    # are held as they are in the tilted frame (the tilt is microradians)
+    psi = np.full(S, np.arctan2(R0[1, 0], R0[0, 0]))
+    t = np.broadcast_to(t0, (S, 3))
+    for _ in range(2):
+        omega = curvature_tilt(t)
+        if tilt is not None:
+            omega = omega + tilt
+        T = exp_so3(omega)
+        psi, t_tilted = _gls_yaw(p, q @ T, W, psi, np.einsum("sji,sj->si", T, t))
+        t = np.einsum("sij,sj->si", T, t_tilted)
+    c, sn = np.cos(psi), np.sin(psi)
+    Rz = np.zeros((S, 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -sn, sn, c, 1.0
+    return T @ Rz, t, np.ones(S, dtype=bool)
+
+
+def _check_args(instrument, weighting, model: str = "6dof") -> None:
     if model not in CALIBRATION_MODELS:
         raise InputError("Expected a calibration model "
                          f"{' or '.join(map(repr, CALIBRATION_MODELS))}, got {model!r}")
+    if weighting not in CALIBRATION_WEIGHTINGS:
+        raise InputError("Expected a calibration weighting "
+                         f"{' or '.join(map(repr, CALIBRATION_WEIGHTINGS))}, got {weighting!r}")
     if not isinstance(instrument, InstrumentProfile):
         raise TypeError(f"Expected an InstrumentProfile, got {type(instrument).__name__}")
-    if not isinstance(weighted, bool):
-        raise TypeError(f"Expected weighted to be a bool, got {weighted!r}")
 
 
 def fit_stations(
     shots: GcpShots,
     *,
     reference_station: str = "1",
-    weighted: bool = False,
+    weighting: str = DEFAULT_WEIGHTING,
     instrument: InstrumentProfile = TRIMBLE_S7,
     model: str = "6dof",
 ) -> dict[str, RigidTransform]:
@@ -507,8 +594,9 @@ def fit_stations(
         Shots of all stations; those with a non-zero status are left out.
     reference_station : str
         Station whose frame is the world frame.
-    weighted : bool
-        Weight each marker by ``1 / (tr C_ref + tr C_s)`` (module docstring).
+    weighting : {"gls", "trace", "none"}
+        The markers' weights (module docstring, section Weights): their full covariance under
+        the instrument model, ``1 / (tr C_ref + tr C_s)``, or none.
     instrument : InstrumentProfile
         Noise model for the weights and the collinearity check.
     model : {"6dof", "4dof"}
@@ -529,16 +617,43 @@ def fit_stations(
         A station sharing fewer than 3 valid markers with the reference, or (nearly)
         collinear markers.
     """
-    _check_args(instrument, weighted, model)
+    _check_args(instrument, weighting, model)
     ref = str(reference_station)
     setup = _setup(shots, ref, instrument)
-    nominal = _nominal(setup, weighted, instrument, model)
+    R, t, _, _ = _fits(setup, ref, weighting, instrument, model,
+                    polar_point_covariance(setup.hz, setup.v, setup.d, instrument), False)
     out = {ref: RigidTransform(np.eye(3), np.zeros(3), np.zeros((6, 6)), "world", f"station_{ref}")}
     for s in setup.stations:
         if s != ref:
-            R, t, _ = nominal[s]
-            out[s] = RigidTransform(R, t, None, "world", f"station_{s}")
+            out[s] = RigidTransform(R[s], t[s], None, "world", f"station_{s}")
     return out
+
+
+def _fits(setup: _Setup, ref: str, weighting: str, instrument, model: str, C: np.ndarray,
+          variance_components: bool) -> tuple[dict, dict, dict, np.ndarray]:
+    """The nominal fit of every station (the reference ``ref``'s identity included): ``R, t``
+    and the fit's weights by station (trace weights (K,), ``W`` (3K, 3K) under ``"gls"``, or
+    None), and the variance components (:func:`extra_shot_variance`, from the generalised
+    least-squares residuals, which do not depend on the fit they start from) when
+    ``variance_components``, else zeros; under ``"gls"`` they enter the weights."""
+    R, t, w = {ref: np.eye(3)}, {ref: np.zeros(3)}, {}
+    for s, (Rs, ts, ws) in _nominal(setup, weighting, instrument, model).items():
+        R[s], t[s], w[s] = Rs, ts, ws
+    extra = extra_shot_variance(setup, R, t, C, model) if variance_components else np.zeros(2)
+    if weighting == "gls":
+        Cx = _with_extra(C, extra)
+        for s, (idx_s, idx_r, _) in setup.pairs.items():
+            w[s] = _gls_station_weights(setup, s, R[s], Cx)
+            Rs, ts, ok = _gls_fit(setup.points[idx_s][None], setup.points[idx_r][None], w[s],
+                                  R[s], t[s], model)
+            if ok[0]:
+                R[s], t[s] = Rs[0], ts[0]
+            else:
+                warnings.warn(f"station {s}: the generalised least-squares fit of the GCPs did "
+                              "not converge (shots far from any rigid fit: check the "
+                              "residuals); the trace-weighted fit stands", RtsgtWarning,
+                              stacklevel=3)
+    return R, t, w, extra
 
 
 def _gls_step(setup: _Setup, R: dict, t: dict, C: np.ndarray, s: str, model: str = "6dof"):
@@ -713,7 +828,7 @@ def calibrate(
     instrument: InstrumentProfile = TRIMBLE_S7,
     samples: int = 1000,
     rng: np.random.Generator | None = None,
-    weighted: bool = False,
+    weighting: str = DEFAULT_WEIGHTING,
     variance_components: bool = True,
     model: str = "6dof",
 ) -> CalibrationResult:
@@ -730,8 +845,9 @@ def calibrate(
         M, number of Monte Carlo samples (0: fit only, no covariance and no samples).
     rng : numpy.random.Generator, optional
         Source of every random draw (a fresh unseeded one when None).
-    weighted : bool
-        Trace-weighted fits (module docstring), for the nominal fit and every sample.
+    weighting : {"gls", "trace", "none"}
+        The markers' weights (module docstring, section Weights), for the nominal fit and
+        every sample.
     variance_components : bool
         Add to every shot the variance the residuals show beyond the instrument model
         (module docstring, section Variance components); False: the instrument model alone,
@@ -748,7 +864,7 @@ def calibrate(
     InputError, GeometryError
         As :func:`fit_stations`.
     """
-    _check_args(instrument, weighted, model)
+    _check_args(instrument, weighting, model)
     if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)):
         raise TypeError(f"Expected an integer number of samples, got {samples!r}")
     if samples < 0 or samples == 1:
@@ -756,13 +872,9 @@ def calibrate(
     rng = np.random.default_rng() if rng is None else rng
     ref = str(reference_station)
     setup = _setup(shots, ref, instrument)
-    nominal = _nominal(setup, weighted, instrument, model)
-    R = {ref: np.eye(3)}
-    t = {ref: np.zeros(3)}
-    for s, (Rs, ts, _) in nominal.items():
-        R[s], t[s] = Rs, ts
     C = polar_point_covariance(setup.hz, setup.v, setup.d, instrument)
-    extra = extra_shot_variance(setup, R, t, C, model) if variance_components else np.zeros(2)
+    R, t, weights, extra = _fits(setup, ref, weighting, instrument, model, C,
+                                 variance_components)
 
     M = int(samples)
     if M:
@@ -784,8 +896,19 @@ def calibrate(
             tm = np.zeros((M, 3)) if M else None
         elif M:
             idx_s, idx_r, _ = setup.pairs[s]
-            Rm, tm = _fit(setup, s, points_m[:, idx_s], points_m[:, idx_r], nominal[s][2], model,
-                          tilt_of[s] if model == "4dof" else None, check=False)
+            tilt = tilt_of[s] if model == "4dof" else None
+            if weighting == "gls":
+                Rm, tm, ok = _gls_fit(points_m[:, idx_s], points_m[:, idx_r], weights[s], R[s],
+                                      t[s], model, tilt)
+                if not ok.all():
+                    warnings.warn(f"station {s}: the generalised least-squares fit did not "
+                                  f"converge for {int((~ok).sum())} of {M} Monte Carlo "
+                                  "samples (shots far from any rigid fit: check the "
+                                  "residuals); their last iterates are kept", RtsgtWarning,
+                                  stacklevel=2)
+            else:
+                Rm, tm = _fit(setup, s, points_m[:, idx_s], points_m[:, idx_r], weights[s],
+                              model, tilt, check=False)
             xi = perturbation(R[s], t[s], Rm, tm)  # (M, 6), (x, y, z, rx, ry, rz)
             cov = np.cov(xi, rowvar=False)
             cov = 0.5 * (cov + cov.T)
@@ -804,7 +927,7 @@ def calibrate(
         markers_skipped=setup.skipped,
         excluded_shots=setup.excluded,
         samples=M,
-        weighted=weighted,
+        weighting=weighting,
         fit_checks=_fit_checks(setup, R, t, C, model),
         extra_shot_sigma_m=(float(np.sqrt(extra[0])), float(np.sqrt(extra[1]))),
         model=model,

@@ -89,7 +89,7 @@ def gcp_fit_check(calibration: CalibrationResult, *, warn: bool = True) -> dict[
                 f"reference (chi2 {lv.chi2:.1f}, 2 dof, p = {lv.p_value:.2g}): the 4-DOF "
                 f"(levelled) calibration does not hold; use [calibration] model = \"6dof\"",
                 RtsgtWarning, stacklevel=2)
-    return {"model": calibration.model, "stations": stations,
+    return {"model": calibration.model, "weighting": calibration.weighting, "stations": stations,
             "added_shot_sigma_mm": {"horizontal": h, "vertical": v}, "levelling": levelling}
 
 

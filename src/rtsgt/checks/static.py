@@ -72,8 +72,9 @@ from scipy import stats
 from rtsgt.checks.distances import effective_sample_size, pose_speed
 from rtsgt.errors import RtsgtWarning
 from rtsgt.interpolation.motion import STANDING_SPEED_M_S
+from rtsgt.measurement.polar import SIGHT_COMPONENTS, sight_frames
 from rtsgt.stats import ratio_interval, ratio_verdict
-from rtsgt.types import PrismTrack
+from rtsgt.types import WHITE_NOISE_SOURCES, PrismTrack
 
 __all__ = ["COMPONENTS", "EDGE_MARGIN_S", "FAMILY_FALSE_ALARM", "MIN_SAMPLES", "MIN_STATIC_S",
            "WHITE_SOURCES", "gauss_markov_fit", "lag_one_test", "static_noise_check",
@@ -84,13 +85,14 @@ EDGE_MARGIN_S = 2.0
 #: Shortest static stretch the check uses (after the margins), s.
 MIN_STATIC_S = 5.0
 #: The sources whose errors change from one measurement to the next.
-WHITE_SOURCES = ("instrument", "tilt")
+WHITE_SOURCES = WHITE_NOISE_SOURCES
 #: Fewest samples of a prism (over its stretches) for a verdict.
 MIN_SAMPLES = 20
 #: Probability that a run whose noise model is right gets any verdict but consistent.
 FAMILY_FALSE_ALARM = 0.05
-#: The components of a measurement: along the line of sight and across it.
-COMPONENTS = ("range", "horizontal", "vertical")
+#: The components of a measurement: along the line of sight and across it
+#: (:func:`~rtsgt.measurement.polar.sight_frames`).
+COMPONENTS = SIGHT_COMPONENTS
 #: Largest block of samples in the correlation-time fit.
 FIT_BLOCK = 64
 #: Largest correlated share ``f`` of the fit.
@@ -255,16 +257,6 @@ def gauss_markov_fit(z: ArrayLike, t: ArrayLike, group: ArrayLike,
     return v, f, float(np.exp(log_tau)), tau_95
 
 
-def _frames(xyz: np.ndarray, station: np.ndarray) -> np.ndarray:
-    """Rows (N, 3, 3): the line of sight and two unit vectors across it, horizontal and
-    vertical, at each measurement."""
-    u = xyz - station
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    h = np.cross([0.0, 0.0, 1.0], u)
-    h /= np.linalg.norm(h, axis=1, keepdims=True)
-    return np.stack([u, h, np.cross(u, h)], axis=1)
-
-
 def _residuals(tr: PrismTrack, station: np.ndarray, iv: np.ndarray):
     """The prism's samples inside the stretches: times, stretch index, components z (N, 3)
     and the predicted white variances (N, 3); stretches with fewer than 3 samples left out."""
@@ -278,7 +270,7 @@ def _residuals(tr: PrismTrack, station: np.ndarray, iv: np.ndarray):
     # the mean of each stretch removed (the samples of a stretch are contiguous)
     _, first, n = np.unique(k, return_index=True, return_counts=True)
     mean = np.add.reduceat(xyz, first, axis=0) / n[:, None] if t.size else xyz
-    E = _frames(xyz, station)
+    E = sight_frames(xyz, station)
     r = np.einsum("nci,ni->nc", E, xyz - np.repeat(mean, n, axis=0))
     pred = np.einsum("nci,nij,ncj->nc", E, C, E)
     return t, k, r / np.sqrt(pred), pred

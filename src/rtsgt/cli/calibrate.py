@@ -4,7 +4,7 @@ From GCP shots, a thin wrapper over :func:`rtsgt.io.gcp_csv.read_gcp_shots` and
 :func:`rtsgt.calibration.calibrate`; ``GCP_FILE`` may be the word ``example`` for the small
 synthetic example shipped in the package (three stations, eight markers). From a deployment's
 TOML (``rtsgt calibrate --dynamic DEPLOYMENT.toml``, or ``--method dynamic|joint|gcp``), the
-pipeline's own calibration stage (:func:`rtsgt.pipeline.calibrate_stations`: module 1, and for
+pipeline's own calibration stage (:func:`rtsgt.pipeline.calibrate_by_method`: module 1, and for
 ``dynamic`` and ``joint`` the tracks, their GPs and the inter-prism distances,
 :mod:`rtsgt.calibration.dynamic`); the method and the model default to the TOML's
 ``[calibration]``. ``--out FILE`` writes the JSON object to a file, atomically (complete or not
@@ -26,7 +26,12 @@ from rich.console import Console
 from rich.table import Table
 
 from rtsgt.calibration import CalibrationResult, calibrate
-from rtsgt.calibration.gcp import CALIBRATION_METHOD_NAMES, CALIBRATION_METHODS
+from rtsgt.calibration.gcp import (
+    CALIBRATION_METHOD_NAMES,
+    CALIBRATION_METHODS,
+    CALIBRATION_WEIGHTING_NAMES,
+    DEFAULT_WEIGHTING,
+)
 from rtsgt.checks.calibration import dynamic_calibration_check
 from rtsgt.errors import InputError
 from rtsgt.filtering import module1
@@ -35,8 +40,7 @@ from rtsgt.io.deployment import load_deployment
 from rtsgt.io.gcp_csv import GCP_FORMATS, read_gcp_shots
 from rtsgt.io.output_dir import check_output_file
 from rtsgt.measurement.instruments import get_instrument
-from rtsgt.noise import NoiseModel
-from rtsgt.pipeline import calibrate_stations
+from rtsgt.pipeline import calibrate_by_method
 
 #: Name of the packaged example GCP file (in ``rtsgt/data``).
 EXAMPLE_GCP = "example_gcp.txt"
@@ -92,7 +96,7 @@ def result_to_json(result: CalibrationResult, **extra) -> dict:
         "markers_skipped": list(result.markers_skipped),
         "excluded_shots": result.excluded_shots,
         "samples": result.samples,
-        "weighted": result.weighted,
+        "weighting": result.weighting,
         "model": result.model,
         "method": result.method,
         **extra,
@@ -145,7 +149,7 @@ def _print_table(result: CalibrationResult, source: str, console: Console,
             console.print(f"station {s} against the GCP calibration: chi2 {v['chi2']:.1f} "
                           f"({v['dof']} dof, p = {v['p_value']:.2g}): {v['verdict']}")
     sampled = f"{result.samples} Monte Carlo samples" if result.samples else "no Monte Carlo"
-    console.print(f"{sampled}; {'trace-weighted' if result.weighted else 'unweighted'} fits.")
+    console.print(f"{sampled}; {CALIBRATION_WEIGHTING_NAMES[result.weighting]} fits.")
     if result.excluded_shots:
         console.print(f"note: {result.excluded_shots} shot(s) with non-zero status excluded")
     if result.markers_skipped:
@@ -163,7 +167,7 @@ def run_calibrate(
     additive_constant: float | None = None,
     samples: int = 1000,
     seed: int = 0,
-    weighted: bool = False,
+    weighting: str = DEFAULT_WEIGHTING,
     instrument: str = "trimble-s7",
     model: str = "6dof",
 ) -> tuple[CalibrationResult, str]:
@@ -183,23 +187,24 @@ def run_calibrate(
             warnings.simplefilter("ignore", UserWarning)
             result = calibrate(
                 shots, reference_station=reference_station, instrument=profile,
-                samples=samples, rng=np.random.default_rng(seed), weighted=weighted,
+                samples=samples, rng=np.random.default_rng(seed), weighting=weighting,
                 model=model,
             )
     return result, source
 
 
 def run_calibrate_deployment(
-    config: Path, *, method: str | None = None, model: str | None = None, samples: int = 1000,
-    seed: int = 0,
+    config: Path, *, method: str | None = None, model: str | None = None,
+    weighting: str | None = None, samples: int = 1000, seed: int = 0,
 ) -> tuple[CalibrationResult, dict | None]:
     """Calibrate the stations of a deployment as its run would (its TOML's ``[calibration]``,
-    ``method`` and ``model`` overriding it); returns the result and, for a dynamic or joint
-    calibration, its self-check (:func:`rtsgt.checks.calibration.dynamic_calibration_check`)."""
+    ``method``, ``model`` and ``weighting`` overriding it); returns the result and, for a
+    dynamic or joint calibration, its self-check
+    (:func:`rtsgt.checks.calibration.dynamic_calibration_check`)."""
     data, options = load_deployment(config)
-    changes = {k: v for k, v in (("method", method), ("model", model)) if v is not None}
+    changes = {k: v for k, v in (("method", method), ("model", model),
+                                 ("weighting", weighting)) if v is not None}
     options = options.updated(seed=seed, samples=samples, **changes)
-    noise = options.noise if options.noise is not None else NoiseModel(instrument=data.instrument)
     filtered = []
     for obs in data.observations:
         kept = module1(obs, options.filter)[0]
@@ -207,7 +212,7 @@ def run_calibrate_deployment(
             raise InputError(f"station {obs.station}: fewer than 2 measurements left after "
                              "module 1", obs.source)
         filtered.append(kept)
-    result, gcp = calibrate_stations(data, options, filtered, noise)
+    result, gcp = calibrate_by_method(data, options, filtered)
     check = None if result.dynamic is None else dynamic_calibration_check(result, gcp,
                                                                           warn=False)
     return result, check
@@ -246,8 +251,10 @@ def register(app: typer.Typer) -> None:
             1000, "--samples", min=0, help="Monte Carlo samples (0: fit only)."
         ),
         seed: int = typer.Option(0, "--seed", min=0, help="Seed of the random generator (>= 0)."),
-        weighted: bool = typer.Option(
-            False, "--weighted", help="Weight markers by their measurement covariance."
+        weighting: str | None = typer.Option(
+            None, "--weighting",
+            help="Markers' weights: gls (the full covariance of each shot), trace (its "
+            f"trace) or none (the paper). Default: {DEFAULT_WEIGHTING}, or the TOML's.",
         ),
         instrument: str = typer.Option(
             "trimble-s7", "--instrument", help="Instrument profile for the noise model."
@@ -294,13 +301,15 @@ def register(app: typer.Typer) -> None:
         check = None
         if deployment:
             result, check = run_calibrate_deployment(Path(gcp_file), method=method, model=model,
-                                                     samples=samples, seed=seed)
+                                                     weighting=weighting, samples=samples,
+                                                     seed=seed)
             source = gcp_file
         else:
             result, source = run_calibrate(
                 gcp_file, format=format, reference_station=reference_station,
                 additive_constant=additive_constant, samples=samples, seed=seed,
-                weighted=weighted, instrument=instrument, model=model or "6dof",
+                weighting=weighting or DEFAULT_WEIGHTING, instrument=instrument,
+                model=model or "6dof",
             )
         extra = {} if check is None else {"dynamic": check}
         obj = result_to_json(result, source=source, seed=seed, **extra)

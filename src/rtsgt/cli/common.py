@@ -10,7 +10,11 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from rtsgt.calibration.gcp import CALIBRATION_METHOD_NAMES, CALIBRATION_MODEL_NAMES
+from rtsgt.calibration.gcp import (
+    CALIBRATION_METHOD_NAMES,
+    CALIBRATION_MODEL_NAMES,
+    CALIBRATION_WEIGHTING_NAMES,
+)
 from rtsgt.errors import InputError
 from rtsgt.record import RunRecord
 
@@ -103,11 +107,20 @@ def print_run_summary(record: RunRecord, out) -> None:
         table.add_row("median sigma rotation (sqrt trace)", f"{np.median(sig_r):.3f} mrad")
         table.add_row("time span", f"{gt.t[-1] - gt.t[0]:.1f} s")
     for pid, qc in record.qc.items():
-        table.add_row(f"Qc prism {pid} (x, y, z)",
-                      ", ".join(f"{q:.2e}" for q in np.diag(qc)) + " m^2/s^3")
+        # the prior of each prism's GP: white noise on the acceleration (Qc in m^2/s^3) or on
+        # the jerk (m^2/s^5)
+        prior = record.prior.get(pid, "wnoa")
+        unit = "m^2/s^5" if prior == "wnoj" else "m^2/s^3"
+        table.add_row(f"Qc prism {pid} (x, y, z), GP prior",
+                      ", ".join(f"{q:.2e}" for q in np.diag(qc)) + f" {unit}, {prior.upper()}")
     reasons, counts = np.unique(record.rejected_reason, return_counts=True)
     for reason, count in zip(reasons, counts, strict=True):
         table.add_row(f"rejected: {reason}", str(int(count)))
+    read = None if record.computation is None else record.computation.filter_reports.get("input")
+    if read is not None:  # the messages of a bag the reader removed, by status
+        gone = ", ".join(f"{k} {v}" for k, v in read.removed.items() if v)
+        table.add_row("bag messages valid / read", f"{read.n_kept} / {read.n_in}"
+                      + (f" (removed: {gone})" if gone else ""))
     n_left = int(np.sum(record.removed.stage == "module4"))
     if n_left:
         table.add_row("measurements left out of the GPs (distance windows)", str(n_left))
@@ -117,7 +130,9 @@ def print_run_summary(record: RunRecord, out) -> None:
     # (Bonferroni intervals)
     gcp = record.self_checks.get("gcp_fit", {})
     if gcp.get("model"):
-        table.add_row("calibration model", CALIBRATION_MODEL_NAMES[gcp["model"]])
+        table.add_row("calibration model", CALIBRATION_MODEL_NAMES[gcp["model"]]
+                      + (f"; {CALIBRATION_WEIGHTING_NAMES[gcp['weighting']]}"
+                         if gcp.get("weighting") else ""))
     table.add_row("calibration method",
                   CALIBRATION_METHOD_NAMES[record.options.calibration.method])
     dyn = record.self_checks.get("dynamic_calibration")
@@ -178,9 +193,27 @@ def print_run_summary(record: RunRecord, out) -> None:
         table.add_row("self-check static: intervals",
                       f"{100 * static['confidence']:.2f} % each ({static['tests']} tests, "
                       f"{100 * static['family_false_alarm']:.0f} % false alarms per run)")
+    _correlated_rows(table, record.correlated_noise)
     _structure_rows(table, record.self_checks.get("inter_prism_structure", {}))
     table.add_row("output", str(out))
     console.print(table)
+
+
+def _correlated_rows(table: Table, plan: dict) -> None:
+    """The time-correlated noise the static-stretch check found, per prism, and whether the
+    GPs carried it (:mod:`rtsgt.noise.correlated`): each component's variance factor with the
+    correlated share and correlation time it comes from."""
+    for pid, e in plan.get("prisms", {}).items():
+        found = [(name, e[name]) for name in ("range", "horizontal", "vertical")
+                 if e[name].get("rho") is not None]
+        if not found:
+            continue
+        text = "; ".join(f"{name} x{c['factor']:.1f} (f {c['correlated_fraction']:.2f}, "
+                         f"tau {c['correlation_time_s']:.1f} s)" for name, c in found)
+        done = any(c["applied"] for _, c in found)
+        table.add_row(f"correlated noise, prism {pid}",
+                      f"white variance {'inflated' if done else 'not inflated (ignore)'}: "
+                      f"{text}")
 
 
 def _structure_rows(table: Table, check: dict) -> None:

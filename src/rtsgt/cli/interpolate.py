@@ -70,11 +70,13 @@ def interpolate_file(
     rate: float | None = None,
     qc: float | str = InterpolationOptions.qc,
     max_gap: float = InterpolationOptions.max_gap_s,
+    prior: str = InterpolationOptions.prior,
 ) -> tuple[str, GPTrack, dict, int]:
     """Fit the track of ``track_path`` with rtsgt's Qc policy and answer the queries.
 
     ``qc``: ``"loo"``, ``"likelihood"`` or a number (:func:`rtsgt.interpolation.prisms.
-    fit_prism_gp`, the policy ``rtsgt run`` uses).
+    fit_prism_gp`, the policy ``rtsgt run`` uses); ``prior``: ``"wnoa"``, ``"wnoj"`` or
+    ``"select"`` (the GP's motion prior; one track has no motion classes).
 
     Returns
     -------
@@ -89,11 +91,12 @@ def interpolate_file(
     if (at is None) == (rate is None):
         raise usage_error("give exactly one of --at TIMES.txt and --rate HZ", "--at / --rate")
     # the rule [interpolation] meets (inf: no gap limit)
-    checked_options(InterpolationOptions, {"rate_hz": "--rate", "max_gap_s": "--max-gap"},
-                    rate_hz=rate, max_gap_s=max_gap)
+    checked_options(InterpolationOptions, {"rate_hz": "--rate", "max_gap_s": "--max-gap",
+                                           "prior": "--prior"},
+                    rate_hz=rate, max_gap_s=max_gap, prior=prior)
     track = read_track_csv(track_path)
     try:
-        gp, info = fit_prism_gp(track, qc, max_gap, str(track_path))
+        gp, info = fit_prism_gp(track, qc, max_gap, str(track_path), prior)
     except InputError as exc:  # e.g. a single measurement: say which file
         if exc.path is None:
             raise InputError(exc.bare_message, track_path) from None
@@ -145,20 +148,28 @@ def _check_query_times(gp: GPTrack, times: np.ndarray, lines: np.ndarray, path: 
 
 def _describe_qc(gp: GPTrack, info: dict) -> str:
     diag = np.diag(gp.qc)
+    unit = "m^2/s^5" if gp.prior == "wnoj" else "m^2/s^3"
     if np.allclose(gp.qc, diag[0] * np.eye(3), rtol=0, atol=0):
-        value = f"{diag[0]:.6g} m^2/s^3 (isotropic)"
+        value = f"{diag[0]:.6g} {unit} (isotropic)"
     else:
-        value = "diag(" + ", ".join(f"{v:.6g}" for v in diag) + ") m^2/s^3"
+        value = "diag(" + ", ".join(f"{v:.6g}" for v in diag) + f") {unit}"
+    # the prior, and with --prior select the windows' scores that chose it
+    prior = f"; {gp.prior.upper()} prior"
+    if "prior_choice" in info:
+        pc = info["prior_choice"]
+        prior += " (log predictive density of the held-out windows: " + ", ".join(
+            f"{p.upper()} {pc[p]['log_density']:.1f}" for p in ("wnoa", "wnoj")
+            if pc[p]["log_density"] is not None) + ")"
     if info["method"] == "loo":
         return (f"qc = {value}, fitted by leave-one-out cross-validation; log-likelihood "
-                f"{gp.log_likelihood:.3f}")
+                f"{gp.log_likelihood:.3f}{prior}")
     if gp.qc_fit is None:
-        return f"qc = {value}, given; log-likelihood {gp.log_likelihood:.3f}"
+        return f"qc = {value}, given; log-likelihood {gp.log_likelihood:.3f}{prior}"
     fit = gp.qc_fit
     state = "converged" if fit.converged else f"NOT converged: {fit.message}"
     return (
         f"qc = {value}, fitted by maximum marginal likelihood ({fit.mode}, {state}, "
-        f"{fit.n_evaluations} evaluations); log-likelihood {gp.log_likelihood:.3f}"
+        f"{fit.n_evaluations} evaluations); log-likelihood {gp.log_likelihood:.3f}{prior}"
     )
 
 
@@ -185,17 +196,24 @@ def register(app: typer.Typer) -> None:
         max_gap: float = typer.Option(
             InterpolationOptions.max_gap_s, "--max-gap", help="Refuse queries across longer gaps (s)."
         ),
+        prior: str = typer.Option(
+            InterpolationOptions.prior, "--prior",
+            help="GP motion prior: wnoa (white noise on acceleration, the paper's), wnoj (on "
+                 "jerk) or select (the one whose held-out windows of 1-2 s are predicted "
+                 "better).",
+        ),
         out: Path | None = typer.Option(
             None, "--out", help="Output CSV (default: standard output)."
         ),
     ) -> None:
-        """Interpolate a prism track (exact GP, WNOA prior) at query times, with covariance."""
+        """Interpolate a prism track (exact GP, WNOA or WNOJ prior) at query times, with
+        covariance."""
         qc_value = parse_qc(qc)
         if out is not None:
             check_output_file(out, option="--out", inputs=[p for p in (track, at) if p],
                               written_by_rtsgt=_is_track_csv)
         text, gp, info, n_skipped = interpolate_file(track, at=at, rate=rate, qc=qc_value,
-                                                     max_gap=max_gap)
+                                                     max_gap=max_gap, prior=prior)
         typer.echo(_describe_qc(gp, info), err=True)
         if n_skipped:
             typer.echo(

@@ -16,7 +16,8 @@ from rtsgt.report.html import write_report
 
 #: The command-line options that override keys of the deployment's configuration.
 RUN_OPTION_NAMES = {"engine": "--engine", "registration": "--registration",
-                    "samples": "--samples", "rate_hz": "--rate"}
+                    "samples": "--samples", "rate_hz": "--rate", "prior": "--prior",
+                    "correlated_noise": "--correlated-noise"}
 
 
 def option_overrides(**values) -> dict:
@@ -34,10 +35,12 @@ def run_deployment(
     seed: int = 0,
     registration: str | None = None,
     rate: float | None = None,
+    correlated_noise: str | None = None,
     force: bool = False,
     quiet: bool = False,
     report: bool = False,
     inputs: dict | None = None,
+    prior: str | None = None,
 ):
     """Load, process and write one deployment; returns (RunRecord, output directory).
 
@@ -47,7 +50,7 @@ def run_deployment(
     """
 
     changes = option_overrides(engine=engine, registration=registration, samples=samples,
-                               rate_hz=rate)
+                               rate_hz=rate, prior=prior, correlated_noise=correlated_noise)
     check_target(out, force=force, inputs=[config])
     with Stages(quiet) as stages:
         stages("reading inputs")
@@ -81,6 +84,14 @@ def register(app: typer.Typer) -> None:
         samples: int = typer.Option(None, help="Monte Carlo samples M (default: config)."),
         seed: int = typer.Option(0, min=0, help="Seed of every random draw (>= 0)."),
         rate: float = typer.Option(None, help="Query rate, Hz (default: config)."),
+        prior: str = typer.Option(None, help="GP motion prior: wnoa (the paper's), wnoj, or "
+                                             "select (per track, by held-out windows) "
+                                             "(default: config)."),
+        correlated_noise: str = typer.Option(
+            None, "--correlated-noise",
+            help="Noise the static stretches find time-correlated: inflate the white "
+                 "covariance (inflate) or take the measurements as independent (ignore, the "
+                 "paper) (default: config, else ignore)."),
         force: bool = typer.Option(False, "--force",
                                    help="Replace an earlier output of rtsgt at --out (never a "
                                         "directory holding anything else)."),
@@ -90,7 +101,8 @@ def register(app: typer.Typer) -> None:
         """Compute the ground truth of a deployment: poses with 6x6 covariance."""
         result, final = run_deployment(config, out, engine=engine, samples=samples, seed=seed,
                                        rate=rate, force=force, quiet=quiet, report=report,
-                                       registration=registration)
+                                       registration=registration, prior=prior,
+                                       correlated_noise=correlated_noise)
         if not quiet:
             print_run_summary(result, final)
             if report:

@@ -177,14 +177,16 @@ class ContinuousGroundTruth:
         qc_scale: dict[str, ArrayLike] | None = None,
         station_origins: dict[str, np.ndarray] | None = None,
         split: bool = False,
+        prior: dict[str, str] | None = None,
     ) -> ContinuousGroundTruth:
-        """Fit the GPs of ``tracks`` with the given per-prism ``Qc`` (m^2/s^3) and, where
-        given, its scale per interval between measurements."""
+        """Fit the GPs of ``tracks`` with the given per-prism ``Qc`` (m^2/s^3, or m^2/s^5 for
+        a WNOJ prior) and, where given, its scale per interval between measurements and its
+        motion prior (default WNOA)."""
         missing = [p for p in tracks if p not in qc]
         if missing:
             raise InputError(f"{source or 'ground truth'}: no Qc for prism(s) {', '.join(missing)}")
         gps = fit_gps(tracks, options.interpolation, qc={p: qc[p] for p in tracks},
-                      qc_scale=qc_scale)
+                      qc_scale=qc_scale, prior=prior)
         return cls(dict(tracks), gps, np.asarray(intervals, dtype=float),
                    reference.select(list(tracks)), options, uncertainty_measure, source,
                    coupling, dict(station_origins or {}), split)
@@ -243,7 +245,8 @@ class ContinuousGroundTruth:
         return cls.from_tracks(tracks, record.qc, intervals, reference, opts,
                                uncertainty_measure=record.uncertainty_measure, source=source,
                                coupling=record.coupling, qc_scale=record.qc_scale,
-                               station_origins=record.stations, split=split)
+                               station_origins=record.stations, split=split,
+                               prior=record.prior)
 
     @classmethod
     def from_run_dir(

@@ -3,7 +3,8 @@ r"""Posterior cross-covariance of a GP track between two times.
 The relative pose between two ground-truth times needs ``Cov(x(tau_1), x(tau_2))``, not only
 the marginals that :meth:`rtsgt.interpolation.gp.GPTrack.query` returns.
 
-The smoothed posterior of the WNOA GP is Gauss-Markov along the knots, so for knots
+The smoothed posterior of the GP (WNOA or WNOJ prior; the state ``x`` is ``[p; v]`` or
+``[p; v; a]``) is Gauss-Markov along the knots, so for knots
 ``a < b``:
 
     ``Cov(x_a, x_b) = Cov(x_a, x_{b-1}) S_{b-1}^-1 C_{b-1}``,
@@ -34,15 +35,15 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rtsgt.errors import InputError
-from rtsgt.interpolation.gp import GPTrack, wnoa_phi, wnoa_q
+from rtsgt.interpolation.gp import GPTrack
 
 __all__ = ["gp_cross_covariance", "gp_joint_covariance"]
 
-_EYE6 = np.eye(6)
-
 
 def _weights(gp: GPTrack, tau: np.ndarray):
-    """Interval index k, weights W (K, 6, 12) on [x_k; x_{k+1}], and whether tau is interior."""
+    """Interval index k, weights W (K, d, 2d) on [x_k; x_{k+1}], and whether tau is interior."""
+    dim = gp.state_dim
+    eye = np.eye(dim)
     t = gp.t
     n = t.shape[0]
     k = np.clip(np.searchsorted(t, tau, side="right") - 1, 0, n - 2)
@@ -51,19 +52,21 @@ def _weights(gp: GPTrack, tau: np.ndarray):
     interior = ~on_k & ~on_k1
     d = t[k + 1] - t[k]
     s = np.clip((tau - t[k]) / d, 0.0, 1.0)
-    W = np.zeros((tau.size, 6, 12))
+    W = np.zeros((tau.size, dim, 2 * dim))
     # Lambda = Phi(tau - t_k) - Psi Phi(d), Psi = Q(tau - t_k) Phi(t_{k+1} - tau)^T Q(d)^-1
-    q1 = wnoa_q(s * d, gp.qc)
-    qd_inv = np.linalg.inv(wnoa_q(d, gp.qc))
-    psi = q1 @ np.swapaxes(wnoa_phi((1.0 - s) * d), 1, 2) @ qd_inv
-    lam = wnoa_phi(s * d) - psi @ wnoa_phi(d)
-    W[:, :, :6] = np.where(interior[:, None, None], lam, np.where(on_k[:, None, None], _EYE6, 0))
-    W[:, :, 6:] = np.where(interior[:, None, None], psi, np.where(on_k1[:, None, None], _EYE6, 0))
+    q1 = gp.process_noise(s * d)
+    qd_inv = np.linalg.inv(gp.process_noise(d))
+    psi = q1 @ np.swapaxes(gp.transition((1.0 - s) * d), 1, 2) @ qd_inv
+    lam = gp.transition(s * d) - psi @ gp.transition(d)
+    W[:, :, :dim] = np.where(interior[:, None, None], lam,
+                             np.where(on_k[:, None, None], eye, 0))
+    W[:, :, dim:] = np.where(interior[:, None, None], psi,
+                             np.where(on_k1[:, None, None], eye, 0))
     return k, W, interior
 
 
 def _knot_cov(gp: GPTrack, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``Cov(x_a, x_b)`` (K, 6, 6) for knot indices with ``a <= b`` elementwise."""
+    """``Cov(x_a, x_b)`` (K, d, d) for knot indices with ``a <= b`` elementwise."""
     S, C = gp.cov, gp.cross_cov
     out = S[a].copy()
     lag = b - a
@@ -83,7 +86,7 @@ def _pair_cov(gp: GPTrack, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def gp_cross_covariance(gp: GPTrack, tau_1: ArrayLike, tau_2: ArrayLike) -> np.ndarray:
-    """``Cov(x(tau_1), x(tau_2))`` of the state ``[p; v]`` for pairs of times (module docstring).
+    """``Cov(x(tau_1), x(tau_2))`` of the state for pairs of times (module docstring).
 
     Parameters
     ----------
@@ -93,8 +96,9 @@ def gp_cross_covariance(gp: GPTrack, tau_1: ArrayLike, tau_2: ArrayLike) -> np.n
 
     Returns
     -------
-    ndarray, shape (K, 6, 6)
-        m^2, m^2/s, m^2/s^2; ``[:, :3, :3]`` is the position block.
+    ndarray, shape (K, d, d)
+        The whole state (``d = gp.state_dim``: 6 for WNOA, 9 for WNOJ), m^2, m^2/s, ...;
+        ``[:, :3, :3]`` is the position block.
 
     Raises
     ------
@@ -115,21 +119,22 @@ def gp_cross_covariance(gp: GPTrack, tau_1: ArrayLike, tau_2: ArrayLike) -> np.n
     a_t, b_t = np.where(swap, t2, t1), np.where(swap, t1, t2)
     ka, Wa, ia = _weights(gp, a_t)
     kb, Wb, ib = _weights(gp, b_t)
-    K = t1.size
-    big = np.empty((K, 12, 12))
-    for u, du in ((0, 0), (6, 1)):
-        for v, dv in ((0, 0), (6, 1)):
-            big[:, u:u + 6, v:v + 6] = _pair_cov(gp, ka + du, kb + dv)
+    K, dim = t1.size, gp.state_dim
+    big = np.empty((K, 2 * dim, 2 * dim))
+    for u, du in ((0, 0), (dim, 1)):
+        for v, dv in ((0, 0), (dim, 1)):
+            big[:, u:u + dim, v:v + dim] = _pair_cov(gp, ka + du, kb + dv)
     out = Wa @ big @ np.swapaxes(Wb, 1, 2)
     same = ia & ib & (ka == kb)
     if same.any():
         k = ka[same]
         tk, d = gp.t[k], gp.t[k + 1] - gp.t[k]
         d1, d2 = a_t[same] - tk, b_t[same] - tk
-        q1, q2, qd = wnoa_q(d1, gp.qc), wnoa_q(d2, gp.qc), wnoa_q(d, gp.qc)
-        bridge = (q1 @ np.swapaxes(wnoa_phi(d2 - d1), 1, 2)
-                  - q1 @ np.swapaxes(wnoa_phi(d - d1), 1, 2) @ np.linalg.solve(
-                      qd, wnoa_phi(d - d2) @ q2))
+        q1, q2, qd = gp.process_noise(d1), gp.process_noise(d2), gp.process_noise(d)
+        phi = gp.transition
+        bridge = (q1 @ np.swapaxes(phi(d2 - d1), 1, 2)
+                  - q1 @ np.swapaxes(phi(d - d1), 1, 2) @ np.linalg.solve(
+                      qd, phi(d - d2) @ q2))
         out[same] += gp.interval_scale(k)[:, None, None] * bridge
     return np.where(swap[:, None, None], np.swapaxes(out, 1, 2), out)
 
@@ -161,10 +166,10 @@ def gp_joint_covariance(gp: GPTrack, tau: ArrayLike) -> np.ndarray:
         raise InputError(f"Expected times inside the track [{lo_t!r}, {hi_t!r}] s")
     k, W, interior = _weights(gp, tau)
     lo, hi = int(k.min()), int(k.max()) + 1  # the knots involved
-    K = hi - lo + 1
+    K, dim = hi - lo + 1, gp.state_dim
     S = gp.cov[lo:hi + 1]
     step = np.linalg.solve(S[:-1], gp.cross_cov[lo:hi])  # S_c^-1 C_c
-    J = np.zeros((K, K, 6, 6))
+    J = np.zeros((K, K, dim, dim))
     J[np.arange(K), np.arange(K)] = S
     for d in range(1, K):  # loop over the diagonals of the knot covariance
         a = np.arange(K - d)
@@ -172,10 +177,10 @@ def gp_joint_covariance(gp: GPTrack, tau: ArrayLike) -> np.ndarray:
         J[a + d, a] = np.swapaxes(J[a, a + d], 1, 2)
     i = k - lo
     # Cov(p(tau_a), x_c) for every knot c, then against the knots of tau_b
-    left = (np.einsum("aij,acjk->acik", W[:, :3, :6], J[i])
-            + np.einsum("aij,acjk->acik", W[:, :3, 6:], J[i + 1]))  # (m, K, 3, 6)
-    out = (np.einsum("abik,blk->abil", left[:, i], W[:, :3, :6])
-           + np.einsum("abik,blk->abil", left[:, i + 1], W[:, :3, 6:]))
+    left = (np.einsum("aij,acjk->acik", W[:, :3, :dim], J[i])
+            + np.einsum("aij,acjk->acik", W[:, :3, dim:], J[i + 1]))  # (m, K, 3, d)
+    out = (np.einsum("abik,blk->abil", left[:, i], W[:, :3, :dim])
+           + np.einsum("abik,blk->abil", left[:, i + 1], W[:, :3, dim:]))
     same = interior[:, None] & interior[None, :] & (k[:, None] == k[None, :])
     a_idx, b_idx = np.nonzero(same)
     if a_idx.size:
@@ -185,10 +190,11 @@ def gp_joint_covariance(gp: GPTrack, tau: ArrayLike) -> np.ndarray:
         kk = k[a_idx]
         tk, dk = gp.t[kk], gp.t[kk + 1] - gp.t[kk]
         d1, d2 = t1 - tk, t2 - tk
-        q1, q2, qd = wnoa_q(d1, gp.qc), wnoa_q(d2, gp.qc), wnoa_q(dk, gp.qc)
-        bridge = (q1 @ np.swapaxes(wnoa_phi(d2 - d1), 1, 2)
-                  - q1 @ np.swapaxes(wnoa_phi(dk - d1), 1, 2) @ np.linalg.solve(
-                      qd, wnoa_phi(dk - d2) @ q2))[:, :3, :3]
+        q1, q2, qd = gp.process_noise(d1), gp.process_noise(d2), gp.process_noise(dk)
+        phi = gp.transition
+        bridge = (q1 @ np.swapaxes(phi(d2 - d1), 1, 2)
+                  - q1 @ np.swapaxes(phi(dk - d1), 1, 2) @ np.linalg.solve(
+                      qd, phi(dk - d2) @ q2))[:, :3, :3]
         bridge = np.where(first[:, None, None], bridge, np.swapaxes(bridge, 1, 2))
         out[a_idx, b_idx] += gp.interval_scale(kk)[:, None, None] * bridge
     return out

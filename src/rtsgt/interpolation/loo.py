@@ -82,7 +82,8 @@ def _interior(t: np.ndarray, max_gap_s: float) -> np.ndarray:
     return ok
 
 
-def loo_predictive(track, qc, *, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=None):
+def loo_predictive(track, qc, *, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=None,
+                   prior: str = "wnoa"):
     """Leave-one-out predictive of every interior measurement.
 
     Parameters
@@ -95,6 +96,8 @@ def loo_predictive(track, qc, *, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=
         Knots with a neighbour farther than this are not scored.
     qc_scale : array_like, shape (N-1,), optional
         Per-interval multiplier of ``qc`` (:func:`rtsgt.interpolation.gp.fit_track`).
+    prior : {"wnoa", "wnoj"}
+        The motion prior (:mod:`rtsgt.interpolation.gp`).
 
     Returns
     -------
@@ -105,7 +108,7 @@ def loo_predictive(track, qc, *, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=
         ``Sigma_-k + R_k``, m^2.
     """
     t, y, R = (np.asarray(a, dtype=float) for a in track)
-    gp = fit_track((t, y, R), qc=qc, max_gap_s=1e300, qc_scale=qc_scale)
+    gp = fit_track((t, y, R), qc=qc, max_gap_s=1e300, qc_scale=qc_scale, prior=prior)
     used = _interior(t, max_gap_s)
     P = gp.cov[used, :3, :3]
     m = gp.mean[used, :3]
@@ -126,8 +129,9 @@ def loo_predictive(track, qc, *, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=
 
 
 def loo_score(track, qc, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=None,
-              ) -> tuple[float, float, int]:
-    """Leave-one-out score of ``qc`` (and ``qc_scale``, :func:`loo_predictive`).
+              prior: str = "wnoa") -> tuple[float, float, int]:
+    """Leave-one-out score of ``qc`` (and ``qc_scale``, under ``prior``,
+    :func:`loo_predictive`).
 
     Returns
     -------
@@ -138,7 +142,7 @@ def loo_score(track, qc, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=None,
     n_used : int
         Measurements scored.
     """
-    _, r, S = loo_predictive(track, qc, max_gap_s=max_gap_s, qc_scale=qc_scale)
+    _, r, S = loo_predictive(track, qc, max_gap_s=max_gap_s, qc_scale=qc_scale, prior=prior)
     L = np.linalg.cholesky(S)
     z = np.linalg.solve(L, r[..., None])[..., 0]
     nees = np.einsum("ni,ni->n", z, z)
@@ -149,7 +153,7 @@ def loo_score(track, qc, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=None,
 
 def fit_qc_loo(
     track, *, mode: str = "isotropic", max_gap_s: float = DEFAULT_MAX_GAP_S,
-    bounds: tuple[float, float] = QC_BOUNDS, xatol: float = 0.02,
+    bounds: tuple[float, float] = QC_BOUNDS, xatol: float = 0.02, prior: str = "wnoa",
 ) -> LooInfo:
     """``Qc`` maximising the leave-one-out log predictive density.
 
@@ -165,6 +169,8 @@ def fit_qc_loo(
         Search interval for each ``q``, m^2/s^3.
     xatol : float
         Tolerance on ``log q`` (0.02: 2 % on ``q``, well inside its statistical uncertainty).
+    prior : {"wnoa", "wnoj"}
+        The motion prior whose ``Qc`` is fitted (m^2/s^3 for WNOA, m^2/s^5 for WNOJ).
 
     Returns
     -------
@@ -186,7 +192,7 @@ def fit_qc_loo(
             f"to fit Qc by leave-one-out, got {n_used}"
         )
     lo, hi = (float(np.log(b)) for b in bounds)
-    res = minimize_scalar(lambda lq: -loo_score(track, np.exp(lq), max_gap_s)[0],
+    res = minimize_scalar(lambda lq: -loo_score(track, np.exp(lq), max_gap_s, prior=prior)[0],
                           bounds=(lo, hi), method="bounded", options={"xatol": xatol})
     qc: float | np.ndarray = float(np.exp(res.x))
     if mode == "per-axis":
@@ -195,10 +201,11 @@ def fit_qc_loo(
         # below the floor (4e-20 was seen) makes the track's information matrix singular
         simplex = np.clip(x0 + np.vstack([np.zeros(3), np.eye(3)]), lo, hi)
         simplex[1:] -= 2.0 * np.eye(3) * (simplex[1:] == simplex[0])  # at the upper bound
-        best = minimize(lambda lq: -loo_score(track, np.diag(np.exp(lq)), max_gap_s)[0], x0,
+        best = minimize(lambda lq: -loo_score(track, np.diag(np.exp(lq)), max_gap_s,
+                                              prior=prior)[0], x0,
                         method="Nelder-Mead", bounds=[(lo, hi)] * 3,
                         options={"xatol": xatol, "fatol": 1e-2, "maxiter": 400,
                                  "initial_simplex": simplex})
         qc = np.diag(np.exp(np.clip(best.x, lo, hi)))
-    ll, nees, n = loo_score(track, qc, max_gap_s)
+    ll, nees, n = loo_score(track, qc, max_gap_s, prior=prior)
     return LooInfo(qc, ll, n, nees)

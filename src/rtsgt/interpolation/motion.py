@@ -92,7 +92,7 @@ class MotionEvents:
 
 
 def _knot_classes(gp: GPTrack) -> np.ndarray:
-    v = gp.mean[:, 3:]
+    v = gp.velocity
     speed = np.linalg.norm(v, axis=1)
     acc = np.zeros(speed.shape)
     if len(gp) > 1:
@@ -188,7 +188,7 @@ def _merged(classes: np.ndarray) -> np.ndarray:
 
 def fit_motion_prior(
     track, qc: ArrayLike, events: MotionEvents, *, max_gap_s: float,
-    loo_constant: float | None = None,
+    loo_constant: float | None = None, prior: str = "wnoa",
 ) -> MotionPriorFit:
     """Scale of ``Qc`` per motion class of a track, by leave-one-out (module docstring).
 
@@ -204,6 +204,8 @@ def fit_motion_prior(
         Knots next to a longer gap are not scored (as for the constant ``Qc``).
     loo_constant : float, optional
         The constant ``Qc``'s leave-one-out score, if already known.
+    prior : {"wnoa", "wnoj"}
+        The GP's motion prior (:mod:`rtsgt.interpolation.gp`).
 
     Returns
     -------
@@ -215,7 +217,7 @@ def fit_motion_prior(
     cls = _merged(raw)
     present = np.unique(cls)
     if loo_constant is None:
-        loo_constant = loo_score(track, qc, max_gap_s)[0]
+        loo_constant = loo_score(track, qc, max_gap_s, prior=prior)[0]
     counts = {CLASS_NAMES[c]: int(np.sum(raw == c)) for c in np.unique(raw)}
     if present.size < 2:
         return MotionPriorFit(None, {}, counts, float(loo_constant), float(loo_constant),
@@ -228,7 +230,7 @@ def fit_motion_prior(
     def scale_of(x: np.ndarray) -> np.ndarray:
         return np.exp(np.clip(x, lo, hi))[pos]
 
-    res = minimize(lambda x: -loo_score(track, qc, max_gap_s, scale_of(x))[0],
+    res = minimize(lambda x: -loo_score(track, qc, max_gap_s, scale_of(x), prior=prior)[0],
                    np.zeros(present.size), method="L-BFGS-B", bounds=[(lo, hi)] * present.size,
                    options={"eps": 1e-3})
     loo_classes = -float(res.fun)

@@ -6,7 +6,10 @@ systematic ones (atmosphere, time synchronisation, calibration) are added to the
 position afterwards, at their full value (docs/interpolation.md). Qc is chosen by
 leave-one-out cross-validation per axis by default (:mod:`rtsgt.interpolation.loo`), then
 scaled per class of the robot's motion where that predicts held-out measurements better
-(:mod:`rtsgt.interpolation.motion`).
+(:mod:`rtsgt.interpolation.motion`). The motion prior (white noise on the acceleration or on
+the jerk, :mod:`rtsgt.interpolation.gp`) is the option's, or with ``prior = "select"`` per
+track the one whose held-out windows of 1-2 s are predicted better
+(:func:`rtsgt.interpolation.windows.window_score`).
 """
 
 from __future__ import annotations
@@ -23,15 +26,19 @@ from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.interpolation.gp import GPTrack, fit_track
 from rtsgt.interpolation.loo import fit_qc_loo
 from rtsgt.interpolation.motion import fit_motion_prior, motion_events
+from rtsgt.interpolation.windows import window_score
 from rtsgt.options import InterpolationOptions
-from rtsgt.types import PrismTrack
+from rtsgt.types import CORRELATED_NOISE_SOURCE, WHITE_NOISE_SOURCES, PrismTrack
 
-__all__ = ["PrismsAtTimes", "fit_gps", "fit_prism_gp", "query_prisms", "query_grid", "gp_covariance",
+__all__ = ["PrismsAtTimes", "choose_prior", "fit_gps", "fit_prism_gp", "query_prisms", "query_grid",
+           "gp_covariance",
            "gp_velocities",
            "WHITE_SOURCES", "SYSTEMATIC_SOURCES"]
 
-#: Noise sources whose errors are independent between measurements (fed to the GP).
-WHITE_SOURCES = ("instrument", "tilt")
+#: Noise sources whose errors are taken as independent between measurements (fed to the GP):
+#: the white ones and, where their noise is correlated in time, what its inflation adds
+#: (:mod:`rtsgt.noise.correlated`).
+WHITE_SOURCES = (*WHITE_NOISE_SOURCES, CORRELATED_NOISE_SOURCE)
 #: Noise sources whose errors are shared by many measurements (added after the GP).
 SYSTEMATIC_SOURCES = ("atmosphere", "time_sync", "calibration")
 
@@ -107,7 +114,8 @@ def query_grid(intervals: np.ndarray, rate_hz: float) -> np.ndarray:
     return np.concatenate(parts) if parts else np.empty(0)
 
 
-def fit_prism_gp(data, qc: float | str, max_gap_s: float, name: str) -> tuple[GPTrack, dict]:
+def fit_prism_gp(data, qc: float | str, max_gap_s: float, name: str,
+                 prior: str = "wnoa") -> tuple[GPTrack, dict]:
     """Fit one prism's GP with rtsgt's Qc policy (the one every command uses).
 
     Parameters
@@ -124,6 +132,9 @@ def fit_prism_gp(data, qc: float | str, max_gap_s: float, name: str) -> tuple[GP
         Longest gap across which the GP answers queries, s.
     name : str
         The track's name in messages (``"prism 2"``, a file).
+    prior : {"wnoa", "wnoj", "select"}
+        The GP's motion prior (:mod:`rtsgt.interpolation.gp`), or ``"select"``: both fitted,
+        the one whose held-out windows are predicted better kept (:func:`choose_prior`).
 
     Returns
     -------
@@ -135,20 +146,31 @@ def fit_prism_gp(data, qc: float | str, max_gap_s: float, name: str) -> tuple[GP
     """
     if isinstance(data, PrismTrack):
         data = (data.t, data.xyz, data.cov)
+    if prior == "select":
+        if not isinstance(qc, str):  # a given number is a WNOA PSD
+            return fit_prism_gp(data, qc, max_gap_s, name, "wnoa")
+        fits = {"wnoa": fit_prism_gp(data, qc, max_gap_s, name, "wnoa")}
+        try:
+            fits["wnoj"] = fit_prism_gp(data, qc, max_gap_s, name, "wnoj")
+        except InputError as exc:  # too short for WNOJ
+            fits["wnoj"] = None, {"note": exc.bare_message}
+        return choose_prior(data, fits, max_gap_s)
     if qc == "loo":
         try:
-            loo = fit_qc_loo(data, mode="per-axis", max_gap_s=max_gap_s)
+            loo = fit_qc_loo(data, mode="per-axis", max_gap_s=max_gap_s, prior=prior)
         except InputError as exc:  # too few interior measurements to cross-validate
-            gp = fit_track(data, fit_qc=True, max_gap_s=max_gap_s)  # fails with < 2 of them
+            gp = fit_track(data, fit_qc=True, max_gap_s=max_gap_s, prior=prior)  # fails with
+            # fewer than 2 (WNOA) or 3 (WNOJ) of them
             warnings.warn(f"{name}: {exc.bare_message}; Qc by the marginal likelihood instead",
                           RtsgtWarning, stacklevel=2)
             return gp, {"method": "likelihood", "note": "too few measurements for leave-one-out"}
-        return fit_track(data, qc=loo.qc, max_gap_s=max_gap_s), {
+        return fit_track(data, qc=loo.qc, max_gap_s=max_gap_s, prior=prior), {
             "method": "loo", "loo_log_predictive": loo.log_predictive,
             "loo_knots": loo.n_used, "loo_nees_per_dof": loo.nees_mean}
     if qc == "likelihood":
-        return fit_track(data, fit_qc=True, max_gap_s=max_gap_s), {"method": "likelihood"}
-    return fit_track(data, qc=float(qc), max_gap_s=max_gap_s), {"method": "given"}
+        return fit_track(data, fit_qc=True, max_gap_s=max_gap_s, prior=prior), {
+            "method": "likelihood"}
+    return fit_track(data, qc=float(qc), max_gap_s=max_gap_s, prior=prior), {"method": "given"}
 
 
 def _each_prism(fit, tracks: dict[str, PrismTrack]) -> dict[str, tuple[GPTrack, dict]]:
@@ -162,47 +184,110 @@ def _each_prism(fit, tracks: dict[str, PrismTrack]) -> dict[str, tuple[GPTrack, 
 def fit_gps(
     tracks: dict[str, PrismTrack], options: InterpolationOptions, qc: dict[str, object] | None = None,
     info: dict[str, dict] | None = None, qc_scale: dict[str, np.ndarray] | None = None,
+    prior: dict[str, str] | None = None,
 ) -> dict[str, GPTrack]:
     """Fit the GP of every prism track, its Qc chosen by ``options.qc`` (:func:`fit_prism_gp`)
     and, with ``options.motion_prior = "classes"`` and leave-one-out, scaled per class of the
     robot's motion (:mod:`rtsgt.interpolation.motion`; the motion comes from all the prisms'
     GPs with one Qc, fitted first).
 
-    ``qc`` optionally gives each prism's Qc (scalar or 3x3), overriding ``options.qc``, and
-    ``qc_scale`` its scale per interval: refitting the tracks of a written run with the Qc it
-    found. ``info``, when given, receives per prism the method and the fit's statistics.
+    The motion prior is ``options.prior``: ``"wnoa"`` (the paper's) or ``"wnoj"`` for every
+    track, or ``"select"``: every track is fitted with both priors, each by the whole path
+    above (its own Qc, motion and class scales), and keeps the one whose held-out windows
+    predict its measurements better (the higher summed log predictive density,
+    :func:`rtsgt.interpolation.windows.window_score`; a tie, or no window to score, keeps
+    WNOA). With a ``qc`` given as a number, ``"select"`` is WNOA (the number is a WNOA PSD).
+
+    ``qc`` optionally gives each prism's Qc (scalar or 3x3), overriding ``options.qc``,
+    ``qc_scale`` its scale per interval and ``prior`` its prior (default ``"wnoa"``):
+    refitting the tracks of a written run with the Qc it found. ``info``, when given, receives
+    per prism the method, the fit's statistics, ``prior`` and, with ``"select"``,
+    ``prior_choice`` (per prior: ``log_density``, ``nees_per_dof``, ``windows``, ``qc``).
     """
 
     # what each GP is given, once for the fit with one Qc and the refit with the classes
     data = {pid: (tr.t, tr.xyz, gp_covariance(tr, options.gp_noise))
             for pid, tr in tracks.items()}
+    mode = options.prior
+    given = qc is not None and all(pid in qc for pid in tracks)
+    if mode == "select" and (given or not isinstance(options.qc, str)):
+        mode = "wnoa"  # the given Qc (and its prior, per prism) stand
+    if mode != "select":
+        done = _fit_with(tracks, data, options, mode, qc, qc_scale, prior)
+    else:
+        both = {p: _fit_with(tracks, data, options, p, qc, qc_scale, prior)
+                for p in ("wnoa", "wnoj")}
+        done = {pid: choose_prior(data[pid], {p: both[p][pid] for p in both},
+                                  options.max_gap_s) for pid in tracks}
+    if info is not None:
+        info.update({pid: entry for pid, (_, entry) in done.items()})
+    return {pid: gp for pid, (gp, _) in done.items()}
+
+
+def choose_prior(data, fits: dict[str, tuple[GPTrack | None, dict]],
+                 max_gap_s: float) -> tuple[GPTrack, dict]:
+    """The fit, among one per prior, whose held-out windows have the higher summed log
+    predictive density (:func:`rtsgt.interpolation.windows.window_score`; a tie, no window to
+    score, or a failed WNOJ fit (``gp`` None) keep WNOA), with its info entry and
+    ``prior_choice`` (``chosen`` and per prior its score and ``qc``)."""
+    scores = {p: _score(data, f, max_gap_s) for p, f in fits.items()}
+    ld = {p: -np.inf if v["log_density"] is None else v["log_density"]
+          for p, v in scores.items()}
+    chosen = "wnoj" if ld["wnoj"] > ld["wnoa"] else "wnoa"
+    gp, entry = fits[chosen]
+    return gp, {**entry, "prior": chosen, "prior_choice": {"chosen": chosen, **scores}}
+
+
+def _score(data, fitted: tuple[GPTrack | None, dict], max_gap_s: float) -> dict:
+    """The held-out windows' score of one prior's GP of a track (``log_density`` None for a
+    failed fit)."""
+    gp, entry = fitted
+    if gp is None:
+        return {"log_density": None, "nees_per_dof": None, "windows": 0,
+                "measurements": 0, "note": entry.get("note", "")}
+    return {**window_score(data, gp, max_gap_s), "qc": np.diag(gp.qc).tolist()}
+
+
+def _fit_with(tracks: dict[str, PrismTrack], data: dict, options: InterpolationOptions,
+              prior_name: str, qc: dict | None, qc_scale: dict | None,
+              prior: dict | None) -> dict[str, tuple[GPTrack | None, dict]]:
+    """Every prism's GP with one motion prior (:func:`fit_gps`): ``(gp, info entry)``; with
+    ``"wnoj"`` in a selection, a track it cannot fit (too short) gives ``(None, entry)``."""
 
     def fit_one(pid: str, tr: PrismTrack) -> tuple[GPTrack, dict]:
         if qc is not None and pid in qc:
             scale = None if qc_scale is None else qc_scale.get(pid)
+            p = "wnoa" if prior is None else prior.get(pid, "wnoa")
             return fit_track(data[pid], qc=qc[pid], max_gap_s=options.max_gap_s,
-                             qc_scale=scale), {"method": "given"}
-        return fit_prism_gp(data[pid], options.qc, options.max_gap_s, f"prism {pid}")
+                             qc_scale=scale, prior=p), {"method": "given", "prior": p}
+        if prior_name == "wnoj" and options.prior == "select":
+            try:
+                gp, entry = fit_prism_gp(data[pid], options.qc, options.max_gap_s,
+                                         f"prism {pid}", prior_name)
+            except InputError as exc:
+                return None, {"note": exc.bare_message}
+        else:
+            gp, entry = fit_prism_gp(data[pid], options.qc, options.max_gap_s, f"prism {pid}",
+                                     prior_name)
+        return gp, {**entry, "prior": prior_name}
 
     done = _each_prism(fit_one, tracks)
-    by_loo = [pid for pid, (_, entry) in done.items() if entry["method"] == "loo"]
+    by_loo = [pid for pid, (_, entry) in done.items() if entry.get("method") == "loo"]
     if options.motion_prior == "classes" and by_loo:
-        events = motion_events({pid: gp for pid, (gp, _) in done.items()})
+        events = motion_events({pid: gp for pid, (gp, _) in done.items() if gp is not None})
 
         def refit(pid: str, tr: PrismTrack) -> tuple[GPTrack, dict]:
             gp, entry = done[pid]
             fit = fit_motion_prior(data[pid], gp.qc, events, max_gap_s=options.max_gap_s,
-                                   loo_constant=entry["loo_log_predictive"])
+                                   loo_constant=entry["loo_log_predictive"], prior=gp.prior)
             entry = {**entry, "motion_prior": fit.as_dict()}
             if fit.qc_scale is None:
                 return gp, entry
             return fit_track(data[pid], qc=gp.qc, max_gap_s=options.max_gap_s,
-                             qc_scale=fit.qc_scale), entry
+                             qc_scale=fit.qc_scale, prior=gp.prior), entry
 
         done.update(_each_prism(refit, {pid: tracks[pid] for pid in by_loo}))
-    if info is not None:
-        info.update({pid: entry for pid, (_, entry) in done.items()})
-    return {pid: gp for pid, (gp, _) in done.items()}
+    return done
 
 
 def gp_velocities(gps: dict[str, GPTrack], t: np.ndarray) -> np.ndarray:

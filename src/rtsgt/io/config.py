@@ -24,6 +24,16 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
     format = "rts-project"           # t d V Hz, no header
     additive_constant_m = 0.01
 
+    # or, the stations' measurements from one ROS bag of the acquisition system (every
+    # [[stations]] table then without file and format):
+    # [measurements]
+    # file = "2022-11-10-10-43-57.bag" # ROS 1 .bag, or a ROS 2 bag directory (or its .db3)
+    # format = "ros-bag"
+    # topic = "/theodolite_master/theodolite_data"  # the default (else /theodolite_data)
+    # time = "header"                # header.stamp, clock offset corrected (default), or
+    #                                # "theodolite" (theodolite_time, uncorrected)
+    # and in [[stations]]: theodolite_id = 1 (default: the station id as an integer)
+
     [gcp]
     file = "GCP.txt"
     format = "rts-project"           # or "csv"
@@ -52,6 +62,8 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
     [calibration]
     model = "6dof"                   # stations' transforms: free rotation ("6dof", default) or
                                      # levelled stations, yaw only ("4dof")
+    weighting = "none"               # markers' weights: none ("none", the paper, default),
+                                     # the full covariance ("gls") or its trace ("trace")
     method = "gcp"                   # fitted to the GCPs ("gcp", default), to the robot's
                                      # motion through the inter-prism distances ("dynamic"),
                                      # or to both ("joint")
@@ -72,6 +84,12 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
     motion_prior = "classes"         # Qc per class of the robot's motion, or "constant"
     outlier_windows = "remove"       # measurements of distance-rejected windows: out of the
                                      # GP fits ("remove", default) or kept in them ("keep")
+    prior = "wnoa"                   # GP motion prior: "wnoa" (white noise on acceleration,
+                                     # the paper's, default), "wnoj" (on jerk), or "select"
+                                     # (per track, by held-out windows)
+    correlated_noise = "ignore"      # noise the static stretches find time-correlated:
+                                     # measurements taken as independent ("ignore", default)
+                                     # or white covariance inflated ("inflate")
 
     [pose]
     engine = "mc"                    # mc | ut | linear
@@ -92,6 +110,7 @@ from typing import Any
 
 from rtsgt.errors import ConfigError, InputError
 from rtsgt.filtering import FilterParams
+from rtsgt.io.rts_bag import TIME_SOURCES
 from rtsgt.measurement.instruments import InstrumentProfile, instrument_from_config
 from rtsgt.noise import NoiseModel
 from rtsgt.options import CalibrationOptions, InterpolationOptions, PoseOptions, RunOptions
@@ -103,6 +122,7 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 STATION_FORMATS = ("rts-project",)
+MEASUREMENT_FORMATS = ("ros-bag",)
 GCP_FORMATS = ("rts-project", "csv")
 WEATHER_FORMATS = ("csv", "eccc")
 REFERENCE_FORMATS = ("survey-dms", "csv")
@@ -115,9 +135,12 @@ class StationConfig:
 
     id: str
     prism: str
-    file: Path
+    #: The tracked prism file; None when the measurements come from ``[measurements]``.
+    file: Path | None
     format: str = "rts-project"
     additive_constant_m: float = 0.0
+    #: With ``[measurements]``: the ``theodolite_id`` of this station's messages.
+    theodolite_id: int | None = None
 
 
 @dataclass(frozen=True)
@@ -128,6 +151,18 @@ class FileConfig:
     format: str
     additive_constant_m: float = 0.0
     utc_offset_hours: float = 0.0
+
+
+@dataclass(frozen=True)
+class MeasurementsConfig:
+    """Every station's measurements from one bag (``[measurements]``, :mod:`rtsgt.io.rts_bag`)."""
+
+    file: Path
+    format: str = "ros-bag"
+    #: The measurements' topic (None: the reader's default).
+    topic: str | None = None
+    #: ``"header"`` or ``"theodolite"`` (None: the reader's default, ``"header"``).
+    time: str | None = None
 
 
 @dataclass(frozen=True)
@@ -159,6 +194,8 @@ class DeploymentConfig:
     options: RunOptions = field(default_factory=RunOptions)
     #: ``[interpolation] query_times``: a file of query times (None: the grid of ``rate_hz``).
     query_times: Path | None = None
+    #: ``[measurements]``: the stations' measurements from one bag (None: per-station files).
+    measurements: MeasurementsConfig | None = None
 
 
 class _Section:
@@ -216,10 +253,12 @@ class _Section:
             raise ConfigError(f"[{self.name}] {key} must be > 0, got {val}", self.path)
         return val
 
-    def file(self, key: str = "file") -> Path:
+    def file(self, key: str = "file", *, directory: bool = False) -> Path:
+        """The path of ``key``, relative to the configuration; it must be a file (or, with
+        ``directory``, a file or a directory)."""
         rel = self.get(key, str)
         p = (self.path.parent / rel).resolve()
-        if not p.is_file():
+        if not (p.is_file() or directory and p.is_dir()):
             raise ConfigError(f"[{self.name}] {key} = {rel!r}: no such file ({p})", self.path)
         return p
 
@@ -249,8 +288,8 @@ def load_config(path: str | Path) -> DeploymentConfig:
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"invalid TOML: {exc}", path) from None
-    known = {"deployment", "instrument", "stations", "gcp", "weather", "reference", "noise",
-             "calibration", "filter", "interpolation", "pose"}
+    known = {"deployment", "instrument", "stations", "measurements", "gcp", "weather",
+             "reference", "noise", "calibration", "filter", "interpolation", "pose"}
     unknown = sorted(set(doc) - known)
     if unknown:
         raise ConfigError(f"unknown section(s) {', '.join(unknown)}", path)
@@ -260,32 +299,26 @@ def load_config(path: str | Path) -> DeploymentConfig:
     reference_station = dep.get("reference_station", str, "1")
     dep.done()
 
-    table = doc.get("instrument", {"profile": "trimble-s7"})
-    if not isinstance(table, dict):
-        raise ConfigError("[instrument] must be a table", path)
-    try:
-        instrument = instrument_from_config(table)
-    except InputError as exc:
-        raise ConfigError(f"[instrument] {exc.bare_message}", path) from None
+    instrument = read_instrument(path, doc)
+
+    measurements = None
+    if "measurements" in doc:
+        m = _Section(path, "measurements", doc["measurements"])
+        measurements = MeasurementsConfig(
+            m.file(directory=True), m.get("format", str, "ros-bag", MEASUREMENT_FORMATS),
+            m.get("topic", str, None), m.get("time", str, None, TIME_SOURCES))
+        m.done()
 
     raw_stations = doc.get("stations")
     if not isinstance(raw_stations, list) or not raw_stations:
         raise ConfigError("expected at least one [[stations]] table", path)
-    stations = []
-    for i, tab in enumerate(raw_stations):
-        s = _Section(path, f"stations #{i + 1}", tab)
-        st = StationConfig(
-            id=s.get("id", str),
-            prism=s.get("prism", str),
-            file=s.file(),
-            format=s.get("format", str, "rts-project", STATION_FORMATS),
-            additive_constant_m=s.get("additive_constant_m", float, 0.0),
-        )
-        s.done()
-        stations.append(st)
+    stations = [_station(path, i, tab, measurements) for i, tab in enumerate(raw_stations)]
     ids = [s.id for s in stations]
     if len(set(ids)) != len(ids):
         raise ConfigError(f"duplicated station ids in [[stations]]: {ids}", path)
+    tids = [s.theodolite_id for s in stations if s.theodolite_id is not None]
+    if len(set(tids)) != len(tids):
+        raise ConfigError(f"duplicated theodolite_id in [[stations]]: {tids}", path)
     if reference_station not in ids:
         raise ConfigError(
             f"[deployment] reference_station = {reference_station!r} is not a station; "
@@ -336,6 +369,28 @@ def load_config(path: str | Path) -> DeploymentConfig:
     reference = ReferenceConfig(ref_file, ref_format, rows, body_frame, body_points, T_sb)
     r.done()
 
+    options, query_times = read_options(path, doc, instrument)
+    return DeploymentConfig(path, name, reference_station, instrument, tuple(stations), gcp,
+                            reference, weather, options, query_times, measurements)
+
+
+def read_instrument(path: Path, doc: dict) -> InstrumentProfile:
+    """The ``[instrument]`` table of a configuration (default: the Trimble S7)."""
+    table = doc.get("instrument", {"profile": "trimble-s7"})
+    if not isinstance(table, dict):
+        raise ConfigError("[instrument] must be a table", path)
+    try:
+        return instrument_from_config(table)
+    except InputError as exc:
+        raise ConfigError(f"[instrument] {exc.bare_message}", path) from None
+
+
+def read_options(path: Path, doc: dict, instrument: InstrumentProfile,
+                 *, query_times: bool = True) -> tuple[RunOptions, Path | None]:
+    """The processing tables of a configuration (``[noise]``, ``[filter]``,
+    ``[calibration]``, ``[interpolation]``, ``[pose]``) as options, each key checked, and the
+    query-times file of ``[interpolation]`` (None without it; refused unless
+    ``query_times``)."""
     n = _Section(path, "noise", doc.get("noise", {}))
     sources = n.get("sources", list, None)
     bad = [x for x in sources or () if x not in NOISE_SOURCES]
@@ -359,18 +414,22 @@ def load_config(path: str | Path) -> DeploymentConfig:
 
     c = _Section(path, "calibration", doc.get("calibration", {}))
     calibration = c.record(CalibrationOptions, {"model": ("model", str, None),
+                                                "weighting": ("weighting", str, None),
                                                 "method": ("method", str, None)})
     c.done()
 
     it = _Section(path, "interpolation", doc.get("interpolation", {}))
-    query_times = it.file("query_times") if "query_times" in it.table else None
-    if query_times is not None and "rate_hz" in it.table:
+    if "query_times" in it.table and not query_times:
+        raise ConfigError("[interpolation] query_times has no meaning here", path)
+    times = it.file("query_times") if "query_times" in it.table else None
+    if times is not None and "rate_hz" in it.table:
         raise ConfigError("[interpolation] give rate_hz or query_times, not both", path)
     interp = it.record(InterpolationOptions, {
         "rate_hz": ("rate_hz", float, None), "qc": ("qc", (str, float, int), _qc_value),
         "max_gap_s": ("max_gap_s", float, None), "gp_noise": ("gp_noise", str, None),
         "motion_prior": ("motion_prior", str, None),
-        "outlier_windows": ("outlier_windows", str, None)})
+        "outlier_windows": ("outlier_windows", str, None), "prior": ("prior", str, None),
+        "correlated_noise": ("correlated_noise", str, None)})
     it.done()
 
     p = _Section(path, "pose", doc.get("pose", {}))
@@ -379,10 +438,42 @@ def load_config(path: str | Path) -> DeploymentConfig:
         ("uncertainty_gate_m", float))})
     p.done()
 
-    options = RunOptions(filter=filt, noise=noise, calibration=calibration,
-                         interpolation=interp, pose=pose)
-    return DeploymentConfig(path, name, reference_station, instrument, tuple(stations), gcp,
-                            reference, weather, options, query_times)
+    return RunOptions(filter=filt, noise=noise, calibration=calibration, interpolation=interp,
+                      pose=pose), times
+
+
+def _station(path: Path, i: int, table: Any,
+             measurements: MeasurementsConfig | None) -> StationConfig:
+    """One ``[[stations]]`` table: its file and format, or, with ``[measurements]``, its
+    theodolite id (default: the station id read as an integer)."""
+    s = _Section(path, f"stations #{i + 1}", table)
+    sid, prism = s.get("id", str), s.get("prism", str)
+    constant = s.get("additive_constant_m", float, 0.0)
+    if measurements is None:
+        if "theodolite_id" in s.table:
+            raise ConfigError(f"[{s.name}] theodolite_id applies to measurements from a bag "
+                              "([measurements]); this station reads file", path)
+        st = StationConfig(sid, prism, s.file(), s.get("format", str, "rts-project",
+                                                           STATION_FORMATS), constant)
+    else:
+        given = [k for k in ("file", "format") if k in s.table]
+        if given:
+            raise ConfigError(
+                f"[{s.name}] {' and '.join(given)}: the measurements come from [measurements] "
+                f"file {measurements.file.name}; give the stations' files or [measurements], "
+                "not both", path)
+        tid = s.get("theodolite_id", int, None)
+        if tid is None:
+            if not sid.isdigit():
+                raise ConfigError(f"[{s.name}] id = {sid!r} is not a theodolite number: give "
+                                  "theodolite_id (the station's id in the bag's messages)", path)
+            tid = int(sid)
+        if not 0 <= tid <= 255:
+            raise ConfigError(f"[{s.name}] theodolite_id must be in [0, 255] (uint8), got {tid}",
+                              path)
+        st = StationConfig(sid, prism, None, "ros-bag", constant, tid)
+    s.done()
+    return st
 
 
 def _qc_value(value: str | float | int) -> str | float:

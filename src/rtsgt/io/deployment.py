@@ -12,11 +12,13 @@ from rtsgt.geometry import RigidTransform
 from rtsgt.io._parse import check_seconds
 from rtsgt.io.config import DeploymentConfig, load_config
 from rtsgt.io.gcp_csv import read_gcp_shots
+from rtsgt.io.rts_bag import InputReport, read_theodolite_bag
 from rtsgt.io.rts_project import read_prism_file
 from rtsgt.io.survey import read_reference_csv, read_survey_raw
 from rtsgt.io.weather import read_weather_csv, read_weather_eccc
 from rtsgt.options import RunOptions
 from rtsgt.pose.reference import ReferencePoints, reference_from_survey
+from rtsgt.types import Observations
 
 
 def check_gcp_covers_stations(cfg: DeploymentConfig, gcp) -> None:
@@ -79,10 +81,7 @@ def load_deployment(config: str | Path | DeploymentConfig) -> tuple[DeploymentDa
         The processing parameters of the configuration (the CLI may override some).
     """
     cfg = config if isinstance(config, DeploymentConfig) else load_config(config)
-    observations = tuple(
-        read_prism_file(s.file, station=s.id, prism=s.prism, additive_constant=s.additive_constant_m)
-        for s in cfg.stations
-    )
+    observations, input_report = read_observations(cfg)
     gcp = read_gcp_shots(cfg.gcp.file, format=cfg.gcp.format,
                          additive_constant=cfg.gcp.additive_constant_m)
     check_gcp_covers_stations(cfg, gcp)
@@ -97,8 +96,27 @@ def load_deployment(config: str | Path | DeploymentConfig) -> tuple[DeploymentDa
     if cfg.query_times is not None:
         query_times = _read_times(cfg.query_times)
     data = DeploymentData(cfg.name, cfg.instrument, observations, gcp, reference,
-                          cfg.reference_station, weather, query_times)
+                          cfg.reference_station, weather, query_times, input_report)
     return data, cfg.options
+
+
+def read_observations(cfg: DeploymentConfig) -> tuple[tuple[Observations, ...],
+                                                      InputReport | None]:
+    """Every station's observations: from its prism file, or from the bag of
+    ``[measurements]`` (:mod:`rtsgt.io.rts_bag`) with the reader's report of what it removed
+    (None for prism files, which hold valid measurements only)."""
+    m = cfg.measurements
+    if m is None:
+        return tuple(
+            read_prism_file(s.file, station=s.id, prism=s.prism,
+                            additive_constant=s.additive_constant_m)
+            for s in cfg.stations), None
+    bag = read_theodolite_bag(m.file, topic=m.topic, time=m.time)
+    observations = tuple(
+        bag.station(s.theodolite_id, station=s.id, prism=s.prism,
+                    additive_constant=s.additive_constant_m)
+        for s in cfg.stations)
+    return observations, bag.report({s.id: s.theodolite_id for s in cfg.stations})
 
 
 def _read_times(path: Path) -> np.ndarray:

@@ -88,9 +88,11 @@ import numpy as np
 
 from rtsgt import __version__
 from rtsgt.calibration.coupling import StationCoupling
+from rtsgt.calibration.gcp import CALIBRATION_METHODS, CALIBRATION_MODELS
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.filtering import FilterParams
 from rtsgt.filtering.modules import RemovedMeasurements
+from rtsgt.interpolation.gp import PRIORS
 from rtsgt.io._parse import (
     atomic_write_text,
     csv_table,
@@ -107,9 +109,11 @@ from rtsgt.io.trajectory import (
     write_tum,
 )
 from rtsgt.options import (
+    CORRELATED_NOISE,
     GP_NOISE,
     MOTION_PRIORS,
     OUTLIER_WINDOWS,
+    PRIOR_CHOICES,
     InterpolationOptions,
     PoseOptions,
     RunOptions,
@@ -248,6 +252,7 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
             "station": tr.station,
             "measurements_used": len(tr),
             "qc_m2_s3": record.qc[pid],
+            "prior": record.prior.get(pid, "wnoa"),
             "qc_fit": c.qc_info.get(pid, {}),
             "median_sigma_mm": float(np.median(sig) * 1e3),
         }
@@ -264,6 +269,7 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
             "samples": opt.pose.samples,
             "seed": opt.seed,
             "calibration_model": opt.calibration.model,
+            "calibration_weighting": opt.calibration.weighting,
             "calibration_method": opt.calibration.method,
             "rate_hz": opt.interpolation.rate_hz,
             "qc": opt.interpolation.qc,
@@ -271,6 +277,8 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
             "gp_noise": opt.interpolation.gp_noise,
             "motion_prior": opt.interpolation.motion_prior,
             "outlier_windows": opt.interpolation.outlier_windows,
+            "prior": opt.interpolation.prior,
+            "correlated_noise": opt.interpolation.correlated_noise,
             "noise_sources": list(c.noise_model.sources),
             "instrument": c.data.instrument.name,
             "filter": _report_dict(opt.filter),
@@ -309,6 +317,9 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
         "weather": record.weather_coverage,
         "inter_prism_distances": record.distance_check,
         "self_checks": record.self_checks,
+        # the time-correlated noise the static-stretch check found, as the GPs carried it
+        # (rtsgt.noise.correlated)
+        "interpolation": {"correlated_noise": record.correlated_noise},
         "warnings": list(record.warnings),
         "timings_s": c.timings_s,
         "reference": {"names": list(ref.names), "xyz_m": ref.xyz, "cov_m2": ref.cov,
@@ -659,8 +670,11 @@ class PrismSummary:
 
     #: The station that tracked it (None when not recorded).
     station: str | None = None
-    #: The GP's power spectral density Qc, m^2/s^3 (None when not recorded).
+    #: The GP's power spectral density Qc, m^2/s^3 (m^2/s^5 for the WNOJ prior; None when
+    #: not recorded).
     qc_m2_s3: np.ndarray | None = None
+    #: The GP's motion prior, "wnoa" or "wnoj" ("wnoa" when not recorded: an older run).
+    prior: str = "wnoa"
 
 
 #: The options of a run whose summary does not say them (the engine was the linear one, the
@@ -714,6 +728,8 @@ class RunSummary:
     distance_check: dict = field(default_factory=dict)
     #: ``self_checks`` (empty for a run written before rtsgt made them).
     self_checks: dict = field(default_factory=dict)
+    #: ``interpolation.correlated_noise`` (empty for a run written before rtsgt carried it).
+    correlated_noise: dict = field(default_factory=dict)
 
 
 def _section(doc: dict, key: str, path: Path) -> dict:
@@ -814,7 +830,11 @@ def read_summary(run_dir: str | PathLike) -> RunSummary:
             except (TypeError, ValueError) as exc:
                 raise InputError(f"prism {pid}: bad qc_m2_s3 {q!r}: {exc}", path) from None
         station = info.get("station")
-        prisms[str(pid)] = PrismSummary(None if station is None else str(station), q)
+        prior = str(info.get("prior", "wnoa"))
+        if prior not in PRIORS:
+            raise InputError(f"prism {pid}: prior: expected {' or '.join(map(repr, PRIORS))}, "
+                             f"got {prior!r}", path)
+        prisms[str(pid)] = PrismSummary(None if station is None else str(station), q, prior)
 
     iv = doc.get("intervals_s")
     if iv is not None:
@@ -856,6 +876,8 @@ def read_summary(run_dir: str | PathLike) -> RunSummary:
         weather_coverage=doc.get("weather"),
         distance_check=doc.get("inter_prism_distances") or {},
         self_checks=_section(doc, "self_checks", path),
+        correlated_noise=_section(_section(doc, "interpolation", path), "correlated_noise",
+                                  path),
     )
 
 
@@ -868,28 +890,29 @@ def _summary_options(params: dict, param: Callable, path: Path) -> RunOptions:
         seed = int(seed) if seed is not None else 0
     except (TypeError, ValueError) as exc:
         raise InputError(f"parameters: samples and seed must be integers: {exc}", path) from None
-    gp_noise = str(param("gp_noise", InterpolationOptions.gp_noise))
-    if gp_noise not in GP_NOISE:
-        raise InputError(f"gp_noise: expected {' or '.join(map(repr, GP_NOISE))}, got "
-                         f"{gp_noise!r}", path)
-    # a run written before the motion prior had one Qc per track
-    motion_prior = str(param("motion_prior", "constant"))
-    if motion_prior not in MOTION_PRIORS:
-        raise InputError(f"motion_prior: expected {' or '.join(map(repr, MOTION_PRIORS))}, "
-                         f"got {motion_prior!r}", path)
-    # a run written before rtsgt left the windows of distance rejections out kept them
-    outlier_windows = str(param("outlier_windows", "keep"))
-    if outlier_windows not in OUTLIER_WINDOWS:
-        raise InputError(f"outlier_windows: expected {' or '.join(map(repr, OUTLIER_WINDOWS))}, "
-                         f"got {outlier_windows!r}", path)
+
+    def choice(name: str, default: str, choices: tuple[str, ...]) -> str:
+        value = str(param(name, default))
+        if value not in choices:
+            raise InputError(f"{name}: expected {' or '.join(map(repr, choices))}, got "
+                             f"{value!r}", path)
+        return value
+
+    gp_noise = choice("gp_noise", InterpolationOptions.gp_noise, GP_NOISE)
+    # the defaults of a run written before each option: one Qc per track, the windows of
+    # distance rejections kept, the paper's WNOA prior, the measurements taken as independent
+    motion_prior = choice("motion_prior", "constant", MOTION_PRIORS)
+    outlier_windows = choice("outlier_windows", "keep", OUTLIER_WINDOWS)
+    prior = choice("prior", "wnoa", PRIOR_CHOICES)
+    correlated_noise = choice("correlated_noise", "ignore", CORRELATED_NOISE)
     changes = {
         "engine": str(param("engine", _OLDEST_OPTIONS.pose.engine)), "samples": samples,
         "registration": str(param("registration", _OLDEST_OPTIONS.pose.registration)),
         "seed": seed, "gp_noise": gp_noise, "motion_prior": motion_prior,
-        "outlier_windows": outlier_windows,
+        "outlier_windows": outlier_windows, "prior": prior, "correlated_noise": correlated_noise,
         # runs written before the 4-DOF and the dynamic calibrations: 6 DOF, from the GCPs
-        "model": str(param("calibration_model", "6dof")),
-        "method": str(param("calibration_method", "gcp")),
+        "model": choice("calibration_model", "6dof", CALIBRATION_MODELS),
+        "method": choice("calibration_method", "gcp", CALIBRATION_METHODS),
         "max_gap_s": _positive(params, "max_gap_s", InterpolationOptions.max_gap_s, path),
         "distance_gate_m": _positive(params, "distance_gate_m", PoseOptions.distance_gate_m,
                                      path),
@@ -1031,11 +1054,13 @@ def read_run(run_dir: str | PathLike) -> RunRecord:
         qc={pid: info.qc_m2_s3 for pid, info in summary.prisms.items()
             if info.qc_m2_s3 is not None},
         qc_scale={pid: qc_scale[pid] for pid in ids if pid in qc_scale},
+        prior={pid: info.prior for pid, info in summary.prisms.items()},
         intervals=summary.intervals_s, uncertainty_measure=summary.uncertainty_measure,
         coupling=summary.coupling, removed=_read_removed(root / "measurements" / "removed.csv"),
         measurements_gp_cov={pid: gp_cov[pid] for pid in ids if pid in gp_cov},
         warnings=summary.warnings, weather_coverage=summary.weather_coverage,
         distance_check=summary.distance_check, self_checks=summary.self_checks,
+        correlated_noise=summary.correlated_noise,
         groundtruth_split=_read_split(root / SPLIT_FILE, groundtruth.t),
         summary=summary.document, path=root,
     )

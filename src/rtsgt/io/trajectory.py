@@ -59,6 +59,7 @@ import numpy as np
 
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
+from rtsgt.io._bag import BAG_SUFFIXES, open_bag
 from rtsgt.io._parse import (
     atomic_write_text,
     check_increasing,
@@ -425,53 +426,10 @@ def attach_covariance(
 # --------------------------------------------------------------------------- ROS bags
 
 
-def _rosbags():
-    try:
-        from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
-    except ImportError as exc:
-        raise InputError(
-            "reading ROS bags needs the 'rosbags' package: pip install 'rtsgt[bags]'"
-        ) from exc
-    return AnyReader, Stores, get_typestore
-
-
-def _bag_paths(path: str | PathLike) -> list[Path]:
-    p = Path(path)
-    if not p.exists():
-        raise InputError("bag not found", p)
-    if p.is_file() and p.suffix in (".db3", ".mcap") and (p.parent / "metadata.yaml").exists():
-        return [p.parent]
-    if p.is_dir() and not (p / "metadata.yaml").exists():
-        raise InputError("a ROS 2 bag directory needs its metadata.yaml", p)
-    return [p]
-
-
 def list_bag_topics(path: str | PathLike) -> dict[str, str]:
     """Topics of a ROS 1 / ROS 2 bag and their message types."""
-    AnyReader, Stores, get_typestore = _rosbags()
-    with _open_bag(AnyReader, Stores, get_typestore, path) as reader:
+    with open_bag(path) as reader:
         return {name: str(info.msgtype) for name, info in reader.topics.items()}
-
-
-def _open_bag(AnyReader, Stores, get_typestore, path):
-    try:
-        reader = AnyReader(_bag_paths(path), default_typestore=get_typestore(Stores.LATEST))
-        reader.open()
-    except InputError:
-        raise
-    except Exception as exc:
-        raise InputError(f"cannot read the bag: {exc}", path) from exc
-
-    class _Ctx:
-        def __enter__(self):
-            return reader
-
-        def __exit__(self, *a):
-            reader.close()
-            return False
-
-    return _Ctx()
 
 
 def _stamp(header) -> float:
@@ -500,9 +458,8 @@ def read_bag(
         unsupported type, an unknown or ambiguous child frame, NaN, non-unit quaternions,
         conflicting duplicate stamps, no message.
     """
-    AnyReader, Stores, get_typestore = _rosbags()
     where = str(path)
-    with _open_bag(AnyReader, Stores, get_typestore, path) as reader:
+    with open_bag(path) as reader:
         topics = {name: str(info.msgtype) for name, info in reader.topics.items()}
         listing = ", ".join(f"{n} ({t})" for n, t in sorted(topics.items())) or "none"
         if topic is None:
@@ -678,7 +635,7 @@ def detect_format(path: str | PathLike) -> str:
     :class:`~rtsgt.errors.RtsgtWarning`.
     """
     p = Path(path)
-    if p.is_dir() or p.suffix in (".bag", ".db3", ".mcap"):
+    if p.is_dir() or p.suffix in BAG_SUFFIXES:
         return "bag"
     if not p.exists():
         raise InputError("file not found", p)

@@ -36,6 +36,8 @@ from numpy.typing import ArrayLike
 #: ``p_survey = R_SURVEY_TRACKING @ p_tracking``: -90 deg about z.
 R_SURVEY_TRACKING = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 R_SURVEY_TRACKING.setflags(write=False)
+#: The rows of :func:`sight_frames`: along the line of sight and across it.
+SIGHT_COMPONENTS = ("range", "horizontal", "vertical")
 
 
 def polar_to_cartesian(hz: ArrayLike, v: ArrayLike, d: ArrayLike) -> np.ndarray:
@@ -136,3 +138,30 @@ def survey_polar_jacobian(hz: ArrayLike, v: ArrayLike, d: ArrayLike) -> np.ndarr
         ``J[..., i, j] = d p_i / d (hz, v, d)_j``, survey frame.
     """
     return R_SURVEY_TRACKING @ polar_jacobian(hz, v, d)
+
+
+def sight_frames(xyz: ArrayLike, station: ArrayLike) -> np.ndarray:
+    """Rows (N, 3, 3): the line of sight ``u`` from ``station`` to each point of ``xyz``
+    (N, 3) and two unit vectors across it, horizontal ``h = z x u`` (normalised) and vertical
+    ``u x h``: each measurement's own frame, the rows named by :data:`SIGHT_COMPONENTS`.
+    The two across the line of sight are the directions of a horizontal-angle and a
+    zenith-angle error (up to sign) of a levelled station, so a first-order instrument
+    covariance is diagonal in it.
+
+    Parameters
+    ----------
+    xyz : array_like, shape (N, 3)
+        Measured points, m.
+    station : array_like, shape (3,)
+        The station's position in the same frame, m.
+
+    Returns
+    -------
+    ndarray, shape (N, 3, 3)
+        ``E[i]``: rows ``u``, ``h``, ``u x h`` at point ``i``.
+    """
+    u = np.asarray(xyz, dtype=float) - np.asarray(station, dtype=float)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    h = np.cross([0.0, 0.0, 1.0], u)
+    h /= np.linalg.norm(h, axis=1, keepdims=True)
+    return np.stack([u, h, np.cross(u, h)], axis=1)

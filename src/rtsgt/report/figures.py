@@ -70,6 +70,7 @@ SOURCE_COLORS = {
     "atmosphere": "#009E73",
     "time_sync": "#E69F00",
     "calibration": "#D55E00",
+    "correlated_noise": "#F0E442",
     GP: "#9467BD",
     REFERENCE: "#CC79A7",
     ALL: "#555555",
@@ -81,6 +82,7 @@ SOURCE_LABELS = {
     "atmosphere": "atmosphere",
     "time_sync": "time synchronisation",
     "calibration": "extrinsic calibration",
+    "correlated_noise": "time-correlated noise (inflation)",
     GP: "GP posterior (interpolation)",
     REFERENCE: "reference prisms (survey)",
     ALL: "all sources",
@@ -90,6 +92,7 @@ _SHORT_LABELS = {
     "tilt": "tilt",
     "time_sync": "time sync.",
     "calibration": "calibration",
+    "correlated_noise": "correlated",
     GP: "GP posterior",
     REFERENCE: "reference survey",
 }

@@ -32,7 +32,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 
 from rtsgt import __version__
-from rtsgt.calibration.gcp import CALIBRATION_MODEL_NAMES
+from rtsgt.calibration.gcp import CALIBRATION_MODEL_NAMES, CALIBRATION_WEIGHTING_NAMES
 from rtsgt.errors import RtsgtWarning
 from rtsgt.io._parse import atomic_write_text
 from rtsgt.io.run_dir import read_run
@@ -223,7 +223,8 @@ def _self_checks_html(checks: Mapping) -> str:
         "<h3>GCP fit</h3><table id='check-gcp'><tr><th class='k'>station</th><th>markers</th>"
         "<th>variance factor</th><th>x</th><th>y</th><th>z</th><th>95 % interval</th>"
         f"<th>verdict</th></tr>{body}</table><p><small>The residuals of each station's fit "
-        f"({html.escape(CALIBRATION_MODEL_NAMES.get(g.get('model'), 'model unknown'))}) "
+        f"({html.escape(CALIBRATION_MODEL_NAMES.get(g.get('model'), 'model unknown'))}; "
+        f"{html.escape(CALIBRATION_WEIGHTING_NAMES.get(g.get('weighting'), 'weights unknown'))}) "
         "against the instrument model's covariance (1 if the model is right). Added to every "
         f"shot by the calibration: {_fmt(added.get('horizontal'), 3)} mm horizontal, "
         f"{_fmt(added.get('vertical'), 3)} mm vertical.</small></p>")
@@ -388,6 +389,39 @@ def _static_noise_html(s: Mapping | None) -> str:
             "(optimistic), below: too large (pessimistic). A lag-one correlation above its "
             "interval: the noise wanders, and the GP averages errors that do not average out "
             f"(optimistic).{level} Method: rtsgt's docs/self-checks.md.</small></p>")
+
+
+def _correlated_noise_html(plan: Mapping | None) -> str:
+    """How the GPs carried the time-correlated noise the static-stretch check found
+    (:mod:`rtsgt.noise.correlated`): per prism and component the correlated share, the
+    correlation time, rho, the variance factor and whether it was applied."""
+    if not plan or not plan.get("prisms"):
+        return ""
+    rows = []
+    for pid, e in plan["prisms"].items():
+        for name in ("range", "horizontal", "vertical"):
+            c = e[name]
+            rows.append(
+                f"<tr><td class='s'>{html.escape(str(pid))}</td><td class='s'>{name}</td>"
+                f"<td class='verdict'>{html.escape(str(c.get('verdict')))}</td>"
+                f"<td>{_fmt(c.get('correlated_fraction'), 3)}</td>"
+                f"<td>{_fmt(c.get('correlation_time_s'), 3)}</td>"
+                f"<td>{_fmt(e.get('median_interval_s'), 3)}</td><td>{_fmt(c.get('rho'), 3)}</td>"
+                f"<td>{_fmt(c.get('factor'), 3)}</td>"
+                f"<td>{'yes' if c.get('applied') else 'no'}</td></tr>")
+    mode = ("inflated where correlation was found" if plan.get("mode") == "inflate" else
+            "not inflated (<code>correlated_noise = \"ignore\"</code>, the paper)")
+    return ("<h3>Time-correlated noise carried</h3><table id='correlated-noise'><tr>"
+            "<th class='k'>prism</th><th>component</th><th>correlation</th><th>f</th>"
+            "<th>τ (s)</th><th>dt (s)</th><th>ρ</th><th>factor k</th><th>applied</th></tr>"
+            f"{''.join(rows)}</table><p><small>White covariance {mode}: where the static "
+            "stretches find the noise of a component correlated (f: its correlated share, τ: "
+            "its correlation time, dt: the prism's median measurement interval), the white "
+            "variance the GP is given along it is multiplied by k = (1 − f) + f (1 + ρ) / "
+            "(1 − ρ), ρ = exp(−dt / τ): n correlated measurements average like n / k "
+            "independent ones. Exact for a long average, conservative for a short one; the "
+            "noise level stays the model's. Method: rtsgt's docs/noise-model.md."
+            "</small></p>")
 
 
 def _flatten(obj, prefix: str = "") -> list[tuple[str, object]]:
@@ -629,6 +663,9 @@ def _kpis(data: RunRecord, a: Analysis) -> str:
         ("median pose rotation", f"{_fmt(a.pose_median_rotation_mrad.get('all'), 3)} mrad"),
         ("median prism sqrt(||Σ||F)", f"{_fmt(a.median_mm.get('all'), 3)} mm"),
     ]
+    if data.prior:  # each prism's GP motion prior (WNOA: the paper's; WNOJ: on the jerk)
+        items.append(("GP prior per prism", ", ".join(
+            f"{pid}: {p.upper()}" for pid, p in data.prior.items())))
     n_left = int(np.sum(data.removed.stage == "module4"))
     if n_left:  # measurements inside windows of distance rejections, out of the GP fits
         items.insert(3, ("measurements left out (distance windows)", f"{n_left}"))
@@ -690,7 +727,7 @@ def render_report(data: RunRecord, analysis: Analysis, *,
 <a href="#summary">summary.json</a></nav></header>
 <section id="key"><h2>Key numbers</h2>{_kpis(data, analysis)}</section>
 <section id="checks"><h2>Self-checks: what the data say about the uncertainty</h2>
-{_self_checks_html(data.self_checks)}</section>
+{_self_checks_html(data.self_checks)}{_correlated_noise_html(data.correlated_noise)}</section>
 <section id="sources"><h2>Noise sources at the prisms, next to the paper</h2>
 {_sources_table(analysis)}</section>
 <section id="pose"><h2>Pose uncertainty per noise source</h2>{_pose_table(analysis)}</section>

@@ -1,0 +1,454 @@
+r"""Reader of the raw bags of the total-station acquisition system of RTS_project.
+
+The system of Vaidis et al. (norlab-ulaval: ``theodolite_node_msgs``, ``RTS_project``,
+``theodolite_pose``) records every measurement of every station as a ROS message; the
+prism files of :mod:`rtsgt.io.rts_project` (``t d V Hz``) were extracted from such bags. This
+reader takes the bag itself, ROS 1 (``.bag``) or ROS 2 (a directory with ``metadata.yaml``, or
+its ``.db3`` / ``.mcap`` file), through ``rosbags`` (the ``bags`` extra; no ROS install).
+
+Messages
+--------
+``theodolite_node_msgs/msg/TheodoliteCoordsStamped`` on ``/theodolite_master/theodolite_data``
+(:data:`TOPIC`), one per measurement::
+
+    std_msgs/Header header     # stamp: the receiver's time of the measurement, corrected
+                               # by the estimated offset of that station's clock
+    time theodolite_time       # the same time, uncorrected
+    uint8 theodolite_id        # the station: 1, 2, 3, ...
+    uint8 status               # 0 valid; else why not (below)
+    float64 azimuth            # rad
+    float64 elevation          # rad
+    float64 distance           # m
+
+``theodolite_node_msgs/msg/TheodoliteTimeCorrection`` on
+``/theodolite_master/theodolite_correction_timestamp`` (:data:`CORRECTION_TOPIC`), one per
+clock synchronisation of a station: ``std_msgs/Header header``, ``uint8 theodolite_id``,
+``duration estimated_time_offset``. They are read and reported
+(:attr:`TheodoliteBag.time_corrections`, ``summary.json`` ``filters.input``); the offsets are
+already applied to ``header.stamp``, so nothing is corrected again.
+
+The older layout: ``std_msgs/Float64MultiArray`` on ``/theodolite_data``
+(:data:`OLD_TOPIC`), ``data = [id, Hz, V, d, sec, nsec]`` (the time as integer seconds and
+nanoseconds) or ``[id, Hz, V, d, t]`` (the time in float seconds, as the ``theodolite_listener``
+node of the first system published it). It carries no status (every message is a measurement)
+and one time (the array's), with the same angle and distance conventions as below (an
+assumption: the same Raspberry Pi software sent them; a zenith angle outside (0, pi), e.g. one
+in degrees, is refused).
+
+The types are registered from these definitions at run time (:data:`MESSAGE_DEFINITIONS`),
+for ROS 2 bags recorded without their message definitions (before ROS 2 Iron); ROS 1 bags and
+newer ROS 2 bags carry their own, which take precedence. A topic of another type, or a
+``TheodoliteCoordsStamped`` of another package without the fields above, is refused.
+
+Conventions
+-----------
+Pinned against the code that wrote the CSV route's files (norlab-ulaval/RTS_project,
+``scripts/theodolite_utils.py`` and ``contrib/Save_raw_data_uncertainty.ipynb``, which read
+``/theodolite_master/theodolite_data`` of the 2022-11-10 bag and saved each station's
+``prism<i>.csv`` as ``t, distance, elevation, azimuth``):
+
+- ``azimuth`` is the CSV's ``Hz``: the clockwise horizontal direction, rad;
+- ``elevation`` is the CSV's ``V``: the **zenith** angle despite its name (the code computes
+  ``z = d cos(elevation)``; ``theodolite_pose`` computes ``x = d sin(az) sin(el)``,
+  ``y = d cos(az) sin(el)``, ``z = d cos(el)``, rtsgt's convention,
+  docs/conventions.md#station-polar-convention);
+- ``distance`` is the raw slope distance, **without** the additive (prism) constant: both
+  add 0.01 m to it. The constant stays a key of ``[[stations]]`` (``additive_constant_m``);
+- the time is ``header.stamp`` as ``sec + nanosec * 1e-9``, the same expression, so the bag
+  route gives the CSV's times bit for bit;
+- ``theodolite_id`` k is the station ``k`` that tracks prism ``k`` (``prism1.csv`` holds
+  ``theodolite_id == 1``); a deployment may map them otherwise (``[[stations]]``
+  ``theodolite_id``).
+
+Time stamps
+-----------
+``time = "header"`` (the default) takes ``header.stamp``: every station on the receiver's
+clock, each corrected by its estimated offset, which is what the pipeline assumes (the
+stations' tracks are compared and interpolated at common times; the ``time_sync`` noise source
+models what is left of the offset), and what the CSV route holds. ``time = "theodolite"`` takes
+``theodolite_time``, uncorrected: for studying the synchronisation itself. The report gives,
+per station, the median of ``header.stamp - theodolite_time`` (the correction applied).
+
+Status and removals
+-------------------
+Each message with a non-zero status is removed and counted by reason (:data:`INPUT_REASONS`):
+1 ``tilt_out_of_range``, 2 ``wrong_target_distance``, 3 ``tracking_exception`` (its values
+are -1), 4 ``distance_under_1m``, any other code ``unknown_status``. A valid message (status 0)
+with a non-finite value, a non-positive distance or a zenith angle outside (0, pi) is an
+:class:`~rtsgt.errors.InputError` naming the bag, the topic and the message, as a bad line of
+a CSV file is. The valid messages of each station are sorted by time (stable); repeated times
+are left to module 1 (``duplicate_time``; the RTS_project code dropped them too). The counts
+reach ``summary.json`` as ``filters.input`` (:class:`InputReport`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from os import PathLike
+from typing import Any
+
+import numpy as np
+
+from rtsgt.errors import InputError
+from rtsgt.filtering.modules import FilterReport
+from rtsgt.io._bag import open_bag
+from rtsgt.types import Observations
+
+__all__ = [
+    "CORRECTION_TOPIC", "INPUT_REASONS", "MESSAGE_DEFINITIONS", "OLD_TOPIC", "STATUS_REASONS",
+    "TIME_SOURCES", "TOPIC", "InputReport", "TheodoliteBag", "TimeCorrections",
+    "read_theodolite_bag",
+]
+
+#: Topic of the measurements (``TheodoliteCoordsStamped``).
+TOPIC = "/theodolite_master/theodolite_data"
+#: Topic of the clock corrections (``TheodoliteTimeCorrection``).
+CORRECTION_TOPIC = "/theodolite_master/theodolite_correction_timestamp"
+#: Topic of the older layout (``std_msgs/Float64MultiArray``).
+OLD_TOPIC = "/theodolite_data"
+
+COORDS_TYPE = "theodolite_node_msgs/msg/TheodoliteCoordsStamped"
+CORRECTION_TYPE = "theodolite_node_msgs/msg/TheodoliteTimeCorrection"
+ARRAY_TYPE = "std_msgs/msg/Float64MultiArray"
+
+#: The message definitions registered for bags that do not carry theirs.
+MESSAGE_DEFINITIONS = {
+    COORDS_TYPE: (
+        "std_msgs/Header header\n"
+        "time theodolite_time\n"
+        "uint8 theodolite_id\n"
+        "uint8 status\n"
+        "float64 azimuth\n"
+        "float64 elevation\n"
+        "float64 distance\n"
+    ),
+    CORRECTION_TYPE: (
+        "std_msgs/Header header\n"
+        "uint8 theodolite_id\n"
+        "duration estimated_time_offset\n"
+    ),
+}
+
+#: Reason of the removal of a message, by its non-zero status code.
+STATUS_REASONS = {1: "tilt_out_of_range", 2: "wrong_target_distance", 3: "tracking_exception",
+                  4: "distance_under_1m"}
+#: Every reason the reader removes a message for (``unknown_status``: any other code).
+INPUT_REASONS = (*STATUS_REASONS.values(), "unknown_status")
+#: Which time a ``TheodoliteCoordsStamped`` gives (module docstring).
+TIME_SOURCES = ("header", "theodolite")
+
+_COORDS_FIELDS = ("header", "theodolite_time", "theodolite_id", "status", "azimuth",
+                  "elevation", "distance")
+
+
+@dataclass(frozen=True)
+class TimeCorrections:
+    """The clock corrections of one station, in the order of the bag.
+
+    Attributes
+    ----------
+    t : ndarray, shape (K,)
+        ``header.stamp`` of each correction message, s.
+    offset_s : ndarray, shape (K,)
+        ``estimated_time_offset``, s.
+    """
+
+    t: np.ndarray
+    offset_s: np.ndarray
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+    def as_dict(self) -> dict[str, Any]:
+        """Count, first, last, median, min and max of the offsets (s; None without any)."""
+        o = self.offset_s
+        stats = ({k: float(f(o)) for k, f in (("first", lambda a: a[0]), ("last", lambda a: a[-1]),
+                                              ("median", np.median), ("min", np.min),
+                                              ("max", np.max))}
+                 if o.size else dict.fromkeys(("first", "last", "median", "min", "max")))
+        return {"count": int(o.size), "offset_s": stats}
+
+
+@dataclass(frozen=True)
+class InputReport(FilterReport):
+    """What the reader of the measurements removed, per station, and where they came from.
+
+    A :class:`~rtsgt.filtering.modules.FilterReport` of module ``"input"`` (counts by reason
+    of :data:`INPUT_REASONS`, total and per station in the order of ``stations``), with the
+    bag's description in ``source`` (file, topic, layout, time, the clock corrections).
+    """
+
+    stations: tuple[str, ...] = ()
+    source: Mapping[str, Any] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {**super().as_dict(), "stations": list(self.stations), **self.source}
+
+
+@dataclass(frozen=True)
+class TheodoliteBag:
+    """The measurements of a bag, per theodolite id.
+
+    Attributes
+    ----------
+    path : str
+    topic : str
+    layout : str
+        ``"TheodoliteCoordsStamped"`` or ``"Float64MultiArray"``.
+    time : str
+        ``"header"``, ``"theodolite"`` (:data:`TIME_SOURCES`) or ``"array"`` (the older layout).
+    observations : dict int -> Observations
+        Per theodolite id, its valid measurements (status 0) sorted by time: station and prism
+        ``str(id)``, raw distances, no additive constant (:meth:`station` sets them).
+    removed : dict int -> dict str -> int
+        Per theodolite id, the messages removed, by reason (every reason present).
+    time_corrections : dict int -> TimeCorrections
+        Per theodolite id with correction messages.
+    stamp_difference_s : dict int -> float
+        Per theodolite id, the median of ``header.stamp - theodolite_time`` over its valid
+        messages, s (``TheodoliteCoordsStamped`` only).
+    """
+
+    path: str
+    topic: str
+    layout: str
+    time: str
+    observations: dict[int, Observations]
+    removed: dict[int, dict[str, int]]
+    time_corrections: dict[int, TimeCorrections] = field(default_factory=dict)
+    stamp_difference_s: dict[int, float] = field(default_factory=dict)
+
+    @property
+    def ids(self) -> tuple[int, ...]:
+        """The theodolite ids with at least one message on the topic, sorted."""
+        return tuple(sorted(self.removed))
+
+    def station(self, theodolite_id: int, *, station: str, prism: str,
+                additive_constant: float = 0.0) -> Observations:
+        """The valid measurements of ``theodolite_id`` as station ``station`` tracking
+        ``prism``, with its additive constant.
+
+        Raises
+        ------
+        InputError
+            No message of that theodolite id on the topic (the ids there listed).
+        """
+        if theodolite_id not in self.removed:
+            raise InputError(
+                f"topic {self.topic!r} has no message of theodolite_id {theodolite_id} (station "
+                f"{station}); theodolite ids there: "
+                f"{', '.join(map(str, self.ids)) or 'none'}", self.path)
+        obs = self.observations[theodolite_id]
+        return replace(obs, station=str(station), prism=str(prism),
+                       additive_constant=float(additive_constant))
+
+    def report(self, stations: Mapping[str, int]) -> InputReport:
+        """The :class:`InputReport` of the stations ``{station id: theodolite id}``."""
+        per = tuple(dict(self.removed.get(tid, dict.fromkeys(INPUT_REASONS, 0)))
+                    for tid in stations.values())
+        total = {r: sum(c[r] for c in per) for r in INPUT_REASONS}
+        kept = sum(len(self.observations[tid]) for tid in stations.values()
+                   if tid in self.observations)
+        by_station = dict(stations)
+        source = {
+            "format": "ros-bag", "file": self.path, "topic": self.topic, "layout": self.layout,
+            "time": self.time,
+            "theodolite_ids": {s: int(t) for s, t in by_station.items()},
+            "time_corrections": {s: self.time_corrections[t].as_dict()
+                                 for s, t in by_station.items() if t in self.time_corrections},
+            "stamp_difference_s": {s: self.stamp_difference_s[t]
+                                   for s, t in by_station.items()
+                                   if t in self.stamp_difference_s},
+        }
+        return InputReport("input", kept + sum(total.values()), kept, total, per,
+                           stations=tuple(stations), source=source)
+
+
+def _layout(msgtype: str) -> str | None:
+    name = msgtype.rsplit("/", 1)[-1]
+    if name == "TheodoliteCoordsStamped":
+        return name
+    if msgtype == ARRAY_TYPE:
+        return "Float64MultiArray"
+    return None
+
+
+def _choose_topic(topics: dict[str, str], topic: str | None, where: str) -> tuple[str, str]:
+    """The topic to read and its layout (module docstring)."""
+    listing = ", ".join(f"{n} ({t})" for n, t in sorted(topics.items())) or "none"
+    if topic is None:
+        topic = next((t for t in (TOPIC, OLD_TOPIC) if t in topics), None)
+    if topic is None:
+        raise InputError(
+            f"no total-station measurements: expected topic {TOPIC!r} "
+            f"(TheodoliteCoordsStamped) or {OLD_TOPIC!r} (Float64MultiArray); topics in the "
+            f"bag: {listing} (name another with [measurements] topic)", where)
+    if topic not in topics:
+        raise InputError(f"topic {topic!r} is not in the bag; topics in the bag: {listing}",
+                         where)
+    layout = _layout(topics[topic])
+    if layout is None:
+        raise InputError(
+            f"topic {topic!r} has type {topics[topic]}, expected {COORDS_TYPE} or "
+            f"{ARRAY_TYPE} (total-station measurements)", where)
+    return topic, layout
+
+
+def _decode(reader, raw, conn, k: int, where: str):
+    try:
+        return reader.deserialize(raw, conn.msgtype)
+    except Exception as exc:  # an unknown type, a truncated message, another definition
+        raise InputError(f"topic {conn.topic!r}, message {k}: cannot decode it as "
+                         f"{conn.msgtype}: {exc}", where) from exc
+
+
+def _coords_rows(reader, conns, where: str) -> np.ndarray:
+    """(N, 9) float rows: id, status, azimuth, elevation, distance, header sec, nanosec,
+    theodolite_time sec, nanosec (integers exact in float64)."""
+    rows = []
+    for k, (conn, _, raw) in enumerate(reader.messages(connections=conns)):
+        m = _decode(reader, raw, conn, k, where)
+        try:
+            rows.append((m.theodolite_id, m.status, m.azimuth, m.elevation, m.distance,
+                         m.header.stamp.sec, m.header.stamp.nanosec,
+                         m.theodolite_time.sec, m.theodolite_time.nanosec))
+        except AttributeError as exc:
+            raise InputError(
+                f"topic {conn.topic!r} has type {conn.msgtype} without the fields of a "
+                f"TheodoliteCoordsStamped ({', '.join(_COORDS_FIELDS)}): {exc}", where) from None
+    return np.array(rows, dtype=float).reshape(-1, 9)
+
+
+def _array_rows(reader, conns, where: str) -> np.ndarray:
+    """(N, 9) rows as :func:`_coords_rows`, status 0 and the array's time in both times."""
+    rows = []
+    for k, (conn, _, raw) in enumerate(reader.messages(connections=conns)):
+        data = np.asarray(_decode(reader, raw, conn, k, where).data, dtype=float)
+        if data.size == 6:
+            sec, nsec = data[4], data[5]
+            if not (sec == np.floor(sec) and nsec == np.floor(nsec) and 0 <= nsec < 1e9):
+                raise InputError(
+                    f"topic {conn.topic!r}, message {k}: expected integer sec and nsec in "
+                    f"[0, 1e9) as elements 5 and 6, got {sec!r}, {nsec!r}", where)
+        elif data.size == 5:
+            sec, nsec = data[4], 0.0  # float seconds: the fraction rides in sec
+        else:
+            raise InputError(
+                f"topic {conn.topic!r}, message {k}: expected 6 values [id, Hz, V, d, sec, "
+                f"nsec] (or 5: [id, Hz, V, d, t]), got {data.size}", where)
+        rows.append((data[0], 0.0, data[1], data[2], data[3], sec, nsec, sec, nsec))
+    return np.array(rows, dtype=float).reshape(-1, 9)
+
+
+def _corrections(reader, topics: dict[str, str], where: str) -> dict[int, TimeCorrections]:
+    if not topics.get(CORRECTION_TOPIC, "").endswith("/TheodoliteTimeCorrection"):
+        return {}
+    conns = [c for c in reader.connections if c.topic == CORRECTION_TOPIC]
+    rows = []
+    for k, (conn, _, raw) in enumerate(reader.messages(connections=conns)):
+        m = _decode(reader, raw, conn, k, where)
+        try:
+            off = m.estimated_time_offset
+            rows.append((m.theodolite_id, m.header.stamp.sec, m.header.stamp.nanosec,
+                         off.sec, off.nanosec))
+        except AttributeError as exc:
+            raise InputError(f"topic {CORRECTION_TOPIC!r} has type {conn.msgtype} without the "
+                             f"fields of a TheodoliteTimeCorrection: {exc}", where) from None
+    a = np.array(rows, dtype=float).reshape(-1, 5)
+    t = a[:, 1] + a[:, 2] * 1e-9
+    offset = a[:, 3] + a[:, 4] * 1e-9
+    return {int(i): TimeCorrections(t[a[:, 0] == i], offset[a[:, 0] == i])
+            for i in np.unique(a[:, 0])}
+
+
+def _check_values(rows: np.ndarray, t: np.ndarray, topic: str, where: str) -> None:
+    """Refuse a valid message (status 0) with a value no measurement has (module docstring)."""
+    valid = rows[:, 1] == 0
+    hz, v, d = rows[:, 2], rows[:, 3], rows[:, 4]
+    checks = (
+        (~np.isfinite(hz) | ~np.isfinite(v) | ~np.isfinite(d),
+         lambda k: f"a non-finite value (azimuth {float(hz[k])!r}, elevation "
+                   f"{float(v[k])!r}, distance {float(d[k])!r})"),
+        (~(d > 0), lambda k: f"expected a positive slope distance, got {float(d[k])!r} m"),
+        (~((v > 0) & (v < np.pi)),
+         lambda k: f"expected a zenith angle (elevation) in (0, pi) rad, got {float(v[k])!r} "
+                   "rad (in degrees?)"),
+        (~(t > 0), lambda k: f"expected a Unix time, got {float(t[k])!r} s"),
+    )
+    for bad, say in checks:
+        bad = bad & valid
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise InputError(f"topic {topic!r}, message {k} (theodolite_id {int(rows[k, 0])}, "
+                             f"status 0): {say(k)}", where)
+
+
+def read_theodolite_bag(path: str | PathLike, *, topic: str | None = None,
+                        time: str | None = None) -> TheodoliteBag:
+    """Read the total-station measurements of a ROS 1 or ROS 2 bag (module docstring).
+
+    Parameters
+    ----------
+    path : str or PathLike
+        ``.bag`` file (ROS 1), or ROS 2 bag directory (or its ``.db3`` / ``.mcap`` file).
+    topic : str, optional
+        The measurements' topic; default :data:`TOPIC`, else :data:`OLD_TOPIC`.
+    time : {"header", "theodolite"}, optional
+        Which time of a ``TheodoliteCoordsStamped`` (default ``"header"``); the older layout
+        has one time and takes none.
+
+    Returns
+    -------
+    TheodoliteBag
+
+    Raises
+    ------
+    InputError
+        One line naming the bag (and topic, message): missing ``rosbags``, no bag, no
+        measurements topic (the topics listed), a topic of another type, a message that does
+        not decode, a valid message with an impossible value, a ``time`` the layout does not
+        have.
+    """
+    if time is not None and time not in TIME_SOURCES:
+        raise InputError(f"Expected time {' or '.join(map(repr, TIME_SOURCES))}, got {time!r}")
+    where = str(path)
+    with open_bag(path, MESSAGE_DEFINITIONS) as reader:
+        topics = {name: str(info.msgtype) for name, info in reader.topics.items()}
+        topic, layout = _choose_topic(topics, topic, where)
+        conns = [c for c in reader.connections if c.topic == topic]
+        if layout == "Float64MultiArray":
+            if time is not None:
+                raise InputError(
+                    f"topic {topic!r} holds the older layout (Float64MultiArray), which has one "
+                    f"time (the array's): time = {time!r} applies to TheodoliteCoordsStamped "
+                    "only; leave it out", where)
+            rows = _array_rows(reader, conns, where)
+        else:
+            rows = _coords_rows(reader, conns, where)
+        corrections = _corrections(reader, topics, where)
+    if rows.shape[0] == 0:
+        raise InputError(f"topic {topic!r} holds no message", where)
+    header = rows[:, 5] + rows[:, 6] * 1e-9
+    theodolite = rows[:, 7] + rows[:, 8] * 1e-9
+    time = "array" if layout == "Float64MultiArray" else (time or "header")
+    t = theodolite if time == "theodolite" else header
+    _check_values(rows, t, topic, where)
+    ids, status = rows[:, 0].astype(int), rows[:, 1].astype(int)
+    reason = np.full(status.shape, len(INPUT_REASONS) - 1)
+    for code, name in STATUS_REASONS.items():
+        reason[status == code] = INPUT_REASONS.index(name)
+    observations, removed, difference = {}, {}, {}
+    for i in np.unique(ids):
+        mine = ids == i
+        ok = np.flatnonzero(mine & (status == 0))
+        ok = ok[np.argsort(t[ok], kind="stable")]
+        gone = reason[mine & (status != 0)]
+        removed[int(i)] = {r: int(np.sum(gone == j)) for j, r in enumerate(INPUT_REASONS)}
+        observations[int(i)] = Observations(
+            t[ok], rows[ok, 2], rows[ok, 3], rows[ok, 4], station=str(i), prism=str(i),
+            source=f"{where} [{topic}, theodolite_id {i}]")
+        if layout == "TheodoliteCoordsStamped" and ok.size:
+            difference[int(i)] = float(np.median(header[ok] - theodolite[ok]))
+    return TheodoliteBag(where, topic, layout, time, observations, removed, corrections,
+                         difference)

@@ -1,0 +1,270 @@
+"""A deployment's layout as ``rtsgt plan`` sees it: stations, GCPs, the rig, the calibration.
+
+Two ways to a :class:`Layout`:
+
+- :func:`layout_from_deployment`: an existing deployment (its TOML read by
+  :func:`rtsgt.io.deployment.load_deployment`). The stations are calibrated from its own GCP
+  shots by :func:`rtsgt.pipeline.calibrate_stations`, the very calibration (same random
+  stream, same shots, variance components included) a run of that deployment gets; the
+  prisms on the robot are its survey; each station's measurement rate is the median of its
+  tracking file's intervals. Coordinates: the run's world frame (the reference station's).
+- :func:`layout_from_positions`: a layout that exists only on paper: station and marker
+  positions in any levelled frame (z up), e.g. from a site map. Every station shoots every
+  marker (:func:`synthetic_gcp_shots`, noise free: the Monte Carlo of the calibration draws
+  the noise), and the same :func:`~rtsgt.pipeline.calibrate_stations` fits them. The world
+  frame is then the reference station's: the given coordinates less its position
+  (:attr:`Layout.origin`), the axes unchanged (each synthetic station is levelled, its
+  vertical turned by the Earth's curvature as a real one's, and its ``Hz = 0`` along the
+  frame's +y).
+
+Noise-free shots leave the variance components of the calibration at zero (nothing in the
+residuals asks for them): a plan from positions predicts the calibration of a deployment whose
+GCP shots agree with the instrument model.
+
+This module reads no files.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from rtsgt.calibration import CalibrationResult
+from rtsgt.calibration.coupling import StationCoupling
+from rtsgt.calibration.gcp import curvature_tilt, gcp_world_positions
+from rtsgt.deployment import DeploymentData
+from rtsgt.errors import InputError
+from rtsgt.geometry.so3 import exp_so3
+from rtsgt.measurement.instruments import InstrumentProfile
+from rtsgt.measurement.polar import cartesian_to_polar
+from rtsgt.noise import NoiseModel
+from rtsgt.options import RunOptions
+from rtsgt.pipeline import calibrate_stations, noise_model
+from rtsgt.pose import ReferencePoints
+from rtsgt.types import GcpShots
+
+__all__ = ["DEFAULT_RATE_HZ", "Layout", "PlannedStation", "layout_from_deployment",
+           "layout_from_positions", "synthetic_gcp_shots"]
+
+#: Measurement rate of a tracking station when the plan does not say, Hz (the Trimble S7's
+#: tracking rate in the paper's deployments, and the simulator's default).
+DEFAULT_RATE_HZ = 2.5
+
+
+@dataclass(frozen=True)
+class PlannedStation:
+    """A station of a layout on paper.
+
+    Attributes
+    ----------
+    xyz : (float, float, float)
+        Position of the instrument (its centre), m, in the plan's levelled frame.
+    prism : str or None
+        The prism it tracks; None for a station that only shoots the markers (there must be
+        at least three tracking ones).
+    rate_hz : float
+        Its tracking rate, Hz.
+    """
+
+    xyz: tuple[float, float, float]
+    prism: str | None = None
+    rate_hz: float = DEFAULT_RATE_HZ
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Everything a plan needs of a deployment's layout (module docstring).
+
+    Attributes
+    ----------
+    name : str
+    stations : tuple of str
+        The tracking stations, in the order of :attr:`prisms`.
+    prisms : tuple of str
+        The prism each tracks.
+    rate_hz : tuple of float
+        The tracking rate of each, Hz.
+    calibration : CalibrationResult
+        ``T_world_station`` of every station, with its Monte Carlo samples and covariance.
+    coupling : StationCoupling
+        The correlation of the stations' calibrations (what a run gives its pose engine).
+    gcp_xyz : ndarray, shape (K, 3)
+        The markers, world frame, m.
+    gcp_names : tuple of str
+    reference : ReferencePoints
+        The prisms on the robot in the body frame (whose pose is the ground truth), in the
+        order of :attr:`prisms`.
+    options : RunOptions
+        Noise model (never None), calibration model, GP and registration of a run.
+    origin : ndarray, shape (3,)
+        Plan coordinates of the world origin (the reference station): plan = world + origin.
+    source : str
+        Where the layout comes from, in words.
+    """
+
+    name: str
+    stations: tuple[str, ...]
+    prisms: tuple[str, ...]
+    rate_hz: tuple[float, ...]
+    calibration: CalibrationResult
+    coupling: StationCoupling
+    gcp_xyz: np.ndarray
+    gcp_names: tuple[str, ...]
+    reference: ReferencePoints
+    options: RunOptions
+    origin: np.ndarray
+    source: str
+
+    @property
+    def model(self) -> NoiseModel:
+        """The noise model of every measurement."""
+        return self.options.noise
+
+    @property
+    def instrument(self) -> InstrumentProfile:
+        return self.options.noise.instrument
+
+    def station_xyz(self, plan_frame: bool = True) -> dict[str, np.ndarray]:
+        """Position of every station (tracking or not), m: plan coordinates, or world."""
+        off = self.origin if plan_frame else np.zeros(3)
+        return {s: np.asarray(T.translation, dtype=float) + off
+                for s, T in self.calibration.transforms.items()}
+
+    def markers_per_station(self) -> dict[str, int]:
+        """Markers each non-reference station shares with the reference in its fit."""
+        ref = self.calibration.reference_station
+        return {s: len(m) for s, m in self.calibration.markers_used.items() if s != ref}
+
+
+def _check_tracking(stations: Sequence[str], prisms: Sequence[str],
+                    reference: ReferencePoints) -> ReferencePoints:
+    if len(stations) < 3:
+        raise InputError(f"a pose needs three tracking stations, got {len(stations)}")
+    if len(set(prisms)) != len(prisms):
+        raise InputError(f"each station must track a different prism, got {list(prisms)}")
+    missing = [p for p in prisms if p not in reference.names]
+    if missing:
+        raise InputError(f"no position on the robot for prism(s) {', '.join(missing)}; "
+                         f"the rig has {', '.join(reference.names)}")
+    return reference.select(list(prisms))
+
+
+def _layout(name: str, data: DeploymentData, options: RunOptions, stations, prisms, rates,
+            t_start: float, origin: np.ndarray, source: str) -> Layout:
+    options = options.updated(noise=noise_model(data, options))
+    reference = _check_tracking(stations, prisms, data.reference)
+    calib = calibrate_stations(data, options, t_start)
+    missing = [s for s in stations if s not in calib.transforms]
+    if missing:
+        raise InputError(f"station(s) {', '.join(missing)} track a prism but have no GCP "
+                         "calibration")
+    xyz, names = gcp_world_positions(data.gcp, calib.transforms)
+    return Layout(name, tuple(stations), tuple(prisms), tuple(float(r) for r in rates), calib,
+                  StationCoupling.from_calibration(calib),
+                  np.zeros((0, 3)) if xyz is None else xyz, names, reference, options,
+                  np.asarray(origin, dtype=float), source)
+
+
+def layout_from_deployment(data: DeploymentData, options: RunOptions,
+                           source: str = "deployment") -> Layout:
+    """The layout of an existing deployment (module docstring).
+
+    Parameters
+    ----------
+    data : DeploymentData
+        As :func:`rtsgt.io.deployment.load_deployment` reads it.
+    options : RunOptions
+        Its processing options (the noise model, calibration model, seed and samples of the
+        calibration's Monte Carlo, the GP, the registration).
+    source : str
+        What to call it in the plan's outputs.
+    """
+    stations = [o.station for o in data.observations]
+    prisms = [o.prism for o in data.observations]
+    rates = []
+    for o in data.observations:
+        dt = np.diff(np.asarray(o.t, dtype=float))
+        dt = dt[dt > 0]
+        if dt.size == 0:
+            raise InputError(f"station {o.station}: too few measurements for a rate", o.source)
+        rates.append(1.0 / float(np.median(dt)))
+    t_start = min(float(o.t[0]) for o in data.observations)
+    return _layout(data.name, data, options, stations, prisms, rates, t_start, np.zeros(3),
+                   source)
+
+
+def synthetic_gcp_shots(station_xyz: Mapping[str, ArrayLike], gcp_xyz: ArrayLike,
+                        gcp_names: Sequence[str]) -> GcpShots:
+    """Noise-free shots of every marker by every station (module docstring).
+
+    Parameters
+    ----------
+    station_xyz : mapping str -> (3,)
+        Instrument positions, world frame (the reference station at the origin), m.
+    gcp_xyz : array_like, shape (K, 3)
+        Marker positions, world frame, m.
+    gcp_names : sequence of str, length K
+
+    Returns
+    -------
+    GcpShots
+        Station-major, additive constant 0, each station levelled (its vertical turned by
+        :func:`rtsgt.calibration.gcp.curvature_tilt`) with ``Hz = 0`` along world +y.
+    """
+    g = np.asarray(gcp_xyz, dtype=float).reshape(-1, 3)
+    station, marker, hz, v, d = [], [], [], [], []
+    for s, p in station_xyz.items():  # a handful of stations
+        t = np.asarray(p, dtype=float)
+        R = exp_so3(curvature_tilt(t))
+        h, vv, dd = cartesian_to_polar((g - t) @ R)  # rows R^T (g - t)
+        station += [s] * g.shape[0]
+        marker += list(gcp_names)
+        hz.append(h)
+        v.append(vv)
+        d.append(dd)
+    return GcpShots(np.array(station), np.array(marker), np.concatenate(hz), np.concatenate(v),
+                    np.concatenate(d), source="planned markers")
+
+
+def layout_from_positions(
+    name: str, stations: Mapping[str, PlannedStation], gcp_xyz: ArrayLike,
+    reference: ReferencePoints, options: RunOptions, *, reference_station: str,
+    instrument: InstrumentProfile, gcp_names: Sequence[str] | None = None,
+    source: str = "planned positions",
+) -> Layout:
+    """A layout on paper (module docstring).
+
+    Parameters
+    ----------
+    name : str
+    stations : mapping str -> PlannedStation
+        Every station, plan coordinates (levelled frame, z up), m.
+    gcp_xyz : array_like, shape (K, 3)
+        The markers, plan coordinates, m (every station shoots every one).
+    reference : ReferencePoints
+        The prisms on the robot, body frame, named by prism.
+    options : RunOptions
+        As for :func:`layout_from_deployment` (``options.noise`` None: every source).
+    reference_station : str
+        The station whose frame is the world's.
+    instrument : InstrumentProfile
+        The instrument of every station.
+    gcp_names : sequence of str, optional
+        Default ``"1"``, ``"2"``, ...
+    """
+    if reference_station not in stations:
+        raise InputError(f"reference station {reference_station!r} is not among the stations "
+                         f"({', '.join(stations)})")
+    origin = np.asarray(stations[reference_station].xyz, dtype=float)
+    g = np.asarray(gcp_xyz, dtype=float).reshape(-1, 3)
+    names = tuple(str(i + 1) for i in range(g.shape[0])) if gcp_names is None else \
+        tuple(gcp_names)
+    shots = synthetic_gcp_shots({s: np.asarray(st.xyz, dtype=float) - origin
+                                 for s, st in stations.items()}, g - origin, names)
+    data = DeploymentData(name, instrument, (), shots, reference, reference_station)
+    tracking = [s for s, st in stations.items() if st.prism is not None]
+    return _layout(name, data, options, tracking, [stations[s].prism for s in tracking],
+                   [stations[s].rate_hz for s in tracking], 0.0, origin, source)
