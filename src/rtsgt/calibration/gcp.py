@@ -132,6 +132,7 @@ from rtsgt.measurement.instruments import TRIMBLE_S7, InstrumentProfile
 from rtsgt.measurement.polar import polar_jacobian, polar_to_cartesian
 from rtsgt.noise.model import NoiseModel
 from rtsgt.noise.perturb import sample_polar_errors
+from rtsgt.pose.reference import block_diagonal
 from rtsgt.pose.weighted import gls_weights, refine_batches
 from rtsgt.stats import ratio_interval, ratio_verdict
 from rtsgt.types import GcpShots, WeatherSeries
@@ -470,12 +471,20 @@ def _fit_4dof(p: np.ndarray, q: np.ndarray, w, tilt: np.ndarray | None = None, *
     """``q ~ exp([omega + tilt]x) R_z(psi) p + t`` with ``omega`` the curvature tilt of ``t``
     (module docstring, section Models); batched over leading axes of ``p``, ``q``, ``tilt``."""
     t = kabsch_yaw(p, q, w, check=check)[1]
+    return _levelled(t, tilt, lambda T, _: kabsch_yaw(p, q @ T, w, check=check))
+
+
+def _levelled(t: np.ndarray, tilt: np.ndarray | None, fit_tilted) -> tuple[np.ndarray, np.ndarray]:
+    """The 4-DOF transform from the fit of the yaw and translation in the frame turned by the
+    curvature tilt of ``t`` (plus the compensators' ``tilt``), twice (module docstring, section
+    Models): ``fit_tilted(T, t)`` returns ``R_z`` and ``t'`` of ``T^T q ~ R_z p + t'`` (rows
+    ``q T = (T^T q)^T``); then ``R = T R_z``, ``t = T t'``."""
     for _ in range(2):
         omega = curvature_tilt(t)
         if tilt is not None:
             omega = omega + tilt
         T = exp_so3(omega)
-        Rz, t_tilted = kabsch_yaw(p, q @ T, w, check=check)  # rows q T = (T^T q)^T
+        Rz, t_tilted = fit_tilted(T, t)
         t = np.einsum("...ij,...j->...i", T, t_tilted)
     return T @ Rz, t
 
@@ -507,11 +516,7 @@ def _gls_station_weights(setup: _Setup, s: str, R: np.ndarray, C: np.ndarray) ->
     """``W = C^-1`` of station ``s``'s stacked residuals, ``C_i = C_ref,i + R C_s,i R^T``
     (module docstring, section Weights), (3K, 3K)."""
     idx_s, idx_r, _ = setup.pairs[s]
-    K = len(idx_s)
-    blocks = np.zeros((2, K, 3, K, 3))
-    blocks[0, range(K), :, range(K), :] = C[idx_r]
-    blocks[1, range(K), :, range(K), :] = C[idx_s]
-    return gls_weights(blocks[0].reshape(3 * K, 3 * K), blocks[1].reshape(3 * K, 3 * K), R)
+    return gls_weights(block_diagonal(C[idx_r]), block_diagonal(C[idx_s]), R)
 
 
 def _gls_yaw(p: np.ndarray, y: np.ndarray, W: np.ndarray, psi: np.ndarray, t: np.ndarray,
@@ -539,7 +544,8 @@ def _gls_yaw(p: np.ndarray, y: np.ndarray, W: np.ndarray, psi: np.ndarray, t: np
 
 
 def _gls_fit(p: np.ndarray, q: np.ndarray, W: np.ndarray, R0: np.ndarray, t0: np.ndarray,
-             model: str, tilt: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+             model: str, tilt: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The generalised least-squares fit of station points ``p`` onto the reference's ``q``
     (S, K, 3) with the weights ``W`` (3K, 3K), from the start ``R0, t0`` (a station's nominal
     fit), under ``model`` (the 4-DOF one with the compensators' ``tilt`` (S, 3), as
@@ -553,18 +559,14 @@ def _gls_fit(p: np.ndarray, q: np.ndarray, W: np.ndarray, R0: np.ndarray, t0: np
     # 4 DOF: R = exp([omega + tilt]x) R_z(psi); the weights, evaluated at the nominal rotation,
     # are held as they are in the tilted frame (the tilt is microradians)
     psi = np.full(S, np.arctan2(R0[1, 0], R0[0, 0]))
-    t = np.broadcast_to(t0, (S, 3))
-    for _ in range(2):
-        omega = curvature_tilt(t)
-        if tilt is not None:
-            omega = omega + tilt
-        T = exp_so3(omega)
+
+    def yaw_fit(T, t):
+        nonlocal psi  # each pass starts from the last one's yaw
         psi, t_tilted = _gls_yaw(p, q @ T, W, psi, np.einsum("sji,sj->si", T, t))
-        t = np.einsum("sij,sj->si", T, t_tilted)
-    c, sn = np.cos(psi), np.sin(psi)
-    Rz = np.zeros((S, 3, 3))
-    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -sn, sn, c, 1.0
-    return T @ Rz, t, np.ones(S, dtype=bool)
+        return exp_so3(psi[:, None] * np.array([0.0, 0.0, 1.0])), t_tilted
+
+    R, t = _levelled(np.broadcast_to(t0, (S, 3)), tilt, yaw_fit)
+    return R, t, np.ones(S, dtype=bool)
 
 
 def _check_args(instrument, weighting, model: str = "6dof") -> None:
