@@ -32,7 +32,18 @@ import typer
 from typer.core import TyperGroup
 
 from rtsgt import __version__
-from rtsgt.cli import analyze, calibrate, demo, evaluate, interpolate, plan, run, simulate
+from rtsgt.cli import (
+    analyze,
+    batch,
+    calibrate,
+    demo,
+    evaluate,
+    init,
+    interpolate,
+    plan,
+    run,
+    simulate,
+)
 from rtsgt.errors import RtsgtError
 
 #: Exit statuses (see the module docstring).
@@ -122,7 +133,8 @@ def _main(
     """Robotic total station ground truth."""
 
 
-for _command in (calibrate, interpolate, simulate, run, demo, evaluate, analyze, plan):
+for _command in (init, calibrate, interpolate, simulate, run, batch, demo, evaluate, analyze,
+                 plan):
     _command.register(app)
 
 

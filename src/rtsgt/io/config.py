@@ -46,7 +46,9 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
 
     [reference]                      # the prisms on the robot (static survey)
     file = "calibration_raw.csv"
-    format = "survey-dms"            # or "csv" (name,x,y,z,cov_xx,...)
+    format = "survey-dms"            # or "sensor-positions" (RTS_project sensor_positions.csv:
+                                     # x y z flag and a 3x3 covariance per row), or "csv"
+                                     # (name,x,y,z,cov_xx,...)
     prisms = { "1" = 1, "2" = 2, "3" = 3 }   # prism id -> 1-based row of the survey file
     body_frame = "survey"            # or "points" with body_points = [4, 5, 6], or "transform"
     # T_survey_body = [[...4x4...]]  (with body_frame = "transform")
@@ -101,6 +103,7 @@ Paths are relative to the configuration file. Units are in the key names (``_m``
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import sys
@@ -125,7 +128,7 @@ STATION_FORMATS = ("rts-project",)
 MEASUREMENT_FORMATS = ("ros-bag",)
 GCP_FORMATS = ("rts-project", "csv")
 WEATHER_FORMATS = ("csv", "eccc")
-REFERENCE_FORMATS = ("survey-dms", "csv")
+REFERENCE_FORMATS = ("survey-dms", "sensor-positions", "csv")
 BODY_FRAMES = ("survey", "points", "transform")
 
 
@@ -229,10 +232,10 @@ class _Section:
 
     def record(self, cls: type, spec: dict[str, tuple], **fixed) -> Any:
         """The record ``cls`` built from the keys of this table: ``spec`` maps each key to
-        (field, type, conversion or None); an absent key takes the record's default, and a
+        (field, type, conversion or None, ...); an absent key takes the record's default, and a
         value the record refuses is a :class:`ConfigError` naming the section."""
         values, given = dict(fixed), {}
-        for key, (name, kind, convert) in spec.items():
+        for key, (name, kind, convert, *_) in spec.items():
             value = self.get(key, kind, None)
             if value is not None:
                 given[name] = (key, value)
@@ -385,6 +388,36 @@ def read_instrument(path: Path, doc: dict) -> InstrumentProfile:
         raise ConfigError(f"[instrument] {exc.bare_message}", path) from None
 
 
+#: The keys of the processing tables, one spec per table: TOML key -> (field of the option
+#: record, type in the file, conversion of the file's value into the field's or None, and
+#: back or None). :func:`read_options` reads the tables with them and
+#: :func:`options_toml_text` writes them.
+NOISE_KEYS = {"sources": ("sources", list, tuple, list)} | {
+    k: (k, float, None, None) for k in ("time_sync_mean_s", "time_sync_std_s",
+                                        "temperature_halfwidth_c", "pressure_halfwidth_hpa",
+                                        "humidity_halfwidth_pct")}
+#: The file's angular rates in deg/s, :class:`FilterParams`' in rad/s.
+FILTER_KEYS = {
+    "tau_r_m_s": ("tau_r", float, None, None),
+    "tau_a_deg_s": ("tau_a", float, math.radians, math.degrees),
+    "tau_e_deg_s": ("tau_e", float, math.radians, math.degrees),
+    "tau_s_s": ("tau_s", float, None, None), "tau_l_s": ("tau_l", float, None, None)}
+CALIBRATION_KEYS = {"model": ("model", str, None, None),
+                    "weighting": ("weighting", str, None, None),
+                    "method": ("method", str, None, None)}
+INTERPOLATION_KEYS = {
+    "rate_hz": ("rate_hz", float, None, None),
+    "qc": ("qc", (str, float, int), lambda v: v if isinstance(v, str) else float(v), None),
+    "max_gap_s": ("max_gap_s", float, None, None), "gp_noise": ("gp_noise", str, None, None),
+    "motion_prior": ("motion_prior", str, None, None),
+    "outlier_windows": ("outlier_windows", str, None, None),
+    "prior": ("prior", str, None, None),
+    "correlated_noise": ("correlated_noise", str, None, None)}
+POSE_KEYS = {k: (k, kind, None, None) for k, kind in (
+    ("engine", str), ("registration", str), ("samples", int), ("distance_gate_m", float),
+    ("uncertainty_gate_m", float))}
+
+
 def read_options(path: Path, doc: dict, instrument: InstrumentProfile,
                  *, query_times: bool = True) -> tuple[RunOptions, Path | None]:
     """The processing tables of a configuration (``[noise]``, ``[filter]``,
@@ -399,23 +432,15 @@ def read_options(path: Path, doc: dict, instrument: InstrumentProfile,
             f"[noise] unknown source(s) {', '.join(map(repr, bad))}; known: {', '.join(NOISE_SOURCES)}",
             path,
         )
-    noise = n.record(NoiseModel, {"sources": ("sources", list, tuple)} | {
-        k: (k, float, None) for k in ("time_sync_mean_s", "time_sync_std_s",
-                                      "temperature_halfwidth_c", "pressure_halfwidth_hpa",
-                                      "humidity_halfwidth_pct")}, instrument=instrument)
+    noise = n.record(NoiseModel, NOISE_KEYS, instrument=instrument)
     n.done()
 
     f = _Section(path, "filter", doc.get("filter", {}))
-    filt = f.record(FilterParams, {  # the file's angular rates in deg/s, FilterParams' in rad/s
-        "tau_r_m_s": ("tau_r", float, None), "tau_a_deg_s": ("tau_a", float, math.radians),
-        "tau_e_deg_s": ("tau_e", float, math.radians), "tau_s_s": ("tau_s", float, None),
-        "tau_l_s": ("tau_l", float, None)})
+    filt = f.record(FilterParams, FILTER_KEYS)
     f.done()
 
     c = _Section(path, "calibration", doc.get("calibration", {}))
-    calibration = c.record(CalibrationOptions, {"model": ("model", str, None),
-                                                "weighting": ("weighting", str, None),
-                                                "method": ("method", str, None)})
+    calibration = c.record(CalibrationOptions, CALIBRATION_KEYS)
     c.done()
 
     it = _Section(path, "interpolation", doc.get("interpolation", {}))
@@ -424,22 +449,54 @@ def read_options(path: Path, doc: dict, instrument: InstrumentProfile,
     times = it.file("query_times") if "query_times" in it.table else None
     if times is not None and "rate_hz" in it.table:
         raise ConfigError("[interpolation] give rate_hz or query_times, not both", path)
-    interp = it.record(InterpolationOptions, {
-        "rate_hz": ("rate_hz", float, None), "qc": ("qc", (str, float, int), _qc_value),
-        "max_gap_s": ("max_gap_s", float, None), "gp_noise": ("gp_noise", str, None),
-        "motion_prior": ("motion_prior", str, None),
-        "outlier_windows": ("outlier_windows", str, None), "prior": ("prior", str, None),
-        "correlated_noise": ("correlated_noise", str, None)})
+    interp = it.record(InterpolationOptions, INTERPOLATION_KEYS)
     it.done()
 
     p = _Section(path, "pose", doc.get("pose", {}))
-    pose = p.record(PoseOptions, {k: (k, kind, None) for k, kind in (
-        ("engine", str), ("registration", str), ("samples", int), ("distance_gate_m", float),
-        ("uncertainty_gate_m", float))})
+    pose = p.record(PoseOptions, POSE_KEYS)
     p.done()
 
     return RunOptions(filter=filt, noise=noise, calibration=calibration, interpolation=interp,
                       pose=pose), times
+
+
+def toml_value(value: Any) -> str:
+    """A TOML literal of a string, number or list of them (strings as basic strings, floats
+    in their shortest exact form)."""
+    if isinstance(value, str):
+        return json.dumps(value)  # JSON's escapes are TOML's (\uXXXX, \", \\)
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return repr(value) if math.isfinite(value) else ("nan" if value != value
+                                                         else ("inf" if value > 0 else "-inf"))
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    raise TypeError(f"no TOML literal for {type(value).__name__}")
+
+
+def options_toml_text(options: RunOptions, instrument: InstrumentProfile) -> str:
+    """The processing tables ``[noise]``, ``[filter]``, ``[calibration]``,
+    ``[interpolation]`` and ``[pose]`` with every key, as :func:`read_options` reads them back
+    into ``options`` (the seed is not a key of the file: the command line gives it; a
+    ``noise`` of None is written as the instrument's default model)."""
+    records = {
+        "noise": options.noise if options.noise is not None else NoiseModel(instrument=instrument),
+        "filter": options.filter, "calibration": options.calibration,
+        "interpolation": options.interpolation, "pose": options.pose,
+    }
+    specs = {"noise": NOISE_KEYS, "filter": FILTER_KEYS, "calibration": CALIBRATION_KEYS,
+             "interpolation": INTERPOLATION_KEYS, "pose": POSE_KEYS}
+    out = []
+    for table, spec in specs.items():
+        out.append(f"[{table}]")
+        for key, (name, _kind, _read, back) in spec.items():
+            value = getattr(records[table], name)
+            out.append(f"{key} = {toml_value(back(value) if back is not None else value)}")
+        out.append("")
+    return "\n".join(out)
 
 
 def _station(path: Path, i: int, table: Any,
@@ -474,10 +531,6 @@ def _station(path: Path, i: int, table: Any,
         st = StationConfig(sid, prism, None, "ros-bag", constant, tid)
     s.done()
     return st
-
-
-def _qc_value(value: str | float | int) -> str | float:
-    return value if isinstance(value, str) else float(value)
 
 
 def _missing(path: Path, section: str):

@@ -2,19 +2,25 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 
 from rtsgt.deployment import DeploymentData
-from rtsgt.errors import ConfigError, InputError
+from rtsgt.errors import ConfigError, InputError, RtsgtWarning
 from rtsgt.geometry import RigidTransform
 from rtsgt.io._parse import check_seconds
 from rtsgt.io.config import DeploymentConfig, load_config
 from rtsgt.io.gcp_csv import read_gcp_shots
 from rtsgt.io.rts_bag import InputReport, read_theodolite_bag
 from rtsgt.io.rts_project import read_prism_file
-from rtsgt.io.survey import read_reference_csv, read_survey_raw
+from rtsgt.io.survey import (
+    SensorPositions,
+    read_reference_csv,
+    read_sensor_positions,
+    read_survey_raw,
+)
 from rtsgt.io.weather import read_weather_csv, read_weather_eccc
 from rtsgt.options import RunOptions
 from rtsgt.pose.reference import ReferencePoints, reference_from_survey
@@ -52,7 +58,8 @@ def read_reference(cfg: DeploymentConfig) -> ReferencePoints:
         if missing:
             raise InputError(f"no reference point named {', '.join(missing)}", rc.file)
         return ref.select(names)
-    survey = read_survey_raw(rc.file)
+    survey = (read_sensor_positions(rc.file) if rc.format == "sensor-positions"
+              else read_survey_raw(rc.file))
     n_rows = survey.xyz.shape[0]
     rows = [rc.prisms[n] - 1 for n in names]
     for n, r in zip(names, rows, strict=True):
@@ -61,6 +68,9 @@ def read_reference(cfg: DeploymentConfig) -> ReferencePoints:
                 f"[reference] prisms.{n} = {r + 1}: the survey {rc.file.name} has {n_rows} rows",
                 cfg.path,
             )
+    if isinstance(survey, SensorPositions):
+        used = rows + ([r - 1 for r in rc.body_points] if rc.body_frame == "points" else [])
+        _warn_sensor_position_defects(survey, sorted(set(used)))
     if rc.body_frame == "survey":
         body = "survey"
     elif rc.body_frame == "points":
@@ -69,6 +79,22 @@ def read_reference(cfg: DeploymentConfig) -> ReferencePoints:
         body = RigidTransform.from_matrix(np.array(rc.T_survey_body), frame_to="survey",
                                           frame_from="body")
     return reference_from_survey(survey.xyz, survey.cov, rows, body_frame=body, names=names)
+
+
+def _warn_sensor_position_defects(points: SensorPositions, rows: list[int]) -> None:
+    """Warn, naming the file and line, for each row the reference uses (0-based ``rows``) whose
+    covariance is zero (the survey's uncertainty is then missing from the poses) or whose flag
+    is not 1 (its ``x y z`` are used as written)."""
+    for r in rows:
+        where = f"{points.source}:{int(points.lines[r])}"
+        if not np.any(points.cov[r]):
+            warnings.warn(f"{where}: zero covariance for {points.names[r]}, which the "
+                          "reference uses: the survey's uncertainty of this point is missing "
+                          "from the poses' covariance", RtsgtWarning, stacklevel=3)
+        if points.flag[r] != 1.0:
+            warnings.warn(f"{where}: flag {points.flag[r]:g} for {points.names[r]}, where the "
+                          "file has 1 (the homogeneous coordinate); its x y z are used as "
+                          "written", RtsgtWarning, stacklevel=3)
 
 
 def load_deployment(config: str | Path | DeploymentConfig) -> tuple[DeploymentData, RunOptions]:

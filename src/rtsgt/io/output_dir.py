@@ -16,6 +16,12 @@ Every directory a command writes (``rtsgt run``, ``simulate``, ``demo``, ``analy
 - a target that is, or holds, the current working directory or an input of the command is
   refused even with ``force``.
 
+A directory that rtsgt fills over several calls (``rtsgt batch``: one run directory per
+deployment, each put in place whole by :class:`OutputDir`, and summary files) is opened by
+:func:`open_output_folder`: absent or empty, it gets a manifest of its kind; else it must be an
+earlier output of that kind. :func:`complete_output` says whether a directory is a complete
+output (every file its manifest lists present).
+
 Directories are created with the permissions of the user's umask. Files that rtsgt adds later
 to an output (``rtsgt report`` writing ``report.html`` into a run directory) are recorded in
 its manifest with :func:`record_files`.
@@ -191,6 +197,57 @@ def record_files(folder: str | os.PathLike, paths: Iterable[str | os.PathLike]) 
     tmp = folder / f"{MANIFEST}.{secrets.token_hex(4)}.tmp"
     tmp.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
     os.replace(tmp, folder / MANIFEST)
+
+
+def output_kind(folder: str | os.PathLike) -> str | None:
+    """The kind of output (``"run"``, ``"batch"``, ...) of a directory rtsgt wrote, from its
+    manifest; None if it has no valid manifest."""
+    doc = _manifest(Path(folder))
+    return None if doc is None else str(doc.get("kind"))
+
+
+def complete_output(folder: str | os.PathLike, kind: str) -> bool:
+    """Whether ``folder`` is a complete output of ``kind``: a directory with rtsgt's manifest
+    of that kind, every file the manifest lists present (an output is put in place whole, so
+    a file missing means one deleted since)."""
+    folder = Path(folder)
+    doc = _manifest(folder) if folder.is_dir() and not folder.is_symlink() else None
+    if doc is None or doc.get("kind") != kind:
+        return False
+    return all((folder / f).is_file() for f in doc["files"])
+
+
+def open_output_folder(target: str | os.PathLike, kind: str) -> Path:
+    """A directory that rtsgt fills over several calls (``rtsgt batch``: one run directory
+    per deployment, each put in place whole, and summary files): created with an empty
+    manifest of ``kind`` if absent or empty; an earlier output of the same kind is reused as
+    it is. Returns its absolute path.
+
+    Raises
+    ------
+    InputError
+        ``target`` is a file, or a non-empty directory that is not an output of ``kind``.
+    """
+    final = Path(os.path.abspath(target))
+    if final.exists() or final.is_symlink():
+        if final.is_symlink() or not final.is_dir():
+            raise InputError("exists and is not a directory; give another output path", target)
+        if any(final.iterdir()):
+            if output_kind(final) != kind:
+                raise InputError(f"exists and is not an output of rtsgt {kind}; give another "
+                                 "output path (rtsgt never writes into a folder of yours)",
+                                 target)
+            return final
+    try:
+        final.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the output directory ({exc.strerror})",
+                         target) from None
+    tmp = final / f"{MANIFEST}.{secrets.token_hex(4)}.tmp"
+    doc = {"written_by": "rtsgt", "version": __version__, "kind": kind, "files": []}
+    tmp.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    os.replace(tmp, final / MANIFEST)
+    return final
 
 
 class OutputDir:

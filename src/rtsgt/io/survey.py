@@ -19,6 +19,16 @@ Three formats:
 rtsgt reference CSV
     Header ``name,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz`` (any column order), one
     point per row, body frame, m and m^2 (no correlation between points).
+``sensor_positions.csv`` (RTS_project, the same points as ``calibration_raw.csv`` in Cartesian form)
+    No header; space separated rows of 13 fields: ``x y z``, a flag, then the 3x3 covariance
+    row-major (``cov_xx cov_xy cov_xz cov_yx ... cov_zz``), survey frame, m and m^2. The rows
+    are those of ``calibration_raw.csv`` (prisms 1-3, GNSS antennas 1-3, lidar points). The
+    flag is the homogeneous coordinate of the reference code's 4-vectors (1); it is kept
+    (:attr:`SensorPositions.flag`) and not used: the position is ``x y z`` as written. The
+    covariance must be symmetric and positive semi-definite; a zero one is accepted (the real
+    file has four) and only what uses the row can say whether that matters
+    (:func:`rtsgt.io.deployment.read_reference` warns when a prism or a body-frame point has
+    one, or a flag other than 1).
 """
 
 from __future__ import annotations
@@ -51,6 +61,12 @@ SURVEY_COLUMNS = (
 
 REFERENCE_CSV_COLUMNS = (
     "name", "x", "y", "z", "cov_xx", "cov_xy", "cov_xz", "cov_yy", "cov_yz", "cov_zz",
+)
+
+
+SENSOR_POSITIONS_COLUMNS = (
+    "x", "y", "z", "flag", "cov_xx", "cov_xy", "cov_xz", "cov_yx", "cov_yy", "cov_yz",
+    "cov_zx", "cov_zy", "cov_zz",
 )
 
 
@@ -274,3 +290,89 @@ def write_reference_csv(path: str | PathLike, reference: ReferencePoints) -> Non
         vals = [p[0], p[1], p[2], c[0, 0], c[0, 1], c[0, 2], c[1, 1], c[1, 2], c[2, 2]]
         rows.append(",".join([name] + [fmt_float(x) for x in vals]))
     atomic_write_text(Path(path), "\n".join(rows) + "\n")
+
+
+@dataclass(frozen=True)
+class SensorPositions:
+    """Surveyed points in Cartesian form, as read from an RTS_project ``sensor_positions.csv``.
+
+    Attributes
+    ----------
+    names : tuple of str, length K
+        Row names (:func:`default_survey_names` unless given).
+    xyz : ndarray, shape (K, 3)
+        Points in the survey frame, m.
+    cov : ndarray, shape (K, 3, 3)
+        Covariance of each point, m^2, as written (points independent).
+    flag : ndarray, shape (K,)
+        The fourth field (1 where the reference code wrote it correctly).
+    lines : ndarray of int, shape (K,)
+        1-based line of each row in the file.
+    source : str
+        The file.
+    """
+
+    names: tuple[str, ...]
+    xyz: np.ndarray
+    cov: np.ndarray
+    flag: np.ndarray
+    lines: np.ndarray
+    source: str = ""
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
+def read_sensor_positions(
+    path: str | PathLike, *, names: Sequence[str] | None = None
+) -> SensorPositions:
+    """Read an RTS_project ``sensor_positions.csv``: ``x y z flag`` and a row-major 3x3
+    covariance per line (module docstring).
+
+    Parameters
+    ----------
+    path : str or PathLike
+    names : sequence of str, optional
+        One name per row (default :func:`default_survey_names`: prism1-3, gnss1-3, lidar...).
+
+    Returns
+    -------
+    SensorPositions
+
+    Raises
+    ------
+    InputError
+        One line naming the file and the line: a row without 13 fields, a field that is not a
+        finite number, a covariance that is not symmetric (to 1e-9 of its largest entry) or
+        not positive semi-definite (an eigenvalue below -1e-9 times the largest), a negative
+        variance; or a number of names other than the number of rows.
+    """
+    numbers, lines = read_lines(path, "sensor positions `x y z flag` and a 3x3 covariance")
+    tok = split_rows(lines, numbers, path, SENSOR_POSITIONS_COLUMNS, None)
+    vals = to_float(tok, numbers, path, SENSOR_POSITIONS_COLUMNS)
+    cov = vals[:, 4:].reshape(-1, 3, 3)
+    scale = np.max(np.abs(cov), axis=(1, 2))
+    asym = np.max(np.abs(cov - np.swapaxes(cov, 1, 2)), axis=(1, 2))
+    bad = np.flatnonzero(asym > 1e-9 * scale)
+    if bad.size:
+        i = bad[0]
+        raise InputError(f"expected a symmetric covariance (row-major cov_xx .. cov_zz), got "
+                         f"entries differing by {asym[i]:.3g} m^2 across the diagonal",
+                         path, numbers[i])
+    diag = np.diagonal(cov, axis1=1, axis2=2)
+    bad = np.flatnonzero(np.any(diag < 0, axis=1))
+    if bad.size:
+        i = bad[0]
+        raise InputError(f"expected non-negative variances, got {diag[i].min():.3g} m^2",
+                         path, numbers[i])
+    w = np.linalg.eigvalsh(0.5 * (cov + np.swapaxes(cov, 1, 2)))
+    bad = np.flatnonzero(w[:, 0] < -1e-9 * np.maximum(w[:, -1], 0.0))
+    if bad.size:
+        i = bad[0]
+        raise InputError(f"expected a positive semi-definite covariance, got eigenvalue "
+                         f"{w[i, 0]:.3g} m^2", path, numbers[i])
+    k = len(lines)
+    names = default_survey_names(k) if names is None else tuple(str(s) for s in names)
+    if len(names) != k:
+        raise InputError(f"expected {len(names)} rows (one per name), got {k}", path)
+    return SensorPositions(names, vals[:, :3], cov, vals[:, 3], np.asarray(numbers), str(path))

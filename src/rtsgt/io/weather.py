@@ -44,6 +44,7 @@ import numpy as np
 
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.io._parse import (
+    ENCODINGS,
     atomic_write_text,
     check_increasing,
     find_columns,
@@ -90,6 +91,34 @@ def _check_ranges(values: dict[str, np.ndarray], numbers, path, names: dict[str,
                 f"(expected {lo:g} to {hi:g} {unit}): wrong column or unit?",
                 path, numbers[i],
             )
+
+
+def weather_format(path: str | PathLike) -> str | None:
+    """The weather format of a file, from its first line: ``"eccc"`` (an ECCC hourly file:
+    its time and temperature columns), ``"csv"`` (the native CSV: its four columns), or None
+    (neither, or a file that cannot be read). Reads the first 64 kB only."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(65536)
+    except OSError:
+        return None
+    for enc in ENCODINGS:
+        try:
+            text = head.decode(enc)
+            break
+        except UnicodeDecodeError:
+            continue
+    else:
+        return None
+    lines = [s for s in text.splitlines() if s.strip() and not s.lstrip().startswith("#")]
+    if not lines:
+        return None
+    header = [_normalise(h) for h in next(csv.reader([lines[0]]))]
+    if all(any(_ECCC_PATTERNS[k].match(h) for h in header) for k in ("time", "temperature")):
+        return "eccc"
+    if set(WEATHER_CSV_COLUMNS) <= set(header):
+        return "csv"
+    return None
 
 
 def read_weather_eccc(path: str | PathLike, *, utc_offset_hours: float = -5.0) -> WeatherSeries:

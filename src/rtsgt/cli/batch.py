@@ -1,0 +1,190 @@
+"""``rtsgt batch``: the ground truth of many deployments, on Dask or one after the other.
+
+A thin layer over :mod:`rtsgt.batch` (deployments, seeds, resuming, the tasks on Dask) and
+:mod:`rtsgt.io.batch_summary` / :mod:`rtsgt.report.batch` (the table across deployments):
+a progress bar and one ``failed: NAME: message`` line per failed deployment on stderr, the
+table on stdout, ``OUT/batch_summary.csv`` and ``OUT/batch_summary.html``. Exit status 1 when
+a deployment failed (after the others are done and the summary written).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.table import Table
+
+from rtsgt.batch import Outcome, dask_client, default_workers, find_deployments, make_tasks
+from rtsgt.batch import run_batch as run_tasks
+from rtsgt.cli.common import usage_error
+from rtsgt.cli.run import option_overrides
+from rtsgt.errors import InputError
+from rtsgt.io.batch_summary import CHECK_COLUMNS, batch_row, write_batch_csv
+from rtsgt.io.output_dir import open_output_folder, record_files
+from rtsgt.report.batch import write_batch_html
+from rtsgt.stats import VERDICTS
+
+#: The files the batch writes into its output folder, beside the run directories.
+SUMMARY_CSV, SUMMARY_HTML = "batch_summary.csv", "batch_summary.html"
+
+
+def run_batch(
+    inputs: list[Path], out: Path, *, seed: int = 0, workers: int | None = None,
+    scheduler: str | None = None, serial: bool = False, force: bool = False,
+    quiet: bool = False, report: bool = False, **run_options,
+) -> tuple[list[Outcome], list[dict], Path]:
+    """Run every deployment under ``inputs`` into ``out`` (module docstring); returns the
+    outcomes, the summary rows and the output folder. ``run_options``: ``rtsgt run``'s
+    (``engine``, ``samples``, ``registration``, ``rate``, ``prior``, ``correlated_noise``).
+
+    Raises
+    ------
+    typer.BadParameter
+        ``serial`` with ``workers`` or ``scheduler``, a bad option value (exit status 2).
+    InputError
+        No deployment, duplicated names, an output folder that is not a batch's, Dask missing
+        (without ``serial``), a deployment that failed (after the others).
+    """
+    if serial and (workers is not None or scheduler is not None):
+        raise usage_error("runs in this process: leave out --workers and --scheduler",
+                          "--serial")
+    if workers is not None and scheduler is not None:
+        raise usage_error("an existing cluster has its own workers: leave out --workers",
+                          "--scheduler")
+    given = {k: v for k, v in run_options.items() if v is not None}
+    option_overrides(**{{"rate": "rate_hz"}.get(k, k): v for k, v in given.items()})
+    deployments, notes = find_deployments(inputs, out=out)
+    folder = open_output_folder(out, "batch")
+    tasks = make_tasks(deployments, folder, base_seed=seed, options=given, force=force,
+                       report=report)
+    err = Console(stderr=True)
+    for note in notes:
+        err.print(f"note: {note}", highlight=False, markup=False, soft_wrap=True)
+
+    where = {"ran": "serially, in this process"}
+
+    def client_factory(n_todo: int):
+        if scheduler is not None:
+            where["ran"] = f"on the Dask scheduler {scheduler}"
+        else:
+            n = workers if workers is not None else default_workers(n_todo)
+            where["ran"] = f"on a local Dask cluster of {n} worker process{'es' * (n > 1)}"
+        return dask_client(scheduler=scheduler, workers=workers, n_tasks=n_todo)
+
+    t0 = time.perf_counter()
+    progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                        TimeElapsedColumn(), TimeRemainingColumn(), console=err,
+                        disable=quiet)
+    with progress:
+        bar = progress.add_task("deployments", total=len(tasks))
+
+        def on_outcome(o: Outcome) -> None:
+            if o.status == "failed":
+                progress.console.print(f"failed: {o.name}: {o.message}", highlight=False,
+                                       markup=False, soft_wrap=True)
+            progress.advance(bar)
+
+        outcomes = run_tasks(tasks, client_factory=None if serial else client_factory,
+                             on_outcome=on_outcome)
+    wall = time.perf_counter() - t0
+    rows = [batch_row(o.name, o.status, o.seed, o.out, o.config, elapsed_s=o.elapsed_s,
+                      error=o.message) for o in outcomes]
+    counts = {s: sum(o.status == s for o in outcomes) for s in ("done", "skipped", "failed")}
+    info = {"deployments": len(outcomes), "run now": counts["done"],
+            "skipped (complete)": counts["skipped"], "failed": counts["failed"],
+            "base seed": seed, "ran": where["ran"] if counts["done"] + counts["failed"]
+            else "nothing to run", "wall time": f"{wall:.1f} s"}
+    write_batch_csv(folder / SUMMARY_CSV, rows)
+    write_batch_html(folder / SUMMARY_HTML, rows, info)
+    record_files(folder, [folder / SUMMARY_CSV, folder / SUMMARY_HTML])
+    if not quiet:
+        _print_table(rows, folder, info)
+    if counts["failed"]:
+        raise InputError(f"{counts['failed']} of {len(outcomes)} deployments failed (the "
+                         f"'failed:' lines above); the others' runs and the summary are in "
+                         f"{folder}")
+    return outcomes, rows, folder
+
+
+def _print_table(rows: list[dict], folder: Path, info: dict) -> None:
+    table = Table(title=f"rtsgt batch: {len(rows)} deployments, {info['run now']} run now, "
+                        f"{info['skipped (complete)']} complete already, {info['failed']} "
+                        f"failed ({info['ran']}, {info['wall time']})")
+    for col in ("deployment", "status", "poses kept / queried", "sigma mm", "sigma mrad",
+                "checks failed", "warnings"):
+        table.add_column(col, justify="left" if col in ("deployment", "status") else "right")
+    for r in rows:
+        # the self-checks with a pessimistic or optimistic part, of those that tested any
+        failing = sum(any(v in str(r[c]) for v in VERDICTS[1:]) for c in CHECK_COLUMNS)
+        tested = sum(any(v in str(r[c]) for v in VERDICTS) for c in CHECK_COLUMNS)
+        table.add_row(
+            str(r["deployment"]), str(r["status"]),
+            f"{r['poses_kept']} / {r['poses_queried']}" if r["poses_kept"] != "" else "",
+            _fmt(r["median_sigma_translation_mm"], 2), _fmt(r["median_sigma_rotation_mrad"], 3),
+            f"{failing} of {tested}" if tested else "", str(r["warnings"]))
+    console = Console()
+    console.print(table)
+    console.print(f"summary: {folder / SUMMARY_CSV}, {folder / SUMMARY_HTML}", highlight=False)
+
+
+def _fmt(x, digits: int) -> str:
+    return f"{x:.{digits}f}" if isinstance(x, float) and np.isfinite(x) else ""
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``rtsgt batch`` to the application."""
+
+    @app.command("batch")
+    def batch_command(
+        inputs: list[Path] = typer.Argument(
+            ..., metavar="DEPLOYMENTS...",
+            help="Deployment TOML files, deployment folders (holding deployment.toml), or "
+                 "folders of them."),
+        out: Path = typer.Option(Path("rtsgt-batch"), "--out", "-o",
+                                 help="Output folder: one run directory per deployment and "
+                                      "the summary (CSV, HTML)."),
+        seed: int = typer.Option(0, min=0, help="Base seed; each deployment's seed is derived "
+                                                "from it and the deployment's name (>= 0)."),
+        workers: int = typer.Option(None, "--workers", min=1,
+                                    help="Worker processes of the local Dask cluster (default: "
+                                         "sized to the machine)."),
+        scheduler: str = typer.Option(None, "--scheduler", metavar="ADDRESS",
+                                      help="An existing Dask cluster's scheduler, e.g. "
+                                           "tcp://host:8786 (its workers need rtsgt)."),
+        serial: bool = typer.Option(False, "--serial",
+                                    help="One deployment after the other in this process "
+                                         "(no Dask; for debugging)."),
+        force: bool = typer.Option(False, "--force",
+                                   help="Run every deployment again, complete or not "
+                                        "(replacing run directories rtsgt wrote, nothing "
+                                        "else)."),
+        engine: str = typer.Option(None, help="Pose engine: mc, ut or linear (default: each "
+                                              "deployment's config)."),
+        registration: str = typer.Option(None, help="weighted or unweighted (default: "
+                                                    "config)."),
+        samples: int = typer.Option(None, help="Monte Carlo samples M (default: config)."),
+        rate: float = typer.Option(None, help="Query rate, Hz (default: config)."),
+        prior: str = typer.Option(None, help="GP motion prior: wnoa, wnoj or select "
+                                             "(default: config)."),
+        correlated_noise: str = typer.Option(None, "--correlated-noise",
+                                             help="inflate or ignore (default: config)."),
+        report: bool = typer.Option(False, "--report",
+                                    help="Also write each run's HTML report."),
+        quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress, no table."),
+    ) -> None:
+        """Compute the ground truth of many deployments (resumable; on Dask by default)."""
+        run_batch(inputs, out, seed=seed, workers=workers, scheduler=scheduler, serial=serial,
+                  force=force, quiet=quiet, report=report, engine=engine,
+                  registration=registration, samples=samples, rate=rate, prior=prior,
+                  correlated_noise=correlated_noise)
