@@ -75,6 +75,11 @@ from rtsgt.evaluation.evaluator import evaluate, gap_per_step
 from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
 from rtsgt.evaluation.metrics import DELTA_UNITS, STATISTICS, NeesResult
 from rtsgt.evaluation.options import EvaluationOptions
+from rtsgt.evaluation.positions import (
+    POSITION_ALIGN_METHODS,
+    PositionEvaluationResult,
+    evaluate_positions,
+)
 from rtsgt.evaluation.result import (
     ErrorStatistics,
     EvaluationResult,
@@ -98,10 +103,13 @@ __all__ = [
     "NeesResult",
     "NeesSection",
     "NoiseFloor",
+    "POSITION_ALIGN_METHODS",
     "PairCovarianceGroundTruth",
     "PoseErrors",
+    "PositionEvaluationResult",
     "ValidatedGroundTruth",
     "associate",
     "evaluate",
+    "evaluate_positions",
     "gap_per_step",
 ]
