@@ -257,3 +257,37 @@ def test_conflicting_duplicate_stamps_are_refused(tmp_path):
     with pytest.raises(InputError, match="share the stamp"):
         read_position_bag(path, "/leica/point")
 
+
+def test_cli_evaluates_against_a_prism_topic_and_a_position_csv(tmp_path):
+    """``rtsgt evaluate BAG EST --gt-topic T --lever-arm l``: the estimate's point against a
+    PointStamped topic (ROS 2), and the same positions as a EuRoC leica0 CSV."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from rtsgt.cli.main import app
+    from rtsgt.io.trajectory import write_tum
+    from test_evaluation_synth import smooth_truth, trajectory
+
+    t, p, R = smooth_truth(300)
+    lever = np.array([-0.2937, -0.0123, -0.2731])
+    prism = PositionTrajectory(t, p + R @ lever)
+    bag = write_bag(tmp_path / "gt", False, prism)
+    write_tum(tmp_path / "est.tum", trajectory(t[::2], p[::2], R[::2]))
+    runner = CliRunner()
+    args = [str(tmp_path / "est.tum"), "--lever-arm", "-0.2937,-0.0123,-0.2731", "--json"]
+    r = runner.invoke(app, ["evaluate", str(bag), *args, "--gt-topic", "/leica/point"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout)
+    assert d["ground_truth"] == "positions" and d["ape"]["translation_m"]["max"] < 1e-6
+    assert d["nees"]["position"]["mean"] is None  # a PointStamped has no covariance
+    ns = np.round(t * 1e9).astype(np.int64)
+    text = "#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m]\n" + "".join(
+        f"{n},{x!r},{y!r},{z!r}\n" for n, (x, y, z) in zip(ns.tolist(), prism.position.tolist(),
+                                                           strict=True))
+    csv = _write(tmp_path, "data.csv", text)
+    r = runner.invoke(app, ["evaluate", str(csv), *args])  # told by its header
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout)["ape"]["translation_m"]["max"] < 1e-6
+    r = runner.invoke(app, ["evaluate", str(bag), *args])
+    assert r.exit_code == 1 and "/leica/point" in r.output  # the position topics listed

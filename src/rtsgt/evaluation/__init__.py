@@ -72,7 +72,7 @@ from rtsgt.evaluation.associate import (
     associate,
 )
 from rtsgt.evaluation.evaluator import evaluate, gap_per_step
-from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
+from rtsgt.evaluation.groundtruth import ContinuousGroundTruth, ContinuousPositionGroundTruth
 from rtsgt.evaluation.metrics import DELTA_UNITS, STATISTICS, NeesResult
 from rtsgt.evaluation.options import EvaluationOptions
 from rtsgt.evaluation.positions import (
@@ -95,6 +95,7 @@ __all__ = [
     "Alignment",
     "Association",
     "ContinuousGroundTruth",
+    "ContinuousPositionGroundTruth",
     "ErrorStatistics",
     "EvaluationOptions",
     "EvaluationResult",
