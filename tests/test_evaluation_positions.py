@@ -246,3 +246,48 @@ def test_weighted_alignment_needs_covariances_and_time_offset_shifts():
     late = trajectory(t - 0.25, p, R)
     r = evaluate_positions(gt, late, LEVER, align="none", time_offset=0.25)
     assert r.ape.translation_m.max < 1e-9
+
+
+@pytest.mark.parametrize("method", ["se3", "4dof", "sim3"])
+def test_weighted_alignment_is_generalised_least_squares(method):
+    """Noise-free, the weighted (GLS) fit recovers the transform too; with errors thin
+    across one direction and long along another, it keeps the NEES after the alignment near
+    its degrees of freedom where the unweighted (evo's) fit inflates it, and it is the
+    minimum of sum e^T S^-1 e (no small change of the alignment lowers it)."""
+    t, p, R = _truth(1500)
+    y = p + R @ LEVER
+    Ra, ta = Rotation.from_euler("z", 0.9).as_matrix(), np.array([3.0, 1.0, -0.5])
+    moved = transform_trajectory(trajectory(t, p, R), Ra, ta, 1.1 if method == "sim3" else 1.0)
+    W = np.broadcast_to(np.eye(3), (t.size, 3, 3))
+    al = align_points(y, moved.position, moved.rotation, LEVER, method=method, weights=W)
+    back = al.apply(moved)
+    np.testing.assert_allclose(back.position + back.rotation @ LEVER, y, atol=1e-8)
+    assert al.weighted
+    # a covariance 100 times thinner across than along a direction that turns along the path
+    rng = np.random.default_rng(21)
+    ang = np.arctan2(p[:, 1], p[:, 0])
+    U = Rotation.from_euler("z", ang[:, None]).as_matrix()
+    cov = U @ np.diag([4e-6, 4e-10, 1e-6]) @ np.swapaxes(U, 1, 2)
+    noise = np.einsum("nij,nj->ni", np.linalg.cholesky(cov), rng.normal(size=(t.size, 3)))
+    gt = PositionTrajectory(t, y + noise, cov)
+    r_w = evaluate_positions(gt, moved, LEVER, align=method, weighted=True)
+    r_u = evaluate_positions(gt, moved, LEVER, align=method)
+    # 1500 chi2(3) values less the alignment's 4-7 parameters: mean 3 within +-0.07
+    assert abs(r_w.nees.position.mean / 3 - 1) < 0.07, r_w.nees.position.mean
+    assert r_w.nees.position.consistent and r_u.nees.position.mean > r_w.nees.position.mean
+    # the GLS minimum: a small rotation or translation of the fit raises the weighted cost
+    Sinv = np.linalg.inv(cov)
+
+    def cost(res):
+        e = res.position_error
+        return float(np.einsum("ni,nij,nj->", e, Sinv, e))
+
+    best = cost(r_w)
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = 1e-4
+        shifted = transform_trajectory(r_w.est_poses, np.eye(3), d)
+        assert cost(evaluate_positions(gt, shifted, LEVER, align="none")) > best
+    turned = transform_trajectory(r_w.est_poses, Rotation.from_euler("z", 1e-6).as_matrix(),
+                                  np.zeros(3))
+    assert cost(evaluate_positions(gt, turned, LEVER, align="none")) > best
