@@ -51,6 +51,16 @@ Two stations calibrated from the same reference shots have correlated calibratio
 out by the registration. On simulated deployments this took the position NEES / dof from
 1.15-1.25 to 1.11-1.12 (README, section Honesty).
 
+Fewer than three prisms
+-----------------------
+A pose needs three tracked prisms. With one or two (a deployment of one or two stations,
+:data:`rtsgt.record.MIN_POSE_PRISMS`) the run stops after the GPs: each prism's positions at
+the query times with their covariance (GP posterior plus the systematic sources), the
+static-stretch check (and the inflation of time-correlated noise it may call for), the block
+cross-validation and the GCP fit; no pose, no gate, no inter-prism check. It returns a
+:class:`~rtsgt.record.PositionRunRecord`, the position-only ground truth of
+:mod:`rtsgt.evaluation.positions`.
+
 Checks that warn
 ----------------
 A run says what it cannot vouch for as :class:`~rtsgt.errors.RtsgtWarning` (recorded in
@@ -126,7 +136,7 @@ Progress = Callable[[str], None]
 
 def run_pipeline(
     data: DeploymentData, options: RunOptions | None = None, progress: Progress | None = None
-) -> RunRecord:
+) -> RunRecord | PositionRunRecord:
     """Compute the ground truth of a deployment.
 
     Parameters
@@ -138,8 +148,9 @@ def run_pipeline(
 
     Returns
     -------
-    RunRecord
-        The run record (:mod:`rtsgt.record`), with :attr:`~rtsgt.record.RunRecord.computation`
+    RunRecord or PositionRunRecord
+        The run record (:mod:`rtsgt.record`; a :class:`~rtsgt.record.PositionRunRecord` for a
+        deployment with fewer than three tracked prisms, module docstring), with :attr:`~rtsgt.record.RunRecord.computation`
         (what only exists in memory) and :attr:`~rtsgt.record.RunRecord.warnings`: every :class:`UserWarning` (the
         :class:`~rtsgt.errors.RtsgtWarning` of the checks included) the stages raised, once
         each. They are recorded while the stages run and then issued again, once each, so a

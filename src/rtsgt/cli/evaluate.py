@@ -16,6 +16,12 @@ falls back to the run's default when the summary lacks it), so that every pose t
 produced is evaluated; for a trajectory file, or a directory without that limit, it defaults
 to :data:`DEFAULT_MAX_GAP_FILE_S`. An explicit value always wins.
 
+A position-only ground truth (:func:`wants_positions`: a run with one or two tracked prisms, a
+position CSV, or ``--lever-arm``, ``--prism``, ``--gt-topic``) is evaluated by
+:func:`rtsgt.evaluation.evaluate_positions`: the estimate's sensor pose moved by the lever arm
+against the prism's positions (:func:`load_position_ground_truth`; docs/evaluation.md,
+section Position-only ground truth).
+
 Every :class:`~rtsgt.errors.RtsgtWarning` of the reading and the evaluation is shown as one
 ``warning: ...`` line on stderr and, with ``--json``, listed under ``warnings``.
 """

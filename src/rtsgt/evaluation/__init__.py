@@ -30,6 +30,12 @@ the JSON layout of ``rtsgt evaluate --json``::
                      "max_dt_nearest_s"},
      "warnings": ["..."]}
 
+Against a position-only ground truth (one tracked prism), :func:`evaluate_positions`
+(:mod:`rtsgt.evaluation.positions`) gives a :class:`PositionEvaluationResult` whose
+``to_dict`` has the same sections with the rotation statistics and the pose NEES ``null``,
+and ``ground_truth`` (``"positions"``), ``rotation`` (why rotations are not reported) and
+``lever_arm``.
+
 ``warnings`` is added by ``rtsgt evaluate``: every :class:`~rtsgt.errors.RtsgtWarning` that
 reading the files and evaluating emitted (each also shown as a ``warning: ...`` line).
 
@@ -56,8 +62,9 @@ Layout: :mod:`~rtsgt.evaluation.evaluator` (:func:`evaluate`, one function per s
 :mod:`~rtsgt.evaluation.options` (:class:`EvaluationOptions`, the options of an evaluation and
 their rules), :mod:`~rtsgt.evaluation.result` (:class:`EvaluationResult` and its sections),
 :mod:`~rtsgt.evaluation.associate`, :mod:`~rtsgt.evaluation.align`,
-:mod:`~rtsgt.evaluation.metrics`, :mod:`~rtsgt.evaluation.groundtruth`; this module only
-re-exports.
+:mod:`~rtsgt.evaluation.metrics`, :mod:`~rtsgt.evaluation.groundtruth`,
+:mod:`~rtsgt.evaluation.positions` and :mod:`~rtsgt.evaluation.lever_arm` (the position-only
+ground truth); this module only re-exports.
 """
 
 from __future__ import annotations

@@ -2,7 +2,8 @@
 
 Paths are relative to the configuration file. Units are in the key names (``_m``, ``_s``,
 ``_deg_s``, ``_hz``). Example, with every section (only ``[[stations]]``, ``[gcp]`` and
-``[reference]`` are required)::
+``[reference]`` are required; ``[reference]`` only with three or more stations: with one or two
+the run gives the prisms' positions, no pose, and the survey is not read)::
 
     [deployment]
     name = "forest-2022-11-10"

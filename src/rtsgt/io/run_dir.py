@@ -38,6 +38,16 @@ The directory is assembled under a temporary name beside ``OUT`` and renamed at 
 an existing ``OUT`` is replaced only if rtsgt wrote it (:mod:`rtsgt.io.output_dir`): a crash
 never leaves a half-written run, and ``--force`` never deletes a user's files.
 
+Position-only runs
+------------------
+A run with one or two tracked prisms (:class:`~rtsgt.record.PositionRunRecord`) writes
+``prisms/``, ``measurements/`` (with ``removed.csv``), ``summary.json`` and the manifest only:
+``prisms/prism<i>.csv`` is its ground truth (a position CSV, :mod:`rtsgt.io.positions`).
+Its ``summary.json`` has ``ground_truth`` (``kind`` :data:`POSITIONS_KIND`, the prisms, why,
+the files) and ``positions`` in place of ``gates``, ``poses``, ``median_uncertainty``,
+``inter_prism_distances`` and ``reference``. :func:`read_position_run` reads it back;
+:func:`read_run` refuses it, naming that reader; :func:`read_any_run` takes either.
+
 Reading
 -------
 Columns are located by their header names, so extra columns are ignored and the order of the
