@@ -291,3 +291,21 @@ def test_weighted_alignment_is_generalised_least_squares(method):
     turned = transform_trajectory(r_w.est_poses, Rotation.from_euler("z", 1e-6).as_matrix(),
                                   np.zeros(3))
     assert cost(evaluate_positions(gt, turned, LEVER, align="none")) > best
+
+
+def test_figures_of_a_position_evaluation(tmp_path):
+    """``--plot``: the error figure against the ground truth's sigmas, the top view of the
+    points, the position NEES histogram; the pose panel says rotations are not reported."""
+    from rtsgt.report.eval_plots import plot_evaluation
+
+    rng = np.random.default_rng(31)
+    t, p, R = _truth(400)
+    gt, _ = _gt(t, p, R, rng)
+    r = evaluate_positions(gt, trajectory(t, p, R), LEVER, align="se3")
+    plots = plot_evaluation(r, tmp_path / "fig")
+    assert {f.name for f in plots.files} == {f"{n}.{e}" for n in ("translation_error",
+                                                                 "top_view", "nees_histogram")
+                                             for e in ("png", "svg")}
+    assert set(plots.hist) == {"position"} and plots.n_ellipses > 0
+    np.testing.assert_allclose(plots.sigma_norm, np.sqrt(np.trace(gt.cov, axis1=1, axis2=2)))
+    assert "rotations not reported" in (tmp_path / "fig" / "nees_histogram.svg").read_text()
