@@ -309,3 +309,27 @@ def test_figures_of_a_position_evaluation(tmp_path):
     assert set(plots.hist) == {"position"} and plots.n_ellipses > 0
     np.testing.assert_allclose(plots.sigma_norm, np.sqrt(np.trace(gt.cov, axis1=1, axis2=2)))
     assert "rotations not reported" in (tmp_path / "fig" / "nees_histogram.svg").read_text()
+
+
+def test_an_estimated_lever_arm_enters_with_its_covariance():
+    """A lever arm known with covariance Sigma_l (as the mounting estimator gives it), off
+    by one draw of N(0, Sigma_l) per trajectory: pooled over trajectories, the NEES with
+    Sigma_l in S is chi2(3); without it, the lever arm's error is counted as the estimate's."""
+    t, p, R = _truth(400)
+    est = trajectory(t, p, R)
+    C_l = np.diag([4e-5, 1e-5, 9e-5])  # 6, 3 and 9 mm
+    with_cov, without = [], []
+    for seed in range(60):
+        rng = np.random.default_rng(300 + seed)
+        gt, _ = _gt(t, p, R, rng, sig=(2e-3, 2e-3, 2e-3))
+        wrong = LEVER + np.linalg.cholesky(C_l) @ rng.normal(size=3)
+        r = evaluate_positions(gt, est, wrong, align="none", lever_arm_cov=C_l,
+                               lever_arm_source="estimated")
+        with_cov.append(r.nees.position.mean)
+        without.append(evaluate_positions(gt, est, wrong, align="none").nees.position.mean)
+    # 60 independent draws of the shared lever-arm error: the mean of the per-trajectory
+    # NEES has a standard error of about 0.1 of dof; within 3 of them
+    assert abs(np.mean(with_cov) / 3 - 1) < 0.3, np.mean(with_cov) / 3
+    assert np.mean(without) > 2 * np.mean(with_cov)
+    d = r.to_dict()["lever_arm"]
+    assert d["source"] == "estimated" and np.allclose(d["cov_m2"], C_l)

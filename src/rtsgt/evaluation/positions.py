@@ -81,6 +81,11 @@ station's clock, atmosphere and calibration, :func:`rtsgt.shared.prism_shared_fa
 the split verdict of the poses (:func:`~rtsgt.evaluation.metrics.shared_error_test`, position
 rows; what the alignment absorbs projected out).
 
+**An estimated lever arm** (``lever_arm_cov``, the estimator of the sensor mounting, issue 14
+item 1) is one error for the whole trajectory: its covariance ``Sigma_l`` enters ``S_k`` as
+``R_S,k Sigma_l R_S,k^T`` and the split verdict as a shared factor ``R_S,k A_l``
+(:func:`~rtsgt.evaluation.lever_arm.lever_arm_factor`), beside the ground truth's.
+
 Rotation metrics are not reported: the result's rotation statistics are ``null`` and its
 ``rotation`` entry says why.
 """
@@ -100,6 +105,7 @@ from rtsgt.evaluation.associate import Association, GroundTruthSample, associate
 from rtsgt.evaluation.evaluator import _check_trajectory, _nees, _no_pair_reason, _warn_gaps
 from rtsgt.evaluation.lever_arm import (
     LeverArmPoints,
+    lever_arm_factor,
     lever_arm_points,
     parse_lever_arm,
     point_covariance,
@@ -507,7 +513,9 @@ class PositionEvaluationResult:
     rpe_delta, rpe_delta_unit, rpe_all_pairs, rpe_absent_reason :
         As :class:`~rtsgt.evaluation.EvaluationResult`.
     lever_arm_source : str
-        Where the lever arm comes from (``"given"``).
+        Where the lever arm comes from (``"given"``, ``"estimated"``).
+    lever_arm_cov : ndarray, shape (3, 3) or None
+        Its covariance, m^2, when known.
     """
 
     t: np.ndarray
@@ -528,6 +536,7 @@ class PositionEvaluationResult:
     rpe_all_pairs: bool
     rpe_absent_reason: str | None = None
     lever_arm_source: str = "given"
+    lever_arm_cov: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """The JSON layout of ``rtsgt evaluate --json`` (that of
@@ -551,7 +560,9 @@ class PositionEvaluationResult:
             "ground_truth": "positions",
             "rotation": ROTATION_NOT_REPORTED,
             "lever_arm": {"m": [float(v) for v in self.lever_arm], "frame": "sensor (estimate)",
-                          "source": self.lever_arm_source},
+                          "source": self.lever_arm_source,
+                          "cov_m2": (None if self.lever_arm_cov is None
+                                     else self.lever_arm_cov.tolist())},
             "ape": ape,
             "rpe": rpe,
             "nees": self.nees.to_dict(),
@@ -584,9 +595,12 @@ def _relative_covariance(gt: PositionGroundTruth, g: PositionTrajectory, assoc: 
 
 def _split_verdict(gt: PositionGroundTruth, g: PositionTrajectory, est_cov: np.ndarray | None,
                    assoc: Association, err: np.ndarray, absolute: NeesResult,
-                   align: str) -> NeesResult:
+                   align: str, lever: tuple[np.ndarray, tuple[str, ...]] | None, *,
+                   upper: bool) -> NeesResult:
     """The position NEES with the split verdict where the ground truth gives its split
-    (:func:`~rtsgt.evaluation.metrics.shared_error_test` on the position rows)."""
+    (:func:`~rtsgt.evaluation.metrics.shared_error_test` on the position rows); a lever arm
+    known with a covariance adds its factor (``lever``: the factor and its names) to the
+    shared ones. ``upper``: one-sided tests (an estimate without any covariance)."""
     if not isinstance(gt, SharedPositionGroundTruth):
         return absolute
     split = gt.position_split(g.t + assoc.time_offset)
@@ -594,9 +608,13 @@ def _split_verdict(gt: PositionGroundTruth, g: PositionTrajectory, est_cov: np.n
         return absolute
     D = split.varying_cov + (0.0 if est_cov is None else est_cov)
     K = alignment_sensitivity(g.position, align)
+    factor, names = split.factor, split.names
+    if lever is not None:
+        factor = np.concatenate([factor, lever[0]], axis=2)
+        names = (*names, *lever[1])
     try:
-        verdict, _ = shared_error_test(err, D, split.factor, None if K is None else K[:, :3],
-                                       names=split.names, upper=est_cov is None)
+        verdict, _ = shared_error_test(err, D, factor, None if K is None else K[:, :3],
+                                       names=names, upper=upper)
     except ValueError as exc:
         raise InputError(f"Cannot test the errors against the shared factor: {exc}") from None
     return dataclasses.replace(absolute, consistent=verdict.consistent, split=verdict)
@@ -608,6 +626,8 @@ def evaluate_positions(
     lever_arm: ArrayLike | str | None = None,
     options: EvaluationOptions | None = None,
     *,
+    lever_arm_cov: ArrayLike | None = None,
+    lever_arm_source: str = "given",
     gt_measurement_times: ArrayLike | None = None,
     **overrides,
 ) -> PositionEvaluationResult:
@@ -627,6 +647,13 @@ def evaluate_positions(
         The tracked point in the sensor frame, m (``"x,y,z"`` accepted); zero when None.
     options : EvaluationOptions, optional
         Alignment (one of :data:`POSITION_ALIGN_METHODS`), RPE pairs, time offset, ``max_dt``.
+    lever_arm_cov : array_like, shape (3, 3), optional
+        The lever arm's covariance, m^2 (an estimated one): one error for the whole
+        trajectory, in the NEES's covariance through ``J_lever`` and, with a ground truth that
+        splits its error, a shared factor of the split verdict
+        (:func:`~rtsgt.evaluation.lever_arm.lever_arm_factor`).
+    lever_arm_source : str
+        Where the lever arm comes from (``"given"``, ``"estimated"``), for the report.
     gt_measurement_times : array_like, optional
         Times supporting a discrete ground truth (default: its own times).
     **overrides
@@ -675,6 +702,16 @@ def evaluate_positions(
     e = alignment.apply(e_raw)
     pts: LeverArmPoints = lever_arm_points(e.position, e.rotation, lever)
     est_cov = point_covariance(pts, e.cov)
+    lever_shared = None
+    if lever_arm_cov is not None:
+        C_l = np.asarray(lever_arm_cov, dtype=float)
+        if C_l.shape != (3, 3) or not np.all(np.isfinite(C_l)):
+            raise InputError(f"Expected a finite 3x3 lever arm covariance, got shape "
+                             f"{C_l.shape}")
+        F_l = lever_arm_factor(pts, C_l)
+        lever_shared = (F_l, ("lever_arm_x", "lever_arm_y", "lever_arm_z"))
+        marginal = F_l @ np.swapaxes(F_l, 1, 2)
+        est_cov = marginal if est_cov is None else est_cov + marginal
     err = pts.position - g.position
     ape = PositionErrors.from_errors(np.linalg.norm(err, axis=1))
 
@@ -698,7 +735,9 @@ def evaluate_positions(
         floor = NoiseFloor()
     else:
         absolute = _nees(err, S, 3, "position", g.t)
-        absolute = _split_verdict(gt, g, est_cov, assoc, err, absolute, options.align)
+        absolute = _split_verdict(gt, g, point_covariance(pts, e.cov), assoc, err, absolute,
+                                  options.align, lever_shared,
+                                  upper=e.cov is None and lever_shared is None)
         what = "ground truth" + (" + estimate (through the lever arm)" if est_cov is not None
                                  else "")
         f_t = noise_floor(g.cov)
@@ -721,7 +760,8 @@ def evaluate_positions(
         association=assoc, ape=ape, rpe=rpe, nees=nees, noise_floor=floor,
         position_error=err, cov_error=S, rpe_delta=float(options.delta),
         rpe_delta_unit=options.delta_unit, rpe_all_pairs=bool(options.all_pairs),
-        rpe_absent_reason=no_rpe)
+        rpe_absent_reason=no_rpe, lever_arm_source=lever_arm_source,
+        lever_arm_cov=None if lever_arm_cov is None else np.asarray(lever_arm_cov, float))
 
 
 def _pose_view(traj: PositionTrajectory) -> PoseTrajectory:
