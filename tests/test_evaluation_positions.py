@@ -333,3 +333,21 @@ def test_an_estimated_lever_arm_enters_with_its_covariance():
     assert np.mean(without) > 2 * np.mean(with_cov)
     d = r.to_dict()["lever_arm"]
     assert d["source"] == "estimated" and np.allclose(d["cov_m2"], C_l)
+
+
+@pytest.mark.parametrize("method, weighted", [("se3", True), ("sim3", True), ("sim3", False),
+                                              ("4dof", True)])
+def test_alignment_far_from_the_origin(method, weighted):
+    """A ground truth in UTM-like coordinates (5e6 m from the origin): the fits, centred on
+    the points, are as well determined as near the origin (to the rounding of coordinates
+    of 5e6 m, 1e-9 m)."""
+    rng = np.random.default_rng(41)
+    t, p, R = _truth(800)
+    far = np.array([4.5e5, 5.2e6, 300.0])
+    gt, _ = _gt(t, p, R, rng)
+    gt_far = PositionTrajectory(gt.t, gt.position + far, gt.cov)
+    est = transform_trajectory(trajectory(t, p, R), Rotation.from_euler("z", 0.3).as_matrix(),
+                               np.array([1.0, 2.0, 3.0]))
+    near = evaluate_positions(gt, est, LEVER, align=method, weighted=weighted)
+    r = evaluate_positions(gt_far, est, LEVER, align=method, weighted=weighted)
+    np.testing.assert_allclose(r.position_error, near.position_error, atol=1e-7)

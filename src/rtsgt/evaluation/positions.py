@@ -386,8 +386,9 @@ def align_points(
     return Alignment("sim3", Ra, t, s, n, weighted)
 
 
-#: Largest Gauss-Newton steps of :func:`gls_alignment`, and the step (m, rad, relative
-#: scale) below which it stops.
+#: Largest Gauss-Newton steps of :func:`gls_alignment`, and the motion of the points a step
+#: causes, relative to their spread, below which it stops (or 1000 units of the rounding of
+#: their coordinates, if larger).
 GLS_MAX_ITER = 50
 GLS_TOL = 1e-12
 
@@ -397,10 +398,13 @@ def gls_alignment(start: Alignment, y: np.ndarray, p: np.ndarray, arm: np.ndarra
     r"""The alignment of ``start``'s method that minimises ``sum_k r_k^T W_k r_k``.
 
     ``r_k = y_k - (R u_k + t)``, ``u_k = s p_k + a_k`` (``a_k = R_S,k l``, estimate frame).
-    Gauss-Newton from ``start`` (the unweighted fit), on a left perturbation of the alignment
-    (``R -> exp([dphi]x) R``, ``t -> t + dt``, ``s -> s + ds``): the point moves by
-    ``dt - [R u_k]x dphi + ds R p_k``, restricted to the method's parameters (``se3``: ``dt,
-    dphi``; ``4dof``: ``dt, dphi_z``; ``sim3``: and ``ds``; ``scale``: ``ds``). With ``W_k``
+    Gauss-Newton from ``start`` (the unweighted fit), on a perturbation of the alignment about
+    the aligned points' centroid ``c`` (so that coordinates far from the origin, e.g. UTM,
+    keep the rotation and the translation apart): ``x -> exp([dphi]x) (x - c) + c + dt`` and
+    ``s -> s + ds``, which moves the point ``x_k = R u_k + t`` by
+    ``dt - [x_k - c]x dphi + ds R p_k``, restricted to the method's parameters (``se3``: ``dt,
+    dphi``; ``4dof``: ``dt, dphi_z``; ``sim3``: and ``ds``; ``scale``: ``ds``, about the
+    origin). With ``W_k``
     the inverse covariance of the errors the NEES after the alignment is what it leaves:
     the fit removes as much of it as its parameters can, not more in one direction than in
     another.
@@ -418,27 +422,33 @@ def gls_alignment(start: Alignment, y: np.ndarray, p: np.ndarray, arm: np.ndarra
             "scale": [6]}[method]
     N = y.shape[0]
     for _ in range(GLS_MAX_ITER):
-        u = s * p + arm
-        Ru = u @ R.T
-        r = y - (Ru + t)
+        x = (s * p + arm) @ R.T + t
+        c = x.mean(axis=0) if method != "scale" else np.zeros(3)
+        r = y - x
         J = np.zeros((N, 3, 7))
         J[:, :, :3] = np.eye(3)
-        J[:, :, 3:6] = -hat(Ru)
+        J[:, :, 3:6] = -hat(x - c)
         J[:, :, 6] = p @ R.T
         J = J[:, :, cols]
         JW = np.swapaxes(J, 1, 2) @ W
         H = np.einsum("nij,njk->ik", JW, J)
         g = np.einsum("nij,nj->i", JW, r)
-        if np.linalg.cond(H) > 1e12:
+        d = np.sqrt(np.diag(H))
+        if not np.all(d > 0) or np.linalg.cond(H / np.outer(d, d)) > 1e12:
             raise GeometryError(f"Degenerate weighted {method} alignment: the positions do "
                                 "not determine its parameters")
         step = np.zeros(7)
         step[cols] = np.linalg.solve(H, g)
-        t = t + step[:3]
-        R = exp_so3(step[3:6]) @ R
+        dR = exp_so3(step[3:6])
+        R = dR @ R
+        t = dR @ (t - c) + c + step[:3]
         s = s + step[6]
-        if (np.max(np.abs(step[:6])) <= GLS_TOL * max(1.0, float(np.abs(t).max()))
-                and abs(step[6]) <= GLS_TOL * abs(s)):
+        # how far the step moves the points, against the spread of the points and the
+        # rounding of their coordinates (far from the origin, e.g. UTM)
+        spread = float(np.abs(x - c).max())
+        move = (np.abs(step[:3]).max() + np.abs(step[3:6]).max() * spread
+                + abs(step[6]) * float(np.abs(p).max()))
+        if move <= max(GLS_TOL * spread, 1e3 * np.finfo(float).eps * float(np.abs(y).max())):
             break
     else:
         raise ConvergenceError(f"The weighted {method} alignment did not converge in "
