@@ -694,50 +694,19 @@ def evaluate_positions(
     name = gt.name if isinstance(gt, PositionTrajectory) else getattr(gt, "name", "")
     g = PositionTrajectory(a.t, a.position, None if a.cov is None else a.cov[:, :3, :3], name)
     e_raw = assoc.est
-    alignment = align_points(g.position, e_raw.position, e_raw.rotation, lever,
-                             method=options.align, n_align=options.n_align)
-    if options.weighted and options.align != "none":
-        # generalised least squares: each error weighted by the inverse of its covariance
-        # (the estimate's point mapped by the unweighted fit)
-        if g.cov is None:
-            raise InputError("A weighted alignment needs a ground truth with covariances")
-        e0 = alignment.apply(e_raw)
-        c0 = point_covariance(lever_arm_points(e0.position, e0.rotation, lever), e0.cov)
-        try:
-            W = np.linalg.inv(g.cov + (0.0 if c0 is None else c0))
-        except np.linalg.LinAlgError:
-            raise InputError("A weighted alignment needs positive definite covariances") from None
-        alignment = align_points(g.position, e_raw.position, e_raw.rotation, lever,
-                                 method=options.align, n_align=options.n_align, weights=W)
+    alignment = align_step(g, e_raw, lever, options)
     e = alignment.apply(e_raw)
     pts: LeverArmPoints = lever_arm_points(e.position, e.rotation, lever)
     est_cov = point_covariance(pts, e.cov)
     lever_shared = None
     if lever_arm_cov is not None:
-        C_l = np.asarray(lever_arm_cov, dtype=float)
-        if C_l.shape != (3, 3) or not np.all(np.isfinite(C_l)):
-            raise InputError(f"Expected a finite 3x3 lever arm covariance, got shape "
-                             f"{C_l.shape}")
-        F_l = lever_arm_factor(pts, C_l)
-        lever_shared = (F_l, ("lever_arm_x", "lever_arm_y", "lever_arm_z"))
-        marginal = F_l @ np.swapaxes(F_l, 1, 2)
+        lever_shared = _lever_arm_shared(pts, lever_arm_cov)
+        marginal = lever_shared[0] @ np.swapaxes(lever_shared[0], 1, 2)
         est_cov = marginal if est_cov is None else est_cov + marginal
     err = pts.position - g.position
     ape = PositionErrors.from_errors(np.linalg.norm(err, axis=1))
-
     est_points = PositionTrajectory(e.t, pts.position, est_cov, "estimate")
-    source = g if options.pairs_from_reference else est_points
-    pairs = rpe_pairs(source.position, source.t, options.delta, options.delta_unit,
-                      all_pairs=options.all_pairs, rel_tol=options.rel_delta_tol)
-    rpe, no_rpe = None, None
-    if pairs.shape[0] == 0:
-        no_rpe = _no_pair_reason(_pose_view(source), float(options.delta), options.delta_unit)
-    else:
-        d_err = err[pairs[:, 1]] - err[pairs[:, 0]]
-        rpe = PositionErrors.from_errors(np.linalg.norm(d_err, axis=1), pairs)
-        support = np.asarray(gt.t, float) if isinstance(gt, PositionTrajectory) else None
-        _warn_gaps(assoc, pairs, support)
-
+    pairs, rpe, no_rpe = rpe_step(gt, g, est_points, err, assoc, options)
     S = None if g.cov is None else g.cov + (0.0 if est_cov is None else est_cov)
     if S is None:
         nees = NeesSection(None, None, None, None, "none: the ground truth has no covariance",
@@ -748,23 +717,7 @@ def evaluate_positions(
         absolute = _split_verdict(gt, g, point_covariance(pts, e.cov), assoc, err, absolute,
                                   options.align, lever_shared,
                                   upper=e.cov is None and lever_shared is None)
-        what = "ground truth" + (" + estimate (through the lever arm)" if est_cov is not None
-                                 else "")
-        f_t = noise_floor(g.cov)
-        floor = NoiseFloor(f_t, remove_floor(ape.translation_m.rmse, f_t))
-        if rpe is None:
-            nees = NeesSection(absolute, None, None, None, what, "not applicable (no RPE pair)")
-        else:
-            rel_cov, why = _relative_covariance(gt, g, assoc, pairs)
-            rel = _nees(err[pairs[:, 1]] - err[pairs[:, 0]], rel_cov, 3, "relative position",
-                        g.t[pairs[:, 0]])
-            nees = NeesSection(absolute, None, rel, None,
-                               what + (" (relative: ground truth only)" if est_cov is not None
-                                       else ""), why)
-            fr = noise_floor(rel_cov)
-            floor = dataclasses.replace(
-                floor, rpe_translation_m=fr,
-                rpe_translation_rmse_floor_removed_m=remove_floor(rpe.translation_m.rmse, fr))
+        nees, floor = nees_step(gt, g, est_cov, assoc, err, pairs, absolute, ape, rpe)
     return PositionEvaluationResult(
         t=assoc.est.t, gt=g, est=est_points, est_poses=e, lever_arm=lever, alignment=alignment,
         association=assoc, ape=ape, rpe=rpe, nees=nees, noise_floor=floor,
@@ -772,6 +725,78 @@ def evaluate_positions(
         rpe_delta_unit=options.delta_unit, rpe_all_pairs=bool(options.all_pairs),
         rpe_absent_reason=no_rpe, lever_arm_source=lever_arm_source,
         lever_arm_cov=None if lever_arm_cov is None else np.asarray(lever_arm_cov, float))
+
+
+def align_step(g: PositionTrajectory, e_raw: PoseTrajectory, lever: np.ndarray,
+               options: EvaluationOptions) -> Alignment:
+    """The alignment of the estimate's points onto the ground truth (:func:`align_points`);
+    with ``weighted``, generalised least squares, each error weighted by the inverse of its
+    covariance (the estimate's point as the unweighted fit maps it)."""
+    alignment = align_points(g.position, e_raw.position, e_raw.rotation, lever,
+                             method=options.align, n_align=options.n_align)
+    if not options.weighted or options.align == "none":
+        return alignment
+    if g.cov is None:
+        raise InputError("A weighted alignment needs a ground truth with covariances")
+    e0 = alignment.apply(e_raw)
+    c0 = point_covariance(lever_arm_points(e0.position, e0.rotation, lever), e0.cov)
+    try:
+        W = np.linalg.inv(g.cov + (0.0 if c0 is None else c0))
+    except np.linalg.LinAlgError:
+        raise InputError("A weighted alignment needs positive definite covariances") from None
+    return align_points(g.position, e_raw.position, e_raw.rotation, lever,
+                        method=options.align, n_align=options.n_align, weights=W)
+
+
+def _lever_arm_shared(pts: LeverArmPoints,
+                      lever_arm_cov: ArrayLike) -> tuple[np.ndarray, tuple[str, ...]]:
+    """The points' factor of an estimated lever arm's error and its parameter names."""
+    C_l = np.asarray(lever_arm_cov, dtype=float)
+    if C_l.shape != (3, 3) or not np.all(np.isfinite(C_l)):
+        raise InputError(f"Expected a finite 3x3 lever arm covariance, got shape {C_l.shape}")
+    return lever_arm_factor(pts, C_l), ("lever_arm_x", "lever_arm_y", "lever_arm_z")
+
+
+def rpe_step(gt: PositionGroundTruth, g: PositionTrajectory, est_points: PositionTrajectory,
+             err: np.ndarray, assoc: Association, options: EvaluationOptions
+             ) -> tuple[np.ndarray, PositionErrors | None, str | None]:
+    """evo's RPE pairs (from the aligned estimate's points, or the ground truth's), the
+    errors ``|e_j - e_i|`` and, without a pair, why; pairs across a gap of a discrete ground
+    truth are counted in a warning (:func:`rtsgt.evaluation.evaluator.evaluate`)."""
+    source = g if options.pairs_from_reference else est_points
+    pairs = rpe_pairs(source.position, source.t, options.delta, options.delta_unit,
+                      all_pairs=options.all_pairs, rel_tol=options.rel_delta_tol)
+    if pairs.shape[0] == 0:
+        return pairs, None, _no_pair_reason(_pose_view(source), float(options.delta),
+                                            options.delta_unit)
+    d_err = err[pairs[:, 1]] - err[pairs[:, 0]]
+    support = np.asarray(gt.t, float) if isinstance(gt, PositionTrajectory) else None
+    _warn_gaps(assoc, pairs, support)
+    return pairs, PositionErrors.from_errors(np.linalg.norm(d_err, axis=1), pairs), None
+
+
+def nees_step(gt: PositionGroundTruth, g: PositionTrajectory, est_cov: np.ndarray | None,
+              assoc: Association, err: np.ndarray, pairs: np.ndarray, absolute: NeesResult,
+              ape: PositionErrors, rpe: PositionErrors | None) -> tuple[NeesSection, NoiseFloor]:
+    """The NEES section (the absolute one given, the relative one of the RPE pairs) and the
+    noise floor, for a ground truth with covariances."""
+    what = "ground truth" + (" + estimate (through the lever arm)" if est_cov is not None
+                             else "")
+    f_t = noise_floor(g.cov)
+    floor = NoiseFloor(f_t, remove_floor(ape.translation_m.rmse, f_t))
+    if rpe is None:
+        return NeesSection(absolute, None, None, None, what, "not applicable (no RPE pair)"), floor
+    rel_cov, why = _relative_covariance(gt, g, assoc, pairs)
+    rel = _nees(err[pairs[:, 1]] - err[pairs[:, 0]], rel_cov, 3, "relative position",
+                g.t[pairs[:, 0]])
+    nees = NeesSection(absolute, None, rel, None,
+                       what + (" (relative: ground truth only)" if est_cov is not None else ""),
+                       why)
+    fr = noise_floor(rel_cov)
+    floor = dataclasses.replace(
+        floor, rpe_translation_m=fr,
+        rpe_translation_rmse_floor_removed_m=remove_floor(rpe.translation_m.rmse, fr))
+    return nees, floor
 
 
 def _pose_view(traj: PositionTrajectory) -> PoseTrajectory:
