@@ -29,8 +29,10 @@ class DeploymentData:
     observations : tuple of Observations
         One per station; station ``obs.station`` tracks prism ``obs.prism``.
     gcp : GcpShots
-    reference : ReferencePoints
-        Reference prisms in the body frame, with covariance.
+    reference : ReferencePoints or None
+        Reference prisms in the body frame, with covariance; None for a deployment with fewer
+        than 3 tracked prisms (its run gives positions only,
+        :class:`rtsgt.record.PositionRunRecord`).
     reference_station : str
         The world frame is this station's frame.
     weather : WeatherSeries, optional
@@ -46,7 +48,7 @@ class DeploymentData:
     instrument: InstrumentProfile
     observations: tuple[Observations, ...]
     gcp: GcpShots
-    reference: ReferencePoints
+    reference: ReferencePoints | None
     reference_station: str = "1"
     weather: WeatherSeries | None = None
     query_times: np.ndarray | None = None

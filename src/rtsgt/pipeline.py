@@ -53,6 +53,16 @@ Two stations calibrated from the same reference shots have correlated calibratio
 out by the registration. On simulated deployments this took the position NEES / dof from
 1.15-1.25 to 1.11-1.12 (README, section Honesty).
 
+Fewer than three prisms
+-----------------------
+A pose needs three tracked prisms. With one or two (a deployment of one or two stations,
+:data:`rtsgt.record.MIN_POSE_PRISMS`) the run stops after the GPs: each prism's positions at
+the query times with their covariance (GP posterior plus the systematic sources), the
+static-stretch check (and the inflation of time-correlated noise it may call for), the block
+cross-validation and the GCP fit; no pose, no gate, no inter-prism check. It returns a
+:class:`~rtsgt.record.PositionRunRecord`, the position-only ground truth of
+:mod:`rtsgt.evaluation.positions`.
+
 Checks that warn
 ----------------
 A run says what it cannot vouch for as :class:`~rtsgt.errors.RtsgtWarning` (recorded in
@@ -121,7 +131,13 @@ from rtsgt.noise import NoiseModel, propagate
 from rtsgt.noise.correlated import correlated_noise_plan, inflate_tracks
 from rtsgt.options import RunOptions, stage_rng
 from rtsgt.pose import PoseEstimate, ReferencePoints, estimate_poses
-from rtsgt.record import RunComputation, RunRecord, ordered_sources
+from rtsgt.record import (
+    MIN_POSE_PRISMS,
+    PositionRunRecord,
+    RunComputation,
+    RunRecord,
+    ordered_sources,
+)
 from rtsgt.shared import SharedFactor, select_prisms, split_ground_truth
 from rtsgt.types import Observations, PoseTrajectory, PrismTrack
 
@@ -130,7 +146,7 @@ Progress = Callable[[str], None]
 
 def run_pipeline(
     data: DeploymentData, options: RunOptions | None = None, progress: Progress | None = None
-) -> RunRecord:
+) -> RunRecord | PositionRunRecord:
     """Compute the ground truth of a deployment.
 
     Parameters
@@ -142,8 +158,9 @@ def run_pipeline(
 
     Returns
     -------
-    RunRecord
-        The run record (:mod:`rtsgt.record`), with :attr:`~rtsgt.record.RunRecord.computation`
+    RunRecord or PositionRunRecord
+        The run record (:mod:`rtsgt.record`; a :class:`~rtsgt.record.PositionRunRecord` for a
+        deployment with fewer than three tracked prisms, module docstring), with :attr:`~rtsgt.record.RunRecord.computation`
         (what only exists in memory) and :attr:`~rtsgt.record.RunRecord.warnings`: every :class:`UserWarning` (the
         :class:`~rtsgt.errors.RtsgtWarning` of the checks included) the stages raised, once
         each. They are recorded while the stages run and then issued again, once each, so a
@@ -194,21 +211,24 @@ def _reissue(caught: list[warnings.WarningMessage]) -> list[str]:
     return said
 
 
-def _run_stages(
-    data: DeploymentData, options: RunOptions | None, progress: Progress | None
-) -> RunRecord:
-    """The stages of :func:`run_pipeline` (their warnings not yet recorded)."""
-    options = RunOptions() if options is None else options
-    say = progress or (lambda stage: None)
-    timings: dict[str, float] = {}
-    tick = time.perf_counter()
+class _Front(NamedTuple):
+    """What the stages before the GPs compute (module 1 to module 2), for either kind of run."""
 
-    def lap(name: str) -> None:
-        nonlocal tick
-        now = time.perf_counter()
-        timings[name] = now - tick
-        tick = now
+    reports: dict[str, object]
+    weather_coverage: dict | None
+    model: NoiseModel
+    calib: CalibrationResult
+    gcp_world: dict[str, np.ndarray]
+    tracks: dict[str, PrismTrack]
+    intervals: np.ndarray
+    removal: tuple
+    removed: RemovedMeasurements
+    filtered: list
 
+
+def _front(data: DeploymentData, options: RunOptions, say: Progress,
+           lap: Callable[[str], None]) -> _Front:
+    """Module 1, the calibration, the noise model and module 2 (the stages of every run)."""
     say("filtering (module 1)")
     fparams = options.filter
     filtered, reports, reports1 = [], {}, []
@@ -260,6 +280,30 @@ def _run_stages(
     removed = removed_measurements(*removal)
     tracks = {tr.prism: tr for tr in kept_tracks}
     lap("filter_module2")
+    return _Front(reports, weather_coverage, model, calib, gcp_world, tracks, intervals,
+                  removal, removed, filtered)
+
+
+def _run_stages(
+    data: DeploymentData, options: RunOptions | None, progress: Progress | None
+) -> RunRecord | PositionRunRecord:
+    """The stages of :func:`run_pipeline` (their warnings not yet recorded)."""
+    options = RunOptions() if options is None else options
+    say = progress or (lambda stage: None)
+    timings: dict[str, float] = {}
+    tick = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal tick
+        now = time.perf_counter()
+        timings[name] = now - tick
+        tick = now
+
+    front = _front(data, options, say, lap)
+    if len(data.observations) < MIN_POSE_PRISMS:
+        return _position_stages(data, options, front, say, timings)
+    reports, weather_coverage, model, calib, gcp_world = front[:5]
+    tracks, intervals, removal, removed, filtered = front[5:]
 
     coupling = StationCoupling.from_calibration(calib)
     reference = data.reference.select(list(tracks))
@@ -316,6 +360,131 @@ def _run_stages(
     return replace(record, groundtruth_split=split, correlated_noise=correlated)
 
 
+# ------------------------------------------------------------------------------------------
+# a run with one or two tracked prisms: positions, no pose
+# ------------------------------------------------------------------------------------------
+
+
+class _PositionFit(NamedTuple):
+    """The GPs of the tracks and the prisms at the query times (a position-only run)."""
+
+    tracks: dict[str, PrismTrack]
+    gps: dict[str, GPTrack]
+    qc_info: dict[str, dict]
+    prisms: PrismsAtTimes
+
+
+def _query_times(query_times: np.ndarray | None, intervals: np.ndarray, rate_hz: float,
+                 gps: dict[str, GPTrack]) -> np.ndarray:
+    """The query times of a run: the given ones inside the common intervals, else the grid;
+    those across a gap of some GP (longer than ``max_gap_s``) left out."""
+    if query_times is not None:
+        t_query = np.asarray(query_times, dtype=float)
+        inside = np.zeros(t_query.shape, bool)
+        for a, b in intervals:
+            inside |= (t_query >= a) & (t_query <= b)
+        t_query = t_query[inside]
+    else:
+        t_query = query_grid(intervals, rate_hz)
+    ok = np.ones(t_query.shape, bool)
+    for g in gps.values():
+        ok &= g.supported(t_query)
+    t_query = t_query[ok]
+    if t_query.size == 0:
+        raise InputError("No query time falls inside the intervals common to all prisms")
+    return t_query
+
+
+def _fit_positions(options: RunOptions, query_times: np.ndarray | None, intervals: np.ndarray,
+                   tracks: dict[str, PrismTrack], coupling: StationCoupling,
+                   say: Progress) -> _PositionFit:
+    """The GPs (Qc search included) and the prisms at the query times."""
+    say("GP interpolation")
+    qc_info: dict[str, dict] = {}
+    gps = fit_gps(tracks, options.interpolation, info=qc_info)
+    t_query = _query_times(query_times, intervals, options.interpolation.rate_hz, gps)
+    prisms = query_prisms(tracks, gps, t_query, options.interpolation, coupling)
+    return _PositionFit(tracks, gps, qc_info, prisms)
+
+
+def _position_stages(data: DeploymentData, options: RunOptions, front: _Front,
+                     say: Progress, timings: dict[str, float]) -> PositionRunRecord:
+    """A run with fewer than :data:`~rtsgt.record.MIN_POSE_PRISMS` tracked prisms: each
+    prism's GP at the query times (positions with covariance), the static-stretch check (and
+    the inflation of time-correlated noise, as in a pose run), the block cross-validation and
+    the GCP fit; no pose, no gate, no inter-prism check."""
+    tick = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal tick
+        now = time.perf_counter()
+        timings[name] = now - tick
+        tick = now
+
+    calib, tracks = front.calib, front.tracks
+    coupling = StationCoupling.from_calibration(calib)
+    origins = {s: np.asarray(T.translation, dtype=float) for s, T in calib.transforms.items()}
+    fit = _fit_positions(options, data.query_times, front.intervals, tracks, coupling, say)
+    lap("interpolation")
+    say("self-check: static stretches")
+    static = static_noise_check(fit.tracks, origins,
+                                static_stretches(fit.prisms.t, fit.prisms.xyz))
+    correlated = correlated_noise_plan(
+        static, tracks, apply=options.interpolation.correlated_noise == "inflate")
+    lap("static_noise")
+    if correlated["applied"]:
+        fit = _fit_positions(options, data.query_times, front.intervals,
+                             inflate_tracks(tracks, origins, correlated), coupling,
+                             lambda stage: say(f"{stage}, correlated noise inflated"))
+        lap("correlated_noise")
+    say("self-checks")
+    self_checks = {"gcp_fit": gcp_fit_check(calib),
+                   "block_cv": block_cv_check(fit.tracks, fit.gps,
+                                              gp_noise=options.interpolation.gp_noise,
+                                              max_gap_s=options.interpolation.max_gap_s),
+                   "static_noise": static}
+    lap("self_checks")
+    pr = fit.prisms
+    computation = RunComputation(data, calib, front.model, front.reports, fit.tracks, fit.gps,
+                                 pr, None, np.ones(pr.t.shape, bool), None, timings,
+                                 fit.qc_info)
+    measurements, gp_cov = _measurements(fit.tracks, calib, options)
+    gcp_names = tuple(front.gcp_world)
+    return PositionRunRecord(
+        name=data.name, prism_ids=tuple(fit.tracks), measurements=measurements,
+        prisms_t=pr.t, prisms_xyz=pr.xyz, prisms_cov=pr.cov,
+        prisms_cov_by_source={s: pr.cov_by_source[s] for s in ordered_sources(pr.cov_by_source)},
+        prisms_cov_gp=pr.cov_gp, options=options,
+        stations={s: np.asarray(T.translation, dtype=float)
+                  for s, T in calib.transforms.items()},
+        gcp_xyz=np.array([front.gcp_world[n] for n in gcp_names]) if gcp_names else None,
+        gcp_names=gcp_names, qc={pid: np.asarray(g.qc) for pid, g in fit.gps.items()},
+        qc_scale={pid: np.asarray(g.qc_scale) for pid, g in fit.gps.items()
+                  if g.qc_scale is not None}, prior={pid: g.prior for pid, g in fit.gps.items()},
+        intervals=front.intervals, coupling=coupling, removed=front.removed,
+        measurements_gp_cov=gp_cov, weather_coverage=front.weather_coverage,
+        self_checks=self_checks, correlated_noise=correlated, computation=computation)
+
+
+def _measurements(tracks: dict[str, PrismTrack], calib: CalibrationResult,
+                  options: RunOptions) -> tuple[dict[str, PrismTrack], dict[str, np.ndarray]]:
+    """The measured tracks as a record keeps them (``cov``: the sum of the per-source
+    covariances; the range from the station where the track has none) and the covariance
+    each GP was given."""
+    stations = {s: np.asarray(T.translation, dtype=float) for s, T in calib.transforms.items()}
+    measurements = {}
+    for pid, tr in tracks.items():
+        rng_m = tr.range_m
+        if rng_m is None and tr.station in stations:
+            rng_m = np.linalg.norm(tr.xyz - stations[tr.station], axis=1)
+        cov = np.sum(list(tr.cov_by_source.values()), axis=0) if tr.cov_by_source else tr.cov
+        measurements[pid] = PrismTrack(tr.t, tr.xyz, cov, tr.cov_by_source, pid, tr.frame,
+                                       tr.station, rng_m)
+    gp_cov = {pid: gp_covariance(tr, options.interpolation.gp_noise)
+              for pid, tr in tracks.items()}
+    return measurements, gp_cov
+
+
 class _Fit(NamedTuple):
     """What :func:`_fit_to_gates` computes from the tracks."""
 
@@ -353,21 +522,8 @@ def _fit_to_gates(options: RunOptions, query_times: np.ndarray | None, intervals
     say("GP interpolation")
     qc_info: dict[str, dict] = {}
     gps = fit_gps(tracks, options.interpolation, info=qc_info)
-    if query_times is not None:
-        t_query = np.asarray(query_times, dtype=float)
-        inside = np.zeros(t_query.shape, bool)
-        for a, b in intervals:
-            inside |= (t_query >= a) & (t_query <= b)
-        t_query = t_query[inside]
-    else:
-        t_query = query_grid(intervals, options.interpolation.rate_hz)
     # queries across a gap longer than max_gap_s in any prism are not poses we can vouch for
-    ok = np.ones(t_query.shape, bool)
-    for g in gps.values():
-        ok &= g.supported(t_query)
-    t_query = t_query[ok]
-    if t_query.size == 0:
-        raise InputError("No query time falls inside the intervals common to all prisms")
+    t_query = _query_times(query_times, intervals, options.interpolation.rate_hz, gps)
     prisms = query_prisms(tracks, gps, t_query, options.interpolation, coupling)
     lap("interpolation")
 
@@ -613,14 +769,7 @@ def _record(c: RunComputation, options: RunOptions, intervals: np.ndarray,
     ids = tuple(c.tracks)
     stations = {s: np.asarray(T.translation, dtype=float)
                 for s, T in c.calibration.transforms.items()}
-    measurements = {}
-    for pid, tr in c.tracks.items():
-        rng_m = tr.range_m
-        if rng_m is None and tr.station in stations:
-            rng_m = np.linalg.norm(tr.xyz - stations[tr.station], axis=1)
-        cov = np.sum(list(tr.cov_by_source.values()), axis=0) if tr.cov_by_source else tr.cov
-        measurements[pid] = PrismTrack(tr.t, tr.xyz, cov, tr.cov_by_source, pid, tr.frame,
-                                       tr.station, rng_m)
+    measurements, gp_cov = _measurements(c.tracks, c.calibration, options)
     pr = c.prisms
     reject = ~c.keep
     gcp_names = tuple(gcp_world)
@@ -638,8 +787,7 @@ def _record(c: RunComputation, options: RunOptions, intervals: np.ndarray,
                   if g.qc_scale is not None}, prior={pid: g.prior for pid, g in c.gps.items()},
         intervals=intervals, uncertainty_measure=c.gate_report.uncertainty_measure,
         coupling=coupling, removed=removed,
-        measurements_gp_cov={pid: gp_covariance(tr, options.interpolation.gp_noise)
-                             for pid, tr in c.tracks.items()},
+        measurements_gp_cov=gp_cov,
         weather_coverage=weather_coverage, distance_check=distance_check,
         self_checks=self_checks, computation=c,
     )

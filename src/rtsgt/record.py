@@ -38,8 +38,8 @@ from rtsgt.pose.reference import ReferencePoints
 from rtsgt.shared import SharedFactor
 from rtsgt.types import NOISE_SOURCES, PoseTrajectory, PrismTrack
 
-__all__ = ["RUN_SCHEMA_NAME", "RUN_SCHEMA_VERSION", "RunComputation", "RunRecord",
-           "no_removed_measurements", "ordered_sources"]
+__all__ = ["MIN_POSE_PRISMS", "RUN_SCHEMA_NAME", "RUN_SCHEMA_VERSION", "PositionRunRecord",
+           "RunComputation", "RunRecord", "no_removed_measurements", "ordered_sources"]
 
 #: Name and version of the run record's layout on disk (``summary.json`` ``schema``). A reader
 #: refuses a newer version; a summary without the key is of the layout before it (version 0).
@@ -76,9 +76,11 @@ class RunComputation:
     tracks: dict[str, PrismTrack]
     gps: dict[str, GPTrack]
     prisms: PrismsAtTimes
-    estimate: PoseEstimate
+    #: The poses; None for a position-only run (:class:`PositionRunRecord`).
+    estimate: PoseEstimate | None
     keep: np.ndarray
-    gate_report: GateReport
+    #: Module 4's report; None for a position-only run.
+    gate_report: GateReport | None
     timings_s: dict[str, float]
     qc_info: dict[str, dict] = field(default_factory=dict)
 
@@ -245,6 +247,89 @@ class RunRecord:
     def reference_cov(self) -> np.ndarray:
         """Their joint covariance, (3n, 3n) m^2."""
         return self.tracked_reference.cov
+
+    @property
+    def sources(self) -> tuple[str, ...]:
+        """Noise sources present in the measurements, in :data:`NOISE_SOURCES` order."""
+        present = set()
+        for tr in self.measurements.values():
+            present |= set(tr.cov_by_source)
+        return ordered_sources(present)
+
+
+#: Why a run gives positions only: a pose needs at least this many tracked prisms.
+MIN_POSE_PRISMS = 3
+
+
+@dataclass(frozen=True)
+class PositionRunRecord:
+    """A run of a deployment with one or two tracked prisms: each prism's positions with
+    covariance (a 3-DOF ground truth, :mod:`rtsgt.evaluation.positions`), no pose.
+
+    The fields are those of :class:`RunRecord` that a run without poses has, with the same
+    meaning: no ``groundtruth``, no gates (``rejected_*``), no reference survey (a pose's), no
+    inter-prism checks. ``prisms_*`` hold every query time (none is rejected).
+
+    Attributes
+    ----------
+    name : str
+    prism_ids : tuple of str, length n (1 or 2)
+    measurements : dict str -> PrismTrack
+    prisms_t : ndarray, shape (T,)
+    prisms_xyz : ndarray, shape (T, n, 3)
+    prisms_cov : ndarray, shape (T, n, 3, 3)
+        Total covariance (GP posterior plus the systematic sources), m^2.
+    prisms_cov_by_source : dict str -> ndarray (T, n, 3, 3)
+    prisms_cov_gp : ndarray, shape (T, n, 3, 3), optional
+    options, schema_version, stations, gcp_xyz, gcp_names, qc, qc_scale, prior, intervals,
+    coupling, removed, measurements_gp_cov, warnings, weather_coverage, self_checks,
+    correlated_noise, summary, path :
+        As :class:`RunRecord`.
+    computation : RunComputation, optional
+        What only exists in memory (``estimate`` and ``gate_report`` None); None for a record
+        read from files.
+    """
+
+    name: str
+    prism_ids: tuple[str, ...]
+    measurements: dict[str, PrismTrack]
+    prisms_t: np.ndarray
+    prisms_xyz: np.ndarray
+    prisms_cov: np.ndarray
+    prisms_cov_by_source: dict[str, np.ndarray]
+    prisms_cov_gp: np.ndarray | None = None
+    options: RunOptions = field(default_factory=RunOptions)
+    schema_version: int = RUN_SCHEMA_VERSION
+    stations: dict[str, np.ndarray] = field(default_factory=dict)
+    gcp_xyz: np.ndarray | None = None
+    gcp_names: tuple[str, ...] = ()
+    qc: dict[str, np.ndarray] = field(default_factory=dict)
+    qc_scale: dict[str, np.ndarray] = field(default_factory=dict)
+    prior: dict[str, str] = field(default_factory=dict)
+    intervals: np.ndarray | None = None
+    coupling: StationCoupling | None = None
+    removed: RemovedMeasurements = field(default_factory=no_removed_measurements)
+    measurements_gp_cov: dict[str, np.ndarray] = field(default_factory=dict)
+    warnings: tuple[str, ...] = ()
+    weather_coverage: dict | None = None
+    self_checks: dict = field(default_factory=dict)
+    correlated_noise: dict = field(default_factory=dict)
+    summary: dict = field(default_factory=dict)
+    path: Path | None = None
+    computation: RunComputation | None = None
+
+    def __post_init__(self) -> None:
+        n = len(self.prism_ids)
+        if not 1 <= n < MIN_POSE_PRISMS:
+            raise ValueError(f"Expected 1 or 2 prisms in a position-only run, got {n}")
+        T = self.prisms_t.shape[0]
+        for what, arr, shape in (("prisms_xyz", self.prisms_xyz, (T, n, 3)),
+                                 ("prisms_cov", self.prisms_cov, (T, n, 3, 3)),
+                                 ("prisms_cov_gp", self.prisms_cov_gp, (T, n, 3, 3)),
+                                 *((f"prisms_cov_by_source[{s!r}]", c, (T, n, 3, 3))
+                                   for s, c in self.prisms_cov_by_source.items())):
+            if arr is not None and arr.shape != shape:
+                raise ValueError(f"Expected {what} of shape {shape}, got {arr.shape}")
 
     @property
     def sources(self) -> tuple[str, ...]:

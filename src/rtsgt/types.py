@@ -336,6 +336,54 @@ class PoseTrajectory:
 
 
 @dataclass(frozen=True)
+class PositionTrajectory:
+    """Positions of one point (a prism) over time, optionally with a 3x3 covariance each: a
+    position-only ground truth (a run with one or two tracked prisms, a prism topic of a
+    dataset).
+
+    Attributes
+    ----------
+    t : ndarray, shape (N,)
+        Time, s.
+    position : ndarray, shape (N, 3)
+        World position, m.
+    cov : ndarray, shape (N, 3, 3), optional
+        Covariance of each position, m^2, world frame.
+    name : str
+        What the point is (a prism id, a topic), for messages.
+    """
+
+    t: np.ndarray
+    position: np.ndarray
+    cov: np.ndarray | None = None
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        t = _frozen(self.t)
+        n = t.shape[0]
+        p = _frozen(self.position)
+        if t.ndim != 1:
+            raise ValueError(f"Expected t of shape (N,), got {t.shape}")
+        if p.shape != (n, 3):
+            raise ValueError(f"Expected position of shape ({n}, 3), got {p.shape}")
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "position", p)
+        if self.cov is not None:
+            c = _frozen(self.cov)
+            if c.shape != (n, 3, 3):
+                raise ValueError(f"Expected cov of shape ({n}, 3, 3), got {c.shape}")
+            object.__setattr__(self, "cov", c)
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
+
+    def select(self, mask) -> PositionTrajectory:
+        """The rows where ``mask`` is true (or at the given indices)."""
+        return PositionTrajectory(self.t[mask], self.position[mask],
+                                  None if self.cov is None else self.cov[mask], self.name)
+
+
+@dataclass(frozen=True)
 class SurveyShots:
     """Static survey of points on the robot by one station, survey (manual-shot) convention.
 

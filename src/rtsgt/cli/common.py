@@ -16,7 +16,7 @@ from rtsgt.calibration.gcp import (
     CALIBRATION_WEIGHTING_NAMES,
 )
 from rtsgt.errors import InputError
-from rtsgt.record import RunRecord
+from rtsgt.record import MIN_POSE_PRISMS, PositionRunRecord, RunRecord
 
 
 def tau_text(correlation: dict) -> str:
@@ -94,13 +94,27 @@ class Stages:
             self._status.__exit__(*exc)
 
 
-def print_run_summary(record: RunRecord, out) -> None:
-    """A short table of what a run produced."""
-    gt = record.groundtruth
+def print_run_summary(record: RunRecord | PositionRunRecord, out) -> None:
+    """A short table of what a run produced (a position-only run: its prisms' positions)."""
     console = Console()
     table = Table(title=f"rtsgt run: {record.name}", show_header=False)
-    table.add_row("poses kept / queried", f"{len(gt)} / {record.prisms_t.shape[0]}")
-    if len(gt):
+    positions = isinstance(record, PositionRunRecord)
+    gt = None if positions else record.groundtruth
+    if positions:
+        t = record.prisms_t
+        n = len(record.prism_ids)
+        table.add_row("ground truth", f"positions of prism{'s' if n > 1 else ''} "
+                      f"{', '.join(record.prism_ids)} (a pose needs {MIN_POSE_PRISMS} tracked "
+                      "prisms): prisms/prism<i>.csv")
+        table.add_row("positions", str(t.size))
+        for i, pid in enumerate(record.prism_ids):
+            sig = np.sqrt(np.trace(record.prisms_cov[:, i], axis1=1, axis2=2)) * 1e3
+            table.add_row(f"median sigma prism {pid} (sqrt trace)", f"{np.median(sig):.2f} mm")
+        if t.size:
+            table.add_row("time span", f"{t[-1] - t[0]:.1f} s")
+    else:
+        table.add_row("poses kept / queried", f"{len(gt)} / {record.prisms_t.shape[0]}")
+    if gt is not None and len(gt):
         sig_t = np.sqrt(np.trace(gt.cov[:, :3, :3], axis1=1, axis2=2)) * 1e3
         sig_r = np.sqrt(np.trace(gt.cov[:, 3:, 3:], axis1=1, axis2=2)) * 1e3
         table.add_row("median sigma translation (sqrt trace)", f"{np.median(sig_t):.2f} mm")
@@ -113,9 +127,10 @@ def print_run_summary(record: RunRecord, out) -> None:
         unit = "m^2/s^5" if prior == "wnoj" else "m^2/s^3"
         table.add_row(f"Qc prism {pid} (x, y, z), GP prior",
                       ", ".join(f"{q:.2e}" for q in np.diag(qc)) + f" {unit}, {prior.upper()}")
-    reasons, counts = np.unique(record.rejected_reason, return_counts=True)
-    for reason, count in zip(reasons, counts, strict=True):
-        table.add_row(f"rejected: {reason}", str(int(count)))
+    if not positions:
+        reasons, counts = np.unique(record.rejected_reason, return_counts=True)
+        for reason, count in zip(reasons, counts, strict=True):
+            table.add_row(f"rejected: {reason}", str(int(count)))
     read = None if record.computation is None else record.computation.filter_reports.get("input")
     if read is not None:  # the messages of a bag the reader removed, by status
         gone = ", ".join(f"{k} {v}" for k, v in read.removed.items() if v)

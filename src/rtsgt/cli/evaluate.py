@@ -16,6 +16,12 @@ falls back to the run's default when the summary lacks it), so that every pose t
 produced is evaluated; for a trajectory file, or a directory without that limit, it defaults
 to :data:`DEFAULT_MAX_GAP_FILE_S`. An explicit value always wins.
 
+A position-only ground truth (:func:`wants_positions`: a run with one or two tracked prisms, a
+position CSV, or ``--lever-arm``, ``--prism``, ``--gt-topic``) is evaluated by
+:func:`rtsgt.evaluation.evaluate_positions`: the estimate's sensor pose moved by the lever arm
+against the prism's positions (:func:`load_position_ground_truth`; docs/evaluation.md,
+section Position-only ground truth).
+
 Every :class:`~rtsgt.errors.RtsgtWarning` of the reading and the evaluation is shown as one
 ``warning: ...`` line on stderr and, with ``--json``, listed under ``warnings``.
 """
@@ -33,12 +39,21 @@ from rich.table import Table
 
 from rtsgt.cli.common import checked_options, usage_error
 from rtsgt.errors import InputError, RtsgtWarning
-from rtsgt.evaluation import ALIGN_METHODS, EvaluationOptions, EvaluationResult, evaluate
+from rtsgt.evaluation import (
+    ALIGN_METHODS,
+    EvaluationOptions,
+    EvaluationResult,
+    PositionEvaluationResult,
+    evaluate,
+    evaluate_positions,
+)
 from rtsgt.evaluation.associate import GroundTruthQuery, ValidatedGroundTruth
-from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
+from rtsgt.evaluation.groundtruth import ContinuousGroundTruth, ContinuousPositionGroundTruth
+from rtsgt.evaluation.lever_arm import parse_lever_arm
 from rtsgt.evaluation.options import DEFAULT_MAX_DT_S
 from rtsgt.io.output_dir import check_target
-from rtsgt.io.run_dir import read_summary
+from rtsgt.io.positions import position_csv_form, read_position_csv, read_positions
+from rtsgt.io.run_dir import POSITIONS_KIND, read_summary
 from rtsgt.io.trajectory import (
     FORMATS,
     attach_covariance,
@@ -48,7 +63,7 @@ from rtsgt.io.trajectory import (
 )
 from rtsgt.pose import POSE_ENGINES
 from rtsgt.report.eval_plots import plot_evaluation
-from rtsgt.types import PoseTrajectory
+from rtsgt.types import PoseTrajectory, PositionTrajectory
 
 #: Ground-truth modes of ``--gt-mode``.
 GT_MODES = ("auto", "continuous", "discrete")
@@ -126,6 +141,57 @@ def load_ground_truth(
     raise InputError("ground truth not found", gt_path)
 
 
+def _is_run_dir(path: Path) -> bool:
+    return path.is_dir() and not (path / "metadata.yaml").exists()
+
+
+def wants_positions(gt_dir: str | Path, *, lever_arm=None, prism: str | None = None,
+                    gt_topic: str | None = None) -> bool:
+    """Whether ``GT_DIR`` is evaluated as a position-only ground truth
+    (:mod:`rtsgt.evaluation.positions`): it is one (a run with one or two tracked prisms, a
+    position CSV, :func:`rtsgt.io.positions.position_csv_form`), or one of ``--lever-arm``,
+    ``--prism``, ``--gt-topic`` asks for it."""
+    if lever_arm is not None or prism is not None or gt_topic is not None:
+        return True
+    path = Path(gt_dir)
+    if _is_run_dir(path):
+        return read_summary(path).ground_truth == POSITIONS_KIND
+    return position_csv_form(path) is not None
+
+
+def load_position_ground_truth(
+    gt_dir: str | Path, *, prism: str | None = None, topic: str | None = None,
+    mode: str = "auto",
+) -> PositionTrajectory | ContinuousPositionGroundTruth:
+    """The position-only ground truth of ``GT_DIR``: one prism of a run directory
+    (continuous from its ``measurements/``, or with ``mode`` ``discrete`` its
+    ``prisms/prism<i>.csv``), a topic of a bag (``topic``) or a position CSV
+    (:mod:`rtsgt.io.positions`)."""
+    if mode not in GT_MODES:
+        raise InputError(f"unknown ground-truth mode {mode!r}; expected one of {', '.join(GT_MODES)}")
+    path = Path(gt_dir)
+    if _is_run_dir(path):
+        if mode != "discrete" and (path / "measurements").is_dir():
+            return ContinuousPositionGroundTruth.from_run_dir(path, prism)
+        if mode == "continuous":
+            raise InputError("a continuous ground truth needs an rtsgt run directory with "
+                             "measurements/", path)
+        files = sorted(p.name[len("prism"):-len(".csv")] for p in (path / "prisms").glob(
+            "prism*.csv") if not p.name.endswith("_sources.csv"))
+        if prism is None and len(files) != 1:
+            raise InputError(f"choose the prism (--prism): prisms/ has {', '.join(files) or 'none'}",
+                             path)
+        pid = files[0] if prism is None else str(prism)
+        if pid not in files:
+            raise InputError(f"no prisms/prism{pid}.csv; prisms: {', '.join(files)}", path)
+        return read_position_csv(path / "prisms" / f"prism{pid}.csv", name=f"prism {pid}")
+    if prism is not None:
+        raise InputError("--prism selects a prism of an rtsgt run directory", path)
+    if not path.exists():
+        raise InputError("ground truth not found", path)
+    return read_positions(path, topic=topic)
+
+
 def run_evaluate(
     gt_dir: str | Path,
     est_file: str | Path,
@@ -139,24 +205,47 @@ def run_evaluate(
     max_gap: float | None = None,
     gt_mode: str = "auto",
     gt_engine: str | None = None,
-) -> EvaluationResult:
+    lever_arm=None,
+    prism: str | None = None,
+    gt_topic: str | None = None,
+) -> EvaluationResult | PositionEvaluationResult:
     """Read the ground truth and the estimate, then :func:`rtsgt.evaluation.evaluate` with
-    ``options`` (default: ``EvaluationOptions()``).
+    ``options`` (default: ``EvaluationOptions()``); for a position-only ground truth
+    (:func:`wants_positions`), :func:`rtsgt.evaluation.evaluate_positions` with the
+    ``lever_arm`` (``"x,y,z"`` m in the estimate's sensor frame; zero, with a warning, when
+    not given).
 
     ``max_gap`` (s), the largest distance to the nearest ground-truth measurement
     (continuous: of every prism; discrete: the nearest stored pose), replaces
     ``options.max_dt``; its default depends on the ground truth: the run's own gap limit
     (:func:`run_gap_limit`) or :data:`DEFAULT_MAX_GAP_FILE_S` (module docstring).
     ``gt_mode`` and ``gt_engine``: :func:`load_ground_truth` (``gt_engine`` ``"run"`` or
-    None: the run's engine).
+    None: the run's engine; no meaning for positions). ``prism``: the prism of a run
+    directory; ``gt_topic``: the ground truth's topic in a bag.
     """
     if gt_engine is not None and gt_engine not in GT_ENGINES:
         raise InputError(
             f"unknown ground-truth engine {gt_engine!r}; expected one of {', '.join(GT_ENGINES)}"
         )
+    if wants_positions(gt_dir, lever_arm=lever_arm, prism=prism, gt_topic=gt_topic):
+        lever = parse_lever_arm(lever_arm)
+        gt_pos = load_position_ground_truth(gt_dir, prism=prism, topic=gt_topic, mode=gt_mode)
+        if lever_arm is None:
+            warnings.warn("position-only ground truth without --lever-arm: the estimate's "
+                          "sensor origin is compared with the tracked point (lever arm 0; the "
+                          "estimate's rotation does not enter)", RtsgtWarning, stacklevel=2)
+        est = _read_estimate(est_file, fmt, topic, timestamps, child_frame, est_cov)
+        options = _with_max_gap(gt_pos, gt_dir, options, max_gap)
+        return evaluate_positions(gt_pos, est, lever, options)
     gt = load_ground_truth(
         gt_dir, mode=gt_mode, engine=None if gt_engine in (None, "run") else gt_engine
     )
+    est = _read_estimate(est_file, fmt, topic, timestamps, child_frame, est_cov)
+    return evaluate(gt, est, _with_max_gap(gt, gt_dir, options, max_gap))
+
+
+def _read_estimate(est_file, fmt, topic, timestamps, child_frame, est_cov) -> PoseTrajectory:
+    """The estimate's poses (and its covariance file)."""
     if fmt is not None and fmt not in FORMATS:
         raise InputError(f"unknown format {fmt!r}; expected one of {', '.join(FORMATS)}")
     est = read_trajectory(
@@ -164,11 +253,17 @@ def run_evaluate(
     )
     if est_cov is not None:
         est = attach_covariance(est, read_covariance_csv(est_cov), source=str(est_cov))
+    return est
+
+
+def _with_max_gap(gt, gt_dir, options: EvaluationOptions | None,
+                  max_gap: float | None) -> EvaluationOptions:
+    """``options`` with ``max_dt`` the given ``max_gap`` or its default (module docstring)."""
     if max_gap is None:
         limit = run_gap_limit(gt, gt_dir) if Path(gt_dir).is_dir() else None
         max_gap = DEFAULT_MAX_GAP_FILE_S if limit is None else limit
     options = EvaluationOptions() if options is None else options
-    return evaluate(gt, est, dataclasses.replace(options, max_dt=max_gap))
+    return dataclasses.replace(options, max_dt=max_gap)
 
 
 def _stats_row(name: str, s, scale: float, digits: int) -> list[str]:
@@ -292,6 +387,92 @@ def print_report(
         )
 
 
+def print_position_report(
+    result: PositionEvaluationResult, console: Console, *, gt_source: str, est_source: str
+) -> None:
+    """The readable report of a position-only ground truth: association, alignment, lever
+    arm, APE / RPE of positions, NEES (3 dof), noise floor; rotations not reported."""
+    a = result.association
+    if a.ground_truth == "continuous":
+        d = a.ground_truth_detail
+        kind = f"continuous position ground truth (GP track of prism {d.get('prism', '?')})"
+        limit = "max gap"
+    else:
+        kind = f"{a.ground_truth} position ground truth"
+        limit = "max dt"
+    dropped = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in a.dropped.items())
+    console.print(
+        f"[bold]{est_source}[/bold] against [bold]{gt_source}[/bold] ({kind}): {len(a)} of "
+        f"{a.n_est} estimate poses associated"
+        + (f"; dropped: {dropped}" if dropped else "")
+        + f" (time offset {a.time_offset} s, {limit} {a.max_dt} s)", highlight=False)
+    lever = ", ".join(f"{v:.4f}" for v in result.lever_arm)
+    console.print(f"lever arm (sensor frame): [{lever}] m, {result.lever_arm_source}: the "
+                  "estimate's point p + R l is compared", highlight=False)
+    al = result.alignment
+    if al.method == "none":
+        console.print("alignment: none")
+    else:
+        console.print(
+            f"alignment of the points: {al.method}{' (covariance-weighted)' if al.weighted else ''}"
+            f" on {al.n_used} positions, yaw {al.yaw * 57.29577951308232:.4f} deg, scale "
+            f"{al.scale:.6f}, t = [{', '.join(f'{v:.4f}' for v in al.translation)}] m",
+            highlight=False)
+    table = Table(title="Position errors (rotations not reported: position-only ground truth)")
+    for col in ("metric", "rmse", "mean", "median", "std", "min", "max"):
+        table.add_column(col, justify="left" if col == "metric" else "right")
+    table.add_row(*_stats_row("APE position (mm)", result.ape.translation_m, 1e3, 3))
+    unit = {"m": "m", "s": "s", "f": "frames"}[result.rpe_delta_unit]
+    if result.rpe is None:
+        table.add_row(f"RPE position, {result.rpe_delta:g} {unit}", *(["-"] * 6))
+    else:
+        table.add_row(*_stats_row(
+            f"RPE position (mm), {result.rpe_delta:g} {unit}, {result.rpe.pairs.shape[0]} pairs",
+            result.rpe.translation_m, 1e3, 3))
+    console.print(table)
+    if result.rpe is None:
+        console.print(f"no RPE: {result.rpe_absent_reason}", highlight=False)
+    n = result.nees
+    if n.position is None:
+        console.print(f"NEES: {n.covariance}")
+        return
+    nt = Table(title=f"NEES, 3 dof (covariance: {n.covariance})")
+    for col in ("", "mean", "dof", "accepted mean", "inside 95 %", "accepted", "N_eff", "verdict"):
+        nt.add_column(col, justify="left" if col == "" else "right")
+    for name, r in (("position", n.position), ("relative position", n.relative_position)):
+        if r is None:
+            continue
+        verdict = "[green]consistent[/green]" if r.consistent else "[red]inconsistent[/red]"
+        nt.add_row(name, f"{r.mean:.3f}", str(r.dof),
+                   f"[{r.mean_interval[0]:.2f}, {r.mean_interval[1]:.2f}]",
+                   f"{100 * r.fraction_inside_95:.1f} %",
+                   f"[{100 * r.fraction_interval[0]:.1f}, {100 * r.fraction_interval[1]:.1f}] %",
+                   f"{r.n_eff:.0f} / {r.n}", verdict)
+    console.print(nt)
+    sp = n.position.split
+    if sp is not None:
+        sh, v = sp.shared, sp.varying
+        console.print(
+            f"position verdict, shared and varying parts apart ({'one' if sh.upper else 'two'}-"
+            f"sided): shared {sh.statistic:.1f} on {sh.dof} dof (accepted <= "
+            f"{sh.interval[1]:.1f}{'' if sh.upper else f', >= {sh.interval[0]:.1f}'}), "
+            f"varying NEES {v.mean:.2f} / {v.dof} (accepted <= {v.mean_interval[1]:.2f})",
+            highlight=False)
+    console.print(f"relative positions: ground-truth correlations {n.rpe_correlations}")
+    f = result.noise_floor
+    console.print(
+        f"noise floor of the ground truth: APE {1e3 * f.ape_translation_m:.3f} mm; APE rmse "
+        f"with the floor removed {1e3 * f.ape_translation_rmse_floor_removed_m:.3f} mm"
+        + ("" if f.rpe_translation_m is None else
+           f"; RPE floor {1e3 * f.rpe_translation_m:.3f} mm, rmse with it removed "
+           f"{1e3 * f.rpe_translation_rmse_floor_removed_m:.3f} mm"), highlight=False)
+    if a.cov_interpolated.any():
+        console.print(
+            f"note: {int(a.cov_interpolated.sum())} ground-truth covariances were interpolated "
+            "linearly between samples"
+        )
+
+
 class _collect_warnings:
     """Record the warnings of a block, then show every one again (``warning: ...`` lines on
     stderr through the CLI's handler) also when the block raises; the messages of the
@@ -322,7 +503,8 @@ def register(app: typer.Typer) -> None:
             ...,
             metavar="GT_DIR",
             help="rtsgt run directory (continuous ground truth from its measurements/, else "
-            "groundtruth_covariance.csv or groundtruth.tum), or a ground-truth trajectory file.",
+            "groundtruth_covariance.csv or groundtruth.tum; a run of one or two prisms: their "
+            "positions), a ground-truth trajectory file, a position CSV or a bag (--gt-topic).",
         ),
         est_file: Path = typer.Argument(
             ..., metavar="EST_FILE", help="Estimated trajectory (file, or ROS 2 bag directory)."
@@ -384,6 +566,24 @@ def register(app: typer.Typer) -> None:
             help="Pose engine of the continuous ground truth: run (the run's) | mc | ut | "
             "linear (fastest).",
         ),
+        lever_arm: str | None = typer.Option(
+            None,
+            "--lever-arm",
+            help="x,y,z (m): the ground truth's tracked point (prism) in the estimate's sensor "
+            "frame; evaluates against a position-only ground truth (p + R l).",
+        ),
+        prism: str | None = typer.Option(
+            None,
+            "--prism",
+            help="The prism of a run directory that is the (position-only) ground truth "
+            "(needed when the run tracked more than one).",
+        ),
+        gt_topic: str | None = typer.Option(
+            None,
+            "--gt-topic",
+            help="Topic of a position ground truth in a bag GT_DIR (PointStamped, "
+            "PoseStamped, ...).",
+        ),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
         plot: Path | None = typer.Option(None, "--plot",
                                          help="Write PNG and SVG figures into this directory."),
@@ -410,6 +610,11 @@ def register(app: typer.Typer) -> None:
             raise typer.BadParameter(
                 f"expected one of {', '.join(GT_ENGINES)}", param_hint="--gt-engine"
             )
+        if lever_arm is not None:
+            try:
+                parse_lever_arm(lever_arm)
+            except InputError as exc:
+                raise usage_error(exc.bare_message, "--lever-arm") from None
         if plot is not None:
             check_target(plot, force=force)  # before any work
         with _collect_warnings() as notes:
@@ -425,6 +630,9 @@ def register(app: typer.Typer) -> None:
                 max_gap=max_dt,
                 gt_mode=gt_mode,
                 gt_engine=gt_engine,
+                lever_arm=lever_arm,
+                prism=prism,
+                gt_topic=gt_topic,
             )
         written = None
         if plot is not None:
@@ -433,6 +641,8 @@ def register(app: typer.Typer) -> None:
             typer.echo(json.dumps({**result.to_dict(), "warnings": notes}))
             return
         console = Console()
-        print_report(result, console, gt_source=str(gt_dir), est_source=str(est_file))
+        report = (print_position_report if isinstance(result, PositionEvaluationResult)
+                  else print_report)
+        report(result, console, gt_source=str(gt_dir), est_source=str(est_file))
         if written is not None:
             console.print(f"figures: {', '.join(p.name for p in written.files)} in {plot}")

@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import typer
 
 from rtsgt.cli.common import Stages, checked_options, echo_err, print_run_summary
+from rtsgt.errors import RtsgtWarning
 from rtsgt.io.deployment import load_deployment
 from rtsgt.io.output_dir import check_target
 from rtsgt.io.run_dir import write_run
 from rtsgt.options import RunOptions
 from rtsgt.pipeline import run_pipeline
+from rtsgt.record import PositionRunRecord
 from rtsgt.report.html import write_report
 
 #: The command-line options that override keys of the deployment's configuration.
@@ -63,6 +66,12 @@ def run_deployment(
             stages("analysis, figures and HTML report")
             write_report(tmp, shown_path=final)
 
+        if report and isinstance(result, PositionRunRecord):
+            warnings.warn("--report: the HTML report is of runs with poses; this run gives "
+                          "positions only (prisms/prism<i>.csv), and no report is written",
+                          RtsgtWarning, stacklevel=2)
+            report = False
+
         if inputs is None:
             inputs = {"config": str(Path(config).resolve())}
         final = write_run(result, out, force=force, inputs=inputs, protect=[config],
@@ -98,12 +107,13 @@ def register(app: typer.Typer) -> None:
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress, no table."),
         report: bool = typer.Option(False, "--report", help="Also write the HTML report."),
     ) -> None:
-        """Compute the ground truth of a deployment: poses with 6x6 covariance."""
+        """Compute the ground truth of a deployment: poses with 6x6 covariance (with one or two
+        tracked prisms: their positions with 3x3 covariance)."""
         result, final = run_deployment(config, out, engine=engine, samples=samples, seed=seed,
                                        rate=rate, force=force, quiet=quiet, report=report,
                                        registration=registration, prior=prior,
                                        correlated_noise=correlated_noise)
         if not quiet:
             print_run_summary(result, final)
-            if report:
+            if report and (final / 'report.html').exists():
                 echo_err(f"report: {final / 'report.html'}")

@@ -30,6 +30,12 @@ the JSON layout of ``rtsgt evaluate --json``::
                      "max_dt_nearest_s"},
      "warnings": ["..."]}
 
+Against a position-only ground truth (one tracked prism), :func:`evaluate_positions`
+(:mod:`rtsgt.evaluation.positions`) gives a :class:`PositionEvaluationResult` whose
+``to_dict`` has the same sections with the rotation statistics and the pose NEES ``null``,
+and ``ground_truth`` (``"positions"``), ``rotation`` (why rotations are not reported) and
+``lever_arm``.
+
 ``warnings`` is added by ``rtsgt evaluate``: every :class:`~rtsgt.errors.RtsgtWarning` that
 reading the files and evaluating emitted (each also shown as a ``warning: ...`` line).
 
@@ -56,8 +62,9 @@ Layout: :mod:`~rtsgt.evaluation.evaluator` (:func:`evaluate`, one function per s
 :mod:`~rtsgt.evaluation.options` (:class:`EvaluationOptions`, the options of an evaluation and
 their rules), :mod:`~rtsgt.evaluation.result` (:class:`EvaluationResult` and its sections),
 :mod:`~rtsgt.evaluation.associate`, :mod:`~rtsgt.evaluation.align`,
-:mod:`~rtsgt.evaluation.metrics`, :mod:`~rtsgt.evaluation.groundtruth`; this module only
-re-exports.
+:mod:`~rtsgt.evaluation.metrics`, :mod:`~rtsgt.evaluation.groundtruth`,
+:mod:`~rtsgt.evaluation.positions` and :mod:`~rtsgt.evaluation.lever_arm` (the position-only
+ground truth); this module only re-exports.
 """
 
 from __future__ import annotations
@@ -72,9 +79,14 @@ from rtsgt.evaluation.associate import (
     associate,
 )
 from rtsgt.evaluation.evaluator import evaluate, gap_per_step
-from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
+from rtsgt.evaluation.groundtruth import ContinuousGroundTruth, ContinuousPositionGroundTruth
 from rtsgt.evaluation.metrics import DELTA_UNITS, STATISTICS, NeesResult
 from rtsgt.evaluation.options import EvaluationOptions
+from rtsgt.evaluation.positions import (
+    POSITION_ALIGN_METHODS,
+    PositionEvaluationResult,
+    evaluate_positions,
+)
 from rtsgt.evaluation.result import (
     ErrorStatistics,
     EvaluationResult,
@@ -90,6 +102,7 @@ __all__ = [
     "Alignment",
     "Association",
     "ContinuousGroundTruth",
+    "ContinuousPositionGroundTruth",
     "ErrorStatistics",
     "EvaluationOptions",
     "EvaluationResult",
@@ -98,10 +111,13 @@ __all__ = [
     "NeesResult",
     "NeesSection",
     "NoiseFloor",
+    "POSITION_ALIGN_METHODS",
     "PairCovarianceGroundTruth",
     "PoseErrors",
+    "PositionEvaluationResult",
     "ValidatedGroundTruth",
     "associate",
     "evaluate",
+    "evaluate_positions",
     "gap_per_step",
 ]

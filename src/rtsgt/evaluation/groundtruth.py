@@ -61,19 +61,21 @@ from rtsgt.evaluation.associate import (
     GroundTruthSample,
     _nearest_distance,
 )
+from rtsgt.evaluation.positions import PositionSample, PositionSplit
 from rtsgt.filtering.gates import apply_gates
 from rtsgt.interpolation import GPTrack
 from rtsgt.interpolation.cross import gp_cross_covariance
-from rtsgt.interpolation.prisms import fit_gps, gp_velocities, query_prisms
-from rtsgt.io.run_dir import read_run
+from rtsgt.interpolation.prisms import PrismsAtTimes, fit_gps, gp_velocities, query_prisms
+from rtsgt.io.run_dir import read_any_run, read_run
 from rtsgt.options import RunOptions, stage_rng
 from rtsgt.pose import POSE_ENGINES, ReferencePoints, estimate_poses
 from rtsgt.pose.estimate import pose_jacobians
 from rtsgt.record import RunRecord
-from rtsgt.shared import SharedFactor, rank_one_factor, split_ground_truth
+from rtsgt.shared import SharedFactor, prism_shared_factor, rank_one_factor, split_ground_truth
 from rtsgt.types import PrismTrack
 
 __all__ = [
+    "ContinuousPositionGroundTruth",
     "DROP_REASONS",
     "REASON_BETWEEN",
     "REASON_GP_GAP",
@@ -380,20 +382,9 @@ class ContinuousGroundTruth:
         C = np.zeros((K, 3 * n, 3 * n))
         systematic = self.options.interpolation.gp_noise == "white"
         for i, pid in enumerate(ids):
-            blk = gp_cross_covariance(self.gps[pid], a.t, b.t)[:, :3, :3]
-            if systematic:
-                origin = (self.coupling.origin.get(stations[i], np.zeros(3))
-                          if self.coupling is not None else np.zeros(3))
-                for src, da, db in (
-                    ("time_sync", a.velocity[i], b.velocity[i]),
-                    ("atmosphere", a.prisms.xyz[:, i] - origin, b.prisms.xyz[:, i] - origin),
-                ):
-                    if src not in a.prisms.cov_by_source:
-                        continue
-                    fa = rank_one_factor(a.prisms.cov_by_source[src][:, i], da)
-                    fb = rank_one_factor(b.prisms.cov_by_source[src][:, i], db)
-                    blk = blk + fa[:, :, None] * fb[:, None, :]
-            C[:, 3 * i:3 * i + 3, 3 * i:3 * i + 3] = blk
+            C[:, 3 * i:3 * i + 3, 3 * i:3 * i + 3] = prism_cross_covariance(
+                self.gps[pid], a.t, b.t, a.prisms, b.prisms, i, a.velocity[i], b.velocity[i],
+                _origin(self.coupling, stations[i]) if systematic else None)
         if systematic and self.coupling is not None and "calibration" in a.prisms.cov_by_source:
             C += self.coupling.prism_covariance(a.prisms.xyz, b.prisms.xyz, stations)
         cr = self.reference.cov
@@ -466,6 +457,269 @@ class ContinuousGroundTruth:
             gated = idx[~keep]
             reason[gated] = np.char.add(GATE_PREFIX, report.reason[~keep].astype(str))
         return GroundTruthSample(tau.copy(), position, quat, cov, reason, nearest, None)
+
+
+@dataclass(frozen=True)
+class ContinuousPositionGroundTruth:
+    """One prism of a run, queryable at any time: the position-only ground truth
+    (:mod:`rtsgt.evaluation.positions`) of a run with one or two tracked prisms, or of one
+    prism of a run with three or more.
+
+    What the pipeline computes at its query times, at any time: the prism's GP posterior
+    (refitted from ``measurements/prism<i>.csv`` with the run's ``Qc``, its scale per interval
+    and its prior) plus the systematic sources interpolated from the measurements
+    (:func:`rtsgt.interpolation.prisms.query_prisms`). A time gets a drop reason as a pose
+    does (module docstring): ``outside_ground_truth``, ``between_intervals``, ``gp_gap``,
+    ``far_from_measurement``; there is no gate (the gates judge poses).
+
+    The covariance between two times (the relative NEES) is
+    :func:`prism_cross_covariance` plus the calibration through the run's
+    :class:`StationCoupling`; the error split (the split verdict) is the GP posterior
+    (varying) and :func:`rtsgt.shared.prism_shared_factor` (the station's calibration, clock
+    offset and atmosphere, shared).
+
+    Attributes
+    ----------
+    prism : str
+    track : PrismTrack
+        The measured track (world frame) with its per-source covariances.
+    gp : GPTrack
+        Its GP posterior (the run's ``Qc``).
+    intervals : ndarray, shape (K, 2)
+        The run's intervals (every prism tracked), s.
+    options : RunOptions
+    source : str
+        Where it comes from (for messages).
+    coupling : StationCoupling, optional
+        The run's calibration coupling.
+    station_origins : dict str -> ndarray (3,)
+        World position of each station, m.
+    """
+
+    prism: str
+    track: PrismTrack
+    gp: GPTrack
+    intervals: np.ndarray
+    options: RunOptions
+    source: str = ""
+    coupling: StationCoupling | None = None
+    station_origins: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        iv = np.asarray(self.intervals, dtype=float).reshape(-1, 2)
+        if iv.shape[0] == 0:
+            raise InputError(f"{self.source or 'ground truth'}: no interval where the prism "
+                             "was tracked")
+        object.__setattr__(self, "intervals", iv[np.argsort(iv[:, 0])])
+
+    @classmethod
+    def from_record(cls, record, prism: str | None = None) -> ContinuousPositionGroundTruth:
+        """From a run record, of a pose run (:class:`~rtsgt.record.RunRecord`) or a
+        position-only run (:class:`~rtsgt.record.PositionRunRecord`), just computed (its GP
+        reused) or read from files (the GP fitted again with the run's ``Qc``).
+
+        ``prism``: the prism id; may be left out when the run tracked one prism.
+
+        Raises
+        ------
+        InputError
+            An unknown prism (or none chosen among several), no measured track or ``Qc``.
+        """
+        ids = tuple(record.prism_ids)
+        source = record.name if record.path is None else str(record.path)
+        if prism is None:
+            if len(ids) != 1:
+                raise InputError(f"{source}: the run tracked prisms {', '.join(ids)}; choose "
+                                 "one (--prism)")
+            prism = ids[0]
+        prism = str(prism)
+        if prism not in ids:
+            raise InputError(f"{source}: no prism {prism!r}; the run tracked "
+                             f"{', '.join(ids)}")
+        track = record.measurements.get(prism)
+        if track is None:
+            raise InputError(f"no measured track of prism {prism}",
+                             None if record.path is None
+                             else record.path / "measurements" / f"prism{prism}.csv")
+        opts = record.options
+        if opts.interpolation.gp_noise == "all" and prism in record.measurements_gp_cov:
+            track = dataclasses.replace(track, cov=record.measurements_gp_cov[prism])
+        intervals = record.intervals
+        if intervals is None:  # an older summary: the span of the track
+            intervals = np.asarray([[track.t[0], track.t[-1]]], dtype=float)
+        origins = dict(record.stations)
+        if record.coupling is not None:
+            origins.update(record.coupling.origin)
+        computation = record.computation
+        if computation is not None:
+            gp = computation.gps[prism]
+        else:
+            if prism not in record.qc:
+                raise InputError(f"no qc_m2_s3 for prism {prism} under 'prisms'",
+                                 None if record.path is None else record.path / "summary.json")
+            gp = fit_gps({prism: track}, opts.interpolation, qc={prism: record.qc[prism]},
+                         qc_scale={p: v for p, v in record.qc_scale.items() if p == prism},
+                         prior={prism: record.prior.get(prism, "wnoa")})[prism]
+        return cls(prism, track, gp, np.asarray(intervals, dtype=float), opts, source,
+                   record.coupling, origins)
+
+    @classmethod
+    def from_run_dir(cls, run_dir: str | PathLike,
+                     prism: str | None = None) -> ContinuousPositionGroundTruth:
+        """From a run directory of either kind (:func:`rtsgt.io.run_dir.read_any_run`)."""
+        root = Path(run_dir)
+        if not (root / "measurements").is_dir():
+            raise InputError(
+                "no measurements/ folder: not an rtsgt run directory with measured tracks", root)
+        record = read_any_run(root)
+        if not record.summary:
+            raise InputError("missing or empty summary.json (the run's Qc and options)",
+                             root / "summary.json")
+        return cls.from_record(record, prism)
+
+    @property
+    def name(self) -> str:
+        return f"prism {self.prism}"
+
+    @property
+    def info(self) -> dict:
+        """JSON-ready description."""
+        return {"source": self.source, "kind": "positions", "prism": self.prism,
+                "station": self.track.station, "intervals": int(self.intervals.shape[0]),
+                "run_max_gap_s": float(self.options.interpolation.max_gap_s),
+                "gp_noise": self.options.interpolation.gp_noise}
+
+    @property
+    def span(self) -> tuple[float, float]:
+        """First and last time at which a position can be given, s."""
+        return float(self.intervals[0, 0]), float(self.intervals[-1, 1])
+
+    @property
+    def measurement_times(self) -> np.ndarray:
+        return np.asarray(self.track.t)
+
+    def _prisms(self, tau: np.ndarray) -> PrismsAtTimes:
+        return query_prisms({self.prism: self.track}, {self.prism: self.gp}, tau,
+                            self.options.interpolation, self.coupling)
+
+    def query_positions(self, times: ArrayLike, *, max_gap_s: float | None = None):
+        """Positions, covariances (GP posterior plus the systematic sources) and validity at
+        arbitrary times (ground-truth clock, any order); ``max_gap_s`` as
+        :meth:`ContinuousGroundTruth.query_poses`.
+
+        Returns
+        -------
+        rtsgt.evaluation.positions.PositionSample
+        """
+        tau = np.asarray(times, dtype=float)
+        if tau.ndim != 1:
+            raise InputError(f"Expected query times of shape (M,), got {tau.shape}")
+        if not np.all(np.isfinite(tau)):
+            raise InputError("Expected finite query times, got NaN or inf")
+        if max_gap_s is not None and not max_gap_s > 0:
+            raise InputError(f"Expected a positive max_gap_s, got {max_gap_s}")
+        M = tau.size
+        reason = np.full(M, "", dtype="<U24")
+        a, b = self.span
+        outside = (tau < a) | (tau > b)
+        in_iv = np.zeros(M, dtype=bool)
+        for lo, hi in self.intervals:
+            in_iv |= (tau >= lo) & (tau <= hi)
+        supported = self.gp.supported(tau)
+        nearest = _nearest_distance(np.asarray(self.track.t), tau) if M else np.empty(0)
+        far = np.zeros(M, dtype=bool) if max_gap_s is None else nearest > max_gap_s
+        reason[far] = REASON_FAR
+        reason[~supported] = REASON_GP_GAP
+        reason[~in_iv] = REASON_BETWEEN
+        reason[outside] = REASON_OUTSIDE
+        nearest = np.where(outside, np.nan, nearest)
+        position = np.full((M, 3), np.nan)
+        cov = np.full((M, 3, 3), np.nan)
+        idx = np.flatnonzero(reason == "")
+        if idx.size:
+            pr = self._prisms(tau[idx])
+            position[idx] = pr.xyz[:, 0]
+            cov[idx] = pr.cov[:, 0]
+        return PositionSample(tau.copy(), position, cov, reason, nearest)
+
+    def position_pair_covariances(
+        self, tau_a: ArrayLike, tau_b: ArrayLike
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``Cov(y(a))``, ``Cov(y(b))`` and ``Cov(y(a), y(b))`` (K, 3, 3) of one first-order
+        model (class docstring) at valid times."""
+        ta = np.atleast_1d(np.asarray(tau_a, dtype=float))
+        tb = np.atleast_1d(np.asarray(tau_b, dtype=float))
+        pa, pb = self._prisms(ta), self._prisms(tb)
+        va = self.gp.query(ta, with_velocity=True, allow_gaps=True).velocity
+        vb = self.gp.query(tb, with_velocity=True, allow_gaps=True).velocity
+        systematic = self.options.interpolation.gp_noise == "white"
+        origin = (self.station_origins.get(self.track.station, np.zeros(3))
+                  if systematic else None)
+
+        def between(p, q, tp, tq, vp, vq):
+            C = prism_cross_covariance(self.gp, tp, tq, p, q, 0, vp, vq, origin)
+            if (systematic and self.coupling is not None
+                    and "calibration" in p.cov_by_source):
+                C = C + self.coupling.prism_covariance(p.xyz, q.xyz, [self.track.station])
+            return C
+
+        return (between(pa, pa, ta, ta, va, va), between(pb, pb, tb, tb, vb, vb),
+                between(pa, pb, ta, tb, va, vb))
+
+    def position_split(self, times: ArrayLike):
+        """The error split at valid times: the GP posterior (varying) and the shared factor of
+        the station's calibration, clock offset and atmosphere
+        (:func:`rtsgt.shared.prism_shared_factor`); None with ``gp_noise = "all"`` (the GP
+        had every source).
+
+        Returns
+        -------
+        rtsgt.evaluation.positions.PositionSplit or None
+        """
+        if self.options.interpolation.gp_noise != "white":
+            return None
+        tau = np.atleast_1d(np.asarray(times, dtype=float))
+        pr = self._prisms(tau)
+        velocity = self.gp.query(tau, with_velocity=True, allow_gaps=True).velocity[:, None]
+        F, names = prism_shared_factor(pr, velocity, [self.track.station],
+                                       self.station_origins, self.coupling)
+        return PositionSplit(pr.cov_gp[:, 0], F, names)
+
+
+def _origin(coupling: StationCoupling | None, station: str | None) -> np.ndarray:
+    """A station's world position as the calibration coupling has it (zero without one)."""
+    if coupling is None:
+        return np.zeros(3)
+    return np.asarray(coupling.origin.get(station, np.zeros(3)), dtype=float)
+
+
+def prism_cross_covariance(gp: GPTrack, t_a: np.ndarray, t_b: np.ndarray,
+                           prisms_a: PrismsAtTimes, prisms_b: PrismsAtTimes, i: int,
+                           velocity_a: np.ndarray, velocity_b: np.ndarray,
+                           origin: np.ndarray | None) -> np.ndarray:
+    """``Cov(q_i(a), q_i(b))`` (K, 3, 3) of one prism at pairs of times, first order, without
+    the calibration (across prisms: :meth:`StationCoupling.prism_covariance`).
+
+    The GP posterior's cross-covariance (:func:`rtsgt.interpolation.cross.gp_cross_covariance`)
+    and, with ``origin`` (the station's position; None with ``gp_noise = "all"``, where the GP
+    had every source), the station's clock offset and atmosphere, one draw for both times:
+    rank-one factors along the GP velocity and the line of sight
+    (:func:`rtsgt.shared.rank_one_factor`) at each time, from the sources' covariances of
+    ``prisms_a`` and ``prisms_b`` (prism ``i``).
+    """
+    blk = gp_cross_covariance(gp, t_a, t_b)[:, :3, :3]
+    if origin is None:
+        return blk
+    for src, da, db in (
+        ("time_sync", velocity_a, velocity_b),
+        ("atmosphere", prisms_a.xyz[:, i] - origin, prisms_b.xyz[:, i] - origin),
+    ):
+        if src not in prisms_a.cov_by_source:
+            continue
+        fa = rank_one_factor(prisms_a.cov_by_source[src][:, i], da)
+        fb = rank_one_factor(prisms_b.cov_by_source[src][:, i], db)
+        blk = blk + fa[:, :, None] * fb[:, None, :]
+    return blk
 
 
 def _override(options: RunOptions, engine: str | None, samples: int | None,

@@ -830,7 +830,7 @@ def shared_error_test(
         \qquad E = [I_k; 0],
 
     where ``tau`` (the integrated autocorrelation time of the whitened residual, averaged over
-    the six components) accounts for the correlation of the varying error between nearby poses.
+    its components) accounts for the correlation of the varying error between nearby poses.
 
     1. **Shared**: ``theta^T Sigma_theta^+ theta ~ chi2(dof)`` over the directions the data
        observe (``Sigma_theta``'s eigenvalues above :data:`MIN_OBSERVED_VARIANCE`), tested
@@ -850,14 +850,16 @@ def shared_error_test(
 
     Parameters
     ----------
-    e : array_like, shape (N, 6)
-        Pose errors (:func:`pose_error`), m and rad.
-    D : array_like, shape (N, 6, 6)
-        Varying covariances, positive definite.
-    L : array_like, shape (N, 6, k)
+    e : array_like, shape (N, 6) or (N, 3)
+        Pose errors (:func:`pose_error`), m and rad; or position errors only (a position
+        ground truth, :mod:`rtsgt.evaluation.positions`), m.
+    D : array_like, shape (N, d, d)
+        Varying covariances, positive definite (``d`` = 6 or 3, as ``e``).
+    L : array_like, shape (N, d, k)
         Shared factor.
-    K : array_like, shape (N, 6, m), optional
-        Alignment sensitivity (:func:`alignment_sensitivity`); None: no alignment.
+    K : array_like, shape (N, d, m), optional
+        Alignment sensitivity (:func:`alignment_sensitivity`, its position rows for
+        ``d = 3``); None: no alignment.
     alpha : float
         Significance of the whole verdict.
     names : tuple of str
@@ -869,20 +871,22 @@ def shared_error_test(
     -------
     position, pose : SplitVerdict
         The verdicts with the position NEES (3 dof) and the pose NEES (6 dof); the shared test
-        is the same in both.
+        is the same in both. ``pose`` is None for position errors (``d = 3``).
     """
     e = np.asarray(e, dtype=float)
     D = np.asarray(D, dtype=float)
     L = np.asarray(L, dtype=float)
-    N = e.shape[0]
+    N, d_err = e.shape
+    if d_err not in (3, 6):
+        raise ValueError(f"Expected errors of 6 (pose) or 3 (position) components, got {d_err}")
     k = L.shape[2]
     U = L if K is None else np.concatenate([L, np.asarray(K, dtype=float)], axis=2)
     m = U.shape[2] - k
     try:
         Ut = _whiten(D, U)
         et = _whiten(D, e)
-        Ut3 = _whiten(D[:, :3, :3], U[:, :3])
-        et3 = _whiten(D[:, :3, :3], e[:, :3])
+        Ut3 = Ut if d_err == 3 else _whiten(D[:, :3, :3], U[:, :3])
+        et3 = et if d_err == 3 else _whiten(D[:, :3, :3], e[:, :3])
     except np.linalg.LinAlgError:
         raise ValueError("Expected positive definite varying covariances") from None
     A = np.einsum("nip,niq->pq", Ut, Ut)
@@ -894,7 +898,7 @@ def shared_error_test(
     theta = est[:k]
     rt = et - Ut @ est
     r3 = et3 - Ut3 @ est
-    tau = float(np.mean([integrated_autocorrelation_time(rt[:, c]) for c in range(6)]))
+    tau = float(np.mean([integrated_autocorrelation_time(rt[:, c]) for c in range(d_err)]))
     E = np.eye(k + m)[:, :k]
     GL = E - Hinv[:, :k]
     cov = tau * (Hinv - Hinv @ Lam @ Hinv) + GL @ GL.T
@@ -914,7 +918,7 @@ def shared_error_test(
     Hk = Hinv[:, :k]
     M = 2 * Hinv - Hinv @ A @ Hinv - Hk @ Hk.T
     out = []
-    for d, r, Ad in ((3, r3, A3), (6, rt, A)):
+    for d, r, Ad in ((3, r3, A3), (6, rt, A))[:d_err // 3]:
         expected = (d * N - float(np.trace(M @ Ad))) / (d * N)
         varying = nees_consistency(np.einsum("ni,ni->n", r, r) / expected, d, alpha=a_s)
         if upper:
@@ -922,4 +926,4 @@ def shared_error_test(
                 varying.mean <= varying.mean_interval[1]
                 and varying.fraction_inside_95 >= varying.fraction_interval[0]))
         out.append(SplitVerdict(shared, varying, bool(ok and varying.consistent), tuple(names)))
-    return out[0], out[1]
+    return out[0], (out[1] if d_err == 6 else None)

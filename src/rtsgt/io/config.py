@@ -2,7 +2,8 @@
 
 Paths are relative to the configuration file. Units are in the key names (``_m``, ``_s``,
 ``_deg_s``, ``_hz``). Example, with every section (only ``[[stations]]``, ``[gcp]`` and
-``[reference]`` are required)::
+``[reference]`` are required; ``[reference]`` only with three or more stations: with one or two
+the run gives the prisms' positions, no pose, and the survey is not read)::
 
     [deployment]
     name = "forest-2022-11-10"
@@ -117,6 +118,7 @@ from rtsgt.io.rts_bag import TIME_SOURCES
 from rtsgt.measurement.instruments import InstrumentProfile, instrument_from_config
 from rtsgt.noise import NoiseModel
 from rtsgt.options import CalibrationOptions, InterpolationOptions, PoseOptions, RunOptions
+from rtsgt.record import MIN_POSE_PRISMS
 from rtsgt.types import NOISE_SOURCES
 
 if sys.version_info >= (3, 11):
@@ -190,7 +192,9 @@ class DeploymentConfig:
     instrument: InstrumentProfile
     stations: tuple[StationConfig, ...]
     gcp: FileConfig
-    reference: ReferenceConfig
+    #: ``[reference]``: None for a deployment with fewer than 3 tracked prisms that has none
+    #: (its run gives positions only, :class:`rtsgt.record.PositionRunRecord`).
+    reference: ReferenceConfig | None
     weather: FileConfig | None = None
     #: ``[noise]``, ``[filter]``, ``[interpolation]`` and ``[pose]``, mapped onto the option
     #: records (their defaults where a key is absent).
@@ -344,34 +348,12 @@ def load_config(path: str | Path) -> DeploymentConfig:
         weather = FileConfig(w.file(), fmt, 0.0, w.get("utc_offset_hours", float, 0.0))
         w.done()
 
-    r = _Section(path, "reference", doc["reference"] if "reference" in doc else _missing(path, "reference"))
-    ref_file = r.file()
-    ref_format = r.get("format", str, "survey-dms", REFERENCE_FORMATS)
-    prism_rows = r.get("prisms", dict)
-    rows: dict[str, int] = {}
-    for k, v in prism_rows.items():
-        if not isinstance(v, int) or v < 1:
-            raise ConfigError(f"[reference] prisms.{k} must be a 1-based row number, got {v!r}", path)
-        rows[str(k)] = v
-    missing = sorted(set(prisms) - set(rows))
-    if missing:
-        raise ConfigError(
-            f"[reference] prisms has no survey row for tracked prism(s) {', '.join(missing)}", path
-        )
-    if len(rows) < 3:
-        raise ConfigError(f"a pose needs at least 3 reference prisms, got {len(rows)}", path)
-    body_frame = r.get("body_frame", str, "survey", BODY_FRAMES)
-    body_points = tuple(r.get("body_points", list, []))
-    T_sb = r.get("T_survey_body", list, None)
-    if body_frame == "points" and len(body_points) < 3:
-        raise ConfigError("[reference] body_frame = 'points' needs body_points = [3+ rows]", path)
-    if body_frame == "transform":
-        if T_sb is None or len(T_sb) != 4 or any(len(row) != 4 for row in T_sb):
-            raise ConfigError("[reference] body_frame = 'transform' needs a 4x4 T_survey_body", path)
-        T_sb = tuple(tuple(float(x) for x in row) for row in T_sb)
-    reference = ReferenceConfig(ref_file, ref_format, rows, body_frame, body_points, T_sb)
-    r.done()
-
+    # a pose needs three tracked prisms; with fewer the run gives positions only and the
+    # survey of the robot (a pose's reference) is optional and not read
+    positions_only = len(stations) < MIN_POSE_PRISMS
+    reference = None
+    if "reference" in doc or not positions_only:
+        reference = _reference(path, doc, prisms, positions_only)
     options, query_times = read_options(path, doc, instrument)
     return DeploymentConfig(path, name, reference_station, instrument, tuple(stations), gcp,
                             reference, weather, options, query_times, measurements)
@@ -531,6 +513,40 @@ def _station(path: Path, i: int, table: Any,
         st = StationConfig(sid, prism, None, "ros-bag", constant, tid)
     s.done()
     return st
+
+
+def _reference(path: Path, doc: dict, prisms: list[str],
+               positions_only: bool) -> ReferenceConfig:
+    """The ``[reference]`` table (required for a pose run: at least 3 prisms)."""
+    r = _Section(path, "reference", doc["reference"] if "reference" in doc
+                 else _missing(path, "reference"))
+    ref_file = r.file()
+    ref_format = r.get("format", str, "survey-dms", REFERENCE_FORMATS)
+    prism_rows = r.get("prisms", dict)
+    rows: dict[str, int] = {}
+    for k, v in prism_rows.items():
+        if not isinstance(v, int) or v < 1:
+            raise ConfigError(f"[reference] prisms.{k} must be a 1-based row number, got {v!r}", path)
+        rows[str(k)] = v
+    missing = sorted(set(prisms) - set(rows))
+    if missing:
+        raise ConfigError(
+            f"[reference] prisms has no survey row for tracked prism(s) {', '.join(missing)}", path
+        )
+    if len(rows) < MIN_POSE_PRISMS and not positions_only:
+        raise ConfigError(f"a pose needs at least 3 reference prisms, got {len(rows)}", path)
+    body_frame = r.get("body_frame", str, "survey", BODY_FRAMES)
+    body_points = tuple(r.get("body_points", list, []))
+    T_sb = r.get("T_survey_body", list, None)
+    if body_frame == "points" and len(body_points) < 3:
+        raise ConfigError("[reference] body_frame = 'points' needs body_points = [3+ rows]", path)
+    if body_frame == "transform":
+        if T_sb is None or len(T_sb) != 4 or any(len(row) != 4 for row in T_sb):
+            raise ConfigError("[reference] body_frame = 'transform' needs a 4x4 T_survey_body", path)
+        T_sb = tuple(tuple(float(x) for x in row) for row in T_sb)
+    reference = ReferenceConfig(ref_file, ref_format, rows, body_frame, body_points, T_sb)
+    r.done()
+    return reference
 
 
 def _missing(path: Path, section: str):

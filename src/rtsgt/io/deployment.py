@@ -24,6 +24,7 @@ from rtsgt.io.survey import (
 from rtsgt.io.weather import read_weather_csv, read_weather_eccc
 from rtsgt.options import RunOptions
 from rtsgt.pose.reference import ReferencePoints, reference_from_survey
+from rtsgt.record import MIN_POSE_PRISMS
 from rtsgt.types import Observations
 
 
@@ -117,7 +118,8 @@ def load_deployment(config: str | Path | DeploymentConfig) -> tuple[DeploymentDa
             weather = read_weather_eccc(cfg.weather.file, utc_offset_hours=cfg.weather.utc_offset_hours)
         else:
             weather = read_weather_csv(cfg.weather.file)
-    reference = read_reference(cfg)
+    # a run with fewer than 3 tracked prisms gives positions only: no pose, no reference
+    reference = read_reference(cfg) if len(cfg.stations) >= MIN_POSE_PRISMS else None
     query_times = None
     if cfg.query_times is not None:
         query_times = _read_times(cfg.query_times)

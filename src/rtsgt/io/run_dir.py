@@ -38,6 +38,16 @@ The directory is assembled under a temporary name beside ``OUT`` and renamed at 
 an existing ``OUT`` is replaced only if rtsgt wrote it (:mod:`rtsgt.io.output_dir`): a crash
 never leaves a half-written run, and ``--force`` never deletes a user's files.
 
+Position-only runs
+------------------
+A run with one or two tracked prisms (:class:`~rtsgt.record.PositionRunRecord`) writes
+``prisms/``, ``measurements/`` (with ``removed.csv``), ``summary.json`` and the manifest only:
+``prisms/prism<i>.csv`` is its ground truth (a position CSV, :mod:`rtsgt.io.positions`).
+Its ``summary.json`` has ``ground_truth`` (``kind`` :data:`POSITIONS_KIND`, the prisms, why,
+the files) and ``positions`` in place of ``gates``, ``poses``, ``median_uncertainty``,
+``inter_prism_distances`` and ``reference``. :func:`read_position_run` reads it back;
+:func:`read_run` refuses it, naming that reader; :func:`read_any_run` takes either.
+
 Reading
 -------
 Columns are located by their header names, so extra columns are ignored and the order of the
@@ -120,8 +130,10 @@ from rtsgt.options import (
 )
 from rtsgt.pose.reference import ReferencePoints
 from rtsgt.record import (
+    MIN_POSE_PRISMS,
     RUN_SCHEMA_NAME,
     RUN_SCHEMA_VERSION,
+    PositionRunRecord,
     RunComputation,
     RunRecord,
     no_removed_measurements,
@@ -130,11 +142,14 @@ from rtsgt.record import (
 from rtsgt.shared import POSE_COMPONENTS, SharedFactor
 from rtsgt.types import PrismTrack
 
-__all__ = ["COV3_NAMES", "PrismSummary", "RunSummary", "columns_to_cov3", "cov3_to_columns",
-           "read_run", "read_summary", "read_table", "relocate_summary", "run_summary",
-           "station_positions_from_summary", "write_csv", "write_run"]
+__all__ = ["COV3_NAMES", "POSITIONS_KIND", "PrismSummary", "RunSummary", "columns_to_cov3",
+           "cov3_to_columns", "read_any_run", "read_position_run", "read_run", "read_summary",
+           "read_table", "relocate_summary", "run_summary", "station_positions_from_summary",
+           "write_csv", "write_run"]
 
 COV3_NAMES = ("xx", "xy", "xz", "yy", "yz", "zz")
+#: ``ground_truth.kind`` of the summary of a position-only run (absent: a pose run).
+POSITIONS_KIND = "positions"
 #: The comment line of ``groundtruth.tum``.
 GROUNDTRUTH_TUM_COMMENT = f"{TUM_COMMENT} (world frame = reference station)"
 _IU = np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2])
@@ -215,7 +230,7 @@ def _median_sigmas(traj) -> dict:
     return {"translation_mm": float(np.median(tr)), "rotation_mrad": float(np.median(rot))}
 
 
-def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
+def run_summary(record: RunRecord | PositionRunRecord, inputs: dict | None = None) -> dict:
     """The ``summary.json`` content of a run just computed (see the module docstring).
 
     Besides the inputs, parameters and results: ``weather``, the weather record used (file,
@@ -224,7 +239,10 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
     ``inter_prism_distances``, per prism pair the median deviation of the tracked distance from
     the surveyed one, its predicted sigma and their ratio
     (:func:`rtsgt.filtering.gates.surveyed_distance_check`); ``warnings``, every warning of the
-    run, once each, as printed on the terminal.
+    run, once each, as printed on the terminal. A position-only run
+    (:class:`~rtsgt.record.PositionRunRecord`) has ``ground_truth`` (``kind``
+    ``"positions"``, its prisms and files) and ``positions`` in place of the poses, gates,
+    inter-prism distances and reference.
 
     Raises
     ------
@@ -234,8 +252,6 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
     c = _computation(record)
     opt = record.options
     cal = c.calibration
-    gt = record.groundtruth
-    reasons, counts = np.unique(record.rejected_reason, return_counts=True)
     stations = {}
     for sid, T in cal.transforms.items():
         stations[sid] = {
@@ -257,35 +273,85 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
             "median_sigma_mm": float(np.median(sig) * 1e3),
         }
     res = cal.residuals
-    ref = record.reference
-    return {
+    head = {
         "schema": {"name": RUN_SCHEMA_NAME, "version": RUN_SCHEMA_VERSION},
         "software": {"name": "rtsgt", "version": __version__},
         "deployment": record.name,
         "inputs": inputs or {},
-        "parameters": {
-            "engine": opt.pose.engine,
-            "registration": opt.pose.registration,
-            "samples": opt.pose.samples,
-            "seed": opt.seed,
-            "calibration_model": opt.calibration.model,
-            "calibration_weighting": opt.calibration.weighting,
-            "calibration_method": opt.calibration.method,
-            "rate_hz": opt.interpolation.rate_hz,
-            "qc": opt.interpolation.qc,
-            "max_gap_s": opt.interpolation.max_gap_s,
-            "gp_noise": opt.interpolation.gp_noise,
-            "motion_prior": opt.interpolation.motion_prior,
-            "outlier_windows": opt.interpolation.outlier_windows,
-            "prior": opt.interpolation.prior,
-            "correlated_noise": opt.interpolation.correlated_noise,
-            "noise_sources": list(c.noise_model.sources),
-            "instrument": c.data.instrument.name,
-            "filter": _report_dict(opt.filter),
-            "distance_gate_m": opt.pose.distance_gate_m,
-            "uncertainty_gate_m": opt.pose.uncertainty_gate_m,
+    }
+    parameters = {
+        "engine": opt.pose.engine,
+        "registration": opt.pose.registration,
+        "samples": opt.pose.samples,
+        "seed": opt.seed,
+        "calibration_model": opt.calibration.model,
+        "calibration_weighting": opt.calibration.weighting,
+        "calibration_method": opt.calibration.method,
+        "rate_hz": opt.interpolation.rate_hz,
+        "qc": opt.interpolation.qc,
+        "max_gap_s": opt.interpolation.max_gap_s,
+        "gp_noise": opt.interpolation.gp_noise,
+        "motion_prior": opt.interpolation.motion_prior,
+        "outlier_windows": opt.interpolation.outlier_windows,
+        "prior": opt.interpolation.prior,
+        "correlated_noise": opt.interpolation.correlated_noise,
+        "noise_sources": list(c.noise_model.sources),
+        "instrument": c.data.instrument.name,
+        "filter": _report_dict(opt.filter),
+        "distance_gate_m": opt.pose.distance_gate_m,
+        "uncertainty_gate_m": opt.pose.uncertainty_gate_m,
+    }
+    filters = {k: _report_dict(v) for k, v in c.filter_reports.items()}
+    calibration = {
+        "reference_station": cal.reference_station,
+        "method": cal.method,
+        "model": cal.model,
+        "stations": stations,
+        "residuals_mm": {
+            "median": float(np.median(res.distance_m) * 1e3) if len(res) else None,
+            "max": float(np.max(res.distance_m) * 1e3) if len(res) else None,
+            "count": int(len(res)),
         },
-        "filters": {k: _report_dict(v) for k, v in c.filter_reports.items()},
+        # world position of each GCP (m), for the figures and the report
+        "gcp_world": {n: [float(v) for v in p]
+                      for n, p in zip(record.gcp_names, _gcp_rows(record), strict=True)},
+        # correlation of the station calibrations (calibration.coupling.StationCoupling):
+        # origins m, cross-covariances of the left perturbations (x, y, z, rx, ry, rz)
+        "coupling": record.coupling.to_dict() if record.coupling is not None else None,
+    }
+    tail = {
+        "self_checks": record.self_checks,
+        # the time-correlated noise the static-stretch check found, as the GPs carried it
+        # (rtsgt.noise.correlated)
+        "interpolation": {"correlated_noise": record.correlated_noise},
+        "warnings": list(record.warnings),
+        "timings_s": c.timings_s,
+    }
+    if isinstance(record, PositionRunRecord):
+        t = record.prisms_t
+        return {
+            **head,
+            "ground_truth": {
+                "kind": POSITIONS_KIND, "prisms": list(record.prism_ids),
+                "why": (f"{len(record.prism_ids)} tracked prism"
+                        f"{'s' if len(record.prism_ids) > 1 else ''}: a pose needs "
+                        f"{MIN_POSE_PRISMS}"),
+                "files": [f"prisms/prism{pid}.csv" for pid in record.prism_ids],
+            },
+            "parameters": parameters, "filters": filters, "intervals_s": record.intervals,
+            "positions": {"queried": int(t.shape[0]),
+                          "first_t": float(t[0]) if t.size else None,
+                          "last_t": float(t[-1]) if t.size else None},
+            "prisms": prisms, "calibration": calibration, "weather": record.weather_coverage,
+            **tail,
+        }
+    gt = record.groundtruth
+    reasons, counts = np.unique(record.rejected_reason, return_counts=True)
+    ref = record.reference
+    return {
+        **head,
+        "parameters": parameters,
+        "filters": filters,
         "gates": _report_dict(c.gate_report),
         "intervals_s": record.intervals,
         "poses": {
@@ -297,31 +363,13 @@ def run_summary(record: RunRecord, inputs: dict | None = None) -> dict:
         },
         "median_uncertainty": _median_sigmas(gt),
         "prisms": prisms,
-        "calibration": {
-            "reference_station": cal.reference_station,
-            "method": cal.method,
-            "model": cal.model,
-            "stations": stations,
-            "residuals_mm": {
-                "median": float(np.median(res.distance_m) * 1e3) if len(res) else None,
-                "max": float(np.max(res.distance_m) * 1e3) if len(res) else None,
-                "count": int(len(res)),
-            },
-            # world position of each GCP (m), for the figures and the report
-            "gcp_world": {n: [float(v) for v in p]
-                          for n, p in zip(record.gcp_names, _gcp_rows(record), strict=True)},
-            # correlation of the station calibrations (calibration.coupling.StationCoupling):
-            # origins m, cross-covariances of the left perturbations (x, y, z, rx, ry, rz)
-            "coupling": record.coupling.to_dict() if record.coupling is not None else None,
-        },
+        "calibration": calibration,
         "weather": record.weather_coverage,
         "inter_prism_distances": record.distance_check,
-        "self_checks": record.self_checks,
-        # the time-correlated noise the static-stretch check found, as the GPs carried it
-        # (rtsgt.noise.correlated)
-        "interpolation": {"correlated_noise": record.correlated_noise},
-        "warnings": list(record.warnings),
-        "timings_s": c.timings_s,
+        "self_checks": tail.pop("self_checks"),
+        "interpolation": tail.pop("interpolation"),
+        "warnings": tail.pop("warnings"),
+        "timings_s": tail.pop("timings_s"),
         "reference": {"names": list(ref.names), "xyz_m": ref.xyz, "cov_m2": ref.cov,
                       "frame": ref.frame},
     }
@@ -386,7 +434,37 @@ def _read_split(path: Path, t_gt: np.ndarray) -> SharedFactor | None:
     return SharedFactor(t, np.ascontiguousarray(np.swapaxes(L, 1, 2)), tuple(names), V)
 
 
-def write_run(record: RunRecord, out: str | Path, *, force: bool = False,
+def _write_prisms(tmp: Path, record: RunRecord | PositionRunRecord) -> None:
+    """``prisms/`` and ``measurements/`` of a run (either kind), in ``tmp``."""
+    (tmp / "prisms").mkdir()
+    (tmp / "measurements").mkdir()
+    cov_cols = [f"cov_{c}" for c in COV3_NAMES]
+    t = record.prisms_t
+    for i, pid in enumerate(record.prism_ids):
+        write_csv(tmp / "prisms" / f"prism{pid}.csv", ["t", "x", "y", "z", *cov_cols],
+                  [t, record.prisms_xyz[:, i], cov3_to_columns(record.prisms_cov[:, i])])
+        srcs = list(record.prisms_cov_by_source)
+        write_csv(tmp / "prisms" / f"prism{pid}_sources.csv",
+                  ["t", "gp_xx", "gp_xy", "gp_xz", "gp_yy", "gp_yz", "gp_zz"]
+                  + [f"{s}_{c}" for s in srcs for c in COV3_NAMES],
+                  [t, cov3_to_columns(record.prisms_cov_gp[:, i])]
+                  + [cov3_to_columns(record.prisms_cov_by_source[s][:, i]) for s in srcs])
+        tr = record.measurements[pid]
+        srcs = list(tr.cov_by_source)
+        # the scale of Qc on the interval that starts at each measurement (none after
+        # the last one)
+        scale = ([] if pid not in record.qc_scale
+                 else [np.append(record.qc_scale[pid], np.nan)])
+        write_csv(tmp / "measurements" / f"prism{pid}.csv",
+                  ["t", "x", "y", "z", *cov_cols, "range_m"]
+                  + [f"{s}_{c}" for s in srcs for c in COV3_NAMES]
+                  + ["qc_scale"] * len(scale),
+                  [tr.t, tr.xyz, cov3_to_columns(record.measurements_gp_cov[pid]),
+                   tr.range_m if tr.range_m is not None else np.full(len(tr), np.nan)]
+                  + [cov3_to_columns(tr.cov_by_source[s]) for s in srcs] + scale)
+
+
+def write_run(record: RunRecord | PositionRunRecord, out: str | Path, *, force: bool = False,
               inputs: dict | None = None, protect: Iterable[str | Path] = (),
               finish: Callable[[Path, Path], None] | None = None) -> Path:
     """Write every file of a run directory atomically; returns the final directory.
@@ -401,6 +479,13 @@ def write_run(record: RunRecord, out: str | Path, *, force: bool = False,
     summary = run_summary(record, inputs)
     output = OutputDir(out, "run", force=force, inputs=protect)
     with output as tmp:
+        if isinstance(record, PositionRunRecord):  # prisms/ is the ground truth: no pose
+            _write_prisms(tmp, record)
+            _write_removed(tmp / "measurements" / "removed.csv", record.removed)
+            write_json(tmp / "summary.json", summary)
+            if finish is not None:
+                finish(tmp, output.final)
+            return output.final
         gt = record.groundtruth
         write_tum(tmp / "groundtruth.tum", gt, decimals=(9, 12), comment=GROUNDTRUTH_TUM_COMMENT)
         write_covariance_csv(tmp / "groundtruth_covariance.csv", gt, digits=17)
@@ -410,34 +495,10 @@ def write_run(record: RunRecord, out: str | Path, *, force: bool = False,
             fh.write("t,reason\n")
             for t, r in zip(record.rejected_t, record.rejected_reason, strict=True):
                 fh.write(f"{t:.9f},{r}\n")
-        (tmp / "prisms").mkdir()
-        (tmp / "measurements").mkdir()
-        cov_cols = [f"cov_{c}" for c in COV3_NAMES]
-        t = record.prisms_t
-        for i, pid in enumerate(record.prism_ids):
-            write_csv(tmp / "prisms" / f"prism{pid}.csv", ["t", "x", "y", "z", *cov_cols],
-                      [t, record.prisms_xyz[:, i], cov3_to_columns(record.prisms_cov[:, i])])
-            srcs = list(record.prisms_cov_by_source)
-            write_csv(tmp / "prisms" / f"prism{pid}_sources.csv",
-                      ["t", "gp_xx", "gp_xy", "gp_xz", "gp_yy", "gp_yz", "gp_zz"]
-                      + [f"{s}_{c}" for s in srcs for c in COV3_NAMES],
-                      [t, cov3_to_columns(record.prisms_cov_gp[:, i])]
-                      + [cov3_to_columns(record.prisms_cov_by_source[s][:, i]) for s in srcs])
-            tr = record.measurements[pid]
-            srcs = list(tr.cov_by_source)
-            # the scale of Qc on the interval that starts at each measurement (none after
-            # the last one)
-            scale = ([] if pid not in record.qc_scale
-                     else [np.append(record.qc_scale[pid], np.nan)])
-            write_csv(tmp / "measurements" / f"prism{pid}.csv",
-                      ["t", "x", "y", "z", *cov_cols, "range_m"]
-                      + [f"{s}_{c}" for s in srcs for c in COV3_NAMES]
-                      + ["qc_scale"] * len(scale),
-                      [tr.t, tr.xyz, cov3_to_columns(record.measurements_gp_cov[pid]),
-                       tr.range_m if tr.range_m is not None else np.full(len(tr), np.nan)]
-                      + [cov3_to_columns(tr.cov_by_source[s]) for s in srcs] + scale)
+        _write_prisms(tmp, record)
         _write_removed(tmp / "measurements" / "removed.csv", record.removed)
         ref = record.reference
+        cov_cols = [f"cov_{c}" for c in COV3_NAMES]
         with open(tmp / "reference.csv", "w", encoding="utf-8") as fh:
             fh.write("name,x,y,z," + ",".join(cov_cols) + "\n")
             blocks = cov3_to_columns(ref.cov_blocks())
@@ -730,6 +791,9 @@ class RunSummary:
     self_checks: dict = field(default_factory=dict)
     #: ``interpolation.correlated_noise`` (empty for a run written before rtsgt carried it).
     correlated_noise: dict = field(default_factory=dict)
+    #: ``ground_truth.kind``: ``"poses"`` (absent: a run with poses) or
+    #: :data:`POSITIONS_KIND` (a run with one or two tracked prisms).
+    ground_truth: str = "poses"
 
 
 def _section(doc: dict, key: str, path: Path) -> dict:
@@ -878,7 +942,17 @@ def read_summary(run_dir: str | PathLike) -> RunSummary:
         self_checks=_section(doc, "self_checks", path),
         correlated_noise=_section(_section(doc, "interpolation", path), "correlated_noise",
                                   path),
+        ground_truth=_ground_truth_kind(doc, path),
     )
+
+
+def _ground_truth_kind(doc: dict, path: Path) -> str:
+    """``ground_truth.kind`` of a summary (``"poses"`` when absent)."""
+    kind = _section(doc, "ground_truth", path).get("kind", "poses")
+    if kind not in ("poses", POSITIONS_KIND):
+        raise InputError(f"ground_truth.kind: expected 'poses' or {POSITIONS_KIND!r}, got "
+                         f"{kind!r}"[:200], path)
+    return kind
 
 
 def _summary_options(params: dict, param: Callable, path: Path) -> RunOptions:
@@ -948,9 +1022,10 @@ def _check_files(root: Path, summary: RunSummary) -> None:
                     "the run directory is damaged (a file deleted or not copied): copy the "
                     "whole directory again or rerun `rtsgt run`", path)
     if summary.written_by_rtsgt:
-        for path, lost in ((root / "rejected_poses.csv", "the rejected poses"),
-                           (root / "measurements" / "removed.csv",
-                            "the measurements the filters removed")):
+        optional = (((root / "rejected_poses.csv", "the rejected poses"),)
+                    if summary.ground_truth != POSITIONS_KIND else ())
+        for path, lost in (*optional, (root / "measurements" / "removed.csv",
+                                       "the measurements the filters removed")):
             if not path.is_file():
                 warnings.warn(f"{path}: missing from this run of rtsgt; the analysis and the "
                               f"figures go on without {lost}", RtsgtWarning, stacklevel=3)
@@ -980,16 +1055,125 @@ def read_run(run_dir: str | PathLike) -> RunRecord:
     if not root.is_dir():
         raise InputError("run directory not found", root)
     summary = read_summary(root)
+    if summary.ground_truth == POSITIONS_KIND:
+        raise InputError("a position-only run (no pose: fewer than 3 tracked prisms): its "
+                         "ground truth is prisms/prism<i>.csv (rtsgt evaluate --lever-arm; "
+                         "rtsgt.io.run_dir.read_position_run)", root)
     _check_files(root, summary)
+    measurements, gp_cov, qc_scale = _read_measured(root)
+    ids, t_ref, prisms_xyz, prisms_cov, prisms_by_source, cov_gp = _read_prisms(
+        root, measurements)
 
-    # measurements
+    reference = _read_reference(root / "reference.csv", summary)
+    missing = [p for p in ids if p not in reference.names]
+    if missing:
+        raise InputError(f"no reference for prism {missing[0]}; names: "
+                         f"{', '.join(reference.names)}", root / "reference.csv")
+    _stations_of_tracks(measurements, summary)
+    rej_t, rej_r = _read_rejected(root / "rejected_poses.csv")
+    groundtruth = read_covariance_csv(root / "groundtruth_covariance.csv", run_file=True)
+    return RunRecord(
+        name=summary.name if summary.name is not None else root.name, prism_ids=ids,
+        measurements={pid: measurements[pid] for pid in ids if pid in measurements},
+        prisms_t=t_ref, prisms_xyz=prisms_xyz, prisms_cov=prisms_cov,
+        prisms_cov_by_source=prisms_by_source,
+        groundtruth=groundtruth, rejected_t=rej_t, rejected_reason=rej_r, reference=reference,
+        options=summary.options, schema_version=summary.schema_version,
+        stations=summary.stations,
+        prisms_cov_gp=cov_gp,
+        gcp_xyz=summary.gcp_xyz, gcp_names=summary.gcp_names,
+        qc={pid: info.qc_m2_s3 for pid, info in summary.prisms.items()
+            if info.qc_m2_s3 is not None},
+        qc_scale={pid: qc_scale[pid] for pid in ids if pid in qc_scale},
+        prior={pid: info.prior for pid, info in summary.prisms.items()},
+        intervals=summary.intervals_s, uncertainty_measure=summary.uncertainty_measure,
+        coupling=summary.coupling, removed=_read_removed(root / "measurements" / "removed.csv"),
+        measurements_gp_cov={pid: gp_cov[pid] for pid in ids if pid in gp_cov},
+        warnings=summary.warnings, weather_coverage=summary.weather_coverage,
+        distance_check=summary.distance_check, self_checks=summary.self_checks,
+        correlated_noise=summary.correlated_noise,
+        groundtruth_split=_read_split(root / SPLIT_FILE, groundtruth.t),
+        summary=summary.document, path=root,
+    )
+
+
+def read_position_run(run_dir: str | PathLike) -> PositionRunRecord:
+    """Read a position-only run directory (one or two tracked prisms, written by
+    :func:`write_run`) back into its record.
+
+    Raises
+    ------
+    InputError
+        Not a position-only run (its ``summary.json`` says so; a run with poses is read by
+        :func:`read_run`), a missing or malformed file (module docstring, section Missing
+        files).
+    """
+    root = Path(run_dir)
+    if not root.is_dir():
+        raise InputError("run directory not found", root)
+    summary = read_summary(root)
+    if summary.ground_truth != POSITIONS_KIND:
+        raise InputError("not a position-only run (summary.json has no ground_truth.kind "
+                         f"{POSITIONS_KIND!r}): read it with read_run", root)
+    _check_files(root, summary)
+    measurements, gp_cov, qc_scale = _read_measured(root)
+    ids, t_ref, prisms_xyz, prisms_cov, prisms_by_source, cov_gp = _read_prisms(
+        root, measurements)
+    _stations_of_tracks(measurements, summary)
+    try:
+        return PositionRunRecord(
+            name=summary.name if summary.name is not None else root.name, prism_ids=ids,
+            measurements={pid: measurements[pid] for pid in ids if pid in measurements},
+            prisms_t=t_ref, prisms_xyz=prisms_xyz, prisms_cov=prisms_cov,
+            prisms_cov_by_source=prisms_by_source, prisms_cov_gp=cov_gp,
+            options=summary.options, schema_version=summary.schema_version,
+            stations=summary.stations, gcp_xyz=summary.gcp_xyz, gcp_names=summary.gcp_names,
+            qc={pid: info.qc_m2_s3 for pid, info in summary.prisms.items()
+                if info.qc_m2_s3 is not None},
+            qc_scale={pid: qc_scale[pid] for pid in ids if pid in qc_scale},
+            prior={pid: info.prior for pid, info in summary.prisms.items()},
+            intervals=summary.intervals_s, coupling=summary.coupling,
+            removed=_read_removed(root / "measurements" / "removed.csv"),
+            measurements_gp_cov={pid: gp_cov[pid] for pid in ids if pid in gp_cov},
+            warnings=summary.warnings, weather_coverage=summary.weather_coverage,
+            self_checks=summary.self_checks, correlated_noise=summary.correlated_noise,
+            summary=summary.document, path=root)
+    except ValueError as exc:
+        raise InputError(str(exc), root / "prisms") from None
+
+
+def read_any_run(run_dir: str | PathLike) -> RunRecord | PositionRunRecord:
+    """:func:`read_position_run` or :func:`read_run`, as ``summary.json`` says."""
+    summary = read_summary(run_dir)
+    if summary.ground_truth == POSITIONS_KIND:
+        return read_position_run(run_dir)
+    return read_run(run_dir)
+
+
+def _read_measured(root: Path) -> tuple[dict[str, PrismTrack], dict[str, np.ndarray],
+                                        dict[str, np.ndarray]]:
+    """``measurements/prism<i>.csv``: the tracks, the covariance given to each GP and the
+    scale of ``Qc`` per interval (where written)."""
     meas_files = _prism_files(root / "measurements", _PRISM_FILE)
     read = {pid: _read_measurements(p, pid) for pid, p in meas_files.items()}
     measurements = {pid: tr for pid, (tr, _, _) in read.items()}
     gp_cov = {pid: c for pid, (_, c, _) in read.items() if c is not None}
     qc_scale = {pid: s for pid, (_, _, s) in read.items() if s is not None}
+    return measurements, gp_cov, qc_scale
 
-    # prisms at the query times
+
+def _stations_of_tracks(measurements: dict[str, PrismTrack], summary: RunSummary) -> None:
+    """The station of each track, as ``summary.json`` says (in place)."""
+    for pid, tr in measurements.items():
+        info = summary.prisms.get(pid)
+        if info is not None and info.station is not None:
+            measurements[pid] = dataclasses.replace(tr, station=info.station)
+
+
+def _read_prisms(root: Path, measurements: dict[str, PrismTrack]):
+    """``prisms/prism<i>.csv`` and ``prisms/prism<i>_sources.csv``: the prism ids, the query
+    times, positions (T, n, 3), total covariances (T, n, 3, 3), per-source covariances and
+    the GP's (None unless every prism has it)."""
     prism_files = _prism_files(root / "prisms", _PRISM_FILE)
     if not prism_files:
         raise InputError("no prisms/prism<i>.csv files", root / "prisms")
@@ -998,7 +1182,7 @@ def read_run(run_dir: str | PathLike) -> RunRecord:
         if pid not in measurements:  # with a summary that lists it, _check_files refused
             warnings.warn(f"{root / 'measurements' / f'prism{pid}.csv'}: missing; prism {pid} "
                           "is read without its measured track (the analysis of the "
-                          "measurements leaves it out)", RtsgtWarning, stacklevel=2)
+                          "measurements leaves it out)", RtsgtWarning, stacklevel=3)
     source_files = _prism_files(root / "prisms", _SOURCES_FILE)
     t_ref = None
     xyz, cov, by_source, cov_gp = [], [], {}, []
@@ -1029,38 +1213,6 @@ def read_run(run_dir: str | PathLike) -> RunRecord:
             if pid in by_source[s]:
                 arr[:, i] = by_source[s][pid]
         prisms_by_source[s] = arr
+    return (ids, t_ref, np.stack(xyz, axis=1), np.stack(cov, axis=1), prisms_by_source,
+            np.stack(cov_gp, axis=1) if len(cov_gp) == n else None)
 
-    reference = _read_reference(root / "reference.csv", summary)
-    missing = [p for p in ids if p not in reference.names]
-    if missing:
-        raise InputError(f"no reference for prism {missing[0]}; names: "
-                         f"{', '.join(reference.names)}", root / "reference.csv")
-    for pid, tr in measurements.items():  # the station of each track, as summary.json says
-        info = summary.prisms.get(pid)
-        if info is not None and info.station is not None:
-            measurements[pid] = dataclasses.replace(tr, station=info.station)
-    rej_t, rej_r = _read_rejected(root / "rejected_poses.csv")
-    groundtruth = read_covariance_csv(root / "groundtruth_covariance.csv", run_file=True)
-    return RunRecord(
-        name=summary.name if summary.name is not None else root.name, prism_ids=ids,
-        measurements={pid: measurements[pid] for pid in ids if pid in measurements},
-        prisms_t=t_ref, prisms_xyz=np.stack(xyz, axis=1), prisms_cov=np.stack(cov, axis=1),
-        prisms_cov_by_source=prisms_by_source,
-        groundtruth=groundtruth, rejected_t=rej_t, rejected_reason=rej_r, reference=reference,
-        options=summary.options, schema_version=summary.schema_version,
-        stations=summary.stations,
-        prisms_cov_gp=np.stack(cov_gp, axis=1) if len(cov_gp) == n else None,
-        gcp_xyz=summary.gcp_xyz, gcp_names=summary.gcp_names,
-        qc={pid: info.qc_m2_s3 for pid, info in summary.prisms.items()
-            if info.qc_m2_s3 is not None},
-        qc_scale={pid: qc_scale[pid] for pid in ids if pid in qc_scale},
-        prior={pid: info.prior for pid, info in summary.prisms.items()},
-        intervals=summary.intervals_s, uncertainty_measure=summary.uncertainty_measure,
-        coupling=summary.coupling, removed=_read_removed(root / "measurements" / "removed.csv"),
-        measurements_gp_cov={pid: gp_cov[pid] for pid in ids if pid in gp_cov},
-        warnings=summary.warnings, weather_coverage=summary.weather_coverage,
-        distance_check=summary.distance_check, self_checks=summary.self_checks,
-        correlated_noise=summary.correlated_noise,
-        groundtruth_split=_read_split(root / SPLIT_FILE, groundtruth.t),
-        summary=summary.document, path=root,
-    )

@@ -177,10 +177,12 @@ def _nees_figure(result) -> tuple[Figure, dict]:
         axes, (("position", result.nees.position), ("pose", result.nees.pose)), strict=True
     ):
         if r is None:
+            positions_only = name == "pose" and hasattr(result, "lever_arm")
             ax.text(
                 0.5,
                 0.5,
-                "no ground-truth covariance",
+                "position-only ground truth:\nrotations not reported" if positions_only
+                else "no ground-truth covariance",
                 ha="center",
                 va="center",
                 transform=ax.transAxes,
@@ -232,7 +234,9 @@ def plot_evaluation(
 
     Parameters
     ----------
-    result : rtsgt.evaluation.EvaluationResult
+    result : rtsgt.evaluation.EvaluationResult or rtsgt.evaluation.PositionEvaluationResult
+        For a position-only ground truth the estimate drawn is its tracked point (the lever
+        arm applied) and the pose NEES panel says that rotations are not reported.
     out_dir : str or PathLike
     max_ellipses : int
         Covariance ellipses drawn on the top view (evenly spaced poses).
