@@ -224,6 +224,8 @@ class _Front(NamedTuple):
     removal: tuple
     removed: RemovedMeasurements
     filtered: list
+    #: the GCP calibration beside a dynamic or joint one (:func:`calibrate_by_method`), or None
+    gcp_calib: CalibrationResult | None
 
 
 def _front(data: DeploymentData, options: RunOptions, say: Progress,
@@ -281,7 +283,7 @@ def _front(data: DeploymentData, options: RunOptions, say: Progress,
     tracks = {tr.prism: tr for tr in kept_tracks}
     lap("filter_module2")
     return _Front(reports, weather_coverage, model, calib, gcp_world, tracks, intervals,
-                  removal, removed, filtered)
+                  removal, removed, filtered, gcp_calib)
 
 
 def _run_stages(
@@ -303,7 +305,7 @@ def _run_stages(
     if len(data.observations) < MIN_POSE_PRISMS:
         return _position_stages(data, options, front, say, timings)
     reports, weather_coverage, model, calib, gcp_world = front[:5]
-    tracks, intervals, removal, removed, filtered = front[5:]
+    tracks, intervals, removal, removed, filtered, gcp_calib = front[5:]
 
     coupling = StationCoupling.from_calibration(calib)
     reference = data.reference.select(list(tracks))
@@ -438,7 +440,8 @@ def _position_stages(data: DeploymentData, options: RunOptions, front: _Front,
                              lambda stage: say(f"{stage}, correlated noise inflated"))
         lap("correlated_noise")
     say("self-checks")
-    self_checks = {"gcp_fit": gcp_fit_check(calib),
+    self_checks = {"gcp_fit": gcp_fit_check(calib if front.gcp_calib is None
+                                            else front.gcp_calib),
                    "block_cv": block_cv_check(fit.tracks, fit.gps,
                                               gp_noise=options.interpolation.gp_noise,
                                               max_gap_s=options.interpolation.max_gap_s),
