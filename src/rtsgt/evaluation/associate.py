@@ -513,3 +513,72 @@ def _associate_validated(
         ground_truth="continuous",
         ground_truth_detail=dict(getattr(gt, "info", None) or {}),
     )
+
+
+#: Half step (s) of the central differences of :func:`ground_truth_rates`: small against the
+#: time over which a robot's velocity changes, large against the rounding of epoch times.
+RATE_STEP_S = 0.05
+
+
+def ground_truth_rates(
+    gt: PoseTrajectory | GroundTruthQuery | ValidatedGroundTruth,
+    assoc: Association,
+    *,
+    measurement_times: ArrayLike | None = None,
+    step: float = RATE_STEP_S,
+) -> tuple[np.ndarray, np.ndarray]:
+    r"""World-frame linear and angular velocity of the ground truth at the associated times.
+
+    Central differences of the ground truth queried (as :func:`associate` queries it, any
+    kind) at ``tau -+ step``, ``tau = t + time_offset``: ``v = (p_+ - p_-) / (2 step)``,
+    ``w = log(R_+ R_-^T) / (2 step)`` (so that ``R(tau + dt) = exp(w dt) R(tau)``); one-sided
+    against the associated pose where one side is outside the ground truth, zero where both
+    are.
+
+    Parameters
+    ----------
+    gt : PoseTrajectory, callable or ValidatedGroundTruth
+        The ground truth of the association.
+    assoc : Association
+    measurement_times : array_like, optional
+        As for :func:`associate`.
+    step : float
+        s.
+
+    Returns
+    -------
+    v : ndarray, shape (M, 3)
+        m/s.
+    w : ndarray, shape (M, 3)
+        rad/s.
+    """
+    tau = assoc.est.t + assoc.time_offset
+    M = tau.size
+    quat = np.tile([0.0, 0.0, 0.0, 1.0], (M, 1))
+    side = {}
+    for sign in (-1.0, 1.0):
+        probe = PoseTrajectory(tau + sign * step, np.zeros((M, 3)), quat)
+        try:
+            a = associate(gt, probe, time_offset=0.0, max_dt=None,
+                          measurement_times=measurement_times)
+        except InputError:  # no time of this side inside the ground truth
+            side[sign] = (np.zeros(M, dtype=bool), np.zeros((M, 3)), np.tile(np.eye(3), (M, 1, 1)))
+            continue
+        ok = np.zeros(M, dtype=bool)
+        ok[a.index] = True
+        p = np.zeros((M, 3))
+        R = np.tile(np.eye(3), (M, 1, 1))
+        p[a.index] = a.gt.position
+        R[a.index] = a.gt.rotation
+        side[sign] = (ok, p, R)
+    (okm, pm, Rm), (okp, pp, Rp) = side[-1.0], side[1.0]
+    p0, R0 = assoc.gt.position, assoc.gt.rotation
+    lo_p = np.where(okm[:, None], pm, p0)
+    hi_p = np.where(okp[:, None], pp, p0)
+    lo_R = np.where(okm[:, None, None], Rm, R0)
+    hi_R = np.where(okp[:, None, None], Rp, R0)
+    span = step * (okm.astype(float) + okp.astype(float))
+    safe = np.where(span > 0, span, 1.0)[:, None]
+    v = np.where(span[:, None] > 0, (hi_p - lo_p) / safe, 0.0)
+    w = np.where(span[:, None] > 0, log_so3(hi_R @ np.swapaxes(lo_R, 1, 2)) / safe, 0.0)
+    return v, w
