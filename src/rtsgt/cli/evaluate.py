@@ -197,7 +197,8 @@ def _stats_row(name: str, s, scale: float, digits: int) -> list[str]:
 
 
 def _vector(v, scale: float, digits: int) -> str:
-    return "(" + ", ".join(f"{scale * x:.{digits}f}" for x in v) + ")"
+    return "(" + ", ".join("given" if not np.isfinite(x) else f"{scale * x:.{digits}f}"
+                           for x in v) + ")"
 
 
 def print_mounting(m: MountingFit, console: Console) -> None:
@@ -439,7 +440,9 @@ def register(app: typer.Typer) -> None:
             None,
             "--estimate",
             help="Estimate jointly with the alignment (comma-separated): rotation, lever (the "
-            "mounting T_body_sensor), clock (the time offset); mounting = rotation,lever; all. "
+            "mounting T_body_sensor), lever-xy (its x, y in the body frame, z given: for a "
+            "ground robot), clock (the time offset); mounting = rotation,lever; all = "
+            "rotation,lever,clock. "
             f"Needs --align {' | '.join(JOINT_ALIGNMENTS)}; refused, with the reason, when the "
             "trajectory does not excite it.",
         ),

@@ -30,6 +30,7 @@ from rtsgt.evaluation.align import Alignment, align_trajectories
 from rtsgt.evaluation.associate import (
     Association,
     GroundTruthQuery,
+    GroundTruthRates,
     PairCovarianceGroundTruth,
     SharedFactorGroundTruth,
     ValidatedGroundTruth,
@@ -297,7 +298,7 @@ def given_mounting(options: EvaluationOptions) -> MountingFit | None:
 
 def _fit_at(
     gt: GroundTruth, g: PoseTrajectory, assoc: Association, options: EvaluationOptions,
-    start: MountingFit, rates: tuple[np.ndarray, np.ndarray] | None,
+    start: MountingFit, rates: GroundTruthRates | None,
 ) -> MountingFit:
     """One fit of :func:`~rtsgt.evaluation.mounting.fit_mounting` on an association."""
     if g.cov is None:
@@ -310,12 +311,14 @@ def _fit_at(
         split = gt.shared_split(g.t + assoc.time_offset)
         if split is not None:
             S, L = split.varying_cov, split.factor
-    v, w = (None, None) if rates is None else rates
     return fit_mounting(
         g.position, g.rotation, S, assoc.est.position, assoc.est.rotation,
         estimate=options.estimate, align=options.align, rotation=start.rotation,
-        lever=start.lever, clock_offset=assoc.time_offset, gt_velocity=v,
-        gt_angular_velocity=w, est_cov=assoc.est.cov, shared=L,
+        lever=start.lever, clock_offset=assoc.time_offset,
+        gt_velocity=None if rates is None else rates.v,
+        gt_angular_velocity=None if rates is None else rates.w,
+        gt_rate_cov=None if rates is None else rates.cov,
+        est_cov=assoc.est.cov, shared=L,
     )
 
 
@@ -369,20 +372,19 @@ def mounting_step(
 def _mounting_rates(
     gt: GroundTruth, assoc: Association, fit: MountingFit | None,
     gt_measurement_times: ArrayLike | None,
-) -> tuple[np.ndarray, np.ndarray] | None:
+) -> GroundTruthRates | None:
     """The ground truth's velocities at the final association when the clock was estimated."""
     if fit is None or "clock" not in fit.estimated:
         return None
     return ground_truth_rates(gt, assoc, measurement_times=gt_measurement_times)
 
 
-def _shifted(g: PoseTrajectory, rates, delta: float) -> PoseTrajectory:
+def _shifted(g: PoseTrajectory, rates: GroundTruthRates | None, delta: float) -> PoseTrajectory:
     """The ground truth moved by a small clock step along its velocity (first order)."""
     if rates is None or delta == 0.0:
         return g
-    v, w = rates
-    R = exp_so3(delta * w) @ g.rotation
-    return PoseTrajectory(g.t, g.position + delta * v, matrix_to_quat_xyzw(R), g.cov)
+    R = exp_so3(delta * rates.w) @ g.rotation
+    return PoseTrajectory(g.t, g.position + delta * rates.v, matrix_to_quat_xyzw(R), g.cov)
 
 
 def mounting_effect(
@@ -390,7 +392,7 @@ def mounting_effect(
     g: PoseTrajectory,
     assoc: Association,
     options: EvaluationOptions,
-    rates: tuple[np.ndarray, np.ndarray] | None,
+    rates: GroundTruthRates | None,
     pairs: np.ndarray,
 ) -> dict[str, float | None] | None:
     r"""How much the rmse of the APE and RPE would move within the uncertainty of the estimated
@@ -723,7 +725,8 @@ def evaluate(
     if absolute is not None:
         absorbed = None
         if fit is not None and fit.estimated:
-            absorbed = mounting_sensitivity(fit, e.rotation, *(rates or (None, None)))
+            absorbed = mounting_sensitivity(fit, e.rotation, *(
+                (None, None) if rates is None else (rates.v, rates.w)))
         absolute = split_nees(gt, g, e, assoc, xi, absolute, options.align, absorbed)
     relative = None if S is None or rpe is None else relative_covariance(gt, g, assoc, pairs)
     return EvaluationResult(

@@ -69,11 +69,15 @@ parameters' covariance is
 
 .. math::
 
-    \Sigma = f \left[ \tau (H^{-1} - Q Q^T) + Q Q^T \right], \qquad
+    \Sigma = f \left[ \tau H^{-1} K H^{-1} + Q Q^T \right], \qquad
     Q = H^{-1} B^T M^{-1},
 
 where ``Q Q^T`` is the shared errors' part (``B = sum L_k^T S_k^-1 J_k``,
-``M = I + sum L_k^T S_k^-1 L_k``; ``Q = 0`` without ``L``), ``tau`` the integrated
+``M = I + sum L_k^T S_k^-1 L_k``; ``Q = 0`` without ``L``) and ``H^-1 K H^-1`` the varying
+errors' part (``K = sum Y_k^T Y_k``, ``Y_k = S_k^-1/2 (J_k - L_k M^-1 B)``: ``K = H - (M^-1
+B)^T (M^-1 B)``, summed as squares so that a parameter the shared errors dominate, such as
+the clock against the stations' clock offsets, keeps a positive variance; ``K = H`` without
+``L``), ``tau`` the integrated
 autocorrelation time of the whitened varying residual (averaged over its components, as the
 split test, :func:`~rtsgt.evaluation.metrics.shared_error_test`: the correlation of the
 ground truth's error between nearby poses) and ``f = max(1, chi2 / (n - p))`` the residual's
@@ -93,6 +97,7 @@ IEEE Trans. Robotics and Automation 10(5), 1994. S. Umeyama, IEEE TPAMI 13(4), 1
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -115,11 +120,13 @@ __all__ = [
     "parse_estimate",
 ]
 
-#: What can be estimated: the mounting rotation, the lever arm, the clock offset.
-MOUNTING_PARAMETERS = ("rotation", "lever", "clock")
+#: What can be estimated: the mounting rotation, the lever arm (all three components, or its
+#: x and y components in the body frame with z given: for a ground robot, whose vertical
+#: component only its tilts excite), the clock offset.
+MOUNTING_PARAMETERS = ("rotation", "lever", "lever-xy", "clock")
 
 #: Shorthands of ``--estimate``.
-ESTIMATE_ALIASES = {"mounting": ("rotation", "lever"), "all": MOUNTING_PARAMETERS}
+ESTIMATE_ALIASES = {"mounting": ("rotation", "lever"), "all": ("rotation", "lever", "clock")}
 
 #: Alignments the mounting can be estimated with.
 JOINT_ALIGNMENTS = ("none", "se3", "sim3", "4dof")
@@ -128,7 +135,7 @@ JOINT_ALIGNMENTS = ("none", "se3", "sim3", "4dof")
 #: hand: a tape measure for the lever arm, m; a CAD model or protractor for the rotation, rad,
 #: per axis; a network time synchronisation for the clock, s). Above it the trajectory does not
 #: excite the parameter and the estimate is refused.
-MAX_SIGMA = {"rotation": float(np.radians(1.0)), "lever": 0.02, "clock": 0.01}
+MAX_SIGMA = {"rotation": float(np.radians(1.0)), "lever": 0.02, "lever-xy": 0.02, "clock": 0.01}
 
 #: The clock is re-associated until its step is below this, s.
 CLOCK_TOLERANCE_S = 1e-5
@@ -138,6 +145,7 @@ CLOCK_TOLERANCE_S = 1e-5
 PARAMETER_NAMES = {
     "rotation": ("rotation_x", "rotation_y", "rotation_z"),
     "lever": ("lever_x", "lever_y", "lever_z"),
+    "lever-xy": ("lever_x", "lever_y"),
     "clock": ("clock",),
 }
 
@@ -171,7 +179,20 @@ def parse_estimate(value: str | Iterable[str] | None) -> tuple[str, ...]:
         else:
             known = ", ".join(MOUNTING_PARAMETERS + tuple(ESTIMATE_ALIASES))
             raise InputError(f"Expected parameters to estimate among {known}, got {name!r}")
+    if "lever" in out:
+        out.discard("lever-xy")
     return tuple(p for p in MOUNTING_PARAMETERS if p in out)
+
+
+def _lever_group(estimate: tuple[str, ...]) -> str | None:
+    """``lever``, ``lever-xy`` or None."""
+    return next((g for g in ("lever", "lever-xy") if g in estimate), None)
+
+
+def _lever_axes(estimate: tuple[str, ...]) -> list[int]:
+    """The components of the lever arm estimated."""
+    g = _lever_group(estimate)
+    return [] if g is None else [0, 1, 2][:len(PARAMETER_NAMES[g])]
 
 
 @dataclass(frozen=True)
@@ -244,10 +265,16 @@ class MountingFit:
         return {n: float(v) for n, v in zip(self.names, s, strict=True)}
 
     def group_sigma(self, group: str) -> np.ndarray | None:
-        """Standard deviations of one group (None when it was not estimated)."""
+        """Standard deviations of ``rotation`` (3), ``lever`` (3; NaN for a component given)
+        or ``clock`` (1); None when nothing of the group was estimated."""
+        s = self.sigma
+        if group == "lever":
+            names = PARAMETER_NAMES["lever"]
+            if not any(n in s for n in names):
+                return None
+            return np.array([s.get(n, np.nan) for n in names])
         if group not in self.estimated:
             return None
-        s = self.sigma
         return np.array([s[n] for n in PARAMETER_NAMES[group]])
 
     def as_matrix(self) -> np.ndarray:
@@ -266,17 +293,21 @@ class MountingFit:
         """JSON-ready: the values, their sigmas (null where given) and the fit."""
         rv = self.rotation_vector
         angle = float(np.linalg.norm(rv))
-        rs, ls, cs = (self.group_sigma(g) for g in MOUNTING_PARAMETERS)
+        rs, ls, cs = (self.group_sigma(g) for g in ("rotation", "lever", "clock"))
+        given = [g for g in ("rotation", "lever", "clock") if self.group_sigma(g) is None]
+        if "lever-xy" in self.estimated:
+            given.append("lever_z")
         out = {
             "estimated": list(self.estimated),
-            "given": [g for g in MOUNTING_PARAMETERS if g not in self.estimated],
+            "given": given,
             "T_body_sensor": self.as_matrix().tolist(),
             "quat_xyzw": matrix_to_quat_xyzw(self.rotation).tolist(),
             "rotation_angle_deg": float(np.degrees(angle)),
             "rotation_axis": (rv / angle).tolist() if angle > 0 else [0.0, 0.0, 1.0],
             "rotation_sigma_deg": None if rs is None else np.degrees(rs).tolist(),
             "lever_m": self.lever.tolist(),
-            "lever_sigma_m": None if ls is None else ls.tolist(),
+            "lever_sigma_m": None if ls is None else [
+                None if not np.isfinite(v) else float(v) for v in ls],
             "clock_offset_s": float(self.clock_offset),
             "clock_sigma_s": None if cs is None else float(cs[0]),
         }
@@ -388,8 +419,9 @@ def _jacobian(x: _State, D: _Data, align: str, estimate: tuple[str, ...],
     if "rotation" in estimate:
         J[:, :3, lay["rotation"]] = -Rh @ hat(x.lever)
         J[:, 3:, lay["rotation"]] = -Rh
-    if "lever" in estimate:
-        J[:, :3, lay["lever"]] = -Rh
+    lever = _lever_group(estimate)
+    if lever is not None:
+        J[:, :3, lay[lever]] = -Rh[:, :, _lever_axes(estimate)]
     if "clock" in estimate:
         J[:, :3, lay["clock"].start] = -D.v
         if D.w is not None:
@@ -415,8 +447,8 @@ class _Normal:
     H: np.ndarray
     g: np.ndarray
     chi2: float
-    B: np.ndarray | None
-    M: np.ndarray | None
+    Q0: np.ndarray | None  # M^-1 B: the shared parameters' response to the parameters
+    K: np.ndarray  # J^T C^-1 blockdiag(S) C^-1 J: the varying part's information
     varying: np.ndarray  # whitened residual with the shared part removed (N, d)
 
 
@@ -433,7 +465,7 @@ def _normal(r: np.ndarray, J: np.ndarray, S: np.ndarray, L: np.ndarray | None) -
     g = np.einsum("nip,ni->p", Jw, rw)
     chi2 = float(np.sum(rw * rw))
     if L is None:
-        return _Normal(H, g, chi2, None, None, rw)
+        return _Normal(H, g, chi2, None, H, rw)
     Lw = np.linalg.solve(Lc, L)
     k = L.shape[2]
     M = np.eye(k) + np.einsum("nia,nib->ab", Lw, Lw)
@@ -443,7 +475,9 @@ def _normal(r: np.ndarray, J: np.ndarray, S: np.ndarray, L: np.ndarray | None) -
     Mi_b = np.linalg.solve(M, bL)
     theta = Mi_b  # the shared parameters' estimate at the current point
     varying = rw - np.einsum("nia,a->ni", Lw, theta)
-    return _Normal(H - B.T @ Mi_B, g - B.T @ Mi_b, chi2 - float(bL @ Mi_b), B, M, varying)
+    Y = Jw - np.einsum("nia,ap->nip", Lw, Mi_B)  # whitened C^-1 J, pose by pose
+    K = np.einsum("nip,niq->pq", Y, Y)
+    return _Normal(H - B.T @ Mi_B, g - B.T @ Mi_b, chi2 - float(bL @ Mi_b), Mi_B, K, varying)
 
 
 def _scaled_inverse(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -488,8 +522,10 @@ def _update(x: _State, dx: np.ndarray, align: str, estimate: tuple[str, ...],
         y.ta = es * Rp @ (x.ta - c) + c + a[:3]
     if "rotation" in estimate:
         y.Rbs = exp_so3(dx[lay["rotation"]]) @ x.Rbs
-    if "lever" in estimate:
-        y.lever = x.lever + dx[lay["lever"]]
+    lever = _lever_group(estimate)
+    if lever is not None:
+        y.lever = x.lever.copy()
+        y.lever[_lever_axes(estimate)] += dx[lay[lever]]
     if "clock" in estimate:
         y.delta = x.delta + float(dx[lay["clock"]][0])
     return y
@@ -556,8 +592,9 @@ def _linear_start(x: _State, D: _Data, align: str, estimate: tuple[str, ...],
     if align == "sim3":
         cols.append((D.pe @ x.Ra.T)[:, :, None])
         names.append("s")
-    if "lever" in estimate:
-        cols.append(-Rh)
+    axes = _lever_axes(estimate)
+    if axes:
+        cols.append(-Rh[:, :, axes])
         names.append("l")
     if "clock" in estimate:
         cols.append(-D.v[:, :, None])
@@ -567,8 +604,9 @@ def _linear_start(x: _State, D: _Data, align: str, estimate: tuple[str, ...],
         rhs -= x.s * D.pe @ x.Ra.T
     if align == "none":
         rhs -= x.ta
-    if "lever" not in estimate:
-        rhs += Rh @ x.lever
+    given = x.lever.copy()
+    given[axes] = 0.0
+    rhs += Rh @ given
     if not cols:
         return x
     A = np.concatenate(cols, axis=2)  # (N, 3, m)
@@ -586,8 +624,9 @@ def _linear_start(x: _State, D: _Data, align: str, estimate: tuple[str, ...],
             y.s = float(sol[k]) if sol[k] > 0 else x.s
             k += 1
         elif n == "l":
-            y.lever = sol[k:k + 3]
-            k += 3
+            y.lever = x.lever.copy()
+            y.lever[axes] = sol[k:k + len(axes)]
+            k += len(axes)
         else:
             y.delta = float(sol[k])
             k += 1
@@ -618,14 +657,13 @@ def _starts(D: _Data, align: str, estimate: tuple[str, ...], Rbs0: np.ndarray,
             Rbs = _project_so3(np.einsum("nji,jk,nkl->il", D.Rg, Ra, D.Re))
         starts.append((name, _State(s, Ra, ta, Rbs, lever0.copy(), 0.0)))
     if D.Rg is not None:
-        Rbs = _hand_eye(D.Rg, D.Re) if rot else Rbs0
-        if Rbs is not None:
-            Ra = _mean_alignment_rotation(align, D.Rg, D.Re, Rbs)
-            s = 1.0
-            if align == "sim3" and starts:
-                s = starts[0][1].s
-            starts.append(("hand-eye" if rot else "rotations",
-                           _State(s, Ra, np.zeros(3), Rbs, lever0.copy(), 0.0)))
+        Rbs = _hand_eye(D.Rg, D.Re) if rot else None
+        name = "hand-eye"
+        if Rbs is None:  # no relative rotation: the given (or identity) mounting rotation
+            Rbs, name = Rbs0, "rotations"
+        Ra = _mean_alignment_rotation(align, D.Rg, D.Re, Rbs)
+        s = starts[0][1].s if align == "sim3" and starts else 1.0
+        starts.append((name, _State(s, Ra, np.zeros(3), Rbs, lever0.copy(), 0.0)))
     if not starts:
         raise GeometryError("Degenerate alignment: neither the positions nor the rotations "
                             "determine the alignment's rotation")
@@ -660,6 +698,7 @@ def fit_mounting(
     clock_offset: float = 0.0,
     gt_velocity: ArrayLike | None = None,
     gt_angular_velocity: ArrayLike | None = None,
+    gt_rate_cov: ArrayLike | None = None,
     est_cov: ArrayLike | None = None,
     shared: ArrayLike | None = None,
     max_iter: int = 50,
@@ -690,6 +729,12 @@ def fit_mounting(
     gt_velocity, gt_angular_velocity : array_like, shape (N, 3), optional
         The ground truth's world-frame linear (m/s) and angular (rad/s) velocity at the same
         times; needed to estimate the clock (the angular one with ``gt_rotation``).
+    gt_rate_cov : array_like, shape (N, 6, 6) or (N, 3, 3), optional
+        Covariance of the errors of ``(gt_velocity, gt_angular_velocity)`` (from the ground
+        truth's own errors, :func:`~rtsgt.evaluation.associate.ground_truth_rates`). Noisy
+        velocities feign information on the clock where the motion gives none (a constant
+        velocity): their expected share, ``sum_k tr(S_k^-1 V_k)``, is removed from the clock's
+        diagonal of the normal matrix for its covariance.
     est_cov : array_like, shape (N, 6, 6), optional
         The estimate's own covariance (left perturbation in its frame).
     shared : array_like, shape (N, d, k), optional
@@ -735,6 +780,12 @@ def fit_mounting(
             raise InputError("Estimating the clock needs the ground truth's velocities")
         v = _as_array(gt_velocity, (N, 3), "ground-truth velocities")
         w = None if d == 3 else _as_array(gt_angular_velocity, (N, 3), "angular velocities")
+    V = None
+    if "clock" in est and gt_rate_cov is not None:
+        V = np.asarray(gt_rate_cov, dtype=float)
+        if V.ndim != 3 or V.shape[0] != N or V.shape[1] < d or V.shape[1] != V.shape[2]:
+            raise ValueError(f"Expected rate covariances of shape ({N}, 6, 6), got {V.shape}")
+        V = V[:, :d, :d]
     cov_e = None if est_cov is None else _as_array(est_cov, (N, 6, 6), "estimate covariances")
     L = None if shared is None else np.asarray(shared, dtype=float)
     if L is not None and (L.ndim != 3 or L.shape[:2] != (N, d)):
@@ -759,6 +810,12 @@ def fit_mounting(
             best = (name, x, nrm.chi2)
     start, x, _ = best
     x, nrm, Rh, iterations = _gauss_newton(x, D, align, est, max_iter)
+    if V is not None:  # the information the velocities' noise feigns (gt_rate_cov)
+        k = _layout(align, est)["clock"].start
+        feigned = float(np.einsum("nij,nji->", np.linalg.inv(_covariance(x, D, Rh)), V))
+        H = nrm.H.copy()
+        H[k, k] = max(H[k, k] - feigned, 0.0)
+        nrm = dataclasses.replace(nrm, H=H)
     return _result(x, D, align, est, nrm, Rh, iterations, start, clock_offset)
 
 
@@ -800,11 +857,11 @@ def _result(x: _State, D: _Data, align: str, est: tuple[str, ...], nrm: _Normal,
     tau = float(np.mean([integrated_autocorrelation_time(nrm.varying[:, i])
                          for i in range(D.d)]))
     f = max(1.0, nrm.chi2 / dof)
-    if nrm.B is None:
+    if nrm.Q0 is None:
         cov = f * tau * Hinv
-    else:
-        Q = Hinv @ nrm.B.T @ np.linalg.inv(nrm.M)
-        cov = f * (tau * (Hinv - Q @ Q.T) + Q @ Q.T)
+    else:  # the varying part as a sandwich of a sum of squares: no cancellation
+        Q = Hinv @ nrm.Q0.T
+        cov = f * (tau * (Hinv @ nrm.K @ Hinv) + Q @ Q.T)
     idx = np.r_[tuple(np.arange(p)[lay[g]] for g in est)]
     names = tuple(n for g in est for n in PARAMETER_NAMES[g])
     C = cov[np.ix_(idx, idx)]
@@ -826,10 +883,10 @@ def _refusal(group: str, sigma: np.ndarray, bad: np.ndarray) -> str:
     """The one-line reason of a refusal."""
     k = int(np.argmax(np.where(bad, np.nan_to_num(sigma, nan=np.inf), -1.0)))
     what = {"rotation": "the mounting rotation", "lever": "the lever arm",
-            "clock": "the clock offset"}[group]
+            "lever-xy": "the lever arm", "clock": "the clock offset"}[group]
     if group == "clock":
         part, val, lim = "", _fmt(sigma[k], "s"), f"{MAX_SIGMA['clock']:g} s"
-    elif group == "lever":
+    elif group in ("lever", "lever-xy"):
         part = f" of its {'xyz'[k]} component (body frame)"
         val, lim = _fmt(sigma[k], "m"), f"{MAX_SIGMA['lever']:g} m"
     else:
@@ -840,7 +897,8 @@ def _refusal(group: str, sigma: np.ndarray, bad: np.ndarray) -> str:
             f"deviation{part} would be {val}, above the {lim} of a measurement by hand); "
             f"give it instead, or record a trajectory that "
             + {"rotation": "rotates about more axes",
-               "lever": "turns (and tilts, for a vertical component)",
+               "lever": "turns (and tilts, for a vertical component; or estimate lever-xy)",
+               "lever-xy": "turns",
                "clock": "moves faster"}[group])
 
 
@@ -874,9 +932,10 @@ def mounting_sensitivity(fit: MountingFit, R_hat: ArrayLike, velocity: ArrayLike
             blk = np.zeros((N, 6, 3))
             blk[:, :3] = -Rh @ hat(fit.lever)
             blk[:, 3:] = -Rh
-        elif g == "lever":
+        elif g in ("lever", "lever-xy"):
             blk = np.zeros((N, 6, 3))
             blk[:, :3] = -Rh
+            blk = blk[:, :, _lever_axes(fit.estimated)]
         else:
             if velocity is None or angular_velocity is None:
                 raise ValueError("Expected the ground truth's velocities for the clock")

@@ -48,10 +48,11 @@ class EvaluationOptions:
         of the RPE's gap warning (None: no limit).
     estimate : tuple of str
         What to estimate jointly with the alignment (:mod:`rtsgt.evaluation.mounting`): any of
-        ``rotation``, ``lever`` (the mounting ``T_body_sensor``), ``clock`` (the time offset,
-        starting from ``time_offset``); ``mounting`` stands for ``rotation, lever``, ``all``
-        for the three. A comma-separated string is accepted; stored as a tuple in the order
-        ``rotation, lever, clock``. Needs an alignment of
+        ``rotation``, ``lever`` (the mounting ``T_body_sensor``), ``lever-xy`` (the lever
+        arm's x and y in the body frame, its z given), ``clock`` (the time offset, starting
+        from ``time_offset``); ``mounting`` stands for ``rotation, lever``, ``all`` for
+        ``rotation, lever, clock``. A comma-separated string is accepted; stored as a tuple in the order
+        of :data:`~rtsgt.evaluation.mounting.MOUNTING_PARAMETERS`. Needs an alignment of
         :data:`~rtsgt.evaluation.mounting.JOINT_ALIGNMENTS`.
     mounting : tuple of 7 float, optional
         The given ``T_body_sensor`` as ``(x, y, z, qx, qy, qz, qw)`` (the sensor's pose in the
