@@ -16,7 +16,8 @@ rotation noise of 0.2 rad per metre of it: 2 mrad for 1 cm) with its covariance 
 ``--estimate`` (from the identity mounting and a zero time offset) and, for comparison, with
 the true mounting and clock given.
 
-Printed: the pooled NEES / dof of the estimated parameters against the truth (their estimate's
+A deployment whose trajectory does not excite what is asked is refused (counted, with the
+reason, and left out of the figures). Printed: the pooled NEES / dof of the estimated parameters against the truth (their estimate's
 error against their covariance; the acceptance of issue 14: within [0.8, 1.2]), per group, the
 share of deployments whose parameters fall inside their 95 % region, and the APE / RPE rmse
 after estimating against those with the truth given, in units of the uncertainty the
@@ -35,6 +36,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
+from rtsgt.errors import ExcitationError
 from rtsgt.evaluation import ContinuousGroundTruth, evaluate
 from rtsgt.geometry.so3 import log_so3, matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from rtsgt.geometry.transform import perturb
@@ -88,7 +90,10 @@ def one(seed: int, args, tmp: Path) -> dict:
         start = None  # the identity, except for a lever arm's z given with lever-xy
         if "lever-xy" in args.estimate:
             start = (0.0, 0.0, float(lever[2]), 0.0, 0.0, 0.0, 1.0)
-        res = evaluate(gt, est, align=args.align, estimate=args.estimate, mounting=start)
+        try:
+            res = evaluate(gt, est, align=args.align, estimate=args.estimate, mounting=start)
+        except ExcitationError as exc:
+            return {"refused": str(exc)}
         dt = time.perf_counter() - t0
         given = evaluate(gt, est, align=args.align, time_offset=args.clock_s,
                          mounting=tuple(np.r_[lever, matrix_to_quat_xyzw(R_bs)]))
@@ -136,10 +141,15 @@ def main(argv=None) -> None:
     ap.add_argument("--verbose", action="store_true")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    rows = []
+    rows, refused = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(args.deployments):
             r = one(args.first_seed + k, args, Path(tmp))
+            if "refused" in r:
+                refused.append((args.first_seed + k, r["refused"]))
+                if args.verbose:
+                    print(f"{args.first_seed + k}: refused: {r['refused']}", flush=True)
+                continue
             rows.append(r)
             if args.verbose:
                 s = r["sigma"]
@@ -160,6 +170,8 @@ def main(argv=None) -> None:
     print(f"pooled NEES / dof of the estimated parameters: {pooled:.3f} ({dof} dof; "
           f"+- {np.sqrt(2.0 / dof):.3f} expected spread); inside their 95 % region: "
           f"{100 * inside:.1f} % of the deployments")
+    print(f"refused: {len(refused)} of {n + len(refused)} deployments"
+          + "".join(f"\n  {seed}: {why}" for seed, why in refused))
     for g in rows[0]["groups"]:
         k = {"rotation": 3, "lever": 3, "lever-xy": 2, "clock": 1}[g]
         print(f"  {g}: NEES / dof {sum(r['groups'][g] for r in rows) / (k * n):.3f}")

@@ -387,3 +387,20 @@ def test_estimating_needs_a_covariance_and_a_joint_alignment():
         evaluate(gt, sensor_estimate(t, rng, clock=0.0), estimate="rotation")
     with pytest.raises(InputError, match="to estimate"):
         evaluate(gt, sensor_estimate(t, rng, clock=0.0), estimate="rotation", align="scale")
+
+
+def test_transform_files_and_their_errors(tmp_path):
+    from rtsgt.io.transform import read_transform
+
+    assert read_transform("1, 2, 3, 0, 0, 0, 1") == (1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0)
+    (tmp_path / "a.json").write_text('{"x": 1, "y": 2, "z": 3, "qx": 0, "qy": 0, "qz": 1}')
+    with pytest.raises(InputError, match="missing qw"):
+        read_transform(str(tmp_path / "a.json"))
+    (tmp_path / "m.txt").write_text("2 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    with pytest.raises(InputError, match="proper rotation"):
+        read_transform(str(tmp_path / "m.txt"))
+    (tmp_path / "m.txt").write_text("0 -1 0 1\n1 0 0 2\n0 0 1 3\n0 0 0 1\n")
+    x = read_transform(str(tmp_path / "m.txt"))
+    np.testing.assert_allclose(x, [1, 2, 3, 0, 0, np.sqrt(0.5), np.sqrt(0.5)], atol=1e-12)
+    with pytest.raises(InputError, match="7 numbers"):
+        read_transform("1 2 3")

@@ -234,9 +234,10 @@ def print_mounting(m: MountingFit, console: Console) -> None:
         console.print(
             f"estimated jointly with a {m.alignment.method} alignment weighted by the ground "
             f"truth's covariance on {m.n_used} poses (start: {m.start}, {m.iterations} "
-            f"Gauss-Newton iterations): chi2 / dof {m.chi2 / max(m.dof, 1):.3f}, sigmas "
-            f"x {m.time_correlation:.2f} (time correlation) x {np.sqrt(m.scale_factor):.2f} "
-            "(residual scale)", highlight=False)
+            f"Gauss-Newton iterations): chi2 / dof {m.chi2 / max(m.dof, 1):.3f}; variances "
+            f"x {m.time_correlation:.1f} at most for the ground truth's correlation between "
+            f"poses, sigmas x {np.sqrt(m.scale_factor):.2f} for the residual's scale",
+            highlight=False)
 
 
 def print_report(

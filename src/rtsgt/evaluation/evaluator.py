@@ -670,7 +670,11 @@ def evaluate(
         Estimate in its own frame, strictly increasing times; an optional ``cov`` (6x6, the
         left-perturbation convention in the estimate's frame) enters the NEES.
     options : EvaluationOptions, optional
-        Alignment, RPE pairs, time offset, ``max_dt`` (default: ``EvaluationOptions()``).
+        Alignment, RPE pairs, time offset, ``max_dt``, the mounting given (``mounting``) and
+        what to estimate with the alignment (``estimate``: the mounting's rotation and lever
+        arm, the clock; docs/evaluation.md#mounting-and-clock) (default:
+        ``EvaluationOptions()``). ``est`` is then the sensor's pose, moved to the body
+        frame by the mounting before the alignment.
     gt_measurement_times : array_like, optional
         Measurement times supporting a query ground truth (support and ``max_dt``).
     gt_cross_next : array_like, shape (N_gt - 1, 6, 6), optional
@@ -698,8 +702,12 @@ def evaluate(
 
     Raises
     ------
+    ExcitationError
+        Something asked for in ``estimate`` that the trajectory does not excite (its
+        standard deviation above :data:`~rtsgt.evaluation.mounting.MAX_SIGMA`).
     InputError
-        No time overlap, too few associated poses for the alignment, bad values.
+        No time overlap, too few associated poses for the alignment, bad values, an estimate
+        asked of a ground truth without covariances.
     GeometryError
         Degenerate alignment geometry.
     TypeError

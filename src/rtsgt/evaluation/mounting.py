@@ -69,20 +69,23 @@ parameters' covariance is
 
 .. math::
 
-    \Sigma = f \left[ \tau H^{-1} K H^{-1} + Q Q^T \right], \qquad
-    Q = H^{-1} B^T M^{-1},
+    \Sigma = f \left[ H^{-1} T K T H^{-1} + Q Q^T \right], \qquad
+    Q = H^{-1} B^T M^{-1}, \qquad T = \mathrm{diag}(\sqrt{\tau_j}),
 
 where ``Q Q^T`` is the shared errors' part (``B = sum L_k^T S_k^-1 J_k``,
 ``M = I + sum L_k^T S_k^-1 L_k``; ``Q = 0`` without ``L``) and ``H^-1 K H^-1`` the varying
 errors' part (``K = sum Y_k^T Y_k``, ``Y_k = S_k^-1/2 (J_k - L_k M^-1 B)``: ``K = H - (M^-1
 B)^T (M^-1 B)``, summed as squares so that a parameter the shared errors dominate, such as
 the clock against the stations' clock offsets, keeps a positive variance; ``K = H`` without
-``L``), ``tau`` the integrated
-autocorrelation time of the whitened varying residual (averaged over its components, as the
-split test, :func:`~rtsgt.evaluation.metrics.shared_error_test`: the correlation of the
-ground truth's error between nearby poses) and ``f = max(1, chi2 / (n - p))`` the residual's
-scale when it exceeds its expectation (errors of the estimate its covariance does not carry:
-the sigmas then follow the residual, not only the ground truth's covariance).
+``L``). The varying errors of a ground truth are correlated between nearby poses (the GP's
+smoothing): each parameter's variance is inflated by ``tau_j``, the integrated
+autocorrelation time (:func:`~rtsgt.evaluation.metrics.integrated_autocorrelation_time`) of
+its score, the series of each pose's share of the gradient ``s_k = Y_k^T nu_k`` (``nu_k``
+the whitened varying residual): a slowly varying regressor (the velocity, for the clock)
+keeps the residual's correlation, a quickly varying one averages it out. ``f = max(1, chi2 /
+(n - p))`` is the residual's scale when it exceeds its expectation (errors of the estimate its
+covariance does not carry: the sigmas then follow the residual, not only the ground truth's
+covariance).
 
 A parameter is refused, with the reason, when its standard deviation exceeds what a careful
 measurement by hand gives (:data:`MAX_SIGMA`: 0.02 m for the lever arm, 1 deg for the mounting
@@ -221,7 +224,8 @@ class MountingFit:
     dof : int
         Number of residuals less the number of parameters (alignment included).
     time_correlation : float
-        ``tau`` of the covariance (module docstring).
+        The largest ``tau_j`` of the estimated parameters (module docstring): the factor by
+        which the correlation of the ground truth's errors between poses inflates a variance.
     scale_factor : float
         ``f`` of the covariance.
     iterations : int
@@ -450,6 +454,7 @@ class _Normal:
     Q0: np.ndarray | None  # M^-1 B: the shared parameters' response to the parameters
     K: np.ndarray  # J^T C^-1 blockdiag(S) C^-1 J: the varying part's information
     varying: np.ndarray  # whitened residual with the shared part removed (N, d)
+    Y: np.ndarray  # whitened C^-1 J, pose by pose (N, d, p): the score is Y_k^T varying_k
 
 
 class _Weights:
@@ -487,7 +492,7 @@ class _Weights:
         g = np.einsum("nip,ni->p", Jw, rw)
         chi2 = float(np.sum(rw * rw))
         if self.Lw is None:
-            return _Normal(H, g, chi2, None, H, rw)
+            return _Normal(H, g, chi2, None, H, rw, Jw)
         Lw, M = self.Lw, self.M
         B = np.einsum("nia,nip->ap", Lw, Jw)
         bL = np.einsum("nia,ni->a", Lw, rw)
@@ -497,7 +502,7 @@ class _Weights:
         Y = Jw - np.einsum("nia,ap->nip", Lw, Mi_B)  # whitened C^-1 J, pose by pose
         K = np.einsum("nip,niq->pq", Y, Y)
         return _Normal(H - B.T @ Mi_B, g - B.T @ Mi_b, chi2 - float(bL @ Mi_b), Mi_B, K,
-                       varying)
+                       varying, Y)
 
 
 def _normal(r: np.ndarray, J: np.ndarray, S: np.ndarray, L: np.ndarray | None) -> _Normal:
@@ -884,14 +889,17 @@ def _result(x: _State, D: _Data, align: str, est: tuple[str, ...], nrm: _Normal,
     p = lay["all"].stop
     dof = n_res - p
     Hinv, singular = _scaled_inverse(nrm.H)
-    tau = float(np.mean([integrated_autocorrelation_time(nrm.varying[:, i])
-                         for i in range(D.d)]))
+    score = np.einsum("nip,ni->np", nrm.Y, nrm.varying)  # each pose's share of the gradient
+    taus = np.array([integrated_autocorrelation_time(score[:, j]) for j in range(p)])
+    root = np.sqrt(taus)
     f = max(1.0, nrm.chi2 / dof)
+    varying = Hinv @ (root[:, None] * nrm.K * root[None, :]) @ Hinv
     if nrm.Q0 is None:
-        cov = f * tau * Hinv
+        cov = f * varying
     else:  # the varying part as a sandwich of a sum of squares: no cancellation
         Q = Hinv @ nrm.Q0.T
-        cov = f * (tau * (Hinv @ nrm.K @ Hinv) + Q @ Q.T)
+        cov = f * (varying + Q @ Q.T)
+    tau = float(np.max(taus[np.r_[tuple(np.arange(p)[lay[g]] for g in est)]]))
     idx = np.r_[tuple(np.arange(p)[lay[g]] for g in est)]
     names = tuple(n for g in est for n in PARAMETER_NAMES[g])
     C = cov[np.ix_(idx, idx)]
