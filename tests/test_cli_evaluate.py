@@ -392,3 +392,114 @@ def test_warnings_are_shown_and_listed_in_json(files, tmp_path):
     assert p.returncode == 1
     assert p.stderr.startswith("error: ") and p.stderr.count("\n") == 1
     assert "ns.tum:1: " in p.stderr and "nanoseconds" in p.stderr
+
+
+@pytest.fixture(scope="module")
+def mounted(tmp_path_factory):
+    """The ground truth of ``files`` and an estimate of a sensor rotated 180 deg about z from
+    the body frame, 0.5 m from its origin, stamped 30 ms late, in another world frame."""
+    d = tmp_path_factory.mktemp("mounted")
+    rng = np.random.default_rng(17)
+    t, p, R = smooth_truth(1000)
+    gt = perturbed(t, p, R, random_covariances(len(t), rng, 2e-3, 5e-4), rng)
+    gt_dir = write_gt_dir(d / "run", gt)
+    R_bs = Rotation.from_rotvec([0.0, 0.0, np.pi]).as_matrix()
+    lever = np.array([0.4, 0.0, 0.3])
+    sub = slice(10, -10, 2)
+    Rs, ps = R[sub] @ R_bs, p[sub] + R[sub] @ lever
+    Ra = Rotation.from_rotvec([0.0, 0.0, 1.2]).as_matrix()
+    est = transform_trajectory(trajectory(t[sub] - 0.03, ps, Rs), Ra, np.array([2.0, -1.0, 0.5]))
+    write_tum(d / "sensor.tum", est)
+    return d, gt_dir, R_bs, lever
+
+
+def test_estimate_mounting_and_clock_json_table_and_plots(mounted, tmp_path):
+    """``--estimate all``: the mounting (180 deg, 0.5 m) and the clock (30 ms) within a few
+    sigma of the truth, in the JSON with their sigmas and covariance, in the table, and in
+    the figures; without the estimate the same file gets an APE rotation near 180 deg."""
+    d, gt_dir, R_bs, lever = mounted
+    r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(d / "sensor.tum"), "--json"])
+    assert r.exit_code == 0, r.output
+    plain = json.loads(r.stdout)
+    assert plain["ape"]["rotation_deg"]["rmse"] > 170 and plain["mounting"] is None
+    r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(d / "sensor.tum"), "--json",
+                               "--estimate", "all", "--plot", str(tmp_path / "fig")])
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.stdout)
+    m = out["mounting"]
+    assert m["estimated"] == ["rotation", "lever", "clock"] and m["given"] == []
+    assert abs(m["rotation_angle_deg"] - 180.0) < 4 * max(m["rotation_sigma_deg"])
+    assert np.all(np.abs(np.array(m["lever_m"]) - lever) < 4 * np.array(m["lever_sigma_m"]))
+    assert abs(m["clock_offset_s"] - 0.03) < 4 * m["clock_sigma_s"]
+    assert out["association"]["time_offset_s"] == m["clock_offset_s"]
+    assert np.array(m["covariance"]).shape == (7, 7) and len(m["names"]) == 7
+    assert set(m["effect"]) == {"ape_translation_m", "ape_rotation_deg", "rpe_translation_m",
+                                "rpe_rotation_deg"}
+    assert m["fit"]["max_sigma"] == {"rotation": pytest.approx(np.radians(1.0)),
+                                     "lever": 0.02, "clock": 0.01}
+    assert out["ape"]["rotation_deg"]["rmse"] < 0.2
+    assert out["rpe"]["translation_m"]["rmse"] < 0.02
+    for f in ("top_view.png", "translation_error.svg"):
+        assert (tmp_path / "fig" / f).stat().st_size > 1000
+    assert "T_body_sensor estimated: rotation, lever, clock" in (
+        tmp_path / "fig" / "top_view.svg").read_text()
+    r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(d / "sensor.tum"), "--estimate",
+                               "mounting,clock"], env={"COLUMNS": "200"})
+    assert r.exit_code == 0, r.output
+    for text in ("Mounting T_body_sensor", "lever arm (m, body frame)", "clock offset (s)",
+                 "estimated jointly with a se3 alignment", "within the uncertainty of the "
+                 "estimated rotation, lever, clock: APE rmse +-"):
+        assert text in r.stdout, text
+
+
+def test_given_mounting_in_every_form(mounted, tmp_path):
+    """``--mounting`` as seven numbers, evo's JSON transform or a 4x4 matrix file: the same
+    result; bad values are usage errors naming the option."""
+    d, gt_dir, R_bs, lever = mounted
+    from rtsgt.geometry.so3 import matrix_to_quat_xyzw
+
+    q = matrix_to_quat_xyzw(R_bs)
+    seven = ",".join(f"{v:.17g}" for v in (*lever, *q))
+    (tmp_path / "T.json").write_text(json.dumps(dict(zip(
+        ("x", "y", "z", "qx", "qy", "qz", "qw"), (*lever, *q), strict=True))))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R_bs, lever
+    (tmp_path / "T.txt").write_text("# T_body_sensor\n" + "\n".join(
+        " ".join(f"{v:.17g}" for v in row) for row in T))
+    rmse = []
+    for value in (seven, str(tmp_path / "T.json"), str(tmp_path / "T.txt")):
+        r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(d / "sensor.tum"), "--json",
+                                   "--mounting", value, "--t-offset", "0.03"])
+        assert r.exit_code == 0, r.output
+        out = json.loads(r.stdout)
+        assert out["mounting"]["estimated"] == [] and out["mounting"]["effect"] is None
+        rmse.append(out["ape"]["translation_m"]["rmse"])
+    assert rmse[0] < 0.01 and max(rmse) - min(rmse) < 1e-12
+    for args, option in ((["--mounting", "1,2,3"], "--mounting"),
+                         (["--mounting", "0,0,0,0,0,0,3"], "--mounting"),
+                         (["--estimate", "levers"], "--estimate"),
+                         (["--estimate", "lever", "--align", "origin"], "--estimate")):
+        r = runner.invoke(_app(), ["evaluate", str(gt_dir), str(d / "sensor.tum"), *args])
+        assert r.exit_code == 2 and option in r.output, (args, r.output)
+
+
+def test_refusal_is_one_line_and_exit_code_1(tmp_path):
+    """A straight drive asked for a lever arm: ``error: cannot estimate the lever arm: ...``
+    on one line, exit status 1, no number."""
+    rng = np.random.default_rng(3)
+    n = 300
+    t = 1_668_095_037.0 + 0.1 * np.arange(n)
+    p = np.c_[t - t[0], np.zeros(n), np.zeros(n)]
+    R = np.tile(np.eye(3), (n, 1, 1))
+    gt = perturbed(t, p, R, random_covariances(n, rng, 2e-3, 5e-4), rng)
+    gt_dir = write_gt_dir(tmp_path / "run", gt)
+    write_tum(tmp_path / "est.tum", trajectory(t, p + [0.3, 0.4, 0.0], R))
+    exe = [sys.executable, "-c", "from rtsgt.cli.main import main; main()"]
+    pr = subprocess.run([*exe, "evaluate", str(gt_dir), str(tmp_path / "est.tum"), "--estimate",
+                         "lever", "--align", "4dof", "--json"], capture_output=True, text=True,
+                        timeout=120)
+    assert pr.returncode == 1, pr.stderr
+    assert pr.stdout == ""
+    assert pr.stderr.startswith("error: cannot estimate the lever arm: the trajectory does "
+                                "not excite it")
+    assert pr.stderr.count("\n") == 1

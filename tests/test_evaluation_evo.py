@@ -7,6 +7,7 @@ its Python API (``evo.main_ape.ape``, ``evo.main_rpe.rpe``) and its command-line
 
 from __future__ import annotations
 
+import copy
 import json
 import shutil
 import subprocess
@@ -285,3 +286,38 @@ def test_rpe_pair_selection_equals_evo_on_hard_paths(all_pairs):
             ref = np.array(_evo_pairs(p, delta, unit, all_pairs), dtype=int).reshape(-1, 2)
             assert mine.shape[0] >= 2
             np.testing.assert_array_equal(mine, ref, err_msg=f"{delta} {unit}")
+
+
+@pytest.mark.parametrize("align", ["none", "se3", "origin"])
+def test_given_mounting_equals_evo_on_the_transformed_trajectory(pair, align):
+    """An estimate of a sensor mounted by ``T_body_sensor`` (174 deg, 0.5 m), evaluated with
+    the mounting given (``mounting=``, ``--mounting``): the APE and RPE are evo's on the
+    trajectory moved to the body frame (``transform(T_body_sensor^-1, right_mul=True)``, as
+    ``evo_traj --transform_right``)."""
+    from rtsgt.geometry.so3 import exp_so3, matrix_to_quat_xyzw
+
+    gt, est = pair
+    R_bs = exp_so3(np.radians(174.0) * np.array([0.05, -0.03, 1.0]) / np.linalg.norm(
+        [0.05, -0.03, 1.0]))
+    lever = np.array([0.3, -0.35, 0.15])
+    T_bs = np.eye(4)
+    T_bs[:3, :3], T_bs[:3, 3] = R_bs, lever
+    # the estimate seen by a sensor: T_E_sensor = T_E_body T_body_sensor
+    sensor = PoseTrajectory(est.t, est.position + est.rotation @ lever,
+                            matrix_to_quat_xyzw(est.rotation @ R_bs))
+    res = evaluate(gt, sensor, align=align, delta=2.0, delta_unit="m",
+                   mounting=(*lever, *matrix_to_quat_xyzw(R_bs)))
+    moved = to_evo(sensor)
+    moved.transform(np.linalg.inv(T_bs), right_mul=True)
+    PR = evo_metrics.PoseRelation
+    for rel, mine in ((PR.translation_part, res.ape.translation_m),
+                      (PR.rotation_angle_deg, res.ape.rotation_deg)):
+        r = main_ape.ape(to_evo(gt), copy.deepcopy(moved), rel, **EVO_ALIGN[align])
+        assert_stats(r.stats, mine, f"APE {align} {rel.name} with the mounting")
+        r = main_rpe.rpe(to_evo(gt), copy.deepcopy(moved), rel, delta=2.0,
+                         delta_unit=evo_metrics.Unit.meters, **EVO_ALIGN[align])
+        assert_stats(r.stats, {PR.translation_part: res.rpe.translation_m,
+                               PR.rotation_angle_deg: res.rpe.rotation_deg}[rel],
+                     f"RPE {align} {rel.name} with the mounting")
+    np.testing.assert_allclose(res.ape.translation_m.rmse,
+                               evaluate(gt, est, align=align).ape.translation_m.rmse, rtol=1e-9)

@@ -291,3 +291,7 @@ def test_cli_evaluates_against_a_prism_topic_and_a_position_csv(tmp_path):
     assert json.loads(r.stdout)["ape"]["translation_m"]["max"] < 1e-6
     r = runner.invoke(app, ["evaluate", str(bag), *args])
     assert r.exit_code == 1 and "/leica/point" in r.output  # the position topics listed
+    # a mounting needs the ground truth's rotation: one line, no number
+    r = runner.invoke(app, ["evaluate", str(csv), *args, "--estimate", "rotation"])
+    assert r.exit_code == 1 and "position-only ground truth" in r.output
+    assert "Traceback" not in r.output

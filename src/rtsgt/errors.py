@@ -46,6 +46,11 @@ class GeometryError(RtsgtError, ValueError):
     """Degenerate geometry: collinear points, too few points, a reflection, ..."""
 
 
+class ExcitationError(InputError):
+    """A parameter asked for that the data do not determine: the trajectory does not excite it
+    (a lever arm from a straight drive). The message says which, by how much, and what to do."""
+
+
 class ExtrapolationError(InputError):
     """A query outside the support of a track (beyond its ends or across a long gap).
 

@@ -33,6 +33,7 @@ import json
 import warnings
 from pathlib import Path
 
+import numpy as np
 import typer
 from rich.console import Console
 from rich.table import Table
@@ -50,6 +51,7 @@ from rtsgt.evaluation import (
 from rtsgt.evaluation.associate import GroundTruthQuery, ValidatedGroundTruth
 from rtsgt.evaluation.groundtruth import ContinuousGroundTruth, ContinuousPositionGroundTruth
 from rtsgt.evaluation.lever_arm import parse_lever_arm
+from rtsgt.evaluation.mounting import JOINT_ALIGNMENTS, MountingFit
 from rtsgt.evaluation.options import DEFAULT_MAX_DT_S
 from rtsgt.io.output_dir import check_target
 from rtsgt.io.positions import position_csv_form, read_position_csv, read_positions
@@ -61,6 +63,7 @@ from rtsgt.io.trajectory import (
     read_groundtruth_dir,
     read_trajectory,
 )
+from rtsgt.io.transform import read_transform
 from rtsgt.pose import POSE_ENGINES
 from rtsgt.report.eval_plots import plot_evaluation
 from rtsgt.types import PoseTrajectory, PositionTrajectory
@@ -82,6 +85,8 @@ EVALUATION_OPTION_NAMES = {
     "all_pairs": "--all-pairs",
     "time_offset": "--t-offset",
     "max_dt": "--max-gap",
+    "estimate": "--estimate",
+    "mounting": "--mounting",
 }
 
 
@@ -89,12 +94,25 @@ def evaluation_options(**values) -> EvaluationOptions:
     """The :class:`~rtsgt.evaluation.EvaluationOptions` of the given (not None) command-line
     values, each checked by the record's own rule first; a bad one is a usage error naming its
     option (a bad combination names the first option it involves: ``--delta`` with
-    ``--delta-unit f``)."""
+    ``--delta-unit f``, ``--estimate`` with an ``--align`` it cannot be estimated with)."""
     changes = checked_options(EvaluationOptions, EVALUATION_OPTION_NAMES, **values)
     try:
         return EvaluationOptions(**changes)
     except InputError as exc:
-        raise usage_error(exc.bare_message, EVALUATION_OPTION_NAMES["delta"]) from None
+        option = "estimate" if changes.get("estimate") and "to estimate" in exc.bare_message \
+            else "delta"
+        raise usage_error(exc.bare_message, EVALUATION_OPTION_NAMES[option]) from None
+
+
+def mounting_option(value: str | None) -> tuple[float, ...] | None:
+    """``--mounting``: seven numbers or a file (:func:`rtsgt.io.transform.read_transform`); a
+    bad one is a usage error naming the option."""
+    if value is None:
+        return None
+    try:
+        return read_transform(value)
+    except InputError as exc:
+        raise usage_error(str(exc), "--mounting") from None
 
 
 def run_gap_limit(gt: object, gt_dir: str | Path) -> float | None:
@@ -228,6 +246,11 @@ def run_evaluate(
             f"unknown ground-truth engine {gt_engine!r}; expected one of {', '.join(GT_ENGINES)}"
         )
     if wants_positions(gt_dir, lever_arm=lever_arm, prism=prism, gt_topic=gt_topic):
+        if options is not None and (options.estimate or options.mounting is not None):
+            raise InputError(
+                f"{gt_dir}: a position-only ground truth gives no rotation to fit a mounting or "
+                "a clock to (--estimate, --mounting); give the prism's lever arm in the sensor "
+                "frame with --lever-arm and the clock with --t-offset")
         lever = parse_lever_arm(lever_arm)
         gt_pos = load_position_ground_truth(gt_dir, prism=prism, topic=gt_topic, mode=gt_mode)
         if lever_arm is None:
@@ -273,6 +296,50 @@ def _stats_row(name: str, s, scale: float, digits: int) -> list[str]:
     ]
 
 
+def _vector(v, scale: float, digits: int) -> str:
+    return "(" + ", ".join("given" if not np.isfinite(x) else f"{scale * x:.{digits}f}"
+                           for x in v) + ")"
+
+
+def print_mounting(m: MountingFit, console: Console) -> None:
+    """The mounting ``T_body_sensor`` and the clock offset, with the sigma of what was
+    estimated, and how the fit went."""
+    table = Table(title="Mounting T_body_sensor (sensor pose in the body frame) and clock")
+    for col in ("", "value", "sigma", ""):
+        table.add_column(col, justify="left" if col == "" else "right")
+    rv = m.rotation_vector
+    angle = float(np.linalg.norm(rv))
+    axis = rv / angle if angle > 0 else np.array([0.0, 0.0, 1.0])
+    rs, ls, cs = (m.group_sigma(g) for g in ("rotation", "lever", "clock"))
+    table.add_row(
+        "rotation",
+        f"{np.degrees(angle):.4f} deg about {_vector(axis, 1.0, 4)}",
+        "-" if rs is None else f"{_vector(rs, 57.29577951308232, 4)} deg (body x, y, z)",
+        "estimated" if rs is not None else "given",
+    )
+    table.add_row(
+        "lever arm (m, body frame)",
+        _vector(m.lever, 1.0, 4),
+        "-" if ls is None else _vector(ls, 1.0, 4),
+        "estimated" if ls is not None else "given",
+    )
+    table.add_row(
+        "clock offset (s)",
+        f"{m.clock_offset:.6f}",
+        "-" if cs is None else f"{cs[0]:.6f}",
+        "estimated" if cs is not None else "given",
+    )
+    console.print(table)
+    if m.covariance is not None:
+        console.print(
+            f"estimated jointly with a {m.alignment.method} alignment weighted by the ground "
+            f"truth's covariance on {m.n_used} poses (start: {m.start}, {m.iterations} "
+            f"Gauss-Newton iterations): chi2 / dof {m.chi2 / max(m.dof, 1):.3f}; variances "
+            f"x {m.time_correlation:.1f} at most for the ground truth's correlation between "
+            f"poses, sigmas x {np.sqrt(m.scale_factor):.2f} for the residual's scale",
+            highlight=False)
+
+
 def print_report(
     result: EvaluationResult, console: Console, *, gt_source: str, est_source: str
 ) -> None:
@@ -290,7 +357,7 @@ def print_report(
         f"[bold]{est_source}[/bold] against [bold]{gt_source}[/bold] ({kind}): {len(a)} of "
         f"{a.n_est} estimate poses associated"
         + (f"; dropped: {dropped}" if dropped else "")
-        + f" (time offset {a.time_offset} s, {limit} {a.max_dt} s)"
+        + f" (time offset {a.time_offset:.6g} s, {limit} {a.max_dt} s)"
     )
     al = result.alignment
     if al.method == "none":
@@ -301,6 +368,8 @@ def print_report(
             f"{al.n_used} poses, yaw {al.yaw * 57.29577951308232:.4f} deg, scale {al.scale:.6f}, "
             f"t = [{', '.join(f'{v:.4f}' for v in al.translation)}] m"
         )
+    if result.mounting is not None:
+        print_mounting(result.mounting, console)
     table = Table(title="Pose errors (evo definitions)")
     for col in ("metric", "rmse", "mean", "median", "std", "min", "max"):
         table.add_column(col, justify="left" if col == "metric" else "right")
@@ -323,6 +392,15 @@ def print_report(
         )
         table.add_row(*_stats_row(f"RPE rotation (deg), {pairs}", result.rpe.rotation_deg, 1.0, 4))
     console.print(table)
+    u = result.mounting_effect
+    if u is not None:
+        rpe_u = ("" if u["rpe_translation_m"] is None else
+                 f"; RPE rmse +- {1e3 * u['rpe_translation_m']:.3f} mm, "
+                 f"+- {u['rpe_rotation_deg']:.4f} deg")
+        console.print(
+            f"within the uncertainty of the estimated {', '.join(result.mounting.estimated)}: "
+            f"APE rmse +- {1e3 * u['ape_translation_m']:.3f} mm, "
+            f"+- {u['ape_rotation_deg']:.4f} deg{rpe_u}", highlight=False)
     if result.rpe is None:
         console.print(f"no RPE: {result.rpe_absent_reason}", highlight=False)
     n = result.nees
@@ -543,7 +621,25 @@ def register(app: typer.Typer) -> None:
             False, "--all-pairs", help="RPE on all pairs (evo --all_pairs)."
         ),
         time_offset: float = typer.Option(
-            0.0, "--t-offset", "--time-offset", help="Seconds added to the estimate's times."
+            0.0, "--t-offset", "--time-offset",
+            help="Seconds added to the estimate's times (the start of --estimate clock).",
+        ),
+        estimate: str | None = typer.Option(
+            None,
+            "--estimate",
+            help="Estimate jointly with the alignment (comma-separated): rotation, lever (the "
+            "mounting T_body_sensor), lever-xy (its x, y in the body frame, z given: for a "
+            "ground robot), clock (the time offset); mounting = rotation,lever; all = "
+            "rotation,lever,clock. "
+            f"Needs --align {' | '.join(JOINT_ALIGNMENTS)}; refused, with the reason, when the "
+            "trajectory does not excite it.",
+        ),
+        mounting: str | None = typer.Option(
+            None,
+            "--mounting",
+            help="Given T_body_sensor (the sensor's pose in the body frame, p_body = R "
+            "p_sensor + t): x,y,z,qx,qy,qz,qw, or a file (evo's JSON transform, or a 4x4 "
+            "matrix). The start of what --estimate asks, the value of the rest.",
         ),
         max_dt: float | None = typer.Option(
             None,
@@ -601,6 +697,8 @@ def register(app: typer.Typer) -> None:
             all_pairs=all_pairs,
             time_offset=time_offset,
             max_dt=max_dt,  # None: the run's own limit (run_evaluate), checked here when given
+            estimate=estimate,
+            mounting=mounting_option(mounting),
         )
         if fmt is not None and fmt not in FORMATS:
             raise typer.BadParameter(f"expected one of {', '.join(FORMATS)}", param_hint="--format")

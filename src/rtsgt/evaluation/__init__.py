@@ -2,7 +2,8 @@ r"""Evaluation of SLAM / odometry trajectories against an uncertain ground truth
 
 :func:`evaluate` runs the whole chain, in evo's order, with :class:`EvaluationOptions`::
 
-    associate (time offset, max_dt)  ->  align (none | se3 | sim3 | 4dof | scale | origin)
+    associate (time offset, max_dt)  ->  [mounting T_body_sensor and clock: given or
+      estimated with the alignment]  ->  align (none | se3 | sim3 | 4dof | scale | origin)
       ->  APE, RPE (evo's definitions and statistics)
       ->  NEES (3 and 6 dof), consistency verdicts, noise floor, RPE with relative covariance
 
@@ -28,6 +29,11 @@ the JSON layout of ``rtsgt evaluate --json``::
                      "ground_truth_detail": {...},
                      "n_covariance_interpolated", "time_offset_s", "max_dt_s",
                      "max_dt_nearest_s"},
+     "mounting": null | {"estimated", "given", "T_body_sensor", "quat_xyzw",
+                  "rotation_angle_deg", "rotation_axis", "rotation_sigma_deg", "lever_m",
+                  "lever_sigma_m", "clock_offset_s", "clock_sigma_s", "names", "covariance",
+                  "fit": {...}, "effect": {"ape_translation_m", "ape_rotation_deg",
+                  "rpe_translation_m", "rpe_rotation_deg"}},
      "warnings": ["..."]}
 
 Against a position-only ground truth (one tracked prism), :func:`evaluate_positions`
@@ -35,6 +41,10 @@ Against a position-only ground truth (one tracked prism), :func:`evaluate_positi
 ``to_dict`` has the same sections with the rotation statistics and the pose NEES ``null``,
 and ``ground_truth`` (``"positions"``), ``rotation`` (why rotations are not reported) and
 ``lever_arm``.
+
+``mounting`` (docs/evaluation.md#mounting-and-clock) is ``null`` unless a mounting was given
+(``mounting=``, ``--mounting``) or something estimated (``estimate=``, ``--estimate``,
+:mod:`~rtsgt.evaluation.mounting`); the sigmas of what was given are ``null``.
 
 ``warnings`` is added by ``rtsgt evaluate``: every :class:`~rtsgt.errors.RtsgtWarning` that
 reading the files and evaluating emitted (each also shown as a ``warning: ...`` line).
@@ -62,7 +72,7 @@ Layout: :mod:`~rtsgt.evaluation.evaluator` (:func:`evaluate`, one function per s
 :mod:`~rtsgt.evaluation.options` (:class:`EvaluationOptions`, the options of an evaluation and
 their rules), :mod:`~rtsgt.evaluation.result` (:class:`EvaluationResult` and its sections),
 :mod:`~rtsgt.evaluation.associate`, :mod:`~rtsgt.evaluation.align`,
-:mod:`~rtsgt.evaluation.metrics`, :mod:`~rtsgt.evaluation.groundtruth`,
+:mod:`~rtsgt.evaluation.metrics`, :mod:`~rtsgt.evaluation.mounting`, :mod:`~rtsgt.evaluation.groundtruth`,
 :mod:`~rtsgt.evaluation.positions` and :mod:`~rtsgt.evaluation.lever_arm` (the position-only
 ground truth); this module only re-exports.
 """
@@ -81,6 +91,7 @@ from rtsgt.evaluation.associate import (
 from rtsgt.evaluation.evaluator import evaluate, gap_per_step
 from rtsgt.evaluation.groundtruth import ContinuousGroundTruth, ContinuousPositionGroundTruth
 from rtsgt.evaluation.metrics import DELTA_UNITS, STATISTICS, NeesResult
+from rtsgt.evaluation.mounting import MountingFit, fit_mounting
 from rtsgt.evaluation.options import EvaluationOptions
 from rtsgt.evaluation.positions import (
     POSITION_ALIGN_METHODS,
@@ -106,6 +117,7 @@ __all__ = [
     "ErrorStatistics",
     "EvaluationOptions",
     "EvaluationResult",
+    "MountingFit",
     "GroundTruthQuery",
     "GroundTruthSample",
     "NeesResult",
@@ -119,5 +131,6 @@ __all__ = [
     "associate",
     "evaluate",
     "evaluate_positions",
+    "fit_mounting",
     "gap_per_step",
 ]

@@ -513,3 +513,97 @@ def _associate_validated(
         ground_truth="continuous",
         ground_truth_detail=dict(getattr(gt, "info", None) or {}),
     )
+
+
+#: Half step (s) of the central differences of :func:`ground_truth_rates`: short against the
+#: time over which a robot's velocity changes (the difference's error is about
+#: ``jerk step^2 / 6``, 1 cm/s for 1 m/s^3), long against the time over which a ground truth's
+#: noise changes (its noise in the difference is ``sigma / (sqrt 2 step)``).
+RATE_STEP_S = 0.25
+
+
+@dataclass(frozen=True)
+class GroundTruthRates:
+    """World-frame velocities of the ground truth at the associated times.
+
+    Attributes
+    ----------
+    v : ndarray, shape (M, 3)
+        Linear velocity, m/s.
+    w : ndarray, shape (M, 3)
+        Angular velocity, rad/s (``R(tau + dt) = exp(w dt) R(tau)``).
+    cov : ndarray, shape (M, 6, 6) or None
+        Covariance of their errors ``(v, w)`` from the ground truth's own errors (None without
+        covariances).
+    """
+
+    v: np.ndarray
+    w: np.ndarray
+    cov: np.ndarray | None
+
+
+def ground_truth_rates(
+    gt: PoseTrajectory | GroundTruthQuery | ValidatedGroundTruth,
+    assoc: Association,
+    *,
+    measurement_times: ArrayLike | None = None,
+    step: float = RATE_STEP_S,
+) -> GroundTruthRates:
+    r"""World-frame linear and angular velocity of the ground truth at the associated times.
+
+    Central differences of the ground truth queried (as :func:`associate` queries it, any
+    kind) at ``tau -+ step``, ``tau = t + time_offset``: ``v = (p_+ - p_-) / (2 step)``,
+    ``w = log(R_+ R_-^T) / (2 step)`` (so that ``R(tau + dt) = exp(w dt) R(tau)``); one-sided
+    against the associated pose where one side is outside the ground truth, zero where both
+    are. Their error covariance is that of the difference of the two poses' errors over the
+    squared time between them, the two taken as independent (an upper bound for a ground
+    truth whose errors are correlated in time: what it is used for,
+    :func:`~rtsgt.evaluation.mounting.fit_mounting`'s ``gt_rate_cov``, then errs on the
+    cautious side).
+
+    Parameters
+    ----------
+    gt : PoseTrajectory, callable or ValidatedGroundTruth
+        The ground truth of the association.
+    assoc : Association
+    measurement_times : array_like, optional
+        As for :func:`associate`.
+    step : float
+        s.
+
+    Returns
+    -------
+    GroundTruthRates
+    """
+    tau = assoc.est.t + assoc.time_offset
+    M = tau.size
+    quat = np.tile([0.0, 0.0, 0.0, 1.0], (M, 1))
+    p0, R0, P0 = assoc.gt.position, assoc.gt.rotation, assoc.gt.cov
+    side = {}
+    for sign in (-1.0, 1.0):
+        probe = PoseTrajectory(tau + sign * step, np.zeros((M, 3)), quat)
+        ok = np.zeros(M, dtype=bool)
+        p, R = p0.copy(), R0.copy()
+        P = None if P0 is None else P0.copy()
+        try:
+            a = associate(gt, probe, time_offset=0.0, max_dt=None,
+                          measurement_times=measurement_times)
+        except InputError:  # no time of this side inside the ground truth
+            a = None
+        if a is not None:
+            ok[a.index] = True
+            p[a.index] = a.gt.position
+            R[a.index] = a.gt.rotation
+            if P is not None and a.gt.cov is not None:
+                P[a.index] = a.gt.cov
+        side[sign] = (ok, p, R, P, np.where(ok, tau + sign * step, tau))
+    (_, pm, Rm, Pm, tm), (_, pp, Rp, Pp, tp) = side[-1.0], side[1.0]
+    span = tp - tm
+    moved = span > 0
+    safe = np.where(moved, span, 1.0)
+    v = np.where(moved[:, None], (pp - pm) / safe[:, None], 0.0)
+    w = np.where(moved[:, None], log_so3(Rp @ np.swapaxes(Rm, 1, 2)) / safe[:, None], 0.0)
+    cov = None
+    if P0 is not None:
+        cov = np.where(moved[:, None, None], Pm + Pp, 0.0) / (safe * safe)[:, None, None]
+    return GroundTruthRates(v, w, cov)

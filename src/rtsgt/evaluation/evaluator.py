@@ -1,7 +1,14 @@
 """The evaluation chain of :func:`evaluate`, one function per step (evo's order)::
 
-    check inputs -> associate -> align -> APE -> RPE (+ gap warning)
-      -> error covariances, relative-pose covariance -> NEES -> noise floor -> result
+    check inputs -> [mounting and clock] -> associate -> mounting -> align -> APE -> RPE
+      (+ gap warning) -> error covariances, relative-pose covariance -> NEES -> noise floor
+      -> [the mounting's effect on APE / RPE] -> result
+
+The mounting step (:func:`mounting_step`, when something is estimated) fits the mounting
+``T_body_sensor`` and the clock offset jointly with an alignment
+(:func:`~rtsgt.evaluation.mounting.fit_mounting`), re-associating the ground truth at each new
+clock offset; the estimate's sensor poses are then moved to the body frame by the mounting
+(given or estimated) and the chain goes on as evo would on that transformed trajectory.
 
 The ground truth's kinds (:mod:`rtsgt.evaluation.associate`) differ in what they give: a
 :class:`~rtsgt.evaluation.associate.PairCovarianceGroundTruth` computes the covariances of
@@ -23,16 +30,19 @@ from rtsgt.evaluation.align import Alignment, align_trajectories
 from rtsgt.evaluation.associate import (
     Association,
     GroundTruthQuery,
+    GroundTruthRates,
     PairCovarianceGroundTruth,
     SharedFactorGroundTruth,
     ValidatedGroundTruth,
     associate,
+    ground_truth_rates,
 )
 from rtsgt.evaluation.metrics import (
     NeesResult,
     alignment_sensitivity,
     ape_errors,
     chain_cross_covariance,
+    error_statistics,
     nees_consistency,
     noise_floor,
     pose_error,
@@ -44,8 +54,15 @@ from rtsgt.evaluation.metrics import (
     shared_error_test,
     squared_mahalanobis,
 )
+from rtsgt.evaluation.mounting import (
+    CLOCK_TOLERANCE_S,
+    MountingFit,
+    fit_mounting,
+    mounting_sensitivity,
+)
 from rtsgt.evaluation.options import EvaluationOptions
 from rtsgt.evaluation.result import EvaluationResult, NeesSection, NoiseFloor, PoseErrors
+from rtsgt.geometry.so3 import exp_so3, hat, matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from rtsgt.types import PoseTrajectory
 
 __all__ = ["EvaluationOptions", "evaluate", "gap_per_step"]
@@ -218,16 +235,219 @@ def associate_step(
     return assoc, _check_trajectory(assoc.gt, "ground-truth")
 
 
+def body_trajectory(
+    est: PoseTrajectory, rotation: np.ndarray, lever: np.ndarray, scale: float = 1.0
+) -> PoseTrajectory:
+    r"""The estimate's sensor poses moved to the body frame: ``T_E_body = T_E_sensor
+    T_body_sensor^-1``, i.e. ``R = R_e R_bs^T``, ``p = p_e - R l / scale`` (the lever arm
+    ``l`` is metric; ``scale`` is the alignment's, so that it is metric after a Sim(3)).
+
+    The estimate's covariance (left perturbation in its frame) follows: ``dp = dp_e +
+    [R l / scale]x dtheta_e``, ``dtheta = dtheta_e``.
+    """
+    R = est.rotation @ np.asarray(rotation, dtype=float).T
+    arm = R @ np.asarray(lever, dtype=float) / scale
+    cov = None
+    if est.cov is not None:
+        J = np.zeros((len(est), 6, 6))
+        J[:, :3, :3] = np.eye(3)
+        J[:, :3, 3:] = hat(arm)
+        J[:, 3:, 3:] = np.eye(3)
+        cov = J @ est.cov @ np.swapaxes(J, 1, 2)
+    return PoseTrajectory(est.t, est.position - arm, matrix_to_quat_xyzw(R), cov)
+
+
+def _align_body(
+    g: PoseTrajectory, est: PoseTrajectory, options: EvaluationOptions, mounting: MountingFit | None
+) -> tuple[Alignment, PoseTrajectory]:
+    """Move ``est`` to the body frame by ``mounting`` (if any) and align it onto ``g``. With a
+    scale in the alignment, the metric lever arm needs the scale: a fixed point (the lever arm
+    is small against the trajectory, so it converges in a few steps)."""
+    scale = 1.0
+    for _ in range(20):
+        body = est if mounting is None else body_trajectory(
+            est, mounting.rotation, mounting.lever, scale)
+        alignment = align_trajectories(
+            g, body, method=options.align, n_align=options.n_align, weighted=options.weighted,
+        )
+        if mounting is None or abs(alignment.scale - scale) <= 1e-12 * scale:
+            break
+        scale = alignment.scale
+    return alignment, alignment.apply(body)
+
+
 def align_step(
-    g: PoseTrajectory, assoc: Association, options: EvaluationOptions
+    g: PoseTrajectory,
+    assoc: Association,
+    options: EvaluationOptions,
+    mounting: MountingFit | None = None,
 ) -> tuple[Alignment, PoseTrajectory]:
     """The alignment of the associated estimate onto the associated ground truth ``g``, and
-    the aligned estimate (world frame, ``cov`` mapped too)."""
-    alignment = align_trajectories(
-        g, assoc.est, method=options.align, n_align=options.n_align,
-        weighted=options.weighted,
+    the aligned estimate (world frame, ``cov`` mapped too); with a ``mounting``, of the
+    estimate moved to the body frame (:func:`body_trajectory`)."""
+    return _align_body(g, assoc.est, options, mounting)
+
+
+def given_mounting(options: EvaluationOptions) -> MountingFit | None:
+    """The mounting of ``options.mounting`` (None when there is none)."""
+    if options.mounting is None:
+        return None
+    m = np.asarray(options.mounting)
+    return MountingFit.given(quat_xyzw_to_matrix(m[3:]), m[:3], options.time_offset)
+
+
+def _fit_at(
+    gt: GroundTruth, g: PoseTrajectory, assoc: Association, options: EvaluationOptions,
+    start: MountingFit, rates: GroundTruthRates | None,
+) -> MountingFit:
+    """One fit of :func:`~rtsgt.evaluation.mounting.fit_mounting` on an association."""
+    if g.cov is None:
+        raise InputError(
+            f"Estimating {', '.join(options.estimate)} needs a ground truth with covariances "
+            "(the weights of the least squares)"
+        )
+    S, L = g.cov, None
+    if isinstance(gt, SharedFactorGroundTruth):
+        split = gt.shared_split(g.t + assoc.time_offset)
+        if split is not None:
+            S, L = split.varying_cov, split.factor
+    return fit_mounting(
+        g.position, g.rotation, S, assoc.est.position, assoc.est.rotation,
+        estimate=options.estimate, align=options.align, rotation=start.rotation,
+        lever=start.lever, clock_offset=assoc.time_offset,
+        gt_velocity=None if rates is None else rates.v,
+        gt_angular_velocity=None if rates is None else rates.w,
+        gt_rate_cov=None if rates is None else rates.cov,
+        est_cov=assoc.est.cov, shared=L,
     )
-    return alignment, alignment.apply(assoc.est)
+
+
+#: Associations of the clock's fixed point at most (:func:`mounting_step`).
+MAX_CLOCK_ASSOCIATIONS = 10
+
+
+def mounting_step(
+    gt: GroundTruth,
+    est: PoseTrajectory,
+    options: EvaluationOptions,
+    gt_measurement_times: ArrayLike | None,
+    gt_cross_next: ArrayLike | None,
+) -> tuple[MountingFit, Association, PoseTrajectory]:
+    """Estimate what ``options.estimate`` asks for, jointly with the alignment, and the
+    association at the final clock offset.
+
+    The ground truth is associated at the offset, the mounting and the clock step fitted with
+    the ground truth's velocities there (:func:`~rtsgt.evaluation.associate.
+    ground_truth_rates`), and the ground truth associated again at the new offset, until the
+    step is below :data:`~rtsgt.evaluation.mounting.CLOCK_TOLERANCE_S` (at most
+    :data:`MAX_CLOCK_ASSOCIATIONS` times; a warning says when it did not settle).
+    """
+    start = given_mounting(options) or MountingFit.given(clock_offset=options.time_offset)
+    offset = options.time_offset
+    clock = "clock" in options.estimate
+    for _ in range(MAX_CLOCK_ASSOCIATIONS):
+        assoc, g = associate_step(gt, est, dataclasses.replace(options, time_offset=offset),
+                                  gt_measurement_times, gt_cross_next)
+        rates = ground_truth_rates(gt, assoc, measurement_times=gt_measurement_times) \
+            if clock else None
+        fit = _fit_at(gt, g, assoc, options, start, rates)
+        if not clock:
+            return fit, assoc, g
+        step = fit.clock_offset - offset
+        offset = fit.clock_offset
+        if abs(step) < CLOCK_TOLERANCE_S:
+            break
+    else:
+        warnings.warn(
+            f"The clock offset did not settle in {MAX_CLOCK_ASSOCIATIONS} associations (last "
+            f"step {step:.3g} s); its estimate is that of the last association",
+            RtsgtWarning,
+            stacklevel=3,
+        )
+    assoc, g = associate_step(gt, est, dataclasses.replace(options, time_offset=offset),
+                              gt_measurement_times, gt_cross_next)
+    return fit, assoc, g
+
+
+def _mounting_rates(
+    gt: GroundTruth, assoc: Association, fit: MountingFit | None,
+    gt_measurement_times: ArrayLike | None,
+) -> GroundTruthRates | None:
+    """The ground truth's velocities at the final association when the clock was estimated."""
+    if fit is None or "clock" not in fit.estimated:
+        return None
+    return ground_truth_rates(gt, assoc, measurement_times=gt_measurement_times)
+
+
+def _shifted(g: PoseTrajectory, rates: GroundTruthRates | None, delta: float) -> PoseTrajectory:
+    """The ground truth moved by a small clock step along its velocity (first order)."""
+    if rates is None or delta == 0.0:
+        return g
+    R = exp_so3(delta * rates.w) @ g.rotation
+    return PoseTrajectory(g.t, g.position + delta * rates.v, matrix_to_quat_xyzw(R), g.cov)
+
+
+def mounting_effect(
+    fit: MountingFit | None,
+    g: PoseTrajectory,
+    assoc: Association,
+    options: EvaluationOptions,
+    rates: GroundTruthRates | None,
+    pairs: np.ndarray,
+) -> dict[str, float | None] | None:
+    r"""How much the rmse of the APE and RPE would move within the uncertainty of the estimated
+    mounting and clock (None when nothing was estimated).
+
+    With ``c_i`` the columns of a square root of the parameters' covariance and ``f`` the rmse
+    as a function of the parameters (the whole chain: mounting, alignment, errors; the clock
+    moves the ground truth along its velocity; the RPE pairs are kept), ``a_i = (f(+c_i) -
+    f(-c_i)) / 2`` and ``b_i = (f(+c_i) + f(-c_i)) / 2 - f(0)`` give the first- and second-order
+    terms, and
+
+    .. math:: u^2 = \sum a_i^2 + 2 \sum b_i^2 + (\sum b_i)^2
+
+    is the rms of ``f(true) - f(estimate)`` for a quadratic ``f`` whose curvature is diagonal
+    in those directions (the rmse is near a minimum in the mounting, so that the second-order
+    term matters). ``2 p`` evaluations (p <= 7 parameters), each vectorised.
+
+    Returns
+    -------
+    dict
+        ``ape_translation_m``, ``ape_rotation_deg``, ``rpe_translation_m``,
+        ``rpe_rotation_deg`` (the RPE's None without pairs).
+    """
+    if fit is None or fit.covariance is None:
+        return None
+    C = fit.covariance
+    w, V = np.linalg.eigh(0.5 * (C + C.T))
+    cols = V * np.sqrt(np.clip(w, 0.0, None))
+    names = fit.names
+
+    def rmse(theta: np.ndarray) -> np.ndarray:
+        val = dict(zip(names, theta, strict=True))
+        psi = np.array([val.get(f"rotation_{a}", 0.0) for a in "xyz"])
+        dl = np.array([val.get(f"lever_{a}", 0.0) for a in "xyz"])
+        moved = dataclasses.replace(fit, rotation=exp_so3(psi) @ fit.rotation,
+                                    lever=fit.lever + dl)
+        gt_k = _shifted(g, rates, float(val.get("clock", 0.0)))
+        _, e = _align_body(gt_k, assoc.est, options, moved)
+        ape = ape_errors(gt_k.rotation, gt_k.position, e.rotation, e.position)
+        out = [error_statistics(ape["translation"])["rmse"],
+               np.degrees(error_statistics(ape["rotation_rad"])["rmse"]), np.nan, np.nan]
+        if pairs.shape[0]:
+            rpe = rpe_errors(gt_k.rotation, gt_k.position, e.rotation, e.position, pairs)
+            out[2] = error_statistics(rpe["translation"])["rmse"]
+            out[3] = np.degrees(error_statistics(rpe["rotation_rad"])["rmse"])
+        return np.array(out)
+
+    f0 = rmse(np.zeros(len(names)))
+    fp = np.array([rmse(c) for c in cols.T])  # 2 p sigma points (p <= 7), not samples
+    fm = np.array([rmse(-c) for c in cols.T])
+    a = 0.5 * (fp - fm)
+    b = 0.5 * (fp + fm) - f0
+    u = np.sqrt(np.sum(a * a, axis=0) + 2 * np.sum(b * b, axis=0) + np.sum(b, axis=0) ** 2)
+    keys = ("ape_translation_m", "ape_rotation_deg", "rpe_translation_m", "rpe_rotation_deg")
+    return {k: (None if not np.isfinite(x) else float(x)) for k, x in zip(keys, u, strict=True)}
 
 
 def compute_ape(g: PoseTrajectory, e: PoseTrajectory) -> PoseErrors:
@@ -334,21 +554,27 @@ def split_nees(
     xi: np.ndarray,
     absolute: tuple[NeesResult, NeesResult],
     align: str,
+    absorbed: np.ndarray | None = None,
 ) -> tuple[NeesResult, NeesResult]:
     """The absolute NEES with the split verdict when the ground truth gives its shared factor
     (:func:`~rtsgt.evaluation.metrics.shared_error_test`; ``consistent`` becomes its verdict,
     ``mean`` and ``fraction_inside_95`` stay those of the NEES against the total covariance);
     unchanged otherwise (the verdict of the NEES series' autocorrelation). For an estimate
     without covariance the tests are one-sided: is the error significant against the ground
-    truth's own uncertainty?"""
+    truth's own uncertainty? ``absorbed`` (N, 6, m): further directions the evaluation fitted
+    (the mounting and clock, :func:`~rtsgt.evaluation.mounting.mounting_sensitivity`),
+    projected out with the alignment's."""
     if not isinstance(gt, SharedFactorGroundTruth):
         return absolute
     split = gt.shared_split(g.t + assoc.time_offset)
     if split is None:
         return absolute
     D = split.varying_cov + (0.0 if e.cov is None else e.cov)
+    K = alignment_sensitivity(g.position, align)
+    if absorbed is not None:
+        K = absorbed if K is None else np.concatenate([K, absorbed], axis=2)
     try:
-        pos, pose = shared_error_test(xi, D, split.factor, alignment_sensitivity(g.position, align),
+        pos, pose = shared_error_test(xi, D, split.factor, K,
                                       names=split.names, upper=e.cov is None)
     except ValueError as exc:
         raise InputError(f"Cannot test the errors against the shared factor: {exc}") from None
@@ -444,7 +670,11 @@ def evaluate(
         Estimate in its own frame, strictly increasing times; an optional ``cov`` (6x6, the
         left-perturbation convention in the estimate's frame) enters the NEES.
     options : EvaluationOptions, optional
-        Alignment, RPE pairs, time offset, ``max_dt`` (default: ``EvaluationOptions()``).
+        Alignment, RPE pairs, time offset, ``max_dt``, the mounting given (``mounting``) and
+        what to estimate with the alignment (``estimate``: the mounting's rotation and lever
+        arm, the clock; docs/evaluation.md#mounting-and-clock) (default:
+        ``EvaluationOptions()``). ``est`` is then the sensor's pose, moved to the body
+        frame by the mounting before the alignment.
     gt_measurement_times : array_like, optional
         Measurement times supporting a query ground truth (support and ``max_dt``).
     gt_cross_next : array_like, shape (N_gt - 1, 6, 6), optional
@@ -472,8 +702,12 @@ def evaluate(
 
     Raises
     ------
+    ExcitationError
+        Something asked for in ``estimate`` that the trajectory does not excite (its
+        standard deviation above :data:`~rtsgt.evaluation.mounting.MAX_SIGMA`).
     InputError
-        No time overlap, too few associated poses for the alignment, bad values.
+        No time overlap, too few associated poses for the alignment, bad values, an estimate
+        asked of a ground truth without covariances.
     GeometryError
         Degenerate alignment geometry.
     TypeError
@@ -482,17 +716,26 @@ def evaluate(
     options = dataclasses.replace(
         EvaluationOptions() if options is None else options, **overrides
     )
-    assoc, g = associate_step(gt, est, options, gt_measurement_times, gt_cross_next)
-    alignment, e = align_step(g, assoc, options)
+    if options.estimate:
+        fit, assoc, g = mounting_step(gt, est, options, gt_measurement_times, gt_cross_next)
+    else:
+        assoc, g = associate_step(gt, est, options, gt_measurement_times, gt_cross_next)
+        fit = given_mounting(options)
+    alignment, e = align_step(g, assoc, options, fit)
     ape = compute_ape(g, e)
     pairs, rpe, no_rpe = compute_rpe(g, e, options)
     if rpe is not None:
         _warn_gaps(assoc, pairs, gap_support(gt, gt_measurement_times))
     xi = pose_error(g.rotation, g.position, e.rotation, e.position)
     S = error_covariance(g, e)
+    rates = _mounting_rates(gt, assoc, fit, gt_measurement_times)
     absolute = None if S is None else absolute_nees(xi, S, g.t)
     if absolute is not None:
-        absolute = split_nees(gt, g, e, assoc, xi, absolute, options.align)
+        absorbed = None
+        if fit is not None and fit.estimated:
+            absorbed = mounting_sensitivity(fit, e.rotation, *(
+                (None, None) if rates is None else (rates.v, rates.w)))
+        absolute = split_nees(gt, g, e, assoc, xi, absolute, options.align, absorbed)
     relative = None if S is None or rpe is None else relative_covariance(gt, g, assoc, pairs)
     return EvaluationResult(
         t=assoc.est.t,
@@ -510,4 +753,6 @@ def evaluate(
         rpe_delta_unit=options.delta_unit,
         rpe_all_pairs=bool(options.all_pairs),
         rpe_absent_reason=no_rpe,
+        mounting=fit,
+        mounting_effect=mounting_effect(fit, g, assoc, options, rates, pairs),
     )

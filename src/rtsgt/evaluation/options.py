@@ -13,6 +13,7 @@ import numpy as np
 from rtsgt.errors import InputError
 from rtsgt.evaluation.align import ALIGN_METHODS
 from rtsgt.evaluation.metrics import DELTA_UNITS
+from rtsgt.evaluation.mounting import JOINT_ALIGNMENTS, parse_estimate
 
 __all__ = ["EvaluationOptions", "DEFAULT_MAX_DT_S"]
 
@@ -45,6 +46,18 @@ class EvaluationOptions:
         Max distance (s) to the nearest ground-truth measurement time (for a continuous ground
         truth: to the nearest measurement of every prism, ``--max-gap``); also the gap limit
         of the RPE's gap warning (None: no limit).
+    estimate : tuple of str
+        What to estimate jointly with the alignment (:mod:`rtsgt.evaluation.mounting`): any of
+        ``rotation``, ``lever`` (the mounting ``T_body_sensor``), ``lever-xy`` (the lever
+        arm's x and y in the body frame, its z given), ``clock`` (the time offset, starting
+        from ``time_offset``); ``mounting`` stands for ``rotation, lever``, ``all`` for
+        ``rotation, lever, clock``. A comma-separated string is accepted; stored as a tuple in the order
+        of :data:`~rtsgt.evaluation.mounting.MOUNTING_PARAMETERS`. Needs an alignment of
+        :data:`~rtsgt.evaluation.mounting.JOINT_ALIGNMENTS`.
+    mounting : tuple of 7 float, optional
+        The given ``T_body_sensor`` as ``(x, y, z, qx, qy, qz, qw)`` (the sensor's pose in the
+        body frame; the quaternion renormalised); the start of what is estimated, the value
+        of the rest. None: the identity (the estimate is of the body frame itself).
 
     Raises
     ------
@@ -62,6 +75,8 @@ class EvaluationOptions:
     pairs_from_reference: bool = False
     time_offset: float = 0.0
     max_dt: float | None = DEFAULT_MAX_DT_S
+    estimate: tuple[str, ...] | str = ()
+    mounting: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.align not in ALIGN_METHODS:
@@ -82,3 +97,31 @@ class EvaluationOptions:
             raise InputError(f"Expected a finite time offset, got {self.time_offset}")
         if self.max_dt is not None and not self.max_dt > 0:
             raise InputError(f"Expected a positive max_dt, got {self.max_dt}")
+        object.__setattr__(self, "estimate", parse_estimate(self.estimate))
+        if self.estimate and self.align not in JOINT_ALIGNMENTS:
+            raise InputError(
+                f"Expected an alignment in {JOINT_ALIGNMENTS} to estimate "
+                f"{', '.join(self.estimate)}, got {self.align!r}"
+            )
+        if self.mounting is not None:
+            object.__setattr__(self, "mounting", _mounting(self.mounting))
+
+
+def _mounting(value) -> tuple[float, ...]:
+    """``(x, y, z, qx, qy, qz, qw)`` checked: finite, a unit quaternion within 1e-3
+    (renormalised, ``qw >= 0``)."""
+    try:
+        m = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError(f"Expected a mounting (x, y, z, qx, qy, qz, qw), got {value!r}") from None
+    if m.size != 7 or not np.all(np.isfinite(m)):
+        raise InputError(
+            f"Expected a mounting of 7 finite numbers (x, y, z, qx, qy, qz, qw), got {value!r}"
+        )
+    norm = float(np.linalg.norm(m[3:]))
+    if abs(norm - 1.0) > 1e-3:
+        raise InputError(f"Expected a unit mounting quaternion, got norm {norm:.6g}")
+    q = m[3:] / norm
+    if q[3] < 0:
+        q = -q
+    return tuple(float(v) for v in np.r_[m[:3], q])

@@ -12,6 +12,7 @@ from numpy.typing import ArrayLike
 from rtsgt.evaluation.align import Alignment
 from rtsgt.evaluation.associate import Association
 from rtsgt.evaluation.metrics import STATISTICS, NeesResult, error_statistics
+from rtsgt.evaluation.mounting import MountingFit
 from rtsgt.types import PoseTrajectory
 
 __all__ = ["ErrorStatistics", "EvaluationResult", "NeesSection", "NoiseFloor", "PoseErrors"]
@@ -175,6 +176,13 @@ class EvaluationResult:
     rpe_all_pairs : bool
     rpe_absent_reason : str or None
         Why there is no RPE (None when there is one).
+    mounting : MountingFit or None
+        The mounting ``T_body_sensor`` and the clock offset the estimate was moved by, given
+        or estimated (None: neither given nor estimated).
+    mounting_effect : dict or None
+        How much the rmse of the APE and RPE move within the estimated parameters'
+        uncertainty (:func:`~rtsgt.evaluation.evaluator.mounting_effect`; None when nothing
+        was estimated).
     """
 
     t: np.ndarray
@@ -192,6 +200,8 @@ class EvaluationResult:
     rpe_delta_unit: str
     rpe_all_pairs: bool
     rpe_absent_reason: str | None = None
+    mounting: MountingFit | None = None
+    mounting_effect: dict | None = None
 
     def to_dict(self) -> dict:
         """The JSON layout of ``rtsgt evaluate --json`` (module docstring)."""
@@ -215,4 +225,6 @@ class EvaluationResult:
             "noise_floor": self.noise_floor.to_dict(),
             "alignment": self.alignment.to_dict(),
             "association": self.association.to_dict(),
+            "mounting": None if self.mounting is None else {
+                **self.mounting.to_dict(), "effect": self.mounting_effect},
         }

@@ -15,6 +15,11 @@ Three figures, each written as PNG and SVG:
     Histograms (densities) of the position and pose NEES against the chi-square(3) and
     chi-square(6) densities, with the 95 % quantiles.
 
+When the estimate was moved by a mounting (given or estimated, ``--mounting``,
+``--estimate``), the top view and the translation error say so in a text box: the mounting
+rotation and lever arm, the clock offset, each with its standard deviation when estimated
+(:func:`mounting_text`).
+
 :func:`plot_evaluation` returns a :class:`EvalPlots` holding what was drawn (file names,
 number of ellipses, histogram counts and edges, band widths) so that tests can check it.
 """
@@ -55,6 +60,8 @@ class EvalPlots:
         Per-axis ground-truth standard deviations, m.
     hist : dict
         ``{"position": (counts, edges), "pose": (counts, edges)}`` of the NEES histograms.
+    mounting_text : str or None
+        The text box of the mounting and clock (None without a mounting).
     """
 
     files: list[Path]
@@ -63,6 +70,41 @@ class EvalPlots:
     sigma_norm: np.ndarray | None
     sigma_xyz: np.ndarray | None
     hist: dict = field(default_factory=dict)
+    mounting_text: str | None = None
+
+
+def _pm(value: str, sigma: float | None, fmt: str) -> str:
+    return value if sigma is None or not np.isfinite(sigma) else f"{value} +- {sigma:{fmt}}"
+
+
+def mounting_text(result) -> str | None:
+    """The mounting ``T_body_sensor`` and the clock offset of ``result``, one line each, with
+    ``+- sigma`` for what was estimated (None when the estimate was not moved by a mounting)."""
+    m = result.mounting
+    if m is None:
+        return None
+    rv = m.rotation_vector
+    angle = float(np.linalg.norm(rv))
+    axis = rv / angle if angle > 0 else np.array([0.0, 0.0, 1.0])
+    rs, ls, cs = (m.group_sigma(g) for g in ("rotation", "lever", "clock"))
+    rot = f"rotation {np.degrees(angle):.3f} deg about ({axis[0]:.3f}, {axis[1]:.3f}, {axis[2]:.3f})"
+    if rs is not None:
+        rot += f" +- ({', '.join(f'{np.degrees(v):.3f}' for v in rs)}) deg"
+    lev = "lever arm (" + ", ".join(
+        _pm(f"{1e3 * v:.1f}", None if ls is None else 1e3 * ls[k], ".1f")
+        for k, v in enumerate(m.lever)) + ") mm"
+    clk = "clock offset " + _pm(f"{1e3 * m.clock_offset:.3f}",
+                                None if cs is None else 1e3 * cs[0], ".3f") + " ms"
+    head = ("T_body_sensor estimated: " + ", ".join(m.estimated) if m.estimated
+            else "T_body_sensor given")
+    return "\n".join([head, rot, lev, clk])
+
+
+def _text_box(ax, text: str | None) -> None:
+    if text:
+        ax.text(0.01, 0.01, text, transform=ax.transAxes, fontsize="x-small", va="bottom",
+                ha="left", family="monospace",
+                bbox={"boxstyle": "round", "facecolor": "white", "alpha": 0.8})
 
 
 def _save(fig: Figure, out: Path, name: str, files: list[Path]) -> None:
@@ -97,6 +139,7 @@ def _error_figure(result) -> tuple[Figure, np.ndarray | None, np.ndarray | None]
             )
     ax.set_ylabel("APE translation (mm)")
     ax.legend(loc="upper right", fontsize="small")
+    _text_box(ax, mounting_text(result))
     for a, (ax, name) in enumerate(zip(axes[1:], "xyz", strict=True)):
         if sig_xyz is not None:
             for k, alpha in zip((3, 2, 1), (0.12, 0.2, 0.3), strict=True):
@@ -165,6 +208,7 @@ def _top_view(result, max_ellipses: int, ellipse_scale: float | None) -> tuple[F
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.legend(loc="best", fontsize="small")
+    _text_box(ax, mounting_text(result))
     ax.set_title("Top view")
     return fig, n_ell, scale
 
@@ -259,4 +303,4 @@ def plot_evaluation(
         fig, hist = _nees_figure(result)
         _save(fig, tmp, "nees_histogram", files)
     files = [output.final / p.name for p in files]
-    return EvalPlots(files, n_ell, scale, sig_norm, sig_xyz, hist)
+    return EvalPlots(files, n_ell, scale, sig_norm, sig_xyz, hist, mounting_text(result))
