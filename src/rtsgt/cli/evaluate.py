@@ -53,6 +53,7 @@ from rtsgt.evaluation.groundtruth import ContinuousGroundTruth, ContinuousPositi
 from rtsgt.evaluation.lever_arm import parse_lever_arm
 from rtsgt.evaluation.mounting import JOINT_ALIGNMENTS, MountingFit
 from rtsgt.evaluation.options import DEFAULT_MAX_DT_S
+from rtsgt.io.evo_results import POSE_RELATIONS, check_results_file, evo_result, write_evo_result
 from rtsgt.io.output_dir import check_target
 from rtsgt.io.positions import position_csv_form, read_position_csv, read_positions
 from rtsgt.io.run_dir import POSITIONS_KIND, read_summary
@@ -551,6 +552,39 @@ def print_position_report(
         )
 
 
+def save_targets(ape: Path | None, rpe: Path | None, relation: str, *, force: bool,
+                 inputs) -> dict[str, Path]:
+    """The result files asked for (``{"ape": path, "rpe": path}``), each checked before any
+    work (:func:`rtsgt.io.evo_results.check_results_file`, which names the option)."""
+    if relation not in POSE_RELATIONS:
+        raise typer.BadParameter(f"expected one of {', '.join(POSE_RELATIONS)}",
+                                 param_hint="--pose-relation")
+    targets = {}
+    for metric, path, option in (("ape", ape, "--save-results"),
+                                 ("rpe", rpe, "--save-results-rpe")):
+        if path is None:
+            continue
+        check_results_file(path, option=option, force=force, inputs=inputs)
+        targets[metric] = path
+    if len(targets) == 2 and Path(ape).absolute() == Path(rpe).absolute():
+        raise usage_error("--save-results and --save-results-rpe name the same file",
+                          "--save-results-rpe")
+    return targets
+
+
+def save_evo_results(result, targets: dict[str, Path], *, gt_dir, est_file, relation: str,
+                     force: bool) -> list[Path]:
+    """Write the evo result files of ``targets`` (:func:`save_targets`); every result is
+    built before the first file is written, so that a refused one (a rotation of a
+    position-only ground truth, an RPE without pairs) leaves no file."""
+    results = {m: evo_result(result, metric=m, relation=relation, ref_name=str(gt_dir),
+                             est_name=str(est_file)) for m in targets}
+    option = {"ape": "--save-results", "rpe": "--save-results-rpe"}
+    inputs = [gt_dir, est_file]
+    return [write_evo_result(targets[m], res, option=option[m], force=force, inputs=inputs)
+            for m, res in results.items()]
+
+
 class _collect_warnings:
     """Record the warnings of a block, then show every one again (``warning: ...`` lines on
     stderr through the CLI's handler) also when the block raises; the messages of the
@@ -683,9 +717,24 @@ def register(app: typer.Typer) -> None:
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
         plot: Path | None = typer.Option(None, "--plot",
                                          help="Write PNG and SVG figures into this directory."),
+        save_results: Path | None = typer.Option(
+            None, "--save-results",
+            help="Write the APE as an evo result zip (evo_ape --save_results layout, with "
+            "rtsgt's NEES and noise floor added), for evo_res.",
+        ),
+        save_results_rpe: Path | None = typer.Option(
+            None, "--save-results-rpe",
+            help="Write the RPE as an evo result zip (evo_rpe --save_results layout).",
+        ),
+        pose_relation: str = typer.Option(
+            "trans_part", "--pose-relation",
+            help="Pose relation of the saved results (evo's -r): "
+            f"{' | '.join(POSE_RELATIONS)}.",
+        ),
         force: bool = typer.Option(False, "--force",
-                                   help="Replace an earlier output of rtsgt at --plot (never a "
-                                        "directory holding anything else)."),
+                                   help="Replace an earlier output of rtsgt at --plot, "
+                                        "--save-results, --save-results-rpe (never a file or "
+                                        "directory rtsgt did not write)."),
     ) -> None:
         """Evaluate an estimated trajectory against the uncertain ground truth (APE, RPE, NEES)."""
         options = evaluation_options(
@@ -715,6 +764,8 @@ def register(app: typer.Typer) -> None:
                 raise usage_error(exc.bare_message, "--lever-arm") from None
         if plot is not None:
             check_target(plot, force=force)  # before any work
+        saves = save_targets(save_results, save_results_rpe, pose_relation, force=force,
+                             inputs=[p for p in (gt_dir, est_file, timestamps, est_cov) if p])
         with _collect_warnings() as notes:
             result = run_evaluate(
                 gt_dir,
@@ -732,6 +783,8 @@ def register(app: typer.Typer) -> None:
                 prism=prism,
                 gt_topic=gt_topic,
             )
+        saved = save_evo_results(result, saves, gt_dir=gt_dir, est_file=est_file,
+                                 relation=pose_relation, force=force)
         written = None
         if plot is not None:
             written = plot_evaluation(result, plot, force=force)
@@ -744,3 +797,5 @@ def register(app: typer.Typer) -> None:
         report(result, console, gt_source=str(gt_dir), est_source=str(est_file))
         if written is not None:
             console.print(f"figures: {', '.join(p.name for p in written.files)} in {plot}")
+        for path in saved:
+            console.print(f"evo result: {path}", highlight=False)

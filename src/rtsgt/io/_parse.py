@@ -453,19 +453,33 @@ def atomic_write_text(path: str | PathLike, text: str) -> None:
     The file appears complete or not at all: an error while writing leaves any previous file
     untouched and removes the temporary file.
     """
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_bytes(path: str | PathLike, data: bytes,
+                       before_replace=None) -> None:
+    """Write ``data`` to ``path`` through a temporary file beside it and :func:`os.replace`
+    (permissions of the user's umask), as :func:`atomic_write_text`.
+
+    ``before_replace``: called with no argument just before the temporary file replaces
+    ``path`` (a last check that the target may still be written); what it raises leaves
+    ``path`` untouched.
+    """
     p = Path(path)
     directory = p.parent if str(p.parent) else Path(".")
     if not directory.is_dir():
         raise InputError("cannot write: the directory does not exist", p)
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=directory)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
             f.flush()
             os.fsync(f.fileno())
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)
+        if before_replace is not None:
+            before_replace()
         os.replace(tmp, p)
     except BaseException:
         if os.path.exists(tmp):
