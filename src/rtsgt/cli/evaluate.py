@@ -22,6 +22,10 @@ position CSV, or ``--lever-arm``, ``--prism``, ``--gt-topic``) is evaluated by
 against the prism's positions (:func:`load_position_ground_truth`; docs/evaluation.md,
 section Position-only ground truth).
 
+``--save-results`` / ``--save-results-rpe`` write the APE / RPE as evo's result zips
+(:mod:`rtsgt.io.evo_results`; docs/evaluation.md, section evo result files), checked before
+any work and written whole after it.
+
 Every :class:`~rtsgt.errors.RtsgtWarning` of the reading and the evaluation is shown as one
 ``warning: ...`` line on stderr and, with ``--json``, listed under ``warnings``.
 """
