@@ -80,7 +80,7 @@ def _pm(value: str, sigma: float | None, fmt: str) -> str:
 def mounting_text(result) -> str | None:
     """The mounting ``T_body_sensor`` and the clock offset of ``result``, one line each, with
     ``+- sigma`` for what was estimated (None when the estimate was not moved by a mounting)."""
-    m = result.mounting
+    m = getattr(result, "mounting", None)  # a position-only evaluation has a lever arm instead
     if m is None:
         return None
     rv = m.rotation_vector
