@@ -345,25 +345,31 @@ def print_mounting(m: MountingFit, console: Console) -> None:
             highlight=False)
 
 
-def print_report(
-    result: EvaluationResult, console: Console, *, gt_source: str, est_source: str
-) -> None:
-    """The readable report: association, alignment, APE/RPE, NEES, noise floor."""
-    a = result.association
+def _print_association(console: Console, a, continuous: str, what: str, *, gt_source: str,
+                       est_source: str) -> None:
+    """The association's line of a report: what was associated, dropped, and the limits
+    (``continuous``: what a continuous ground truth is, in parentheses; ``what``: the kind of
+    ground truth, in words)."""
     if a.ground_truth == "continuous":
-        d = a.ground_truth_detail
-        kind = f"continuous ground truth (GP tracks, {d.get('engine', '?')} pose engine)"
-        limit = "max gap"
+        kind, limit = f"continuous {what} ({continuous})", "max gap"
     else:
-        kind = f"{a.ground_truth} ground truth"
-        limit = "max dt"
+        kind, limit = f"{a.ground_truth} {what}", "max dt"
     dropped = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in a.dropped.items())
     console.print(
         f"[bold]{est_source}[/bold] against [bold]{gt_source}[/bold] ({kind}): {len(a)} of "
         f"{a.n_est} estimate poses associated"
         + (f"; dropped: {dropped}" if dropped else "")
-        + f" (time offset {a.time_offset:.6g} s, {limit} {a.max_dt} s)"
-    )
+        + f" (time offset {a.time_offset:.6g} s, {limit} {a.max_dt} s)", highlight=False)
+
+
+def print_report(
+    result: EvaluationResult, console: Console, *, gt_source: str, est_source: str
+) -> None:
+    """The readable report: association, alignment, APE/RPE, NEES, noise floor."""
+    a = result.association
+    engine = a.ground_truth_detail.get("engine", "?") if a.ground_truth == "continuous" else ""
+    _print_association(console, a, f"GP tracks, {engine} pose engine", "ground truth",
+                       gt_source=gt_source, est_source=est_source)
     al = result.alignment
     if al.method == "none":
         console.print("alignment: none")
@@ -476,19 +482,9 @@ def print_position_report(
     """The readable report of a position-only ground truth: association, alignment, lever
     arm, APE / RPE of positions, NEES (3 dof), noise floor; rotations not reported."""
     a = result.association
-    if a.ground_truth == "continuous":
-        d = a.ground_truth_detail
-        kind = f"continuous position ground truth (GP track of prism {d.get('prism', '?')})"
-        limit = "max gap"
-    else:
-        kind = f"{a.ground_truth} position ground truth"
-        limit = "max dt"
-    dropped = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in a.dropped.items())
-    console.print(
-        f"[bold]{est_source}[/bold] against [bold]{gt_source}[/bold] ({kind}): {len(a)} of "
-        f"{a.n_est} estimate poses associated"
-        + (f"; dropped: {dropped}" if dropped else "")
-        + f" (time offset {a.time_offset} s, {limit} {a.max_dt} s)", highlight=False)
+    prism = a.ground_truth_detail.get("prism", "?") if a.ground_truth == "continuous" else ""
+    _print_association(console, a, f"GP track of prism {prism}", "position ground truth",
+                       gt_source=gt_source, est_source=est_source)
     lever = ", ".join(f"{v:.4f}" for v in result.lever_arm)
     console.print(f"lever arm (sensor frame): [{lever}] m, {result.lever_arm_source}: the "
                   "estimate's point p + R l is compared", highlight=False)
