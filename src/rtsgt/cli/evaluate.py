@@ -362,6 +362,34 @@ def _print_association(console: Console, a, continuous: str, what: str, *, gt_so
         + f" (time offset {a.time_offset:.6g} s, {limit} {a.max_dt} s)", highlight=False)
 
 
+def _print_nees_table(console: Console, title: str, rows) -> None:
+    """The NEES table of a report: one row per ``(name, NeesResult or None)`` given."""
+    nt = Table(title=title)
+    for col in ("", "mean", "dof", "accepted mean", "inside 95 %", "accepted", "N_eff", "verdict"):
+        nt.add_column(col, justify="left" if col == "" else "right")
+    for name, r in rows:
+        if r is None:
+            continue
+        verdict = "[green]consistent[/green]" if r.consistent else "[red]inconsistent[/red]"
+        nt.add_row(name, f"{r.mean:.3f}", str(r.dof),
+                   f"[{r.mean_interval[0]:.2f}, {r.mean_interval[1]:.2f}]",
+                   f"{100 * r.fraction_inside_95:.1f} %",
+                   f"[{100 * r.fraction_interval[0]:.1f}, {100 * r.fraction_interval[1]:.1f}] %",
+                   f"{r.n_eff:.0f} / {r.n}", verdict)
+    console.print(nt)
+
+
+def _print_split_verdict(console: Console, what: str, sp) -> None:
+    """The line of the verdict with the shared and varying parts apart (``what``: its name)."""
+    sh, v = sp.shared, sp.varying
+    console.print(
+        f"{what}, shared and varying parts apart ({'one' if sh.upper else 'two'}-"
+        f"sided): shared {sh.statistic:.1f} on {sh.dof} dof (accepted <= "
+        f"{sh.interval[1]:.1f}{'' if sh.upper else f', >= {sh.interval[0]:.1f}'}), "
+        f"varying NEES {v.mean:.2f} / {v.dof} (accepted <= {v.mean_interval[1]:.2f})",
+        highlight=False)
+
+
 def print_report(
     result: EvaluationResult, console: Console, *, gt_source: str, est_source: str
 ) -> None:
@@ -418,42 +446,15 @@ def print_report(
     if n.position is None:
         console.print(f"NEES: {n.covariance}")
         return
-    nt = Table(title=f"NEES (covariance: {n.covariance})")
-    for col in ("", "mean", "dof", "accepted mean", "inside 95 %", "accepted", "N_eff", "verdict"):
-        nt.add_column(col, justify="left" if col == "" else "right")
-    for name, r in (
-        ("position", n.position),
-        ("pose", n.pose),
-        ("relative position", n.relative_position),
-        ("relative pose", n.relative_pose),
-    ):
-        if r is None:
-            continue
-        verdict = "[green]consistent[/green]" if r.consistent else "[red]inconsistent[/red]"
-        nt.add_row(
-            name,
-            f"{r.mean:.3f}",
-            str(r.dof),
-            f"[{r.mean_interval[0]:.2f}, {r.mean_interval[1]:.2f}]",
-            f"{100 * r.fraction_inside_95:.1f} %",
-            f"[{100 * r.fraction_interval[0]:.1f}, {100 * r.fraction_interval[1]:.1f}] %",
-            f"{r.n_eff:.0f} / {r.n}",
-            verdict,
-        )
-    console.print(nt)
-    sp = n.pose.split
-    if sp is None:
+    _print_nees_table(console, f"NEES (covariance: {n.covariance})", (
+        ("position", n.position), ("pose", n.pose),
+        ("relative position", n.relative_position), ("relative pose", n.relative_pose)))
+    if n.pose.split is None:
         console.print("absolute verdict: autocorrelation of the NEES series (the ground truth "
                       "has no shared factor: errors constant over the run are not tested "
                       "apart)", highlight=False)
     else:
-        sh, v = sp.shared, sp.varying
-        console.print(
-            f"absolute verdict, shared and varying parts apart ({'one' if sh.upper else 'two'}-"
-            f"sided): shared {sh.statistic:.1f} on {sh.dof} dof (accepted <= "
-            f"{sh.interval[1]:.1f}{'' if sh.upper else f', >= {sh.interval[0]:.1f}'}), "
-            f"varying NEES {v.mean:.2f} / {v.dof} (accepted <= {v.mean_interval[1]:.2f})",
-            highlight=False)
+        _print_split_verdict(console, "absolute verdict", n.pose.split)
     console.print(f"relative poses: ground-truth correlations {n.rpe_correlations}")
     f = result.noise_floor
     console.print(
@@ -515,28 +516,10 @@ def print_position_report(
     if n.position is None:
         console.print(f"NEES: {n.covariance}")
         return
-    nt = Table(title=f"NEES, 3 dof (covariance: {n.covariance})")
-    for col in ("", "mean", "dof", "accepted mean", "inside 95 %", "accepted", "N_eff", "verdict"):
-        nt.add_column(col, justify="left" if col == "" else "right")
-    for name, r in (("position", n.position), ("relative position", n.relative_position)):
-        if r is None:
-            continue
-        verdict = "[green]consistent[/green]" if r.consistent else "[red]inconsistent[/red]"
-        nt.add_row(name, f"{r.mean:.3f}", str(r.dof),
-                   f"[{r.mean_interval[0]:.2f}, {r.mean_interval[1]:.2f}]",
-                   f"{100 * r.fraction_inside_95:.1f} %",
-                   f"[{100 * r.fraction_interval[0]:.1f}, {100 * r.fraction_interval[1]:.1f}] %",
-                   f"{r.n_eff:.0f} / {r.n}", verdict)
-    console.print(nt)
-    sp = n.position.split
-    if sp is not None:
-        sh, v = sp.shared, sp.varying
-        console.print(
-            f"position verdict, shared and varying parts apart ({'one' if sh.upper else 'two'}-"
-            f"sided): shared {sh.statistic:.1f} on {sh.dof} dof (accepted <= "
-            f"{sh.interval[1]:.1f}{'' if sh.upper else f', >= {sh.interval[0]:.1f}'}), "
-            f"varying NEES {v.mean:.2f} / {v.dof} (accepted <= {v.mean_interval[1]:.2f})",
-            highlight=False)
+    _print_nees_table(console, f"NEES, 3 dof (covariance: {n.covariance})", (
+        ("position", n.position), ("relative position", n.relative_position)))
+    if n.position.split is not None:
+        _print_split_verdict(console, "position verdict", n.position.split)
     console.print(f"relative positions: ground-truth correlations {n.rpe_correlations}")
     f = result.noise_floor
     console.print(
