@@ -476,6 +476,7 @@ def test_fit_check_variance_factor_follows_its_chi_square_law():
     assert c.fit_checks.keys() == {"2", "3"}  # not the reference
 
 
+@pytest.mark.slow
 def test_variance_components_make_the_calibration_covariance_honest_again():
     """Shots with a 1 mm vertical error the instrument model does not have (pole heights):
     without variance components the calibration covariance is far too small in z and tilt

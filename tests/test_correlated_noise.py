@@ -209,6 +209,7 @@ def _run(tmp: Path, name: str, seed: int, reality: RealityEffects, **config):
     return sim, runs
 
 
+@pytest.mark.slow
 def test_inflation_lowers_the_position_nees_where_correlation_is_found(tmp_path):
     nees: dict[str, list[np.ndarray]] = {"inflate": [], "ignore": []}
     applied = 0

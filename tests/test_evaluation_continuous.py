@@ -398,6 +398,7 @@ def test_malformed_summary_is_an_input_error_naming_it(linear_run, tmp_path, cha
     assert r.stderr.startswith("error: ")
 
 
+@pytest.mark.slow
 def test_rpe_uses_the_correlation_between_ground_truth_poses(tmp_path):
     """The two ends of a relative pose share most of the ground truth's error (calibration,
     clock offsets, weather, reference, the GP's smoothing): with the cross-covariance the

@@ -66,6 +66,7 @@ def stop_and_go(rng):
     return t, y, np.tile(SIGMA**2 * np.eye(3), (t.size, 1, 1)), truth
 
 
+@pytest.mark.slow
 def test_a_robot_that_stops_and_goes_gets_a_prior_per_class_and_stays_honest():
     """Standing, the prior is orders of magnitude tighter than while accelerating; the
     interpolated positions between measurements are honest in both (pooled over 20 tracks:

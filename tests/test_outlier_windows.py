@@ -172,6 +172,7 @@ def constant(tmp_path_factory):
     return _runs(tmp_path_factory.mktemp("constant"), 22, motion_prior="constant")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", ["classes", "constant"])
 def test_the_wrong_prism_is_rejected_by_the_distance_gate(which, request):
     runs = request.getfixturevalue(which)

@@ -98,6 +98,7 @@ def pooled(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_exact_estimate_position_nees_is_honest(pooled):
     """The issue's acceptance: NEES / dof in [0.85, 1.15], pooled; and the 95 % region holds
     the error 95 % of the time (within 3 points)."""
