@@ -111,13 +111,13 @@ def test_the_per_axis_search_stays_inside_the_bounds(monkeypatch):
     from rtsgt.interpolation import QC_BOUNDS, loo
 
     tried = []
-    score = loo.loo_score
+    score = loo.LooScorer.__call__
 
-    def recording(track, qc, max_gap_s, **kw):
+    def recording(self, qc, qc_scale=None):
         tried.append(np.diag(qc) if np.ndim(qc) == 2 else np.full(3, qc))
-        return score(track, qc, max_gap_s, **kw)
+        return score(self, qc, qc_scale)
 
-    monkeypatch.setattr(loo, "loo_score", recording)
+    monkeypatch.setattr(loo.LooScorer, "__call__", recording)
     rng = np.random.default_rng(5)
     t = np.cumsum(rng.uniform(0.3, 0.5, 300))
     xyz = np.array([3.0, 1.5, 0.9]) + rng.normal(0.0, 1e-3, (300, 3))

@@ -563,6 +563,17 @@ def _prepare(track, initial_state_cov=None, initial_state_mean=None,
                  prior=prior)
 
 
+def _check_scale(data: _Data, qc_scale: ArrayLike | None) -> np.ndarray | None:
+    """``qc_scale`` (:func:`fit_track`) as an array of one positive factor per interval."""
+    if qc_scale is None:
+        return None
+    scale = np.asarray(qc_scale, dtype=float)
+    if scale.shape != (data.t.shape[0] - 1,) or not np.all(np.isfinite(scale) & (scale > 0)):
+        raise InputError(f"Expected qc_scale of shape ({data.t.shape[0] - 1},), finite and "
+                         f"> 0, got shape {scale.shape}")
+    return scale
+
+
 def _held_out(data: _Data, held_out: ArrayLike, cov: np.ndarray) -> _Data:
     """The same knots, the measurements in ``held_out`` given no weight (zero information)."""
     mask = np.asarray(held_out)
@@ -693,7 +704,8 @@ def _chol_solver(a: np.ndarray):
     return logdet, _sym(lit @ li), lambda x: lit @ (li @ x)
 
 
-def _bcr(D: np.ndarray, B: np.ndarray, h: np.ndarray, want_cov: bool, cholesky: bool = False):
+def _bcr(D: np.ndarray, B: np.ndarray, h: np.ndarray, want_cov: bool, cholesky: bool = False,
+         want_logdet: bool = True):
     """Solve ``J x = h`` for a block-tridiagonal SPD ``J`` by block cyclic reduction.
 
     Level by level, the odd-indexed blocks are eliminated (Schur complement onto the even
@@ -703,6 +715,9 @@ def _bcr(D: np.ndarray, B: np.ndarray, h: np.ndarray, want_cov: bool, cholesky: 
     applied through their Cholesky factors instead of their inverses: the WNOJ blocks span
     more orders of magnitude (``720 / dt^5`` next to ``9 / dt``), where this keeps about 40
     times more of the digits (the WNOA solution keeps its inverses, unchanged).
+
+    Without ``want_logdet`` (the leave-one-out search needs only the posterior) the inverse
+    pivots of WNOA are not factored a second time for ``log|J|``, which is then 0.
 
     Returns
     -------
@@ -731,7 +746,8 @@ def _bcr(D: np.ndarray, B: np.ndarray, h: np.ndarray, want_cov: bool, cholesky: 
             gb = solve(b_right)  # D_i^-1 J_{i,i+1}
             g = solve(h[1::2, :, None])[..., 0]
         else:
-            logdet += _chol_logdet(d_odd)
+            if want_logdet:
+                logdet += _chol_logdet(d_odd)
             d_inv = _sym(np.linalg.inv(d_odd))
             ga = d_inv @ b_left_t  # D_i^-1 J_{i,i-1}
             gb = d_inv @ b_right  # D_i^-1 J_{i,i+1}
@@ -752,7 +768,8 @@ def _bcr(D: np.ndarray, B: np.ndarray, h: np.ndarray, want_cov: bool, cholesky: 
         logdet += ld
         mean = solve(h[:, :, None])[..., 0]
     else:
-        logdet += _chol_logdet(D)
+        if want_logdet:
+            logdet += _chol_logdet(D)
         s0 = _sym(np.linalg.inv(D))
         mean = np.einsum("nij,nj->ni", s0, h)
     S = s0 if want_cov else None
@@ -785,12 +802,16 @@ def _bcr(D: np.ndarray, B: np.ndarray, h: np.ndarray, want_cov: bool, cholesky: 
     return mean, logdet, S, C
 
 
-def _solve(data: _Data, qc: np.ndarray, want_cov: bool, scale: np.ndarray | None = None):
+def _solve(data: _Data, qc: np.ndarray, want_cov: bool, scale: np.ndarray | None = None,
+           want_loglik: bool = True):
     """Posterior (centred) and log marginal likelihood for one Qc (times ``scale`` per
-    interval, when given)."""
+    interval, when given); without ``want_loglik`` the likelihood is not computed (None)."""
     w = _spd_inv(qc)
     D, B, h = _build_system(data, w, scale)
-    mean, logdet_j, S, C = _bcr(D, B, h, want_cov, cholesky=data.prior == "wnoj")
+    mean, logdet_j, S, C = _bcr(D, B, h, want_cov, cholesky=data.prior == "wnoj",
+                                want_logdet=want_loglik)
+    if not want_loglik:
+        return mean, S, C, None
     n = data.t.shape[0]
     n_obs = n if data.n_obs is None else data.n_obs
     dt = np.diff(data.t)
@@ -1455,14 +1476,9 @@ def fit_track(
     data = _prepare(track, initial_state_cov, initial_state_mean, prior)
     if held_out is not None:
         data = _held_out(data, held_out, _track_arrays(track)[2])
-    scale = None
-    if qc_scale is not None:
-        scale = np.asarray(qc_scale, dtype=float)
-        if qc is None or fit_qc:
-            raise InputError("qc_scale needs a given qc (it scales that Qc per interval)")
-        if scale.shape != (data.t.shape[0] - 1,) or not np.all(np.isfinite(scale) & (scale > 0)):
-            raise InputError(f"Expected qc_scale of shape ({data.t.shape[0] - 1},), finite and "
-                             f"> 0, got shape {scale.shape}")
+    if qc_scale is not None and (qc is None or fit_qc):
+        raise InputError("qc_scale needs a given qc (it scales that Qc per interval)")
+    scale = _check_scale(data, qc_scale)
     info = None
     if qc is None or fit_qc:
         info = _fit_qc_data(data, qc_mode, qc, qc_bounds, max_iter, tol)

@@ -25,8 +25,15 @@ Gaussian update of the others' marginal by ``y_k``, so in information form
     ``Sigma_-k^-1 = P_k^-1 - R_k^-1``,
     ``mu_-k = Sigma_-k (P_k^-1 m_k - R_k^-1 y_k)``
 
-with ``(m_k, P_k)`` the smoothed position mean and covariance at the knot. One smoother pass
-per candidate ``Qc``: a bounded scalar search in ``log q`` for an isotropic ``Qc = q I``, then,
+with ``(m_k, P_k)`` the smoothed position mean and covariance at the knot. Equivalently, and
+what is computed (no inverse of ``P_k``, one 3x3 Cholesky factor per knot), with
+``A_k = R_k - P_k``:
+
+    ``y_k - mu_-k = R_k A_k^-1 (y_k - m_k)``,  ``Sigma_-k + R_k = R_k A_k^-1 R_k``,
+
+so the normalised squared residual is ``(y_k - m_k)^T A_k^-1 (y_k - m_k)`` and
+``log|Sigma_-k + R_k| = 2 log|R_k| - log|A_k|``. The track is validated once for the whole
+search, and a candidate costs one smoother pass (:class:`LooScorer`): a bounded scalar search in ``log q`` for an isotropic ``Qc = q I``, then,
 with ``mode="per-axis"`` (the pipeline's default), a search over the three ``log q_i`` of a
 diagonal ``Qc`` started there. Per axis matters: a ground robot manoeuvres in the horizontal
 plane and barely in the vertical one, and one isotropic ``q`` then overstates the vertical
@@ -47,9 +54,17 @@ import numpy as np
 from scipy.optimize import minimize, minimize_scalar
 
 from rtsgt.errors import InputError
-from rtsgt.interpolation.gp import DEFAULT_MAX_GAP_S, QC_BOUNDS, fit_track
+from rtsgt.interpolation.gp import (
+    DEFAULT_MAX_GAP_S,
+    QC_BOUNDS,
+    _check_scale,
+    _prepare,
+    _solve,
+    _track_arrays,
+    as_qc,
+)
 
-__all__ = ["LooInfo", "fit_qc_loo", "loo_predictive", "loo_score"]
+__all__ = ["LooInfo", "LooScorer", "fit_qc_loo", "loo_predictive", "loo_score"]
 
 
 @dataclass(frozen=True)
@@ -82,9 +97,88 @@ def _interior(t: np.ndarray, max_gap_s: float) -> np.ndarray:
     return ok
 
 
+class LooScorer:
+    """Leave-one-out predictive of one track under any ``Qc``: the track is validated and its
+    knots chosen once, each candidate costs one smoother pass (the search's unit of work).
+
+    Parameters
+    ----------
+    track : (t, xyz, cov)
+        Times (N,) s, positions (N, 3) m, measurement covariances (N, 3, 3) m^2.
+    max_gap_s : float
+        Knots with a neighbour farther than this are not scored.
+    prior : {"wnoa", "wnoj"}
+        The motion prior (:mod:`rtsgt.interpolation.gp`).
+
+    Attributes
+    ----------
+    used : ndarray of bool, shape (N,)
+        The knots scored.
+    """
+
+    def __init__(self, track, max_gap_s: float = DEFAULT_MAX_GAP_S, prior: str = "wnoa"):
+        self._data = _prepare(track, prior=prior)
+        t = self._data.t
+        self.used = _interior(t, max_gap_s)
+        R = _track_arrays(track)[2][self.used]
+        self._R = 0.5 * (R + np.swapaxes(R, 1, 2))
+        self._logdet_r = np.linalg.slogdet(self._R)[1]
+        # the smallest variance of each R_k: the floor of A_k's eigenvalues below
+        self._floor = 1e-12 * np.linalg.eigvalsh(self._R)[:, :1]
+
+    @property
+    def n_used(self) -> int:
+        """Knots scored."""
+        return int(self.used.sum())
+
+    def _factor(self, qc, qc_scale):
+        """``e_k = y_k - m_k`` and ``A_k = R_k - P_k`` at the scored knots (module docstring),
+        as ``A_k`` 's eigen-decomposition ``(w, V)`` or its Cholesky factor ``(L, None)``."""
+        scale = _check_scale(self._data, qc_scale)
+        mean, S, _, _ = _solve(self._data, as_qc(qc), want_cov=True, scale=scale,
+                               want_loglik=False)
+        e = self._data.y[self.used] - mean[self.used, :3]
+        A = self._R - S[self.used, :3, :3]
+        A = 0.5 * (A + np.swapaxes(A, 1, 2))
+        try:
+            return e, np.linalg.cholesky(A), None
+        except np.linalg.LinAlgError:
+            # a Qc so large that the others say almost nothing about y_k (P_k -> R_k): floor
+            # A_k's eigenvalues at a tiny fraction of R_k's (a huge but finite predictive)
+            w, V = np.linalg.eigh(A)
+            return e, np.maximum(w, self._floor), V
+
+    def predictive(self, qc, qc_scale=None) -> tuple[np.ndarray, np.ndarray]:
+        """``y_k - mu_-k`` (U, 3), m, and ``Sigma_-k + R_k`` (U, 3, 3), m^2, at the scored
+        knots, under ``qc`` (a scalar: ``qc I``) times ``qc_scale`` per interval."""
+        e, f, V = self._factor(qc, qc_scale)
+        if V is None:
+            a_inv = np.linalg.inv(f)
+            a_inv = np.swapaxes(a_inv, 1, 2) @ a_inv
+        else:
+            a_inv = np.einsum("nij,nj,nkj->nik", V, 1.0 / f, V)
+        ra = self._R @ a_inv
+        return np.einsum("nij,nj->ni", ra, e), ra @ self._R
+
+    def __call__(self, qc, qc_scale=None) -> tuple[float, float, int]:
+        """``(L_LOO, mean NEES / 3, knots scored)`` under ``qc`` times ``qc_scale``."""
+        e, f, V = self._factor(qc, qc_scale)
+        if V is None:
+            z = np.linalg.solve(f, e[..., None])[..., 0]
+            nees = np.einsum("ni,ni->n", z, z)
+            logdet_a = 2.0 * np.log(np.diagonal(f, axis1=1, axis2=2)).sum(axis=1)
+        else:
+            z = np.einsum("nji,nj->ni", V, e)
+            nees = np.einsum("ni,ni->n", z * z, 1.0 / f)
+            logdet_a = np.log(f).sum(axis=1)
+        ll = -0.5 * float(np.sum(nees + 2.0 * self._logdet_r - logdet_a
+                                 + 3.0 * np.log(2.0 * np.pi)))
+        return ll, float(nees.mean() / 3.0), int(e.shape[0])
+
+
 def loo_predictive(track, qc, *, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=None,
                    prior: str = "wnoa"):
-    """Leave-one-out predictive of every interior measurement.
+    """Leave-one-out predictive of every interior measurement (:class:`LooScorer`).
 
     Parameters
     ----------
@@ -107,31 +201,14 @@ def loo_predictive(track, qc, *, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=
     cov : ndarray, shape (U, 3, 3)
         ``Sigma_-k + R_k``, m^2.
     """
-    t, y, R = (np.asarray(a, dtype=float) for a in track)
-    gp = fit_track((t, y, R), qc=qc, max_gap_s=1e300, qc_scale=qc_scale, prior=prior)
-    used = _interior(t, max_gap_s)
-    P = gp.cov[used, :3, :3]
-    m = gp.mean[used, :3]
-    Ru, yu = R[used], y[used]
-    P_inv = np.linalg.inv(P)
-    R_inv = np.linalg.inv(Ru)
-    lam = P_inv - R_inv
-    # the others' information can be (numerically) singular when Qc makes them uninformative;
-    # symmetrise and floor its eigenvalues at a tiny fraction of the measurement information
-    lam = 0.5 * (lam + np.swapaxes(lam, 1, 2))
-    w, V = np.linalg.eigh(lam)
-    floor = 1e-12 * np.linalg.eigvalsh(R_inv)[:, -1:]
-    w = np.maximum(w, floor)
-    sigma = np.einsum("nij,nj,nkj->nik", V, 1.0 / w, V)
-    info = np.einsum("nij,nj->ni", P_inv, m) - np.einsum("nij,nj->ni", R_inv, yu)
-    mu = np.einsum("nij,nj->ni", sigma, info)
-    return used, yu - mu, sigma + Ru
+    scorer = LooScorer(track, max_gap_s, prior)
+    return (scorer.used, *scorer.predictive(qc, qc_scale))
 
 
 def loo_score(track, qc, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=None,
               prior: str = "wnoa") -> tuple[float, float, int]:
     """Leave-one-out score of ``qc`` (and ``qc_scale``, under ``prior``,
-    :func:`loo_predictive`).
+    :class:`LooScorer`).
 
     Returns
     -------
@@ -142,13 +219,7 @@ def loo_score(track, qc, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=None,
     n_used : int
         Measurements scored.
     """
-    _, r, S = loo_predictive(track, qc, max_gap_s=max_gap_s, qc_scale=qc_scale, prior=prior)
-    L = np.linalg.cholesky(S)
-    z = np.linalg.solve(L, r[..., None])[..., 0]
-    nees = np.einsum("ni,ni->n", z, z)
-    logdet = 2.0 * np.log(np.diagonal(L, axis1=1, axis2=2)).sum(axis=1)
-    ll = -0.5 * float(np.sum(nees + logdet + 3.0 * np.log(2.0 * np.pi)))
-    return ll, float(nees.mean() / 3.0), int(r.shape[0])
+    return LooScorer(track, max_gap_s, prior)(qc, qc_scale)
 
 
 def fit_qc_loo(
@@ -191,8 +262,9 @@ def fit_qc_loo(
             f"Expected at least 5 measurements with neighbours within max_gap_s = {max_gap_s} s "
             f"to fit Qc by leave-one-out, got {n_used}"
         )
+    score = LooScorer(track, max_gap_s, prior)
     lo, hi = (float(np.log(b)) for b in bounds)
-    res = minimize_scalar(lambda lq: -loo_score(track, np.exp(lq), max_gap_s, prior=prior)[0],
+    res = minimize_scalar(lambda lq: -score(np.exp(lq))[0],
                           bounds=(lo, hi), method="bounded", options={"xatol": xatol})
     qc: float | np.ndarray = float(np.exp(res.x))
     if mode == "per-axis":
@@ -201,11 +273,10 @@ def fit_qc_loo(
         # below the floor (4e-20 was seen) makes the track's information matrix singular
         simplex = np.clip(x0 + np.vstack([np.zeros(3), np.eye(3)]), lo, hi)
         simplex[1:] -= 2.0 * np.eye(3) * (simplex[1:] == simplex[0])  # at the upper bound
-        best = minimize(lambda lq: -loo_score(track, np.diag(np.exp(lq)), max_gap_s,
-                                              prior=prior)[0], x0,
+        best = minimize(lambda lq: -score(np.diag(np.exp(lq)))[0], x0,
                         method="Nelder-Mead", bounds=[(lo, hi)] * 3,
                         options={"xatol": xatol, "fatol": 1e-2, "maxiter": 400,
                                  "initial_simplex": simplex})
         qc = np.diag(np.exp(np.clip(best.x, lo, hi)))
-    ll, nees, n = loo_score(track, qc, max_gap_s, prior=prior)
+    ll, nees, n = score(qc)
     return LooInfo(qc, ll, n, nees)

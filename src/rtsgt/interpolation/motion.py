@@ -54,7 +54,7 @@ from numpy.typing import ArrayLike
 from scipy.optimize import minimize
 
 from rtsgt.interpolation.gp import QC_BOUNDS, GPTrack
-from rtsgt.interpolation.loo import loo_score
+from rtsgt.interpolation.loo import LooScorer
 
 __all__ = ["ACCELERATION_EDGES_M_S2", "CLASS_NAMES", "MIN_INTERVALS", "STANDING_SPEED_M_S",
            "MotionEvents", "MotionPriorFit", "fit_motion_prior", "interval_classes",
@@ -216,8 +216,9 @@ def fit_motion_prior(
     raw = interval_classes(t, events)
     cls = _merged(raw)
     present = np.unique(cls)
+    score = LooScorer(track, max_gap_s, prior)
     if loo_constant is None:
-        loo_constant = loo_score(track, qc, max_gap_s, prior=prior)[0]
+        loo_constant = score(qc)[0]
     counts = {CLASS_NAMES[c]: int(np.sum(raw == c)) for c in np.unique(raw)}
     if present.size < 2:
         return MotionPriorFit(None, {}, counts, float(loo_constant), float(loo_constant),
@@ -230,7 +231,7 @@ def fit_motion_prior(
     def scale_of(x: np.ndarray) -> np.ndarray:
         return np.exp(np.clip(x, lo, hi))[pos]
 
-    res = minimize(lambda x: -loo_score(track, qc, max_gap_s, scale_of(x), prior=prior)[0],
+    res = minimize(lambda x: -score(qc, scale_of(x))[0],
                    np.zeros(present.size), method="L-BFGS-B", bounds=[(lo, hi)] * present.size,
                    options={"eps": 1e-3})
     loo_classes = -float(res.fun)
