@@ -213,15 +213,7 @@ class RunRecord:
     computation: RunComputation | None = None
 
     def __post_init__(self) -> None:
-        n = len(self.prism_ids)
-        T = self.prisms_t.shape[0]
-        for what, arr, shape in (("prisms_xyz", self.prisms_xyz, (T, n, 3)),
-                                 ("prisms_cov", self.prisms_cov, (T, n, 3, 3)),
-                                 ("prisms_cov_gp", self.prisms_cov_gp, (T, n, 3, 3)),
-                                 *((f"prisms_cov_by_source[{s!r}]", c, (T, n, 3, 3))
-                                   for s, c in self.prisms_cov_by_source.items())):
-            if arr is not None and arr.shape != shape:
-                raise ValueError(f"Expected {what} of shape {shape}, got {arr.shape}")
+        _check_prism_arrays(self)
         missing = [p for p in self.prism_ids if p not in self.reference.names]
         if missing:
             raise ValueError(f"No reference point for prism(s) {', '.join(missing)}")
@@ -251,10 +243,7 @@ class RunRecord:
     @property
     def sources(self) -> tuple[str, ...]:
         """Noise sources present in the measurements, in :data:`NOISE_SOURCES` order."""
-        present = set()
-        for tr in self.measurements.values():
-            present |= set(tr.cov_by_source)
-        return ordered_sources(present)
+        return _sources(self.measurements)
 
 
 #: Why a run gives positions only: a pose needs at least this many tracked prisms.
@@ -322,19 +311,31 @@ class PositionRunRecord:
         n = len(self.prism_ids)
         if not 1 <= n < MIN_POSE_PRISMS:
             raise ValueError(f"Expected 1 or 2 prisms in a position-only run, got {n}")
-        T = self.prisms_t.shape[0]
-        for what, arr, shape in (("prisms_xyz", self.prisms_xyz, (T, n, 3)),
-                                 ("prisms_cov", self.prisms_cov, (T, n, 3, 3)),
-                                 ("prisms_cov_gp", self.prisms_cov_gp, (T, n, 3, 3)),
-                                 *((f"prisms_cov_by_source[{s!r}]", c, (T, n, 3, 3))
-                                   for s, c in self.prisms_cov_by_source.items())):
-            if arr is not None and arr.shape != shape:
-                raise ValueError(f"Expected {what} of shape {shape}, got {arr.shape}")
+        _check_prism_arrays(self)
 
     @property
     def sources(self) -> tuple[str, ...]:
         """Noise sources present in the measurements, in :data:`NOISE_SOURCES` order."""
-        present = set()
-        for tr in self.measurements.values():
-            present |= set(tr.cov_by_source)
-        return ordered_sources(present)
+        return _sources(self.measurements)
+
+
+
+def _check_prism_arrays(record: RunRecord | PositionRunRecord) -> None:
+    """The prisms' positions and covariances of a record: one row per time and prism."""
+    n = len(record.prism_ids)
+    T = record.prisms_t.shape[0]
+    for what, arr, shape in (("prisms_xyz", record.prisms_xyz, (T, n, 3)),
+                             ("prisms_cov", record.prisms_cov, (T, n, 3, 3)),
+                             ("prisms_cov_gp", record.prisms_cov_gp, (T, n, 3, 3)),
+                             *((f"prisms_cov_by_source[{s!r}]", c, (T, n, 3, 3))
+                               for s, c in record.prisms_cov_by_source.items())):
+        if arr is not None and arr.shape != shape:
+            raise ValueError(f"Expected {what} of shape {shape}, got {arr.shape}")
+
+
+def _sources(measurements: dict[str, PrismTrack]) -> tuple[str, ...]:
+    """Noise sources present in the measurements, in :data:`NOISE_SOURCES` order."""
+    present = set()
+    for tr in measurements.values():
+        present |= set(tr.cov_by_source)
+    return ordered_sources(present)

@@ -362,6 +362,25 @@ def _print_association(console: Console, a, continuous: str, what: str, *, gt_so
         + f" (time offset {a.time_offset:.6g} s, {limit} {a.max_dt} s)", highlight=False)
 
 
+def _print_alignment(console: Console, al, what: str, items: str) -> None:
+    """The alignment's line of a report (``what``: its name; ``items``: what it aligned)."""
+    if al.method == "none":
+        console.print("alignment: none")
+        return
+    console.print(
+        f"{what}: {al.method}{' (covariance-weighted)' if al.weighted else ''} on {al.n_used} "
+        f"{items}, yaw {np.degrees(al.yaw):.4f} deg, scale {al.scale:.6f}, "
+        f"t = [{', '.join(f'{v:.4f}' for v in al.translation)}] m", highlight=False)
+
+
+def _error_table(title: str) -> Table:
+    """An empty table of error statistics (evo's columns)."""
+    table = Table(title=title)
+    for col in ("metric", "rmse", "mean", "median", "std", "min", "max"):
+        table.add_column(col, justify="left" if col == "metric" else "right")
+    return table
+
+
 def _print_nees_table(console: Console, title: str, rows) -> None:
     """The NEES table of a report: one row per ``(name, NeesResult or None)`` given."""
     nt = Table(title=title)
@@ -398,20 +417,10 @@ def print_report(
     engine = a.ground_truth_detail.get("engine", "?") if a.ground_truth == "continuous" else ""
     _print_association(console, a, f"GP tracks, {engine} pose engine", "ground truth",
                        gt_source=gt_source, est_source=est_source)
-    al = result.alignment
-    if al.method == "none":
-        console.print("alignment: none")
-    else:
-        console.print(
-            f"alignment: {al.method}{' (covariance-weighted)' if al.weighted else ''} on "
-            f"{al.n_used} poses, yaw {al.yaw * 57.29577951308232:.4f} deg, scale {al.scale:.6f}, "
-            f"t = [{', '.join(f'{v:.4f}' for v in al.translation)}] m"
-        )
+    _print_alignment(console, result.alignment, "alignment", "poses")
     if result.mounting is not None:
         print_mounting(result.mounting, console)
-    table = Table(title="Pose errors (evo definitions)")
-    for col in ("metric", "rmse", "mean", "median", "std", "min", "max"):
-        table.add_column(col, justify="left" if col == "metric" else "right")
+    table = _error_table("Pose errors (evo definitions)")
     table.add_row(*_stats_row("APE translation (mm)", result.ape.translation_m, 1e3, 3))
     table.add_row(*_stats_row("APE rotation (deg)", result.ape.rotation_deg, 1.0, 4))
     unit = {"m": "m", "s": "s", "f": "frames"}[result.rpe_delta_unit]
@@ -489,18 +498,8 @@ def print_position_report(
     lever = ", ".join(f"{v:.4f}" for v in result.lever_arm)
     console.print(f"lever arm (sensor frame): [{lever}] m, {result.lever_arm_source}: the "
                   "estimate's point p + R l is compared", highlight=False)
-    al = result.alignment
-    if al.method == "none":
-        console.print("alignment: none")
-    else:
-        console.print(
-            f"alignment of the points: {al.method}{' (covariance-weighted)' if al.weighted else ''}"
-            f" on {al.n_used} positions, yaw {al.yaw * 57.29577951308232:.4f} deg, scale "
-            f"{al.scale:.6f}, t = [{', '.join(f'{v:.4f}' for v in al.translation)}] m",
-            highlight=False)
-    table = Table(title="Position errors (rotations not reported: position-only ground truth)")
-    for col in ("metric", "rmse", "mean", "median", "std", "min", "max"):
-        table.add_column(col, justify="left" if col == "metric" else "right")
+    _print_alignment(console, result.alignment, "alignment of the points", "positions")
+    table = _error_table("Position errors (rotations not reported: position-only ground truth)")
     table.add_row(*_stats_row("APE position (mm)", result.ape.translation_m, 1e3, 3))
     unit = {"m": "m", "s": "s", "f": "frames"}[result.rpe_delta_unit]
     if result.rpe is None:

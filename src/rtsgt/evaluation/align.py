@@ -292,6 +292,16 @@ def alignment_weights(cov_gt: ArrayLike, cov_est: ArrayLike | None = None) -> np
     return 1.0 / tr
 
 
+def aligned_count(n: int, n_align: int | None) -> int:
+    """How many of ``n`` associated poses an alignment uses: the first ``n_align`` (all when
+    None)."""
+    if n_align is None:
+        return n
+    if int(n_align) != n_align or n_align < 1:
+        raise InputError(f"Expected a positive integer n_align, got {n_align}")
+    return min(int(n_align), n)
+
+
 def align_trajectories(
     gt: PoseTrajectory,
     est: PoseTrajectory,
@@ -332,11 +342,7 @@ def align_trajectories(
         raise ValueError(
             f"Expected associated trajectories of equal length, got {len(gt)}, {len(est)}"
         )
-    n = len(est)
-    if n_align is not None:
-        if int(n_align) != n_align or n_align < 1:
-            raise InputError(f"Expected a positive integer n_align, got {n_align}")
-        n = min(int(n_align), n)
+    n = aligned_count(len(est), n_align)
     if method == "none":
         return Alignment("none", np.eye(3), np.zeros(3), 1.0, 0, False)
     if n < MIN_POSES[method]:

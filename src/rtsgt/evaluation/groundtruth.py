@@ -408,31 +408,10 @@ class ContinuousGroundTruth:
         GroundTruthSample
             ``reason`` is ``""`` for a valid pose, else a code of :data:`DROP_REASONS`.
         """
-        tau = np.asarray(times, dtype=float)
-        if tau.ndim != 1:
-            raise InputError(f"Expected query times of shape (M,), got {tau.shape}")
-        if not np.all(np.isfinite(tau)):
-            raise InputError("Expected finite query times, got NaN or inf")
-        if max_gap_s is not None and not max_gap_s > 0:
-            raise InputError(f"Expected a positive max_gap_s, got {max_gap_s}")
+        tau, reason, nearest = _query_times(
+            times, max_gap_s, self.intervals, list(self.gps.values()),
+            self.nearest_measurement_dt)
         M = tau.size
-        reason = np.full(M, "", dtype="<U24")
-        a, b = self.span
-        outside = (tau < a) | (tau > b)
-        in_iv = np.zeros(M, dtype=bool)
-        for lo, hi in self.intervals:
-            in_iv |= (tau >= lo) & (tau <= hi)
-        supported = np.ones(M, dtype=bool)
-        for g in self.gps.values():
-            supported &= g.supported(tau)
-        nearest = self.nearest_measurement_dt(tau) if M else np.empty(0)
-        far = np.zeros(M, dtype=bool) if max_gap_s is None else nearest > max_gap_s
-        reason[far] = REASON_FAR
-        reason[~supported] = REASON_GP_GAP
-        reason[~in_iv] = REASON_BETWEEN
-        reason[outside] = REASON_OUTSIDE
-        nearest = np.where(outside, np.nan, nearest)
-
         position = np.full((M, 3), np.nan)
         quat = np.full((M, 4), np.nan)
         cov = np.full((M, 6, 6), np.nan)
@@ -611,28 +590,10 @@ class ContinuousPositionGroundTruth:
         -------
         rtsgt.evaluation.positions.PositionSample
         """
-        tau = np.asarray(times, dtype=float)
-        if tau.ndim != 1:
-            raise InputError(f"Expected query times of shape (M,), got {tau.shape}")
-        if not np.all(np.isfinite(tau)):
-            raise InputError("Expected finite query times, got NaN or inf")
-        if max_gap_s is not None and not max_gap_s > 0:
-            raise InputError(f"Expected a positive max_gap_s, got {max_gap_s}")
+        tau, reason, nearest = _query_times(
+            times, max_gap_s, self.intervals, [self.gp],
+            lambda tau: _nearest_distance(np.asarray(self.track.t), tau))
         M = tau.size
-        reason = np.full(M, "", dtype="<U24")
-        a, b = self.span
-        outside = (tau < a) | (tau > b)
-        in_iv = np.zeros(M, dtype=bool)
-        for lo, hi in self.intervals:
-            in_iv |= (tau >= lo) & (tau <= hi)
-        supported = self.gp.supported(tau)
-        nearest = _nearest_distance(np.asarray(self.track.t), tau) if M else np.empty(0)
-        far = np.zeros(M, dtype=bool) if max_gap_s is None else nearest > max_gap_s
-        reason[far] = REASON_FAR
-        reason[~supported] = REASON_GP_GAP
-        reason[~in_iv] = REASON_BETWEEN
-        reason[outside] = REASON_OUTSIDE
-        nearest = np.where(outside, np.nan, nearest)
         position = np.full((M, 3), np.nan)
         cov = np.full((M, 3, 3), np.nan)
         idx = np.flatnonzero(reason == "")
@@ -684,6 +645,40 @@ class ContinuousPositionGroundTruth:
         F, names = prism_shared_factor(pr, velocity, [self.track.station],
                                        self.station_origins, self.coupling)
         return PositionSplit(pr.cov_gp[:, 0], F, names)
+
+
+def _query_times(times: ArrayLike, max_gap_s: float | None, intervals: np.ndarray,
+                 gps: list[GPTrack], nearest_dt) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Query times checked, with the reason each cannot be answered (``""``: it can) and
+    the distance to the nearest measurement (``nearest_dt(tau)``; NaN outside the span).
+
+    The reasons, weakest first (a later one overrides): farther than ``max_gap_s`` from a
+    measurement, across a gap of one of the ``gps``, between the run's ``intervals``, outside
+    their span.
+    """
+    tau = np.asarray(times, dtype=float)
+    if tau.ndim != 1:
+        raise InputError(f"Expected query times of shape (M,), got {tau.shape}")
+    if not np.all(np.isfinite(tau)):
+        raise InputError("Expected finite query times, got NaN or inf")
+    if max_gap_s is not None and not max_gap_s > 0:
+        raise InputError(f"Expected a positive max_gap_s, got {max_gap_s}")
+    M = tau.size
+    reason = np.full(M, "", dtype="<U24")
+    outside = (tau < intervals[0, 0]) | (tau > intervals[-1, 1])
+    in_iv = np.zeros(M, dtype=bool)
+    for lo, hi in intervals:
+        in_iv |= (tau >= lo) & (tau <= hi)
+    supported = np.ones(M, dtype=bool)
+    for g in gps:
+        supported &= g.supported(tau)
+    nearest = nearest_dt(tau) if M else np.empty(0)
+    far = np.zeros(M, dtype=bool) if max_gap_s is None else nearest > max_gap_s
+    reason[far] = REASON_FAR
+    reason[~supported] = REASON_GP_GAP
+    reason[~in_iv] = REASON_BETWEEN
+    reason[outside] = REASON_OUTSIDE
+    return tau, reason, np.where(outside, np.nan, nearest)
 
 
 def _origin(coupling: StationCoupling | None, station: str | None) -> np.ndarray:

@@ -100,7 +100,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rtsgt.errors import ConvergenceError, GeometryError, InputError
-from rtsgt.evaluation.align import MIN_POSES, Alignment, align_yaw, umeyama
+from rtsgt.evaluation.align import MIN_POSES, Alignment, align_yaw, aligned_count, umeyama
 from rtsgt.evaluation.associate import Association, GroundTruthSample, associate
 from rtsgt.evaluation.evaluator import _check_trajectory, _nees, _no_pair_reason, _warn_gaps
 from rtsgt.evaluation.lever_arm import (
@@ -119,7 +119,7 @@ from rtsgt.evaluation.metrics import (
     shared_error_test,
 )
 from rtsgt.evaluation.options import EvaluationOptions
-from rtsgt.evaluation.result import ErrorStatistics, NeesSection, NoiseFloor
+from rtsgt.evaluation.result import ErrorStatistics, NeesSection, NoiseFloor, error_sections
 from rtsgt.geometry.so3 import exp_so3, hat
 from rtsgt.types import PoseTrajectory, PositionTrajectory
 
@@ -331,11 +331,7 @@ def align_points(
     p = np.asarray(est_position, dtype=float)
     R = np.asarray(est_rotation, dtype=float)
     arm = R @ parse_lever_arm(lever_arm)
-    n = y.shape[0]
-    if n_align is not None:
-        if int(n_align) != n_align or n_align < 1:
-            raise InputError(f"Expected a positive integer n_align, got {n_align}")
-        n = min(int(n_align), n)
+    n = aligned_count(y.shape[0], n_align)
     if method == "none":
         return Alignment("none", np.eye(3), np.zeros(3), 1.0, 0, False)
     if n < MIN_POSES[method]:
@@ -552,20 +548,8 @@ class PositionEvaluationResult:
         """The JSON layout of ``rtsgt evaluate --json`` (that of
         :meth:`rtsgt.evaluation.EvaluationResult.to_dict`, rotations ``null``), with
         ``ground_truth`` ``"positions"``, ``lever_arm`` and ``rotation``."""
-        ape = self.ape.to_dict()
-        ape["n"] = int(self.t.shape[0])
-        if self.rpe is None:
-            rpe = {"translation_m": None, "rotation_deg": None, "full": None}
-        else:
-            rpe = self.rpe.to_dict()
-        rpe.update(
-            n_pairs=0 if self.rpe is None else int(self.rpe.pairs.shape[0]),
-            delta=float(self.rpe_delta),
-            delta_unit=self.rpe_delta_unit,
-            all_pairs=bool(self.rpe_all_pairs),
-            absent_reason=self.rpe_absent_reason,
-            definition="|(p_est,j - p_est,i) - (p_gt,j - p_gt,i)|, world frame",
-        )
+        ape, rpe = error_sections(self)
+        rpe["definition"] = "|(p_est,j - p_est,i) - (p_gt,j - p_gt,i)|, world frame"
         return {
             "ground_truth": "positions",
             "rotation": ROTATION_NOT_REPORTED,

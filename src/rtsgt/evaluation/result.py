@@ -205,19 +205,7 @@ class EvaluationResult:
 
     def to_dict(self) -> dict:
         """The JSON layout of ``rtsgt evaluate --json`` (module docstring)."""
-        ape = self.ape.to_dict()
-        ape["n"] = int(self.t.shape[0])
-        if self.rpe is None:
-            rpe = {"translation_m": None, "rotation_deg": None, "full": None}
-        else:
-            rpe = self.rpe.to_dict()
-        rpe.update(
-            n_pairs=0 if self.rpe is None else int(self.rpe.pairs.shape[0]),
-            delta=float(self.rpe_delta),
-            delta_unit=self.rpe_delta_unit,
-            all_pairs=bool(self.rpe_all_pairs),
-            absent_reason=self.rpe_absent_reason,
-        )
+        ape, rpe = error_sections(self)
         return {
             "ape": ape,
             "rpe": rpe,
@@ -228,3 +216,23 @@ class EvaluationResult:
             "mounting": None if self.mounting is None else {
                 **self.mounting.to_dict(), "effect": self.mounting_effect},
         }
+
+
+def error_sections(result) -> tuple[dict, dict]:
+    """The ``ape`` and ``rpe`` sections of the JSON layout (module docstring) of a result
+    with the fields of :class:`EvaluationResult` named ``t``, ``ape``, ``rpe`` and
+    ``rpe_*`` (it and :class:`rtsgt.evaluation.positions.PositionEvaluationResult`)."""
+    ape = result.ape.to_dict()
+    ape["n"] = int(result.t.shape[0])
+    if result.rpe is None:
+        rpe = {"translation_m": None, "rotation_deg": None, "full": None}
+    else:
+        rpe = result.rpe.to_dict()
+    rpe.update(
+        n_pairs=0 if result.rpe is None else int(result.rpe.pairs.shape[0]),
+        delta=float(result.rpe_delta),
+        delta_unit=result.rpe_delta_unit,
+        all_pairs=bool(result.rpe_all_pairs),
+        absent_reason=result.rpe_absent_reason,
+    )
+    return ape, rpe

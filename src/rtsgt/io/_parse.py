@@ -79,6 +79,21 @@ def numbered_lines(text: str) -> tuple[list[int], list[str]]:
     return numbers, lines
 
 
+def is_number(token: str) -> bool:
+    """Whether ``token`` reads as a number (a header's first cell does not)."""
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def ns_to_seconds(ns: np.ndarray) -> np.ndarray:
+    """Integer nanoseconds to float seconds without losing the sub-second part."""
+    ns = np.asarray(ns, dtype=np.int64)
+    return (ns // 1_000_000_000).astype(float) + (ns % 1_000_000_000).astype(float) * 1e-9
+
+
 def read_lines(path: str | PathLike, what: str) -> tuple[list[int], list[str]]:
     """Numbered non-blank, non-comment lines of a file; :class:`InputError` if there are none.
 

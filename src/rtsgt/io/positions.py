@@ -50,6 +50,8 @@ from rtsgt.io._parse import (
     atomic_write_text,
     check_increasing,
     fmt_float,
+    is_number,
+    ns_to_seconds,
     read_text,
     split_rows,
     to_float,
@@ -103,12 +105,6 @@ def _check_cov(cov: np.ndarray, path, numbers: Sequence[int] | None = None,
                          None if numbers is None else numbers[i])
 
 
-def _ns_to_seconds(ns: np.ndarray) -> np.ndarray:
-    """Integer nanoseconds to float seconds without losing the sub-second part."""
-    ns = np.asarray(ns, dtype=np.int64)
-    return (ns // 1_000_000_000).astype(float) + (ns % 1_000_000_000).astype(float) * 1e-9
-
-
 def _rows(text: str) -> tuple[list[int], list[str]]:
     """1-based numbers and contents of the non-blank lines (``#`` lines kept: a header)."""
     numbers, lines = [], []
@@ -117,14 +113,6 @@ def _rows(text: str) -> tuple[list[int], list[str]]:
             numbers.append(i)
             lines.append(line.strip())
     return numbers, lines
-
-
-def _is_number(token: str) -> bool:
-    try:
-        float(token)
-    except ValueError:
-        return False
-    return True
 
 
 def position_csv_form(path: str | PathLike) -> str | None:
@@ -144,7 +132,7 @@ def position_csv_form(path: str | PathLike) -> str | None:
     first = lines[0].lstrip("#").strip()
     head = [c.strip() for c in (first.split(",") if "," in first else first.split())]
     names = [h.lstrip("#%").strip().lower() for h in head]
-    if not head[0] or _is_number(head[0]):
+    if not head[0] or is_number(head[0]):
         return None
     if names[:4] == list(POSITION_COLUMNS) and (len(names) == 4 or names[4] == COV_COLUMNS[0]):
         return "rtsgt"
@@ -177,7 +165,7 @@ def read_position_csv(path: str | PathLike, *, name: str | None = None) -> Posit
     first = lines[0].lstrip("#").strip()  # a header may be a comment (EuRoC's '#timestamp')
     sep = "," if "," in first else None
     head = [c.strip() for c in (first.split(",") if sep else first.split())]
-    if _is_number(head[0]):  # no header: t x y z [cov_xx .. cov_zz], seconds
+    if is_number(head[0]):  # no header: t x y z [cov_xx .. cov_zz], seconds
         body = [(k, ln) for k, ln in zip(numbers, lines, strict=True) if not ln.startswith("#")]
         nums, rows = [k for k, _ in body], [ln for _, ln in body]
         ncol = len(head)
@@ -230,7 +218,7 @@ def _euroc_form(p: Path, nums: list[int], tok: np.ndarray, names: list[str],
         raise InputError(f"expected the EuRoC columns '#timestamp [ns], p_x [m], p_y [m], "
                          f"p_z [m]', got {len(names)} columns", p, nums[0] - 1)
     ns = to_int(tok[:, :1], nums, p, names[:1])[:, 0]
-    t = _ns_to_seconds(ns)
+    t = ns_to_seconds(ns)
     xyz = to_float(tok[:, 1:4], nums, p, names[1:4])
     check_increasing(t, nums, p)
     return PositionTrajectory(t, xyz, None, label)
@@ -250,13 +238,13 @@ def _rostopic_form(p: Path, nums: list[int], tok: np.ndarray, names: list[str],
         j = names.index("field.header.stamp")
         ns = to_int(tok[:, [j]], nums, p, (names[j],))[:, 0]
         if np.any(ns != 0):
-            t = _ns_to_seconds(ns)
+            t = ns_to_seconds(ns)
     if t is None:
         if "time" not in names:
             raise InputError("no time column: expected field.header.stamp or %time (ns)", p,
                              nums[0] - 1)
         j = names.index("time")
-        t = _ns_to_seconds(to_int(tok[:, [j]], nums, p, ("%time",))[:, 0])
+        t = ns_to_seconds(to_int(tok[:, [j]], nums, p, ("%time",))[:, 0])
     cov = None
     base = {"field.pose.pose.position": "field.pose.covariance"}.get(prefix)
     if base is not None and all(f"{base}{k}" in names for k in (0, 1, 2, 6, 7, 8, 12, 13, 14)):
@@ -365,7 +353,7 @@ def read_position_bag(path: str | PathLike, topic: str | None) -> PositionTrajec
     ns = np.asarray(stamps, dtype=np.int64)
     if not np.any(ns):
         ns = np.asarray(record_t, dtype=np.int64)
-    t = _ns_to_seconds(ns)
+    t = ns_to_seconds(ns)
     p = np.asarray(xyz, dtype=float)
     cov = None if covs[0] is None else np.asarray(covs, dtype=float)
     finite = np.all(np.isfinite(p), axis=1)

@@ -64,6 +64,8 @@ from rtsgt.io._parse import (
     atomic_write_text,
     check_increasing,
     fmt_float,
+    is_number,
+    ns_to_seconds,
     numbered_lines,
     read_table,
     read_text,
@@ -136,14 +138,6 @@ def _data_lines(path, what: str) -> tuple[list[int], list[str]]:
     if not lines:
         raise InputError(f"empty file: expected {what}, found no data line", path)
     return numbers, lines
-
-
-def _is_number(token: str) -> bool:
-    try:
-        float(token)
-    except ValueError:
-        return False
-    return True
 
 
 # --------------------------------------------------------------------------- TUM
@@ -282,7 +276,7 @@ def read_euroc(path: str | PathLike) -> PoseTrajectory:
         path, "EuRoC poses 'timestamp [ns], p_x, p_y, p_z, q_w, q_x, q_y, q_z'"
     )
     first = lines[0].split(",")
-    if not _is_number(first[0].strip()):  # a header without the leading '#'
+    if not is_number(first[0].strip()):  # a header without the leading '#'
         numbers, lines = numbers[1:], lines[1:]
         if not lines:
             raise InputError("empty file: a header but no data line", path)
@@ -296,7 +290,7 @@ def read_euroc(path: str | PathLike) -> PoseTrajectory:
     names = EUROC_COLUMNS + tuple(f"column {k + 1}" for k in range(8, ncol))
     tok = split_rows(lines, numbers, path, names, ",")
     ns = to_int(tok[:, :1], numbers, path, names[:1])[:, 0]
-    t = (ns // 1_000_000_000).astype(float) + (ns % 1_000_000_000).astype(float) * 1e-9
+    t = ns_to_seconds(ns)
     a = to_float(tok[:, 1:8], numbers, path, names[1:8])
     q = _unit_quaternions(a[:, [4, 5, 6, 3]], numbers, path)
     return _times_and_poses(path, numbers, t, a[:, :3], q)
@@ -338,7 +332,7 @@ def read_covariance_csv(path: str | PathLike, *, run_file: bool = False) -> Pose
         return PoseTrajectory(a[:, 0], a[:, 1:4], a[:, 4:8], a[:, 8:].reshape(-1, 6, 6))
     numbers, lines = _data_lines(path, "poses with covariance 't,x,y,z,qx,qy,qz,qw,cov_00..cov_55'")
     first = [c.strip() for c in lines[0].split(",")]
-    if not _is_number(first[0]):
+    if not is_number(first[0]):
         if [c.lower() for c in first] != list(COV_COLUMNS):
             raise InputError(
                 f"expected the header {','.join(COV_COLUMNS[:9])},...,cov_55 "
@@ -594,7 +588,7 @@ def _comma_format(text: str, lines: Sequence[str], p: Path) -> str:
     rtsgt CSV (module docstring: a header decides, else the time stamps)."""
     first = [c.strip() for c in lines[0].split(",")]
     header = None
-    if not _is_number(first[0]):
+    if not is_number(first[0]):
         header, lines = first, lines[1:]
     else:  # the '#' comment line just before the first data line, if any
         before = text.split(lines[0], 1)[0].splitlines()
