@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from rtsgt.errors import InputError
+from rtsgt.interpolation import loo
 from rtsgt.interpolation.gp import fit_qc, fit_track
 from rtsgt.interpolation.loo import fit_qc_loo, loo_predictive
 from test_gp import measure, random_spd, simulate_prior  # helpers of the GP tests
@@ -32,6 +33,26 @@ def test_leave_one_out_predictive_equals_a_refit_without_the_measurement():
         i = int(np.flatnonzero(np.flatnonzero(used) == k)[0])
         np.testing.assert_allclose(resid[i], y[k] - q.position[0], rtol=0, atol=1e-10)
         np.testing.assert_allclose(S[i], q.position_cov[0] + R[k], rtol=1e-7)
+
+
+@pytest.mark.parametrize("prior", ["wnoa", "wnoj"])
+def test_candidates_scored_together_score_as_each_alone(prior):
+    """The search's batches (K systems solved as one, uncoupled) give each candidate's own
+    score: isotropic, per-axis, scaled per interval, and a very stiff Qc."""
+    rng = np.random.default_rng(21)
+    t, y, R, _ = _track(rng, 120, 0.02)
+    scorer = loo.LooScorer((t, y, R), 3.0, prior)
+    qcs = [0.02, np.diag([0.01, 0.03, 1e-4]), 0.05, 1e-6]
+    scales = [None, None, rng.uniform(0.1, 3.0, t.size - 1), None]
+    together = scorer.scores(qcs, scales)
+    for (ll, nees, n), q, s in zip(together, qcs, scales, strict=True):
+        ll1, nees1, n1 = scorer(q, s)
+        assert n == n1 == 118
+        assert ll == pytest.approx(ll1, rel=1e-10, abs=1e-8)
+        assert nees == pytest.approx(nees1, rel=1e-8)
+    # and each alone is the dense refit's (test above) through loo_predictive
+    ll, _, _ = loo.loo_score((t, y, R), 0.02, 3.0, prior=prior)
+    assert together[0][0] == pytest.approx(ll, rel=1e-10)
 
 
 def test_knots_next_to_long_gaps_are_not_scored():
@@ -108,7 +129,7 @@ def test_pipeline_falls_back_to_the_likelihood_on_a_track_too_short_to_cross_val
 def test_the_per_axis_search_stays_inside_the_bounds(monkeypatch):
     """A static track drives every q towards 0: the search never tries a q below the floor
     of QC_BOUNDS (it tried 4e-20 m^2/s^3 on a real static deployment) and ends on it."""
-    from rtsgt.interpolation import QC_BOUNDS, loo
+    from rtsgt.interpolation import QC_BOUNDS
 
     tried = []
     score = loo.LooScorer.__call__

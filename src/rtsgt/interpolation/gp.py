@@ -854,6 +854,26 @@ def _solve(data: _Data, qc: np.ndarray, want_cov: bool, scale: np.ndarray | None
     return mean, S, C, loglik
 
 
+def _posteriors(data: _Data, qcs: list[np.ndarray], scales: list[np.ndarray | None],
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior means (K, N, d) and marginal covariances (K, N, d, d), centred, of the same
+    measurements under K candidate ``Qc`` (each times its ``scale`` per interval, or None).
+
+    The K block-tridiagonal systems are solved as one, uncoupled (a zero block between them):
+    one cyclic reduction for all, so that a short track's fixed cost per call (numpy's, not
+    the arithmetic) is paid once instead of K times. Each solution is that of :func:`_solve`
+    up to rounding (the blocks are eliminated in another order).
+    """
+    systems = [_build_system(data, _spd_inv(q), s) for q, s in zip(qcs, scales, strict=True)]
+    k, n, d = len(systems), data.t.shape[0], data.dim
+    gap = np.zeros((1, d, d))
+    D = np.concatenate([sy[0] for sy in systems])
+    B = np.concatenate([b for i, sy in enumerate(systems) for b in ((gap, sy[1]) if i else (sy[1],))])
+    h = np.concatenate([sy[2] for sy in systems])
+    mean, _, S, _ = _bcr(D, B, h, True, cholesky=data.prior == "wnoj", want_logdet=False)
+    return mean.reshape(k, n, d), S.reshape(k, n, d, d)
+
+
 # --------------------------------------------------------------------------------------------
 # Qc estimation
 # --------------------------------------------------------------------------------------------

@@ -58,8 +58,8 @@ from rtsgt.interpolation.gp import (
     DEFAULT_MAX_GAP_S,
     QC_BOUNDS,
     _check_scale,
+    _posteriors,
     _prepare,
-    _solve,
     _track_arrays,
     as_qc,
 )
@@ -131,15 +131,15 @@ class LooScorer:
         """Knots scored."""
         return int(self.used.sum())
 
-    def _factor(self, qc, qc_scale):
-        """``e_k = y_k - m_k`` and ``A_k = R_k - P_k`` at the scored knots (module docstring),
-        as ``A_k`` 's eigen-decomposition ``(w, V)`` or its Cholesky factor ``(L, None)``."""
-        scale = _check_scale(self._data, qc_scale)
-        mean, S, _, _ = _solve(self._data, as_qc(qc), want_cov=True, scale=scale,
-                               want_loglik=False)
-        e = self._data.y[self.used] - mean[self.used, :3]
-        A = self._R - S[self.used, :3, :3]
-        A = 0.5 * (A + np.swapaxes(A, 1, 2))
+    def _factor(self, qcs, scales):
+        """``e_k = y_k - m_k`` (K, U, 3) and ``A_k = R_k - P_k`` (K, U, 3, 3) at the scored
+        knots (module docstring) under K candidates, as ``A_k`` 's eigen-decomposition
+        ``(w, V)`` or its Cholesky factor ``(L, None)``."""
+        mean, S = _posteriors(self._data, [as_qc(q) for q in qcs],
+                              [_check_scale(self._data, s) for s in scales])
+        e = self._data.y[self.used] - mean[:, self.used, :3]
+        A = self._R - S[:, self.used, :3, :3]
+        A = 0.5 * (A + np.swapaxes(A, -1, -2))
         try:
             return e, np.linalg.cholesky(A), None
         except np.linalg.LinAlgError:
@@ -151,7 +151,7 @@ class LooScorer:
     def predictive(self, qc, qc_scale=None) -> tuple[np.ndarray, np.ndarray]:
         """``y_k - mu_-k`` (U, 3), m, and ``Sigma_-k + R_k`` (U, 3, 3), m^2, at the scored
         knots, under ``qc`` (a scalar: ``qc I``) times ``qc_scale`` per interval."""
-        e, f, V = self._factor(qc, qc_scale)
+        e, f, V = (None if a is None else a[0] for a in self._factor([qc], [qc_scale]))
         if V is None:
             a_inv = np.linalg.inv(f)
             a_inv = np.swapaxes(a_inv, 1, 2) @ a_inv
@@ -160,20 +160,27 @@ class LooScorer:
         ra = self._R @ a_inv
         return np.einsum("nij,nj->ni", ra, e), ra @ self._R
 
-    def __call__(self, qc, qc_scale=None) -> tuple[float, float, int]:
-        """``(L_LOO, mean NEES / 3, knots scored)`` under ``qc`` times ``qc_scale``."""
-        e, f, V = self._factor(qc, qc_scale)
+    def scores(self, qcs, scales=None) -> list[tuple[float, float, int]]:
+        """``(L_LOO, mean NEES / 3, knots scored)`` under each of the candidates ``qcs``
+        (each times its entry of ``scales``, None: 1), computed together."""
+        scales = [None] * len(qcs) if scales is None else scales
+        e, f, V = self._factor(qcs, scales)
         if V is None:
             z = np.linalg.solve(f, e[..., None])[..., 0]
-            nees = np.einsum("ni,ni->n", z, z)
-            logdet_a = 2.0 * np.log(np.diagonal(f, axis1=1, axis2=2)).sum(axis=1)
+            nees = np.einsum("kni,kni->kn", z, z)
+            logdet_a = 2.0 * np.log(np.diagonal(f, axis1=-2, axis2=-1)).sum(axis=-1)
         else:
-            z = np.einsum("nji,nj->ni", V, e)
-            nees = np.einsum("ni,ni->n", z * z, 1.0 / f)
-            logdet_a = np.log(f).sum(axis=1)
-        ll = -0.5 * float(np.sum(nees + 2.0 * self._logdet_r - logdet_a
-                                 + 3.0 * np.log(2.0 * np.pi)))
-        return ll, float(nees.mean() / 3.0), int(e.shape[0])
+            z = np.einsum("knji,knj->kni", V, e)
+            nees = np.einsum("kni,kni->kn", z * z, 1.0 / f)
+            logdet_a = np.log(f).sum(axis=-1)
+        ll = -0.5 * np.sum(nees + 2.0 * self._logdet_r - logdet_a + 3.0 * np.log(2.0 * np.pi),
+                           axis=-1)
+        return [(float(ll[k]), float(nees[k].mean() / 3.0), int(e.shape[1]))
+                for k in range(len(qcs))]
+
+    def __call__(self, qc, qc_scale=None) -> tuple[float, float, int]:
+        """``(L_LOO, mean NEES / 3, knots scored)`` under ``qc`` times ``qc_scale``."""
+        return self.scores([qc], [qc_scale])[0]
 
 
 def loo_predictive(track, qc, *, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=None,
@@ -251,18 +258,17 @@ def fit_qc_loo(
     Raises
     ------
     InputError
-        Fewer than 5 interior knots to score, or an unknown mode.
+        Fewer than 5 interior knots to score, an unknown mode, or a track that
+        :func:`rtsgt.interpolation.gp.fit_track` refuses.
     """
     if mode not in ("isotropic", "per-axis"):
         raise InputError(f"Expected mode 'isotropic' or 'per-axis', got {mode!r}")
-    t = np.asarray(track[0], dtype=float)
-    n_used = int(_interior(t, max_gap_s).sum()) if t.ndim == 1 and t.size >= 3 else 0
-    if n_used < 5:
+    score = LooScorer(track, max_gap_s, prior)
+    if score.n_used < 5:
         raise InputError(
             f"Expected at least 5 measurements with neighbours within max_gap_s = {max_gap_s} s "
-            f"to fit Qc by leave-one-out, got {n_used}"
+            f"to fit Qc by leave-one-out, got {score.n_used}"
         )
-    score = LooScorer(track, max_gap_s, prior)
     lo, hi = (float(np.log(b)) for b in bounds)
     res = minimize_scalar(lambda lq: -score(np.exp(lq))[0],
                           bounds=(lo, hi), method="bounded", options={"xatol": xatol})
