@@ -132,13 +132,13 @@ def test_the_per_axis_search_stays_inside_the_bounds(monkeypatch):
     from rtsgt.interpolation import QC_BOUNDS
 
     tried = []
-    score = loo.LooScorer.__call__
+    scores = loo.LooScorer.scores
 
-    def recording(self, qc, qc_scale=None):
-        tried.append(np.diag(qc) if np.ndim(qc) == 2 else np.full(3, qc))
-        return score(self, qc, qc_scale)
+    def recording(self, qcs, scales=None):
+        tried.extend(np.diag(q) if np.ndim(q) == 2 else np.full(3, q) for q in qcs)
+        return scores(self, qcs, scales)
 
-    monkeypatch.setattr(loo.LooScorer, "__call__", recording)
+    monkeypatch.setattr(loo.LooScorer, "scores", recording)
     rng = np.random.default_rng(5)
     t = np.cumsum(rng.uniform(0.3, 0.5, 300))
     xyz = np.array([3.0, 1.5, 0.9]) + rng.normal(0.0, 1e-3, (300, 3))

@@ -33,9 +33,12 @@ what is computed (no inverse of ``P_k``, one 3x3 Cholesky factor per knot), with
 
 so the normalised squared residual is ``(y_k - m_k)^T A_k^-1 (y_k - m_k)`` and
 ``log|Sigma_-k + R_k| = 2 log|R_k| - log|A_k|``. The track is validated once for the whole
-search, and a candidate costs one smoother pass (:class:`LooScorer`): a bounded scalar search in ``log q`` for an isotropic ``Qc = q I``, then,
-with ``mode="per-axis"`` (the pipeline's default), a search over the three ``log q_i`` of a
-diagonal ``Qc`` started there. Per axis matters: a ground robot manoeuvres in the horizontal
+search, and a candidate costs one smoother pass (:class:`LooScorer`): a bounded scalar search
+in ``log q`` for an isotropic ``Qc = q I``, then, with ``mode="per-axis"`` (the pipeline's
+default), L-BFGS-B over the three ``log q_i`` of a diagonal ``Qc`` started there
+(:func:`maximise`: forward differences, each point scored with its three steps in one solve;
+on 30 prism tracks of simulated deployments it reached the maximum of the Nelder-Mead search
+used before, or higher by up to 0.01, in about half the time). Per axis matters: a ground robot manoeuvres in the horizontal
 plane and barely in the vertical one, and one isotropic ``q`` then overstates the vertical
 interpolation error and understates the horizontal one (by about 1.5 in variance on simulated
 deployments). A knot
@@ -64,7 +67,7 @@ from rtsgt.interpolation.gp import (
     as_qc,
 )
 
-__all__ = ["LooInfo", "LooScorer", "fit_qc_loo", "loo_predictive", "loo_score"]
+__all__ = ["FD_STEP", "LooInfo", "LooScorer", "fit_qc_loo", "loo_predictive", "loo_score", "maximise"]
 
 
 @dataclass(frozen=True)
@@ -183,6 +186,34 @@ class LooScorer:
         return self.scores([qc], [qc_scale])[0]
 
 
+#: Step of the forward differences of :func:`maximise`, in a log-PSD or a log-scale.
+FD_STEP = 1e-3
+
+
+def maximise(values, x0: np.ndarray, lo: float, hi: float):
+    """Maximise a score over parameters in ``[lo, hi]`` by L-BFGS-B (:mod:`scipy.optimize`).
+
+    The gradient is taken by forward differences of :data:`FD_STEP` (backward where the
+    step would leave the upper bound, as scipy's own finite differences are taken), and the
+    point and its steps are scored together: ``values(points)`` returns the scores of a list
+    of points (:meth:`LooScorer.scores` solves them as one system).
+
+    Returns
+    -------
+    scipy.optimize.OptimizeResult
+        Of the minimisation of the negated score (``x``, ``fun = -score``, ``nit``...).
+    """
+    def value_and_gradient(x: np.ndarray) -> tuple[float, np.ndarray]:
+        step = np.where(x + FD_STEP > hi, -FD_STEP, FD_STEP)
+        points = [x] + [x + np.eye(x.size)[i] * step[i] for i in range(x.size)]
+        f = -np.asarray(values(points), dtype=float)
+        dx = np.array([points[i + 1][i] - x[i] for i in range(x.size)])
+        return float(f[0]), (f[1:] - f[0]) / dx
+
+    return minimize(value_and_gradient, np.asarray(x0, dtype=float), jac=True,
+                    method="L-BFGS-B", bounds=[(lo, hi)] * len(x0))
+
+
 def loo_predictive(track, qc, *, max_gap_s: float = DEFAULT_MAX_GAP_S, qc_scale=None,
                    prior: str = "wnoa"):
     """Leave-one-out predictive of every interior measurement (:class:`LooScorer`).
@@ -246,7 +277,8 @@ def fit_qc_loo(
     bounds : (float, float)
         Search interval for each ``q``, m^2/s^3.
     xatol : float
-        Tolerance on ``log q`` (0.02: 2 % on ``q``, well inside its statistical uncertainty).
+        Tolerance on the isotropic ``log q`` (0.02: 2 % on ``q``, well inside its statistical
+        uncertainty); the per-axis search then stops where L-BFGS-B's defaults say.
     prior : {"wnoa", "wnoj"}
         The motion prior whose ``Qc`` is fitted (m^2/s^3 for WNOA, m^2/s^5 for WNOJ).
 
@@ -274,15 +306,12 @@ def fit_qc_loo(
                           bounds=(lo, hi), method="bounded", options={"xatol": xatol})
     qc: float | np.ndarray = float(np.exp(res.x))
     if mode == "per-axis":
-        x0 = np.full(3, float(res.x))
         # the search stays inside the bounds: a static track drives q towards 0, and a q far
         # below the floor (4e-20 was seen) makes the track's information matrix singular
-        simplex = np.clip(x0 + np.vstack([np.zeros(3), np.eye(3)]), lo, hi)
-        simplex[1:] -= 2.0 * np.eye(3) * (simplex[1:] == simplex[0])  # at the upper bound
-        best = minimize(lambda lq: -score(np.diag(np.exp(lq)))[0], x0,
-                        method="Nelder-Mead", bounds=[(lo, hi)] * 3,
-                        options={"xatol": xatol, "fatol": 1e-2, "maxiter": 400,
-                                 "initial_simplex": simplex})
+        best = maximise(
+            lambda points: [v[0] for v in score.scores(
+                [np.diag(np.exp(np.clip(p, lo, hi))) for p in points])],
+            np.full(3, float(res.x)), lo, hi)
         qc = np.diag(np.exp(np.clip(best.x, lo, hi)))
     ll, nees, n = score(qc)
     return LooInfo(qc, ll, n, nees)

@@ -33,8 +33,8 @@ The scales maximise the leave-one-out log predictive density of the track (the c
 constant ``Qc``: each measurement predicted from all the others, what a query between
 measurements does), by L-BFGS-B in ``log s_c``, bounded to a factor of about 10^6 either way and so that the
 largest axis of every ``s_c Qc`` stays in :data:`rtsgt.interpolation.gp.QC_BOUNDS`; the
-gradient by forward differences of :data:`FD_STEP`, the point and its steps scored together
-(:meth:`rtsgt.interpolation.loo.LooScorer.scores`). A class with fewer than :data:`MIN_INTERVALS`
+gradient by forward differences, the point and its steps scored together
+(:func:`rtsgt.interpolation.loo.maximise`). A class with fewer than :data:`MIN_INTERVALS`
 intervals joins the next slower class (a scale needs data). The classes are kept only where
 they predict the held-out measurements better than the constant ``Qc`` by more than one unit
 of log density per added scale; else the track keeps its constant ``Qc``. ``Qc`` is then no
@@ -53,10 +53,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.optimize import minimize
 
 from rtsgt.interpolation.gp import QC_BOUNDS, GPTrack
-from rtsgt.interpolation.loo import LooScorer
+from rtsgt.interpolation.loo import LooScorer, maximise
 
 __all__ = ["ACCELERATION_EDGES_M_S2", "CLASS_NAMES", "MIN_INTERVALS", "STANDING_SPEED_M_S",
            "MotionEvents", "MotionPriorFit", "fit_motion_prior", "interval_classes",
@@ -75,8 +74,6 @@ GAIN_PER_SCALE = 1.0
 #: Largest |log| of a class's scale: a class's Qc stays within a factor e^14 (1.2e6) of the
 #: track's, and the largest axis of every class above the floor of QC_BOUNDS.
 SCALE_RANGE = 14.0
-#: Step of the finite differences in a class's log-scale.
-FD_STEP = 1e-3
 
 
 @dataclass(frozen=True)
@@ -235,18 +232,9 @@ def fit_motion_prior(
     def scale_of(x: np.ndarray) -> np.ndarray:
         return np.exp(np.clip(x, lo, hi))[pos]
 
-    def value_and_gradient(x: np.ndarray) -> tuple[float, np.ndarray]:
-        # forward differences of FD_STEP in each log-scale (backward at the upper bound, as
-        # scipy's own finite differences would take them), scored with x in one batch
-        step = np.where(x + FD_STEP > hi, -FD_STEP, FD_STEP)
-        points = [x] + [x + np.eye(x.size)[i] * step[i] for i in range(x.size)]
-        f = -np.array([v[0] for v in score.scores([qc] * len(points),
-                                                   [scale_of(p) for p in points])])
-        dx = np.array([points[i + 1][i] - x[i] for i in range(x.size)])
-        return float(f[0]), (f[1:] - f[0]) / dx
-
-    res = minimize(value_and_gradient, np.zeros(present.size), jac=True, method="L-BFGS-B",
-                   bounds=[(lo, hi)] * present.size)
+    res = maximise(lambda points: [v[0] for v in score.scores([qc] * len(points),
+                                                              [scale_of(p) for p in points])],
+                   np.zeros(present.size), lo, hi)
     loo_classes = -float(res.fun)
     s = np.exp(np.clip(res.x, lo, hi))
     scales = {CLASS_NAMES[c]: float(s[np.searchsorted(present, cls[raw == c][0])])
