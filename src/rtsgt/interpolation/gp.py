@@ -868,7 +868,8 @@ def _posteriors(data: _Data, qcs: list[np.ndarray], scales: list[np.ndarray | No
     k, n, d = len(systems), data.t.shape[0], data.dim
     gap = np.zeros((1, d, d))
     D = np.concatenate([sy[0] for sy in systems])
-    B = np.concatenate([b for i, sy in enumerate(systems) for b in ((gap, sy[1]) if i else (sy[1],))])
+    B = np.concatenate([b for i, sy in enumerate(systems)
+                        for b in ((gap, sy[1]) if i else (sy[1],))])
     h = np.concatenate([sy[2] for sy in systems])
     mean, _, S, _ = _bcr(D, B, h, True, cholesky=data.prior == "wnoj", want_logdet=False)
     return mean.reshape(k, n, d), S.reshape(k, n, d, d)

@@ -38,12 +38,12 @@ in ``log q`` for an isotropic ``Qc = q I``, then, with ``mode="per-axis"`` (the 
 default), L-BFGS-B over the three ``log q_i`` of a diagonal ``Qc`` started there
 (:func:`maximise`: forward differences, each point scored with its three steps in one solve;
 on 30 prism tracks of simulated deployments it reached the maximum of the Nelder-Mead search
-used before, or higher by up to 0.01, the whole fit 20 % faster). Per axis matters: a ground robot manoeuvres in the horizontal
-plane and barely in the vertical one, and one isotropic ``q`` then overstates the vertical
-interpolation error and understates the horizontal one (by about 1.5 in variance on simulated
-deployments). A knot
-counts only when it has neighbours on both sides within ``max_gap_s`` (the interpolation a query
-performs); ends of the track and of its segments are left out.
+used before, or higher by up to 0.01, the whole fit 20 % faster). Per axis matters: a ground
+robot manoeuvres in the horizontal plane and barely in the vertical one, and one isotropic
+``q`` then overstates the vertical interpolation error and understates the horizontal one (by
+about 1.5 in variance on simulated deployments). A knot counts only when it has neighbours on
+both sides within ``max_gap_s`` (the interpolation a query performs); ends of the track and of
+its segments are left out.
 
 If the motion really is a white-noise-on-acceleration process, both criteria estimate the same
 ``Qc`` (tested); if it is smoother, leave-one-out gives the smaller, honest one.
@@ -67,7 +67,8 @@ from rtsgt.interpolation.gp import (
     as_qc,
 )
 
-__all__ = ["FD_STEP", "LooInfo", "LooScorer", "fit_qc_loo", "loo_predictive", "loo_score", "maximise"]
+__all__ = ["FD_STEP", "LooInfo", "LooScorer", "fit_qc_loo", "loo_predictive", "loo_score",
+           "maximise"]
 
 
 @dataclass(frozen=True)
