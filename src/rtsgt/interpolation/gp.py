@@ -802,16 +802,12 @@ def _bcr(D: np.ndarray, B: np.ndarray, h: np.ndarray, want_cov: bool, cholesky: 
     return mean, logdet, S, C
 
 
-def _solve(data: _Data, qc: np.ndarray, want_cov: bool, scale: np.ndarray | None = None,
-           want_loglik: bool = True):
+def _solve(data: _Data, qc: np.ndarray, want_cov: bool, scale: np.ndarray | None = None):
     """Posterior (centred) and log marginal likelihood for one Qc (times ``scale`` per
-    interval, when given); without ``want_loglik`` the likelihood is not computed (None)."""
+    interval, when given)."""
     w = _spd_inv(qc)
     D, B, h = _build_system(data, w, scale)
-    mean, logdet_j, S, C = _bcr(D, B, h, want_cov, cholesky=data.prior == "wnoj",
-                                want_logdet=want_loglik)
-    if not want_loglik:
-        return mean, S, C, None
+    mean, logdet_j, S, C = _bcr(D, B, h, want_cov, cholesky=data.prior == "wnoj")
     n = data.t.shape[0]
     n_obs = n if data.n_obs is None else data.n_obs
     dt = np.diff(data.t)
