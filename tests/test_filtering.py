@@ -13,7 +13,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from rtsgt.errors import InputError
+from _paths import EXAMPLE_TOML, EXCERPT
+from rtsgt.errors import ConfigError, InputError
 from rtsgt.filtering import (
     MODULE1_REASONS,
     MODULE2_REASONS,
@@ -22,6 +23,9 @@ from rtsgt.filtering import (
     module1,
     module2,
 )
+from rtsgt.filtering.modules import ANCHOR_NEIGHBOURS, DEFAULT_MAX_DISTANCE_M
+from rtsgt.io.config import load_config
+from rtsgt.io.rts_project import read_prism_file
 from rtsgt.types import Observations, PrismTrack
 
 TWO_PI = 2.0 * math.pi
@@ -43,6 +47,8 @@ def ref_module1(t, hz, v, d, status, p: FilterParams):
             reason[i] = "status"
         elif not finite:
             reason[i] = "non_finite"
+        elif d[i] > p.max_distance:
+            reason[i] = "max_distance"
     prev_t = None
     for i in range(n):
         if reason[i]:
@@ -50,28 +56,40 @@ def ref_module1(t, hz, v, d, status, p: FilterParams):
         if prev_t is not None and t[i] == prev_t:
             reason[i] = "duplicate_time"
         prev_t = t[i]
-    last = None  # last accepted measurement of the current block
-    prev = None  # previous measurement still in the series (for the gaps)
-    blocks = 0
+
+    def gate(i, j):  # reason of comparing j with i ("" = passes)
+        dt = abs(t[j] - t[i])
+        dhz = abs(math.remainder(hz[j] - hz[i], TWO_PI))
+        if abs(d[j] - d[i]) / dt > p.tau_r:
+            return "rate_distance"
+        if dhz / dt > p.tau_a:
+            return "rate_hz"
+        if abs(v[j] - v[i]) / dt > p.tau_e:
+            return "rate_v"
+        return ""
+
+    blocks = []  # the measurements still in the series, split at the gaps
     for i in range(n):
         if reason[i]:
             continue
-        if prev is None or t[i] - t[prev] > p.tau_s:
-            blocks += 1
-            last = i
-        else:
-            dt = t[i] - t[last]
-            dhz = abs(math.remainder(hz[i] - hz[last], TWO_PI))
-            if abs(d[i] - d[last]) / dt > p.tau_r:
-                reason[i] = "rate_distance"
-            elif dhz / dt > p.tau_a:
-                reason[i] = "rate_hz"
-            elif abs(v[i] - v[last]) / dt > p.tau_e:
-                reason[i] = "rate_v"
-            else:
+        if not blocks or t[i] - t[blocks[-1][-1]] > p.tau_s:
+            blocks.append([])
+        blocks[-1].append(i)
+    for block in blocks:
+        # the anchor: the first that agrees with one of its next 3 (judged with 2 or more)
+        a = 0
+        while len(block) - a - 1 >= 2:
+            nxt = block[a + 1:a + 4]
+            if any(gate(block[a], j) == "" for j in nxt):
+                break
+            reason[block[a]] = gate(block[a], nxt[0])
+            a += 1
+        last = block[a]  # last accepted measurement of the block
+        for i in block[a + 1:]:
+            reason[i] = gate(last, i)
+            if not reason[i]:
                 last = i
-        prev = i
-    return reason, blocks
+    return reason, len(blocks)
 
 
 def ref_module2(times, p: FilterParams):
@@ -202,6 +220,8 @@ def random_observations(rng, n, *, outliers=0.05, bursts=2, gaps=2):
     v = np.where(bad & (which == 2), v + 0.1 * jump, v)
     status = np.where(rng.random(n) < 0.02, rng.integers(1, 5, n), 0)
     hz[rng.random(n) < 0.01] = np.nan
+    wild = rng.random(n) < outliers / 5  # wild shots: beyond the largest distance, or not
+    d = np.where(wild, rng.choice([234.5, 1234.5], n), d)
     return Observations(t, hz, v, d, status, station="2", prism="2", additive_constant=0.01)
 
 
@@ -279,8 +299,9 @@ def test_reasons_are_tested_in_order_and_counted():
     status = np.array([0, 0, 0, 0, 0, 0, 3, 0])
     o = obs(t, hz=hz, v=v, d=d, status=status)
     kept, rep = module1(o)
-    assert dict(rep.removed) == {"status": 1, "non_finite": 0, "duplicate_time": 0,
-                                 "rate_distance": 1, "rate_hz": 1, "rate_v": 1}
+    assert dict(rep.removed) == {"status": 1, "non_finite": 0, "max_distance": 0,
+                                 "duplicate_time": 0, "rate_distance": 1, "rate_hz": 1,
+                                 "rate_v": 1}
     assert list(rep.removed) == list(MODULE1_REASONS)
     np.testing.assert_array_equal(kept.t, t[[0, 2, 4, 7]])
     assert rep.summary() == "module1: kept 4/8 (status 1, rate_distance 1, rate_hz 1, rate_v 1)"
@@ -330,12 +351,115 @@ def test_long_burst_of_outliers():
     n = 1200
     t = np.arange(n) * 0.4
     d = 20.0 + 0.01 * np.sin(t)
-    d[100:500] += 1000.0  # 400 in a row (over 2 m/s even across 160 s)
-    d[700:] += 1000.0  # never comes back before the end of the block: all rejected
+    d[100:500] += 500.0  # 400 in a row (over 2 m/s even across 160 s)
+    d[700:] += 500.0  # never comes back before the end of the block: all rejected
     o = obs(t, d=d)
     kept, rep, _ = assert_module1_matches_reference(o)
     assert rep.removed["rate_distance"] == 400 + 500
     assert kept.t[-1] == t[699]
+
+
+def test_a_wild_first_shot_of_a_block_costs_one_measurement():
+    """The first measurement of a block is the reference only when it agrees with one of the
+    next ones: a wild one (valid status, a plausible distance) is rejected alone."""
+    t = np.arange(8) * 0.4
+    d = 20.0 + 0.1 * t
+    d[0] = 234.5  # under the largest distance: only the rate gates can tell
+    kept, rep, _ = assert_module1_matches_reference(obs(t, d=d))
+    np.testing.assert_array_equal(kept.t, t[1:])
+    assert rep.removed["rate_distance"] == 1 and rep.reasons[0][0] == "rate_distance"
+    # two wild shots that disagree with each other too: both go, the block stays
+    d[1] = 5.0
+    kept, rep, _ = assert_module1_matches_reference(obs(t, d=d))
+    np.testing.assert_array_equal(kept.t, t[2:])
+    # a good first measurement followed by an outlier stays the reference (the paper's rule)
+    d = 20.0 + 0.1 * t
+    d[1] = 234.5
+    kept, _, _ = assert_module1_matches_reference(obs(t, d=d))
+    np.testing.assert_array_equal(kept.t, t[[0, *range(2, 8)]])
+    # with a single neighbour nothing tells which of the two is wrong: the first is kept
+    kept, _, _ = assert_module1_matches_reference(obs(t[:2], d=np.array([234.5, 20.0])))
+    np.testing.assert_array_equal(kept.d, [234.5])
+    # the anchor is judged against at most ANCHOR_NEIGHBOURS followers: a good first
+    # measurement followed by that many outliers is rejected
+    d = 20.0 + 0.1 * t
+    d[1:1 + ANCHOR_NEIGHBOURS] = 234.5 + np.arange(ANCHOR_NEIGHBOURS) * 50.0
+    _, rep, _ = assert_module1_matches_reference(obs(t, d=d))
+    assert rep.reasons[0][0] == "rate_distance"
+
+
+def excerpt_with_wild_shots(distance: float) -> list[tuple[Observations, Observations]]:
+    """Each station of the shipped excerpt, and the same with a valid shot of ``distance``
+    0.2 s before the first measurement of each of its blocks (gaps > tau_s) but those of one
+    measurement (a wild shot and one measurement disagree, and nothing tells which is wrong:
+    the first is kept, as in the paper; module 2 drops a lone measurement anyway)."""
+    out = []
+    for i in (1, 2, 3):
+        o = read_prism_file(EXCERPT / f"prism{i}.csv", station=i, prism=i)
+        first = np.flatnonzero(np.diff(o.t, prepend=-np.inf) > P.tau_s)
+        first = first[np.diff(first, append=len(o)) >= 2]
+        wild = Observations(np.insert(o.t, first, o.t[first] - 0.2),
+                            np.insert(o.hz, first, o.hz[first]), np.insert(o.v, first, o.v[first]),
+                            np.insert(o.d, first, distance), station=o.station, prism=o.prism)
+        out.append((o, wild))
+    return out
+
+
+@pytest.mark.parametrize("distance, max_distance", [(1234.5, None), (1234.5, math.inf),
+                                                    (234.5, None)])
+def test_wild_first_shots_on_the_excerpt_cost_no_good_measurement(distance, max_distance):
+    """A valid shot of 1234.5 m (or one under the largest distance) before each block of the
+    real excerpt is the only measurement removed: every good one is kept as without it (the
+    first measurement used to be the block's reference, and the block was lost with it)."""
+    p = P if max_distance is None else FilterParams(max_distance=max_distance)
+    reason = "max_distance" if distance > p.max_distance else "rate_distance"
+    for o, wild in excerpt_with_wild_shots(distance):
+        kept, rep = module1(o, p)
+        kept_w, rep_w = module1(wild, p)
+        assert rep_w.n_blocks == rep.n_blocks == 4
+        shots = wild.d == distance
+        assert rep_w.reasons[0][shots].tolist() == [reason] * (3 + (o.station == "3"))
+        np.testing.assert_array_equal(kept_w.t, kept.t)  # the same good measurements
+        assert rep_w.n_kept == rep.n_kept > 200
+        np.testing.assert_array_equal(rep_w.reasons[0][~shots], rep.reasons[0])
+
+
+def test_largest_distance_option():
+    """``max_distance`` removes longer raw distances (the reference code's 1000 m by default,
+    ``[filter] max_distance_m``); a value that is not positive is refused naming the key."""
+    assert P.max_distance == DEFAULT_MAX_DISTANCE_M == 1000.0
+    t = np.arange(6) * 0.4
+    d = np.array([20.0, 20.1, 1000.0, 1000.01, 20.2, 20.3])
+    # the limit applies to the raw distance, without the additive constant; a distance equal
+    # to it passes (then fails the rate gate)
+    _, rep = module1(obs(t, d=d - 0.01, additive_constant=0.01), FilterParams(max_distance=999.99))
+    np.testing.assert_array_equal(rep.reasons[0], ["", "", "rate_distance", "max_distance", "",
+                                                   ""])
+    _, rep = module1(obs(t, d=d))
+    assert rep.removed["max_distance"] == 1
+    _, rep = module1(obs(t, d=d), FilterParams(max_distance=math.inf))
+    assert rep.removed["max_distance"] == 0
+    assert_module1_matches_reference(obs(t, d=d), FilterParams(max_distance=30.0))
+    for bad in (0.0, -5.0, math.nan):
+        with pytest.raises(InputError, match=r"Expected max_distance > 0 m"):
+            FilterParams(max_distance=bad)
+
+
+@pytest.mark.parametrize("value, ok", [("250.0", True), ("inf", True), ("0.0", False),
+                                       ("-1", False), ('"far"', False)])
+def test_largest_distance_key(tmp_path, value, ok):
+    text = EXAMPLE_TOML.read_text(encoding="utf-8").replace('"data/', f'"{EXCERPT}/')
+    path = tmp_path / "d.toml"
+    path.write_text(text.replace("[filter]", f"[filter]\nmax_distance_m = {value}")
+                    if "[filter]" in text else text + f"\n[filter]\nmax_distance_m = {value}\n",
+                    encoding="utf-8")
+    if ok:
+        assert load_config(path).options.filter.max_distance == float(value)
+        return
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    msg = str(info.value)
+    assert len(msg.splitlines()) == 1 and str(path) in msg and "max_distance_m" in msg
 
 
 def test_times_going_backwards_is_an_input_error():

@@ -4,7 +4,7 @@ A simulated deployment with gross outliers, to which invalid statuses, a non-fin
 and a duplicated time are added, is run through the pipeline. ``removed.csv`` must list exactly
 the measurements that are not in the tracks, each with the module that removed it and its
 reason, as the sequential references of ``test_filtering`` give them. The outliers module 1
-lets through (the first measurement of a block is never compared) give poses the distance gate
+lets through (jumps the rate gates allow) give poses the distance gate
 rejects, and the measurements of their windows are left out of the GP fits (module 4).
 """
 

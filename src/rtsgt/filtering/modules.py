@@ -4,20 +4,32 @@ total stations" (CRV 2021/2022), with the parameters of the paper (docs/filterin
 Module 1 (per station, on raw polar observations)
 -------------------------------------------------
 1. Observations with a non-zero instrument status or a non-finite value are removed
-   (reasons ``"status"``, ``"non_finite"``); a measurement with the same time as the previous
-   kept one is removed (``"duplicate_time"``); times going backwards are an input error.
+   (reasons ``"status"``, ``"non_finite"``), then those with a raw slope distance beyond
+   ``max_distance`` (``"max_distance"``; the reference code's 1000 m); a measurement with the
+   same time as the previous kept one is removed (``"duplicate_time"``); times going
+   backwards are an input error.
 2. The series is split into blocks at gaps **longer than** ``tau_s`` (``dt > tau_s``).
-3. Inside a block, every measurement is compared with the **last accepted** measurement of the
-   same block (the first measurement of a block is always accepted and is never compared with
-   the previous block). It is rejected when the rate of change of the slope distance exceeds
-   ``tau_r`` (``"rate_distance"``), else when the rate of change of the horizontal direction
-   exceeds ``tau_a`` (``"rate_hz"``), else when that of the zenith angle exceeds ``tau_e``
-   (``"rate_v"``); rates are ``|difference| / dt`` and a rate equal to its threshold passes.
-   The horizontal-direction difference is wrapped into ``[-pi, pi]``, so a crossing of
-   0 / 2 pi is not a jump. Comparing with the last accepted measurement (rather than with the
-   previous raw one) means that one outlier removes one measurement, not also its successor.
+3. Each block starts at its **anchor**: its first measurement that agrees with at least one of
+   the next :data:`ANCHOR_NEIGHBOURS` measurements of the block (passes the rate gates below
+   against it). A measurement before the anchor disagrees with every one of them: it is
+   rejected, with the reason of its first failing gate against the measurement that follows
+   it. A measurement with fewer than two measurements after it in its block is not judged so
+   (one neighbour cannot tell which of the two is wrong): it becomes the anchor. A wild first
+   shot of a block thus costs one measurement, not the block; when the first measurement
+   agrees with its neighbours, the anchor is the first measurement, as in the paper
+   (docs/filtering.md#module-1).
+4. After the anchor, every measurement is compared with the **last accepted** measurement of
+   the same block (never with the previous block). It is rejected when the rate of change of
+   the slope distance exceeds ``tau_r`` (``"rate_distance"``), else when the rate of change of
+   the horizontal direction exceeds ``tau_a`` (``"rate_hz"``), else when that of the zenith
+   angle exceeds ``tau_e`` (``"rate_v"``); rates are ``|difference| / dt`` and a rate equal to
+   its threshold passes. The horizontal-direction difference is wrapped into ``[-pi, pi]``,
+   so a crossing of 0 / 2 pi is not a jump. Comparing with the last accepted measurement
+   (rather than with the previous raw one) means that one outlier removes one measurement,
+   not also its successor.
 
-The sequential rule is evaluated exactly without a Python loop over measurements: raw
+The sequential rule is evaluated exactly without a Python loop over measurements: the anchors
+are found from the gates of every measurement against its next neighbours at once, raw
 consecutive pairs are tested at once, and only each episode that starts at a failing pair
 (an outlier or a burst of them) is resolved, by a vectorised search for the first measurement
 that agrees with the last accepted one again.
@@ -59,12 +71,21 @@ from rtsgt.types import Observations, PrismTrack
 
 __all__ = [
     "FilterParams", "FilterReport", "MODULE1_REASONS", "MODULE2_REASONS", "MODULE4_REASONS",
-    "RemovedMeasurements",
+    "ANCHOR_NEIGHBOURS", "DEFAULT_MAX_DISTANCE_M", "RemovedMeasurements",
     "module1", "module2", "removed_measurements", "warn_tight_rate_gates",
 ]
 
 #: Reasons of module 1, in the order they are tested.
-MODULE1_REASONS = ("status", "non_finite", "duplicate_time", "rate_distance", "rate_hz", "rate_v")
+MODULE1_REASONS = ("status", "non_finite", "max_distance", "duplicate_time", "rate_distance",
+                   "rate_hz", "rate_v")
+
+#: Largest raw slope distance module 1 keeps, m: the reference code's (norlab-ulaval
+#: RTS_project, ``theodolite_utils.py``, ``distance <= 1000``).
+DEFAULT_MAX_DISTANCE_M = 1000.0
+
+#: How many following measurements of its block a block's first measurement is compared with
+#: before it becomes the block's anchor (module docstring, module 1 step 3).
+ANCHOR_NEIGHBOURS = 3
 
 #: Reasons of module 2.
 MODULE2_REASONS = ("not_all_tracked", "short_interval")
@@ -92,6 +113,9 @@ class FilterParams:
         Gap that splits a series, s (3 s): a gap longer than this starts a new block.
     tau_l : float
         Shortest interval kept by module 2, s (2 s).
+    max_distance : float
+        Largest raw slope distance module 1 keeps, m (:data:`DEFAULT_MAX_DISTANCE_M`;
+        ``inf``: no limit).
     """
 
     tau_r: float = 2.0
@@ -99,12 +123,15 @@ class FilterParams:
     tau_e: float = float(np.deg2rad(1.0))
     tau_s: float = 3.0
     tau_l: float = 2.0
+    max_distance: float = DEFAULT_MAX_DISTANCE_M
 
     def __post_init__(self) -> None:
         for name in ("tau_r", "tau_a", "tau_e", "tau_s"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise InputError(f"Expected {name} > 0, got {v!r}")
+        if not self.max_distance > 0:  # inf allowed: no limit
+            raise InputError(f"Expected max_distance > 0 m, got {self.max_distance!r}")
         if not (np.isfinite(self.tau_l) and self.tau_l >= 0):
             raise InputError(f"Expected tau_l >= 0, got {self.tau_l!r}")
 
@@ -112,7 +139,7 @@ class FilterParams:
     def from_degrees(cls, tau_a_deg: float | None = None, tau_e_deg: float | None = None,
                      **others: float) -> FilterParams:
         """Parameters with the angular rates given in deg/s (``others``: ``tau_r``, ``tau_s``,
-        ``tau_l``; the defaults where absent)."""
+        ``tau_l``, ``max_distance``; the defaults where absent)."""
         for name, deg in (("tau_a", tau_a_deg), ("tau_e", tau_e_deg)):
             if deg is not None:
                 others[name] = float(np.deg2rad(deg))
@@ -195,8 +222,33 @@ def _gate(t, d, hz, v, i, js, p: FilterParams) -> np.ndarray:
     return code
 
 
+def _anchors(t, d, hz, v, starts: np.ndarray, block_end: np.ndarray,
+             p: FilterParams) -> tuple[np.ndarray, np.ndarray]:
+    """The anchor of each block (module 1 step 3) and, per measurement, the reason code of its
+    gate against the next measurement (the reason of a measurement rejected before an anchor).
+
+    Returns ``anchor`` (K,) indices, one per block, and ``first_code`` (N,).
+    """
+    n = t.shape[0]
+    k_all = np.arange(n)
+    neighbours = np.minimum(ANCHOR_NEIGHBOURS, block_end - k_all - 1)
+    disagrees = neighbours >= 2  # judged only with two neighbours or more
+    first_code = np.zeros(n, dtype=int)
+    for k in range(1, ANCHOR_NEIGHBOURS + 1):
+        has = np.flatnonzero(disagrees & (neighbours >= k))
+        if has.size == 0:
+            break
+        c = _gate(t, d, hz, v, has, has + k, p)
+        if k == 1:
+            first_code[has] = c
+        disagrees[has] &= c > 0
+    # the last two measurements of a block are never judged, so every block has an anchor
+    ok = np.flatnonzero(~disagrees)
+    return ok[np.searchsorted(ok, starts)], first_code
+
+
 def _rate_filter(t, d, hz, v, p: FilterParams) -> tuple[np.ndarray, int]:
-    """Sequential rate gate, exactly, with vectorised episodes.
+    """Anchors and the sequential rate gate, exactly, with vectorised episodes.
 
     Returns ``code`` (0 kept, 1-3 reason) per measurement, and the number of blocks.
     """
@@ -208,12 +260,15 @@ def _rate_filter(t, d, hz, v, p: FilterParams) -> tuple[np.ndarray, int]:
     new_block[0] = True
     new_block[1:] = np.diff(t) > p.tau_s
     starts = np.flatnonzero(new_block)
-    block_end = np.empty(n, dtype=int)  # exclusive end of the block of each measurement
-    ends = np.append(starts[1:], n)
-    block_end[:] = np.repeat(ends, np.diff(np.append(starts, n)))
-    # raw consecutive pairs (j-1, j) inside a block
+    sizes = np.diff(np.append(starts, n))
+    block_end = np.repeat(np.append(starts[1:], n), sizes)  # exclusive end of each block
+    anchor, first_code = _anchors(t, d, hz, v, starts, block_end, p)
+    chain_start = np.repeat(anchor, sizes)
+    before = np.flatnonzero(np.arange(n) < chain_start)  # rejected before their anchor
+    code[before] = first_code[before]
+    # raw consecutive pairs (j-1, j) after the anchor of the block
     raw = np.zeros(n, dtype=int)
-    inner = np.flatnonzero(~new_block)
+    inner = np.flatnonzero(np.arange(n) > chain_start)
     if inner.size:
         raw[inner] = _gate(t, d, hz, v, inner - 1, inner, p)
     candidates = np.flatnonzero(raw)
@@ -275,6 +330,7 @@ def module1(
     reason[obs.status != 0] = 1
     finite = np.isfinite(obs.t) & np.isfinite(obs.hz) & np.isfinite(obs.v) & np.isfinite(obs.d)
     reason[(reason == 0) & ~finite] = 2
+    reason[(reason == 0) & (obs.d > p.max_distance)] = 3
     idx = np.flatnonzero(reason == 0)
     t = obs.t[idx]
     dt = np.diff(t)
@@ -288,10 +344,10 @@ def module1(
             obs.source,
         )
     dup = np.flatnonzero(dt == 0) + 1
-    reason[idx[dup]] = 3
+    reason[idx[dup]] = 4
     idx = np.flatnonzero(reason == 0)
     code, n_blocks = _rate_filter(obs.t[idx], obs.distance[idx], obs.hz[idx], obs.v[idx], p)
-    reason[idx[code > 0]] = 3 + code[code > 0]
+    reason[idx[code > 0]] = 4 + code[code > 0]
     counts = {r: int(np.sum(reason == i + 1)) for i, r in enumerate(MODULE1_REASONS)}
     keep = reason == 0
     names = np.array(("",) + MODULE1_REASONS)

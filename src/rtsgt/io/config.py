@@ -77,6 +77,7 @@ the run gives the prisms' positions, no pose, and the survey is not read)::
     tau_e_deg_s = 1.0
     tau_s_s = 3.0
     tau_l_s = 2.0
+    max_distance_m = 1000.0          # module 1 removes longer raw slope distances (inf: none)
 
     [interpolation]
     rate_hz = 5.0                    # or query_times = "lidar_stamps.txt" (one time per line, s)
@@ -383,7 +384,8 @@ FILTER_KEYS = {
     "tau_r_m_s": ("tau_r", float, None, None),
     "tau_a_deg_s": ("tau_a", float, math.radians, math.degrees),
     "tau_e_deg_s": ("tau_e", float, math.radians, math.degrees),
-    "tau_s_s": ("tau_s", float, None, None), "tau_l_s": ("tau_l", float, None, None)}
+    "tau_s_s": ("tau_s", float, None, None), "tau_l_s": ("tau_l", float, None, None),
+    "max_distance_m": ("max_distance", float, None, None)}
 CALIBRATION_KEYS = {"model": ("model", str, None, None),
                     "weighting": ("weighting", str, None, None),
                     "method": ("method", str, None, None)}
