@@ -186,3 +186,40 @@ def test_console_script_json_and_error():
     assert proc.returncode == 1
     assert proc.stderr.startswith("error: ") and "unknown reference station '9'" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_the_gcp_fit_check_is_shown_and_written(tmp_path):
+    """Issue 26: the variance factor per station and the variance components added were in the
+    API only; now in the table (as `rtsgt run`'s summary has them) and in the JSON / --out."""
+    out = tmp_path / "cal.json"
+    r = runner.invoke(app, ["calibrate", real_gcp(), "--samples", "0", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    text = " ".join(r.stdout.split())
+    fit = json.loads(out.read_text())["gcp_fit"]
+    assert set(fit["stations"]) == {"2", "3"}
+    for s, v in fit["stations"].items():
+        lo, hi = v["interval_95"]
+        assert lo < 1 < hi and v["dof"] == 30
+        # the excerpt's GCP residuals are far above the instrument model (z above all)
+        assert v["variance_factor"] > hi and v["verdict"] == "optimistic"
+        assert (f"self-check GCP fit, station {s}: variance factor {v['variance_factor']:.2f}, "
+                f"95 % [{lo:.2f}, {hi:.2f}]: optimistic") in text
+    added = fit["added_shot_sigma_mm"]
+    assert added["horizontal"] == 0 and 0.5 < added["vertical"] < 2
+    assert (f"added per shot 0.00 mm horizontal, {added['vertical']:.2f} mm vertical"
+            in text)
+
+
+def test_a_deployment_folder_is_taken_for_its_toml(tmp_path):
+    """`rtsgt calibrate FOLDER` (and --dynamic): the folder's deployment.toml; a folder without
+    one is one error line naming it."""
+    folder = EXCERPT.parent
+    a = invoke_json(str(folder), "--samples", "10")
+    b = invoke_json(str(folder / "deployment.toml"), "--samples", "10")
+    assert a == b and a["source"].endswith("deployment.toml")
+    assert set(a["gcp_fit"]["stations"]) == {"2", "3"}
+    r = runner.invoke(app, ["calibrate", str(tmp_path), "--dynamic"])
+    assert r.exit_code == 1 and "Traceback" not in r.output
+    assert r.stderr.splitlines() == [
+        f"error: {tmp_path}: a folder without deployment.toml: give the deployment's TOML, or "
+        "write one with `rtsgt init FOLDER` (an RTS_project-like folder)"]

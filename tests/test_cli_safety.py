@@ -311,3 +311,29 @@ def test_single_file_outputs_replace_only_their_own(run_dir, tmp_path):
         assert invoke(*args).exit_code == 0
         r = invoke(*args)
         assert r.exit_code == 0, r.output
+
+
+def test_a_deployment_folder_is_taken_for_its_toml(deployment, run_dir, tmp_path):
+    """Issue 26: `rtsgt run FOLDER` said "no such configuration file" for a folder holding
+    deployment.toml; now it runs it (the same run as the TOML's), and a folder without one is
+    one line saying so, for run and plan alike."""
+    out = tmp_path / "o"
+    r = invoke("run", deployment, "-o", out, "--engine", "linear", "-q")
+    assert r.exit_code == 0, r.output
+    for name in ("groundtruth.tum", "groundtruth_covariance.csv"):
+        assert (out / name).read_bytes() == (run_dir / name).read_bytes(), name
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    for args in (["run", empty, "-o", tmp_path / "o2"], ["plan", empty, "-o", tmp_path / "o3"]):
+        assert_one_error(invoke(*args), 1, str(empty), "a folder without deployment.toml",
+                         "rtsgt init")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "o"]
+
+
+def test_analyze_without_figures_says_what_it_wrote(run_dir, tmp_path):
+    """Issue 26: `analyze --no-figures` said "figures and analysis.json in ..."."""
+    out = tmp_path / "a"
+    r = invoke("analyze", run_dir, "-o", out, "--no-figures")
+    assert r.exit_code == 0, r.output
+    assert r.stderr.strip() == f"analysis.json in {out}"
+    assert sorted(p.name for p in out.iterdir() if p.name != MANIFEST) == ["analysis.json"]

@@ -295,3 +295,31 @@ def test_a_raw_bag_is_taken_rather_than_the_prism_files(tmp_path):
     r = init(folder, "--force")
     assert r.exit_code == 1
     assert any("2 raw bags" in s for s in lines(r, "missing"))
+
+
+def test_a_one_prism_folder_without_a_survey_gives_a_toml_that_runs(tmp_path):
+    """Issue 26: init refused a one-prism folder without a survey, which a one-prism run does
+    not read (positions only): init accepts what run accepts."""
+    folder = tmp_path / "20221110"
+    for src in ("GCP.txt", "prism1.csv"):
+        p = folder / LAYOUT[src]
+        p.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(EXCERPT / src, p)
+    r = init(folder)
+    assert r.exit_code == 0, r.output
+    survey = [s for s in lines(r, "missing") if "survey of the robot" in s]
+    assert len(survey) == 1 and survey[0].endswith("(optional)"), survey
+    toml = folder / "deployment.toml"
+    assert "\n[reference]" not in toml.read_text()
+    cfg = load_config(toml)
+    assert cfg.reference is None and [s.id for s in cfg.stations] == ["1"]
+    out = tmp_path / "run"
+    r = runner.invoke(app, ["run", str(folder), "-o", str(out), "--engine", "linear", "-q"])
+    assert r.exit_code == 0, r.output
+    assert (out / "prisms" / "prism1.csv").is_file() and not (out / "groundtruth.tum").exists()
+    # three prisms still need the survey
+    r = init(rts_folder(tmp_path / "three", leave_out=("calibration_raw.csv",
+                                                       "sensor_positions.csv")))
+    assert r.exit_code == 1
+    assert [s for s in lines(r, "missing") if "survey of the robot" in s][0].endswith(
+        "needed for the poses)")

@@ -135,7 +135,8 @@ def register(app: typer.Typer) -> None:
             return
         print_analysis(analysis)
         folder = written[-1].parent
-        Console(stderr=True).print(f"figures and analysis.json in {folder}")
+        what = "analysis.json" if no_figures else "figures and analysis.json"
+        Console(stderr=True).print(f"{what} in {folder}", highlight=False, soft_wrap=True)
 
     @app.command("report")
     def report_command(

@@ -7,7 +7,11 @@ TOML (``rtsgt calibrate --dynamic DEPLOYMENT.toml``, or ``--method dynamic|joint
 pipeline's own calibration stage (:func:`rtsgt.pipeline.calibrate_by_method`: module 1, and for
 ``dynamic`` and ``joint`` the tracks, their GPs and the inter-prism distances,
 :mod:`rtsgt.calibration.dynamic`); the method and the model default to the TOML's
-``[calibration]``. ``--out FILE`` writes the JSON object to a file, atomically (complete or not
+``[calibration]``; a deployment's folder holding ``deployment.toml`` is taken for its TOML
+(:func:`rtsgt.io.deployment.resolve_config`). The GCP fit's self-check is shown and written
+as a run's summary has it: each station's variance factor with its 95 % interval and verdict,
+and the variance components the calibration added to every shot
+(:func:`rtsgt.checks.calibration.gcp_fit_check`). ``--out FILE`` writes the JSON object to a file, atomically (complete or not
 at all: a failed run leaves no file and keeps a previous one), which a shell redirection of
 ``--json`` cannot promise.
 """
@@ -32,11 +36,11 @@ from rtsgt.calibration.gcp import (
     CALIBRATION_WEIGHTING_NAMES,
     DEFAULT_WEIGHTING,
 )
-from rtsgt.checks.calibration import dynamic_calibration_check
+from rtsgt.checks.calibration import dynamic_calibration_check, gcp_fit_check
 from rtsgt.errors import InputError
 from rtsgt.filtering import module1
 from rtsgt.io._parse import atomic_write_text
-from rtsgt.io.deployment import load_deployment
+from rtsgt.io.deployment import load_deployment, resolve_config
 from rtsgt.io.gcp_csv import GCP_FORMATS, read_gcp_shots
 from rtsgt.io.output_dir import check_output_file
 from rtsgt.measurement.instruments import get_instrument
@@ -62,6 +66,9 @@ def result_to_json(result: CalibrationResult, **extra) -> dict:
     calibration). ``method`` says what the stations were fitted to; a dynamic or joint
     calibration adds ``dynamic`` (:func:`rtsgt.checks.calibration.dynamic_calibration_check`:
     the clock offsets, the fit check and, for ``dynamic``, the agreement with the GCPs).
+    ``extra`` adds keys, e.g. ``gcp_fit`` (:func:`rtsgt.checks.calibration.gcp_fit_check`: per
+    station the variance factor of the GCP residuals with its 95 % interval and verdict, and
+    ``added_shot_sigma_mm``, the variance components added to every shot).
     """
     stations = {}
     for s, T in result.transforms.items():
@@ -104,7 +111,7 @@ def result_to_json(result: CalibrationResult, **extra) -> dict:
 
 
 def _print_table(result: CalibrationResult, source: str, console: Console,
-                 dynamic: dict | None = None) -> None:
+                 dynamic: dict | None = None, gcp_fit: dict | None = None) -> None:
     table = Table(title=f"T_world_station, world = station {result.reference_station} ({source})")
     for name, justify in (
         ("station", "left"), ("markers", "right"), ("yaw (deg)", "right"), ("axis", "center"),
@@ -148,6 +155,8 @@ def _print_table(result: CalibrationResult, source: str, console: Console,
         for s, v in dynamic.get("gcp_agreement", {}).items():
             console.print(f"station {s} against the GCP calibration: chi2 {v['chi2']:.1f} "
                           f"({v['dof']} dof, p = {v['p_value']:.2g}): {v['verdict']}")
+    if gcp_fit is not None:
+        _print_gcp_fit(gcp_fit, console)
     sampled = f"{result.samples} Monte Carlo samples" if result.samples else "no Monte Carlo"
     console.print(f"{sampled}; {CALIBRATION_WEIGHTING_NAMES[result.weighting]} fits.")
     if result.excluded_shots:
@@ -157,6 +166,25 @@ def _print_table(result: CalibrationResult, source: str, console: Console,
             f"note: marker(s) {', '.join(result.markers_skipped)} shot by fewer than 2 "
             "stations were skipped"
         )
+
+
+def _print_gcp_fit(check: dict, console: Console) -> None:
+    """The GCP fit's self-check as ``rtsgt run``'s summary has it: per station the variance
+    factor of its residuals with the 95 % interval and verdict, then the variance components
+    added to every shot (:func:`rtsgt.checks.calibration.gcp_fit_check`)."""
+    for s, v in check.get("stations", {}).items():
+        if not v.get("dof"):
+            continue
+        lo, hi = v["interval_95"]
+        x, y, z = v["axis_factors_xyz"]
+        console.print(f"self-check GCP fit, station {s}: variance factor "
+                      f"{v['variance_factor']:.2f}, 95 % [{lo:.2f}, {hi:.2f}]: {v['verdict']} "
+                      f"({v['dof']} dof; per axis x {x:.2f}, y {y:.2f}, z {z:.2f})",
+                      highlight=False)
+    h, v = (check["added_shot_sigma_mm"][k] for k in ("horizontal", "vertical"))
+    console.print(f"calibration: added per shot {h:.2f} mm horizontal, {v:.2f} mm vertical "
+                  "(variance components of the GCP residuals)" if h or v else
+                  "calibration: no variance component added per shot", highlight=False)
 
 
 def run_calibrate(
@@ -196,11 +224,13 @@ def run_calibrate(
 def run_calibrate_deployment(
     config: Path, *, method: str | None = None, model: str | None = None,
     weighting: str | None = None, samples: int = 1000, seed: int = 0,
-) -> tuple[CalibrationResult, dict | None]:
+) -> tuple[CalibrationResult, dict | None, CalibrationResult | None]:
     """Calibrate the stations of a deployment as its run would (its TOML's ``[calibration]``,
-    ``method``, ``model`` and ``weighting`` overriding it); returns the result and, for a
-    dynamic or joint calibration, its self-check
-    (:func:`rtsgt.checks.calibration.dynamic_calibration_check`)."""
+    ``method``, ``model`` and ``weighting`` overriding it); returns the result, for a
+    dynamic or joint calibration its self-check
+    (:func:`rtsgt.checks.calibration.dynamic_calibration_check`), and the GCP calibration of
+    the deployment (``result`` itself for ``gcp``; None when the GCP shots cannot calibrate
+    the stations), whose fit the run's self-check reports."""
     data, options = load_deployment(config)
     changes = {k: v for k, v in (("method", method), ("model", model),
                                  ("weighting", weighting)) if v is not None}
@@ -215,7 +245,7 @@ def run_calibrate_deployment(
     result, gcp = calibrate_by_method(data, options, filtered)
     check = None if result.dynamic is None else dynamic_calibration_check(result, gcp,
                                                                           warn=False)
-    return result, check
+    return result, check, result if result.dynamic is None else gcp
 
 
 def is_calibration_json(head: str) -> bool:
@@ -290,7 +320,7 @@ def register(app: typer.Typer) -> None:
         if method is not None and method not in CALIBRATION_METHODS:
             raise typer.BadParameter(f"expected {' or '.join(CALIBRATION_METHODS)}, got "
                                      f"{method!r}", param_hint="--method")
-        deployment = gcp_file.lower().endswith(".toml")
+        deployment = gcp_file.lower().endswith(".toml") or Path(gcp_file).is_dir()
         if not deployment and method not in (None, "gcp"):
             raise typer.BadParameter(
                 f"method {method} fits the stations to the tracked prisms: give a deployment's "
@@ -300,10 +330,11 @@ def register(app: typer.Typer) -> None:
             check_output_file(out, option="--out", written_by_rtsgt=is_calibration_json)
         check = None
         if deployment:
-            result, check = run_calibrate_deployment(Path(gcp_file), method=method, model=model,
-                                                     weighting=weighting, samples=samples,
-                                                     seed=seed)
-            source = gcp_file
+            config = resolve_config(gcp_file)
+            result, check, gcp_result = run_calibrate_deployment(
+                config, method=method, model=model, weighting=weighting, samples=samples,
+                seed=seed)
+            source = str(config)
         else:
             result, source = run_calibrate(
                 gcp_file, format=format, reference_station=reference_station,
@@ -311,7 +342,11 @@ def register(app: typer.Typer) -> None:
                 weighting=weighting or DEFAULT_WEIGHTING, instrument=instrument,
                 model=model or "6dof",
             )
+            gcp_result = result
         extra = {} if check is None else {"dynamic": check}
+        gcp_fit = None if gcp_result is None else gcp_fit_check(gcp_result, warn=False)
+        if gcp_fit is not None:
+            extra["gcp_fit"] = gcp_fit
         obj = result_to_json(result, source=source, seed=seed, **extra)
         if out is not None:
             try:
@@ -321,6 +356,6 @@ def register(app: typer.Typer) -> None:
         if as_json:
             typer.echo(json.dumps(obj))
         else:
-            _print_table(result, source, Console(), check)
+            _print_table(result, source, Console(), check, gcp_fit)
             if out is not None:
                 Console().print(f"written: {out}")

@@ -13,6 +13,7 @@ from rich.table import Table
 
 from rtsgt.errors import RtsgtWarning
 from rtsgt.geometry.so3 import quat_xyzw_to_matrix
+from rtsgt.io.deployment import resolve_config
 from rtsgt.io.output_dir import OutputDir
 from rtsgt.io.plan import PlanInputs, load_plan, read_path, read_run_qc
 from rtsgt.planning import (
@@ -64,12 +65,13 @@ def _motion(inputs: PlanInputs, qc_run: Path | None) -> RobotMotion:
 
 def compute_plan(plan: Path, *, path: Path | None = None,
                  qc_run: Path | None = None) -> PlanResult:
-    """Read a plan file (or a deployment TOML) and predict over its area or path.
+    """Read a plan file (or a deployment TOML, or its folder) and predict over its area or
+    path.
 
     ``path`` replaces the plan's area or path by a path file; ``qc_run`` takes the GP's Qc
     from that run directory (:func:`rtsgt.planning.qc_from_run`).
     """
-    inputs = load_plan(plan)
+    inputs = load_plan(resolve_config(plan))  # a deployment's folder: its deployment.toml
     if inputs.deployment is not None:
         data, options = inputs.deployment
         layout = layout_from_deployment(data, options, source=f"deployment {data.name}")

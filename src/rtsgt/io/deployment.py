@@ -27,6 +27,31 @@ from rtsgt.pose.reference import ReferencePoints, reference_from_survey
 from rtsgt.record import MIN_POSE_PRISMS
 from rtsgt.types import Observations
 
+#: The file name of a deployment's configuration in its folder (``rtsgt init`` and
+#: ``rtsgt simulate`` write it there; a command given the folder reads it).
+DEPLOYMENT_TOML = "deployment.toml"
+
+
+def resolve_config(path: str | Path) -> Path:
+    """The deployment configuration a command was given: ``path`` itself, or, for a folder,
+    its :data:`DEPLOYMENT_TOML`.
+
+    Raises
+    ------
+    InputError
+        ``path`` is a folder without a :data:`DEPLOYMENT_TOML` (one line naming the folder and
+        what to do). A missing file is left to :func:`rtsgt.io.config.load_config`, which
+        names it.
+    """
+    path = Path(path)
+    if not path.is_dir():
+        return path
+    toml = path / DEPLOYMENT_TOML
+    if toml.is_file():
+        return toml
+    raise InputError(f"a folder without {DEPLOYMENT_TOML}: give the deployment's TOML, or "
+                     "write one with `rtsgt init FOLDER` (an RTS_project-like folder)", path)
+
 
 def check_gcp_covers_stations(cfg: DeploymentConfig, gcp) -> None:
     """Every tracked station needs valid GCP shots for its calibration: refuse early.
@@ -99,7 +124,8 @@ def _warn_sensor_position_defects(points: SensorPositions, rows: list[int]) -> N
 
 
 def load_deployment(config: str | Path | DeploymentConfig) -> tuple[DeploymentData, RunOptions]:
-    """Read a deployment: its configuration, then every file it names.
+    """Read a deployment: its configuration (a TOML, or a folder holding
+    :data:`DEPLOYMENT_TOML`: :func:`resolve_config`), then every file it names.
 
     Returns
     -------
@@ -107,7 +133,7 @@ def load_deployment(config: str | Path | DeploymentConfig) -> tuple[DeploymentDa
     options : RunOptions
         The processing parameters of the configuration (the CLI may override some).
     """
-    cfg = config if isinstance(config, DeploymentConfig) else load_config(config)
+    cfg = config if isinstance(config, DeploymentConfig) else load_config(resolve_config(config))
     observations, input_report = read_observations(cfg)
     gcp = read_gcp_shots(cfg.gcp.file, format=cfg.gcp.format,
                          additive_constant=cfg.gcp.additive_constant_m)

@@ -27,6 +27,8 @@ a weather file                                     an ECCC hourly CSV or rtsgt's
                                                    (recognised by its header): ``[weather]``
 =================================================  ===========================================
 
+The survey is required for poses only: a folder of one or two tracked prisms without one gives
+a TOML without ``[reference]``, whose run gives the prisms' positions (``rtsgt.io.config``).
 Each item is looked for at its RTS_project path first, then by its file name anywhere under
 the folder (a flat folder such as the excerpt's ``examples/rts_20221110/data`` works too);
 hidden folders, folders named ``static*`` (the static stretches, ``static_raw_data``) and
@@ -80,6 +82,7 @@ from rtsgt.io.survey import (
 from rtsgt.io.weather import read_weather_csv, read_weather_eccc, weather_format
 from rtsgt.measurement.instruments import instrument_from_config
 from rtsgt.options import RunOptions
+from rtsgt.record import MIN_POSE_PRISMS
 
 #: The first characters of every TOML ``rtsgt init`` writes (what ``--force`` may replace).
 INIT_MARK = "# Written by rtsgt init"
@@ -374,10 +377,17 @@ def _scan_survey(scan: FolderScan, root: Path, tree) -> None:
                           "covariance)")
     else:
         hits = raw_hits or pos_hits
+        # a run of fewer than MIN_POSE_PRISMS tracked prisms gives their positions only and
+        # reads no survey (rtsgt.io.config): then the survey is not required
+        poses = not scan.stations or len(scan.stations) >= MIN_POSE_PRISMS
+        n = len(scan.stations)
         scan.lack(_several(hits[0].name, hits, root) if hits else
                   f"survey of the robot: no {RTS_PROJECT_PATHS['survey']} nor "
                   f"{Path(RTS_PROJECT_PATHS['sensor_positions']).name} (the prisms' positions on "
-                  "the robot; needed for the poses)", required=True)
+                  "the robot; needed for the poses"
+                  + ("" if poses else f", not for the positions of {n} tracked prism"
+                     f"{'s' * (n > 1)}, all a run of fewer than {MIN_POSE_PRISMS} gives") + ")",
+                  required=poses or bool(hits))
     if xyz is not None:
         scan.survey_rows = xyz.shape[0]
         beyond = [s for s in scan.stations
@@ -547,18 +557,23 @@ def deployment_toml_text(scan: FolderScan, toml_path: str | os.PathLike, *,
                           if utc_offset_hours is None else ""))
         out.append("")
     prisms = ", ".join(f"{toml_value(s)} = {int(s)}" for s in scan.stations)
-    out += [
-        "[reference]",
-        f"file = {rel(scan.survey)}",
-        f"format = {toml_value(scan.survey_format)}",
-        f"prisms = {{ {prisms} }}   # prism i is survey row i (RTS_project: rows 1-3)",
-    ]
-    if scan.survey_rows >= max(GNSS_ROWS):
-        out += ["# the ground truth in the frame of the GNSS antennas (survey rows 4-6; origin at",
-                "# their centroid, x from antenna 1 to 2), not the survey station's frame",
-                'body_frame = "points"', f"body_points = {toml_value(list(GNSS_ROWS))}"]
+    if scan.survey is None:  # fewer than MIN_POSE_PRISMS stations: positions only
+        out += [f"# no [reference]: no survey of the robot, and with fewer than {MIN_POSE_PRISMS}",
+                "# tracked prisms the run gives their positions only (no pose)"]
     else:
-        out += ['body_frame = "survey"']
+        out += [
+            "[reference]",
+            f"file = {rel(scan.survey)}",
+            f"format = {toml_value(scan.survey_format)}",
+            f"prisms = {{ {prisms} }}   # prism i is survey row i (RTS_project: rows 1-3)",
+        ]
+        if scan.survey_rows >= max(GNSS_ROWS):
+            out += ["# the ground truth in the frame of the GNSS antennas (survey rows 4-6; "
+                    "origin at", "# their centroid, x from antenna 1 to 2), not the survey "
+                    "station's frame", 'body_frame = "points"',
+                    f"body_points = {toml_value(list(GNSS_ROWS))}"]
+        else:
+            out += ['body_frame = "survey"']
     out += ["", "# processing: rtsgt's defaults (docs/file-formats.md#deployment-toml)"]
     instrument = instrument_from_config({"profile": RTS_PROJECT_INSTRUMENT})
     out.append(options_toml_text(RunOptions(), instrument))
