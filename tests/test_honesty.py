@@ -8,8 +8,8 @@ deployments, each a fresh draw of every systematic error, rather than over more 
 
 ``benchmarks/honesty.py`` measures the claim on 120 deployments (spread about +-0.04 on
 NEES / dof): Monte Carlo 1.03 (position) / 1.02 (pose), 95 % regions 95.3 % / 94.4 %; linear
-and unscented 1.01 / 0.99, 95.6 % / 95.0 % (README, section Honesty, the weighted
-registration). This test pools 40
+and unscented 1.01 / 0.99, 95.6 % / 95.0 % (docs/honesty.md#simulated-deployments, the
+weighted registration). This test pools 40
 deployments (spread about +-0.06), so its bounds add two spreads to the issue's tolerances on
 the means, and one point to those on the 95 % regions; the per-prism check uses the issue's
 tolerances as they are (each prism is pooled over all 40 deployments and is far from them).

@@ -79,7 +79,7 @@ from rtsgt.io.run_dir import read_summary
 #: What each deployment's task ends with.
 STATUSES = ("done", "skipped", "failed")
 #: Memory a worker of the default local cluster is given, bytes (a ten-minute deployment
-#: with the Monte Carlo engine peaks well under it: README, section Benchmarks).
+#: with the Monte Carlo engine peaks well under it: docs/benchmarks.md#speed).
 MEMORY_PER_WORKER = 2 * 1024**3
 #: Dask's configuration of the environment its nanny gives each worker process.
 NANNY_ENVIRON = "distributed.nanny.pre-spawn-environ"

@@ -51,7 +51,7 @@ Two stations calibrated from the same reference shots have correlated calibratio
 (:class:`StationCoupling`); the pose engines get the joint (3n x 3n) covariance of the prisms
 (:func:`joint_prism_covariance`), since errors that move the prisms together are not averaged
 out by the registration. On simulated deployments this took the position NEES / dof from
-1.15-1.25 to 1.11-1.12 (README, section Honesty).
+1.15-1.25 to 1.11-1.12 (docs/honesty.md#simulated-deployments).
 
 Fewer than three prisms
 -----------------------
