@@ -29,7 +29,7 @@ from typer.testing import CliRunner
 
 from _paths import EXAMPLE_DIR, EXCERPT
 from rtsgt.cli.main import app
-from rtsgt.errors import ConfigError, InputError
+from rtsgt.errors import ConfigError, InputError, RtsgtWarning
 from rtsgt.io.config import load_config
 from rtsgt.io.deployment import load_deployment
 from rtsgt.io.rts_bag import (
@@ -66,7 +66,8 @@ DEFINITIONS = {
 }
 #: Seconds of the excerpt the pipeline runs on (a static part, a gap, a second static part).
 SPAN_S = 40.0
-#: Offset of each station's clock: theodolite_time = header.stamp - offset (s).
+#: Offset of each station's clock (its clock minus the receiver's, s): the node stamps
+#: ``header.stamp = theodolite_time - estimated_time_offset`` (rtsgt/io/rts_bag.py).
 CLOCK_OFFSET = {1: 0.125, 2: -0.0625, 3: 0.25}
 #: Messages with a non-zero status injected per station: (status, values).
 INVALID = [(1, (0.9, 1.5, 12.0)), (2, (0.9, 1.5, 40.0)), (3, (-1.0, -1.0, -1.0)),
@@ -99,11 +100,11 @@ def messages(rows: dict[int, np.ndarray], invalid=INVALID, offsets=CLOCK_OFFSET)
     out = []
     for i, r in rows.items():
         for t, d, v, hz in r:
-            out.append((i, 0, hz, v, d, t, t - offsets[i]))
+            out.append((i, 0, hz, v, d, t, t + offsets[i]))
         between = r[: len(invalid) + 1, 0]
         for k, (status, (hz, v, d)) in enumerate(invalid):
             t = 0.5 * (between[k] + between[k + 1])
-            out.append((i, status, hz, v, d, t, t - offsets[i]))
+            out.append((i, status, hz, v, d, t, t + offsets[i]))
     return sorted(out, key=lambda m: m[5])
 
 
@@ -115,9 +116,11 @@ def typestore(ros1: bool):
 
 
 def write_bag(path: Path, ros1: bool, msgs: list, *, corrections=(), topic: str = TOPIC,
-              msgtype: str = COORDS, array_size: int = 6) -> Path:
+              msgtype: str = COORDS, array_size: int = 6,
+              correction_topic: str = CORRECTION_TOPIC) -> Path:
     """A bag of ``msgs`` on ``topic`` (as :func:`messages` gives them) and the clock corrections
-    ``(id, t, offset)``, written as the acquisition system records them."""
+    ``(id, t, offset)`` on ``correction_topic``, written as the acquisition system records them
+    (the older layout's as ``Float64MultiArray`` ``[sec, nsec, id, offset]``)."""
     ts = typestore(ros1)
     T = ts.types
     Time, Header, Duration = (T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"],
@@ -139,6 +142,7 @@ def write_bag(path: Path, ros1: bool, msgs: list, *, corrections=(), topic: str 
                             theodolite_id=i, status=status, azimuth=hz, elevation=v, distance=d)
         elif msgtype == ARRAY:
             values = [i, hz, v, d, t] if array_size == 5 else [i, hz, v, d, *stamp(t)]
+            values += [status] if array_size >= 7 else []
             data = np.array(values + [0.0] * (array_size - len(values)), dtype=np.float64)
             layout = T["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0)
             msg = T[ARRAY](layout=layout, data=data)
@@ -154,12 +158,17 @@ def write_bag(path: Path, ros1: bool, msgs: list, *, corrections=(), topic: str 
         for ns, raw in out:
             w.write(conn, ns, raw)
         if corrections:
-            cc = w.add_connection(CORRECTION_TOPIC, CORRECTION, typestore=ts)
+            kind = ARRAY if msgtype == ARRAY else CORRECTION
+            cc = w.add_connection(correction_topic, kind, typestore=ts)
             for k, (i, t, off) in enumerate(corrections):
                 sec, ns = divmod(int(round(off * 1e9)), 1_000_000_000)
-                msg = T[CORRECTION](header=header(k, t), theodolite_id=i,
-                                    estimated_time_offset=Duration(sec=sec, nanosec=ns))
-                w.write(cc, int(round(t * 1e9)), encode(msg, CORRECTION))
+                if kind == ARRAY:
+                    layout = T["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0)
+                    msg = T[ARRAY](layout=layout, data=np.array([*stamp(t), i, off]))
+                else:
+                    msg = T[CORRECTION](header=header(k, t), theodolite_id=i,
+                                        estimated_time_offset=Duration(sec=sec, nanosec=ns))
+                w.write(cc, int(round(t * 1e9)), encode(msg, kind))
     return path
 
 
@@ -253,7 +262,7 @@ def test_rtsgt_run_on_a_bag(rows, csv_route, tmp_path):
                            env={"COLUMNS": "200"})
     assert result.exit_code == 0, result.output
     n = sum(len(r) for r in rows.values())
-    assert re.search(rf"bag messages valid / read +│ {n} / {n + 18} \(removed: "
+    assert re.search(rf"bag messages valid / read[ :│]+{n} / {n + 18} \(removed: "
                      r"tilt_out_of_range 3, wrong_target_distance 3, tracking_exception 6, "
                      r"distance_under_1m 3, unknown_status 3\)", result.stdout)
     got = read_covariance_csv(out / "groundtruth_covariance.csv")
@@ -273,6 +282,27 @@ def test_rtsgt_run_on_a_bag(rows, csv_route, tmp_path):
         assert corr["offset_s"]["first"] == pytest.approx(off, abs=1e-9)
         assert corr["offset_s"]["last"] == pytest.approx(off + 1e-4, abs=1e-9)
         assert read["stamp_difference_s"][str(s)] == pytest.approx(off, abs=1e-6)
+
+
+def test_wild_first_shots_cost_no_measurement_and_leave_the_ground_truth(rows, csv_route,
+                                                                        tmp_path):
+    """A valid shot of 1234.5 m (beyond the largest distance) just before station 1's first
+    measurement, and one of 234.5 m (under it: the rate gates' anchor) before station 2's: the
+    run keeps every other measurement and gives the CSV route's ground truth."""
+    msgs = messages(rows, invalid=())
+    for i, d in ((1, 1234.5), (2, 234.5)):
+        t0, _, v0, hz0 = rows[i][0]
+        msgs.insert(0, (i, 0, hz0, v0, d, t0 - 0.2, t0 - 0.2 + CLOCK_OFFSET[i]))
+    bag = write_bag(tmp_path / "wild.bag", True, msgs, corrections=corrections_of(rows))
+    data, record = run(deployment(tmp_path, bag=bag))
+    reports, ref = record.computation.filter_reports, csv_route[1].computation.filter_reports
+    for i, reason in ((1, "max_distance"), (2, "rate_distance")):
+        rep, ref_rep = reports[f"module1_station{i}"], ref[f"module1_station{i}"]
+        assert rep.reasons[0][0] == reason and rep.removed[reason] == 1 + ref_rep.removed[reason]
+        assert rep.n_kept == ref_rep.n_kept == len(rows[i]) - ref_rep.n_removed
+    gt, ref_gt = record.groundtruth, csv_route[1].groundtruth
+    np.testing.assert_array_equal(gt.t, ref_gt.t)
+    assert np.max(np.abs(gt.position - ref_gt.position)) <= 1e-9
 
 
 # ------------------------------------------------------------------ the reader
@@ -307,24 +337,33 @@ def test_status_codes_removed_and_counted_by_reason(tmp_path):
         bag.station(1, station="A", prism="1")
 
 
-@pytest.mark.parametrize("size", [6, 5])
+@pytest.mark.parametrize("size", [7, 6, 5])
 def test_older_float64multiarray_layout(size, rows, tmp_path):
-    """``[id, Hz, V, d, sec, nsec]`` (or ``[id, Hz, V, d, t]``) on /theodolite_data gives the
-    prism files' observations; there is one time, so no time to choose."""
-    msgs = messages(rows, invalid=())
+    """``[id, Hz, V, d, sec, nsec, status]`` on /theodolite_data, as the theodolite_listener node
+    publishes it (or, without status, ``[id, Hz, V, d, sec, nsec]`` or ``[id, Hz, V, d, t]``),
+    gives the prism files' observations, the messages with a non-zero status removed and
+    counted; its corrections (``[sec, nsec, id, offset]`` on /theodolite_correction_timestamp)
+    are read; there is one time, so no time to choose."""
+    msgs = messages(rows, invalid=INVALID if size == 7 else ())
     path = write_bag(tmp_path / "old.bag", True, msgs, topic=OLD_TOPIC, msgtype=ARRAY,
-                     array_size=size)
+                     array_size=size, corrections=corrections_of(rows),
+                     correction_topic="/theodolite_correction_timestamp")
     bag = read_theodolite_bag(path)
     assert (bag.topic, bag.layout, bag.time) == (OLD_TOPIC, "Float64MultiArray", "array")
+    assert bag.correction_topic == "/theodolite_correction_timestamp"
     for i, r in rows.items():
         o = bag.observations[i]
         np.testing.assert_array_equal(np.column_stack([o.t, o.d, o.v, o.hz]), r)
-        assert bag.removed[i] == dict.fromkeys(INPUT_REASONS, 0)
+        assert bag.removed[i] == (INVALID_COUNTS if size == 7 else dict.fromkeys(INPUT_REASONS,
+                                                                                  0))
+        np.testing.assert_allclose(bag.time_corrections[i].offset_s,
+                                   [CLOCK_OFFSET[i], CLOCK_OFFSET[i] + 1e-4], rtol=0, atol=1e-12)
     with pytest.raises(InputError, match="one time .* applies to TheodoliteCoordsStamped"):
         read_theodolite_bag(path, time="theodolite")
     bad = write_bag(tmp_path / "bad.bag", True, msgs[:3], topic=OLD_TOPIC, msgtype=ARRAY,
-                    array_size=7)
-    with pytest.raises(InputError, match=r"message 0: expected 6 values .* got 7"):
+                    array_size=8)
+    with pytest.raises(InputError, match=r"message 0: expected 7 values \[id, Hz, V, d, sec, "
+                                         r"nsec, status\] .* got 8"):
         read_theodolite_bag(bad)
 
 
@@ -337,17 +376,66 @@ def test_time_stamp_selection(rows, tmp_path):
     assert (header.time, theo.time) == ("header", "theodolite")
     for i, r in rows.items():
         np.testing.assert_array_equal(header.observations[i].t, r[:, 0])
-        np.testing.assert_allclose(theo.observations[i].t, r[:, 0] - CLOCK_OFFSET[i],
+        np.testing.assert_allclose(theo.observations[i].t, r[:, 0] + CLOCK_OFFSET[i],
                                    rtol=0, atol=1e-6)
         np.testing.assert_array_equal(theo.observations[i].d, r[:, 1])
         assert header.stamp_difference_s[i] == pytest.approx(CLOCK_OFFSET[i], abs=1e-6)
     data, _ = load_deployment(deployment(tmp_path, bag=bag_path, extra='time = "theodolite"'))
-    np.testing.assert_allclose(data.observations[0].t, rows[1][:, 0] - CLOCK_OFFSET[1],
+    np.testing.assert_allclose(data.observations[0].t, rows[1][:, 0] + CLOCK_OFFSET[1],
                                rtol=0, atol=1e-6)
     assert data.input_report.source["time"] == "theodolite"
     with pytest.raises(ConfigError, match=r"\[measurements\] time = 'gps' is not one of "
                                           r"'header', 'theodolite'"):
         load_config(deployment(tmp_path, bag=bag_path, extra='time = "gps"'))
+
+
+def test_clock_corrections_topic(rows, tmp_path):
+    """The corrections are read beside the measurements (a namespaced bag keeps its own), or
+    from ``[measurements] correction_topic``; missing ones are said, never silently dropped;
+    the stamps follow the node's convention (``header.stamp = theodolite_time - offset``)."""
+    ns = "/warthog/theodolite_master"
+    msgs = messages({1: rows[1][:30], 2: rows[2][:30]}, invalid=())
+    corr = [c for c in corrections_of(rows) if c[0] in (1, 2)]
+    spaced = write_bag(tmp_path / "ns.bag", True, msgs, topic=f"{ns}/theodolite_data",
+                       corrections=corr, correction_topic=f"{ns}/theodolite_correction_timestamp")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bag = read_theodolite_bag(spaced, topic=f"{ns}/theodolite_data")
+    assert bag.correction_topic == f"{ns}/theodolite_correction_timestamp"
+    for i in (1, 2):
+        assert len(bag.time_corrections[i]) == 2
+        # the offset the stamps carry is the one the corrections announce, with their sign
+        assert bag.stamp_difference_s[i] == pytest.approx(CLOCK_OFFSET[i], abs=1e-6)
+        assert bag.stamp_difference_s[i] == pytest.approx(
+            bag.time_corrections[i].offset_s[0], abs=1e-6)
+    # measurements on the node's topic, corrections in a namespace: a warning names them
+    apart = write_bag(tmp_path / "apart.bag", True, msgs, corrections=corr,
+                      correction_topic=f"{ns}/theodolite_correction_timestamp")
+    with pytest.warns(RtsgtWarning, match=rf"no clock corrections on '{CORRECTION_TOPIC}': the "
+                      rf"bag has clock corrections on '{ns}/theodolite_correction_timestamp' "
+                      r"\(name it with \[measurements\] correction_topic\)"):
+        bag = read_theodolite_bag(apart)
+    assert bag.time_corrections == {} and bag.correction_topic is None
+    extra = f'correction_topic = "{ns}/theodolite_correction_timestamp"'
+    stations = "".join(f'[[stations]]\nid = "{i}"\nprism = "{i}"\n\n' for i in (1, 2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        data, _ = load_deployment(deployment(tmp_path, bag=apart, extra=extra,
+                                             stations=stations))
+    src = data.input_report.source
+    assert src["correction_topic"] == f"{ns}/theodolite_correction_timestamp"
+    assert src["time_corrections"]["2"]["count"] == 2
+    # none at all: said too
+    bare = write_bag(tmp_path / "bare.bag", True, msgs)
+    with pytest.warns(RtsgtWarning, match="the bag has no topic of clock corrections"):
+        read_theodolite_bag(bare)
+    # a topic given that is not in the bag, or not of corrections: one line naming it
+    with pytest.raises(InputError, match=rf"^{apart}: \[measurements\] correction_topic "
+                                         r"'/nope' is not in the bag; the bag has clock "
+                                         rf"corrections on '{ns}/theodolite_correction_"):
+        read_theodolite_bag(apart, correction_topic="/nope")
+    with pytest.raises(InputError, match=rf"topic '{TOPIC}' has type {COORDS}, expected "):
+        read_theodolite_bag(apart, correction_topic=TOPIC)
 
 
 def test_ros2_bag_without_message_definitions(rows, tmp_path):

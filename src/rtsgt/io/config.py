@@ -33,6 +33,8 @@ the run gives the prisms' positions, no pose, and the survey is not read)::
     # topic = "/theodolite_master/theodolite_data"  # the default (else /theodolite_data)
     # time = "header"                # header.stamp, clock offset corrected (default), or
     #                                # "theodolite" (theodolite_time, uncorrected)
+    # correction_topic = "/theodolite_master/theodolite_correction_timestamp"  # the default:
+    #                                # the measurements' topic's, theodolite_data replaced
     # and in [[stations]]: theodolite_id = 1 (default: the station id as an integer)
 
     [gcp]
@@ -169,6 +171,8 @@ class MeasurementsConfig:
     topic: str | None = None
     #: ``"header"`` or ``"theodolite"`` (None: the reader's default, ``"header"``).
     time: str | None = None
+    #: The clock corrections' topic (None: the reader's default, beside the measurements').
+    correction_topic: str | None = None
 
 
 @dataclass(frozen=True)
@@ -314,7 +318,8 @@ def load_config(path: str | Path) -> DeploymentConfig:
         m = _Section(path, "measurements", doc["measurements"])
         measurements = MeasurementsConfig(
             m.file(directory=True), m.get("format", str, "ros-bag", MEASUREMENT_FORMATS),
-            m.get("topic", str, None), m.get("time", str, None, TIME_SOURCES))
+            m.get("topic", str, None), m.get("time", str, None, TIME_SOURCES),
+            m.get("correction_topic", str, None))
         m.done()
 
     raw_stations = doc.get("stations")

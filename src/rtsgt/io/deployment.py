@@ -165,7 +165,8 @@ def read_observations(cfg: DeploymentConfig) -> tuple[tuple[Observations, ...],
             read_prism_file(s.file, station=s.id, prism=s.prism,
                             additive_constant=s.additive_constant_m)
             for s in cfg.stations), None
-    bag = read_theodolite_bag(m.file, topic=m.topic, time=m.time)
+    bag = read_theodolite_bag(m.file, topic=m.topic, time=m.time,
+                              correction_topic=m.correction_topic)
     observations = tuple(
         bag.station(s.theodolite_id, station=s.id, prism=s.prism,
                     additive_constant=s.additive_constant_m)

@@ -11,9 +11,9 @@ Messages
 ``theodolite_node_msgs/msg/TheodoliteCoordsStamped`` on ``/theodolite_master/theodolite_data``
 (:data:`TOPIC`), one per measurement::
 
-    std_msgs/Header header     # stamp: the receiver's time of the measurement, corrected
-                               # by the estimated offset of that station's clock
-    time theodolite_time       # the same time, uncorrected
+    std_msgs/Header header     # stamp: theodolite_time - estimated_time_offset, the time
+                               # of the measurement on the receiver's clock
+    time theodolite_time       # the same time on the station's clock, uncorrected
     uint8 theodolite_id        # the station: 1, 2, 3, ...
     uint8 status               # 0 valid; else why not (below)
     float64 azimuth            # rad
@@ -23,17 +23,31 @@ Messages
 ``theodolite_node_msgs/msg/TheodoliteTimeCorrection`` on
 ``/theodolite_master/theodolite_correction_timestamp`` (:data:`CORRECTION_TOPIC`), one per
 clock synchronisation of a station: ``std_msgs/Header header``, ``uint8 theodolite_id``,
-``duration estimated_time_offset``. They are read and reported
-(:attr:`TheodoliteBag.time_corrections`, ``summary.json`` ``filters.input``); the offsets are
-already applied to ``header.stamp``, so nothing is corrected again.
+``duration estimated_time_offset``. The node estimates the offset as the station's clock minus
+its own (the mean of ``theodolite time - midpoint of the round trip`` over the pings) and
+stamps every later measurement ``header.stamp = theodolite_time - estimated_time_offset``
+(norlab-ulaval theodolite node, ``Synchronization_call`` and ``Received_data_check``). The
+corrections are read and reported (:attr:`TheodoliteBag.time_corrections`, ``summary.json``
+``filters.input``), with, per station, the median of ``theodolite_time - header.stamp``
+(:attr:`TheodoliteBag.stamp_difference_s`: the offset applied, comparable with them); they are
+already in ``header.stamp``, so nothing is corrected again.
+
+The corrections' topic is the measurements' topic with ``theodolite_data`` replaced by
+``theodolite_correction_timestamp`` (the node publishes both under its name: :data:`TOPIC`
+gives :data:`CORRECTION_TOPIC`, a namespaced topic the same namespace), or the one given
+(``[measurements] correction_topic``). Missing corrections are never silent: a topic given that
+is not in the bag is an error, the default one missing a warning that names the topics of
+``TheodoliteTimeCorrection`` the bag holds under other names, or says it holds none.
 
 The older layout: ``std_msgs/Float64MultiArray`` on ``/theodolite_data``
-(:data:`OLD_TOPIC`), ``data = [id, Hz, V, d, sec, nsec]`` (the time as integer seconds and
-nanoseconds) or ``[id, Hz, V, d, t]`` (the time in float seconds, as the ``theodolite_listener``
-node of the first system published it). It carries no status (every message is a measurement)
-and one time (the array's), with the same angle and distance conventions as below (an
-assumption: the same Raspberry Pi software sent them; a zenith angle outside (0, pi), e.g. one
-in degrees, is refused).
+(:data:`OLD_TOPIC`), as the ``theodolite_listener`` node published it: ``data = [id, Hz, V, d,
+sec, nsec, status]`` (the time corrected as above, as integer seconds and nanoseconds; status
+as in ``TheodoliteCoordsStamped``), or, from earlier versions without a status, ``[id, Hz, V,
+d, sec, nsec]`` or ``[id, Hz, V, d, t]`` (the time in float seconds). Its corrections are
+``Float64MultiArray`` too, ``data = [sec, nsec, id, estimated_time_offset_s]``, on
+``/theodolite_correction_timestamp``. It has one time (the array's), with the same angle and
+distance conventions as below (an assumption: the same Raspberry Pi software sent them; a
+zenith angle outside (0, pi), e.g. one in degrees, is refused).
 
 The types are registered from these definitions at run time (:data:`MESSAGE_DEFINITIONS`),
 for ROS 2 bags recorded without their message definitions (before ROS 2 Iron); ROS 1 bags and
@@ -67,7 +81,7 @@ clock, each corrected by its estimated offset, which is what the pipeline assume
 stations' tracks are compared and interpolated at common times; the ``time_sync`` noise source
 models what is left of the offset), and what the CSV route holds. ``time = "theodolite"`` takes
 ``theodolite_time``, uncorrected: for studying the synchronisation itself. The report gives,
-per station, the median of ``header.stamp - theodolite_time`` (the correction applied).
+per station, the median of ``theodolite_time - header.stamp`` (the offset applied).
 
 Status and removals
 -------------------
@@ -83,6 +97,7 @@ reach ``summary.json`` as ``filters.input`` (:class:`InputReport`).
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from os import PathLike
@@ -90,7 +105,7 @@ from typing import Any
 
 import numpy as np
 
-from rtsgt.errors import InputError
+from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.filtering.modules import FilterReport
 from rtsgt.io._bag import open_bag
 from rtsgt.types import Observations
@@ -98,7 +113,7 @@ from rtsgt.types import Observations
 __all__ = [
     "CORRECTION_TOPIC", "INPUT_REASONS", "MESSAGE_DEFINITIONS", "OLD_TOPIC", "STATUS_REASONS",
     "TIME_SOURCES", "TOPIC", "InputReport", "TheodoliteBag", "TimeCorrections",
-    "read_theodolite_bag",
+    "correction_topic_of", "read_theodolite_bag",
 ]
 
 #: Topic of the measurements (``TheodoliteCoordsStamped``).
@@ -107,6 +122,8 @@ TOPIC = "/theodolite_master/theodolite_data"
 CORRECTION_TOPIC = "/theodolite_master/theodolite_correction_timestamp"
 #: Topic of the older layout (``std_msgs/Float64MultiArray``).
 OLD_TOPIC = "/theodolite_data"
+#: Last names of the measurements' and of the corrections' topics the node publishes.
+_DATA_NAME, _CORRECTION_NAME = "theodolite_data", "theodolite_correction_timestamp"
 
 COORDS_TYPE = "theodolite_node_msgs/msg/TheodoliteCoordsStamped"
 CORRECTION_TYPE = "theodolite_node_msgs/msg/TheodoliteTimeCorrection"
@@ -206,8 +223,10 @@ class TheodoliteBag:
     time_corrections : dict int -> TimeCorrections
         Per theodolite id with correction messages.
     stamp_difference_s : dict int -> float
-        Per theodolite id, the median of ``header.stamp - theodolite_time`` over its valid
-        messages, s (``TheodoliteCoordsStamped`` only).
+        Per theodolite id, the median of ``theodolite_time - header.stamp`` over its valid
+        messages, s: the clock offset the node subtracted (``TheodoliteCoordsStamped`` only).
+    correction_topic : str or None
+        The topic the corrections were read from (None: none read).
     """
 
     path: str
@@ -218,6 +237,7 @@ class TheodoliteBag:
     removed: dict[int, dict[str, int]]
     time_corrections: dict[int, TimeCorrections] = field(default_factory=dict)
     stamp_difference_s: dict[int, float] = field(default_factory=dict)
+    correction_topic: str | None = None
 
     @property
     def ids(self) -> tuple[int, ...]:
@@ -253,7 +273,7 @@ class TheodoliteBag:
         by_station = dict(stations)
         source = {
             "format": "ros-bag", "file": self.path, "topic": self.topic, "layout": self.layout,
-            "time": self.time,
+            "time": self.time, "correction_topic": self.correction_topic,
             "theodolite_ids": {s: int(t) for s, t in by_station.items()},
             "time_corrections": {s: self.time_corrections[t].as_dict()
                                  for s, t in by_station.items() if t in self.time_corrections},
@@ -321,39 +341,94 @@ def _coords_rows(reader, conns, where: str) -> np.ndarray:
 
 
 def _array_rows(reader, conns, where: str) -> np.ndarray:
-    """(N, 9) rows as :func:`_coords_rows`, status 0 and the array's time in both times."""
+    """(N, 9) rows as :func:`_coords_rows`, the array's time in both times (status 0 without
+    one)."""
     rows = []
     for k, (conn, _, raw) in enumerate(reader.messages(connections=conns)):
         data = np.asarray(_decode(reader, raw, conn, k, where).data, dtype=float)
-        if data.size == 6:
+        status = 0.0
+        if data.size in (6, 7):
             sec, nsec = data[4], data[5]
             if not (sec == np.floor(sec) and nsec == np.floor(nsec) and 0 <= nsec < 1e9):
                 raise InputError(
                     f"topic {conn.topic!r}, message {k}: expected integer sec and nsec in "
                     f"[0, 1e9) as elements 5 and 6, got {sec!r}, {nsec!r}", where)
+            if data.size == 7:
+                status = data[6]
+                if not (status == np.floor(status) and 0 <= status <= 255):
+                    raise InputError(
+                        f"topic {conn.topic!r}, message {k}: expected an integer status in "
+                        f"[0, 255] as element 7, got {status!r}", where)
         elif data.size == 5:
             sec, nsec = data[4], 0.0  # float seconds: the fraction rides in sec
         else:
             raise InputError(
-                f"topic {conn.topic!r}, message {k}: expected 6 values [id, Hz, V, d, sec, "
-                f"nsec] (or 5: [id, Hz, V, d, t]), got {data.size}", where)
-        rows.append((data[0], 0.0, data[1], data[2], data[3], sec, nsec, sec, nsec))
+                f"topic {conn.topic!r}, message {k}: expected 7 values [id, Hz, V, d, sec, "
+                f"nsec, status] (or 6: [id, Hz, V, d, sec, nsec]; or 5: [id, Hz, V, d, t]), "
+                f"got {data.size}", where)
+        rows.append((data[0], status, data[1], data[2], data[3], sec, nsec, sec, nsec))
     return np.array(rows, dtype=float).reshape(-1, 9)
 
 
-def _corrections(reader, topics: dict[str, str], where: str) -> dict[int, TimeCorrections]:
-    if not topics.get(CORRECTION_TOPIC, "").endswith("/TheodoliteTimeCorrection"):
-        return {}
-    conns = [c for c in reader.connections if c.topic == CORRECTION_TOPIC]
+def correction_topic_of(topic: str) -> str:
+    """The corrections' topic the node publishes beside the measurements' ``topic``: the
+    same namespace, last name ``theodolite_correction_timestamp`` (:data:`CORRECTION_TOPIC`
+    when the last name is not ``theodolite_data``)."""
+    head, _, last = topic.rpartition("/")
+    return f"{head}/{_CORRECTION_NAME}" if last == _DATA_NAME else CORRECTION_TOPIC
+
+
+def _is_correction(name: str, msgtype: str) -> bool:
+    """A topic that holds clock corrections: a ``TheodoliteTimeCorrection``, or the older
+    ``Float64MultiArray`` under the node's last name."""
+    return (msgtype.endswith("/TheodoliteTimeCorrection")
+            or msgtype == ARRAY_TYPE and name.rpartition("/")[2] == _CORRECTION_NAME)
+
+
+def _correction_topic(topics: dict[str, str], topic: str, given: str | None,
+                      where: str) -> str | None:
+    """The corrections' topic to read, or None after a warning that says why there is none
+    (module docstring)."""
+    name = given if given is not None else correction_topic_of(topic)
+    if name in topics:
+        if not _is_correction(name, topics[name]):
+            raise InputError(
+                f"topic {name!r} has type {topics[name]}, expected {CORRECTION_TYPE} (or "
+                f"{ARRAY_TYPE} [sec, nsec, id, offset]: clock corrections)", where)
+        return name
+    others = sorted(n for n, ty in topics.items() if _is_correction(n, ty))
+    found = (f"the bag has clock corrections on {', '.join(map(repr, others))}" if others
+             else f"the bag has no topic of clock corrections ({CORRECTION_TYPE})")
+    if given is not None:
+        raise InputError(f"[measurements] correction_topic {name!r} is not in the bag; {found}",
+                         where)
+    hint = " (name it with [measurements] correction_topic)" if others else ""
+    warnings.warn(
+        f"{where}: no clock corrections on {name!r}: {found}{hint}; the stations' clock "
+        "offsets are not reported (the times are used as the node corrected them)",
+        RtsgtWarning, stacklevel=3)
+    return None
+
+
+def _corrections(reader, name: str, msgtype: str, where: str) -> dict[int, TimeCorrections]:
+    """The corrections of topic ``name`` per theodolite id."""
+    conns = [c for c in reader.connections if c.topic == name]
     rows = []
     for k, (conn, _, raw) in enumerate(reader.messages(connections=conns)):
         m = _decode(reader, raw, conn, k, where)
+        if msgtype == ARRAY_TYPE:
+            data = np.asarray(m.data, dtype=float)
+            if data.size != 4:
+                raise InputError(f"topic {name!r}, message {k}: expected 4 values [sec, nsec, "
+                                 f"id, offset_s], got {data.size}", where)
+            rows.append((data[2], data[0], data[1], data[3], 0.0))
+            continue
         try:
             off = m.estimated_time_offset
             rows.append((m.theodolite_id, m.header.stamp.sec, m.header.stamp.nanosec,
                          off.sec, off.nanosec))
         except AttributeError as exc:
-            raise InputError(f"topic {CORRECTION_TOPIC!r} has type {conn.msgtype} without the "
+            raise InputError(f"topic {name!r} has type {conn.msgtype} without the "
                              f"fields of a TheodoliteTimeCorrection: {exc}", where) from None
     a = np.array(rows, dtype=float).reshape(-1, 5)
     t = a[:, 1] + a[:, 2] * 1e-9
@@ -385,7 +460,8 @@ def _check_values(rows: np.ndarray, t: np.ndarray, topic: str, where: str) -> No
 
 
 def read_theodolite_bag(path: str | PathLike, *, topic: str | None = None,
-                        time: str | None = None) -> TheodoliteBag:
+                        time: str | None = None,
+                        correction_topic: str | None = None) -> TheodoliteBag:
     """Read the total-station measurements of a ROS 1 or ROS 2 bag (module docstring).
 
     Parameters
@@ -397,6 +473,9 @@ def read_theodolite_bag(path: str | PathLike, *, topic: str | None = None,
     time : {"header", "theodolite"}, optional
         Which time of a ``TheodoliteCoordsStamped`` (default ``"header"``); the older layout
         has one time and takes none.
+    correction_topic : str, optional
+        The clock corrections' topic; default :func:`correction_topic_of` the measurements'
+        topic (a warning when it is missing, naming the corrections' topics the bag holds).
 
     Returns
     -------
@@ -408,7 +487,7 @@ def read_theodolite_bag(path: str | PathLike, *, topic: str | None = None,
         One line naming the bag (and topic, message): missing ``rosbags``, no bag, no
         measurements topic (the topics listed), a topic of another type, a message that does
         not decode, a valid message with an impossible value, a ``time`` the layout does not
-        have.
+        have, a ``correction_topic`` that is not in the bag or not of corrections.
     """
     if time is not None and time not in TIME_SOURCES:
         raise InputError(f"Expected time {' or '.join(map(repr, TIME_SOURCES))}, got {time!r}")
@@ -426,7 +505,9 @@ def read_theodolite_bag(path: str | PathLike, *, topic: str | None = None,
             rows = _array_rows(reader, conns, where)
         else:
             rows = _coords_rows(reader, conns, where)
-        corrections = _corrections(reader, topics, where)
+        corr_topic = _correction_topic(topics, topic, correction_topic, where)
+        corrections = ({} if corr_topic is None
+                       else _corrections(reader, corr_topic, topics[corr_topic], where))
     if rows.shape[0] == 0:
         raise InputError(f"topic {topic!r} holds no message", where)
     header = rows[:, 5] + rows[:, 6] * 1e-9
@@ -449,6 +530,6 @@ def read_theodolite_bag(path: str | PathLike, *, topic: str | None = None,
             t[ok], rows[ok, 2], rows[ok, 3], rows[ok, 4], station=str(i), prism=str(i),
             source=f"{where} [{topic}, theodolite_id {i}]")
         if layout == "TheodoliteCoordsStamped" and ok.size:
-            difference[int(i)] = float(np.median(header[ok] - theodolite[ok]))
+            difference[int(i)] = float(np.median(theodolite[ok] - header[ok]))
     return TheodoliteBag(where, topic, layout, time, observations, removed, corrections,
-                         difference)
+                         difference, corr_topic)
