@@ -114,8 +114,7 @@ class FilterParams:
     tau_l : float
         Shortest interval kept by module 2, s (2 s).
     max_distance : float
-        Largest raw slope distance module 1 keeps, m (:data:`DEFAULT_MAX_DISTANCE_M`;
-        ``inf``: no limit).
+        Largest raw slope distance module 1 keeps, m (:data:`DEFAULT_MAX_DISTANCE_M`).
     """
 
     tau_r: float = 2.0
@@ -130,8 +129,8 @@ class FilterParams:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise InputError(f"Expected {name} > 0, got {v!r}")
-        if not self.max_distance > 0:  # inf allowed: no limit
-            raise InputError(f"Expected max_distance > 0 m, got {self.max_distance!r}")
+        if not (np.isfinite(self.max_distance) and self.max_distance > 0):
+            raise InputError(f"Expected a finite max_distance > 0 m, got {self.max_distance!r}")
         if not (np.isfinite(self.tau_l) and self.tau_l >= 0):
             raise InputError(f"Expected tau_l >= 0, got {self.tau_l!r}")
 

@@ -79,7 +79,7 @@ the run gives the prisms' positions, no pose, and the survey is not read)::
     tau_e_deg_s = 1.0
     tau_s_s = 3.0
     tau_l_s = 2.0
-    max_distance_m = 1000.0          # module 1 removes longer raw slope distances (inf: none)
+    max_distance_m = 1000.0          # module 1 removes longer raw slope distances
 
     [interpolation]
     rate_hz = 5.0                    # or query_times = "lidar_stamps.txt" (one time per line, s)
