@@ -2,19 +2,22 @@
 
 from __future__ import annotations
 
+import contextlib
+import re
 import time
+import warnings
 from collections.abc import Callable
 
 import numpy as np
 import typer
 from rich.console import Console
-from rich.table import Table
 
 from rtsgt.calibration.gcp import (
     CALIBRATION_METHOD_NAMES,
     CALIBRATION_MODEL_NAMES,
     CALIBRATION_WEIGHTING_NAMES,
 )
+from rtsgt.cli.tables import TextTable
 from rtsgt.errors import InputError
 from rtsgt.record import MIN_POSE_PRISMS, PositionRunRecord, RunRecord
 
@@ -49,6 +52,67 @@ def checked_options(build: Callable[..., object], names: dict[str, str], **value
         except InputError as exc:
             raise usage_error(exc.bare_message, names[key]) from None
     return changes
+
+
+@contextlib.contextmanager
+def collected_warnings():
+    """Collect the warnings of a command (a list of ``warnings.WarningMessage``) instead of
+    printing each as it comes; print them with :func:`print_warnings`."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        yield caught
+
+
+#: A warning longer than this (characters) is shortened in the terminal to its first clause.
+SHORT_WARNING = 160
+
+
+def warning_groups(messages: list[str]) -> list[tuple[str, list[str]]]:
+    """Warnings grouped by topic: ``(topic, subjects)`` in the order of their first warning.
+
+    A warning reads ``topic: details``; the topic without its parentheses and without what
+    follows ``of``, ``over`` or ``for`` names the group ("self-check, GCP fit of station 2"
+    -> "self-check, GCP fit"), and what was cut, or else the details' first part, names the
+    warning's subject within it ("station 2"; "prism 1"). A group of one warning is the
+    warning itself, shortened to its first clause when longer than :data:`SHORT_WARNING`.
+    """
+    groups: dict[str, list[tuple[str, str]]] = {}
+    for message in messages:
+        topic, _, detail = message.partition(": ")
+        bare = re.sub(r"\s*\([^)]*\)", "", topic).strip()
+        key = re.split(r" (?:of|over|for) ", bare, maxsplit=1)[0]
+        subject = bare[len(key):].strip()
+        subject = re.sub(r"^(?:of|over|for) ", "", subject)
+        if not subject:
+            head = re.sub(r"\s*\([^)]*\)", "", detail.partition(": ")[0]).strip()
+            subject = head if len(head) <= 30 and ":" in detail else ""
+        groups.setdefault(key, []).append((message, subject))
+    out = []
+    for key, items in groups.items():
+        if len(items) == 1:
+            message = items[0][0]
+            if len(message) > SHORT_WARNING:
+                first = message.split("; ")[0]
+                message = first if len(first) < len(message) else message
+            out.append((message, []))
+        else:
+            out.append((key, [subject for _, subject in items]))
+    return out
+
+
+def print_warnings(caught, where: str) -> None:
+    """The collected warnings (:func:`collected_warnings`) on stderr, one short line per group
+    (:func:`warning_groups`), and where their whole text is (``where``)."""
+    messages = [" ".join(str(w.message).split()) for w in caught]
+    if not messages:
+        return
+    for text, subjects in warning_groups(messages):
+        named = [s for s in subjects if s]
+        if subjects:
+            text += f" ({len(subjects)} warnings" + (f": {', '.join(named)}" if named else "") + ")"
+        echo_err(f"warning: {text}")
+    echo_err(f"(the whole text of {len(messages)} warning{'s' if len(messages) > 1 else ''}: "
+             f"{where})")
 
 
 def echo_err(msg: str) -> None:
@@ -95,9 +159,10 @@ class Stages:
 
 
 def print_run_summary(record: RunRecord | PositionRunRecord, out) -> None:
-    """A short table of what a run produced (a position-only run: its prisms' positions)."""
-    console = Console()
-    table = Table(title=f"rtsgt run: {record.name}", show_header=False)
+    """A short key-value table of what a run produced (a position-only run: its prisms'
+    positions) and what its self-checks found, one row per check; the whole of each check is
+    in ``summary.json`` and the report."""
+    table = TextTable(f"rtsgt run: {record.name}", ("", ""), header=False, right=(False, False))
     positions = isinstance(record, PositionRunRecord)
     gt = None if positions else record.groundtruth
     if positions:
@@ -117,8 +182,9 @@ def print_run_summary(record: RunRecord | PositionRunRecord, out) -> None:
     if gt is not None and len(gt):
         sig_t = np.sqrt(np.trace(gt.cov[:, :3, :3], axis1=1, axis2=2)) * 1e3
         sig_r = np.sqrt(np.trace(gt.cov[:, 3:, 3:], axis1=1, axis2=2)) * 1e3
-        table.add_row("median sigma translation (sqrt trace)", f"{np.median(sig_t):.2f} mm")
-        table.add_row("median sigma rotation (sqrt trace)", f"{np.median(sig_r):.3f} mrad")
+        table.add_row("median sigma (sqrt trace)",
+                      f"{np.median(sig_t):.2f} mm translation, {np.median(sig_r):.3f} mrad "
+                      "rotation")
         table.add_row("time span", f"{gt.t[-1] - gt.t[0]:.1f} s")
     for pid, qc in record.qc.items():
         # the prior of each prism's GP: white noise on the acceleration (Qc in m^2/s^3) or on
@@ -139,10 +205,40 @@ def print_run_summary(record: RunRecord | PositionRunRecord, out) -> None:
     n_left = int(np.sum(record.removed.stage == "module4"))
     if n_left:
         table.add_row("measurements left out of the GPs (distance windows)", str(n_left))
-    # the self-checks (rtsgt.checks): the GCP fit's variance factor per station, the
-    # inter-prism distances' mean z^2 and the block cross-validation's NEES / dof, each with
-    # its 95 % interval, and the noise on the static stretches per prism and component
-    # (Bonferroni intervals)
+    _calibration_rows(table, record)
+    _ratio_rows(table, "self-check z^2", ("poses", "poses"), "mean_z2",
+                record.self_checks.get("inter_prism_distances", {}))
+    _ratio_rows(table, "self-check block CV", ("blocks", "windows"), "nees_per_dof",
+                record.self_checks.get("block_cv", {}))
+    _static_rows(table, record.self_checks.get("static_noise", {}), record.correlated_noise)
+    _structure_rows(table, record.self_checks.get("inter_prism_structure", {}))
+    table.add_row("output", str(out))
+    table.print(Console())
+
+
+def _ratio(v: dict, key: str) -> str:
+    """``value [lo, hi] verdict`` of a check with a 95 % interval."""
+    lo, hi = v["interval_95"]
+    return f"{v[key]:.2f} [{lo:.2f}, {hi:.2f}] {v['verdict']}"
+
+
+def _ratio_rows(table: TextTable, name: str, count: tuple[str, str], key: str,
+                check: dict) -> None:
+    """A check of the whole run and its regimes (95 % intervals): one row for the whole run
+    (``count``: the key of its sample count and its unit in words), one for the regimes."""
+    overall = check.get("overall")
+    if overall and overall.get("interval_95"):
+        table.add_row(f"{name}, whole run ({overall[count[0]]} {count[1]})",
+                      _ratio(overall, key))
+    regimes = [f"{k} {_ratio(v, key)}" for k, v in check.get("regimes", {}).items()
+               if v and v.get("interval_95")]
+    if regimes:
+        table.add_row(f"{name}, by regime", "; ".join(regimes))
+
+
+def _calibration_rows(table: TextTable, record) -> None:
+    """The calibration's model and method, the GCP fit's variance factor per station (95 %
+    interval) and the variance component added, the dynamic calibration's check."""
     gcp = record.self_checks.get("gcp_fit", {})
     if gcp.get("model"):
         table.add_row("calibration model", CALIBRATION_MODEL_NAMES[gcp["model"]]
@@ -154,8 +250,7 @@ def print_run_summary(record: RunRecord | PositionRunRecord, out) -> None:
     if dyn:
         lo, hi = dyn["interval_95"]
         table.add_row(f"self-check {dyn['method']} calibration ({dyn['samples']} samples)",
-                      f"{dyn['variance_factor']:.2f}, 95 % [{lo:.2f}, {hi:.2f}]: "
-                      f"{dyn['verdict']}")
+                      f"{dyn['variance_factor']:.2f} [{lo:.2f}, {hi:.2f}] {dyn['verdict']}")
         for s, v in dyn["clock_offset_ms"].items():
             table.add_row(f"clock offset, station {s}",
                           f"{v:+.2f} ± {dyn['clock_sigma_ms'][s]:.2f} ms")
@@ -167,71 +262,44 @@ def print_run_summary(record: RunRecord | PositionRunRecord, out) -> None:
         if v.get("dof"):
             lo, hi = v["interval_95"]
             table.add_row(f"self-check GCP fit, station {s}",
-                          f"{v['variance_factor']:.2f}, 95 % [{lo:.2f}, {hi:.2f}]: {v['verdict']}")
+                          f"variance factor {v['variance_factor']:.2f} [{lo:.2f}, {hi:.2f}] "
+                          f"{v['verdict']}")
     added = gcp.get("added_shot_sigma_mm", {})
     if any(added.values()):
         table.add_row("calibration: added per shot", f"{added['horizontal']:.2f} mm horizontal, "
                       f"{added['vertical']:.2f} mm vertical")
-    check = record.self_checks.get("inter_prism_distances", {})
-    for name, v in [("whole run", check.get("overall")), *check.get("regimes", {}).items()]:
-        if v and v.get("interval_95"):
-            lo, hi = v["interval_95"]
-            table.add_row(f"self-check z^2, {name} ({v['poses']} poses)",
-                          f"{v['mean_z2']:.2f}, 95 % [{lo:.2f}, {hi:.2f}]: {v['verdict']}")
-    # block cross-validation of the tracks (held-out windows), NEES / dof by regime
-    cv = record.self_checks.get("block_cv", {})
-    for name, v in [("whole run", cv.get("overall")), *cv.get("regimes", {}).items()]:
-        if v and v.get("interval_95"):
-            lo, hi = v["interval_95"]
-            table.add_row(f"self-check block CV, {name} ({v['blocks']} windows)",
-                          f"{v['nees_per_dof']:.2f}, 95 % [{lo:.2f}, {hi:.2f}]: {v['verdict']}")
-    static = record.self_checks.get("static_noise", {})
+
+
+def _static_rows(table: TextTable, static: dict, plan: dict) -> None:
+    """The noise on the static stretches, one row per prism (scatter against the predicted
+    white sigma and the verdict of each component, the correlation times found), and whether
+    the GPs carried the correlated part (:mod:`rtsgt.noise.correlated`)."""
     if static and not static.get("prisms"):
         table.add_row("self-check static", static.get("note", "no static stretch"))
     for pid, e in static.get("prisms", {}).items():
+        parts, taus = [], []
         for name in ("range", "horizontal", "vertical"):
             c = e[name]
-            text = f"{c['observed_sigma_mm']:.2f} / {c['predicted_sigma_mm']:.2f} mm"
             lv, co = c["level"], c["correlation"]
-            if lv.get("interval"):
-                (lo, hi), (rlo, rhi) = lv["interval"], co["interval"]
-                text += (f", ratio {lv['variance_ratio']:.2f} [{lo:.2f}, {hi:.2f}]: "
-                         f"{lv['verdict']}; lag-1 {co['lag1']:.2f} [{rlo:.2f}, {rhi:.2f}]: "
-                         f"{co['verdict']}")
-                if co.get("correlation_time_s") is not None:
-                    text += f", correlation time {tau_text(co)}"
-            else:
-                text += f": {lv['verdict']}"
-            table.add_row(f"self-check static, prism {pid} {name}",
-                          f"{e['samples']} samples, {text}")
-    if static.get("confidence"):
-        table.add_row("self-check static: intervals",
-                      f"{100 * static['confidence']:.2f} % each ({static['tests']} tests, "
-                      f"{100 * static['family_false_alarm']:.0f} % false alarms per run)")
-    _correlated_rows(table, record.correlated_noise)
-    _structure_rows(table, record.self_checks.get("inter_prism_structure", {}))
-    table.add_row("output", str(out))
-    console.print(table)
-
-
-def _correlated_rows(table: Table, plan: dict) -> None:
-    """The time-correlated noise the static-stretch check found, per prism, and whether the
-    GPs carried it (:mod:`rtsgt.noise.correlated`): each component's variance factor with the
-    correlated share and correlation time it comes from."""
+            parts.append(f"{name} {c['observed_sigma_mm']:.2f} / {c['predicted_sigma_mm']:.2f} "
+                         f"mm {lv['verdict']}")
+            if co.get("verdict") == "optimistic" and co.get("correlation_time_s") is not None:
+                taus.append(f"{name} {co['correlation_time_s']:.1f} s")
+        text = f"{e['samples']} samples; scatter / predicted: " + ", ".join(parts)
+        if taus:
+            text += "; correlated: " + ", ".join(taus)
+        table.add_row(f"self-check static, prism {pid}", text)
     for pid, e in plan.get("prisms", {}).items():
         found = [(name, e[name]) for name in ("range", "horizontal", "vertical")
                  if e[name].get("rho") is not None]
-        if not found:
-            continue
-        text = "; ".join(f"{name} x{c['factor']:.1f} (f {c['correlated_fraction']:.2f}, "
-                         f"tau {c['correlation_time_s']:.1f} s)" for name, c in found)
-        done = any(c["applied"] for _, c in found)
-        table.add_row(f"correlated noise, prism {pid}",
-                      f"white variance {'inflated' if done else 'not inflated (ignore)'}: "
-                      f"{text}")
+        if found:
+            done = any(c["applied"] for _, c in found)
+            table.add_row(f"correlated noise, prism {pid}",
+                          f"white variance {'inflated' if done else 'not inflated (ignore)'}: "
+                          + ", ".join(f"{name} x{c['factor']:.1f}" for name, c in found))
 
 
-def _structure_rows(table: Table, check: dict) -> None:
+def _structure_rows(table: TextTable, check: dict) -> None:
     """The inter-prism residual structure check (:mod:`rtsgt.checks.structure`): each test's
     statistic against its critical value, and the clock offsets of the whole run."""
     ck, po = check.get("clock"), check.get("prism_orientation")
@@ -248,4 +316,4 @@ def _structure_rows(table: Table, check: dict) -> None:
     offsets = (ck or {}).get("offsets_ms", {})
     if offsets:
         table.add_row("clock offsets, whole run", ", ".join(
-            f"{k}: {v['run']:+.2f} +- {v['sigma']:.2f} ms" for k, v in offsets.items()))
+            f"{k}: {v['run']:+.2f} ± {v['sigma']:.2f} ms" for k, v in offsets.items()))

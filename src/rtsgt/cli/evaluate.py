@@ -40,9 +40,9 @@ from pathlib import Path
 import numpy as np
 import typer
 from rich.console import Console
-from rich.table import Table
 
 from rtsgt.cli.common import checked_options, usage_error
+from rtsgt.cli.tables import TextTable
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.evaluation import (
     ALIGN_METHODS,
@@ -309,9 +309,8 @@ def _vector(v, scale: float, digits: int) -> str:
 def print_mounting(m: MountingFit, console: Console) -> None:
     """The mounting ``T_body_sensor`` and the clock offset, with the sigma of what was
     estimated, and how the fit went."""
-    table = Table(title="Mounting T_body_sensor (sensor pose in the body frame) and clock")
-    for col in ("", "value", "sigma", ""):
-        table.add_column(col, justify="left" if col == "" else "right")
+    table = TextTable("Mounting T_body_sensor (sensor pose in the body frame) and clock",
+                      ("", "value", "sigma", ""))
     rv = m.rotation_vector
     angle = float(np.linalg.norm(rv))
     axis = rv / angle if angle > 0 else np.array([0.0, 0.0, 1.0])
@@ -334,7 +333,7 @@ def print_mounting(m: MountingFit, console: Console) -> None:
         "-" if cs is None else f"{cs[0]:.6f}",
         "estimated" if cs is not None else "given",
     )
-    console.print(table)
+    table.print(console)
     if m.covariance is not None:
         console.print(
             f"estimated jointly with a {m.alignment.method} alignment weighted by the ground "
@@ -373,29 +372,31 @@ def _print_alignment(console: Console, al, what: str, items: str) -> None:
         f"t = [{', '.join(f'{v:.4f}' for v in al.translation)}] m", highlight=False)
 
 
-def _error_table(title: str) -> Table:
+def _error_table(title: str) -> TextTable:
     """An empty table of error statistics (evo's columns)."""
-    table = Table(title=title)
-    for col in ("metric", "rmse", "mean", "median", "std", "min", "max"):
-        table.add_column(col, justify="left" if col == "metric" else "right")
-    return table
+    return TextTable(title, ("metric", "rmse", "mean", "median", "std", "min", "max"))
 
 
 def _print_nees_table(console: Console, title: str, rows) -> None:
     """The NEES table of a report: one row per ``(name, NeesResult or None)`` given."""
-    nt = Table(title=title)
-    for col in ("", "mean", "dof", "accepted mean", "inside 95 %", "accepted", "N_eff", "verdict"):
-        nt.add_column(col, justify="left" if col == "" else "right")
+    nt = TextTable(title, ("", "mean", "dof", "accepted mean", "inside 95 %", "accepted",
+                           "N_eff", "verdict (test)"))
     for name, r in rows:
         if r is None:
             continue
-        verdict = "[green]consistent[/green]" if r.consistent else "[red]inconsistent[/red]"
+        test = "split" if r.split is not None else "autocorrelation"
+        verdict = (f"[green]consistent[/green] ({test})" if r.consistent else
+                   f"[red]inconsistent[/red] ({test})")
         nt.add_row(name, f"{r.mean:.3f}", str(r.dof),
                    f"[{r.mean_interval[0]:.2f}, {r.mean_interval[1]:.2f}]",
                    f"{100 * r.fraction_inside_95:.1f} %",
                    f"[{100 * r.fraction_interval[0]:.1f}, {100 * r.fraction_interval[1]:.1f}] %",
                    f"{r.n_eff:.0f} / {r.n}", verdict)
-    console.print(nt)
+    nt.print(console)
+    if any(r is not None and r.split is not None for _, r in rows):
+        console.print("verdict (split): the shared and varying parts of the errors tested "
+                      "apart (the line below); the accepted mean and share hold for errors "
+                      "independent from pose to pose (autocorrelation test)", highlight=False)
 
 
 def _print_split_verdict(console: Console, what: str, sp) -> None:
@@ -439,7 +440,7 @@ def print_report(
             )
         )
         table.add_row(*_stats_row(f"RPE rotation (deg), {pairs}", result.rpe.rotation_deg, 1.0, 4))
-    console.print(table)
+    table.print(console)
     u = result.mounting_effect
     if u is not None:
         rpe_u = ("" if u["rpe_translation_m"] is None else
@@ -508,7 +509,7 @@ def print_position_report(
         table.add_row(*_stats_row(
             f"RPE position (mm), {result.rpe_delta:g} {unit}, {result.rpe.pairs.shape[0]} pairs",
             result.rpe.translation_m, 1e3, 3))
-    console.print(table)
+    table.print(console)
     if result.rpe is None:
         console.print(f"no RPE: {result.rpe_absent_reason}", highlight=False)
     n = result.nees

@@ -7,7 +7,15 @@ from pathlib import Path
 
 import typer
 
-from rtsgt.cli.common import Stages, checked_options, echo_err, print_run_summary
+from rtsgt.checks.verdict import record_verdict
+from rtsgt.cli.common import (
+    Stages,
+    checked_options,
+    collected_warnings,
+    echo_err,
+    print_run_summary,
+    print_warnings,
+)
 from rtsgt.errors import RtsgtWarning
 from rtsgt.io.deployment import load_deployment
 from rtsgt.io.output_dir import check_target
@@ -104,16 +112,28 @@ def register(app: typer.Typer) -> None:
         force: bool = typer.Option(False, "--force",
                                    help="Replace an earlier output of rtsgt at --out (never a "
                                         "directory holding anything else)."),
-        quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress, no table."),
+        quiet: bool = typer.Option(False, "--quiet", "-q",
+                                   help="Only errors and the verdict line (no progress, "
+                                        "warnings or table; all are in summary.json)."),
         report: bool = typer.Option(False, "--report", help="Also write the HTML report."),
     ) -> None:
         """Compute the ground truth of a deployment: poses with 6x6 covariance (with one or two
         tracked prisms: their positions with 3x3 covariance)."""
-        result, final = run_deployment(config, out, engine=engine, samples=samples, seed=seed,
-                                       rate=rate, force=force, quiet=quiet, report=report,
-                                       registration=registration, prior=prior,
-                                       correlated_noise=correlated_noise)
+        final = None
+        with collected_warnings() as caught:
+            try:
+                result, final = run_deployment(
+                    config, out, engine=engine, samples=samples, seed=seed, rate=rate,
+                    force=force, quiet=quiet, report=report, registration=registration,
+                    prior=prior, correlated_noise=correlated_noise)
+            finally:
+                if not quiet:
+                    print_warnings(caught, "summary.json of the run" if final is None else
+                                   str(final / "summary.json"))
+        shown = final / "report.html"
         if not quiet:
             print_run_summary(result, final)
-            if report and (final / 'report.html').exists():
-                echo_err(f"report: {final / 'report.html'}")
+            if shown.exists():
+                echo_err(f"report: {shown}")
+        typer.echo(record_verdict(result).line(
+            str(shown if shown.exists() else final / "summary.json")))

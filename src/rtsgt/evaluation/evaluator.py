@@ -51,8 +51,8 @@ from rtsgt.evaluation.metrics import (
     remove_floor,
     rpe_errors,
     rpe_pairs,
-    shared_error_test,
     squared_mahalanobis,
+    with_split_verdict,
 )
 from rtsgt.evaluation.mounting import (
     CLOCK_TOLERANCE_S,
@@ -574,12 +574,10 @@ def split_nees(
     if absorbed is not None:
         K = absorbed if K is None else np.concatenate([K, absorbed], axis=2)
     try:
-        pos, pose = shared_error_test(xi, D, split.factor, K,
-                                      names=split.names, upper=e.cov is None)
+        return with_split_verdict(absolute, xi, D, split.factor, K, names=split.names,
+                                  upper=e.cov is None)
     except ValueError as exc:
         raise InputError(f"Cannot test the errors against the shared factor: {exc}") from None
-    return (dataclasses.replace(absolute[0], consistent=pos.consistent, split=pos),
-            dataclasses.replace(absolute[1], consistent=pose.consistent, split=pose))
 
 
 def nees_section(

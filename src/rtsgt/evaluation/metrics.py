@@ -927,3 +927,23 @@ def shared_error_test(
                 and varying.fraction_inside_95 >= varying.fraction_interval[0]))
         out.append(SplitVerdict(shared, varying, bool(ok and varying.consistent), tuple(names)))
     return out[0], (out[1] if d_err == 6 else None)
+
+
+def with_split_verdict(
+    nees: tuple[NeesResult, NeesResult],
+    e: ArrayLike,
+    D: ArrayLike,
+    L: ArrayLike,
+    K: ArrayLike | None = None,
+    *,
+    names: tuple[str, ...] = (),
+    upper: bool = False,
+) -> tuple[NeesResult, NeesResult]:
+    """The position and pose NEES ``nees`` with the split test's verdict
+    (:func:`shared_error_test` of ``e``, ``D``, ``L``, ``K``): ``consistent`` becomes the
+    split verdict and ``split`` holds it; ``mean`` and ``fraction_inside_95`` stay those of
+    the NEES against the total covariance. Raises ``ValueError`` where
+    :func:`shared_error_test` does."""
+    pos, pose = shared_error_test(e, D, L, K, names=names, upper=upper)
+    return (replace(nees[0], consistent=pos.consistent, split=pos),
+            replace(nees[1], consistent=pose.consistent, split=pose))

@@ -99,6 +99,7 @@ import numpy as np
 from rtsgt import __version__
 from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.calibration.gcp import CALIBRATION_METHODS, CALIBRATION_MODELS
+from rtsgt.checks.verdict import record_verdict
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.filtering import FilterParams
 from rtsgt.filtering.modules import RemovedMeasurements
@@ -325,6 +326,8 @@ def run_summary(record: RunRecord | PositionRunRecord, inputs: dict | None = Non
         # (rtsgt.noise.correlated)
         "interpolation": {"correlated_noise": record.correlated_noise},
         "warnings": list(record.warnings),
+        # the run's verdict from its self-checks (rtsgt.checks.verdict)
+        "verdict": record_verdict(record).to_dict(),
         "timings_s": c.timings_s,
     }
     if isinstance(record, PositionRunRecord):
@@ -369,6 +372,7 @@ def run_summary(record: RunRecord | PositionRunRecord, inputs: dict | None = Non
         "self_checks": tail.pop("self_checks"),
         "interpolation": tail.pop("interpolation"),
         "warnings": tail.pop("warnings"),
+        "verdict": tail.pop("verdict"),
         "timings_s": tail.pop("timings_s"),
         "reference": {"names": list(ref.names), "xyz_m": ref.xyz, "cov_m2": ref.cov,
                       "frame": ref.frame},

@@ -6,9 +6,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rtsgt.evaluation.metrics import NeesResult, nees_consistency, squared_mahalanobis
+from rtsgt.evaluation.metrics import (
+    NeesResult,
+    nees_consistency,
+    squared_mahalanobis,
+    with_split_verdict,
+)
 from rtsgt.geometry.so3 import quat_xyzw_to_matrix
 from rtsgt.geometry.transform import perturbation
+from rtsgt.shared import SharedFactor
 from rtsgt.types import PoseTrajectory
 
 
@@ -57,7 +63,8 @@ class TruthComparison:
 
 
 def compare_to_truth(
-    estimate: PoseTrajectory, position_true: np.ndarray, quat_xyzw_true: np.ndarray
+    estimate: PoseTrajectory, position_true: np.ndarray, quat_xyzw_true: np.ndarray,
+    split: SharedFactor | None = None,
 ) -> TruthComparison:
     """Errors and NEES of ``estimate`` (with covariance) against the true poses at its times.
 
@@ -67,6 +74,13 @@ def compare_to_truth(
         With ``cov`` (N, 6, 6) in the convention of :mod:`rtsgt.geometry.transform`.
     position_true : ndarray, shape (N, 3)
     quat_xyzw_true : ndarray, shape (N, 4)
+    split : SharedFactor, optional
+        The estimate's error split into varying and shared parts at the same times
+        (:attr:`rtsgt.record.RunRecord.groundtruth_split`). With it, the verdicts are the
+        split test's (:func:`~rtsgt.evaluation.metrics.with_split_verdict`): the errors one
+        simulated deployment draws once (calibration, clocks, weather, survey) are tested as
+        one draw, not as N; without it, the autocorrelation test of the NEES series, which
+        ignores them (it accepts an estimate too often or too rarely, by the deployment's draw).
     """
     if estimate.cov is None:
         raise ValueError("Expected an estimate with covariances")
@@ -76,4 +90,9 @@ def compare_to_truth(
                      estimate.position)
     n3 = squared_mahalanobis(e[:, :3], estimate.cov[:, :3, :3])
     n6 = squared_mahalanobis(e, estimate.cov)
-    return TruthComparison(e, nees_consistency(n3, 3), nees_consistency(n6, 6))
+    nees = (nees_consistency(n3, 3), nees_consistency(n6, 6))
+    if split is not None:
+        if split.t.shape != estimate.t.shape or not np.allclose(split.t, estimate.t):
+            raise ValueError("Expected the shared factor at the estimate's times")
+        nees = with_split_verdict(nees, e, split.varying_cov, split.factor, names=split.names)
+    return TruthComparison(e, *nees)

@@ -1,0 +1,272 @@
+"""One verdict for a run: is this ground truth usable, and the reasons that matter.
+
+The self-checks (:mod:`rtsgt.checks`) each test one part of the uncertainty model; this module
+reads their JSON-ready results (``RunRecord.self_checks``, ``distance_check``, the kept poses)
+and ranks what they found (docs/self-checks.md#the-runs-verdict):
+
+- **not usable as is** (severity 2): no pose kept, or a test that compares the ground truth
+  with data it was not fitted to says that its covariance is too small for the run as a whole
+  (the inter-prism distances over the whole run; the clock offsets drifting; the residuals
+  following the prisms' viewing angle; a tracked inter-prism distance that disagrees with the
+  survey: a prism moved or was mis-surveyed, and every pose carries it).
+- **usable, with caveats** (severity 1): a check finds the covariance too small in a part of
+  the run or in one of its inputs (a motion regime, gaps of 1-3 s, the static stretches' noise
+  level or its correlation over seconds, the GCP fit); or most queried poses were rejected.
+- **notes** (severity 0): a covariance found too large (cautious, not wrong).
+
+The verdict never reads a file or prints; the CLI prints :meth:`RunVerdict.line`, the run
+directory records :meth:`RunVerdict.to_dict` in ``summary.json``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from rtsgt.filtering.gates import SURVEY_DISTANCE_WARNING_SIGMA
+
+__all__ = ["Finding", "RunVerdict", "record_verdict", "run_verdict"]
+
+#: The verdict's words by its worst finding's severity.
+LEVELS = {0: "usable", 1: "usable, with caveats", 2: "not usable as is"}
+
+#: The line names at most this many reasons (the rest are in summary.json and the report).
+SHOWN_REASONS = 2
+
+#: A share of rejected poses above this is a caveat.
+REJECTED_SHARE_CAVEAT = 0.5
+
+
+@dataclass(frozen=True)
+class Finding:
+    """What one check found: ``severity`` (0 note, 1 caveat, 2 not usable), the ``check``'s
+    name and a short ``text`` with its numbers."""
+
+    severity: int
+    check: str
+    text: str
+
+    def to_dict(self) -> dict:
+        return {"severity": self.severity, "check": self.check, "text": self.text}
+
+
+@dataclass(frozen=True)
+class RunVerdict:
+    """The run's verdict: ``findings`` sorted by severity, worst first."""
+
+    findings: tuple[Finding, ...]
+
+    @property
+    def severity(self) -> int:
+        return max((f.severity for f in self.findings), default=0)
+
+    @property
+    def level(self) -> str:
+        return LEVELS[self.severity]
+
+    @property
+    def usable(self) -> bool:
+        return self.severity < 2
+
+    @property
+    def reasons(self) -> tuple[Finding, ...]:
+        """The findings of the worst severity above notes, worst first."""
+        return tuple(f for f in self.findings if f.severity == self.severity > 0)
+
+    def line(self, where: str = "") -> str:
+        """``verdict: <level>: <one or two reasons> (+N more ...)``; ``where`` names where the
+        rest is (e.g. the run directory's summary.json)."""
+        shown = self.reasons[:SHOWN_REASONS]
+        text = f"verdict: {self.level}"
+        if shown:
+            text += ": " + "; ".join(f.text for f in shown)
+        more = len(self.findings) - len(shown)
+        if more and where:
+            text += f"; {more} more in {where}"
+        elif where:
+            text += f"; details in {where}"
+        return text
+
+    def to_dict(self) -> dict:
+        return {"level": self.level, "usable": self.usable,
+                "findings": [f.to_dict() for f in self.findings]}
+
+
+def _interval(v: dict) -> str:
+    lo, hi = v["interval_95"]
+    return f"[{lo:.2f}, {hi:.2f}]"
+
+
+def _ranges(values: list[float]) -> str:
+    lo, hi = min(values), max(values)
+    return f"{lo:.1f} s" if round(lo, 1) == round(hi, 1) else f"{lo:.1f}-{hi:.1f} s"
+
+
+def _names(keys) -> str:
+    keys = list(keys)
+    return keys[0] if len(keys) == 1 else ", ".join(keys[:-1]) + " and " + keys[-1]
+
+
+def _distances(check: dict, out: list[Finding]) -> None:
+    overall = check.get("overall") or {}
+    if overall.get("verdict") == "optimistic":
+        out.append(Finding(2, "inter-prism distances",
+                           f"covariance too small: inter-prism z^2 {overall['mean_z2']:.2f} "
+                           f"above its 95 % interval {_interval(overall)} over "
+                           f"{overall['poses']} poses"))
+    elif overall.get("verdict") == "pessimistic":
+        out.append(Finding(0, "inter-prism distances",
+                           f"covariance larger than the errors: inter-prism z^2 "
+                           f"{overall['mean_z2']:.2f} below {_interval(overall)}"))
+    bad = {k: v for k, v in (check.get("regimes") or {}).items()
+           if v and v.get("verdict") == "optimistic"}
+    if bad:
+        out.append(Finding(1, "inter-prism distances", "covariance too small while "
+                           + _names([f"{k} (z^2 {v['mean_z2']:.2f} > {v['interval_95'][1]:.2f})"
+                                     for k, v in bad.items()])))
+
+
+def _block_cv(check: dict, out: list[Finding]) -> None:
+    entries = [("whole run", check.get("overall")), *(check.get("regimes") or {}).items()]
+    bad = [(k, v) for k, v in entries if v and v.get("verdict") == "optimistic"]
+    if bad:
+        out.append(Finding(1, "block cross-validation",
+                           "covariance too small across measurement gaps of 1-3 s: "
+                           + _names([f"{k} NEES/dof {v['nees_per_dof']:.2f}" for k, v in bad])))
+    low = [k for k, v in entries if v and v.get("verdict") == "pessimistic"]
+    if low:
+        out.append(Finding(0, "block cross-validation",
+                           "covariance larger than the errors across measurement gaps: "
+                           + _names(low)))
+
+
+def _static(check: dict, carried: dict, out: list[Finding]) -> None:
+    prisms = check.get("prisms") or {}
+    level, corr, taus, high = [], [], [], []
+    for pid, e in prisms.items():
+        for name in ("range", "horizontal", "vertical"):
+            c = e.get(name) or {}
+            if (c.get("level") or {}).get("verdict") == "optimistic":
+                level.append(f"{pid} {name}")
+            if (c.get("level") or {}).get("verdict") == "pessimistic":
+                high.append(f"{pid} {name}")
+            co = c.get("correlation") or {}
+            applied = (((carried.get("prisms") or {}).get(pid) or {}).get(name) or {}).get(
+                "applied")
+            if co.get("verdict") == "optimistic" and not applied:
+                corr.append(f"{pid} {name}")
+                if co.get("correlation_time_s") is not None:
+                    taus.append(float(co["correlation_time_s"]))
+    if corr:
+        over = f" over {_ranges(taus)}" if taus else ""
+        out.append(Finding(1, "static stretches",
+                           f"static noise correlated{over}, not carried ({len(corr)} of "
+                           f"{3 * len(prisms)} components; correlated_noise = \"inflate\" "
+                           "carries it)"))
+    if level:
+        out.append(Finding(1, "static stretches",
+                           f"static noise larger than predicted ({len(level)} of "
+                           f"{3 * len(prisms)} components)"))
+    if high:
+        out.append(Finding(0, "static stretches",
+                           f"static noise smaller than predicted ({len(high)} of "
+                           f"{3 * len(prisms)} components)"))
+
+
+def _gcp(check: dict, out: list[Finding]) -> None:
+    bad = {s: v for s, v in (check.get("stations") or {}).items()
+           if v.get("verdict") == "optimistic"}
+    if bad:
+        added = check.get("added_shot_sigma_mm") or {}
+        carried = (f"; {added.get('horizontal', 0):.2f} mm horizontal, "
+                   f"{added.get('vertical', 0):.2f} mm vertical added to each shot"
+                   if any(added.values()) else "")
+        factors = ", ".join(f"{v['variance_factor']:.1f}" for v in bad.values())
+        out.append(Finding(1, "GCP fit",
+                           f"GCP shots of station{'s' if len(bad) > 1 else ''} "
+                           f"{_names(list(bad))} disagree more than the instrument model "
+                           f"predicts (variance factor {factors}{carried})"))
+
+
+def _structure(check: dict, out: list[Finding]) -> None:
+    ck, po = check.get("clock") or {}, check.get("prism_orientation") or {}
+    if ck.get("verdict") == "optimistic":
+        out.append(Finding(2, "clock offsets",
+                           f"the stations' clock offsets vary over the run: chi2/dof "
+                           f"{ck['chi2_per_dof']:.2f} above {ck['critical']:.2f}"))
+    if po.get("verdict") == "optimistic":
+        out.append(Finding(2, "prism orientation",
+                           f"the inter-prism residuals follow the prisms' viewing angle: F "
+                           f"{po['f']:.2f} above {po['critical']:.2f}"))
+
+
+def _survey(distance_check: dict, threshold: float, out: list[Finding]) -> None:
+    bad = {k: v for k, v in (distance_check or {}).items()
+           if v.get("ratio") is not None and abs(v["ratio"]) > threshold}
+    if bad:
+        out.append(Finding(2, "surveyed distances",
+                           "tracked inter-prism distance "
+                           + _names([f"{k} {v['median_deviation_mm']:+.1f} mm "
+                                     f"({v['ratio']:+.1f} sigma)" for k, v in bad.items()])
+                           + " off the survey: a prism moved or was mis-surveyed"))
+
+
+def _dynamic(check: dict, out: list[Finding]) -> None:
+    if check.get("verdict") == "optimistic":
+        out.append(Finding(1, "dynamic calibration",
+                           f"the inter-prism distances disagree with the calibration's model "
+                           f"(variance factor {check['variance_factor']:.2f})"))
+    bad = [s for s, v in (check.get("gcp_agreement") or {}).items()
+           if v.get("verdict") == "disagree"]
+    if bad:
+        out.append(Finding(1, "dynamic calibration",
+                           f"dynamic and GCP calibrations disagree for station"
+                           f"{'s' if len(bad) > 1 else ''} {_names(bad)}"))
+
+
+def run_verdict(self_checks: dict, *, kept: int, queried: int,
+                distance_check: dict | None = None, correlated_noise: dict | None = None,
+                survey_sigma: float = SURVEY_DISTANCE_WARNING_SIGMA) -> RunVerdict:
+    """The verdict of a run from its self-checks (module docstring).
+
+    Parameters
+    ----------
+    self_checks : dict
+        ``RunRecord.self_checks`` (JSON-ready, as in ``summary.json``).
+    kept, queried : int
+        Poses (or positions) kept and queried.
+    distance_check : dict, optional
+        ``RunRecord.distance_check``: the tracked inter-prism distances against the survey.
+    correlated_noise : dict, optional
+        ``RunRecord.correlated_noise``: which correlated components the GPs carried.
+    survey_sigma : float
+        A tracked distance off the survey by more than this many predicted sigmas is a
+        finding (:data:`rtsgt.filtering.gates.SURVEY_DISTANCE_WARNING_SIGMA`).
+
+    Returns
+    -------
+    RunVerdict
+    """
+    out: list[Finding] = []
+    if kept == 0:
+        out.append(Finding(2, "poses", f"no pose passed the quality gates (0 of {queried})"))
+    elif queried and (queried - kept) / queried > REJECTED_SHARE_CAVEAT:
+        out.append(Finding(1, "poses", f"only {kept} of {queried} queried poses kept"))
+    _distances(self_checks.get("inter_prism_distances") or {}, out)
+    _structure(self_checks.get("inter_prism_structure") or {}, out)
+    _survey(distance_check or {}, survey_sigma, out)
+    _block_cv(self_checks.get("block_cv") or {}, out)
+    _static(self_checks.get("static_noise") or {}, correlated_noise or {}, out)
+    _gcp(self_checks.get("gcp_fit") or {}, out)
+    _dynamic(self_checks.get("dynamic_calibration") or {}, out)
+    return RunVerdict(tuple(sorted(out, key=lambda f: -f.severity)))
+
+
+def record_verdict(record) -> RunVerdict:
+    """:func:`run_verdict` of a run record (:class:`rtsgt.record.RunRecord`, or a
+    :class:`~rtsgt.record.PositionRunRecord`, whose positions are all kept)."""
+    gt = getattr(record, "groundtruth", None)
+    queried = int(record.prisms_t.shape[0])
+    return run_verdict(record.self_checks, kept=queried if gt is None else len(gt),
+                       queried=queried,
+                       distance_check=getattr(record, "distance_check", None),
+                       correlated_noise=record.correlated_noise)
