@@ -5,10 +5,20 @@ A thin layer over :mod:`rtsgt.batch` (deployments, seeds, resuming, the tasks on
 a progress bar and one ``failed: NAME: message`` line per failed deployment on stderr, the
 table on stdout, ``OUT/batch_summary.csv`` and ``OUT/batch_summary.html``. Exit status 1 when
 a deployment failed (after the others are done and the summary written).
+
+Ctrl-C ends the batch with the one line of every command (:mod:`rtsgt.cli.entry`) and exit
+status 130: the progress bar is taken off the screen and the Dask cluster is closed without
+its log lines (the workers still running are stopped); the deployments done are complete
+run directories, and a later ``rtsgt batch`` into the same folder resumes. While the local
+cluster starts (seconds), Ctrl-C is ignored, so that its worker processes start ignoring it
+(:func:`dask_setup`): press it again once the progress bar moves.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
+import signal
 import time
 from pathlib import Path
 
@@ -77,16 +87,28 @@ def run_batch(
     def client_factory(n_todo: int):
         if scheduler is not None:
             where["ran"] = f"on the Dask scheduler {scheduler}"
-        else:
-            n = workers if workers is not None else default_workers(n_todo)
-            where["ran"] = f"on a local Dask cluster of {n} worker process{'es' * (n > 1)}"
-        return dask_client(scheduler=scheduler, workers=workers, n_tasks=n_todo)
+            return dask_client(scheduler=scheduler, n_tasks=n_todo)
+        n = workers if workers is not None else default_workers(n_todo)
+        where["ran"] = f"on a local Dask cluster of {n} worker process{'es' * (n > 1)}"
+        try:  # distributed first: its defaults are in dask's configuration once imported
+            import distributed  # noqa: F401
+            from dask import config
+        except ImportError:  # dask_client says how to install it
+            return dask_client(workers=workers, n_tasks=n_todo)
+        # Ctrl-C stops the batch, not the workers (module docstring): they start with SIGINT
+        # ignored, then run dask_setup below
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            with config.set({"distributed.worker.preload": [__name__]}):
+                return dask_client(workers=workers, n_tasks=n_todo)
+        finally:
+            signal.signal(signal.SIGINT, previous)
 
     t0 = time.perf_counter()
     progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                         TimeElapsedColumn(), TimeRemainingColumn(), console=err,
                         disable=quiet)
-    with progress:
+    with progress, _quiet_interrupt(progress):
         bar = progress.add_task("deployments", total=len(tasks))
 
         def on_outcome(o: Outcome) -> None:
@@ -115,6 +137,42 @@ def run_batch(
                          f"'failed:' lines above); the others' runs and the summary are in "
                          f"{folder}")
     return outcomes, rows, folder
+
+
+@contextlib.contextmanager
+def _quiet_interrupt(progress: Progress):
+    """While the batch runs, Ctrl-C (SIGINT) raises KeyboardInterrupt as usual, having first
+    made the progress bar transient (gone from the screen) and silenced the log of Dask's
+    cluster, which its closing would fill with lines about the workers it stops."""
+    def handler(signum, frame):
+        if progress.console.is_terminal:
+            progress.live.transient = True
+        else:  # a file or a pipe: not even the newline of a transient display
+            progress.console.quiet = True
+        logging.getLogger("distributed").setLevel(logging.CRITICAL)
+        signal.default_int_handler(signum, frame)
+
+    try:
+        previous = signal.signal(signal.SIGINT, handler)
+    except ValueError:  # not the main thread: nothing to take over
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def dask_setup(worker) -> None:
+    """Dask's preload hook, run by each worker process of the local cluster as it starts.
+
+    Ctrl-C at the terminal signals the whole process group: the batch's own process stops and
+    closes the cluster (one line, exit status 130), while a worker only silences its log, which
+    the closing would otherwise fill with the tasks it cancels (no traceback, no line)."""
+    def silence(signum, frame):
+        logging.getLogger("distributed").setLevel(logging.CRITICAL)
+
+    signal.signal(signal.SIGINT, silence)
 
 
 def _print_table(rows: list[dict], folder: Path, info: dict) -> None:

@@ -13,7 +13,8 @@ Exit status and messages (one rule for every command):
       an option does not accept
 3     an unexpected error inside rtsgt (a bug: please report it); ``RTSGT_TRACEBACK=1``
       shows the traceback
-130   interrupted (Ctrl-C); nothing half-written is left
+130   interrupted (Ctrl-C), at any moment, start-up included (:mod:`rtsgt.cli.entry`, the
+      console script); the one line is ``error: interrupted``; nothing half-written is left
 ====  ======================================================================================
 
 Every error is one line on stderr, ``error: ...``, naming the file, line, option or value;
@@ -44,10 +45,12 @@ from rtsgt.cli import (
     run,
     simulate,
 )
+from rtsgt.cli.entry import EXIT_INTERRUPTED, INTERRUPTED_LINE
+from rtsgt.cli.entry import main as entry_main
 from rtsgt.errors import RtsgtError
 
-#: Exit statuses (see the module docstring).
-EXIT_INPUT, EXIT_USAGE, EXIT_BUG, EXIT_INTERRUPTED = 1, 2, 3, 130
+#: Exit statuses (see the module docstring; :data:`EXIT_INTERRUPTED` is the entry point's).
+EXIT_INPUT, EXIT_USAGE, EXIT_BUG = 1, 2, 3
 
 # click's exception classes, from typer's own public exception (typer vendors click)
 _USAGE_ERROR = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "UsageError")
@@ -96,7 +99,7 @@ class _Group(TyperGroup):
             typer.echo(f"error: {_one_line(exc.format_message())}", err=True)
             return exc.exit_code
         except (KeyboardInterrupt, typer.Abort):
-            typer.echo("error: interrupted", err=True)
+            typer.echo(INTERRUPTED_LINE, err=True)
             return EXIT_INTERRUPTED
         except Exception as exc:
             if os.environ.get("RTSGT_TRACEBACK"):
@@ -105,7 +108,10 @@ class _Group(TyperGroup):
                        f"{_one_line(exc)} (a bug: please report it; RTSGT_TRACEBACK=1 shows "
                        "the traceback)", err=True)
             return EXIT_BUG
-        # typer returns the status of typer.Exit (and None, or a command's value, otherwise)
+        # typer returns the status of typer.Exit (and None, or a command's value, otherwise);
+        # it turns an interrupt into Exit(130) and says nothing: say it
+        if rv == EXIT_INTERRUPTED:
+            typer.echo(INTERRUPTED_LINE, err=True)
         return rv if isinstance(rv, int) and not isinstance(rv, bool) else 0
 
 
@@ -139,4 +145,6 @@ for _command in (init, calibrate, interpolate, simulate, run, batch, demo, evalu
 
 
 def main() -> None:  # pragma: no cover - console entry point
-    app()
+    """The console entry point (:func:`rtsgt.cli.entry.main`, which imports this module inside
+    its handling of interrupts)."""
+    entry_main()
