@@ -243,6 +243,7 @@ def test_report_is_self_contained(report_page, data, analysis):
     assert f'id="{VIEW3D_ID}"' in page
     assert "Plotly.newPlot" in page and len(page) > 3_000_000  # plotly.js is inline
     assert f"magnified {info['ellipsoid_scale']:g} times" in page
+    assert f"covariance of {info['n_ellipsoids']} poses" in page
     for reason in set(data.rejected_reason):  # rejected poses by gate in the 3D view
         n = int(np.sum(data.rejected_reason == reason))
         assert f'"name":"rejected: {reason} ({n})"' in page
@@ -259,18 +260,187 @@ def test_report_tables(report_page, analysis):
     assert f"{analysis.pose_median_translation_mm[ALL]:.3g}" in pose[:pose.index("</table>")]
 
 
-def test_report_summary_tables_are_escaped(data, analysis):
+#: A summary.json as rtsgt.io.run_dir writes it, cut to a few keys of each kind.
+SUMMARY = {
+    "schema": {"name": "rtsgt-run", "version": 1},
+    "software": {"name": "rtsgt", "version": "9.9.9"},
+    "deployment": "<script>alert(1)</script>",
+    "inputs": {"config": "/data/site A/deployment.toml"},
+    "parameters": {"engine": "linear", "samples": 1000, "rate_hz": 5.0,
+                   "noise_sources": ["instrument", "tilt"], "a_future_option": "kept",
+                   "filter": {"tau_r": 2.0, "tau_s": 3.0}},
+    "filters": {"module1_station1": {"module": "module1", "n_in": 215, "n_kept": 211,
+                                     "removed": {"status": 0, "rate_hz": 4},
+                                     "per_series": [{"status": 0, "rate_hz": 4}]}},
+    "poses": {"queried": 480, "kept": 470, "rejected_by_reason": {"distance": 10},
+              "first_t": 1668095037.6, "last_t": 1668095167.8},
+    "prisms": {"1": {"station": "1", "measurements_used": 194, "prior": "wnoa",
+                     "qc_m2_s3": [[0.00624, 0, 0], [0, 0.00823, 0], [0, 0, 0.000116]],
+                     "qc_fit": {"method": "loo", "loo_nees_per_dof": 1.028,
+                                "motion_prior": {"chosen": "classes"}},
+                     "median_sigma_mm": 3.498}},
+    "calibration": {"reference_station": "1", "method": "gcp", "model": "6dof",
+                    "stations": {"2": {"matrix": [[1, 0, 0, 0]] * 4, "yaw_deg": 159.936,
+                                       "translation_m": [-0.6586, -1.3012, 0.2864],
+                                       "sigma_translation_mm": [0.675, 0.621, 0.568],
+                                       "sigma_rotation_mrad": [0.0259, 0.0242, 0.0101]}},
+                    "residuals_mm": {"median": 1.9, "max": 8.25, "count": 36},
+                    "coupling": {"cross_covariance": {"2|3": [[4.7e-07] * 6] * 6}}},
+    "warnings": ["self-check, GCP fit of station 2: variance factor 27.54 <too large>"],
+    "timings_s": {"filter_module1": 0.0012, "calibration": 0.0805, "interpolation": 1.498,
+                  "pose": 0.042, "gates": 0.0025, "static_noise": 0.113,
+                  "self_checks": 1.162},
+}
+
+
+def _element(page: str, start: str, end: str = "</table>") -> str:
+    """The text of the element of ``page`` that begins with ``start``."""
+    part = page[page.index(start):]
+    return part[:part.index(end) + len(end)]
+
+
+def test_report_run_section_is_tables_not_a_dump(data, analysis):
+    """Issue 26: no flat dump of summary.json (half the printed pages); the options, filters,
+    prisms, calibration, warnings and timings in readable tables, a link to the file."""
     from dataclasses import replace
 
-    d = replace(data, summary={"deployment": "<script>alert(1)</script>",
-                               "parameters": {"engine": "linear", "samples": 1000},
-                               "calibration": {"residuals": [{"marker": "3", "mm": 1.5},
-                                                             {"marker": "4", "mm": 2.5}]}})
-    page, _ = render_report(d, analysis, figures={})
-    assert "<script>alert(1)</script>" not in page
-    assert "&lt;script&gt;alert(1)&lt;/script&gt;" in page
-    assert "<td class='k'>engine</td>" in page
-    assert "residuals (2 rows)" in page
+    page, _ = render_report(replace(data, summary=SUMMARY), analysis, figures={},
+                            summary_href="summary.json")
+    assert "<section id=\"summary\">" not in page and "class='summary'" not in page
+    for flat in ("qc_fit.method", "stations.2.matrix", "coupling.cross_covariance",
+                 "per_series", "filters.module1", "timings_s."):  # dotted keys of the dump
+        assert flat not in page, flat
+    assert "4.7e-07" not in page  # the coupling matrices stay in the file
+    run = _element(page, "<section id=\"run\">", "</section>")
+    assert "<a href='summary.json'>summary.json</a>" in run
+    assert "<script>alert(1)</script>" not in page  # escaped
+    assert "&lt;script&gt;alert(1)&lt;/script&gt;" in run and "&lt;too large&gt;" in run
+    options = _element(run, "<table id='run-options'")
+    assert options.count("<tr>") == len(SUMMARY["parameters"])  # one row per option
+    assert "pose engine <small>(engine)</small></th><td class='s'>linear</td>" in options
+    assert "<td class='s'>instrument, tilt</td>" in options
+    assert "a_future_option" in options and ">kept</td>" in options
+    assert "tau_r 2 m/s, tau_s 3 s" in options  # thresholds with their units
+    filters = _element(run, "<table id='run-filters'")
+    assert "<td class='s'>module 1, station 1</td><td>215</td><td>211</td>" in filters
+    assert "rate_hz 4" in filters and "status" not in filters  # reasons that removed some
+    prisms = _element(run, "<table id='run-prisms'")
+    assert "0.00624, 0.00823, 0.000116" in prisms and "m²/s³" in prisms and "1.03" in prisms
+    cal = _element(run, "<table id='run-calibration'")
+    assert "159.936" in cal and "-0.659, -1.301, 0.286" in cal
+    assert "GCP residuals: median 1.9 mm, largest 8.25 mm over 36" in run
+    info = _element(run, "<table id='run-info'")
+    assert "2022-11-10 15:43:57 UTC" in info and "470 kept of 480; rejected: distance 10" in info
+    assert "<code>/data/site A/deployment.toml</code>" in info and "rtsgt 9.9.9" in info
+    timings = _element(run, "<table id='run-timings'")
+    assert timings.count("<tr>") == 4  # 7 stages and the total, 6 to a pair of rows
+    for stage, v in SUMMARY["timings_s"].items():
+        assert f"<th>{stage.replace('_', ' ')}</th>" in timings
+        assert f"<td>{v:.2f}</td>" in timings
+    assert f"<td>{sum(SUMMARY['timings_s'].values()):.2f}</td>" in timings
+    # without a summary: a note; without a link target: the file is named
+    assert "No summary.json in this run" in render_report(replace(data, summary={}), analysis,
+                                                          figures={})[0]
+    page, _ = render_report(replace(data, summary=SUMMARY), analysis, figures={})
+    assert "<code>summary.json</code>" in page and "href='summary.json'" not in page
+
+
+def test_report_links_summary_json_from_where_it_is(data, analysis, tmp_path):
+    from dataclasses import replace
+
+    from rtsgt.report.html import write_report_file
+
+    d = replace(data, summary=SUMMARY, path=tmp_path / "run dir")
+    page = write_report_file(d, analysis, tmp_path / "run dir" / "report.html",
+                             figures={}).path.read_text()
+    assert "<a href='summary.json'>" in page
+    page = write_report_file(d, analysis, tmp_path / "elsewhere" / "r.html",
+                             figures={}).path.read_text()
+    assert "<a href='../run%20dir/summary.json'>" in page
+
+
+def test_view3d_axes_hold_the_whole_path(data):
+    """Issue 26: the 3D view cut the start of the path off (plotly's aspectmode "data" sizes
+    the box to a volume of one: 2.2 x 2.8 x 0.16 on the real excerpt). The axes' ranges now
+    hold every point drawn with a margin, at one scale, the longest side 1."""
+    from rtsgt.report.html import SCENE_MARGIN, scene_box, view3d_figure
+
+    fig, n_ell, scale = view3d_figure(data)
+    sc = fig.layout.scene
+    assert sc.aspectmode == "manual"
+    ranges = np.array([sc.xaxis.range, sc.yaxis.range, sc.zaxis.range])
+    assert not any(a.autorange for a in (sc.xaxis, sc.yaxis, sc.zaxis))
+    drawn = [data.groundtruth.position, data.gcp_xyz, np.array(list(data.stations.values())),
+             *(tr.xyz for tr in data.measurements.values())]
+    for p in drawn:
+        assert np.all((p >= ranges[:, 0]) & (p <= ranges[:, 1]))
+    path = data.groundtruth.position
+    side = np.ptp(np.concatenate(drawn), axis=0).max()
+    assert np.all(path[0] - ranges[:, 0] >= SCENE_MARGIN * side * 0.999)  # the start: inside
+    length = ranges[:, 1] - ranges[:, 0]
+    aspect = np.array([sc.aspectratio.x, sc.aspectratio.y, sc.aspectratio.z])
+    np.testing.assert_allclose(aspect, length / length.max())  # one metre as long on each axis
+    # the path's own trace is all there, broken at no gap (the synthetic poses have none)
+    gt = next(t for t in fig.data if t.name.startswith("ground truth"))
+    assert np.count_nonzero(np.isfinite(np.asarray(gt.x, dtype=float))) == len(path)
+    # a flat site keeps some height; rows with a NaN are ignored
+    r, a = scene_box(np.array([[0.0, 0, 0], [100, 20, 1], [np.nan, 1e6, 0]]))
+    np.testing.assert_allclose(r[0], [-5, 105])
+    assert a[0] == 1 and a[2] == pytest.approx((r[2, 1] - r[2, 0]) / 110) and a[2] > 0.1
+
+
+def test_break_gaps_is_shared():
+    """One helper breaks the lines at gaps: the 3D path, the figures, the evaluation's."""
+    from rtsgt.report.figures import GAP_FACTOR, break_gaps
+
+    t = np.array([0.0, 1, 2, 3, 10, 11, 12, 3 * GAP_FACTOR + 12.5])
+    v = np.arange(t.size, dtype=float)
+    b = break_gaps(t, np.column_stack([t, v]))
+    assert b.shape == (t.size + 2, 2)
+    assert np.flatnonzero(np.isnan(b[:, 1])).tolist() == [4, 8]
+    np.testing.assert_array_equal(b[np.isfinite(b[:, 1]), 1], v)
+    assert break_gaps(t, v, factor=100.0).shape == v.shape  # no step over 100 x 1 s
+
+
+def test_evaluation_error_lines_break_at_gaps():
+    """Issue 26: `rtsgt evaluate --plot` drew its lines across the gaps between the
+    associated poses; each line (and band) now breaks at each of the two gaps."""
+    import warnings
+
+    from matplotlib.collections import PolyCollection
+
+    from rtsgt.errors import RtsgtWarning
+    from rtsgt.evaluation import evaluate
+    from rtsgt.report.eval_plots import _error_figure, _top_view
+    from rtsgt.types import PoseTrajectory
+
+    rng = np.random.default_rng(3)
+    t = np.arange(0, 60, 0.5)
+    t = t[((t < 20) | (t >= 30)) & ((t < 42) | (t >= 47))]  # gaps of 10.5 and 5.5 s
+    p = np.column_stack([5 * np.cos(t / 10), 5 * np.sin(t / 10), 0.1 * t])
+    q = np.tile([0.0, 0, 0, 1], (t.size, 1))
+    cov = np.broadcast_to(np.eye(6) * 1e-6, (t.size, 6, 6)).copy()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RtsgtWarning)  # RPE pairs that span the gaps
+        r = evaluate(PoseTrajectory(t, p, q, cov),
+                     PoseTrajectory(t, p + rng.normal(0, 2e-3, p.shape), q), align="se3")
+    after = [int(np.searchsorted(t, 30.0)), int(np.searchsorted(t, 47.0))]
+    breaks = [after[0], after[1] + 1]  # where the NaN rows are, one inserted before each
+    fig, _, _ = _error_figure(r)
+    lines = [ln for ax in fig.axes for ln in ax.lines]
+    assert len(lines) == 4 + 3  # |error| with 3 sigma lines; x, y, z
+    for ln in lines:
+        x = np.asarray(ln.get_xdata(), dtype=float)
+        y = np.asarray(ln.get_ydata(), dtype=float)
+        assert x.size == t.size + 2
+        assert np.flatnonzero(np.isnan(y)).tolist() == breaks, ln.get_label()
+        assert np.flatnonzero(np.isnan(x)).tolist() == breaks
+    for ax in fig.axes[1:]:  # each sigma band in three pieces
+        bands = [c for c in ax.collections if isinstance(c, PolyCollection)]
+        assert [len(c.get_paths()) for c in bands] == [3, 3, 3]
+    top, _, _ = _top_view(r, 10, None)
+    for ln in top.axes[0].lines:
+        assert np.flatnonzero(np.isnan(np.asarray(ln.get_xdata(), float))).tolist() == breaks
 
 
 def test_report_without_plotly(data, analysis, monkeypatch):
@@ -469,6 +639,14 @@ def test_report_in_headless_chromium(chromium, data, analysis, tmp_path):
         assert browser.evaluate("document.querySelectorAll('figure img').length") == 4
         assert browser.evaluate("Array.from(document.querySelectorAll('figure img'))"
                                 ".every(i => i.complete && i.naturalWidth > 0)")
+        # the axes plotly draws are the report's (no autorange): the whole path is in the box
+        scene = browser.evaluate(f"(() => {{const s = document.getElementById('{VIEW3D_ID}')"
+                                 "._fullLayout.scene; return [s.xaxis.range, s.yaxis.range, "
+                                 "s.zaxis.range, s.aspectratio];})()")
+        ranges = np.array(scene[:3])
+        path = data.groundtruth.position
+        assert np.all((path >= ranges[:, 0]) & (path <= ranges[:, 1]))
+        assert max(scene[3].values()) == pytest.approx(1.0)
         # rotate and zoom the view as a user would (camera change), then let it redraw
         assert browser.evaluate(
             f"Plotly.relayout(document.getElementById('{VIEW3D_ID}'), "
@@ -506,6 +684,58 @@ def test_report_in_headless_chromium(chromium, data, analysis, tmp_path):
     assert len(np.unique((img * 16).astype(int).reshape(-1, 3), axis=0)) > 50
     full = mpimg.imread(io.BytesIO(full_png.read_bytes()))
     assert full.shape[0] > 3000  # tables, 4 figures, the 3D view, summary
+
+
+#: A4's width less the report's page margins (``@page``: 11 mm each side), in CSS pixels.
+A4_CONTENT_PX = int((210 - 2 * 11) / 25.4 * 96)
+
+
+def test_real_report_prints_on_a4_in_chromium(chromium, real_run, tmp_path):
+    """Issue 26: printed, the report is A4 and no table is wider than the page (the
+    static-stretch table was 1068 px wide for 695 px of page); the 3D view, which does not
+    print, gives way to a note; 8 pages for the real excerpt (21 before, half of them the
+    flat dump of summary.json)."""
+    out, r = real_run
+    assert r.exit_code == 0, r.output
+    browser = DevTools(chromium, tmp_path / "profile")
+    try:
+        target = browser.send("Target.createTarget", {"url": "about:blank"})["targetId"]
+        browser.session = browser.send("Target.attachToTarget",
+                                       {"targetId": target, "flatten": True})["sessionId"]
+        browser.send("Page.enable")
+        browser.send("Emulation.setDeviceMetricsOverride",
+                     {"width": A4_CONTENT_PX, "height": 1000, "deviceScaleFactor": 1,
+                      "mobile": False})
+        browser.send("Emulation.setEmulatedMedia", {"media": "print"})
+        browser.send("Page.navigate", {"url": (out / "report.html").resolve().as_uri()})
+        browser.wait_for("Page.loadEventFired", 90)
+        layout = browser.evaluate(
+            "(() => { const W = document.documentElement.clientWidth; return {W: W,"
+            " scroll: document.documentElement.scrollWidth,"
+            " tables: Array.from(document.querySelectorAll('table')).map(t => [t.id,"
+            "  t.getBoundingClientRect().right, t.scrollWidth, t.clientWidth]),"
+            f" view: getComputedStyle(document.getElementById('{VIEW3D_ID}')).display,"
+            " note: (e => e && getComputedStyle(e).display)("
+            "document.querySelector('#view .print-only'))};"
+            "})()")
+        pdf = base64.b64decode(browser.send("Page.printToPDF", {"preferCSSPageSize": True},
+                                            timeout=120)["data"])
+    finally:
+        browser.close()
+    assert layout["W"] <= A4_CONTENT_PX and layout["scroll"] <= layout["W"]
+    assert len(layout["tables"]) > 15
+    wide = [t for t in layout["tables"] if t[1] > layout["W"] + 0.5 or t[2] > t[3] + 1]
+    assert wide == [], wide
+    assert layout["view"] == "none" and layout["note"] == "block"
+    boxes = {tuple(float(x) for x in m) for m in re.findall(
+        rb"/MediaBox\s*\[\s*0\s+0\s+([\d.]+)\s+([\d.]+)\s*\]", pdf)}
+    assert len(boxes) == 1
+    w, h = boxes.pop()
+    assert w == pytest.approx(595.3, abs=1.0) and h == pytest.approx(841.9, abs=1.0)  # A4, pt
+    pages = len(re.findall(rb"/Type\s*/Page\b", pdf))
+    assert 5 <= pages <= 10, pages
+    (SCREENSHOT_DIR / "report_real_a4.pdf").parent.mkdir(parents=True, exist_ok=True)
+    (SCREENSHOT_DIR / "report_real_a4.pdf").write_bytes(pdf)
 
 
 # --------------------------------------------------------------------------------------------
@@ -595,7 +825,7 @@ def test_cli_report_open_prints_the_path_and_opens_it(run_dir, tmp_path):
 
 def test_cli_demo_writes_the_report_and_says_where(tmp_path):
     r = runner.invoke(app, ["demo", "--out", str(tmp_path / "demo"), "--duration", "60",
-                            "--engine", "linear", "--quiet"], env={"COLUMNS": "120"})
+                            "--engine", "linear"], env={"COLUMNS": "120"})
     assert r.exit_code == 0, r.output
     line = next(x for x in r.stdout.splitlines() if x.startswith("report: "))
     path = Path(line.removeprefix("report: "))
@@ -604,12 +834,19 @@ def test_cli_demo_writes_the_report_and_says_where(tmp_path):
     assert "id='sources-table'" in page and page.count("<img alt=") == 4
 
 
-def test_real_excerpt_run_report_and_analyze(tmp_path):
-    """`rtsgt run --report` then `rtsgt analyze` on the real excerpt
-    (docs/paper-figures.md#the-real-excerpt)."""
-    out = tmp_path / "real"
+@pytest.fixture(scope="module")
+def real_run(tmp_path_factory):
+    """`rtsgt run --report` on the real excerpt: the run directory and the command's result."""
+    out = tmp_path_factory.mktemp("real") / "real"
     r = runner.invoke(app, ["run", str(EXAMPLE), "--out", str(out), "--report",
                             "--engine", "linear"], env={"COLUMNS": "120"})
+    return out, r
+
+
+def test_real_excerpt_run_report_and_analyze(real_run):
+    """`rtsgt run --report` then `rtsgt analyze` on the real excerpt
+    (docs/paper-figures.md#the-real-excerpt)."""
+    out, r = real_run
     assert r.exit_code == 0, r.output
     assert f"report: {out.resolve() / 'report.html'}" in r.stderr
     assert (out / "report.html").stat().st_size > 3_000_000
@@ -635,3 +872,39 @@ def test_real_excerpt_run_report_and_analyze(tmp_path):
         assert med[s]["median_mm"] < 0.3
     data = read_run(out)
     assert len(data.gcp_names) == 12 and len(data.stations) == 3
+
+
+def test_real_excerpt_report_static_table_and_run_section(real_run):
+    """Issue 26: the static-stretch table at A4 (7 columns, a group row per prism, units in
+    the headers, 12 columns before); the run's section from its summary.json."""
+    out, r = real_run
+    assert r.exit_code == 0, r.output
+    page = (out / "report.html").read_text(encoding="utf-8")
+    summary = json.loads((out / "summary.json").read_text())
+    static = _element(page, "<table id='check-static'>")
+    rows = re.findall(r"<tr\b[^>]*>(.*?)</tr>", static)
+    head, body = rows[0], rows[1:]
+    assert len(re.findall(r"<th\b", head)) == 7
+    assert "scatter / predicted (mm)" in head and "correlation time (s)" in head
+    prisms = summary["self_checks"]["static_noise"]["prisms"]
+    groups = [x for x in body if "colspan='7'" in x]
+    assert len(groups) == len(prisms) == 3
+    for pid, e in prisms.items():
+        assert any(f"prism {pid} <small>(station {e['station']}, {e['samples']} samples)"
+                   in g for g in groups)
+    for x in body:
+        if "colspan" not in x:
+            assert len(re.findall(r"<td\b", x)) == 7
+    assert static.count("<td class='verdict'>") == 2 * 3 * len(prisms)
+    # the run's section: each option, each stage's time, each warning; the file is linked
+    assert "<section id=\"summary\">" not in page and "qc_fit.motion_prior" not in page
+    run = _element(page, "<section id=\"run\">", "</section>")
+    assert "<a href='summary.json'>summary.json</a>" in run
+    options = _element(run, "<table id='run-options'")
+    assert options.count("<tr>") == len(summary["parameters"])
+    timings = _element(run, "<table id='run-timings'")
+    for stage in summary["timings_s"]:
+        assert f"<th>{stage.replace('_', ' ')}</th>" in timings
+    assert run.count("<li>") == len(summary["warnings"]) > 0
+    levelling = _element(page, "<table id='check-levelling'>")
+    assert levelling.count("<td class='verdict'>levelled</td>") == 2  # stations 2 and 3

@@ -15,6 +15,10 @@ Three figures, each written as PNG and SVG:
     Histograms (densities) of the position and pose NEES against the chi-square(3) and
     chi-square(6) densities, with the 95 % quantiles.
 
+The lines along time (the errors, the sigma lines and bands, the paths of the top view) break
+where the associated poses leave a gap, a step longer than
+:data:`rtsgt.report.figures.GAP_FACTOR` times the median step.
+
 When the estimate was moved by a mounting (given or estimated, ``--mounting``,
 ``--estimate``), the top view and the translation error say so in a text box: the mounting
 rotation and lever arm, the clock offset, each with its standard deviation when estimated
@@ -37,6 +41,7 @@ from matplotlib.patches import Ellipse
 from scipy import stats
 
 from rtsgt.io.output_dir import OutputDir
+from rtsgt.report.figures import break_gaps
 
 #: chi-square(2) 0.95 quantile: the 95 % ellipse of a 2-D Gaussian.
 CHI2_2_95 = float(stats.chi2.ppf(0.95, 2))
@@ -116,6 +121,8 @@ def _save(fig: Figure, out: Path, name: str, files: list[Path]) -> None:
 
 
 def _error_figure(result) -> tuple[Figure, np.ndarray | None, np.ndarray | None]:
+    """The error figure; its lines and bands break at the gaps between associated poses
+    (:func:`rtsgt.report.figures.break_gaps`)."""
     t = result.t - result.t[0]
     err = result.est.position - result.gt.position
     fig = Figure(figsize=(9, 9))
@@ -125,13 +132,15 @@ def _error_figure(result) -> tuple[Figure, np.ndarray | None, np.ndarray | None]
     if cov is not None:
         sig_xyz = np.sqrt(np.clip(np.diagonal(cov[:, :3, :3], axis1=1, axis2=2), 0, None))
         sig_norm = np.sqrt(np.clip(np.trace(cov[:, :3, :3], axis1=1, axis2=2), 0, None))
+    tb = break_gaps(result.t, t)
     ax = axes[0]
-    ax.plot(t, 1e3 * np.linalg.norm(err, axis=1), color="k", lw=0.8, label="|error|")
+    ax.plot(tb, break_gaps(result.t, 1e3 * np.linalg.norm(err, axis=1)), color="k", lw=0.8,
+            label="|error|")
     if sig_norm is not None:
         for k, ls in zip((1, 2, 3), ("-", "--", ":"), strict=True):
             ax.plot(
-                t,
-                1e3 * k * sig_norm,
+                tb,
+                break_gaps(result.t, 1e3 * k * sig_norm),
                 color="tab:red",
                 ls=ls,
                 lw=0.8,
@@ -143,11 +152,11 @@ def _error_figure(result) -> tuple[Figure, np.ndarray | None, np.ndarray | None]
     for a, (ax, name) in enumerate(zip(axes[1:], "xyz", strict=True)):
         if sig_xyz is not None:
             for k, alpha in zip((3, 2, 1), (0.12, 0.2, 0.3), strict=True):
-                s = 1e3 * k * sig_xyz[:, a]
-                ax.fill_between(
-                    t, -s, s, color="tab:blue", alpha=alpha, lw=0, label=f"+-{k} sigma ground truth"
-                )
-        ax.plot(t, 1e3 * err[:, a], color="k", lw=0.8, label=f"error {name}")
+                s = break_gaps(result.t, 1e3 * k * sig_xyz[:, a])
+                ax.fill_between(tb, -s, s, color="tab:blue", alpha=alpha, lw=0,
+                                label=f"+-{k} sigma ground truth")
+        ax.plot(tb, break_gaps(result.t, 1e3 * err[:, a]), color="k", lw=0.8,
+                label=f"error {name}")
         ax.set_ylabel(f"{name} error (mm)")
     axes[1].legend(loc="upper right", fontsize="small")
     axes[-1].set_xlabel("time since first associated pose (s)")
@@ -166,10 +175,11 @@ def _ellipse_params(cov2: np.ndarray, k2: float) -> tuple[np.ndarray, np.ndarray
 
 
 def _top_view(result, max_ellipses: int, ellipse_scale: float | None) -> tuple[Figure, int, float]:
-    gt, est = result.gt.position, result.est.position
+    gt, est = result.gt.position, break_gaps(result.t, result.est.position)
     fig = Figure(figsize=(7, 7))
     ax = fig.subplots()
-    ax.plot(gt[:, 0], gt[:, 1], color="k", lw=1.0, label="ground truth")
+    path = break_gaps(result.t, gt)
+    ax.plot(path[:, 0], path[:, 1], color="k", lw=1.0, label="ground truth")
     ax.plot(
         est[:, 0],
         est[:, 1],

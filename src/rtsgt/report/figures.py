@@ -47,9 +47,11 @@ from rtsgt.report.analysis import ALL, GP, REFERENCE, Analysis, paper_median_mm,
 __all__ = [
     "CHI2_2_95",
     "FIGURE_NAMES",
+    "GAP_FACTOR",
     "DrawnFigure",
     "SOURCE_COLORS",
     "SOURCE_LABELS",
+    "break_gaps",
     "draw_all",
     "plot_pose_uncertainty",
     "plot_source_norms",
@@ -62,6 +64,9 @@ __all__ = [
 CHI2_2_95 = 5.991464547107979
 #: Names (and file stems) of the figures, in report order.
 FIGURE_NAMES = ("source_norms", "pose_uncertainty", "top_view", "uncertainty_time")
+#: A time step longer than this multiple of the median step is a gap: lines drawn along time
+#: (the ground-truth path, the evaluation's errors) break there (:func:`break_gaps`).
+GAP_FACTOR = 3.0
 
 #: Colour of each entry (colour-blind-safe Okabe-Ito palette).
 SOURCE_COLORS = {
@@ -360,12 +365,29 @@ def _ellipse_axes(cov2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return major, minor, angle
 
 
-def _break_gaps(t: np.ndarray, xy: np.ndarray, max_dt: float) -> np.ndarray:
-    """Insert NaN rows where consecutive times are more than ``max_dt`` apart."""
+def break_gaps(t: np.ndarray, values: np.ndarray, factor: float = GAP_FACTOR) -> np.ndarray:
+    """``values`` with a NaN row inserted at each gap, so that a line drawn through them breaks.
+
+    Parameters
+    ----------
+    t : ndarray, shape (N,)
+        Increasing times (s).
+    values : ndarray, shape (N,) or (N, D)
+        What is drawn at those times (the times themselves may be a column).
+    factor : float
+        A step ``t[i+1] - t[i]`` longer than ``factor`` times the median step is a gap.
+
+    Returns
+    -------
+    ndarray of float, shape (N + G,) or (N + G, D)
+        With a NaN row before each of the G samples that follow a gap.
+    """
+    values = np.asarray(values, dtype=float)
     if t.size < 2:
-        return xy
-    cut = np.flatnonzero(np.diff(t) > max_dt) + 1
-    return np.insert(xy.astype(float), cut, np.nan, axis=0)
+        return values
+    dts = np.diff(t)
+    cut = np.flatnonzero(dts > factor * float(np.median(dts))) + 1
+    return np.insert(values, cut, np.nan, axis=0)
 
 
 def _rejected_positions(data: RunRecord) -> tuple[np.ndarray, np.ndarray]:
@@ -442,9 +464,7 @@ def plot_top_view(data: RunRecord, *, max_ellipses: int = 60,
         everything.append(xy)
     gt = data.groundtruth
     if len(gt):
-        dts = np.diff(gt.t)
-        max_dt = 3 * float(np.median(dts)) if dts.size else 1.0
-        path = _break_gaps(gt.t, gt.position[:, :2], max_dt)
+        path = break_gaps(gt.t, gt.position[:, :2])
         lever = _body_origin_offset(data)
         where = (f", {lever:.1f} m from the prisms' centroid" if lever >= 0.5 else "")
         ax.plot(path[:, 0], path[:, 1], "-", color="black", lw=1.0,
@@ -583,22 +603,19 @@ def plot_uncertainty_time(data: RunRecord, *, gap_s: float | None = None,
     drawn = DrawnFigure("uncertainty_time", fig)
     t0 = _time_origin(data)
     gap = default_gap_s(data) if gap_s is None else float(gap_s)
-    step = np.median(np.diff(data.prisms_t)) if data.prisms_t.size > 1 else 1.0
     for i, pid in enumerate(data.prism_ids):
         c = data.prisms_cov[:, i]
         sig = np.sqrt(np.clip(np.trace(c, axis1=-2, axis2=-1), 0.0, None)) * 1e3
-        y = _break_gaps(data.prisms_t, np.column_stack([data.prisms_t - t0, sig]), 2.5 * step)
+        y = break_gaps(data.prisms_t, np.column_stack([data.prisms_t - t0, sig]), 2.5)
         axes[0].plot(y[:, 0], y[:, 1], "-", lw=1.0, color=_PRISM_COLORS[i % 7],
                      label=f"prism {pid}")
         drawn.points[f"prism {pid}"] = int(np.count_nonzero(np.isfinite(sig)))
     gt = data.groundtruth
     if len(gt) and gt.cov is not None:
         tr_mm, rot_mrad = pose_sigmas(gt.cov, pose_measure)
-        dts = np.diff(gt.t)
-        max_dt = 2.5 * float(np.median(dts)) if dts.size else 1.0
         for ax, v, name in ((axes[1], tr_mm, "pose translation"),
                             (axes[2], rot_mrad, "pose rotation")):
-            y = _break_gaps(gt.t, np.column_stack([gt.t - t0, v]), max_dt)
+            y = break_gaps(gt.t, np.column_stack([gt.t - t0, v]), 2.5)
             ax.plot(y[:, 0], y[:, 1], "-", lw=1.0, color="black", label=name)
             drawn.points[name] = int(np.count_nonzero(np.isfinite(v)))
     for stage in sorted(set(data.removed.stage.tolist())):

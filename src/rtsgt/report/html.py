@@ -6,11 +6,17 @@ The file opens offline: the figures are embedded as data URIs (SVG by default, o
 from a network. Without plotly the report is written all the same, with a note in place of
 the 3D view.
 
-Sections: key numbers; the per-source table next to the paper's published medians; the pose
-uncertainty per source; the four figures of :mod:`rtsgt.report.figures`; the 3D view (the
-ground-truth path, the prism measurements, the stations, the ground control points, the
-rejected poses, and the 95 % position ellipsoids (chi-square 3 dof, 7.815) of a subsample of
-the poses, magnified by a stated factor); every table of ``summary.json``.
+Sections: key numbers; the self-checks with their verdicts; the per-source table next to the
+paper's published medians; the pose uncertainty per source; the four figures of
+:mod:`rtsgt.report.figures`; the 3D view (the ground-truth path, the prism measurements, the
+stations, the ground control points, the rejected poses, and the 95 % position ellipsoids
+(chi-square 3 dof, 7.815) of a subsample of the poses, magnified by a stated factor; its axes'
+ranges hold everything drawn, at one scale); the run: what ``summary.json`` holds that a
+reader needs (inputs, options, filters, the prisms' GPs, the calibration, the inter-prism
+distances, the warnings, the timings) in tables, and a link to the file for the rest.
+
+The page prints on A4 (``@page``): every table fits the page's width, and the 3D view, which
+only a browser can draw, is left out of the print with a note.
 """
 
 from __future__ import annotations
@@ -19,8 +25,9 @@ import base64
 import dataclasses
 import html
 import io
-import json
 import math
+import os
+import urllib.parse
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -44,6 +51,7 @@ from rtsgt.report.figures import (
     _body_origin_offset,
     _nice_scale,
     _rejected_positions,
+    break_gaps,
     draw_all,
 )
 
@@ -53,6 +61,8 @@ __all__ = [
     "ReportInfo",
     "ellipsoid_mesh",
     "render_report",
+    "scene_box",
+    "view3d_figure",
     "write_report",
     "write_report_file",
 ]
@@ -61,6 +71,12 @@ __all__ = [
 CHI2_3_95 = 7.814727903251178
 #: id of the 3D view's element in the page.
 VIEW3D_ID = "rtsgt-view3d"
+#: The 3D view's margin about everything it draws, as a fraction of the largest extent.
+SCENE_MARGIN = 0.05
+#: The 3D view's least height, as a fraction of the largest extent.
+SCENE_MIN_HEIGHT = 0.15
+#: Where the 3D view's camera stands, in plotly's scene units (the box's longest side is 1).
+CAMERA_EYE = (1.0, 1.0, 0.8)
 
 _CSS = """
 body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0;color:#222;
@@ -81,6 +97,22 @@ figcaption{font-size:.9em;color:#444;margin-top:.4em}
 padding:.5em .9em;min-width:10em}.kpi b{display:block;font-size:1.3em}
 nav a{margin-right:1em}details{margin:.4em 0}summary{cursor:pointer}
 #rtsgt-view3d{height:720px;background:#fff;border:1px solid #ddd}
+table{max-width:100%}td.s{overflow-wrap:break-word}code{overflow-wrap:anywhere}
+tr.group th{background:#f6f6f6;text-align:left;font-family:inherit}
+table.kv th.k{background:#f6f8fa;font-weight:normal;font-family:inherit}
+table.kv th.k small{font-family:ui-monospace,monospace;color:#555}
+#run-warnings{font-size:.85em}#run-warnings li{margin:.2em 0}.print-only{display:none}
+@page{size:A4;margin:12mm 11mm}
+@media print{
+body{background:#fff;font-size:9.5pt;line-height:1.3}
+main{max-width:none;padding:0}
+nav{display:none}
+h2{margin-top:1.2em;break-after:avoid}h3{break-after:avoid}
+table{font-size:8pt}th,td{padding:.15em .35em}tr{break-inside:avoid}
+figure{break-inside:avoid;border:none;padding:0}figure img{max-height:118mm;width:auto}
+.kpi div{min-width:8em;padding:.3em .6em}
+#rtsgt-view3d,#view .screen-only{display:none}.print-only{display:block}
+}
 """
 
 
@@ -228,10 +260,30 @@ def _self_checks_html(checks: Mapping) -> str:
         "against the instrument model's covariance (1 if the model is right). Added to every "
         f"shot by the calibration: {_fmt(added.get('horizontal'), 3)} mm horizontal, "
         f"{_fmt(added.get('vertical'), 3)} mm vertical.</small></p>")
+    parts.append(_levelling_html(g.get("levelling")))
     parts.append(_dynamic_calibration_html(checks.get("dynamic_calibration")))
     parts.append(_static_noise_html(checks.get("static_noise")))
     parts.append(_structure_html(checks.get("inter_prism_structure")))
     return "".join(parts)
+
+
+def _levelling_html(lev: Mapping | None) -> str:
+    """The levelling test of the GCP fit: per station the tilt a free rotation fits beyond the
+    Earth's curvature (x, y, µrad) with its sigma, chi-square, p and verdict."""
+    if not lev:
+        return ""
+    body = "".join(
+        f"<tr><td class='s'>station {html.escape(str(s))}</td>"
+        + "".join(f"<td>{_fmt(t, 3)} ± {_fmt(e, 2)}</td>"
+                  for t, e in zip(v["tilt_urad"], v["sigma_urad"], strict=True))
+        + f"<td>{_fmt(v['chi2'], 3)}</td><td>{_fmt(v['p_value'], 2)}</td>"
+        f"<td class='verdict'>{html.escape(str(v.get('verdict')))}</td></tr>"
+        for s, v in lev.items() if isinstance(v, Mapping) and "tilt_urad" in v)
+    return ("<table id='check-levelling'><tr><th class='k'>levelling</th><th>tilt x (µrad)</th>"
+            "<th>tilt y (µrad)</th><th>χ² (2 dof)</th><th>p</th><th>verdict</th></tr>"
+            f"{body}</table><p><small>The tilt of each station that a free rotation fits beyond "
+            "the Earth's curvature, against its uncertainty (levelled when it is within it). "
+            "Method: rtsgt's docs/noise-model.md.</small></p>")
 
 
 def _dynamic_calibration_html(check: Mapping | None) -> str:
@@ -356,33 +408,37 @@ def _static_noise_html(s: Mapping | None) -> str:
 
     def iv(v: Mapping) -> str:
         i = v.get("interval")
-        return "-" if not i else f"{_fmt(i[0], 3)} - {_fmt(i[1], 3)}"
+        return "" if not i else f"<br><small>{_fmt(i[0], 3)} – {_fmt(i[1], 3)}</small>"
 
     rows = []
     for pid, e in s["prisms"].items():
+        rows.append(
+            f"<tr class='group'><th class='k' colspan='7'>prism {html.escape(str(pid))} "
+            f"<small>(station {html.escape(str(e['station']))}, {e['samples']} samples)"
+            "</small></th></tr>")
         for name in ("range", "horizontal", "vertical"):
             c = e[name]
             lv, co = c["level"], c["correlation"]
             rows.append(
-                f"<tr><td class='s'>{html.escape(str(pid))} (station "
-                f"{html.escape(str(e['station']))})</td><td class='s'>{name}</td>"
-                f"<td>{e['samples']}</td><td>{_fmt(c['observed_sigma_mm'], 3)}</td>"
-                f"<td>{_fmt(c['predicted_sigma_mm'], 3)}</td>"
-                f"<td>{_fmt(lv['variance_ratio'], 3)}</td><td>{iv(lv)}</td>"
+                f"<tr><td class='s'>{name}</td>"
+                f"<td>{_fmt(c['observed_sigma_mm'], 3)} / {_fmt(c['predicted_sigma_mm'], 3)}</td>"
+                f"<td>{_fmt(lv['variance_ratio'], 3)}{iv(lv)}</td>"
                 f"<td class='verdict'>{html.escape(lv['verdict'])}</td>"
-                f"<td>{_fmt(co['lag1'], 2)}</td><td>{iv(co)}</td>"
+                f"<td>{_fmt(co['lag1'], 2)}{iv(co)}</td>"
                 f"<td class='verdict'>{html.escape(co['verdict'])}</td>"
                 f"<td>{_tau(co)}</td></tr>")
     spans = ", ".join(f"{b - a:.1f}" for a, b in s["stretches_s"])
     conf = s.get("confidence")
+    within = "its interval" if not conf else f"its {100 * conf:.2f} % interval"
     level = "" if not conf else (
         f" Each interval holds {100 * conf:.2f} % ({s['tests']} tests: a run whose noise "
         f"model is right is flagged {100 * s['family_false_alarm']:.0f} % of the time).")
-    return (head + "<table id='check-static'><tr><th class='k'>prism</th><th>component</th>"
-            "<th>samples</th><th>scatter (mm)</th><th>predicted (mm)</th><th>variance ratio"
-            "</th><th>interval</th><th>verdict</th><th>lag-1 correlation</th><th>interval</th>"
-            f"<th>verdict</th><th>correlation time, 95 % (s)</th></tr>{''.join(rows)}</table>"
-            f"<p><small>Static stretches of {spans} s. The scatter of each prism's "
+    return (head + "<table id='check-static'><tr><th class='k'>component</th>"
+            "<th>scatter / predicted (mm)</th>"
+            f"<th>variance ratio<br><small>{within}</small></th><th>verdict</th>"
+            f"<th>lag-1 correlation<br><small>{within}</small></th><th>verdict</th>"
+            f"<th>correlation time (s)<br><small>95 % interval</small></th></tr>{''.join(rows)}"
+            f"</table><p><small>Static stretches of {spans} s. The scatter of each prism's "
             "measurements about their mean while the robot stands, along the line of sight "
             "(range) and across it, against the white noise the run predicts (instrument and "
             "tilt); a variance ratio above its interval: the model's noise is too small "
@@ -424,66 +480,239 @@ def _correlated_noise_html(plan: Mapping | None) -> str:
             "</small></p>")
 
 
-def _flatten(obj, prefix: str = "") -> list[tuple[str, object]]:
-    out: list[tuple[str, object]] = []
-    if isinstance(obj, Mapping):
-        for k, v in obj.items():
-            out += _flatten(v, f"{prefix}.{k}" if prefix else str(k))
-    elif isinstance(obj, list) and obj and all(isinstance(x, Mapping) for x in obj):
-        out.append((prefix, obj))
-    else:
-        out.append((prefix, obj))
-    return out
+#: Readable names (with units) of the options of ``summary.json`` ``parameters``; an option
+#: not listed here is shown under its key.
+_OPTION_LABELS = {
+    "engine": "pose engine",
+    "registration": "registration of the reference prisms",
+    "samples": "Monte Carlo samples",
+    "seed": "random seed",
+    "calibration_method": "calibration method",
+    "calibration_model": "calibration model",
+    "calibration_weighting": "calibration weighting",
+    "rate_hz": "ground-truth rate (Hz)",
+    "qc": "GP Qc",
+    "max_gap_s": "longest gap bridged (s)",
+    "gp_noise": "noise given to the GP",
+    "motion_prior": "Qc along the motion",
+    "outlier_windows": "windows of distance rejections",
+    "prior": "GP motion prior",
+    "correlated_noise": "time-correlated noise",
+    "noise_sources": "noise sources",
+    "instrument": "instrument",
+    "filter": "filter thresholds",
+    "distance_gate_m": "distance gate (m)",
+    "uncertainty_gate_m": "uncertainty gate (m)",
+}
+#: Units of the filter thresholds (``parameters.filter``; rtsgt.filtering.modules).
+_FILTER_UNITS = {"tau_r": "m/s", "tau_a": "rad/s", "tau_e": "rad/s", "tau_s": "s",
+                 "tau_l": "s"}
 
 
-def _value_html(v) -> str:
-    if isinstance(v, (float, np.floating)) and math.isfinite(v) and abs(v) >= 1e7:
-        return f"{v:.3f}"  # epoch times and other large numbers: every digit that matters
-    if isinstance(v, list):
-        if all(not isinstance(x, (list, dict)) for x in v):
-            shown = ", ".join(_fmt(x, 6) for x in v[:12])
-            return f"[{shown}{', …' if len(v) > 12 else ''}]" + (
-                f" <small>({len(v)} values)</small>" if len(v) > 12 else "")
-        return html.escape(json.dumps(v)[:300])
-    return _fmt(v, 6)
+def _plain(v) -> str:
+    """A value of summary.json as short text: numbers to 4 significant digits, lists joined,
+    mappings as ``key value`` pairs."""
+    if isinstance(v, Mapping):
+        return ", ".join(f"{html.escape(str(k))} {_plain(x)}" for k, x in v.items())
+    if isinstance(v, (list, tuple)):
+        return ", ".join(_plain(x) for x in v)
+    return _fmt(v)
 
 
-def _records_table(records: list[Mapping], max_rows: int = 200) -> str:
-    cols: list[str] = []
-    for r in records:
-        for k in r:
-            if k not in cols:
-                cols.append(k)
-    head = "".join(f"<th class='k'>{html.escape(str(c))}</th>" for c in cols)
-    body = "".join("<tr>" + "".join(f"<td>{_value_html(r.get(c))}</td>" for c in cols)
-                   + "</tr>" for r in records[:max_rows])
-    more = (f"<p><small>{len(records) - max_rows} more rows in summary.json</small></p>"
-            if len(records) > max_rows else "")
-    return f"<table><tr>{head}</tr>{body}</table>{more}"
+def _vec(v, spec: str = ".3g") -> str:
+    """A short vector as ``a, b, c``, each number formatted by ``spec``."""
+    return "–" if not v else ", ".join(format(float(x), spec) for x in v)
 
 
-def _summary_tables(summary: Mapping) -> str:
+def _kv_table(table_id: str, rows: Sequence[tuple[str, str]]) -> str:
+    """A two-column table of (name, value) rows (both already HTML)."""
+    if not rows:
+        return ""
+    body = "".join(f"<tr><th class='k'>{k}</th><td class='s'>{v}</td></tr>" for k, v in rows)
+    return f"<table id='{table_id}' class='kv'>{body}</table>"
+
+
+def _utc(t) -> str:
+    if not isinstance(t, (int, float)) or not math.isfinite(t):
+        return "–"
+    return datetime.fromtimestamp(t, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
+
+
+def _run_info_html(summary: Mapping) -> str:
+    rows = []
+    if "deployment" in summary:
+        rows.append(("deployment", _fmt(summary["deployment"])))
+    cfg = (summary.get("inputs") or {}).get("config")
+    if cfg:
+        rows.append(("configuration", f"<code>{html.escape(str(cfg))}</code>"))
+    sw = summary.get("software") or {}
+    if sw:
+        schema = (summary.get("schema") or {}).get("version")
+        rows.append(("written by", f"{_fmt(sw.get('name'))} {_fmt(sw.get('version'))}"
+                     + ("" if schema is None else f" (summary layout {_fmt(schema)})")))
+    poses = summary.get("poses") or {}
+    if poses:
+        rows.append(("ground truth", f"{_utc(poses.get('first_t'))} to "
+                                     f"{_utc(poses.get('last_t'))}"))
+        rej = poses.get("rejected_by_reason") or {}
+        rows.append(("poses", f"{_fmt(poses.get('kept'))} kept of {_fmt(poses.get('queried'))}"
+                     + ("; rejected: " + _plain(rej) if rej else "")))
+    med = summary.get("median_uncertainty") or {}
+    if med:
+        rows.append(("median pose sigma", f"{_fmt(med.get('translation_mm'), 3)} mm, "
+                                          f"{_fmt(med.get('rotation_mrad'), 3)} mrad"))
+    iv = summary.get("intervals_s") or []
+    if iv:
+        rows.append(("common intervals (module 2)", f"{len(iv)}, lasting "
+                     + ", ".join(f"{b - a:.1f}" for a, b in iv) + " s"))
+    w = summary.get("weather")
+    if isinstance(w, Mapping) and w:
+        rows.append(("weather", f"<code>{html.escape(str(w.get('file')))}</code>, a record every "
+                     f"{_fmt(w.get('sampling_interval_s'), 6)} s; covers every measurement: "
+                     f"{_fmt(w.get('covered'))}"))
+    elif "weather" in summary:
+        rows.append(("weather", "none (standard atmosphere)"))
+    return _kv_table("run-info", rows)
+
+
+def _options_html(params: Mapping) -> str:
+    rows = []
+    for k, v in params.items():
+        if k == "filter" and isinstance(v, Mapping):
+            shown = ", ".join(f"{html.escape(str(n))} {_fmt(x)} {_FILTER_UNITS.get(n, '')}".strip()
+                              for n, x in v.items())
+        else:
+            shown = _plain(v)
+        rows.append((html.escape(_OPTION_LABELS.get(k, k)) + f" <small>({html.escape(k)})</small>",
+                     shown))
+    return _kv_table("run-options", rows)
+
+
+def _filters_html(filters: Mapping) -> str:
+    rows = []
+    for name, f in filters.items():
+        if not isinstance(f, Mapping) or "n_in" not in f:
+            continue
+        removed = {k: v for k, v in (f.get("removed") or {}).items() if v}
+        label = name.replace("_station", ", station ").replace("module", "module ")
+        rows.append(f"<tr><td class='s'>{html.escape(label)}</td><td>{_fmt(f['n_in'])}</td>"
+                    f"<td>{_fmt(f.get('n_kept'))}</td>"
+                    f"<td class='s'>{_plain(removed) if removed else '–'}</td></tr>")
+    if not rows:
+        return ""
+    return ("<table id='run-filters'><tr><th class='k'>filter</th><th>in</th><th>kept</th>"
+            f"<th>removed, by reason</th></tr>{''.join(rows)}</table>")
+
+
+def _prisms_html(prisms: Mapping) -> str:
+    rows = []
+    for pid, p in prisms.items():
+        if not isinstance(p, Mapping):
+            continue
+        qc = p.get("qc_m2_s3")
+        diag = "–" if not qc else ", ".join(_fmt(qc[i][i], 3) for i in range(len(qc)))
+        prior = str(p.get("prior", "wnoa"))
+        fit = p.get("qc_fit") or {}
+        rows.append(f"<tr><td class='s'>{html.escape(str(pid))}</td>"
+                    f"<td class='s'>{_fmt(p.get('station'))}</td>"
+                    f"<td>{_fmt(p.get('measurements_used'))}</td>"
+                    f"<td class='s'>{html.escape(prior.upper())}</td>"
+                    f"<td class='s'>{diag}</td><td class='s'>{_fmt(fit.get('method'))}</td>"
+                    f"<td>{_fmt(fit.get('loo_nees_per_dof'), 3)}</td>"
+                    f"<td>{_fmt(p.get('median_sigma_mm'), 3)}</td></tr>")
+    if not rows:
+        return ""
+    return ("<table id='run-prisms'><tr><th class='k'>prism</th><th>station</th>"
+            "<th>measurements</th><th>prior</th><th>Qc x, y, z<br><small>m²/s³ (WNOJ: m²/s⁵)"
+            "</small></th><th>Qc fit</th>"
+            "<th>leave-one-out NEES / dof</th><th>median sigma (mm)</th></tr>"
+            f"{''.join(rows)}</table>")
+
+
+def _calibration_html(cal: Mapping) -> str:
+    if not cal:
+        return ""
+    rows = []
+    for sid, st in (cal.get("stations") or {}).items():
+        if not isinstance(st, Mapping):
+            continue
+        rows.append(f"<tr><td class='s'>{html.escape(str(sid))}</td>"
+                    f"<td>{_fmt(st.get('yaw_deg'), 6)}</td>"
+                    f"<td>{_vec(st.get('translation_m'), '.3f')}</td>"
+                    f"<td>{_vec(st.get('sigma_translation_mm'))}</td>"
+                    f"<td>{_vec(st.get('sigma_rotation_mrad'))}</td></tr>")
+    res = cal.get("residuals_mm") or {}
+    note = (f"<p><small>Method {_fmt(cal.get('method'))}, model {_fmt(cal.get('model'))}, "
+            f"reference station {_fmt(cal.get('reference_station'))}"
+            + (f"; GCP residuals: median {_fmt(res.get('median'), 3)} mm, largest "
+               f"{_fmt(res.get('max'), 3)} mm over {_fmt(res.get('count'))}" if res else "")
+            + ".</small></p>")
+    if not rows:
+        return note
+    return ("<table id='run-calibration'><tr><th class='k'>station</th><th>yaw (deg)</th>"
+            "<th>translation (m)</th><th>sigma translation (mm)</th>"
+            f"<th>sigma rotation (mrad)</th></tr>{''.join(rows)}</table>{note}")
+
+
+def _distances_html(d: Mapping) -> str:
+    rows = "".join(
+        f"<tr><td class='s'>{html.escape(str(pair))}</td><td>{_fmt(v.get('surveyed_m'), 5)}</td>"
+        f"<td>{_fmt(v.get('median_deviation_mm'), 3)}</td>"
+        f"<td>{_fmt(v.get('predicted_sigma_mm'), 3)}</td><td>{_fmt(v.get('ratio'), 3)}</td>"
+        f"<td>{_fmt(v.get('poses'))}</td></tr>"
+        for pair, v in d.items() if isinstance(v, Mapping))
+    if not rows:
+        return ""
+    return ("<table id='run-distances'><tr><th class='k'>prisms</th><th>surveyed (m)</th>"
+            "<th>median deviation (mm)</th><th>predicted sigma (mm)</th><th>ratio</th>"
+            f"<th>poses</th></tr>{rows}</table>")
+
+
+def _timings_html(timings: Mapping, per_row: int = 6) -> str:
+    """The seconds of each stage, ``per_row`` stages to a pair of rows."""
+    items = [(k, v) for k, v in timings.items() if isinstance(v, (int, float))]
+    if not items:
+        return ""
+    items.append(("total", sum(v for _, v in items)))
+    rows = []
+    for i in range(0, len(items), per_row):
+        chunk = items[i:i + per_row]
+        pad = "<td></td>" * (per_row - len(chunk))
+        rows.append("<tr>" + "".join(f"<th>{html.escape(k.replace('_', ' '))}</th>"
+                                     for k, _ in chunk) + pad.replace("td", "th") + "</tr>")
+        rows.append("<tr>" + "".join(f"<td>{v:.2f}</td>" for _, v in chunk) + pad + "</tr>")
+    return f"<table id='run-timings'>{''.join(rows)}</table>"
+
+
+def _run_html(summary: Mapping, summary_href: str | None) -> str:
+    """What ``summary.json`` holds that a reader needs, in tables: the run, the options used,
+    the filters, the prisms' GP fits, the calibration, the inter-prism distances, the warnings
+    and the timings (s); a link to the file for the rest."""
     if not summary:
         return "<p class='note'>No summary.json in this run.</p>"
-    parts = []
-    scalars = [(k, v) for k, v in summary.items() if not isinstance(v, (dict, list))]
-    if scalars:
-        parts.append("<h3>run</h3><table class='summary'>" + "".join(
-            f"<tr><td class='k'>{html.escape(k)}</td><td class='s'>{_value_html(v)}</td></tr>"
-            for k, v in scalars) + "</table>")
-    for key, val in summary.items():
-        if not isinstance(val, (dict, list)):
-            continue
-        rows, subtables = [], []
-        for k, v in _flatten(val):
-            if isinstance(v, list) and v and all(isinstance(x, Mapping) for x in v):
-                subtables.append(f"<details><summary>{html.escape(k or key)} ({len(v)} rows)"
-                                 f"</summary>{_records_table(v)}</details>")
-            else:
-                rows.append(f"<tr><td class='k'>{html.escape(k or key)}</td>"
-                            f"<td class='s'>{_value_html(v)}</td></tr>")
-        table = f"<table class='summary'>{''.join(rows)}</table>" if rows else ""
-        parts.append(f"<h3>{html.escape(key)}</h3>{table}{''.join(subtables)}")
+    name = "summary.json"
+    link = (f"<a href='{html.escape(summary_href, quote=True)}'>{name}</a>" if summary_href
+            else f"<code>{name}</code>")
+    parts = [_run_info_html(summary)]
+    if summary.get("parameters"):
+        parts.append(f"<h3>Options used</h3>{_options_html(summary['parameters'])}")
+    for title, text in (("Filters", _filters_html(summary.get("filters") or {})),
+                        ("Prisms and their GP", _prisms_html(summary.get("prisms") or {})),
+                        ("Extrinsic calibration",
+                         _calibration_html(summary.get("calibration") or {})),
+                        ("Inter-prism distances",
+                         _distances_html(summary.get("inter_prism_distances") or {}))):
+        if text:
+            parts.append(f"<h3>{title}</h3>{text}")
+    warns = summary.get("warnings") or []
+    if warns:
+        parts.append(f"<h3>Warnings ({len(warns)})</h3><ul id='run-warnings'>"
+                     + "".join(f"<li>{html.escape(str(w))}</li>" for w in warns) + "</ul>")
+    timings = _timings_html(summary.get("timings_s") or {})
+    if timings:
+        parts.append(f"<h3>Timings (s)</h3>{timings}")
+    parts.append(f"<p>Every number of the run, with the calibration's matrices and coupling, "
+                 f"the GCPs' positions and each self-check's details, is in {link}.</p>")
     return "".join(parts)
 
 
@@ -551,16 +780,75 @@ def ellipsoid_mesh(centres: np.ndarray, covs: np.ndarray, scale: float, *,
     return verts.reshape(-1, 3), all_faces, np.repeat(np.arange(E), V)
 
 
-def _nan_breaks(t: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-    if t.size < 2:
-        return xyz
-    dts = np.diff(t)
-    cut = np.flatnonzero(dts > 3 * np.median(dts)) + 1
-    return np.insert(xyz.astype(float), cut, np.nan, axis=0)
+def scene_box(points: np.ndarray, margin: float = SCENE_MARGIN,
+              min_height: float = SCENE_MIN_HEIGHT) -> tuple[np.ndarray, np.ndarray]:
+    """Axis ranges and aspect ratio of a 3D scene that holds every point, at one scale.
+
+    Parameters
+    ----------
+    points : ndarray, shape (N, 3)
+        m; rows with a NaN are ignored.
+    margin : float
+        Added on each side of each axis, as a fraction of the largest extent.
+    min_height : float
+        The z range is at least this fraction of the largest extent (a flat site keeps a
+        box of some height, at the same scale).
+
+    Returns
+    -------
+    ranges : ndarray, shape (3, 2)
+        ``[low, high]`` of x, y, z (m).
+    aspect : ndarray, shape (3,)
+        The ranges' lengths over the largest one (the largest is 1): one metre is as long
+        along every axis.
+    """
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if p.size == 0:
+        p = np.zeros((1, 3))
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    side = max(float(np.max(hi - lo)), 1.0)
+    half = (hi - lo) / 2 + margin * side
+    half[2] = max(half[2], min_height * side / 2)
+    centre = (lo + hi) / 2
+    ranges = np.column_stack([centre - half, centre + half])
+    return ranges, half / half.max()
 
 
 def _view3d(data: RunRecord, max_ellipsoids: int, scale: float | None):
     """The plotly div (with plotly.js inline), the number of ellipsoids and their scale."""
+    fig, n_ell, used_scale = view3d_figure(data, max_ellipsoids, scale)
+    if fig is None:
+        return None, 0, None
+    div = fig.to_html(
+        include_plotlyjs=True, full_html=False, div_id=VIEW3D_ID,
+        config={"displaylogo": False, "responsive": True},
+        default_height="720px",
+        post_script=("var gd=document.getElementById('{plot_id}');"
+                     "gd.setAttribute('data-rendered','1');"),
+    )
+    return div, n_ell, used_scale
+
+
+def view3d_figure(data: RunRecord, max_ellipsoids: int = 150, scale: float | None = None):
+    """The interactive 3D view of a run as a plotly figure (None without plotly).
+
+    Parameters
+    ----------
+    data : RunRecord
+    max_ellipsoids : int
+        95 % position ellipsoids drawn, at most (evenly spread over the kept poses).
+    scale : float, optional
+        Their magnification; default a round number making the median one ~1 % of the scene.
+
+    Returns
+    -------
+    fig : plotly.graph_objects.Figure or None
+        Its scene's axis ranges hold every point drawn (:func:`scene_box`).
+    n_ellipsoids : int
+    scale : float or None
+        The ellipsoids' magnification (None without ellipsoids).
+    """
     try:
         import plotly.graph_objects as go
     except ImportError:
@@ -577,7 +865,7 @@ def _view3d(data: RunRecord, max_ellipsoids: int, scale: float | None):
         everything.append(tr.xyz)
     n_ell, used_scale = 0, None
     if len(gt):
-        path = _nan_breaks(gt.t, gt.position)
+        path = break_gaps(gt.t, gt.position)
         lever = _body_origin_offset(data)
         traces.append(go.Scatter3d(x=path[:, 0], y=path[:, 1], z=path[:, 2], mode="lines",
                                    line=dict(color="black", width=4),
@@ -586,6 +874,9 @@ def _view3d(data: RunRecord, max_ellipsoids: int, scale: float | None):
                                        if lever >= 0.5 else ")")))
         everything.append(gt.position)
     everything += [p[None] for p in data.stations.values()]
+    shown = list(everything)  # everything drawn, which the scene's box holds
+    if data.gcp_xyz is not None and len(data.gcp_xyz):
+        shown.append(data.gcp_xyz)
     if data.stations:
         st = np.array(list(data.stations.values()))
         where = ("top right", "bottom left", "top left", "bottom right", "top center",
@@ -604,6 +895,7 @@ def _view3d(data: RunRecord, max_ellipsoids: int, scale: float | None):
     # rejected poses where the body origin was (the reference fitted onto the prisms), as in
     # the top view, one trace per gate
     pos_r, reason_r = _rejected_positions(data)
+    shown.append(pos_r)
     for reason in sorted(set(reason_r.tolist())):
         c = pos_r[reason_r == reason]
         traces.append(go.Scatter3d(x=c[:, 0], y=c[:, 1], z=c[:, 2], mode="markers",
@@ -623,6 +915,7 @@ def _view3d(data: RunRecord, max_ellipsoids: int, scale: float | None):
                 med = float(np.median(radius))
                 scale = _nice_scale(0.01 * extent / med) if med > 0 else 1.0
             verts, faces, which = ellipsoid_mesh(gt.position[sel], covs, scale)
+            shown.append(verts)
             sig_mm = np.sqrt(np.trace(covs, axis1=1, axis2=2)) * 1e3
             traces.append(go.Mesh3d(
                 x=verts[:, 0], y=verts[:, 1], z=verts[:, 2],
@@ -632,24 +925,24 @@ def _view3d(data: RunRecord, max_ellipsoids: int, scale: float | None):
                 name=f"95 % position ellipsoids x {scale:g}", showlegend=True,
                 hoverinfo="name"))
             n_ell, used_scale = int(sel.size), float(scale)
+    ranges, aspect = scene_box(np.concatenate(shown) if shown else np.zeros((1, 3)))
     fig = go.Figure(traces)
+    axis = dict(autorange=False)
     fig.update_layout(
-        # a camera a little farther than plotly's default, so that the whole site is in view
-        scene=dict(aspectmode="data", xaxis_title="x (m)", yaxis_title="y (m)",
-                   zaxis_title="z (m)", camera=dict(eye=dict(x=1.6, y=1.6, z=1.1))),
+        # the axes' ranges hold every point drawn, at one scale (plotly's aspectmode "data"
+        # would size the box to a volume of one, and cut a long, flat site off the view)
+        scene=dict(aspectmode="manual",
+                   aspectratio=dict(x=aspect[0], y=aspect[1], z=aspect[2]),
+                   xaxis=dict(axis, range=ranges[0].tolist(), title="x (m)"),
+                   yaxis=dict(axis, range=ranges[1].tolist(), title="y (m)"),
+                   zaxis=dict(axis, range=ranges[2].tolist(), title="z (m)"),
+                   camera=dict(eye=dict(zip("xyz", CAMERA_EYE, strict=True)))),
         margin=dict(l=0, r=0, t=30, b=0),
         legend=dict(x=0, y=1, bgcolor="rgba(255,255,255,.8)", itemsizing="constant"),
         title=dict(text=f"{data.name}: world frame; ellipsoids magnified {used_scale or 1:g} x",
                    font=dict(size=13)),
     )
-    div = fig.to_html(
-        include_plotlyjs=True, full_html=False, div_id=VIEW3D_ID,
-        config={"displaylogo": False, "responsive": True},
-        default_height="720px",
-        post_script=("var gd=document.getElementById('{plot_id}');"
-                     "gd.setAttribute('data-rendered','1');"),
-    )
-    return div, n_ell, used_scale
+    return fig, n_ell, used_scale
 
 
 def _kpis(data: RunRecord, a: Analysis) -> str:
@@ -679,7 +972,8 @@ def _kpis(data: RunRecord, a: Analysis) -> str:
 def render_report(data: RunRecord, analysis: Analysis, *,
                   figures: Mapping[str, DrawnFigure] | None = None,
                   figure_format: str = "svg", max_ellipsoids: int = 150,
-                  ellipsoid_scale: float | None = None) -> tuple[str, dict]:
+                  ellipsoid_scale: float | None = None,
+                  summary_href: str | None = None) -> tuple[str, dict]:
     """The report page as a string, and what it holds.
 
     Parameters
@@ -693,6 +987,9 @@ def render_report(data: RunRecord, analysis: Analysis, *,
         Ellipsoids in the 3D view, at most (evenly spread over the kept poses).
     ellipsoid_scale : float, optional
         Their magnification; default a round number making the median one ~1 % of the scene.
+    summary_href : str, optional
+        The link to the run's ``summary.json`` from the page (relative to the page's folder);
+        without it the page names the file without a link.
 
     Returns
     -------
@@ -712,11 +1009,13 @@ def render_report(data: RunRecord, analysis: Analysis, *,
                 "<code>pip install 'rtsgt[report]'</code>, then run <code>rtsgt report</code> "
                 "again.</p>")
     else:
-        view = (f"<p>Drag to rotate, scroll to zoom, double-click to reset. The ellipsoids are "
-                f"the 95 % regions (chi-square 3 dof) of the position covariance of {n_ell} "
-                f"poses spread evenly over the kept ones, <b>magnified {scale:g} times</b> "
-                f"about their centres so that they are visible at the scale of the site; "
-                f"their colour is sqrt(tr Σ) in mm.</p>{div}")
+        view = ("<p class='print-only'>The 3D view is interactive: open the HTML file in a "
+                "browser (the top view above shows the site from above).</p>"
+                "<p class='screen-only'>Drag to rotate, scroll to zoom, double-click to reset. "
+                "The ellipsoids are the 95 % regions (chi-square 3 dof) of the position "
+                f"covariance of {n_ell} poses spread evenly over the kept ones, <b>magnified "
+                f"{scale:g} times</b> about their centres so that they are visible at the scale "
+                f"of the site; their colour is sqrt(tr Σ) in mm.</p>{div}")
     fig_html = "".join(_figure_html(f, figure_format) for f in figs.values())
     body = f"""<main>
 <header><h1>{html.escape(title)}</h1>
@@ -724,7 +1023,7 @@ def render_report(data: RunRecord, analysis: Analysis, *,
 <nav><a href="#key">key numbers</a><a href="#checks">self-checks</a>
 <a href="#sources">noise sources</a>
 <a href="#pose">pose</a><a href="#figures">figures</a><a href="#view">3D view</a>
-<a href="#summary">summary.json</a></nav></header>
+<a href="#run">the run</a></nav></header>
 <section id="key"><h2>Key numbers</h2>{_kpis(data, analysis)}</section>
 <section id="checks"><h2>Self-checks: what the data say about the uncertainty</h2>
 {_self_checks_html(data.self_checks)}{_correlated_noise_html(data.correlated_noise)}</section>
@@ -733,7 +1032,8 @@ def render_report(data: RunRecord, analysis: Analysis, *,
 <section id="pose"><h2>Pose uncertainty per noise source</h2>{_pose_table(analysis)}</section>
 <section id="figures"><h2>Figures</h2>{fig_html}</section>
 <section id="view"><h2>Interactive 3D view</h2>{view}</section>
-<section id="summary"><h2>summary.json</h2>{_summary_tables(data.summary)}</section>
+<section id="run"><h2>The run: inputs, options, timings</h2>
+{_run_html(data.summary, summary_href)}</section>
 <footer><p><small>Method: {html.escape(PAPER_CITATION)}.</small></p></footer>
 </main>"""
     page = (f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
@@ -745,6 +1045,16 @@ def render_report(data: RunRecord, analysis: Analysis, *,
     return page, info
 
 
+def _relative_href(target: Path, folder: Path) -> str:
+    """A URL path to ``target`` relative to ``folder`` (a ``file:`` URI when there is none,
+    e.g. another drive)."""
+    try:
+        rel = Path(os.path.relpath(target.resolve(), folder.resolve()))
+    except ValueError:
+        return target.resolve().as_uri()
+    return urllib.parse.quote(rel.as_posix())
+
+
 def is_report_html(head: str) -> bool:
     """Whether a file's first characters are those of an rtsgt report page."""
     return head.startswith("<!DOCTYPE html>") and "<title>rtsgt report: " in head
@@ -754,14 +1064,17 @@ def write_report_file(data: RunRecord, analysis: Analysis, path: str | PathLike,
                       **kwargs) -> ReportInfo:
     """Write the report of ``data`` and ``analysis`` to ``path`` (atomically).
 
-    Keyword arguments as :func:`render_report`.
+    Keyword arguments as :func:`render_report`; ``summary_href`` defaults to the path of
+    ``data.path / "summary.json"`` relative to the page's folder.
     """
 
+    p = Path(path)
+    if "summary_href" not in kwargs and data.path is not None:
+        kwargs["summary_href"] = _relative_href(Path(data.path) / "summary.json", p.parent)
     page, info = render_report(data, analysis, **kwargs)
     if not info["view3d"]:
         warnings.warn("plotly is not installed: the report has no interactive 3D view "
                       "(pip install 'rtsgt[report]')", RtsgtWarning, stacklevel=2)
-    p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(p, page)
     return ReportInfo(p, p.stat().st_size, tuple(info["figures"]), bool(info["view3d"]),
@@ -799,4 +1112,7 @@ def write_report(run_dir: str | PathLike, out: str | PathLike | None = None, *,
     analysis = analyze(data, bins=bins, engine=engine, samples=samples,
                        pose_measure=pose_measure)
     path = Path(run_dir) / "report.html" if out is None else Path(out)
+    # the link to summary.json from where the page is, before the run directory is renamed
+    kwargs.setdefault("summary_href", _relative_href(Path(run_dir) / "summary.json",
+                                                     path.parent))
     return write_report_file(data, analysis, path, **kwargs).path
