@@ -184,6 +184,11 @@ def test_the_run_says_what_its_self_checks_found_on_the_real_excerpt(tmp_path):
     assert any(w.startswith("self-check, static stretches: prism 1") for w in doc["warnings"])
     # the report's self-check section: the same verdicts
     page = next(out.glob("*.html")).read_text(encoding="utf-8")
+    # the run's verdict heads the report, with every finding (the terminal names two)
+    verdict = page[page.index("<section id='verdict'>"):]
+    verdict = verdict[:verdict.index("</section>")]
+    assert "<h2>Verdict: usable, with caveats</h2>" in verdict
+    assert verdict.count("<li>") == len(doc["verdict"]["findings"]) == 5
     section = page[page.index("<section id=\"checks\">"):]
     section = section[:section.index("</section>")]
     gcp_table = section[section.index("<table id='check-gcp'>"):]

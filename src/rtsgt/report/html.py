@@ -40,6 +40,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 
 from rtsgt import __version__
 from rtsgt.calibration.gcp import CALIBRATION_MODEL_NAMES, CALIBRATION_WEIGHTING_NAMES
+from rtsgt.checks.verdict import record_verdict
 from rtsgt.errors import RtsgtWarning
 from rtsgt.io._parse import atomic_write_text
 from rtsgt.io.run_dir import read_run
@@ -1020,10 +1021,11 @@ def render_report(data: RunRecord, analysis: Analysis, *,
     body = f"""<main>
 <header><h1>{html.escape(title)}</h1>
 <p>Generated {now} by rtsgt {html.escape(__version__)}{where}.</p>
-<nav><a href="#key">key numbers</a><a href="#checks">self-checks</a>
+<nav><a href="#verdict">verdict</a><a href="#key">key numbers</a><a href="#checks">self-checks</a>
 <a href="#sources">noise sources</a>
 <a href="#pose">pose</a><a href="#figures">figures</a><a href="#view">3D view</a>
 <a href="#run">the run</a></nav></header>
+{_verdict_html(data)}
 <section id="key"><h2>Key numbers</h2>{_kpis(data, analysis)}</section>
 <section id="checks"><h2>Self-checks: what the data say about the uncertainty</h2>
 {_self_checks_html(data.self_checks)}{_correlated_noise_html(data.correlated_noise)}</section>
@@ -1043,6 +1045,17 @@ def render_report(data: RunRecord, analysis: Analysis, *,
     info = {"figures": tuple(figs), "view3d": div is not None, "n_ellipsoids": n_ell,
             "ellipsoid_scale": scale}
     return page, info
+
+
+def _verdict_html(data: RunRecord) -> str:
+    """The run's verdict (:mod:`rtsgt.checks.verdict`) with every finding, worst first."""
+    v = record_verdict(data)
+    words = {2: "not usable as is", 1: "caveat", 0: "note"}
+    items = "".join(f"<li><b>{words[f.severity]}</b> ({html.escape(f.check)}): "
+                    f"{html.escape(f.text)}</li>" for f in v.findings)
+    return (f"<section id='verdict'><h2>Verdict: {html.escape(v.level)}</h2>"
+            + (f"<ul>{items}</ul>" if items else "<p>Every self-check passed.</p>")
+            + "</section>")
 
 
 def _relative_href(target: Path, folder: Path) -> str:
