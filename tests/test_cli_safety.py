@@ -189,7 +189,7 @@ def test_bad_rate_in_the_configuration_names_the_file(rate, deployment, tmp_path
     (["evaluate", "{run}", "{run}/groundtruth.tum", "--max-gap", "-1"], "--max-gap"),
     (["run", "{cfg}", "-o", "{out}", "--samples", "abc"], "--samples"),
     (["run", "{cfg}", "-o", "{out}", "--no-such-option"], "--no-such-option"),
-    (["interpolate"], "Missing argument 'track'"),
+    (["interpolate"], "Missing argument 'TRACK'"),  # the word its --help shows
 ])
 def test_usage_errors_exit_2_with_one_line_and_write_nothing(args, option, deployment, run_dir,
                                                              tmp_path):

@@ -114,17 +114,27 @@ def register(app: typer.Typer) -> None:
             help="Size of a 3x3 pose covariance block: sqrt_trace or max_std "
                  "(sqrt of the largest eigenvalue)."),
         no_figures: bool = typer.Option(False, "--no-figures", help="Write no figures."),
-        formats: str = typer.Option("png,svg", "--formats", help="Figure formats."),
+        figure_format: str = typer.Option(
+            "png,svg", "--figure-format", metavar="FORMATS",
+            help="Figure formats, comma separated: png, svg, pdf."),
+        old_formats: str = typer.Option(None, "--formats", hidden=True,
+                                        help="The old spelling of --figure-format."),
         force: bool = typer.Option(False, "--force",
                                    help="Replace an earlier output of rtsgt at --out (never a "
                                         "directory holding anything else)."),
     ) -> None:
         """Per-source noise analysis of a run, next to the paper's medians, with figures."""
-        fmts = tuple(f.strip().lower() for f in formats.split(",") if f.strip())
+        option = "--figure-format"
+        if old_formats is not None:  # the spelling of earlier versions, kept for scripts
+            if figure_format != "png,svg":
+                raise typer.BadParameter("give --figure-format only (--formats is its old "
+                                         "spelling)", param_hint="--formats")
+            figure_format, option = old_formats, "--formats"
+        fmts = tuple(f.strip().lower() for f in figure_format.split(",") if f.strip())
         bad = [f for f in fmts if f not in ("png", "svg", "pdf")]
         if bad or not fmts:
-            raise typer.BadParameter(f"expected png, svg or pdf, got {formats!r}",
-                                     param_hint="--formats")
+            raise typer.BadParameter(f"expected png, svg or pdf, got {figure_format!r}",
+                                     param_hint=option)
         analysis, written = run_analyze(run_dir, bins=bins, out=out, engine=engine,
                                         samples=samples, pose_measure=pose_measure,
                                         figures=not no_figures, formats=fmts, force=force)
@@ -150,8 +160,8 @@ def register(app: typer.Typer) -> None:
         engine: str = typer.Option(None, "--engine", help=_ENGINE_HELP),
         samples: int = typer.Option(None, "--samples", min=10,
                                     help="Monte Carlo samples (default: the run's)."),
-        figure_format: str = typer.Option("svg", "--figure-format",
-                                          help="Embedded figures: svg or png."),
+        figure_format: str = typer.Option("svg", "--figure-format", metavar="FORMAT",
+                                          help="Format of the embedded figures: svg or png."),
     ) -> None:
         """Write a single self-contained HTML report of a run (opens offline)."""
 

@@ -11,6 +11,7 @@ a traceback, and after the interrupt's line the process writes nothing more on s
 
 from __future__ import annotations
 
+import atexit
 import os
 import signal
 import sys
@@ -28,16 +29,22 @@ def _ignore_interrupts() -> None:
         pass
 
 
-def _nothing_more() -> None:
-    """After the interrupt's line, nothing more on this process's stderr: what library code
-    still says while the interpreter shuts down (e.g. Dask closing a cluster whose start was
-    interrupted) is noise."""
-    _ignore_interrupts()
+def _silence_stderr() -> None:
+    """Nothing more on this process's stderr (file descriptor 2)."""
     try:
         sys.stderr.flush()
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stderr.fileno())
     except (OSError, ValueError):  # stderr closed already
         pass
+
+
+def _nothing_more() -> None:
+    """After the interrupt's line: no further interrupt, and, once the interpreter shuts down,
+    nothing more on stderr (what library code says then, e.g. Dask closing a cluster whose
+    start was interrupted, is noise). A caller of :func:`main` in its own process keeps its
+    stderr until it exits."""
+    _ignore_interrupts()
+    atexit.register(_silence_stderr)
 
 
 def interrupted() -> int:
@@ -72,5 +79,7 @@ def main() -> None:
             _nothing_more()
     except KeyboardInterrupt:
         status = interrupted()
-    _ignore_interrupts()
+    # Ctrl-C while the interpreter shuts down: ignored (registered last, this runs first of
+    # the exit handlers); a caller of main() in its own process keeps its handler till then
+    atexit.register(_ignore_interrupts)
     sys.exit(status)

@@ -203,7 +203,7 @@ def register(app: typer.Typer) -> None:
                  "better).",
         ),
         out: Path | None = typer.Option(
-            None, "--out", help="Output CSV (default: standard output)."
+            None, "--out", "-o", help="Output CSV (default: standard output)."
         ),
     ) -> None:
         """Interpolate a prism track (exact GP, WNOA or WNOJ prior) at query times, with

@@ -19,6 +19,11 @@ Exit status and messages (one rule for every command):
 
 Every error is one line on stderr, ``error: ...``, naming the file, line, option or value;
 never a traceback.
+
+Help texts follow one style in every command (:class:`_Command`): the value of an argument or
+option is an upper-case word, the one its declaration gives (``FOLDER``, ``CONFIG``,
+``RUN_DIR``, ``DEPLOYMENTS...``) or else its type in words (``PATH``, ``INTEGER``, ``NUMBER``,
+``TEXT``); an output is ``-o, --out``; the figure formats are ``--figure-format``.
 """
 
 from __future__ import annotations
@@ -27,10 +32,10 @@ import os
 import sys
 import warnings
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, get_args, get_origin
 
 import typer
-from typer.core import TyperGroup
+from typer.core import TyperCommand, TyperGroup
 
 from rtsgt import __version__
 from rtsgt.cli import (
@@ -115,6 +120,63 @@ class _Group(TyperGroup):
         return rv if isinstance(rv, int) and not isinstance(rv, bool) else 0
 
 
+#: The word for the value of an option or argument whose declaration names none, by type.
+TYPE_WORDS = {"Path": "PATH", "int": "INTEGER", "float": "NUMBER", "str": "TEXT"}
+
+
+def _type_word(param) -> str:
+    """The upper-case word for the values of a typer parameter, from its annotation."""
+    annotation = param.type_descriptor.annotation
+    if get_origin(annotation) in (list, tuple) and get_args(annotation):
+        annotation = get_args(annotation)[0]
+    return TYPE_WORDS.get(getattr(annotation, "__name__", ""), "VALUE")
+
+
+class _Command(TyperCommand):
+    """typer's command with rtsgt's style of help (module docstring): typer would write
+    ``{config}`` and ``config <path>`` for an argument, ``--engine <str>`` for an option."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        for param in self.params:
+            if param.metavar is not None:
+                continue
+            if param.param_type_name == "argument":
+                param.metavar = param.name.upper()
+            elif not (getattr(param, "is_flag", False) or getattr(param, "count", False)):
+                param.metavar = _type_word(param)
+
+    @staticmethod
+    def _argument_name(param) -> str:
+        name = param.metavar
+        return name + "..." if param.nargs != 1 and not name.endswith("...") else name
+
+    def collect_usage_pieces(self, ctx) -> list[str]:
+        pieces = [self.options_metavar] if self.options_metavar else []
+        for param in self.get_params(ctx):
+            if param.param_type_name == "argument":
+                name = self._argument_name(param)
+                pieces.append(name if param.required else f"[{name}]")
+            else:
+                pieces.extend(param.get_usage_pieces(ctx))
+        return pieces
+
+    def format_options(self, ctx, formatter) -> None:
+        arguments, options = [], []
+        for param in self.get_params(ctx):
+            record = param.get_help_record(ctx)
+            if record is None:
+                continue
+            if param.param_type_name == "argument":
+                arguments.append((self._argument_name(param), record[1]))
+            else:
+                options.append(record)
+        for title, rows in (("Arguments", arguments), ("Options", options)):
+            if rows:
+                with formatter.section(title):
+                    formatter.write_dl(rows)
+
+
 app = typer.Typer(
     name="rtsgt",
     cls=_Group,
@@ -142,6 +204,9 @@ def _main(
 for _command in (init, calibrate, interpolate, simulate, run, batch, demo, evaluate, analyze,
                  plan):
     _command.register(app)
+for _info in app.registered_commands:  # every command in rtsgt's style of help
+    if _info.cls in (None, TyperCommand):
+        _info.cls = _Command
 
 
 def main() -> None:  # pragma: no cover - console entry point
