@@ -16,6 +16,7 @@ import typer
 from rtsgt.errors import InputError
 from rtsgt.io._parse import atomic_write_text
 from rtsgt.io.config import load_config
+from rtsgt.io.deployment import DEPLOYMENT_TOML
 from rtsgt.io.output_dir import check_output_file
 from rtsgt.io.project_folder import (
     MEASUREMENT_CHOICES,
@@ -38,7 +39,7 @@ def run_init(folder: Path, *, out: Path | None = None, force: bool = False,
         The TOML exists (without ``force``, or not written by ``rtsgt init``), a required
         input is missing (each listed first, one line each), or an input cannot be read.
     """
-    toml = Path(folder) / "deployment.toml" if out is None else Path(out)
+    toml = Path(folder) / DEPLOYMENT_TOML if out is None else Path(out)
     if toml.exists() and not force:
         raise InputError("exists; use --force to replace a TOML that rtsgt init wrote, or give "
                          "another file with --out", toml)
