@@ -73,6 +73,7 @@ from pathlib import Path
 from rtsgt.cli.run import run_deployment
 from rtsgt.errors import InputError, RtsgtError
 from rtsgt.io.config import load_config
+from rtsgt.io.deployment import DEPLOYMENT_TOML
 from rtsgt.io.output_dir import MANIFEST, complete_output, output_kind
 from rtsgt.io.run_dir import read_summary
 
@@ -83,8 +84,6 @@ STATUSES = ("done", "skipped", "failed")
 MEMORY_PER_WORKER = 2 * 1024**3
 #: Dask's configuration of the environment its nanny gives each worker process.
 NANNY_ENVIRON = "distributed.nanny.pre-spawn-environ"
-#: The name of a deployment folder's configuration.
-DEPLOYMENT_TOML = "deployment.toml"
 
 
 @dataclass(frozen=True)

@@ -10,8 +10,8 @@ from pathlib import Path
 import typer
 from rich import box
 from rich.console import Console
-from rich.table import Table
 
+from rtsgt.cli.tables import TextTable
 from rtsgt.io.output_dir import OutputDir, check_output_file, record_files
 from rtsgt.io.run_dir import read_run
 from rtsgt.report.analysis import PAPER_CITATION, Analysis, analyze
@@ -33,37 +33,29 @@ def print_analysis(analysis: Analysis, console: Console | None = None) -> None:
     """The per-source medians next to the paper's, and the pose uncertainty per source."""
     console = console or Console()
     a = analysis
-    table = Table(title=f"{a.name}: prism covariance, median sqrt(||Sigma||_F) (mm)",
-                  box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True,
-                  caption="range bins: " + ", ".join(
-                      f"{lab} n={c} ({100 * sh:.0f} %)"
-                      for lab, c, sh in zip(a.bin_labels, a.bin_counts, a.bin_shares,
-                                            strict=True)) + f"; {a.n_measurements} measurements")
-    table.add_column("source", no_wrap=True)
-    table.add_column("all", justify="right", no_wrap=True)
-    table.add_column("paper", justify="right", style="italic", no_wrap=True)
-    for lab in a.bin_labels:
-        table.add_column(lab.replace(" m", "m").replace("> ", ">"), justify="right",
-                         no_wrap=True)
-        table.add_column("paper", justify="right", style="italic", no_wrap=True, min_width=5)
+    bins = [lab.replace(" m", "m").replace("> ", ">") for lab in a.bin_labels]
+    table = TextTable(f"{a.name}: prism covariance, median sqrt(||Sigma||_F) (mm)",
+                      ("source", "all", "paper", *[c for lab in bins for c in (lab, "paper")]),
+                      box=box.SIMPLE_HEAD,
+                      caption="range bins: " + ", ".join(
+                          f"{lab} n={c} ({100 * sh:.0f} %)"
+                          for lab, c, sh in zip(a.bin_labels, a.bin_counts, a.bin_shares,
+                                                strict=True)) + f"; {a.n_measurements} measurements")
     for r in a.table_rows():
         cells = [r["source"], _mm(r["median_mm"]), _mm(r["paper_median_mm"])]
         for b in r["bins"]:
             cells += [_mm(b["median_mm"]), _mm(b["paper_median_mm"])]
-        table.add_row(*cells, style="bold" if r["source"] == "all" else None)
-    console.print(table)
+        table.add_row(*(f"[bold]{c}[/bold]" if r["source"] == "all" else c for c in cells))
+    table.print(console)
     console.print(f"[dim]paper: {PAPER_CITATION}[/dim]")
     measure = "sqrt(trace)" if a.pose_measure == "sqrt_trace" else "sqrt(largest eigenvalue)"
-    pose = Table(title=f"pose uncertainty per source, median of {a.pose_t.size} poses",
-                 caption=f"{a.engine} engine; {measure} of each 3x3 block",
-                 box=box.SIMPLE_HEAD)
-    pose.add_column("source", no_wrap=True)
-    pose.add_column("translation (mm)", justify="right")
-    pose.add_column("rotation (mrad)", justify="right")
+    pose = TextTable(f"pose uncertainty per source, median of {a.pose_t.size} poses",
+                     ("source", "translation (mm)", "rotation (mrad)"), box=box.SIMPLE_HEAD,
+                     caption=f"{a.engine} engine; {measure} of each 3x3 block")
     for r in a.pose_rows():
-        pose.add_row(r["source"], _mm(r["translation_mm"]),
-                     _mm(r["rotation_mrad"]), style="bold" if r["source"] == "all" else None)
-    console.print(pose)
+        cells = (r["source"], _mm(r["translation_mm"]), _mm(r["rotation_mrad"]))
+        pose.add_row(*(f"[bold]{c}[/bold]" if r["source"] == "all" else c for c in cells))
+    pose.print(console)
 
 
 def run_analyze(run_dir: Path, *, bins: str = "0,75,150", out: Path | None = None,

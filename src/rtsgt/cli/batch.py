@@ -33,12 +33,12 @@ from rich.progress import (
     TimeElapsedColumn,
     TimeRemainingColumn,
 )
-from rich.table import Table
 
 from rtsgt.batch import Outcome, dask_client, default_workers, find_deployments, make_tasks
 from rtsgt.batch import run_batch as run_tasks
 from rtsgt.cli.common import usage_error
 from rtsgt.cli.run import option_overrides
+from rtsgt.cli.tables import TextTable
 from rtsgt.errors import InputError
 from rtsgt.io.batch_summary import CHECK_COLUMNS, batch_row, write_batch_csv
 from rtsgt.io.output_dir import open_output_folder, record_files
@@ -176,12 +176,12 @@ def dask_setup(worker) -> None:
 
 
 def _print_table(rows: list[dict], folder: Path, info: dict) -> None:
-    table = Table(title=f"rtsgt batch: {len(rows)} deployments, {info['run now']} run now, "
-                        f"{info['skipped (complete)']} complete already, {info['failed']} "
-                        f"failed ({info['ran']}, {info['wall time']})")
-    for col in ("deployment", "status", "poses kept / queried", "sigma mm", "sigma mrad",
-                "checks failed", "warnings"):
-        table.add_column(col, justify="left" if col in ("deployment", "status") else "right")
+    table = TextTable(f"rtsgt batch: {len(rows)} deployments, {info['run now']} run now, "
+                      f"{info['skipped (complete)']} complete already, {info['failed']} "
+                      f"failed ({info['ran']}, {info['wall time']})",
+                      ("deployment", "status", "poses kept / queried", "sigma mm",
+                       "sigma mrad", "checks failed", "warnings"),
+                      right=(False, False, True, True, True, True, True))
     for r in rows:
         # the self-checks with a pessimistic or optimistic part, of those that tested any
         failing = sum(any(v in str(r[c]) for v in VERDICTS[1:]) for c in CHECK_COLUMNS)
@@ -192,7 +192,7 @@ def _print_table(rows: list[dict], folder: Path, info: dict) -> None:
             _fmt(r["median_sigma_translation_mm"], 2), _fmt(r["median_sigma_rotation_mrad"], 3),
             f"{failing} of {tested}" if tested else "", str(r["warnings"]))
     console = Console()
-    console.print(table)
+    table.print(console)
     console.print(f"summary: {folder / SUMMARY_CSV}, {folder / SUMMARY_HTML}", highlight=False)
 
 

@@ -27,7 +27,6 @@ from pathlib import Path
 import numpy as np
 import typer
 from rich.console import Console
-from rich.table import Table
 
 from rtsgt.calibration import CalibrationResult, calibrate
 from rtsgt.calibration.gcp import (
@@ -37,6 +36,7 @@ from rtsgt.calibration.gcp import (
     DEFAULT_WEIGHTING,
 )
 from rtsgt.checks.calibration import dynamic_calibration_check, gcp_fit_check
+from rtsgt.cli.tables import TextTable
 from rtsgt.errors import InputError
 from rtsgt.filtering import module1
 from rtsgt.io._parse import atomic_write_text
@@ -112,12 +112,9 @@ def result_to_json(result: CalibrationResult, **extra) -> dict:
 
 def _print_table(result: CalibrationResult, source: str, console: Console,
                  dynamic: dict | None = None, gcp_fit: dict | None = None) -> None:
-    table = Table(title=f"T_world_station, world = station {result.reference_station} ({source})")
-    for name, justify in (
-        ("station", "left"), ("markers", "right"), ("yaw (deg)", "right"), ("axis", "center"),
-        ("t (m)", "right"), ("1σ t (mm)", "right"), ("1σ rot (mrad)", "right"),
-    ):
-        table.add_column(name, justify=justify)
+    table = TextTable(f"T_world_station, world = station {result.reference_station} ({source})",
+                      ("station", "markers", "yaw (deg)", "axis", "t (m)", "1σ t (mm)",
+                       "1σ rot (mrad)"), right=(False, True, True, False, True, True, True))
     for s, T in result.transforms.items():
         sig = None if T.covariance is None else np.sqrt(np.diag(T.covariance))
         for k, axis in enumerate("xyz"):
@@ -133,7 +130,7 @@ def _print_table(result: CalibrationResult, source: str, console: Console,
                 "-" if sig is None else f"{sig[3 + k] * _RAD_TO_MRAD:.3g}",
             )
         table.add_section()
-    console.print(table)
+    table.print(console)
     res = result.residuals
     if len(res):
         worst = int(np.argmax(res.distance_m))

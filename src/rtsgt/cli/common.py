@@ -100,11 +100,16 @@ def warning_groups(messages: list[str]) -> list[tuple[str, list[str]]]:
     return out
 
 
-def print_warnings(caught, where: str) -> None:
+def print_warnings(caught, where) -> None:
     """The collected warnings (:func:`collected_warnings`) on stderr, one short line per group
-    (:func:`warning_groups`), and where their whole text is (``where``)."""
+    (:func:`warning_groups`), and where their whole text is (``where``, a run's summary.json);
+    each whole where there is no such file (``where`` None: the command failed)."""
     messages = [" ".join(str(w.message).split()) for w in caught]
     if not messages:
+        return
+    if where is None:
+        for message in messages:
+            echo_err(f"warning: {message}")
         return
     for text, subjects in warning_groups(messages):
         named = [s for s in subjects if s]

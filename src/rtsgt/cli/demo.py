@@ -190,8 +190,7 @@ def register(app: typer.Typer) -> None:
                     force=force, quiet=quiet, report=report, registration=registration)
             finally:
                 if not quiet:
-                    print_warnings(caught, "summary.json of the run" if run_dir is None else
-                                   str(run_dir / "summary.json"))
+                    print_warnings(caught, None if run_dir is None else run_dir / "summary.json")
         if not quiet:
             print_demo_table(result, comparison, run_dir)
         typer.echo(demo_verdict(comparison))

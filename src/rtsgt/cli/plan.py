@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import typer
 from rich.console import Console
-from rich.table import Table
 
+from rtsgt.cli.tables import TextTable
 from rtsgt.errors import RtsgtWarning
 from rtsgt.geometry.so3 import quat_xyzw_to_matrix
 from rtsgt.io.deployment import resolve_config
@@ -129,10 +129,8 @@ def write_plan(results: list[PlanResult], out: Path, *, inputs: list[Path],
 
 def print_plan_summary(results: list[PlanResult], out: Path) -> None:
     """A short table of the prediction and the advice, one column per plan."""
-    table = Table(title="rtsgt plan", show_header=len(results) > 1)
-    table.add_column("")
-    for res in results:
-        table.add_column(res.name)
+    table = TextTable("rtsgt plan", ("", *[res.name for res in results]),
+                      header=len(results) > 1, right=(False,) * (len(results) + 1))
     sums = [r.summary() for r in results]
 
     def row(label, fn):
@@ -158,7 +156,7 @@ def print_plan_summary(results: list[PlanResult], out: Path) -> None:
         f"{k}: {v}" for k, v in s["advice"]["gcp_markers"]["per_station"].items())
         + f": {s['advice']['gcp_markers']['verdict']}")
     table.add_row("output", str(out), *[""] * (len(results) - 1))
-    Console().print(table)
+    table.print(Console())
 
 
 def register(app: typer.Typer) -> None:

@@ -17,7 +17,7 @@ from rtsgt.cli.common import (
     print_warnings,
 )
 from rtsgt.errors import RtsgtWarning
-from rtsgt.io.deployment import load_deployment
+from rtsgt.io.deployment import load_deployment, resolve_config
 from rtsgt.io.output_dir import check_target
 from rtsgt.io.run_dir import write_run
 from rtsgt.options import RunOptions
@@ -60,6 +60,7 @@ def run_deployment(
     configuration's absolute path) is what ``summary.json`` records as the run's inputs.
     """
 
+    config = resolve_config(config)
     changes = option_overrides(engine=engine, registration=registration, samples=samples,
                                rate_hz=rate, prior=prior, correlated_noise=correlated_noise)
     check_target(out, force=force, inputs=[config])
@@ -128,8 +129,7 @@ def register(app: typer.Typer) -> None:
                     prior=prior, correlated_noise=correlated_noise)
             finally:
                 if not quiet:
-                    print_warnings(caught, "summary.json of the run" if final is None else
-                                   str(final / "summary.json"))
+                    print_warnings(caught, None if final is None else final / "summary.json")
         shown = final / "report.html"
         if not quiet:
             print_run_summary(result, final)

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import typer
 from rich.console import Console
-from rich.table import Table
 
 from rtsgt.cli.common import usage_error
+from rtsgt.cli.tables import TextTable
 from rtsgt.io.output_dir import check_target
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 from rtsgt.simulation.reality import REALITY_EFFECTS, RealityEffects
@@ -44,10 +44,8 @@ def run_simulate(
 
 def _print_summary(sim, toml: Path, console: Console) -> None:
     out = toml.parent
-    table = Table(title=f"simulated deployment written to {out}")
-    table.add_column("file")
-    table.add_column("content")
-    table.add_column("size", justify="right")
+    table = TextTable(f"simulated deployment written to {out}", ("file", "content", "size"),
+                      right=(False, False, True))
 
     def size(name: str) -> str:
         n = (out / name).stat().st_size
@@ -78,7 +76,7 @@ def _print_summary(sim, toml: Path, console: Console) -> None:
     table.add_row("truth.json", "stations, clock offsets, reference points, config",
                   size("truth.json"))
     table.add_row("deployment.toml", "configuration for `rtsgt run`", size("deployment.toml"))
-    console.print(table)
+    table.print(console)
     console.print(f"next: rtsgt run {toml}")
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import textwrap
 from dataclasses import dataclass, field
 
+from rich.box import Box
 from rich.console import Console
 from rich.table import Table
 from rich.text import Text
@@ -42,12 +43,18 @@ class TextTable:
         Show the headings (a key-value table has none).
     right : tuple of bool
         Right-justify the column (numbers); default: every column but the first.
+    caption : str
+        A line under the table.
+    box : rich.box.Box, optional
+        rich's box of the table (default: rich's).
     """
 
     title: str
     columns: tuple[str, ...]
     header: bool = True
     right: tuple[bool, ...] | None = None
+    caption: str = ""
+    box: Box | None = None
     rows: list[tuple[str, ...]] = field(default_factory=list)
     _sections: set[int] = field(default_factory=set)
 
@@ -89,7 +96,8 @@ class TextTable:
 
     def _rich(self, width: int) -> Table:
         right = self.right or (False, *([True] * (len(self.columns) - 1)))
-        table = Table(title=self.title, show_header=self.header)
+        table = Table(title=self.title, show_header=self.header, caption=self.caption or None,
+                      **({} if self.box is None else {"box": self.box}))
         words, full = self._widths(_longest_word), self._widths(len)
         # wrap the first column (the rows' names) alone where the others fit whole
         whole = sum(full[1:]) + words[0] + 3 * len(full) + 1 <= width
@@ -125,4 +133,6 @@ class TextTable:
             for name, value in zip(self.columns[1:], cells[1:], strict=True):
                 if value:
                     out += wrap(f"{name}: {value}" if name else value, "    ")
+        if self.caption:
+            out += wrap(self.caption, "")
         return out
