@@ -125,11 +125,14 @@ def test_warnings_are_grouped_by_check():
         "self-check, GCP fit of station 2: variance factor 27.54 outside [0.56, 1.57]",
         "self-check, GCP fit of station 3: variance factor 85.03 outside [0.56, 1.57]",
         "weather.csv: the weather record covers 80 % of the measurements; " + "x" * 200,
+        "weather b.csv: 440 of 440 measurement times lie far (records 08:00 to 12:00 UTC; "
+        "measurements 15:00 to 15:01 UTC, up to 3.0 h after the last record): " + "y" * 100,
     ]
     groups = warning_groups(messages)
     assert groups[0] == ("self-check, static stretches", ["prism 1", "prism 2"])
     assert groups[1] == ("self-check, GCP fit", ["station 2", "station 3"])
     assert groups[2] == ("weather.csv: the weather record covers 80 % of the measurements", [])
+    assert groups[3] == (messages[-1], [])  # no clause ends outside the parentheses: whole
 
 
 @pytest.fixture(scope="module")

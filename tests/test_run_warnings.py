@@ -82,8 +82,7 @@ def test_weather_ending_hours_before_the_run_warns_through_the_cli(tmp_path):
     cfg = _deployment(tmp_path, 3, 60.0)
     stale = _stale_weather(cfg, 3.0)
     out = tmp_path / "run"
-    res = runner.invoke(app, ["run", str(cfg), "-o", str(out), "--engine", "linear",
-                              "--quiet"])
+    res = runner.invoke(app, ["run", str(cfg), "-o", str(out), "--engine", "linear"])
     assert res.exit_code == 0, res.output
     summary = json.loads((out / "summary.json").read_text())
     w = summary["weather"]
@@ -96,6 +95,7 @@ def test_weather_ending_hours_before_the_run_warns_through_the_cli(tmp_path):
     assert len(said) == 1
     assert str(cfg.parent / "weather.csv") in said[0] and "3.0 h after the last record" in said[0]
     assert res.stderr.count("warning: weather") == 1
+    assert "3.0 h after the last record" in res.stderr
 
 
 def test_weather_a_few_minutes_past_the_last_hourly_record_is_covered(tmp_path):

@@ -74,7 +74,8 @@ def warning_groups(messages: list[str]) -> list[tuple[str, list[str]]]:
     follows ``of``, ``over`` or ``for`` names the group ("self-check, GCP fit of station 2"
     -> "self-check, GCP fit"), and what was cut, or else the details' first part, names the
     warning's subject within it ("station 2"; "prism 1"). A group of one warning is the
-    warning itself, shortened to its first clause when longer than :data:`SHORT_WARNING`.
+    warning itself, shortened to its first clause (outside parentheses) when longer than
+    :data:`SHORT_WARNING`.
     """
     groups: dict[str, list[tuple[str, str]]] = {}
     for message in messages:
@@ -92,12 +93,21 @@ def warning_groups(messages: list[str]) -> list[tuple[str, list[str]]]:
         if len(items) == 1:
             message = items[0][0]
             if len(message) > SHORT_WARNING:
-                first = message.split("; ")[0]
-                message = first if len(first) < len(message) else message
+                message = _first_clause(message)
             out.append((message, []))
         else:
             out.append((key, [subject for _, subject in items]))
     return out
+
+
+def _first_clause(message: str) -> str:
+    """``message`` up to its first ``"; "`` outside parentheses and brackets (whole if none)."""
+    depth = 0
+    for i, ch in enumerate(message):
+        depth += (ch in "([") - (ch in ")]")
+        if depth == 0 and message.startswith("; ", i):
+            return message[:i]
+    return message
 
 
 def print_warnings(caught, where) -> None:
