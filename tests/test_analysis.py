@@ -416,9 +416,17 @@ def test_pipeline_run_in_memory_equals_run_directory(pipeline_run):
     """The per-source covariances of a real run (rank-deficient sources included) go through
     the pose engine, and reading the directory gives the analysis of the in-memory run."""
     _, result, run_dir = pipeline_run
-    mem = analyze(result)
-    disk = analyze_dir(run_dir)
+    mem = analyze(result, engine="mc")
+    disk = analyze_dir(run_dir, engine="mc")
     assert mem.engine == disk.engine == "mc" and mem.samples == 200
+    # the default split is the first-order one, and agrees with the Monte Carlo split to its
+    # noise (M = 200: about 5 % of a sigma per pose, less for a median over the poses)
+    first = analyze(result)
+    assert first.engine == "linear" and first.samples is None
+    for s in first.pose_sources:
+        for a, b in ((first.pose_median_translation_mm, mem.pose_median_translation_mm),
+                     (first.pose_median_rotation_mrad, mem.pose_median_rotation_mrad)):
+            assert abs(a[s] / b[s] - 1) < 0.1, (s, a[s], b[s])
     assert mem.sources == disk.sources == NOISE_SOURCES + (ALL,)
     assert mem.n_measurements == sum(len(tr) for tr in result.computation.tracks.values())
     for s in mem.sources:
