@@ -17,7 +17,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rtsgt.filtering.gates import distance_outliers, in_windows, outlier_windows
+from rtsgt.filtering.gates import (
+    distance_outliers,
+    in_windows,
+    outlier_windows,
+    prism_distances,
+)
 from rtsgt.io.deployment import load_deployment
 from rtsgt.io.run_dir import read_run, write_run
 from rtsgt.measurement.polar import cartesian_to_polar
@@ -80,6 +85,11 @@ def test_distance_outliers_count_collinear_poses_not_missing_prisms():
     assert est.reason[2] == "collinear" and est.reason[3] == "missing_prism"
     np.testing.assert_array_equal(distance_outliers(est, ref, 0.10), [False, False, True, False])
     np.testing.assert_array_equal(distance_outliers(est, ref, 0.05), [False, True, True, False])
+    # the same flags from the prisms alone, no pose estimated (the refits flag by them)
+    d = prism_distances(q)
+    assert d.pairs == est.pairs
+    np.testing.assert_array_equal(d.inter_prism_distance, est.inter_prism_distance)
+    np.testing.assert_array_equal(distance_outliers(d, ref, 0.05), [False, True, True, False])
 
 
 # --- simulated deployments ------------------------------------------------------------------

@@ -113,6 +113,7 @@ from rtsgt.filtering.gates import (
     distance_outliers,
     in_windows,
     outlier_windows,
+    prism_distances,
     surveyed_distance_check,
 )
 from rtsgt.filtering.modules import RemovedMeasurements, removed_measurements, warn_tight_rate_gates
@@ -531,26 +532,35 @@ def _fit_to_gates(options: RunOptions, query_times: np.ndarray | None, intervals
     lap("interpolation")
 
     say("poses")
-    est = estimate_poses(prisms.xyz, prisms.pose_covariance, reference, engine=options.pose.engine,
-                         registration=options.pose.registration,
-                         samples=options.pose.samples, rng=stage_rng(options.seed, "pose"))
+    # the poses the distance gate will reject, from the prisms alone: when their windows are
+    # refitted, only they keep this fit's poses, and the others are estimated once, from the
+    # fit that stands (_refit_outlier_windows)
+    flagged = distance_outliers(prism_distances(prisms.xyz), reference,
+                                options.pose.distance_gate_m)
+    refit_due = (options.interpolation.outlier_windows == "remove" and bool(flagged.any())
+                 and not flagged.all())
+    est = _poses(options, reference, _take(prisms, flagged) if refit_due else prisms)
     lap("pose")
 
     say("quality gates (module 4)")
-    keep, gate_report = apply_gates(
-        est, reference, distance_gate_m=options.pose.distance_gate_m,
-        uncertainty_gate_m=options.pose.uncertainty_gate_m,
-    )
     outliers = None
-    if options.interpolation.outlier_windows == "remove":
+    if refit_due:
         start = time.perf_counter()
-        refit = _refit_outlier_windows(options, tracks, prisms, est, reference, coupling, say)
-        if refit is not None:
+        refit = _refit_outlier_windows(options, tracks, prisms, flagged, est, reference,
+                                       coupling, say)
+        if refit is None:  # the refit failed: this fit stands, every pose of it
+            est = _poses(options, reference, prisms)
+        else:
             tracks, gps, qc_info, prisms, est, keep, gate_report, masks, report = refit
             t_query = prisms.t
             outliers = (masks, report)
-            timings["outlier_windows"] = time.perf_counter() - start
-            tick += timings["outlier_windows"]  # its own stage, not counted in "gates"
+        timings["outlier_windows"] = time.perf_counter() - start
+        tick += timings["outlier_windows"]  # its own stage, not counted in "gates"
+    if outliers is None:
+        keep, gate_report = apply_gates(
+            est, reference, distance_gate_m=options.pose.distance_gate_m,
+            uncertainty_gate_m=options.pose.uncertainty_gate_m,
+        )
     gt = PoseTrajectory(
         t_query[keep], est.t[keep], matrix_to_quat_xyzw(est.R[keep]), est.cov[keep]
     )
@@ -640,29 +650,41 @@ class _Refit(NamedTuple):
     report: OutlierWindowReport
 
 
+def _poses(options: RunOptions, reference: ReferencePoints,
+           prisms: PrismsAtTimes) -> PoseEstimate:
+    """The poses of prisms at their times (the run's pose options and its ``"pose"`` random
+    stream, drawn afresh: a call's Monte Carlo draws follow its poses in order)."""
+    return estimate_poses(prisms.xyz, prisms.pose_covariance, reference,
+                          engine=options.pose.engine, registration=options.pose.registration,
+                          samples=options.pose.samples, rng=stage_rng(options.seed, "pose"))
+
+
 def _refit_outlier_windows(options: RunOptions, tracks: dict[str, PrismTrack],
-                           prisms: PrismsAtTimes, est: PoseEstimate,
+                           prisms: PrismsAtTimes, flagged: np.ndarray, est: PoseEstimate,
                            reference: ReferencePoints, coupling: StationCoupling,
                            say: Progress) -> _Refit | None:
     """The GPs fitted again without the measurements inside the windows of the poses that
     disagree with the survey beyond the distance gate, and what follows from them
     (:mod:`rtsgt.filtering.gates`, section on the windows).
 
-    None, at no cost, when no pose disagrees (or every pose does: no pose to gain). The poses
-    inside a window keep the values of the fit that flagged them (they fail the gate); the
-    others are queried, estimated and gated again; a pose the new GPs cannot answer (a window
-    left a gap longer than ``max_gap_s``) is dropped. ``left_out``: per prism, indexed like its
-    track, the measurements left out. A fit that fails (a window took nearly all of a track)
-    ends the refits with a warning: the last good one stands, or none.
+    ``flagged`` (T,): the poses of ``prisms`` that disagree (at least one, not all); ``est``:
+    their poses only, in order. The poses inside a window keep the values of the fit that
+    flagged them (they fail the gate); the others are queried and flagged again (from the
+    prisms' distances, :func:`~rtsgt.filtering.gates.prism_distances`) at each fit, and
+    estimated and gated once, from the fit that stands: the poses of a fit that flags more
+    would be replaced by the next fit's, and only those it flags are estimated. A pose the
+    new GPs cannot answer (a window left a gap longer than ``max_gap_s``) is dropped.
+    ``left_out``: per prism, indexed like its track, the measurements left out. A fit that
+    fails (a window took nearly all of a track) ends the refits with a warning: the last good
+    one stands, or none (None).
     """
     gate = options.pose.distance_gate_m
-    flagged = distance_outliers(est, reference, gate)
-    if not flagged.any() or flagged.all():
-        return None
+    flagged = np.array(flagged, dtype=bool)
     say("outlier windows (module 4)")
     t_all = prisms.t
     present = np.arange(t_all.size)  # the poses still queried, indices into t_all
-    done: _Refit | None = None
+    kept_est = est  # the poses of the flagged poses among ``present``, in order
+    last = None  # the fit that stands, its poses not yet estimated
     fits, dropped = 0, 0
     while fits < MAX_OUTLIER_REFITS:
         windows = outlier_windows(t_all, flagged)
@@ -675,7 +697,7 @@ def _refit_outlier_windows(options: RunOptions, tracks: dict[str, PrismTrack],
             warnings.warn(f"outlier windows: the GPs cannot be fitted without the "
                           f"measurements of {windows.shape[0]} windows of distance rejections "
                           f"({exc.bare_message}); "
-                          + ("they stay in the fits" if done is None else
+                          + ("they stay in the fits" if last is None else
                              "the windows of the previous fit stand"),
                           RtsgtWarning, stacklevel=2)
             break
@@ -687,22 +709,15 @@ def _refit_outlier_windows(options: RunOptions, tracks: dict[str, PrismTrack],
         fresh = present[~old & supported]
         dropped += int(np.sum(~old & ~supported))
         present = present[old | supported]
-        prisms, est = _take(prisms, old), _take(est, old)
+        prisms = _take(prisms, old)
+        from_old = flagged[present]
         more = np.zeros(0, bool)
+        new_prisms = None
         if fresh.size:
             new_prisms = query_prisms(clean, gps, t_all[fresh], options.interpolation, coupling)
-            new_est = estimate_poses(new_prisms.xyz, new_prisms.pose_covariance, reference,
-                                     engine=options.pose.engine,
-                                     registration=options.pose.registration,
-                                     samples=options.pose.samples,
-                                     rng=stage_rng(options.seed, "pose"))
-            from_old = flagged[present]
             prisms = _assemble(prisms, new_prisms, from_old)
-            est = _assemble(est, new_est, from_old)
-            more = distance_outliers(new_est, reference, gate)
+            more = distance_outliers(prism_distances(new_prisms.xyz), reference, gate)
             flagged[fresh[more]] = True
-        keep, report = apply_gates(est, reference, distance_gate_m=gate,
-                                   uncertainty_gate_m=options.pose.uncertainty_gate_m)
         per_prism = [{REASON_DISTANCE_WINDOW: int(m.sum())} for m in left_out.values()]
         n_in = sum(len(tr) for tr in tracks.values())
         n_out = sum(c[REASON_DISTANCE_WINDOW] for c in per_prism)
@@ -712,10 +727,20 @@ def _refit_outlier_windows(options: RunOptions, tracks: dict[str, PrismTrack],
             tuple(np.where(m, REASON_DISTANCE_WINDOW, "") for m in left_out.values()),
             windows=windows, fits=fits, converged=not more.any(),
             poses_flagged=int(flagged[present].sum()), poses_dropped=dropped)
-        done = _Refit(clean, gps, qc_info, prisms, est, keep, report, left_out, summary)
-        if not more.any():
+        last = (clean, gps, qc_info, prisms, kept_est, new_prisms, from_old, left_out, summary)
+        if not more.any() or fits == MAX_OUTLIER_REFITS:
             break
-    return done
+        # the poses flagged now keep this fit's values; the others get the next fit's
+        kept_est = _assemble(kept_est, _poses(options, reference, _take(new_prisms, more)),
+                             from_old[flagged[present]])
+    if last is None:
+        return None
+    clean, gps, qc_info, prisms, kept_est, new_prisms, from_old, left_out, summary = last
+    est = kept_est if new_prisms is None else _assemble(
+        kept_est, _poses(options, reference, new_prisms), from_old)
+    keep, report = apply_gates(est, reference, distance_gate_m=gate,
+                               uncertainty_gate_m=options.pose.uncertainty_gate_m)
+    return _Refit(clean, gps, qc_info, prisms, est, keep, report, left_out, summary)
 
 
 def _take(result, idx: np.ndarray):

@@ -82,7 +82,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -320,6 +320,30 @@ def apply_gates(
     return report.keep, report
 
 
+class PrismDistances(NamedTuple):
+    """The inter-prism distances of prisms at a series of times, as a
+    :class:`~rtsgt.pose.PoseEstimate` has them (what :func:`distance_outliers` reads)."""
+
+    #: ``|q_i - q_j|`` per time and pair, m, shape (T, P) (NaN where a prism is missing).
+    inter_prism_distance: np.ndarray
+    #: The pairs ``(i, j)``, ``i < j``, in the order of the columns.
+    pairs: tuple[tuple[int, int], ...]
+
+
+def prism_distances(xyz: ArrayLike) -> PrismDistances:
+    """The inter-prism distances of prisms (T, n, 3), m, without estimating a pose: the very
+    numbers :func:`rtsgt.pose.estimate_poses` computes (the same pairs, the same operations),
+    so :func:`distance_outliers` flags the same poses from either."""
+    q = np.asarray(xyz, dtype=float)
+    if q.ndim != 3 or q.shape[2] != 3:
+        raise ValueError(f"Expected prism positions of shape (T, n, 3), got {q.shape}")
+    n = q.shape[1]
+    pairs = tuple((i, j) for i in range(n) for j in range(i + 1, n))
+    ii = np.array([a for a, _ in pairs], dtype=int)
+    jj = np.array([b for _, b in pairs], dtype=int)
+    return PrismDistances(np.linalg.norm(q[:, ii] - q[:, jj], axis=-1), pairs)
+
+
 def distance_outliers(
     estimate: Any, reference: Any, distance_gate_m: float = DEFAULT_DISTANCE_GATE_M
 ) -> np.ndarray:
@@ -331,8 +355,8 @@ def distance_outliers(
 
     Parameters
     ----------
-    estimate : PoseEstimate
-        Uses ``inter_prism_distance`` and ``pairs``.
+    estimate : PoseEstimate or PrismDistances
+        Uses ``inter_prism_distance`` and ``pairs`` (:func:`prism_distances`: no pose needed).
     reference : ReferencePoints, array_like (n, 3) or array_like (P,)
         As for :func:`apply_gates`.
     distance_gate_m : float
