@@ -22,7 +22,7 @@ from rtsgt.io.run_dir import SPLIT_FILE, read_run, write_run
 from rtsgt.pipeline import run_pipeline
 from rtsgt.pose.estimate import pose_jacobians
 from rtsgt.pose.reference import block_diagonal
-from rtsgt.shared import prism_shared_factor
+from rtsgt.shared import prism_shared_factor, select_prisms, varying_pose_covariance
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 from rtsgt.types import PoseTrajectory
 
@@ -43,8 +43,20 @@ def _run(deployment, engine):
 
 
 @pytest.fixture(scope="module")
-def linear(deployment):
-    return _run(deployment, "linear")
+def runs(deployment):
+    """The run of each engine, computed once for the module."""
+    cache = {}
+
+    def get(engine):
+        if engine not in cache:
+            cache[engine] = _run(deployment, engine)
+        return cache[engine]
+    return get
+
+
+@pytest.fixture(scope="module")
+def linear(runs):
+    return runs("linear")
 
 
 def _prism_factor(rec):
@@ -91,15 +103,57 @@ def test_the_shared_factor_is_zero_for_the_reference_stations_calibration(linear
 @pytest.mark.parametrize("engine, tol_max, tol_median", [("linear", 2e-2, 2e-3),
                                                            ("ut", 2e-2, 2e-3),
                                                            ("mc", 0.35, 0.15)])
-def test_varying_plus_shared_is_the_total_covariance(deployment, linear, engine, tol_max,
-                                                     tol_median):
-    rec = linear if engine == "linear" else _run(deployment, engine)
+def test_varying_plus_shared_is_the_total_covariance(runs, engine, tol_max, tol_median):
+    rec = runs(engine)
     sp = rec.groundtruth_split
     tot = rec.groundtruth.cov
     rel = np.linalg.norm(tot - sp.total_cov, axis=(1, 2)) / np.linalg.norm(tot, axis=(1, 2))
     # linear: the rank-one time-sync terms (above) are the only difference; mc: 300 samples
     assert rel.max() < tol_max and np.median(rel) < tol_median, (rel.max(), np.median(rel))
     assert np.all(np.linalg.eigvalsh(sp.varying_cov) > -1e-15)
+
+
+@pytest.mark.parametrize("engine", ["linear", "ut", "mc"])
+def test_the_varying_part_is_the_engine_free_first_order_propagation(runs, engine):
+    # the split's fast path (the Jacobian of the shared factor, once) against the pose engine
+    # run again on the GP part (the reference computation); the Monte Carlo engine's own run
+    # used to be its sampling error (sqrt(2 / M)) away from it
+    rec = runs(engine)
+    c = rec.computation
+    kept = select_prisms(c.prisms, np.flatnonzero(c.keep))
+    ref = varying_pose_covariance(kept, rec.tracked_reference, "linear",
+                                  registration=rec.options.pose.registration)
+    V = rec.groundtruth_split.varying_cov
+    s = np.sqrt(np.einsum("tii->ti", ref))
+    assert np.max(np.abs(V - ref) / (s[:, :, None] * s[:, None, :])) < 1e-9
+
+
+def test_a_monte_carlo_of_the_varying_part_agrees_with_its_first_order(linear):
+    # what the split leaves out: the fit's nonlinearity over the GP part, far inside the
+    # sampling error of a Monte Carlo of it (M = 4000 on 20 poses)
+    c = linear.computation
+    idx = np.flatnonzero(c.keep)[:: max(1, int(c.keep.sum()) // 20)][:20]
+    kept = select_prisms(c.prisms, idx)
+    args = (kept, linear.tracked_reference)
+    reg = linear.options.pose.registration
+    lin = varying_pose_covariance(*args, "linear", registration=reg)
+    M = 4000
+    mc = varying_pose_covariance(*args, "mc", samples=M, rng=np.random.default_rng(5),
+                                 registration=reg)
+    d = np.einsum("tii->ti", lin)
+    z = (np.einsum("tii->ti", mc) - d) / (d * np.sqrt(2.0 / M))  # ~ N(0, 1) each
+    assert np.max(np.abs(z)) < 5 and abs(np.mean(z)) < 0.6, (np.abs(z).max(), np.mean(z))
+
+
+def test_selecting_every_pose_keeps_the_prisms_without_a_copy(linear):
+    pr = linear.computation.prisms
+    T = pr.t.shape[0]
+    assert select_prisms(pr, np.ones(T, dtype=bool)) is pr
+    assert select_prisms(pr, np.arange(T)) is pr
+    back = select_prisms(pr, np.arange(T)[::-1])
+    np.testing.assert_array_equal(back.xyz, pr.xyz[::-1])
+    np.testing.assert_array_equal(back.cov_gp, pr.cov_gp[::-1])
+    assert select_prisms(pr, np.arange(1, T)).t.shape == (T - 1,)
 
 
 def test_the_linear_split_is_exact_given_the_factors_prism_covariance(linear):

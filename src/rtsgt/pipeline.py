@@ -785,8 +785,7 @@ def _split(options: RunOptions, prisms: PrismsAtTimes, gps: dict[str, GPTrack],
     origins = {s: np.asarray(T.translation, dtype=float) for s, T in calib.transforms.items()}
     return split_ground_truth(
         kept, velocity, [tracks[p].station for p in tracks], origins, coupling, reference,
-        est.R[idx], engine=options.pose.engine, registration=options.pose.registration,
-        samples=options.pose.samples, rng=stage_rng(options.seed, "pose"))
+        est.R[idx], registration=options.pose.registration)
 
 
 def _record(c: RunComputation, options: RunOptions, intervals: np.ndarray,

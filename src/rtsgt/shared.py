@@ -48,18 +48,24 @@ weighted or unweighted fit):
     L_i = J_{q,i} F_i + J_{r,i} A_r, \qquad A_r A_r^T = \Sigma_r .
 
 The shared covariance of pose ``i`` is ``L_i L_i^T``, the cross-covariance of poses ``i`` and
-``j`` through the shared errors ``L_i L_j^T``. The varying covariance ``V_i`` is the pose
-engine's covariance of the prisms' GP part alone (``cov_gp``, without the survey's
-covariance), with the weights of the whole (the fit is the run's: only what is propagated
-through it changes). For the linear engine ``V_i + L_i L_i^T`` is the total covariance exactly where
-``F_i F_i^T`` is the systematic part of the joint prism covariance the engine took; the two
-differ only by the factor's choices (tests/test_shared_cov.py, a simulated deployment): the
-calibration and atmosphere blocks at the query position instead of interpolated between
-measurements (relative difference below 2e-3 of the source), the time-sync block along the GP
-velocity instead of the differenced measurements' (median 2e-3 of the source; up to its own
-size where the prism stops, below 3e-2 of the prism's total covariance). Over the poses
-``V + L L^T`` is within 2 % of the linear and unscented engines' total (median 2e-3), and
-within the Monte Carlo error of the Monte Carlo engine's.
+``j`` through the shared errors ``L_i L_j^T``. The varying covariance ``V_i`` is the prisms'
+GP part alone (``cov_gp``, without the survey's covariance) propagated through the same
+Jacobian, ``V_i = J_{q,i} C_{gp,i} J_{q,i}^T``, whatever the run's pose engine: the linear
+engine's covariance of that part, with the weights of the whole (the fit is the run's: only
+what is propagated through it changes). The fit's nonlinearity over the GP part's
+millimetres is of relative size ``(sigma / lever arm)^2`` (the unscented engine's ``V_i``
+differs by at most 8e-5 of ``sigma_a sigma_b`` over a simulated hour), far below the sampling
+error ``sqrt(2 / M)`` a Monte Carlo of it would add (tests/test_shared_cov.py).
+
+``V_i + L_i L_i^T`` is the linear engine's total covariance exactly where ``F_i F_i^T`` is the
+systematic part of the joint prism covariance the engine took; the two differ only by the
+factor's choices (tests/test_shared_cov.py, a simulated deployment): the calibration and
+atmosphere blocks at the query position instead of interpolated between measurements
+(relative difference below 2e-3 of the source), the time-sync block along the GP velocity
+instead of the differenced measurements' (median 2e-3 of the source; up to its own size where
+the prism stops, below 3e-2 of the prism's total covariance). Over the poses ``V + L L^T`` is
+within 2 % of the linear and unscented engines' total (median 2e-3), and within the Monte
+Carlo error of the Monte Carlo engine's.
 
 This module imports only numpy and rtsgt's calibration, interpolation and pose records.
 """
@@ -74,11 +80,11 @@ from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.geometry.so3 import hat
 from rtsgt.interpolation.prisms import PrismsAtTimes
 from rtsgt.pose.estimate import DEFAULT_REGISTRATION, estimate_poses, pose_jacobians, psd_factor
-from rtsgt.pose.reference import ReferencePoints
+from rtsgt.pose.reference import ReferencePoints, block_diagonal
 
-__all__ = ["POSE_COMPONENTS", "SharedFactor", "prism_shared_factor", "rank_one_factor",
-           "reference_factor", "select_prisms", "shared_pose_factor", "split_ground_truth",
-           "varying_pose_covariance"]
+__all__ = ["POSE_COMPONENTS", "SharedFactor", "first_order_covariance", "prism_shared_factor",
+           "rank_one_factor", "reference_factor", "select_prisms", "shared_pose_factor",
+           "split_ground_truth", "varying_pose_covariance"]
 
 #: Components of a pose error, in the covariance order of :mod:`rtsgt.geometry.transform`.
 POSE_COMPONENTS = ("x", "y", "z", "rx", "ry", "rz")
@@ -198,14 +204,15 @@ def prism_shared_factor(
             d = np.diag(joint)
             free = np.flatnonzero(d > 1e-15 * d.max())
             A, chol = _lower_factor(joint[np.ix_(free, free)])  # (p, r)
-            # dq_i = [I, -[q_i]x] xi_{s_i}: rows of prism i, the columns of its station
-            for_prism = np.zeros((T, 3 * n, 6 * len(known)))
+            A_all = np.zeros((joint.shape[0], A.shape[1]))
+            A_all[free] = A  # a parameter without variance: a zero row
+            # dq_i = [I, -[q_i]x] xi_{s_i}: the rows of prism i from its station's rows of A
+            f = np.zeros((T, 3 * n, A.shape[1]))
             for i, s in enumerate(stations):
                 if s in known:
-                    a = known.index(s)
-                    for_prism[:, 3 * i:3 * i + 3, 6 * a:6 * a + 3] = np.eye(3)
-                    for_prism[:, 3 * i:3 * i + 3, 6 * a + 3:6 * a + 6] = -hat(rel[:, i])
-            cols.append(for_prism[:, :, free] @ A)
+                    a = 6 * known.index(s)
+                    f[:, 3 * i:3 * i + 3] = A_all[a:a + 3] - hat(rel[:, i]) @ A_all[a + 3:a + 6]
+            cols.append(f)
             labels = [f"calibration_station{s}_{c}" for s in known for c in POSE_COMPONENTS]
             names += ([labels[j] for j in free] if chol
                       else [f"calibration_{j}" for j in range(A.shape[1])])
@@ -262,12 +269,31 @@ def shared_pose_factor(
     the prisms' ``pose_covariance`` and the reference's). The poses must not be degenerate
     (the Jacobian raises :class:`~rtsgt.errors.GeometryError` for collinear prisms).
     """
+    L, names, _ = _pose_factor(prisms, velocity, stations, origins, coupling, reference,
+                               R_world_body, registration)
+    return L, names
+
+
+def _pose_factor(prisms, velocity, stations, origins, coupling, reference, R_world_body,
+                 registration):
+    """:func:`shared_pose_factor`, and the Jacobian ``J_q`` (T, 6, 3n) it used."""
     F, names_q = prism_shared_factor(prisms, velocity, stations, origins, coupling)
     A_r, names_r = reference_factor(reference)
     J_q, J_r = pose_jacobians(prisms.xyz, reference.xyz, R_world_body,
                               registration=registration, cov_q=prisms.pose_covariance,
                               cov_r=reference.cov)
-    return np.concatenate([J_q @ F, J_r @ A_r], axis=2), names_q + names_r
+    return np.concatenate([J_q @ F, J_r @ A_r], axis=2), names_q + names_r, J_q
+
+
+def first_order_covariance(J_q: np.ndarray, cov_q: np.ndarray) -> np.ndarray:
+    """``J_q C J_q^T`` (T, 6, 6), symmetrised: the prisms' covariance ``cov_q`` (m^2; per prism
+    (T, n, 3, 3), or joint (T, 3n, 3n)) through the fit's Jacobian ``J_q`` (T, 6, 3n), with the
+    linear engine's arithmetic (:func:`rtsgt.pose.estimate_poses`)."""
+    C = np.asarray(cov_q, dtype=float)
+    if C.ndim == 4:
+        C = block_diagonal(C)
+    V = J_q @ C @ np.swapaxes(J_q, 1, 2)
+    return 0.5 * (V + np.swapaxes(V, 1, 2))
 
 
 def varying_pose_covariance(
@@ -277,7 +303,12 @@ def varying_pose_covariance(
 ) -> np.ndarray:
     """``V_i`` (T, 6, 6): the pose engine run on the prisms' GP covariance alone, the reference
     taken as exact (:func:`rtsgt.pose.estimate_poses`; ``rng`` for ``engine="mc"``); the
-    weighted fit keeps the weights of the total covariance (the run's fit)."""
+    weighted fit keeps the weights of the total covariance (the run's fit).
+
+    :func:`split_ground_truth` takes the first order (``engine="linear"``, without running the
+    engine again: :func:`first_order_covariance` of the Jacobian it already has); the other
+    engines here measure what that leaves out (their sampling error, the fit's nonlinearity).
+    """
     n = prisms.xyz.shape[1]
     est = estimate_poses(prisms.xyz, prisms.cov_gp, reference.xyz, np.zeros((3 * n, 3 * n)),
                          engine=engine, registration=registration,
@@ -287,7 +318,13 @@ def varying_pose_covariance(
 
 
 def select_prisms(prisms: PrismsAtTimes, idx: np.ndarray) -> PrismsAtTimes:
-    """The prisms at some of the times (a boolean mask or an index array)."""
+    """The prisms at some of the times (a boolean mask or an index array); ``prisms`` itself
+    (no copy) when that is every time in order."""
+    sel = np.asarray(idx)
+    T = prisms.t.shape[0]
+    if sel.shape == (T,) and (np.all(sel) if sel.dtype == bool
+                              else np.array_equal(sel, np.arange(T))):
+        return prisms
     return PrismsAtTimes(prisms.t[idx], prisms.xyz[idx], prisms.cov[idx], prisms.cov_gp[idx],
                          {s: c[idx] for s, c in prisms.cov_by_source.items()},
                          prisms.nearest_dt[idx],
@@ -303,10 +340,7 @@ def split_ground_truth(
     reference: ReferencePoints,
     R_world_body: np.ndarray,
     *,
-    engine: str = "linear",
     registration: str = DEFAULT_REGISTRATION,
-    samples: int = 1000,
-    rng: np.random.Generator | None = None,
 ) -> SharedFactor:
     """The :class:`SharedFactor` of poses (valid ones: the prisms not collinear).
 
@@ -326,12 +360,17 @@ def split_ground_truth(
         The tracked reference prisms, in the order of the prisms.
     R_world_body : ndarray, shape (T, 3, 3)
         The poses' rotations.
-    engine, samples, rng
-        The pose engine of the varying covariance (:func:`varying_pose_covariance`).
     registration : {"weighted", "unweighted"}
         The fit of the poses (the run's).
+
+    Returns
+    -------
+    SharedFactor
+        The factor ``L`` (:func:`shared_pose_factor`) and the varying covariance through the
+        same Jacobian (:func:`first_order_covariance` of ``cov_gp``): one Jacobian per pose,
+        no Monte Carlo, memory ``O(T n^2 + T k)``.
     """
-    L, names = shared_pose_factor(prisms, velocity, stations, origins, coupling, reference,
-                                  R_world_body, registration)
-    V = varying_pose_covariance(prisms, reference, engine, samples, rng, registration)
-    return SharedFactor(np.asarray(prisms.t, dtype=float), L, names, V)
+    L, names, J_q = _pose_factor(prisms, velocity, stations, origins, coupling, reference,
+                                 R_world_body, registration)
+    return SharedFactor(np.asarray(prisms.t, dtype=float), L, names,
+                        first_order_covariance(J_q, prisms.cov_gp))
