@@ -30,8 +30,10 @@ Engines
     The paper's Monte Carlo: ``M`` samples of every prism (Cholesky factor of each covariance)
     and of the stacked reference (Cholesky factor of the full covariance, one draw per sample
     m shared by all poses), each solved with the registration (the closed form; the weighted
-    fit by Newton steps from its first-order prediction), vectorised over poses and samples
-    in chunks. ``mean_offset`` reports the sample mean of ``xi``: the
+    fit by chord steps from its first-order prediction,
+    :func:`rtsgt.pose.weighted.refine_samples`), vectorised over poses and samples in chunks
+    of a few poses (memory bounded by the chunk). ``mean_offset`` reports the sample mean of
+    ``xi``: the
     one-step estimate of the SE(3) mean of the samples about the reported pose (it differs from
     it by a second-order bias, far below the noise).
 ``"ut"``
@@ -74,7 +76,9 @@ from rtsgt.pose.registration import (
 from rtsgt.pose.weighted import (
     GLS_MAX_ITER,
     gls_weights,
+    newton_inverse_at,
     refine_batches,
+    refine_samples,
     weighted_registration_jacobian,
 )
 
@@ -94,8 +98,8 @@ REASON_OK = ""
 REASON_MISSING = "missing_prism"
 REASON_COLLINEAR = "collinear"
 
-#: Default number of registrations per Monte Carlo chunk (bounds the memory to ~30 MB).
-DEFAULT_MC_CHUNK = 1 << 16
+#: Default number of registrations per Monte Carlo chunk (bounds the memory to ~10 MB).
+DEFAULT_MC_CHUNK = 1 << 14
 
 
 @dataclass(frozen=True)
@@ -273,7 +277,7 @@ def estimate_poses(
         ``(T_valid, M, n, 3)`` in pose order, so results do not depend on ``chunk_size`` (nor
         on whether a block-diagonal covariance is given per prism or jointly).
     chunk_size : int, optional
-        Registrations per Monte Carlo chunk (default 65536), bounds the memory.
+        Registrations per Monte Carlo chunk (default 16384), bounds the memory.
     min_shape : float
         Collinearity threshold on the shape ratio (:data:`MIN_SHAPE`).
 
@@ -494,24 +498,48 @@ def _mc(q, Lq, r_samples, r, R0, t0, rng, chunk, gls):
     """Monte Carlo second moment and mean of the perturbations, chunked over poses.
 
     ``Lq`` (K, 3n, 3n) factors the joint prism covariance of each pose; ``gls``: the weights
-    and Jacobians of the weighted fit, or None (:func:`_fit_samples`).
+    and Jacobians of the weighted fit, or None (:func:`_fit_samples`). The draws of a chunk
+    of poses are the next rows of the one array ``(K, M, n, 3)`` (row-major fill), so the
+    result does not depend on the chunk size; the memory is bounded by it.
     """
     K, n, _ = q.shape
     M = r_samples.shape[0]
+    m = 3 * n
     per = max(1, chunk // M)
     cov = np.empty((K, 6, 6))
     off = np.empty((K, 6))
     unconverged = 0
+    if gls is not None:
+        W, J_q, J_r = gls
+        X = np.ascontiguousarray(np.moveaxis(r_samples, 0, -1))  # (n, 3, M)
+        dr = np.ascontiguousarray((r_samples - r).reshape(M, m).T)  # (3n, M)
+        shifted = (q - t0[:, None, :]).reshape(K, m, 1)
     for s in range(0, K, per):
         e = min(K, s + per)
-        z = rng.standard_normal((e - s, M, n, 3)).reshape(e - s, M, 3 * n)
-        qs = q[s:e, None] + np.einsum("kab,kmb->kma", Lq[s:e], z).reshape(e - s, M, n, 3)
-        part = None if gls is None else tuple(g[s:e] for g in gls)
-        Rs, ts, u = _fit_samples(r_samples[None], qs, q[s:e], r, R0[s:e], t0[s:e], part)
-        xi = _perturbations(Rs, ts, R0[s:e], t0[s:e])
-        cov[s:e] = np.einsum("kmi,kmj->kij", xi, xi) / M
-        off[s:e] = xi.mean(axis=1)
-        unconverged += u
+        z = rng.standard_normal((e - s, M, n, 3)).reshape(e - s, M, m)
+        if gls is None:
+            qs = q[s:e, None] + np.einsum("kab,kmb->kma", Lq[s:e], z).reshape(e - s, M, n, 3)
+            Rs, ts, u = _fit_samples(r_samples[None], qs, q[s:e], r, R0[s:e], t0[s:e], None)
+            xi = _perturbations(Rs, ts, R0[s:e], t0[s:e])
+            cov[s:e] = np.einsum("kmi,kmj->kij", xi, xi) / M
+            off[s:e] = xi.mean(axis=1)
+            unconverged += u
+            continue
+        dq = Lq[s:e] @ np.swapaxes(z, 1, 2)  # (k, 3n, M)
+        xi0 = J_q[s:e] @ dq + J_r[s:e] @ dr  # first-order prediction
+        Wt, P, N_inv = newton_inverse_at(np.broadcast_to(r, q[s:e].shape), q[s:e], W[s:e],
+                                         R0[s:e], t0[s:e])
+        xi, conv = refine_samples(shifted[s:e] + dq, X, Wt, P, N_inv, R0[s:e], xi0)
+        if not conv.all():  # far samples: Newton's steps from their first-order prediction
+            kk, mm = np.nonzero(~conv)
+            pb = r_samples[mm][:, None]
+            qb = (q[s + kk] + np.swapaxes(dq, 1, 2)[kk, mm].reshape(-1, n, 3))[:, None]
+            Rb, tb, cb, _ = refine_batches(pb, qb, W[s + kk], R0[s + kk, None],
+                                           t0[s + kk, None], xi0[kk, :, mm][:, None])
+            xi[kk, :, mm] = _perturbations(Rb, tb, R0[s + kk], t0[s + kk])[:, 0]
+            unconverged += int(np.sum(~cb))
+        cov[s:e] = xi @ np.swapaxes(xi, 1, 2) / M
+        off[s:e] = xi.mean(axis=2)
     return cov, off, unconverged
 
 

@@ -60,9 +60,13 @@ Once the largest step of a batch is below 1e-3 rad, the next steps keep the last
 error by that factor) and skip its computation, the largest part of a step. The iteration
 stops when every step of a batch is below :data:`GLS_TOL` = 1e-6 rad: what is left is below
 1e-10 rad (tests/test_pose_weighted.py); at most :data:`GLS_MAX_ITER` steps, the elements that
-did not get there are reported. Samples of a pose (Monte Carlo draws, sigma points) start
-from their first-order prediction about the pose's fit instead (``xi0`` of
-:func:`refine_batches`), within about the square of their perturbation: two steps.
+did not get there are reported. Far from a minimum the steps are safeguarded: at most
+0.25 rad (a trust region), and the Gauss-Newton matrix alone where the Newton matrix is not
+positive definite (a descent direction; undamped steps can settle on a saddle). Samples of a
+pose (Monte Carlo draws, sigma points) start from their first-order prediction about the
+pose's fit instead (``xi0`` of :func:`refine_batches`), within about the square of their
+perturbation: two steps. The Monte Carlo engine's samples take chord steps with the pose's
+Newton matrix instead (:func:`refine_samples`), which skip the per-sample matrix.
 
 Vectorised over poses and over the samples of a pose (the Monte Carlo draws, the sigma
 points), sharing the pose's weights: the samples of a pose are the columns of matrix products
@@ -103,20 +107,28 @@ from rtsgt.geometry.kabsch import point_pairs
 from rtsgt.geometry.so3 import hat
 from rtsgt.pose.registration import register
 
-__all__ = ["GLS_MAX_ITER", "GLS_TOL", "WeightedInfo", "gls_weights", "register_weighted",
-           "weighted_registration_jacobian"]
+__all__ = ["GLS_MAX_ITER", "GLS_TOL", "WeightedInfo", "gls_weights", "newton_inverse_at",
+           "refine_samples", "register_weighted", "weighted_registration_jacobian"]
 
 #: Rotation step (rad) under which the Newton iteration of a batch has converged (the error
 #: left is then below 1e-10 rad, module docstring).
 GLS_TOL = 1e-6
-#: Newton steps at most (typically 3 are taken from the closed form, 2 for samples).
-GLS_MAX_ITER = 8
+#: Newton steps at most (typically 3 are taken from the closed form, 2 for samples; up to
+#: about 15 from a closed form far from the weighted minimum, with the trust region).
+GLS_MAX_ITER = 20
+#: Estimated error (rad) under which a Monte Carlo sample's chord iteration has converged
+#: (:func:`refine_samples`; the bound of the Newton fit's, :data:`GLS_TOL`).
+SAMPLE_TOL = 1e-10
+#: Chord steps at most of a Monte Carlo sample (:func:`refine_samples`; typically 3).
+SAMPLE_MAX_ITER = 8
 #: Registrations refined at once (poses times samples): the working set stays in cache.
 GLS_CHUNK = 8192
 #: Largest step (rad) after which the next step keeps the last Newton matrix (a chord step):
 #: its error is then of the order of that step, far below one, so the convergence stays
 #: superlinear while the next step skips the matrix's computation (its largest part).
 _CHORD_BELOW = 1e-3
+#: Longest Newton step (rad): a longer one is shortened to it (:func:`_capped`).
+_MAX_STEP = 0.25
 #: Relative floor of the eigenvalues of the residual covariance before it is inverted.
 _EIG_FLOOR = 1e-12
 #: Entries (a, b) of the symmetric 3x3 Newton matrix, in the order they are computed.
@@ -238,22 +250,9 @@ def _refine(p, q, W, R, t, xi0, tol, max_iter):
         if full:
             # Gauss-Newton entries in _PAIRS order (a^T G^ab a), then the residual's curvature
             gn = np.einsum("kjs,kajs->kas", A.reshape(K, m, S), prod[:, m:].reshape(K, 6, m, S))
-            dot = M[:, 0, 0] + M[:, 1, 1] + M[:, 2, 2]
-            n00 = gn[:, 0] - M[:, 0, 0] + dot
-            n11 = gn[:, 1] - M[:, 1, 1] + dot
-            n22 = gn[:, 2] - M[:, 2, 2] + dot
-            n01 = gn[:, 3] - 0.5 * (M[:, 0, 1] + M[:, 1, 0])
-            n02 = gn[:, 4] - 0.5 * (M[:, 0, 2] + M[:, 2, 0])
-            n12 = gn[:, 5] - 0.5 * (M[:, 1, 2] + M[:, 2, 1])
-            c00 = n11 * n22 - n12 * n12
-            c01 = n02 * n12 - n01 * n22
-            c02 = n01 * n12 - n02 * n11
-            with np.errstate(divide="ignore", invalid="ignore"):
-                inv = 1.0 / (n00 * c00 + n01 * c01 + n02 * c02)
-            N_inv = np.stack([c00, c01, c02, c01, n00 * n22 - n02 * n02, n01 * n02 - n00 * n12,
-                              c02, n01 * n02 - n00 * n12, n00 * n11 - n01 * n01], axis=1)
-            N_inv = (N_inv * inv[:, None]).reshape(K, 3, 3, S)
+            N_inv = _newton_inverse(gn, M)
         theta = np.einsum("kabs,kbs->kas", N_inv, g, order="C")
+        theta = _capped(theta)
         Rc = _left_update(Rc, theta)
         A = np.einsum("kcds,kids->kics", Rc, X, order="C")
         it += 1
@@ -268,8 +267,23 @@ def _refine(p, q, W, R, t, xi0, tol, max_iter):
 
 
 def _left_update(Rc: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """``exp([theta]x) R`` for ``Rc`` (K, 3, 3, S or 1) and ``theta`` (K, 3, S) (Rodrigues;
-    the Taylor series to ``theta^4`` below 1e-2 rad, exact to round-off there)."""
+    """``exp([theta]x) R`` for ``Rc`` (K, 3, 3, S or 1) and ``theta`` (K, 3, S)
+    (:func:`_exp_left`)."""
+    E = _exp_left(theta)
+    # E @ R per element, as three broadcast products (einsum is several times slower here)
+    if Rc.shape[-1] == 1:
+        Rc = Rc[:, None, :, :, 0, None]  # (K, 1, 3, 3, 1)
+    else:
+        Rc = Rc[:, None]  # (K, 1, 3, 3, S)
+    out = E[:, :, 0, None] * Rc[:, :, 0]
+    out += E[:, :, 1, None] * Rc[:, :, 1]
+    out += E[:, :, 2, None] * Rc[:, :, 2]
+    return out
+
+
+def _exp_left(theta: np.ndarray) -> np.ndarray:
+    """``exp([theta]x)`` (K, 3, 3, S) of ``theta`` (K, 3, S) (Rodrigues; the Taylor series to
+    ``theta^4`` below 1e-2 rad, exact to round-off there)."""
     th2 = np.einsum("kas,kas->ks", theta, theta)
     if np.all(th2 < 1e-4):
         s = 1.0 - th2 * (1.0 / 6.0 - th2 / 120.0)
@@ -291,9 +305,51 @@ def _left_update(Rc: np.ndarray, theta: np.ndarray) -> np.ndarray:
     E[:, 1, 2] -= st[:, 0]
     E[:, 2, 0] -= st[:, 1]
     E[:, 2, 1] += st[:, 0]
-    if Rc.shape[-1] == 1:
-        return np.einsum("kacs,kcb->kabs", E, Rc[..., 0], order="C")
-    return np.einsum("kacs,kcbs->kabs", E, Rc, order="C")
+    return E
+
+
+def _newton_inverse(gn: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """The inverse (K, 3, 3, S) of the Newton matrix from its Gauss-Newton entries ``gn``
+    (K, 6, S) in :data:`_PAIRS` order and ``M = sum_i u_i a_i^T`` (K, 3, 3, S) (module
+    docstring). Where the full matrix is not positive definite (far from a minimum, where
+    Newton's step may climb to a saddle), the Gauss-Newton matrix alone (positive definite for
+    non-collinear points): a descent direction."""
+    dot = M[:, 0, 0] + M[:, 1, 1] + M[:, 2, 2]
+    n00 = gn[:, 0] - M[:, 0, 0] + dot
+    n11 = gn[:, 1] - M[:, 1, 1] + dot
+    n22 = gn[:, 2] - M[:, 2, 2] + dot
+    n01 = gn[:, 3] - 0.5 * (M[:, 0, 1] + M[:, 1, 0])
+    n02 = gn[:, 4] - 0.5 * (M[:, 0, 2] + M[:, 2, 0])
+    n12 = gn[:, 5] - 0.5 * (M[:, 1, 2] + M[:, 2, 1])
+    c00 = n11 * n22 - n12 * n12
+    c01 = n02 * n12 - n01 * n22
+    c02 = n01 * n12 - n02 * n11
+    det = n00 * c00 + n01 * c01 + n02 * c02
+    indefinite = ~((n00 > 0) & (n00 * n11 - n01 * n01 > 0) & (det > 0))
+    if np.any(indefinite):
+        n00, n11, n22, n01, n02, n12 = (np.where(indefinite, gn[:, i], v) for i, v in
+                                        enumerate((n00, n11, n22, n01, n02, n12)))
+        c00 = n11 * n22 - n12 * n12
+        c01 = n02 * n12 - n01 * n22
+        c02 = n01 * n12 - n02 * n11
+        det = n00 * c00 + n01 * c01 + n02 * c02
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / det
+    N_inv = np.stack([c00, c01, c02, c01, n00 * n22 - n02 * n02, n01 * n02 - n00 * n12,
+                      c02, n01 * n02 - n00 * n12, n00 * n11 - n01 * n01], axis=1)
+    return (N_inv * inv[:, None]).reshape(gn.shape[:1] + (3, 3) + gn.shape[2:])
+
+
+def _capped(theta: np.ndarray) -> np.ndarray:
+    """Steps (K, 3, S) longer than :data:`_MAX_STEP` rad shortened to it (a trust region:
+    far from the minimum the quadratic model of a step is not to be trusted)."""
+    th2 = np.einsum("kas,kas->ks", theta, theta)
+    with np.errstate(invalid="ignore"):
+        long = th2 > _MAX_STEP * _MAX_STEP
+    if not np.any(long):
+        return theta
+    scale = np.where(long, _MAX_STEP / np.sqrt(np.where(long, th2, 1.0)), 1.0)
+    return theta * scale[:, None]
 
 
 def refine_batches(p, q, W, R, t, xi0=None, *, tol=GLS_TOL, max_iter=GLS_MAX_ITER,
@@ -456,3 +512,109 @@ def weighted_registration_jacobian(
     extra[..., 3:, :, :] = np.swapaxes(hat(w) @ R[..., None, :, :], -3, -2)
     J_p = -(K_inv @ (HtW @ Rb + extra.reshape(batch + (6, m))))
     return J_q.reshape(batch + (6, n, 3)), J_p.reshape(batch + (6, n, 3))
+
+
+def newton_inverse_at(p: np.ndarray, q: np.ndarray, W: np.ndarray, R: np.ndarray,
+                      t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The projected weights, translation projector and inverse Newton matrix of K fits.
+
+    ``p, q`` (K, n, 3) the body and world points, ``W`` (K, 3n, 3n) the weights, ``R``
+    (K, 3, 3), ``t`` (K, 3) the fits (module docstring). Returns ``tilde W`` (K, 3n, 3n),
+    ``P`` (K, 3, 3n) and ``N^-1`` (K, 3, 3) at the fits: what :func:`refine_samples` needs.
+    """
+    K, n, _ = q.shape
+    m = 3 * n
+    ones = np.tile(np.eye(3), (n, 1))  # (3n, 3)
+    WO = W @ ones
+    P = np.linalg.solve(ones.T @ WO, np.swapaxes(WO, 1, 2))  # (K, 3, 3n)
+    Wt = W - WO @ P
+    Wt = 0.5 * (Wt + np.swapaxes(Wt, 1, 2))
+    a = np.einsum("kcd,kid->kic", R, p)  # (K, n, 3)
+    U = (Wt @ (q - t[:, None, :] - a).reshape(K, m, 1)).reshape(K, n, 3, 1)
+    M = np.einsum("kias,kibs->kabs", U, a[..., None])
+    H = hat(a).reshape(K, m, 3)  # [a_i]x stacked
+    N = np.swapaxes(H, 1, 2) @ Wt @ H  # Gauss-Newton part, sum_ij [a_i]x^T Wt_ij [a_j]x
+    gn = np.stack([N[:, a_, b_] for a_, b_ in _PAIRS], axis=1)[..., None]
+    return Wt, P, _newton_inverse(gn, M)[..., 0]
+
+
+def refine_samples(Y: np.ndarray, X: np.ndarray, Wt: np.ndarray, P: np.ndarray,
+                   N_inv: np.ndarray, R0: np.ndarray, xi0: np.ndarray, *, tol: float = SAMPLE_TOL,
+                   max_iter: int = SAMPLE_MAX_ITER) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted fits of S samples of each of K poses, by chord steps from their
+    first-order prediction: the Monte Carlo engine's fits.
+
+    A sample of a pose is its prisms and reference perturbed by about the pose's
+    uncertainty; its fit ``R = exp([phi]x) R0`` is within about the square of that
+    perturbation of the first-order prediction ``phi = xi0``. Each step
+    ``phi <- phi + N^-1 g`` takes the sample's own gradient ``g`` at ``exp([phi]x) R0``
+    (module docstring) and the pose's Newton matrix ``N`` at its fit in place of the
+    sample's: the two differ by the relative size of the perturbation (and of ``phi``), so
+    each step shrinks the error by about that factor ``rho`` (typically 1e-3: steps 1e-6,
+    1e-9 rad), and the fixed point is the sample's fit (``g = 0``). The error left after a
+    step ``d_k`` is about ``rho d_k``, ``rho = d_k / d_(k-1)``: the iteration stops when that
+    estimate is below ``tol`` for every sample of the batch (contracting, ``rho < 1/2``), or
+    after ``max_iter`` steps; samples that did not get there are flagged
+    (:func:`refine_batches` can finish them).
+
+    Parameters
+    ----------
+    Y : ndarray, shape (K, 3n, S)
+        World points of the samples minus the pose's fitted translation ``t0``, m, stacked
+        ``(x1, y1, z1, x2, ...)``, samples last.
+    X : ndarray, shape (n, 3, S)
+        Body points of the samples (shared by the poses), m.
+    Wt, P, N_inv : ndarray, shapes (K, 3n, 3n), (K, 3, 3n), (K, 3, 3)
+        Each pose's projected weights, translation projector and inverse Newton matrix
+        (:func:`newton_inverse_at`).
+    R0 : ndarray, shape (K, 3, 3)
+        The poses' fitted rotations.
+    xi0 : ndarray, shape (K, 6, S)
+        First-order prediction of each sample's left perturbation ``(dt, dtheta)``.
+
+    Returns
+    -------
+    xi : ndarray, shape (K, 6, S)
+        The left perturbation of each sample's fit about ``(R0, t0)``: ``(t - t0, phi)``.
+    converged : ndarray of bool, shape (K, S)
+    """
+    K, m, S = Y.shape
+    n = m // 3
+    # the body points rotated by each pose's fit, b_i = R0 x_i: (K, n, 3, S)
+    B = R0[:, None, :, 0, None] * X[:, 0, None]
+    B += R0[:, None, :, 1, None] * X[:, 1, None]
+    B += R0[:, None, :, 2, None] * X[:, 2, None]
+    B0, B1, B2 = B[:, :, None, 0], B[:, :, None, 1], B[:, :, None, 2]  # (K, n, 1, S)
+
+    def body(phi):  # a_i = exp([phi]x) b_i, (K, n, 3, S)
+        E = _exp_left(phi)[:, None]  # (K, 1, 3, 3, S)
+        A = E[:, :, :, 0] * B0
+        A += E[:, :, :, 1] * B1
+        A += E[:, :, :, 2] * B2
+        return A
+
+    phi = np.array(xi0[:, 3:])
+    A = body(phi)
+    converged = np.zeros((K, S), dtype=bool)
+    g = np.empty((K, 3, S))
+    last = None
+    for _ in range(max_iter):
+        U = (Wt @ (Y - A.reshape(K, m, S))).reshape(K, n, 3, S)
+        for a, (b, c) in enumerate(((1, 2), (2, 0), (0, 1))):  # sum_i a_i x u_i
+            g[:, a] = np.sum(A[:, :, b] * U[:, :, c] - A[:, :, c] * U[:, :, b], axis=1)
+        theta = N_inv @ g
+        phi += theta
+        A = body(phi)
+        step2 = np.einsum("kas,kas->ks", theta, theta)
+        if last is not None:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                # error left ~ rho d_k = d_k^2 / d_(k-1), with rho = d_k / d_(k-1) < 1/2
+                converged = (step2 * step2 <= tol * tol * last) & (4.0 * step2 <= last)
+                converged |= step2 <= (tol * tol) * 1e-4  # a step far below tol: done
+            if converged.all():
+                break
+        last = step2
+    xi = np.empty((K, 6, S))
+    xi[:, :3] = P @ (Y - A.reshape(K, m, S))  # t - t0
+    xi[:, 3:] = phi
+    return xi, converged
