@@ -30,6 +30,7 @@ from rtsgt.calibration.gcp import (
     CALIBRATION_WEIGHTINGS,
     DEFAULT_WEIGHTING,
 )
+from rtsgt.choices import DEFAULT_PRIOR, DEFAULT_QC
 from rtsgt.errors import InputError
 from rtsgt.filtering import FilterParams
 from rtsgt.filtering.gates import DEFAULT_DISTANCE_GATE_M, DEFAULT_UNCERTAINTY_GATE_M
@@ -136,12 +137,12 @@ class InterpolationOptions:
     """
 
     rate_hz: float = 5.0
-    qc: float | QcMethod = "loo"
+    qc: float | QcMethod = DEFAULT_QC
     max_gap_s: float = DEFAULT_MAX_GAP_S
     gp_noise: GpNoise = "white"
     motion_prior: MotionPrior = "classes"
     outlier_windows: OutlierWindows = "remove"
-    prior: MotionModel = "wnoa"
+    prior: MotionModel = DEFAULT_PRIOR
     correlated_noise: CorrelatedNoise = "ignore"
 
     def __post_init__(self) -> None:

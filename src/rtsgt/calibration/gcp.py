@@ -123,6 +123,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+# CALIBRATION_METHODS and DEFAULT_WEIGHTING (the weighting of calibrate and of a run's
+# [calibration]) are defined in rtsgt.choices, which the command line reads without numpy
+from rtsgt.choices import CALIBRATION_METHODS as CALIBRATION_METHODS
+from rtsgt.choices import DEFAULT_WEIGHTING
 from rtsgt.errors import GeometryError, InputError, RtsgtWarning
 from rtsgt.geometry.kabsch import kabsch, kabsch_yaw
 from rtsgt.geometry.so3 import exp_so3, hat
@@ -145,8 +149,6 @@ CALIBRATION_MODELS = ("6dof", "4dof")
 #: What each model is, in words (for tables and reports).
 CALIBRATION_MODEL_NAMES = {"6dof": "6 DOF: free rotation",
                            "4dof": "4 DOF: levelled stations, yaw only"}
-#: What the stations are calibrated from (:mod:`rtsgt.calibration.dynamic`).
-CALIBRATION_METHODS = ("gcp", "dynamic", "joint")
 #: What each method is, in words (for tables and reports).
 CALIBRATION_METHOD_NAMES = {"gcp": "ground control points",
                             "dynamic": "the robot's motion (inter-prism distances)",
@@ -156,10 +158,6 @@ CALIBRATION_WEIGHTINGS = ("gls", "trace", "none")
 #: What each weighting is, in words (for tables and reports).
 CALIBRATION_WEIGHTING_NAMES = {"gls": "generalised least squares (full covariance)",
                                "trace": "trace-weighted", "none": "unweighted"}
-#: The weighting of :func:`calibrate` and of a run's ``[calibration]``: the paper's. The
-#: generalised least squares is honest and sharper on simulated shots, but on the real excerpt
-#: it makes the standing poses' inter-prism distances optimistic (docs/noise-model.md).
-DEFAULT_WEIGHTING = "none"
 #: Mean radius of the Earth (IUGG), m: the verticals of two levelled instruments ``d`` metres
 #: apart differ by ``d / EARTH_RADIUS_M`` rad (16 microradians per 100 m).
 EARTH_RADIUS_M = 6_371_000.0

@@ -4,20 +4,21 @@ from __future__ import annotations
 
 import json
 import math
-import webbrowser
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
-from rich import box
-from rich.console import Console
 
-from rtsgt.cli.tables import TextTable
+from rtsgt.choices import DEFAULT_BINS_M
 from rtsgt.io.output_dir import OutputDir, check_output_file, record_files
-from rtsgt.io.run_dir import read_run
-from rtsgt.report.analysis import PAPER_CITATION, Analysis, analyze
-from rtsgt.report.figures import draw_all, save_figures
-from rtsgt.report.html import is_report_html, write_report_file
 
+if TYPE_CHECKING:
+    from rich.console import Console
+
+    from rtsgt.report.analysis import Analysis
+
+#: ``--bins``'s default, the analysis's default bins (:data:`rtsgt.choices.DEFAULT_BINS_M`).
+DEFAULT_BINS = ",".join(f"{b:g}" for b in DEFAULT_BINS_M)
 _BINS_HELP = ("Lower edges of the range bins in m, comma separated; the last bin is open "
               "(default: the paper's 0-75, 75-150, > 150 m).")
 _ENGINE_HELP = ("Pose engine for the per-source poses: mc, ut or linear (default: linear, the "
@@ -32,6 +33,12 @@ def _mm(x) -> str:
 
 def print_analysis(analysis: Analysis, console: Console | None = None) -> None:
     """The per-source medians next to the paper's, and the pose uncertainty per source."""
+    from rich import box
+    from rich.console import Console
+
+    from rtsgt.cli.tables import TextTable
+    from rtsgt.report.analysis import PAPER_CITATION
+
     console = console or Console()
     a = analysis
     bins = [lab.replace(" m", "m").replace("> ", ">") for lab in a.bin_labels]
@@ -59,7 +66,7 @@ def print_analysis(analysis: Analysis, console: Console | None = None) -> None:
     pose.print(console)
 
 
-def run_analyze(run_dir: Path, *, bins: str = "0,75,150", out: Path | None = None,
+def run_analyze(run_dir: Path, *, bins: str = DEFAULT_BINS, out: Path | None = None,
                 engine: str | None = None, samples: int | None = None,
                 pose_measure: str = "sqrt_trace", figures: bool = True,
                 formats: tuple[str, ...] = ("png", "svg"),
@@ -70,6 +77,9 @@ def run_analyze(run_dir: Path, *, bins: str = "0,75,150", out: Path | None = Non
     ``out`` is written whole or not at all; ``force`` replaces an earlier output of rtsgt
     there (:mod:`rtsgt.io.output_dir`).
     """
+    from rtsgt.io.run_dir import read_run
+    from rtsgt.report.analysis import analyze
+    from rtsgt.report.figures import draw_all, save_figures
 
     folder = Path(run_dir) / "analysis" if out is None else Path(out)
     output = OutputDir(folder, "analysis", force=force, inputs=[run_dir])
@@ -93,7 +103,7 @@ def register(app: typer.Typer) -> None:
     def analyze_command(
         run_dir: Path = typer.Argument(..., metavar="RUN_DIR",
                                        help="Output directory of `rtsgt run`."),
-        bins: str = typer.Option("0,75,150", "--bins", help=_BINS_HELP),
+        bins: str = typer.Option(DEFAULT_BINS, "--bins", help=_BINS_HELP),
         out: Path = typer.Option(None, "--out", "-o",
                                  help="Folder for the figures and analysis.json "
                                       "(default: RUN_DIR/analysis)."),
@@ -117,6 +127,8 @@ def register(app: typer.Typer) -> None:
                                         "directory holding anything else)."),
     ) -> None:
         """Per-source noise analysis of a run, next to the paper's medians, with figures."""
+        from rich.console import Console
+
         option = "--figure-format"
         if old_formats is not None:  # the spelling of earlier versions, kept for scripts
             if figure_format != "png,svg":
@@ -149,7 +161,7 @@ def register(app: typer.Typer) -> None:
                                  help="HTML file to write (default: RUN_DIR/report.html)."),
         open_: bool = typer.Option(False, "--open",
                                    help="Open the report in the system's web browser."),
-        bins: str = typer.Option("0,75,150", "--bins", help=_BINS_HELP),
+        bins: str = typer.Option(DEFAULT_BINS, "--bins", help=_BINS_HELP),
         engine: str = typer.Option(None, "--engine", help=_ENGINE_HELP),
         samples: int = typer.Option(None, "--samples", min=10,
                                     help="Monte Carlo samples (default: the run's)."),
@@ -157,6 +169,13 @@ def register(app: typer.Typer) -> None:
                                           help="Format of the embedded figures: svg or png."),
     ) -> None:
         """Write a single self-contained HTML report of a run (opens offline)."""
+        import webbrowser
+
+        from rich.console import Console
+
+        from rtsgt.io.run_dir import read_run
+        from rtsgt.report.analysis import analyze
+        from rtsgt.report.html import is_report_html, write_report_file
 
         if figure_format not in ("svg", "png"):
             raise typer.BadParameter(f"expected svg or png, got {figure_format!r}",

@@ -18,32 +18,23 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import signal
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
 import typer
-from rich.console import Console
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    TextColumn,
-    TimeElapsedColumn,
-    TimeRemainingColumn,
-)
 
-from rtsgt.batch import Outcome, dask_client, default_workers, find_deployments, make_tasks
-from rtsgt.batch import run_batch as run_tasks
 from rtsgt.cli.common import usage_error
 from rtsgt.cli.run import option_overrides
-from rtsgt.cli.tables import TextTable
 from rtsgt.errors import InputError
-from rtsgt.io.batch_summary import CHECK_COLUMNS, batch_row, write_batch_csv
 from rtsgt.io.output_dir import open_output_folder, record_files
-from rtsgt.report.batch import write_batch_html
-from rtsgt.stats import VERDICTS
+
+if TYPE_CHECKING:
+    from rich.progress import Progress
+
+    from rtsgt.batch import Outcome
 
 #: The files the batch writes into its output folder, beside the run directories.
 SUMMARY_CSV, SUMMARY_HTML = "batch_summary.csv", "batch_summary.html"
@@ -66,6 +57,21 @@ def run_batch(
         No deployment, duplicated names, an output folder that is not a batch's, Dask missing
         (without ``serial``), a deployment that failed (after the others).
     """
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    from rtsgt.batch import dask_client, default_workers, find_deployments, make_tasks
+    from rtsgt.batch import run_batch as run_tasks
+    from rtsgt.io.batch_summary import batch_row, write_batch_csv
+    from rtsgt.report.batch import write_batch_html
+
     if serial and (workers is not None or scheduler is not None):
         raise usage_error("runs in this process: leave out --workers and --scheduler",
                           "--serial")
@@ -176,6 +182,12 @@ def dask_setup(worker) -> None:
 
 
 def _print_table(rows: list[dict], folder: Path, info: dict) -> None:
+    from rich.console import Console
+
+    from rtsgt.cli.tables import TextTable
+    from rtsgt.io.batch_summary import CHECK_COLUMNS
+    from rtsgt.stats import VERDICTS
+
     table = TextTable(f"rtsgt batch: {len(rows)} deployments, {info['run now']} run now, "
                       f"{info['skipped (complete)']} complete already, {info['failed']} "
                       f"failed ({info['ran']}, {info['wall time']})",
@@ -197,7 +209,7 @@ def _print_table(rows: list[dict], folder: Path, info: dict) -> None:
 
 
 def _fmt(x, digits: int) -> str:
-    return f"{x:.{digits}f}" if isinstance(x, float) and np.isfinite(x) else ""
+    return f"{x:.{digits}f}" if isinstance(x, float) and math.isfinite(x) else ""
 
 
 def register(app: typer.Typer) -> None:

@@ -23,28 +23,18 @@ import warnings
 from contextlib import ExitStack
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
 import typer
-from rich.console import Console
 
-from rtsgt.calibration import CalibrationResult, calibrate
-from rtsgt.calibration.gcp import (
-    CALIBRATION_METHOD_NAMES,
-    CALIBRATION_METHODS,
-    CALIBRATION_WEIGHTING_NAMES,
-    DEFAULT_WEIGHTING,
-)
-from rtsgt.checks.calibration import dynamic_calibration_check, gcp_fit_check
-from rtsgt.cli.tables import TextTable
+from rtsgt.choices import CALIBRATION_METHODS, DEFAULT_WEIGHTING, GCP_FORMATS
 from rtsgt.errors import InputError
-from rtsgt.filtering import module1
-from rtsgt.io._parse import atomic_write_text
-from rtsgt.io.deployment import load_deployment, resolve_config
-from rtsgt.io.gcp_csv import GCP_FORMATS, read_gcp_shots
 from rtsgt.io.output_dir import check_output_file
-from rtsgt.measurement.instruments import get_instrument
-from rtsgt.pipeline import calibrate_by_method
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+    from rtsgt.calibration import CalibrationResult
 
 #: Name of the packaged example GCP file (in ``rtsgt/data``).
 EXAMPLE_GCP = "example_gcp.txt"
@@ -70,6 +60,8 @@ def result_to_json(result: CalibrationResult, **extra) -> dict:
     station the variance factor of the GCP residuals with its 95 % interval and verdict, and
     ``added_shot_sigma_mm``, the variance components added to every shot).
     """
+    import numpy as np
+
     stations = {}
     for s, T in result.transforms.items():
         if s == result.reference_station:
@@ -112,6 +104,11 @@ def result_to_json(result: CalibrationResult, **extra) -> dict:
 
 def _print_table(result: CalibrationResult, source: str, console: Console,
                  dynamic: dict | None = None, gcp_fit: dict | None = None) -> None:
+    import numpy as np
+
+    from rtsgt.calibration.gcp import CALIBRATION_METHOD_NAMES, CALIBRATION_WEIGHTING_NAMES
+    from rtsgt.cli.tables import TextTable
+
     table = TextTable(f"T_world_station, world = station {result.reference_station} ({source})",
                       ("station", "markers", "yaw (deg)", "axis", "t (m)", "1σ t (mm)",
                        "1σ rot (mrad)"), right=(False, True, True, False, True, True, True))
@@ -197,6 +194,12 @@ def run_calibrate(
     model: str = "6dof",
 ) -> tuple[CalibrationResult, str]:
     """Read the GCP file (or the packaged example) and calibrate; returns the result and source."""
+    import numpy as np
+
+    from rtsgt.calibration import calibrate
+    from rtsgt.io.gcp_csv import read_gcp_shots
+    from rtsgt.measurement.instruments import get_instrument
+
     profile = get_instrument(instrument)
     with ExitStack() as stack:
         if gcp_file == "example":
@@ -228,6 +231,11 @@ def run_calibrate_deployment(
     (:func:`rtsgt.checks.calibration.dynamic_calibration_check`), and the GCP calibration of
     the deployment (``result`` itself for ``gcp``; None when the GCP shots cannot calibrate
     the stations), whose fit the run's self-check reports."""
+    from rtsgt.checks.calibration import dynamic_calibration_check
+    from rtsgt.filtering import module1
+    from rtsgt.io.deployment import load_deployment
+    from rtsgt.pipeline import calibrate_by_method
+
     data, options = load_deployment(config)
     changes = {k: v for k, v in (("method", method), ("model", model),
                                  ("weighting", weighting)) if v is not None}
@@ -307,6 +315,12 @@ def register(app: typer.Typer) -> None:
         ),
     ) -> None:
         """Calibrate every station into the reference station's frame from GCP shots."""
+        from rich.console import Console
+
+        from rtsgt.checks.calibration import gcp_fit_check
+        from rtsgt.io._parse import atomic_write_text
+        from rtsgt.io.deployment import resolve_config
+
         if samples == 1:
             raise typer.BadParameter("use 0 (fit only) or at least 2", param_hint="--samples")
         if dynamic:

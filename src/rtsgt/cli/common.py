@@ -1,4 +1,8 @@
-"""Helpers shared by the commands: progress display and run summaries (CLI edge only)."""
+"""Helpers shared by the commands: progress display and run summaries (CLI edge only).
+
+Light at import (:mod:`rtsgt.cli.main`): numpy, rich and the library are imported by the
+helper that needs them, when it is called.
+"""
 
 from __future__ import annotations
 
@@ -7,19 +11,15 @@ import re
 import time
 import warnings
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
-import numpy as np
 import typer
-from rich.console import Console
 
-from rtsgt.calibration.gcp import (
-    CALIBRATION_METHOD_NAMES,
-    CALIBRATION_MODEL_NAMES,
-    CALIBRATION_WEIGHTING_NAMES,
-)
-from rtsgt.cli.tables import TextTable
 from rtsgt.errors import InputError
-from rtsgt.record import MIN_POSE_PRISMS, PositionRunRecord, RunRecord
+
+if TYPE_CHECKING:
+    from rtsgt.cli.tables import TextTable
+    from rtsgt.record import PositionRunRecord, RunRecord
 
 
 def tau_text(correlation: dict) -> str:
@@ -142,6 +142,8 @@ class Stages:
     """
 
     def __init__(self, quiet: bool = False):
+        from rich.console import Console
+
         self.quiet = quiet
         self.console = Console(stderr=True)
         self._status = None
@@ -177,6 +179,12 @@ def print_run_summary(record: RunRecord | PositionRunRecord, out) -> None:
     """A short key-value table of what a run produced (a position-only run: its prisms'
     positions) and what its self-checks found, one row per check; the whole of each check is
     in ``summary.json`` and the report."""
+    import numpy as np
+    from rich.console import Console
+
+    from rtsgt.cli.tables import TextTable
+    from rtsgt.record import MIN_POSE_PRISMS, PositionRunRecord
+
     table = TextTable(f"rtsgt run: {record.name}", ("", ""), header=False, right=(False, False))
     positions = isinstance(record, PositionRunRecord)
     gt = None if positions else record.groundtruth
@@ -254,6 +262,12 @@ def _ratio_rows(table: TextTable, name: str, count: tuple[str, str], key: str,
 def _calibration_rows(table: TextTable, record) -> None:
     """The calibration's model and method, the GCP fit's variance factor per station (95 %
     interval) and the variance component added, the dynamic calibration's check."""
+    from rtsgt.calibration.gcp import (
+        CALIBRATION_METHOD_NAMES,
+        CALIBRATION_MODEL_NAMES,
+        CALIBRATION_WEIGHTING_NAMES,
+    )
+
     gcp = record.self_checks.get("gcp_fit", {})
     if gcp.get("model"):
         table.add_row("calibration model", CALIBRATION_MODEL_NAMES[gcp["model"]]

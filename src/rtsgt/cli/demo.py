@@ -6,20 +6,12 @@ import contextlib
 import warnings
 from pathlib import Path
 
-import numpy as np
 import typer
-from rich.console import Console
 
-from rtsgt.checks.verdict import record_verdict
 from rtsgt.cli.common import Stages, collected_warnings, print_warnings, usage_error
 from rtsgt.cli.run import option_overrides, run_deployment
-from rtsgt.cli.tables import TextTable
 from rtsgt.errors import InputError
 from rtsgt.io.output_dir import OutputDir, record_files
-from rtsgt.io.run_dir import relocate_summary
-from rtsgt.report.html import write_report
-from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
-from rtsgt.simulation.compare import compare_to_truth
 
 #: Simulations shorter than this (s) are too short for the demo to be meaningful.
 _SHORT_S = 60.0
@@ -33,6 +25,11 @@ def run_demo(out: Path, *, seed: int, duration: float, engine: str, samples: int
     ``out`` appears whole when everything succeeded (report included), and not at all
     otherwise; the options are checked before any work.
     """
+    import numpy as np
+
+    from rtsgt.io.run_dir import relocate_summary
+    from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
+    from rtsgt.simulation.compare import compare_to_truth
 
     option_overrides(engine=engine, registration=registration, samples=samples)
     try:
@@ -50,6 +47,8 @@ def run_demo(out: Path, *, seed: int, duration: float, engine: str, samples: int
                                          inputs={"config": "../deployment/deployment.toml"})
         relocate_summary(run_dir, tmp, output.final)  # the paths the run will have
         if report:
+            from rtsgt.report.html import write_report  # matplotlib: only for a report
+
             with Stages(quiet) as stages:
                 stages("analysis, figures and HTML report")
                 record_files(run_dir, [write_report(run_dir, shown_path=output.final / "run")])
@@ -114,6 +113,12 @@ def demo_verdict(comparison) -> str:
 def print_demo_table(result, comparison, run_dir: Path) -> None:
     """The estimate against the truth in a few lines, the run's own verdict, and the demo's
     verdict as the last line."""
+    import numpy as np
+    from rich.console import Console
+
+    from rtsgt.checks.verdict import record_verdict
+    from rtsgt.cli.tables import TextTable
+
     d = comparison.to_dict()
     gt = result.groundtruth
     sig = np.sqrt(np.trace(gt.cov[:, :3, :3], axis1=1, axis2=2)) * 1e3

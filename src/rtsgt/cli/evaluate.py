@@ -36,47 +36,47 @@ import dataclasses
 import json
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
 import typer
-from rich.console import Console
 
-from rtsgt.cli.common import checked_options, usage_error
-from rtsgt.cli.tables import TextTable
-from rtsgt.errors import InputError, RtsgtWarning
-from rtsgt.evaluation import (
+from rtsgt.choices import (
     ALIGN_METHODS,
-    EvaluationOptions,
-    EvaluationResult,
-    PositionEvaluationResult,
-    evaluate,
-    evaluate_positions,
+    DEFAULT_MAX_DT_S,
+    JOINT_ALIGNMENTS,
+    POSE_RELATIONS,
 )
-from rtsgt.evaluation.associate import GroundTruthQuery, ValidatedGroundTruth
-from rtsgt.evaluation.groundtruth import ContinuousGroundTruth, ContinuousPositionGroundTruth
-from rtsgt.evaluation.lever_arm import parse_lever_arm
-from rtsgt.evaluation.mounting import JOINT_ALIGNMENTS, MountingFit
-from rtsgt.evaluation.options import DEFAULT_MAX_DT_S
-from rtsgt.io.evo_results import POSE_RELATIONS, check_results_file, evo_result, write_evo_result
+from rtsgt.choices import TRAJECTORY_FORMATS as FORMATS
+from rtsgt.cli.common import checked_options, usage_error
+from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.io.output_dir import check_target
-from rtsgt.io.positions import position_csv_form, read_position_csv, read_positions
-from rtsgt.io.run_dir import POSITIONS_KIND, read_summary
-from rtsgt.io.trajectory import (
-    FORMATS,
-    attach_covariance,
-    read_covariance_csv,
-    read_groundtruth_dir,
-    read_trajectory,
-)
-from rtsgt.io.transform import read_transform
-from rtsgt.pose import POSE_ENGINES
-from rtsgt.report.eval_plots import plot_evaluation
-from rtsgt.types import PoseTrajectory, PositionTrajectory
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+    from rtsgt.cli.tables import TextTable
+    from rtsgt.evaluation import (
+        EvaluationOptions,
+        EvaluationResult,
+        PositionEvaluationResult,
+    )
+    from rtsgt.evaluation.associate import GroundTruthQuery, ValidatedGroundTruth
+    from rtsgt.evaluation.groundtruth import ContinuousPositionGroundTruth
+    from rtsgt.evaluation.mounting import MountingFit
+    from rtsgt.types import PoseTrajectory, PositionTrajectory
 
 #: Ground-truth modes of ``--gt-mode``.
 GT_MODES = ("auto", "continuous", "discrete")
-#: Pose engines of ``--gt-engine`` (``run``: the run's own).
-GT_ENGINES = ("run", *POSE_ENGINES)
+
+
+def gt_engines() -> tuple[str, ...]:
+    """The pose engines of ``--gt-engine``: ``run`` (the run's own), then
+    :data:`rtsgt.pose.POSE_ENGINES`."""
+    from rtsgt.pose import POSE_ENGINES
+
+    return ("run", *POSE_ENGINES)
+
+
 #: Default ``--max-gap`` (s) for a ground-truth trajectory file (distance to the nearest stored
 #: pose): a few samples of a 5-10 Hz ground truth.
 DEFAULT_MAX_GAP_FILE_S = DEFAULT_MAX_DT_S
@@ -100,6 +100,8 @@ def evaluation_options(**values) -> EvaluationOptions:
     values, each checked by the record's own rule first; a bad one is a usage error naming its
     option (a bad combination names the first option it involves: ``--delta`` with
     ``--delta-unit f``, ``--estimate`` with an ``--align`` it cannot be estimated with)."""
+    from rtsgt.evaluation import EvaluationOptions
+
     changes = checked_options(EvaluationOptions, EVALUATION_OPTION_NAMES, **values)
     try:
         return EvaluationOptions(**changes)
@@ -114,6 +116,8 @@ def mounting_option(value: str | None) -> tuple[float, ...] | None:
     bad one is a usage error naming the option."""
     if value is None:
         return None
+    from rtsgt.io.transform import read_transform
+
     try:
         return read_transform(value)
     except InputError as exc:
@@ -130,6 +134,8 @@ def run_gap_limit(gt: object, gt_dir: str | Path) -> float | None:
     InputError
         ``summary.json`` cannot be read (naming it).
     """
+    from rtsgt.io.run_dir import read_summary
+
     options = getattr(gt, "options", None)
     if options is not None:  # a continuous ground truth: its run's options
         return float(options.interpolation.max_gap_s)
@@ -147,6 +153,9 @@ def load_ground_truth(
 
     ``engine``: pose engine of the continuous ground truth (None: the run's).
     """
+    from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
+    from rtsgt.io.trajectory import read_groundtruth_dir, read_trajectory
+
     if mode not in GT_MODES:
         raise InputError(f"unknown ground-truth mode {mode!r}; expected one of {', '.join(GT_MODES)}")
     gt_path = Path(gt_dir)
@@ -174,6 +183,9 @@ def wants_positions(gt_dir: str | Path, *, lever_arm=None, prism: str | None = N
     (:mod:`rtsgt.evaluation.positions`): it is one (a run with one or two tracked prisms, a
     position CSV, :func:`rtsgt.io.positions.position_csv_form`), or one of ``--lever-arm``,
     ``--prism``, ``--gt-topic`` asks for it."""
+    from rtsgt.io.positions import position_csv_form
+    from rtsgt.io.run_dir import POSITIONS_KIND, read_summary
+
     if lever_arm is not None or prism is not None or gt_topic is not None:
         return True
     path = Path(gt_dir)
@@ -190,6 +202,9 @@ def load_position_ground_truth(
     (continuous from its ``measurements/``, or with ``mode`` ``discrete`` its
     ``prisms/prism<i>.csv``), a topic of a bag (``topic``) or a position CSV
     (:mod:`rtsgt.io.positions`)."""
+    from rtsgt.evaluation.groundtruth import ContinuousPositionGroundTruth
+    from rtsgt.io.positions import read_position_csv, read_positions
+
     if mode not in GT_MODES:
         raise InputError(f"unknown ground-truth mode {mode!r}; expected one of {', '.join(GT_MODES)}")
     path = Path(gt_dir)
@@ -246,9 +261,13 @@ def run_evaluate(
     None: the run's engine; no meaning for positions). ``prism``: the prism of a run
     directory; ``gt_topic``: the ground truth's topic in a bag.
     """
-    if gt_engine is not None and gt_engine not in GT_ENGINES:
+    from rtsgt.evaluation import evaluate, evaluate_positions
+    from rtsgt.evaluation.lever_arm import parse_lever_arm
+
+    engines = gt_engines()
+    if gt_engine is not None and gt_engine not in engines:
         raise InputError(
-            f"unknown ground-truth engine {gt_engine!r}; expected one of {', '.join(GT_ENGINES)}"
+            f"unknown ground-truth engine {gt_engine!r}; expected one of {', '.join(engines)}"
         )
     if wants_positions(gt_dir, lever_arm=lever_arm, prism=prism, gt_topic=gt_topic):
         if options is not None and (options.estimate or options.mounting is not None):
@@ -274,6 +293,8 @@ def run_evaluate(
 
 def _read_estimate(est_file, fmt, topic, timestamps, child_frame, est_cov) -> PoseTrajectory:
     """The estimate's poses (and its covariance file)."""
+    from rtsgt.io.trajectory import attach_covariance, read_covariance_csv, read_trajectory
+
     if fmt is not None and fmt not in FORMATS:
         raise InputError(f"unknown format {fmt!r}; expected one of {', '.join(FORMATS)}")
     est = read_trajectory(
@@ -287,6 +308,8 @@ def _read_estimate(est_file, fmt, topic, timestamps, child_frame, est_cov) -> Po
 def _with_max_gap(gt, gt_dir, options: EvaluationOptions | None,
                   max_gap: float | None) -> EvaluationOptions:
     """``options`` with ``max_dt`` the given ``max_gap`` or its default (module docstring)."""
+    from rtsgt.evaluation import EvaluationOptions
+
     if max_gap is None:
         limit = run_gap_limit(gt, gt_dir) if Path(gt_dir).is_dir() else None
         max_gap = DEFAULT_MAX_GAP_FILE_S if limit is None else limit
@@ -302,6 +325,8 @@ def _stats_row(name: str, s, scale: float, digits: int) -> list[str]:
 
 
 def _vector(v, scale: float, digits: int) -> str:
+    import numpy as np
+
     return "(" + ", ".join("given" if not np.isfinite(x) else f"{scale * x:.{digits}f}"
                            for x in v) + ")"
 
@@ -309,6 +334,10 @@ def _vector(v, scale: float, digits: int) -> str:
 def print_mounting(m: MountingFit, console: Console) -> None:
     """The mounting ``T_body_sensor`` and the clock offset, with the sigma of what was
     estimated, and how the fit went."""
+    import numpy as np
+
+    from rtsgt.cli.tables import TextTable
+
     table = TextTable("Mounting T_body_sensor (sensor pose in the body frame) and clock",
                       ("", "value", "sigma", ""))
     rv = m.rotation_vector
@@ -363,6 +392,8 @@ def _print_association(console: Console, a, continuous: str, what: str, *, gt_so
 
 def _print_alignment(console: Console, al, what: str, items: str) -> None:
     """The alignment's line of a report (``what``: its name; ``items``: what it aligned)."""
+    import numpy as np
+
     if al.method == "none":
         console.print("alignment: none")
         return
@@ -374,11 +405,15 @@ def _print_alignment(console: Console, al, what: str, items: str) -> None:
 
 def _error_table(title: str) -> TextTable:
     """An empty table of error statistics (evo's columns)."""
+    from rtsgt.cli.tables import TextTable
+
     return TextTable(title, ("metric", "rmse", "mean", "median", "std", "min", "max"))
 
 
 def _print_nees_table(console: Console, title: str, rows) -> None:
     """The NEES table of a report: one row per ``(name, NeesResult or None)`` given."""
+    from rtsgt.cli.tables import TextTable
+
     nt = TextTable(title, ("", "mean", "dof", "accepted mean", "inside 95 %", "accepted",
                            "N_eff", "verdict (test)"))
     for name, r in rows:
@@ -539,6 +574,8 @@ def save_targets(ape: Path | None, rpe: Path | None, relation: str, *, force: bo
                  inputs) -> dict[str, Path]:
     """The result files asked for (``{"ape": path, "rpe": path}``), each checked before any
     work (:func:`rtsgt.io.evo_results.check_results_file`, which names the option)."""
+    from rtsgt.io.evo_results import check_results_file
+
     if relation not in POSE_RELATIONS:
         raise typer.BadParameter(f"expected one of {', '.join(POSE_RELATIONS)}",
                                  param_hint="--pose-relation")
@@ -560,6 +597,8 @@ def save_evo_results(result, targets: dict[str, Path], *, gt_dir, est_file, rela
     """Write the evo result files of ``targets`` (:func:`save_targets`); every result is
     built before the first file is written, so that a refused one (a rotation of a
     position-only ground truth, an RPE without pairs) leaves no file."""
+    from rtsgt.io.evo_results import evo_result, write_evo_result
+
     results = {m: evo_result(result, metric=m, relation=relation, ref_name=str(gt_dir),
                              est_name=str(est_file)) for m in targets}
     option = {"ape": "--save-results", "rpe": "--save-results-rpe"}
@@ -720,6 +759,11 @@ def register(app: typer.Typer) -> None:
                                         "directory rtsgt did not write)."),
     ) -> None:
         """Evaluate an estimated trajectory against the uncertain ground truth (APE, RPE, NEES)."""
+        from rich.console import Console
+
+        from rtsgt.evaluation import PositionEvaluationResult
+        from rtsgt.evaluation.lever_arm import parse_lever_arm
+
         options = evaluation_options(
             align=align,
             n_align=n_align,
@@ -736,9 +780,9 @@ def register(app: typer.Typer) -> None:
             raise typer.BadParameter(f"expected one of {', '.join(FORMATS)}", param_hint="--format")
         if gt_mode not in GT_MODES:
             raise typer.BadParameter(f"expected one of {', '.join(GT_MODES)}", param_hint="--gt-mode")
-        if gt_engine not in GT_ENGINES:
+        if gt_engine not in gt_engines():
             raise typer.BadParameter(
-                f"expected one of {', '.join(GT_ENGINES)}", param_hint="--gt-engine"
+                f"expected one of {', '.join(gt_engines())}", param_hint="--gt-engine"
             )
         if lever_arm is not None:
             try:
@@ -770,6 +814,8 @@ def register(app: typer.Typer) -> None:
                                  relation=pose_relation, force=force)
         written = None
         if plot is not None:
+            from rtsgt.report.eval_plots import plot_evaluation
+
             written = plot_evaluation(result, plot, force=force)
         if as_json:
             typer.echo(json.dumps({**result.to_dict(), "warnings": notes}))

@@ -14,16 +14,7 @@ from pathlib import Path
 import typer
 
 from rtsgt.errors import InputError
-from rtsgt.io._parse import atomic_write_text
-from rtsgt.io.config import load_config
-from rtsgt.io.deployment import DEPLOYMENT_TOML
 from rtsgt.io.output_dir import check_output_file
-from rtsgt.io.project_folder import (
-    MEASUREMENT_CHOICES,
-    deployment_toml_text,
-    is_init_toml,
-    scan_folder,
-)
 
 
 def run_init(folder: Path, *, out: Path | None = None, force: bool = False,
@@ -39,6 +30,11 @@ def run_init(folder: Path, *, out: Path | None = None, force: bool = False,
         The TOML exists (without ``force``, or not written by ``rtsgt init``), a required
         input is missing (each listed first, one line each), or an input cannot be read.
     """
+    from rtsgt.io._parse import atomic_write_text
+    from rtsgt.io.config import load_config
+    from rtsgt.io.deployment import DEPLOYMENT_TOML
+    from rtsgt.io.project_folder import deployment_toml_text, is_init_toml, scan_folder
+
     toml = Path(folder) / DEPLOYMENT_TOML if out is None else Path(out)
     if toml.exists() and not force:
         raise InputError("exists; use --force to replace a TOML that rtsgt init wrote, or give "
@@ -100,6 +96,8 @@ def register(app: typer.Typer) -> None:
                                                        "name)."),
     ) -> None:
         """Write the deployment TOML of an RTS_project-like folder, saying what is missing."""
+        from rtsgt.io.project_folder import MEASUREMENT_CHOICES
+
         if measurements not in MEASUREMENT_CHOICES:
             raise typer.BadParameter(f"expected one of {', '.join(MEASUREMENT_CHOICES)}, got "
                                      f"{measurements!r}", param_hint="--measurements")

@@ -11,18 +11,19 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
 import typer
 
+from rtsgt.choices import DEFAULT_MAX_GAP_S, DEFAULT_PRIOR, DEFAULT_QC
 from rtsgt.cli.common import checked_options, usage_error
 from rtsgt.errors import InputError
-from rtsgt.interpolation import GPTrack
-from rtsgt.interpolation.prisms import fit_prism_gp
-from rtsgt.io._parse import atomic_write_text
 from rtsgt.io.output_dir import check_output_file
-from rtsgt.io.track_csv import TRACK_COLUMNS, read_query_times, read_track_csv, track_csv_text
-from rtsgt.options import QC_METHODS, InterpolationOptions
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from rtsgt.interpolation import GPTrack
 
 
 def rate_times(gp: GPTrack, rate_hz: float) -> tuple[np.ndarray, int]:
@@ -34,6 +35,8 @@ def rate_times(gp: GPTrack, rate_hz: float) -> tuple[np.ndarray, int]:
     n_skipped : int
         Grid times dropped because they fall in a long gap.
     """
+    import numpy as np
+
     if not (math.isfinite(rate_hz) and rate_hz > 0):
         raise InputError(f"Expected --rate > 0 Hz, got {rate_hz!r}")
     span = gp.t[-1] - gp.t[0]
@@ -50,7 +53,9 @@ def parse_qc(text: str | None) -> float | str:
     """The value of ``--qc``: ``loo``, ``likelihood`` or a number (m^2/s^3), checked by the rule
     the configuration's ``qc`` meets (:class:`rtsgt.options.InterpolationOptions`); a usage
     error else."""
-    text = InterpolationOptions.qc if text is None else str(text).strip()
+    from rtsgt.options import QC_METHODS, InterpolationOptions
+
+    text = DEFAULT_QC if text is None else str(text).strip()
     try:
         value = text if text in QC_METHODS else float(text)
     except ValueError:
@@ -68,9 +73,9 @@ def interpolate_file(
     *,
     at: Path | None = None,
     rate: float | None = None,
-    qc: float | str = InterpolationOptions.qc,
-    max_gap: float = InterpolationOptions.max_gap_s,
-    prior: str = InterpolationOptions.prior,
+    qc: float | str = DEFAULT_QC,
+    max_gap: float = DEFAULT_MAX_GAP_S,
+    prior: str = DEFAULT_PRIOR,
 ) -> tuple[str, GPTrack, dict, int]:
     """Fit the track of ``track_path`` with rtsgt's Qc policy and answer the queries.
 
@@ -88,6 +93,12 @@ def interpolate_file(
     n_skipped : int
         Rate-grid times dropped in long gaps (0 with ``at``).
     """
+    import numpy as np
+
+    from rtsgt.interpolation.prisms import fit_prism_gp
+    from rtsgt.io.track_csv import read_query_times, read_track_csv, track_csv_text
+    from rtsgt.options import InterpolationOptions
+
     if (at is None) == (rate is None):
         raise usage_error("give exactly one of --at TIMES.txt and --rate HZ", "--at / --rate")
     # the rule [interpolation] meets (inf: no gap limit)
@@ -116,6 +127,8 @@ def interpolate_file(
 def _check_query_times(gp: GPTrack, times: np.ndarray, lines: np.ndarray, path: Path) -> None:
     """Query times must be distinct and supported by the track: name the line of the first
     one that is not."""
+    import numpy as np
+
     order = np.argsort(times, kind="stable")
     dup = np.flatnonzero(np.diff(times[order]) == 0)
     if dup.size:
@@ -147,6 +160,8 @@ def _check_query_times(gp: GPTrack, times: np.ndarray, lines: np.ndarray, path: 
 
 
 def _describe_qc(gp: GPTrack, info: dict) -> str:
+    import numpy as np
+
     diag = np.diag(gp.qc)
     unit = "m^2/s^5" if gp.prior == "wnoj" else "m^2/s^3"
     if np.allclose(gp.qc, diag[0] * np.eye(3), rtol=0, atol=0):
@@ -188,16 +203,16 @@ def register(app: typer.Typer) -> None:
             None, "--rate", help="Query on a regular grid at this rate (Hz), skipping long gaps."
         ),
         qc: str = typer.Option(
-            InterpolationOptions.qc, "--qc",
+            DEFAULT_QC, "--qc",
             help="Qc, as rtsgt run chooses it: 'loo' (leave-one-out per axis, calibrated for "
                  "interpolation), 'likelihood' (maximum marginal likelihood, isotropic) or a "
                  "number, the isotropic power spectral density in m^2/s^3.",
         ),
         max_gap: float = typer.Option(
-            InterpolationOptions.max_gap_s, "--max-gap", help="Refuse queries across longer gaps (s)."
+            DEFAULT_MAX_GAP_S, "--max-gap", help="Refuse queries across longer gaps (s)."
         ),
         prior: str = typer.Option(
-            InterpolationOptions.prior, "--prior",
+            DEFAULT_PRIOR, "--prior",
             help="GP motion prior: wnoa (white noise on acceleration, the paper's), wnoj (on "
                  "jerk) or select (the one whose held-out windows of 1-2 s are predicted "
                  "better).",
@@ -208,6 +223,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Interpolate a prism track (exact GP, WNOA or WNOJ prior) at query times, with
         covariance."""
+        from rtsgt.io._parse import atomic_write_text
+
         qc_value = parse_qc(qc)
         if out is not None:
             check_output_file(out, option="--out", inputs=[p for p in (track, at) if p],
@@ -227,6 +244,8 @@ def register(app: typer.Typer) -> None:
 
 def _is_track_csv(head: str) -> bool:
     """Whether a file's first line is the header of a track CSV (what --out writes)."""
+    from rtsgt.io.track_csv import TRACK_COLUMNS
+
     first = head.split("\n", 1)[0].strip().lower()
     return first.split(",")[: len(TRACK_COLUMNS)] == list(TRACK_COLUMNS)
 

@@ -3,6 +3,15 @@
 Each command lives in its own module of :mod:`rtsgt.cli` and registers itself on :data:`app`
 through a ``register(app)`` function.
 
+The command line starts at once: ``rtsgt --help`` and every ``rtsgt <command> --help`` import
+typer and rtsgt's light modules only, never numpy, scipy, matplotlib or the pipeline
+(``tests/test_cli_startup.py``). A command module's top level holds its typer declaration
+(options, help, defaults); the defaults and choices that declaration shows come from
+:mod:`rtsgt.choices`, which imports nothing. What a command does it imports inside its
+function, when it runs: function-level imports are the rule at this edge of the package (and
+only here). matplotlib is imported only when a figure is drawn (``rtsgt run`` without
+``--report`` draws none).
+
 Exit status and messages (one rule for every command):
 
 ====  ======================================================================================

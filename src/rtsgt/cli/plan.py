@@ -5,32 +5,16 @@ from __future__ import annotations
 import math
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
 import typer
-from rich.console import Console
 
-from rtsgt.cli.tables import TextTable
 from rtsgt.errors import RtsgtWarning
-from rtsgt.geometry.so3 import quat_xyzw_to_matrix
-from rtsgt.io.deployment import resolve_config
 from rtsgt.io.output_dir import OutputDir
-from rtsgt.io.plan import PlanInputs, load_plan, read_path, read_run_qc
-from rtsgt.planning import (
-    DEFAULT_HEADINGS,
-    DEFAULT_QC_M2_S3,
-    PlanResult,
-    RobotMotion,
-    layout_from_deployment,
-    layout_from_positions,
-    plan_area,
-    plan_path,
-    qc_from_run,
-    waypoint_path,
-)
-from rtsgt.planning.plan import RANGE_LIMIT_M
-from rtsgt.planning.predict import DEFAULT_SPEED_M_S
-from rtsgt.report.plan import draw_plan_map, plan_json_text, plan_table_text, render_plan_page
+
+if TYPE_CHECKING:
+    from rtsgt.io.plan import PlanInputs
+    from rtsgt.planning import PlanResult, RobotMotion
 
 #: Points of an area's grid when the plan gives no step (about; the step is a round number).
 DEFAULT_GRID_POINTS = 2500
@@ -48,6 +32,10 @@ def _round_step(raw: float) -> float:
 
 
 def _motion(inputs: PlanInputs, qc_run: Path | None) -> RobotMotion:
+    from rtsgt.io.plan import read_run_qc
+    from rtsgt.planning import DEFAULT_QC_M2_S3, RobotMotion, qc_from_run
+    from rtsgt.planning.predict import DEFAULT_SPEED_M_S
+
     speed = DEFAULT_SPEED_M_S if inputs.speed_m_s is None else inputs.speed_m_s
     run = qc_run if qc_run is not None else inputs.qc_from_run
     if run is not None:
@@ -71,6 +59,20 @@ def compute_plan(plan: Path, *, path: Path | None = None,
     ``path`` replaces the plan's area or path by a path file; ``qc_run`` takes the GP's Qc
     from that run directory (:func:`rtsgt.planning.qc_from_run`).
     """
+    import numpy as np
+
+    from rtsgt.geometry.so3 import quat_xyzw_to_matrix
+    from rtsgt.io.deployment import resolve_config
+    from rtsgt.io.plan import load_plan, read_path
+    from rtsgt.planning import (
+        DEFAULT_HEADINGS,
+        layout_from_deployment,
+        layout_from_positions,
+        plan_area,
+        plan_path,
+        waypoint_path,
+    )
+
     inputs = load_plan(resolve_config(plan))  # a deployment's folder: its deployment.toml
     if inputs.deployment is not None:
         data, options = inputs.deployment
@@ -111,6 +113,13 @@ def write_plan(results: list[PlanResult], out: Path, *, inputs: list[Path],
                force: bool = False) -> tuple[Path, list[str]]:
     """Write the plan's directory (checked before any work by the caller's
     :class:`~rtsgt.io.output_dir.OutputDir`); returns it and the file names."""
+    from rtsgt.report.plan import (
+        draw_plan_map,
+        plan_json_text,
+        plan_table_text,
+        render_plan_page,
+    )
+
     output = OutputDir(out, "plan", force=force, inputs=inputs)
     names = ["plan.json", "sigma.csv", "plan_map.png", "plan_map.svg", "plan.html"]
     with output as tmp:
@@ -129,6 +138,11 @@ def write_plan(results: list[PlanResult], out: Path, *, inputs: list[Path],
 
 def print_plan_summary(results: list[PlanResult], out: Path) -> None:
     """A short table of the prediction and the advice, one column per plan."""
+    from rich.console import Console
+
+    from rtsgt.cli.tables import TextTable
+    from rtsgt.planning.plan import RANGE_LIMIT_M
+
     table = TextTable("rtsgt plan", ("", *[res.name for res in results]),
                       header=len(results) > 1, right=(False,) * (len(results) + 1))
     sums = [r.summary() for r in results]

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import typer
 
-from rtsgt.checks.verdict import record_verdict
 from rtsgt.cli.common import (
     Stages,
     checked_options,
@@ -17,13 +16,7 @@ from rtsgt.cli.common import (
     print_warnings,
 )
 from rtsgt.errors import RtsgtWarning
-from rtsgt.io.deployment import load_deployment, resolve_config
 from rtsgt.io.output_dir import check_target
-from rtsgt.io.run_dir import write_run
-from rtsgt.options import RunOptions
-from rtsgt.pipeline import run_pipeline
-from rtsgt.record import PositionRunRecord
-from rtsgt.report.html import write_report
 
 #: The command-line options that override keys of the deployment's configuration.
 RUN_OPTION_NAMES = {"engine": "--engine", "registration": "--registration",
@@ -34,6 +27,8 @@ RUN_OPTION_NAMES = {"engine": "--engine", "registration": "--registration",
 def option_overrides(**values) -> dict:
     """The given (not None) option values, each checked by :class:`RunOptions`'s own rule
     (the rule the configuration file's values meet); a bad one is a usage error."""
+    from rtsgt.options import RunOptions
+
     return checked_options(RunOptions().updated, RUN_OPTION_NAMES, **values)
 
 
@@ -59,6 +54,10 @@ def run_deployment(
     HTML report to the run directory before it is put in place; ``inputs`` (default: the
     configuration's absolute path) is what ``summary.json`` records as the run's inputs.
     """
+    from rtsgt.io.deployment import load_deployment, resolve_config
+    from rtsgt.io.run_dir import write_run
+    from rtsgt.pipeline import run_pipeline
+    from rtsgt.record import PositionRunRecord
 
     config = resolve_config(config)
     changes = option_overrides(engine=engine, registration=registration, samples=samples,
@@ -72,6 +71,8 @@ def run_deployment(
         stages("writing outputs")
 
         def add_report(tmp: Path, final: Path) -> None:
+            from rtsgt.report.html import write_report  # matplotlib: only for a report
+
             stages("analysis, figures and HTML report")
             write_report(tmp, shown_path=final)
 
@@ -120,6 +121,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Compute the ground truth of a deployment: poses with 6x6 covariance (with one or two
         tracked prisms: their positions with 3x3 covariance)."""
+        from rtsgt.checks.verdict import record_verdict
+
         final = None
         with collected_warnings() as caught:
             try:

@@ -7,15 +7,16 @@ A thin wrapper over :func:`rtsgt.simulation.simulate_deployment` and
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
-from rich.console import Console
 
+from rtsgt.choices import REALITY_EFFECTS
 from rtsgt.cli.common import usage_error
-from rtsgt.cli.tables import TextTable
 from rtsgt.io.output_dir import check_target
-from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
-from rtsgt.simulation.reality import REALITY_EFFECTS, RealityEffects
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 
 def run_simulate(
@@ -27,6 +28,9 @@ def run_simulate(
     ``reality``: reality effects (:data:`rtsgt.simulation.reality.REALITY_EFFECTS`) to switch
     on at their default sizes.
     """
+    from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
+    from rtsgt.simulation.reality import RealityEffects
+
     unknown = [e for e in reality if e not in REALITY_EFFECTS]
     if unknown:
         raise usage_error(f"Expected reality effects among {', '.join(REALITY_EFFECTS)}, got "
@@ -43,6 +47,8 @@ def run_simulate(
 
 
 def _print_summary(sim, toml: Path, console: Console) -> None:
+    from rtsgt.cli.tables import TextTable
+
     out = toml.parent
     table = TextTable(f"simulated deployment written to {out}", ("file", "content", "size"),
                       right=(False, False, True))
@@ -101,6 +107,8 @@ def register(app: typer.Typer) -> None:
                  "docs/simulation.md): " + ", ".join(REALITY_EFFECTS) + "."),
     ) -> None:
         """Simulate a deployment with known truth and write it as a real one's files."""
+        from rich.console import Console
+
         sim, toml = run_simulate(out_dir, seed=seed, duration=duration, stations=stations,
                                  force=force, reality=tuple(reality))
         _print_summary(sim, toml, Console())

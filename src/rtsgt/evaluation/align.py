@@ -54,13 +54,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+from rtsgt.choices import ALIGN_METHODS  # understood by align_trajectories
 from rtsgt.errors import GeometryError, InputError
 from rtsgt.geometry.kabsch import kabsch_yaw
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
 from rtsgt.types import PoseTrajectory
-
-#: Alignment methods understood by :func:`align_trajectories`.
-ALIGN_METHODS = ("none", "se3", "sim3", "4dof", "scale", "origin")
 
 #: Minimum number of associated poses each method needs.
 MIN_POSES = {"none": 0, "se3": 3, "sim3": 3, "4dof": 2, "scale": 3, "origin": 1}

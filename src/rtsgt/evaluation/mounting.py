@@ -107,6 +107,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+from rtsgt.choices import JOINT_ALIGNMENTS  # the alignments the mounting is estimated with
 from rtsgt.errors import ExcitationError, GeometryError, InputError
 from rtsgt.evaluation.align import Alignment, align_yaw, umeyama
 from rtsgt.evaluation.metrics import integrated_autocorrelation_time
@@ -131,8 +132,6 @@ MOUNTING_PARAMETERS = ("rotation", "lever", "lever-xy", "clock")
 #: Shorthands of ``--estimate``.
 ESTIMATE_ALIASES = {"mounting": ("rotation", "lever"), "all": ("rotation", "lever", "clock")}
 
-#: Alignments the mounting can be estimated with.
-JOINT_ALIGNMENTS = ("none", "se3", "sim3", "4dof")
 
 #: Largest standard deviation of an estimated parameter, per group (a careful measurement by
 #: hand: a tape measure for the lever arm, m; a CAD model or protractor for the rotation, rad,

@@ -10,17 +10,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rtsgt.choices import DEFAULT_MAX_DT_S  # for a ground truth without a gap limit
 from rtsgt.errors import InputError
 from rtsgt.evaluation.align import ALIGN_METHODS
 from rtsgt.evaluation.metrics import DELTA_UNITS
 from rtsgt.evaluation.mounting import JOINT_ALIGNMENTS, parse_estimate
 
 __all__ = ["EvaluationOptions", "DEFAULT_MAX_DT_S"]
-
-#: Default max distance (s) from an estimate time to the ground truth's nearest measurement,
-#: for a ground truth without a gap limit of its own (a trajectory file); a run directory's
-#: own limit is used for a run (``rtsgt evaluate``).
-DEFAULT_MAX_DT_S = 0.5
 
 
 @dataclass(frozen=True)

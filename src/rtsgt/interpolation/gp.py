@@ -118,6 +118,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy import optimize
 
+from rtsgt.choices import DEFAULT_MAX_GAP_S  # the longest gap a query is answered across, s
 from rtsgt.errors import ExtrapolationError, InputError, RtsgtError
 from rtsgt.types import PrismTrack
 
@@ -139,10 +140,6 @@ __all__ = [
     "wnoj_q",
     "wnoj_q_inv",
 ]
-
-#: Default longest gap between two measurements across which a query is answered, s
-#: (the gap-splitting threshold tau_s of Vaidis et al. 2022).
-DEFAULT_MAX_GAP_S = 3.0
 
 #: Search interval of a fitted Qc (each diagonal entry), m^2/s^3 (WNOA) or m^2/s^5 (WNOJ).
 QC_BOUNDS = (1e-12, 1e6)

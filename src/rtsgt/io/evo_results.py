@@ -59,6 +59,7 @@ from pathlib import Path
 import numpy as np
 
 from rtsgt import __version__
+from rtsgt.choices import POSE_RELATIONS  # evo's --pose_relation -> (title words, unit)
 from rtsgt.errors import InputError
 from rtsgt.io._parse import atomic_write_bytes
 from rtsgt.io.output_dir import check_output_file
@@ -70,12 +71,6 @@ __all__ = ["METRICS", "POSE_RELATIONS", "EvoResult", "check_results_file", "evo_
 
 #: Metrics a result file holds (one each, as evo's).
 METRICS = ("ape", "rpe")
-#: Pose relations (evo's ``--pose_relation`` names) -> (evo's title words, unit).
-POSE_RELATIONS = {
-    "trans_part": ("translation part", "m"),
-    "angle_deg": ("rotation angle in degrees", "deg"),
-    "full": ("full transformation", "unit-less"),
-}
 #: evo's statistics, in its order.
 EVO_STATISTICS = ("rmse", "mean", "median", "std", "min", "max", "sse")
 #: rtsgt's extra entries of ``stats.json``.

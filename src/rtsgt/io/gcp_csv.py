@@ -42,6 +42,7 @@ from os import PathLike
 
 import numpy as np
 
+from rtsgt.choices import GCP_FORMATS  # understood by read_gcp_shots
 from rtsgt.errors import InputError
 from rtsgt.io._parse import (
     atomic_write_text,
@@ -184,10 +185,6 @@ def gcp_csv_text(shots: GcpShots) -> str:
             int(shots.status[k]),
         ))
     return buf.getvalue()
-
-
-#: GCP file formats understood by :func:`read_gcp_shots`.
-GCP_FORMATS = ("auto", "rts-project", "csv")
 
 
 def detect_gcp_format(path: str | PathLike) -> str:

@@ -57,6 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rtsgt.choices import TRAJECTORY_FORMATS as FORMATS  # understood by read_trajectory
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
 from rtsgt.io._bag import BAG_SUFFIXES, open_bag
@@ -75,9 +76,6 @@ from rtsgt.io._parse import (
     to_int,
 )
 from rtsgt.types import PoseTrajectory
-
-#: Formats understood by :func:`read_trajectory`.
-FORMATS = ("tum", "kitti", "euroc", "rtsgt", "bag")
 
 #: Tolerance on the norm of a quaternion (and the orthonormality of a rotation matrix).
 UNIT_TOL = 1e-3

@@ -57,6 +57,7 @@ from typing import Any
 
 import numpy as np
 
+from rtsgt.choices import DEFAULT_BINS_M  # lower edges of the default range bins, m
 from rtsgt.errors import InputError
 from rtsgt.filtering.gates import position_uncertainty
 from rtsgt.io.run_dir import read_run
@@ -91,8 +92,6 @@ ALL = "all"
 REFERENCE = "reference"
 #: Name of the pose entry of the GP posterior alone (the white sources after interpolation).
 GP = "gp"
-#: Lower edges of the default range bins, m (the paper's: 0-75, 75-150, > 150 m).
-DEFAULT_BINS_M = (0.0, 75.0, 150.0)
 #: Scalar measures of a 3x3 covariance block for the pose uncertainty.
 POSE_MEASURES = ("sqrt_trace", "max_std")
 

@@ -56,6 +56,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from rtsgt.choices import REALITY_EFFECTS  # in the order of their streams (effect_rng)
 from rtsgt.errors import InputError
 from rtsgt.measurement.instruments import ARCSEC
 
@@ -72,10 +73,6 @@ __all__ = [
     "settling_fraction",
     "settle_points",
 ]
-
-#: The effects, in the order of their random streams (:func:`effect_rng`).
-REALITY_EFFECTS = ("correlated_noise", "prism_cyclic", "tracking_lag", "clock_drift",
-                   "jerky_ramps", "remote_weather", "tripod_settling")
 
 #: Standard gravity, m/s^2 (CGPM 1901).
 G_M_S2 = 9.80665
