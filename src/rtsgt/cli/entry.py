@@ -1,12 +1,14 @@
 """The ``rtsgt`` console script: the command line, with Ctrl-C handled from its first moment.
 
-The application (:mod:`rtsgt.cli.main`) takes a few seconds to import (numpy, scipy,
-matplotlib, ...). This module imports nothing heavy: it imports the application inside the
-``try`` that turns an interrupt into one line on stderr, :data:`INTERRUPTED_LINE`, and the exit
-status :data:`EXIT_INTERRUPTED`, as an interrupt while a command runs is
-(:mod:`rtsgt.cli.main`): never a traceback, at start-up included. After the command (or the
-interrupt), a further Ctrl-C while the interpreter shuts down is ignored rather than shown as
-a traceback, and after the interrupt's line the process writes nothing more on stderr. ``rtsgt --version`` answers without importing the application.
+The application (:mod:`rtsgt.cli.main`) imports light modules only (a tenth of a second); a
+command imports numpy, scipy, the pipeline, ... when it runs, which takes seconds. This module
+imports nothing heavy: it imports the application inside the ``try`` that turns an interrupt
+into one line on stderr, :data:`INTERRUPTED_LINE`, and the exit status
+:data:`EXIT_INTERRUPTED`, as an interrupt while a command runs is (:mod:`rtsgt.cli.main`):
+never a traceback, at start-up included. After the command (or the interrupt), a further Ctrl-C
+while the interpreter shuts down is ignored rather than shown as a traceback, and after the
+interrupt's line the process writes nothing more on stderr. ``rtsgt --version`` answers without
+importing the application.
 """
 
 from __future__ import annotations
