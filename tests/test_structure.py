@@ -12,10 +12,12 @@ from scipy import stats
 
 from rtsgt.checks.structure import (
     WINDOW_S,
+    _whitened_gram,
     gls_test,
     inter_prism_structure_check,
     pair_jacobian,
     viewing_azimuth,
+    whiten,
 )
 from rtsgt.errors import RtsgtWarning
 from rtsgt.interpolation.cross import gp_cross_covariance, gp_joint_covariance
@@ -96,6 +98,40 @@ def test_gls_recovers_known_coefficients_and_its_statistic_is_chi_square():
     assert np.mean(nees) / 3 == pytest.approx(1.0, abs=0.12)
     assert np.mean(chi0) / 3 == pytest.approx(1.0, abs=0.12)
     assert abs(np.mean(np.array(chi0) > stats.chi2.ppf(0.95, 3)) - 0.05) < 0.03
+
+
+def test_the_gram_of_the_whitened_columns_is_that_of_the_dense_regressors():
+    """The check whitens the clock columns of a window only on its own block and never makes
+    the (T P, windows) array: its Gram matrix is that of the dense columns whitened whole."""
+    rng = np.random.default_rng(21)
+    T, P, n, m = 23, 3, 3, 2
+    t = np.arange(T, dtype=float)
+    H = rng.standard_normal((T, P, 3 * n))
+    root = rng.standard_normal((n, 3 * T, 3 * T))
+    cov = root @ np.swapaxes(root, 1, 2) + 3 * T * np.eye(3 * T)  # SPD, each prism
+
+    def varying(i, tau):
+        idx = np.searchsorted(t, tau)
+        c = cov[i].reshape(T, 3, T, 3)[np.ix_(idx, range(3), idx, range(3))]
+        return c.transpose(0, 2, 1, 3)
+
+    starts, ends = np.array([0, 5, 14]), np.array([5, 14, T])
+    window = np.searchsorted(starts, np.arange(T), side="right") - 1
+    dense = rng.standard_normal((T * P, 4))
+    Vc = rng.standard_normal((T * P, m))
+    K = _whitened_gram(t, H, (starts, ends), varying, n, dense, Vc, window)
+    # the reference: every column dense, whitened with the whole blocks
+    Xc = np.zeros((T, P, starts.size, m))
+    for c, (a, b) in enumerate(zip(starts, ends, strict=True)):
+        Xc[a:b, :, c] = Vc.reshape(T, P, m)[a:b]
+    Xc = Xc.reshape(T * P, -1)
+    blocks = []
+    for a, b in zip(starts, ends, strict=True):
+        S = sum(np.einsum("apx,abxy,bqy->apbq", H[a:b, :, 3 * i:3 * i + 3], varying(i, t[a:b]),
+                          H[a:b, :, 3 * i:3 * i + 3]) for i in range(n))
+        blocks.append(S.reshape((b - a) * P, (b - a) * P))
+    W = whiten(blocks, np.concatenate([dense, Xc, Vc], axis=1))
+    np.testing.assert_allclose(K, W.T @ W, rtol=1e-9, atol=1e-9 * np.abs(K).max())
 
 
 # ------------------------------------------------------------------------ a synthetic robot

@@ -283,7 +283,30 @@ def whitened_gls_test(yw: np.ndarray, Gw: np.ndarray, Xw: np.ndarray,
     GX, Gy = Gw.T @ XZ, Gw.T @ yw
     N = XZ.T @ XZ - GX.T @ np.linalg.solve(M, GX)
     s = XZ.T @ yw - GX.T @ np.linalg.solve(M, Gy)
-    if XZ.shape[1] > p:  # the Schur complement: Z projected out
+    return _schur_test(N, s, p)
+
+
+def _gram_gls_test(K: np.ndarray, y: int, g: np.ndarray, x: np.ndarray,
+                   z: np.ndarray | None = None) -> GlsTest:
+    """:func:`whitened_gls_test` from the Gram matrix ``K = W^T W`` of the whitened columns
+    ``W``: ``y``, ``g``, ``x``, ``z`` are the indices of the residuals, the shared columns, the
+    regressors and the nuisance regressors in ``W`` (every product the test needs is an entry
+    of ``K``)."""
+    p = len(x)
+    if p == 0:
+        return GlsTest(np.zeros(0), np.zeros((0, 0)), 0.0, 0)
+    xz = np.asarray(x) if z is None or len(z) == 0 else np.r_[x, z]
+    M = np.eye(len(g)) + K[np.ix_(g, g)]
+    GX, Gy = K[np.ix_(g, xz)], K[g, y]
+    N = K[np.ix_(xz, xz)] - GX.T @ np.linalg.solve(M, GX)
+    s = K[xz, y] - GX.T @ np.linalg.solve(M, Gy)
+    return _schur_test(N, s, p)
+
+
+def _schur_test(N: np.ndarray, s: np.ndarray, p: int) -> GlsTest:
+    """The test of the first ``p`` coefficients from the information ``N`` and the score ``s``
+    of ``[X Z]``: ``Z`` projected out (the Schur complement)."""
+    if N.shape[0] > p:  # the Schur complement: Z projected out
         Nzz_inv, _ = _pinv(N[p:, p:])
         s = s[:p] - N[:p, p:] @ Nzz_inv @ s[p:]
         N = N[:p, :p] - N[:p, p:] @ Nzz_inv @ N[p:, :p]
@@ -500,30 +523,24 @@ def inter_prism_structure_check(
                         clock_prior], axis=2).reshape(T * P, -1)
     is_ts = np.r_[np.zeros(G.shape[1] - clock_prior.shape[2], bool),
                   np.ones(clock_prior.shape[2], bool)]
-    # the blocks of the varying covariance
-    Xc, clock_info, starts, ends = _clock_regressors(t, q, H, per_station)
-    blocks = []
-    for a, b in zip(*_blocks(t, starts, ends), strict=True):  # loop over blocks
-        S = np.zeros((b - a, P, b - a, P))
-        for i in range(n):
-            C = varying_cov(i, t[a:b])
-            Hi = H[a:b, :, 3 * i:3 * i + 3]
-            S += np.einsum("apx,abxq->apbq", Hi, C @ np.swapaxes(Hi, 1, 2)[None])
-        blocks.append(S.reshape((b - a) * P, (b - a) * P))
+    Vc, window, clock_info, starts, ends = _clock_regressors(t, q, H, per_station)
     Xo, orient_info, labels = _orientation_regressors(q, H, R_world_body, station_xyz, names,
                                                       HARMONICS)
     Xp, _, _ = _orientation_regressors(q, H, R_world_body, station_xyz, names,
                                        PLACEBO_HARMONICS)
-    # whiten once: the residuals, the shared columns and the three sets of regressors
-    k, pc, po = G.shape[1], Xc.shape[1], Xo.shape[1]
-    w = whiten(blocks, np.concatenate([y[:, None], G, Xc, Xo, Xp], axis=1))
-    yw, Gw = w[:, 0], w[:, 1:1 + k]
-    Xcw, Xow, Xpw = np.split(w[:, 1 + k:], [pc, pc + po], axis=1)
-    out["prism_orientation"] = _orientation(yw, Gw, Xow, Xcw, Xpw, orient_info, labels, level)
+    # whiten once, block by block: the residuals, the shared columns, the three sets of
+    # regressors; the tests need only the Gram matrix of the whitened columns
+    dense = np.concatenate([y[:, None], G, Xo, Xp], axis=1)
+    K = _whitened_gram(t, H, _blocks(t, starts, ends), varying_cov, n, dense, Vc, window)
+    k, po, pp, nd, m = G.shape[1], Xo.shape[1], Xp.shape[1], dense.shape[1], Vc.shape[1]
+    cols = {"g": 1 + np.arange(k), "o": 1 + k + np.arange(po), "p": 1 + k + po + np.arange(pp),
+            "c": nd + np.arange(starts.size * m)}
+    cols["run"] = nd + starts.size * m + np.arange(m)  # the clock columns summed over windows
+    out["prism_orientation"] = _orientation(K, cols, orient_info, labels, level)
     # the prisms' harmonics leave the clock test only where the orientation test found them
     found = out["prism_orientation"]["verdict"] == "optimistic"
-    out["clock"] = _clock(t, starts, ends, per_station, yw, Gw, is_ts, Xcw,
-                          Xow if found else None, clock_info, time_sync_sigma_s, level)
+    out["clock"] = _clock(t, starts, ends, per_station, K, cols, is_ts,
+                          cols["o"] if found else None, clock_info, time_sync_sigma_s, level)
     if warn:
         ck, po = out["clock"], out["prism_orientation"]
         if ck["verdict"] == "optimistic":
@@ -543,9 +560,45 @@ def inter_prism_structure_check(
     return out
 
 
+def _whitened_gram(t, H, bounds, varying_cov, n, dense, Vc, window) -> np.ndarray:
+    """Gram matrix ``W^T W`` of the whitened columns ``W = L^-1 [dense, X_c, X_run]``,
+    block by block of the varying covariance (``bounds``: their first and last (exclusive)
+    poses); ``X_c``: the clock columns, ``Vc`` (T P, m) on the poses of each window
+    (``window``: (T,) index of each pose's window, or None without windows), zero elsewhere;
+    ``X_run``: their sum over the windows. A window's columns are whitened only on the blocks
+    it touches (for the windows, its own), so no (T P, windows m) array is made."""
+    T, P = H.shape[:2]
+    nd, m = dense.shape[1], Vc.shape[1]
+    nw = 0 if window is None else int(window.max(initial=-1)) + 1
+    K = np.zeros((nd + nw * m, nd + nw * m))
+    for a, b in zip(*bounds, strict=True):  # loop over blocks
+        S = np.zeros((b - a, b - a, P, P))  # H_a C_ab H_b^T, summed over the prisms
+        for i in range(n):
+            Hi = H[a:b, :, 3 * i:3 * i + 3]
+            S += Hi[:, None] @ varying_cov(i, t[a:b]) @ np.swapaxes(Hi, 1, 2)[None]
+        L = _cholesky(S.transpose(0, 2, 1, 3).reshape((b - a) * P, (b - a) * P))
+        cs = np.zeros(0, int) if window is None else np.unique(window[a:b])
+        Xc = np.zeros((b - a, P, cs.size, m))
+        for j, c in enumerate(cs):
+            on = window[a:b] == c
+            Xc[on, :, j] = Vc.reshape(T, P, m)[a:b][on]
+        W = solve_triangular(L, np.concatenate(
+            [dense[a * P:b * P], Xc.reshape((b - a) * P, -1)], axis=1), lower=True)
+        idx = np.r_[np.arange(nd), nd + (cs[:, None] * m + np.arange(m)).ravel()].astype(int)
+        K[np.ix_(idx, idx)] += W.T @ W
+    # the columns summed over the windows: K E and E^T K E, E the sum
+    E = np.zeros((K.shape[0], m))
+    E[nd:] = np.tile(np.eye(m), (nw, 1))
+    KE = K @ E
+    return np.block([[K, KE], [KE.T, E.T @ KE]])
+
+
 def _clock_regressors(t, q, H, per_station):
-    """Columns of the offsets relative to the first station, one pair per window of
-    ``WINDOW_S`` of motion, (T P, W S'), and the windows' first and last (exclusive) poses."""
+    """The offsets relative to the first station, one pair per window of ``WINDOW_S`` of
+    motion (module docstring): their columns in compact form, ``H v`` of each other station,
+    (T P, S - 1), with each pose's window ((T,), or None without windows; the column of window
+    ``c`` and station ``s`` is that of ``s`` on the window's poses, zero elsewhere), and the
+    windows' first and last (exclusive) poses."""
     T, P = H.shape[:2]
     ids = list(per_station)
     moving = pose_speed(t, q.mean(axis=1)) >= STATIC_SPEED_M_S
@@ -561,33 +614,33 @@ def _clock_regressors(t, q, H, per_station):
     else:
         starts = np.flatnonzero(np.r_[True, window[1:] != window[:-1]])
         ends = np.r_[starts[1:], T].astype(int)
-    X = np.zeros((T, P, starts.size, len(ids) - 1))
-    for c, (a, b) in enumerate(zip(starts, ends, strict=True)):  # loop over windows
-        for m, s in enumerate(ids[1:]):
-            X[a:b, :, c, m] = per_station[s][a:b]
+    which = (np.searchsorted(starts, np.arange(T), side="right") - 1) if starts.size else None
+    V = np.zeros((T, P, len(ids) - 1))
+    for m, s in enumerate(ids[1:]):
+        V[:, :, m] = per_station[s]
     info = {"reference_station": ids[0], "windows": int(starts.size),
             "moving_s": round(float(motion[-1]) if T else 0.0, 1)}
-    return X.reshape(T * P, -1), info, starts, ends
+    return V.reshape(T * P, -1), which, info, starts, ends
 
 
-def _clock(t, starts, ends, per_station, yw, Gw, is_ts, Xw, Xow, info, sigma_ts,
+def _clock(t, starts, ends, per_station, K, cols, is_ts, Xo, info, sigma_ts,
            level) -> dict[str, Any]:
-    """The clock-offset test (module docstring), on whitened arrays; ``per_station``: ``H v``
-    of each station's prisms, (T, P); ``Xow``: the orientation regressors (nuisance), or
-    None."""
+    """The clock-offset test (module docstring), on the Gram matrix ``K`` of the whitened
+    columns (:func:`_whitened_gram`; ``cols``: the indices of each kind); ``per_station``:
+    ``H v`` of each station's prisms, (T, P); ``Xo``: the indices of the orientation
+    regressors (nuisance), or None."""
     ids = list(per_station)
     base, others = ids[0], ids[1:]
     out: dict[str, Any] = {"model_sigma_ms": 1e3 * sigma_ts, **info,
-                           "prism_harmonics_removed": Xow is not None}
-    test = whitened_gls_test(yw, Gw, Xw, Xow)
+                           "prism_harmonics_removed": Xo is not None}
+    test = _gram_gls_test(K, 0, cols["g"], cols["c"], Xo)
     out.update(_verdict(test, level))
     if test.dof == 0:
         out["verdict"] = "too few moving windows"
         return out
     # the data's own estimates: the model's clock prior left out
-    est = whitened_gls_test(yw, Gw[:, ~is_ts], Xw, Xow)
-    est_run = whitened_gls_test(yw, Gw[:, ~is_ts],
-                                Xw.reshape(-1, len(starts), len(others)).sum(axis=1), Xow)
+    est = _gram_gls_test(K, 0, cols["g"][~is_ts], cols["c"], Xo)
+    est_run = _gram_gls_test(K, 0, cols["g"][~is_ts], cols["run"], Xo)
     # contrasts of every pair of stations from the offsets relative to the first
     combos = [(s, base) for s in others] + [(others[b], others[a])
                                             for a in range(len(others))
@@ -641,12 +694,13 @@ def _orientation_regressors(q, H, R_world_body, station_xyz, names, harmonics):
     return X, {"viewing_span_deg": span}, labels
 
 
-def _orientation(yw, Gw, Xw, Xcw, Xpw, info, labels, level) -> dict[str, Any]:
-    """The prism-orientation test (module docstring), on whitened arrays; ``Xcw``: the clock
-    regressors (nuisance); ``Xpw``: the placebo harmonics (the scale)."""
+def _orientation(K, cols, info, labels, level) -> dict[str, Any]:
+    """The prism-orientation test (module docstring), on the Gram matrix ``K`` of the
+    whitened columns (``cols``: the indices of each kind): the clock regressors as nuisance,
+    the placebo harmonics as the scale."""
     out: dict[str, Any] = dict(info)
-    test = whitened_gls_test(yw, Gw, Xw, Xcw)
-    placebo = whitened_gls_test(yw, Gw, Xpw, np.concatenate([Xcw, Xw], axis=1))
+    test = _gram_gls_test(K, 0, cols["g"], cols["o"], cols["c"])
+    placebo = _gram_gls_test(K, 0, cols["g"], cols["p"], np.r_[cols["c"], cols["o"]])
     out.update(_verdict(test, level))
     if test.dof == 0 or placebo.dof == 0:
         out["verdict"] = "too few orientations"

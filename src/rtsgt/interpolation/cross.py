@@ -176,11 +176,14 @@ def gp_joint_covariance(gp: GPTrack, tau: ArrayLike) -> np.ndarray:
         J[a, a + d] = J[a, a + d - 1] @ step[a + d - 1]
         J[a + d, a] = np.swapaxes(J[a, a + d], 1, 2)
     i = k - lo
-    # Cov(p(tau_a), x_c) for every knot c, then against the knots of tau_b
-    left = (np.einsum("aij,acjk->acik", W[:, :3, :dim], J[i])
-            + np.einsum("aij,acjk->acik", W[:, :3, dim:], J[i + 1]))  # (m, K, 3, d)
-    out = (np.einsum("abik,blk->abil", left[:, i], W[:, :3, :dim])
-           + np.einsum("abik,blk->abil", left[:, i + 1], W[:, :3, dim:]))
+    # the positions are A x (x: the knots involved; A: the rows of W on the knots k, k + 1),
+    # so their covariance is A J A^T: two products of dense matrices
+    A = np.zeros((m, 3, K, dim))
+    A[np.arange(m), :, i] = W[:, :3, :dim]
+    A[np.arange(m), :, i + 1] = W[:, :3, dim:]
+    A = A.reshape(3 * m, K * dim)
+    out = (A @ (J.transpose(0, 2, 1, 3).reshape(K * dim, K * dim) @ A.T)
+           ).reshape(m, 3, m, 3).transpose(0, 2, 1, 3)
     same = interior[:, None] & interior[None, :] & (k[:, None] == k[None, :])
     a_idx, b_idx = np.nonzero(same)
     if a_idx.size:
