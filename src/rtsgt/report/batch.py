@@ -16,7 +16,7 @@ from pathlib import Path
 from rtsgt import __version__
 from rtsgt.io._parse import atomic_write_text
 from rtsgt.io.batch_summary import BATCH_COLUMNS, CHECK_COLUMNS
-from rtsgt.report.html import _CSS
+from rtsgt.report.style import CSS
 from rtsgt.stats import VERDICTS
 
 #: Column headers of the page (the CSV's names, shorter).
@@ -81,7 +81,7 @@ def batch_html(rows: Sequence[Mapping], *, path: str | os.PathLike, info: Mappin
     return (
         "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
         "<meta name='viewport' content='width=device-width, initial-scale=1'>"
-        f"<title>{html.escape(title)}</title><style>{_CSS}{_BATCH_CSS}</style></head><body>"
+        f"<title>{html.escape(title)}</title><style>{CSS}{_BATCH_CSS}</style></head><body>"
         f"<main><h1>{html.escape(title)}</h1><div class='kpi'>{facts}</div>"
         f"<table id='batch'><tr>{head}</tr>{body}</table>"
         "<p><small>Every value is read from the deployment's summary.json. σ: the median over "

@@ -27,7 +27,8 @@ from rtsgt import __version__
 from rtsgt.io._parse import table_text
 from rtsgt.planning.plan import RANGE_LIMIT_M, PlanResult, _hull
 from rtsgt.report.figures import DrawnFigure
-from rtsgt.report.html import _CSS, _figure_html
+from rtsgt.report.html import _figure_html
+from rtsgt.report.style import CSS
 
 __all__ = ["PLAN_SCHEMA_NAME", "PLAN_SCHEMA_VERSION", "draw_plan_map", "plan_document",
            "plan_json_text", "plan_section_html", "plan_table_text", "render_plan_page"]
@@ -254,7 +255,7 @@ def render_plan_page(results: Sequence[PlanResult], figure: DrawnFigure) -> str:
     title = "rtsgt plan: " + " vs ".join(r.name for r in results)
     return (f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
             f"<meta name='viewport' content='width=device-width, initial-scale=1'>"
-            f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body><main>"
+            f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body><main>"
             f"<h1>{html.escape(title)}</h1><p>rtsgt {html.escape(__version__)}</p>"
             f"{plan_section_html(results, figure)}</main></body></html>\n")
 
