@@ -78,3 +78,31 @@ def test_run_without_report_never_imports_matplotlib(tmp_path):
     assert "rtsgt.pipeline" in modules and (out / "summary.json").is_file()  # it ran
     assert not (out / "report.html").exists()
     assert [m for m in modules if m.split(".")[0] == "matplotlib"] == []
+
+
+BLAS_SCRIPT = """
+import json, os, sys
+sys.argv = ["rtsgt", "--version"]
+from rtsgt.cli import entry
+try:
+    entry.main()
+except SystemExit:
+    pass
+print(json.dumps({k: os.environ.get(k) for k in entry.BLAS_THREADS}))
+"""
+
+
+def test_the_command_line_runs_blas_on_one_thread_unless_told_otherwise():
+    """The console script sets one BLAS thread before numpy loads (docs/benchmarks.md#speed);
+    a user's own setting wins."""
+    import os
+
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    for given, expected in ((None, "1"), ("2", "2")):
+        e = dict(env) if given is None else {**env, "OPENBLAS_NUM_THREADS": given}
+        p = subprocess.run([sys.executable, "-c", BLAS_SCRIPT], capture_output=True,
+                           text=True, timeout=120, env=e)
+        assert p.returncode == 0, p.stderr
+        got = json.loads(p.stdout.strip().splitlines()[-1])
+        assert got["OPENBLAS_NUM_THREADS"] == expected and got["OMP_NUM_THREADS"] == "1"

@@ -18,6 +18,13 @@ import os
 import signal
 import sys
 
+#: The BLAS thread counts the command line runs with unless the environment sets them: one.
+#: rtsgt's linear algebra is many small matrices (3x3 to a few hundred rows), where a second
+#: BLAS thread costs more than it gives (on the 2-core machine: a simulated hour 35.0 -> 26.8 s,
+#: the self-checks 7.4 -> 2.5 s; docs/benchmarks.md#speed), and a run then gives the same bits
+#: serially as in a Dask worker.
+BLAS_THREADS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
 #: Exit status of an interrupted command (128 + SIGINT, as a shell reports it).
 EXIT_INTERRUPTED = 130
 #: The line an interrupted command prints on stderr.
@@ -64,6 +71,8 @@ def interrupted() -> int:
 def main() -> None:
     """Run the command line of ``sys.argv``; exits with the command's status."""
     status: int | str | None
+    for name, value in BLAS_THREADS.items():  # before numpy loads; a user's setting wins
+        os.environ.setdefault(name, value)
     try:
         if sys.argv[1:] == ["--version"]:  # as the application prints it, without its imports
             from rtsgt import __version__
