@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import tracemalloc
+
 import numpy as np
 import pytest
 
 from rtsgt.errors import InputError
-from rtsgt.interpolation import loo
+from rtsgt.interpolation import gp, loo
 from rtsgt.interpolation.gp import fit_qc, fit_track
 from rtsgt.interpolation.loo import fit_qc_loo, loo_predictive
 from test_gp import measure, random_spd, simulate_prior  # helpers of the GP tests
@@ -53,6 +55,45 @@ def test_candidates_scored_together_score_as_each_alone(prior):
     # and each alone is the dense refit's (test above) through loo_predictive
     ll, _, _ = loo.loo_score((t, y, R), 0.02, 3.0, prior=prior)
     assert together[0][0] == pytest.approx(ll, rel=1e-10)
+
+
+@pytest.mark.parametrize("prior", ["wnoa", "wnoj"])
+def test_candidates_solved_in_parts_give_the_whole_system_bit_for_bit(prior, monkeypatch):
+    """The stacked systems solved in parts of at most _STACK_BLOCKS blocks (each part
+    eliminated in the order of the whole) give the numbers of one reduction of all, exactly:
+    the search's path, and so the fitted Qc, does not depend on the parts."""
+    rng = np.random.default_rng(22)
+    t, y, R, _ = _track(rng, 37, 0.02)
+    data = gp._prepare((t, y, R), prior=prior)
+    qcs = [np.diag(rng.uniform(1e-3, 0.1, 3)) for _ in range(5)]
+    scales = [None, rng.uniform(0.2, 3.0, 36), None, None, rng.uniform(0.2, 3.0, 36)]
+    monkeypatch.setattr(gp, "_STACK_BLOCKS", 1 << 20)
+    whole = gp._posteriors(data, qcs, scales)
+    for blocks in (1, 37, 73, 111):
+        monkeypatch.setattr(gp, "_STACK_BLOCKS", blocks)
+        parts = gp._posteriors(data, qcs, scales)
+        for a, b in zip(whole, parts, strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize(("prior", "dim"), [("wnoa", 6), ("wnoj", 9)])
+def test_the_search_holds_few_blocks_per_knot_and_candidate(prior, dim):
+    """Memory of the search's unit of work (issue 25): the cyclic reduction frees each level
+    once reduced, updates in place, solves long tracks in parts and keeps the position
+    covariances only: 12.8 blocks of d x d per knot and candidate at the peak before, 2.8
+    now."""
+    rng = np.random.default_rng(8)
+    n = 3000
+    t, y, R, _ = _track(rng, n, 0.02)
+    scorer = loo.LooScorer((t, y, R), 3.0, prior)
+    qcs = [np.diag([0.01, 0.02, 0.03]) * f for f in (1.0, 1.1, 1.2, 1.3)]
+    tracemalloc.start()
+    try:
+        scorer.scores(qcs)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 4 * len(qcs) * n * dim * dim * 8
 
 
 def test_knots_next_to_long_gaps_are_not_scored():

@@ -151,6 +151,10 @@ PRIORS = ("wnoa", "wnoj")
 _LOG_2PI = math.log(2.0 * math.pi)
 _EYE3 = np.eye(3)
 _QUERY_CHUNK = 1 << 16
+#: Most blocks of the candidates' systems that the leave-one-out search solves at once
+#: (:func:`_posteriors`; its result does not depend on it, only its memory, about 5 blocks of
+#: 6x6 or 9x9 per knot and candidate, and the fixed cost per call of a short track's).
+_STACK_BLOCKS = 1 << 13
 
 
 # --------------------------------------------------------------------------------------------
@@ -167,7 +171,10 @@ def _kron2(a: np.ndarray, m: np.ndarray) -> np.ndarray:
 
 
 def _sym(a: np.ndarray) -> np.ndarray:
-    return 0.5 * (a + np.swapaxes(a, -1, -2))
+    """``0.5 (a + a^T)`` over the last two axes (one temporary: ``x * 0.5`` is ``0.5 * x``)."""
+    out = a + np.swapaxes(a, -1, -2)
+    out *= 0.5
+    return out
 
 
 def as_qc(qc: ArrayLike, name: str = "qc") -> np.ndarray:
@@ -701,8 +708,8 @@ def _chol_solver(a: np.ndarray):
     return logdet, _sym(lit @ li), lambda x: lit @ (li @ x)
 
 
-def _bcr(D: np.ndarray, B: np.ndarray, h: np.ndarray, want_cov: bool, cholesky: bool = False,
-         want_logdet: bool = True):
+def _bcr(system: list, want_cov: bool, cholesky: bool = False, want_logdet: bool = True,
+         want_cross: bool = True, offset: int = 0):
     """Solve ``J x = h`` for a block-tridiagonal SPD ``J`` by block cyclic reduction.
 
     Level by level, the odd-indexed blocks are eliminated (Schur complement onto the even
@@ -716,20 +723,42 @@ def _bcr(D: np.ndarray, B: np.ndarray, h: np.ndarray, want_cov: bool, cholesky: 
     Without ``want_logdet`` (the leave-one-out search needs only the posterior) the inverse
     pivots of WNOA are not factored a second time for ``log|J|``, which is then 0.
 
+    Memory: ``system`` is the list ``[D, B, h]`` (D (N, d, d) the diagonal blocks, B (N-1, d, d)
+    the blocks ``J_k,k+1``, h (N, d)), emptied here, so that each level's blocks are freed once
+    reduced (when the caller holds no other reference to them); a level's pivots are freed
+    once its back substitution is done, and the temporaries are updated in place (the same
+    operations in the same order: the results are those of the allocating form, bit for bit).
+    The peak is about 5 blocks per knot instead of 13.
+
+    ``offset``: the system is a part, from block ``offset`` on, of a larger one that it is
+    uncoupled from (zero blocks of ``J`` between them, as :func:`_posteriors` stacks them): its
+    blocks are eliminated in the order of the whole, level by level (where its first block
+    has an odd index there, a block with zero coupling stands in for the blocks before it), so
+    that its solution is the one the whole system would give it, bit for bit (a block of the
+    whole left alone is eliminated as the last block of a part is inverted).
+
     Returns
     -------
     mean : (N, d)
     logdet : float, ``log|J|``
     S : (N, d, d) diagonal blocks of ``J^-1`` or None
-    C : (N-1, d, d) blocks ``(J^-1)_k,k+1`` or None
+    C : (N-1, d, d) blocks ``(J^-1)_k,k+1``, or None (without ``want_cov`` or ``want_cross``)
     """
+    D, B, h = system
+    system.clear()
     dim = D.shape[-1]
     levels = []
     logdet = 0.0
     while D.shape[0] > 1:
+        lead = offset % 2 == 1  # the first block is odd in the whole: eliminated now
+        if lead:
+            D = np.concatenate([np.eye(dim)[None], D])
+            B = np.concatenate([np.zeros((1, dim, dim)), B])
+            h = np.concatenate([np.zeros((1, dim)), h])
+        offset = (offset + 1) // 2  # the index of the first even block, at the next level
         n = D.shape[0]
         n_even = (n + 1) // 2
-        d_odd = D[1::2]
+        n_odd = n // 2
         b_left = B[0::2]  # J_{i-1,i} for odd i
         b_right = B[1::2]  # J_{i,i+1} for odd i (none for the last odd when n is even)
         if n % 2 == 0:
@@ -737,29 +766,35 @@ def _bcr(D: np.ndarray, B: np.ndarray, h: np.ndarray, want_cov: bool, cholesky: 
         b_left_t = np.swapaxes(b_left, 1, 2)
         b_right_t = np.swapaxes(b_right, 1, 2)
         if cholesky:
-            ld, d_inv, solve = _chol_solver(d_odd)
+            ld, d_inv, solve = _chol_solver(D[1::2])
             logdet += ld
             ga = solve(b_left_t)  # D_i^-1 J_{i,i-1}
             gb = solve(b_right)  # D_i^-1 J_{i,i+1}
             g = solve(h[1::2, :, None])[..., 0]
+            del solve
         else:
             if want_logdet:
-                logdet += _chol_logdet(d_odd)
-            d_inv = _sym(np.linalg.inv(d_odd))
+                logdet += _chol_logdet(D[1::2])
+            d_inv = _sym(np.linalg.inv(D[1::2]))
             ga = d_inv @ b_left_t  # D_i^-1 J_{i,i-1}
             gb = d_inv @ b_right  # D_i^-1 J_{i,i+1}
             g = np.einsum("nij,nj->ni", d_inv, h[1::2])
         # Schur complement onto the even blocks
         d_even = D[0::2].copy()
-        n_odd = d_odd.shape[0]
+        del D
         d_even[:n_odd] -= b_left @ ga
         d_even[1:] -= (b_right_t @ gb)[: n_even - 1]
         h_even = h[0::2].copy()
         h_even[:n_odd] -= np.einsum("nij,nj->ni", b_left, g)
         h_even[1:] -= np.einsum("nij,nj->ni", b_right_t, g)[: n_even - 1]
-        b_even = -(b_left @ gb)[: n_even - 1]
-        levels.append((d_inv, ga, gb, g, n))
-        D, B, h = _sym(d_even), b_even, h_even
+        b_even = b_left @ gb
+        del B, b_left, b_right, b_left_t, b_right_t
+        np.negative(b_even, out=b_even)
+        levels.append((d_inv, ga, gb, g, n, lead))
+        D, B, h = _sym(d_even), b_even[: n_even - 1], h_even
+        if lead:  # the stand-in block (kept, first) is not the system's
+            D, B, h = D[1:], B[1:], h[1:]
+        del d_even, d_inv, ga, gb, b_even
     if cholesky:
         ld, s0, solve = _chol_solver(D)
         logdet += ld
@@ -769,9 +804,17 @@ def _bcr(D: np.ndarray, B: np.ndarray, h: np.ndarray, want_cov: bool, cholesky: 
             logdet += _chol_logdet(D)
         s0 = _sym(np.linalg.inv(D))
         mean = np.einsum("nij,nj->ni", s0, h)
+    del D, B, h
     S = s0 if want_cov else None
     C = np.zeros((0, dim, dim)) if want_cov else None
-    for d_inv, ga, gb, g, n in reversed(levels):
+    del s0
+    while levels:
+        d_inv, ga, gb, g, n, lead = levels.pop()
+        if lead:  # the stand-in block again, coupled to nothing (its values multiply zeros)
+            mean = np.concatenate([np.zeros((1, dim)), mean])
+            if want_cov:
+                S = np.concatenate([np.eye(dim)[None], S])
+                C = np.concatenate([np.zeros((1, dim, dim)), C])
         m_e = mean
         if n % 2 == 0:  # a zero neighbour to the right of the last odd block
             m_e = np.concatenate([m_e, np.zeros((1, dim))])
@@ -779,23 +822,49 @@ def _bcr(D: np.ndarray, B: np.ndarray, h: np.ndarray, want_cov: bool, cholesky: 
         mean = np.empty((n, dim))
         mean[0::2] = m_e[: (n + 1) // 2]
         mean[1::2] = m_o
+        del m_e, m_o, g
         if want_cov:
             s_e, c_e = S, C
+            del S, C
             if n % 2 == 0:
                 s_e = np.concatenate([s_e, np.zeros((1, dim, dim))])
                 c_e = np.concatenate([c_e, np.zeros((1, dim, dim))])
             # rows i (odd) of J Sigma = I, neighbours a = i-1 and b = i+1:
             # Sigma_ia = -(G_a Sigma_aa + G_b Sigma_ba), Sigma_ib = -(G_a Sigma_ab + G_b Sigma_bb)
-            s_ia = -(ga @ s_e[:-1] + gb @ np.swapaxes(c_e, 1, 2))
-            s_ib = -(ga @ c_e + gb @ s_e[1:])
-            # Sigma_ii = D_i^-1 - G_a Sigma_ai - G_b Sigma_bi
-            s_ii = d_inv - ga @ np.swapaxes(s_ia, 1, 2) - gb @ np.swapaxes(s_ib, 1, 2)
+            s_ia = ga @ s_e[:-1]
+            s_ia += gb @ np.swapaxes(c_e, 1, 2)
+            np.negative(s_ia, out=s_ia)
+            s_ib = ga @ c_e
+            del c_e
+            s_ib += gb @ s_e[1:]
+            np.negative(s_ib, out=s_ib)
+            # Sigma_ii = D_i^-1 - G_a Sigma_ai - G_b Sigma_bi (in d_inv, not needed again)
+            s_ii = d_inv
+            del d_inv
+            s_ii -= ga @ np.swapaxes(s_ia, 1, 2)
+            del ga
+            s_ii -= gb @ np.swapaxes(s_ib, 1, 2)
+            del gb
             S = np.empty((n, dim, dim))
             S[0::2] = s_e[: (n + 1) // 2]
+            del s_e
             S[1::2] = _sym(s_ii)
-            C = np.empty((n - 1, dim, dim))
-            C[0::2] = np.swapaxes(s_ia, 1, 2)
-            C[1::2] = s_ib[: (n - 1) // 2]
+            del s_ii
+            C = None
+            if want_cross or levels:
+                C = np.empty((n - 1, dim, dim))
+                C[0::2] = np.swapaxes(s_ia, 1, 2)
+                C[1::2] = s_ib[: (n - 1) // 2]
+            del s_ia, s_ib
+            if lead:
+                S = S[1:]
+                C = None if C is None else C[1:]
+        else:
+            del d_inv, ga, gb
+        if lead:
+            mean = mean[1:]
+    if want_cov and not want_cross:
+        C = None
     return mean, logdet, S, C
 
 
@@ -803,8 +872,8 @@ def _solve(data: _Data, qc: np.ndarray, want_cov: bool, scale: np.ndarray | None
     """Posterior (centred) and log marginal likelihood for one Qc (times ``scale`` per
     interval, when given)."""
     w = _spd_inv(qc)
-    D, B, h = _build_system(data, w, scale)
-    mean, logdet_j, S, C = _bcr(D, B, h, want_cov, cholesky=data.prior == "wnoj")
+    mean, logdet_j, S, C = _bcr(list(_build_system(data, w, scale)), want_cov,
+                                cholesky=data.prior == "wnoj")
     n = data.t.shape[0]
     n_obs = n if data.n_obs is None else data.n_obs
     dt = np.diff(data.t)
@@ -849,23 +918,37 @@ def _solve(data: _Data, qc: np.ndarray, want_cov: bool, scale: np.ndarray | None
 
 def _posteriors(data: _Data, qcs: list[np.ndarray], scales: list[np.ndarray | None],
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Posterior means (K, N, d) and marginal covariances (K, N, d, d), centred, of the same
-    measurements under K candidate ``Qc`` (each times its ``scale`` per interval, or None).
+    """Posterior means (K, N, d) and marginal position covariances (K, N, 3, 3), centred, of
+    the same measurements under K candidate ``Qc`` (each times its ``scale`` per interval, or
+    None).
 
     The K block-tridiagonal systems are solved as one, uncoupled (a zero block between them):
     one cyclic reduction for all, so that a short track's fixed cost per call (numpy's, not
-    the arithmetic) is paid once instead of K times. Each solution is that of :func:`_solve`
-    up to rounding (the blocks are eliminated in another order).
+    the arithmetic) is paid once instead of K times; a long track's in parts of at most
+    :data:`_STACK_BLOCKS` blocks, each eliminated in the order of the whole (:func:`_bcr`'s
+    ``offset``), which gives the same numbers, bit for bit, in less memory. Each solution is
+    that of :func:`_solve` up to rounding (the blocks are eliminated in another order).
     """
-    systems = [_build_system(data, _spd_inv(q), s) for q, s in zip(qcs, scales, strict=True)]
-    k, n, d = len(systems), data.t.shape[0], data.dim
-    gap = np.zeros((1, d, d))
-    D = np.concatenate([sy[0] for sy in systems])
-    B = np.concatenate([b for i, sy in enumerate(systems)
-                        for b in ((gap, sy[1]) if i else (sy[1],))])
-    h = np.concatenate([sy[2] for sy in systems])
-    mean, _, S, _ = _bcr(D, B, h, True, cholesky=data.prior == "wnoj", want_logdet=False)
-    return mean.reshape(k, n, d), S.reshape(k, n, d, d)
+    k, n, d = len(qcs), data.t.shape[0], data.dim
+    mean = np.empty((k, n, d))
+    S = np.empty((k, n, 3, 3))
+    per = max(1, _STACK_BLOCKS // n)  # systems solved at once
+    for k0 in range(0, k, per):
+        k1 = min(k0 + per, k)
+        D = np.empty(((k1 - k0) * n, d, d))
+        B = np.zeros(((k1 - k0) * n - 1, d, d))  # a zero block between two systems
+        h = np.empty(((k1 - k0) * n, d))
+        for i in range(k1 - k0):
+            D[i * n:(i + 1) * n], B[i * n:(i + 1) * n - 1], h[i * n:(i + 1) * n] = (
+                _build_system(data, _spd_inv(qcs[k0 + i]), scales[k0 + i]))
+        system = [D, B, h]
+        del D, B, h
+        m, _, c, _ = _bcr(system, True, cholesky=data.prior == "wnoj", want_logdet=False,
+                          want_cross=False, offset=k0 * n)
+        mean[k0:k1] = m.reshape(k1 - k0, n, d)
+        S[k0:k1] = c.reshape(k1 - k0, n, d, d)[..., :3, :3]
+        del m, c
+    return mean, S
 
 
 # --------------------------------------------------------------------------------------------

@@ -142,7 +142,7 @@ class LooScorer:
         mean, S = _posteriors(self._data, [as_qc(q) for q in qcs],
                               [_check_scale(self._data, s) for s in scales])
         e = self._data.y[self.used] - mean[:, self.used, :3]
-        A = self._R - S[:, self.used, :3, :3]
+        A = self._R - S[:, self.used]
         A = 0.5 * (A + np.swapaxes(A, -1, -2))
         try:
             return e, np.linalg.cholesky(A), None
