@@ -185,6 +185,21 @@ def test_mc_is_reproducible_and_independent_of_chunking():
     c = estimate_poses(q, cov_q, r, cov_r, samples=300, rng=np.random.default_rng(2))
     np.testing.assert_allclose(a.cov, b.cov, rtol=1e-8)
     assert rel_frobenius(a.cov, c.cov).max() > 1e-3  # a different seed, different samples
+    # the chunks on a pool of threads: the same draws, bit for bit the same result
+    for registration in ("weighted", "unweighted"):
+        runs = [estimate_poses(q, cov_q, r, cov_r, samples=300, rng=np.random.default_rng(1),
+                               chunk_size=700, threads=k, registration=registration)
+                for k in (1, 3)]
+        for x in ("cov", "mean_offset", "R", "t"):
+            assert np.array_equal(getattr(runs[0], x), getattr(runs[1], x)), (registration, x)
+        ref = b if registration == "weighted" else estimate_poses(
+            q, cov_q, r, cov_r, samples=300, rng=np.random.default_rng(1),
+            registration=registration)
+        np.testing.assert_allclose(runs[1].cov, ref.cov, rtol=1e-8)
+        if registration == "weighted":  # b: the same chunks on the default threads
+            assert np.array_equal(runs[0].cov, b.cov)
+    with pytest.raises(ValueError, match="threads"):
+        estimate_poses(q, cov_q, r, cov_r, samples=300, rng=np.random.default_rng(1), threads=0)
 
 
 def test_distances_residuals_and_quaternions():

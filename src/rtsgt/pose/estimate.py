@@ -53,7 +53,10 @@ Degenerate poses (reported, never silently solved): a prism or its covariance is
 
 from __future__ import annotations
 
+import os
 import warnings
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal, get_args
 
@@ -100,6 +103,11 @@ REASON_COLLINEAR = "collinear"
 
 #: Default number of registrations per Monte Carlo chunk (bounds the memory to ~10 MB).
 DEFAULT_MC_CHUNK = 1 << 14
+#: Threads of the Monte Carlo chunks when not given (None: the cores available, at most
+#: :data:`MAX_MC_THREADS`; :func:`mc_threads`). The result does not depend on it.
+MC_THREADS: int | None = None
+#: The most threads the default takes (the chunks are small; more threads gain little).
+MAX_MC_THREADS = 4
 
 
 @dataclass(frozen=True)
@@ -242,6 +250,7 @@ def estimate_poses(
     rng: np.random.Generator | None = None,
     chunk_size: int | None = None,
     min_shape: float = MIN_SHAPE,
+    threads: int | None = None,
 ) -> PoseEstimate:
     """Poses ``T_world_body`` and their 6x6 covariances from prism positions.
 
@@ -280,6 +289,9 @@ def estimate_poses(
         Registrations per Monte Carlo chunk (default 16384), bounds the memory.
     min_shape : float
         Collinearity threshold on the shape ratio (:data:`MIN_SHAPE`).
+    threads : int, optional
+        Threads fitting the Monte Carlo chunks (default :func:`mc_threads`: the cores
+        available, at most 4); the draws stay in order, the result is the same bit for bit.
 
     Returns
     -------
@@ -328,6 +340,7 @@ def estimate_poses(
         if int(samples) != samples or samples < 2:
             raise ValueError(f"Expected an integer number of samples >= 2, got {samples}")
         samples = int(samples)
+        threads = mc_threads(threads)
     chunk = DEFAULT_MC_CHUNK if chunk_size is None else int(chunk_size)
     if chunk < 1:
         raise ValueError(f"Expected a positive chunk_size, got {chunk_size}")
@@ -392,7 +405,8 @@ def estimate_poses(
         z_r = rng.standard_normal((samples, 3 * n))  # drawn even when no pose is valid
         if valid.size:
             r_samples = (r.reshape(3 * n) + z_r @ Lr.T).reshape(samples, n, 3)
-            c, o, u = _mc(qv, psd_factor(cqv), r_samples, r, Rv, tv, rng, chunk, gls)
+            c, o, u = _mc(qv, psd_factor(cqv), r_samples, r, Rv, tv, rng, chunk, gls,
+                          threads)
             cov[valid], offset[valid] = c, o
             unconverged += u
     elif valid.size and engine == "ut":
@@ -494,13 +508,34 @@ def _fit_samples(P, Q, q, r, R0, t0, gls):
     return Rs, ts, int(np.sum(~conv))
 
 
-def _mc(q, Lq, r_samples, r, R0, t0, rng, chunk, gls):
+def mc_threads(threads: int | None = None) -> int:
+    """The number of threads of the Monte Carlo engine's chunks: ``threads`` if given, else
+    :data:`MC_THREADS` if set, else the cores this process may run on
+    (``os.sched_getaffinity``, or ``os.cpu_count``), at most :data:`MAX_MC_THREADS`."""
+    if threads is None:
+        threads = MC_THREADS
+    if threads is None:
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except AttributeError:  # not on every platform
+            cores = os.cpu_count() or 1
+        threads = min(cores, MAX_MC_THREADS)
+    if int(threads) != threads or threads < 1:
+        raise ValueError(f"Expected a positive integer number of threads, got {threads}")
+    return int(threads)
+
+
+def _mc(q, Lq, r_samples, r, R0, t0, rng, chunk, gls, threads=1):
     """Monte Carlo second moment and mean of the perturbations, chunked over poses.
 
     ``Lq`` (K, 3n, 3n) factors the joint prism covariance of each pose; ``gls``: the weights
     and Jacobians of the weighted fit, or None (:func:`_fit_samples`). The draws of a chunk
     of poses are the next rows of the one array ``(K, M, n, 3)`` (row-major fill), so the
-    result does not depend on the chunk size; the memory is bounded by it.
+    result does not depend on the chunk size; the memory is bounded by it. With ``threads``
+    > 1 the chunks' fits run on a pool of that many threads (numpy releases the GIL in its
+    kernels); the draws stay on the calling thread, in chunk order, at most ``threads + 1``
+    chunks of them alive, and each chunk's arithmetic is its own: the result is the same,
+    bit for bit, for every number of threads.
     """
     K, n, _ = q.shape
     M = r_samples.shape[0]
@@ -508,23 +543,23 @@ def _mc(q, Lq, r_samples, r, R0, t0, rng, chunk, gls):
     per = max(1, chunk // M)
     cov = np.empty((K, 6, 6))
     off = np.empty((K, 6))
-    unconverged = 0
     if gls is not None:
         W, J_q, J_r = gls
         X = np.ascontiguousarray(np.moveaxis(r_samples, 0, -1))  # (n, 3, M)
         dr = np.ascontiguousarray((r_samples - r).reshape(M, m).T)  # (3n, M)
         shifted = (q - t0[:, None, :]).reshape(K, m, 1)
-    for s in range(0, K, per):
-        e = min(K, s + per)
-        z = rng.standard_normal((e - s, M, n, 3)).reshape(e - s, M, m)
+
+    def work(s: int, e: int, z: np.ndarray) -> int:
+        """Fit chunk ``[s, e)`` from its draws ``z`` (e - s, M, 3n); fill ``cov``, ``off``
+        there; return its number of unconverged fits."""
         if gls is None:
             qs = q[s:e, None] + np.einsum("kab,kmb->kma", Lq[s:e], z).reshape(e - s, M, n, 3)
             Rs, ts, u = _fit_samples(r_samples[None], qs, q[s:e], r, R0[s:e], t0[s:e], None)
             xi = _perturbations(Rs, ts, R0[s:e], t0[s:e])
             cov[s:e] = np.einsum("kmi,kmj->kij", xi, xi) / M
             off[s:e] = xi.mean(axis=1)
-            unconverged += u
-            continue
+            return u
+        u = 0
         dq = Lq[s:e] @ np.swapaxes(z, 1, 2)  # (k, 3n, M)
         xi0 = J_q[s:e] @ dq + J_r[s:e] @ dr  # first-order prediction
         Wt, P, N_inv = newton_inverse_at(np.broadcast_to(r, q[s:e].shape), q[s:e], W[s:e],
@@ -537,9 +572,34 @@ def _mc(q, Lq, r_samples, r, R0, t0, rng, chunk, gls):
             Rb, tb, cb, _ = refine_batches(pb, qb, W[s + kk], R0[s + kk, None],
                                            t0[s + kk, None], xi0[kk, :, mm][:, None])
             xi[kk, :, mm] = _perturbations(Rb, tb, R0[s + kk], t0[s + kk])[:, 0]
-            unconverged += int(np.sum(~cb))
+            u += int(np.sum(~cb))
         cov[s:e] = xi @ np.swapaxes(xi, 1, 2) / M
         off[s:e] = xi.mean(axis=2)
+        return u
+
+    def draws():  # (s, e, z) in chunk order, each drawn when asked for
+        for s in range(0, K, per):
+            e = min(K, s + per)
+            yield s, e, rng.standard_normal((e - s, M, n, 3)).reshape(e - s, M, m)
+
+    starts = range(0, K, per)
+    threads = min(threads, len(starts))
+    if threads <= 1:
+        return cov, off, sum(work(*chunk_) for chunk_ in draws())
+    unconverged = 0
+    pending: deque[Future] = deque()
+    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="rtsgt-pose-mc") as pool:
+        try:
+            for chunk_ in draws():
+                pending.append(pool.submit(work, *chunk_))
+                del chunk_
+                while len(pending) > threads:  # threads running, one queued, one drawing
+                    unconverged += pending.popleft().result()
+            while pending:
+                unconverged += pending.popleft().result()
+        finally:
+            for f in pending:
+                f.cancel()
     return cov, off, unconverged
 
 
