@@ -935,14 +935,17 @@ def _posteriors(data: _Data, qcs: list[np.ndarray], scales: list[np.ndarray | No
     per = max(1, _STACK_BLOCKS // n)  # systems solved at once
     for k0 in range(0, k, per):
         k1 = min(k0 + per, k)
-        D = np.empty(((k1 - k0) * n, d, d))
-        B = np.zeros(((k1 - k0) * n - 1, d, d))  # a zero block between two systems
-        h = np.empty(((k1 - k0) * n, d))
-        for i in range(k1 - k0):
-            D[i * n:(i + 1) * n], B[i * n:(i + 1) * n - 1], h[i * n:(i + 1) * n] = (
-                _build_system(data, _spd_inv(qcs[k0 + i]), scales[k0 + i]))
-        system = [D, B, h]
-        del D, B, h
+        if k1 == k0 + 1:  # one system: as built
+            system = list(_build_system(data, _spd_inv(qcs[k0]), scales[k0]))
+        else:
+            D = np.empty(((k1 - k0) * n, d, d))
+            B = np.zeros(((k1 - k0) * n - 1, d, d))  # a zero block between two systems
+            h = np.empty(((k1 - k0) * n, d))
+            for i in range(k1 - k0):
+                D[i * n:(i + 1) * n], B[i * n:(i + 1) * n - 1], h[i * n:(i + 1) * n] = (
+                    _build_system(data, _spd_inv(qcs[k0 + i]), scales[k0 + i]))
+            system = [D, B, h]
+            del D, B, h
         m, _, c, _ = _bcr(system, True, cholesky=data.prior == "wnoj", want_logdet=False,
                           want_cross=False, offset=k0 * n)
         mean[k0:k1] = m.reshape(k1 - k0, n, d)
