@@ -155,3 +155,31 @@ def test_directories_are_made_with_the_umask(tmp_path):
     finally:
         os.umask(old)
     assert out.stat().st_mode & 0o777 == 0o775
+
+
+def test_a_table_is_written_in_pieces_with_the_text_of_the_whole(tmp_path):
+    """``write_csv`` streams a large table a few thousand rows at a time
+    (:func:`rtsgt.io._parse.table_chunks`): the file holds exactly the whole table's text,
+    and a failing piece leaves nothing (the target untouched, no temporary file)."""
+    import numpy as np
+
+    from rtsgt.io._parse import atomic_write_bytes, table_chunks, table_text
+    from rtsgt.io.run_dir import write_csv
+
+    a = np.random.default_rng(3).standard_normal((10_001, 5)) * 1e-7
+    pieces = list(table_chunks(a, header="a,b,c,d,e", fmt="%.17g", rows=4096))
+    assert len(pieces) == 1 + 3  # the header, then ceil(10001 / 4096) blocks
+    path = tmp_path / "t.csv"
+    write_csv(path, list("abcde"), [a])
+    assert path.read_text() == "".join(pieces) == table_text(a, header="a,b,c,d,e",
+                                                             fmt="%.17g")
+    np.testing.assert_array_equal(np.loadtxt(path, delimiter=",", skiprows=1), a)
+
+    def failing():
+        yield b"1,2\n"
+        raise OSError("disk full")
+
+    with pytest.raises(OSError):
+        atomic_write_bytes(path, failing())
+    assert path.read_text() == "".join(pieces)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.csv"]

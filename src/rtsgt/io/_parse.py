@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from datetime import datetime, timezone
 from os import PathLike
 from pathlib import Path
@@ -425,14 +425,20 @@ def fmt_float(x: float) -> str:
     return repr(float(x))
 
 
-def table_text(
+#: Rows of a table formatted and written at a time (:func:`table_chunks`): a few MB of text.
+TABLE_CHUNK_ROWS = 4096
+
+
+def table_chunks(
     data: np.ndarray,
     *,
     header: str | None = None,
     sep: str = ",",
     fmt: str | Sequence[str] | None = None,
-) -> str:
-    """Text of a table of numbers: an optional header line, then one line per row.
+    rows: int = TABLE_CHUNK_ROWS,
+) -> Iterator[str]:
+    """Text of a table of numbers, ``rows`` lines at a time: an optional header line, then one
+    line per row (so that a large table is never whole in memory as text).
 
     Parameters
     ----------
@@ -444,22 +450,36 @@ def table_text(
     fmt : str or sequence of K str, optional
         printf-style format of every value (``"%.17g"``) or of each column; None: the
         shortest text that reads back as the same float64 (:func:`fmt_float`).
+    rows : int
+        Lines per piece.
 
-    Returns
-    -------
+    Yields
+    ------
     str
-        Lines ending in ``"\\n"``.
+        Consecutive pieces of the text, lines ending in ``"\n"``.
     """
     a = np.asarray(data, dtype=float)
-    rows = a.tolist()
-    if fmt is None:
-        lines = [sep.join(map(fmt_float, r)) for r in rows]
-    else:
-        line = sep.join([fmt] * a.shape[1] if isinstance(fmt, str) else fmt)
-        lines = [line % tuple(r) for r in rows]
     if header is not None:
-        lines.insert(0, header)
-    return "".join(line + "\n" for line in lines)
+        yield header + "\n"
+    if fmt is not None:
+        line = sep.join([fmt] * a.shape[1] if isinstance(fmt, str) else fmt) + "\n"
+    for start in range(0, a.shape[0], rows):
+        block = a[start:start + rows].tolist()
+        if fmt is None:
+            yield "".join(sep.join(map(fmt_float, r)) + "\n" for r in block)
+        else:
+            yield "".join(line % tuple(r) for r in block)
+
+
+def table_text(
+    data: np.ndarray,
+    *,
+    header: str | None = None,
+    sep: str = ",",
+    fmt: str | Sequence[str] | None = None,
+) -> str:
+    """The whole text of :func:`table_chunks` (same arguments), lines ending in ``"\n"``."""
+    return "".join(table_chunks(data, header=header, sep=sep, fmt=fmt))
 
 
 def atomic_write_text(path: str | PathLike, text: str) -> None:
@@ -471,10 +491,11 @@ def atomic_write_text(path: str | PathLike, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
-def atomic_write_bytes(path: str | PathLike, data: bytes,
+def atomic_write_bytes(path: str | PathLike, data: bytes | Iterable[bytes],
                        before_replace=None) -> None:
-    """Write ``data`` to ``path`` through a temporary file beside it and :func:`os.replace`
-    (permissions of the user's umask), as :func:`atomic_write_text`.
+    """Write ``data`` (bytes, or consecutive pieces of them) to ``path`` through a temporary
+    file beside it and :func:`os.replace` (permissions of the user's umask), as
+    :func:`atomic_write_text`.
 
     ``before_replace``: called with no argument just before the temporary file replaces
     ``path`` (a last check that the target may still be written); what it raises leaves
@@ -487,7 +508,8 @@ def atomic_write_bytes(path: str | PathLike, data: bytes,
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=directory)
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            for piece in (data,) if isinstance(data, bytes | bytearray) else data:
+                f.write(piece)
             f.flush()
             os.fsync(f.fileno())
         umask = os.umask(0)

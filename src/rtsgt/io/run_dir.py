@@ -105,11 +105,11 @@ from rtsgt.filtering import FilterParams
 from rtsgt.filtering.modules import RemovedMeasurements
 from rtsgt.interpolation.gp import PRIORS
 from rtsgt.io._parse import (
-    atomic_write_text,
+    atomic_write_bytes,
     csv_table,
     read_table,
     split_rows,
-    table_text,
+    table_chunks,
     to_float,
 )
 from rtsgt.io.output_dir import OutputDir
@@ -171,9 +171,11 @@ def columns_to_cov3(cols: np.ndarray) -> np.ndarray:
 
 
 def write_csv(path: Path, header: list[str], columns: list[np.ndarray], fmt: str = "%.17g") -> None:
-    """Write columns of numbers with a one-line header (no comment character), atomically."""
+    """Write columns of numbers with a one-line header (no comment character), atomically, a
+    few thousand rows at a time (:func:`~rtsgt.io._parse.table_chunks`)."""
     data = np.column_stack([np.asarray(c, dtype=float).reshape(len(columns[0]), -1) for c in columns])
-    atomic_write_text(path, table_text(data, header=",".join(header), fmt=fmt))
+    atomic_write_bytes(path, (piece.encode("utf-8")
+                              for piece in table_chunks(data, header=",".join(header), fmt=fmt)))
 
 
 def write_json(path: Path, obj: dict) -> None:
