@@ -169,8 +169,9 @@ def test_a_table_is_written_in_pieces_with_the_text_of_the_whole(tmp_path):
     a = np.random.default_rng(3).standard_normal((10_001, 5)) * 1e-7
     pieces = list(table_chunks(a, header="a,b,c,d,e", fmt="%.17g", rows=4096))
     assert len(pieces) == 1 + 3  # the header, then ceil(10001 / 4096) blocks
+    assert "".join(table_chunks(a, header="a,b,c,d,e", fmt="%.17g")) == "".join(pieces)
     path = tmp_path / "t.csv"
-    write_csv(path, list("abcde"), [a])
+    write_csv(path, list("abcde"), [a[:, :2], a[:, 2], a[:, 3:]])  # columns in three parts
     assert path.read_text() == "".join(pieces) == table_text(a, header="a,b,c,d,e",
                                                              fmt="%.17g")
     np.testing.assert_array_equal(np.loadtxt(path, delimiter=",", skiprows=1), a)

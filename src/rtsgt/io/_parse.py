@@ -425,8 +425,8 @@ def fmt_float(x: float) -> str:
     return repr(float(x))
 
 
-#: Rows of a table formatted and written at a time (:func:`table_chunks`): a few MB of text.
-TABLE_CHUNK_ROWS = 4096
+#: Values of a table formatted and written at a time (:func:`table_chunks`): a few MB of text.
+TABLE_CHUNK_VALUES = 1 << 17
 
 
 def table_chunks(
@@ -435,7 +435,7 @@ def table_chunks(
     header: str | None = None,
     sep: str = ",",
     fmt: str | Sequence[str] | None = None,
-    rows: int = TABLE_CHUNK_ROWS,
+    rows: int | None = None,
 ) -> Iterator[str]:
     """Text of a table of numbers, ``rows`` lines at a time: an optional header line, then one
     line per row (so that a large table is never whole in memory as text).
@@ -450,8 +450,8 @@ def table_chunks(
     fmt : str or sequence of K str, optional
         printf-style format of every value (``"%.17g"``) or of each column; None: the
         shortest text that reads back as the same float64 (:func:`fmt_float`).
-    rows : int
-        Lines per piece.
+    rows : int, optional
+        Lines per piece; default about :data:`TABLE_CHUNK_VALUES` values.
 
     Yields
     ------
@@ -459,6 +459,8 @@ def table_chunks(
         Consecutive pieces of the text, lines ending in ``"\n"``.
     """
     a = np.asarray(data, dtype=float)
+    if rows is None:
+        rows = max(1, TABLE_CHUNK_VALUES // max(a.shape[1] if a.ndim == 2 else 1, 1))
     if header is not None:
         yield header + "\n"
     if fmt is not None:

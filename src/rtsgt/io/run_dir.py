@@ -105,6 +105,7 @@ from rtsgt.filtering import FilterParams
 from rtsgt.filtering.modules import RemovedMeasurements
 from rtsgt.interpolation.gp import PRIORS
 from rtsgt.io._parse import (
+    TABLE_CHUNK_VALUES,
     atomic_write_bytes,
     csv_table,
     read_table,
@@ -172,10 +173,19 @@ def columns_to_cov3(cols: np.ndarray) -> np.ndarray:
 
 def write_csv(path: Path, header: list[str], columns: list[np.ndarray], fmt: str = "%.17g") -> None:
     """Write columns of numbers with a one-line header (no comment character), atomically, a
-    few thousand rows at a time (:func:`~rtsgt.io._parse.table_chunks`)."""
-    data = np.column_stack([np.asarray(c, dtype=float).reshape(len(columns[0]), -1) for c in columns])
-    atomic_write_bytes(path, (piece.encode("utf-8")
-                              for piece in table_chunks(data, header=",".join(header), fmt=fmt)))
+    block of rows at a time (:func:`~rtsgt.io._parse.table_chunks`; neither the whole table
+    nor its text is ever in memory at once)."""
+    n = len(columns[0])
+    cols = [np.asarray(c, dtype=float).reshape(n, -1) for c in columns]
+    rows = max(1, TABLE_CHUNK_VALUES // max(sum(c.shape[1] for c in cols), 1))
+
+    def pieces():
+        yield (",".join(header) + "\n").encode("utf-8")
+        for s in range(0, n, rows):
+            block = np.column_stack([c[s:s + rows] for c in cols])
+            yield from (p.encode("utf-8") for p in table_chunks(block, fmt=fmt, rows=rows))
+
+    atomic_write_bytes(path, pieces())
 
 
 def write_json(path: Path, obj: dict) -> None:
