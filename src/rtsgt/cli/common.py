@@ -22,16 +22,6 @@ if TYPE_CHECKING:
     from rtsgt.record import PositionRunRecord, RunRecord
 
 
-def tau_text(correlation: dict) -> str:
-    """A static-noise correlation time with its 95 % interval (:mod:`rtsgt.checks.static`),
-    e.g. ``"2.5 s (1.1-6.0 s)"`` or ``"5.0 s (at least 2.1 s)"``."""
-    tau, iv = correlation["correlation_time_s"], correlation.get("correlation_time_95_s")
-    if not iv:
-        return f"{tau:.1f} s"
-    return f"{tau:.1f} s (" + (f"{iv[0]:.1f}-{iv[1]:.1f} s)" if iv[1] is not None
-                               else f"at least {iv[0]:.1f} s)")
-
-
 def usage_error(message: str, option: str) -> typer.BadParameter:
     """A bad value of a command-line option, for ``raise`` (exit status 2, see
     :mod:`rtsgt.cli.main`)."""
