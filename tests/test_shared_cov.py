@@ -20,9 +20,10 @@ from rtsgt.geometry.so3 import exp_so3, matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from rtsgt.io.deployment import load_deployment
 from rtsgt.io.run_dir import SPLIT_FILE, read_run, write_run
 from rtsgt.pipeline import run_pipeline
+from rtsgt.pose import estimate_poses
 from rtsgt.pose.estimate import pose_jacobians
 from rtsgt.pose.reference import block_diagonal
-from rtsgt.shared import prism_shared_factor, select_prisms, varying_pose_covariance
+from rtsgt.shared import prism_shared_factor, select_prisms
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 from rtsgt.types import PoseTrajectory
 
@@ -98,6 +99,18 @@ def test_the_shared_factor_is_zero_for_the_reference_stations_calibration(linear
     # station 1 defines the world frame: no calibration parameter of its own
     assert not any(nm.startswith("calibration_station1") for nm in linear.groundtruth_split.names)
     assert "time_sync_station1" in linear.groundtruth_split.names
+
+
+def varying_pose_covariance(prisms, reference, engine="linear", samples=1000, rng=None,
+                            registration="weighted"):
+    """The reference computation of ``V_i`` (T, 6, 6): the pose engine run again on the prisms'
+    GP covariance alone, the reference exact, the weights those of the total (the run's fit)."""
+    n = prisms.xyz.shape[1]
+    est = estimate_poses(prisms.xyz, prisms.cov_gp, reference.xyz, np.zeros((3 * n, 3 * n)),
+                         engine=engine, registration=registration,
+                         weight_cov_q=prisms.pose_covariance, weight_cov_r=reference.cov,
+                         samples=samples, rng=rng)
+    return est.cov
 
 
 @pytest.mark.parametrize("engine, tol_max, tol_median", [("linear", 2e-2, 2e-3),

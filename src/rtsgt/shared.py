@@ -1,73 +1,11 @@
-r"""The ground truth's error split into a part that varies and a part shared by the deployment.
+"""The ground truth's error split into a part that varies and a part shared by the deployment.
 
-Model
------
-The error ``xi_i`` (6-vector, left perturbation in the world frame, ordered
-``(x, y, z, rx, ry, rz)``, :mod:`rtsgt.geometry.transform`) of the ground-truth pose ``i`` is,
-to first order,
-
-.. math::
-
-    \xi_i = \nu_i + L_i \theta, \qquad \theta \sim N(0, I_k), \qquad
-    \mathrm{Cov}(\nu_i) = V_i,
-
-where ``nu_i`` is the **varying** error (the GP posterior of the prisms: measurement noise
-smoothed over a few seconds, correlated between nearby poses only) and ``theta`` the ``k``
-whitened **shared** parameters, one draw for the whole deployment:
-
-``calibration_station<s>_<x|y|z|rx|ry|rz>``
-    The left perturbations of every calibrated station's ``T_world_station`` (translation m,
-    rotation rad), correlated between stations (:class:`~rtsgt.calibration.coupling.
-    StationCoupling`), whitened by the lower Cholesky factor of their joint ``(6S, 6S)``
-    covariance: parameter ``j`` is the part of station-parameter ``j`` not explained by the
-    ones before it. A prism at ``p`` seen from a station at ``o`` moves by
-    ``dp = dt - [p - o]x dphi`` (:func:`rtsgt.noise.linear.calibration_covariance`).
-``time_sync_station<s>``
-    The station's clock offset over ``sqrt(E[e_ts^2])``: ``dp = v tau`` with ``v`` the GP
-    velocity of its prism (:mod:`rtsgt.noise.model`).
-``atmosphere_station<s>``
-    The station's error of the atmospheric scale ``dk`` (from the errors of the weather):
-    ``dp = (p - o) dk``. As in the joint prism covariance the pose engines use, the weather
-    errors of two stations are taken independent.
-``reference_<prism>_<x|y|z>`` (or ``reference_<j>``)
-    The surveyed reference prisms on the robot (body frame), whitened by the Cholesky factor of
-    their ``(3n, 3n)`` covariance (by its eigen-factor, parameters ``reference_<j>``, when it is
-    singular).
-
-The size of a station's clock and atmosphere parameters at time ``t`` is read from the
-per-source covariance the noise model gave (interpolated at ``t``): both sources are rank one
-(``E[e_ts^2] v v^T``, ``d^2 var(k) u u^T``), so ``dp = sqrt(tr C_source(t)) * direction``
-(:func:`rank_one_factor`, the factor :meth:`~rtsgt.evaluation.ContinuousGroundTruth.
-cross_covariance` uses). Stacking the prisms, ``dq_i = F_i theta_q`` with ``F_i`` of shape
-``(3n, k_q)``; the pose follows the prisms and the reference through the registration's
-Jacobian (:func:`rtsgt.pose.estimate.pose_jacobians`, the linear engine's, for the run's
-weighted or unweighted fit):
-
-.. math::
-
-    L_i = J_{q,i} F_i + J_{r,i} A_r, \qquad A_r A_r^T = \Sigma_r .
-
-The shared covariance of pose ``i`` is ``L_i L_i^T``, the cross-covariance of poses ``i`` and
-``j`` through the shared errors ``L_i L_j^T``. The varying covariance ``V_i`` is the prisms'
-GP part alone (``cov_gp``, without the survey's covariance) propagated through the same
-Jacobian, ``V_i = J_{q,i} C_{gp,i} J_{q,i}^T``, whatever the run's pose engine: the linear
-engine's covariance of that part, with the weights of the whole (the fit is the run's: only
-what is propagated through it changes). The fit's nonlinearity over the GP part's
-millimetres is of relative size ``(sigma / lever arm)^2`` (the unscented engine's ``V_i``
-differs by at most 8e-5 of ``sigma_a sigma_b`` over a simulated hour), far below the sampling
-error ``sqrt(2 / M)`` a Monte Carlo of it would add (tests/test_shared_cov.py).
-
-``V_i + L_i L_i^T`` is the linear engine's total covariance exactly where ``F_i F_i^T`` is the
-systematic part of the joint prism covariance the engine took; the two differ only by the
-factor's choices (tests/test_shared_cov.py, a simulated deployment): the calibration and
-atmosphere blocks at the query position instead of interpolated between measurements
-(relative difference below 2e-3 of the source), the time-sync block along the GP velocity
-instead of the differenced measurements' (median 2e-3 of the source; up to its own size where
-the prism stops, below 3e-2 of the prism's total covariance). Over the poses ``V + L L^T`` is
-within 2 % of the linear and unscented engines' total (median 2e-3), and within the Monte
-Carlo error of the Monte Carlo engine's.
-
-This module imports only numpy and rtsgt's calibration, interpolation and pose records.
+``xi_i = nu_i + L_i theta`` per pose ``i`` (left perturbation, world frame, (x, y, z, rx, ry,
+rz)): ``Cov(nu_i) = V_i``, the prisms' GP part through the fit's Jacobian; ``theta ~ N(0,
+I_k)``, the whitened shared parameters (station calibrations, clocks, atmospheric scales, the
+reference survey), one draw per deployment; ``L_i = J_q,i F_i + J_r,i A_r``. Model and
+accuracy: docs/pose.md#the-error-shared-by-the-deployment; the parameters' names:
+docs/file-formats.md#run-directory.
 """
 
 from __future__ import annotations
@@ -79,12 +17,11 @@ import numpy as np
 from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.geometry.so3 import hat
 from rtsgt.interpolation.prisms import PrismsAtTimes
-from rtsgt.pose.estimate import DEFAULT_REGISTRATION, estimate_poses, pose_jacobians, psd_factor
+from rtsgt.pose.estimate import DEFAULT_REGISTRATION, pose_jacobians, psd_factor
 from rtsgt.pose.reference import ReferencePoints, block_diagonal
 
 __all__ = ["POSE_COMPONENTS", "SharedFactor", "first_order_covariance", "prism_shared_factor",
-           "rank_one_factor", "reference_factor", "select_prisms", "shared_pose_factor",
-           "split_ground_truth", "varying_pose_covariance"]
+           "rank_one_factor", "reference_factor", "select_prisms", "split_ground_truth"]
 
 #: Components of a pose error, in the covariance order of :mod:`rtsgt.geometry.transform`.
 POSE_COMPONENTS = ("x", "y", "z", "rx", "ry", "rz")
@@ -92,20 +29,9 @@ POSE_COMPONENTS = ("x", "y", "z", "rx", "ry", "rz")
 
 @dataclass(frozen=True)
 class SharedFactor:
-    """The split of ground-truth pose errors into varying and shared parts (module docstring).
-
-    Attributes
-    ----------
-    t : ndarray, shape (T,)
-        Pose times, s.
-    factor : ndarray, shape (T, 6, k)
-        ``L_i``: the pose error's sensitivity to the whitened shared parameters, world frame,
-        rows ``(x, y, z, rx, ry, rz)``, m and rad per unit parameter.
-    names : tuple of str, length k
-        The shared parameters, in the order of the columns.
-    varying_cov : ndarray, shape (T, 6, 6)
-        ``V_i``: covariance of the varying part, m^2 / m rad / rad^2.
-    """
+    """The split of pose errors: ``t`` (T,) s; ``factor`` (T, 6, k) ``L_i``, rows (x, y, z, rx,
+    ry, rz), m and rad per unit parameter; ``names`` (k,) its columns' parameters;
+    ``varying_cov`` (T, 6, 6) ``V_i``, m^2 / m rad / rad^2."""
 
     t: np.ndarray
     factor: np.ndarray
@@ -165,27 +91,13 @@ def prism_shared_factor(
     origins: dict[str, np.ndarray],
     coupling: StationCoupling | None,
 ) -> tuple[np.ndarray, tuple[str, ...]]:
-    """``F_i`` (T, 3n, k_q): the stacked prisms' sensitivity to the shared prism parameters.
+    """``F_i`` (T, 3n, k_q) and the names (k_q,) of the shared prism parameters.
 
-    Parameters
-    ----------
-    prisms : PrismsAtTimes
-        The prisms at the pose times, with ``cov_by_source`` (``gp_noise = "white"``).
-    velocity : ndarray, shape (T, n, 3)
-        GP velocity of each prism, m/s (the time-sync direction).
-    stations : list of str, length n
-        The station tracking each prism.
-    origins : dict str -> ndarray (3,)
-        World position of each station, m (the lever arm of its rotation and scale).
-    coupling : StationCoupling, optional
-        The joint covariance of the station calibrations. Without it the calibration source
-        of each prism is factored on its own (Cholesky factor of its covariance at each time,
-        parameters ``calibration_prism<i>_<j>``): shared over time, not between prisms.
-
-    Returns
-    -------
-    F : ndarray, shape (T, 3n, k_q)
-    names : tuple of str, length k_q
+    ``prisms``: at the pose times, with ``cov_by_source`` (``gp_noise = "white"``);
+    ``velocity`` (T, n, 3) m/s, the GP's (the clock's direction); ``stations`` (n,) the station
+    of each prism; ``origins`` each station's world position, m; ``coupling`` the stations'
+    joint calibration covariance, or None: each prism's calibration factored on its own
+    (``calibration_prism<i>_<j>``, shared over time, not between prisms).
     """
     T, n, _ = prisms.xyz.shape
     cols: list[np.ndarray] = []
@@ -252,39 +164,6 @@ def reference_factor(reference: ReferencePoints) -> tuple[np.ndarray, tuple[str,
     return A, tuple(f"reference_{j}" for j in range(A.shape[1]))
 
 
-def shared_pose_factor(
-    prisms: PrismsAtTimes,
-    velocity: np.ndarray,
-    stations: list[str],
-    origins: dict[str, np.ndarray],
-    coupling: StationCoupling | None,
-    reference: ReferencePoints,
-    R_world_body: np.ndarray,
-    registration: str = DEFAULT_REGISTRATION,
-) -> tuple[np.ndarray, tuple[str, ...]]:
-    """``L_i = J_q,i F_i + J_r,i A_r`` (T, 6, k) and the parameter names (module docstring).
-
-    ``R_world_body`` (T, 3, 3): the poses' rotations (the fit of the mean prisms);
-    ``registration``: the fit's (:func:`rtsgt.pose.estimate.pose_jacobians`, its weights from
-    the prisms' ``pose_covariance`` and the reference's). The poses must not be degenerate
-    (the Jacobian raises :class:`~rtsgt.errors.GeometryError` for collinear prisms).
-    """
-    L, names, _ = _pose_factor(prisms, velocity, stations, origins, coupling, reference,
-                               R_world_body, registration)
-    return L, names
-
-
-def _pose_factor(prisms, velocity, stations, origins, coupling, reference, R_world_body,
-                 registration):
-    """:func:`shared_pose_factor`, and the Jacobian ``J_q`` (T, 6, 3n) it used."""
-    F, names_q = prism_shared_factor(prisms, velocity, stations, origins, coupling)
-    A_r, names_r = reference_factor(reference)
-    J_q, J_r = pose_jacobians(prisms.xyz, reference.xyz, R_world_body,
-                              registration=registration, cov_q=prisms.pose_covariance,
-                              cov_r=reference.cov)
-    return np.concatenate([J_q @ F, J_r @ A_r], axis=2), names_q + names_r, J_q
-
-
 def first_order_covariance(J_q: np.ndarray, cov_q: np.ndarray) -> np.ndarray:
     """``J_q C J_q^T`` (T, 6, 6), symmetrised: the prisms' covariance ``cov_q`` (m^2; per prism
     (T, n, 3, 3), or joint (T, 3n, 3n)) through the fit's Jacobian ``J_q`` (T, 6, 3n), with the
@@ -294,27 +173,6 @@ def first_order_covariance(J_q: np.ndarray, cov_q: np.ndarray) -> np.ndarray:
         C = block_diagonal(C)
     V = J_q @ C @ np.swapaxes(J_q, 1, 2)
     return 0.5 * (V + np.swapaxes(V, 1, 2))
-
-
-def varying_pose_covariance(
-    prisms: PrismsAtTimes, reference: ReferencePoints, engine: str = "linear",
-    samples: int = 1000, rng: np.random.Generator | None = None,
-    registration: str = DEFAULT_REGISTRATION,
-) -> np.ndarray:
-    """``V_i`` (T, 6, 6): the pose engine run on the prisms' GP covariance alone, the reference
-    taken as exact (:func:`rtsgt.pose.estimate_poses`; ``rng`` for ``engine="mc"``); the
-    weighted fit keeps the weights of the total covariance (the run's fit).
-
-    :func:`split_ground_truth` takes the first order (``engine="linear"``, without running the
-    engine again: :func:`first_order_covariance` of the Jacobian it already has); the other
-    engines here measure what that leaves out (their sampling error, the fit's nonlinearity).
-    """
-    n = prisms.xyz.shape[1]
-    est = estimate_poses(prisms.xyz, prisms.cov_gp, reference.xyz, np.zeros((3 * n, 3 * n)),
-                         engine=engine, registration=registration,
-                         weight_cov_q=prisms.pose_covariance, weight_cov_r=reference.cov,
-                         samples=samples, rng=rng)
-    return est.cov
 
 
 def select_prisms(prisms: PrismsAtTimes, idx: np.ndarray) -> PrismsAtTimes:
@@ -342,35 +200,19 @@ def split_ground_truth(
     *,
     registration: str = DEFAULT_REGISTRATION,
 ) -> SharedFactor:
-    """The :class:`SharedFactor` of poses (valid ones: the prisms not collinear).
+    """The :class:`SharedFactor` of valid poses (prisms not collinear): ``L_i = J_q,i F_i +
+    J_r,i A_r`` and ``V_i = J_q,i C_gp,i J_q,i^T``, one Jacobian per pose (the run's
+    ``registration``, its weights from the total covariances).
 
-    Parameters
-    ----------
-    prisms : PrismsAtTimes
-        The prisms at the pose times (T poses, n prisms), systematic sources separate from the
-        GP (``gp_noise = "white"``).
-    velocity : ndarray, shape (T, n, 3)
-        GP velocity of each prism, m/s.
-    stations : list of str
-        The station of each prism.
-    origins : dict str -> ndarray (3,)
-        Station positions in the world frame, m.
-    coupling : StationCoupling, optional
-    reference : ReferencePoints
-        The tracked reference prisms, in the order of the prisms.
-    R_world_body : ndarray, shape (T, 3, 3)
-        The poses' rotations.
-    registration : {"weighted", "unweighted"}
-        The fit of the poses (the run's).
-
-    Returns
-    -------
-    SharedFactor
-        The factor ``L`` (:func:`shared_pose_factor`) and the varying covariance through the
-        same Jacobian (:func:`first_order_covariance` of ``cov_gp``): one Jacobian per pose,
-        no Monte Carlo, memory ``O(T n^2 + T k)``.
+    ``prisms`` (T poses, n prisms; ``gp_noise = "white"``), ``velocity``, ``stations``,
+    ``origins``, ``coupling``: as :func:`prism_shared_factor`; ``reference``: the tracked
+    reference prisms in the prisms' order; ``R_world_body`` (T, 3, 3) the poses' rotations.
     """
-    L, names, J_q = _pose_factor(prisms, velocity, stations, origins, coupling, reference,
-                                 R_world_body, registration)
-    return SharedFactor(np.asarray(prisms.t, dtype=float), L, names,
+    F, names_q = prism_shared_factor(prisms, velocity, stations, origins, coupling)
+    A_r, names_r = reference_factor(reference)
+    J_q, J_r = pose_jacobians(prisms.xyz, reference.xyz, R_world_body,
+                              registration=registration, cov_q=prisms.pose_covariance,
+                              cov_r=reference.cov)
+    L = np.concatenate([J_q @ F, J_r @ A_r], axis=2)
+    return SharedFactor(np.asarray(prisms.t, dtype=float), L, names_q + names_r,
                         first_order_covariance(J_q, prisms.cov_gp))

@@ -1,13 +1,10 @@
-"""Poses with covariance from three or more prisms (docs/pose.md).
-
-- :mod:`rtsgt.pose.registration`: fast closed-form batched rigid registration and its Jacobian.
-- :mod:`rtsgt.pose.weighted`: the weighted (generalised least squares) registration and its
-  Jacobian.
-- :mod:`rtsgt.pose.reference`: the reference prisms in the chosen body frame.
-- :mod:`rtsgt.pose.estimate`: poses and 6x6 covariances by Monte Carlo, unscented or linear
-  propagation.
+"""Poses with covariance from three or more prisms (docs/pose.md): the closed-form and the
+weighted registration and their Jacobians (:mod:`~rtsgt.pose.registration`,
+:mod:`~rtsgt.pose.weighted`), the reference prisms (:mod:`~rtsgt.pose.reference`), the engines
+(:mod:`~rtsgt.pose.engines`) and :func:`estimate_poses` (:mod:`~rtsgt.pose.estimate`).
 """
 
+from rtsgt.pose.engines import ENGINES, Linear, MonteCarlo, Unscented
 from rtsgt.pose.estimate import (
     DEFAULT_REGISTRATION,
     POSE_ENGINES,
@@ -19,6 +16,7 @@ from rtsgt.pose.estimate import (
     PoseEstimate,
     Registration,
     estimate_poses,
+    pose_engine,
     pose_jacobians,
     pose_weights,
     psd_factor,
@@ -45,7 +43,10 @@ from rtsgt.pose.weighted import (
 
 __all__ = [
     "DEFAULT_REGISTRATION",
+    "ENGINES",
     "MIN_SHAPE",
+    "Linear",
+    "MonteCarlo",
     "POSE_ENGINES",
     "REASON_COLLINEAR",
     "REASON_MISSING",
@@ -60,6 +61,7 @@ __all__ = [
     "estimate_poses",
     "frame_from_points",
     "gls_weights",
+    "pose_engine",
     "pose_jacobians",
     "pose_weights",
     "psd_factor",
@@ -69,5 +71,6 @@ __all__ = [
     "registration_jacobian",
     "shape_ratio",
     "triangle_geometry",
+    "Unscented",
     "weighted_registration_jacobian",
 ]

@@ -1,25 +1,8 @@
-r"""The reference prisms on the robot, in the body frame the user chooses.
+"""The reference prisms on the robot, with covariance, in the body frame the user chooses.
 
-The reference positions come from a static survey of the robot (one station, the prisms and
-other points on the robot shot manually, see :func:`rtsgt.io.survey.read_survey_raw`), with a
-covariance. The pose rtsgt reports is ``T_world_body`` for a body frame chosen by the user:
-
-``"survey"`` (default)
-    The frame of the survey itself: ``r_i = p_i``.
-a :class:`~rtsgt.geometry.transform.RigidTransform` ``T_survey_body``
-    A sensor frame given by a transform (e.g. from a CAD model or another calibration):
-    ``r_i = R_survey_body^T (p_i - t_survey_body)``; its covariance, if any, is propagated.
-a sequence of survey row indices (three or more surveyed points of a sensor)
-    A frame defined by those points (:func:`frame_from_points`): origin at their centroid,
-    x axis from the first point towards the second, z axis along the normal
-    ``(s2 - s1) x (s3 - s1)``, y completing a right-handed frame. For the 3 GNSS antennas of
-    the RTS_project survey (rows 3, 4, 5) this is a frame centred between the antennas.
-
-The covariance of the reference positions is propagated to first order through the frame
-definition, including the uncertainty of the surveyed sensor points (and of the transform),
-so the reference points end up correlated; the Jacobian is taken by central differences of
-the exact map (step 1e-6 m / 1e-6 rad; the map is linear for ``"survey"`` and nearly so
-otherwise, so the truncation error is negligible).
+From the static survey of the robot: the survey's frame, a frame given by a transform
+``T_survey_body``, or one defined by three or more surveyed points (:func:`frame_from_points`);
+the covariance propagated to first order through the frame (docs/pose.md#body-frame).
 """
 
 from __future__ import annotations
@@ -41,12 +24,7 @@ _FD_STEP = 1e-6
 
 
 def triangle_geometry(xyz: ArrayLike) -> tuple[float, float]:
-    """Area (m^2) and smallest angle (deg) of the largest triangle of a point set.
-
-    Parameters
-    ----------
-    xyz : array_like, shape (n, 3), n >= 3
-    """
+    """Area (m^2) and smallest angle (deg) of the largest triangle of ``xyz`` (n, 3), n >= 3."""
     x = np.asarray(xyz, dtype=float)
     best_area, best_angle = -1.0, 0.0
     for i, j, k in combinations(range(x.shape[0]), 3):
@@ -64,17 +42,9 @@ def triangle_geometry(xyz: ArrayLike) -> tuple[float, float]:
 
 
 def check_reference_geometry(xyz: ArrayLike, min_shape: float = MIN_SHAPE) -> None:
-    """Raise :class:`GeometryError` for fewer than 3 points or a nearly collinear set.
-
-    Parameters
-    ----------
-    xyz : array_like, shape (n, 3)
-        Reference points, m.
-    min_shape : float
-        Threshold on :func:`rtsgt.pose.registration.shape_ratio` (sigma_2 / sigma_1 of the
-        centred points); the default 0.1 rejects a triangle whose smallest angle is under
-        about 10 degrees.
-    """
+    """Raise :class:`GeometryError` for fewer than 3 reference points ``xyz`` (n, 3) m, or a set
+    whose :func:`~rtsgt.pose.registration.shape_ratio` is below ``min_shape`` (naming its largest
+    triangle's area and smallest angle)."""
     x = np.asarray(xyz, dtype=float)
     if x.ndim != 2 or x.shape[1] != 3:
         raise ValueError(f"Expected reference points of shape (n, 3), got {x.shape}")
@@ -94,24 +64,10 @@ def check_reference_geometry(xyz: ArrayLike, min_shape: float = MIN_SHAPE) -> No
 
 @dataclass(frozen=True)
 class ReferencePoints:
-    """Reference prism positions in the body frame, with their joint covariance.
-
-    Attributes
-    ----------
-    names : tuple of str, length n
-        Prism identifiers, in the order of ``xyz``.
-    xyz : ndarray, shape (n, 3)
-        Positions in the body frame, m.
-    cov : ndarray, shape (3n, 3n)
-        Covariance of the stacked positions ``(x1, y1, z1, x2, ...)``, m^2, body frame.
-    frame : str
-        Name of the body frame (for files and messages).
-
-    Raises
-    ------
-    GeometryError
-        Fewer than 3 points, or nearly collinear ones (:func:`check_reference_geometry`).
-    """
+    """Reference prisms in the body frame with their joint covariance: ``names`` (n,), ``xyz``
+    (n, 3) m, ``cov`` (3n, 3n) m^2 of the stacked ``(x1, y1, z1, x2, ...)`` (or (n, 3, 3) per
+    point), ``frame`` the body frame's name. Raises GeometryError for fewer than 3 points or
+    nearly collinear ones."""
 
     names: tuple[str, ...]
     xyz: np.ndarray
@@ -182,28 +138,10 @@ def block_diagonal(blocks: np.ndarray) -> np.ndarray:
 
 
 def frame_from_points(points: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
-    """Frame ``T_survey_body`` defined by three or more surveyed points of a sensor.
-
-    Origin: centroid of all the points. x axis: from the first point towards the second.
-    z axis: along ``(s2 - s1) x (s3 - s1)``. y axis: ``z x x`` (right-handed).
-
-    Parameters
-    ----------
-    points : array_like, shape (..., k, 3), k >= 3
-        The sensor's points in the survey frame, m.
-
-    Returns
-    -------
-    R_survey_body : ndarray, shape (..., 3, 3)
-        Columns are the body axes expressed in the survey frame.
-    t_survey_body : ndarray, shape (..., 3)
-        The origin, m.
-
-    Raises
-    ------
-    GeometryError
-        Fewer than 3 points, or the first three (nearly) collinear.
-    """
+    """``R_survey_body`` (..., 3, 3) (columns: the body axes) and ``t_survey_body`` (..., 3) of
+    the frame of three or more surveyed points ``points`` (..., k, 3): origin at their centroid, x
+    from the first towards the second, z along ``(s2 - s1) x (s3 - s1)``, y completing it. Raises
+    GeometryError for fewer than 3 points or the first three (nearly) collinear."""
     s = np.asarray(points, dtype=float)
     if s.ndim < 2 or s.shape[-1] != 3:
         raise ValueError(f"Expected points of shape (..., k, 3), got {s.shape}")
@@ -248,32 +186,12 @@ def reference_from_survey(
 ) -> ReferencePoints:
     """Reference prisms in the chosen body frame, with covariance, from a static survey.
 
-    Parameters
-    ----------
-    points_survey : array_like, shape (K, 3)
-        Every surveyed point in the survey frame, m.
-    cov_survey : array_like, shape (K, 3, 3) or (3K, 3K)
-        Their covariance (per point, or joint), m^2, survey frame.
-    prism_rows : sequence of int
-        **0-based** rows of ``points_survey`` holding the reference prisms, in prism order.
-    body_frame : "survey", RigidTransform or sequence of int
-        ``"survey"``: the survey frame. A ``RigidTransform`` ``T_survey_body`` (maps body into
-        survey; its covariance, if any, in the convention of
-        :mod:`rtsgt.geometry.transform`, is propagated). A sequence of 0-based rows: the frame
-        of those surveyed sensor points (:func:`frame_from_points`).
-    names : sequence of str, optional
-        Prism names (default ``"1", "2", ...``).
-
-    Returns
-    -------
-    ReferencePoints
-
-    Raises
-    ------
-    GeometryError
-        Fewer than 3 prisms, a nearly collinear prism set or sensor-point frame.
-    ValueError
-        Bad shapes, rows out of range, a non-PSD covariance.
+    ``points_survey`` (K, 3) m and ``cov_survey`` (K, 3, 3) or (3K, 3K) m^2, survey frame;
+    ``prism_rows``: the **0-based** rows of the prisms, in prism order; ``body_frame``:
+    ``"survey"``, a ``RigidTransform`` ``T_survey_body`` (its covariance propagated), or 0-based
+    rows of sensor points (:func:`frame_from_points`); ``names`` default ``"1", "2", ...``. Raises
+    GeometryError (fewer than 3 prisms, a collinear set or frame) or ValueError (shapes, rows, a
+    non-PSD covariance).
     """
     X = np.asarray(points_survey, dtype=float)
     if X.ndim != 2 or X.shape[1] != 3:
@@ -299,33 +217,39 @@ def reference_from_survey(
     names = tuple(str(i + 1) for i in range(len(rows))) if names is None else tuple(names)
     if len(names) != len(rows):
         raise ValueError(f"Expected {len(rows)} names, got {len(names)}")
+    body_frame, R0, t0, C_T, frame = _frame_spec(body_frame, X)
+    xyz = _body_points(X[None], np.zeros((1, 6)), rows, body_frame, R0, t0)[0]
+    cov = _propagated_cov(X, C, rows, body_frame, R0, t0, C_T)
+    return ReferencePoints(names, xyz, 0.5 * (cov + cov.T), frame)
 
-    R0 = t0 = None
-    C_T = None
-    frame = "survey"
+
+def _frame_spec(body_frame, X: np.ndarray):
+    """``body_frame`` checked against the survey ``X`` (K, 3): ``(spec, R0, t0, C_T, name)``,
+    ``spec`` for :func:`_body_points`, ``R0``, ``t0``, ``C_T`` a transform's (else None)."""
+    K = X.shape[0]
     if isinstance(body_frame, RigidTransform):
-        R0, t0 = body_frame.rotation, body_frame.translation
-        C_T = body_frame.covariance
-        frame = body_frame.frame_from
-    elif isinstance(body_frame, str):
+        return (body_frame, body_frame.rotation, body_frame.translation, body_frame.covariance,
+                body_frame.frame_from)
+    if isinstance(body_frame, str):
         if body_frame != "survey":
             raise ValueError(
                 "Expected body_frame 'survey', a RigidTransform T_survey_body or a sequence of "
                 f"survey rows, got {body_frame!r}"
             )
-    else:
-        srows = [int(i) for i in body_frame]
-        for i in srows:
-            if not 0 <= i < K:
-                raise ValueError(f"Expected 0-based sensor rows in [0, {K}), got {i}")
-        frame_from_points(X[srows])  # raises GeometryError for a degenerate frame
-        body_frame = srows
-        frame = "points(" + ",".join(str(i) for i in srows) + ")"
+        return body_frame, None, None, None, "survey"
+    srows = [int(i) for i in body_frame]
+    for i in srows:
+        if not 0 <= i < K:
+            raise ValueError(f"Expected 0-based sensor rows in [0, {K}), got {i}")
+    frame_from_points(X[srows])  # raises GeometryError for a degenerate frame
+    return srows, None, None, None, "points(" + ",".join(str(i) for i in srows) + ")"
 
-    zero_xi = np.zeros((1, 6))
-    xyz = _body_points(X[None], zero_xi, rows, body_frame, R0, t0)[0]
+
+def _propagated_cov(X, C, rows, body_frame, R0, t0, C_T) -> np.ndarray:
+    """The reference's covariance (3n, 3n): the survey's ``C`` (3K, 3K) and the transform's
+    ``C_T`` (6, 6, or None) through central differences of :func:`_body_points`."""
+    K = X.shape[0]
     n = len(rows)
-    # Jacobian by central differences, every perturbation in one batch
     E = np.eye(3 * K).reshape(3 * K, K, 3) * _FD_STEP
     Xs = np.concatenate([X + E, X - E])
     fx = _body_points(Xs, np.zeros((6 * K, 6)), rows, body_frame, R0, t0)
@@ -337,4 +261,4 @@ def reference_from_survey(
         fxi = _body_points(np.broadcast_to(X, (12, K, 3)), xis, rows, body_frame, R0, t0)
         J_T = ((fxi[:6] - fxi[6:]) / (2 * _FD_STEP)).reshape(6, 3 * n).T
         cov = cov + J_T @ C_T @ J_T.T
-    return ReferencePoints(names, xyz, 0.5 * (cov + cov.T), frame)
+    return cov

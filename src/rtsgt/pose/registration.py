@@ -1,35 +1,10 @@
-r"""Fast batched least-squares rigid registration, and its analytic first-order Jacobian.
+r"""Batched least-squares rigid registration in closed form, and its first-order Jacobian.
 
-The problem, for every batch element (no scale, no weights)::
-
-    (R, t) = argmin_{R in SO(3), t}  sum_i || q_i - (R p_i + t) ||^2
-
-is solved in closed form by Horn's quaternion method (Horn 1987, "Closed-form solution of
-absolute orientation using unit quaternions", JOSA A 4(4)): with the centred points
-``p0_i = p_i - mean(p)``, ``q0_i = q_i - mean(q)`` and ``S = sum_i p0_i q0_i^T``, the optimal
-rotation is the unit quaternion that is the eigenvector of the largest eigenvalue of the
-symmetric, traceless 4x4 matrix ``K(S)`` (Horn eq. 41). Instead of a generic eigen-solver,
-the largest eigenvalue is found as the largest root of the characteristic polynomial
-``P(l) = l^4 + c2 l^2 + c1 l + c0`` by Newton's method started at its upper bound
-``(sum |p0|^2 + sum |q0|^2) / 2`` (Theobald 2005, "Rapid calculation of RMSDs using a
-quaternion-based characteristic polynomial", Acta Cryst. A61, eqs. 8-14: the QCP method).
-Started above the largest root of a polynomial whose roots are all real, Newton converges
-monotonically. The eigenvector then follows from the adjugate of ``A = K - l I``: for a simple
-eigenvalue ``adj(A) = c v v^T`` (Theobald's appendix), so ``adj(A) / tr(adj(A)) = v v^T`` for
-the unit eigenvector ``v``, and the rotation matrix, which is quadratic in the quaternion, is a
-linear function of ``v v^T``: no square root, no sign choice, no column selection, and it
-stays exact through 180 degree rotations.
-
-Everything is computed on structure-of-arrays component vectors (one numpy array per scalar,
-the batch along the array), about 300 elementwise operations per solve, in chunks that stay
-in cache. Elements the closed form cannot resolve to full precision (the relative eigen-gap
-bound ``|tr adj(A)| / (2 l0)^3`` below 1e-3, Newton not converged, non-finite values) are
-re-solved with the SVD of :func:`rtsgt.geometry.kabsch`, so the result matches the SVD to
-about 1e-10 everywhere; elements with non-finite input give NaN.
-
-The Jacobian of the solution (:func:`registration_jacobian`) is derived with the implicit
-function theorem from the optimality condition ``sum_i (R p0_i) x q0_i = 0``; see its
-docstring.
+``(R, t) = argmin sum_i |q_i - (R p_i + t)|^2`` for every batch element: Horn's quaternion
+matrix, its largest eigenvalue by Newton on the characteristic polynomial (Theobald's QCP), the
+rotation from the adjugate; elements the closed form cannot resolve to full precision are
+re-solved by the SVD (:func:`rtsgt.geometry.kabsch`), so the result matches it to about 1e-10.
+Method and Jacobian: docs/pose.md#registration.
 """
 
 from __future__ import annotations
@@ -62,21 +37,10 @@ DEFAULT_CHUNK = 8192
 
 @dataclass(frozen=True)
 class RegistrationInfo:
-    """Per-element diagnostics of :func:`register`.
-
-    Attributes
-    ----------
-    shape_body, shape_world : ndarray, shape (...)
-        Shape ratio ``sigma_2 / sigma_1`` of the centred points (see :func:`shape_ratio`):
-        0 for collinear points, about 0.7 for the paper's prism triangle.
-    degenerate : ndarray of bool, shape (...)
-        ``min(shape_body, shape_world) < min_shape``, or non-finite input: the rotation is not
-        (well) determined by the points.
-    rms : ndarray, shape (...)
-        Root mean square residual ``sqrt(mean_i |q_i - R p_i - t|^2)``, m.
-    fallback : ndarray of bool, shape (...)
-        The element was solved by the SVD because the closed form was ill-conditioned.
-    """
+    """Per-element diagnostics of :func:`register`: ``shape_body``, ``shape_world`` (...) the
+    shape ratios (:func:`shape_ratio`); ``degenerate`` (...) their minimum below ``min_shape`` or
+    non-finite input; ``rms`` (...) the root mean square residual, m; ``fallback`` (...) solved by
+    the SVD."""
 
     shape_body: np.ndarray
     shape_world: np.ndarray
@@ -86,24 +50,10 @@ class RegistrationInfo:
 
 
 def shape_ratio(points: ArrayLike) -> np.ndarray:
-    """Ratio ``sigma_2 / sigma_1`` of the two largest singular values of centred points.
-
-    It measures how far a point set is from a line: 0 for collinear points, 1 for a set that is
-    as wide as it is long in its plane (for a triangle of base b and height h with the apex
-    above the middle of the base, ``sigma_2 / sigma_1 = 2 h / (sqrt(3) b)`` while
-    ``h <= b sqrt(3) / 2``).
-    The rotation of a rigid fit about the set's long axis is determined to about
-    ``sigma_noise / (sigma_2 sqrt(N))``, so a small ratio means an ill-determined pose.
-
-    Parameters
-    ----------
-    points : array_like, shape (..., N, 3)
-
-    Returns
-    -------
-    ndarray, shape (...)
-        NaN where a point is not finite; 0 where all points coincide.
-    """
+    """``sigma_2 / sigma_1`` (...) of the two largest singular values of centred ``points``
+    (..., N, 3): 0 for collinear points (the rotation about their line is undetermined), NaN where a
+    point is not finite. For a triangle of base b and height h (apex above the middle of the base)
+    it is ``2 h / (sqrt(3) b)`` while ``h <= b sqrt(3) / 2``."""
     x = np.asarray(points, dtype=float)
     if x.ndim < 2 or x.shape[-1] != 3:
         raise ValueError(f"Expected points of shape (..., N, 3), got {x.shape}")
@@ -133,31 +83,38 @@ def _qcp_chunk(p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     for k in range(3):
         X[k::3] -= pc[k]
         Y[k::3] -= qc[k]
-    ga = np.einsum("ij,ij->j", X, X)
-    gb = np.einsum("ij,ij->j", Y, Y)
+    lam0 = 0.5 * (np.einsum("ij,ij->j", X, X) + np.einsum("ij,ij->j", Y, Y))
+    k, c2, c1, c0 = _horn_matrix(X, Y)
+    lam, converged = _largest_root(lam0, c2, c1, c0)
+    out, relgap = _rotation_of_root(k, lam, lam0)
+    for j in range(3):
+        out[9 + j] = qc[j] - (out[3 * j] * pc[0] + out[3 * j + 1] * pc[1] + out[3 * j + 2] * pc[2])
+    ok = converged & (relgap >= _MIN_RELGAP) & np.all(np.isfinite(out), axis=0)
+    o = out.T
+    return o[:, :9].reshape(B, 3, 3), o[:, 9:], ok
+
+
+def _horn_matrix(X: np.ndarray, Y: np.ndarray):
+    """Horn's (1987, eq. 41) symmetric 4x4 matrix of centred points ``X, Y`` (3N, B): its 10
+    entries (k00, k01, k02, k03, k11, k12, k13, k22, k23, k33), quaternion order (w, x, y, z),
+    and its characteristic polynomial ``l^4 + c2 l^2 + c1 l + c0`` (Theobald 2005, eqs. 9-12)."""
     # S_ab = sum_i p0_ia q0_ib
     (sxx, sxy, sxz), (syx, syy, syz), (szx, szy, szz) = (
         [np.einsum("ij,ij->j", X[a::3], Y[b::3]) for b in range(3)] for a in range(3)
     )
-    # Horn (1987) eq. 41: the symmetric traceless 4x4 matrix, quaternion order (w, x, y, z)
-    k00 = sxx + syy + szz
-    k01 = syz - szy
-    k02 = szx - sxz
-    k03 = sxy - syx
-    k11 = sxx - syy - szz
-    k12 = sxy + syx
-    k13 = szx + sxz
-    k22 = syy - sxx - szz
-    k23 = syz + szy
-    k33 = szz - sxx - syy
-    # characteristic polynomial l^4 + c2 l^2 + c1 l + c0 (Theobald 2005, eqs. 9-12)
+    k = (sxx + syy + szz, syz - szy, szx - sxz, sxy - syx, sxx - syy - szz, sxy + syx,
+         szx + sxz, syy - sxx - szz, syz + szy, szz - sxx - syy)
     c2 = -2.0 * (sxx * sxx + sxy * sxy + sxz * sxz + syx * syx + syy * syy + syz * syz
                  + szx * szx + szy * szy + szz * szz)
     c1 = -8.0 * (sxx * (syy * szz - syz * szy) - sxy * (syx * szz - syz * szx)
                  + sxz * (syx * szy - syy * szx))
-    c0 = _det4_sym(k00, k01, k02, k03, k11, k12, k13, k22, k23, k33)
-    # Newton from the upper bound (ga + gb) / 2 >= l_max (Theobald 2005, eq. 14)
-    lam0 = 0.5 * (ga + gb)
+    return k, c2, c1, _det4_sym(*k)
+
+
+def _largest_root(lam0, c2, c1, c0) -> tuple[np.ndarray, np.ndarray]:
+    """The largest root (B,) of ``l^4 + c2 l^2 + c1 l + c0`` by Newton from the upper bound
+    ``lam0`` (Theobald 2005, eq. 14), and whether it converged (B,)."""
+    B = lam0.shape[0]
     lam = lam0.copy()
     active = np.arange(B)
     converged = np.zeros(B, dtype=bool)
@@ -184,12 +141,18 @@ def _qcp_chunk(p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
             active = active[~done]
         if active.size == 0 and (it >= _NEWTON_FULL_ITER - 1 or converged.all()):
             break
-    # adjugate of A = K - lam I: for a simple eigenvalue adj(A) = c v v^T (Theobald 2005)
+    return lam, converged
+
+
+def _rotation_of_root(k, lam, lam0) -> tuple[np.ndarray, np.ndarray]:
+    """Rows 0-8 (of 12, (12, B)) the rotation matrix from the adjugate of ``K - lam I`` (for a
+    simple eigenvalue ``adj = c v v^T``, Theobald 2005), and the relative eigen-gap's lower
+    bound (B,)."""
+    k00, a01, a02, a03, k11, a12, a13, k22, a23, k33 = k
     a00 = k00 - lam
     a11 = k11 - lam
     a22 = k22 - lam
     a33 = k33 - lam
-    a01, a02, a03, a12, a13, a23 = k01, k02, k03, k12, k13, k23
     # 2x2 minors of rows (2, 3) and of rows (0, 1), columns (i, j)
     m01 = a02 * a13 - a12 * a03
     m02 = a02 * a23 - a22 * a03
@@ -221,7 +184,7 @@ def _qcp_chunk(p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     ww, xx, yy, zz = c_00 * inv, c_11 * inv, c_22 * inv, c_33 * inv
     wx, wy, wz = c_01 * inv, c_02 * inv, c_03 * inv
     xy, xz, yz = c_12 * inv, c_13 * inv, c_23 * inv
-    out = np.empty((12, B))
+    out = np.empty((12, lam.shape[0]))
     # rotation matrix of the unit quaternion (w, x, y, z), written with v v^T
     out[0] = ww + xx - yy - zz
     out[1] = 2.0 * (xy - wz)
@@ -232,11 +195,7 @@ def _qcp_chunk(p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np
     out[6] = 2.0 * (xz - wy)
     out[7] = 2.0 * (yz + wx)
     out[8] = ww - xx - yy + zz
-    for k in range(3):
-        out[9 + k] = qc[k] - (out[3 * k] * pc[0] + out[3 * k + 1] * pc[1] + out[3 * k + 2] * pc[2])
-    ok = converged & (relgap >= _MIN_RELGAP) & np.all(np.isfinite(out), axis=0)
-    o = out.T
-    return o[:, :9].reshape(B, 3, 3), o[:, 9:], ok
+    return out, relgap
 
 
 def _det4_sym(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33):
@@ -293,40 +252,11 @@ def register(
 ) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, RegistrationInfo]:
     """Least-squares rigid transform ``T_world_body`` mapping ``p_body`` onto ``q_world``.
 
-    Closed form (Horn's quaternion matrix, largest eigenvalue by QCP Newton iterations,
-    eigenvector from the adjugate; see the module docstring), vectorised over the batch and
-    processed in chunks; ill-conditioned elements are re-solved by the SVD. Identical to
-    :func:`rtsgt.geometry.kabsch` (to ~1e-10) and over 10 times faster for 3 points.
-
-    Parameters
-    ----------
-    p_body : array_like, shape (..., N, 3)
-        Points in the body frame (m), N >= 3.
-    q_world : array_like, shape (..., N, 3)
-        The same points in the world frame (m).
-    chunk_size : int, optional
-        Problems solved at once (default :data:`DEFAULT_CHUNK`); bounds the memory.
-    return_info : bool
-        Also return a :class:`RegistrationInfo` (shape ratios, degenerate flags, residuals).
-    min_shape : float
-        Threshold of :attr:`RegistrationInfo.degenerate` on :func:`shape_ratio`.
-
-    Returns
-    -------
-    R_world_body : ndarray, shape (..., 3, 3)
-        Proper rotation. For degenerate (collinear) input it is *a* minimiser, not unique:
-        check ``info.degenerate``. NaN where an input point is not finite.
-    t_world_body : ndarray, shape (..., 3)
-        With ``q_world ~= R_world_body @ p_body + t_world_body``.
-    info : RegistrationInfo
-        Only with ``return_info=True``.
-
-    Raises
-    ------
-    ValueError
-        Shapes differ or are not (..., N, 3).
-    GeometryError
-        Fewer than 3 points.
+    ``p_body``, ``q_world`` (..., N, 3) m, N >= 3; ``chunk_size``: problems solved at once
+    (default :data:`DEFAULT_CHUNK`). Returns ``R`` (..., 3, 3), ``t`` (..., 3) with
+    ``q ~= R p + t`` (NaN where a point is not finite; *a* minimiser for collinear points), and
+    with ``return_info`` a :class:`RegistrationInfo` (``min_shape`` its degenerate threshold).
+    Raises ValueError (shapes) or GeometryError (fewer than 3 points).
     """
     p, q = point_pairs(p_body, q_world, 3)
     n = p.shape[-2]
@@ -354,49 +284,10 @@ def register(
 def registration_jacobian(
     p_body: ArrayLike, q_world: ArrayLike, R_world_body: ArrayLike | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    r"""First-order sensitivity of the least-squares rigid fit to its input points.
-
-    Derivation (implicit function theorem). With ``a_i = R p0_i`` and the centred points
-    ``p0_i = p_i - mean(p)``, ``q0_i = q_i - mean(q)``, the rotation minimising
-    ``sum_i |q0_i - R p0_i|^2`` makes the gradient with respect to a left rotation vanish:
-
-    .. math:: g = \sum_i a_i \times q_{0,i} = 0 .
-
-    Perturb the inputs (``dq_i``, ``dp_i``) and the rotation (``R -> exp([phi]x) R``, so
-    ``da_i = phi x a_i + R dp0_i``). Using ``(phi x a) x q = (a q^T - (a.q) I) phi``:
-
-    .. math::
-
-        A\,\phi = -\sum_i \left([a_i]_\times\, dq_i - [q_{0,i}]_\times R\, dp_i\right),\qquad
-        A = \sum_i a_i q_{0,i}^T - \Big(\sum_i a_i\cdot q_{0,i}\Big) I
-
-    (the centring of ``dq`` and ``dp`` drops out because ``sum a_i = sum q0_i = 0``). ``A`` is
-    symmetric at the optimum and invertible unless the points are collinear. The translation
-    ``t = mean(q) - R mean(p)`` gives, with ``c = R mean(p)``,
-
-    .. math:: dt = \frac1N \sum_i dq_i - \frac1N R \sum_i dp_i + [c]_\times \phi .
-
-    ``(dt, phi)`` is the left perturbation of :mod:`rtsgt.geometry.transform` (world frame,
-    ordered x, y, z, rx, ry, rz).
-
-    Parameters
-    ----------
-    p_body, q_world : array_like, shape (..., N, 3)
-        The points of the fit (m).
-    R_world_body : array_like, shape (..., 3, 3), optional
-        The optimal rotation, if already known (computed with :func:`register` otherwise).
-
-    Returns
-    -------
-    J_q : ndarray, shape (..., 6, N, 3)
-        ``d(dt, phi) / d q_i``.
-    J_p : ndarray, shape (..., 6, N, 3)
-        ``d(dt, phi) / d p_i``.
-
-    Raises
-    ------
-    GeometryError
-        If ``A`` is singular (collinear points) for some element.
+    r"""``J_q``, ``J_p`` (..., 6, N, 3): ``d(dt, phi) / d q_i`` and ``/ d p_i`` of the fit of
+    ``p_body`` onto ``q_world`` (..., N, 3), the left perturbation of :mod:`rtsgt.geometry.transform`
+    (implicit function theorem, docs/pose.md#pose-covariance-engines). ``R_world_body`` (..., 3, 3):
+    the fit's rotation if known. Raises GeometryError for collinear points.
     """
     p, q = point_pairs(p_body, q_world)
     n = p.shape[-2]
@@ -426,12 +317,9 @@ def registration_jacobian(
 
 
 def small_rotation_vector(R: np.ndarray) -> np.ndarray:
-    """Rotation vector of rotations (..., 3, 3) -> (..., 3), fast for angles below 90 deg.
-
-    ``phi = theta / sin(theta) * vee((R - R^T) / 2)`` with ``theta = atan2(|vee|, (tr R - 1)/2)``
-    (exact, well conditioned below 90 degrees); larger angles use
-    :func:`rtsgt.geometry.so3.log_so3`.
-    """
+    """Rotation vectors (..., 3) of rotations ``R`` (..., 3, 3): ``theta / sin(theta)`` times
+    ``vee((R - R^T) / 2)``, well conditioned below 90 degrees; larger angles by
+    :func:`rtsgt.geometry.so3.log_so3`."""
     v0 = 0.5 * (R[..., 2, 1] - R[..., 1, 2])
     v1 = 0.5 * (R[..., 0, 2] - R[..., 2, 0])
     v2 = 0.5 * (R[..., 1, 0] - R[..., 0, 1])

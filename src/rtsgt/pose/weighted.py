@@ -1,98 +1,11 @@
 r"""Weighted (generalised least squares) rigid registration, batched, and its Jacobian.
 
-Problem
--------
-The prisms ``q_i`` (world) and their reference positions ``r_i`` (body) of one pose have
-errors; the residual of a rigid transform ``(R, t)`` is the stacked ``3n``-vector
-``e = q - (R r + t)``. Its covariance, to first order, is
-
-.. math:: C = \Sigma_q + (I_n \otimes R)\, \Sigma_r\, (I_n \otimes R)^T ,
-
-``Sigma_q`` the prisms' joint ``(3n, 3n)`` covariance at that time, ``Sigma_r`` the
-reference's (body frame, rotated into the world frame). The weighted fit minimises
-
-.. math:: (R, t) = \operatorname{argmin}\; e^T W e, \qquad W = C^{-1}
-
-(:func:`gls_weights`): the Gauss-Markov best linear unbiased fit of one pose, the one of least
-variance. The reference error is one draw shared by every pose of a deployment, but each pose
-is fitted alone and at one pose it is noise on the residual like the prisms': it belongs in
-``C``. The unweighted fit (``W = I``, the paper's point-to-point registration,
-:func:`rtsgt.pose.registration.register`) is the special case of isotropic, equal, independent
-errors; it ignores that a prism tracked from far away is known worse along the line of sight,
-and that the calibrations correlate the prisms.
-
-``W`` is evaluated once per pose, at the rotation of the closed-form fit of the mean inputs,
-and then held fixed: the estimator is a fixed function of the inputs (``W`` does not move with
-a Monte Carlo sample or a sigma point, the standard choice), and the propagation engines
-differentiate or sample the fit only.
-
-Solution
---------
-For a fixed ``R`` the best ``t`` is linear: with ``1`` the ``(3n, 3)`` stack of identities,
-``S = 1^T W 1`` and ``P = S^{-1} 1^T W``, ``t(R) = P (q - (I \otimes R) r)``. Eliminating it
-leaves a problem in the rotation alone (variable projection),
-
-.. math::
-
-    f(R) = (q - a)^T \tilde W (q - a), \qquad a = (I_n \otimes R)\, r, \qquad
-    \tilde W = W - W 1 S^{-1} 1^T W ,
-
-where ``tilde W`` annihilates translations (``tilde W 1 = 0``), so ``q`` may be shifted by any
-translation first (by the closed-form ``t``, for round-off: the residual is then millimetres,
-not the station's hundreds of metres). Starting from the closed-form (unweighted) rotation,
-Newton's method on SO(3) with the left update ``R <- exp([theta]x) R``: expanding
-``exp([theta]x) a_i = a_i + theta x a_i + theta x (theta x a_i) / 2`` to second order gives,
-with ``u = tilde W (q - a)``,
-
-.. math::
-
-    g = \sum_i a_i \times u_i, \qquad
-    N = \sum_{ij} [a_i]_\times^T \tilde W_{ij} [a_j]_\times
-        - \operatorname{sym}\Big(\sum_i u_i a_i^T\Big) + \Big(\sum_i u_i \cdot a_i\Big) I,
-    \qquad \theta = N^{-1} g .
-
-The first term of ``N`` is the Gauss-Newton matrix; the other two are the residual's
-curvature, which makes the convergence quadratic (they are of the order of the residual over
-the prisms' spread, a few 1e-3, and vanish for exact data). From the closed-form start (about
-the pose's own uncertainty away, milliradians) the steps are typically 1e-3, 1e-6, 1e-12 rad.
-Once the largest step of a batch is below 1e-3 rad, the next steps keep the last ``N``
-(chord steps: its error is then of the order of that step, so each step still shrinks the
-error by that factor) and skip its computation, the largest part of a step. The iteration
-stops when every step of a batch is below :data:`GLS_TOL` = 1e-6 rad: what is left is below
-1e-10 rad (tests/test_pose_weighted.py); at most :data:`GLS_MAX_ITER` steps, the elements that
-did not get there are reported. Far from a minimum the steps are safeguarded: at most
-0.25 rad (a trust region), and the Gauss-Newton matrix alone where the Newton matrix is not
-positive definite (a descent direction; undamped steps can settle on a saddle). Samples of a
-pose (Monte Carlo draws, sigma points) start from their first-order prediction about the
-pose's fit instead (``xi0`` of :func:`refine_batches`), within about the square of their
-perturbation: two steps. The Monte Carlo engine's samples take chord steps with the pose's
-Newton matrix instead (:func:`refine_samples`), which skip the per-sample matrix.
-
-Vectorised over poses and over the samples of a pose (the Monte Carlo draws, the sigma
-points), sharing the pose's weights: the samples of a pose are the columns of matrix products
-with the pose's ``(3n, 3n)`` matrices (``tilde W`` and, for ``N``, one matrix per entry of
-``N``: ``N_ab = a^T G^{ab} a`` with
-``G^{ab}_{(ie),(jf)} = sum_cd eps_cea eps_dfb tilde W_{(ic),(jd)}``), and everything else is
-elementwise arithmetic on arrays over (poses, samples). No Python loop over poses or samples.
-
-Jacobian
---------
-First order, by the implicit function theorem on the optimality condition of the full
-problem, ``g(xi; q, r) = H^T W e = 0`` with ``H_i = [I, -[a_i]x]`` (``a_i = R r_i``, the
-derivative of ``R r_i + t`` along the left perturbation ``xi = (dt, dtheta)`` of
-:mod:`rtsgt.geometry.transform`) and ``w = W e`` at the optimum:
-
-.. math::
-
-    K \xi = H^T W\, dq - H^T W (I_n \otimes R)\, dr - \begin{pmatrix} 0 \\
-        \sum_i [w_i]_\times R\, dr_i \end{pmatrix}, \qquad
-    K = H^T W H - \begin{pmatrix} 0 & 0 \\ 0 & \sum_i [w_i]_\times [a_i]_\times
-        \end{pmatrix}
-
-(:func:`weighted_registration_jacobian`). For exact data (``w = 0``) it is the classic
-``(H^T W H)^{-1} H^T W``, and the first-order covariance of the weighted fit is
-``(H^T W H)^{-1}``; with ``W = I`` it is the Jacobian of the unweighted fit
-(:func:`rtsgt.pose.registration.registration_jacobian`).
+``(R, t) = argmin e^T W e``, ``e = q - (R r + t)`` stacked (3n), ``W`` the inverse of the
+residual's covariance at the closed-form rotation, held fixed (:func:`gls_weights`). Newton's
+method on SO(3) with the translation eliminated, safeguarded (:func:`refine_batches`); chord
+steps for the Monte Carlo samples (:func:`refine_samples`); the Jacobian by the implicit function
+theorem (:func:`weighted_registration_jacobian`). Vectorised over poses and the samples of a
+pose. Derivations: docs/pose.md#weighted-registration.
 """
 
 from __future__ import annotations
@@ -108,10 +21,10 @@ from rtsgt.geometry.so3 import hat
 from rtsgt.pose.registration import register
 
 __all__ = ["GLS_MAX_ITER", "GLS_TOL", "WeightedInfo", "gls_weights", "newton_inverse_at",
-           "refine_samples", "register_weighted", "weighted_registration_jacobian"]
+           "refine_batches", "refine_samples", "register_weighted", "weighted_registration_jacobian"]
 
 #: Rotation step (rad) under which the Newton iteration of a batch has converged (the error
-#: left is then below 1e-10 rad, module docstring).
+#: left is then below 1e-10 rad, tests/test_pose_weighted.py).
 GLS_TOL = 1e-6
 #: Newton steps at most (typically 3 are taken from the closed form, 2 for samples; up to
 #: about 15 from a closed form far from the weighted minimum, with the trust region).
@@ -140,39 +53,20 @@ _EPS[0, 2, 1] = _EPS[2, 1, 0] = _EPS[1, 0, 2] = -1.0
 
 @dataclass(frozen=True)
 class WeightedInfo:
-    """Diagnostics of :func:`register_weighted`.
-
-    Attributes
-    ----------
-    converged : ndarray of bool, shape (...)
-        The last Newton step of the element was below :data:`GLS_TOL`.
-    iterations : int
-        Newton steps taken (the same for the whole batch).
-    """
+    """Diagnostics of :func:`register_weighted`: ``converged`` (...), the last step below
+    :data:`GLS_TOL`; ``iterations``, the Newton steps taken by the batch."""
 
     converged: np.ndarray
     iterations: int
 
 
 def gls_weights(cov_q: ArrayLike, cov_r: ArrayLike, R: ArrayLike) -> np.ndarray:
-    """``W = (Sigma_q + (I (x) R) Sigma_r (I (x) R)^T)^{-1}``: the weights of the fit.
+    """``W = (Sigma_q + (I (x) R) Sigma_r (I (x) R)^T)^-1`` (..., 3n, 3n), the weights of the fit.
 
-    Parameters
-    ----------
-    cov_q : array_like, shape (..., 3n, 3n)
-        Joint covariance of the stacked world prisms at each pose, m^2.
-    cov_r : array_like, shape (3n, 3n) or (..., 3n, 3n)
-        Covariance of the stacked reference prisms, body frame, m^2.
-    R : array_like, shape (..., 3, 3)
-        ``R_world_body`` of each pose (the closed-form fit's).
-
-    Returns
-    -------
-    ndarray, shape (..., 3n, 3n)
-        Symmetric positive definite, scaled to a unit mean eigenvalue (the fit does not depend
-        on the scale). Eigenvalues of the covariance below 1e-12 of its largest are raised to
-        that floor (a residual covariance known exactly in some direction); a covariance that
-        is zero altogether gives the identity (the unweighted fit).
+    ``cov_q`` (..., 3n, 3n) the world prisms' joint covariance, m^2; ``cov_r`` (3n, 3n) or
+    (..., 3n, 3n) the reference's, body frame; ``R`` (..., 3, 3) the closed-form rotations.
+    Scaled to a unit mean eigenvalue (the fit does not depend on the scale); the covariance's
+    eigenvalues floored at 1e-12 of its largest; a zero covariance gives the identity.
     """
     cq = np.asarray(cov_q, dtype=float)
     cr = np.asarray(cov_r, dtype=float)
@@ -197,7 +91,7 @@ def gls_weights(cov_q: ArrayLike, cov_r: ArrayLike, R: ArrayLike) -> np.ndarray:
 
 def _projections(W: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per pose: ``P`` (K, 3, 3n) with ``t = P (q - a)``, ``tilde W`` (K, 3n, 3n) and the stack
-    ``[tilde W; G^{ab}]`` (K, 7 (3n), 3n) of the Newton products (module docstring)."""
+    ``[tilde W; G^{ab}]`` (K, 7 (3n), 3n) of the Newton products (docs/pose.md)."""
     K, m, _ = W.shape
     n = m // 3
     ones = np.tile(np.eye(3), (n, 1))  # (3n, 3)
@@ -356,26 +250,11 @@ def refine_batches(p, q, W, R, t, xi0=None, *, tol=GLS_TOL, max_iter=GLS_MAX_ITE
                    chunk=GLS_CHUNK):
     """The weighted fits of (K, S) problems, S per pose sharing the pose's weights.
 
-    Parameters
-    ----------
-    p, q : ndarray, shape (K, S, n, 3)
-        Body and world points (``p`` may be a broadcast view).
-    W : ndarray, shape (K, 3n, 3n)
-        The weights of each pose.
-    R, t : ndarray, shapes (K, S or 1, 3, 3) and (K, S or 1, 3)
-        The start, or with ``xi0`` the pose it is a left perturbation of.
-    xi0 : ndarray, shape (K, S, 6), optional
-        Start at ``exp(xi0) (R, t)`` (:mod:`rtsgt.geometry.transform`).
-    tol, max_iter, chunk
-        Convergence, most Newton steps, problems refined at once.
-
-    Returns
-    -------
-    R : ndarray, shape (K, S, 3, 3)
-    t : ndarray, shape (K, S, 3)
-    converged : ndarray of bool, shape (K, S)
-    iterations : int
-        The most Newton steps a chunk took.
+    ``p``, ``q`` (K, S, n, 3) body and world points (``p`` may be broadcast); ``W`` (K, 3n, 3n);
+    the start ``R`` (K, S or 1, 3, 3), ``t`` (K, S or 1, 3), or with ``xi0`` (K, S, 6)
+    ``exp(xi0) (R, t)``; ``tol`` (rad), ``max_iter`` Newton steps, ``chunk`` problems at once.
+    Returns ``R`` (K, S, 3, 3), ``t`` (K, S, 3), ``converged`` (K, S) and the most steps a chunk
+    took.
     """
     K, S = q.shape[:2]
     per = max(1, chunk // max(S, 1))
@@ -402,33 +281,13 @@ def register_weighted(
     max_iter: int = GLS_MAX_ITER,
     return_info: bool = False,
 ) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, WeightedInfo]:
-    """Rigid transform ``T_world_body`` minimising ``e^T W e``, ``e = q - (R p + t)`` stacked.
+    """Rigid transform ``T_world_body`` minimising ``e^T W e``, ``e = q - (R p + t)`` stacked:
+    Newton from the closed-form fit, vectorised over the batch.
 
-    Newton's method on SO(3) from the closed-form (unweighted) fit, the translation eliminated
-    in closed form (module docstring), vectorised over the batch.
-
-    Parameters
-    ----------
-    p_body : array_like, shape (..., n, 3)
-        Points in the body frame, m, n >= 3.
-    q_world : array_like, shape (..., n, 3)
-        The same points in the world frame, m.
-    weights : array_like, shape (..., 3n, 3n)
-        Symmetric positive definite ``W`` of the stacked residual ``(e_1x, e_1y, e_1z, e_2x,
-        ...)`` (e.g. :func:`gls_weights`), broadcast against the batch.
-    tol : float
-        Rotation step (rad) under which the iteration has converged.
-    max_iter : int
-        Newton steps at most.
-    return_info : bool
-        Also return a :class:`WeightedInfo`.
-
-    Returns
-    -------
-    R_world_body : ndarray, shape (..., 3, 3)
-    t_world_body : ndarray, shape (..., 3)
-    info : WeightedInfo
-        Only with ``return_info=True``.
+    ``p_body``, ``q_world`` (..., n, 3) m, n >= 3; ``weights`` (..., 3n, 3n) symmetric positive
+    definite (e.g. :func:`gls_weights`), broadcast; ``tol`` (rad) and ``max_iter`` of the Newton
+    steps. Returns ``R`` (..., 3, 3), ``t`` (..., 3) and with ``return_info`` a
+    :class:`WeightedInfo`.
     """
     p, q = point_pairs(p_body, q_world, 3)
     n = p.shape[-2]
@@ -450,29 +309,12 @@ def weighted_registration_jacobian(
     p_body: ArrayLike, q_world: ArrayLike, weights: ArrayLike, R_world_body: ArrayLike,
     t_world_body: ArrayLike | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    r"""First-order sensitivity of the weighted fit to its input points (module docstring).
+    r"""``J_q``, ``J_p`` (..., 6, n, 3): ``d(dt, dtheta) / d q_i`` and ``/ d p_i`` of the weighted
+    fit (docs/pose.md#weighted-registration).
 
-    Parameters
-    ----------
-    p_body, q_world : array_like, shape (..., n, 3)
-        The points of the fit, m.
-    weights : array_like, shape (..., 3n, 3n)
-        The fit's ``W`` (held fixed).
-    R_world_body, t_world_body : array_like, shape (..., 3, 3) and (..., 3)
-        The weighted fit (:func:`register_weighted`); without ``t_world_body``, the best
-        translation for ``R_world_body``, ``t = P (q - (I (x) R) p)`` (module docstring).
-
-    Returns
-    -------
-    J_q : ndarray, shape (..., 6, n, 3)
-        ``d(dt, dtheta) / d q_i``.
-    J_p : ndarray, shape (..., 6, n, 3)
-        ``d(dt, dtheta) / d p_i``.
-
-    Raises
-    ------
-    GeometryError
-        If ``K`` is singular (collinear points) for some element.
+    ``p_body``, ``q_world`` (..., n, 3) m; ``weights`` (..., 3n, 3n) the fit's ``W``, held fixed;
+    ``R_world_body`` (..., 3, 3) and ``t_world_body`` (..., 3) the fit (without ``t``: the best
+    translation for ``R``). Raises GeometryError where ``K`` is singular (collinear points).
     """
     p, q = point_pairs(p_body, q_world)
     n = p.shape[-2]
@@ -516,12 +358,9 @@ def weighted_registration_jacobian(
 
 def newton_inverse_at(p: np.ndarray, q: np.ndarray, W: np.ndarray, R: np.ndarray,
                       t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The projected weights, translation projector and inverse Newton matrix of K fits.
-
-    ``p, q`` (K, n, 3) the body and world points, ``W`` (K, 3n, 3n) the weights, ``R``
-    (K, 3, 3), ``t`` (K, 3) the fits (module docstring). Returns ``tilde W`` (K, 3n, 3n),
-    ``P`` (K, 3, 3n) and ``N^-1`` (K, 3, 3) at the fits: what :func:`refine_samples` needs.
-    """
+    """``W~`` (K, 3n, 3n), the translation projector ``P`` (K, 3, 3n) and ``N^-1`` (K, 3, 3) at
+    K fits ``R`` (K, 3, 3), ``t`` (K, 3) of body and world points ``p``, ``q`` (K, n, 3) with the
+    weights ``W`` (K, 3n, 3n): what :func:`refine_samples` needs."""
     K, n, _ = q.shape
     m = 3 * n
     ones = np.tile(np.eye(3), (n, 1))  # (3n, 3)
@@ -541,42 +380,15 @@ def newton_inverse_at(p: np.ndarray, q: np.ndarray, W: np.ndarray, R: np.ndarray
 def refine_samples(Y: np.ndarray, X: np.ndarray, Wt: np.ndarray, P: np.ndarray,
                    N_inv: np.ndarray, R0: np.ndarray, xi0: np.ndarray, *, tol: float = SAMPLE_TOL,
                    max_iter: int = SAMPLE_MAX_ITER) -> tuple[np.ndarray, np.ndarray]:
-    """The weighted fits of S samples of each of K poses, by chord steps from their
-    first-order prediction: the Monte Carlo engine's fits.
+    """The weighted fits of S samples of each of K poses by chord steps ``phi <- phi + N^-1 g``
+    from their first-order prediction, ``N`` the pose's (docs/pose.md#weighted-registration).
 
-    A sample of a pose is its prisms and reference perturbed by about the pose's
-    uncertainty; its fit ``R = exp([phi]x) R0`` is within about the square of that
-    perturbation of the first-order prediction ``phi = xi0``. Each step
-    ``phi <- phi + N^-1 g`` takes the sample's own gradient ``g`` at ``exp([phi]x) R0``
-    (module docstring) and the pose's Newton matrix ``N`` at its fit in place of the
-    sample's: the two differ by the relative size of the perturbation (and of ``phi``), so
-    each step shrinks the error by about that factor ``rho`` (typically 1e-3: steps 1e-6,
-    1e-9 rad), and the fixed point is the sample's fit (``g = 0``). The error left after a
-    step ``d_k`` is about ``rho d_k``, ``rho = d_k / d_(k-1)``: the iteration stops when that
-    estimate is below ``tol`` for every sample of the batch (contracting, ``rho < 1/2``), or
-    after ``max_iter`` steps; samples that did not get there are flagged
-    (:func:`refine_batches` can finish them).
-
-    Parameters
-    ----------
-    Y : ndarray, shape (K, 3n, S)
-        World points of the samples minus the pose's fitted translation ``t0``, m, stacked
-        ``(x1, y1, z1, x2, ...)``, samples last.
-    X : ndarray, shape (n, 3, S)
-        Body points of the samples (shared by the poses), m.
-    Wt, P, N_inv : ndarray, shapes (K, 3n, 3n), (K, 3, 3n), (K, 3, 3)
-        Each pose's projected weights, translation projector and inverse Newton matrix
-        (:func:`newton_inverse_at`).
-    R0 : ndarray, shape (K, 3, 3)
-        The poses' fitted rotations.
-    xi0 : ndarray, shape (K, 6, S)
-        First-order prediction of each sample's left perturbation ``(dt, dtheta)``.
-
-    Returns
-    -------
-    xi : ndarray, shape (K, 6, S)
-        The left perturbation of each sample's fit about ``(R0, t0)``: ``(t - t0, phi)``.
-    converged : ndarray of bool, shape (K, S)
+    ``Y`` (K, 3n, S) the samples' world points minus the pose's ``t0``, m, stacked ``(x1, y1, z1,
+    x2, ...)``; ``X`` (n, 3, S) their body points (shared by the poses); ``Wt``, ``P``, ``N_inv``
+    from :func:`newton_inverse_at`; ``R0`` (K, 3, 3) the poses' rotations; ``xi0`` (K, 6, S) the
+    prediction. Stops when the error estimated from the last two steps, ``d_k^2 / d_(k-1)``, is
+    below ``tol`` for every sample, or after ``max_iter`` steps. Returns ``xi`` (K, 6, S), each
+    fit's ``(t - t0, phi)``, and ``converged`` (K, S) (:func:`refine_batches` finishes the rest).
     """
     K, m, S = Y.shape
     n = m // 3
