@@ -12,7 +12,8 @@ from scipy.stats import chi2
 
 from _paths import EXCERPT
 from rtsgt.calibration import calibrate, fit_stations, polar_point_covariance
-from rtsgt.calibration.gcp import CALIBRATION_WEIGHTINGS, EARTH_RADIUS_M, curvature_tilt
+from rtsgt.calibration.shots import EARTH_RADIUS_M, curvature_tilt
+from rtsgt.choices import CALIBRATION_WEIGHTINGS
 from rtsgt.errors import GeometryError, InputError
 from rtsgt.geometry.so3 import exp_so3, log_so3
 from rtsgt.geometry.transform import perturbation

@@ -17,7 +17,7 @@ import pytest
 
 from rtsgt.calibration import calibrate
 from rtsgt.calibration.dynamic import DistanceSamples, calibrate_dynamic
-from rtsgt.calibration.gcp import curvature_tilt
+from rtsgt.calibration.shots import curvature_tilt
 from rtsgt.errors import GeometryError, InputError
 from rtsgt.geometry.so3 import exp_so3
 from rtsgt.geometry.transform import perturbation

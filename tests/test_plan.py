@@ -21,7 +21,7 @@ import pytest
 from typer.testing import CliRunner
 
 from _paths import EXAMPLE_TOML
-from rtsgt.calibration.gcp import polar_point_covariance
+from rtsgt.calibration.shots import polar_point_covariance
 from rtsgt.cli.main import app
 from rtsgt.cli.plan import compute_plan
 from rtsgt.errors import RtsgtWarning

@@ -13,6 +13,10 @@ from __future__ import annotations
 #: What the stations are calibrated from (:mod:`rtsgt.calibration.gcp`,
 #: :mod:`rtsgt.calibration.dynamic`).
 CALIBRATION_METHODS = ("gcp", "dynamic", "joint")
+#: The models of a station's transform (docs/noise-model.md#levelled-stations-4-dof).
+CALIBRATION_MODELS = ("6dof", "4dof")
+#: How the markers of a station's GCP fit are weighted (docs/noise-model.md#weights-of-the-gcps).
+CALIBRATION_WEIGHTINGS = ("gls", "trace", "none")
 #: The weighting of :func:`rtsgt.calibration.calibrate` and of a run's ``[calibration]``: the
 #: paper's. The generalised least squares is honest and sharper on simulated shots, but on the
 #: real excerpt it makes the standing poses' inter-prism distances optimistic

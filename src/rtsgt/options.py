@@ -24,13 +24,14 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from rtsgt.calibration.gcp import (
+from rtsgt.choices import (
     CALIBRATION_METHODS,
     CALIBRATION_MODELS,
     CALIBRATION_WEIGHTINGS,
+    DEFAULT_PRIOR,
+    DEFAULT_QC,
     DEFAULT_WEIGHTING,
 )
-from rtsgt.choices import DEFAULT_PRIOR, DEFAULT_QC
 from rtsgt.errors import InputError
 from rtsgt.filtering import FilterParams
 from rtsgt.filtering.gates import DEFAULT_DISTANCE_GATE_M, DEFAULT_UNCERTAINTY_GATE_M

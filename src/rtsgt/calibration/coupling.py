@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rtsgt.calibration.gcp import CalibrationResult
+from rtsgt.calibration.result import CalibrationResult
 from rtsgt.geometry.so3 import hat
 from rtsgt.geometry.transform import perturbation
 from rtsgt.pose.reference import block_diagonal

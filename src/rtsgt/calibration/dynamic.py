@@ -1,180 +1,28 @@
-r"""Dynamic self-calibration of the stations from the robot's motion (and jointly with GCPs).
+"""Dynamic self-calibration of the stations from the robot's motion, alone or with the GCPs.
 
-The prisms are bolted to the robot, so the distance between two of them is the surveyed one
-whatever the robot does (Vaidis et al., "Extrinsic calibration for highly accurate trajectories
-reconstruction", ICRA 2023). Each prism is tracked by its own station, in that station's frame;
-the transforms ``T_world_s`` of the stations (world = the reference station's frame, as in
-:mod:`rtsgt.calibration.gcp`) and the relative clock offsets ``delta_s`` are what make the
-tracked distances agree with the survey at every time. This module fits them.
-
-Observations
-------------
-Each prism's track is interpolated by its GP in its station's frame
-(:mod:`rtsgt.interpolation.prisms`, the white sources only), at sample times ``t_a`` every
-:data:`SAMPLE_STEP_S` seconds where every track is supported. With ``p_i``, ``v_i`` the GP's
-position and velocity of prism ``i`` (station ``s``) at ``t_a``, the prism in the world frame is
-
-.. math::
-
-    q_i(t_a) = R_s \,(p_i(t_a) - \delta_s v_i(t_a)) + t_s
-
-(a station whose clock reads ``delta_s`` late relative to the reference's, ``delta_s = e_s -
-e_ref`` with ``e = t_true - t_stamped`` as in :mod:`rtsgt.simulation.deployment`, saw at its
-stamp ``t`` where the prism was at the reference's ``t + delta_s``; first order in ``delta_s``,
-a few milliseconds). The residual of the pair ``k = (i, j)`` is
-
-.. math::
-
-    r_{ak} = \| q_i(t_a) - q_j(t_a) \| - d_k
-
-with ``d_k`` the surveyed distance (:class:`rtsgt.pose.ReferencePoints`). The reference station
-is the identity with no clock offset: distances do not change under a rigid motion of all the
-stations, nor under a clock offset common to all of them, so those are fixed by the
-reference station and cannot be seen (the world frame of a dynamic calibration is the reference
-station's frame, exactly as for the GCPs; the time is the reference station's clock).
-
-Unknowns: for every other station the 6-DOF left perturbation ``(dx, dphi)`` of its transform,
-or under ``model = "4dof"`` (levelled stations, :mod:`rtsgt.calibration.gcp`, section Models)
-``(dx, dpsi)`` with ``R_s = exp([omega(t_s)]x) R_z(psi_s)``, ``omega`` the Earth's curvature
-(:func:`rtsgt.calibration.gcp.curvature_tilt`); and its clock offset ``delta_s``.
-
-Weights: the GP errors are correlated in time (0.9 at 0.2 s, 0.3 at 1 s while driving, much
-longer while the robot stands, where the GP's Qc is small), so samples close in time are not
-independent. Rather than thinning the samples until they are (which throws the stops'
-information away with the correlation), the fit takes the GPs' joint posterior covariance of
-all the samples of a window of :data:`WINDOW_S` seconds
-(:func:`rtsgt.interpolation.cross.gp_joint_covariance`), first order through the distances:
-
-.. math::
-
-    \mathrm{Cov}(r_{ak}, r_{bl}) = \sum_i c_{aki}^T \, \mathrm{Cov}(p_i(t_a), p_i(t_b)) \, c_{bli},
-    \qquad c_{aki} = \pm R_s^T u_{ak}
-
-(``u`` the unit vector from ``q_j`` to ``q_i``, ``+`` for the pair's first prism, ``-`` for its
-second; the tracks of different stations are independent), and whitens each window with its
-Cholesky factor (plus ``1e-8`` of each variance on the diagonal, so that the samples of a long
-stop, which are nearly one, stay a well-conditioned system). Windows are independent: the
-correlation that crosses a window's edge (a couple of seconds) is left out.
-
-Joint calibration (``method = "joint"``). The GCP shots of :mod:`rtsgt.calibration.gcp` are
-stacked with the distances: each valid shot of a marker ``m`` shared with the reference station
-gives ``x_m - (R_s p_{s,m} + t_s)`` with covariance ``R_s C_{s,m} R_s^T`` (the instrument and
-tilt model, plus the variance components that the GCP calibration found), the world positions
-``x_m`` of the markers being nuisance unknowns (the reference station's shots included, with
-the identity: so the stations' fits share the reference's shots, as in the GCP calibration's
-Monte Carlo). Without the distances this is the generalised least-squares fit of all the
-stations to the GCPs at once; the GCP calibration's own checks (fit check, variance
-components, levelling) are kept in the result. That fit weights each shot by its full
-covariance, which for a shot is a thin ellipsoid (the angles give 0.02-0.25 mm across the line
-of sight at 10-100 m, the distance 1 mm along it), so it leans on the angular precision that
-the GCP calibration's Kabsch fit, weighting every direction alike, does not use. Real GCP shots
-are not that precise across the line of sight (the poles' centring and plumbing): on the real
-excerpt its variance factor is 24 with the GCP calibration's variance components, most of it
-across the lines of sight, which the per-axis factors of the GCP fit check do not show. So the
-joint fit adds a horizontal variance component of its own: where the factor of the GCPs'
-generalised least-squares fit alone is above its 95 % interval, the horizontal variance that
-brings it to 1 (bisection), on top of the GCP calibration's components.
-
-Solution
---------
-Levenberg-Marquardt from an initial guess: the GCP calibration for ``"joint"``; for
-``"dynamic"`` a levelled transform of each station from the distance between its prism and the
-reference station's (:func:`_initial`: for the right yaw, the points
-``q_ref - R_z(psi) p_s`` lie at the surveyed distance from the station, on a horizontal circle
-while the robot turns; the yaw is found on a grid and the circle fitted in closed form, to a
-few centimetres and hundredths of a degree), refined under ``"4dof"`` and, for ``"6dof"``, used
-as the start of the free rotation (total stations are levelled to arcminutes; a start from a
-few milliradians off level converges, one from a degree may not, and its variance factor then
-says so). (A rigid fit of each station's prism trajectory onto the reference station's, wrong
-by the prisms' lever arm, a metre, led the fit astray on 1 of 60 simulated deployments.)
-Every fit is made unweighted, then weighted, and weighted again with the whitening of its
-solution. Because driving on nearly flat ground leaves the heights of the stations nearly
-mirrored about the reference's prism (section Checks), the fit is started again from every
-combination of mirrored heights and the best kept. Samples
-with a pair residual beyond ``gate_m`` (the distance gate of module 4, 10 cm: a station
-tracking another prism) are dropped and the whole fit made again from its start.
-
-Errors shared by every sample
------------------------------
-Errors shared by every sample do not average down with their number: the errors of the
-surveyed distances (covariance from the survey), a scale error ``alpha`` of all the tracked
-distances (the atmospheric correction, one weather for all stations; variance from the tracks'
-``atmosphere`` source) and, under ``"4dof"``, each station's compensator error (a tilt of its
-frame, ``sigma_tilt`` per axis, the reference's included, as in the GCP calibration). They are
-estimated with the unknowns as nuisance parameters ``c`` with their prior: ``c = L z`` with
-``L L^T = C_c`` and ``z ~ N(0, I)``, each ``z`` a residual row of its own (the generalised
-least-squares fit of the data and the prior together). The distances then read
-``|q_i - q_j| - (d_k + c_k)`` with ``q_i = R_s ((1 + alpha) p_i - delta_s v_i) + t_s``, and
-under ``"4dof"`` ``R_s = exp([omega + tau_s - tau_ref]x) R_z(psi_s)``. (Holding them at their
-prior mean and only propagating them, *consider* parameters, makes the fit trust the many
-samples more than their shared error allows: a joint calibration could then be worse than
-the GCPs alone.)
-
-Covariance (``engine``)
------------------------
-With ``J`` the whitened Jacobian of all the rows (distances, GCP shots, priors) in all the
-parameters, the covariance of the parameters is ``N^-1``, ``N = J^T J``, and the station
-transforms' 6x6 left perturbations (world frame, x, y, z, rx, ry, rz, as everywhere in rtsgt;
-under ``"4dof"`` the rotation's is the yaw's along the vertical plus the estimated tilt's)
-follow linearly, jointly for all stations, with the clock offsets. ``engine = "linear"`` is
-that, and its Monte Carlo samples (which the prism Monte Carlo and the coupling of the stations,
-:class:`rtsgt.calibration.coupling.StationCoupling`, use) are drawn from it jointly.
-``engine = "mc"`` follows the GCP calibration: M perturbed data sets (the GP errors drawn from
-their joint posterior covariance per window, the priors' observations ``z_obs ~ N(0, I)``, and
-in ``"joint"`` every GCP shot as :func:`rtsgt.calibration.gcp.calibrate` perturbs it) are
-fitted again (Gauss-Newton from the solution with its Jacobian and weights,
-:data:`MC_ITERATIONS` steps), and the transforms' samples summarised by their covariance. It
-captures the non-linearity of the fit; the two agree within the Monte Carlo's error on the
-simulated deployments (docs/calibration.md).
-
-Checks
-------
-Observability: a trajectory that does not excite the extrinsics (a straight line, no rotation)
-leaves combinations of them undetermined. The fit refuses (:class:`GeometryError`) when its
-normal matrix is singular, or when the calibration's own standard deviation of some station's
-prism positions exceeds :data:`MAX_SIGMA_M` (1 cm: the distance's second-order term
-``delta^2 / 2 d`` over the prisms' spacing ``d ~ 1 m`` is then no longer negligible against
-the tracking noise, so neither the fit nor its covariance can be trusted). On (nearly) flat
-ground the distances cannot tell a prism above another from one below it: the fit with the
-heights of some stations mirrored about the reference's prism fits nearly as well. The fit is
-made from every such start (section Solution) and refuses when the best other solution is
-less than :data:`HEIGHT_MARGIN` worse in ``-2 log`` likelihood (the whitened cost plus the log
-determinant of the weights): the chance of picking the wrong one is then no longer negligible
-(``Phi(-sqrt(100) / 2)``, 3e-7, for two Gaussian hypotheses at that distance).
-
-Fit check (a Type A evaluation, as :class:`rtsgt.calibration.gcp.FitCheck`): the a-posteriori
-variance factor ``s0^2 = r^T r / (n - p)`` of the whitened residuals (all the rows, ``p``
-parameters), 1 if the GPs' covariance (and the GCP shots' and the priors) describe the
-residuals, with the chi-square test of ``n - p`` degrees of freedom. The GPs' correlation in
-time is a model too: on 60 simulated deployments of 600 s ``s0^2`` has a median of 0.94
-(0.81-1.17) with samples every second (docs/calibration.md).
-
-What it cannot see: the frame (the reference station's), a clock offset common to all
-stations, and anything the trajectory does not excite (refused, above). The clock offsets are
-reported, not applied: the tracks keep their stamps and the ``time_sync`` source its model.
-
-This module reads no files and prints nothing.
+Owns the fit of the stations' transforms and relative clock offsets to the surveyed
+inter-prism distances of the GP-interpolated tracks (Vaidis et al., ICRA 2023), weighted by
+the GPs' joint covariance per window, with the shared errors (survey, scale, compensators) as
+nuisance parameters; its covariance (first order or Monte Carlo) and refusals. Model,
+weights, checks and measured numbers: docs/calibration.md.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg import lapack
 
-from rtsgt.calibration.gcp import (
-    CALIBRATION_METHOD_NAMES,
-    CALIBRATION_METHODS,
-    CalibrationResult,
-    MarkerResiduals,
-    _check_args,
-    _natural_key,
-    _residuals,
-    _setup,
-    _with_extra,
+from rtsgt.calibration.result import CalibrationResult, DynamicFit, MarkerResiduals
+from rtsgt.calibration.shots import (
+    check_args,
     curvature_tilt,
+    marker_residuals,
+    natural_key,
     polar_point_covariance,
+    setup_shots,
+    with_extra_variance,
 )
 from rtsgt.errors import GeometryError, InputError
 from rtsgt.geometry.so3 import exp_so3, hat
@@ -187,14 +35,13 @@ from rtsgt.measurement.polar import polar_to_cartesian
 from rtsgt.noise.montecarlo import sample_gaussian
 from rtsgt.noise.perturb import sample_polar_errors
 from rtsgt.pose.reference import ReferencePoints
-from rtsgt.stats import ratio_interval, ratio_verdict
+from rtsgt.stats import ratio_interval
 from rtsgt.types import GcpShots
 
-__all__ = ["CALIBRATION_METHODS", "CALIBRATION_METHOD_NAMES", "DYNAMIC_ENGINES", "DistanceSamples",
-           "DynamicFit", "MAX_SIGMA_M", "SAMPLE_STEP_S", "WINDOW_S", "calibrate_dynamic",
-           "distance_samples", "sample_times"]
+__all__ = ["DYNAMIC_ENGINES", "DistanceSamples", "MAX_SIGMA_M", "SAMPLE_STEP_S", "WINDOW_S",
+           "calibrate_dynamic", "distance_samples", "sample_times"]
 
-#: How the covariance of a dynamic calibration is computed (module docstring).
+#: How the covariance of a dynamic calibration is computed (docs/calibration.md).
 DYNAMIC_ENGINES = ("linear", "mc")
 #: Time between the samples of the tracks, s. Their correlation is in the weights; on simulated
 #: deployments a step of 0.5 s (about one per measurement at 2.5 Hz) gains 5 % of sigma over
@@ -204,10 +51,10 @@ SAMPLE_STEP_S = 1.0
 #: Length of the windows whose samples are weighted jointly, s.
 WINDOW_S = 60.0
 #: The largest standard deviation of a station's prism positions due to the calibration that
-#: the fit accepts, m (module docstring, section Checks).
+#: the fit accepts, m (docs/calibration.md#refusals).
 MAX_SIGMA_M = 0.01
 #: The fit with the heights of some stations mirrored must be worse than the best by at least
-#: this much in ``-2 log`` likelihood (module docstring, section Solution).
+#: this much in ``-2 log`` likelihood (docs/calibration.md#solution).
 HEIGHT_MARGIN = 100.0
 #: Gauss-Newton steps of each Monte Carlo refit (from the solution, with its Jacobian).
 MC_ITERATIONS = 4
@@ -222,7 +69,7 @@ _MAX_CONDITION = 1e12
 
 @dataclass(frozen=True)
 class DistanceSamples:
-    """The tracked prisms at the sample times, each in its station's frame (module docstring).
+    """The tracked prisms at the sample times, each in its station's frame (docs/calibration.md).
 
     Attributes
     ----------
@@ -313,7 +160,7 @@ def distance_samples(
     gps: dict[str, GPTrack], stations: dict[str, str], reference: ReferencePoints,
     t: np.ndarray, *, scale_variance: float = 0.0, window_s: float = WINDOW_S,
 ) -> DistanceSamples:
-    """The observations of the dynamic fit (module docstring).
+    """The observations of the dynamic fit (docs/calibration.md).
 
     Parameters
     ----------
@@ -721,8 +568,7 @@ def _lm(problem: _Problem, st: _State, data: _Data, max_iter: int = 100) -> tupl
 
 
 def _solve(problem: _Problem, st: _State, data: _Data) -> tuple[_State, int, float]:
-    """The fit from ``st``: unweighted, then weighted twice (module docstring, section
-    Solution); returns the state, the last solve's iterations and ``-2 log`` of the
+    """The fit from ``st``: unweighted, then weighted twice (docs/calibration.md#solution); returns the state, the last solve's iterations and ``-2 log`` of the
     likelihood (whitened cost plus the log-determinant of the residuals' covariance)."""
     problem.set_weights(st, data, unit=1e-3)
     st, _ = _lm(problem, st, data)
@@ -741,8 +587,8 @@ def _distinct(a: _State, b: _State) -> bool:
 
 def _heights(problem: _Problem, st: _State, data: _Data,
              nll: float) -> tuple[tuple[float, _State], tuple[float, _State] | None]:
-    """The fits from ``st`` with the heights of every subset of the stations mirrored (module
-    docstring, section Solution): the best ``(-2 log likelihood, state)``, and the best of
+    """The fits from ``st`` with the heights of every subset of the stations mirrored
+    (docs/calibration.md#solution): the best ``(-2 log likelihood, state)``, and the best of
     those distinct from it (None if none is)."""
     smp = problem.samples
     ps = problem.prism_station
@@ -782,92 +628,6 @@ def _gauss_newton(problem: _Problem, st: _State, data: _Data, iterations: int,
 # ------------------------------------------------------------------------------ result
 
 
-@dataclass(frozen=True)
-class DynamicFit:
-    """What the dynamic (or joint) fit found besides the transforms (module docstring).
-
-    Attributes
-    ----------
-    method : {"dynamic", "joint"}
-    engine : {"linear", "mc"}
-    samples : int
-        Sample times used.
-    rejected : int
-        Sample times left out (a pair residual beyond the gate).
-    pairs : tuple of str
-        The prism pairs, ``"a-b"``.
-    stations : tuple of str
-        The non-reference stations, in the order of ``covariance``.
-    clock_offset_s, clock_sigma_s : dict str -> float
-        Each non-reference station's clock offset relative to the reference's
-        (``e_s - e_ref``, ``e = t_true - t_stamped``) and its standard deviation, s.
-    covariance : ndarray
-        Joint covariance of the stations' left perturbations (6 each, in ``stations``' order)
-        and the clock offsets.
-    variance_factor : float
-        ``s0^2`` of the distance residuals (module docstring, section Checks).
-    dof : float
-        Its effective degrees of freedom.
-    interval_95 : (float, float)
-    pair_mean_mm, pair_rms_mm : dict str -> float
-        Mean and RMS of each pair's residual, mm (a mean far from 0: a surveyed distance the
-        tracking disagrees with).
-    worst_sigma_m : dict str -> float
-        Each station's largest standard deviation of its prism positions due to the
-        calibration (the observability check), m.
-    iterations : int
-        Levenberg-Marquardt iterations of the last solve.
-    height_margin : float
-        How much worse (``-2 log`` likelihood) the best fit with mirrored station heights is
-        (``inf``: none, or the joint fit, whose GCPs fix the heights).
-    shot_sigma_m : (float, float) or None
-        The joint fit's variance components of the GCP shots, horizontal and vertical, as
-        standard deviations, m (module docstring, section Joint); None for ``"dynamic"``.
-    """
-
-    method: str
-    engine: str
-    samples: int
-    rejected: int
-    pairs: tuple[str, ...]
-    stations: tuple[str, ...]
-    clock_offset_s: dict[str, float]
-    clock_sigma_s: dict[str, float]
-    covariance: np.ndarray
-    variance_factor: float
-    dof: float
-    interval_95: tuple[float, float]
-    pair_mean_mm: dict[str, float] = field(default_factory=dict)
-    pair_rms_mm: dict[str, float] = field(default_factory=dict)
-    worst_sigma_m: dict[str, float] = field(default_factory=dict)
-    iterations: int = 0
-    height_margin: float = float("inf")
-    shot_sigma_m: tuple[float, float] | None = None
-
-    @property
-    def verdict(self) -> str:
-        """``consistent``, ``optimistic`` or ``pessimistic`` (:func:`rtsgt.stats.ratio_verdict`)."""
-        return ratio_verdict(self.variance_factor, self.interval_95)
-
-    def as_dict(self) -> dict:
-        """JSON-ready (clock offsets in ms)."""
-        return {"method": self.method, "engine": self.engine, "samples": self.samples,
-                "rejected_samples": self.rejected,
-                "clock_offset_ms": {s: 1e3 * v for s, v in self.clock_offset_s.items()},
-                "clock_sigma_ms": {s: 1e3 * v for s, v in self.clock_sigma_s.items()},
-                "variance_factor": self.variance_factor, "dof": self.dof,
-                "interval_95": list(self.interval_95), "verdict": self.verdict,
-                "pairs": {p: {"mean_mm": self.pair_mean_mm[p], "rms_mm": self.pair_rms_mm[p]}
-                          for p in self.pairs},
-                "worst_sigma_mm": {s: 1e3 * v for s, v in self.worst_sigma_m.items()},
-                "iterations": self.iterations,
-                "height_margin": None if not np.isfinite(self.height_margin)
-                else self.height_margin,
-                "gcp_shot_sigma_mm": None if self.shot_sigma_m is None
-                else {"horizontal": 1e3 * self.shot_sigma_m[0],
-                      "vertical": 1e3 * self.shot_sigma_m[1]}}
-
-
 def _circle_fits(psi: np.ndarray, p: np.ndarray, q: np.ndarray):
     """For each yaw ``psi`` (N,), the horizontal circle through ``c_k = q_k - R_z(psi) p_k``
     (Kasa's algebraic fit): its RMS geometric residual (N,), centre (N, 2), radius (N,), the
@@ -892,7 +652,7 @@ def _circle_fits(psi: np.ndarray, p: np.ndarray, q: np.ndarray):
 
 def _initial(samples: DistanceSamples, stations: list[str], ref: str):
     """Each station's levelled transform from the distance between its prism and the reference
-    station's (module docstring, section Solution): with ``R = R_z(psi)``, the points
+    station's (docs/calibration.md#solution): with ``R = R_z(psi)``, the points
     ``c_k = q_ref(t_k) - R p_s(t_k)`` lie at the surveyed distance ``d`` from the station's
     position ``t``; while the robot turns they trace a horizontal circle about it. So for every
     yaw on a grid of 0.5 degrees (then 0.025 degrees about the best) the circle through the
@@ -937,7 +697,7 @@ def _initial(samples: DistanceSamples, stations: list[str], ref: str):
 def _levelled_start(samples: DistanceSamples, stations: list[str], ref: str,
                     sigma_tilt: float) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """The levelled (4-DOF) fit from :func:`_initial`, its heights settled by :func:`_heights`
-    (module docstring, section Solution): the start of a 6-DOF dynamic fit."""
+    (docs/calibration.md#solution): the start of a 6-DOF dynamic fit."""
     init = _initial(samples, stations, ref)
     problem = _Problem(samples, stations, ref, "4dof", None, sigma_tilt)
     S = len(stations)
@@ -957,8 +717,8 @@ def _gcp_layout(shots: GcpShots, ref: str, stations: list[str], instrument: Inst
                 extra: np.ndarray) -> tuple[dict, object]:
     """The valid GCP shots of the markers shared with the reference, as
     :func:`rtsgt.calibration.gcp.calibrate` uses them."""
-    setup = _setup(shots, ref, instrument)
-    markers = sorted(setup.used_markers, key=_natural_key)
+    setup = setup_shots(shots, ref, instrument)
+    markers = sorted(setup.used_markers, key=natural_key)
     idx, st, mk = [], [], []
     for (s, m), k in setup.shot.items():
         if m in setup.used_markers and s in stations:
@@ -969,13 +729,13 @@ def _gcp_layout(shots: GcpShots, ref: str, stations: list[str], instrument: Inst
     C = polar_point_covariance(setup.hz[idx], setup.v[idx], setup.d[idx], instrument)
     return {"index": idx, "station": np.array(st), "marker": np.array(mk),
             "markers": len(markers), "points": setup.points[idx], "instrument_cov": C,
-            "cov": _with_extra(C, extra), "hz": setup.hz[idx], "v": setup.v[idx],
+            "cov": with_extra_variance(C, extra), "hz": setup.hz[idx], "v": setup.v[idx],
             "d": setup.d[idx]}, setup
 
 
 def _gcp_horizontal_component(layout: dict, extra: np.ndarray, stations: list[str], ref: str,
                               model: str, sigma_tilt: float, init: dict) -> np.ndarray:
-    """The shots' variance components for the joint fit (module docstring, section Joint):
+    """The shots' variance components for the joint fit (docs/calibration.md#the-joint-calibration):
     the GCP calibration's ``(horizontal, vertical)``, with the horizontal one raised, where the
     generalised least-squares fit of the GCPs alone has a variance factor above its 95 %
     interval, to the value that brings it to 1 (bisection on the variance)."""
@@ -983,7 +743,7 @@ def _gcp_horizontal_component(layout: dict, extra: np.ndarray, stations: list[st
 
     def factor(h: float) -> float:
         e = np.array([extra[0] + h, extra[1]])
-        lay = {**layout, "cov": _with_extra(layout["instrument_cov"], e)}
+        lay = {**layout, "cov": with_extra_variance(layout["instrument_cov"], e)}
         problem = _Problem(None, stations, ref, model, lay, sigma_tilt)
         st = _State(np.stack([init[s][0] for s in stations])[None],
                     np.stack([init[s][1] for s in stations])[None], np.zeros((1, S)),
@@ -1048,19 +808,19 @@ def calibrate_dynamic(
     instrument : InstrumentProfile
         The stations' instrument (the GCP shots' covariance, the compensators).
     gcp : GcpShots, optional
-        With ``gcp_calibration``: the joint calibration (module docstring).
+        With ``gcp_calibration``: the joint calibration (docs/calibration.md).
     gcp_calibration : CalibrationResult, optional
         The GCP calibration of the same shots: the initial guess, its variance components
         and its checks (kept in the result).
     engine : {"linear", "mc"}
-        How the covariance is computed (module docstring, section Covariance).
+        How the covariance is computed (docs/calibration.md#covariance).
     n_samples : int
         Monte Carlo samples of the transforms (M >= 2).
     rng : numpy.random.Generator, optional
     gate_m : float
         Samples with a pair residual beyond this are left out, m.
     max_sigma_m : float
-        The observability refusal's bound, m (module docstring, section Checks; ``inf``: no
+        The observability refusal's bound, m (docs/calibration.md#refusals; ``inf``: no
         refusal, for diagnostics).
 
     Returns
@@ -1071,11 +831,11 @@ def calibrate_dynamic(
     Raises
     ------
     GeometryError
-        The trajectory does not determine the transforms (module docstring, section Checks).
+        The trajectory does not determine the transforms (docs/calibration.md#refusals).
     InputError
         A station tracks no prism (dynamic), too few samples, bad arguments.
     """
-    _check_args(instrument, "none", model)
+    check_args(instrument, "none", model)
     if engine not in DYNAMIC_ENGINES:
         raise InputError(f"Expected engine {' or '.join(map(repr, DYNAMIC_ENGINES))}, "
                          f"got {engine!r}")
@@ -1093,14 +853,14 @@ def calibrate_dynamic(
     if joint:
         names |= set(gcp_calibration.transforms)
     names.add(ref)
-    stations = sorted(names, key=_natural_key)
+    stations = sorted(names, key=natural_key)
     if joint:
         extra = np.array(gcp_calibration.extra_shot_sigma_m) ** 2
         layout, setup = _gcp_layout(gcp, ref, stations, instrument, extra)
         init = {s: (T.rotation, T.translation) for s, T in gcp_calibration.transforms.items()}
         extra = _gcp_horizontal_component(layout, extra, stations, ref, model,
                                           instrument.sigma_tilt, init)
-        layout["cov"] = _with_extra(layout["instrument_cov"], extra)
+        layout["cov"] = with_extra_variance(layout["instrument_cov"], extra)
     else:
         layout, setup, extra = None, None, np.zeros(2)
     S = len(stations)
@@ -1245,7 +1005,7 @@ def calibrate_dynamic(
     if joint:
         R = {s: st.R[0, stations.index(s)] for s in stations}
         t = {s: st.t[0, stations.index(s)] for s in stations}
-        residuals = _residuals(setup, R, t)
+        residuals = marker_residuals(setup, R, t)
         return replace(gcp_calibration, transforms=transforms, residuals=residuals, samples=M,
                        method="joint", dynamic=fit)
     return CalibrationResult(
@@ -1259,7 +1019,7 @@ def _monte_carlo(problem: _Problem, st: _State, data: _Data, layout: dict | None
                  extra: np.ndarray, instrument: InstrumentProfile, M: int,
                  rng: np.random.Generator, free: list[str], gain: np.ndarray) -> np.ndarray:
     """(M, 6 S' + clocks) left perturbations and clock-offset errors of the refitted samples
-    (module docstring, section Covariance)."""
+    (docs/calibration.md#covariance)."""
     smp = problem.samples
     stations = problem.stations
     # every draw first, in a fixed order: the GP errors per window and prism, the nuisance

@@ -106,7 +106,7 @@ def _print_table(result: CalibrationResult, source: str, console: Console,
                  dynamic: dict | None = None, gcp_fit: dict | None = None) -> None:
     import numpy as np
 
-    from rtsgt.calibration.gcp import CALIBRATION_METHOD_NAMES, CALIBRATION_WEIGHTING_NAMES
+    from rtsgt.calibration.result import CALIBRATION_METHOD_NAMES, CALIBRATION_WEIGHTING_NAMES
     from rtsgt.cli.tables import TextTable
 
     table = TextTable(f"T_world_station, world = station {result.reference_station} ({source})",

@@ -252,7 +252,7 @@ def _ratio_rows(table: TextTable, name: str, count: tuple[str, str], key: str,
 def _calibration_rows(table: TextTable, record) -> None:
     """The calibration's model and method, the GCP fit's variance factor per station (95 %
     interval) and the variance component added, the dynamic calibration's check."""
-    from rtsgt.calibration.gcp import (
+    from rtsgt.calibration.result import (
         CALIBRATION_METHOD_NAMES,
         CALIBRATION_MODEL_NAMES,
         CALIBRATION_WEIGHTING_NAMES,

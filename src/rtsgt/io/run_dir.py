@@ -98,8 +98,8 @@ import numpy as np
 
 from rtsgt import __version__
 from rtsgt.calibration.coupling import StationCoupling
-from rtsgt.calibration.gcp import CALIBRATION_METHODS, CALIBRATION_MODELS
 from rtsgt.checks.verdict import record_verdict
+from rtsgt.choices import CALIBRATION_METHODS, CALIBRATION_MODELS
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.filtering import FilterParams
 from rtsgt.filtering.modules import RemovedMeasurements

@@ -34,7 +34,8 @@ from numpy.typing import ArrayLike
 
 from rtsgt.calibration import CalibrationResult
 from rtsgt.calibration.coupling import StationCoupling
-from rtsgt.calibration.gcp import curvature_tilt, gcp_world_positions
+from rtsgt.calibration.gcp import gcp_world_positions
+from rtsgt.calibration.shots import curvature_tilt
 from rtsgt.deployment import DeploymentData
 from rtsgt.errors import InputError
 from rtsgt.geometry.so3 import exp_so3

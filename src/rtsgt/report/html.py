@@ -39,7 +39,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 
 from rtsgt import __version__
-from rtsgt.calibration.gcp import CALIBRATION_MODEL_NAMES, CALIBRATION_WEIGHTING_NAMES
+from rtsgt.calibration.result import CALIBRATION_MODEL_NAMES, CALIBRATION_WEIGHTING_NAMES
 from rtsgt.checks.verdict import record_verdict
 from rtsgt.errors import RtsgtWarning
 from rtsgt.io._parse import atomic_write_text
