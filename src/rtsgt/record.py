@@ -1,19 +1,11 @@
 """The run record: what one run of the pipeline produced, as one typed record.
 
-:func:`rtsgt.pipeline.run_pipeline` returns a :class:`RunRecord`;
-:func:`rtsgt.io.run_dir.write_run` writes it as a run directory and
-:func:`rtsgt.io.run_dir.read_run` reads one back into the same record (the only reader and
-writer of those files). The analysis (:mod:`rtsgt.report.analysis`), the figures, the report
-and the continuous ground truth (:meth:`rtsgt.evaluation.ContinuousGroundTruth.from_record`)
-take a record, whether it was just computed or read from files.
-
-A record read back has every field a run writes; what only exists in memory (the deployment's
-inputs, the calibration's Monte Carlo samples, the fitted GPs, the filter and gate reports) is
-in :attr:`RunRecord.computation`, None for a record read from files.
-
-Conventions: positions and covariances in the world frame (the reference station's), m and
-m^2; times in s; pose covariances 6x6 in the order (x, y, z, rx, ry, rz), left perturbation in
-the world frame (:mod:`rtsgt.types`).
+:func:`rtsgt.pipeline.run_pipeline` returns a :class:`RunRecord` (or a
+:class:`PositionRunRecord` for one or two tracked prisms); :mod:`rtsgt.io.run_dir` writes it as a
+run directory and reads it back into the same record (docs/file-formats.md#run-directory). The
+analysis, the report and the continuous ground truth take a record, computed or read; what only
+exists in memory is in :attr:`RunRecord.computation` (None when read from files). World frame
+(the reference station's), m, m^2, s; pose covariances as :mod:`rtsgt.types`.
 """
 
 from __future__ import annotations
@@ -32,11 +24,12 @@ from rtsgt.filtering.modules import RemovedMeasurements
 from rtsgt.interpolation import GPTrack
 from rtsgt.interpolation.prisms import PrismsAtTimes
 from rtsgt.noise import NoiseModel
+from rtsgt.noise.sources import NOISE_SOURCES
 from rtsgt.options import RunOptions
 from rtsgt.pose import PoseEstimate
 from rtsgt.pose.reference import ReferencePoints
 from rtsgt.shared import SharedFactor
-from rtsgt.types import NOISE_SOURCES, PoseTrajectory, PrismTrack
+from rtsgt.types import PoseTrajectory, PrismTrack
 
 __all__ = ["MIN_POSE_PRISMS", "RUN_SCHEMA_NAME", "RUN_SCHEMA_VERSION", "PositionRunRecord",
            "RunComputation", "RunRecord", "no_removed_measurements", "ordered_sources"]
@@ -89,92 +82,28 @@ class RunComputation:
 class RunRecord:
     """One run: its options, measured tracks, prisms at the query times, poses and checks.
 
-    Attributes
-    ----------
-    name : str
-        Deployment name (or the run directory's name).
-    prism_ids : tuple of str, length n
-        Prisms in the order of the ``n`` axis of the ``prisms_*`` arrays.
-    measurements : dict str -> PrismTrack
-        The filtered measured track of each prism, with its station, ``range_m`` and
-        ``cov_by_source``; ``cov`` is the sum of the per-source covariances (the total of
-        independent sources).
-    prisms_t : ndarray, shape (T,)
-        Query times (every pose time, kept or rejected).
-    prisms_xyz : ndarray, shape (T, n, 3)
-        Interpolated prism positions.
-    prisms_cov : ndarray, shape (T, n, 3, 3)
-        Their total covariance (the blocks the pose engine used).
-    prisms_cov_by_source : dict str -> ndarray (T, n, 3, 3)
-        Each source's covariance at the query times.
-    groundtruth : PoseTrajectory
-        The kept poses with their 6x6 covariance.
-    rejected_t : ndarray, shape (R,)
-    rejected_reason : ndarray of str, shape (R,)
-        The query times whose pose a gate rejected, and the gate.
-    reference : ReferencePoints
-        Every reference prism of the deployment in the body frame, with the joint covariance.
-    options : RunOptions
-        The run's options (``noise`` is None in a record read from files: ``summary.json``
-        keeps the sources, not the model).
-    schema_version : int
-        :data:`RUN_SCHEMA_VERSION` for a new run; that of the files for a record read back.
-    stations : dict str -> ndarray (3,)
-        Station positions (translations of ``T_world_station``), m.
-    prisms_cov_gp : ndarray, shape (T, n, 3, 3), optional
-        The GP posterior covariance alone.
-    gcp_xyz : ndarray, shape (G, 3), optional
-        Ground control points in the world frame, m, named by ``gcp_names``.
-    gcp_names : tuple of str
-    qc : dict str -> ndarray
-        Each prism's GP power spectral density Qc, m^2/s^3.
-    qc_scale : dict str -> ndarray (N-1,)
-        Per prism whose ``Qc`` follows the motion, the scale of each interval between its
-        measurements (:mod:`rtsgt.interpolation.motion`); absent: one ``Qc``.
-    prior : dict str -> str
-        Each prism's GP motion prior, ``"wnoa"`` or ``"wnoj"`` (:mod:`rtsgt.interpolation.gp`;
-        its ``qc`` is then m^2/s^5); absent: ``"wnoa"`` (a run written before the choice).
-    intervals : ndarray, shape (K, 2), optional
-        The intervals every prism is tracked in (module 2), s; None for an older run.
-    uncertainty_measure : str
-        The measure module 4's uncertainty gate used.
-    coupling : StationCoupling, optional
-        The correlation of the station calibrations (None for an older run).
-    removed : RemovedMeasurements
-        What the filters removed, with the module and the reason.
-    measurements_gp_cov : dict str -> ndarray (N, 3, 3)
-        Per prism, the covariance the GP was given (white sources, or the total with
-        ``gp_noise = "all"``).
-    warnings : tuple of str
-        Every warning of the run, once each.
-    weather_coverage : dict, optional
-        How the weather record covers the measurements (None without weather).
-    distance_check : dict
-        Tracked inter-prism distances against the surveyed ones, per prism pair.
-    self_checks : dict
-        What the data say about the run's uncertainty (:mod:`rtsgt.checks`), JSON-ready:
-        ``gcp_fit`` (:func:`rtsgt.checks.gcp_fit_check`), ``inter_prism_distances``
-        (:func:`rtsgt.checks.inter_prism_check`), ``block_cv``
-        (:func:`rtsgt.checks.block_cv_check`), ``static_noise``
-        (:func:`rtsgt.checks.static_noise_check`) and ``inter_prism_structure``
-        (:func:`rtsgt.checks.inter_prism_structure_check`). Empty for a run written before rtsgt made
-        them.
-    correlated_noise : dict
-        How the run carried the time-correlated noise the static-stretch check found
-        (:func:`rtsgt.noise.correlated.correlated_noise_plan`, JSON-ready: per prism and
-        component the correlated share, the correlation time, ``rho``, the factor and whether
-        it was applied). Empty for a run written before rtsgt carried it.
-    groundtruth_split : SharedFactor, optional
-        The kept poses' error split into the part that varies from pose to pose and the part
-        the whole deployment shares (:mod:`rtsgt.shared`): the varying covariance and the
-        low-rank factor of the shared one, with the names of its parameters. None for a run
-        written before rtsgt made it, or with ``gp_noise = "all"``.
-    summary : dict
-        The run's ``summary.json`` as read (empty for a record not read from files).
-    path : Path, optional
-        The run directory it was read from.
-    computation : RunComputation, optional
-        What only exists in memory (None for a record read from files).
+    - ``name``; ``prism_ids`` (n,), the order of the ``n`` axis of the ``prisms_*`` arrays;
+      ``measurements``: each prism's filtered track (station, ``range_m``, ``cov_by_source``;
+      ``cov`` their sum); ``measurements_gp_cov``: the covariance each GP was given (N, 3, 3).
+    - ``prisms_t`` (T,) every query time; ``prisms_xyz`` (T, n, 3); ``prisms_cov`` (T, n, 3, 3)
+      the blocks the pose engine used; ``prisms_cov_by_source``; ``prisms_cov_gp`` the GP's alone.
+    - ``groundtruth``: the kept poses with their 6x6 covariance; ``groundtruth_split``: their
+      error's varying and shared parts (:mod:`rtsgt.shared`; None for an older run or
+      ``gp_noise = "all"``); ``rejected_t``, ``rejected_reason`` (R,): the gated times and gate;
+      ``uncertainty_measure``: the uncertainty gate's.
+    - ``reference``: every reference prism (body frame, joint covariance); ``stations``: each
+      station's position, m; ``gcp_xyz`` (G, 3), ``gcp_names``; ``coupling``: the correlation of
+      the calibrations (None for an older run).
+    - ``qc``: each prism's PSD; ``qc_scale``: per prism whose Qc follows the motion, the scale of
+      each interval (:mod:`rtsgt.interpolation.motion`); ``prior``: each prism's ``"wnoa"`` /
+      ``"wnoj"`` (absent: wnoa); ``intervals`` (K, 2) the tracked intervals, s.
+    - ``options`` (``noise`` None when read from files); ``schema_version``; ``removed``: what
+      the filters removed; ``warnings``; ``weather_coverage``; ``distance_check``: tracked against
+      surveyed inter-prism distances; ``self_checks``: JSON-ready results of :mod:`rtsgt.checks`
+      (empty for an older run); ``correlated_noise``: how the run carried the time-correlated
+      noise (:func:`rtsgt.noise.correlated.correlated_noise_plan`).
+    - ``summary``: ``summary.json`` as read; ``path``: the directory read; ``computation``: what
+      only exists in memory.
     """
 
     name: str
@@ -255,28 +184,9 @@ class PositionRunRecord:
     """A run of a deployment with one or two tracked prisms: each prism's positions with
     covariance (a 3-DOF ground truth, :mod:`rtsgt.evaluation.positions`), no pose.
 
-    The fields are those of :class:`RunRecord` that a run without poses has, with the same
-    meaning: no ``groundtruth``, no gates (``rejected_*``), no reference survey (a pose's), no
-    inter-prism checks. ``prisms_*`` hold every query time (none is rejected).
-
-    Attributes
-    ----------
-    name : str
-    prism_ids : tuple of str, length n (1 or 2)
-    measurements : dict str -> PrismTrack
-    prisms_t : ndarray, shape (T,)
-    prisms_xyz : ndarray, shape (T, n, 3)
-    prisms_cov : ndarray, shape (T, n, 3, 3)
-        Total covariance (GP posterior plus the systematic sources), m^2.
-    prisms_cov_by_source : dict str -> ndarray (T, n, 3, 3)
-    prisms_cov_gp : ndarray, shape (T, n, 3, 3), optional
-    options, schema_version, stations, gcp_xyz, gcp_names, qc, qc_scale, prior, intervals,
-    coupling, removed, measurements_gp_cov, warnings, weather_coverage, self_checks,
-    correlated_noise, summary, path :
-        As :class:`RunRecord`.
-    computation : RunComputation, optional
-        What only exists in memory (``estimate`` and ``gate_report`` None); None for a record
-        read from files.
+    The fields of :class:`RunRecord` a run without poses has, with the same meaning (no
+    ``groundtruth``, gates, reference survey or inter-prism checks; ``prisms_*`` at every query
+    time); ``computation``'s ``estimate`` and ``gate_report`` are None.
     """
 
     name: str

@@ -1,10 +1,8 @@
-"""Core data types that flow through the rtsgt pipeline.
+"""The typed records of measured data that flow through the pipeline (docs/conventions.md).
 
-All arrays are float64 numpy arrays; time is in seconds (Unix epoch where the input has it),
-lengths in metres, angles in radians, covariances in m^2 (positions) and in the pose
-convention of :mod:`rtsgt.geometry.transform` (6x6, ordered x, y, z, rx, ry, rz).
-The types validate their shapes at construction and are immutable (frozen dataclasses whose
-arrays are made read-only).
+float64 arrays; seconds (Unix epoch where the input has it), metres, radians, covariances in
+m^2 and, for poses, 6x6 in the order (x, y, z, rx, ry, rz) of :mod:`rtsgt.geometry.transform`.
+Each record checks its shapes at construction and is immutable (read-only arrays).
 """
 
 from __future__ import annotations
@@ -17,14 +15,6 @@ import numpy as np
 from rtsgt.errors import InputError
 from rtsgt.geometry.so3 import quat_xyzw_to_matrix
 from rtsgt.measurement.polar import survey_polar_jacobian, survey_polar_to_cartesian
-
-#: Names of the noise sources of the paper, in the order used in reports.
-NOISE_SOURCES = ("instrument", "tilt", "atmosphere", "time_sync", "calibration")
-#: The sources whose errors change from one measurement to the next (the GP's white noise).
-WHITE_NOISE_SOURCES = ("instrument", "tilt")
-#: The covariance added to them where their noise is correlated in time
-#: (:mod:`rtsgt.noise.correlated`), a source of its own beside the paper's.
-CORRELATED_NOISE_SOURCE = "correlated_noise"
 
 
 def _frozen(a, dtype=float) -> np.ndarray:
@@ -40,28 +30,12 @@ def _check_len(name: str, a: np.ndarray, n: int, where: str | None) -> None:
 
 @dataclass(frozen=True)
 class Observations:
-    """Raw polar observations of one prism by one station, in time order.
+    """Polar observations of one prism by one station, in time order.
 
-    Attributes
-    ----------
-    t : ndarray, shape (N,)
-        Time, s (Unix epoch).
-    hz : ndarray, shape (N,)
-        Clockwise horizontal direction, rad.
-    v : ndarray, shape (N,)
-        Zenith angle, rad (pi/2 = horizontal).
-    d : ndarray, shape (N,)
-        Slope distance as measured, m, **without** the additive constant.
-    status : ndarray of int, shape (N,)
-        0 = valid; anything else is an instrument error code.
-    station : str
-        Station identifier ("1", "2", ...).
-    prism : str
-        Identifier of the tracked prism.
-    additive_constant : float
-        Added to every distance before use (m); 0.01 m for the RTS_project data.
-    source : str, optional
-        File the observations were read from (for messages).
+    ``t`` (N,) s (Unix epoch); ``hz`` (N,) clockwise horizontal direction and ``v`` (N,) zenith
+    angle, rad; ``d`` (N,) slope distance as measured, m, **without** ``additive_constant`` (m,
+    0.01 for RTS_project); ``status`` (N,) int, 0 valid; ``station``, ``prism`` identifiers;
+    ``source`` the file (for messages).
     """
 
     t: np.ndarray
@@ -111,26 +85,11 @@ class Observations:
 
 @dataclass(frozen=True)
 class PrismTrack:
-    """Positions of one prism over time, with a covariance per position.
+    """Positions of one prism over time with a covariance each.
 
-    Attributes
-    ----------
-    t : ndarray, shape (N,)
-        Time, s, strictly increasing.
-    xyz : ndarray, shape (N, 3)
-        Position, m, in frame ``frame``.
-    cov : ndarray, shape (N, 3, 3)
-        Total covariance of each position, m^2, in frame ``frame``.
-    cov_by_source : mapping str -> ndarray (N, 3, 3)
-        Covariance due to each noise source alone (keys from :data:`NOISE_SOURCES`), m^2.
-    prism : str
-        Prism identifier.
-    frame : str
-        Name of the frame of ``xyz`` and ``cov`` ("world" for the common frame).
-    station : str, optional
-        Station that measured it.
-    range_m : ndarray, shape (N,), optional
-        Slope distance from the measuring station, m (for per-range analyses).
+    ``t`` (N,) s, increasing; ``xyz`` (N, 3) m and ``cov`` (N, 3, 3) m^2 (total) in ``frame``
+    (``"world"``: the common frame); ``cov_by_source`` each noise source's alone (N, 3, 3);
+    ``prism``; ``station`` that measured it; ``range_m`` (N,) slope distance from it, m.
     """
 
     t: np.ndarray
@@ -185,20 +144,9 @@ class PrismTrack:
 
 @dataclass(frozen=True)
 class WeatherSeries:
-    """Weather over time, for the atmospheric correction.
-
-    Attributes
-    ----------
-    t : ndarray, shape (N,)
-        Time, s (Unix epoch, UTC).
-    temperature_c : ndarray, shape (N,)
-        Dry-bulb temperature, degC.
-    pressure_hpa : ndarray, shape (N,)
-        Station (not sea-level) pressure, hPa.
-    humidity_pct : ndarray, shape (N,)
-        Relative humidity, %.
-    source : str, optional
-    """
+    """Weather over time for the atmospheric correction: ``t`` (N,) s (Unix epoch, UTC),
+    ``temperature_c`` (N,) dry-bulb, degC; ``pressure_hpa`` (N,) station pressure, hPa;
+    ``humidity_pct`` (N,) relative humidity, %; ``source``."""
 
     t: np.ndarray
     temperature_c: np.ndarray
@@ -233,21 +181,10 @@ class WeatherSeries:
 class GcpShots:
     """Shots of ground control points (markers) by several stations.
 
-    Attributes
-    ----------
-    station : ndarray of str, shape (N,)
-    marker : ndarray of str, shape (N,)
-    hz, v, d : ndarray, shape (N,)
-        Polar measurements (rad, rad, m without additive constant), tracking convention.
-    t : ndarray, shape (N,)
-        Time of each shot, s (may be wrong on a station whose clock was off).
-    status : ndarray of int, shape (N,)
-        0 = valid.
-    additive_constant : float
-        m, added to every distance before use.
-    source : str, optional
-    lines : ndarray of int, shape (N,), optional
-        Line number of each shot in ``source`` (for messages).
+    ``station``, ``marker`` (N,) str; ``hz``, ``v``, ``d`` (N,) polar measurements (rad, rad, m
+    without ``additive_constant``), tracking convention; ``t`` (N,) s (may be wrong where a
+    station's clock was off); ``status`` (N,) 0 valid; ``source``; ``lines`` (N,) the line of each
+    shot in ``source``.
     """
 
     station: np.ndarray
@@ -288,19 +225,9 @@ class GcpShots:
 
 @dataclass(frozen=True)
 class PoseTrajectory:
-    """Poses ``T_world_body`` over time, optionally with a 6x6 covariance each.
-
-    Attributes
-    ----------
-    t : ndarray, shape (N,)
-        Time, s.
-    position : ndarray, shape (N, 3)
-        ``t_world_body``, m.
-    quat_xyzw : ndarray, shape (N, 4)
-        Orientation ``R_world_body`` as a unit quaternion, scalar last.
-    cov : ndarray, shape (N, 6, 6), optional
-        Left-perturbation covariance in the world frame, ordered (x, y, z, rx, ry, rz).
-    """
+    """Poses ``T_world_body`` over time: ``t`` (N,) s, ``position`` (N, 3) m, ``quat_xyzw``
+    (N, 4) unit quaternions scalar last, ``cov`` (N, 6, 6) optional left-perturbation covariance,
+    world frame."""
 
     t: np.ndarray
     position: np.ndarray
@@ -337,21 +264,8 @@ class PoseTrajectory:
 
 @dataclass(frozen=True)
 class PositionTrajectory:
-    """Positions of one point (a prism) over time, optionally with a 3x3 covariance each: a
-    position-only ground truth (a run with one or two tracked prisms, a prism topic of a
-    dataset).
-
-    Attributes
-    ----------
-    t : ndarray, shape (N,)
-        Time, s.
-    position : ndarray, shape (N, 3)
-        World position, m.
-    cov : ndarray, shape (N, 3, 3), optional
-        Covariance of each position, m^2, world frame.
-    name : str
-        What the point is (a prism id, a topic), for messages.
-    """
+    """Positions of one point (a prism) over time, a position-only ground truth: ``t`` (N,) s,
+    ``position`` (N, 3) m, ``cov`` (N, 3, 3) m^2 optional, ``name`` (a prism id, a topic)."""
 
     t: np.ndarray
     position: np.ndarray
@@ -385,31 +299,12 @@ class PositionTrajectory:
 
 @dataclass(frozen=True)
 class SurveyShots:
-    """Static survey of points on the robot by one station, survey (manual-shot) convention.
+    """Static survey of points on the robot by one station, in the manual-shot convention of
+    ``calibration_raw.csv`` (:func:`rtsgt.measurement.polar.survey_polar_to_cartesian`).
 
-    The convention of the real ``calibration_raw.csv``:
-    ``x = d cos(hz) sin(v), y = -d sin(hz) sin(v), z = d cos(v)``
-    (:func:`rtsgt.measurement.polar.survey_polar_to_cartesian`). Read from a file by
-    :func:`rtsgt.io.survey.read_survey_raw`, produced by :mod:`rtsgt.simulation`.
-
-    Attributes
-    ----------
-    names : tuple of str, length K
-        Point names (``"prism1"``, ..., ``"gnss1"``, ...).
-    hz, sigma_hz : ndarray, shape (K,)
-        Horizontal direction (clockwise) and its standard deviation, rad.
-    v, sigma_v : ndarray, shape (K,)
-        Zenith angle and its standard deviation, rad.
-    d, sigma_d : ndarray, shape (K,)
-        Slope distance (additive constant applied; none for manual shots) and its standard
-        deviation, m.
-    source : str
-        File the shots were read from (for messages), or ``""``.
-    xyz : ndarray, shape (K, 3)
-        Points in the survey frame, m (computed).
-    cov : ndarray, shape (K, 3, 3)
-        First-order covariance of each point, ``J diag(s_hz^2, s_v^2, s_d^2) J^T``, m^2, survey
-        frame, points independent (computed).
+    ``names`` (K,); ``hz``, ``v`` (K,) rad and ``d`` (K,) m with their standard deviations
+    ``sigma_*``; ``source``; computed: ``xyz`` (K, 3) m and ``cov`` (K, 3, 3) m^2, the first-order
+    ``J diag(s_hz^2, s_v^2, s_d^2) J^T``, points independent.
     """
 
     names: tuple[str, ...]
