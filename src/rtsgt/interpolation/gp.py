@@ -111,7 +111,9 @@ flagged.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -155,6 +157,8 @@ _QUERY_CHUNK = 1 << 16
 #: (:func:`_posteriors`; its result does not depend on it, only its memory, about 5 blocks of
 #: 6x6 or 9x9 per knot and candidate, and the fixed cost per call of a short track's).
 _STACK_BLOCKS = 1 << 13
+#: Threads that solve the parts of :func:`_posteriors` (the cores this process may run on).
+_CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 # --------------------------------------------------------------------------------------------
@@ -927,13 +931,17 @@ def _posteriors(data: _Data, qcs: list[np.ndarray], scales: list[np.ndarray | No
     the arithmetic) is paid once instead of K times; a long track's in parts of at most
     :data:`_STACK_BLOCKS` blocks, each eliminated in the order of the whole (:func:`_bcr`'s
     ``offset``), which gives the same numbers, bit for bit, in less memory. Each solution is
-    that of :func:`_solve` up to rounding (the blocks are eliminated in another order).
+    that of :func:`_solve` up to rounding (the blocks are eliminated in another order). The
+    parts are solved by :data:`_CORES` threads at once, each part of at most
+    ``_STACK_BLOCKS / _CORES`` blocks (the same memory at the peak).
     """
     k, n, d = len(qcs), data.t.shape[0], data.dim
     mean = np.empty((k, n, d))
     S = np.empty((k, n, 3, 3))
-    per = max(1, _STACK_BLOCKS // n)  # systems solved at once
-    for k0 in range(0, k, per):
+    workers = max(1, min(k, _CORES))
+    per = max(1, _STACK_BLOCKS // (n * workers))  # systems solved at once, by each worker
+
+    def solve(k0: int) -> None:
         k1 = min(k0 + per, k)
         if k1 == k0 + 1:  # one system: as built
             system = list(_build_system(data, _spd_inv(qcs[k0]), scales[k0]))
@@ -950,7 +958,16 @@ def _posteriors(data: _Data, qcs: list[np.ndarray], scales: list[np.ndarray | No
                           want_cross=False, offset=k0 * n)
         mean[k0:k1] = m.reshape(k1 - k0, n, d)
         S[k0:k1] = c.reshape(k1 - k0, n, d, d)[..., :3, :3]
-        del m, c
+
+    parts = range(0, k, per)
+    if len(parts) < 2 or workers < 2:
+        for k0 in parts:
+            solve(k0)
+    else:  # the parts are independent (each its own slice of the result): numpy releases
+        # the interpreter lock in their arithmetic, and a part's numbers do not depend on it
+        with ThreadPoolExecutor(max_workers=workers) as ex:
+            for done in [ex.submit(solve, k0) for k0 in parts]:
+                done.result()
     return mean, S
 
 
