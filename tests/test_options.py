@@ -88,3 +88,20 @@ def test_a_configuration_without_options_gets_the_owners_defaults(tmp_path):
     for name in ("sources", "time_sync_mean_s", "time_sync_std_s", "temperature_halfwidth_c",
                  "pressure_halfwidth_hpa", "humidity_halfwidth_pct"):
         assert getattr(o.noise, name) == getattr(model, name), name
+
+
+def test_the_paper_profile_sets_the_papers_switches_and_explicit_values_win():
+    base = RunOptions()
+    paper = base.updated(profile="paper")
+    # where rtsgt's defaults differ from the published method, the profile switches them back
+    assert (paper.interpolation.gp_noise, paper.interpolation.motion_prior,
+            paper.interpolation.outlier_windows, paper.pose.registration) == \
+        ("all", "constant", "keep", "unweighted")
+    assert (base.interpolation.gp_noise, base.interpolation.motion_prior,
+            base.interpolation.outlier_windows, base.pose.registration) == \
+        ("white", "classes", "remove", "weighted")
+    # everything the profile does not name is untouched; a value given with it wins
+    assert paper.pose.engine == base.pose.engine and paper.filter == base.filter
+    assert base.updated(profile="paper", registration="weighted").pose.registration == "weighted"
+    with pytest.raises(InputError, match="'paper'"):
+        base.updated(profile="papers")

@@ -7,7 +7,17 @@ from scipy.spatial.transform import Rotation
 from rtsgt.errors import GeometryError
 from rtsgt.geometry import kabsch
 from rtsgt.geometry.transform import perturbation
-from rtsgt.pose import REASON_COLLINEAR, REASON_MISSING, estimate_poses, psd_factor
+from rtsgt.pose import (
+    ENGINES,
+    POSE_ENGINES,
+    REASON_COLLINEAR,
+    REASON_MISSING,
+    Linear,
+    MonteCarlo,
+    Unscented,
+    estimate_poses,
+    psd_factor,
+)
 from rtsgt.pose.estimate import pose_weights
 from rtsgt.pose.weighted import register_weighted
 
@@ -318,3 +328,21 @@ def test_a_single_pose_is_the_same_as_in_a_batch(engine):
         np.testing.assert_allclose(one.cov[0], batch.cov[2], rtol=1e-10, atol=0)
     else:
         assert np.all(np.linalg.eigvalsh(one.cov[0]) > 0)
+
+
+def test_an_engine_object_is_the_engine_its_name_builds():
+    assert tuple(ENGINES) == POSE_ENGINES == ("mc", "ut", "linear")
+    rng = np.random.default_rng(90)
+    r = warthog_reference()
+    _, _, q, cov_q = simulate(rng, 5, r)
+    cov_r = np.eye(9) * (0.5e-3) ** 2
+    by_name = estimate_poses(q, cov_q, r, cov_r, samples=64, rng=np.random.default_rng(3))
+    by_type = estimate_poses(q, cov_q, r, cov_r,
+                             engine=MonteCarlo(np.random.default_rng(3), samples=64))
+    assert np.array_equal(by_name.cov, by_type.cov) and by_type.engine == "mc"
+    for engine in (Unscented(), Linear()):
+        a = estimate_poses(q, cov_q, r, cov_r, engine=engine)
+        b = estimate_poses(q, cov_q, r, cov_r, engine=engine.name)
+        assert np.array_equal(a.cov, b.cov) and a.samples == b.samples
+    with pytest.raises(ValueError, match="samples"):
+        MonteCarlo(np.random.default_rng(3), samples=1)

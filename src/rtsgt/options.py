@@ -1,20 +1,11 @@
-"""Processing options of a run: one set of typed, nested records, each default written once.
+"""Processing options of a run: typed, nested records, each default written once.
 
-Layout (each record is what one stage takes, and one table of the deployment's TOML)::
-
-    RunOptions
-        seed                              the run's random streams (:func:`stage_rng`)
-        filter         FilterParams       [filter]         filtering modules 1 and 2
-        noise          NoiseModel | None  [noise]          None: the default model of the
-                                                           deployment's instrument
-        calibration    CalibrationOptions [calibration]    the model of the stations' transforms
-        interpolation  InterpolationOptions [interpolation] query grid, Qc, gaps, GP noise
-        pose           PoseOptions        [pose]           engine, registration, Monte Carlo
-                                                           samples, gates
-
-The command line and the TOML both map onto these records (:meth:`RunOptions.updated` takes
-the flat names the command line uses); the ``__post_init__`` of each is the one check every
-value meets, wherever it came from.
+:class:`RunOptions` holds ``seed`` (the stages' streams, :func:`stage_rng`), ``filter``
+(:class:`~rtsgt.filtering.FilterParams`), ``noise`` (None: the instrument's default model),
+``calibration``, ``interpolation`` and ``pose``: one record per table of the deployment's TOML
+(docs/file-formats.md#deployment-toml). The TOML and the command line (the flat names of
+:meth:`RunOptions.updated`) map onto them; each record's ``__post_init__`` is the one check.
+:data:`PROFILES` names presets of the switches (``"paper"``: the published method).
 """
 
 from __future__ import annotations
@@ -75,8 +66,16 @@ CorrelatedNoise = Literal["inflate", "ignore"]
 CORRELATED_NOISE: tuple[str, ...] = get_args(CorrelatedNoise)
 
 __all__ = ["CORRELATED_NOISE", "GP_NOISE", "MOTION_PRIORS", "OUTLIER_WINDOWS", "PRIOR_CHOICES",
-           "QC_METHODS", "RANDOM_STAGES",
+           "PROFILES", "QC_METHODS", "RANDOM_STAGES",
            "InterpolationOptions", "PoseOptions", "RunOptions", "stage_rng"]
+
+#: Presets of the switches, by name (:meth:`RunOptions.updated`): ``"paper"`` is the method of
+#: Vaidis et al. (2023) (docs/paper-figures.md); the defaults are rtsgt's.
+PROFILES: dict[str, dict[str, str]] = {
+    "paper": {"model": "6dof", "weighting": "none", "method": "gcp", "gp_noise": "all",
+              "motion_prior": "constant", "outlier_windows": "keep", "prior": "wnoa",
+              "correlated_noise": "ignore", "registration": "unweighted"},
+}
 
 
 def stage_rng(seed: int, stage: str) -> np.random.Generator:
@@ -98,43 +97,17 @@ def _one_of(name: str, value, choices: tuple[str, ...]) -> None:
 
 @dataclass(frozen=True)
 class InterpolationOptions:
-    """Query times and the GP of each prism (TOML ``[interpolation]``).
+    """Query times and the GP of each prism (TOML ``[interpolation]``; docs/interpolation.md).
 
-    Attributes
-    ----------
-    rate_hz : float
-        Rate of the query grid over the common intervals, Hz (used when the deployment gives
-        no query times).
-    qc : float or {"loo", "likelihood"}
-        The GP's power spectral density, m^2/s^3, or how to choose it per prism
-        (:func:`rtsgt.interpolation.prisms.fit_prism_gp`): by leave-one-out, the default of every
-        command, or by the marginal likelihood.
-    max_gap_s : float
-        No pose across a gap between measurements longer than this, s (``inf``: no limit).
-    gp_noise : {"white", "all"}
-        What the GP is given: the white sources (rtsgt; the systematic ones are added after the
-        GP) or every source (the paper).
-    motion_prior : {"classes", "constant"}
-        With ``qc = "loo"``: scale ``Qc`` per class of the robot's motion (standing, then by
-        acceleration) where that predicts held-out measurements better
-        (:mod:`rtsgt.interpolation.motion`), or one ``Qc`` per track (the paper).
-    outlier_windows : {"remove", "keep"}
-        The measurements inside the windows of poses the distance gate rejects (a station
-        tracking another prism): left out of the GP fits, which are fitted again
-        (:mod:`rtsgt.filtering.gates`), or kept in them (the paper).
-    prior : {"wnoa", "select", "wnoj"}
-        The GP's motion prior: white noise on the acceleration (``"wnoa"``, the paper's and
-        the default), on the jerk (``"wnoj"``), or per track the one of the two whose held-out
-        windows of 1-2 s it predicts better (``"select"``;
-        :func:`rtsgt.interpolation.prisms.fit_gps`; with a ``qc`` given as a number,
-        ``"select"`` is WNOA: the number is a WNOA PSD). docs/interpolation.md says why
-        ``"select"`` is not the default.
-    correlated_noise : {"inflate", "ignore"}
-        Where the static-stretch check finds time-correlated measurement noise (a prism's
-        component whose lag-one correlation is ``optimistic``), its white covariance inflated
-        by the loss of independent samples and the GPs fitted again
-        (:mod:`rtsgt.noise.correlated`), or the measurements taken as independent (the
-        paper). Elsewhere nothing changes.
+    ``rate_hz``: the query grid, Hz (without the deployment's query times); ``qc``: the GP's PSD,
+    m^2/s^3, or how to choose it per prism (``"loo"``, ``"likelihood"``); ``max_gap_s``: no pose
+    across a longer gap, s (``inf``: none); ``gp_noise``: the GP given the white sources
+    (``"white"``) or every source (``"all"``, the paper); ``motion_prior``: ``Qc`` scaled per class
+    of motion (``"classes"``) or one per track (``"constant"``, the paper); ``outlier_windows``:
+    the measurements of distance-rejected windows left out of the GP fits (``"remove"``) or kept
+    (``"keep"``, the paper); ``prior``: ``"wnoa"`` (the paper's), ``"wnoj"`` or ``"select"``;
+    ``correlated_noise``: time-correlated static noise carried by inflating the white covariance
+    (``"inflate"``) or not (``"ignore"``, the paper; docs/noise-model.md).
     """
 
     rate_hz: float = 5.0
@@ -165,23 +138,10 @@ class InterpolationOptions:
 
 @dataclass(frozen=True)
 class CalibrationOptions:
-    """The extrinsic calibration of the stations (TOML ``[calibration]``).
-
-    Attributes
-    ----------
-    model : {"6dof", "4dof"}
-        Each station's transform: a free rotation (the paper), or levelled stations (yaw only,
-        the tilt that of the Earth's curvature and the compensators' errors;
-        :mod:`rtsgt.calibration.gcp`, section Models).
-    weighting : {"gls", "trace", "none"}
-        The markers' weights in each station's fit: the inverse of the full covariance of its
-        residuals (generalised least squares), the inverse of its trace, or none (the paper)
-        (:mod:`rtsgt.calibration.gcp`, section Weights).
-    method : {"gcp", "dynamic", "joint"}
-        What the transforms are fitted to: the ground control points
-        (:mod:`rtsgt.calibration.gcp`), the robot's motion through the surveyed inter-prism
-        distances, or both (:mod:`rtsgt.calibration.dynamic`).
-    """
+    """The stations' calibration (TOML ``[calibration]``; docs/noise-model.md): ``model``
+    ``"6dof"`` (the paper) or ``"4dof"`` (levelled stations); ``weighting`` of the markers
+    ``"gls"``, ``"trace"`` or ``"none"`` (the paper); ``method``: fitted to the GCPs (``"gcp"``),
+    the robot's motion (``"dynamic"``) or both (``"joint"``)."""
 
     model: str = "6dof"
     weighting: str = DEFAULT_WEIGHTING
@@ -195,22 +155,11 @@ class CalibrationOptions:
 
 @dataclass(frozen=True)
 class PoseOptions:
-    """Pose engine, Monte Carlo samples and the quality gates of module 4 (TOML ``[pose]``).
-
-    Attributes
-    ----------
-    engine : {"mc", "ut", "linear"}
-        Pose engine (:func:`rtsgt.pose.estimate_poses`); it also picks the per-measurement
-        engine (:attr:`RunOptions.noise_engine`).
-    samples : int
-        Monte Carlo samples of every sampling stage (calibration, noise, pose), at least 10.
-    distance_gate_m, uncertainty_gate_m : float
-        Module 4's gates, m (``inf``: off).
-    registration : {"weighted", "unweighted"}
-        The fit of the prisms onto the reference: weighted by the inverse covariance of the
-        residual (generalised least squares, :mod:`rtsgt.pose.weighted`), or the paper's
-        unweighted point-to-point fit.
-    """
+    """Pose engine, samples and module 4's gates (TOML ``[pose]``; docs/pose.md): ``engine`` of
+    :data:`~rtsgt.pose.POSE_ENGINES` (also the per-measurement engine,
+    :attr:`RunOptions.noise_engine`); ``samples`` of every Monte Carlo stage, at least 10;
+    ``distance_gate_m``, ``uncertainty_gate_m``, m (``inf``: off); ``registration``
+    ``"weighted"`` or ``"unweighted"`` (the paper's)."""
 
     engine: PoseEngine = "mc"
     samples: int = 1000
@@ -252,12 +201,14 @@ class RunOptions:
                 or self.seed < 0:
             raise InputError(f"Expected a seed that is an integer >= 0, got {self.seed!r}")
 
-    def updated(self, **changes) -> RunOptions:
-        """A copy with ``changes``, keyed by the flat names of the command line: ``seed``,
-        ``filter``, ``noise``, or a field of a nested record (``model``, ``method``, ``engine``,
-        ``registration``, ``samples``, ``rate_hz``, ``qc``, ``max_gap_s``, ``gp_noise``,
-        ``motion_prior``, ``outlier_windows``, ``prior``, ``correlated_noise``, the gates); each
-        value meets its record's rule (:class:`~rtsgt.errors.InputError` otherwise)."""
+    def updated(self, profile: str | None = None, **changes) -> RunOptions:
+        """A copy with ``changes`` keyed by the command line's flat names (``seed``, ``filter``,
+        ``noise`` or a field of a nested record), after the switches of ``profile`` (a name of
+        :data:`PROFILES`; ``changes`` win over it); each value meets its record's rule
+        (:class:`~rtsgt.errors.InputError` otherwise)."""
+        if profile is not None:
+            _one_of("profile", profile, tuple(PROFILES))
+            changes = {**PROFILES[profile], **changes}
         top = {k: v for k, v in changes.items() if k in _TOP_FIELDS}
         for part, record in _NESTED.items():
             mine = {k: v for k, v in changes.items() if k in _FIELDS[record]}
