@@ -85,6 +85,9 @@ def test_all_effects_off_is_the_simulation_of_before(tmp_path):
         assert f.read_bytes() == (b / f.name).read_bytes(), f.name
     doc = json.loads((a / "truth.json").read_text())
     assert "reality" not in doc["config"] and "reality_effects" not in doc
+    # nor of the field effects and the far stations (rtsgt.simulation.field), off by default
+    assert "field" not in doc and "field" not in doc["config"]
+    assert "far_stations" not in doc["config"] and sim.truth.field is None
 
 
 @pytest.mark.parametrize("effect", [e for e in REALITY_EFFECTS if e != "jerky_ramps"])

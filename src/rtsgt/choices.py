@@ -61,3 +61,6 @@ DEFAULT_BINS_M = (0.0, 75.0, 150.0)
 #: (:mod:`rtsgt.simulation.reality`).
 REALITY_EFFECTS = ("correlated_noise", "prism_cyclic", "tracking_lag", "clock_drift",
                    "jerky_ramps", "remote_weather", "tripod_settling")
+#: The simulator's presets and the duration each simulates unless told (s)
+#: (:mod:`rtsgt.simulation.presets`).
+SIMULATION_PRESETS = {"field-hour": 3600.0}

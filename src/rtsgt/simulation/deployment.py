@@ -55,7 +55,9 @@ instrument profile (the Trimble S7 numbers are quoted at 2 sigma and halved ther
 follow the same model. The reported (hourly) weather is the true weather plus a uniform error
 within the paper's half-widths (+-1 degC, +-10 hPa, +-2 %).
 
-These errors are the estimator's own model. Errors it does not have (time-correlated noise,
+These errors are the estimator's own model, except under ``SimulationConfig.field`` (the
+``field-hour`` preset, :mod:`rtsgt.simulation.field`), which draws the measurement noise, the
+clocks and a moved prism by models of its own. Errors it does not have (time-correlated noise,
 the prisms' cyclic error, tracking lag, clock drift, jerky starts and stops, a remote weather
 station, tripod settling) are the reality effects of :mod:`rtsgt.simulation.reality`, switched
 by ``SimulationConfig.reality`` and applied after the stages above (docs/simulation.md).
@@ -76,6 +78,14 @@ from rtsgt.measurement.atmosphere import instrument_correction_ppm
 from rtsgt.measurement.instruments import ARCSEC, TRIMBLE_S7, InstrumentProfile
 from rtsgt.measurement.polar import cartesian_to_polar, cartesian_to_survey_polar
 from rtsgt.noise.perturb import sample_polar_errors
+from rtsgt.simulation.field import (
+    FieldEffects,
+    FieldTruth,
+    draw_displacement,
+    draw_field_truth,
+    field_noise,
+    field_rng,
+)
 from rtsgt.simulation.reality import (
     RealityEffects,
     RealityTruth,
@@ -132,6 +142,7 @@ _NON_NEGATIVE = ("dropout_rate_per_min", "common_dropout_rate_per_min", "time_sy
                  "survey_tilt_deg", "station_spread_m", "gcp_lead_time_s")
 #: Ranges ``(a, b)`` that must have ``0 <= a <= b``, finite.
 _INTERVALS = ("initial_stop_s", "drive_segment_s", "stop_duration_s", "instrument_height_m",
+              "far_distance_m",
               "gcp_height_m", "gcp_shot_interval_s", "dropout_duration_s", "survey_distance_m",
               "survey_instrument_height_m", "survey_sigma_angle_rad", "survey_sigma_distance_m")
 #: Probabilities, in [0, 1).
@@ -182,6 +193,11 @@ class SimulationConfig:
         Smallest horizontal distance between a station and the path, m.
     station_spread_m : float
         Stations stand between ``clearance`` and ``clearance + spread`` beyond the path, m.
+    far_stations : int
+        The last ``far_stations`` stations stand far instead (0: none; fewer than
+        ``n_stations``): at a horizontal distance from the site's centre in ``far_distance_m``.
+    far_distance_m : (float, float)
+        Range of the far stations' horizontal distance from the site's centre, m.
     instrument_height_m : (float, float)
         Range of the height of the instruments above the ground, m.
     n_gcp : int
@@ -261,6 +277,9 @@ class SimulationConfig:
     reality : RealityEffects
         Errors the estimator's noise model does not have (:mod:`rtsgt.simulation.reality`),
         each off by default; with all off the deployment is the same, draw for draw.
+    field : FieldEffects or None
+        The field noise, clocks and moved prism (:mod:`rtsgt.simulation.field`) instead of the
+        instrument profile's noise (the profile stays what the written TOML says); None: off.
     """
 
     duration_s: float = 600.0
@@ -282,6 +301,8 @@ class SimulationConfig:
     terrain_max_slope_deg: float = 4.0
     station_clearance_m: float = 8.0
     station_spread_m: float = 30.0
+    far_stations: int = 0
+    far_distance_m: tuple[float, float] = (250.0, 450.0)
     instrument_height_m: tuple[float, float] = (1.4, 1.7)
     n_gcp: int = 10
     gcp_blocked_max: int = 2
@@ -330,6 +351,7 @@ class SimulationConfig:
     noise_survey: bool = True
     atmosphere: bool = True
     reality: RealityEffects = field(default_factory=RealityEffects)
+    field: FieldEffects | None = None
 
     def __post_init__(self) -> None:
         """Check every parameter; raises :class:`~rtsgt.errors.InputError` (a ValueError)."""
@@ -379,6 +401,11 @@ class SimulationConfig:
                  f"Expected terrain_max_slope_deg < 30, got {self.terrain_max_slope_deg}")
         _require(isinstance(self.reality, RealityEffects),
                  f"Expected reality to be a RealityEffects, got {type(self.reality).__name__}")
+        _require(self.field is None or isinstance(self.field, FieldEffects),
+                 f"Expected field to be a FieldEffects or None, got {type(self.field).__name__}")
+        _require(int(self.far_stations) == self.far_stations
+                 and 0 <= self.far_stations < self.n_stations,
+                 f"Expected 0 <= far_stations < n_stations, got {self.far_stations!r}")
 
     def without_noise(self) -> SimulationConfig:
         """The same deployment with every noise source off (dropouts and atmosphere kept)."""
@@ -673,6 +700,10 @@ class SimulationTruth:
         What the reality effects drew (None when none is on). With an effect on, the residual
         ``measured - (hz, v, d)`` of :class:`ObservationTruth` holds the effect as well, and
         ``T_world_station`` is each station's set-up before any settling.
+    field : FieldTruth or None
+        What the field effects drew (None when off). With them, ``reference_body`` holds the
+        prisms where they are (one moved after the survey) and ``clock_offset_s`` the constant
+        part of each clock error only.
     """
 
     t: np.ndarray
@@ -691,6 +722,7 @@ class SimulationTruth:
     additive_constant: float
     model: TruthModel = field(repr=False)
     reality: RealityTruth | None = None
+    field: FieldTruth | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -940,9 +972,10 @@ def _measure(cfg: SimulationConfig, rng: np.random.Generator, p_station: np.ndar
     """Noise-free and noisy raw polar values of station-frame points (N, 3)."""
     hz0, v0, dist = cartesian_to_polar(p_station)
     d_ref = dist / (1.0 + ppm * 1e-6)  # what a 0-ppm instrument reports (constant included)
+    datasheet = cfg.field is None  # the field effects draw their own noise (_field)
     hz_s, v_s, d_s = sample_polar_errors(
         hz0, v0, d_ref, cfg.instrument, 1, rng,
-        instrument=cfg.noise_instrument, tilt=cfg.noise_tilt,
+        instrument=cfg.noise_instrument and datasheet, tilt=cfg.noise_tilt and datasheet,
     )
     c = cfg.additive_constant_m
     return (hz0, v0, d_ref - c), (np.mod(hz_s[0], 2.0 * np.pi), v_s[0], d_s[0] - c)
@@ -995,7 +1028,12 @@ def _place_stations(
     # radius of the loop in each station's direction, then stand beyond it
     diff = np.abs(np.angle(np.exp(1j * (loop_ang[None, :] - alpha[:, None]))))
     reach = np.where(diff < 0.3, loop_r[None, :], 0.0).max(axis=1)
-    st_r = reach + cfg.station_clearance_m + rng.uniform(0.0, cfg.station_spread_m, n_st)
+    spread = rng.uniform(0.0, cfg.station_spread_m, n_st)
+    st_r = reach + cfg.station_clearance_m + spread
+    if cfg.far_stations:  # the same draw, placed in the far range
+        far = slice(n_st - int(cfg.far_stations), None)
+        frac = spread[far] / cfg.station_spread_m if cfg.station_spread_m > 0 else 0.5
+        st_r[far] = cfg.far_distance_m[0] + frac * np.diff(cfg.far_distance_m)
     st_xy = _clear_of_path(
         np.stack([st_r * np.cos(alpha), st_r * np.sin(alpha)], axis=-1), loop_xy,
         cfg.station_clearance_m,
@@ -1348,10 +1386,47 @@ def _reality(
     return new_obs, new_truth, gcp, weather_reported, reality
 
 
+def _displaced(robot: _Robot, prism: int, displacement_robot_m: np.ndarray) -> _Robot:
+    """The robot with prism ``prism`` moved by ``displacement_robot_m`` (robot frame, m)."""
+    prisms = robot.prisms_robot.copy()
+    prisms[prism] += displacement_robot_m
+    return robot._replace(prisms_robot=prisms,
+                          reference_body=prisms @ robot.R_body_robot.T + robot.t_body_robot)
+
+
+def _field(
+    cfg: SimulationConfig, field_truth: FieldTruth, entropy: int,
+    observations: list[Observations], observations_truth: dict[str, ObservationTruth],
+    gcp: _Gcp,
+):
+    """Apply the field noise (GCP shots and tracking of a station: one process over both) and
+    the clocks' drift and walk (tracking stamps) of ``field_truth``
+    (:mod:`rtsgt.simulation.field`); returns the observations, their truth and the GCP."""
+    g = field_rng(entropy, "noise")
+    ft, c = field_truth, cfg.additive_constant_m
+    shots = gcp.shots
+    gcp_err = np.zeros((shots.d.size, 3))
+    new_obs, new_truth = [], {}
+    for k, obs in enumerate(observations):  # loop over stations
+        ot = observations_truth[obs.station]
+        mine = np.flatnonzero(gcp.station == k)
+        e = field_noise(np.concatenate([gcp.t_true[mine], ot.t_true]),
+                        np.concatenate([shots.d[mine], obs.d]) + c, ft.white[k],
+                        ft.range_coef[k], ft.gm_sigma[k], ft.gm_tau_s[k], g)
+        gcp_err[mine], e = e[:mine.size], e[mine.size:]
+        t_rec = obs.t - ft.drift_walk_s(k, ot.t_true)
+        new_obs.append(replace(obs, t=t_rec, hz=np.mod(obs.hz + e[:, 0], 2.0 * np.pi),
+                               v=obs.v + e[:, 1], d=obs.d + e[:, 2]))
+        new_truth[obs.station] = replace(ot, clock_error_s=ot.t_true - t_rec)
+    shots = replace(shots, hz=np.mod(shots.hz + gcp_err[:, 0], 2.0 * np.pi),
+                    v=shots.v + gcp_err[:, 1], d=shots.d + gcp_err[:, 2])
+    return new_obs, new_truth, gcp._replace(shots=shots)
+
+
 def _truth(
     cfg: SimulationConfig, model: TruthModel, stations: _Stations, robot: _Robot,
     offsets: np.ndarray, gcp: _Gcp, observations: dict[str, ObservationTruth],
-    reality: RealityTruth | None = None,
+    reality: RealityTruth | None = None, field_truth: FieldTruth | None = None,
 ) -> SimulationTruth:
     """The exported truth: ``T_world_body`` and the prisms at ``truth_rate_hz``, and the rest."""
     n_truth = int(np.floor(cfg.duration_s * cfg.truth_rate_hz + 1e-9)) + 1
@@ -1381,6 +1456,7 @@ def _truth(
         additive_constant=cfg.additive_constant_m,
         model=model,
         reality=reality,
+        field=field_truth,
     )
 
 
@@ -1390,8 +1466,10 @@ def simulate_deployment(
     """Simulate a deployment with known truth.
 
     The stages draw from ``rng`` in this order: path, terrain, speed profile, stations, robot
-    and survey frame, weather, clocks, tracking, GCPs, survey shots, reported weather; then,
-    only when a reality effect is on (``config.reality``), one integer that seeds the effects'
+    and survey frame (with ``config.field``: then one integer that seeds the field effects'
+    streams, :func:`rtsgt.simulation.field.field_rng`), weather, clocks, tracking, GCPs, survey
+    shots, reported weather; the field effects are applied to the measurements and the time
+    stamps; then, only when a reality effect is on (``config.reality``), one integer that seeds the effects'
     own streams (:func:`rtsgt.simulation.reality.effect_rng`), and the effects are applied to
     the measurements, the time stamps, the GCP shots and the reported weather.
 
@@ -1429,11 +1507,17 @@ def simulate_deployment(
         speed = _jerky_ramps(speed, cfg.reality.jerky_accel_m_s2)
     stations = _place_stations(cfg, rng, loop, terrain)
     robot = _robot_geometry(cfg, rng)
+    true_robot, displaced, entropy = robot, None, 0
+    if cfg.field is not None:  # a prism moved after the survey: the survey keeps `robot`
+        entropy = int(rng.integers(0, 2**63 - 1))
+        displaced = draw_displacement(cfg.field, robot.prisms_robot.shape[0],
+                                      field_rng(entropy, "displacement"))
+        true_robot = _displaced(robot, *displaced)
     R_robot_body = robot.R_body_robot.T
     model = TruthModel(
         t0=float(cfg.start_time_s), **speed._asdict(), **loop._asdict(), terrain=terrain,
         R_world_site=stations.R_world_site, t_world_site=stations.t_world_site,
-        prisms_robot=robot.prisms_robot, R_robot_body=R_robot_body,
+        prisms_robot=true_robot.prisms_robot, R_robot_body=R_robot_body,
         t_robot_body=-R_robot_body @ robot.t_body_robot, weather_params=_weather_params(cfg, rng),
     )
     offsets = _clock_offsets(cfg, rng)
@@ -1442,10 +1526,17 @@ def simulate_deployment(
     survey = _survey(cfg, rng, robot)
     weather_true, weather_reported = _weather(
         cfg, rng, model, min(gcp.first_shot_s, float(cfg.start_time_s)))
+    field_truth = None
+    if cfg.field is not None:
+        field_truth = draw_field_truth(cfg.field, stations.ids, offsets, float(cfg.start_time_s),
+                                       cfg.duration_s, displaced, robot.R_body_robot, entropy)
+        observations, observations_truth, gcp = _field(cfg, field_truth, entropy, observations,
+                                                       observations_truth, gcp)
     reality = None
     if cfg.reality.enabled:
         observations, observations_truth, gcp, weather_reported, reality = _reality(
             cfg, rng, model, stations, observations, observations_truth, gcp, weather_reported)
-    truth = _truth(cfg, model, stations, robot, offsets, gcp, observations_truth, reality)
+    truth = _truth(cfg, model, stations, true_robot, offsets, gcp, observations_truth, reality,
+                   field_truth)
     return SimulatedDeployment(observations, gcp.shots, survey, weather_true, weather_reported,
                                truth, cfg, seed)

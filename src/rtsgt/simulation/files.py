@@ -20,7 +20,8 @@ r"""Write a simulated deployment as the files of a real one, plus its truth.
                         (the frame ``deployment.toml`` asks the ground truth in)
 ``truth_prisms.csv``    true prism positions, ``t_s,prism,x_m,y_m,z_m`` (world frame)
 ``truth.json``          station transforms, clock offsets, reference points, seed, config,
-                        and the reality effects with their draws when one is on
+                        the reality effects with their draws when one is on, and the field
+                        effects' draws (section ``field``) under them
 ``deployment.toml``     the configuration ``rtsgt run`` reads (paths relative to it)
 =====================  ========================================================================
 
@@ -203,6 +204,15 @@ def _truth_json(sim: SimulatedDeployment, name: str) -> str:
     del doc["config"]["reality"]
     if tr.reality is not None:
         doc["reality_effects"] = tr.reality.to_dict()
+    # the same for the far stations and the field effects (rtsgt.simulation.field)
+    del doc["config"]["field"]
+    if not sim.config.far_stations:
+        del doc["config"]["far_stations"], doc["config"]["far_distance_m"]
+    if tr.field is not None:
+        doc["field"] = tr.field.to_dict()
+        doc["field"]["displaced_prism"]["prism"] = tr.prism_ids[tr.field.displaced_prism]
+        doc["field"]["displaced_prism"]["surveyed_body_m"] = (
+            tr.reference_body[tr.field.displaced_prism] - tr.field.displacement_body_m).tolist()
     return json.dumps(_jsonable(doc), indent=2) + "\n"
 
 

@@ -1,0 +1,165 @@
+"""Today's per-prism engine on simulated field hours: the baseline of issue 23.
+
+Run: ``python benchmarks/field_hour.py [--seeds 0-4] [--duration 3600] [--engine ENGINE]``
+
+For each seed, what a user does: ``rtsgt simulate --preset field-hour --seed S`` (the field
+noise, clocks and moved prism of :mod:`rtsgt.simulation.field`, one far station, the prisms'
+deviation, settling tripods; docs/simulation.md#the-field-hour-preset), the files read back
+and run with the deployment's defaults (seed S; ``--engine`` overrides the pose engine).
+Against the simulation's truth:
+
+- pose (6 dof) NEES / dof and the share of poses whose 95 % region holds the truth
+  (:func:`rtsgt.simulation.compare.compare_to_truth`), and the split test's verdict;
+- relative-pose NEES / dof over 1, 10 and 60 s: consecutive pairs that far apart
+  (:func:`rtsgt.evaluation.metrics.rpe_pairs`, pairs across a gap dropped), their covariance
+  with the poses' cross-covariance from the run's continuous ground truth
+  (:meth:`rtsgt.evaluation.ContinuousGroundTruth.pair_covariances`);
+- the inter-prism distance check's mean z^2 and its accepted interval, the run's verdict,
+  the median pose position sigma, and the run's wall time (``run_pipeline`` alone).
+
+``--without displacement clocks ...`` leaves effects of the preset out, to see what each
+costs. Development seeds are 0-4; issue 23's acceptance must be measured on seeds never used here
+(e.g. 1000-1019). Prints one line per seed and a Markdown table (docs/simulation.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import chi2
+
+from rtsgt.checks.verdict import record_verdict
+from rtsgt.evaluation import ContinuousGroundTruth
+from rtsgt.evaluation.metrics import (
+    relative_pose_covariance,
+    relative_pose_error_vector,
+    rpe_pairs,
+    squared_mahalanobis,
+)
+from rtsgt.geometry.so3 import quat_xyzw_to_matrix
+from rtsgt.io.deployment import load_deployment
+from rtsgt.pipeline import run_pipeline
+from rtsgt.simulation import simulate_deployment, write_deployment
+from rtsgt.simulation.compare import compare_to_truth
+from rtsgt.simulation.presets import preset_config
+
+#: Separations of the relative poses, s.
+DELTAS_S = (1.0, 10.0, 60.0)
+
+
+def seeds(text: str) -> list[int]:
+    lo, _, hi = text.partition("-")
+    return list(range(int(lo), int(hi or lo) + 1))
+
+
+def relative_nees(record, truth_at, delta_s: float) -> np.ndarray:
+    """Relative-pose NEES (6 dof) of consecutive ground-truth pairs ``delta_s`` apart."""
+    gt = record.groundtruth
+    pairs = rpe_pairs(gt.position, gt.t, delta_s, "s")
+    pairs = pairs[np.abs(np.diff(gt.t[pairs], axis=1)[:, 0] - delta_s) <= 0.1 * delta_s]
+    if pairs.shape[0] == 0:
+        return np.zeros(0)
+    i, j = pairs.T
+    P_i, P_j, cross = ContinuousGroundTruth.from_record(record).pair_covariances(gt.t[i], gt.t[j])
+    cov = relative_pose_covariance(gt.rotation[i], gt.position[i], gt.position[j], P_i, P_j,
+                                   cross)
+    p, q = truth_at(gt.t)
+    xi = relative_pose_error_vector(quat_xyzw_to_matrix(q), p, gt.rotation, gt.position, pairs)
+    return squared_mahalanobis(xi, cov)
+
+
+def config(args):
+    """The preset's configuration, less the effects ``--without`` names."""
+    cfg = preset_config("field-hour", duration_s=args.duration)
+    fx, rx = cfg.field, cfg.reality
+    for name in args.without:
+        if name == "displacement":
+            fx = dataclasses.replace(fx, prism_displacement_m=(0.0, 0.0))
+        elif name == "clocks":
+            fx = dataclasses.replace(fx, clock_drift_s_per_h=(0.0, 0.0),
+                                     clock_walk_s_per_sqrt_h=0.0)
+        else:
+            rx = dataclasses.replace(rx, **{name: False})
+    return dataclasses.replace(cfg, field=fx, reality=rx)
+
+
+def one(seed: int, args, tmp: Path) -> dict:
+    sim = simulate_deployment(config(args), seed)
+    data, options = load_deployment(write_deployment(sim, tmp / f"field-{seed}"))
+    options = options.updated(seed=seed, **({"engine": args.engine} if args.engine else {}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        start = time.perf_counter()
+        rec = run_pipeline(data, options)
+        wall = time.perf_counter() - start
+        gt = rec.groundtruth
+        p, q = sim.truth_at(gt.t)
+        c = compare_to_truth(gt, p, q, split=rec.groundtruth_split)
+        rel = {f"{d:g}s": relative_nees(rec, sim.truth_at, d) for d in DELTAS_S}
+    ip = rec.self_checks["inter_prism_distances"]["overall"]
+    n6 = c.nees_pose
+    verdict = record_verdict(rec)
+    return {
+        "seed": seed, "poses": len(gt), "wall_s": wall,
+        "nees6": n6.mean / 6, "in95": float(np.mean(n6.values <= chi2.ppf(0.95, 6))),
+        "split_consistent": bool(n6.consistent),
+        "rel": {k: (float(v.mean() / 6) if v.size else None, int(v.size))
+                for k, v in rel.items()},
+        "rel_values": rel,
+        "z2": ip.get("mean_z2"), "z2_interval": ip.get("interval_95"),
+        "verdict": verdict.level, "reasons": [f.check for f in verdict.reasons],
+        "sigma_mm": float(1e3 * np.median(np.sqrt(np.trace(gt.cov[:, :3, :3], axis1=1,
+                                                           axis2=2)))),
+        "n6_values": n6.values,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", default="0-4", help="first-last (inclusive)")
+    ap.add_argument("--duration", type=float, default=None,
+                    help="s (default: the preset's, 3600)")
+    ap.add_argument("--engine", default=None, help="pose engine (default: the deployment's)")
+    ap.add_argument("--without", nargs="*", default=[],
+                    choices=["displacement", "clocks", "prism_cyclic", "tripod_settling"],
+                    help="effects of the preset to leave out (to see what each costs)")
+    args = ap.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in seeds(args.seeds):
+            r = one(seed, args, Path(tmp))
+            rows.append(r)
+            print(json.dumps({k: v for k, v in r.items() if not k.endswith("values")}),
+                  flush=True)
+    print("\n| seed | poses | pose NEES/dof | in 95 % | split test | rel. NEES/dof 1 s | 10 s "
+          "| 60 s | inter-prism z^2 (accepted) | verdict | median sigma mm | run s |")
+    print("|---|---:|---:|---:|---|---:|---:|---:|---|---|---:|---:|")
+    for r in rows:
+        rel = " | ".join("-" if r["rel"][k][0] is None else f"{r['rel'][k][0]:.2f}"
+                         for k in r["rel"])
+        lo, hi = r["z2_interval"] or (np.nan, np.nan)
+        print(f"| {r['seed']} | {r['poses']} | {r['nees6']:.2f} | {100 * r['in95']:.1f} % | "
+              f"{'consistent' if r['split_consistent'] else 'rejected'} | {rel} | "
+              f"{r['z2']:.2f} ({lo:.2f}-{hi:.2f}) | {r['verdict']} | {r['sigma_mm']:.2f} | "
+              f"{r['wall_s']:.0f} |")
+    n6 = np.concatenate([r["n6_values"] for r in rows])
+    rel = " | ".join(f"{np.concatenate([r['rel_values'][k] for r in rows]).mean() / 6:.2f}"
+                     for k in rows[0]["rel"])
+    print(f"| pooled | {n6.size} | {n6.mean() / 6:.2f} | "
+          f"{100 * np.mean(n6 <= chi2.ppf(0.95, 6)):.1f} % | "
+          f"{sum(r['split_consistent'] for r in rows)} of {len(rows)} | {rel} | "
+          f"{np.mean([r['z2'] for r in rows]):.2f} | "
+          f"{sum(r['verdict'] == 'not usable as is' for r in rows)} not usable | "
+          f"{np.median([r['sigma_mm'] for r in rows]):.2f} | "
+          f"{np.mean([r['wall_s'] for r in rows]):.0f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,282 @@
+r"""Field effects: measurement noise, clocks and a moved prism drawn as a real hour is.
+
+Under ``SimulationConfig(field=FieldEffects())`` (``rtsgt simulate --preset field-hour``) the
+simulator no longer draws its errors with the estimator's model (the instrument profile's
+datasheet values): per station and channel (Hz, V, d) a white part whose sigma grows with the
+range, plus a first-order Gauss-Markov part; the clocks of the stations other than the
+reference drift against it and random-walk; one prism stands where its survey does not say.
+Each size is drawn per deployment from the ranges of :class:`FieldEffects`, and
+:class:`FieldTruth` records every draw (``truth.json``, section ``field``). Models, units and
+the sources of the values: docs/simulation.md#the-field-hour-preset.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from rtsgt.errors import InputError
+from rtsgt.simulation.reality import gauss_markov
+
+__all__ = [
+    "CHANNELS",
+    "FIELD_STREAMS",
+    "MGON",
+    "FieldEffects",
+    "FieldTruth",
+    "clock_walk",
+    "draw_displacement",
+    "draw_field_truth",
+    "field_noise",
+    "field_rng",
+    "white_sigma",
+]
+
+#: One milligon, rad.
+MGON = np.pi / 200.0 * 1e-3
+#: The measurement channels, in the order of every (..., 3) array here.
+CHANNELS = ("hz", "v", "d")
+#: The field effects' random streams, in the order of their spawn keys (:func:`field_rng`).
+FIELD_STREAMS = ("displacement", "parameters", "clock", "noise")
+#: Range at which the angular range coefficient is stated, m.
+RANGE_UNIT_M = 100.0
+
+
+@dataclass(frozen=True)
+class FieldEffects:
+    """Ranges the field effects' sizes are drawn from (uniform; the correlation times
+    log-uniform). Pairs ``(low, high)``; units in the names (rad, m, s, ppm).
+
+    Attributes
+    ----------
+    angle_white_rad : (float, float)
+        White sigma of Hz and of V at short range, rad.
+    angle_range_rad : (float, float)
+        Angular range coefficient ``s``: the white variance grows by ``s^2 d / 100 m``, rad.
+    angle_gm_rad : (float, float)
+        Sigma of the Gauss-Markov part of Hz and V, rad.
+    distance_white_m : (float, float)
+        White sigma of the distance, constant part, m.
+    distance_ppm : (float, float)
+        White sigma of the distance, part proportional to the range, ppm.
+    distance_gm_m : (float, float)
+        Sigma of the Gauss-Markov part of the distance, m.
+    gm_time_s : (float, float)
+        Correlation time of every Gauss-Markov part, s (log-uniform, per station and channel).
+    clock_drift_s_per_h : (float, float)
+        Magnitude of a station's clock drift against the reference station's, s per hour
+        (sign drawn per station).
+    clock_walk_s_per_sqrt_h : float
+        Standard deviation of the clock's random walk after one hour, s.
+    prism_displacement_m : (float, float)
+        Size of the displacement of one prism from its survey, m (direction uniform).
+    """
+
+    angle_white_rad: tuple[float, float] = (0.10 * MGON, 0.25 * MGON)
+    angle_range_rad: tuple[float, float] = (0.05 * MGON, 0.15 * MGON)
+    angle_gm_rad: tuple[float, float] = (0.10 * MGON, 0.30 * MGON)
+    distance_white_m: tuple[float, float] = (0.5e-3, 0.7e-3)
+    distance_ppm: tuple[float, float] = (0.5, 1.5)
+    distance_gm_m: tuple[float, float] = (0.2e-3, 0.5e-3)
+    gm_time_s: tuple[float, float] = (1.0, 12.0)
+    clock_drift_s_per_h: tuple[float, float] = (10e-3, 20e-3)
+    clock_walk_s_per_sqrt_h: float = 1.0e-3
+    prism_displacement_m: tuple[float, float] = (0.01, 0.03)
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            val = np.asarray(getattr(self, f.name), dtype=float)
+            if not (np.all(np.isfinite(val)) and np.all(val >= 0)):
+                raise InputError(f"Expected finite values >= 0 for {f.name}, got "
+                                 f"{getattr(self, f.name)!r}")
+            if val.ndim == 1 and not (val.shape == (2,) and val[0] <= val[1]):
+                raise InputError(f"Expected {f.name} = (low, high) with low <= high, got "
+                                 f"{getattr(self, f.name)!r}")
+        if not self.gm_time_s[0] > 0:
+            raise InputError(f"Expected gm_time_s > 0, got {self.gm_time_s!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: every range."""
+        return {k: (list(map(float, v)) if isinstance(v, tuple) else float(v))
+                for k, v in asdict(self).items()}
+
+
+def field_rng(entropy: int, stream: str) -> np.random.Generator:
+    """The random stream ``stream`` (:data:`FIELD_STREAMS`) of the field effects: child ``i``
+    of ``numpy.random.SeedSequence(entropy)``, like :func:`rtsgt.simulation.reality.effect_rng`."""
+    return np.random.default_rng(
+        np.random.SeedSequence(int(entropy), spawn_key=(FIELD_STREAMS.index(stream),)))
+
+
+def white_sigma(d_m: ArrayLike, white: ArrayLike, range_coef: ArrayLike) -> np.ndarray:
+    """White sigma of (Hz, V, d) at ranges ``d_m`` (N,), shape (N, 3): rad, rad, m.
+
+    ``sigma_angle = sqrt(w^2 + s^2 d / 100 m)`` and ``sigma_d = w_d + ppm 1e-6 d``, with
+    ``white = (w_hz, w_v, w_d)`` and ``range_coef = (s_hz, s_v, ppm)``.
+    """
+    d = np.asarray(d_m, dtype=float)[:, None]
+    w = np.asarray(white, dtype=float)
+    c = np.asarray(range_coef, dtype=float)
+    angle = np.sqrt(w[:2] ** 2 + c[:2] ** 2 * d / RANGE_UNIT_M)
+    return np.concatenate([angle, w[2] + 1e-6 * c[2] * d], axis=1)
+
+
+def field_noise(t: ArrayLike, d_m: ArrayLike, white: ArrayLike, range_coef: ArrayLike,
+                gm_sigma: ArrayLike, gm_tau_s: ArrayLike, rng: np.random.Generator) -> np.ndarray:
+    """Errors (N, 3) of one station's measurements (Hz rad, V rad, d m) at true times ``t``
+    (N,, any order) and ranges ``d_m`` (N,): white (:func:`white_sigma`) plus a first-order
+    Gauss-Markov process per channel (:func:`rtsgt.simulation.reality.gauss_markov`, sigma
+    ``gm_sigma``, correlation time ``gm_tau_s``, each (3,)), started stationary."""
+    t = np.asarray(t, dtype=float)
+    order = np.argsort(t, kind="stable")
+    e = rng.standard_normal((t.size, 3)) * white_sigma(d_m, white, range_coef)
+    gm = np.empty((t.size, 3))
+    for c in range(3):  # loop over the three channels
+        gm[order, c] = gauss_markov(t[order], float(gm_tau_s[c]), [gm_sigma[c]], rng)[:, 0]
+    return e + gm
+
+
+def clock_walk(n_steps: int, step_s: float, drift_s_per_s: float, walk_s2_per_s: float,
+               rng: np.random.Generator) -> np.ndarray:
+    """A clock error sampled every ``step_s`` from 0: ``r t + W(t)``, ``W`` a random walk
+    (Wiener process of intensity ``walk_s2_per_s``, ``var W(t) = q t``), ``W(0) = 0``;
+    shape (n_steps + 1,), s."""
+    steps = rng.standard_normal(int(n_steps)) * np.sqrt(walk_s2_per_s * step_s)
+    return drift_s_per_s * step_s * np.arange(n_steps + 1) + np.concatenate(
+        [[0.0], np.cumsum(steps)])
+
+
+def draw_displacement(fx: FieldEffects, n_prisms: int,
+                      rng: np.random.Generator) -> tuple[int, np.ndarray]:
+    """Which prism moved (index) and its displacement in the robot frame (3,), m: size
+    uniform in ``prism_displacement_m``, direction uniform on the sphere."""
+    k = int(rng.integers(0, n_prisms))
+    u = rng.standard_normal(3)
+    return k, rng.uniform(*fx.prism_displacement_m) * u / np.linalg.norm(u)
+
+
+@dataclass(frozen=True, eq=False)
+class FieldTruth:
+    """What the field effects drew (stations in order; channels :data:`CHANNELS`).
+
+    Attributes
+    ----------
+    effects : FieldEffects
+    station_ids : tuple of str
+        The first is the reference station (no clock drift, no walk).
+    white : ndarray, shape (S, 3)
+        White sigma at short range: Hz, V (rad), d (m).
+    range_coef : ndarray, shape (S, 3)
+        Angular range coefficients of Hz and V (rad, :func:`white_sigma`), distance ppm.
+    gm_sigma : ndarray, shape (S, 3)
+        Gauss-Markov sigma: rad, rad, m.
+    gm_tau_s : ndarray, shape (S, 3)
+        Gauss-Markov correlation times, s.
+    clock_drift_s_per_s : ndarray, shape (S,)
+        Signed drift of each clock against the reference's, s/s.
+    clock_walk_s2_per_s : ndarray, shape (S,)
+        Intensity ``q`` of each clock's random walk, s^2/s.
+    clock_t0_s, clock_step_s : float
+        The clocks' drift and walk start at ``clock_t0_s`` (the start of tracking) and are
+        sampled every ``clock_step_s``.
+    clock_drift_walk_s : ndarray, shape (S, M)
+        Drift plus walk of each clock at ``clock_t0_s + clock_step_s k``, s; linear between.
+    clock_offset_s : ndarray, shape (S,)
+        Each clock's constant offset (the simulator's :func:`_clock_offsets`), s.
+    displaced_prism : int
+        Index of the prism that moved after its survey.
+    displacement_robot_m, displacement_body_m : ndarray, shape (3,)
+        Its displacement in the robot and in the body (survey) frame, m.
+    """
+
+    effects: FieldEffects
+    station_ids: tuple[str, ...]
+    white: np.ndarray
+    range_coef: np.ndarray
+    gm_sigma: np.ndarray
+    gm_tau_s: np.ndarray
+    clock_drift_s_per_s: np.ndarray
+    clock_walk_s2_per_s: np.ndarray
+    clock_t0_s: float
+    clock_step_s: float
+    clock_drift_walk_s: np.ndarray
+    clock_offset_s: np.ndarray
+    displaced_prism: int
+    displacement_robot_m: np.ndarray
+    displacement_body_m: np.ndarray
+
+    @property
+    def clock_t(self) -> np.ndarray:
+        """Times of the clock samples, s, shape (M,)."""
+        return self.clock_t0_s + self.clock_step_s * np.arange(self.clock_drift_walk_s.shape[1])
+
+    def drift_walk_s(self, k: int, t: ArrayLike) -> np.ndarray:
+        """Drift plus walk of station ``k``'s clock at true times ``t`` (0 before
+        ``clock_t0_s``, held after the last sample), s."""
+        return np.interp(np.asarray(t, dtype=float), self.clock_t, self.clock_drift_walk_s[k],
+                         left=0.0)
+
+    def clock_error_s(self, k: int, t: ArrayLike) -> np.ndarray:
+        """``t_true - t_recorded`` of station ``k`` at true times ``t``, without the
+        per-measurement jitter, s."""
+        return self.clock_offset_s[k] + self.drift_walk_s(k, t)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: the ranges, every draw per station and the clocks sampled."""
+        per = {}
+        for k, sid in enumerate(self.station_ids):
+            noise = {ch: {"white_sigma": float(self.white[k, c]),
+                          "gm_sigma": float(self.gm_sigma[k, c]),
+                          "gm_tau_s": float(self.gm_tau_s[k, c])}
+                     for c, ch in enumerate(CHANNELS)}
+            for c, ch in enumerate(CHANNELS[:2]):
+                noise[ch]["range_sigma_at_100m"] = float(self.range_coef[k, c])
+            noise["d"]["ppm"] = float(self.range_coef[k, 2])
+            per[sid] = {"noise": noise,
+                        "clock": {"offset_s": float(self.clock_offset_s[k]),
+                                  "drift_s_per_h": float(3600.0 * self.clock_drift_s_per_s[k]),
+                                  "walk_s2_per_s": float(self.clock_walk_s2_per_s[k]),
+                                  "error_s": (self.clock_offset_s[k]
+                                              + self.clock_drift_walk_s[k]).tolist()}}
+        return {
+            "effects": self.effects.to_dict(),
+            "reference_station": self.station_ids[0],
+            "clock_t0_s": float(self.clock_t0_s),
+            "clock_step_s": float(self.clock_step_s),
+            "stations": per,
+            "displaced_prism": {"index": int(self.displaced_prism),
+                                "robot_m": self.displacement_robot_m.tolist(),
+                                "body_m": self.displacement_body_m.tolist(),
+                                "size_m": float(np.linalg.norm(self.displacement_robot_m))},
+        }
+
+
+def draw_field_truth(fx: FieldEffects, station_ids: tuple[str, ...], clock_offset_s: ArrayLike,
+                     t0_s: float, duration_s: float, displaced: tuple[int, np.ndarray],
+                     R_body_robot: np.ndarray, entropy: int) -> FieldTruth:
+    """Draw the noise parameters (stream ``parameters``) and the clocks (stream ``clock``, sampled
+    at 1 Hz over ``[t0_s, t0_s + duration_s]`` and one step beyond) of a deployment;
+    ``displaced`` from :func:`draw_displacement`."""
+    n = len(station_ids)
+    g = field_rng(entropy, "parameters")
+    white = np.stack([g.uniform(*fx.angle_white_rad, n), g.uniform(*fx.angle_white_rad, n),
+                      g.uniform(*fx.distance_white_m, n)], axis=1)
+    range_coef = np.stack([g.uniform(*fx.angle_range_rad, n), g.uniform(*fx.angle_range_rad, n),
+                           g.uniform(*fx.distance_ppm, n)], axis=1)
+    gm_sigma = np.stack([g.uniform(*fx.angle_gm_rad, n), g.uniform(*fx.angle_gm_rad, n),
+                         g.uniform(*fx.distance_gm_m, n)], axis=1)
+    gm_tau = np.exp(g.uniform(*np.log(fx.gm_time_s), (n, 3)))
+    c = field_rng(entropy, "clock")
+    drift = np.concatenate([[0.0], c.choice([-1.0, 1.0], n - 1)
+                            * c.uniform(*fx.clock_drift_s_per_h, n - 1)]) / 3600.0
+    walk = np.concatenate([[0.0], np.full(n - 1, fx.clock_walk_s_per_sqrt_h ** 2 / 3600.0)])
+    step = 1.0
+    n_steps = int(np.ceil(duration_s / step)) + 1
+    clocks = np.stack([clock_walk(n_steps, step, drift[k], walk[k], c) for k in range(n)])
+    k_prism, disp = displaced
+    return FieldTruth(fx, tuple(station_ids), white, range_coef, gm_sigma, gm_tau, drift, walk,
+                      float(t0_s), step, clocks, np.asarray(clock_offset_s, dtype=float),
+                      k_prism, disp, R_body_robot @ disp)
