@@ -27,6 +27,7 @@ from rtsgt.io.run_dir import (
     station_positions_from_summary,
     write_csv,
 )
+from rtsgt.noise.sources import NOISE_SOURCES
 from rtsgt.options import RunOptions
 from rtsgt.pose import ReferencePoints, estimate_poses
 from rtsgt.record import RunRecord
@@ -43,7 +44,7 @@ from rtsgt.report.analysis import (
     parse_bins,
     pose_sigmas,
 )
-from rtsgt.types import NOISE_SOURCES, PoseTrajectory, PrismTrack
+from rtsgt.types import PoseTrajectory, PrismTrack
 
 #: Reference prisms in the body frame, centroid at the origin (m).
 R_BODY = np.array([[0.45, 0.0, 0.1], [-0.3, 0.35, -0.05], [-0.15, -0.35, -0.05]])

@@ -30,12 +30,13 @@ from rtsgt.io.deployment import load_deployment
 from rtsgt.io.run_dir import read_run, write_run
 from rtsgt.measurement.polar import sight_frames
 from rtsgt.noise.correlated import correlated_noise_plan, independence_factor, inflate_tracks
+from rtsgt.noise.sources import CORRELATED_NOISE_SOURCE
 from rtsgt.options import InterpolationOptions, RunOptions
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 from rtsgt.simulation.compare import compare_to_truth
 from rtsgt.simulation.reality import RealityEffects
-from rtsgt.types import CORRELATED_NOISE_SOURCE, PrismTrack
+from rtsgt.types import PrismTrack
 
 DT = 0.4
 

@@ -1,4 +1,4 @@
-"""The fast Monte Carlo engine against the plain reference Monte Carlo (rtsgt.noise.reference).
+"""The fast Monte Carlo engine against the plain reference Monte Carlo (tests/noise_reference_oracle.py).
 
 Two independent implementations of the same model, with independent draws: their sample means
 and covariances differ by Monte Carlo error alone, whose size follows from the sample size M.
@@ -20,6 +20,7 @@ memory (a few hundred MB at most) and take tens of seconds: marked slow.
 import numpy as np
 import pytest
 
+from noise_reference_oracle import reference_propagate
 from rtsgt.errors import InputError
 from rtsgt.geometry.so3 import exp_so3
 from rtsgt.geometry.transform import RigidTransform
@@ -27,7 +28,6 @@ from rtsgt.measurement.instruments import TRIMBLE_S7
 from rtsgt.measurement.polar import cartesian_to_polar, polar_to_cartesian
 from rtsgt.noise import NOISE_SOURCES, NoiseModel, propagate
 from rtsgt.noise import montecarlo as mc
-from rtsgt.noise.reference import reference_propagate
 from rtsgt.types import Observations, WeatherSeries
 
 M = 100_000

@@ -11,9 +11,10 @@ from rtsgt.io import survey as io_survey
 from rtsgt.measurement.atmosphere import instrument_correction_ppm
 from rtsgt.measurement.instruments import ARCSEC
 from rtsgt.measurement.polar import polar_to_cartesian
+from rtsgt.noise.sources import NOISE_SOURCES
 from rtsgt.simulation import SimulationConfig, simulate_deployment
 from rtsgt.simulation import deployment as sim_deployment
-from rtsgt.types import NOISE_SOURCES, SurveyShots
+from rtsgt.types import SurveyShots
 
 
 @pytest.fixture(scope="module")

@@ -9,24 +9,20 @@ from rtsgt.errors import InputError
 from rtsgt.measurement.units import (
     ARCSEC,
     GON,
-    deg_to_rad,
     dms_to_rad,
     format_dms,
     from_radians,
-    gon_to_rad,
     parse_dms,
-    rad_to_deg,
     rad_to_dms,
-    rad_to_gon,
     to_radians,
 )
 
 
 def test_unit_constants_and_simple_conversions():
-    assert deg_to_rad(180.0) == pytest.approx(np.pi)
-    assert rad_to_deg(np.pi / 2) == pytest.approx(90.0)
-    assert gon_to_rad(400.0) == pytest.approx(2 * np.pi)
-    assert rad_to_gon(np.pi) == pytest.approx(200.0)
+    assert to_radians(180.0, "deg") == pytest.approx(np.pi)
+    assert np.rad2deg(np.pi / 2) == pytest.approx(90.0)
+    assert to_radians(400.0, "gon") == pytest.approx(2 * np.pi)
+    assert from_radians(np.pi, "gon") == pytest.approx(200.0)
     assert GON == pytest.approx(np.pi / 200)
     assert ARCSEC * 3600 * 180 == pytest.approx(np.pi)
     # 1 mgon = 3.24 arc seconds (surveyor's rule)
@@ -36,13 +32,13 @@ def test_unit_constants_and_simple_conversions():
 
 def test_dms_signs():
     # the sign applies to the whole angle, whichever component carries it
-    assert rad_to_deg(dms_to_rad(-12, 30, 0)) == pytest.approx(-12.5)
-    assert rad_to_deg(dms_to_rad(-0.0, 30, 0)) == pytest.approx(-0.5)
-    assert rad_to_deg(dms_to_rad(0, -30, 0)) == pytest.approx(-0.5)
-    assert rad_to_deg(dms_to_rad(0, 0, -36)) == pytest.approx(-0.01)
-    assert rad_to_deg(dms_to_rad(12, 30, 0)) == pytest.approx(12.5)
+    assert np.rad2deg(dms_to_rad(-12, 30, 0)) == pytest.approx(-12.5)
+    assert np.rad2deg(dms_to_rad(-0.0, 30, 0)) == pytest.approx(-0.5)
+    assert np.rad2deg(dms_to_rad(0, -30, 0)) == pytest.approx(-0.5)
+    assert np.rad2deg(dms_to_rad(0, 0, -36)) == pytest.approx(-0.01)
+    assert np.rad2deg(dms_to_rad(12, 30, 0)) == pytest.approx(12.5)
     np.testing.assert_allclose(
-        rad_to_deg(dms_to_rad([1, -1, -0.0], [30, 30, 30], [0, 0, 0])), [1.5, -1.5, -0.5]
+        np.rad2deg(dms_to_rad([1, -1, -0.0], [30, 30, 30], [0, 0, 0])), [1.5, -1.5, -0.5]
     )
 
 
@@ -64,12 +60,12 @@ def test_dms_signs():
     ],
 )
 def test_parse_dms_forms(text, deg):
-    assert rad_to_deg(parse_dms(text)) == pytest.approx(deg, abs=1e-12)
+    assert np.rad2deg(parse_dms(text)) == pytest.approx(deg, abs=1e-12)
 
 
 def test_parse_dms_array_keeps_shape():
     out = parse_dms(np.array([["1 0 0", "-2 0 0"], ["0 30 0", "0 0 36"]]))
-    np.testing.assert_allclose(rad_to_deg(out), [[1, -2], [0.5, 0.01]])
+    np.testing.assert_allclose(np.rad2deg(out), [[1, -2], [0.5, 0.01]])
     np.testing.assert_allclose(to_radians(["90 0 0"], "dms"), [np.pi / 2])
     np.testing.assert_allclose(to_radians([[90, 0, 0], [-0.0, 30, 0]], "dms"),
                                [np.pi / 2, -np.pi / 360])

@@ -73,8 +73,9 @@ from rtsgt.checks.distances import effective_sample_size, pose_speed
 from rtsgt.errors import RtsgtWarning
 from rtsgt.interpolation.motion import STANDING_SPEED_M_S
 from rtsgt.measurement.polar import SIGHT_COMPONENTS, sight_frames
+from rtsgt.noise.sources import WHITE_NOISE_SOURCES
 from rtsgt.stats import ratio_interval, ratio_verdict
-from rtsgt.types import WHITE_NOISE_SOURCES, PrismTrack
+from rtsgt.types import PrismTrack
 
 __all__ = ["COMPONENTS", "EDGE_MARGIN_S", "FAMILY_FALSE_ALARM", "MIN_SAMPLES", "MIN_STATIC_S",
            "WHITE_SOURCES", "gauss_markov_fit", "lag_one_test", "static_noise_check",

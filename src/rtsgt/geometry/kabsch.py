@@ -1,16 +1,7 @@
-r"""Least-squares rigid fit of point sets (Kabsch / Umeyama without scale).
+"""Least-squares rigid fit of point sets (Kabsch / Umeyama without scale), batched.
 
-Solves, for each batch element, ``argmin_{R, t} sum_i w_i ||q_i - (R p_i + t)||^2`` over proper
-rotations (``det R = +1``: the reflection case is guarded by flipping the smallest singular
-direction, Umeyama 1991, eq. 39).
-
-:func:`kabsch_yaw` solves the same problem over rotations about z only (4 DOF: x, y, z, yaw),
-for frames that share the vertical (levelled instruments, gravity-aligned trajectories). After
-removing the weighted centroids ``p0``, ``q0`` the cost depends on the yaw ``psi`` only through
-the horizontal components, and its minimiser is closed-form::
-
-    psi = atan2( sum w (p0_x q0_y - p0_y q0_x),  sum w (p0_x q0_x + p0_y q0_y) )
-    t = q_c - R_z(psi) p_c
+:func:`kabsch` fits a proper rotation and a translation (reflection guarded, Umeyama 1991,
+eq. 39); :func:`kabsch_yaw` the rotation about z only (4 DOF), in closed form.
 """
 
 from __future__ import annotations

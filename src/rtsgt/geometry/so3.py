@@ -1,13 +1,6 @@
-r"""Rotations: exponential and logarithm maps of SO(3), quaternions.
+"""Rotations: exponential and logarithm maps of SO(3), quaternions (scalar-last).
 
-Conventions (stated here once for all of rtsgt)
------------------------------------------------
-- Rotation matrices are *active*: ``p_a = R_a_b @ p_b`` maps coordinates in frame b into frame a.
-- Quaternions are **scalar-last**, ``quat_xyzw = (qx, qy, qz, qw)``, as in ROS, TUM files and
-  :class:`scipy.spatial.transform.Rotation`.
-- Rotation vectors ``phi`` (rad) map to rotations by ``R = exp([phi]x)`` (Rodrigues).
-
-All functions are vectorised over leading dimensions.
+Conventions (active rotations, ``quat_xyzw``): docs/conventions.md#quaternions.
 """
 
 from __future__ import annotations

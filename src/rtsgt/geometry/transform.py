@@ -1,20 +1,7 @@
-r"""Rigid transforms with a 6x6 covariance, and the pose-covariance convention of rtsgt.
+"""Rigid transforms with a 6x6 covariance, and their left perturbations.
 
-Convention (the one place it is defined)
-----------------------------------------
-A transform ``T_a_b = (R_a_b, t_a_b)`` maps coordinates in frame b into frame a::
-
-    p_a = R_a_b @ p_b + t_a_b
-
-Its covariance is 6x6, ordered **(x, y, z, rx, ry, rz)** as in ROS ``PoseWithCovariance``:
-translation first (m), rotation second (rad). The perturbation is applied on the left, in
-frame a (the world frame for a pose)::
-
-    t = t_mean + dt
-    R = exp([dtheta]x) @ R_mean          xi = (dt, dtheta) ~ N(0, cov)
-
-:func:`perturbation` computes ``xi`` from a mean and a sample, so that the covariance of a cloud
-of sampled transforms is ``cov(perturbation(mean, samples))``; :func:`perturb` is its inverse.
+The convention (``p_a = R_a_b p_b + t_a_b``; covariance of the left perturbation, world frame,
+ordered x, y, z, rx, ry, rz) is docs/conventions.md#rigid-transforms-and-pose-covariance.
 """
 
 from __future__ import annotations

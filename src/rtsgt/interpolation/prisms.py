@@ -27,8 +27,13 @@ from rtsgt.interpolation.gp import GPTrack, fit_track
 from rtsgt.interpolation.loo import fit_qc_loo
 from rtsgt.interpolation.motion import fit_motion_prior, motion_events
 from rtsgt.interpolation.windows import window_score
+from rtsgt.noise.sources import (
+    CORRELATED_NOISE_SOURCE,
+    SYSTEMATIC_NOISE_SOURCES,
+    WHITE_NOISE_SOURCES,
+)
 from rtsgt.options import InterpolationOptions
-from rtsgt.types import CORRELATED_NOISE_SOURCE, WHITE_NOISE_SOURCES, PrismTrack
+from rtsgt.types import PrismTrack
 
 __all__ = ["PrismsAtTimes", "choose_prior", "fit_gps", "fit_prism_gp", "query_prisms", "query_grid",
            "gp_covariance",
@@ -40,7 +45,7 @@ __all__ = ["PrismsAtTimes", "choose_prior", "fit_gps", "fit_prism_gp", "query_pr
 #: (:mod:`rtsgt.noise.correlated`).
 WHITE_SOURCES = (*WHITE_NOISE_SOURCES, CORRELATED_NOISE_SOURCE)
 #: Noise sources whose errors are shared by many measurements (added after the GP).
-SYSTEMATIC_SOURCES = ("atmosphere", "time_sync", "calibration")
+SYSTEMATIC_SOURCES = SYSTEMATIC_NOISE_SOURCES
 
 
 @dataclass(frozen=True)

@@ -120,9 +120,9 @@ from rtsgt.filtering import FilterParams
 from rtsgt.io.rts_bag import TIME_SOURCES
 from rtsgt.measurement.instruments import InstrumentProfile, instrument_from_config
 from rtsgt.noise import NoiseModel
+from rtsgt.noise.sources import NOISE_SOURCES
 from rtsgt.options import CalibrationOptions, InterpolationOptions, PoseOptions, RunOptions
 from rtsgt.record import MIN_POSE_PRISMS
-from rtsgt.types import NOISE_SOURCES
 
 if sys.version_info >= (3, 11):
     import tomllib

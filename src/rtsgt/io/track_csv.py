@@ -48,7 +48,8 @@ from rtsgt.io._parse import (
     split_rows,
     to_float,
 )
-from rtsgt.types import NOISE_SOURCES, PrismTrack
+from rtsgt.noise.sources import NOISE_SOURCES
+from rtsgt.types import PrismTrack
 
 __all__ = [
     "TRACK_COLUMNS",

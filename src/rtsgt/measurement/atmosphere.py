@@ -1,47 +1,8 @@
-r"""Atmospheric first-velocity correction of EDM distances (IAG 1999 resolution, Rüeger 2002).
+"""Atmospheric first-velocity correction of EDM distances (IAG 1999 resolution, Rueger 2002).
 
-An EDM instrument converts a travel time into a distance with the refractive index of a
-*reference* atmosphere (the instrument's zero-ppm conditions). The first-velocity correction
-scales the measured distance ``D'`` to the actual atmosphere:
-
-.. math::
-
-    N_{gr} &= 287.6155 + \frac{4.88660}{\lambda^2} + \frac{0.06800}{\lambda^4}
-        \qquad &\text{[IAG99-1] group refractivity of standard air, } \lambda \text{ in um} \\
-    N_L &= \frac{273.15}{1013.25} \frac{N_{gr}\, p}{T} - \frac{11.27\, e}{T}
-        \qquad &\text{[IAG99-2] ambient group refractivity, } T \text{ in K, } p, e \text{ in hPa} \\
-    K &= \frac{N_{REF} - N_L}{1 + 10^{-6} N_L} \qquad &\text{[R02-K] ppm} \\
-    D &= D' (1 + 10^{-6} K) \qquad &\text{[R02-D]}
-
-with ``N_REF`` the value of ``N_L`` at the instrument's reference temperature, pressure and
-humidity, and the partial water-vapour pressure ``e = RH/100 * E_w(t)`` from one of
-
-.. math::
-
-    E_w^{Magnus} &= 6.1078 \cdot 10^{7.5 t / (237.3 + t)} \qquad &\text{[MAG]} \\
-    E_w^{Buck} &= (1.0007 + 3.46 \cdot 10^{-6} p)\, 6.1121\,
-        \exp\left(\frac{17.502\, t}{240.94 + t}\right) \qquad &\text{[BUCK]}
-
-(``t`` in degC, ``p`` in hPa; Buck 1981 as adopted by Rüeger 2002).
-
-Sources (the tags in the code):
-- [IAG99-1], [IAG99-2]: IAG resolution on refractive indices of light and near infrared waves
-  in air (Birmingham 1999), as given in Rüeger, J. M. (2002) "Refractive indices of light,
-  infrared and radio waves in the atmosphere", UNISURV S-68, and in docs/noise-model.md#atmosphere.
-- [R02-K], [R02-D]: first-velocity correction, Rüeger (1996) "Electronic Distance Measurement",
-  4th ed., chapter 6 (GeodePy ``first_vel_corrn`` implements the same formula without the
-  ``1 + 10^-6 N_L`` denominator, a 10^-9 relative difference).
-- [MAG]: Magnus formula over water, coefficients 6.1078 / 7.5 / 237.3.
-- [BUCK]: Buck (1981) with enhancement factor, coefficients as in Rüeger (2002).
-
-Checks (tests/test_atmosphere.py): the GeodePy worked example (1117.8517 m at 6.8 degC,
-960.8 hPa, 58.6 %, lambda = 0.850 um, reference 12 degC / 1013.25 hPa / 60 % corrects to
-1117.8624 m, +9.53 ppm), Leica's published reference index ``n = 1.0002863`` for its
-658 nm EDM at 12 degC / 1013.25 hPa / 60 %, and the sensitivities (about +1 ppm per degC and
--0.28 ppm per hPa near 15 degC, 1013 hPa).
-
-All functions are vectorised (numpy broadcasting) and accept 0 degC and 0 % humidity as the
-valid values they are.
+Owns the group refractivity, the saturation vapour pressure (Magnus, Buck), the correction
+``K`` in ppm at a weather for an instrument's reference atmosphere, and its analytic gradient.
+Formulas, tags ([IAG99-1], [R02-K], ...) and checks: docs/noise-model.md#atmosphere.
 """
 
 from __future__ import annotations

@@ -1,34 +1,8 @@
-"""Instrument profiles: the accuracy a total station's datasheet states, and at what confidence.
+"""Instrument profiles: a total station's datasheet accuracies, and at what confidence.
 
-Datasheets quote accuracies at a stated confidence (1 sigma, or 2 sigma as the Trimble S7
-numbers used by Vaidis et al. 2023). A profile stores the numbers *as published* together with
-``confidence_sigma``; the ``sigma_*`` methods return one-standard-deviation values.
-
-Built-in profiles (:data:`INSTRUMENTS`) are for **tracking** (continuous) EDM mode, the mode a
-robotic total station uses on a moving prism. Users define their own in the configuration
-(:meth:`InstrumentProfile.from_dict`, :func:`instrument_from_config`).
-
-Provenance of the built-in numbers (see each profile's ``description``):
-
-- ``trimble-s7``: the values of Vaidis et al. (2023), Table I (4 mm + 2 ppm, 2", 0.5",
-  "2 sigma ISO 17123-3"). The authors' code (``uncertainty_consts.py`` of
-  norlab-ulaval/RTS_project) agrees for the distance and the compensator but draws the angles
-  with a standard deviation of ``5" / 5 * 4 / 2 = 2"``, i.e. 4" at 2 sigma, twice the paper's
-  table; rtsgt follows the paper (override ``angle_arcsec = 4`` to reproduce the code). Wavelength
-  0.905 um as used by the authors for the Trimble S-series pulsed laser diode. Reference
-  atmosphere 20 degC / 1013.25 hPa / 60 %: 20 degC and 1013.25 hPa is the zero-ppm point of
-  the classic ``273.8 - 0.2900 p / (1 + 0.00366 t)`` formula used by many total stations;
-  the humidity part (0.5 ppm at most) could not be checked against a Trimble document.
-- ``leica-ms60``, ``leica-ts16``: Leica datasheets (accuracies as *standard deviation*, ISO
-  17123-3 / 17123-4, i.e. 1 sigma); EDM carrier 658 nm; Leica's reference atmosphere
-  12 degC / 1013.25 hPa / 60 % RH. The Leica manuals print the reference group index of this
-  EDM as ``n = 1.0002863``, which [IAG99-2] reproduces for these values (tested).
-- ``trimble-s9``: Trimble S9 1" datasheet, prism tracking mode, quoted as standard deviation
-  (1 sigma). Same EDM family and reference atmosphere as ``trimble-s7``.
-
-The datasheet figures of the Leica and Trimble S9 profiles are the publicly advertised ones as
-known to the authors of rtsgt; check them against the datasheet of your own instrument (and its
-firmware's tracking mode) and override them in the configuration where they differ.
+A profile stores the numbers as published with ``confidence_sigma``; its ``sigma_*`` methods
+return one-standard-deviation values. The built-in profiles (:data:`INSTRUMENTS`, tracking
+mode) and their sources: docs/noise-model.md#instrument.
 """
 
 from __future__ import annotations

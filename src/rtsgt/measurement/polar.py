@@ -1,30 +1,7 @@
-r"""Polar (total-station) to Cartesian coordinates: the station-frame convention of rtsgt.
+"""Polar (total-station) to Cartesian coordinates, their Jacobians and sight frames.
 
-Convention (RTS_project tracking convention; the one place it is defined)
--------------------------------------------------------------------------
-- ``hz``: horizontal direction, **clockwise** seen from above, rad, zero along +y.
-- ``v``: **zenith** angle, rad, ``v = 0`` straight up, ``v = pi/2`` horizontal.
-- ``d``: slope distance, m, *after* the additive (prism) constant has been added.
-
-.. math::
-
-    x = d \sin V \sin Hz,\quad y = d \sin V \cos Hz,\quad z = d \cos V
-
-The frame is right-handed with z up (x east-like when y points along Hz = 0).
-
-Survey (manual-shot) convention
--------------------------------
-The static survey of the robot (RTS_project ``calibration_raw.csv``, manual shots, no
-additive constant) uses the same ``hz`` (clockwise), ``v`` (zenith) and ``d`` in another frame:
-
-.. math::
-
-    x = d \cos Hz \sin V,\quad y = -d \sin Hz \sin V,\quad z = d \cos V
-
-that is ``p_survey = Rz(-90 deg) p_tracking`` (:data:`R_SURVEY_TRACKING`): the survey x axis is
-the tracking y axis (``Hz = 0``), the survey y axis the tracking -x axis, z is shared. See
-:func:`survey_polar_to_cartesian`, :func:`cartesian_to_survey_polar` and
-:func:`survey_polar_jacobian`.
+The station-frame convention (``hz`` clockwise from +y, ``v`` the zenith angle, ``d`` with the
+additive constant; survey variants) is docs/conventions.md#station-polar-convention.
 """
 
 from __future__ import annotations

@@ -1,24 +1,7 @@
-r"""Angle units to and from radians: degrees, arc seconds, DMS, gon (grads), mgon.
+"""Angle units to and from radians: degrees, arc seconds, DMS, gon, mgon (vectorised).
 
-rtsgt works in radians inside; readers and writers convert with the functions here. All
-functions are vectorised over array inputs and never mutate them.
-
-Degrees-minutes-seconds (DMS)
------------------------------
-A DMS angle is a sign and three non-negative magnitudes, ``sign * (d + m/60 + s/3600)``.
-The sign is the hard part (``-0 30 00`` is minus half a degree; ``-12 30 00`` is
-``-(12.5)`` degrees, not ``-12 + 0.5``), so:
-
-- in tuples ``(d, m, s)`` the angle is negative when *any* component is negative, including a
-  negative zero in ``d`` (``-0.0``); minutes and seconds otherwise count as magnitudes;
-- in strings the sign is a leading ``-`` or ``+`` (or a trailing hemisphere letter ``S`` / ``W``
-  for negative, ``N`` / ``E`` for positive). Accepted separators: blanks, ``:``, ``°``, ``d``,
-  ``'``, ``m``, ``"``, ``s`` (and the Unicode prime/double prime), e.g. ``"-12 30 15.5"``,
-  ``"12°30'15.5\""``, ``"12:30:15.5"``, ``"12d30m15.5s"``, ``"-0 30 0"``. Missing trailing
-  fields are zero (``"12 30"`` is 12 deg 30 min).
-
-Minutes and seconds must lie in ``[0, 60)``; anything else raises :class:`InputError` naming the
-value and its index.
+rtsgt works in radians inside; readers convert with :func:`to_radians` and
+:func:`dms_to_rad`, writers with :func:`from_radians` (docs/conventions.md#units).
 """
 
 from __future__ import annotations
@@ -32,8 +15,6 @@ from rtsgt.errors import InputError
 
 #: One degree, rad.
 DEGREE = np.pi / 180.0
-#: One arc minute, rad.
-ARCMIN = DEGREE / 60.0
 #: One arc second, rad.
 ARCSEC = DEGREE / 3600.0
 #: One gon (grad, 1/400 of a turn), rad.
@@ -45,36 +26,6 @@ MGON = GON / 1000.0
 ANGLE_UNITS = ("rad", "deg", "arcsec", "gon", "mgon", "dms")
 
 _SCALE = {"rad": 1.0, "deg": DEGREE, "arcsec": ARCSEC, "gon": GON, "mgon": MGON}
-
-
-def deg_to_rad(a: ArrayLike) -> np.ndarray:
-    """Degrees to radians."""
-    return np.asarray(a, dtype=float) * DEGREE
-
-
-def rad_to_deg(a: ArrayLike) -> np.ndarray:
-    """Radians to degrees."""
-    return np.asarray(a, dtype=float) / DEGREE
-
-
-def gon_to_rad(a: ArrayLike) -> np.ndarray:
-    """Gon (grads, 400 per turn) to radians."""
-    return np.asarray(a, dtype=float) * GON
-
-
-def rad_to_gon(a: ArrayLike) -> np.ndarray:
-    """Radians to gon."""
-    return np.asarray(a, dtype=float) / GON
-
-
-def arcsec_to_rad(a: ArrayLike) -> np.ndarray:
-    """Arc seconds to radians."""
-    return np.asarray(a, dtype=float) * ARCSEC
-
-
-def rad_to_arcsec(a: ArrayLike) -> np.ndarray:
-    """Radians to arc seconds."""
-    return np.asarray(a, dtype=float) / ARCSEC
 
 
 def _first_bad(mask: np.ndarray):

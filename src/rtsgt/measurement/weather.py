@@ -1,16 +1,7 @@
-"""Weather records and the measurement times they serve.
+"""Whether a weather record covers the measurement times it serves.
 
-Between and beyond its records a :class:`~rtsgt.types.WeatherSeries` is interpolated
-linearly and held constant past its ends, so a record of the wrong day or hours still gives a
-number. :func:`check_weather_coverage` (called by the pipeline on the measurement times) says
-when it does not cover them. The rule: **a time is covered when a record lies within one
-sampling interval of it**, the sampling interval being the median spacing of the records
-(3600 s for ECCC hourly files). So 20 min after the last hourly record is covered (the
-weather an hour from now is about the weather now; the next record was simply not taken
-yet), 3 h after is not, and neither is the middle of a gap of more than two intervals inside
-the record (missing rows). The tolerance is the record's own, not a constant: a record every
-10 min covers 10 min beyond its ends. A record of a single line has no sampling interval: it
-is the deployment's weather, constant, and covers every time (the summary says so).
+A time is covered when a record lies within one sampling interval (the records' median
+spacing) of it; a single record covers every time (docs/file-formats.md, the weather file).
 """
 
 from __future__ import annotations
@@ -21,7 +12,6 @@ from datetime import datetime, timezone
 import numpy as np
 
 from rtsgt.errors import RtsgtWarning
-from rtsgt.types import WeatherSeries
 
 __all__ = ["weather_coverage", "check_weather_coverage"]
 
@@ -40,7 +30,7 @@ def _duration(seconds: float) -> str:
     return f"{s:.0f} s"
 
 
-def weather_coverage(weather: WeatherSeries, t) -> dict:
+def weather_coverage(weather, t) -> dict:
     """How well a weather record covers the times of the measurements that use it.
 
     See the module docstring for the rule (a time is covered when a record lies within one
@@ -48,7 +38,8 @@ def weather_coverage(weather: WeatherSeries, t) -> dict:
 
     Parameters
     ----------
-    weather : WeatherSeries
+    weather : rtsgt.types.WeatherSeries
+        Its ``t`` (s) and ``source`` are read.
     t : array_like, shape (M,)
         Measurement times, s (Unix, UTC); non-finite ones are ignored.
 
@@ -93,7 +84,7 @@ def weather_coverage(weather: WeatherSeries, t) -> dict:
     return info
 
 
-def check_weather_coverage(weather: WeatherSeries, t) -> dict:
+def check_weather_coverage(weather, t) -> dict:
     """:func:`weather_coverage`, with a :class:`~rtsgt.errors.RtsgtWarning` when the record
     does not cover every time: it names the file, the record's span and interval, how many
     measurements lie outside and how far (before the first record, after the last one, or in

@@ -1,13 +1,10 @@
-r"""Per-measurement uncertainty of total-station observations: five sources, two engines.
+"""Per-measurement uncertainty of total-station observations: the sources, two engines.
 
 :func:`propagate` turns the observations of one prism by one station into a
-:class:`~rtsgt.types.PrismTrack` in the world frame: nominal positions (with the additive
-constant and the atmospheric correction from the weather at each time), the total 3x3
-covariance and one covariance per noise source alone. The model is in
-:mod:`rtsgt.noise.model`; the engines are the paper's Monte Carlo
-(:mod:`rtsgt.noise.montecarlo`) and first-order propagation (:mod:`rtsgt.noise.linear`),
-validated against each other in the tests. :mod:`rtsgt.noise.analysis` has the paper's
-per-source analysis (square root of the Frobenius norm, by range bin).
+:class:`~rtsgt.types.PrismTrack` with the total and per-source covariances; the sources are
+registered in :mod:`rtsgt.noise.sources`; the engines are the Monte Carlo
+(:mod:`rtsgt.noise.montecarlo`) and first order (:mod:`rtsgt.noise.linear`);
+:mod:`rtsgt.noise.analysis` has the paper's per-source analysis. docs/noise-model.md.
 """
 
 from __future__ import annotations
@@ -21,9 +18,10 @@ from rtsgt.noise.analysis import (
     source_norms_mm,
     summarize_sources,
 )
-from rtsgt.noise.model import NOISE_SOURCES, NoiseModel, prism_velocity
+from rtsgt.noise.model import NoiseModel, prism_velocity
 from rtsgt.noise.perturb import sample_polar_errors
 from rtsgt.noise.propagation import ENGINES, propagate
+from rtsgt.noise.sources import NOISE_SOURCES
 
 __all__ = [
     "ENGINES",

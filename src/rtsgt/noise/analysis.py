@@ -1,21 +1,7 @@
-r"""Per-source analysis of the paper: square root of the Frobenius norm, binned by range.
+"""The paper's per-source analysis: ``sqrt(||Sigma||_F)`` of each source, binned by range.
 
-Vaidis et al. (2023, Fig. 4 and Table II) compare noise sources through
-``sqrt(||Sigma||_F)`` of each source's 3x3 position covariance, in mm, binned by the range of
-the measurement (0-75 m, 75-150 m, beyond 150 m), and report medians. One line does it::
-
-    summary = summarize_sources(propagate(obs, model, engine="mc", rng=rng))
-    summary["instrument"].median      # medians per range bin, mm
-
-Two definitions of a source's size are offered:
-
-- :func:`source_norms_mm`: each source *alone* (``cov_by_source``), ``sqrt(||Sigma_s||_F)``;
-- :func:`authors_source_norms_mm`: the authors' figure code, ``sqrt(||Sigma_(instrument + s) -
-  Sigma_instrument||_F)`` for ``s`` other than the instrument, from Monte Carlo runs with the
-  instrument plus ``s`` and with the instrument alone (a source that is not additive, or Monte
-  Carlo noise, makes the two differ).
-
-Units: covariances in m^2, so ``sqrt(||Sigma||_F)`` is in m and is reported in mm (``* 1e3``).
+Vaidis et al. 2023 (Fig. 4, Table II): medians in mm per range bin (0-75, 75-150, > 150 m);
+docs/noise-model.md#per-source-analysis.
 """
 
 from __future__ import annotations

@@ -1,47 +1,8 @@
-r"""The per-measurement noise model shared by the Monte Carlo and the linearised engines.
+"""The per-measurement noise model shared by the two engines: parameters and nominal values.
 
-Model (Vaidis et al. 2023, section III; docs/noise-model.md). For one measurement
-``(Hz, V, d)`` of a prism by a station, with ``d`` including the additive constant and
-``alpha(T, p, RH) = 1e-6 K(T, p, RH)`` the first-velocity correction
-(:mod:`rtsgt.measurement.atmosphere`):
-
-.. math::
-
-    \hat d &= (d + e_d)(1 + \alpha(T + e_T, p + e_p, RH + e_{RH})) \\
-    \hat V &= V + e_V + e_{tilt} \\
-    \hat{Hz} &= Hz + e_{Hz} + e_{tilt} \cot \hat V \\
-    p_{station} &= \mathrm{polar}(\hat{Hz}, \hat V, \hat d) + e_{ts}\, v \\
-    p_{world} &= R_{ws} p_{station} + t_{ws}
-
-Sources and distributions:
-
-``instrument``
-    ``e_d ~ N(0, sigma_d(d)^2)``, ``e_Hz, e_V ~ N(0, sigma_angle^2)`` (one-sigma values of the
-    :class:`~rtsgt.measurement.instruments.InstrumentProfile`).
-``tilt``
-    ``e_tilt ~ N(0, sigma_tilt^2)``, entering V and Hz as above.
-``atmosphere``
-    Zero-mean uniform errors of the weather used for the correction:
-    ``e_T ~ U(-hT, hT)``, ``e_p ~ U(-hp, hp)``, ``e_RH ~ U(-hRH, hRH)`` (docs/noise-model.md: the
-    paper writes ``[0, x]``, a one-sided bias; the symmetric interval is the physical reading). The
-    perturbed humidity is clipped to [0, 100] %.
-``time_sync``
-    A clock error ``e_ts`` displaces a prism moving at velocity ``v`` by ``e_ts v``. The
-    authors measured ``|e_ts|`` as ``N(mu, sigma)`` (1.157 ms, 0.815 ms). Whether the
-    station's clock leads or lags the robot's is not known per deployment, so rtsgt draws
-    ``e_ts = s |e|`` with a random sign ``s = +-1`` and ``e ~ N(mu, sigma)``: a **zero-mean**
-    error whose second moment is ``mu^2 + sigma^2``. The nominal position is therefore not
-    shifted, and the covariance is ``(mu^2 + sigma^2) v v^T`` (rank one along ``v``) plus,
-    in the linearised engine, ``(mu^2 + sigma^2) Cov(v)`` for the noise of the differenced
-    velocity. A *known* latency should be removed from the time stamps instead (then set
-    ``time_sync_mean_s`` to 0 and ``time_sync_std_s`` to the residual).
-``calibration``
-    The uncertainty of ``T_world_station``: Monte Carlo sample ``m`` uses transform sample
-    ``m`` (the GCP Monte Carlo), or left perturbations drawn from its 6x6 covariance.
-
-The velocity ``v`` is the nominal station-frame velocity of the prism from
-:func:`prism_velocity`: central differences of consecutive positions, one-sided at the ends of
-a block, never across a gap longer than ``max_velocity_gap_s`` (there ``v = 0``).
+Owns :class:`NoiseModel` (which sources, their parameters), the validation of observations,
+the prism velocity the clock error acts along, and the nominal quantities both engines start
+from. The model: docs/noise-model.md#the-perturbed-measurement.
 """
 
 from __future__ import annotations
@@ -55,7 +16,7 @@ from rtsgt.errors import InputError
 from rtsgt.measurement.atmosphere import VAPOUR_FORMULAS, instrument_correction_ppm
 from rtsgt.measurement.instruments import InstrumentProfile
 from rtsgt.measurement.polar import polar_to_cartesian
-from rtsgt.types import NOISE_SOURCES
+from rtsgt.noise.sources import NOISE_SOURCES
 
 __all__ = ["NOISE_SOURCES", "NoiseModel", "prism_velocity", "check_strictly_increasing"]
 
@@ -212,7 +173,7 @@ def prism_velocity(
     valid = np.zeros(n, dtype=bool)
     if n < 2:
         return v, valid
-    idx_prev, idx_next, _ = _difference_stencil(t, max_gap_s)
+    idx_prev, idx_next, _ = difference_stencil(t, max_gap_s)
     valid = idx_prev != idx_next
     dt = t[idx_next] - t[idx_prev]
     safe = np.where(valid, dt, 1.0)
@@ -221,7 +182,7 @@ def prism_velocity(
     return v, valid
 
 
-def _difference_stencil(t: np.ndarray, max_gap_s: float):
+def difference_stencil(t: np.ndarray, max_gap_s: float):
     """Indices ``(prev, next)`` of the difference used at each time, and ``dt`` (internal).
 
     ``prev == next`` marks an isolated measurement.

@@ -1,34 +1,9 @@
-r"""Monte Carlo engine of the per-measurement noise model (the paper's method, vectorised).
+"""Monte Carlo engine of the per-measurement noise model (the paper's method, vectorised).
 
-Every Monte Carlo sample perturbs the raw measurement exactly as in
-:mod:`rtsgt.noise.model` (Vaidis et al. 2023, section III) and maps it to Cartesian
-coordinates with the full non-linear model; the covariance of the samples is the result.
-
-Implementation notes
---------------------
-- Samples are processed as arrays of shape (n, M) (n measurements of a chunk, M samples):
-  no Python loop over samples or measurements. Only chunks of measurements are looped over,
-  sized so that ``n * M`` stays near :data:`CHUNK_ELEMENTS` (the arrays stay in the CPU cache;
-  memory is bounded whatever N).
-- Each chunk draws from its own child generator whose seed is drawn from the ``rng`` passed in,
-  so results are reproducible from a seed, independent of ``workers`` and of the order in which
-  chunks complete.
-- The total and every source alone share the same random draws (common random numbers): each
-  source's covariance is the Monte Carlo covariance of the model with only that source active.
-- Samples are computed as exact *displacements* from the nominal point (no cancellation
-  between a 100 m coordinate and a 1 mm error), with the addition theorem for the perturbed
-  angles and the Taylor series of ``sin`` / ``cos`` of the (tiny) perturbation, truncated below
-  the rounding error of the working precision for ``|delta| <= 2e-4`` rad; larger
-  perturbations fall back to ``np.sin`` / ``np.cos``. The result equals evaluating
-  ``polar_to_cartesian`` on the perturbed measurement to machine precision (tested).
-- Sources that act along one fixed direction are reduced exactly: ``atmosphere`` alone moves
-  the point along the line of sight (covariance ``u u^T d^2 var(alpha)``), ``time_sync`` alone
-  along the velocity (``var(e_ts) v v^T``), and ``calibration`` alone is linear in the sampled
-  ``(R_m, t_m)`` (covariance ``A(p) C A(p)^T`` with ``C`` the 12x12 sample covariance of
-  ``(vec R_m, t_m)``). These are algebraically identical to the sample covariance of the
-  sampled points, computed without forming them.
-- Covariances are sample covariances (``ddof = 1``) about the sample mean, computed with
-  ``numpy.einsum`` row dot products.
+Samples of every measurement as (n, M) arrays in chunks of about :data:`CHUNK_ELEMENTS`, each
+chunk from a child generator of the run's (reproducible whatever the threads); the total and
+each source alone share the draws; samples are displacements from the nominal point (float32
+safe); one-direction sources are reduced exactly. docs/noise-model.md#monte-carlo.
 """
 
 from __future__ import annotations

@@ -1,14 +1,7 @@
-r"""Sampling of the instrument and tilt-compensator errors of polar measurements.
+"""Sampling of the instrument and tilt-compensator errors of polar measurements.
 
-Perturbed measurement for one Monte Carlo sample (Vaidis et al. 2023, section III):
-
-.. math::
-
-    d^ = d + e_d,\quad V^ = V + e_V + e_{tilt},\quad Hz^ = Hz + e_{Hz} + e_{tilt} \cot V^
-
-with ``e_d ~ N(0, sigma_d(d)^2)``, ``e_V, e_Hz ~ N(0, sigma_angle^2)`` and
-``e_tilt ~ N(0, sigma_tilt^2)``, all one-sigma values of the :class:`InstrumentProfile`.
-The atmospheric scale factor is applied by the caller.
+``d^ = d + e_d``, ``V^ = V + e_V + e_tilt``, ``Hz^ = Hz + e_Hz + e_tilt cot V^``
+(docs/noise-model.md#instrument, #tilt-compensator).
 """
 
 from __future__ import annotations

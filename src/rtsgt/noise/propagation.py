@@ -34,50 +34,18 @@ def propagate(
 ) -> PrismTrack:
     """Positions and covariances of one station's prism observations in the world frame.
 
-    Parameters
-    ----------
-    obs : Observations
-        One prism seen by one station, valid (status 0), strictly increasing in time.
-    model : NoiseModel
-        Instrument profile, the sources to include and their parameters.
-    T_world_station : RigidTransform, optional
-        ``T_world_station`` (maps station coordinates into the world frame), with a 6x6
-        covariance and/or Monte Carlo samples for the calibration source. None: the result
-        is in the station frame and the calibration source is zero.
-    weather : WeatherSeries, optional
-        Weather for the atmospheric correction, interpolated at each observation time. None:
-        the instrument's reference atmosphere (0 ppm).
-    engine : {"linear", "mc"}
-        First-order propagation, or the paper's Monte Carlo.
-    samples : int
-        Monte Carlo samples per measurement (``engine="mc"``).
-    rng : numpy.random.Generator
-        Required by ``engine="mc"``; the result is a deterministic function of its state.
-    chunk_size : int, optional
-        Measurements per Monte Carlo chunk (memory bound); default keeps ``chunk * samples``
-        near 65536.
-    workers : int
-        Monte Carlo threads (chunks in parallel); the result does not depend on it.
-    mc_dtype : {numpy.float32, numpy.float64}
-        Working precision of the Monte Carlo samples. The engine samples exact displacements
-        from the nominal point, so float32 (the default, about twice as fast) keeps a relative
-        precision near 1e-7 on covariances whose Monte Carlo error is 1e-2; the covariances
-        are returned in float64 either way.
+    ``obs``: one prism by one station, valid (status 0), strictly increasing in time;
+    ``model``: the sources and their parameters; ``T_world_station``: the station's transform
+    with its 6x6 covariance and/or Monte Carlo samples (None: station frame, no calibration
+    source); ``weather``: interpolated at each time (None: the instrument's reference
+    atmosphere, 0 ppm); ``engine`` ``"linear"`` or ``"mc"`` (``samples`` per measurement from
+    ``rng``, required; ``chunk_size`` measurements per chunk; ``workers`` threads, the result
+    does not depend on them; ``mc_dtype`` float32 or float64 working precision,
+    docs/noise-model.md#monte-carlo).
 
-    Returns
-    -------
-    PrismTrack
-        ``xyz`` (N, 3) nominal positions, m; ``cov`` (N, 3, 3) total covariance, m^2;
-        ``cov_by_source`` one (N, 3, 3) entry per source of ``model.sources`` (each with that
-        source alone; for the Monte Carlo they add up to the total only approximately);
-        ``range_m`` the corrected slope distance; ``frame`` ``T_world_station.frame_to`` or
-        ``"station_<id>"``.
-
-    Raises
-    ------
-    InputError
-        NaN or negative distances, zenith angles outside (0, pi), non-increasing times, an
-        unknown engine, too few transform samples, ... (naming the value and its index).
+    Returns a :class:`~rtsgt.types.PrismTrack`: ``xyz`` (N, 3) m, ``cov`` (N, 3, 3) m^2 and
+    ``cov_by_source`` (each source alone), ``range_m``, ``frame``. Raises
+    :class:`~rtsgt.errors.InputError` naming the first bad value or argument.
     """
     eng = str(engine).lower()
     if eng not in ENGINES:

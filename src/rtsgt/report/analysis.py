@@ -62,10 +62,10 @@ from rtsgt.errors import InputError
 from rtsgt.filtering.gates import position_uncertainty
 from rtsgt.io.run_dir import read_run
 from rtsgt.noise.analysis import bin_by_range, frobenius_norm_mm
+from rtsgt.noise.sources import NOISE_SOURCES
 from rtsgt.options import stage_rng
 from rtsgt.pose import POSE_ENGINES, estimate_poses
 from rtsgt.record import RunRecord
-from rtsgt.types import NOISE_SOURCES
 
 __all__ = [
     "ALL",
