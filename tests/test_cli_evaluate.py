@@ -190,7 +190,7 @@ def test_plots(files, tmp_path):
     counts, edges = pl.hist["pose"]
     assert np.sum(counts * np.diff(edges)) == pytest.approx(1.0)
     np.testing.assert_allclose(pl.sigma_norm**2, np.trace(res.gt.cov[:, :3, :3], axis1=1, axis2=2))
-    assert len(pl.files) == 6
+    assert len(pl.files) == 8  # and the drift figure (tests/test_drift.py)
 
 
 def test_other_estimate_formats(files, tmp_path):

@@ -304,7 +304,8 @@ def test_figures_of_a_position_evaluation(tmp_path):
     r = evaluate_positions(gt, trajectory(t, p, R), LEVER, align="se3")
     plots = plot_evaluation(r, tmp_path / "fig")
     assert {f.name for f in plots.files} == {f"{n}.{e}" for n in ("translation_error",
-                                                                 "top_view", "nees_histogram")
+                                                                 "top_view", "nees_histogram",
+                                                                 "drift")
                                              for e in ("png", "svg")}
     assert set(plots.hist) == {"position"} and plots.n_ellipses > 0
     np.testing.assert_allclose(plots.sigma_norm, np.sqrt(np.trace(gt.cov, axis1=1, axis2=2)))

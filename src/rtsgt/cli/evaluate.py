@@ -824,6 +824,9 @@ def register(app: typer.Typer) -> None:
         report = (print_position_report if isinstance(result, PositionEvaluationResult)
                   else print_report)
         report(result, console, gt_source=str(gt_dir), est_source=str(est_file))
+        from rtsgt.cli.drift_table import print_drift
+
+        print_drift(None if result.drift is None else result.drift.to_dict(), console)
         if written is not None:
             console.print(f"figures: {', '.join(p.name for p in written.files)} in {plot}")
         for path in saved:

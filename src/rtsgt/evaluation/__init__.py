@@ -34,6 +34,12 @@ the JSON layout of ``rtsgt evaluate --json``::
                   "lever_sigma_m", "clock_offset_s", "clock_sigma_s", "names", "covariance",
                   "fit": {...}, "effect": {"ape_translation_m", "ape_rotation_deg",
                   "rpe_translation_m", "rpe_rotation_deg"}},
+     "drift": {"definition", "step_frames", "rotation": null | why not estimable,
+               "distance": {"lengths_m", "lengths_from", "n_segments", "translation_pct",
+                            "translation_floor_pct", "rotation_deg_per_m",
+                            "rotation_floor_deg_per_m", "translation_below_floor",
+                            "rotation_below_floor", "by_length": [{"length_m", "n", ...}]},
+               "time": {"lengths_s", ..., "translation_m_per_s", "rotation_deg_per_s", ...}},
      "warnings": ["..."]}
 
 Against a position-only ground truth (one tracked prism), :func:`evaluate_positions`

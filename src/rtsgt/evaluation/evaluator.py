@@ -2,7 +2,7 @@
 
     check inputs -> [mounting and clock] -> associate -> mounting -> align -> APE -> RPE
       (+ gap warning) -> error covariances, relative-pose covariance -> NEES -> noise floor
-      -> [the mounting's effect on APE / RPE] -> result
+      -> [the mounting's effect on APE / RPE] -> drift by segment length -> result
 
 The mounting step (:func:`mounting_step`, when something is estimated) fits the mounting
 ``T_body_sensor`` and the clock offset jointly with an alignment
@@ -37,6 +37,7 @@ from rtsgt.evaluation.associate import (
     associate,
     ground_truth_rates,
 )
+from rtsgt.evaluation.drift import Drift, drift_metrics, kitti_errors
 from rtsgt.evaluation.metrics import (
     NeesResult,
     alignment_sensitivity,
@@ -642,6 +643,23 @@ def noise_floor_section(
     )
 
 
+def drift_step(gt: GroundTruth, g: PoseTrajectory, e: PoseTrajectory,
+               assoc: Association) -> Drift:
+    """Drift by segment length of the aligned estimate ``e`` against the associated ground
+    truth ``g`` (:func:`~rtsgt.evaluation.drift.drift_metrics`, the devkit's errors), with
+    the ground truth's floor from its relative covariance over the segments
+    (:func:`relative_covariance`) when it has covariances."""
+
+    def errors(first: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return kitti_errors(g.rotation, g.position, e.rotation, e.position, first, last)
+
+    def covariance(first: np.ndarray, last: np.ndarray) -> np.ndarray:
+        return relative_covariance(gt, g, assoc, np.column_stack([first, last])).cov
+
+    return drift_metrics(assoc.est.t, g.position, errors,
+                         None if g.cov is None else covariance)
+
+
 def evaluate(
     gt: GroundTruth,
     est: PoseTrajectory,
@@ -753,4 +771,5 @@ def evaluate(
         rpe_absent_reason=no_rpe,
         mounting=fit,
         mounting_effect=mounting_effect(fit, g, assoc, options, rates, pairs),
+        drift=drift_step(gt, g, e, assoc),
     )

@@ -102,6 +102,12 @@ from numpy.typing import ArrayLike
 from rtsgt.errors import ConvergenceError, GeometryError, InputError
 from rtsgt.evaluation.align import MIN_POSES, Alignment, align_yaw, aligned_count, umeyama
 from rtsgt.evaluation.associate import Association, GroundTruthSample, associate
+from rtsgt.evaluation.drift import (
+    POSITION_DRIFT_DEFINITION,
+    ROTATION_DRIFT_NOT_ESTIMABLE,
+    Drift,
+    drift_metrics,
+)
 from rtsgt.evaluation.evaluator import _check_trajectory, _nees, _no_pair_reason, _warn_gaps
 from rtsgt.evaluation.lever_arm import (
     LeverArmPoints,
@@ -522,6 +528,9 @@ class PositionEvaluationResult:
         Where the lever arm comes from (``"given"``, ``"estimated"``).
     lever_arm_cov : ndarray, shape (3, 3) or None
         Its covariance, m^2, when known.
+    drift : Drift or None
+        Translational drift by segment length (:func:`drift_step`; rotational drift is not
+        estimable).
     """
 
     t: np.ndarray
@@ -543,6 +552,7 @@ class PositionEvaluationResult:
     rpe_absent_reason: str | None = None
     lever_arm_source: str = "given"
     lever_arm_cov: np.ndarray | None = None
+    drift: Drift | None = None
 
     def to_dict(self) -> dict:
         """The JSON layout of ``rtsgt evaluate --json`` (that of
@@ -563,6 +573,7 @@ class PositionEvaluationResult:
             "noise_floor": self.noise_floor.to_dict(),
             "alignment": self.alignment.to_dict(),
             "association": self.association.to_dict(),
+            "drift": None if self.drift is None else self.drift.to_dict(),
         }
 
 
@@ -708,7 +719,26 @@ def evaluate_positions(
         position_error=err, cov_error=S, rpe_delta=float(options.delta),
         rpe_delta_unit=options.delta_unit, rpe_all_pairs=bool(options.all_pairs),
         rpe_absent_reason=no_rpe, lever_arm_source=lever_arm_source,
-        lever_arm_cov=None if lever_arm_cov is None else np.asarray(lever_arm_cov, float))
+        lever_arm_cov=None if lever_arm_cov is None else np.asarray(lever_arm_cov, float),
+        drift=drift_step(gt, g, err, assoc))
+
+
+def drift_step(gt: PositionGroundTruth, g: PositionTrajectory, err: np.ndarray,
+               assoc: Association) -> Drift:
+    """Translational drift by segment length of the position errors ``err`` (N, 3)
+    (:data:`~rtsgt.evaluation.drift.POSITION_DRIFT_DEFINITION`), with the ground truth's floor
+    from the covariance of ``y_l - y_f`` over the segments when it has covariances."""
+
+    def errors(first: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, None]:
+        return np.linalg.norm(err[last] - err[first], axis=1), None
+
+    def covariance(first: np.ndarray, last: np.ndarray) -> np.ndarray:
+        return _relative_covariance(gt, g, assoc, np.column_stack([first, last]))[0]
+
+    return drift_metrics(assoc.est.t, g.position, errors,
+                         None if g.cov is None else covariance,
+                         rotation=ROTATION_DRIFT_NOT_ESTIMABLE,
+                         definition=POSITION_DRIFT_DEFINITION)
 
 
 def align_step(g: PositionTrajectory, e_raw: PoseTrajectory, lever: np.ndarray,

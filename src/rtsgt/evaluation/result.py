@@ -11,6 +11,7 @@ from numpy.typing import ArrayLike
 
 from rtsgt.evaluation.align import Alignment
 from rtsgt.evaluation.associate import Association
+from rtsgt.evaluation.drift import Drift
 from rtsgt.evaluation.metrics import STATISTICS, NeesResult, error_statistics
 from rtsgt.evaluation.mounting import MountingFit
 from rtsgt.types import PoseTrajectory
@@ -183,6 +184,9 @@ class EvaluationResult:
         How much the rmse of the APE and RPE move within the estimated parameters'
         uncertainty (:func:`~rtsgt.evaluation.evaluator.mounting_effect`; None when nothing
         was estimated).
+    drift : Drift or None
+        Drift by segment length (KITTI's, and per second) with the ground truth's floor
+        (:mod:`rtsgt.evaluation.drift`).
     """
 
     t: np.ndarray
@@ -202,6 +206,7 @@ class EvaluationResult:
     rpe_absent_reason: str | None = None
     mounting: MountingFit | None = None
     mounting_effect: dict | None = None
+    drift: Drift | None = None
 
     def to_dict(self) -> dict:
         """The JSON layout of ``rtsgt evaluate --json`` (module docstring)."""
@@ -215,6 +220,7 @@ class EvaluationResult:
             "association": self.association.to_dict(),
             "mounting": None if self.mounting is None else {
                 **self.mounting.to_dict(), "effect": self.mounting_effect},
+            "drift": None if self.drift is None else self.drift.to_dict(),
         }
 
 

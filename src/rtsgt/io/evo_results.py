@@ -10,7 +10,8 @@ the same layout, with its own numbers (it never imports evo, which is GPL):
     ``est_name`` (its base name labels the result in ``evo_res``), ``label``
     (``"APE (m)"``), and rtsgt's additions: ``written_by`` (``"rtsgt"``), ``rtsgt_version``,
     ``metric``, ``pose_relation``, ``alignment``, ``ground_truth`` (its kind),
-    ``nees_covariance`` (which covariances entered the NEES).
+    ``nees_covariance`` (which covariances entered the NEES), ``drift_lengths`` (the segments
+    of the drift, in words).
 ``stats.json``
     evo's statistics of the error array (``rmse``, ``mean``, ``median``, ``std``, ``min``,
     ``max``, ``sse``: the sum of squares) and rtsgt's extra entries, in the same table of
@@ -18,15 +19,21 @@ the same layout, with its own numbers (it never imports evo, which is GPL):
     truth, in the metric's unit), ``rmse_floor_removed`` (``sqrt(max(rmse^2 - floor^2, 0))``),
     ``nees_mean``, ``nees_dof``, ``nees_fraction_inside_95`` and ``nees_consistent`` (1 or 0)
     of the NEES that goes with the metric (APE translation: positions, 3 dof; APE angle or
-    full: poses, 6 dof; RPE: the relative ones). A value that does not exist (no covariance,
-    no floor for the full transformation) is ``NaN``, so that every result has the same keys
-    (``evo_res --merge`` needs them).
+    full: poses, 6 dof; RPE: the relative ones); the evaluation's drift by segment length
+    pooled over all segments (the KITTI leaderboard's averages) with the ground truth's
+    floors, in every result whatever its metric (:data:`DRIFT_STATISTICS`: ``drift_*_pct``,
+    ``*_deg_per_m`` over segments of path, ``*_m_per_s``, ``*_deg_per_s`` over segments of
+    time). A value that does not exist (no covariance, no floor for the full transformation,
+    no rotational drift of a position-only ground truth) is ``NaN``, so that every result has
+    the same keys (``evo_res --merge`` needs them).
 ``<name>.npy``
     numpy arrays (``numpy.save``): ``error_array``; ``timestamps`` (estimate clock, s) and
     ``seconds_from_start`` of each error; ``distances_from_start`` (path length of the ground
     truth) and ``distances`` (of the aligned estimate), m, at each error;
     ``alignment_transformation_sim3`` (4x4, when an alignment was made); rtsgt's ``nees``
-    (the NEES of each error, NaN without covariances).
+    (the NEES of each error, NaN without covariances); the drift per segment length
+    (:data:`DRIFT_ARRAYS`: ``drift_lengths_m`` and the values of each, as the statistics;
+    ``drift_lengths_s`` for time; empty without segments).
 ``<ref>.tum``, ``<est>.tum``
     The associated ground truth and the aligned estimate (TUM: ``t x y z qx qy qz qw``, named
     after the base names of the inputs, as evo names them after its arguments). For a
@@ -73,9 +80,24 @@ __all__ = ["METRICS", "POSE_RELATIONS", "EvoResult", "check_results_file", "evo_
 METRICS = ("ape", "rpe")
 #: evo's statistics, in its order.
 EVO_STATISTICS = ("rmse", "mean", "median", "std", "min", "max", "sse")
+#: rtsgt's drift entries of ``stats.json`` (pooled over all segments) and their keys in the
+#: ``drift`` section of the JSON: (section kind, key).
+DRIFT_STATISTICS = {
+    "drift_translation_pct": ("distance", "translation_pct"),
+    "drift_translation_floor_pct": ("distance", "translation_floor_pct"),
+    "drift_rotation_deg_per_m": ("distance", "rotation_deg_per_m"),
+    "drift_rotation_floor_deg_per_m": ("distance", "rotation_floor_deg_per_m"),
+    "drift_translation_m_per_s": ("time", "translation_m_per_s"),
+    "drift_translation_floor_m_per_s": ("time", "translation_floor_m_per_s"),
+    "drift_rotation_deg_per_s": ("time", "rotation_deg_per_s"),
+    "drift_rotation_floor_deg_per_s": ("time", "rotation_floor_deg_per_s"),
+}
 #: rtsgt's extra entries of ``stats.json``.
 EXTRA_STATISTICS = ("noise_floor", "rmse_floor_removed", "nees_mean", "nees_dof",
-                    "nees_fraction_inside_95", "nees_consistent")
+                    "nees_fraction_inside_95", "nees_consistent", *DRIFT_STATISTICS)
+#: rtsgt's drift arrays (one value per segment length): the lengths, then the values of
+#: :data:`DRIFT_STATISTICS` per length.
+DRIFT_ARRAYS = ("drift_lengths_m", "drift_lengths_s", *DRIFT_STATISTICS)
 #: Entry holding the complete ``rtsgt evaluate --json`` object.
 RTSGT_ENTRY = "rtsgt_evaluation.json"
 
@@ -121,6 +143,26 @@ def _path_length(position: np.ndarray) -> np.ndarray:
     """Path length from the first position, m (evo's ``distances``)."""
     steps = np.linalg.norm(np.diff(position, axis=0), axis=1)
     return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def _drift_entries(drift: dict | None) -> tuple[dict, dict, str]:
+    """The drift's pooled statistics, per-length arrays and description in words from the
+    ``drift`` section of the JSON (None: no drift; NaN values, empty arrays)."""
+    stats, arrays, words = {}, {}, []
+    for kind, unit in (("distance", "m"), ("time", "s")):
+        sec = None if drift is None else drift.get(kind)
+        rows = [] if sec is None else sec["by_length"]
+        arrays[f"drift_lengths_{unit}"] = np.array([r[f"length_{unit}"] for r in rows], float)
+        if sec is not None:
+            lengths = ", ".join(f"{v:g}" for v in sec[f"lengths_{unit}"])
+            words.append(f"{lengths} {unit} ({sec['lengths_from']}, "
+                         f"{sec['n_segments']} segments)")
+        for name, (k, key) in DRIFT_STATISTICS.items():
+            if k != kind:
+                continue
+            stats[name] = math.nan if sec is None else _num(sec[key])
+            arrays[name] = np.array([_num(r[key]) for r in rows], float)
+    return stats, arrays, "; ".join(words) or "none"
 
 
 def _title(metric: str, relation: str, result) -> str:
@@ -207,6 +249,9 @@ def evo_result(result, *, metric: str = "ape", relation: str = "trans_part",
     stats["nees_fraction_inside_95"] = (math.nan if nees is None
                                         else float(nees.fraction_inside_95))
     stats["nees_consistent"] = math.nan if nees is None else float(bool(nees.consistent))
+    everything = result.to_dict()
+    drift_stats, drift_arrays, drift_words = _drift_entries(everything.get("drift"))
+    stats.update(drift_stats)
 
     t = np.asarray(result.t, dtype=float)
     gt_pos = np.asarray(result.gt.position, dtype=float)
@@ -225,6 +270,7 @@ def evo_result(result, *, metric: str = "ape", relation: str = "trans_part",
     if result.alignment.method != "none":
         arrays["alignment_transformation_sim3"] = result.alignment.as_matrix()
     arrays["nees"] = nees_values
+    arrays.update({k: drift_arrays[k] for k in DRIFT_ARRAYS})
 
     if positions:
         identity = np.tile([0.0, 0.0, 0.0, 1.0], (t.size, 1))
@@ -249,9 +295,9 @@ def evo_result(result, *, metric: str = "ape", relation: str = "trans_part",
         "alignment": result.alignment.method,
         "ground_truth": ("positions " if positions else "") + str(result.association.ground_truth),
         "nees_covariance": str(result.nees.covariance),
+        "drift_lengths": drift_words,
     }
-    return EvoResult(info, stats, arrays, {ref_key: ref_traj, est_key: est_traj},
-                     result.to_dict())
+    return EvoResult(info, stats, arrays, {ref_key: ref_traj, est_key: est_traj}, everything)
 
 
 def evo_result_bytes(res: EvoResult) -> bytes:

@@ -14,6 +14,11 @@ Three figures, each written as PNG and SVG:
 ``nees_histogram``
     Histograms (densities) of the position and pose NEES against the chi-square(3) and
     chi-square(6) densities, with the 95 % quantiles.
+``drift``
+    Drift by segment length (:mod:`rtsgt.evaluation.drift`): the translational (%) and
+    rotational (deg/m) drift over segments of ground-truth path, and per second over
+    segments of time, each length's mean with every segment's value behind it and the ground
+    truth's own floor (docs/evaluating.md#drift-by-segment-length).
 
 The lines along time (the errors, the sigma lines and bands, the paths of the top view) break
 where the associated poses leave a gap, a step longer than
@@ -67,6 +72,10 @@ class EvalPlots:
         ``{"position": (counts, edges), "pose": (counts, edges)}`` of the NEES histograms.
     mounting_text : str or None
         The text box of the mounting and clock (None without a mounting).
+    drift : dict
+        ``{(kind, part): (lengths, mean, floor)}`` of the drift panels drawn (kind
+        ``distance`` or ``time``, part ``translation`` or ``rotation``; floor None without
+        one), in the units shown.
     """
 
     files: list[Path]
@@ -76,6 +85,7 @@ class EvalPlots:
     sigma_xyz: np.ndarray | None
     hist: dict = field(default_factory=dict)
     mounting_text: str | None = None
+    drift: dict = field(default_factory=dict)
 
 
 def _pm(value: str, sigma: float | None, fmt: str) -> str:
@@ -273,6 +283,63 @@ def _nees_figure(result) -> tuple[Figure, dict]:
     return fig, hist
 
 
+#: The drift panels: (kind, part) -> (scale of the stored value, y label, x label).
+DRIFT_PANELS = {
+    ("distance", "translation"): (100.0, "translational drift (%)", "segment length (m of path)"),
+    ("distance", "rotation"): (float(np.degrees(1.0)), "rotational drift (deg/m)",
+                               "segment length (m of path)"),
+    ("time", "translation"): (1e3, "translational drift (mm/s)", "segment length (s)"),
+    ("time", "rotation"): (float(np.degrees(1.0)), "rotational drift (deg/s)",
+                           "segment length (s)"),
+}
+
+
+def _drift_panel(ax, seg, part: str, scale: float) -> tuple | None:
+    """One panel: every segment's drift (grey), each length's mean, the ground truth's floor;
+    returns (lengths, mean, floor) as drawn, None when there is nothing to draw."""
+    per_seg = getattr(seg, f"{part}_error")
+    if per_seg is None or seg.segments.first.size == 0:
+        return None
+    lengths = seg.lengths
+    x = lengths[seg.segments.which]
+    ax.plot(x, scale * per_seg, ".", color="0.7", ms=2, label="segments")
+    mean = scale * getattr(seg, part)
+    ax.plot(lengths, mean, "o-", color="k", lw=1.0, label="mean (KITTI)")
+    floor = getattr(seg, f"{part}_floor")
+    if floor is not None:
+        floor = scale * floor
+        ax.plot(lengths, floor, "--", color="tab:red", lw=1.0,
+                label="ground truth's floor (rms)")
+    ax.set_yscale("log")
+    ax.legend(fontsize="x-small")
+    return lengths, mean, floor
+
+
+def _drift_figure(result) -> tuple[Figure, dict]:
+    """The drift figure (module docstring) and what each panel drew."""
+    drift = getattr(result, "drift", None)
+    fig = Figure(figsize=(10, 7))
+    axes = fig.subplots(2, 2)
+    drawn = {}
+    for (kind, part), ax in zip(DRIFT_PANELS, axes.ravel(), strict=True):
+        scale, ylabel, xlabel = DRIFT_PANELS[(kind, part)]
+        seg = None if drift is None else getattr(drift, kind)
+        out = None if seg is None else _drift_panel(ax, seg, part, scale)
+        if out is None:
+            why = ("rotational drift not estimable:\nposition-only ground truth"
+                   if part == "rotation" and drift is not None and drift.rotation
+                   else "no segment")
+            ax.text(0.5, 0.5, why, ha="center", va="center", transform=ax.transAxes)
+        else:
+            drawn[(kind, part)] = out
+            if kind == "time":
+                ax.set_xscale("log")
+        ax.set_ylabel(ylabel)
+        ax.set_xlabel(xlabel)
+    fig.suptitle("Drift by segment length against the ground truth's own")
+    return fig, drawn
+
+
 def plot_evaluation(
     result,
     out_dir: str | PathLike,
@@ -312,5 +379,8 @@ def plot_evaluation(
         _save(fig, tmp, "top_view", files)
         fig, hist = _nees_figure(result)
         _save(fig, tmp, "nees_histogram", files)
+        fig, drift = _drift_figure(result)
+        _save(fig, tmp, "drift", files)
     files = [output.final / p.name for p in files]
-    return EvalPlots(files, n_ell, scale, sig_norm, sig_xyz, hist, mounting_text(result))
+    return EvalPlots(files, n_ell, scale, sig_norm, sig_xyz, hist, mounting_text(result),
+                     drift)
