@@ -1,32 +1,8 @@
-r"""Posterior cross-covariance of a GP track between two times.
+"""Cross-covariance of a GP track's posterior between two query times (the relative pose of
+the RPE), from the Gauss-Markov chain of the knots and the bridges of the intervals.
 
-The relative pose between two ground-truth times needs ``Cov(x(tau_1), x(tau_2))``, not only
-the marginals that :meth:`rtsgt.interpolation.gp.GPTrack.query` returns.
-
-The smoothed posterior of the GP (WNOA or WNOJ prior; the state ``x`` is ``[p; v]`` or
-``[p; v; a]``) is Gauss-Markov along the knots, so for knots
-``a < b``:
-
-    ``Cov(x_a, x_b) = Cov(x_a, x_{b-1}) S_{b-1}^-1 C_{b-1}``,
-
-with ``S`` the knot marginals and ``C_k = Cov(x_k, x_{k+1})`` the lag-one cross-covariances
-(a product of ``b - a`` factors). A query time in the interval ``[t_k, t_{k+1}]`` is
-``x(tau) = W(tau) [x_k; x_{k+1}] + w(tau)`` (``W = [Lambda, Psi]``, docs/interpolation.md) with a
-bridge term ``w`` independent of every knot and of the bridge terms of other intervals; two
-times of the same interval share their bridge, whose cross-covariance for
-``tau_1 <= tau_2`` is (condition the prior from ``x_k`` on ``x_{k+1}``)
-
-    ``Q(tau_1 - t_k) Phi(tau_2 - tau_1)^T
-      - Q(tau_1 - t_k) Phi(t_{k+1} - tau_1)^T Q(t_{k+1} - t_k)^-1 Phi(t_{k+1} - tau_2) Q(tau_2 - t_k)``,
-
-which for ``tau_1 = tau_2`` is the query's own bridge variance (times the interval's scale of
-``Qc`` where it follows the motion, :attr:`GPTrack.qc_scale`; ``W`` does not depend on it).
-A time on a knot is that knot (``W = [I, 0]``, no bridge).
-
-The joint covariance of many times (:func:`gp_joint_covariance`) fills the knot covariances
-between every pair of the knots involved diagonal by diagonal, ``Cov(x_a, x_{a+m}) =
-Cov(x_a, x_{a+m-1}) S_{a+m-1}^-1 C_{a+m-1}`` (one batched product per diagonal), rather than
-walking the chain once per pair of times.
+Owns :func:`gp_cross_covariance` and :func:`gp_joint_covariance`. Formulas:
+docs/interpolation.md#cross-covariance-between-times.
 """
 
 from __future__ import annotations

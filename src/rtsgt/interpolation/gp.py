@@ -1,111 +1,13 @@
-r"""Exact Gaussian-process interpolation of a prism track with a white-noise-on-acceleration
-(WNOA, the paper's) or a white-noise-on-jerk (WNOJ) prior.
+"""Exact Gaussian-process interpolation of a prism track, white noise on the acceleration
+(WNOA, the paper's) or on the jerk (WNOJ) (Barfoot, Tong and Särkkä 2014).
 
-Model (docs/interpolation.md; Barfoot, Tong and Särkkä 2014, "Batch continuous-time trajectory
-estimation as exactly sparse Gaussian process regression", RSS)
----------------------------------------------------------------------------------------------
-The state of a prism is ``x = [p; v]`` (position, m, and velocity, m/s, in the frame of the
-track), driven by white noise on the acceleration with power spectral density ``Qc`` (3x3,
-m^2/s^3). Between two times ``s < t`` with ``dt = t - s``:
-
-.. math::
-
-    x(t) = \Phi(dt)\,x(s) + w,\quad w \sim N(0, Q(dt)),\qquad
-    \Phi(dt) = \begin{bmatrix} I & dt\,I \\ 0 & I \end{bmatrix},\quad
-    Q(dt) = \begin{bmatrix} dt^3/3\,Q_c & dt^2/2\,Q_c \\ dt^2/2\,Q_c & dt\,Q_c \end{bmatrix}
-
-and each measurement is ``y_k = p(t_k) + n_k``, ``n_k ~ N(0, Sigma_k)`` with a full 3x3
-covariance per measurement.
-
-White noise on the jerk (``prior="wnoj"``)
-------------------------------------------
-The state is ``x = [p; v; a]`` (9 components), driven by white noise on the jerk with power
-spectral density ``Qc`` (m^2/s^5):
-
-.. math::
-
-    \Phi(dt) = \begin{bmatrix} 1 & dt & dt^2/2 \\ 0 & 1 & dt \\ 0 & 0 & 1 \end{bmatrix}
-    \otimes I_3,\quad
-    Q(dt) = \begin{bmatrix} dt^5/20 & dt^4/8 & dt^3/6 \\ dt^4/8 & dt^3/3 & dt^2/2 \\
-    dt^3/6 & dt^2/2 & dt \end{bmatrix} \otimes Q_c
-
-with ``Q(dt)^-1 = [[720/dt^5, -360/dt^4, 60/dt^3], [-360/dt^4, 192/dt^3, -36/dt^2],
-[60/dt^3, -36/dt^2, 9/dt]] (x) Qc^-1`` and ``|Q(dt)| = (dt^9 / 8640)^3 |Qc|^3``. Its mean
-paths are piecewise quintic (WNOA: cubic): velocity *and* acceleration are continuous, so a
-robot that brakes or turns smoothly is no surprise to it, and across a gap its bridge variance
-grows as ``D^5`` instead of ``D^3``. Everything below holds for both priors with blocks of 9
-instead of 6 (:mod:`rtsgt.interpolation.windows` chooses between them per track). The diffuse
-prior is on the 9 components of ``x(t_0)``: the posterior is proper from 3 measurements, and
-the first three fix the state in the prediction-error decomposition
-(``log p(y_0, y_1, y_2) = -3 log(d_1 d_2 (d_2 - d_1) / 2)``, ``d_i = t_i - t_0``).
-
-Prior on the first state
-------------------------
-By default the prior on ``x(t_0)`` is **diffuse**: an improper flat density on the six
-components of ``x(t_0)`` (zero prior information on position and velocity). The posterior is
-then the limit of the posterior under a Gaussian prior ``N(m0, P0)`` when ``P0^-1 -> 0``; it is
-proper as soon as the track has two measurements, it does not depend on any arbitrary number,
-and it is translation-equivariant (shifting every measurement shifts the posterior mean).
-Because a flat density pushed through the prior stays flat, placing the diffuse prior at any
-time before ``t_0`` gives the same posterior (used for extrapolation before ``t_0``).
-A proper Gaussian prior ``N(m0, P0)`` on ``x(t_0)`` can be given instead.
-
-Algorithm
----------
-The negative log posterior is a quadratic form with a block-tridiagonal information matrix
-``J`` (6x6 blocks): ``J_kk = Qinv_{k-1} + Phi_k^T Qinv_k Phi_k + H^T Sigma_k^-1 H``,
-``J_k,k+1 = -Phi_k^T Qinv_k``, right-hand side ``h_k = H^T Sigma_k^-1 y_k`` (plus ``P0^-1`` and
-``P0^-1 m0`` at ``k = 0`` for a proper prior). It is solved exactly by **block cyclic
-reduction**: odd-indexed blocks are eliminated (Schur complement onto the even blocks) level
-after level, each level one batched numpy operation over all the blocks it eliminates; the back
-substitution recovers the posterior means and the selected inverse of ``J``: the marginal
-covariance of every knot and the lag-one cross-covariances ``Cov(x_k, x_k+1)``. Block cyclic
-reduction is block Gaussian elimination of the SPD matrix ``J`` in an odd-even order, so it is
-a (stable) block Cholesky factorisation; it gives the same posterior as a Kalman filter followed
-by a Rauch-Tung-Striebel smoother, in O(N) operations (N + N/2 + N/4 + ...) with O(log N)
-Python steps, instead of N sequential Python steps.
-
-Marginal likelihood
--------------------
-With ``c = sum_k y_k^T Sigma_k^-1 y_k`` (plus the prior term), the marginal likelihood (for the
-diffuse prior: the density of the data with ``x(t_0)`` integrated over Lebesgue measure, the
-"diffuse likelihood" of de Jong 1991) is
-
-.. math::
-
-    \log L = -\tfrac12 (c - h^T J^{-1} h) - \tfrac12 \sum_k \log|Sigma_k|
-             - \tfrac12 \sum_k \log|Q(dt_k)| - \tfrac12 \log|J| + \text{const}
-
-with const ``= (d/2 - 1.5 N) log(2 pi)`` for the diffuse prior on the ``d`` components of
-the state (``3 - 1.5 N`` for WNOA) and
-``-1.5 N log(2 pi) - 0.5 log|P0|`` for a proper prior. ``c - h^T J^-1 h`` is evaluated as the
-sum of the whitened residuals (measurements and prior increments) at the posterior mean, which
-avoids cancellation, and ``log|J|`` comes from the Cholesky factors of the pivots of the cyclic
-reduction. This is the same number as the prediction-error decomposition of the exact diffuse
-Kalman filter, ``log L = -3 log(t_1 - t_0) + sum_{k>=2} log N(e_k; 0, S_k)`` with ``e_k, S_k``
-the innovations and their covariances (the first two measurements fix the state; the first
-term is the Jacobian of that change of variables); the tests check both identities.
-
-Queries (docs/interpolation.md#queries)
----------------------------------------
-At a time ``tau`` between knots ``k`` and ``k+1`` (``s = (tau - t_k) / (t_k+1 - t_k)``)
-the posterior is the conditional Gaussian given both knot states:
-``Psi = Q(tau-t_k) Phi(t_k+1-tau)^T Q(t_k+1-t_k)^-1``,
-``Lambda = Phi(tau-t_k) - Psi Phi(t_k+1-t_k)``, mean ``Lambda x_k + Psi x_k+1``, covariance
-``[Lambda Psi] P_(k,k+1) [Lambda Psi]^T + Q(tau-t_k) - Psi Phi(t_k+1-tau) Q(tau-t_k)``.
-For this prior ``Lambda`` and ``Psi`` do not depend on ``Qc``: they are the cubic Hermite
-basis (``Psi[p,p] = 3 s^2 - 2 s^3`` ...), evaluated here in closed form in ``s``; the last
-term is ``kron(q, Qc)`` with ``q = [[D^3 s^3 (1-s)^3 / 3, D^2 s^2 (1-s)^2 (1-2s) / 2], [.,
-D s (1-s) (1 - 3s + 3s^2)]]``, ``D = t_k+1 - t_k``. For WNOJ ``Lambda``, ``Psi`` and the
-bridge are evaluated on the unit interval and scaled (``Phi(s D) = T Phi_1(s) T^-1``,
-``Q(s D) = D T Q_1(s) T``, ``T = diag(D^2, D, 1)``), the bridge from the nearer knot (time
-reversal flips the sign of the velocity), so that it loses no digits to cancellation. A query
-exactly on a knot returns that
-knot's posterior. After the last knot the prediction is ``Phi(d) x_N`` with covariance
-``Phi P_N Phi^T + Q(d)``; before the first knot (flat prior at the query time) it is
-``Phi(-d) x_0`` with covariance ``Phi(-d) (P_0 + Q(d)) Phi(-d)^T``. Extrapolation and
-interpolation across a gap longer than ``max_gap_s`` are refused unless asked for, and then
-flagged.
+Owns the prior (``Phi``, ``Q``, their inverses), the block-tridiagonal posterior solved by block
+cyclic reduction (:func:`_bcr`), the marginal likelihood and ``Qc`` by its maximum
+(:func:`fit_qc`), the queries between and beyond knots, and :class:`GPTrack`. The model, the
+diffuse prior on the first state, the solver, the likelihood (with its identity to the diffuse
+Kalman filter's prediction-error decomposition) and the query formulas are in
+docs/interpolation.md (#wnoa-prior, #wnoj-prior, #posterior, #queries,
+#qc-by-marginal-likelihood).
 """
 
 from __future__ import annotations
@@ -714,91 +616,31 @@ def _chol_solver(a: np.ndarray):
 
 def _bcr(system: list, want_cov: bool, cholesky: bool = False, want_logdet: bool = True,
          want_cross: bool = True, offset: int = 0):
-    """Solve ``J x = h`` for a block-tridiagonal SPD ``J`` by block cyclic reduction.
+    """Solve ``J x = h`` for a block-tridiagonal SPD ``J`` by block cyclic reduction
+    (docs/interpolation.md#posterior): level by level the odd blocks are eliminated onto the
+    even ones (:func:`_reduce_level`), then substituted back (:func:`_substitute_level`).
 
-    Level by level, the odd-indexed blocks are eliminated (Schur complement onto the even
-    blocks); an odd block without a right neighbour (even count) gets a zero coupling.
+    ``system`` is ``[D, B, h]`` (D (N, d, d) the diagonal blocks, B (N-1, d, d) the blocks
+    ``J_k,k+1``, h (N, d); d = 6 for WNOA, 9 for WNOJ), emptied here so that each level's
+    blocks are freed once reduced (about 5 blocks per knot at the peak). ``cholesky`` applies
+    the pivots through their Cholesky factors (WNOJ, whose blocks span more orders of
+    magnitude); without ``want_logdet`` ``log|J|`` is 0. ``offset``: the system is the part,
+    from block ``offset`` on, of a larger uncoupled one (:func:`_posteriors`), eliminated in
+    the order of the whole, so that it gets the whole's numbers bit for bit.
 
-    Generic in the block size ``d`` (6 for WNOA, 9 for WNOJ). With ``cholesky`` the pivots are
-    applied through their Cholesky factors instead of their inverses: the WNOJ blocks span
-    more orders of magnitude (``720 / dt^5`` next to ``9 / dt``), where this keeps about 40
-    times more of the digits (the WNOA solution keeps its inverses, unchanged).
-
-    Without ``want_logdet`` (the leave-one-out search needs only the posterior) the inverse
-    pivots of WNOA are not factored a second time for ``log|J|``, which is then 0.
-
-    Memory: ``system`` is the list ``[D, B, h]`` (D (N, d, d) the diagonal blocks, B (N-1, d, d)
-    the blocks ``J_k,k+1``, h (N, d)), emptied here, so that each level's blocks are freed once
-    reduced (when the caller holds no other reference to them); a level's pivots are freed
-    once its back substitution is done, and the temporaries are updated in place (the same
-    operations in the same order: the results are those of the allocating form, bit for bit).
-    The peak is about 5 blocks per knot instead of 13.
-
-    ``offset``: the system is a part, from block ``offset`` on, of a larger one that it is
-    uncoupled from (zero blocks of ``J`` between them, as :func:`_posteriors` stacks them): its
-    blocks are eliminated in the order of the whole, level by level (where its first block
-    has an odd index there, a block with zero coupling stands in for the blocks before it), so
-    that its solution is the one the whole system would give it, bit for bit (a block of the
-    whole left alone is eliminated as the last block of a part is inverted).
-
-    Returns
-    -------
-    mean : (N, d)
-    logdet : float, ``log|J|``
-    S : (N, d, d) diagonal blocks of ``J^-1`` or None
-    C : (N-1, d, d) blocks ``(J^-1)_k,k+1``, or None (without ``want_cov`` or ``want_cross``)
+    Returns ``mean`` (N, d), ``log|J|``, ``S`` (N, d, d) the diagonal blocks of ``J^-1`` (None
+    without ``want_cov``) and ``C`` (N-1, d, d) its blocks ``(J^-1)_k,k+1`` (None without
+    ``want_cov`` or ``want_cross``).
     """
-    D, B, h = system
-    system.clear()
-    dim = D.shape[-1]
+    dim = system[0].shape[-1]
     levels = []
     logdet = 0.0
-    while D.shape[0] > 1:
-        lead = offset % 2 == 1  # the first block is odd in the whole: eliminated now
-        if lead:
-            D = np.concatenate([np.eye(dim)[None], D])
-            B = np.concatenate([np.zeros((1, dim, dim)), B])
-            h = np.concatenate([np.zeros((1, dim)), h])
-        offset = (offset + 1) // 2  # the index of the first even block, at the next level
-        n = D.shape[0]
-        n_even = (n + 1) // 2
-        n_odd = n // 2
-        b_left = B[0::2]  # J_{i-1,i} for odd i
-        b_right = B[1::2]  # J_{i,i+1} for odd i (none for the last odd when n is even)
-        if n % 2 == 0:
-            b_right = np.concatenate([b_right, np.zeros((1, dim, dim))])
-        b_left_t = np.swapaxes(b_left, 1, 2)
-        b_right_t = np.swapaxes(b_right, 1, 2)
-        if cholesky:
-            ld, d_inv, solve = _chol_solver(D[1::2])
-            logdet += ld
-            ga = solve(b_left_t)  # D_i^-1 J_{i,i-1}
-            gb = solve(b_right)  # D_i^-1 J_{i,i+1}
-            g = solve(h[1::2, :, None])[..., 0]
-            del solve
-        else:
-            if want_logdet:
-                logdet += _chol_logdet(D[1::2])
-            d_inv = _sym(np.linalg.inv(D[1::2]))
-            ga = d_inv @ b_left_t  # D_i^-1 J_{i,i-1}
-            gb = d_inv @ b_right  # D_i^-1 J_{i,i+1}
-            g = np.einsum("nij,nj->ni", d_inv, h[1::2])
-        # Schur complement onto the even blocks
-        d_even = D[0::2].copy()
-        del D
-        d_even[:n_odd] -= b_left @ ga
-        d_even[1:] -= (b_right_t @ gb)[: n_even - 1]
-        h_even = h[0::2].copy()
-        h_even[:n_odd] -= np.einsum("nij,nj->ni", b_left, g)
-        h_even[1:] -= np.einsum("nij,nj->ni", b_right_t, g)[: n_even - 1]
-        b_even = b_left @ gb
-        del B, b_left, b_right, b_left_t, b_right_t
-        np.negative(b_even, out=b_even)
-        levels.append((d_inv, ga, gb, g, n, lead))
-        D, B, h = _sym(d_even), b_even[: n_even - 1], h_even
-        if lead:  # the stand-in block (kept, first) is not the system's
-            D, B, h = D[1:], B[1:], h[1:]
-        del d_even, d_inv, ga, gb, b_even
+    while system[0].shape[0] > 1:
+        level, ld, offset = _reduce_level(system, offset, cholesky, want_logdet)
+        levels.append(level)
+        logdet += ld
+    D, B, h = system
+    system.clear()
     if cholesky:
         ld, s0, solve = _chol_solver(D)
         logdet += ld
@@ -809,67 +651,147 @@ def _bcr(system: list, want_cov: bool, cholesky: bool = False, want_logdet: bool
         s0 = _sym(np.linalg.inv(D))
         mean = np.einsum("nij,nj->ni", s0, h)
     del D, B, h
-    S = s0 if want_cov else None
-    C = np.zeros((0, dim, dim)) if want_cov else None
-    del s0
+    state = [mean, s0 if want_cov else None, np.zeros((0, dim, dim)) if want_cov else None]
+    del mean, s0
     while levels:
-        d_inv, ga, gb, g, n, lead = levels.pop()
-        if lead:  # the stand-in block again, coupled to nothing (its values multiply zeros)
-            mean = np.concatenate([np.zeros((1, dim)), mean])
-            if want_cov:
-                S = np.concatenate([np.eye(dim)[None], S])
-                C = np.concatenate([np.zeros((1, dim, dim)), C])
-        m_e = mean
-        if n % 2 == 0:  # a zero neighbour to the right of the last odd block
-            m_e = np.concatenate([m_e, np.zeros((1, dim))])
-        m_o = g - np.einsum("nij,nj->ni", ga, m_e[:-1]) - np.einsum("nij,nj->ni", gb, m_e[1:])
-        mean = np.empty((n, dim))
-        mean[0::2] = m_e[: (n + 1) // 2]
-        mean[1::2] = m_o
-        del m_e, m_o, g
-        if want_cov:
-            s_e, c_e = S, C
-            del S, C
-            if n % 2 == 0:
-                s_e = np.concatenate([s_e, np.zeros((1, dim, dim))])
-                c_e = np.concatenate([c_e, np.zeros((1, dim, dim))])
-            # rows i (odd) of J Sigma = I, neighbours a = i-1 and b = i+1:
-            # Sigma_ia = -(G_a Sigma_aa + G_b Sigma_ba), Sigma_ib = -(G_a Sigma_ab + G_b Sigma_bb)
-            s_ia = ga @ s_e[:-1]
-            s_ia += gb @ np.swapaxes(c_e, 1, 2)
-            np.negative(s_ia, out=s_ia)
-            s_ib = ga @ c_e
-            del c_e
-            s_ib += gb @ s_e[1:]
-            np.negative(s_ib, out=s_ib)
-            # Sigma_ii = D_i^-1 - G_a Sigma_ai - G_b Sigma_bi (in d_inv, not needed again)
-            s_ii = d_inv
-            del d_inv
-            s_ii -= ga @ np.swapaxes(s_ia, 1, 2)
-            del ga
-            s_ii -= gb @ np.swapaxes(s_ib, 1, 2)
-            del gb
-            S = np.empty((n, dim, dim))
-            S[0::2] = s_e[: (n + 1) // 2]
-            del s_e
-            S[1::2] = _sym(s_ii)
-            del s_ii
-            C = None
-            if want_cross or levels:
-                C = np.empty((n - 1, dim, dim))
-                C[0::2] = np.swapaxes(s_ia, 1, 2)
-                C[1::2] = s_ib[: (n - 1) // 2]
-            del s_ia, s_ib
-            if lead:
-                S = S[1:]
-                C = None if C is None else C[1:]
-        else:
-            del d_inv, ga, gb
-        if lead:
-            mean = mean[1:]
+        _substitute_level(levels.pop(), state, want_cov, want_cross or bool(levels))
+    mean, S, C = state
     if want_cov and not want_cross:
         C = None
     return mean, logdet, S, C
+
+
+def _reduce_level(system: list, offset: int, cholesky: bool, want_logdet: bool):
+    """One level of :func:`_bcr`'s reduction: the odd blocks of ``system = [D, B, h]``
+    eliminated, the Schur complement onto the even blocks left in ``system`` (the old blocks
+    dropped as soon as they are used). Returns the level's factors for the back substitution,
+    its share of ``log|J|`` and the offset of the next level."""
+    D, B, h = system
+    system.clear()
+    dim = D.shape[-1]
+    logdet = 0.0
+    lead = offset % 2 == 1  # the first block is odd in the whole: eliminated now
+    if lead:
+        D = np.concatenate([np.eye(dim)[None], D])
+        B = np.concatenate([np.zeros((1, dim, dim)), B])
+        h = np.concatenate([np.zeros((1, dim)), h])
+    offset = (offset + 1) // 2  # the index of the first even block, at the next level
+    n = D.shape[0]
+    n_even = (n + 1) // 2
+    n_odd = n // 2
+    b_left = B[0::2]  # J_{i-1,i} for odd i
+    b_right = B[1::2]  # J_{i,i+1} for odd i (none for the last odd when n is even)
+    if n % 2 == 0:
+        b_right = np.concatenate([b_right, np.zeros((1, dim, dim))])
+    b_left_t = np.swapaxes(b_left, 1, 2)
+    b_right_t = np.swapaxes(b_right, 1, 2)
+    if cholesky:
+        ld, d_inv, solve = _chol_solver(D[1::2])
+        logdet += ld
+        ga = solve(b_left_t)  # D_i^-1 J_{i,i-1}
+        gb = solve(b_right)  # D_i^-1 J_{i,i+1}
+        g = solve(h[1::2, :, None])[..., 0]
+        del solve
+    else:
+        if want_logdet:
+            logdet += _chol_logdet(D[1::2])
+        d_inv = _sym(np.linalg.inv(D[1::2]))
+        ga = d_inv @ b_left_t  # D_i^-1 J_{i,i-1}
+        gb = d_inv @ b_right  # D_i^-1 J_{i,i+1}
+        g = np.einsum("nij,nj->ni", d_inv, h[1::2])
+    # Schur complement onto the even blocks
+    d_even = D[0::2].copy()
+    del D
+    d_even[:n_odd] -= b_left @ ga
+    d_even[1:] -= (b_right_t @ gb)[: n_even - 1]
+    h_even = h[0::2].copy()
+    h_even[:n_odd] -= np.einsum("nij,nj->ni", b_left, g)
+    h_even[1:] -= np.einsum("nij,nj->ni", b_right_t, g)[: n_even - 1]
+    b_even = b_left @ gb
+    del B, b_left, b_right, b_left_t, b_right_t
+    np.negative(b_even, out=b_even)
+    D, B, h = _sym(d_even), b_even[: n_even - 1], h_even
+    del d_even, b_even
+    if lead:  # the stand-in block (kept, first) is not the system's
+        D, B, h = D[1:], B[1:], h[1:]
+    system.extend((D, B, h))
+    return (d_inv, ga, gb, g, n, lead), logdet, offset
+
+
+def _substitute_level(level: tuple, state: list, want_cov: bool, want_cross: bool) -> None:
+    """One level of :func:`_bcr`'s back substitution: ``state = [mean, S, C]`` of the even
+    blocks replaced by those of all the level's blocks (``S``, ``C`` None without
+    ``want_cov``; ``C`` None without ``want_cross``)."""
+    d_inv, ga, gb, g, n, lead = level
+    del level
+    mean, S, C = state
+    state.clear()
+    dim = mean.shape[-1]
+    if lead:  # the stand-in block again, coupled to nothing (its values multiply zeros)
+        mean = np.concatenate([np.zeros((1, dim)), mean])
+        if want_cov:
+            S = np.concatenate([np.eye(dim)[None], S])
+            C = np.concatenate([np.zeros((1, dim, dim)), C])
+    m_e = mean
+    if n % 2 == 0:  # a zero neighbour to the right of the last odd block
+        m_e = np.concatenate([m_e, np.zeros((1, dim))])
+    m_o = g - np.einsum("nij,nj->ni", ga, m_e[:-1]) - np.einsum("nij,nj->ni", gb, m_e[1:])
+    mean = np.empty((n, dim))
+    mean[0::2] = m_e[: (n + 1) // 2]
+    mean[1::2] = m_o
+    del m_e, m_o, g
+    if want_cov:
+        factors = [d_inv, ga, gb, S, C]
+        del d_inv, ga, gb, S, C
+        S, C = _substitute_covariance(factors, n, want_cross)
+        if lead:
+            S = S[1:]
+            C = None if C is None else C[1:]
+    else:
+        del d_inv, ga, gb
+    if lead:
+        mean = mean[1:]
+    state.extend((mean, S, C))
+
+
+def _substitute_covariance(factors: list, n: int, want_cross: bool):
+    """The selected inverse of one level (:func:`_substitute_level`): the diagonal blocks
+    ``S`` (n, d, d) and, with ``want_cross``, the blocks ``C`` (n-1, d, d) of ``J^-1`` from
+    ``factors = [d_inv, ga, gb, s_e, c_e]`` (the level's factors and the even blocks' ``S``
+    and ``C``; emptied here, so that each is freed once used). Rows i (odd) of
+    ``J Sigma = I``, neighbours a = i-1 and b = i+1: ``Sigma_ia = -(G_a Sigma_aa + G_b
+    Sigma_ba)``, ``Sigma_ib = -(G_a Sigma_ab + G_b Sigma_bb)``, ``Sigma_ii = D_i^-1 - G_a
+    Sigma_ai - G_b Sigma_bi`` (in ``d_inv``, not needed again)."""
+    d_inv, ga, gb, s_e, c_e = factors
+    factors.clear()
+    dim = s_e.shape[-1]
+    if n % 2 == 0:
+        s_e = np.concatenate([s_e, np.zeros((1, dim, dim))])
+        c_e = np.concatenate([c_e, np.zeros((1, dim, dim))])
+    s_ia = ga @ s_e[:-1]
+    s_ia += gb @ np.swapaxes(c_e, 1, 2)
+    np.negative(s_ia, out=s_ia)
+    s_ib = ga @ c_e
+    del c_e
+    s_ib += gb @ s_e[1:]
+    np.negative(s_ib, out=s_ib)
+    s_ii = d_inv
+    del d_inv
+    s_ii -= ga @ np.swapaxes(s_ia, 1, 2)
+    del ga
+    s_ii -= gb @ np.swapaxes(s_ib, 1, 2)
+    del gb
+    S = np.empty((n, dim, dim))
+    S[0::2] = s_e[: (n + 1) // 2]
+    del s_e
+    S[1::2] = _sym(s_ii)
+    del s_ii
+    C = None
+    if want_cross:
+        C = np.empty((n - 1, dim, dim))
+        C[0::2] = np.swapaxes(s_ia, 1, 2)
+        C[1::2] = s_ib[: (n - 1) // 2]
+    return S, C
 
 
 def _solve(data: _Data, qc: np.ndarray, want_cov: bool, scale: np.ndarray | None = None):

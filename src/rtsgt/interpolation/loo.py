@@ -1,52 +1,10 @@
-r"""Qc by leave-one-out cross-validation: calibrate the GP for what it is used for, interpolation.
+"""``Qc`` by leave-one-out cross-validation: each measurement predicted from all the others
+(the interpolation the ground truth performs), from the smoothed posterior without refitting.
 
-Why not only the marginal likelihood
-------------------------------------
-The marginal likelihood (:func:`rtsgt.interpolation.gp.fit_qc`) scores one-step *predictions*
-(the filter's innovations): from the past alone, every change of velocity is a surprise, so a
-robot that accelerates, brakes and turns smoothly gets a large ``Qc``. The ground truth is not
-a prediction but an *interpolation* between measurements on both sides, where a smooth change
-of velocity is no surprise at all. With the likelihood's ``Qc`` the bridge variance between two
-knots (``Qc D^3 s^3 (1-s)^3 / 3`` and the loss of correlation) dominates, and the interpolated
-covariance overstates the error; on simulated deployments by a factor of about 2 in variance
-(NEES / dof of 0.4 at 5 Hz queries between 2.5 Hz measurements, while the same GP is calibrated
-at its knots).
-
-Leave-one-out (Rasmussen & Williams 2006, section 5.4.2) scores exactly interpolation: each
-measurement ``y_k`` is predicted from all the others, and ``Qc`` maximises the sum of the
-log predictive densities
-
-    ``L_LOO(Qc) = sum_k log N(y_k; mu_-k, Sigma_-k + R_k)``.
-
-The predictive from the others comes from the smoothed posterior without refitting: the
-measurement only informs the position ``p_k``, and the position marginal of the posterior is the
-Gaussian update of the others' marginal by ``y_k``, so in information form
-
-    ``Sigma_-k^-1 = P_k^-1 - R_k^-1``,
-    ``mu_-k = Sigma_-k (P_k^-1 m_k - R_k^-1 y_k)``
-
-with ``(m_k, P_k)`` the smoothed position mean and covariance at the knot. Equivalently, and
-what is computed (no inverse of ``P_k``, one 3x3 Cholesky factor per knot), with
-``A_k = R_k - P_k``:
-
-    ``y_k - mu_-k = R_k A_k^-1 (y_k - m_k)``,  ``Sigma_-k + R_k = R_k A_k^-1 R_k``,
-
-so the normalised squared residual is ``(y_k - m_k)^T A_k^-1 (y_k - m_k)`` and
-``log|Sigma_-k + R_k| = 2 log|R_k| - log|A_k|``. The track is validated once for the whole
-search, and a candidate costs one smoother pass (:class:`LooScorer`): a bounded scalar search
-in ``log q`` for an isotropic ``Qc = q I``, then, with ``mode="per-axis"`` (the pipeline's
-default), L-BFGS-B over the three ``log q_i`` of a diagonal ``Qc`` started there
-(:func:`maximise`: forward differences, each point scored with its three steps in one solve;
-on 30 prism tracks of simulated deployments it reached the maximum of the Nelder-Mead search
-used before, or higher by up to 0.01, the whole fit 20 % faster). Per axis matters: a ground
-robot manoeuvres in the horizontal plane and barely in the vertical one, and one isotropic
-``q`` then overstates the vertical interpolation error and understates the horizontal one (by
-about 1.5 in variance on simulated deployments). A knot counts only when it has neighbours on
-both sides within ``max_gap_s`` (the interpolation a query performs); ends of the track and of
-its segments are left out.
-
-If the motion really is a white-noise-on-acceleration process, both criteria estimate the same
-``Qc`` (tested); if it is smoother, leave-one-out gives the smaller, honest one.
+Owns :class:`LooScorer` (a track checked once, any number of candidate ``Qc`` and per-interval
+scales scored in one solve), :func:`maximise` (L-BFGS-B with the forward-difference steps
+scored together) and :func:`fit_qc_loo` (isotropic, then per axis). Why not the marginal
+likelihood, the predictive's closed form and the search: docs/interpolation.md#qc-by-leave-one-out.
 """
 
 from __future__ import annotations

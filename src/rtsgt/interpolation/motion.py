@@ -1,49 +1,10 @@
-r"""A motion prior whose strength follows the motion: ``Qc`` per class of the robot's motion.
+"""A motion prior whose strength follows the motion: ``Qc`` scaled per class of the robot's
+motion (standing, and half-decades of acceleration), each scale by leave-one-out.
 
-Why
----
-One power spectral density ``Qc`` for a whole track (:mod:`rtsgt.interpolation.loo`) is an
-average over everything the robot did. Where it stands, the prism does not move at all and the
-average ``Qc`` lets the GP follow the measurement noise instead of averaging it out; where it
-brakes, starts or swerves, the average ``Qc`` is too small and the GP smooths the manoeuvre
-away. On the real excerpt of the 2022-11-10 deployment the inter-prism self-check
-(:mod:`rtsgt.checks.distances`) shows exactly this with one ``Qc`` per track: mean ``z^2`` 0.15
-while standing (pessimistic) and 4.2 between 0.05 and 0.8 m/s (optimistic).
-
-Model
------
-Interval ``k`` of a track (between its measurements ``k`` and ``k+1``) has
-``Qc_k = s_c Qc``: ``Qc`` is the track's constant leave-one-out ``Qc`` (per axis) and ``s_c``
-the scale of the interval's motion class ``c``:
-
-- ``standing``: the robot's speed is below :data:`STANDING_SPEED_M_S` throughout the interval;
-- otherwise the class of the largest acceleration of the robot during the interval, in
-  half-decade bins with edges :data:`ACCELERATION_EDGES_M_S2` (0.1, 0.3 and 1 m/s^2).
-
-The motion is the robot's, not the prism's: speed and acceleration come from the *pilot* GPs
-(constant ``Qc``) of every prism, at every measurement of every prism. So an interval of one
-prism's track that bridges a gap takes the class of what the other prisms saw meanwhile (the
-robot braked while one station had lost its prism). The acceleration at a measurement is
-``|v_k+1 - v_k| / (t_k+1 - t_k)`` from the pilot's posterior mean velocities, the larger of the
-measurement's two intervals; the speed is ``|v_k|``.
-
-Fit and choice
---------------
-The scales maximise the leave-one-out log predictive density of the track (the criterion of the
-constant ``Qc``: each measurement predicted from all the others, what a query between
-measurements does), by L-BFGS-B in ``log s_c``, bounded to a factor of about 10^6 either way and so that the
-largest axis of every ``s_c Qc`` stays in :data:`rtsgt.interpolation.gp.QC_BOUNDS`; the
-gradient by forward differences, the point and its steps scored together
-(:func:`rtsgt.interpolation.loo.maximise`). A class with fewer than :data:`MIN_INTERVALS`
-intervals joins the next slower class (a scale needs data). The classes are kept only where
-they predict the held-out measurements better than the constant ``Qc`` by more than one unit
-of log density per added scale; else the track keeps its constant ``Qc``. ``Qc`` is then no
-longer one number per axis but follows the motion, and the check above decides whether that
-made the covariance honest (docs/interpolation.md#motion-prior).
-
-The thresholds are physical round numbers (a robot standing still; half-decades of
-acceleration), chosen before looking at any deployment and the same for all; what adapts to a
-deployment is the scale of each class, fitted on its own measurements.
+Owns the classes (:data:`CLASS_NAMES`, :data:`STANDING_SPEED_M_S`,
+:data:`ACCELERATION_EDGES_M_S2`), the robot's motion from the pilot GPs of every prism
+(:func:`motion_events`), each interval's class and the fit and choice of the scales
+(:func:`fit_motion_prior`). Model, thresholds and evidence: docs/interpolation.md#motion-prior.
 """
 
 from __future__ import annotations

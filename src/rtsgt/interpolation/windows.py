@@ -1,54 +1,10 @@
-r"""Held-out windows of a prism track, predicted by its GP without refitting.
+"""Held-out windows of a prism track: the GP's prediction of each window of 1 s or 2 s of
+measurements from all the others, without refitting, and the motion prior chosen by them.
 
-What a window tests
--------------------
-Leave-one-out (:mod:`rtsgt.interpolation.loo`) scores single measurements, 0.8 s gaps at the
-2.5 Hz of a tracking total station. A ground-truth pose between measurements, or across a gap
-where a station lost its prism, is an interpolation across 1-3 s. Holding out *windows* of
-measurements, 1 s and 2 s long (:data:`BLOCK_LENGTHS_S`), makes the GP bridge gaps of about
-1.4 s and 2.4 s, and the prediction is judged against what the station measured there. Two
-uses: the block cross-validation self-check (:mod:`rtsgt.checks.block_cv`) judges the run's
-covariance by the windows' NEES; :func:`window_score` ranks two models of the same track by
-the windows' log predictive density (the choice of the motion prior per track,
-:func:`rtsgt.interpolation.prisms.fit_gps`; docs/interpolation.md, section "Choice of the
-prior").
-
-Windows
--------
-Each segment of a track (split where consecutive measurements are more than ``max_gap_s``
-apart) is cut from its first measurement into windows of alternating length, 1 s, 2 s, 1 s,
-2 s, ... Each window is held out in turn and predicted from *all* the other measurements
-(leave-one-window-out), with the GP's ``Qc`` and its per-interval scales fixed: no new search.
-A window is scored when the measurements on either side of it are at most ``max_gap_s`` apart
-(interpolation; the ends of the segments would be extrapolation).
-
-Prediction without refitting
-----------------------------
-A held-out measurement is ``y_i = p(t_i) + n_i``: the predicted covariance of the ``m``
-measurements of a window, jointly (they share the GP's error), is ``Sigma_w = P'_w +
-blockdiag(R_1 .. R_m)``, the GP's joint covariance at those times from the others plus the
-white covariance the GP is given. The GP is a linear Gaussian model, so none of this needs a
-refit: for the fit with every measurement, residuals ``r = y - mean`` and posterior covariance
-``P`` of the positions, the residuals of a window have covariance ``M_w = R_w - P_w``
-(``R_w`` the block-diagonal white covariance, ``P_w`` the posterior's joint covariance at the
-window's knots), and conditioning the joint Gaussian of the measurements gives
-
-    ``e_w = R_w M_w^-1 r_w``,   ``Sigma_w = R_w M_w^-1 R_w``,   so   ``NEES_w = r_w^T M_w^-1 r_w``
-
-(Rasmussen & Williams 2006, section 5.4.2, for a block). The log predictive density of the
-window's measurements is then
-
-    ``log p(y_w | y_-w) = -0.5 (NEES_w + log|Sigma_w| + 3 m log 2 pi)``,
-    ``log|Sigma_w| = 2 log|R_w| - log|M_w|``.
-
-(``-0.5 (NEES_w + log|M_w| + ...)`` is the density of the in-sample residuals ``r_w``, not a
-prediction: it differs by ``log|M_w| - log|R_w|``, which depends on the model, and rewards a
-model that follows the measurements closely.) The tests check both against a refit with the
-window held out (:func:`rtsgt.interpolation.gp.fit_track` with ``held_out``). ``P_w`` comes
-from the smoothed marginals ``S`` and lag-one cross-covariances ``C`` of the knots,
-``Cov(x_a, x_b) = Cov(x_a, x_b-1) S_b-1^-1 C_b-1`` (:mod:`rtsgt.interpolation.cross`), as one
-band of the posterior covariance, a few batched steps for every knot at once: O(N), no refit
-of the track, for either prior.
+Owns the windows (:data:`BLOCK_LENGTHS_S`, :func:`cv_blocks`), their joint prediction
+(:func:`cv_windows`) and score (:func:`window_score`). The block cross-validation self-check
+(:mod:`rtsgt.checks.block_cv`) judges a run by the same windows. Formulas and the choice of the
+prior: docs/interpolation.md#choice-of-the-prior, docs/self-checks.md#block-cross-validation-of-the-tracks.
 """
 
 from __future__ import annotations
