@@ -1,61 +1,12 @@
-r"""Many deployments at once (``rtsgt batch``): one task per deployment, serially or on Dask.
+"""Many deployments at once (``rtsgt batch``): one task per deployment, serially or on Dask.
 
-Orchestration only: each task is the single-deployment run of ``rtsgt run``
-(:func:`rtsgt.cli.run.run_deployment`: read, :func:`rtsgt.pipeline.run_pipeline`, write the run
-directory atomically), and the summary across deployments is read back from each run's
-``summary.json`` (:mod:`rtsgt.io.batch_summary`).
-
-Deployments
------------
-:func:`find_deployments` takes paths: a TOML file is a deployment named by its stem; a folder
-holding ``deployment.toml`` is a deployment named by the folder; any other folder is a
-collection whose TOML files and deployment folders (one level down) are deployments. Hidden
-entries, the batch's output folder and folders rtsgt wrote (other than simulated
-deployments) are skipped; a subfolder without ``deployment.toml`` is skipped with a note
-(``rtsgt init`` writes one for an RTS_project folder). Names must be unique: they name the run
-directories ``OUT/<name>/`` and the seeds.
-
-Seeds
------
-Deployment ``name`` of a batch with base seed ``s`` runs with seed
-:func:`deployment_seed` ``(s, name)``: the first 8 bytes of ``SHA-256("rtsgt-batch" NUL s NUL
-name)``, big-endian, less the top bit (a non-negative 63-bit integer). A deployment's result
-depends on its name and the base seed only, never on the order in which the tasks are
-scheduled, the number of workers, or the other deployments of the batch; two deployments'
-random streams are unrelated.
-
-Resuming
---------
-A deployment is complete when ``OUT/<name>/`` is a complete run directory (written whole by
-:func:`rtsgt.io.run_dir.write_run`, every file its manifest lists present:
-:func:`rtsgt.io.output_dir.complete_output`) whose ``summary.json`` records this task's inputs
-(:attr:`BatchTask.inputs`: the configuration's path, the SHA-256 of the configuration and of
-every file it names, the base seed, the options given on the command line) and seed (and, with ``report``, that has its ``report.html``). A
-complete deployment is skipped; a missing one is run;
-one run with other inputs (the TOML or a data file edited, another base seed or engine) or
-damaged (a file
-deleted) is run again and replaces it (an rtsgt output; a folder holding anything else is
-refused, per deployment). ``force`` runs every deployment again.
-
-Failures
---------
-A deployment that fails (a bad input, or a bug) is one line, ``failed: NAME: message``,
-without a traceback, and the others go on: :func:`run_task` returns an :class:`Outcome`, never
-raises (an interrupt excepted). On Dask, a worker that dies or a task that cannot be
-delivered is the failure of that deployment alone.
-
-Dask
-----
-Dask (``dask[distributed]``, the ``batch`` extra) is imported only when used; without it,
-:func:`dask_client` says how to install it or to run serially. By default a local cluster of
-worker processes, one thread each (Dask's nanny sets the BLAS libraries to one thread), as
-many as the machine has CPUs, at most one per deployment to run and at most one per
-:data:`MEMORY_PER_WORKER` of memory; or the workers given, or an existing cluster's
-scheduler. The local cluster's workers do not get the ``MALLOC_TRIM_THRESHOLD_`` that Dask's
-nanny sets by default: with it, glibc stops adapting its mmap threshold and maps every large
-array anew, and a ten-minute simulated deployment took 22.8 s in a worker against 12.7 s in
-this process (14.0 s without it); the workers of an existing cluster are the user's to start
-(docs/batch.md#dask).
+Orchestration only: each task is ``rtsgt run``'s single-deployment run
+(:func:`rtsgt.cli.run.run_deployment`), the summary is read back from each run's
+``summary.json`` (:mod:`rtsgt.io.batch_summary`). :func:`find_deployments` finds the
+deployments, :func:`deployment_seed` gives each a seed from its name and the base seed alone,
+a complete run with the same inputs is skipped, a failure is one line (:func:`run_task`
+never raises), and Dask is imported only when used (:func:`dask_client`). Deployments, seeds,
+resuming, failures and Dask: docs/batch.md.
 """
 
 from __future__ import annotations
@@ -96,26 +47,10 @@ class Deployment:
 
 @dataclass(frozen=True)
 class BatchTask:
-    """One deployment's run: what :func:`run_task` needs, picklable (sent to a worker).
-
-    Attributes
-    ----------
-    name : str
-    config : Path
-        The deployment's TOML.
-    out : Path
-        Its run directory, ``OUT/<name>``.
-    seed : int
-        :func:`deployment_seed` of the base seed and the name.
-    options : dict
-        The ``rtsgt run`` options given on the command line (engine, samples, ...).
-    inputs : dict
-        What ``summary.json`` records as the run's inputs (the resume check compares it).
-    force : bool
-        Replace the run directory (an rtsgt output) if there is one.
-    report : bool
-        Add the HTML report to the run directory.
-    """
+    """One deployment's run, picklable (sent to a worker): its ``name``, TOML ``config``, run
+    directory ``out`` (``OUT/<name>``), ``seed`` (:func:`deployment_seed`), the command line's
+    ``options``, the ``inputs`` ``summary.json`` records (compared on resume), ``force`` (replace
+    an rtsgt output) and ``report`` (add the HTML report)."""
 
     name: str
     config: Path

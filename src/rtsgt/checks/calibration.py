@@ -1,17 +1,7 @@
-"""Self-checks of the extrinsic calibration.
-
-- :func:`gcp_fit_check`: each station's GCP residuals against their predicted covariance
-  (:class:`rtsgt.calibration.gcp.FitCheck`: the a-posteriori variance factor with its
-  chi-square test, and per world axis);
-- :func:`dynamic_calibration_check`: the dynamic (or joint) calibration's distance residuals
-  against their predicted covariance (:class:`rtsgt.calibration.dynamic.DynamicFit`), the
-  clock offsets it found, and, for a dynamic calibration, its agreement with the GCP
-  calibration of the same deployment: the two are fitted to independent data (the tracks, the
-  GCP shots), so for every station the difference ``e`` of the two transforms (left
-  perturbation, world frame) has the covariance ``C = C_dynamic + C_gcp`` and
-  ``chi2 = e^T C^-1 e`` has 6 degrees of freedom (4 under the 4-DOF model: x, y, z and the yaw;
-  the tilts of both are the compensators', shared) if both covariances are right. A station
-  whose p-value is below 5 % over the stations (Bonferroni) is ``disagree``.
+"""Self-checks of the extrinsic calibration: :func:`gcp_fit_check` (each station's GCP
+residuals against their predicted covariance) and :func:`dynamic_calibration_check` (the
+dynamic or joint fit's residuals, its clock offsets, and a dynamic fit's chi-square agreement
+with the GCP calibration per station). Method: docs/calibration.md#self-checks.
 """
 
 from __future__ import annotations
@@ -39,25 +29,12 @@ _COMPARED = {"6dof": [0, 1, 2, 3, 4, 5], "4dof": [0, 1, 2, 5]}
 
 
 def gcp_fit_check(calibration: CalibrationResult, *, warn: bool = True) -> dict[str, Any]:
-    """The GCP fit check of every calibrated station, JSON-ready.
-
-    Returns
-    -------
-    dict
-        ``stations``: per station :meth:`~rtsgt.calibration.gcp.FitCheck.as_dict`
-        (``markers``, ``dof``, ``variance_factor``, ``axis_factors_xyz``, ``interval_95``,
-        ``verdict``; against the instrument model); ``added_shot_sigma_mm``: the variance
-        components the calibration added to every shot (``horizontal``, ``vertical``;
-        :func:`rtsgt.calibration.gcp.extra_shot_variance`); ``model``: the model of the
-        stations' transforms (``"6dof"`` or ``"4dof"``); ``levelling``: per station the tilt
-        against a levelled frame (:class:`~rtsgt.calibration.gcp.LevellingCheck`: ``tilt_urad``,
-        ``sigma_urad``, ``chi2``, ``p_value``) and ``verdict``: ``levelled``, or ``tilted`` when
-        ``p_value`` is below 5 % over the stations (Bonferroni).
-
-    With ``warn``, one :class:`~rtsgt.errors.RtsgtWarning` per station whose variance factor
-    is outside its 95 % interval, saying what the calibration added for it, and, under the
-    4-DOF model, one per ``tilted`` station.
-    """
+    """The GCP fit check of every calibrated station, JSON-ready: ``stations`` (per station
+    :meth:`~rtsgt.calibration.gcp.FitCheck.as_dict`), ``added_shot_sigma_mm`` (the variance
+    components added to every shot), ``model``, ``weighting`` and ``levelling`` (per station the
+    tilt against a levelled frame; ``tilted`` below 5 % over the stations, Bonferroni). ``warn``:
+    one warning per station whose variance factor is outside its interval, and under the 4-DOF
+    model one per tilted station."""
     h, v = (1e3 * x for x in calibration.extra_shot_sigma_m)
     added = (f"the calibration covariance carries the difference: {h:.2f} mm horizontal and "
              f"{v:.2f} mm vertical added to every shot (variance components of the residuals)"
@@ -124,22 +101,11 @@ def calibration_agreement(a: CalibrationResult, b: CalibrationResult) -> dict[st
 def dynamic_calibration_check(calibration: CalibrationResult,
                               gcp: CalibrationResult | None = None, *,
                               warn: bool = True) -> dict[str, Any]:
-    """The dynamic (or joint) calibration's self-check, JSON-ready.
-
-    Returns
-    -------
-    dict
-        :meth:`rtsgt.calibration.dynamic.DynamicFit.as_dict` (``method``, ``engine``,
-        ``samples``, ``clock_offset_ms``, ``clock_sigma_ms``, ``variance_factor``, ``dof``,
-        ``interval_95``, ``verdict``, ``pairs``, ``worst_sigma_mm``, ``height_margin``), the
-        ``model``, and, for a dynamic calibration with ``gcp`` (the GCP calibration of the
-        same deployment), ``gcp_agreement`` (:func:`calibration_agreement`).
-
-    With ``warn``, a :class:`~rtsgt.errors.RtsgtWarning` when the distance residuals are
-    larger than predicted (``optimistic``; a ``pessimistic`` factor is reported, not warned
-    about: the GPs' covariance, which weights the fit, is somewhat pessimistic on simulated
-    deployments, docs/calibration.md), and one per station that disagrees with the GCPs.
-    """
+    """The dynamic (or joint) calibration's self-check, JSON-ready:
+    :meth:`rtsgt.calibration.dynamic.DynamicFit.as_dict`, the ``model`` and, for a dynamic
+    calibration with ``gcp``, ``gcp_agreement`` (:func:`calibration_agreement`). ``warn``: one
+    warning when the residuals are larger than predicted (``optimistic``) and one per station
+    that disagrees with the GCPs."""
     fit = calibration.dynamic
     out = {"model": calibration.model, **fit.as_dict()}
     if warn and fit.verdict == "optimistic":

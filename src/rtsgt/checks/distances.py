@@ -1,53 +1,12 @@
 """Self-check of a run's uncertainty: the tracked inter-prism distances against the survey.
 
-The three prisms are bolted to the robot, so the distance between two of them is known from
-the static survey, whatever the robot does. At every kept pose the tracked distance
-``d_t = |q_i - q_j|`` differs from the surveyed ``d_r = |r_i - r_j|`` by the errors of the
-two tracks and of the survey, whose variance the run predicts, first order: with ``u`` the unit
-vector between the prisms,
-
-    var_t = u^T (C_ii + C_jj - C_ij - C_ji) u  +  u_r^T (R_ii + R_jj - R_ij - R_ji) u_r
-
-from the joint covariance ``C`` of the prisms at that time (the calibration errors two stations
-share included) and the reference covariance ``R``
-(:func:`rtsgt.filtering.gates.pair_distance_variance`). If the covariance is honest,
-``z_t = (d_t - d_r) / sqrt(var_t)`` has unit variance and the mean of ``z^2`` is 1: below 1 the
-run is pessimistic, above 1 optimistic. This is a Type A evaluation (GUM): the data's own
-verdict on the uncertainty, independent of the noise model. It sees the errors that change the
-distance between prisms (not a common translation of the robot), which the instrument, the
-GP, the clock offsets and the calibrations all do.
-
-Regimes
--------
-The model can be right in one regime and wrong in another, so the statistic is given overall
-and per regime of the kept poses: ``static`` (robot speed below 0.05 m/s), ``manoeuvring``
-(0.05 to 0.8 m/s: starting, stopping, turning on the spot), ``cruising`` (0.8 m/s and above),
-and, overlapping those, ``far`` (the nearest measurement of some prism at least 0.3 s away:
-the GP bridges a gap). The speed is that of the pose positions, by central differences within
-runs of consecutive poses. These are fixed descriptive bins (a robot's walking pace, a total
-station's 0.1-0.3 s measurement interval), not fitted to any data.
-
-Effective sample size
----------------------
-The ``z_t`` are strongly correlated in time (a calibration error is one draw for the whole
-run; the GP smooths the rest), so ``T`` poses carry far fewer than ``T`` independent checks.
-For Gaussian ``z`` with autocorrelation ``rho_k``, the mean of ``z^2`` over ``T`` poses has
-variance ``2 / n_eff`` with ``n_eff = T / (1 + 2 sum_k rho_k^2)``
-(:func:`effective_sample_size`). The autocorrelation is taken about zero, the mean ``z``
-has if the covariance is right, so an error shared by the whole run (it moves every ``z`` the
-same way) keeps ``rho_k`` high at every lag and ``n_eff`` small: one deployment cannot tell
-much about a shared error, and the check says so rather than trusting ``T``. The mean of
-``z^2`` is then compared with ``chi2_{n_eff}(0.025, 0.975) / n_eff``, what it falls in 95 %
-of the time if the covariance is right: ``consistent`` inside, ``pessimistic`` below,
-``optimistic`` above.
-
-The data cannot show a shared error that the run happened to draw small: ``z`` is then small
-and uncorrelated, and ``n_eff`` from the data alone is large. So ``n_eff`` is bounded by what
-the predicted shared fraction ``f`` of ``var_t`` allows (the calibrations, the survey, the
-atmosphere and the clock offsets are one draw for the run; the GP's part changes from pose to
-pose): for ``z = sqrt(f) a + sqrt(1 - f) e_t`` the mean of ``z^2`` has
-``n_eff = 1 / (f^2 + (1 - f^2) / n_e)``, with ``n_e`` the data's. Lags run over the kept poses in time order, across gaps; the pairs enter
-with their cross-correlations (they share prisms).
+At every kept pose ``z_t = (d_t - d_r) / sqrt(var_t)``, the tracked minus the surveyed
+distance of a prism pair over its predicted sigma (both prisms' joint covariance and the
+survey's, :func:`rtsgt.filtering.gates.pair_distance_variance`); the mean of ``z^2`` is 1 for
+an honest covariance. It is judged against ``chi2_{n_eff} / n_eff`` with the effective sample
+size of the correlated series, bounded by the run's shared fraction of the variance, overall
+and per regime (``static``, ``manoeuvring``, ``cruising``, ``far``). Method and measurements:
+docs/self-checks.md#inter-prism-distances.
 """
 
 from __future__ import annotations
@@ -81,18 +40,9 @@ MIN_POSES = 30
 
 
 def pose_speed(t: ArrayLike, position: ArrayLike, max_step_s: float | None = None) -> np.ndarray:
-    """Speed of the poses, m/s: central differences within runs of consecutive poses.
-
-    Parameters
-    ----------
-    t : array_like, shape (T,)
-        Pose times, s, increasing.
-    position : array_like, shape (T, 3)
-        Positions, m.
-    max_step_s : float, optional
-        Poses further apart than this start a new run (default: 1.5 times the median step).
-        A pose alone in its run gets NaN.
-    """
+    """Speed (T,), m/s, of poses at times ``t`` (T,) and ``position`` (T, 3), m: central
+    differences within runs of consecutive poses (a gap over ``max_step_s``, default 1.5 median
+    steps, starts a run; a pose alone gets NaN)."""
     t = np.asarray(t, dtype=float)
     p = np.asarray(position, dtype=float)
     v = np.full(t.shape, np.nan)
@@ -110,29 +60,11 @@ def pose_speed(t: ArrayLike, position: ArrayLike, max_step_s: float | None = Non
 def inter_prism_z(xyz: ArrayLike, cov: ArrayLike, reference_xyz: ArrayLike,
                   reference_cov: ArrayLike, varying_cov: ArrayLike | None = None,
                   ) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int]]]:
-    """Normalised deviations of the tracked inter-prism distances (module docstring).
-
-    Parameters
-    ----------
-    xyz : array_like, shape (T, n, 3)
-        World prism positions, m.
-    cov : array_like, shape (T, 3n, 3n) or (T, n, 3, 3)
-        Their joint covariance, or the per-prism blocks, m^2.
-    reference_xyz : array_like, shape (n, 3)
-    reference_cov : array_like, shape (3n, 3n)
-        Surveyed prisms (body frame) and their covariance, m and m^2.
-    varying_cov : array_like, shape (T, n, 3, 3), optional
-        The part of ``cov`` that changes from pose to pose (the GP's); the rest, and the
-        survey, is shared by the run. Without it, everything is taken as shared.
-
-    Returns
-    -------
-    z : ndarray, shape (T, P)
-        ``(d_t - d_r) / sqrt(var_t)`` for each of the ``P = n (n - 1) / 2`` pairs.
-    shared : ndarray, shape (T, P)
-        The fraction of ``var_t`` that is shared by the run.
-    pairs : list of (i, j)
-    """
+    """``z`` (T, P) ``= (d_t - d_r) / sqrt(var_t)`` of the ``P = n (n - 1) / 2`` prism pairs, the
+    shared fraction of ``var_t`` (T, P) and the ``pairs``, from the prisms ``xyz`` (T, n, 3), m,
+    their joint ``cov`` (T, 3n, 3n) or blocks (T, n, 3, 3), the survey ``reference_xyz`` (n, 3)
+    and ``reference_cov`` (3n, 3n), and ``varying_cov`` (T, n, 3, 3), the GP's part (without
+    it, everything is shared)."""
     q = np.asarray(xyz, dtype=float)
     c = np.asarray(cov, dtype=float)
     r = np.asarray(reference_xyz, dtype=float)
@@ -154,26 +86,10 @@ def inter_prism_z(xyz: ArrayLike, cov: ArrayLike, reference_xyz: ArrayLike,
 
 
 def effective_sample_size(z: ArrayLike) -> float:
-    """Effective number of independent samples in the mean of ``z^2`` (module docstring).
-
-    Parameters
-    ----------
-    z : array_like, shape (T,) or (T, P)
-        Normalised deviations in time order (``P`` series measured together, e.g. the prism
-        pairs), each of mean 0 and variance 1 if the covariance is honest.
-
-    Returns
-    -------
-    float
-        ``T P^2 / sum_{p,q} (rho_pq(0)^2 + 2 sum_{k=1}^{K-1} rho_pq(k)^2)``, between 1 and
-        ``T P``: for Gaussian ``z`` with cross-correlations ``rho_pq(k)`` (lag ``k``), the
-        variance of the mean of ``z^2`` is ``2 / n_eff``. The correlations are taken about
-        zero (the mean under the hypothesis), so an error shared by the whole run, which moves
-        every ``z`` the same way, keeps them up at every lag and ``n_eff`` small. The sum is
-        cut at the lag ``K`` where Geyer's initial positive sequence of the mean
-        autocorrelation (``rho_2m + rho_2m+1 > 0``) ends. ``P`` independent white series give
-        about ``T P``, identical ones ``T``; an AR(1) series ``T (1 - phi^2) / (1 + phi^2)``.
-    """
+    """Effective number of independent samples ``n_eff`` in the mean of ``z^2``, ``z`` (T,) or
+    (T, P) in time order: ``T P^2 / sum_pq (rho_pq(0)^2 + 2 sum_{k<K} rho_pq(k)^2)``, the
+    correlations taken about zero and cut where Geyer's initial positive sequence ends; between
+    1 and ``T P`` (docs/self-checks.md#effective-sample-size-and-verdict)."""
     z = np.asarray(z, dtype=float)
     z = z.reshape(z.shape[0], -1)
     T, P = z.shape
@@ -220,36 +136,12 @@ def inter_prism_check(
     reference_xyz: ArrayLike, reference_cov: ArrayLike, names: Sequence[str], *,
     varying_cov: ArrayLike | None = None, warn: bool = True,
 ) -> dict[str, Any]:
-    """The inter-prism distance self-check of a run, overall and per regime.
-
-    Parameters
-    ----------
-    t : array_like, shape (T,)
-        Times of the kept poses, s.
-    position : array_like, shape (T, 3)
-        Their positions (for the speed), m.
-    xyz, cov : array_like
-        The prisms at those times and their joint covariance (:func:`inter_prism_z`).
-    nearest_dt : array_like, shape (T, n)
-        Time from each pose to the nearest measurement of each prism, s.
-    reference_xyz, reference_cov : array_like
-        The surveyed prisms.
-    names : sequence of str
-        Prism names (for the pairs' keys).
-    varying_cov : array_like, shape (T, n, 3, 3), optional
-        The part of the prisms' covariance that changes from pose to pose
-        (:func:`inter_prism_z`).
-    warn : bool
-        One :class:`~rtsgt.errors.RtsgtWarning` per regime (or overall) judged optimistic
-        or pessimistic.
-
-    Returns
-    -------
-    dict
-        JSON-ready: ``overall`` and ``regimes`` (each: ``poses``, ``mean_z2``,
-        ``shared_fraction``, ``n_eff``, ``interval_95``, ``verdict``), ``pairs`` (mean ``z^2`` and mean ``z`` per pair:
-        a mean ``z`` far from 0 is a bias, e.g. a mis-surveyed prism), and the thresholds.
-    """
+    """The inter-prism distance self-check of a run, overall and per regime: from the kept poses'
+    times ``t`` (T,) and ``position`` (T, 3), the prisms and covariances as
+    :func:`inter_prism_z`, ``nearest_dt`` (T, n) to each prism's nearest measurement, s, and the
+    prism ``names``. Returns, JSON-ready, ``overall`` and ``regimes`` (``poses``, ``mean_z2``,
+    ``shared_fraction``, ``n_eff``, ``interval_95``, ``verdict``), ``pairs`` (mean ``z^2`` and
+    ``z``) and the thresholds; ``warn``: one warning per regime not consistent."""
     t = np.asarray(t, dtype=float)
     z, shared, pairs = inter_prism_z(xyz, cov, reference_xyz, reference_cov, varying_cov)
     speed = pose_speed(t, position)

@@ -1,63 +1,12 @@
-r"""Self-check of the measurement noise on the run's own static stretches.
+"""Self-check of the measurement noise on the run's own static stretches.
 
-While the robot stands, a prism does not move, so the scatter of its measurements about their
-mean is the measurement noise itself: a Type A evaluation (GUM) of the white part of the noise
-model that the GP is given, the sources ``instrument`` and ``tilt`` of
-:attr:`~rtsgt.types.PrismTrack.cov_by_source`. The systematic sources (calibration,
-atmosphere) are constant over a stretch and go with its mean; the clock error moves nothing
-when nothing moves. The check studies the noise of this run; it changes nothing in the run
-(no constant is fitted that every deployment would then carry).
-
-Static stretches
-----------------
-:func:`static_stretches`: runs of kept poses in which every prism is slower than
-:data:`~rtsgt.interpolation.motion.STANDING_SPEED_M_S` (the motion prior's standing robot;
-every prism, so that a robot turning on the spot is not standing), a gap between poses ending
-a run, with :data:`EDGE_MARGIN_S` cut from both ends and kept if at least
-:data:`MIN_STATIC_S` remain. The margin is needed: 0.05 m/s is a standing robot for the motion
-prior but 20 mm per 0.4 s measurement interval here, and a robot that starts off stays below it
-for up to a second while it moves by millimetres (a quintic start to 1 m/s at 0.5 m/s^2 spends
-0.6 s below 0.05 m/s and moves 8 mm meanwhile), which the GP's speed shows late. Without the
-margin the stretches of simulated runs overran the true stops by 0.3-1.0 s (docs/self-checks.md).
-
-Statistics
-----------
-Each measurement ``x_i`` of a prism inside a stretch is split along its station's line of sight
-``u_i`` (``range``) and across it (``horizontal``: ``h_i = z x u_i`` normalised; ``vertical``:
-``u_i x h_i``); the stretch's mean is removed and each component is divided by its predicted
-white sigma ``sqrt(e_i^T C_i e_i)`` (``C_i``: the white covariance, ``e_i`` the direction):
-``z_i``, white noise of unit variance if the model is right. Per prism and component, with
-``N`` samples in ``K`` stretches of ``n_k`` samples, ``m = N - K``:
-
-- **level**: the variance ratio ``s^2 = sum z_i^2 / m``, distributed as ``chi2_m / m`` if the
-  model is right. Where the noise is correlated, ``m`` is lowered in the ratio of
-  :func:`~rtsgt.checks.distances.effective_sample_size` to ``N``. Above the interval the
-  model's noise is too small (``optimistic``), below too large (``pessimistic``).
-- **correlation**: the lag-one autocorrelation from the von Neumann ratio of successive samples
-  within each stretch, ``r_1 = 1 - sum (z_{i+1} - z_i)^2 / (2 sum z_i^2)``. For white noise
-  (mean removed per stretch) it has mean 0 and variance ``sum_k (n_k - 2) / (m (m + 2))``
-  (``sum dz^2 - 2 sum z^2`` has mean 0 and variance ``4 sum (n_k - 2)``, and the ratio is
-  independent of ``sum z^2``), and ``(1 - r_1) / 2`` is close to a symmetric beta
-  distribution of that variance (von Neumann 1941; the beta approximation matches the
-  simulated tail probabilities to a few per cent down to 0.3 %). Above the interval the noise
-  wanders: the GP, which takes the measurements as independent, averages errors that do not
-  average out (``optimistic``); below, successive errors alternate (``pessimistic``).
-- **correlation time**: the noise modelled as white plus a first-order Gauss-Markov process,
-  ``cov(z_i, z_j) = v ((1 - f) delta_ij + f exp(-|t_i - t_j| / tau))``, fitted by restricted
-  maximum likelihood (the mean of each stretch unknown; ``v`` in closed form; ``f`` and
-  ``log tau`` on a grid, then on a grid four times finer around its best point), at the
-  measurements' own irregular times, with the 95 % profile-likelihood interval of ``tau``
-  (open above where the noise wanders over the whole stretch). ``f`` is the correlated share
-  of the variance, overstated on stretches of a few tens of samples. Both are given only
-  where the correlation test finds correlation: for white noise ``f`` and ``tau`` trade off (a short ``tau`` with a large ``f``
-  is white noise too) and the fit has nothing to measure. Stretches longer than
-  :data:`FIT_BLOCK` samples are fitted in blocks of that size.
-
-The family of tests (two per prism and component) is held at :data:`FAMILY_FALSE_ALARM` by
-Bonferroni: each test's interval has confidence ``1 - FAMILY_FALSE_ALARM / M`` for the ``M``
-tests with a verdict in the run (18 for three prisms: 99.72 %), so that a run whose noise model
-is right is flagged at most 5 % of the time. Fewer than :data:`MIN_SAMPLES` samples of a prism
-give no verdict (``too few samples``); without a static stretch the check says so.
+Where every prism stands (:func:`static_stretches`), the scatter of each prism's measurements
+about the stretch's mean, per line-of-sight component and divided by the run's predicted
+white sigma, is tested for its level (variance ratio against ``chi2_m / m``) and its lag-one
+correlation (von Neumann 1941 ratio, beta approximation); where correlation is found, a
+white plus Gauss-Markov correlation time is fitted by restricted maximum likelihood. The
+family is held at :data:`FAMILY_FALSE_ALARM` by Bonferroni. Nothing in the run changes.
+Method and measurements: docs/self-checks.md#static-stretches.
 """
 
 from __future__ import annotations
@@ -105,23 +54,10 @@ _TAU_POINTS = 24
 
 
 def static_stretches(t: ArrayLike, prisms_xyz: ArrayLike) -> np.ndarray:
-    """Intervals (K, 2), s, in which the robot stands (module docstring).
-
-    Parameters
-    ----------
-    t : array_like, shape (T,)
-        Times of the kept poses, s, increasing.
-    prisms_xyz : array_like, shape (T, n, 3)
-        The prisms at those times, m (a robot turning on the spot moves its prisms, not its
-        origin).
-
-    Returns
-    -------
-    ndarray, shape (K, 2)
-        Runs of poses where every prism is slower than ``STANDING_SPEED_M_S`` (no gap of more
-        than 1.5 median pose intervals inside), shortened by ``EDGE_MARGIN_S`` at both ends,
-        those at least ``MIN_STATIC_S`` long.
-    """
+    """Intervals (K, 2), s, in which the robot stands, from the kept poses' times ``t`` (T,) and
+    prisms ``prisms_xyz`` (T, n, 3), m: runs where every prism is slower than
+    ``STANDING_SPEED_M_S`` (no gap over 1.5 median intervals), shortened by ``EDGE_MARGIN_S`` at
+    both ends, kept if at least ``MIN_STATIC_S`` long."""
     t = np.asarray(t, dtype=float)
     q = np.asarray(prisms_xyz, dtype=float).reshape(t.size, -1, 3)
     if t.size < 2:
@@ -138,22 +74,9 @@ def static_stretches(t: ArrayLike, prisms_xyz: ArrayLike) -> np.ndarray:
 
 def lag_one_test(z: ArrayLike, group: ArrayLike, confidence: float = 0.95,
                  ) -> tuple[float, tuple[float, float]]:
-    """Lag-one autocorrelation of mean-removed series from their von Neumann ratio, and the
-    interval it falls in with probability ``confidence`` if they are white (module docstring).
-
-    Parameters
-    ----------
-    z : array_like, shape (N,)
-        The series one after the other, each with its mean removed.
-    group : array_like of int, shape (N,)
-        Series of each sample (the samples of one series contiguous, in time order).
-    confidence : float
-
-    Returns
-    -------
-    r1 : float
-    interval : (float, float)
-    """
+    """Lag-one autocorrelation ``r1`` of mean-removed series ``z`` (N,; series ``group`` (N,)
+    contiguous, in time order) from their von Neumann ratio, and the interval it falls in with
+    probability ``confidence`` if they are white (docs/self-checks.md#statistics)."""
     z = np.asarray(z, dtype=float)
     g = np.asarray(group)
     same = g[1:] == g[:-1]
@@ -200,32 +123,11 @@ def _reml(z: np.ndarray, t: np.ndarray, blocks: list[np.ndarray], f: np.ndarray,
 
 def gauss_markov_fit(z: ArrayLike, t: ArrayLike, group: ArrayLike,
                      ) -> tuple[float, float, float | None, tuple[float, float | None] | None]:
-    """White plus first-order Gauss-Markov noise fitted to mean-removed series (REML).
-
-    Parameters
-    ----------
-    z : array_like, shape (N,)
-        The series one after the other (each with an unknown mean).
-    t : array_like, shape (N,)
-        Their times, s.
-    group : array_like of int, shape (N,)
-        Series of each sample (contiguous, in time order).
-
-    Returns
-    -------
-    v : float
-        Total variance.
-    f : float
-        Share of it that is correlated, in [0, ``F_MAX``].
-    tau : float or None
-        Correlation time, s, between a quarter of the median sampling interval and the
-        longest block; None where ``f = 0``.
-    tau_95 : (float, float or None) or None
-        Its 95 % profile-likelihood interval (the correlation times whose best ``f`` is
-        within ``chi2_1(0.95) = 3.84`` of the optimum of -2 log L, on the grid); the upper
-        end None where the interval reaches the longest block: the noise wanders over the
-        whole stretch, and the data set no upper limit. None where ``f = 0``.
-    """
+    """White plus first-order Gauss-Markov noise fitted by REML to series ``z`` (N,) at times ``t``
+    (N,), s (series ``group`` contiguous, each with an unknown mean). Returns the total variance
+    ``v``, its correlated share ``f`` in [0, ``F_MAX``], the correlation time ``tau`` (s) and its
+    95 % profile-likelihood interval (upper end None where it reaches the longest block); both
+    None where ``f = 0``."""
     z = np.asarray(z, dtype=float)
     t = np.asarray(t, dtype=float)
     g = np.asarray(group)
@@ -310,33 +212,12 @@ def static_noise_check(
     tracks: dict[str, PrismTrack], stations: dict[str, ArrayLike], stretches: ArrayLike, *,
     warn: bool = True,
 ) -> dict[str, Any]:
-    """The measurement noise on the static stretches against the white noise model, per prism
-    and component (module docstring).
-
-    Parameters
-    ----------
-    tracks : dict str -> PrismTrack
-        The measured tracks (world frame), with their station and per-source covariances.
-    stations : dict str -> array_like (3,)
-        Station positions (world frame), m.
-    stretches : array_like, shape (K, 2)
-        Static intervals (:func:`static_stretches`), s, in time order and disjoint.
-    warn : bool
-        One :class:`~rtsgt.errors.RtsgtWarning` per prism with a verdict other than
-        consistent.
-
-    Returns
-    -------
-    dict
-        JSON-ready: ``stretches_s``, the limits, ``tests`` (``M``) and ``confidence`` (of
-        each test's interval), and per prism ``station``, ``samples``, ``stretches`` and for
-        each of ``range``, ``horizontal``, ``vertical``: ``observed_sigma_mm``,
-        ``predicted_sigma_mm``, ``level`` (``variance_ratio``, ``n_eff``, ``interval``,
-        ``verdict``) and ``correlation`` (``lag1``, ``interval``, ``verdict``, and where
-        correlation is found ``correlated_fraction``, ``correlation_time_s`` and
-        ``correlation_time_95_s``). ``note`` says why no prism has a
-        result.
-    """
+    """The measurement noise on the static ``stretches`` (K, 2), s, against the white noise model,
+    per prism of ``tracks`` (world frame, with per-source covariances) and component (range,
+    horizontal, vertical from ``stations``' positions). Returns, JSON-ready, the stretches,
+    limits, number of ``tests`` and ``confidence``, and per prism and component the observed and
+    predicted sigmas (mm), ``level`` and ``correlation`` (``lag1``, interval, verdict, and where
+    correlation is found its share and time); ``note`` says why no prism has a result."""
     iv = np.asarray(stretches, dtype=float).reshape(-1, 2)
     out: dict[str, Any] = {
         "stretches_s": iv.tolist(), "standing_below_m_s": STANDING_SPEED_M_S,

@@ -1,152 +1,12 @@
-r"""Self-check of the structure of the inter-prism distance residuals: clocks and prism errors.
+"""Self-check of the structure of the inter-prism distance residuals: clocks and prism errors.
 
-The inter-prism distance check (:mod:`rtsgt.checks.distances`) looks at the size of
-``r_ij(t) = |q_i - q_j| - |r_i - r_j|`` (tracked minus surveyed distance) against its
-predicted variance. Two errors of a real deployment hide in the *structure* of ``r`` rather
-than in its size: a station clock that drifts, and a 360-degree prism whose error follows
-its orientation. This check tests for them by regression: it estimates their parameters by
-generalised least squares (GLS) with the run's own covariance of the residuals, and asks
-whether the estimates are what the noise model allows.
-
-Residuals and their covariance
-------------------------------
-To first order, with ``u_ij`` the unit vector from prism ``j`` to prism ``i`` (``u^r_ij`` in
-the survey), a displacement ``dq`` of the tracked prisms and ``dr`` of the surveyed ones move
-the residual by
-
-    dr_ij(t) = u_ij(t) . (dq_i - dq_j) - u^r_ij . (dr_i - dr_j) = H(t) dq - H_r dr .
-
-The run predicts the errors of ``q`` and ``r`` in two parts (:mod:`rtsgt.shared`):
-
-- **varying**: the GP posterior of each prism, correlated from pose to pose over a few
-  measurements (a few seconds). Its covariance between any two times is exact
-  (:func:`rtsgt.interpolation.cross.gp_joint_covariance`); the prisms' GPs are independent.
-  Within a block the covariance ``S_b`` of the stacked residuals is that of the GPs mapped by
-  ``H``; between blocks it is neglected. The blocks are the clock test's windows (below; ``BLOCK_S``
-  where the robot does not move enough for one). Not longer: the clock regressors are constant
-  within a window and jump between windows, and a covariance that carries the GP's smoothness
-  across a window's edge reads that jump as information (the GP's error cannot jump), so that
-  each window's offset is fixed by its edges, where the residuals are continuous, rather than
-  by its poses. With blocks of 60 s the windows of one block came out with nearly the same
-  offset, a drifting clock passed for a constant one, and the statistic of honest runs was far
-  below its distribution (pooled ``chi2 / dof`` 0.58 with the white-noise-on-acceleration
-  prior, 0.22 with the jerk prior, whose errors are smoother); with a block per window, 1.02
-  and 0.98 (20 simulated deployments of 150 s each, docs/self-checks.md). The correlation of
-  the GP's errors across a window's edge, over a few seconds against a window of ``WINDOW_S``
-  of motion, is what is neglected.
-- **shared**: one draw for the run, ``theta ~ N(0, I)`` whitened parameters (the station
-  calibrations, each station's clock offset and atmospheric scale, the survey), each moving
-  the prisms by the sensitivity ``F(t)`` of :func:`rtsgt.shared.prism_shared_factor` and the
-  survey by :func:`rtsgt.shared.reference_factor`: ``r`` gets ``G(t) theta``,
-  ``G = [H F, -H_r A_r]``, the same ``theta`` at every pose. The clock offsets' columns are
-  taken along the GP velocity, ``sqrt(E[e_ts^2]) H v_s``, the same vectors as the clock
-  regressors below (the factor's own, scaled from the measurements' differenced velocity,
-  differ from them by noise that the GP's smooth covariance would take for information).
-
-So the residuals ``y`` of a run (all poses and pairs) have, if the run's covariance is honest,
-``y ~ N(0, V)`` with ``V = S + G G^T``. The GLS products ``X^T V^-1 y`` are computed by
-whitening each block with its Cholesky factor ``L_b`` (``y~ = L^-1 y``, ``G~``, ``X~`` alike)
-and Woodbury's identity, ``V^-1 = L^-T (I - G~ (I + G~^T G~)^-1 G~^T) L^-1``: the shared
-errors enter exactly, as the ``k`` columns of ``G``, with no time-correlation model to choose.
-
-The tests
----------
-For regressors ``X`` (the effect's parameters) and nuisance regressors ``Z`` (estimated along,
-without a prior) the GLS estimate and its covariance under the run's model are
-``b = N^+ s``, ``Cov b = N^+``, with ``N`` and ``s`` the information and the score of ``X``
-once ``Z`` is projected out (the Schur complement of ``[X Z]^T V^-1 [X Z]``); the statistic
-``c = b^T N b`` is ``chi2_p`` if ``y ~ N(0, V)``, with ``p`` the rank of ``N`` (eigenvalues of
-the scaled ``N`` above ``RANK_TOL`` of the largest). The regressors soak up whatever part of
-the shared errors resembles them, and ``V`` says how much: a shared error that looks like the
-effect raises ``Cov b`` instead of raising a false alarm.
-
-Both tests are one-sided: they look for structure that the covariance does not allow
-(``optimistic``: the covariance is too small); a covariance too large is the size check's
-business (:mod:`rtsgt.checks.distances`). Each is made at ``1 - alpha / 2`` with
-``alpha = 1 - FAMILY_LEVEL`` (Bonferroni), so an honest run fails the check in at most 5 % of
-deployments.
-
-Clock offsets (``clock``)
--------------------------
-A station's clock off by ``delta_s`` (``t_true - t_recorded``) moves the prism it tracks by
-``v_i delta_s`` (``v_i``: the GP velocity), so ``r_ij`` gets
-``u_ij . (v_i delta_s(i) - v_j delta_s(j))``. A common offset of all clocks does not change a
-distance (a rigid motion has ``u_ij . (v_i - v_j) = 0``): only the offsets relative to the
-first station, ``delta_s - delta_1``, are estimated, one pair per window (columns
-``X_w,s = H v_s`` on the poses of window ``w``, zero elsewhere). A window is ``WINDOW_S`` of
-*motion*: the poses are cut where the time the robot has moved (speed ``STATIC_SPEED_M_S`` or
-more, :func:`rtsgt.checks.distances.pose_speed`, counted at the median pose interval) passes a
-multiple of ``WINDOW_S``, so every moving pose is in a window and standstills, which carry no
-information (``v = 0``), cost none; a last window with less than half of ``WINDOW_S`` of motion
-joins the one before. The noise model has one constant offset per station, zero-mean with
-variance ``E[e_ts^2] = mu^2 + sigma^2`` (:mod:`rtsgt.noise.model`), in ``V`` through the
-clock columns of ``G``; the test therefore asks at once whether the offsets stay within what
-the model allows and whether they are constant over the run. A clock that drifts, or is
-re-synchronised during the run, gives offsets that change from window to window. The
-estimates are reported per window and for the whole run, in ms, with their sigma, with the
-model's clock prior left out of ``V`` (the data's own estimates of the relative offsets).
-
-Prism orientation (``prism_orientation``)
------------------------------------------
-A 360-degree prism is several corner cubes glued around a vertical axis; where its apparent
-centre lies depends on which cube faces the station, so its error is periodic in the angle
-``alpha_i`` between the station's line of sight and the prism's orientation (the robot's
-heading: ``alpha_i`` is the azimuth, in the body frame of the pose, of the direction from the
-prism to its station). A prism of six corner cubes (the usual 360-degree prism) repeats
-itself every 60 degrees, so its error is a Fourier series in multiples of 6 cycles per turn
-(orientation-dependent errors of 360-degree prisms of a few millimetres: Lackner & Lienhart
-2016, "Impact of prism type and prism orientation on the accuracy of automated total station
-measurements", JISDM, Vienna). The check regresses the residuals on the fundamental (6 per
-turn) and its first overtone (12 per turn: the pattern is not a pure sine), ``HARMONICS``,
-along the line of sight ``l_i`` (range) and across it horizontally ``c_i``: four columns per
-harmonic and prism, ``H (l_i sin k alpha_i)``, ``H (l_i cos k alpha_i)``,
-``H (c_i sin k alpha_i)``, ``H (c_i cos k alpha_i)``. The harmonics are fixed by the prism's
-construction, not fitted to a deployment. One cycle per turn (an eccentric mounting) is left
-out on purpose: along the line of sight it holds a constant and a term in the robot's heading,
-which the clock offsets and the survey produce as well. A prism enters only if its viewing
-angle swept at least one period of the pattern, 60 degrees (its span, unwrapped along the
-time, :func:`viewing_span`).
-
-Over a short span a harmonic is a smooth trend in time, and a smooth error that the GP's
-covariance understates (a start or a stop: the motion prior's weak point) shows up in any
-smooth regressor. The test therefore compares the harmonics with harmonics that no prism of
-six cubes has, ``PLACEBO_HARMONICS`` (4, 5, 7, 8 per turn: as smooth, in the same band),
-fitted with the prism's harmonics and the clock offsets as nuisance:
-``F = (c / p) / (c_0 / p_0)``, which is ``F(p, p_0)`` distributed if the residuals have no
-structure at the prism's harmonics beyond what they have beside them, whatever the scale of
-the covariance in that band; the verdict is ``optimistic`` above its ``1 - alpha / 2``
-quantile. The amplitudes (mm) of each prism and harmonic are reported, with sigmas scaled by
-``c_0 / p_0`` where that exceeds 1.
-
-The rotation the viewing angles are read from must not be a function of the residuals
-``y`` it is regressed against: a regressor that moves with ``y`` correlates with ``y`` whatever
-the prisms do. :func:`run_structure_check` therefore takes the closed-form (unweighted) fit of
-the kept prisms onto the survey (:func:`rtsgt.pose.registration.register`), whatever the run's
-registration. Its rotation does not move with the prisms' shape: with ``a_i = R r_i`` the
-fitted survey, any displacement ``e`` of the prisms orthogonal to the rigid motions
-(``sum_i e_i = 0``, ``sum_i a_i x e_i = 0``: the normal equations of the fit) leaves the fit's
-cross-covariance matrix ``R^T M`` symmetric, hence the rotation exactly where it was; its own
-residual is such a displacement. The distances, on the other hand, see only that part (the
-distances of three or more prisms fix their shape, ``H`` vanishes on the rigid motions): the
-rotation and ``y`` are read from orthogonal parts of the same data. The weighted fit
-(:mod:`rtsgt.pose.weighted`) is not: with ``e_u`` the closed form's residual (the prisms'
-misfit to the survey, to first order a linear function of ``y``), its rotation is the closed
-form's plus the rotation part of ``K_w e_u``, ``K_w = (H_p^T W H_p)^-1 H_p^T W``, with
-weights ``W`` that change from pose to pose with the time to the nearest measurement. Its
-viewing angles then carry a term proportional to the residuals, and the harmonic regressors
-``k cos(k alpha)`` times it: the higher the harmonic ``k``, the more, so the prism's harmonics
-(up to 12 per turn) pick up more of the residuals than the placebo's (up to 8), and F grows
-with the square of the misfit. Where the residuals are as small as the model says (a
-millimetre) this is negligible; where they are not, it is a false alarm of exactly the kind a
-self-check must not give (the figures of the real excerpt: docs/self-checks.md).
-
-The clock test takes the prisms' harmonics out as nuisance where the orientation test finds
-them (``prism_harmonics_removed``): a prism error then does not pass for clock offsets, and
-where there is none the clock test keeps its power. The orientation test always takes the
-clock offsets out.
-
-Neither effect changes a common translation of the robot, and neither test sees a first-order
-lag common to all instruments (it moves every prism by nearly the same amount).
+The residuals ``r_ij(t) = |q_i - q_j| - |r_i - r_j|`` are regressed, by generalised least
+squares with the run's own covariance ``V = S + G G^T`` (the GPs' block-diagonal part and
+the errors shared by the run), on clock offsets per window of motion (``clock``) and on
+harmonics of each prism's viewing angle against placebo harmonics (``prism_orientation``).
+Both tests are one-sided at ``TEST_LEVEL``. The viewing angles come from the closed-form
+registration, never from the weighted one. Method, derivation and measurements:
+docs/self-checks.md#inter-prism-residual-structure.
 """
 
 from __future__ import annotations
@@ -163,6 +23,10 @@ from scipy.linalg import solve_triangular
 from rtsgt.checks.distances import MIN_POSES as DISTANCE_MIN_POSES
 from rtsgt.checks.distances import STATIC_SPEED_M_S, pose_speed
 from rtsgt.errors import RtsgtWarning
+from rtsgt.interpolation.cross import gp_joint_covariance
+from rtsgt.interpolation.prisms import gp_velocities
+from rtsgt.pose.registration import register
+from rtsgt.shared import prism_shared_factor, reference_factor, select_prisms
 
 __all__ = ["BLOCK_S", "FAMILY_LEVEL", "HARMONICS", "PLACEBO_HARMONICS", "RANK_TOL", "TEST_LEVEL",
            "WINDOW_S", "GlsTest", "gls_test", "whiten", "whitened_gls_test",
@@ -171,9 +35,8 @@ __all__ = ["BLOCK_S", "FAMILY_LEVEL", "HARMONICS", "PLACEBO_HARMONICS", "RANK_TO
 
 #: Length of the windows of the clock offsets, s.
 WINDOW_S = 10.0
-#: Length of the blocks of the varying covariance (their correlation between blocks is
-#: neglected) where the robot moves too little for a clock window, s; otherwise the blocks
-#: are the windows (module docstring).
+#: Length of the blocks of the varying covariance where the robot moves too little for a
+#: clock window, s; otherwise the blocks are the windows.
 BLOCK_S = 60.0
 #: Harmonics of the prism's viewing angle, cycles per turn: six corner cubes repeat every
 #: 60 degrees, and the fundamental of that period and its first overtone.
@@ -185,12 +48,8 @@ FAMILY_LEVEL = 0.95
 #: The level of each (Bonferroni), one-sided.
 TEST_LEVEL = 1.0 - (1.0 - FAMILY_LEVEL) / 2.0
 #: Directions of the information matrix below this fraction of its largest (scaled)
-#: eigenvalue are not determined by the data. The matrix is a Schur complement, a difference
-#: of nearly equal sums: its scaled eigenvalues below about 1e-8 are round-off (on the real
-#: excerpt, the placebo's 48 x 48 matrix has eigenvalues from 7e-12 to 1e-8 that differ by up
-#: to 4x between one and two BLAS threads, and one of them crossed the 1e-9 used before, which
-#: moved its F from 1.33 to 1.36), those above 1e-7 agree to 1e-3; the rank is taken well above
-#: the round-off.
+#: eigenvalue are not determined by the data (well above the round-off of a Schur complement,
+#: about 1e-8: docs/self-checks.md#tests-and-verdicts).
 RANK_TOL = 1e-6
 #: A last clock window with less motion than this share of ``WINDOW_S`` joins the one before.
 MOVING_SHARE = 0.5
@@ -199,19 +58,8 @@ MIN_POSES = DISTANCE_MIN_POSES
 
 
 class GlsTest:
-    """GLS estimate of regression coefficients under ``y ~ N(0, V)`` and its score test.
-
-    Attributes
-    ----------
-    beta : ndarray, shape (p,)
-        ``N^+ X^T V^-1 y`` (module docstring).
-    cov : ndarray, shape (p, p)
-        ``N^+``.
-    chi2 : float
-        ``beta^T N beta``.
-    dof : int
-        Rank of ``N``.
-    """
+    """GLS estimate under ``y ~ N(0, V)`` and its score test: ``beta`` (p,) ``= N^+ s``,
+    ``cov`` (p, p) ``= N^+``, ``chi2 = beta^T N beta``, ``dof`` the rank of ``N``."""
 
     def __init__(self, beta: np.ndarray, cov: np.ndarray, chi2: float, dof: int) -> None:
         self.beta, self.cov, self.chi2, self.dof = beta, cov, chi2, dof
@@ -246,27 +94,10 @@ def _cholesky(S: np.ndarray) -> np.ndarray:
 
 def gls_test(y: ArrayLike, blocks: Sequence[np.ndarray], G: ArrayLike, X: ArrayLike,
              Z: ArrayLike | None = None) -> GlsTest:
-    """Regress ``y`` on ``X`` by GLS with ``V = blockdiag(blocks) + G G^T`` (module docstring).
-
-    Parameters
-    ----------
-    y : array_like, shape (N,)
-        Residuals.
-    blocks : sequence of ndarray (n_w, n_w)
-        Covariance of the varying part, consecutive diagonal blocks of ``N`` rows in all.
-    G : array_like, shape (N, k)
-        Sensitivity of ``y`` to ``k`` shared parameters ``N(0, I)``.
-    X : array_like, shape (N, p)
-        Regressors.
-    Z : array_like, shape (N, m), optional
-        Nuisance regressors, estimated along (no prior) and projected out of the test: the
-        statistic then tests ``X`` whatever the coefficients of ``Z``.
-
-    Returns
-    -------
-    GlsTest
-        For ``X`` alone (the coefficients of ``Z`` are not returned).
-    """
+    """Regress residuals ``y`` (N,) on ``X`` (N, p) by GLS with
+    ``V = blockdiag(blocks) + G G^T``: ``blocks`` consecutive diagonal covariances of N rows
+    in all, ``G`` (N, k) the sensitivity to k shared parameters ``N(0, I)``; nuisance ``Z``
+    (N, m) is estimated along without a prior and projected out. The test of ``X`` alone."""
     y = np.asarray(y, dtype=float)
     N = y.shape[0]
     parts = [y[:, None], np.asarray(G, dtype=float).reshape(N, -1),
@@ -332,20 +163,8 @@ def _pinv(N: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def pair_jacobian(xyz: ArrayLike) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int]]]:
-    """Distances of every pair of prisms and their sensitivity to the prisms.
-
-    Parameters
-    ----------
-    xyz : array_like, shape (T, n, 3)
-
-    Returns
-    -------
-    d : ndarray, shape (T, P)
-        ``|q_i - q_j|`` for the ``P = n (n - 1) / 2`` pairs ``i < j``, m.
-    H : ndarray, shape (T, P, 3n)
-        ``d d / d q``: ``u_ij`` in the columns of prism ``i``, ``-u_ij`` in those of ``j``.
-    pairs : list of (i, j)
-    """
+    """Distances ``d`` (T, P) of the ``P = n (n - 1) / 2`` prism pairs ``i < j`` of ``xyz``
+    (T, n, 3), m, their Jacobian ``H = dd/dq`` (T, P, 3n) and the ``pairs``."""
     q = np.asarray(xyz, dtype=float)
     T, n, _ = q.shape
     pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
@@ -362,20 +181,8 @@ def pair_jacobian(xyz: ArrayLike) -> tuple[np.ndarray, np.ndarray, list[tuple[in
 
 def viewing_azimuth(xyz: ArrayLike, R_world_body: ArrayLike, station_xyz: ArrayLike
                     ) -> np.ndarray:
-    """Azimuth, in the body frame, of the direction from each prism to its station, rad.
-
-    Parameters
-    ----------
-    xyz : array_like, shape (T, n, 3)
-        World prism positions, m.
-    R_world_body : array_like, shape (T, 3, 3)
-    station_xyz : array_like, shape (n, 3)
-        World position of the station tracking each prism, m.
-
-    Returns
-    -------
-    ndarray, shape (T, n)
-    """
+    """Azimuth (T, n), rad, in the body frame ``R_world_body`` (T, 3, 3), of the direction
+    from each prism ``xyz`` (T, n, 3) to its station ``station_xyz`` (n, 3), m."""
     los = np.asarray(station_xyz, dtype=float)[None] - np.asarray(xyz, dtype=float)
     body = np.einsum("tji,tnj->tni", np.asarray(R_world_body, dtype=float), los)
     return np.arctan2(body[..., 1], body[..., 0])
@@ -402,7 +209,7 @@ def _blocks(t: np.ndarray, starts: np.ndarray, ends: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray]:
     """Start and end (exclusive) indices of the blocks of the varying covariance: the clock
     test's windows (``starts``, ``ends``: every pose is in one), or intervals of ``BLOCK_S``
-    where there are none (module docstring, section Residuals and their covariance)."""
+    where there are none."""
     return (starts, ends) if starts.size else _runs(t, BLOCK_S)
 
 
@@ -448,57 +255,20 @@ def inter_prism_structure_check(
     reference_factor: ArrayLike, names: Sequence[str], *, time_sync_sigma_s: float,
     warn: bool = True,
 ) -> dict[str, Any]:
-    """The structure self-check of a run's inter-prism distances (module docstring).
+    """The structure self-check of a run's inter-prism distances.
 
-    Parameters
-    ----------
-    t : array_like, shape (T,)
-        Times of the kept poses, s, increasing.
-    xyz : array_like, shape (T, n, 3)
-        The prisms at those times (world), m.
-    R_world_body : array_like, shape (T, 3, 3)
-        The rotations the viewing angles are read from: not a function of the residuals
-        (the closed-form fit of the prisms, or the truth; not the weighted fit, module
-        docstring).
-    velocity : array_like, shape (T, n, 3)
-        The prisms' GP velocities, m/s.
-    station_xyz : array_like, shape (n, 3)
-        World position of the station tracking each prism, m.
-    stations : sequence of str, length n
-        The station tracking each prism.
-    varying_cov : callable
-        ``varying_cov(i, times)`` -> (m, m, 3, 3): the joint covariance of prism ``i``'s
-        varying (GP) error at ``times`` (:func:`rtsgt.interpolation.cross.gp_joint_covariance`).
-    shared_factor : array_like, shape (T, 3n, k)
-        Sensitivity of the stacked prisms to the shared parameters
-        (:func:`rtsgt.shared.prism_shared_factor`).
-    shared_names : sequence of str, length k
-        Their names (the clock parameters start with ``time_sync``).
-    reference_xyz : array_like, shape (n, 3)
-        Surveyed prisms (body frame), m.
-    reference_factor : array_like, shape (3n, k_r)
-        ``A_r A_r^T`` = the survey's covariance (:func:`rtsgt.shared.reference_factor`).
-    names : sequence of str
-        Prism names.
-    time_sync_sigma_s : float
-        The noise model's ``sqrt(E[e_ts^2])``, s (0 without the ``time_sync`` source).
-    warn : bool
-        One :class:`~rtsgt.errors.RtsgtWarning` per test judged optimistic.
-
-    Returns
-    -------
-    dict
-        JSON-ready (module docstring): ``clock`` (``dof``, ``chi2``, ``chi2_per_dof``,
-        ``p_value``, ``level``, ``critical`` (of ``chi2_per_dof``), ``verdict``, the windows,
-        ``offsets_ms`` of the whole run per station pair (``run``, ``sigma``) and
-        ``by_window``, columns of one value per window: ``t_start``, ``t_end``, and per
-        station pair ``offsets_ms`` and ``sigma_ms``) and
-        ``prism_orientation`` (the same for the prisms' harmonics, and ``placebo_dof``,
-        ``placebo_chi2_per_dof``, ``f``, whose ``p_value`` and ``critical`` the verdict
-        uses, ``viewing_span_deg`` and ``amplitudes``), and the settings. A verdict is
-        ``consistent`` or ``optimistic``; ``too few moving windows`` or
-        ``too few orientations`` where the data cannot tell (a robot that never moves or
-        never turns).
+    Takes the kept poses' times ``t`` (T,), s; the prisms ``xyz`` (T, n, 3), m, world; the
+    rotations ``R_world_body`` (T, 3, 3) the viewing angles are read from (not a function of
+    the residuals: the closed-form fit, or the truth); the GP ``velocity`` (T, n, 3), m/s;
+    each prism's station position ``station_xyz`` (n, 3) and id ``stations``;
+    ``varying_cov(i, times)`` -> (m, m, 3, 3), prism ``i``'s joint GP covariance;
+    ``shared_factor`` (T, 3n, k) with its ``shared_names`` (clock ones start with
+    ``time_sync``); the surveyed prisms ``reference_xyz`` (n, 3) and ``reference_factor``
+    (3n, k_r); the prism ``names``; the model's clock sigma ``time_sync_sigma_s``, s.
+    Returns the JSON-ready ``clock`` and ``prism_orientation`` tests (statistic, dof,
+    critical value, verdict ``consistent`` / ``optimistic`` or why there is none, offsets per
+    station pair and window, harmonic amplitudes) and the settings; ``warn``: one
+    :class:`~rtsgt.errors.RtsgtWarning` per optimistic test.
     """
     t = np.asarray(t, dtype=float)
     q = np.asarray(xyz, dtype=float)
@@ -547,22 +317,27 @@ def inter_prism_structure_check(
     out["clock"] = _clock(t, starts, ends, per_station, K, cols, is_ts,
                           cols["o"] if found else None, clock_info, time_sync_sigma_s, level)
     if warn:
-        ck, po = out["clock"], out["prism_orientation"]
-        if ck["verdict"] == "optimistic":
-            warnings.warn(
-                f"self-check, inter-prism residual structure: the clock offsets change over the "
-                f"run or exceed the noise model (chi2 / dof = {ck['chi2_per_dof']:.2f} over "
-                f"{ck['dof']} dof, above {ck['critical']:.2f}, its {level:.1%} quantile): a "
-                "drifting or re-synchronised clock; the covariance is too small",
-                RtsgtWarning, stacklevel=2)
-        if po["verdict"] == "optimistic":
-            warnings.warn(
-                f"self-check, inter-prism residual structure: the residuals follow the prisms' "
-                f"orientation (F = {po['f']:.2f} over {po['dof']} and {po['placebo_dof']} dof, "
-                f"above {po['critical']:.2f}, its {level:.1%} quantile): an orientation-"
-                "dependent prism error; the covariance is too small", RtsgtWarning,
-                stacklevel=2)
+        _warn(out, level)
     return out
+
+
+def _warn(out: dict[str, Any], level: float) -> None:
+    """One warning per test of ``out`` judged optimistic (at the check's caller)."""
+    ck, po = out["clock"], out["prism_orientation"]
+    if ck["verdict"] == "optimistic":
+        warnings.warn(
+            f"self-check, inter-prism residual structure: the clock offsets change over the "
+            f"run or exceed the noise model (chi2 / dof = {ck['chi2_per_dof']:.2f} over "
+            f"{ck['dof']} dof, above {ck['critical']:.2f}, its {level:.1%} quantile): a "
+            "drifting or re-synchronised clock; the covariance is too small",
+            RtsgtWarning, stacklevel=3)
+    if po["verdict"] == "optimistic":
+        warnings.warn(
+            f"self-check, inter-prism residual structure: the residuals follow the prisms' "
+            f"orientation (F = {po['f']:.2f} over {po['dof']} and {po['placebo_dof']} dof, "
+            f"above {po['critical']:.2f}, its {level:.1%} quantile): an orientation-"
+            "dependent prism error; the covariance is too small", RtsgtWarning,
+            stacklevel=3)
 
 
 def _whitened_gram(t, H, bounds, varying_cov, n, dense, Vc, window) -> np.ndarray:
@@ -735,36 +510,11 @@ def _orientation(K, cols, info, labels, level) -> dict[str, Any]:
 def run_structure_check(prisms, gps, tracks, calibration, coupling, reference, keep,
                         noise_model, gp_noise: str = "white", *,
                         warn: bool = True) -> dict[str, Any]:
-    """:func:`inter_prism_structure_check` on the quantities of a run (the pipeline's).
-
-    Parameters
-    ----------
-    prisms : rtsgt.interpolation.prisms.PrismsAtTimes
-        The prisms at every query time.
-    gps : dict str -> GPTrack
-        The prisms' GPs, in the order of ``prisms``.
-    tracks : dict str -> PrismTrack
-        The prism tracks (for the station of each prism), in the same order.
-    calibration : rtsgt.calibration.CalibrationResult
-        The station set-ups (their positions).
-    coupling : StationCoupling or None
-        The joint covariance of the calibrations.
-    reference : ReferencePoints
-        The tracked reference prisms, in the order of the prisms.
-    keep : ndarray of bool, shape (T_all,)
-        The kept poses.
-    noise_model : rtsgt.noise.NoiseModel
-        The model of the run (its clock prior).
-    gp_noise : {"white", "all"}
-        What the GPs were given. With ``"all"`` the systematic sources are inside the GPs'
-        covariance and cannot be told from the varying part: the check is not made.
-    warn : bool
-    """
-    from rtsgt.interpolation.cross import gp_joint_covariance
-    from rtsgt.interpolation.prisms import gp_velocities
-    from rtsgt.pose.registration import register
-    from rtsgt.shared import prism_shared_factor, reference_factor, select_prisms
-
+    """:func:`inter_prism_structure_check` on the pipeline's quantities: ``prisms``
+    (PrismsAtTimes at every query time), their ``gps`` and ``tracks`` (dicts in that order),
+    the ``calibration`` and its ``coupling`` (or None), the tracked ``reference``, ``keep``
+    (T_all,) bool, the run's ``noise_model`` (its clock prior). Not made with
+    ``gp_noise = "all"`` (the shared errors are inside the GPs' covariance)."""
     if gp_noise != "white":
         return {"verdict": None, "note": "not made: the GPs were given every noise source "
                                          "(gp_noise = 'all'), the shared errors are not apart"}

@@ -1,21 +1,9 @@
 """One verdict for a run: is this ground truth usable, and the reasons that matter.
 
-The self-checks (:mod:`rtsgt.checks`) each test one part of the uncertainty model; this module
-reads their JSON-ready results (``RunRecord.self_checks``, ``distance_check``, the kept poses)
-and ranks what they found (docs/self-checks.md#the-runs-verdict):
-
-- **not usable as is** (severity 2): no pose kept, or a test that compares the ground truth
-  with data it was not fitted to says that its covariance is too small for the run as a whole
-  (the inter-prism distances over the whole run; the clock offsets drifting; the residuals
-  following the prisms' viewing angle; a tracked inter-prism distance that disagrees with the
-  survey: a prism moved or was mis-surveyed, and every pose carries it).
-- **usable, with caveats** (severity 1): a check finds the covariance too small in a part of
-  the run or in one of its inputs (a motion regime, gaps of 1-3 s, the static stretches' noise
-  level or its correlation over seconds, the GCP fit); or most queried poses were rejected.
-- **notes** (severity 0): a covariance found too large (cautious, not wrong).
-
-The verdict never reads a file or prints; the CLI prints :meth:`RunVerdict.line`, the run
-directory records :meth:`RunVerdict.to_dict` in ``summary.json``.
+Reads the self-checks' JSON-ready results (``RunRecord.self_checks``, ``distance_check``, the
+kept poses) and ranks their findings: ``not usable as is`` (2), ``usable, with caveats`` (1),
+notes (0). The CLI prints :meth:`RunVerdict.line`; ``summary.json`` records
+:meth:`RunVerdict.to_dict`. The levels: docs/self-checks.md#the-runs-verdict.
 """
 
 from __future__ import annotations
@@ -226,26 +214,10 @@ def _dynamic(check: dict, out: list[Finding]) -> None:
 def run_verdict(self_checks: dict, *, kept: int, queried: int,
                 distance_check: dict | None = None, correlated_noise: dict | None = None,
                 survey_sigma: float = SURVEY_DISTANCE_WARNING_SIGMA) -> RunVerdict:
-    """The verdict of a run from its self-checks (module docstring).
-
-    Parameters
-    ----------
-    self_checks : dict
-        ``RunRecord.self_checks`` (JSON-ready, as in ``summary.json``).
-    kept, queried : int
-        Poses (or positions) kept and queried.
-    distance_check : dict, optional
-        ``RunRecord.distance_check``: the tracked inter-prism distances against the survey.
-    correlated_noise : dict, optional
-        ``RunRecord.correlated_noise``: which correlated components the GPs carried.
-    survey_sigma : float
-        A tracked distance off the survey by more than this many predicted sigmas is a
-        finding (:data:`rtsgt.filtering.gates.SURVEY_DISTANCE_WARNING_SIGMA`).
-
-    Returns
-    -------
-    RunVerdict
-    """
+    """The verdict of a run from its ``self_checks`` (``RunRecord.self_checks``), the poses ``kept``
+    of ``queried``, its ``distance_check`` (tracked distances against the survey; a pair over
+    ``survey_sigma`` predicted sigmas is a finding) and ``correlated_noise`` (what the GPs
+    carried)."""
     out: list[Finding] = []
     if kept == 0:
         out.append(Finding(2, "poses", f"no pose passed the quality gates (0 of {queried})"))

@@ -1,80 +1,16 @@
-r"""Module 4 quality gates on poses (Vaidis et al. 2022; docs/filtering.md).
+"""Module 4 of Vaidis et al. (2022): quality gates on poses, the surveyed distances against
+the tracking, and the windows of distance rejections whose measurements are left out of a
+refit.
 
-A pose is kept when
-
-1. it is not degenerate (every prism present, prisms not collinear: see
-   :class:`rtsgt.pose.PoseEstimate`);
-2. **distance gate**: every inter-prism distance of the world prisms agrees with the same
-   distance of the reference prisms within ``distance_gate_m`` (default 0.10 m, the paper's):
-   ``max_ij | |q_i - q_j| - |r_i - r_j| | <= distance_gate_m``;
-3. **uncertainty gate**: the pose's position uncertainty is at most ``uncertainty_gate_m``
-   (default 0.20 m, the paper's value). The paper does not say what the 20 cm bound applies
-   to; rtsgt applies it by default to the standard deviation along the worst direction of the
-   position covariance, ``sqrt(lambda_max(cov[:3, :3]))`` (1 sigma, m), which bounds the
-   standard deviation of every position component and of any horizontal or vertical
-   projection. Other measures: ``"sqrt_trace"`` (``sqrt(tr cov[:3, :3])``, the RMS of the
-   position error) and ``"sqrt_frobenius"`` (``sqrt(||cov[:3, :3]||_F)``, the measure of the
-   paper's per-source figures).
-
-Every rejected pose is counted: :attr:`GateReport.counts` says how many poses fail each gate
-(a pose may fail both the distance and the uncertainty gate), :attr:`GateReport.rejected_by`
-assigns each rejected pose to the first gate it fails, in the order above.
-
-Surveyed distances against the tracking
----------------------------------------
-The distance gate catches gross errors of single poses (10 cm). A surveyed distance that is
-wrong by a few cm (a prism moved after the survey, a mis-pointed shot) passes it at every
-pose, and biases every pose. :func:`surveyed_distance_check` compares, per prism pair, the
-tracked distances ``|q_i - q_j|`` of the kept poses with the surveyed one, against the
-predicted standard deviation of the difference, first order: with ``u`` the unit vector from
-``q_j`` to ``q_i``, ``var = u^T (C_ii + C_jj - C_ij - C_ji) u`` from the joint covariance of
-the two prisms at that time (the shared calibration errors included), plus the same for the
-survey (``u_r`` from ``r_j`` to ``r_i`` through the reference covariance).
-
-The statistic is the **median deviation over the run** (robust to a few bad poses) divided by
-``sigma = sqrt(median_t var_t + var_survey)``: the standard deviation of the median of errors
-that are *fully* correlated over the run. The errors are strongly correlated in time (the
-calibration, the atmosphere, a clock offset are one draw for the run; the GP smooths the
-rest), so the median does not average them down by ``sqrt(T)``; taking them as fully
-correlated can only overstate sigma, so the ratio is a lower bound of the disagreement in
-sigmas, and a warning is not an artefact of the time correlation. A ratio above
-:data:`SURVEY_DISTANCE_WARNING_SIGMA` (3, the usual three-sigma rule; about 0.3 % of
-consistent pairs for Gaussian errors, fewer here as sigma is overstated) is warned about.
-The price of that safety: the part of the error that does average out over the run (the GP's,
-from the instrument noise) is counted in full, so a disagreement is flagged from three
-per-time sigmas of the distance on (on the real excerpt, 3-4.5 mm per pair: about 1 cm).
-
-Measurements inside the windows of distance rejections
-------------------------------------------------------
-A pose whose inter-prism distances disagree with the survey by more than the distance gate
-(10 cm, a hundred times the noise) was built from a wrong measurement: a station tracking
-another prism, a reflection. The gate rejects the pose, but the measurement stays in the GP of
-its prism, where it inflates the Qc that leave-one-out finds (a jump of a metre is a huge
-acceleration) and bends the track next to the window. So the pipeline
-(:func:`rtsgt.pipeline.run_pipeline`, ``[interpolation] outlier_windows = "remove"``) leaves the
-measurements of those windows out of the GP fits and fits again:
-
-- :func:`distance_outliers`: the poses whose finite inter-prism distances disagree with the
-  survey beyond the gate, whatever the gate's reason (a station locked on another prism of the
-  robot makes two prisms coincide: such a pose is rejected as ``"collinear"`` before the
-  distance gate, and is as wrong).
-- :func:`outlier_windows`: each flagged query time ``t_i`` stands for the open interval
-  ``(t_i - a_i, t_i + b_i)``, padded on each side up to the neighbouring query time but by at
-  most one sampling interval of the queries (their median spacing). A wrong measurement at a
-  time ``t_m`` gives a wrong pose at ``t_m`` (the GP follows measurements of millimetre noise),
-  so a flagged run of poses contains every wrong measurement up to the neighbouring query
-  times, which passed the gate; the padding reaches, but not includes, them. The intervals
-  are merged.
-- Every prism's measurements inside a window are left out (:func:`in_windows`): the gate says
-  the geometry is wrong, not which station was; the poses inside are rejected anyway, so the
-  other prisms lose nothing but a few seconds of their Qc fit.
-
-The refit is gated again; a pose flagged now (a wrong measurement the first fit hid) adds its
-window, up to :data:`MAX_OUTLIER_REFITS` fits after the first. The poses of a window stay
-rejected, with the values and the reason of the fit that flagged them. A pose outside the windows that the new
-GPs cannot vouch for (the window left a gap longer than ``max_gap_s``) is dropped, as every
-query across such a gap is. :class:`OutlierWindowReport` counts what was removed (stage
-``"module4"``, reason ``"distance_window"`` in the run's removed measurements).
+A pose is kept when it is not degenerate, passes the distance gate (every inter-prism
+distance within ``distance_gate_m`` of the survey's) and the uncertainty gate (position
+uncertainty, by default ``sqrt(lambda_max(cov[:3, :3]))``, at most ``uncertainty_gate_m``);
+:class:`GateReport` counts each gate and gives each rejected pose its first failing gate.
+:func:`surveyed_distance_check` (median deviation per pair over its fully correlated sigma),
+:func:`distance_outliers`, :func:`outlier_windows` and :func:`in_windows` (the refit of
+``outlier_windows = "remove"``). docs/filtering.md#module-4-quality-gates,
+docs/filtering.md#surveyed-distances-against-the-tracking,
+docs/filtering.md#measurements-inside-the-windows-of-distance-rejections.
 """
 
 from __future__ import annotations
@@ -105,26 +41,14 @@ REASON_UNCERTAINTY = "uncertainty"
 
 #: Reason of a measurement left out of the GP fits as inside a window of distance rejections.
 REASON_DISTANCE_WINDOW = MODULE4_REASONS[0]
-#: Most GP fits that leave out the windows of distance rejections (module docstring).
+#: Most GP fits that leave out the windows of distance rejections.
 MAX_OUTLIER_REFITS = 3
 
 
 def position_uncertainty(cov: ArrayLike, measure: str = "max_std") -> np.ndarray:
-    """Scalar position uncertainty (m) of pose or position covariances.
-
-    Parameters
-    ----------
-    cov : array_like, shape (T, 6, 6) or (T, 3, 3)
-        Pose covariance ordered (x, y, z, rx, ry, rz) (its position block is used) or position
-        covariance, m^2.
-    measure : {"max_std", "sqrt_trace", "sqrt_frobenius"}
-        ``sqrt(lambda_max)``, ``sqrt(trace)`` or ``sqrt(Frobenius norm)`` of the 3x3 block.
-
-    Returns
-    -------
-    ndarray, shape (T,)
-        NaN where the covariance is not finite.
-    """
+    """Scalar position uncertainty (T,), m, of pose (T, 6, 6; x, y, z, rx, ry, rz) or position
+    (T, 3, 3) covariances, m^2: ``sqrt(lambda_max)``, ``sqrt(trace)`` or ``sqrt(Frobenius norm)``
+    of the position block by ``measure``; NaN where the covariance is not finite."""
     c = np.asarray(cov, dtype=float)
     if c.ndim < 2 or c.shape[-2:] not in ((6, 6), (3, 3)):
         raise ValueError(f"Expected covariances of shape (..., 6, 6) or (..., 3, 3), got {c.shape}")
@@ -144,27 +68,11 @@ def position_uncertainty(cov: ArrayLike, measure: str = "max_std") -> np.ndarray
 
 @dataclass(frozen=True)
 class GateReport:
-    """Outcome of the module 4 gates.
-
-    Attributes
-    ----------
-    keep : ndarray of bool, shape (T,)
-    reason : ndarray of str, shape (T,)
-        ``""`` for a kept pose, else the first gate it fails: ``"degenerate"``,
-        ``"distance"``, ``"uncertainty"``.
-    distance_error : ndarray, shape (T,)
-        ``max_ij | d_ij - d_ij(reference) |``, m (NaN for a degenerate pose).
-    uncertainty : ndarray, shape (T,)
-        :func:`position_uncertainty` of each pose, m.
-    counts : dict str -> int
-        ``total``, ``kept``, ``rejected``, and per gate the number of poses failing it:
-        ``degenerate``, ``distance``, ``uncertainty`` (non-degenerate poses only; a pose can
-        fail both of the last two).
-    rejected_by : dict str -> int
-        Rejected poses by their first failing gate (sums to ``counts["rejected"]``).
-    distance_gate_m, uncertainty_gate_m : float
-    uncertainty_measure : str
-    """
+    """Outcome of the module 4 gates, per pose (T,): ``keep``, ``reason`` (``""`` or the first
+    failing gate: ``"degenerate"``, ``"distance"``, ``"uncertainty"``), ``distance_error``
+    (``max_ij |d_ij - d_ij(reference)|``, m, NaN where degenerate) and ``uncertainty`` (m);
+    ``counts`` (``total``, ``kept``, ``rejected`` and the poses failing each gate; a pose can
+    fail both distance and uncertainty), ``rejected_by`` (by first failing gate) and the gates."""
 
     keep: np.ndarray
     reason: np.ndarray
@@ -203,28 +111,10 @@ def quality_gates(
     uncertainty_gate_m: float = DEFAULT_UNCERTAINTY_GATE_M,
     uncertainty_measure: str = "max_std",
 ) -> GateReport:
-    """Apply the module 4 gates to arrays.
-
-    Parameters
-    ----------
-    inter_prism_distance : array_like, shape (T, P)
-        Distances between the world prisms at each pose, m.
-    cov : array_like, shape (T, 6, 6) or (T, 3, 3)
-        Pose (or position) covariances, m^2.
-    reference_distances : array_like, shape (P,)
-        The same distances between the reference prisms, m.
-    degenerate : array_like of bool, shape (T,), optional
-        Poses already known to be degenerate; by default, poses with a non-finite distance or
-        covariance.
-    distance_gate_m, uncertainty_gate_m : float
-        Gates, m (module docstring).
-    uncertainty_measure : str
-        See :func:`position_uncertainty`.
-
-    Returns
-    -------
-    GateReport
-    """
+    """The module 4 gates on ``inter_prism_distance`` (T, P), m, pose or position covariances
+    ``cov`` (T, 6, 6) or (T, 3, 3), m^2, and the reference's ``reference_distances`` (P,), m.
+    ``degenerate`` (T,) bool: poses known to be degenerate (by default those with a non-finite
+    distance or covariance). Returns the :class:`GateReport`."""
     d = np.asarray(inter_prism_distance, dtype=float)
     ref = np.asarray(reference_distances, dtype=float)
     if d.ndim != 2:
@@ -294,23 +184,9 @@ def apply_gates(
     uncertainty_gate_m: float = DEFAULT_UNCERTAINTY_GATE_M,
     uncertainty_measure: str = "max_std",
 ) -> tuple[np.ndarray, GateReport]:
-    """Apply the module 4 gates to a :class:`rtsgt.pose.PoseEstimate`.
-
-    Parameters
-    ----------
-    estimate : PoseEstimate
-        Uses ``inter_prism_distance``, ``pairs``, ``cov`` and ``degenerate``.
-    reference : ReferencePoints, array_like (n, 3) or array_like (P,)
-        The reference prisms (same order as the estimate's prisms), or directly their
-        distances for ``estimate.pairs``.
-    distance_gate_m, uncertainty_gate_m, uncertainty_measure
-        See :func:`quality_gates`.
-
-    Returns
-    -------
-    keep : ndarray of bool, shape (T,)
-    report : GateReport
-    """
+    """:func:`quality_gates` on a :class:`rtsgt.pose.PoseEstimate` (``inter_prism_distance``,
+    ``pairs``, ``cov``, ``degenerate``) against ``reference`` (ReferencePoints, (n, 3) points in
+    the estimate's prism order, or the (P,) distances of ``estimate.pairs``): ``(keep, report)``."""
     report = quality_gates(
         estimate.inter_prism_distance, estimate.cov, _reference_distances(estimate, reference),
         degenerate=estimate.degenerate,
@@ -347,26 +223,10 @@ def prism_distances(xyz: ArrayLike) -> PrismDistances:
 def distance_outliers(
     estimate: Any, reference: Any, distance_gate_m: float = DEFAULT_DISTANCE_GATE_M
 ) -> np.ndarray:
-    """Poses whose inter-prism distances disagree with the reference beyond the gate.
-
-    Unlike the distance gate, a degenerate pose counts when its distances are finite: a
-    station tracking another prism of the robot makes two prisms coincide, and the pose is
-    rejected as collinear before the distance gate is tried (module docstring).
-
-    Parameters
-    ----------
-    estimate : PoseEstimate or PrismDistances
-        Uses ``inter_prism_distance`` and ``pairs`` (:func:`prism_distances`: no pose needed).
-    reference : ReferencePoints, array_like (n, 3) or array_like (P,)
-        As for :func:`apply_gates`.
-    distance_gate_m : float
-        The distance gate, m.
-
-    Returns
-    -------
-    ndarray of bool, shape (T,)
-        True where every distance is finite and one disagrees by more than the gate.
-    """
+    """Poses (T,) bool whose distances are all finite and one disagrees with ``reference`` (as for
+    :func:`apply_gates`) by more than ``distance_gate_m``, m; a degenerate pose counts (a station
+    on another prism makes two prisms coincide). ``estimate``: a PoseEstimate or
+    :class:`PrismDistances`."""
     d = np.asarray(estimate.inter_prism_distance, dtype=float)
     err = np.abs(d - _reference_distances(estimate, reference))
     with np.errstate(invalid="ignore"):  # a row with a NaN is not flagged
@@ -375,25 +235,9 @@ def distance_outliers(
 
 
 def outlier_windows(t: ArrayLike, flagged: ArrayLike, step: float | None = None) -> np.ndarray:
-    """The open time windows of flagged poses, padded towards their neighbours.
-
-    Parameters
-    ----------
-    t : array_like, shape (T,)
-        Query times, s, increasing.
-    flagged : array_like of bool, shape (T,)
-        The poses whose measurements are outliers (:func:`distance_outliers`).
-    step : float, optional
-        Largest padding on each side, s: by default the sampling interval of the queries, the
-        median of ``diff(t)``.
-
-    Returns
-    -------
-    ndarray, shape (K, 2)
-        Disjoint open intervals ``(start, end)``, s, sorted: each flagged ``t_i`` padded by
-        ``min(t_i - t_i-1, step)`` before and ``min(t_i+1 - t_i, step)`` after (``step`` at
-        either end), overlapping or touching ones merged.
-    """
+    """Disjoint sorted open windows (K, 2), s, of the ``flagged`` (T,) query times ``t`` (T,):
+    each ``t_i`` padded towards its neighbours by at most ``step`` (default: the median of
+    ``diff(t)``) on each side, overlapping or touching windows merged."""
     t = np.asarray(t, dtype=float)
     flag = np.asarray(flagged, dtype=bool)
     if t.ndim != 1 or flag.shape != t.shape:
@@ -429,25 +273,11 @@ def in_windows(t: ArrayLike, windows: ArrayLike) -> np.ndarray:
 
 @dataclass(frozen=True)
 class OutlierWindowReport(FilterReport):
-    """What leaving the windows of distance rejections out of the GP fits removed.
-
-    The counts of :class:`~rtsgt.filtering.modules.FilterReport` (``module = "module4"``, one
-    series per prism, reason :data:`REASON_DISTANCE_WINDOW`, ``n_blocks`` the windows), and:
-
-    Attributes
-    ----------
-    windows : ndarray, shape (K, 2)
-        The windows, open intervals of time, s.
-    fits : int
-        GP fits without the windows (at most :data:`MAX_OUTLIER_REFITS`).
-    converged : bool
-        Whether the last fit flagged no new pose.
-    poses_flagged : int
-        Poses inside the windows (rejected).
-    poses_dropped : int
-        Poses outside the windows dropped because the new GPs cannot answer them (a window
-        left a gap longer than ``max_gap_s``).
-    """
+    """What leaving the windows of distance rejections out of the GP fits removed: the counts of
+    :class:`~rtsgt.filtering.modules.FilterReport` (``module = "module4"``, one series per prism,
+    ``n_blocks`` the windows), the ``windows`` (K, 2), s, the number of ``fits`` without them,
+    whether the last flagged nothing new (``converged``), ``poses_flagged`` (inside the windows)
+    and ``poses_dropped`` (outside them, across a gap the new GPs do not bridge)."""
 
     windows: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False,
                                 compare=False)
@@ -464,7 +294,7 @@ class OutlierWindowReport(FilterReport):
 
 
 #: Median deviation of a tracked inter-prism distance from the surveyed one, in predicted
-#: sigmas, above which a run warns (module docstring).
+#: sigmas, above which a run warns.
 SURVEY_DISTANCE_WARNING_SIGMA = 3.0
 
 
@@ -478,30 +308,10 @@ def pair_distance_variance(u: np.ndarray, cov: np.ndarray, i: int, j: int) -> np
 def pair_distance_terms(
     q: np.ndarray, cov: np.ndarray, r: np.ndarray, reference_cov: np.ndarray, i: int, j: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
-    """The tracked and surveyed distances of prisms ``i`` and ``j`` and their variances.
-
-    Parameters
-    ----------
-    q : ndarray, shape (T, n, 3)
-        World prism positions, m.
-    cov : ndarray, shape (T, 3n, 3n)
-        Their joint covariance, m^2.
-    r : ndarray, shape (n, 3)
-        Surveyed prisms (body frame), m.
-    reference_cov : ndarray, shape (3n, 3n)
-        Their covariance, m^2.
-
-    Returns
-    -------
-    d : ndarray, shape (T,)
-        Tracked distances ``|q_i - q_j|``, m.
-    u : ndarray, shape (T, 3)
-        Unit vectors from ``q_j`` to ``q_i``.
-    var_t : ndarray, shape (T,)
-        Variance of ``d`` (:func:`pair_distance_variance`), m^2.
-    d_ref, var_r : float
-        The surveyed distance and its variance, m and m^2.
-    """
+    """For prisms ``i``, ``j`` of ``q`` (T, n, 3), m, with joint covariance ``cov`` (T, 3n, 3n) and
+    the survey ``r`` (n, 3) with ``reference_cov`` (3n, 3n): the tracked distances ``d`` (T,),
+    unit vectors ``u`` (T, 3) from ``q_j`` to ``q_i``, ``var_t`` (T,), and the surveyed distance
+    and its variance (m, m^2)."""
     diff = q[:, i] - q[:, j]
     d = np.linalg.norm(diff, axis=-1)
     u = diff / d[:, None]
@@ -516,33 +326,13 @@ def surveyed_distance_check(
     names: Sequence[str], *, threshold_sigma: float = SURVEY_DISTANCE_WARNING_SIGMA,
     warn: bool = True,
 ) -> dict[str, dict[str, Any]]:
-    """Compare the tracked inter-prism distances with the surveyed ones (module docstring).
-
-    Parameters
-    ----------
-    xyz : array_like, shape (T, n, 3)
-        World prism positions at the kept poses, m.
-    cov : array_like, shape (T, 3n, 3n) or (T, n, 3, 3)
-        Their joint covariance, or the per-prism blocks (prisms then independent), m^2.
-    reference_xyz : array_like, shape (n, 3)
-        Surveyed prisms (body frame), same order, m.
-    reference_cov : array_like, shape (3n, 3n)
-        Their covariance, m^2.
-    names : sequence of str, length n
-        Prism identifiers (for the keys and messages).
-    threshold_sigma : float
-        Ratio above which to warn.
-    warn : bool
-        Emit one :class:`~rtsgt.errors.RtsgtWarning` per pair above the threshold.
-
-    Returns
-    -------
-    dict ``"i-j"`` -> dict
-        JSON-ready, per pair: ``surveyed_m``, ``median_tracked_m``, ``median_deviation_mm``
-        (tracked minus surveyed), ``predicted_sigma_mm`` (the total), ``tracking_sigma_mm``,
-        ``survey_sigma_mm``, ``ratio`` (median deviation / predicted sigma, signed) and
-        ``poses``. Empty without poses.
-    """
+    """The tracked inter-prism distances of the kept poses against the surveyed ones, per pair
+    ``"i-j"`` (docs/filtering.md#surveyed-distances-against-the-tracking). Takes ``xyz`` (T, n,
+    3), m, their joint ``cov`` (T, 3n, 3n) or per-prism blocks (T, n, 3, 3), the survey
+    ``reference_xyz`` (n, 3) and ``reference_cov`` (3n, 3n), and the prism ``names``. Returns,
+    JSON-ready per pair, ``surveyed_m``, ``median_tracked_m``, ``median_deviation_mm``,
+    ``predicted_sigma_mm``, ``tracking_sigma_mm``, ``survey_sigma_mm``, the signed ``ratio`` and
+    ``poses`` (empty without poses); warns per pair above ``threshold_sigma``."""
     q = np.asarray(xyz, dtype=float)
     c = np.asarray(cov, dtype=float)
     r = np.asarray(reference_xyz, dtype=float)

@@ -1,59 +1,13 @@
-r"""Filtering modules 1 and 2 of Vaidis et al. (2022), "Accurate outdoor ground truth based on
-total stations" (CRV 2021/2022), with the parameters of the paper (docs/filtering.md).
+"""Filtering modules 1 and 2 of Vaidis et al. (2022), "Accurate outdoor ground truth based on
+total stations" (CRV), with the paper's parameters.
 
-Module 1 (per station, on raw polar observations)
--------------------------------------------------
-1. Observations with a non-zero instrument status or a non-finite value are removed
-   (reasons ``"status"``, ``"non_finite"``), then those with a raw slope distance beyond
-   ``max_distance`` (``"max_distance"``; the reference code's 1000 m); a measurement with the
-   same time as the previous kept one is removed (``"duplicate_time"``); times going
-   backwards are an input error.
-2. The series is split into blocks at gaps **longer than** ``tau_s`` (``dt > tau_s``).
-3. Each block starts at its **anchor**: its first measurement that agrees with at least one of
-   the next :data:`ANCHOR_NEIGHBOURS` measurements of the block (passes the rate gates below
-   against it). A measurement before the anchor disagrees with every one of them: it is
-   rejected, with the reason of its first failing gate against the measurement that follows
-   it. A measurement with fewer than two measurements after it in its block is not judged so
-   (one neighbour cannot tell which of the two is wrong): it becomes the anchor. A wild first
-   shot of a block thus costs one measurement, not the block; when the first measurement
-   agrees with its neighbours, the anchor is the first measurement, as in the paper
-   (docs/filtering.md#module-1).
-4. After the anchor, every measurement is compared with the **last accepted** measurement of
-   the same block (never with the previous block). It is rejected when the rate of change of
-   the slope distance exceeds ``tau_r`` (``"rate_distance"``), else when the rate of change of
-   the horizontal direction exceeds ``tau_a`` (``"rate_hz"``), else when that of the zenith
-   angle exceeds ``tau_e`` (``"rate_v"``); rates are ``|difference| / dt`` and a rate equal to
-   its threshold passes. The horizontal-direction difference is wrapped into ``[-pi, pi]``,
-   so a crossing of 0 / 2 pi is not a jump. Comparing with the last accepted measurement
-   (rather than with the previous raw one) means that one outlier removes one measurement,
-   not also its successor.
-
-The sequential rule is evaluated exactly without a Python loop over measurements: the anchors
-are found from the gates of every measurement against its next neighbours at once, raw
-consecutive pairs are tested at once, and only each episode that starts at a failing pair
-(an outlier or a burst of them) is resolved, by a vectorised search for the first measurement
-that agrees with the last accepted one again.
-
-Module 2 (across prisms, on time series of each prism)
-------------------------------------------------------
-1. Each prism's series is split into segments at gaps longer than ``tau_s``.
-2. The intervals where **every** prism is inside one of its segments are intersected
-   (an interval ``[a, b]`` with ``a < b``, bounds being measurement times).
-3. Intervals shorter than ``tau_l`` (``b - a < tau_l``) are dropped.
-4. Each series keeps its measurements inside the kept intervals, **plus** the last measurement
-   at or before ``a`` and the first at or after ``b`` of the segment that contains the interval,
-   so that every time of ``[a, b]`` lies between two kept measurements of every prism (they are
-   at most ``tau_s`` apart): an interpolator can then be queried on the whole interval.
-   Removed measurements are counted as ``"short_interval"`` (inside an intersection interval
-   dropped for its duration) or ``"not_all_tracked"`` (anywhere else).
-
-Masks and reasons
------------------
-Both reports keep, for every series given, a boolean mask of what was kept and the reason of
-each removal (``""`` when kept, else one of the names the counts use), indexed like the
-input (:attr:`FilterReport.kept_masks`, :attr:`FilterReport.reasons`). From them,
-:func:`removed_measurements` lists what the filters removed, in the world frame (the run
-directory's ``measurements/removed.csv``), without filtering again.
+Module 1 (per station, raw polar observations): invalid, too far and duplicate measurements
+out, blocks split at gaps over ``tau_s``, each block started at its anchor, then rate gates
+(``tau_r``, ``tau_a``, ``tau_e``) against the last accepted measurement, evaluated without a
+Python loop over measurements. Module 2 (across prisms): the intervals where every prism is
+tracked, at least ``tau_l`` long, each series keeping one measurement either side. Both
+reports keep a mask and a reason per measurement (:class:`FilterReport`), from which
+:func:`removed_measurements` lists what was removed. docs/filtering.md.
 """
 
 from __future__ import annotations
@@ -84,7 +38,7 @@ MODULE1_REASONS = ("status", "non_finite", "max_distance", "duplicate_time", "ra
 DEFAULT_MAX_DISTANCE_M = 1000.0
 
 #: How many following measurements of its block a block's first measurement is compared with
-#: before it becomes the block's anchor (module docstring, module 1 step 3).
+#: before it becomes the block's anchor (docs/filtering.md#module-1).
 ANCHOR_NEIGHBOURS = 3
 
 #: Reasons of module 2.
@@ -99,23 +53,11 @@ _TWO_PI = 2.0 * np.pi
 
 @dataclass(frozen=True)
 class FilterParams:
-    """Thresholds of the filtering modules (defaults: Vaidis et al. 2022).
-
-    Attributes
-    ----------
-    tau_r : float
-        Largest rate of change of the slope distance, m/s (2 m/s).
-    tau_a : float
-        Largest rate of change of the horizontal direction, rad/s (1 deg/s).
-    tau_e : float
-        Largest rate of change of the zenith angle, rad/s (1 deg/s).
-    tau_s : float
-        Gap that splits a series, s (3 s): a gap longer than this starts a new block.
-    tau_l : float
-        Shortest interval kept by module 2, s (2 s).
-    max_distance : float
-        Largest raw slope distance module 1 keeps, m (:data:`DEFAULT_MAX_DISTANCE_M`).
-    """
+    """Thresholds of the filtering modules (defaults: Vaidis et al. 2022): ``tau_r`` (m/s),
+    ``tau_a`` and ``tau_e`` (rad/s), the largest rates of change of the slope distance, the
+    horizontal direction and the zenith angle; ``tau_s`` (s), a longer gap splits a series;
+    ``tau_l`` (s), the shortest interval module 2 keeps; ``max_distance`` (m), module 1's
+    largest raw slope distance."""
 
     tau_r: float = 2.0
     tau_a: float = float(np.deg2rad(1.0))
@@ -147,29 +89,10 @@ class FilterParams:
 
 @dataclass(frozen=True)
 class FilterReport:
-    """What a filtering module removed, and why.
-
-    Attributes
-    ----------
-    module : str
-        ``"module1"`` or ``"module2"``.
-    n_in : int
-        Number of measurements given (all series together).
-    n_kept : int
-        Number of measurements kept.
-    removed : mapping str -> int
-        Number removed for each reason (every reason of the module is present).
-    per_series : tuple of mappings
-        The same counts for each series given (module 2; module 1 has one series).
-    n_blocks : int
-        Module 1: blocks after splitting at gaps; module 2: intervals kept.
-    kept_masks : tuple of ndarray of bool
-        For each series given (module 1: one), shape (N_i,), indexed like its measurements:
-        true where kept.
-    reasons : tuple of ndarray of str
-        For each series given, shape (N_i,): ``""`` where kept, else the reason of the removal
-        (a key of ``removed``).
-    """
+    """What a filtering module removed, and why: ``module`` (``"module1"``, ``"module2"``),
+    ``n_in`` and ``n_kept`` measurements, ``removed`` counts per reason (every reason present),
+    ``per_series`` the same per series given, ``n_blocks`` (module 1: blocks; module 2:
+    intervals kept), and per series (N_i,) ``kept_masks`` and ``reasons`` (``""`` where kept)."""
 
     module: str
     n_in: int
@@ -298,29 +221,9 @@ def _rate_filter(t, d, hz, v, p: FilterParams) -> tuple[np.ndarray, int]:
 def module1(
     obs: Observations, params: FilterParams | None = None
 ) -> tuple[Observations, FilterReport]:
-    """Module 1 of Vaidis et al. (2022): rate gates on one station's observations.
-
-    Parameters
-    ----------
-    obs : Observations
-        Polar observations of one prism by one station (t s, hz rad, v rad, d m), in time
-        order.
-    params : FilterParams, optional
-        Thresholds (default: the paper's).
-
-    Returns
-    -------
-    kept : Observations
-        The observations that pass, in the same order.
-    report : FilterReport
-        Counts per reason (module docstring), and the mask of what was kept and the reason of
-        every removal, indexed like ``obs`` (``kept_masks[0]``, ``reasons[0]``).
-
-    Raises
-    ------
-    InputError
-        Times that go backwards.
-    """
+    """Module 1 of Vaidis et al. (2022) on one station's polar observations ``obs`` (time order):
+    ``(kept, report)``, the report's ``kept_masks[0]`` and ``reasons[0]`` indexed like ``obs``.
+    Times going backwards raise :class:`~rtsgt.errors.InputError`."""
     p = FilterParams() if params is None else params
     if not isinstance(obs, Observations):
         raise InputError(f"Expected Observations, got {type(obs).__name__}")
@@ -382,32 +285,11 @@ def _intersect(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def module2(
     tracks: Sequence[Observations | PrismTrack], params: FilterParams | None = None
 ) -> tuple[list, np.ndarray, FilterReport]:
-    """Module 2 of Vaidis et al. (2022): keep the intervals where every prism is tracked.
-
-    Parameters
-    ----------
-    tracks : sequence of Observations or PrismTrack
-        One time series per prism (usually three), each with strictly increasing times ``t``
-        (s) on a common clock.
-    params : FilterParams, optional
-        ``tau_s`` and ``tau_l`` are used (default: the paper's).
-
-    Returns
-    -------
-    kept : list
-        The series restricted to the kept intervals (same types, same order), each with its
-        bracketing measurements (module docstring).
-    intervals : ndarray, shape (K, 2)
-        Kept intervals ``[a, b]``, s, sorted and disjoint.
-    report : FilterReport
-        Counts per reason, total and per series, and per series the mask of what was kept and
-        the reason of every removal (``kept_masks``, ``reasons``), indexed like its input.
-
-    Raises
-    ------
-    InputError
-        No series, or times not strictly increasing.
-    """
+    """Module 2 of Vaidis et al. (2022): keep the intervals where every prism of ``tracks`` (one
+    series per prism, strictly increasing times on a common clock) is tracked, each series with
+    its bracketing measurements. Returns ``(kept, intervals, report)``: the series restricted
+    (same types and order), the kept intervals (K, 2), s, and the counts, masks and reasons per
+    series. No series or bad times raise :class:`~rtsgt.errors.InputError`."""
     p = FilterParams() if params is None else params
     series = list(tracks)
     if not series:
@@ -470,24 +352,10 @@ def module2(
 
 @dataclass(frozen=True)
 class RemovedMeasurements:
-    """The measurements that filtering modules 1 and 2 removed, sorted by time.
-
-    Attributes
-    ----------
-    t : ndarray, shape (M,)
-        Time, s.
-    prism, station : ndarray of str, shape (M,)
-    xyz : ndarray, shape (M, 3)
-        The raw polar measurement (additive constant included, no atmospheric correction)
-        mapped into the world frame by its station's calibration, m.
-    stage : ndarray of str, shape (M,)
-        ``"module1"`` or ``"module2"``: the module that removed it; ``"module4"``: left out of
-        the GP fits as inside a window of poses the distance gate rejected
-        (:mod:`rtsgt.filtering.gates`).
-    reason : ndarray of str, shape (M,)
-        Why: a name of :data:`MODULE1_REASONS` or :data:`MODULE2_REASONS`, or
-        ``"distance_window"``.
-    """
+    """The measurements the filters removed, sorted by time, (M,) each: ``t`` (s), ``prism``,
+    ``station``, ``xyz`` (M, 3; the raw measurement in the world frame, additive constant
+    included, no atmospheric correction), ``stage`` (``"module1"``, ``"module2"``, ``"module4"``)
+    and ``reason`` (a name of the stage's reasons)."""
 
     t: np.ndarray
     prism: np.ndarray
@@ -508,31 +376,11 @@ def removed_measurements(
     transforms: Mapping[str, Any],
     outlier_masks: Sequence[np.ndarray] | None = None,
 ) -> RemovedMeasurements:
-    """What modules 1 and 2 (and the windows of distance rejections) removed, from their masks,
-    in the world frame.
-
-    Parameters
-    ----------
-    observations : sequence of Observations
-        The raw observations of each station, as given to :func:`module1`.
-    module1_reports : sequence of FilterReport
-        The report of :func:`module1` on each of them (same order).
-    module2_masks, module2_reasons : sequences of ndarray
-        For each station (same order), :func:`module2`'s mask and reasons of its series,
-        indexed like the measurements module 1 kept.
-    transforms : mapping str -> transform
-        ``T_world_station`` of each station (an object with ``apply``).
-    outlier_masks : sequence of ndarray of bool, optional
-        For each station (same order), indexed like the measurements module 2 kept: true
-        where left out of the GP fits as inside a window of distance rejections (stage
-        ``"module4"``, reason ``"distance_window"``).
-
-    Returns
-    -------
-    RemovedMeasurements
-        One entry per removed measurement, sorted by time (stable: station order, then
-        measurement order, for equal times).
-    """
+    """What modules 1 and 2 (and the windows of distance rejections, ``outlier_masks``) removed, in
+    the world frame: from each station's raw ``observations``, its :func:`module1` report,
+    :func:`module2`'s masks and reasons (indexed like module 1's kept measurements), the
+    stations' ``transforms`` (with ``apply``) and the outlier masks (indexed like module 2's
+    kept). Sorted by time, stably."""
     parts: dict[str, list] = {k: [] for k in ("t", "prism", "station", "xyz", "stage", "reason")}
     outliers = [None] * len(observations) if outlier_masks is None else outlier_masks
     for obs, rep, keep2, why2, out4 in zip(observations, module1_reports, module2_masks,
@@ -581,11 +429,8 @@ RATE_REJECTION_WARNING = 0.10
 
 
 def warn_tight_rate_gates(obs: Observations, report, params: FilterParams) -> None:
-    """Warn when module 1's rate gates remove much of a station's series.
-
-    The paper's gates (1 deg/s) suit a slow robot far from the stations; a robot at 2 m/s,
-    10 m from a station, turns the line of sight by 11 deg/s, and the gates then reject true
-    motion, not outliers: say so, with the numbers to change.
+    """Warn when module 1's rate gates removed more than :data:`RATE_REJECTION_WARNING` of a
+    station's series: true motion of a fast or close robot, not outliers (docs/filtering.md#module-1).
     """
     n_rate = sum(int(report.removed.get(k, 0)) for k in ("rate_distance", "rate_hz", "rate_v"))
     if report.n_in and n_rate / report.n_in > RATE_REJECTION_WARNING:

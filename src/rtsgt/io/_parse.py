@@ -1,22 +1,10 @@
 """Shared helpers of the readers and writers: line-numbered parsing, validation, atomic writes.
 
-Every reader of :mod:`rtsgt.io` reports bad input as an :class:`~rtsgt.errors.InputError` that
-names the file and the 1-based line (``path:line: message``) and, where it helps, says what to
-do. Every writer writes to a temporary file in the destination directory and moves it into
-place with :func:`os.replace`, so that a file is never left half-written.
-
-Conventions of the text formats read here: blank lines and lines whose first non-blank
-character is ``#`` are ignored (line numbers still count them). The tables of an ``rtsgt run``
-directory are the exception: :func:`read_table` reads every line after the header as data.
-
-Times are seconds in every format read here (Unix time, UTC, where absolute). A time whose
-magnitude reaches :data:`MAX_SECONDS` (1e11 s, the year 5138 as Unix time; no relative time
-of a deployment comes near it) cannot be seconds: it is refused by :func:`check_seconds`, whose
-message says which unit it looks like (milliseconds, microseconds or nanoseconds since the
-epoch, the usual stamps of ROS and loggers) and by what to divide. rtsgt does not convert it:
-the formats document seconds, and a guessed unit would hide a wrong column. Every reader of
-measurement times (prism files, track CSV, GCP files, weather CSV, query times) calls it,
-through :func:`check_increasing` where the times must increase.
+Bad input is an :class:`~rtsgt.errors.InputError` naming the file and the 1-based line;
+writers write a temporary file beside the destination and :func:`os.replace` it. Blank and
+``#`` lines are ignored, except in a run directory's tables (:func:`read_table`). Times are
+seconds: one reaching :data:`MAX_SECONDS` is refused by :func:`check_seconds`, saying which
+unit it looks like; rtsgt never guesses a unit.
 """
 
 from __future__ import annotations

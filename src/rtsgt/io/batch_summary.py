@@ -1,33 +1,6 @@
-"""The table across the deployments of ``rtsgt batch``: one row per deployment, as CSV.
-
-Every number and verdict is read back from the deployment's ``summary.json`` through the run
-reader (:func:`rtsgt.io.run_dir.read_summary`), never recomputed. Columns
-(:data:`BATCH_COLUMNS`):
-
-=================================  =========================================================
-``deployment``                     the deployment's name in the batch (its run directory)
-``status``                         ``done`` (run now), ``skipped`` (complete already),
-                                   ``failed``
-``seed``                           the deployment's seed (:func:`rtsgt.batch.deployment_seed`)
-``elapsed_s``                      seconds the run took in this batch (empty when skipped)
-``poses_queried``, ``poses_kept``  ``poses.queried`` and ``poses.kept``
-``rejected_distance``,             poses the module 4 gates removed, by gate
-``rejected_uncertainty``,          (``gates.rejected_by``)
-``rejected_degenerate``
-``median_sigma_translation_mm``,   ``median_uncertainty``: the median over the kept poses of
-``median_sigma_rotation_mrad``     the square root of the trace of the position (rotation)
-                                   block
-``check_gcp_fit``                  the self-checks' verdicts (docs/self-checks.md):
-``check_inter_prism_distances``    ``consistent`` when every part tested is, else each
-``check_block_cv``                 failing verdict with its parts (stations, regimes), e.g.
-``check_clock``                    ``optimistic (2, 3)``; the static stretches as counts of
-``check_prism_orientation``        tests, e.g. ``optimistic 11, pessimistic 3 of 18``; what
-``check_static_noise``             the check says when no part could be tested (``too few
-                                   poses``); empty where the run has no such check
-``warnings``                       how many warnings the run recorded
-``run_dir``, ``config``            the run directory and the deployment's TOML
-``error``                          the one-line message of a failure
-=================================  =========================================================
+"""The table across the deployments of ``rtsgt batch``: one row per deployment, as CSV
+(:data:`BATCH_COLUMNS`), every number and verdict read back from the run's ``summary.json``
+(:func:`rtsgt.io.run_dir.read_summary`), never recomputed. docs/batch.md#output.
 """
 
 from __future__ import annotations

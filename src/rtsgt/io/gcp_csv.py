@@ -1,37 +1,9 @@
-r"""The native rtsgt CSV format of ground control point (GCP) shots.
-
-Format (version 1)
-------------------
-A comma-separated text file (RFC 4180 quoting allowed), UTF-8. Blank lines and lines whose
-first non-blank character is ``#`` are ignored. The first data line is a header naming the
-columns, in any order, with their unit in the name::
-
-    station,marker,hz_rad,v_rad,d_m,t_s,status
-    1,1,4.59018,1.5627,4.70579,1657288500.324114793,0
-    2,1,1.39953,1.63189,4.08538,1666982693.001119001,0
-
-============  ========  ==================================================================
-column        required  meaning
-============  ========  ==================================================================
-``station``   yes       station identifier (text, e.g. ``1``)
-``marker``    yes       ground control point identifier (text); shots of the same marker
-                        by different stations are matched by this identifier
-``hz_rad``    yes       clockwise horizontal direction, rad (``hz_deg`` / ``hz_gon``
-                        accepted instead)
-``v_rad``     yes       **zenith** angle, rad, pi/2 = horizontal (``v_deg`` / ``v_gon``
-                        accepted instead)
-``d_m``       yes       slope distance, m, as measured, **without** the additive (prism)
-                        constant, which the reader takes as an argument
-``t_s``       no        time of the shot, s (Unix epoch, UTC); may be empty; times that
-                        look like ms, us or ns are refused (:func:`~rtsgt.io._parse.check_seconds`)
-``status``    no        0 = valid shot (default), anything else = instrument error code;
-                        the calibration excludes and counts non-zero ones
-============  ========  ==================================================================
-
-The angle convention is the one of :mod:`rtsgt.measurement.polar`:
-``x = d sin V sin Hz, y = d sin V cos Hz, z = d cos V``.
-:func:`write_gcp_csv` writes the column set above, in that order, in radians, with the
-shortest exact representation of every float, so that reading back gives the same arrays.
+"""The native rtsgt CSV format of ground control point (GCP) shots, and the reader of every
+GCP format (:func:`read_gcp_shots`): a header naming the columns ``station``, ``marker``,
+``hz_rad``, ``v_rad`` (zenith), ``d_m`` (without the additive constant), optional ``t_s`` and
+``status``, in any order, angles also in deg or gon. :func:`write_gcp_csv` writes floats in
+their shortest exact form, so reading back gives the same arrays.
+docs/file-formats.md#gcp-files.
 """
 
 from __future__ import annotations

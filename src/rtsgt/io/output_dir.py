@@ -1,35 +1,11 @@
 """Directories that rtsgt writes: assembled aside, put in place whole, replaced only if ours.
 
-Every directory a command writes (``rtsgt run``, ``simulate``, ``demo``, ``analyze``,
-``evaluate --plot``) goes through :class:`OutputDir`:
-
-- the files are written into a hidden temporary directory beside the target
-  (``.NAME.rtsgt-tmp-...``) and the whole directory is renamed into place at the end, so a
-  command that fails, or is interrupted, leaves nothing behind, and an older output stays
-  intact until the new one is complete;
-- the directory holds a manifest, ``.rtsgt-output.json``, listing every file rtsgt wrote into
-  it (relative POSIX paths), with the kind of output and rtsgt's version;
-- an existing target is used only if it is an empty directory, or, with ``force``, if it is an
-  rtsgt output: every file in it is listed in its manifest or in the manifest of an rtsgt
-  output nested in it. A directory that holds anything else (the inputs of a deployment, a
-  user's notes) is refused with one line naming the first such file;
-- a target that is, or holds, the current working directory or an input of the command is
-  refused even with ``force``.
-
-A directory that rtsgt fills over several calls (``rtsgt batch``: one run directory per
-deployment, each put in place whole by :class:`OutputDir`, and summary files) is opened by
-:func:`open_output_folder`: absent or empty, it gets a manifest of its kind; else it must be an
-earlier output of that kind. :func:`complete_output` says whether a directory is a complete
-output (every file its manifest lists present).
-
-Directories are created with the permissions of the user's umask. Files that rtsgt adds later
-to an output (``rtsgt report`` writing ``report.html`` into a run directory) are recorded in
-its manifest with :func:`record_files`.
-
-Single files (``rtsgt calibrate --out``, ``interpolate --out``, ``report --out``) are written
-atomically by their writers; :func:`check_output_file` lets one replace an existing file only
-if rtsgt wrote it: listed in the manifest of its directory, or recognisably an output of that
-command (its writer says how to recognise one).
+:class:`OutputDir` writes into a hidden temporary directory beside the target, renamed into
+place at the end, with a manifest (``.rtsgt-output.json``) of every file rtsgt wrote; an
+existing target is replaced only if empty or, with ``force``, an rtsgt output, never if it
+holds the working directory or an input. :func:`open_output_folder` (filled over several
+calls), :func:`complete_output`, :func:`record_files` (files added later) and
+:func:`check_output_file` (single files) complete it. docs/cli.md.
 """
 
 from __future__ import annotations

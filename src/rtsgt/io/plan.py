@@ -1,58 +1,6 @@
-"""Plan files (TOML) of ``rtsgt plan``, and the paths they name (docs/file-formats.md#plan-toml).
-
-Plan coordinates are any levelled frame with z up (a site map's), in metres. Example::
-
-    [plan]
-    name = "forest-layout-a"         # default: the file's stem
-    reference_station = "1"          # the world frame of a run is this station's
-    seed = 0                         # the calibration's Monte Carlo (as rtsgt run --seed)
-    rate_hz = 2.5                    # tracking rate of every station (default 2.5)
-    # layout = "deployment.toml"     # or the layout of an existing deployment (its stations,
-                                     # GCP shots, survey, instrument and options); then no
-                                     # [[stations]], [gcp], [rig], [instrument] or processing
-                                     # tables here
-
-    [instrument]                     # as in a deployment TOML (default trimble-s7)
-    profile = "trimble-s7"
-
-    [[stations]]                     # one per station; three or more track a prism
-    id = "1"
-    xyz_m = [0.0, 0.0, 1.5]          # the instrument's centre
-    prism = "1"                      # the prism it tracks (none: it only shoots the markers)
-    # rate_hz = 2.5
-
-    [gcp]
-    xyz_m = [[10.0, 5.0, 0.2], ...]  # the markers; every station shoots every one
-    # names = ["A", "B", ...]
-
-    [rig]                            # the prisms on the robot, in the frame whose pose is wanted
-    prisms = { "1" = [0.40, 0.30, 0.80], "2" = [0.40, -0.42, 0.64], "3" = [-0.45, 0.05, 0.95] }
-    sigma_m = 0.001                  # the survey's sigma of each coordinate (default 1 mm)
-    # file = "reference.csv"         # or the reference CSV (name,x,y,z,cov_xx,...)
-
-    [robot]
-    speed_m_s = 1.0
-    qc_m2_s3 = 1e-3                  # the GP's Qc: a number, or [horizontal, vertical]
-    # qc_from_run = "earlier-run"    # or an rtsgt run directory of the same robot
-    forward_deg = 0.0                # the robot's forward axis, from the body x axis (deg)
-
-    [area]                           # one of [area] or [path]; neither: the area of the
-    bbox_m = [-20.0, -20.0, 80.0, 60.0]   # stations and markers
-    # polygon_m = [[x, y], ...]
-    step_m = 2.0                     # default: a round step giving about 2500 points
-    z_m = 0.8                        # height of the prisms (default: the markers' median)
-    headings = 8
-
-    [path]
-    file = "path.csv"                # x,y[,z][,t] with a header, or poses (TUM, a run's
-                                     # groundtruth_covariance.csv, ...)
-    # waypoints_m = [[x, y], ...]    # or waypoints, a point every step_m (default 1 m)
-    # z_m = 0.8
-
-    [noise], [calibration], [interpolation], [pose]   # as in a deployment TOML
-
-A deployment TOML given in place of a plan is its own layout, over the area of its stations
-and markers.
+"""Plan files (TOML) of ``rtsgt plan``, and the paths they name: :func:`load_plan` reads one
+(or a deployment TOML, its own layout) into a layout, a motion and an area or a path, every
+key checked. Schema and example: docs/file-formats.md#plan-toml.
 """
 
 from __future__ import annotations

@@ -1,39 +1,10 @@
-r"""Readers and writer of position-only trajectories: a tracked prism as datasets give it.
+"""Readers and writer of position-only trajectories: a tracked prism as datasets give it.
 
-Every reader returns a :class:`~rtsgt.types.PositionTrajectory` (time s, world position m,
-optional 3x3 covariance m^2) and reports bad input as an :class:`~rtsgt.errors.InputError`
-naming the file (and the line or message): a missing or unknown column, a non-number, NaN or
-infinity, times that are not strictly increasing, a covariance that is not symmetric positive
-semi-definite, an empty file.
-
-CSV forms (:func:`read_position_csv`; the form is told by the header line)
--------------------------------------------------------------------------
-``rtsgt``
-    ``t,x,y,z`` (s, m), optionally followed by ``cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz``
-    (the upper triangle of the covariance, m^2; all six or none). The layout of a run's
-    ``prisms/prism<i>.csv`` (:mod:`rtsgt.io.run_dir`) and of :mod:`rtsgt.io.track_csv`,
-    written by :func:`write_position_csv`. Extra columns after them are ignored; a file
-    without a header line is read as these 4 (or 10) columns, comma or whitespace separated.
-``euroc``
-    ``#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m]``: EuRoC MAV's
-    ``leica0/data.csv`` (the Leica MS50 tracking one prism), integer nanoseconds.
-``rostopic``
-    ``rostopic echo -p`` (or ``-b BAG -p``) of a ``geometry_msgs`` topic:
-    ``%time,field.header.seq,field.header.stamp,field.header.frame_id,field.point.x,...``
-    (``PointStamped``), ``field.pose.position.x`` (``PoseStamped``, e.g. NTU VIRAL's
-    ``leica_pose.csv``), ``field.pose.pose.position.x`` (``PoseWithCovarianceStamped``, its
-    ``field.pose.covariance0..35`` giving the position block; all zero: none) or
-    ``field.transform.translation.x``; the time is ``field.header.stamp`` (integer ns), or
-    ``%time`` (the record time) when every stamp is zero.
-
-Bags (:func:`read_position_bag`)
---------------------------------
-A topic of a ROS 1 bag or a ROS 2 bag (read with ``rosbags``, :mod:`rtsgt.io._bag`) of type
-``geometry_msgs/PointStamped``, ``PoseStamped``, ``PoseWithCovarianceStamped`` (the position
-block of its covariance), ``nav_msgs/Odometry`` or ``geometry_msgs/TransformStamped``. Only
-the position is read: the orientation of a prism topic means nothing (it is often zero or the
-identity) and is not checked. Times are the header stamps (the record times when every stamp
-is zero); messages are sorted by time, and repeated identical ones dropped.
+Every reader returns a :class:`~rtsgt.types.PositionTrajectory` (s, m, optional 3x3
+covariance, m^2) and reports bad input as an :class:`~rtsgt.errors.InputError` naming the file
+and line. :func:`read_position_csv` tells its form by the header (rtsgt ``t,x,y,z[,cov_..]``,
+EuRoC Leica, ``rostopic echo -p``); :func:`read_position_bag` reads a pose or point topic of a
+ROS bag (the position only). docs/file-formats.md#position-ground-truth-files.
 """
 
 from __future__ import annotations

@@ -1,60 +1,10 @@
-r"""An RTS_project deployment folder as it is: what it holds, and a deployment TOML for it.
+"""An RTS_project deployment folder as it is: what it holds, and a deployment TOML for it.
 
-The RTS_project (norlab-ulaval/RTS_project, the data of Vaidis et al.) keeps each deployment
-in ``data/<date>/``; :func:`scan_folder` looks for each input there, and
-:func:`deployment_toml_text` writes the ``deployment.toml`` that ``rtsgt run`` reads
-(``rtsgt init FOLDER``):
-
-=================================================  ===========================================
-RTS_project path                                   what, and how the TOML uses it
-=================================================  ===========================================
-``total_stations/GCP.txt``                         GCP shots of every station (required):
-                                                   ``[gcp]``, format ``rts-project``
-``uncertainty/raw_data/prism<i>.csv``              station i tracking prism i, ``t d V Hz``:
-                                                   one ``[[stations]]`` per file
-or a raw bag of the acquisition system             ``*.bag`` (ROS 1) or a ROS 2 bag directory
-                                                   (``metadata.yaml``): ``[measurements]``,
-                                                   stations those of ``GCP.txt``
-``sensors_extrinsic_calibration/calibration_raw.csv``  static survey, DMS with sigmas:
-                                                   ``[reference]``, format ``survey-dms``
-``sensors_extrinsic_calibration/sensor_positions.csv``  the same points, Cartesian with a
-                                                   covariance: ``[reference]``, format
-                                                   ``sensor-positions`` (without
-                                                   ``calibration_raw.csv``)
-``sensors_extrinsic_calibration/calibration_results.csv``  inter-prism distances: checked
-                                                   against the survey's, not needed by a run
-a weather file                                     an ECCC hourly CSV or rtsgt's weather CSV
-                                                   (recognised by its header): ``[weather]``
-=================================================  ===========================================
-
-The survey is required for poses only: a folder of one or two tracked prisms without one gives
-a TOML without ``[reference]``, whose run gives the prisms' positions (``rtsgt.io.config``).
-Each item is looked for at its RTS_project path first, then by its file name anywhere under
-the folder (a flat folder such as the excerpt's ``examples/rts_20221110/data`` works too);
-hidden folders, folders named ``static*`` (the static stretches, ``static_raw_data``) and
-folders rtsgt wrote other than simulated deployments (run directories, whose
-``measurements/prism<i>.csv`` are not tracked prism files) are skipped. The RTS_project keeps
-its weather in ``data/weather_<year>/``, outside the date folder: give it with ``--weather``.
-Of several weather files, the one whose records cover the tracked prisms' times is taken.
-
-The choices written into the TOML, each with a comment there:
-
-- station ``i`` tracks prism ``i`` (``prism<i>.csv`` holds station i's measurements of prism
-  i; a bag's ``theodolite_id`` i is station i): the RTS_project's convention;
-- the raw bag, when there is one, rather than the prism files (those are the reference code's
-  output after its rate filter; the bag has every measurement and its status code);
-  ``measurements = "prisms"`` takes the prism files;
-- ``calibration_raw.csv`` rather than ``sensor_positions.csv`` when both are there: the same
-  positions, but the latter's covariances are not those of the survey's sigmas (they put the
-  distance's 2 mm on z and almost nothing across it; ``docs/file-formats.md``);
-- prism i is row i of the survey (rows 1-3 are the prisms in the RTS_project layout, rows
-  4-6 the GNSS antennas, then lidar points), and the ground truth is given in the frame of the
-  GNSS antennas (``body_frame = "points"``, rows 4-6) when the survey has them, else in the
-  survey frame;
-- the additive constant 0.01 m of the RTS_project's prisms, on the tracking and the GCP
-  distances; the Trimble S7 profile; ECCC times as UTC-5 (Quebec's standard time) unless
-  ``utc_offset_hours`` is given; the processing tables with rtsgt's defaults, every key
-  written (:func:`rtsgt.io.config.options_toml_text`).
+:func:`scan_folder` looks for each input of ``data/<date>/`` (the GCP shots, the prism files
+or a raw bag, the survey, a weather file) at its RTS_project path, then by name anywhere
+under the folder; :func:`deployment_toml_text` writes the ``deployment.toml`` that
+``rtsgt run`` reads (``rtsgt init``), each choice commented in it. Paths, choices and
+output: docs/file-formats.md#rtsgt-init.
 """
 
 from __future__ import annotations

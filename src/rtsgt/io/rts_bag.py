@@ -1,98 +1,14 @@
-r"""Reader of the raw bags of the total-station acquisition system of RTS_project.
+"""Reader of the raw bags of the total-station acquisition system of RTS_project.
 
-The system of Vaidis et al. (norlab-ulaval: ``theodolite_node_msgs``, ``RTS_project``,
-``theodolite_pose``) records every measurement of every station as a ROS message; the
-prism files of :mod:`rtsgt.io.rts_project` (``t d V Hz``) were extracted from such bags. This
-reader takes the bag itself, ROS 1 (``.bag``) or ROS 2 (a directory with ``metadata.yaml``, or
-its ``.db3`` / ``.mcap`` file), through ``rosbags`` (the ``bags`` extra; no ROS install).
-
-Messages
---------
-``theodolite_node_msgs/msg/TheodoliteCoordsStamped`` on ``/theodolite_master/theodolite_data``
-(:data:`TOPIC`), one per measurement::
-
-    std_msgs/Header header     # stamp: theodolite_time - estimated_time_offset, the time
-                               # of the measurement on the receiver's clock
-    time theodolite_time       # the same time on the station's clock, uncorrected
-    uint8 theodolite_id        # the station: 1, 2, 3, ...
-    uint8 status               # 0 valid; else why not (below)
-    float64 azimuth            # rad
-    float64 elevation          # rad
-    float64 distance           # m
-
-``theodolite_node_msgs/msg/TheodoliteTimeCorrection`` on
-``/theodolite_master/theodolite_correction_timestamp`` (:data:`CORRECTION_TOPIC`), one per
-clock synchronisation of a station: ``std_msgs/Header header``, ``uint8 theodolite_id``,
-``duration estimated_time_offset``. The node estimates the offset as the station's clock minus
-its own (the mean of ``theodolite time - midpoint of the round trip`` over the pings) and
-stamps every later measurement ``header.stamp = theodolite_time - estimated_time_offset``
-(norlab-ulaval theodolite node, ``Synchronization_call`` and ``Received_data_check``). The
-corrections are read and reported (:attr:`TheodoliteBag.time_corrections`, ``summary.json``
-``filters.input``), with, per station, the median of ``theodolite_time - header.stamp``
-(:attr:`TheodoliteBag.stamp_difference_s`: the offset applied, comparable with them); they are
-already in ``header.stamp``, so nothing is corrected again.
-
-The corrections' topic is the measurements' topic with ``theodolite_data`` replaced by
-``theodolite_correction_timestamp`` (the node publishes both under its name: :data:`TOPIC`
-gives :data:`CORRECTION_TOPIC`, a namespaced topic the same namespace), or the one given
-(``[measurements] correction_topic``). Missing corrections are never silent: a topic given that
-is not in the bag is an error, the default one missing a warning that names the topics of
-``TheodoliteTimeCorrection`` the bag holds under other names, or says it holds none.
-
-The older layout: ``std_msgs/Float64MultiArray`` on ``/theodolite_data``
-(:data:`OLD_TOPIC`), as the ``theodolite_listener`` node published it: ``data = [id, Hz, V, d,
-sec, nsec, status]`` (the time corrected as above, as integer seconds and nanoseconds; status
-as in ``TheodoliteCoordsStamped``), or, from earlier versions without a status, ``[id, Hz, V,
-d, sec, nsec]`` or ``[id, Hz, V, d, t]`` (the time in float seconds). Its corrections are
-``Float64MultiArray`` too, ``data = [sec, nsec, id, estimated_time_offset_s]``, on
-``/theodolite_correction_timestamp``. It has one time (the array's), with the same angle and
-distance conventions as below (an assumption: the same Raspberry Pi software sent them; a
-zenith angle outside (0, pi), e.g. one in degrees, is refused).
-
-The types are registered from these definitions at run time (:data:`MESSAGE_DEFINITIONS`),
-for ROS 2 bags recorded without their message definitions (before ROS 2 Iron); ROS 1 bags and
-newer ROS 2 bags carry their own, which take precedence. A topic of another type, or a
-``TheodoliteCoordsStamped`` of another package without the fields above, is refused.
-
-Conventions
------------
-Pinned against the code that wrote the CSV route's files (norlab-ulaval/RTS_project,
-``scripts/theodolite_utils.py`` and ``contrib/Save_raw_data_uncertainty.ipynb``, which read
-``/theodolite_master/theodolite_data`` of the 2022-11-10 bag and saved each station's
-``prism<i>.csv`` as ``t, distance, elevation, azimuth``):
-
-- ``azimuth`` is the CSV's ``Hz``: the clockwise horizontal direction, rad;
-- ``elevation`` is the CSV's ``V``: the **zenith** angle despite its name (the code computes
-  ``z = d cos(elevation)``; ``theodolite_pose`` computes ``x = d sin(az) sin(el)``,
-  ``y = d cos(az) sin(el)``, ``z = d cos(el)``, rtsgt's convention,
-  docs/conventions.md#station-polar-convention);
-- ``distance`` is the raw slope distance, **without** the additive (prism) constant: both
-  add 0.01 m to it. The constant stays a key of ``[[stations]]`` (``additive_constant_m``);
-- the time is ``header.stamp`` as ``sec + nanosec * 1e-9``, the same expression, so the bag
-  route gives the CSV's times bit for bit;
-- ``theodolite_id`` k is the station ``k`` that tracks prism ``k`` (``prism1.csv`` holds
-  ``theodolite_id == 1``); a deployment may map them otherwise (``[[stations]]``
-  ``theodolite_id``).
-
-Time stamps
------------
-``time = "header"`` (the default) takes ``header.stamp``: every station on the receiver's
-clock, each corrected by its estimated offset, which is what the pipeline assumes (the
-stations' tracks are compared and interpolated at common times; the ``time_sync`` noise source
-models what is left of the offset), and what the CSV route holds. ``time = "theodolite"`` takes
-``theodolite_time``, uncorrected: for studying the synchronisation itself. The report gives,
-per station, the median of ``theodolite_time - header.stamp`` (the offset applied).
-
-Status and removals
--------------------
-Each message with a non-zero status is removed and counted by reason (:data:`INPUT_REASONS`):
-1 ``tilt_out_of_range``, 2 ``wrong_target_distance``, 3 ``tracking_exception`` (its values
-are -1), 4 ``distance_under_1m``, any other code ``unknown_status``. A valid message (status 0)
-with a non-finite value, a non-positive distance or a zenith angle outside (0, pi) is an
-:class:`~rtsgt.errors.InputError` naming the bag, the topic and the message, as a bad line of
-a CSV file is. The valid messages of each station are sorted by time (stable); repeated times
-are left to module 1 (``duplicate_time``; the RTS_project code dropped them too). The counts
-reach ``summary.json`` as ``filters.input`` (:class:`InputReport`).
+The bags of Vaidis et al. (norlab-ulaval ``theodolite_node_msgs``), ROS 1 or ROS 2, through
+``rosbags`` (the ``bags`` extra): ``TheodoliteCoordsStamped`` on :data:`TOPIC` (or the older
+``Float64MultiArray`` on :data:`OLD_TOPIC`), the clock corrections on
+:data:`CORRECTION_TOPIC` (read and reported, already in ``header.stamp``), the types
+registered from :data:`MESSAGE_DEFINITIONS` where a bag lacks them. The conventions are the
+prism files' (``azimuth`` = ``Hz``, ``elevation`` = the zenith angle, the distance without
+the additive constant, the time ``sec + nanosec * 1e-9``); a non-zero status is removed and
+counted by reason (:data:`INPUT_REASONS`, :class:`InputReport`).
+docs/file-formats.md#total-station-bags.
 """
 
 from __future__ import annotations

@@ -1,34 +1,8 @@
-r"""Readers and writers of the file formats of the RTS_project repository (Vaidis et al. 2023).
-
-Two formats, as found in ``norlab-ulaval/RTS_project`` (data of 2022-11-10):
-
-**Tracked prism file** (``prism1.csv`` ...): no header, one measurement per line, space
-separated ``t d V Hz``:
-
-=====  ==========================================================================
-``t``  Unix time, s (UTC)
-``d``  slope distance, m, **without** the additive constant (+0.01 m in that dataset)
-``V``  **zenith** angle, rad (pi/2 = horizontal); note: zenith *before* azimuth
-``Hz`` clockwise horizontal direction, rad
-=====  ==========================================================================
-
-**GCP file** (``GCP.txt``): a header line and ``" , "``-separated rows::
-
-    theodolite_number , marker_number , status , elevation , azimuth , distance , sec , nsec
-
-``elevation`` is the **zenith** angle (rad) despite its name, ``azimuth`` the clockwise
-horizontal direction (rad), ``distance`` the raw slope distance (m, additive constant not
-applied), ``status`` 0 for a valid shot, and the time is ``sec + nsec * 1e-9`` with ``nsec``
-*not* zero-padded (``1119001`` means 0.001119001 s).
-
-Times are seconds in both (``sec`` too): values that look like milliseconds, microseconds or
-nanoseconds since the epoch (``|t| >= 1e11``) are refused with a message that says so
-(:func:`rtsgt.io._parse.check_seconds`).
-
-The additive (prism) constant is never hidden in the numbers: the readers store the raw
-distance and the constant separately (:attr:`Observations.additive_constant`,
-:attr:`GcpShots.additive_constant`), and the writers write the raw distance back, so that
-``read(write(x)) == x`` exactly.
+"""Readers and writers of the file formats of the RTS_project repository (Vaidis et al. 2023):
+the tracked prism file (``t d V Hz``, zenith before azimuth) and ``GCP.txt`` (``elevation`` is
+the zenith angle, the time ``sec + nsec * 1e-9`` with ``nsec`` not zero-padded). Distances
+are raw (the additive constant stored apart), so ``read(write(x)) == x`` exactly.
+docs/file-formats.md#tracked-prism-files, docs/file-formats.md#gcp-files.
 """
 
 from __future__ import annotations

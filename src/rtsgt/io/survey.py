@@ -1,34 +1,9 @@
-r"""Readers of the static survey of the robot and of reference-point files.
-
-Three formats:
-
-``calibration_raw.csv`` (RTS_project, one station shooting points on the robot)
-    Space separated rows of 15 fields: Hz as ``d m s``, sigma Hz as ``d m s``, V (zenith) as
-    ``d m s``, sigma V as ``d m s``, slope distance (m), sigma distance (m), and a trailing
-    field (0 in the files). Rows, by the RTS_project layout: prisms 1-3, GNSS antennas 1-3,
-    then lidar points. The sigmas are read as one standard deviation. Manual shots use the
-    survey convention of :mod:`rtsgt.measurement.polar` (no additive constant)::
-
-        x = d cos(Hz) sin(V),   y = -d sin(Hz) sin(V),   z = d cos(V)
-
-    The points and their first-order covariance ``J diag(s_Hz^2, s_V^2, s_d^2) J^T`` are
-    computed by :class:`rtsgt.types.SurveyShots` (this module only parses).
-``calibration_results.csv`` (RTS_project)
-    One line: the inter-prism distances d12 d13 d23, then the inter-GNSS distances
-    g12 g13 g23 (m), space or comma separated.
-rtsgt reference CSV
-    Header ``name,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz`` (any column order), one
-    point per row, body frame, m and m^2 (no correlation between points).
-``sensor_positions.csv`` (RTS_project, the same points as ``calibration_raw.csv`` in Cartesian form)
-    No header; space separated rows of 13 fields: ``x y z``, a flag, then the 3x3 covariance
-    row-major (``cov_xx cov_xy cov_xz cov_yx ... cov_zz``), survey frame, m and m^2. The rows
-    are those of ``calibration_raw.csv`` (prisms 1-3, GNSS antennas 1-3, lidar points). The
-    flag is the homogeneous coordinate of the reference code's 4-vectors (1); it is kept
-    (:attr:`SensorPositions.flag`) and not used: the position is ``x y z`` as written. The
-    covariance must be symmetric and positive semi-definite; a zero one is accepted (the real
-    file has four) and only what uses the row can say whether that matters
-    (:func:`rtsgt.io.deployment.read_reference` warns when a prism or a body-frame point has
-    one, or a flag other than 1).
+"""Readers of the static survey of the robot and of reference-point files: RTS_project's
+``calibration_raw.csv`` (DMS angles with sigmas; the points computed by
+:class:`rtsgt.types.SurveyShots`), ``calibration_results.csv`` (inter-prism and inter-GNSS
+distances) and ``sensor_positions.csv`` (Cartesian with a covariance and a flag, kept unused:
+:class:`SensorPositions`), and rtsgt's reference CSV (``name,x,y,z,cov_..``, body frame).
+docs/file-formats.md#survey-and-reference-files.
 """
 
 from __future__ import annotations

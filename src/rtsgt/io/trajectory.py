@@ -1,50 +1,10 @@
-r"""Readers and writers of pose trajectories: TUM, KITTI, EuRoC, rtsgt covariance CSV, ROS bags.
+"""Readers and writers of pose trajectories: TUM, KITTI, EuRoC, rtsgt covariance CSV, ROS bags.
 
-Every reader returns a :class:`~rtsgt.types.PoseTrajectory` (``T_world_body``: positions in m,
-scalar-last unit quaternions, time in s, optional 6x6 covariance in the left-perturbation
-convention of :mod:`rtsgt.geometry.transform`, ordered x, y, z, rx, ry, rz) and reports bad
-input as an :class:`~rtsgt.errors.InputError` naming the file and line: wrong column counts,
-non-numbers, NaN or infinities, timestamps that are not strictly increasing, empty files, and
-quaternions (rotation matrices) that are not unit (orthonormal) within 1e-3; those within the
-tolerance are renormalised (projected onto SO(3)).
-
-Times are seconds in every format but EuRoC (integer nanoseconds). A time beyond 1e11 s (the
-year 5138) in a seconds format is refused, naming the file, the line and the unit it looks like
-(:func:`rtsgt.io._parse.check_seconds`; nanosecond stamps of ROS or EuRoC in a TUM file, a
-KITTI ``times.txt`` or an rtsgt CSV): rtsgt does not guess a unit and convert.
-
-Formats
--------
-``tum``
-    ``t x y z qx qy qz qw``, whitespace separated, ``#`` comments (TUM RGB-D benchmark, evo).
-    Comma-separated lines are read too (the separator of the first data line), with an
-    optional header line naming the columns ``t,x,y,z,qx,qy,qz,qw``.
-``kitti``
-    12 numbers per line, the 3x4 matrix ``[R | t]`` row-major (KITTI odometry). Poses carry no
-    time: a timestamps file (one time in s per line, e.g. KITTI's ``times.txt``) is required.
-``euroc``
-    CSV ``#timestamp [ns], p_RS_R_x [m], p_RS_R_y [m], p_RS_R_z [m], q_RS_w [], q_RS_x [],
-    q_RS_y [], q_RS_z [], ...`` (EuRoC MAV dataset): integer nanoseconds, **w first**; extra
-    columns (velocities, biases of ``state_groundtruth_estimate0``) are ignored.
-    Format detection (:func:`detect_format`) tells a comma-separated TUM file from EuRoC:
-    a header (or the ``#`` comment line just before the data) that places ``qw`` last or
-    ``q..w`` fifth decides; without one, 8 columns whose first is not an integer, or integers
-    less than 1 us apart as nanoseconds (a pose rate above 1 MHz), are TUM, read as such with
-    a :class:`~rtsgt.errors.RtsgtWarning` saying what was assumed. Integer nanoseconds
-    without a header are EuRoC (qw first): give ``--format`` for anything else.
-``rtsgt``
-    rtsgt covariance CSV ``t,x,y,z,qx,qy,qz,qw,cov_00,...,cov_55``: 36 values row-major,
-    order (x, y, z, rx, ry, rz), m^2 / rad^2 (written by ``rtsgt run`` as
-    ``groundtruth_covariance.csv``).
-``bag``
-    ROS 1 bag (``.bag``) or ROS 2 bag (directory with ``metadata.yaml``, or its ``.db3`` /
-    ``.mcap`` file), read with ``rosbags`` (the ``bags`` extra; no ROS install). Topic types:
-    ``geometry_msgs/PoseStamped``, ``geometry_msgs/PoseWithCovarianceStamped``,
-    ``nav_msgs/Odometry``, ``geometry_msgs/TransformStamped`` and ``tf2_msgs/TFMessage``
-    (one child frame selected). Times are the header stamps (the record times when every stamp
-    is zero). A ``PoseWithCovariance`` covariance (ROS order x, y, z, rot x, rot y, rot z, in
-    the header's frame) is read as rtsgt's world-frame left perturbation; all-zero covariances
-    mean "not given".
+Every reader returns a :class:`~rtsgt.types.PoseTrajectory` (``T_world_body``, s, m,
+scalar-last quaternions, optional 6x6 left-perturbation covariance x, y, z, rx, ry, rz) and
+reports bad input as an :class:`~rtsgt.errors.InputError` naming the file and line;
+:func:`detect_format` tells the formats apart. Formats, tolerances and detection:
+docs/file-formats.md#trajectories.
 """
 
 from __future__ import annotations

@@ -1,35 +1,8 @@
-r"""Weather readers: Environment and Climate Change Canada (ECCC) hourly files, native CSV.
-
-ECCC hourly data (``climat.meteo.gc.ca`` bulk CSV, French or English)
---------------------------------------------------------------------
-Quoted comma-separated fields, one header line, one row per hour. The French files write
-numbers with a **decimal comma** (``"93,44"``) and the English ones with a point; both are read
-field by field (never digit by digit: the reference code turned ``"93,96"`` into 102.6 kPa).
-Columns are found by header name:
-
-==================  ==============================  ========================
-quantity            French header                   English header
-==================  ==============================  ========================
-time (local std.)   ``Date/Heure (HNL)``            ``Date/Time (LST)``
-temperature, degC   ``Temp (°C)``                   ``Temp (°C)``
-relative humidity   ``Hum. rel (%)``                ``Rel Hum (%)``
-station pressure    ``Pression à la station (kPa)`` ``Stn Press (kPa)``
-==================  ==============================  ========================
-
-Times are in *local standard time* all year (no daylight saving): HNL / LST = UTC-5 in
-Quebec, so ``2022-11-10 00:00`` HNL is 2022-11-10 05:00 UTC = 1668056400 s. The station
-pressure is converted from kPa to hPa (x 10); it is the pressure at the station's altitude
-(about 937 hPa at Forêt Montmorency, 640 m), which is what the atmospheric correction needs.
-
-Native CSV
-----------
-``t_s,temperature_c,pressure_hpa,humidity_pct`` (header required, columns in any order,
-``#`` comment lines and blank lines ignored): Unix time (s, UTC; times that look like
-milliseconds, microseconds or nanoseconds are refused), degC, hPa (station pressure), %
-relative humidity.
-
-Whether a record covers the measurement times is said by
-:func:`rtsgt.measurement.weather.check_weather_coverage`.
+"""Weather readers: Environment and Climate Change Canada (ECCC) hourly files (French or
+English, decimal commas read field by field, local standard time, station pressure kPa ->
+hPa) and rtsgt's CSV ``t_s,temperature_c,pressure_hpa,humidity_pct``. Whether a record
+covers the measurements is :func:`rtsgt.measurement.weather.check_weather_coverage`'s.
+docs/file-formats.md#weather.
 """
 
 from __future__ import annotations

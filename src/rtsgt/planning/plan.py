@@ -1,34 +1,10 @@
-r"""The predicted uncertainty over an area or along a path, and the paper's advice, checked.
-
-Area (:func:`plan_area`)
-    A grid of points (the prisms' centroid, plan coordinates) inside a polygon, each with
-    :data:`DEFAULT_HEADINGS` headings of the robot evenly spread over the full turn (the
-    direction of travel; the speed of :class:`~rtsgt.planning.predict.RobotMotion`). The
-    map shows the **median** pose sigma over the headings; the table gives the worst
-    (largest) too. All points and headings are one batch (:func:`~rtsgt.planning.predict.
-    predict_poses`).
-Path (:func:`plan_path`)
-    Points along a path: the heading is the direction of travel (the tangent, central
-    differences), the robot's forward axis ``forward_deg`` from the body frame's x axis; the
-    velocity is the path's own where it has times, else the plan's speed along the tangent. A
-    path of poses (a TUM file, e.g. a run's ``groundtruth.tum``) gives the orientation too.
-
-Advice (:func:`check_advice`), from Vaidis et al. 2023 and the geometry of the fit
-(docs/planning.md#the-papers-advice):
-
-- ranges: the paper's conclusion, ranges ideally under :data:`RANGE_LIMIT_M` = 75 m
-  (beyond it the calibration dominates: its Table II, 0.91 mm below 75 m, 1.88 mm to 150 m,
-  5.49 mm beyond); stated as the share of the area (path) where a prism is farther than
-  that from its station;
-- GCPs around the area: a station's calibration error is a rotation about the markers'
-  centroid as much as a translation, and its effect grows with the distance from the markers
-  (the lever arm), so the markers should enclose where the robot drives; stated as the share
-  of the area (path) outside the markers' horizontal convex hull;
-- enough markers: at least :data:`MIN_MARKERS` per station in common with the reference, so
-  that the fit's redundancy ``3 K - 6`` is at least twice its 6 parameters (the fit check and
-  the variance components of :mod:`rtsgt.calibration.gcp` need it).
-
-A failed advice is an :class:`~rtsgt.errors.RtsgtWarning`; the result is a JSON-ready dict.
+"""The predicted uncertainty over an area (:func:`plan_area`: a grid of points, each with
+:data:`DEFAULT_HEADINGS` headings) or along a path (:func:`plan_path`: the heading the
+direction of travel, or the path's own poses), and the paper's advice checked
+(:func:`check_advice`: ranges under :data:`RANGE_LIMIT_M`, markers around the area, at least
+:data:`MIN_MARKERS` per station). A failed advice is an :class:`~rtsgt.errors.RtsgtWarning`;
+results are JSON-ready. docs/planning.md#areas-headings-and-paths,
+docs/planning.md#the-papers-advice.
 """
 
 from __future__ import annotations
@@ -71,7 +47,7 @@ def inside_polygon(xy: ArrayLike, polygon: ArrayLike) -> np.ndarray:
     return np.sum(crosses & (x < xc), axis=1) % 2 == 1
 
 
-def _hull(xy: np.ndarray) -> np.ndarray | None:
+def horizontal_hull(xy: np.ndarray) -> np.ndarray | None:
     """The horizontal convex hull of points (K, 2) as a polygon, or None (fewer than 3, or
     collinear)."""
     if xy.shape[0] < 3:
@@ -83,23 +59,10 @@ def _hull(xy: np.ndarray) -> np.ndarray | None:
 
 
 def check_advice(layout: Layout, points_world: np.ndarray, max_range_m: np.ndarray) -> dict:
-    """The paper's advice on the layout, for the points the robot will be at (module
-    docstring). Warns (:class:`~rtsgt.errors.RtsgtWarning`) for each advice not met.
-
-    Parameters
-    ----------
-    layout : Layout
-    points_world : ndarray, shape (P, 3)
-        The prisms' centroid at each point, world frame, m.
-    max_range_m : ndarray, shape (P,)
-        The largest range from a prism to its station at each point, m.
-
-    Returns
-    -------
-    dict
-        ``ranges``, ``gcp_hull``, ``gcp_markers``: each with its numbers, ``advice`` (in
-        words) and ``verdict`` (``"met"`` or ``"not met"``).
-    """
+    """The paper's advice on ``layout`` for the points the robot will be at (the prisms' centroid
+    ``points_world`` (P, 3), world, m, and the largest prism-to-station range ``max_range_m``
+    (P,), m): ``ranges``, ``gcp_hull``, ``gcp_markers``, each with its numbers, ``advice`` in
+    words and ``verdict`` (``"met"``, ``"not met"``). Warns for each advice not met."""
     ok = np.isfinite(max_range_m)
     beyond = float(np.mean(max_range_m[ok] > RANGE_LIMIT_M)) if ok.any() else float("nan")
     ranges = {"limit_m": RANGE_LIMIT_M, "fraction_beyond": beyond,
@@ -107,7 +70,7 @@ def check_advice(layout: Layout, points_world: np.ndarray, max_range_m: np.ndarr
               "advice": f"every prism within {RANGE_LIMIT_M:g} m of its station "
                         "(Vaidis et al. 2023)",
               "verdict": "met" if beyond == 0 else "not met"}
-    hull = _hull(layout.gcp_xyz[:, :2])
+    hull = horizontal_hull(layout.gcp_xyz[:, :2])
     outside = 1.0 if hull is None else float(np.mean(~inside_polygon(points_world[:, :2], hull)))
     gcp_hull = {"fraction_outside": outside, "markers": int(layout.gcp_xyz.shape[0]),
                 "advice": "the markers' horizontal convex hull encloses where the robot drives",
@@ -135,37 +98,12 @@ def check_advice(layout: Layout, points_world: np.ndarray, max_range_m: np.ndarr
 
 @dataclass(frozen=True)
 class PlanResult:
-    """A plan's prediction over an area or along a path.
-
-    Attributes
-    ----------
-    name : str
-    kind : {"area", "path"}
-    layout : Layout
-    motion : RobotMotion
-    points : ndarray, shape (P, 3)
-        The prisms' centroid, plan coordinates, m.
-    sigma_m : ndarray, shape (P, H)
-        Pose sigma ``sqrt(tr Sigma_t)`` per point and heading, m (NaN: not predicted).
-    rotation_sigma_rad : ndarray, shape (P, H)
-    max_range_m : ndarray, shape (P,)
-        The largest prism-to-station range over the headings, m.
-    headings_deg : ndarray, shape (H,), or None
-        The headings of an area (None for a path: its own direction).
-    t : ndarray, shape (P,), or None
-        The path's times, s.
-    grid_x, grid_y : ndarray or None
-        An area's grid lines (the points are its nodes inside the polygon, row by row).
-    grid_mask : ndarray of bool, shape (ny, nx), or None
-        The grid nodes that are points.
-    polygon : ndarray, shape (V, 2), or None
-        An area's outline, plan coordinates.
-    source_sigma_mm : dict str -> list of float
-        Per source (``gp`` and the systematic ones), per prism, the median over points and
-        headings of ``sqrt(tr Sigma)`` at the prism, mm.
-    advice : dict
-        :func:`check_advice`.
-    """
+    """A plan's prediction over an area or along a path (``kind``): the ``points`` (P, 3; the
+    prisms' centroid, plan coordinates, m), ``sigma_m`` and ``rotation_sigma_rad`` (P, H; per
+    point and heading, NaN where not predicted), ``max_range_m`` (P,), the area's
+    ``headings_deg`` (H,) and grid (``grid_x``, ``grid_y``, ``grid_mask`` (ny, nx), ``polygon``
+    (V, 2)) or the path's times ``t`` (P,) (None where not applicable), ``source_sigma_mm`` (per
+    source, per prism, the median ``sqrt(tr Sigma)``, mm) and the ``advice``."""
 
     name: str
     kind: str
@@ -256,24 +194,10 @@ def _predict(layout: Layout, motion: RobotMotion, R: np.ndarray, t: np.ndarray,
 def plan_area(layout: Layout, motion: RobotMotion, polygon: ArrayLike, step_m: float,
               z_m: float, *, headings: int = DEFAULT_HEADINGS, forward_deg: float = 0.0,
               name: str | None = None) -> PlanResult:
-    """Predicted uncertainty over an area (module docstring).
-
-    Parameters
-    ----------
-    layout : Layout
-    motion : RobotMotion
-    polygon : array_like, shape (V, 2)
-        The area's outline, plan coordinates, m (a bounding box as its 4 corners).
-    step_m : float
-        Grid step, m.
-    z_m : float
-        Height of the prisms' centroid, plan coordinates, m.
-    headings : int
-        Headings per point.
-    forward_deg : float
-        The robot's forward direction in the body frame, deg from its x axis, counter-clockwise.
-    name : str, optional
-    """
+    """Predicted uncertainty over the area inside ``polygon`` (V, 2; plan coordinates, m), on a
+    grid of ``step_m`` at the centroid height ``z_m``, each point with ``headings`` headings
+    over the turn (``forward_deg``: the robot's forward axis from the body's x,
+    counter-clockwise)."""
     poly = np.asarray(polygon, dtype=float).reshape(-1, 2)
     if poly.shape[0] < 3 or not np.all(np.isfinite(poly)):
         raise InputError("an area needs a polygon of at least 3 finite corners")
@@ -334,23 +258,9 @@ def _tangent(xyz: np.ndarray) -> np.ndarray:
 def plan_path(layout: Layout, motion: RobotMotion, xyz: ArrayLike, *,
               t: ArrayLike | None = None, R: ArrayLike | None = None, forward_deg: float = 0.0,
               name: str | None = None) -> PlanResult:
-    """Predicted uncertainty along a path (module docstring).
-
-    Parameters
-    ----------
-    layout : Layout
-    motion : RobotMotion
-    xyz : array_like, shape (P, 3)
-        The prisms' centroid along the path, plan coordinates, m; or, with ``R``, the body
-        frame's origin (a trajectory of poses).
-    t : array_like, shape (P,), optional
-        Times, s, increasing: the velocity is the path's own.
-    R : array_like, shape (P, 3, 3), optional
-        ``R_world_body`` at each point (a trajectory of poses).
-    forward_deg : float
-        As :func:`plan_area` (without ``R``).
-    name : str, optional
-    """
+    """Predicted uncertainty along a path: the prisms' centroid ``xyz`` (P, 3; plan coordinates,
+    m), or with ``R`` (P, 3, 3) the body frame's poses; times ``t`` (P,), s, give the path's
+    own velocity; ``forward_deg`` as :func:`plan_area` (without ``R``)."""
     p = np.asarray(xyz, dtype=float).reshape(-1, 3)
     if p.shape[0] < 1 or not np.all(np.isfinite(p)):
         raise InputError("a path needs finite points")

@@ -1,9 +1,6 @@
-"""The HTML page of ``rtsgt batch``: the table across deployments, one self-contained file.
-
-The rows are those of :mod:`rtsgt.io.batch_summary` (read back from each run's
-``summary.json``); each deployment links to its run directory's ``report.html`` when the run
-has one (``rtsgt batch --report``), else to its ``summary.json``. Verdicts are coloured:
-consistent green, pessimistic amber, optimistic red, not tested (``too few poses``) plain.
+"""The HTML page of ``rtsgt batch``: the table across deployments (the rows of
+:mod:`rtsgt.io.batch_summary`), each linking to its run's ``report.html`` or ``summary.json``,
+verdicts coloured. One self-contained file. docs/batch.md#output.
 """
 
 from __future__ import annotations

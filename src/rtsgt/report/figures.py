@@ -1,27 +1,10 @@
-"""The paper's figures for any run (matplotlib, Agg canvas, no pyplot state), PNG and SVG.
-
-``source_norms``
-    Per-source ``sqrt(||Sigma_s||_F)`` (mm, log scale) of the prism measurements as box plots by
-    range bin, plus one group over all ranges, with the share of the measurements in each bin
-    (bar panel above) and the paper's published medians as black diamonds where it gives them
-    (Vaidis et al. 2023, Fig. 4).
-``pose_uncertainty``
-    Per-source pose uncertainty at the kept poses: translation (mm) and rotation (mrad), box
-    plots (:mod:`rtsgt.report.analysis` for the measure).
-``top_view``
-    The deployment seen from above (world x-y, m): stations, ground control points, the
-    measured prism tracks, the ground-truth path with its 95 % horizontal covariance ellipses
-    (chi-square 2 dof, 5.991) magnified by a stated factor, and the rejected poses marked by
-    the gate that rejected them.
-``uncertainty_time``
-    Uncertainty along time: ``sqrt(tr Sigma)`` of each interpolated prism (mm), and the pose's
-    translation (mm) and rotation (mrad) uncertainty, with every measurement gap of each prism
-    shaded and the rejected poses marked.
-
-Boxes: median line, box from the first to the third quartile, whiskers from the 5th to the
-95th percentile, no outlier points. Each function returns a :class:`DrawnFigure` that says
-what was drawn (boxes per panel and the number of values behind each, points per artist,
-ellipses, shaded gaps), so that tests can check the content and not only the existence.
+"""The paper's figures for any run (matplotlib, Agg canvas, no pyplot state), PNG and SVG:
+``source_norms`` (per-source ``sqrt(||Sigma_s||_F)`` by range bin against the paper's
+medians, Vaidis et al. 2023, Fig. 4), ``pose_uncertainty`` (per source, translation and
+rotation), ``top_view`` (the deployment from above with the 95 % ellipses, magnified) and
+``uncertainty_time``. Boxes: median, quartiles, whiskers at the 5th and 95th percentiles.
+Each function returns a :class:`DrawnFigure` saying what was drawn, for the tests.
+docs/paper-figures.md.
 """
 
 from __future__ import annotations
@@ -122,34 +105,12 @@ def _color(s: str, k: int = 0) -> str:
 
 @dataclass
 class DrawnFigure:
-    """A figure and what was drawn on it.
-
-    Attributes
-    ----------
-    name : str
-        File stem (one of :data:`FIGURE_NAMES`).
-    figure : matplotlib.figure.Figure
-    boxes : dict str -> int
-        Number of box plots per panel.
-    box_sizes : dict str -> list of int
-        Number of values behind each box, per panel (in drawing order).
-    box_keys : dict str -> list of tuple
-        ``(entry, group)`` of each box, per panel.
-    box_medians : dict str -> list of float
-        The median drawn in each box (read back from the artist), per panel.
-    points : dict str -> int
-        Number of data points per drawn artist (by legend label or role).
-    ellipses : int
-        Covariance ellipses drawn.
-    ellipse_scale : float or None
-        Magnification of the ellipses.
-    spans : int
-        Shaded time spans (measurement gaps of each prism), counted once for all panels.
-    common_spans : int
-        Time spans where no prism is measured (shaded grey), counted once for all panels.
-    caption : str
-        One sentence saying what the figure shows (used by the HTML report).
-    """
+    """A figure and what was drawn on it, for the tests and the report: its ``name`` (one of
+    :data:`FIGURE_NAMES`) and ``figure``; per panel the ``boxes``, their ``box_sizes`` (values
+    behind each), ``box_keys`` (``(entry, group)``) and ``box_medians`` (read back from the
+    artists); ``points`` per artist (by label or role); the ``ellipses`` and their
+    ``ellipse_scale``; the shaded gaps per prism (``spans``) and of every prism
+    (``common_spans``), counted once; a one-sentence ``caption``."""
 
     name: str
     figure: Figure
@@ -344,7 +305,7 @@ def plot_pose_uncertainty(analysis: Analysis) -> DrawnFigure:
     return drawn
 
 
-def _nice_scale(x: float) -> float:
+def nice_scale(x: float) -> float:
     """Largest of 1, 2, 5 x 10^k not above ``x`` (at least 1)."""
     if not np.isfinite(x) or x <= 1:
         return 1.0
@@ -366,22 +327,9 @@ def _ellipse_axes(cov2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 def break_gaps(t: np.ndarray, values: np.ndarray, factor: float = GAP_FACTOR) -> np.ndarray:
-    """``values`` with a NaN row inserted at each gap, so that a line drawn through them breaks.
-
-    Parameters
-    ----------
-    t : ndarray, shape (N,)
-        Increasing times (s).
-    values : ndarray, shape (N,) or (N, D)
-        What is drawn at those times (the times themselves may be a column).
-    factor : float
-        A step ``t[i+1] - t[i]`` longer than ``factor`` times the median step is a gap.
-
-    Returns
-    -------
-    ndarray of float, shape (N + G,) or (N + G, D)
-        With a NaN row before each of the G samples that follow a gap.
-    """
+    """``values`` (N,) or (N, D) drawn at increasing times ``t`` (N,), s, with a NaN row inserted
+    before each sample that follows a gap (a step over ``factor`` median steps), so that a line
+    through them breaks: (N + G,) or (N + G, D)."""
     values = np.asarray(values, dtype=float)
     if t.size < 2:
         return values
@@ -390,7 +338,7 @@ def break_gaps(t: np.ndarray, values: np.ndarray, factor: float = GAP_FACTOR) ->
     return np.insert(values, cut, np.nan, axis=0)
 
 
-def _rejected_positions(data: RunRecord) -> tuple[np.ndarray, np.ndarray]:
+def rejected_positions(data: RunRecord) -> tuple[np.ndarray, np.ndarray]:
     """Body positions of the rejected poses (fit of the reference onto the prisms), reasons.
 
     Rejected poses whose prisms are not all finite or nearly collinear are left out.
@@ -413,7 +361,7 @@ def _rejected_positions(data: RunRecord) -> tuple[np.ndarray, np.ndarray]:
     return t_body, data.rejected_reason[ok]
 
 
-def _body_origin_offset(data: RunRecord) -> float:
+def body_origin_offset(data: RunRecord) -> float:
     """Distance of the body origin from the reference prisms' centroid, m."""
     r = np.asarray(data.reference_xyz, dtype=float)
     return float(np.linalg.norm(r.mean(axis=0))) if r.size else 0.0
@@ -441,17 +389,8 @@ def _label_offsets(xy: np.ndarray, dist: float = 22.0) -> np.ndarray:
 
 def plot_top_view(data: RunRecord, *, max_ellipses: int = 60,
                   ellipse_scale: float | None = None) -> DrawnFigure:
-    """Top view of the deployment (world x-y, m).
-
-    Parameters
-    ----------
-    data : RunRecord
-    max_ellipses : int
-        Ellipses are drawn at most at this many kept poses, evenly spread in index.
-    ellipse_scale : float, optional
-        Magnification of the 95 % ellipses; default a round number that makes the median
-        ellipse about 1.5 % of the plotted extent (at least 1).
-    """
+    """Top view of the deployment (world x-y, m), with 95 % ellipses at ``max_ellipses`` kept poses
+    at most, magnified by ``ellipse_scale`` (default: the median about 1.5 % of the extent)."""
     fig = Figure(figsize=(9, 8), layout="constrained")
     ax = fig.subplots()
     drawn = DrawnFigure("top_view", fig)
@@ -465,7 +404,7 @@ def plot_top_view(data: RunRecord, *, max_ellipses: int = 60,
     gt = data.groundtruth
     if len(gt):
         path = break_gaps(gt.t, gt.position[:, :2])
-        lever = _body_origin_offset(data)
+        lever = body_origin_offset(data)
         where = (f", {lever:.1f} m from the prisms' centroid" if lever >= 0.5 else "")
         ax.plot(path[:, 0], path[:, 1], "-", color="black", lw=1.0,
                 label=f"ground truth (body origin{where})")
@@ -496,7 +435,7 @@ def plot_top_view(data: RunRecord, *, max_ellipses: int = 60,
                 label=f"{_STAGE_LABELS.get(stage, stage)} ({int(m.sum())})")
         drawn.points[f"removed: {stage}"] = int(m.sum())
         everything.append(data.removed.xyz[m, :2])
-    pos_r, reason_r = _rejected_positions(data)
+    pos_r, reason_r = rejected_positions(data)
     for reason in sorted(set(reason_r.tolist())):
         m = reason_r == reason
         ax.plot(pos_r[m, 0], pos_r[m, 1], _REASON_MARKERS.get(reason, "x"), ms=6, ls="",
@@ -517,7 +456,7 @@ def plot_top_view(data: RunRecord, *, max_ellipses: int = 60,
             major, minor, angle = _ellipse_axes(gt.cov[sel, :2, :2])
             if ellipse_scale is None:
                 med = float(np.median(major))
-                ellipse_scale = _nice_scale(0.015 * extent / med) if med > 0 else 1.0
+                ellipse_scale = nice_scale(0.015 * extent / med) if med > 0 else 1.0
             for (x, y), w, h, ang in zip(gt.position[sel, :2], major, minor, angle,
                                          strict=True):
                 ax.add_patch(Ellipse((x, y), w * ellipse_scale, h * ellipse_scale, angle=ang,
@@ -537,7 +476,7 @@ def plot_top_view(data: RunRecord, *, max_ellipses: int = 60,
     ax.set_title(f"{data.name}: top view (world frame = reference station)")
     scale_txt = ("" if drawn.ellipse_scale is None else
                  f"; 95 % horizontal ellipses magnified {drawn.ellipse_scale:g} times")
-    lever = _body_origin_offset(data)
+    lever = body_origin_offset(data)
     lever_txt = (f" (the body origin is {lever:.1f} m from the prisms' centroid: the path "
                  f"is that point's)" if lever >= 0.5 else "")
     drawn.caption = ("Top view of the deployment: stations, ground control points, measured "

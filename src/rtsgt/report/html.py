@@ -1,22 +1,10 @@
 """A single self-contained HTML report of one run: tables, figures and an interactive 3D view.
 
-The file opens offline: the figures are embedded as data URIs (SVG by default, or PNG), the
-3D view is drawn by plotly.js, which is embedded inline (MIT licence; the optional extra
-``rtsgt[report]`` installs the ``plotly`` Python package that carries it). Nothing is fetched
-from a network. Without plotly the report is written all the same, with a note in place of
-the 3D view.
-
-Sections: key numbers; the self-checks with their verdicts; the per-source table next to the
-paper's published medians; the pose uncertainty per source; the four figures of
-:mod:`rtsgt.report.figures`; the 3D view (the ground-truth path, the prism measurements, the
-stations, the ground control points, the rejected poses, and the 95 % position ellipsoids
-(chi-square 3 dof, 7.815) of a subsample of the poses, magnified by a stated factor; its axes'
-ranges hold everything drawn, at one scale); the run: what ``summary.json`` holds that a
-reader needs (inputs, options, filters, the prisms' GPs, the calibration, the inter-prism
-distances, the warnings, the timings) in tables, and a link to the file for the rest.
-
-The page prints on A4 (``@page``): every table fits the page's width, and the 3D view, which
-only a browser can draw, is left out of the print with a note.
+Opens offline: the figures are embedded as data URIs and plotly.js inline (the optional
+``rtsgt[report]`` extra; without plotly a note replaces the 3D view). Sections: key numbers,
+the self-checks, the per-source tables, the figures of :mod:`rtsgt.report.figures`, the 3D
+view (95 % position ellipsoids of a subsample, magnified) and what ``summary.json`` holds
+that a reader needs. Prints on A4 without the 3D view.
 """
 
 from __future__ import annotations
@@ -49,11 +37,11 @@ from rtsgt.report.analysis import DEFAULT_BINS_M, PAPER_CITATION, Analysis, anal
 from rtsgt.report.figures import (
     SOURCE_LABELS,
     DrawnFigure,
-    _body_origin_offset,
-    _nice_scale,
-    _rejected_positions,
+    body_origin_offset,
     break_gaps,
     draw_all,
+    nice_scale,
+    rejected_positions,
 )
 from rtsgt.report.style import CSS
 
@@ -84,22 +72,9 @@ CAMERA_EYE = (1.0, 1.0, 0.8)
 
 @dataclass(frozen=True)
 class ReportInfo:
-    """What :func:`write_report_file` wrote.
-
-    Attributes
-    ----------
-    path : Path
-        The HTML file.
-    size_bytes : int
-    figures : tuple of str
-        Names of the embedded figures.
-    view3d : bool
-        Whether the interactive 3D view is in the page (plotly available).
-    n_ellipsoids : int
-        Ellipsoids in the 3D view.
-    ellipsoid_scale : float or None
-        Their magnification.
-    """
+    """What :func:`write_report_file` wrote: the HTML ``path`` and its ``size_bytes``, the names of
+    the embedded ``figures``, whether the 3D view is in (``view3d``: plotly available), its
+    ``n_ellipsoids`` and their magnification ``ellipsoid_scale`` (or None)."""
 
     path: Path
     size_bytes: int
@@ -682,8 +657,8 @@ def _run_html(summary: Mapping, summary_href: str | None) -> str:
     return "".join(parts)
 
 
-def _figure_html(fig: DrawnFigure, fmt: str) -> str:
-
+def figure_html(fig: DrawnFigure, fmt: str) -> str:
+    """A drawn figure as an HTML ``<figure>``, its image a data URI in ``fmt`` (svg, png)."""
     FigureCanvasAgg(fig.figure)
     buf = io.BytesIO()
     fig.figure.savefig(buf, format=fmt, dpi=110, bbox_inches="tight",
@@ -697,28 +672,10 @@ def _figure_html(fig: DrawnFigure, fmt: str) -> str:
 
 def ellipsoid_mesh(centres: np.ndarray, covs: np.ndarray, scale: float, *,
                    n_lat: int = 8, n_lon: int = 12, k2: float = CHI2_3_95):
-    """Triangle mesh of the ellipsoids ``(x - c)^T S^-1 (x - c) = k2`` magnified by ``scale``.
-
-    Parameters
-    ----------
-    centres : ndarray, shape (E, 3)
-    covs : ndarray, shape (E, 3, 3)
-        m^2.
-    scale : float
-        Magnification of the ellipsoids about their centres.
-    n_lat, n_lon : int
-        Rings and meridians of the unit sphere that is deformed.
-    k2 : float
-        Squared Mahalanobis radius (default: the 95 % quantile of chi-square(3)).
-
-    Returns
-    -------
-    vertices : ndarray, shape (E * V, 3)
-    faces : ndarray of int, shape (E * F, 3)
-        Vertex indices of each triangle.
-    ellipsoid : ndarray of int, shape (E * V,)
-        Which ellipsoid each vertex belongs to.
-    """
+    """Triangle mesh of the ellipsoids ``(x - c)^T S^-1 (x - c) = k2`` (default the 95 % quantile
+    of chi-square(3)) of ``centres`` (E, 3) and ``covs`` (E, 3, 3), m^2, magnified by ``scale``,
+    from a unit sphere of ``n_lat`` rings and ``n_lon`` meridians: ``vertices`` (E V, 3),
+    ``faces`` (E F, 3) vertex indices, and each vertex's ellipsoid (E V,)."""
     th = np.linspace(0, np.pi, n_lat + 1)[1:-1]
     ph = np.linspace(0, 2 * np.pi, n_lon, endpoint=False)
     ring = np.stack([np.outer(np.sin(th), np.cos(ph)), np.outer(np.sin(th), np.sin(ph)),
@@ -748,26 +705,9 @@ def ellipsoid_mesh(centres: np.ndarray, covs: np.ndarray, scale: float, *,
 
 def scene_box(points: np.ndarray, margin: float = SCENE_MARGIN,
               min_height: float = SCENE_MIN_HEIGHT) -> tuple[np.ndarray, np.ndarray]:
-    """Axis ranges and aspect ratio of a 3D scene that holds every point, at one scale.
-
-    Parameters
-    ----------
-    points : ndarray, shape (N, 3)
-        m; rows with a NaN are ignored.
-    margin : float
-        Added on each side of each axis, as a fraction of the largest extent.
-    min_height : float
-        The z range is at least this fraction of the largest extent (a flat site keeps a
-        box of some height, at the same scale).
-
-    Returns
-    -------
-    ranges : ndarray, shape (3, 2)
-        ``[low, high]`` of x, y, z (m).
-    aspect : ndarray, shape (3,)
-        The ranges' lengths over the largest one (the largest is 1): one metre is as long
-        along every axis.
-    """
+    """Axis ranges (3, 2), m, and aspect ratio (3,) of a 3D scene at one scale holding every
+    ``points`` (N, 3) row without NaN: ``margin`` of the largest extent added on each side, the z
+    range at least ``min_height`` of it."""
     p = np.asarray(points, dtype=float).reshape(-1, 3)
     p = p[np.all(np.isfinite(p), axis=1)]
     if p.size == 0:
@@ -797,24 +737,10 @@ def _view3d(data: RunRecord, max_ellipsoids: int, scale: float | None):
 
 
 def view3d_figure(data: RunRecord, max_ellipsoids: int = 150, scale: float | None = None):
-    """The interactive 3D view of a run as a plotly figure (None without plotly).
-
-    Parameters
-    ----------
-    data : RunRecord
-    max_ellipsoids : int
-        95 % position ellipsoids drawn, at most (evenly spread over the kept poses).
-    scale : float, optional
-        Their magnification; default a round number making the median one ~1 % of the scene.
-
-    Returns
-    -------
-    fig : plotly.graph_objects.Figure or None
-        Its scene's axis ranges hold every point drawn (:func:`scene_box`).
-    n_ellipsoids : int
-    scale : float or None
-        The ellipsoids' magnification (None without ellipsoids).
-    """
+    """The interactive 3D view of a run ``data``: the plotly figure (None without plotly), the
+    number of 95 % position ellipsoids drawn (at most ``max_ellipsoids``, spread over the kept
+    poses) and their magnification ``scale`` (default: the median one about 1 % of the scene;
+    None without ellipsoids)."""
     try:
         import plotly.graph_objects as go
     except ImportError:
@@ -832,7 +758,7 @@ def view3d_figure(data: RunRecord, max_ellipsoids: int = 150, scale: float | Non
     n_ell, used_scale = 0, None
     if len(gt):
         path = break_gaps(gt.t, gt.position)
-        lever = _body_origin_offset(data)
+        lever = body_origin_offset(data)
         traces.append(go.Scatter3d(x=path[:, 0], y=path[:, 1], z=path[:, 2], mode="lines",
                                    line=dict(color="black", width=4),
                                    name="ground truth (body origin" + (
@@ -860,7 +786,7 @@ def view3d_figure(data: RunRecord, max_ellipsoids: int = 150, scale: float | Non
                                    name="ground control points"))
     # rejected poses where the body origin was (the reference fitted onto the prisms), as in
     # the top view, one trace per gate
-    pos_r, reason_r = _rejected_positions(data)
+    pos_r, reason_r = rejected_positions(data)
     shown.append(pos_r)
     for reason in sorted(set(reason_r.tolist())):
         c = pos_r[reason_r == reason]
@@ -879,7 +805,7 @@ def view3d_figure(data: RunRecord, max_ellipsoids: int = 150, scale: float | Non
                 extent = max(float(np.max(np.ptp(allp, axis=0))), 1.0)
                 radius = np.sqrt(CHI2_3_95 * np.linalg.eigvalsh(covs)[:, -1])
                 med = float(np.median(radius))
-                scale = _nice_scale(0.01 * extent / med) if med > 0 else 1.0
+                scale = nice_scale(0.01 * extent / med) if med > 0 else 1.0
             verts, faces, which = ellipsoid_mesh(gt.position[sel], covs, scale)
             shown.append(verts)
             sig_mm = np.sqrt(np.trace(covs, axis1=1, axis2=2)) * 1e3
@@ -940,29 +866,11 @@ def render_report(data: RunRecord, analysis: Analysis, *,
                   figure_format: str = "svg", max_ellipsoids: int = 150,
                   ellipsoid_scale: float | None = None,
                   summary_href: str | None = None) -> tuple[str, dict]:
-    """The report page as a string, and what it holds.
-
-    Parameters
-    ----------
-    data : RunRecord
-    analysis : Analysis
-    figures : mapping, optional
-        Figures to embed (default :func:`rtsgt.report.figures.draw_all`).
-    figure_format : {"svg", "png"}
-    max_ellipsoids : int
-        Ellipsoids in the 3D view, at most (evenly spread over the kept poses).
-    ellipsoid_scale : float, optional
-        Their magnification; default a round number making the median one ~1 % of the scene.
-    summary_href : str, optional
-        The link to the run's ``summary.json`` from the page (relative to the page's folder);
-        without it the page names the file without a link.
-
-    Returns
-    -------
-    html : str
-    info : dict
-        ``figures``, ``view3d``, ``n_ellipsoids``, ``ellipsoid_scale``.
-    """
+    """The report page of ``data`` and its ``analysis`` as a string, and what it holds
+    (``figures``, ``view3d``, ``n_ellipsoids``, ``ellipsoid_scale``): ``figures`` to embed
+    (default :func:`rtsgt.report.figures.draw_all`) in ``figure_format`` (svg, png), the 3D
+    view's ellipsoids as :func:`view3d_figure`, and the link ``summary_href`` to the run's
+    ``summary.json`` (relative; without it the file is named, not linked)."""
     if figure_format not in ("svg", "png"):
         raise ValueError(f"Expected figure_format 'svg' or 'png', got {figure_format!r}")
     figs = draw_all(data, analysis) if figures is None else figures
@@ -982,7 +890,7 @@ def render_report(data: RunRecord, analysis: Analysis, *,
                 f"covariance of {n_ell} poses spread evenly over the kept ones, <b>magnified "
                 f"{scale:g} times</b> about their centres so that they are visible at the scale "
                 f"of the site; their colour is sqrt(tr Σ) in mm.</p>{div}")
-    fig_html = "".join(_figure_html(f, figure_format) for f in figs.values())
+    fig_html = "".join(figure_html(f, figure_format) for f in figs.values())
     body = f"""<main>
 <header><h1>{html.escape(title)}</h1>
 <p>Generated {now} by rtsgt {html.escape(__version__)}{where}.</p>
@@ -1063,27 +971,10 @@ def write_report(run_dir: str | PathLike, out: str | PathLike | None = None, *,
                  bins: Sequence[float] | str = DEFAULT_BINS_M, engine: str | None = None,
                  samples: int | None = None, pose_measure: str = "sqrt_trace",
                  shown_path: str | PathLike | None = None, **kwargs) -> Path:
-    """Read a run directory, analyse it and write its report (default ``RUN_DIR/report.html``).
-
-    Parameters
-    ----------
-    run_dir : path
-        Output directory of ``rtsgt run``.
-    out : path, optional
-        The HTML file to write.
-    bins, engine, samples, pose_measure
-        As :func:`rtsgt.report.analysis.analyze`.
-    shown_path : path, optional
-        The run directory's path as the report states it (when ``run_dir`` is the temporary
-        directory of a run that is being written).
-    **kwargs
-        As :func:`render_report` (``figure_format``, ``max_ellipsoids``, ...).
-
-    Returns
-    -------
-    Path
-        The written file.
-    """
+    """Read a run directory ``run_dir``, analyse it (``bins``, ``engine``, ``samples``,
+    ``pose_measure`` as :func:`rtsgt.report.analysis.analyze`) and write its report to ``out``
+    (default ``RUN_DIR/report.html``); ``shown_path``: the run's path as the page states it;
+    ``kwargs`` as :func:`render_report`. Returns the written file."""
     data = read_run(run_dir)
     if shown_path is not None:
         data = dataclasses.replace(data, path=Path(shown_path))

@@ -1,14 +1,8 @@
-"""What ``rtsgt plan`` writes: the map, the table of sigmas, ``plan.json`` and the HTML page.
-
-``plan_map`` (:func:`draw_plan_map`)
-    The layout seen from above (plan coordinates, m): the predicted pose sigma as a colour map
-    over the area (the median over the headings) or along the path, the stations (triangles,
-    with the :data:`~rtsgt.planning.plan.RANGE_LIMIT_M` circle of the paper's advice around
-    each tracking one), the markers (squares) and their horizontal convex hull. Two plans
-    (``--compare``) are drawn side by side with one colour scale.
-
-:func:`plan_section_html` is the page's section (key numbers, the advice, the figure), for a
-page of its own (:func:`render_plan_page`) or another report. Nothing here reads a file.
+"""What ``rtsgt plan`` writes: the map (:func:`draw_plan_map`: the predicted sigma over the
+area or the path, the stations with the :data:`~rtsgt.planning.plan.RANGE_LIMIT_M` circle,
+the markers and their hull; two plans side by side with one colour scale), the table,
+``plan.json`` and the HTML section (:func:`plan_section_html`, :func:`render_plan_page`).
+Reads no file. docs/planning.md.
 """
 
 from __future__ import annotations
@@ -25,9 +19,9 @@ from matplotlib.patches import Circle, Polygon
 
 from rtsgt import __version__
 from rtsgt.io._parse import table_text
-from rtsgt.planning.plan import RANGE_LIMIT_M, PlanResult, _hull
+from rtsgt.planning.plan import RANGE_LIMIT_M, PlanResult, horizontal_hull
 from rtsgt.report.figures import DrawnFigure
-from rtsgt.report.html import _figure_html
+from rtsgt.report.html import figure_html
 from rtsgt.report.style import CSS
 
 __all__ = ["PLAN_SCHEMA_NAME", "PLAN_SCHEMA_VERSION", "draw_plan_map", "plan_document",
@@ -146,7 +140,7 @@ def _panel(ax, res: PlanResult, norm: Normalize):
     if g.shape[0]:
         ax.scatter(g[:, 0], g[:, 1], marker="s", s=22, facecolor="white", edgecolor="k",
                    label="markers (GCP)", zorder=3)
-        hull = _hull(g[:, :2])
+        hull = horizontal_hull(g[:, :2])
         if hull is not None:
             ax.add_patch(Polygon(hull, closed=True, fill=False, ls=":", lw=1.0, ec="k",
                                  label="markers' convex hull"))
@@ -244,7 +238,7 @@ def plan_section_html(results: Sequence[PlanResult], figure: DrawnFigure,
             + "</table><table><tr><th class='k'>advice</th><th class='k'>what</th>"
               "<th class='k'>this plan</th><th class='k'>verdict</th></tr>"
             + _advice_rows(s["advice"]) + "</table>")
-    parts.append(_figure_html(figure, figure_format))
+    parts.append(figure_html(figure, figure_format))
     parts.append("<p><small>Method: docs/planning.md (the run's stages with the linear "
                  "engines, the GP on a stationary track).</small></p></section>")
     return "".join(parts)
