@@ -1,0 +1,93 @@
+"""The joint engine (issue 23, step 2) against the per-prism linear engine on simulated
+deployments: NEES/dof, 95 % coverage, median sigma ratio, iterations, wall time and traced
+peak memory of the joint solve. Numbers: docs/joint.md#measured.
+
+Usage: python benchmarks/joint.py [--duration 600] [--seeds 101 102 103] [--time-sync]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+import tracemalloc
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import chi2
+
+from rtsgt.geometry.so3 import quat_xyzw_to_matrix
+from rtsgt.geometry.transform import perturbation
+from rtsgt.io.deployment import load_deployment
+from rtsgt.joint import estimate_joint
+from rtsgt.joint.knots import qc_from_prisms
+from rtsgt.pipeline import run_pipeline
+from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
+
+
+def case(duration_s: float, seed: int, time_sync: bool, folder: Path) -> dict:
+    """One simulated deployment through the per-prism pipeline and the joint engine."""
+    cfg = SimulationConfig(duration_s=duration_s, noise_time_sync=time_sync, noise_survey=False)
+    sim = simulate_deployment(cfg, np.random.default_rng(seed))
+    data, opts = load_deployment(write_deployment(sim, folder / f"dep{seed}"))
+    srcs = tuple(s for s in opts.noise.sources if time_sync or s != "time_sync")
+    opts = replace(opts.updated(seed=seed, engine="linear"), noise=opts.noise.with_sources(srcs))
+    res = run_pipeline(data, opts)
+    comp = res.computation
+    est, keep = comp.estimate, comp.keep
+    tq = comp.prisms.t[keep]
+    obs = [o.select(np.isin(o.t, comp.tracks[o.prism].t)) for o in data.observations]
+    qc = qc_from_prisms(np.stack([res.qc[p] for p in data.reference.names]), data.reference.xyz)
+    tracemalloc.start()
+    tick = time.perf_counter()
+    jr = estimate_joint(obs, comp.calibration, data.reference, comp.noise_model, tq, tq,
+                        est.R[keep], est.t[keep], qc, weather=data.weather)
+    wall = time.perf_counter() - tick
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    p, q = sim.truth_at(tq)
+    R_true = quat_xyzw_to_matrix(q)
+
+    def nees(R, t, cov):
+        e = perturbation(R_true, p, R, t)
+        return np.einsum("ki,kij,kj->k", e, np.linalg.inv(cov), e)
+
+    nj = nees(jr.estimate.R, jr.estimate.t, jr.estimate.cov)
+    npp = nees(est.R[keep], est.t[keep], est.cov[keep])
+    pos = np.einsum("kii->k", jr.estimate.cov[:, :3, :3])
+    pos_pp = np.einsum("kii->k", est.cov[keep][:, :3, :3])
+    rot = np.einsum("kii->k", jr.estimate.cov[:, 3:, 3:])
+    rot_pp = np.einsum("kii->k", est.cov[keep][:, 3:, 3:])
+    c95 = chi2.ppf(0.95, 6)
+    return dict(
+        seed=seed, poses=tq.size, knots=jr.n_knots, measurements=jr.n_measurements,
+        nees_joint=nj.mean() / 6, nees_pp=npp.mean() / 6,
+        cover_joint=np.mean(nj < c95), cover_pp=np.mean(npp < c95),
+        ratio_pos=np.median(np.sqrt(pos / pos_pp)), ratio_rot=np.median(np.sqrt(rot / rot_pp)),
+        iterations=jr.solve.iterations, converged=jr.solve.converged,
+        chi2=jr.chi2_per_dof, wall_s=wall, peak_mib=peak / 2**20,
+    )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=600.0)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[101, 102, 103])
+    ap.add_argument("--time-sync", action="store_true",
+                    help="the simulator's clock offsets on (the joint engine carries them white)")
+    args = ap.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in args.seeds:
+            r = case(args.duration, seed, args.time_sync, Path(tmp))
+            rows.append(r)
+            print(" ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
+                           for k, v in r.items()), flush=True)
+    for key in ("nees_joint", "nees_pp", "cover_joint", "cover_pp", "ratio_pos", "ratio_rot",
+                "wall_s", "peak_mib"):
+        print(f"{key}: mean {np.mean([r[key] for r in rows]):.3f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,135 @@
+"""The joint engine's entry point: every raw polar measurement to poses with covariance.
+
+:func:`estimate_joint` builds the problem (knots, measurements, station priors), runs
+Gauss-Newton from another engine's poses and reports poses at the query times in the
+project's convention: docs/joint.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rtsgt.errors import InputError
+from rtsgt.geometry.transform import RigidTransform
+from rtsgt.joint.engine import (
+    JointProblem,
+    JointState,
+    SolveInfo,
+    gauss_newton,
+    station_prior_info,
+)
+from rtsgt.joint.knots import (
+    DEFAULT_MERGE_S,
+    body_velocities,
+    build_knots,
+    interpolate_poses,
+)
+from rtsgt.joint.measurements import polar_measurements
+from rtsgt.noise.model import NoiseModel
+from rtsgt.pose.estimate import PoseEstimate
+from rtsgt.pose.registration import shape_ratio
+
+
+@dataclass(frozen=True)
+class JointResult:
+    """Poses of the joint engine at the query times ``t`` (Q,) s.
+
+    ``estimate``: a :class:`rtsgt.pose.estimate.PoseEstimate` (``engine = "joint"``; its 6x6
+    covariances in the convention of :mod:`rtsgt.geometry.transform`); ``stations``: each
+    station's estimated ``T_world_station`` with its covariance; ``kappa_ppm``,
+    ``kappa_sigma_ppm``: the weather's error of the distance correction; ``qc`` (6,) the
+    prior's PSD used; ``n_knots``, ``n_measurements``; ``solve``: iterations, convergence,
+    costs; ``chi2_per_dof``: the final cost over the measurements' rows.
+    """
+
+    t: np.ndarray
+    estimate: PoseEstimate
+    stations: dict[str, RigidTransform]
+    kappa_ppm: float
+    kappa_sigma_ppm: float
+    qc: np.ndarray
+    n_knots: int
+    n_measurements: int
+    solve: SolveInfo
+    chi2_per_dof: float
+
+
+def _stations(calibration):
+    ids = tuple(calibration.transforms)
+    T = [calibration.transforms[s] for s in ids]
+    R = np.stack([x.rotation for x in T])
+    t = np.stack([x.translation for x in T])
+    cov = np.stack([np.zeros((6, 6)) if x.covariance is None else x.covariance for x in T])
+    free = np.array([i for i in range(len(ids)) if np.trace(cov[i]) > 0], dtype=int)
+    return ids, R, t, cov, free
+
+
+def estimate_joint(observations, calibration, reference, model: NoiseModel, query_times,
+                   init_t, init_R, init_p, qc, *, weather=None,
+                   merge_s: float = DEFAULT_MERGE_S, max_iter: int = 10, tol: float = 1e-6
+                   ) -> JointResult:
+    """Poses ``T_world_body`` at ``query_times`` (Q,) s from every station's observations.
+
+    ``observations``: one :class:`rtsgt.types.Observations` per station (valid, increasing
+    times); ``calibration``: a :class:`rtsgt.calibration.result.CalibrationResult` (the
+    stations' prior, its reference held); ``reference``: the prisms' body positions
+    (:class:`rtsgt.pose.ReferencePoints`, held fixed); ``model``: the noise model (its white
+    sources per measurement, its atmosphere as one parameter); ``init_t`` (T,), ``init_R``
+    (T, 3, 3), ``init_p`` (T, 3): poses to start from (another engine's); ``qc`` (6,) the
+    prior's diagonal PSD (m^2/s^3, rad^2/s^3; e.g. :func:`rtsgt.joint.knots.qc_from_prisms`).
+    """
+    init_t = np.asarray(init_t, dtype=float)
+    if init_t.size < 2:
+        raise InputError(f"Expected at least 2 initial poses, got {init_t.size}")
+    ids, R_s, t_s, cov_s, free = _stations(calibration)
+    prisms = tuple(reference.names)
+    meas = polar_measurements(observations, ids, prisms, model, weather)
+    knots = build_knots(meas.t, np.asarray(query_times, dtype=float), merge_s)
+    R0, p0 = interpolate_poses(knots.t, init_t, init_R, init_p)
+    qc = np.asarray(qc, dtype=float)
+    if qc.shape != (6,) or not np.all(qc > 0):
+        raise InputError(f"Expected qc of shape (6,), positive, got {qc!r}")
+    info = np.stack([station_prior_info(c) for c in cov_s])
+    prob = JointProblem(knots.t, knots.of_measurement, knots.tau, meas,
+                        np.asarray(reference.xyz, dtype=float), R_s, t_s, info, free, qc)
+    state = JointState(R0, p0, body_velocities(knots.t, R0, p0), R_s, t_s, 0.0)
+    state, cov, cov_g, solve = gauss_newton(prob, state, max_iter, tol)
+    q = knots.of_query
+    R = state.R[q]
+    cov_pose = body_to_world_cov(R, cov[q, :6, :6])
+    est = _pose_estimate(R, state.t[q], cov_pose, np.asarray(reference.xyz, dtype=float))
+    stations = {}
+    for i, sid in enumerate(ids):
+        j = np.nonzero(free == i)[0]
+        c = cov_g[6 * j[0]:6 * j[0] + 6, 6 * j[0]:6 * j[0] + 6] if j.size else np.zeros((6, 6))
+        stations[sid] = RigidTransform(state.R_s[i], state.t_s[i], 0.5 * (c + c.T),
+                                       "world", f"station_{sid}")
+    return JointResult(np.asarray(query_times, dtype=float), est, stations, state.kappa_ppm,
+                       meas.kappa_sigma_ppm, qc, knots.t.size, meas.t.size, solve,
+                       solve.costs[-1] / (3 * meas.t.size))
+
+
+def body_to_world_cov(R: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Covariance (Q, 6, 6) of a right (body) perturbation ``T exp(d^)`` of poses ``R``
+    (Q, 3, 3) as the world-frame ``(dt, dtheta)`` of :mod:`rtsgt.geometry.transform`:
+    ``A cov A^T``, ``A = diag(R, R)`` (``dt = R rho``, ``dtheta = R phi`` to first order)."""
+    A = np.zeros(R.shape[:1] + (6, 6))
+    A[:, :3, :3] = R
+    A[:, 3:, 3:] = R
+    out = A @ cov @ np.swapaxes(A, 1, 2)
+    return 0.5 * (out + np.swapaxes(out, 1, 2))
+
+
+def _pose_estimate(R, t, cov, p_body) -> PoseEstimate:
+    n = p_body.shape[0]
+    pairs = tuple((i, j) for i in range(n) for j in range(i + 1, n))
+    dist = np.array([np.linalg.norm(p_body[i] - p_body[j]) for i, j in pairs])
+    Q = R.shape[0]
+    return PoseEstimate(
+        R=R, t=t, cov=cov, degenerate=np.zeros(Q, bool), reason=np.full(Q, ""),
+        inter_prism_distance=np.broadcast_to(dist, (Q, dist.size)).copy(),
+        rms_residual=np.full(Q, np.nan), shape=np.full(Q, float(shape_ratio(p_body))),
+        pairs=pairs, engine="joint", registration="joint",
+    )

@@ -1,0 +1,145 @@
+"""Normal equations of the joint engine: block-tridiagonal knots plus an arrow of globals.
+
+Block cyclic reduction (a loop over its log2(K) levels, batched over the blocks of a level)
+and the Schur complement onto the global parameters: docs/joint.md#the-solver.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ArrowSystem:
+    """``[[A, B], [B^T, C]] [x; g] = [a; c]``: ``A`` block tridiagonal, diagonal blocks ``D``
+    (K, d, d), upper blocks ``U`` (K-1, d, d) (``A_k,k+1``); ``B`` (K, d, G); ``C`` (G, G);
+    ``a`` (K, d); ``c`` (G,)."""
+
+    D: np.ndarray
+    U: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    a: np.ndarray
+    c: np.ndarray
+
+    def dense(self) -> tuple[np.ndarray, np.ndarray]:
+        """The whole matrix (K d + G, K d + G) and right-hand side (tests, small systems)."""
+        K, d, _ = self.D.shape
+        G = self.C.shape[0]
+        n = K * d
+        M = np.zeros((n + G, n + G))
+        for k in range(K):
+            M[k * d:(k + 1) * d, k * d:(k + 1) * d] = self.D[k]
+        for k in range(K - 1):
+            M[k * d:(k + 1) * d, (k + 1) * d:(k + 2) * d] = self.U[k]
+            M[(k + 1) * d:(k + 2) * d, k * d:(k + 1) * d] = self.U[k].T
+        M[:n, n:] = self.B.reshape(n, G)
+        M[n:, :n] = self.B.reshape(n, G).T
+        M[n:, n:] = self.C
+        return M, np.concatenate([self.a.ravel(), self.c])
+
+
+def _spd_inv(a: np.ndarray) -> np.ndarray:
+    """Inverses (..., d, d) of SPD blocks through their Cholesky factors."""
+    li = np.linalg.inv(np.linalg.cholesky(a))
+    return np.swapaxes(li, -1, -2) @ li
+
+
+def _sym(a: np.ndarray) -> np.ndarray:
+    return 0.5 * (a + np.swapaxes(a, -1, -2))
+
+
+def _reduce(D, U, h):
+    """One level: eliminate the odd blocks; returns the even system and what back-solves."""
+    n, d, _ = D.shape
+    n_even, n_odd = (n + 1) // 2, n // 2
+    b_left = U[0::2]  # A_{i-1,i}, i odd
+    b_right = U[1::2]  # A_{i,i+1}, i odd
+    if n % 2 == 0:
+        b_right = np.concatenate([b_right, np.zeros((1, d, d))])
+    d_inv = _spd_inv(D[1::2])
+    ga = d_inv @ np.swapaxes(b_left, 1, 2)  # D_i^-1 A_{i,i-1}
+    gb = d_inv @ b_right  # D_i^-1 A_{i,i+1}
+    g = d_inv @ h[1::2]
+    d_e = D[0::2].copy()
+    d_e[:n_odd] -= b_left @ ga
+    d_e[1:] -= (np.swapaxes(b_right, 1, 2) @ gb)[: n_even - 1]
+    h_e = h[0::2].copy()
+    h_e[:n_odd] -= b_left @ g
+    h_e[1:] -= (np.swapaxes(b_right, 1, 2) @ g)[: n_even - 1]
+    u_e = -(b_left @ gb)[: n_even - 1]
+    return (_sym(d_e), u_e, h_e), (d_inv, ga, gb, g, n)
+
+
+def solve_tridiagonal(D: np.ndarray, U: np.ndarray, h: np.ndarray, want_cov: bool = False):
+    """Solve ``A X = h`` (h (K, d, m)) for a block-tridiagonal SPD ``A``; with ``want_cov`` also
+    the diagonal blocks (K, d, d) of ``A^-1`` (else None)."""
+    levels = []
+    while D.shape[0] > 1:
+        (D, U, h), lev = _reduce(D, U, h)
+        levels.append(lev)
+    S = _spd_inv(D)
+    x = S @ h
+    C = np.zeros((0,) + D.shape[1:])
+    while levels:
+        d_inv, ga, gb, g, n = levels.pop()
+        dim = ga.shape[-1]
+        x_e = x if n % 2 else np.concatenate([x, np.zeros((1,) + x.shape[1:])])
+        x_o = g - ga @ x_e[:-1] - gb @ x_e[1:]
+        x = np.empty((n,) + x_o.shape[1:])
+        x[0::2] = x_e[: (n + 1) // 2]
+        x[1::2] = x_o
+        if not want_cov:
+            continue
+        s_e, c_e = S, C
+        if n % 2 == 0:
+            s_e = np.concatenate([s_e, np.zeros((1, dim, dim))])
+            c_e = np.concatenate([c_e, np.zeros((1, dim, dim))])
+        # rows i (odd) of A Sigma = I with neighbours a = i-1, b = i+1
+        s_ia = -(ga @ s_e[:-1] + gb @ np.swapaxes(c_e, 1, 2))
+        s_ib = -(ga @ c_e + gb @ s_e[1:])
+        s_ii = d_inv - ga @ np.swapaxes(s_ia, 1, 2) - gb @ np.swapaxes(s_ib, 1, 2)
+        S = np.empty((n, dim, dim))
+        S[0::2] = s_e[: (n + 1) // 2]
+        S[1::2] = _sym(s_ii)
+        C = np.empty((n - 1, dim, dim))
+        C[0::2] = np.swapaxes(s_ia, 1, 2)
+        C[1::2] = s_ib[: (n - 1) // 2]
+    return x, (S if want_cov else None)
+
+
+def solve_arrow(system: ArrowSystem, want_cov: bool = False):
+    """Solve an :class:`ArrowSystem` by eliminating the knots.
+
+    ``Y = A^-1 [a, B]``, ``S = C - B^T A^-1 B``, ``g = S^-1 (c - B^T A^-1 a)``,
+    ``x = A^-1 a - A^-1 B g``. Returns ``x`` (K, d), ``g`` (G,), and with ``want_cov`` the
+    knots' marginal covariances ``(A^-1)_kk + Y_B,k S^-1 Y_B,k^T`` (K, d, d) and ``S^-1``
+    (G, G) (else None, None). The system is scaled by its diagonal first (Jacobi).
+    """
+    D, U, B, C = system.D, system.U, system.B, system.C
+    K, d, _ = D.shape
+    G = C.shape[0]
+    sx = 1.0 / np.sqrt(np.einsum("kii->ki", D))
+    sg = 1.0 / np.sqrt(np.diag(C)) if G else np.zeros(0)
+    Ds = D * sx[:, :, None] * sx[:, None, :]
+    Us = U * sx[:-1, :, None] * sx[1:, None, :]
+    Bs = B * sx[:, :, None] * sg[None, None, :]
+    Cs = C * sg[:, None] * sg[None, :]
+    rhs = np.concatenate([(system.a * sx)[:, :, None], Bs], axis=2)
+    Y, Sd = solve_tridiagonal(Ds, Us, rhs, want_cov)
+    ya, yb = Y[:, :, 0], Y[:, :, 1:]
+    if G:
+        schur = Cs - np.einsum("kig,kih->gh", Bs, yb)
+        schur_inv = _spd_inv(_sym(schur))
+        g = schur_inv @ (system.c * sg - np.einsum("kig,ki->g", Bs, ya))
+        x = ya - yb @ g
+    else:
+        schur_inv, g, x = np.zeros((0, 0)), np.zeros(0), ya
+    x, g = x * sx, g * sg
+    if not want_cov:
+        return x, g, None, None
+    cov = Sd + yb @ schur_inv @ np.swapaxes(yb, 1, 2)
+    cov = cov * sx[:, :, None] * sx[:, None, :]
+    return x, g, cov, schur_inv * sg[:, None] * sg[None, :]

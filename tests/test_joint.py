@@ -1,0 +1,258 @@
+"""The joint engine (rtsgt.joint, issue 23 step 2): SE(3) Jacobians against finite
+differences, the arrow solver against a dense solve, Gauss-Newton on a noise-free problem,
+the covariance convention, and poses on simulated deployments against their truth."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from rtsgt.errors import InputError
+from rtsgt.geometry.so3 import exp_so3, quat_xyzw_to_matrix
+from rtsgt.geometry.transform import perturbation
+from rtsgt.io.deployment import load_deployment
+from rtsgt.joint import estimate_joint
+from rtsgt.joint.engine import JointProblem, JointState, assemble, gauss_newton, retract
+from rtsgt.joint.estimate import body_to_world_cov
+from rtsgt.joint.knots import build_knots, qc_from_prisms
+from rtsgt.joint.measurements import PolarMeasurements, predict, residual
+from rtsgt.joint.prior import prior_terms
+from rtsgt.joint.se3 import exp_se3, jacobians_inv, left_jacobian, log_se3, so3_left_jacobian
+from rtsgt.joint.sparse import solve_arrow
+from rtsgt.measurement.polar import cartesian_to_polar
+from rtsgt.pipeline import run_pipeline
+from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
+
+EPS = 1e-6
+
+
+def _compose(R1, t1, R2, t2):
+    return R1 @ R2, np.einsum("...ij,...j->...i", R1, t2) + t1
+
+
+def _right(R, t, d):
+    """``T exp(d^)`` for a right perturbation ``d`` (..., 6)."""
+    dR, dt = exp_se3(d)
+    return _compose(R, t, dR, dt)
+
+
+def test_se3_exp_log_round_trip_and_left_jacobian_against_finite_differences():
+    rng = np.random.default_rng(1)
+    xi = rng.normal(size=(20, 6)) * np.r_[1.0, 1.0, 1.0, 0.6, 0.6, 0.6]
+    xi[0, 3:] = 1e-5  # the small-angle branch
+    R, t = exp_se3(xi)
+    np.testing.assert_allclose(log_se3(R, t), xi, atol=1e-10)
+    jl = left_jacobian(xi)
+    for j in range(6):
+        e = np.zeros(6)
+        e[j] = EPS
+        # exp(xi + e) = exp(J_l(xi) e) exp(xi) to first order
+        Rp, tp = exp_se3(xi + e)
+        Rm, tm = exp_se3(xi - e)
+        Ri = np.swapaxes(R, 1, 2)
+        num = (log_se3(*_compose(Rp, tp, Ri, -np.einsum("kij,kj->ki", Ri, t)))
+               - log_se3(*_compose(Rm, tm, Ri, -np.einsum("kij,kj->ki", Ri, t)))) / (2 * EPS)
+        np.testing.assert_allclose(num, jl[:, :, j], atol=1e-7)
+    jli, jri = jacobians_inv(xi)
+    np.testing.assert_allclose(jli @ jl, np.broadcast_to(np.eye(6), jl.shape), atol=1e-10)
+    np.testing.assert_allclose(jri @ left_jacobian(-xi), np.broadcast_to(np.eye(6), jl.shape),
+                               atol=1e-10)
+    phi = xi[:, 3:]
+    np.testing.assert_allclose(so3_left_jacobian(phi, inverse=True) @ so3_left_jacobian(phi),
+                               np.broadcast_to(np.eye(3), (20, 3, 3)), atol=1e-12)
+
+
+def _trajectory(K, rng, scale=1.0):
+    t = np.cumsum(rng.uniform(0.1, 0.4, K))
+    w = rng.normal(size=(K, 6)) * np.r_[1.0, 0.3, 0.1, 0.02, 0.02, 0.3] * scale
+    R = exp_so3(rng.normal(size=(K, 3)) * 0.5)
+    p = rng.normal(size=(K, 3)) * 5.0
+    return t, R, p, w
+
+
+def test_prior_jacobians_against_finite_differences():
+    """The pose rows exactly; the velocity rows' d(J_r^-1 w)/d xi is first order in xi."""
+    rng = np.random.default_rng(2)
+    t, R, p, w = _trajectory(2, rng)
+    # a second pose near the first one's constant-velocity prediction
+    R[1], p[1] = _right(R[0], p[0], 0.25 * w[0] + 0.01 * rng.normal(size=6))
+    dt = np.diff(t)
+    e0, E, F = prior_terms(R, p, w, dt)
+    for knot, Jac in ((0, E), (1, F)):
+        for j in range(12):
+            d = np.zeros((2, 12))
+            d[knot, j] = EPS
+            out = []
+            for s in (1.0, -1.0):
+                Rk, pk = _right(R, p, s * d[:, :6])
+                out.append(prior_terms(Rk, pk, w + s * d[:, 6:], dt)[0])
+            num = (out[0] - out[1]) / (2 * EPS)
+            np.testing.assert_allclose(num[0, :6], Jac[0, :6, j], atol=1e-7)
+            np.testing.assert_allclose(num[0, 6:], Jac[0, 6:, j], atol=0.05)
+
+
+def test_measurement_jacobians_against_finite_differences():
+    rng = np.random.default_rng(3)
+    M = 7
+    _, R, p, w = _trajectory(M, rng)
+    tau = rng.uniform(-1e-3, 1e-3, M)
+    pb = rng.normal(size=(M, 3))
+    R_s = exp_so3(rng.normal(size=(M, 3)) * 0.1)
+    t_s = p + rng.normal(size=(M, 3)) * 30.0
+    h, Hk, Hs, Hkap = predict(R, p, w, tau, pb, R_s, t_s, 2.0)
+    for j in range(12):
+        d = np.zeros((M, 12))
+        d[:, j] = EPS
+        hs = [predict(*_right(R, p, s * d[:, :6]), w + s * d[:, 6:], tau, pb, R_s, t_s, 2.0)[0]
+              for s in (1.0, -1.0)]
+        np.testing.assert_allclose(residual(hs[0], hs[1]) / (2 * EPS), Hk[:, :, j], atol=1e-7)
+    for j in range(6):
+        d = np.zeros((M, 6))
+        d[:, j] = EPS
+        hs = [predict(R, p, w, tau, pb, exp_so3(s * d[:, 3:]) @ R_s, t_s + s * d[:, :3], 2.0)[0]
+              for s in (1.0, -1.0)]
+        np.testing.assert_allclose(residual(hs[0], hs[1]) / (2 * EPS), Hs[:, :, j], atol=1e-7)
+    hs = [predict(R, p, w, tau, pb, R_s, t_s, 2.0 + s * 1e-3)[0] for s in (1.0, -1.0)]
+    np.testing.assert_allclose((hs[0] - hs[1]) / 2e-3, Hkap, atol=1e-12)
+
+
+def _synthetic(rng, K=40, noise=0.0):
+    """Noise-free (or noisy) polar measurements of three prisms on a constant-velocity
+    trajectory by three stations, the first fixed, the others with a prior."""
+    w0 = np.array([1.0, 0.1, 0.0, 0.0, 0.0, 0.15])
+    t = np.arange(K) * 0.4
+    R0, p0 = exp_so3(np.array([0.0, 0.0, 0.3])), np.array([2.0, -1.0, 0.5])
+    R, p = _compose(R0, p0, *exp_se3(t[:, None] * w0))
+    pb = np.array([[0.5, 0.3, 0.4], [-0.4, 0.35, 0.45], [0.0, -0.4, 0.5]])
+    t_s = np.array([[0.0, 0.0, 0.0], [25.0, 5.0, 0.3], [-5.0, 22.0, -0.2]])
+    R_s = exp_so3(np.array([[0.0, 0.0, 0.0], [0.001, -0.002, 1.0], [0.0, 0.001, -2.0]]))
+    sid = np.arange(K) % 3
+    k = np.arange(K)
+    pw = np.einsum("kij,kj->ki", R, pb[sid]) + p
+    q = np.einsum("kji,kj->ki", R_s[sid], pw - t_s[sid])
+    y = np.stack(cartesian_to_polar(q), axis=1)
+    sig = np.array([3e-5, 3e-5, 1e-3])
+    y = y + noise * rng.normal(size=y.shape) * sig
+    info = np.broadcast_to(np.diag(1.0 / sig**2), (K, 3, 3)).copy()
+    meas = PolarMeasurements(t, sid, sid, y, info, 1.0)
+    cov_s = np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8])
+    info_s = np.stack([np.eye(6), np.linalg.inv(cov_s), np.linalg.inv(cov_s)])
+    prob = JointProblem(t, k, np.zeros(K), meas, pb, R_s, t_s, info_s, np.array([1, 2]),
+                        np.array([0.1, 0.1, 0.01, 1e-3, 1e-3, 0.01]))
+    truth = JointState(R, p, np.broadcast_to(w0, (K, 6)).copy(), R_s, t_s, 0.0)
+    return prob, truth
+
+
+def test_arrow_solver_matches_a_dense_solve_of_the_same_normal_equations():
+    rng = np.random.default_rng(4)
+    prob, truth = _synthetic(rng, K=13, noise=1.0)
+    start = retract(prob, truth, 1e-3 * rng.normal(size=(13, 12)), 1e-4 * rng.normal(size=13))
+    system, _ = assemble(prob, start)
+    x, g, cov, cov_g = solve_arrow(system, want_cov=True)
+    M, b = system.dense()
+    ref = np.linalg.solve(M, b)
+    scale = np.abs(ref).max()
+    np.testing.assert_allclose(np.concatenate([x.ravel(), g]), ref, atol=1e-9 * scale)
+    inv = np.linalg.inv(M)
+    n = x.size
+    for k in range(13):
+        blk = inv[12 * k:12 * k + 12, 12 * k:12 * k + 12]
+        np.testing.assert_allclose(cov[k], blk, atol=1e-9 * np.abs(blk).max())
+    np.testing.assert_allclose(cov_g, inv[n:, n:], atol=1e-9 * np.abs(inv[n:, n:]).max())
+
+
+def test_gauss_newton_recovers_a_noise_free_trajectory_from_a_perturbed_start():
+    rng = np.random.default_rng(5)
+    prob, truth = _synthetic(rng)
+    dx = rng.normal(size=(40, 12)) * np.r_[[0.02] * 3, [0.01] * 3, [0.05] * 6]
+    start = retract(prob, truth, dx, rng.normal(size=13) * 1e-3)
+    est, cov, cov_g, info = gauss_newton(prob, start, max_iter=10, tol=1e-10)
+    assert info.converged and info.iterations <= 6, info
+    np.testing.assert_allclose(est.t, truth.t, atol=1e-7)
+    np.testing.assert_allclose(est.R, truth.R, atol=1e-8)
+    np.testing.assert_allclose(est.t_s, truth.t_s, atol=1e-7)
+    assert info.costs[-1] < 1e-8
+    assert np.all(np.linalg.eigvalsh(cov) > 0) and np.all(np.linalg.eigvalsh(cov_g) > 0)
+
+
+def test_body_covariance_maps_to_the_project_convention():
+    """A right (body) perturbation d of T is the world-frame (dt, dtheta) of
+    rtsgt.geometry.transform.perturbation, A d with A = diag(R, R), to first order."""
+    rng = np.random.default_rng(6)
+    R = exp_so3(rng.normal(size=(5, 3)))
+    t = rng.normal(size=(5, 3))
+    d = rng.normal(size=(5, 6)) * 1e-7
+    world = perturbation(R, t, *_right(R, t, d))
+    A = body_to_world_cov(R, np.broadcast_to(np.eye(6), (5, 6, 6)))  # A A^T = A I A^T
+    L = np.linalg.cholesky(A)  # A A^T of an orthogonal block matrix is I: check the map
+    np.testing.assert_allclose(L, np.broadcast_to(np.eye(6), L.shape), atol=1e-12)
+    np.testing.assert_allclose(world[:, :3], np.einsum("kij,kj->ki", R, d[:, :3]), atol=1e-13)
+    np.testing.assert_allclose(world[:, 3:], np.einsum("kij,kj->ki", R, d[:, 3:]), atol=1e-13)
+    cov = rng.normal(size=(5, 6, 6))
+    cov = cov @ np.swapaxes(cov, 1, 2)
+    mapped = body_to_world_cov(R, cov)
+    Ab = np.zeros((5, 6, 6))
+    Ab[:, :3, :3] = R
+    Ab[:, 3:, 3:] = R
+    np.testing.assert_allclose(mapped, Ab @ cov @ np.swapaxes(Ab, 1, 2), atol=1e-12)
+
+
+def test_knots_merge_close_times_and_keep_query_times_exact():
+    kn = build_knots(np.array([0.1, 0.1004, 0.3, 0.5003]), np.array([0.2, 0.5]), 1e-3)
+    np.testing.assert_allclose(kn.t, [0.1, 0.2, 0.3, 0.5])
+    np.testing.assert_array_equal(kn.of_measurement, [0, 0, 2, 3])
+    np.testing.assert_allclose(kn.tau, [0.0, 4e-4, 0.0, 3e-4], atol=1e-15)
+    np.testing.assert_array_equal(kn.of_query, [1, 3])
+
+
+# ------------------------------------------------------------------ simulated deployments
+
+
+def _run(tmp, seed):
+    sim = simulate_deployment(SimulationConfig(duration_s=60.0, noise_time_sync=False,
+                                               noise_survey=False), np.random.default_rng(seed))
+    data, opts = load_deployment(write_deployment(sim, tmp / f"dep{seed}"))
+    srcs = tuple(s for s in opts.noise.sources if s != "time_sync")
+    opts = replace(opts.updated(seed=seed, engine="linear"), noise=opts.noise.with_sources(srcs))
+    res = run_pipeline(data, opts)
+    comp = res.computation
+    est, keep = comp.estimate, comp.keep
+    tq = comp.prisms.t[keep]
+    obs = [o.select(np.isin(o.t, comp.tracks[o.prism].t)) for o in data.observations]
+    qc = qc_from_prisms(np.stack([res.qc[p] for p in data.reference.names]), data.reference.xyz)
+    jr = estimate_joint(obs, comp.calibration, data.reference, comp.noise_model, tq, tq,
+                        est.R[keep], est.t[keep], qc, weather=data.weather)
+    p, q = sim.truth_at(tq)
+    err = perturbation(quat_xyzw_to_matrix(q), p, jr.estimate.R, jr.estimate.t)
+    nees = np.einsum("ki,kij,kj->k", err, np.linalg.inv(jr.estimate.cov), err)
+    ratio = np.sqrt(np.einsum("kii->k", jr.estimate.cov[:, :3, :3])
+                    / np.einsum("kii->k", est.cov[keep][:, :3, :3]))
+    return jr, nees, ratio, (obs, comp, data, tq, est, keep)
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("joint")
+    return [_run(tmp, seed) for seed in (11, 12)]
+
+
+def test_joint_poses_are_within_their_covariance_and_more_precise(simulated):
+    for jr, _, _, _ in simulated:
+        assert jr.solve.converged and jr.solve.iterations <= 8, jr.solve
+    nees = np.concatenate([s[1] for s in simulated])
+    ratio = np.concatenate([s[2] for s in simulated])
+    assert 0.4 < nees.mean() / 6 < 1.25, nees.mean() / 6
+    assert np.median(ratio) < 0.95, np.median(ratio)
+
+
+def test_bad_inputs_are_named(simulated):
+    jr, _, _, (obs, comp, data, tq, est, keep) = simulated[0]
+    with pytest.raises(InputError, match="qc of shape"):
+        estimate_joint(obs, comp.calibration, data.reference, comp.noise_model, tq, tq,
+                       est.R[keep], est.t[keep], np.ones(3))
+    moved = [replace(obs[0], station="9")] + obs[1:]
+    with pytest.raises(InputError, match="station '9'"):
+        estimate_joint(moved, comp.calibration, data.reference, comp.noise_model, tq, tq,
+                       est.R[keep], est.t[keep], jr.qc)
