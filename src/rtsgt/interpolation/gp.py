@@ -13,7 +13,6 @@ docs/interpolation.md (#wnoa-prior, #wnoj-prior, #posterior, #queries,
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -24,6 +23,7 @@ from scipy import optimize
 
 from rtsgt.choices import DEFAULT_MAX_GAP_S  # the longest gap a query is answered across, s
 from rtsgt.errors import ExtrapolationError, InputError, RtsgtError
+from rtsgt.parallel import available_cores
 from rtsgt.types import PrismTrack
 
 __all__ = [
@@ -59,8 +59,8 @@ _QUERY_CHUNK = 1 << 16
 #: (:func:`_posteriors`; its result does not depend on it, only its memory, about 5 blocks of
 #: 6x6 or 9x9 per knot and candidate, and the fixed cost per call of a short track's).
 _STACK_BLOCKS = 1 << 13
-#: Threads that solve the parts of :func:`_posteriors` (the cores this process may run on).
-_CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+#: Threads that solve the parts of :func:`_posteriors`.
+_CORES = available_cores()
 
 
 # --------------------------------------------------------------------------------------------

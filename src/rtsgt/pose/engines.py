@@ -8,7 +8,6 @@ transform) or :class:`Linear` (first order). Method, draws and threads: docs/pos
 
 from __future__ import annotations
 
-import os
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -16,6 +15,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from rtsgt.parallel import available_cores
 from rtsgt.pose.registration import register, registration_jacobian, small_rotation_vector
 from rtsgt.pose.weighted import newton_inverse_at, refine_batches, refine_samples
 
@@ -52,11 +52,7 @@ def mc_threads(threads: int | None = None) -> int:
     if threads is None:
         threads = MC_THREADS
     if threads is None:
-        try:
-            cores = len(os.sched_getaffinity(0))
-        except AttributeError:  # not on every platform
-            cores = os.cpu_count() or 1
-        threads = min(cores, MAX_MC_THREADS)
+        threads = min(available_cores(), MAX_MC_THREADS)
     if int(threads) != threads or threads < 1:
         raise ValueError(f"Expected a positive integer number of threads, got {threads}")
     return int(threads)
