@@ -92,8 +92,8 @@ def _skipped_folder(path: Path) -> bool:
 
 def find_deployments(paths: Iterable[str | os.PathLike], *, out: str | os.PathLike | None = None
                      ) -> tuple[list[Deployment], list[str]]:
-    """The deployments under ``paths`` (module docstring), sorted by name, and the notes of
-    what was skipped.
+    """The deployments under ``paths`` (docs/batch.md#deployments), sorted by name, and the
+    notes of what was skipped.
 
     Raises
     ------
@@ -192,7 +192,7 @@ def make_tasks(deployments: Sequence[Deployment], out: Path, *, base_seed: int =
 
 
 def is_complete(task: BatchTask) -> bool:
-    """Whether ``task``'s deployment is done already (module docstring, section Resuming)."""
+    """Whether ``task``'s deployment is done already (docs/batch.md#resuming)."""
     if not complete_output(task.out, "run"):
         return False
     if task.report and not (task.out / "report.html").is_file():
@@ -281,7 +281,7 @@ def dask_client(*, scheduler: str | None = None, workers: int | None = None,
                              f"{_one_line(exc)}") from None
     n = workers if workers is not None else default_workers(n_tasks)
     # the nanny's MALLOC_TRIM_THRESHOLD_ fixes glibc's mmap threshold, and every large array
-    # is then mapped and unmapped anew: a run took 1.8x as long (module docstring)
+    # is then mapped and unmapped anew: a run took 1.8x as long (docs/batch.md#dask)
     with dask.config.set({f"{NANNY_ENVIRON}.MALLOC_TRIM_THRESHOLD_": None}):
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                dashboard_address=None)

@@ -47,21 +47,9 @@ def bag_paths(path: str | PathLike) -> list[Path]:
 
 @contextmanager
 def open_bag(path: str | PathLike, types: Mapping[str, str] | None = None) -> Iterator:
-    """An open ``AnyReader`` of the bag at ``path``, closed on exit.
-
-    Parameters
-    ----------
-    path : str or PathLike
-    types : mapping str -> str, optional
-        Message definitions (``.msg`` text) by type name (``pkg/msg/Name``), registered in the
-        type store used for the connections whose definition the bag does not carry.
-
-    Raises
-    ------
-    InputError
-        Missing ``rosbags``, no such bag, a ROS 2 directory without ``metadata.yaml``, or a
-        file ``rosbags`` cannot open (the bag named, with rosbags' reason).
-    """
+    """An open ``AnyReader`` of the bag at ``path``, closed on exit, with the message definitions
+    ``types`` (``pkg/msg/Name`` -> ``.msg`` text) registered for connections whose bag lacks them.
+    A missing ``rosbags`` or a bag it cannot open raises :class:`~rtsgt.errors.InputError`."""
     AnyReader, Stores, get_typestore, get_types_from_msg = rosbags_modules()
     store = get_typestore(Stores.LATEST)
     for name, text in (types or {}).items():

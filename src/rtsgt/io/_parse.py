@@ -138,25 +138,9 @@ def to_float(
     finite: bool | np.ndarray = True,
     decimal_comma: bool = False,
 ) -> np.ndarray:
-    """Convert a (N, K) token array to float64, naming the line and column of a bad token.
-
-    Parameters
-    ----------
-    tokens : ndarray of str, shape (N, K)
-    numbers : sequence of int, length N
-        1-based line number of each row.
-    path : str or PathLike
-    names : sequence of str, length K
-        Column names.
-    finite : bool or ndarray of bool, shape (N,)
-        Reject NaN and infinities (in every row, or in the rows where the mask is true).
-    decimal_comma : bool
-        Read ``"93,44"`` as 93.44 (the whole field; never digit by digit).
-
-    Returns
-    -------
-    ndarray, shape (N, K)
-    """
+    """``tokens`` (N, K) as float64, a bad token naming its line (``numbers``, 1-based) and column
+    (``names``) of ``path``; ``finite`` rejects NaN and infinities (all rows or a row mask);
+    ``decimal_comma`` reads ``"93,44"`` as 93.44 (the whole field)."""
     tok = np.asarray(tokens, dtype=object)
     if decimal_comma:
         tok = np.vectorize(lambda s: s.replace(",", "."), otypes=[object])(tok) if tok.size else tok
@@ -206,31 +190,9 @@ def to_int(
 def csv_table(path: str | PathLike, required: Sequence[str] = ()) -> tuple[
     list[str], list[int], list[str]
 ]:
-    """Header and data lines of a comma-separated table of an ``rtsgt run`` directory.
-
-    The first line names the columns; every later line is a data line (no blank line, no
-    ``#`` comment: those are errors for the caller to report). UTF-8, without BOM.
-
-    Parameters
-    ----------
-    path : str or PathLike
-    required : sequence of str
-        Column names that must be in the header (exact names).
-
-    Returns
-    -------
-    header : list of str
-        The column names, stripped.
-    numbers : list of int
-        1-based line number of each data line (2, 3, ...).
-    lines : list of str
-        The data lines.
-
-    Raises
-    ------
-    InputError
-        Missing file, no header line, a required column missing (line 1).
-    """
+    """Header (stripped names), 1-based line numbers and data lines of a comma-separated table of a
+    run directory (UTF-8; every line after the header is data). A missing file, header or
+    ``required`` column raises :class:`~rtsgt.errors.InputError`."""
     p = Path(path)
     if not p.is_file():
         raise InputError("file not found (is this an rtsgt run directory?)", p)
@@ -249,22 +211,9 @@ def csv_table(path: str | PathLike, required: Sequence[str] = ()) -> tuple[
 def read_table(
     path: str | PathLike, required: Sequence[str] = ()
 ) -> tuple[list[str], np.ndarray]:
-    """Read a numeric table of an ``rtsgt run`` directory (:func:`csv_table`).
-
-    Every field of every data line must be a number; NaN and infinities are numbers here (a
-    run writes NaN where a value is unknown, e.g. ``range_m``).
-
-    Returns
-    -------
-    header : list of str
-    data : ndarray, shape (N, len(header))
-
-    Raises
-    ------
-    InputError
-        Those of :func:`csv_table`, a wrong number of fields or a field that is not a number
-        (naming the line).
-    """
+    """Header and data (N, len(header)) of a numeric table of a run directory (:func:`csv_table`);
+    NaN and infinities are numbers here. A wrong field count or a non-number raises
+    :class:`~rtsgt.errors.InputError` naming the line."""
     header, numbers, lines = csv_table(path, required)
     tokens = split_rows(lines, numbers, path, header, ",")
     try:
@@ -425,27 +374,10 @@ def table_chunks(
     fmt: str | Sequence[str] | None = None,
     rows: int | None = None,
 ) -> Iterator[str]:
-    """Text of a table of numbers, ``rows`` lines at a time: an optional header line, then one
-    line per row (so that a large table is never whole in memory as text).
-
-    Parameters
-    ----------
-    data : array_like, shape (N, K)
-    header : str, optional
-        The first line, as written (column names, or a ``#`` comment).
-    sep : str
-        Separator of the values.
-    fmt : str or sequence of K str, optional
-        printf-style format of every value (``"%.17g"``) or of each column; None: the
-        shortest text that reads back as the same float64 (:func:`fmt_float`).
-    rows : int, optional
-        Lines per piece; default about :data:`TABLE_CHUNK_VALUES` values.
-
-    Yields
-    ------
-    str
-        Consecutive pieces of the text, lines ending in ``"\n"``.
-    """
+    """Yield the text of a table ``data`` (N, K), ``rows`` lines at a time (default about
+    :data:`TABLE_CHUNK_VALUES` values), after an optional ``header`` line: values joined by
+    ``sep``, formatted by ``fmt`` (one or per column; None: :func:`fmt_float`, the shortest exact
+    text), so that a large table is never whole in memory as text."""
     a = np.asarray(data, dtype=float)
     if rows is None:
         rows = max(1, TABLE_CHUNK_VALUES // max(a.shape[1] if a.ndim == 2 else 1, 1))

@@ -111,7 +111,7 @@ class DeploymentConfig:
     measurements: MeasurementsConfig | None = None
 
 
-class _Section:
+class TomlSection:
     """Reads typed keys of one TOML table and rejects unknown keys with a clear message."""
 
     def __init__(self, path: Path, name: str, table: Any):
@@ -207,7 +207,7 @@ def load_config(path: str | Path) -> DeploymentConfig:
     if unknown:
         raise ConfigError(f"unknown section(s) {', '.join(unknown)}", path)
 
-    dep = _Section(path, "deployment", doc.get("deployment", {}))
+    dep = TomlSection(path, "deployment", doc.get("deployment", {}))
     name = dep.get("name", str, path.stem)
     reference_station = dep.get("reference_station", str, "1")
     dep.done()
@@ -216,7 +216,7 @@ def load_config(path: str | Path) -> DeploymentConfig:
 
     measurements = None
     if "measurements" in doc:
-        m = _Section(path, "measurements", doc["measurements"])
+        m = TomlSection(path, "measurements", doc["measurements"])
         measurements = MeasurementsConfig(
             m.file(directory=True), m.get("format", str, "ros-bag", MEASUREMENT_FORMATS),
             m.get("topic", str, None), m.get("time", str, None, TIME_SOURCES),
@@ -243,14 +243,14 @@ def load_config(path: str | Path) -> DeploymentConfig:
     if len(set(prisms)) != len(prisms):
         raise ConfigError(f"each station must track a different prism, got {prisms}", path)
 
-    g = _Section(path, "gcp", doc.get("gcp", None) if "gcp" in doc else _missing(path, "gcp"))
+    g = TomlSection(path, "gcp", doc.get("gcp", None) if "gcp" in doc else _missing(path, "gcp"))
     gcp = FileConfig(g.file(), g.get("format", str, "rts-project", GCP_FORMATS),
                      g.get("additive_constant_m", float, 0.0))
     g.done()
 
     weather = None
     if "weather" in doc:
-        w = _Section(path, "weather", doc["weather"])
+        w = TomlSection(path, "weather", doc["weather"])
         fmt = w.get("format", str, "csv", WEATHER_FORMATS)
         weather = FileConfig(w.file(), fmt, 0.0, w.get("utc_offset_hours", float, 0.0))
         w.done()
@@ -314,7 +314,7 @@ def read_options(path: Path, doc: dict, instrument: InstrumentProfile,
     ``[calibration]``, ``[interpolation]``, ``[pose]``) as options, each key checked, and the
     query-times file of ``[interpolation]`` (None without it; refused unless
     ``query_times``)."""
-    n = _Section(path, "noise", doc.get("noise", {}))
+    n = TomlSection(path, "noise", doc.get("noise", {}))
     sources = n.get("sources", list, None)
     bad = [x for x in sources or () if x not in NOISE_SOURCES]
     if bad:
@@ -325,15 +325,15 @@ def read_options(path: Path, doc: dict, instrument: InstrumentProfile,
     noise = n.record(NoiseModel, NOISE_KEYS, instrument=instrument)
     n.done()
 
-    f = _Section(path, "filter", doc.get("filter", {}))
+    f = TomlSection(path, "filter", doc.get("filter", {}))
     filt = f.record(FilterParams, FILTER_KEYS)
     f.done()
 
-    c = _Section(path, "calibration", doc.get("calibration", {}))
+    c = TomlSection(path, "calibration", doc.get("calibration", {}))
     calibration = c.record(CalibrationOptions, CALIBRATION_KEYS)
     c.done()
 
-    it = _Section(path, "interpolation", doc.get("interpolation", {}))
+    it = TomlSection(path, "interpolation", doc.get("interpolation", {}))
     if "query_times" in it.table and not query_times:
         raise ConfigError("[interpolation] query_times has no meaning here", path)
     times = it.file("query_times") if "query_times" in it.table else None
@@ -342,7 +342,7 @@ def read_options(path: Path, doc: dict, instrument: InstrumentProfile,
     interp = it.record(InterpolationOptions, INTERPOLATION_KEYS)
     it.done()
 
-    p = _Section(path, "pose", doc.get("pose", {}))
+    p = TomlSection(path, "pose", doc.get("pose", {}))
     pose = p.record(PoseOptions, POSE_KEYS)
     p.done()
 
@@ -393,7 +393,7 @@ def _station(path: Path, i: int, table: Any,
              measurements: MeasurementsConfig | None) -> StationConfig:
     """One ``[[stations]]`` table: its file and format, or, with ``[measurements]``, its
     theodolite id (default: the station id read as an integer)."""
-    s = _Section(path, f"stations #{i + 1}", table)
+    s = TomlSection(path, f"stations #{i + 1}", table)
     sid, prism = s.get("id", str), s.get("prism", str)
     constant = s.get("additive_constant_m", float, 0.0)
     if measurements is None:
@@ -426,7 +426,7 @@ def _station(path: Path, i: int, table: Any,
 def _reference(path: Path, doc: dict, prisms: list[str],
                positions_only: bool) -> ReferenceConfig:
     """The ``[reference]`` table (required for a pose run: at least 3 prisms)."""
-    r = _Section(path, "reference", doc["reference"] if "reference" in doc
+    r = TomlSection(path, "reference", doc["reference"] if "reference" in doc
                  else _missing(path, "reference"))
     ref_file = r.file()
     ref_format = r.get("format", str, "survey-dms", REFERENCE_FORMATS)

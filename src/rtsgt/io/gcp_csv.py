@@ -53,26 +53,10 @@ def _angle_column(pos: dict[str, int], header: list[str], name: str, path, numbe
 
 
 def read_gcp_csv(path: str | PathLike, *, additive_constant: float = 0.0) -> GcpShots:
-    """Read GCP shots in the native CSV format (see the module docstring).
-
-    Parameters
-    ----------
-    path : str or PathLike
-    additive_constant : float
-        Additive (prism) constant, m, added to every ``d_m`` when the shots are used.
-
-    Returns
-    -------
-    GcpShots
-        Angles in rad, raw distances in m, ``lines`` the 1-based line numbers.
-
-    Raises
-    ------
-    InputError
-        Naming the file and line: empty file, missing columns, wrong column count, empty
-        identifier, non-numeric values, and for valid shots (status 0) non-finite values, a
-        non-positive distance or a zenith angle outside (0, pi).
-    """
+    """Read GCP shots in the native CSV format into :class:`~rtsgt.types.GcpShots` (rad, raw m,
+    ``lines`` 1-based), ``additive_constant`` (m) stored apart. Bad lines (columns, identifiers,
+    numbers; for valid shots non-finite values, distance <= 0, zenith outside (0, pi)) raise
+    :class:`~rtsgt.errors.InputError` naming the file and line."""
     c = float(additive_constant)
     if not np.isfinite(c):
         raise InputError(f"Expected a finite additive constant (m), got {additive_constant!r}")

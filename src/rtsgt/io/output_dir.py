@@ -108,25 +108,10 @@ def check_target(target: str | os.PathLike, *, force: bool = False,
 def check_output_file(path: str | os.PathLike, *, option: str,
                       written_by_rtsgt: Callable[[str], bool],
                       inputs: Iterable[str | os.PathLike] = ()) -> Path:
-    """Check, before any work, that the file ``path`` may be written; returns it.
-
-    Parameters
-    ----------
-    path : path
-    option : str
-        The command-line option that named it, for the messages.
-    written_by_rtsgt : callable
-        Given the first 64 kB of an existing file (text), whether it is an output of rtsgt of
-        the kind about to be written.
-    inputs : paths
-        Inputs of the command, which are never replaced.
-
-    Raises
-    ------
-    InputError
-        ``path`` is a directory, its directory does not exist, it is an input of the command,
-        or it exists and rtsgt did not write it.
-    """
+    """Check, before any work, that the file ``path`` (named by ``option``) may be written, and
+    return it: not a directory, its directory existing, not one of ``inputs``, and if it exists
+    an rtsgt output (``written_by_rtsgt`` judges its first 64 kB). Else
+    :class:`~rtsgt.errors.InputError`."""
     out = Path(path)
     if out.is_dir():
         raise InputError(f"{option} names a directory; give a file name", out)
@@ -227,24 +212,10 @@ def open_output_folder(target: str | os.PathLike, kind: str) -> Path:
 
 
 class OutputDir:
-    """Write a directory in one piece: ``with OutputDir(target, "run") as tmp: ...``.
-
-    Parameters
-    ----------
-    target : path
-        The directory to produce.
-    kind : str
-        What it holds (``"run"``, ``"deployment"``, ``"demo"``, ``"analysis"``, ...), written
-        in the manifest.
-    force : bool
-        Replace an earlier rtsgt output at ``target`` (see the module docstring).
-    inputs : paths
-        Inputs of the command, which the target must not hold.
-
-    The target is checked when the object is made (before any work) and again before the
-    finished directory replaces it. Leaving the ``with`` block with an exception removes the
-    temporary directory and leaves the target as it was.
-    """
+    """Write a directory in one piece: ``with OutputDir(target, kind) as tmp: ...`` (``kind`` in the
+    manifest; ``force`` replaces an earlier rtsgt output; ``inputs`` the target must not hold).
+    The target is checked when made and before the finished directory replaces it; an
+    exception removes the temporary directory and leaves the target as it was."""
 
     def __init__(self, target: str | os.PathLike, kind: str, *, force: bool = False,
                  inputs: Iterable[str | os.PathLike] = ()):

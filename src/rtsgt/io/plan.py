@@ -15,7 +15,7 @@ import numpy as np
 from rtsgt.deployment import DeploymentData
 from rtsgt.errors import ConfigError, InputError
 from rtsgt.io._parse import find_columns, read_lines, split_rows, to_float
-from rtsgt.io.config import _Section, read_instrument, read_options
+from rtsgt.io.config import TomlSection, read_instrument, read_options
 from rtsgt.io.deployment import load_deployment
 from rtsgt.io.run_dir import read_summary
 from rtsgt.io.survey import read_reference_csv
@@ -130,13 +130,8 @@ def _points(value, path: Path, where: str, dims: tuple[int, ...]) -> np.ndarray:
 
 
 def load_plan(path: str | Path) -> PlanInputs:
-    """Read a plan file (module docstring), or a deployment TOML as its own layout.
-
-    Raises
-    ------
-    ConfigError
-        Naming the file, the section and the key of any problem.
-    """
+    """Read a plan file, or a deployment TOML as its own layout; any problem is a
+    :class:`~rtsgt.errors.ConfigError` naming the file, the section and the key."""
     path = Path(path).resolve()
     doc = _doc(path)
     if is_deployment_toml(doc):
@@ -147,7 +142,7 @@ def load_plan(path: str | Path) -> PlanInputs:
                           f"{', '.join(PLAN_SECTIONS)}", path)
     if "plan" not in doc:
         raise ConfigError("missing the [plan] section", path)
-    pl = _Section(path, "plan", doc["plan"])
+    pl = TomlSection(path, "plan", doc["plan"])
     name = pl.get("name", str, path.stem)
     seed = pl.get("seed", int, 0)
     if seed < 0:
@@ -181,7 +176,20 @@ def load_plan(path: str | Path) -> PlanInputs:
         gcp, gcp_names = _gcp(path, doc)
         reference = _rig(path, doc, [s.prism for s in stations.values() if s.prism])
 
-    rb = _Section(path, "robot", doc.get("robot", {}))
+    speed, qc_pair, run_dir, forward = _robot(path, doc)
+    if "area" in doc and "path" in doc:
+        raise ConfigError("give [area] or [path], not both", path)
+    polygon, step, z, headings = _area(path, doc) if "area" in doc else (None,) * 4
+    path_data, path_step, z = _path(path, doc) if "path" in doc else (None, None, z)
+    return PlanInputs(path, name, reference_station, seed, deployment, stations, gcp,
+                      gcp_names, reference, instrument, options, speed, qc_pair, run_dir,
+                      forward, polygon, step, z, headings, path_data, path_step)
+
+
+def _robot(path: Path, doc: dict) -> tuple:
+    """``[robot]``: speed (m/s or None), ``Qc`` (horizontal, vertical) or None, the run
+    directory of ``qc_from_run`` or None, and the forward axis (deg)."""
+    rb = TomlSection(path, "robot", doc.get("robot", {}))
     speed = rb.get("speed_m_s", float, None)
     if speed is not None and not (speed >= 0 and math.isfinite(speed)):
         raise ConfigError(f"[robot] speed_m_s must be >= 0, got {speed}", path)
@@ -203,56 +211,59 @@ def load_plan(path: str | Path) -> PlanInputs:
         run_dir = (path.parent / qc_run).resolve()
         if not run_dir.is_dir():
             raise ConfigError(f"[robot] qc_from_run = {qc_run!r}: no such directory", path)
+    return speed, qc_pair, run_dir, forward
 
-    if "area" in doc and "path" in doc:
-        raise ConfigError("give [area] or [path], not both", path)
-    polygon = step = z = headings = None
-    path_data, path_step = None, None
-    if "area" in doc:
-        ar = _Section(path, "area", doc["area"])
-        bbox = ar.get("bbox_m", list, None)
-        poly = ar.get("polygon_m", list, None)
-        if (bbox is None) == (poly is None):
-            raise ConfigError("[area] needs bbox_m = [xmin, ymin, xmax, ymax] or polygon_m, "
-                              "one of them", path)
-        if bbox is not None:
-            x0, y0, x1, y1 = _xyz(bbox, path, "[area] bbox_m", 4)
-            if not (x1 > x0 and y1 > y0):
-                raise ConfigError(f"[area] bbox_m must be [xmin, ymin, xmax, ymax] with "
-                                  f"xmax > xmin and ymax > ymin, got {bbox}", path)
-            polygon = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
-        else:
-            polygon = _points(poly, path, "[area] polygon_m", (2,))
-            if polygon.shape[0] < 3:
-                raise ConfigError("[area] polygon_m needs at least 3 corners", path)
-        step = ar.positive("step_m", None)
-        z = ar.get("z_m", float, None)
-        headings = ar.get("headings", int, None)
-        if headings is not None and headings < 1:
-            raise ConfigError(f"[area] headings must be >= 1, got {headings}", path)
-        ar.done()
-    if "path" in doc:
-        pa = _Section(path, "path", doc["path"])
-        has_file, way = "file" in pa.table, pa.get("waypoints_m", list, None)
-        if has_file == (way is not None):
-            raise ConfigError("[path] needs file or waypoints_m, one of them", path)
-        if has_file:
-            path_data = read_path(pa.file())
-        else:
-            w = _points(way, path, "[path] waypoints_m", (2, 3))
-            if w.shape[0] < 2:
-                raise ConfigError("[path] waypoints_m needs at least 2 points", path)
-            if w.shape[1] == 2:
-                w = np.column_stack([w, np.full(w.shape[0], np.nan)])
-            path_data = PathData(w, source="waypoints")
-        path_step = pa.positive("step_m", None)
-        if "step_m" in pa.table and has_file:
-            raise ConfigError("[path] step_m is for waypoints_m", path)
-        z = pa.get("z_m", float, None)
-        pa.done()
-    return PlanInputs(path, name, reference_station, seed, deployment, stations, gcp,
-                      gcp_names, reference, instrument, options, speed, qc_pair, run_dir,
-                      forward, polygon, step, z, headings, path_data, path_step)
+
+def _area(path: Path, doc: dict) -> tuple:
+    """``[area]``: the polygon (V, 2), the grid step, the height and the headings (None where
+    not given)."""
+    ar = TomlSection(path, "area", doc["area"])
+    bbox = ar.get("bbox_m", list, None)
+    poly = ar.get("polygon_m", list, None)
+    if (bbox is None) == (poly is None):
+        raise ConfigError("[area] needs bbox_m = [xmin, ymin, xmax, ymax] or polygon_m, "
+                          "one of them", path)
+    if bbox is not None:
+        x0, y0, x1, y1 = _xyz(bbox, path, "[area] bbox_m", 4)
+        if not (x1 > x0 and y1 > y0):
+            raise ConfigError(f"[area] bbox_m must be [xmin, ymin, xmax, ymax] with "
+                              f"xmax > xmin and ymax > ymin, got {bbox}", path)
+        polygon = np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+    else:
+        polygon = _points(poly, path, "[area] polygon_m", (2,))
+        if polygon.shape[0] < 3:
+            raise ConfigError("[area] polygon_m needs at least 3 corners", path)
+    step = ar.positive("step_m", None)
+    z = ar.get("z_m", float, None)
+    headings = ar.get("headings", int, None)
+    if headings is not None and headings < 1:
+        raise ConfigError(f"[area] headings must be >= 1, got {headings}", path)
+    ar.done()
+    return polygon, step, z, headings
+
+
+def _path(path: Path, doc: dict) -> tuple:
+    """``[path]``: the path's points (:class:`PathData`), the waypoints' step and the height
+    (None where not given)."""
+    pa = TomlSection(path, "path", doc["path"])
+    has_file, way = "file" in pa.table, pa.get("waypoints_m", list, None)
+    if has_file == (way is not None):
+        raise ConfigError("[path] needs file or waypoints_m, one of them", path)
+    if has_file:
+        path_data = read_path(pa.file())
+    else:
+        w = _points(way, path, "[path] waypoints_m", (2, 3))
+        if w.shape[0] < 2:
+            raise ConfigError("[path] waypoints_m needs at least 2 points", path)
+        if w.shape[1] == 2:
+            w = np.column_stack([w, np.full(w.shape[0], np.nan)])
+        path_data = PathData(w, source="waypoints")
+    path_step = pa.positive("step_m", None)
+    if "step_m" in pa.table and has_file:
+        raise ConfigError("[path] step_m is for waypoints_m", path)
+    z = pa.get("z_m", float, None)
+    pa.done()
+    return path_data, path_step, z
 
 
 def _stations(path: Path, doc: dict, rate: float) -> dict[str, PlannedStation]:
@@ -262,7 +273,7 @@ def _stations(path: Path, doc: dict, rate: float) -> dict[str, PlannedStation]:
                           "TOML)", path)
     out: dict[str, PlannedStation] = {}
     for i, tab in enumerate(raw):
-        s = _Section(path, f"stations #{i + 1}", tab)
+        s = TomlSection(path, f"stations #{i + 1}", tab)
         sid = s.get("id", str)
         xyz = _xyz(s.get("xyz_m", list), path, f"[stations #{i + 1}] xyz_m", 3)
         prism = s.get("prism", str, None)
@@ -283,7 +294,7 @@ def _stations(path: Path, doc: dict, rate: float) -> dict[str, PlannedStation]:
 def _gcp(path: Path, doc: dict) -> tuple[np.ndarray, tuple[str, ...]]:
     if "gcp" not in doc:
         raise ConfigError("missing the [gcp] section (the markers' positions)", path)
-    g = _Section(path, "gcp", doc["gcp"])
+    g = TomlSection(path, "gcp", doc["gcp"])
     xyz = _points(g.get("xyz_m", list), path, "[gcp] xyz_m", (3,))
     names = g.get("names", list, None)
     g.done()
@@ -301,7 +312,7 @@ def _gcp(path: Path, doc: dict) -> tuple[np.ndarray, tuple[str, ...]]:
 def _rig(path: Path, doc: dict, prisms: list[str]) -> ReferencePoints:
     if "rig" not in doc:
         raise ConfigError("missing the [rig] section (the prisms on the robot)", path)
-    r = _Section(path, "rig", doc["rig"])
+    r = TomlSection(path, "rig", doc["rig"])
     if "file" in r.table:
         if "prisms" in r.table or "sigma_m" in r.table:
             raise ConfigError("[rig] give file or prisms (with sigma_m), not both", path)

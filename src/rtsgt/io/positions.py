@@ -278,22 +278,9 @@ def _message_position(msg, msgtype: str) -> tuple[list[float], np.ndarray | None
 
 
 def read_position_bag(path: str | PathLike, topic: str | None) -> PositionTrajectory:
-    """Read a position topic of a ROS 1 or ROS 2 bag (module docstring).
-
-    Parameters
-    ----------
-    path : str or PathLike
-        ``.bag`` file (ROS 1), or ROS 2 bag directory (or its ``.db3`` / ``.mcap`` file).
-    topic : str
-        Topic of a type in :data:`POSITION_BAG_TYPES`; None: an error listing them.
-
-    Raises
-    ------
-    InputError
-        Missing ``rosbags``, unknown topic or type (listing the position topics of the bag),
-        a NaN, a covariance that is not positive semi-definite, two different positions at
-        one stamp, no message.
-    """
+    """Read a position ``topic`` (a type of :data:`POSITION_BAG_TYPES`; None: an error listing
+    them) of a ROS 1 or ROS 2 bag. Any problem raises :class:`~rtsgt.errors.InputError` (an
+    unknown topic lists the bag's position topics)."""
     where = str(path)
     with open_bag(path) as reader:
         topics = {n: str(i.msgtype) for n, i in reader.topics.items()}

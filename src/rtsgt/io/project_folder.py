@@ -184,30 +184,11 @@ def _prism_dirs(root: Path, tree) -> dict[Path, dict[str, Path]]:
 
 def scan_folder(folder: str | os.PathLike, *, weather: str | os.PathLike | None = None,
                 measurements: str = "auto") -> FolderScan:
-    """Look for a deployment's inputs in an RTS_project-like folder (module docstring).
-
-    Parameters
-    ----------
-    folder : path
-        The deployment folder (``data/<date>/`` of the RTS_project, or a flat folder).
-    weather : path, optional
-        The weather file (an ECCC hourly CSV or rtsgt's weather CSV), anywhere; default: the
-        one found under the folder.
-    measurements : {"auto", "bag", "prisms"}
-        Where the stations' measurements come from: the raw bag if there is one, else the
-        prism files (``"auto"``), or only one of the two.
-
-    Returns
-    -------
-    FolderScan
-        What was found and what is missing, line by line.
-
-    Raises
-    ------
-    InputError
-        The folder does not exist; ``weather`` is not a weather file; an input that is there
-        cannot be read (naming its file and line).
-    """
+    """Look for a deployment's inputs in an RTS_project-like ``folder`` (``data/<date>/`` or a flat
+    folder): ``weather`` a file anywhere (default: the one found), ``measurements`` ``"auto"``
+    (the bag if any, else the prism files), ``"bag"`` or ``"prisms"``. Returns the
+    :class:`FolderScan`, found and missing; an input that cannot be read raises
+    :class:`~rtsgt.errors.InputError`."""
     if measurements not in MEASUREMENT_CHOICES:
         raise InputError(f"Expected measurements among {', '.join(MEASUREMENT_CHOICES)}, got "
                          f"{measurements!r}")
@@ -434,24 +415,9 @@ def _scan_weather(scan: FolderScan, root: Path, tree, given: str | os.PathLike |
 def deployment_toml_text(scan: FolderScan, toml_path: str | os.PathLike, *,
                          name: str | None = None,
                          utc_offset_hours: float | None = None) -> str:
-    """The ``deployment.toml`` of a scanned folder, paths relative to ``toml_path``.
-
-    Parameters
-    ----------
-    scan : FolderScan
-        With no required input missing.
-    toml_path : path
-        Where the TOML will be written (its paths are relative to it).
-    name : str, optional
-        The deployment's name (default: the folder's name).
-    utc_offset_hours : float, optional
-        Offset of an ECCC file's local standard time from UTC (default -5, Quebec's).
-
-    Raises
-    ------
-    ValueError
-        ``scan`` misses a required input.
-    """
+    """The ``deployment.toml`` of a ``scan`` without a required input missing (else ValueError),
+    paths relative to ``toml_path``; ``name`` default the folder's, ``utc_offset_hours`` of an
+    ECCC file default -5 (Quebec)."""
     if scan.required_missing:
         raise ValueError(f"{scan.required_missing} required input(s) missing: "
                          + "; ".join(scan.missing))

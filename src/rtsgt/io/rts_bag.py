@@ -121,29 +121,12 @@ class InputReport(FilterReport):
 
 @dataclass(frozen=True)
 class TheodoliteBag:
-    """The measurements of a bag, per theodolite id.
-
-    Attributes
-    ----------
-    path : str
-    topic : str
-    layout : str
-        ``"TheodoliteCoordsStamped"`` or ``"Float64MultiArray"``.
-    time : str
-        ``"header"``, ``"theodolite"`` (:data:`TIME_SOURCES`) or ``"array"`` (the older layout).
-    observations : dict int -> Observations
-        Per theodolite id, its valid measurements (status 0) sorted by time: station and prism
-        ``str(id)``, raw distances, no additive constant (:meth:`station` sets them).
-    removed : dict int -> dict str -> int
-        Per theodolite id, the messages removed, by reason (every reason present).
-    time_corrections : dict int -> TimeCorrections
-        Per theodolite id with correction messages.
-    stamp_difference_s : dict int -> float
-        Per theodolite id, the median of ``theodolite_time - header.stamp`` over its valid
-        messages, s: the clock offset the node subtracted (``TheodoliteCoordsStamped`` only).
-    correction_topic : str or None
-        The topic the corrections were read from (None: none read).
-    """
+    """The measurements of a bag, per theodolite id: ``path``, ``topic``, ``layout``
+    (``"TheodoliteCoordsStamped"``, ``"Float64MultiArray"``), ``time`` (``"header"``,
+    ``"theodolite"``, ``"array"``), ``observations`` (the valid measurements sorted by time, raw
+    distances; :meth:`station` names them), ``removed`` counts by reason, ``time_corrections``,
+    ``stamp_difference_s`` (median ``theodolite_time - header.stamp``, s) and the
+    ``correction_topic`` read (or None)."""
 
     path: str
     topic: str
@@ -378,33 +361,11 @@ def _check_values(rows: np.ndarray, t: np.ndarray, topic: str, where: str) -> No
 def read_theodolite_bag(path: str | PathLike, *, topic: str | None = None,
                         time: str | None = None,
                         correction_topic: str | None = None) -> TheodoliteBag:
-    """Read the total-station measurements of a ROS 1 or ROS 2 bag (module docstring).
-
-    Parameters
-    ----------
-    path : str or PathLike
-        ``.bag`` file (ROS 1), or ROS 2 bag directory (or its ``.db3`` / ``.mcap`` file).
-    topic : str, optional
-        The measurements' topic; default :data:`TOPIC`, else :data:`OLD_TOPIC`.
-    time : {"header", "theodolite"}, optional
-        Which time of a ``TheodoliteCoordsStamped`` (default ``"header"``); the older layout
-        has one time and takes none.
-    correction_topic : str, optional
-        The clock corrections' topic; default :func:`correction_topic_of` the measurements'
-        topic (a warning when it is missing, naming the corrections' topics the bag holds).
-
-    Returns
-    -------
-    TheodoliteBag
-
-    Raises
-    ------
-    InputError
-        One line naming the bag (and topic, message): missing ``rosbags``, no bag, no
-        measurements topic (the topics listed), a topic of another type, a message that does
-        not decode, a valid message with an impossible value, a ``time`` the layout does not
-        have, a ``correction_topic`` that is not in the bag or not of corrections.
-    """
+    """Read the total-station measurements of a ROS 1 ``.bag`` or a ROS 2 bag (directory, or its
+    ``.db3`` / ``.mcap``) into a :class:`TheodoliteBag`: ``topic`` default :data:`TOPIC`, else
+    :data:`OLD_TOPIC`; ``time`` ``"header"`` (default) or ``"theodolite"``; ``correction_topic``
+    default :func:`correction_topic_of` the topic (a warning when missing). Any problem is one
+    :class:`~rtsgt.errors.InputError` line naming the bag (and the topic and message)."""
     if time is not None and time not in TIME_SOURCES:
         raise InputError(f"Expected time {' or '.join(map(repr, TIME_SOURCES))}, got {time!r}")
     where = str(path)

@@ -52,31 +52,11 @@ def read_prism_file(
     prism: str | int,
     additive_constant: float = 0.01,
 ) -> Observations:
-    """Read a tracked prism file of RTS_project (``t d V Hz``, no header).
-
-    Parameters
-    ----------
-    path : str or PathLike
-    station : str or int
-        Identifier of the station that tracked the prism (the file does not say).
-    prism : str or int
-        Identifier of the prism.
-    additive_constant : float
-        Additive (prism) constant, m, stored with the observations and added by
-        :attr:`Observations.distance`; 0.01 m for the RTS_project data.
-
-    Returns
-    -------
-    Observations
-        ``t`` (s), ``hz`` and ``v`` (rad), ``d`` (m, raw), ``status`` all 0.
-
-    Raises
-    ------
-    InputError
-        Naming the file and line: empty file, wrong column count, non-numeric or non-finite
-        value, non-positive distance, zenith angle outside (0, pi), timestamps that are not
-        strictly increasing.
-    """
+    """Read a tracked prism file of RTS_project (``t d V Hz``, no header) of ``station`` tracking
+    ``prism`` into :class:`~rtsgt.types.Observations` (s, rad, raw distances in m, status 0),
+    ``additive_constant`` (m; 0.01 for RTS_project) stored apart. Bad lines (column count,
+    non-finite, distance <= 0, zenith outside (0, pi), times not increasing) raise
+    :class:`~rtsgt.errors.InputError` naming the file and line."""
     c = _check_constant(additive_constant)
     numbers, lines = read_lines(path, "tracked prism measurements `t d V Hz`")
     tokens = split_rows(lines, numbers, path, PRISM_COLUMNS, None)
@@ -127,28 +107,10 @@ def prism_file_text(obs: Observations) -> str:
 
 
 def read_gcp_rts_project(path: str | PathLike, *, additive_constant: float = 0.01) -> GcpShots:
-    """Read an RTS_project ``GCP.txt`` file of ground control point shots.
-
-    Parameters
-    ----------
-    path : str or PathLike
-    additive_constant : float
-        Additive (prism) constant, m; 0.01 m for the RTS_project data.
-
-    Returns
-    -------
-    GcpShots
-        One shot per data line, in file order, with ``lines`` the 1-based line numbers.
-        ``t = sec + nsec * 1e-9`` (s); station and marker identifiers as written.
-
-    Raises
-    ------
-    InputError
-        Naming the file and line: empty file, missing or wrong header, wrong column count,
-        non-numeric values, ``nsec`` outside [0, 1e9), and, for valid shots (status 0),
-        non-finite values, a non-positive distance or a zenith angle outside (0, pi).
-        Shots with a non-zero status are kept (the calibration excludes and counts them).
-    """
+    """Read an RTS_project ``GCP.txt`` into :class:`~rtsgt.types.GcpShots` in file order (``t = sec
+    + nsec * 1e-9``, identifiers as written, ``lines`` 1-based), ``additive_constant`` (m) stored
+    apart. Shots with a non-zero status are kept (the calibration excludes them); bad lines
+    raise :class:`~rtsgt.errors.InputError` naming the file and line."""
     c = _check_constant(additive_constant)
     numbers, lines = read_lines(path, "a header line and ground control point shots")
     check_header(lines[0].split(","), GCP_COLUMNS, path, numbers[0])

@@ -96,26 +96,10 @@ def read_survey_raw(
     names: Sequence[str] | None = None,
     additive_constant: float = 0.0,
 ) -> SurveyShots:
-    """Read a static survey in the RTS_project ``calibration_raw.csv`` format.
-
-    Parameters
-    ----------
-    path : str or PathLike
-    names : sequence of str, optional
-        One name per row (default :func:`default_survey_names`: prism1-3, gnss1-3, lidar...).
-    additive_constant : float
-        Added to every distance, m (0 for the RTS_project manual shots).
-
-    Returns
-    -------
-    SurveyShots
-
-    Raises
-    ------
-    InputError
-        Missing file, wrong column count, a bad number or angle, a non-positive distance or
-        sigma, a zenith angle outside (0, 180) deg; the message names the file and line.
-    """
+    """Read a static survey in RTS_project's ``calibration_raw.csv`` format into
+    :class:`~rtsgt.types.SurveyShots` (rows named by ``names``, default
+    :func:`default_survey_names`; ``additive_constant`` m added to every distance). Bad lines
+    raise :class:`~rtsgt.errors.InputError` naming the file and line."""
     numbers, lines = read_lines(path, "survey shots (15 space-separated fields per line)")
     tok = split_rows(lines, numbers, path, SURVEY_COLUMNS, None)
     hz = _dms_to_rad(tok[:, 0:3], numbers, path, "Hz")
@@ -189,26 +173,10 @@ def read_calibration_results(path: str | PathLike) -> CalibrationResults:
 
 
 def read_reference_csv(path: str | PathLike, *, frame: str = "body") -> ReferencePoints:
-    """Read reference points ``name,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz``.
-
-    Parameters
-    ----------
-    path : str or PathLike
-        Header line first; ``#`` comments and blank lines are ignored. Body frame, m, m^2.
-    frame : str
-        Name of the body frame.
-
-    Returns
-    -------
-    ReferencePoints
-        Block-diagonal covariance (the format has no correlation between points).
-
-    Raises
-    ------
-    InputError
-        Missing columns, bad numbers, duplicated names, a covariance that is not symmetric
-        positive semi-definite, fewer than 3 points or nearly collinear ones (with the line).
-    """
+    """Read reference points ``name,x,y,z,cov_xx,...,cov_zz`` (body ``frame``, m, m^2; header first)
+    into :class:`~rtsgt.pose.ReferencePoints` with a block-diagonal covariance. Bad numbers,
+    duplicated names, a covariance not symmetric PSD, fewer than 3 or nearly collinear points
+    raise :class:`~rtsgt.errors.InputError`."""
     numbers, lines = read_lines(path, "a header and reference points")
     header = [h.strip() for h in lines[0].split(",")]
     pos = find_columns(header, REFERENCE_CSV_COLUMNS, path, numbers[0])
@@ -269,23 +237,9 @@ def write_reference_csv(path: str | PathLike, reference: ReferencePoints) -> Non
 
 @dataclass(frozen=True)
 class SensorPositions:
-    """Surveyed points in Cartesian form, as read from an RTS_project ``sensor_positions.csv``.
-
-    Attributes
-    ----------
-    names : tuple of str, length K
-        Row names (:func:`default_survey_names` unless given).
-    xyz : ndarray, shape (K, 3)
-        Points in the survey frame, m.
-    cov : ndarray, shape (K, 3, 3)
-        Covariance of each point, m^2, as written (points independent).
-    flag : ndarray, shape (K,)
-        The fourth field (1 where the reference code wrote it correctly).
-    lines : ndarray of int, shape (K,)
-        1-based line of each row in the file.
-    source : str
-        The file.
-    """
+    """Surveyed points of an RTS_project ``sensor_positions.csv``: ``names`` (K,), ``xyz`` (K, 3;
+    survey frame, m), ``cov`` (K, 3, 3; m^2, as written), the fourth field ``flag`` (K,), the
+    1-based ``lines`` and the ``source`` file."""
 
     names: tuple[str, ...]
     xyz: np.ndarray
@@ -301,27 +255,10 @@ class SensorPositions:
 def read_sensor_positions(
     path: str | PathLike, *, names: Sequence[str] | None = None
 ) -> SensorPositions:
-    """Read an RTS_project ``sensor_positions.csv``: ``x y z flag`` and a row-major 3x3
-    covariance per line (module docstring).
-
-    Parameters
-    ----------
-    path : str or PathLike
-    names : sequence of str, optional
-        One name per row (default :func:`default_survey_names`: prism1-3, gnss1-3, lidar...).
-
-    Returns
-    -------
-    SensorPositions
-
-    Raises
-    ------
-    InputError
-        One line naming the file and the line: a row without 13 fields, a field that is not a
-        finite number, a covariance that is not symmetric (to 1e-9 of its largest entry) or
-        not positive semi-definite (an eigenvalue below -1e-9 times the largest), a negative
-        variance; or a number of names other than the number of rows.
-    """
+    """Read an RTS_project ``sensor_positions.csv`` (``x y z flag`` and a row-major 3x3 covariance
+    per row, named by ``names``, default :func:`default_survey_names`) into
+    :class:`SensorPositions`. A bad row (13 fields, finite, symmetric PSD covariance) raises
+    :class:`~rtsgt.errors.InputError` naming the file and line."""
     numbers, lines = read_lines(path, "sensor positions `x y z flag` and a 3x3 covariance")
     tok = split_rows(lines, numbers, path, SENSOR_POSITIONS_COLUMNS, None)
     vals = to_float(tok, numbers, path, SENSOR_POSITIONS_COLUMNS)

@@ -78,28 +78,10 @@ def _full_cov(upper: np.ndarray) -> np.ndarray:
 def read_track_csv(
     path: str | PathLike, *, prism: str | None = None, frame: str = "world"
 ) -> PrismTrack:
-    """Read a prism track CSV file (module docstring).
-
-    Parameters
-    ----------
-    path : str or PathLike
-    prism : str, optional
-        Identifier of the prism (default: the file name without extension).
-    frame : str
-        Name of the frame of the positions.
-
-    Returns
-    -------
-    PrismTrack
-
-    Raises
-    ------
-    InputError
-        Naming the file and line: missing file, empty file, wrong header, wrong column count,
-        a non-numeric, NaN or infinite value, times not strictly increasing (duplicated or
-        unsorted), a covariance that is not positive definite (or a per-source covariance
-        that is not positive semi-definite).
-    """
+    """Read a prism track CSV into a :class:`~rtsgt.types.PrismTrack` (``prism`` default the file
+    stem, positions in ``frame``). Bad input (header, column count, non-finite values, times not
+    strictly increasing, a covariance not positive definite) raises
+    :class:`~rtsgt.errors.InputError` naming the file and line."""
     numbers, lines = read_lines(path, "a header line and prism positions")
     header = [h.strip().lower() for h in lines[0].split(",")]
     if header[: len(TRACK_COLUMNS)] != list(TRACK_COLUMNS):
@@ -155,21 +137,9 @@ def _check_cov(cov, numbers, path, what: str, definite: bool) -> None:
 
 
 def track_csv_text(track, *, extra_columns: bool = False) -> str:
-    """Text of a prism track CSV.
-
-    Parameters
-    ----------
-    track : PrismTrack or tuple (t, xyz, cov)
-        ``t`` (N,) s, ``xyz`` (N, 3) m, ``cov`` (N, 3, 3) m^2.
-    extra_columns : bool
-        Also write ``range_m`` and the per-source covariances of a :class:`PrismTrack` (those
-        it has).
-
-    Raises
-    ------
-    InputError
-        Shapes that do not match, non-finite values, times not strictly increasing.
-    """
+    """Text of a prism track CSV of ``track`` (a PrismTrack, or ``(t (N,), xyz (N, 3), cov (N, 3,
+    3))``), with ``extra_columns`` its ``range_m`` and per-source covariances. Bad shapes,
+    non-finite values or times not increasing raise :class:`~rtsgt.errors.InputError`."""
     by_source, range_m = {}, None
     if isinstance(track, PrismTrack):
         t, xyz, cov = track.t, track.xyz, track.cov
@@ -209,27 +179,9 @@ def write_track_csv(path: str | PathLike, track, *, extra_columns: bool = False)
 
 
 def read_query_times(path: str | PathLike, *, with_lines: bool = False):
-    """Read query times, one per line (s); blank lines and ``#`` comments are skipped.
-
-    Parameters
-    ----------
-    path : str or PathLike
-    with_lines : bool
-        Also return the 1-based line number of each time (for messages).
-
-    Returns
-    -------
-    times : ndarray, shape (Q,)
-        The times in file order (they need not be sorted).
-    lines : ndarray of int, shape (Q,)
-        Only with ``with_lines``.
-
-    Raises
-    ------
-    InputError
-        Naming the file and line: empty file, more than one value on a line, a non-numeric
-        or non-finite value, a time that looks like ms, us or ns (not seconds).
-    """
+    """Query times (Q,), s, one per line in file order (blank and ``#`` lines skipped), and with
+    ``with_lines`` their 1-based line numbers. Bad lines raise
+    :class:`~rtsgt.errors.InputError` naming the file and line."""
     numbers, lines = read_lines(path, "query times, one per line")
     tokens = split_rows(lines, numbers, path, ("t",), None)
     times = to_float(tokens, numbers, path, ("t",))[:, 0]

@@ -268,22 +268,10 @@ def write_euroc(path: str | PathLike, traj: PoseTrajectory) -> None:
 
 
 def read_covariance_csv(path: str | PathLike, *, run_file: bool = False) -> PoseTrajectory:
-    """Read an rtsgt covariance CSV ``t,x,y,z,qx,qy,qz,qw,cov_00,...,cov_55``.
-
-    The header line is optional; when present it must name the 44 columns in order. Each
-    covariance must be finite, symmetric and positive semi-definite (relative tolerance 1e-9).
-
-    Parameters
-    ----------
-    path : str or PathLike
-    run_file : bool
-        Read the file as a table of an ``rtsgt run`` directory
-        (:func:`rtsgt.io.run_dir.read_run`, :func:`rtsgt.io._parse.read_table`) and give
-        back exactly what the run wrote: the header line is required and locates the columns
-        by name (any order, extra numeric columns ignored), every line after it is a pose (no
-        comment), NaN is read as such, there may be no pose, and quaternions, covariances and
-        times are neither checked nor renormalised.
-    """
+    """Read an rtsgt covariance CSV ``t,x,y,z,qx,qy,qz,qw,cov_00,...,cov_55`` (header optional, in
+    that order; covariances finite, symmetric PSD to 1e-9). With ``run_file``, a table of a run
+    directory read back exactly as written: the header required and columns found by name, NaN
+    kept, no pose allowed, nothing checked or renormalised."""
     if run_file:
         header, data = read_table(path, COV_COLUMNS)
         a = data[:, [header.index(c) for c in COV_COLUMNS]]
@@ -378,12 +366,6 @@ def attach_covariance(
 # --------------------------------------------------------------------------- ROS bags
 
 
-def list_bag_topics(path: str | PathLike) -> dict[str, str]:
-    """Topics of a ROS 1 / ROS 2 bag and their message types."""
-    with open_bag(path) as reader:
-        return {name: str(info.msgtype) for name, info in reader.topics.items()}
-
-
 def _stamp(header) -> float:
     return float(header.stamp.sec) + float(header.stamp.nanosec) * 1e-9
 
@@ -391,25 +373,10 @@ def _stamp(header) -> float:
 def read_bag(
     path: str | PathLike, topic: str | None, *, child_frame: str | None = None
 ) -> PoseTrajectory:
-    """Read a pose topic of a ROS 1 or ROS 2 bag.
-
-    Parameters
-    ----------
-    path : str or PathLike
-        ``.bag`` file (ROS 1), or ROS 2 bag directory (or its ``.db3`` / ``.mcap`` file).
-    topic : str
-        Topic name; its type must be one of :data:`BAG_TYPES`.
-    child_frame : str, optional
-        For ``TFMessage`` / ``TransformStamped`` (and ``Odometry``): the child frame whose
-        transform is the pose. Needed when the topic holds several child frames.
-
-    Raises
-    ------
-    InputError
-        Missing ``rosbags``, unknown topic (listing the available topics and types), an
-        unsupported type, an unknown or ambiguous child frame, NaN, non-unit quaternions,
-        conflicting duplicate stamps, no message.
-    """
+    """Read a pose ``topic`` (a type of :data:`BAG_TYPES`) of a ROS 1 or ROS 2 bag; ``child_frame``
+    selects the transform of ``TFMessage`` / ``TransformStamped`` / ``Odometry`` topics holding
+    several. Any problem raises :class:`~rtsgt.errors.InputError` (an unknown topic lists the
+    bag's topics)."""
     where = str(path)
     with open_bag(path) as reader:
         topics = {name: str(info.msgtype) for name, info in reader.topics.items()}
@@ -431,56 +398,10 @@ def read_bag(
             raise InputError(
                 f"topic {topic!r} has type {msgtype}, expected one of {', '.join(BAG_TYPES)}", where
             )
-        conns = [c for c in reader.connections if c.topic == topic]
-        recs: list[tuple[float, float, str, str, list[float], list[float]]] = []
-        covs: list[np.ndarray] = []
-        for conn, bag_ns, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, conn.msgtype)
-            if msgtype == "tf2_msgs/msg/TFMessage":
-                items = list(msg.transforms)
-            else:
-                items = [msg]
-            for m in items:
-                if msgtype in ("tf2_msgs/msg/TFMessage", "geometry_msgs/msg/TransformStamped"):
-                    tr = m.transform
-                    pos, rot, child = tr.translation, tr.rotation, str(m.child_frame_id)
-                    cov = None
-                elif msgtype == "geometry_msgs/msg/PoseStamped":
-                    pos, rot, child, cov = m.pose.position, m.pose.orientation, "", None
-                else:
-                    pos, rot = m.pose.pose.position, m.pose.pose.orientation
-                    child = str(getattr(m, "child_frame_id", ""))
-                    cov = np.asarray(m.pose.covariance, dtype=float).reshape(6, 6)
-                recs.append(
-                    (
-                        _stamp(m.header),
-                        bag_ns * 1e-9,
-                        child,
-                        str(m.header.frame_id),
-                        [pos.x, pos.y, pos.z],
-                        [rot.x, rot.y, rot.z, rot.w],
-                    )
-                )
-                covs.append(cov)
+        recs, covs = _bag_pose_records(reader, topic, msgtype)
     if not recs:
         raise InputError(f"topic {topic!r} holds no message", where)
-    children = sorted({r[2] for r in recs})
-    frames = sorted({(r[2], r[3]) for r in recs})
-    if child_frame is not None:
-        if child_frame not in children:
-            avail = ", ".join(f"{c} (parent {p})" for c, p in frames)
-            raise InputError(
-                f"child frame {child_frame!r} not on topic {topic!r}; available: {avail}", where
-            )
-        sel = [k for k, r in enumerate(recs) if r[2] == child_frame]
-    elif len(children) > 1:
-        avail = ", ".join(f"{c} (parent {p})" for c, p in frames)
-        raise InputError(
-            f"topic {topic!r} holds several child frames; choose one with --child-frame: {avail}",
-            where,
-        )
-    else:
-        sel = list(range(len(recs)))
+    sel = _select_child(recs, topic, child_frame, where)
     stamps = np.array([recs[k][0] for k in sel])
     if np.all(stamps == 0):
         stamps = np.array([recs[k][1] for k in sel])
@@ -524,6 +445,65 @@ def read_bag(
     return PoseTrajectory(stamps, p, q, cov)
 
 
+def _bag_pose_records(reader, topic: str, msgtype: str) -> tuple[list, list]:
+    """Every pose of ``topic`` in bag order: ``(stamp, record time, child frame, parent frame,
+    position, quaternion xyzw)`` and its 6x6 covariance (None where the type has none)."""
+    conns = [c for c in reader.connections if c.topic == topic]
+    recs: list[tuple[float, float, str, str, list[float], list[float]]] = []
+    covs: list[np.ndarray] = []
+    for conn, bag_ns, raw in reader.messages(connections=conns):
+        msg = reader.deserialize(raw, conn.msgtype)
+        if msgtype == "tf2_msgs/msg/TFMessage":
+            items = list(msg.transforms)
+        else:
+            items = [msg]
+        for m in items:
+            if msgtype in ("tf2_msgs/msg/TFMessage", "geometry_msgs/msg/TransformStamped"):
+                tr = m.transform
+                pos, rot, child = tr.translation, tr.rotation, str(m.child_frame_id)
+                cov = None
+            elif msgtype == "geometry_msgs/msg/PoseStamped":
+                pos, rot, child, cov = m.pose.position, m.pose.orientation, "", None
+            else:
+                pos, rot = m.pose.pose.position, m.pose.pose.orientation
+                child = str(getattr(m, "child_frame_id", ""))
+                cov = np.asarray(m.pose.covariance, dtype=float).reshape(6, 6)
+            recs.append(
+                (
+                    _stamp(m.header),
+                    bag_ns * 1e-9,
+                    child,
+                    str(m.header.frame_id),
+                    [pos.x, pos.y, pos.z],
+                    [rot.x, rot.y, rot.z, rot.w],
+                )
+            )
+            covs.append(cov)
+    return recs, covs
+
+
+def _select_child(recs: list, topic: str, child_frame: str | None, where: str) -> list[int]:
+    """The records of ``child_frame``, or all when the topic has one child frame."""
+    children = sorted({r[2] for r in recs})
+    frames = sorted({(r[2], r[3]) for r in recs})
+    if child_frame is not None:
+        if child_frame not in children:
+            avail = ", ".join(f"{c} (parent {p})" for c, p in frames)
+            raise InputError(
+                f"child frame {child_frame!r} not on topic {topic!r}; available: {avail}", where
+            )
+        sel = [k for k, r in enumerate(recs) if r[2] == child_frame]
+    elif len(children) > 1:
+        avail = ", ".join(f"{c} (parent {p})" for c, p in frames)
+        raise InputError(
+            f"topic {topic!r} holds several child frames; choose one with --child-frame: {avail}",
+            where,
+        )
+    else:
+        sel = list(range(len(recs)))
+    return sel
+
+
 # --------------------------------------------------------------------------- dispatch
 
 
@@ -543,7 +523,7 @@ def _quaternion_order(names: Sequence[str]) -> str | None:
 
 def _comma_format(text: str, lines: Sequence[str], p: Path) -> str:
     """``"tum"`` or ``"euroc"`` for a comma-separated file of 8 or more columns that is not an
-    rtsgt CSV (module docstring: a header decides, else the time stamps)."""
+    rtsgt CSV (docs/file-formats.md#trajectories: a header decides, else the time stamps)."""
     first = [c.strip() for c in lines[0].split(",")]
     header = None
     if not is_number(first[0]):

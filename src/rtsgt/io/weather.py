@@ -95,28 +95,10 @@ def weather_format(path: str | PathLike) -> str | None:
 
 
 def read_weather_eccc(path: str | PathLike, *, utc_offset_hours: float = -5.0) -> WeatherSeries:
-    """Read a raw ECCC hourly weather file (French or English headers).
-
-    Parameters
-    ----------
-    path : str or PathLike
-    utc_offset_hours : float
-        Offset of the file's local standard time from UTC, h (HNL / LST of Quebec: -5).
-
-    Returns
-    -------
-    WeatherSeries
-        ``t`` in Unix seconds (UTC), temperature (degC), station pressure (hPa), relative
-        humidity (%). Rows where any of the four values is missing are skipped, with a
-        :class:`UserWarning` that says how many and on which lines.
-
-    Raises
-    ------
-    InputError
-        Naming the file and line: empty file, a required column missing, wrong column count,
-        unreadable date or number, implausible value, times not strictly increasing, no
-        complete row.
-    """
+    """Read a raw ECCC hourly weather file (French or English headers) into a
+    :class:`~rtsgt.types.WeatherSeries` (Unix s, degC, station hPa, %), its local standard time
+    ``utc_offset_hours`` from UTC (Quebec: -5). Incomplete rows are skipped with a warning
+    naming them; bad input raises :class:`~rtsgt.errors.InputError` naming the file and line."""
     off = float(utc_offset_hours)
     if not (np.isfinite(off) and -14.0 <= off <= 14.0):
         raise InputError(f"Expected utc_offset_hours in [-14, 14], got {utc_offset_hours!r}")

@@ -410,16 +410,7 @@ def plot_top_view(data: RunRecord, *, max_ellipses: int = 60,
                 label=f"ground truth (body origin{where})")
         drawn.points["ground truth"] = int(len(gt))
         everything.append(gt.position[:, :2])
-    offsets = _label_offsets(np.array([p[:2] for p in data.stations.values()]).reshape(-1, 2))
-    for (s, p), off in zip(data.stations.items(), offsets, strict=True):
-        ax.plot(p[0], p[1], "^", ms=11, color="#333333", mfc="#F0E442", mew=1.2)
-        ax.annotate(f"station {s}", (p[0], p[1]), textcoords="offset points",
-                    xytext=tuple(off), fontsize=9, fontweight="bold",
-                    ha="left" if off[0] >= 0 else "right",
-                    va="bottom" if off[1] >= 0 else "top",
-                    bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8),
-                    arrowprops=dict(arrowstyle="-", color="#555555", lw=0.6))
-        everything.append(p[None, :2])
+    _top_view_stations(ax, data, everything)
     if data.stations:
         ax.plot([], [], "^", ms=9, color="#333333", mfc="#F0E442", label="stations")
         drawn.points["stations"] = len(data.stations)
@@ -449,22 +440,7 @@ def plot_top_view(data: RunRecord, *, max_ellipses: int = 60,
         if allxy.size:
             extent = max(float(np.ptp(allxy[:, 0])), float(np.ptp(allxy[:, 1])), 1.0)
     if len(gt) and gt.cov is not None and max_ellipses > 0:
-        ok = np.flatnonzero(np.all(np.isfinite(gt.cov[:, :2, :2]), axis=(1, 2)))
-        if ok.size:
-            sel = ok[np.unique(np.linspace(0, ok.size - 1, min(ok.size, max_ellipses))
-                               .round().astype(int))]
-            major, minor, angle = _ellipse_axes(gt.cov[sel, :2, :2])
-            if ellipse_scale is None:
-                med = float(np.median(major))
-                ellipse_scale = nice_scale(0.015 * extent / med) if med > 0 else 1.0
-            for (x, y), w, h, ang in zip(gt.position[sel, :2], major, minor, angle,
-                                         strict=True):
-                ax.add_patch(Ellipse((x, y), w * ellipse_scale, h * ellipse_scale, angle=ang,
-                                     fc="#0072B2", ec="#0072B2", alpha=0.35, lw=0.8))
-            drawn.ellipses = int(sel.size)
-            drawn.ellipse_scale = float(ellipse_scale)
-            ax.plot([], [], "o", ms=9, color="#0072B2", alpha=0.35,
-                    label=f"95 % position ellipses x {ellipse_scale:g} ({sel.size} poses)")
+        _top_view_ellipses(ax, drawn, gt, extent, max_ellipses, ellipse_scale)
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x, world frame (m)")
     ax.set_ylabel("y, world frame (m)")
@@ -484,6 +460,42 @@ def plot_top_view(data: RunRecord, *, max_ellipses: int = 60,
                      ", measurements removed by the filters (by module) and poses rejected "
                      "by the gates (by gate).")
     return drawn
+
+
+def _top_view_stations(ax, data: RunRecord, everything: list) -> None:
+    """The stations, labelled beside their markers, on the top view."""
+    offsets = _label_offsets(np.array([p[:2] for p in data.stations.values()]).reshape(-1, 2))
+    for (s, p), off in zip(data.stations.items(), offsets, strict=True):
+        ax.plot(p[0], p[1], "^", ms=11, color="#333333", mfc="#F0E442", mew=1.2)
+        ax.annotate(f"station {s}", (p[0], p[1]), textcoords="offset points",
+                    xytext=tuple(off), fontsize=9, fontweight="bold",
+                    ha="left" if off[0] >= 0 else "right",
+                    va="bottom" if off[1] >= 0 else "top",
+                    bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8),
+                    arrowprops=dict(arrowstyle="-", color="#555555", lw=0.6))
+        everything.append(p[None, :2])
+
+
+def _top_view_ellipses(ax, drawn: DrawnFigure, gt, extent: float, max_ellipses: int,
+                       ellipse_scale: float | None) -> None:
+    """The 95 % horizontal ellipses of at most ``max_ellipses`` kept poses on the top view,
+    magnified by ``ellipse_scale`` (default: the median 1.5 % of ``extent``)."""
+    ok = np.flatnonzero(np.all(np.isfinite(gt.cov[:, :2, :2]), axis=(1, 2)))
+    if ok.size:
+        sel = ok[np.unique(np.linspace(0, ok.size - 1, min(ok.size, max_ellipses))
+                           .round().astype(int))]
+        major, minor, angle = _ellipse_axes(gt.cov[sel, :2, :2])
+        if ellipse_scale is None:
+            med = float(np.median(major))
+            ellipse_scale = nice_scale(0.015 * extent / med) if med > 0 else 1.0
+        for (x, y), w, h, ang in zip(gt.position[sel, :2], major, minor, angle,
+                                     strict=True):
+            ax.add_patch(Ellipse((x, y), w * ellipse_scale, h * ellipse_scale, angle=ang,
+                                 fc="#0072B2", ec="#0072B2", alpha=0.35, lw=0.8))
+        drawn.ellipses = int(sel.size)
+        drawn.ellipse_scale = float(ellipse_scale)
+        ax.plot([], [], "o", ms=9, color="#0072B2", alpha=0.35,
+                label=f"95 % position ellipses x {ellipse_scale:g} ({sel.size} poses)")
 
 
 def _gaps(t: np.ndarray, gap_s: float) -> list[tuple[float, float]]:

@@ -794,29 +794,11 @@ def view3d_figure(data: RunRecord, max_ellipsoids: int = 150, scale: float | Non
                                    marker=dict(size=4, symbol="x", color="#D55E00"),
                                    name=f"rejected: {reason or 'unspecified'} ({len(c)})"))
     if len(gt) and gt.cov is not None and max_ellipsoids > 0:
-        ok = np.flatnonzero(np.all(np.isfinite(gt.cov[:, :3, :3]), axis=(1, 2)))
-        if ok.size:
-            sel = ok[np.unique(np.linspace(0, ok.size - 1, min(ok.size, max_ellipsoids))
-                               .round().astype(int))]
-            covs = gt.cov[sel, :3, :3]
-            if scale is None:
-                allp = np.concatenate(everything)
-                allp = allp[np.all(np.isfinite(allp), axis=1)]
-                extent = max(float(np.max(np.ptp(allp, axis=0))), 1.0)
-                radius = np.sqrt(CHI2_3_95 * np.linalg.eigvalsh(covs)[:, -1])
-                med = float(np.median(radius))
-                scale = nice_scale(0.01 * extent / med) if med > 0 else 1.0
-            verts, faces, which = ellipsoid_mesh(gt.position[sel], covs, scale)
-            shown.append(verts)
-            sig_mm = np.sqrt(np.trace(covs, axis1=1, axis2=2)) * 1e3
-            traces.append(go.Mesh3d(
-                x=verts[:, 0], y=verts[:, 1], z=verts[:, 2],
-                i=faces[:, 0], j=faces[:, 1], k=faces[:, 2],
-                intensity=sig_mm[which], colorscale="Viridis", opacity=0.55,
-                colorbar=dict(title=dict(text="sqrt(tr Σ)<br>(mm)"), len=0.6),
-                name=f"95 % position ellipsoids x {scale:g}", showlegend=True,
-                hoverinfo="name"))
-            n_ell, used_scale = int(sel.size), float(scale)
+        mesh = _ellipsoids_trace(go, gt, everything, max_ellipsoids, scale)
+        if mesh is not None:
+            traces.append(mesh[0])
+            shown.append(mesh[1])
+            n_ell, used_scale = mesh[2], mesh[3]
     ranges, aspect = scene_box(np.concatenate(shown) if shown else np.zeros((1, 3)))
     fig = go.Figure(traces)
     axis = dict(autorange=False)
@@ -835,6 +817,35 @@ def view3d_figure(data: RunRecord, max_ellipsoids: int = 150, scale: float | Non
                    font=dict(size=13)),
     )
     return fig, n_ell, used_scale
+
+
+def _ellipsoids_trace(go, gt, everything: list, max_ellipsoids: int, scale: float | None):
+    """The mesh of the 95 % position ellipsoids of at most ``max_ellipsoids`` kept poses, its
+    vertices, their number and magnification (default: the median 1 % of the extent of
+    ``everything``); None without a finite covariance."""
+    ok = np.flatnonzero(np.all(np.isfinite(gt.cov[:, :3, :3]), axis=(1, 2)))
+    if not ok.size:
+        return None
+    sel = ok[np.unique(np.linspace(0, ok.size - 1, min(ok.size, max_ellipsoids))
+                       .round().astype(int))]
+    covs = gt.cov[sel, :3, :3]
+    if scale is None:
+        allp = np.concatenate(everything)
+        allp = allp[np.all(np.isfinite(allp), axis=1)]
+        extent = max(float(np.max(np.ptp(allp, axis=0))), 1.0)
+        radius = np.sqrt(CHI2_3_95 * np.linalg.eigvalsh(covs)[:, -1])
+        med = float(np.median(radius))
+        scale = nice_scale(0.01 * extent / med) if med > 0 else 1.0
+    verts, faces, which = ellipsoid_mesh(gt.position[sel], covs, scale)
+    sig_mm = np.sqrt(np.trace(covs, axis1=1, axis2=2)) * 1e3
+    mesh = go.Mesh3d(
+        x=verts[:, 0], y=verts[:, 1], z=verts[:, 2],
+        i=faces[:, 0], j=faces[:, 1], k=faces[:, 2],
+        intensity=sig_mm[which], colorscale="Viridis", opacity=0.55,
+        colorbar=dict(title=dict(text="sqrt(tr Σ)<br>(mm)"), len=0.6),
+        name=f"95 % position ellipsoids x {scale:g}", showlegend=True,
+        hoverinfo="name")
+    return mesh, verts, int(sel.size), float(scale)
 
 
 def _kpis(data: RunRecord, a: Analysis) -> str:
