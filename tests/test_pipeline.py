@@ -124,7 +124,7 @@ def test_station_coupling_reproduces_the_sampled_cross_covariance_of_prisms(tmp_
     import warnings
 
     from rtsgt.calibration import calibrate
-    from rtsgt.calibration.coupling import StationCoupling, joint_prism_covariance
+    from rtsgt.noise.coupling import StationCoupling, joint_prism_covariance
 
     sim = simulate_deployment(SimulationConfig(duration_s=30.0), np.random.default_rng(5))
     data, _ = load_deployment(write_deployment(sim, tmp_path / "dep"))

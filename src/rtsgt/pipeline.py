@@ -83,7 +83,6 @@ from typing import NamedTuple
 import numpy as np
 
 from rtsgt.calibration import CalibrationResult, calibrate
-from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.calibration.dynamic import (
     SAMPLE_STEP_S,
     DistanceSamples,
@@ -130,6 +129,7 @@ from rtsgt.interpolation.prisms import (
 from rtsgt.measurement.weather import check_weather_coverage
 from rtsgt.noise import NoiseModel, propagate
 from rtsgt.noise.correlated import correlated_noise_plan, inflate_tracks
+from rtsgt.noise.coupling import StationCoupling
 from rtsgt.options import RunOptions, stage_rng
 from rtsgt.pose import PoseEstimate, ReferencePoints, estimate_poses
 from rtsgt.record import (

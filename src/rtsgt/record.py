@@ -17,13 +17,13 @@ from pathlib import Path
 import numpy as np
 
 from rtsgt.calibration import CalibrationResult
-from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.deployment import DeploymentData
 from rtsgt.filtering.gates import GateReport
 from rtsgt.filtering.modules import RemovedMeasurements
 from rtsgt.interpolation import GPTrack
 from rtsgt.interpolation.prisms import PrismsAtTimes
 from rtsgt.noise import NoiseModel
+from rtsgt.noise.coupling import StationCoupling
 from rtsgt.noise.sources import NOISE_SOURCES
 from rtsgt.options import RunOptions
 from rtsgt.pose import PoseEstimate

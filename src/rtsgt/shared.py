@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.geometry.so3 import hat
 from rtsgt.interpolation.prisms import PrismsAtTimes
+from rtsgt.noise.coupling import StationCoupling
 from rtsgt.pose.estimate import DEFAULT_REGISTRATION, pose_jacobians, psd_factor
 from rtsgt.pose.reference import ReferencePoints, block_diagonal
 

@@ -10,6 +10,7 @@ weights, checks and measured numbers: docs/calibration.md.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg import lapack
@@ -43,10 +44,7 @@ __all__ = ["DYNAMIC_ENGINES", "DistanceSamples", "MAX_SIGMA_M", "SAMPLE_STEP_S",
 
 #: How the covariance of a dynamic calibration is computed (docs/calibration.md).
 DYNAMIC_ENGINES = ("linear", "mc")
-#: Time between the samples of the tracks, s. Their correlation is in the weights; on simulated
-#: deployments a step of 0.5 s (about one per measurement at 2.5 Hz) gains 5 % of sigma over
-#: 1 s but leans harder on the GPs' model of that correlation (variance factor 0.70 against
-#: 0.92), and costs three times as much (docs/calibration.md).
+#: Time between the samples of the tracks, s (the choice: docs/calibration.md#weights).
 SAMPLE_STEP_S = 1.0
 #: Length of the windows whose samples are weighted jointly, s.
 WINDOW_S = 60.0
@@ -69,30 +67,14 @@ _MAX_CONDITION = 1e12
 
 @dataclass(frozen=True)
 class DistanceSamples:
-    """The tracked prisms at the sample times, each in its station's frame (docs/calibration.md).
+    """The tracked prisms at the sample times ``t`` (K,), s (docs/calibration.md#observations).
 
-    Attributes
-    ----------
-    t : ndarray, shape (K,)
-        Sample times, s (the tracks' stamps).
-    prisms, stations : tuple of str, length n
-        Each prism and the station that tracks it.
-    xyz, velocity : ndarray, shape (K, n, 3)
-        GP posterior mean position (m) and velocity (m/s), station frames.
-    windows : tuple of ndarray
-        Sample indices of each window weighted jointly.
-    window_cov : tuple of ndarray
-        Per window, ``(n, m, m, 3, 3)``: each prism's joint GP covariance of its positions at
-        the window's ``m`` samples, m^2, station frame.
-    pairs : tuple of (int, int)
-        The prism pairs ``(i, j)``, ``i < j``.
-    reference_distance : ndarray, shape (P,)
-        Surveyed distance of each pair, m.
-    reference_distance_cov : ndarray, shape (P, P)
-        Their covariance (first order through the survey's), m^2.
-    scale_variance : float
-        Variance of the scale error common to all tracked distances (the atmospheric
-        correction's), dimensionless.
+    ``prisms``, ``stations`` (n,): each prism and its station; ``xyz``, ``velocity``
+    (K, n, 3): GP posterior mean, m and m/s, station frames; ``windows``: sample indices of
+    each window weighted jointly, ``window_cov`` per window (n, m, m, 3, 3) each prism's joint
+    GP covariance at its m samples, m^2; ``pairs`` ``(i, j)``, ``i < j``, their surveyed
+    ``reference_distance`` (P,), m, and its covariance (P, P), m^2; ``scale_variance``: of the
+    scale error common to all tracked distances (the atmospheric correction's).
     """
 
     t: np.ndarray
@@ -160,23 +142,11 @@ def distance_samples(
     gps: dict[str, GPTrack], stations: dict[str, str], reference: ReferencePoints,
     t: np.ndarray, *, scale_variance: float = 0.0, window_s: float = WINDOW_S,
 ) -> DistanceSamples:
-    """The observations of the dynamic fit (docs/calibration.md).
-
-    Parameters
-    ----------
-    gps : dict str -> GPTrack
-        Each prism's GP, in its station's frame (the white sources only).
-    stations : dict str -> str
-        The station of each prism.
-    reference : ReferencePoints
-        The survey of the prisms on the robot (every prism of ``gps`` in it).
-    t : ndarray, shape (K,)
-        Sample times where every GP answers (:func:`sample_times`), s.
-    scale_variance : float
-        Variance of the common scale error of the tracked distances.
-    window_s : float
-        Length of the windows weighted jointly, s.
-    """
+    """The observations of the dynamic fit (docs/calibration.md#observations): each prism's GP
+    ``gps`` (station frame, white sources only) at the times ``t`` (K,) s where all answer
+    (:func:`sample_times`), ``stations`` the station of each prism, ``reference`` the survey of
+    the prisms on the robot, ``scale_variance`` of the common scale error, ``window_s`` the
+    length of the windows weighted jointly, s."""
     prisms = tuple(gps)
     t = np.asarray(t, dtype=float)
     if t.size < 2:
@@ -651,14 +621,9 @@ def _circle_fits(psi: np.ndarray, p: np.ndarray, q: np.ndarray):
 
 
 def _initial(samples: DistanceSamples, stations: list[str], ref: str):
-    """Each station's levelled transform from the distance between its prism and the reference
-    station's (docs/calibration.md#solution): with ``R = R_z(psi)``, the points
-    ``c_k = q_ref(t_k) - R p_s(t_k)`` lie at the surveyed distance ``d`` from the station's
-    position ``t``; while the robot turns they trace a horizontal circle about it. So for every
-    yaw on a grid of 0.5 degrees (then 0.025 degrees about the best) the circle through the
-    ``c_k`` is fitted (Kasa's algebraic fit), and the yaw whose points lie best on a circle is
-    taken, with ``t`` its centre, raised by ``sqrt(d^2 - r^2)`` (the sign is the height
-    ambiguity that :func:`_heights` settles)."""
+    """``{station: (R_z(psi), t)}``: each station's levelled start from the circle its prism
+    traces about it at the surveyed distance from the reference station's
+    (docs/calibration.md#solution), the height's sign left to :func:`_heights`."""
     st_of = list(samples.stations)
     if ref not in st_of:
         raise InputError(f"the dynamic calibration needs the reference station {ref} to track "
@@ -694,20 +659,30 @@ def _initial(samples: DistanceSamples, stations: list[str], ref: str):
     return out
 
 
+def _start(problem: _Problem, init: dict) -> tuple[_State, _Data]:
+    """The state at the transforms ``init`` (``{station: (R, t)}``; the markers, under the joint
+    fit, at the mean of their shots) and the data of ``problem``'s samples and shots."""
+    stations, smp, layout = problem.stations, problem.samples, problem.gcp
+    S = len(stations)
+    x = np.zeros((0, 3)) if layout is None else _marker_start(layout, init, stations)
+    st = _State(np.stack([init[s][0] for s in stations])[None],
+                np.stack([init[s][1] for s in stations])[None], np.zeros((1, S)),
+                np.zeros((1, S)), x[None], np.zeros((1, problem.k)))
+    st.psi = _yaw(st.R)
+    problem.rotations(st)
+    data = _Data(np.zeros((1, 0, 0, 3)) if smp is None else smp.xyz[None],
+                 np.zeros((1, 0)) if smp is None else smp.reference_distance[None],
+                 np.zeros((1, 0, 3)) if layout is None else layout["points"][None],
+                 np.zeros((1, problem.k)))
+    return st, data
+
+
 def _levelled_start(samples: DistanceSamples, stations: list[str], ref: str,
                     sigma_tilt: float) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """The levelled (4-DOF) fit from :func:`_initial`, its heights settled by :func:`_heights`
     (docs/calibration.md#solution): the start of a 6-DOF dynamic fit."""
-    init = _initial(samples, stations, ref)
     problem = _Problem(samples, stations, ref, "4dof", None, sigma_tilt)
-    S = len(stations)
-    st = _State(np.stack([init[s][0] for s in stations])[None],
-                np.stack([init[s][1] for s in stations])[None], np.zeros((1, S)),
-                np.zeros((1, S)), np.zeros((1, 0, 3)), np.zeros((1, problem.k)))
-    st.psi = _yaw(st.R)
-    problem.rotations(st)
-    data = _Data(samples.xyz[None], samples.reference_distance[None], np.zeros((1, 0, 3)),
-                 np.zeros((1, problem.k)))
+    st, data = _start(problem, _initial(samples, stations, ref))
     st, _, nll = _solve(problem, st, data)
     best = _heights(problem, st, data, nll)[0][1]
     return {s: (best.R[0, k], best.t[0, k]) for k, s in enumerate(stations)}
@@ -739,20 +714,12 @@ def _gcp_horizontal_component(layout: dict, extra: np.ndarray, stations: list[st
     the GCP calibration's ``(horizontal, vertical)``, with the horizontal one raised, where the
     generalised least-squares fit of the GCPs alone has a variance factor above its 95 %
     interval, to the value that brings it to 1 (bisection on the variance)."""
-    S = len(stations)
 
     def factor(h: float) -> float:
         e = np.array([extra[0] + h, extra[1]])
         lay = {**layout, "cov": with_extra_variance(layout["instrument_cov"], e)}
         problem = _Problem(None, stations, ref, model, lay, sigma_tilt)
-        st = _State(np.stack([init[s][0] for s in stations])[None],
-                    np.stack([init[s][1] for s in stations])[None], np.zeros((1, S)),
-                    np.zeros((1, S)), _marker_start(lay, init, stations)[None],
-                    np.zeros((1, problem.k)))
-        st.psi = _yaw(st.R)
-        problem.rotations(st)
-        data = _Data(np.zeros((1, 0, 0, 3)), np.zeros((1, 0)), lay["points"][None],
-                     np.zeros((1, problem.k)))
+        st, data = _start(problem, init)
         st, _, _ = _solve(problem, st, data)
         r, _ = problem.evaluate(st, data, jac=False)
         return float(np.sum(r * r)) / (r.size - problem.n_par), r.size - problem.n_par
@@ -780,61 +747,8 @@ def _marker_start(layout: dict, init: dict, stations: list[str]) -> np.ndarray:
     return x / np.bincount(layout["marker"], minlength=layout["markers"])[:, None]
 
 
-def calibrate_dynamic(
-    samples: DistanceSamples | None,
-    *,
-    reference_station: str = "1",
-    model: str = "6dof",
-    instrument: InstrumentProfile = TRIMBLE_S7,
-    gcp: GcpShots | None = None,
-    gcp_calibration: CalibrationResult | None = None,
-    engine: str = "linear",
-    n_samples: int = 1000,
-    rng: np.random.Generator | None = None,
-    gate_m: float = 0.10,
-    max_sigma_m: float = MAX_SIGMA_M,
-) -> CalibrationResult:
-    """Calibrate the stations from the inter-prism distances, alone or with the GCPs.
-
-    Parameters
-    ----------
-    samples : DistanceSamples or None
-        The tracked prisms at the sample times (:func:`distance_samples`); None: the GCPs
-        alone (the GCP calibration's generalised least-squares fit, for tests).
-    reference_station : str
-        The station whose frame is the world frame (and whose clock is the time).
-    model : {"6dof", "4dof"}
-        The model of each station's transform (:mod:`rtsgt.calibration.gcp`).
-    instrument : InstrumentProfile
-        The stations' instrument (the GCP shots' covariance, the compensators).
-    gcp : GcpShots, optional
-        With ``gcp_calibration``: the joint calibration (docs/calibration.md).
-    gcp_calibration : CalibrationResult, optional
-        The GCP calibration of the same shots: the initial guess, its variance components
-        and its checks (kept in the result).
-    engine : {"linear", "mc"}
-        How the covariance is computed (docs/calibration.md#covariance).
-    n_samples : int
-        Monte Carlo samples of the transforms (M >= 2).
-    rng : numpy.random.Generator, optional
-    gate_m : float
-        Samples with a pair residual beyond this are left out, m.
-    max_sigma_m : float
-        The observability refusal's bound, m (docs/calibration.md#refusals; ``inf``: no
-        refusal, for diagnostics).
-
-    Returns
-    -------
-    CalibrationResult
-        ``method`` ``"dynamic"`` or ``"joint"``, ``dynamic`` the :class:`DynamicFit`.
-
-    Raises
-    ------
-    GeometryError
-        The trajectory does not determine the transforms (docs/calibration.md#refusals).
-    InputError
-        A station tracks no prism (dynamic), too few samples, bad arguments.
-    """
+def _check_dynamic(samples, gcp, gcp_calibration, model, instrument, engine, n_samples) -> None:
+    """Raise :class:`InputError` for the arguments :func:`calibrate_dynamic` refuses."""
     check_args(instrument, "none", model)
     if engine not in DYNAMIC_ENGINES:
         raise InputError(f"Expected engine {' or '.join(map(repr, DYNAMIC_ENGINES))}, "
@@ -842,51 +756,60 @@ def calibrate_dynamic(
     if isinstance(n_samples, bool) or not isinstance(n_samples, (int, np.integer)) \
             or n_samples < 2:
         raise InputError(f"Expected n_samples >= 2, got {n_samples!r}")
-    joint = gcp is not None
-    if joint and gcp_calibration is None:
+    if gcp is not None and gcp_calibration is None:
         raise InputError("the joint calibration needs the GCP calibration of the same shots")
-    if samples is None and not joint:
+    if samples is None and gcp is None:
         raise InputError("nothing to calibrate from: no distance samples and no GCPs")
-    rng = np.random.default_rng() if rng is None else rng
-    ref = str(reference_station)
-    names = set() if samples is None else set(samples.stations)
-    if joint:
-        names |= set(gcp_calibration.transforms)
-    names.add(ref)
-    stations = sorted(names, key=natural_key)
-    if joint:
-        extra = np.array(gcp_calibration.extra_shot_sigma_m) ** 2
-        layout, setup = _gcp_layout(gcp, ref, stations, instrument, extra)
-        init = {s: (T.rotation, T.translation) for s, T in gcp_calibration.transforms.items()}
-        extra = _gcp_horizontal_component(layout, extra, stations, ref, model,
-                                          instrument.sigma_tilt, init)
-        layout["cov"] = with_extra_variance(layout["instrument_cov"], extra)
-    else:
-        layout, setup, extra = None, None, np.zeros(2)
-    S = len(stations)
+
+
+def _joint_layout(gcp: GcpShots, gcp_calibration: CalibrationResult, ref: str,
+                  stations: list[str], instrument: InstrumentProfile, model: str):
+    """The GCP shots of the joint fit (:func:`_gcp_layout`), their :class:`ShotSetup` and the
+    variance components ``(horizontal, vertical)`` (:func:`_gcp_horizontal_component`), m^2."""
+    extra = np.array(gcp_calibration.extra_shot_sigma_m) ** 2
+    layout, setup = _gcp_layout(gcp, ref, stations, instrument, extra)
+    extra = _gcp_horizontal_component(layout, extra, stations, ref, model,
+                                      instrument.sigma_tilt, _transforms_of(gcp_calibration))
+    layout["cov"] = with_extra_variance(layout["instrument_cov"], extra)
+    return layout, setup, extra
+
+
+def _transforms_of(calibration: CalibrationResult) -> dict:
+    """``{station: (R, t)}`` of a calibration."""
+    return {s: (T.rotation, T.translation) for s, T in calibration.transforms.items()}
+
+
+class _Solution(NamedTuple):
+    """The gated fit: the problem and data it ended with, the state, the samples kept, the last
+    solve's iterations, the height ambiguity (``-2 log`` likelihood margin) and the samples
+    left out."""
+
+    problem: _Problem
+    st: _State
+    data: _Data
+    samples: DistanceSamples | None
+    iterations: int
+    ambiguity: float
+    rejected: int
+
+
+def _gated_fit(samples: DistanceSamples | None, stations: list[str], ref: str, model: str,
+               layout: dict | None, sigma_tilt: float, gcp_calibration: CalibrationResult | None,
+               gate_m: float) -> _Solution:
+    """The fit, then again from the start without the samples whose pair residual exceeds
+    ``gate_m`` (m), at most four fits."""
     rejected = 0
-    for _ in range(4):  # the fit, then again from the start without the samples beyond the gate
-        problem = _Problem(samples, stations, ref, model, layout, instrument.sigma_tilt)
-        if joint:
-            init = {s: (T.rotation, T.translation) for s, T in gcp_calibration.transforms.items()}
+    for _ in range(4):
+        problem = _Problem(samples, stations, ref, model, layout, sigma_tilt)
+        if layout is not None:
+            init = _transforms_of(gcp_calibration)
         else:
-            init = (_levelled_start(samples, stations, ref, instrument.sigma_tilt)
+            init = (_levelled_start(samples, stations, ref, sigma_tilt)
                     if model == "6dof" else _initial(samples, stations, ref))
-        st = _State(np.stack([init[s][0] for s in stations])[None],
-                    np.stack([init[s][1] for s in stations])[None],
-                    np.zeros((1, S)), np.zeros((1, S)), np.zeros((1, 0, 3)),
-                    np.zeros((1, problem.k)))
-        st.psi = _yaw(st.R)
-        problem.rotations(st)
-        data = _Data(np.zeros((1, 0, 0, 3)) if samples is None else samples.xyz[None],
-                     np.zeros((1, 0)) if samples is None else samples.reference_distance[None],
-                     np.zeros((1, 0, 3)) if layout is None else layout["points"][None],
-                     np.zeros((1, problem.k)))
-        if joint:  # markers: the mean of their shots in the world frame
-            st.x = _marker_start(layout, init, stations)[None]
+        st, data = _start(problem, init)
         st, iterations, nll = _solve(problem, st, data)
         ambiguity = float("inf")
-        if not joint:  # the mirrored heights
+        if layout is None:  # the mirrored heights
             (nll, st), alternative = _heights(problem, st, data, nll)
             problem.set_weights(st, data)
             if alternative is not None:
@@ -903,14 +826,18 @@ def calibrate_dynamic(
                                 "not converge, or the tracks are not of the surveyed prisms")
         rejected += int(bad.sum())
         samples = samples.select(~bad)
+    return _Solution(problem, st, data, samples, iterations, ambiguity, rejected)
 
-    # linearisation at the solution
+
+def _linearise(problem: _Problem, st: _State, data: _Data):
+    """At the solution: the whitened residuals (n,), Jacobian (n, n_par), ``N^-1`` (n_par,
+    n_par), the output map ``A`` (:meth:`_Problem.output_map`) and ``A N^-1 A^T``; raises
+    :class:`GeometryError` where the normal matrix is singular."""
     r, J = problem.evaluate(st, data)
     r, J = r[0], J[0]
     N = J.T @ J
     d = np.sqrt(np.maximum(np.diag(N), 1e-300))
-    Ns = N / np.outer(d, d)
-    cond = np.linalg.cond(Ns)
+    cond = np.linalg.cond(N / np.outer(d, d))
     if not np.isfinite(cond) or cond > _MAX_CONDITION:
         raise GeometryError(
             f"dynamic calibration: the trajectory does not determine the stations' transforms "
@@ -920,37 +847,45 @@ def calibrate_dynamic(
     Ninv = 0.5 * (Ninv + Ninv.T)
     A = problem.output_map(st)
     cov_out = A @ Ninv @ A.T
-    cov_out = 0.5 * (cov_out + cov_out.T)
-    free = [s for s in stations if s != ref]
-    clocks = [s for s in free if problem.clock_col[stations.index(s)] >= 0]
+    return r, J, Ninv, A, 0.5 * (cov_out + cov_out.T)
 
+
+def _worst_sigma(problem: _Problem, st: _State, samples: DistanceSamples, cov_out: np.ndarray,
+                 free: list[str], clocks: list[str]) -> dict[str, float]:
+    """Per free station tracking a prism, the largest standard deviation of its prisms'
+    positions due to the calibration over the samples, m (docs/calibration.md#refusals)."""
     worst = {}
-    if samples is not None:
-        for k, s in enumerate(free):
-            si = stations.index(s)
-            mine = np.flatnonzero(problem.prism_station == si)
-            if mine.size == 0:
-                continue
-            Rs = st.R[0, si]
-            p = samples.xyz[:, mine] - st.clock[0, si] * samples.velocity[:, mine]
-            w = p @ Rs.T  # (K, k, 3)
-            rows = [6 * k + a for a in range(6)]
-            if s in clocks:
-                rows.append(6 * len(free) + clocks.index(s))
-            C = cov_out[np.ix_(rows, rows)]
-            Jq = np.concatenate([np.broadcast_to(np.eye(3), w.shape + (3,)), -hat(w)], axis=-1)
-            if s in clocks:
-                Jq = np.concatenate([Jq, -(samples.velocity[:, mine] @ Rs.T)[..., None]], axis=-1)
-            Cq = Jq @ C @ np.swapaxes(Jq, -1, -2)
-            worst[s] = float(np.sqrt(np.max(np.linalg.eigvalsh(Cq))))
-        bad = {s: v for s, v in worst.items() if v > max_sigma_m}
-        if bad and not joint:
-            s, v = max(bad.items(), key=lambda kv: kv[1])
-            raise GeometryError(
-                f"dynamic calibration: the trajectory does not determine station {s}'s transform "
-                f"well enough (its prism positions uncertain by {v * 1e3:.3g} mm from the "
-                f"calibration, more than {max_sigma_m * 1e3:.3g} mm); drive a path that turns "
-                "and changes direction, or calibrate from the GCPs (method \"gcp\" or \"joint\")")
+    for k, s in enumerate(free):
+        si = problem.stations.index(s)
+        mine = np.flatnonzero(problem.prism_station == si)
+        if mine.size == 0:
+            continue
+        Rs = st.R[0, si]
+        p = samples.xyz[:, mine] - st.clock[0, si] * samples.velocity[:, mine]
+        w = p @ Rs.T  # (K, k, 3)
+        rows = [6 * k + a for a in range(6)]
+        if s in clocks:
+            rows.append(6 * len(free) + clocks.index(s))
+        C = cov_out[np.ix_(rows, rows)]
+        Jq = np.concatenate([np.broadcast_to(np.eye(3), w.shape + (3,)), -hat(w)], axis=-1)
+        if s in clocks:
+            Jq = np.concatenate([Jq, -(samples.velocity[:, mine] @ Rs.T)[..., None]], axis=-1)
+        Cq = Jq @ C @ np.swapaxes(Jq, -1, -2)
+        worst[s] = float(np.sqrt(np.max(np.linalg.eigvalsh(Cq))))
+    return worst
+
+
+def _refuse(worst: dict[str, float], max_sigma_m: float, joint: bool, ambiguity: float) -> None:
+    """Raise :class:`GeometryError` for a station determined worse than ``max_sigma_m`` (m; not
+    under the joint fit) or heights ambiguous (docs/calibration.md#refusals)."""
+    bad = {s: v for s, v in worst.items() if v > max_sigma_m}
+    if bad and not joint:
+        s, v = max(bad.items(), key=lambda kv: kv[1])
+        raise GeometryError(
+            f"dynamic calibration: the trajectory does not determine station {s}'s transform "
+            f"well enough (its prism positions uncertain by {v * 1e3:.3g} mm from the "
+            f"calibration, more than {max_sigma_m * 1e3:.3g} mm); drive a path that turns "
+            "and changes direction, or calibrate from the GCPs (method \"gcp\" or \"joint\")")
     if ambiguity < HEIGHT_MARGIN:
         raise GeometryError(
             f"dynamic calibration: the heights of the stations are ambiguous (the fit with "
@@ -959,7 +894,101 @@ def calibrate_dynamic(
             "distances cannot tell a prism above another from one below it; calibrate from "
             "the GCPs (method \"gcp\" or \"joint\")")
 
-    # the samples of the transforms (and of the clocks)
+
+def _station_transforms(problem: _Problem, st: _State, z: np.ndarray, cov_out: np.ndarray,
+                        free: list[str]) -> dict[str, RigidTransform]:
+    """``T_world_station`` of every station, with its 6x6 block of ``cov_out`` and the samples
+    moved by ``z`` (M, 6 S' + clocks)."""
+    M = z.shape[0]
+    transforms = {}
+    for si, s in enumerate(problem.stations):
+        if si == problem.ref:
+            transforms[s] = RigidTransform(
+                np.eye(3), np.zeros(3), np.zeros((6, 6)), "world", f"station_{s}",
+                np.broadcast_to(np.eye(3), (M, 3, 3)).copy(), np.zeros((M, 3)))
+            continue
+        k = free.index(s)
+        Rm, tm = perturb(st.R[0, si], st.t[0, si], z[:, 6 * k:6 * k + 6])
+        transforms[s] = RigidTransform(st.R[0, si], st.t[0, si],
+                                       cov_out[6 * k:6 * k + 6, 6 * k:6 * k + 6], "world",
+                                       f"station_{s}", Rm, tm)
+    return transforms
+
+
+def _dynamic_fit(sol: _Solution, r: np.ndarray, cov_out: np.ndarray, engine: str,
+                 worst: dict[str, float], free: list[str], clocks: list[str],
+                 extra: np.ndarray | None) -> DynamicFit:
+    """The :class:`DynamicFit` record of the solution (``extra``: the joint fit's variance
+    components, m^2; None for the dynamic one)."""
+    problem, st, samples = sol.problem, sol.st, sol.samples
+    n_free = 6 * len(free)
+    clock = {s: float(st.clock[0, problem.stations.index(s)]) for s in clocks}
+    clock_sigma = {s: float(np.sqrt(cov_out[n_free + k, n_free + k]))
+                   for k, s in enumerate(clocks)}
+    pair_mean, pair_rms, pair_names = {}, {}, ()
+    dof = float(r.size - problem.n_par)
+    vf = float(r @ r) / dof if dof > 0 else float("nan")
+    if samples is not None:
+        rd = problem.distance_rows(st, sol.data, False)[0][0]
+        pair_names = tuple(f"{samples.prisms[i]}-{samples.prisms[j]}" for i, j in samples.pairs)
+        pair_mean = {p: float(1e3 * rd[:, k].mean()) for k, p in enumerate(pair_names)}
+        pair_rms = {p: float(1e3 * np.sqrt(np.mean(rd[:, k] ** 2)))
+                    for k, p in enumerate(pair_names)}
+    return DynamicFit("joint" if extra is not None else "dynamic", engine,
+                      0 if samples is None else len(samples), sol.rejected, pair_names,
+                      tuple(free), clock, clock_sigma, cov_out, vf, dof,
+                      ratio_interval(dof) if np.isfinite(dof) else (float("nan"), float("nan")),
+                      pair_mean, pair_rms, worst, sol.iterations, sol.ambiguity,
+                      None if extra is None else (float(np.sqrt(extra[0])),
+                                                  float(np.sqrt(extra[1]))))
+
+
+def calibrate_dynamic(
+    samples: DistanceSamples | None,
+    *,
+    reference_station: str = "1",
+    model: str = "6dof",
+    instrument: InstrumentProfile = TRIMBLE_S7,
+    gcp: GcpShots | None = None,
+    gcp_calibration: CalibrationResult | None = None,
+    engine: str = "linear",
+    n_samples: int = 1000,
+    rng: np.random.Generator | None = None,
+    gate_m: float = 0.10,
+    max_sigma_m: float = MAX_SIGMA_M,
+) -> CalibrationResult:
+    """Calibrate the stations from the inter-prism distances ``samples``
+    (:func:`distance_samples`; None: the GCPs alone), or jointly with the GCP shots ``gcp``
+    and their calibration ``gcp_calibration`` (the start, variance components and checks).
+
+    ``model`` "6dof" or "4dof"; ``engine`` "linear" or "mc" computes the covariance from
+    ``n_samples`` (>= 2) draws of ``rng``; samples with a pair residual beyond ``gate_m`` (m)
+    are left out; a station whose prisms the calibration leaves uncertain by more than
+    ``max_sigma_m`` (m; ``inf``: no refusal) is refused. Returns a :class:`CalibrationResult`
+    (``method`` "dynamic" or "joint", ``dynamic`` its :class:`DynamicFit`); raises
+    :class:`GeometryError` where the trajectory does not determine the transforms and
+    :class:`InputError` for a station tracking no prism, too few samples or bad arguments
+    (docs/calibration.md).
+    """
+    _check_dynamic(samples, gcp, gcp_calibration, model, instrument, engine, n_samples)
+    rng = np.random.default_rng() if rng is None else rng
+    ref = str(reference_station)
+    joint = gcp is not None
+    names = set() if samples is None else set(samples.stations)
+    if joint:
+        names |= set(gcp_calibration.transforms)
+    stations = sorted(names | {ref}, key=natural_key)
+    layout, setup, extra = (_joint_layout(gcp, gcp_calibration, ref, stations, instrument, model)
+                            if joint else (None, None, np.zeros(2)))
+    sol = _gated_fit(samples, stations, ref, model, layout, instrument.sigma_tilt,
+                     gcp_calibration, gate_m)
+    problem, st, data = sol.problem, sol.st, sol.data
+    r, J, Ninv, A, cov_out = _linearise(problem, st, data)
+    free = [s for s in stations if s != ref]
+    clocks = [s for s in free if problem.clock_col[stations.index(s)] >= 0]
+    worst = {} if sol.samples is None else _worst_sigma(problem, st, sol.samples, cov_out, free,
+                                                         clocks)
+    _refuse(worst, max_sigma_m, joint, sol.ambiguity)
     M = int(n_samples)
     if engine == "linear":
         z = sample_gaussian(Ninv, M, rng) @ A.T  # (M, 6 S' + clocks)
@@ -968,46 +997,14 @@ def calibrate_dynamic(
                          Ninv @ J.T)
         cov_out = np.cov(z, rowvar=False)
         cov_out = 0.5 * (cov_out + cov_out.T)
-    transforms = {}
-    for s in stations:
-        si = stations.index(s)
-        if s == ref:
-            transforms[s] = RigidTransform(np.eye(3), np.zeros(3), np.zeros((6, 6)), "world",
-                                           f"station_{s}", np.broadcast_to(np.eye(3), (M, 3, 3)).copy(),
-                                           np.zeros((M, 3)))
-            continue
-        k = free.index(s)
-        xi = z[:, 6 * k:6 * k + 6]
-        Rm, tm = perturb(st.R[0, si], st.t[0, si], xi)
-        transforms[s] = RigidTransform(st.R[0, si], st.t[0, si],
-                                       cov_out[6 * k:6 * k + 6, 6 * k:6 * k + 6], "world",
-                                       f"station_{s}", Rm, tm)
-    n_free = 6 * len(free)
-    clock = {s: float(st.clock[0, stations.index(s)]) for s in clocks}
-    clock_sigma = {s: float(np.sqrt(cov_out[n_free + k, n_free + k]))
-                   for k, s in enumerate(clocks)}
-
-    pair_mean, pair_rms, pair_names = {}, {}, ()
-    dof = float(r.size - problem.n_par)
-    vf = float(r @ r) / dof if dof > 0 else float("nan")
-    if samples is not None:
-        rd = problem.distance_rows(st, data, False)[0][0]
-        pair_names = tuple(f"{samples.prisms[i]}-{samples.prisms[j]}" for i, j in samples.pairs)
-        pair_mean = {p: float(1e3 * rd[:, k].mean()) for k, p in enumerate(pair_names)}
-        pair_rms = {p: float(1e3 * np.sqrt(np.mean(rd[:, k] ** 2)))
-                    for k, p in enumerate(pair_names)}
-    fit = DynamicFit("joint" if joint else "dynamic", engine,
-                     0 if samples is None else len(samples), rejected, pair_names, tuple(free),
-                     clock, clock_sigma, cov_out, vf, dof,
-                     ratio_interval(dof) if np.isfinite(dof) else (float("nan"), float("nan")),
-                     pair_mean, pair_rms, worst, iterations, ambiguity,
-                     (float(np.sqrt(extra[0])), float(np.sqrt(extra[1]))) if joint else None)
+    transforms = _station_transforms(problem, st, z, cov_out, free)
+    fit = _dynamic_fit(sol, r, cov_out, engine, worst, free, clocks, extra if joint else None)
     if joint:
-        R = {s: st.R[0, stations.index(s)] for s in stations}
-        t = {s: st.t[0, stations.index(s)] for s in stations}
-        residuals = marker_residuals(setup, R, t)
-        return replace(gcp_calibration, transforms=transforms, residuals=residuals, samples=M,
-                       method="joint", dynamic=fit)
+        R = {s: st.R[0, k] for k, s in enumerate(stations)}
+        t = {s: st.t[0, k] for k, s in enumerate(stations)}
+        return replace(gcp_calibration, transforms=transforms,
+                       residuals=marker_residuals(setup, R, t), samples=M, method="joint",
+                       dynamic=fit)
     return CalibrationResult(
         reference_station=ref, transforms=transforms,
         residuals=MarkerResiduals(*(np.zeros(0, dtype=object),) * 3, np.zeros(0)),

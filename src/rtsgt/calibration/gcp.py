@@ -162,36 +162,14 @@ def fit_stations(
     instrument: InstrumentProfile = TRIMBLE_S7,
     model: str = "6dof",
 ) -> dict[str, RigidTransform]:
-    """Rigid fit of every station into the reference station's frame, matched by marker.
+    """``T_world_station`` of every station (the reference: identity), fitted by marker onto
+    the reference station's shots, without covariance (:func:`calibrate` adds it).
 
-    Parameters
-    ----------
-    shots : GcpShots
-        Shots of all stations; those with a non-zero status are left out.
-    reference_station : str
-        Station whose frame is the world frame.
-    weighting : {"gls", "trace", "none"}
-        The markers' weights (docs/noise-model.md#weights-of-the-gcps): their full covariance under
-        the instrument model, ``1 / (tr C_ref + tr C_s)``, or none.
-    instrument : InstrumentProfile
-        Noise model for the weights and the collinearity check.
-    model : {"6dof", "4dof"}
-        Free rotation, or levelled stations (docs/noise-model.md#levelled-stations-4-dof).
-
-    Returns
-    -------
-    dict str -> RigidTransform
-        ``T_world_station`` for every station (the reference is the identity); no
-        covariance on the fitted ones (use :func:`calibrate` for it).
-
-    Raises
-    ------
-    InputError
-        Unknown reference station (the message lists the known ones), a single station,
-        a marker shot twice by one station.
-    GeometryError
-        A station sharing fewer than 3 valid markers with the reference, or (nearly)
-        collinear markers.
+    Shots with a non-zero status are left out; ``weighting`` "gls", "trace" or "none"
+    (docs/noise-model.md#weights-of-the-gcps) under the ``instrument`` model; ``model`` "6dof"
+    or "4dof" (docs/noise-model.md#levelled-stations-4-dof). Raises :class:`InputError` for an
+    unknown reference, a single station or a marker shot twice by one station, and
+    :class:`GeometryError` for fewer than 3 valid shared markers or (nearly) collinear ones.
     """
     check_args(instrument, weighting, model)
     ref = str(reference_station)
@@ -338,6 +316,44 @@ def extra_shot_variance(setup: ShotSetup, R: dict, t: dict, C: np.ndarray,
     return extra
 
 
+def _perturbed_shots(setup: ShotSetup, instrument: InstrumentProfile, extra: np.ndarray,
+                     model: str, ref: str, M: int, rng: np.random.Generator):
+    """M Monte Carlo draws of every valid shot, (M, N, 3) station frames (the variance
+    components ``extra`` added), and under ``"4dof"`` each station's compensator error
+    against the reference's, ``{station: (M, 3)}`` (else None)."""
+    hz_m, v_m, d_m = sample_polar_errors(setup.hz, setup.v, setup.d, instrument, M, rng)
+    points_m = polar_to_cartesian(hz_m, v_m, d_m)
+    if extra.any():  # the variance components, in each station's (levelled) frame
+        points_m += rng.standard_normal(points_m.shape) * np.sqrt(extra[[0, 0, 1]])
+    if model != "4dof":
+        return points_m, None
+    comp = rng.standard_normal((M, len(setup.stations), 2)) * instrument.sigma_tilt
+    comp = np.concatenate([comp, np.zeros((M, len(setup.stations), 1))], axis=2)
+    return points_m, {st: comp[:, k] - comp[:, setup.stations.index(ref)]
+                      for k, st in enumerate(setup.stations)}
+
+
+def _station_samples(setup: ShotSetup, s: str, points_m: np.ndarray, tilt: np.ndarray | None,
+                     R: np.ndarray, t: np.ndarray, weights, weighting: str, model: str):
+    """Station ``s`` refitted to every draw ``points_m`` (M, N, 3) from its fit ``R, t``:
+    the 6x6 covariance of the left perturbations and the samples ``Rm`` (M, 3, 3),
+    ``tm`` (M, 3)."""
+    idx_s, idx_r, _ = setup.pairs[s]
+    if weighting == "gls":
+        Rm, tm, ok = _gls_fit(points_m[:, idx_s], points_m[:, idx_r], weights, R, t, model, tilt)
+        if not ok.all():
+            warnings.warn(f"station {s}: the generalised least-squares fit did not "
+                          f"converge for {int((~ok).sum())} of {ok.size} Monte Carlo "
+                          "samples (shots far from any rigid fit: check the "
+                          "residuals); their last iterates are kept", RtsgtWarning,
+                          stacklevel=3)
+    else:
+        Rm, tm = _fit(setup, s, points_m[:, idx_s], points_m[:, idx_r], weights, model, tilt,
+                      check=False)
+    cov = np.cov(perturbation(R, t, Rm, tm), rowvar=False)  # (x, y, z, rx, ry, rz)
+    return 0.5 * (cov + cov.T), Rm, tm
+
+
 def calibrate(
     shots: GcpShots,
     *,
@@ -351,35 +367,13 @@ def calibrate(
 ) -> CalibrationResult:
     """Calibrate all stations from GCP shots, with a Monte Carlo 6x6 covariance per station.
 
-    Parameters
-    ----------
-    shots : GcpShots
-    reference_station : str
-        Station whose frame is the world frame.
-    instrument : InstrumentProfile
-        Instrument and tilt noise model of every station.
-    samples : int
-        M, number of Monte Carlo samples (0: fit only, no covariance and no samples).
-    rng : numpy.random.Generator, optional
-        Source of every random draw (a fresh unseeded one when None).
-    weighting : {"gls", "trace", "none"}
-        The markers' weights (docs/noise-model.md#weights-of-the-gcps), for the nominal fit and
-        every sample.
-    variance_components : bool
-        Add to every shot the variance the residuals show beyond the instrument model
-        (docs/self-checks.md#variance-components-the-model-changed-where-the-check-fails); False: the instrument model alone,
-        as the paper.
-    model : {"6dof", "4dof"}
-        Free rotation (the paper), or levelled stations (docs/noise-model.md#levelled-stations-4-dof).
-
-    Returns
-    -------
-    CalibrationResult
-
-    Raises
-    ------
-    InputError, GeometryError
-        As :func:`fit_stations`.
+    ``reference_station``: the world frame; ``instrument``: the shots' and compensators'
+    noise; ``samples``: M Monte Carlo draws of ``rng`` (0: the fit alone); ``weighting``
+    "gls", "trace" or "none" (docs/noise-model.md#weights-of-the-gcps);
+    ``variance_components``: add the variance the residuals show beyond the instrument model
+    (docs/self-checks.md#variance-components-the-model-changed-where-the-check-fails; False:
+    the paper's); ``model`` "6dof" (the paper) or "4dof"
+    (docs/noise-model.md#levelled-stations-4-dof). Raises as :func:`fit_stations`.
     """
     check_args(instrument, weighting, model)
     if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)):
@@ -392,19 +386,9 @@ def calibrate(
     C = polar_point_covariance(setup.hz, setup.v, setup.d, instrument)
     R, t, weights, extra = _fits(setup, ref, weighting, instrument, model, C,
                                  variance_components)
-
     M = int(samples)
     if M:
-        # Perturb every valid shot of every station: (M, N) -> points (M, N, 3)
-        hz_m, v_m, d_m = sample_polar_errors(setup.hz, setup.v, setup.d, instrument, M, rng)
-        points_m = polar_to_cartesian(hz_m, v_m, d_m)
-        if extra.any():  # the variance components, in each station's (levelled) frame
-            points_m += rng.standard_normal(points_m.shape) * np.sqrt(extra[[0, 0, 1]])
-        if model == "4dof":  # each compensator's error, a tilt of its station's frame
-            comp = rng.standard_normal((M, len(setup.stations), 2)) * instrument.sigma_tilt
-            comp = np.concatenate([comp, np.zeros((M, len(setup.stations), 1))], axis=2)
-            tilt_of = {st: comp[:, k] - comp[:, setup.stations.index(ref)]
-                       for k, st in enumerate(setup.stations)}
+        points_m, tilt_of = _perturbed_shots(setup, instrument, extra, model, ref, M, rng)
     transforms = {}
     for s in setup.stations:
         if s == ref:
@@ -412,59 +396,31 @@ def calibrate(
             Rm = np.broadcast_to(np.eye(3), (M, 3, 3)).copy() if M else None
             tm = np.zeros((M, 3)) if M else None
         elif M:
-            idx_s, idx_r, _ = setup.pairs[s]
-            tilt = tilt_of[s] if model == "4dof" else None
-            if weighting == "gls":
-                Rm, tm, ok = _gls_fit(points_m[:, idx_s], points_m[:, idx_r], weights[s], R[s],
-                                      t[s], model, tilt)
-                if not ok.all():
-                    warnings.warn(f"station {s}: the generalised least-squares fit did not "
-                                  f"converge for {int((~ok).sum())} of {M} Monte Carlo "
-                                  "samples (shots far from any rigid fit: check the "
-                                  "residuals); their last iterates are kept", RtsgtWarning,
-                                  stacklevel=2)
-            else:
-                Rm, tm = _fit(setup, s, points_m[:, idx_s], points_m[:, idx_r], weights[s],
-                              model, tilt, check=False)
-            xi = perturbation(R[s], t[s], Rm, tm)  # (M, 6), (x, y, z, rx, ry, rz)
-            cov = np.cov(xi, rowvar=False)
-            cov = 0.5 * (cov + cov.T)
+            cov, Rm, tm = _station_samples(setup, s, points_m, None if tilt_of is None
+                                           else tilt_of[s], R[s], t[s], weights[s], weighting,
+                                           model)
         else:
             cov = Rm = tm = None
-        transforms[s] = RigidTransform(
-            R[s], t[s], cov, "world", f"station_{s}", Rm, tm
-        )
+        transforms[s] = RigidTransform(R[s], t[s], cov, "world", f"station_{s}", Rm, tm)
     used = {s: setup.pairs[s][2] for s in setup.pairs}
     used[ref] = tuple(sorted(setup.used_markers, key=natural_key))
     return CalibrationResult(
-        reference_station=ref,
-        transforms=transforms,
-        residuals=marker_residuals(setup, R, t),
-        markers_used={s: used[s] for s in setup.stations},
-        markers_skipped=setup.skipped,
-        excluded_shots=setup.excluded,
-        samples=M,
-        weighting=weighting,
+        reference_station=ref, transforms=transforms, residuals=marker_residuals(setup, R, t),
+        markers_used={s: used[s] for s in setup.stations}, markers_skipped=setup.skipped,
+        excluded_shots=setup.excluded, samples=M, weighting=weighting,
         fit_checks=_fit_checks(setup, R, t, C, model),
-        extra_shot_sigma_m=(float(np.sqrt(extra[0])), float(np.sqrt(extra[1]))),
-        model=model,
-        levelling=_levelling_checks(setup, R, t, with_extra_variance(C, extra), instrument.sigma_tilt),
-    )
+        extra_shot_sigma_m=(float(np.sqrt(extra[0])), float(np.sqrt(extra[1]))), model=model,
+        levelling=_levelling_checks(setup, R, t, with_extra_variance(C, extra),
+                                    instrument.sigma_tilt))
 
 
 def gcp_atmospheric_correction(
     gcp: GcpShots, model: NoiseModel, weather: WeatherSeries | None, fallback_t: float
 ) -> GcpShots:
-    """GCP shots with the first-velocity correction applied to their distances.
-
-    The GCP distances need the same atmospheric correction as the tracking distances: at
-    100 m, the 5-10 ppm of a cold, high site is 0.5-1 mm of scale between stations, a bias of
-    the calibration that no covariance accounts for. Each shot takes the weather at its time
-    when that time lies inside the weather series, else the weather at ``fallback_t`` (the
-    start of tracking): a station whose clock was off (the GCP shots of station 1 in the
-    2022-11-10 data are months off) must not pick the weather of another season. Without
-    weather, the shots are returned unchanged (reference atmosphere, as for the tracks).
-    """
+    """``gcp`` with the first-velocity correction of ``model``'s instrument applied to its
+    distances, each at the ``weather`` of its time, or of ``fallback_t`` (s, the start of
+    tracking) outside the weather series (docs/noise-model.md#extrinsic-calibration);
+    unchanged without weather."""
     if weather is None:
         return gcp
     n = len(gcp.d)
@@ -482,13 +438,9 @@ def gcp_atmospheric_correction(
 def gcp_world_positions(
     gcp: GcpShots | None, transforms: dict[str, RigidTransform]
 ) -> tuple[np.ndarray | None, tuple[str, ...]]:
-    """World position of every ground control point, and the marker names.
-
-    Each valid shot (status 0) of a calibrated station is converted to Cartesian coordinates
-    (additive constant included) and mapped into the world frame by its station's transform;
-    a marker's position is the mean over its shots. Returns ``(None, ())`` without GCPs.
-    Markers are in natural order (``"2"`` before ``"10"``): by length, then by name.
-    """
+    """World position (G, 3), m, of every marker shot validly by a station of ``transforms``,
+    the mean over its shots, and the marker names in natural order (``"2"`` before ``"10"``);
+    ``(None, ())`` without GCPs."""
     if gcp is None or len(gcp) == 0:
         return None, ()
     ok = (np.asarray(gcp.status) == 0) & np.isin(gcp.station, list(transforms))

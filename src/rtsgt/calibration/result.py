@@ -30,16 +30,8 @@ CALIBRATION_WEIGHTING_NAMES = {"gls": "generalised least squares (full covarianc
 
 @dataclass(frozen=True)
 class MarkerResiduals:
-    """Inter-station residuals of the GCPs after calibration.
-
-    Attributes
-    ----------
-    marker : ndarray of str, shape (K,)
-    station_a, station_b : ndarray of str, shape (K,)
-        The two stations of each residual (``station_a`` sorts before ``station_b``).
-    distance_m : ndarray, shape (K,)
-        ``|T_world_a p_a - T_world_b p_b|``, m, world frame.
-    """
+    """Inter-station residuals of the GCPs after calibration, (K,) each: the marker, its two
+    stations (``station_a`` sorts first) and ``|T_world_a p_a - T_world_b p_b|``, m."""
 
     marker: np.ndarray
     station_a: np.ndarray
@@ -62,21 +54,10 @@ class MarkerResiduals:
 
 @dataclass(frozen=True)
 class FitCheck:
-    """What a station's GCP residuals say of the predicted covariance (docs/self-checks.md#gcp-fit).
-
-    Attributes
-    ----------
-    markers : int
-        Markers of the fit, K.
-    dof : int
-        ``3 K - 6``.
-    variance_factor : float
-        ``s0^2``, 1 if the instrument model is right (NaN without degrees of freedom).
-    axis_factors : ndarray, shape (3,)
-        The same per world axis x, y, z.
-    interval_95 : tuple of float
-        Where ``s0^2`` falls 95 % of the time if the model is right.
-    """
+    """A station's GCP residuals against their predicted covariance
+    (docs/self-checks.md#gcp-fit): K ``markers``, ``dof = 3 K - 6``, the ``variance_factor``
+    ``s0^2`` (1 if the model is right; NaN without dof), ``axis_factors`` (3,) per world axis
+    and the ``interval_95`` where ``s0^2`` falls 95 % of the time if the model is right."""
 
     markers: int
     dof: int
@@ -86,9 +67,7 @@ class FitCheck:
 
     @property
     def verdict(self) -> str:
-        """``consistent``, ``optimistic`` (residuals larger than predicted: the covariance is
-        too small), ``pessimistic``, or ``no redundancy`` (3 markers: no degrees of
-        freedom)."""
+        """:func:`rtsgt.stats.ratio_verdict`, or ``no redundancy`` (3 markers)."""
         if not self.dof > 0:
             return "no redundancy"
         return ratio_verdict(self.variance_factor, self.interval_95)
@@ -103,21 +82,10 @@ class FitCheck:
 
 @dataclass(frozen=True)
 class LevellingCheck:
-    """Whether a station's frame is levelled with the reference's (docs/noise-model.md#levelled-stations-4-dof): the tilt that a free rotation fits beyond the Earth's curvature, tested against
-    the fit's covariance and the compensators' errors.
-
-    Attributes
-    ----------
-    tilt_rad : ndarray, shape (2,)
-        The free fit's tilt about the world x and y axes minus the curvature's, rad.
-    sigma_rad : ndarray, shape (2,)
-        Its standard deviations (the generalised least-squares fit with the run's shot
-        covariance, variance components included, and ``2 sigma_tilt^2`` of the
-        compensators), rad.
-    chi2 : float
-        ``tilt^T Sigma^-1 tilt``, chi-square with 2 degrees of freedom if levelled.
-    p_value : float
-    """
+    """Whether a station's frame is levelled with the reference's
+    (docs/noise-model.md#levelled-stations-4-dof): the free fit's tilt about world x and y
+    beyond the curvature's, ``tilt_rad`` (2,), its ``sigma_rad`` (2,) (the fit's covariance and
+    ``2 sigma_tilt^2`` of the compensators), ``chi2`` (2 dof if levelled) and ``p_value``."""
 
     tilt_rad: np.ndarray
     sigma_rad: np.ndarray
@@ -133,45 +101,17 @@ class LevellingCheck:
 
 @dataclass(frozen=True)
 class DynamicFit:
-    """What the dynamic (or joint) fit found besides the transforms (docs/calibration.md).
+    """What the dynamic or joint fit found besides the transforms (docs/calibration.md).
 
-    Attributes
-    ----------
-    method : {"dynamic", "joint"}
-    engine : {"linear", "mc"}
-    samples : int
-        Sample times used.
-    rejected : int
-        Sample times left out (a pair residual beyond the gate).
-    pairs : tuple of str
-        The prism pairs, ``"a-b"``.
-    stations : tuple of str
-        The non-reference stations, in the order of ``covariance``.
-    clock_offset_s, clock_sigma_s : dict str -> float
-        Each non-reference station's clock offset relative to the reference's
-        (``e_s - e_ref``, ``e = t_true - t_stamped``) and its standard deviation, s.
-    covariance : ndarray
-        Joint covariance of the stations' left perturbations (6 each, in ``stations``' order)
-        and the clock offsets.
-    variance_factor : float
-        ``s0^2`` of the distance residuals (docs/calibration.md#self-checks).
-    dof : float
-        Its effective degrees of freedom.
-    interval_95 : (float, float)
-    pair_mean_mm, pair_rms_mm : dict str -> float
-        Mean and RMS of each pair's residual, mm (a mean far from 0: a surveyed distance the
-        tracking disagrees with).
-    worst_sigma_m : dict str -> float
-        Each station's largest standard deviation of its prism positions due to the
-        calibration (the observability check), m.
-    iterations : int
-        Levenberg-Marquardt iterations of the last solve.
-    height_margin : float
-        How much worse (``-2 log`` likelihood) the best fit with mirrored station heights is
-        (``inf``: none, or the joint fit, whose GCPs fix the heights).
-    shot_sigma_m : (float, float) or None
-        The joint fit's variance components of the GCP shots, horizontal and vertical, as
-        standard deviations, m (docs/calibration.md#the-joint-calibration); None for ``"dynamic"``.
+    ``samples``/``rejected``: sample times used / left out by the gate; ``pairs`` ``"a-b"``;
+    ``stations``: the non-reference ones, the order of ``covariance`` (their left
+    perturbations, 6 each, then the clock offsets); ``clock_offset_s``/``clock_sigma_s``:
+    ``e_s - e_ref`` (``e = t_true - t_stamped``) and its sigma, s; ``variance_factor``,
+    ``dof``, ``interval_95``: the distance residuals' check (docs/calibration.md#self-checks);
+    ``pair_mean_mm``/``pair_rms_mm`` per pair; ``worst_sigma_m``: the observability check's
+    sigma per station, m; ``iterations`` of the last solve; ``height_margin``: ``-2 log``
+    likelihood of the best mirrored-heights fit above the best (``inf``: none, or joint);
+    ``shot_sigma_m``: the joint fit's GCP variance components (horizontal, vertical), m.
     """
 
     method: str
@@ -195,7 +135,7 @@ class DynamicFit:
 
     @property
     def verdict(self) -> str:
-        """``consistent``, ``optimistic`` or ``pessimistic`` (:func:`rtsgt.stats.ratio_verdict`)."""
+        """:func:`rtsgt.stats.ratio_verdict` of the variance factor."""
         return ratio_verdict(self.variance_factor, self.interval_95)
 
     def as_dict(self) -> dict:
@@ -221,45 +161,15 @@ class DynamicFit:
 class CalibrationResult:
     """Extrinsic calibration of all stations into the reference station's frame.
 
-    Attributes
-    ----------
-    reference_station : str
-    transforms : dict str -> RigidTransform
-        ``T_world_station`` for every station (world = frame of the reference station; the
-        reference itself is the identity with zero covariance). Each carries ``covariance``
-        (6x6, left perturbation in the world frame, ordered x, y, z, rx, ry, rz; m^2, rad^2)
-        and the Monte Carlo samples ``samples_rotation`` (M, 3, 3) and
-        ``samples_translation`` (M, 3), or None for both when ``samples == 0``.
-    residuals : MarkerResiduals
-        For every marker and pair of stations, the distance between the two positions.
-    markers_used : dict str -> tuple of str
-        Markers used in the fit of each station (for the reference: those used by any fit).
-    markers_skipped : tuple of str
-        Markers left out because fewer than 2 stations shot them validly.
-    excluded_shots : int
-        Shots left out because their status was not 0.
-    samples : int
-        Number of Monte Carlo samples M (0: no uncertainty computed).
-    weighting : {"gls", "trace", "none"}
-        How the markers were weighted (docs/noise-model.md#weights-of-the-gcps).
-    fit_checks : dict str -> FitCheck
-        For every station but the reference, its residuals against their predicted
-        covariance (docs/self-checks.md#gcp-fit).
-    extra_shot_sigma_m : (float, float)
-        The variance components added to every shot, horizontal and vertical, as standard
-        deviations, m (docs/self-checks.md#variance-components-the-model-changed-where-the-check-fails; zeros when the residuals agree with the model).
-    model : {"6dof", "4dof"}
-        The model of each station's transform (docs/noise-model.md#levelled-stations-4-dof).
-    levelling : dict str -> LevellingCheck
-        For every station but the reference, whether the shots agree with a levelled frame
-        (whichever the model).
-    method : {"gcp", "dynamic", "joint"}
-        What the transforms were fitted to: the GCPs (this module), the robot's motion, or
-        both (:mod:`rtsgt.calibration.dynamic`; the GCP fields then hold the GCP fit's
-        checks, and are empty for ``"dynamic"``).
-    dynamic : DynamicFit or None
-        The dynamic or joint fit's own results (:class:`rtsgt.calibration.dynamic.DynamicFit`:
-        clock offsets, variance factor), None for ``"gcp"``.
+    ``transforms``: ``T_world_station`` per station (the reference: identity, zero
+    covariance), each with its 6x6 covariance (x, y, z, rx, ry, rz; m^2, rad^2) and M Monte
+    Carlo samples (None when ``samples == 0``); ``residuals`` per marker and station pair;
+    ``markers_used`` per station (the reference: any fit's); ``markers_skipped`` (shot validly
+    by fewer than 2 stations); ``excluded_shots`` (status not 0); ``weighting``,
+    ``fit_checks``, ``extra_shot_sigma_m`` (variance components, horizontal and vertical, m),
+    ``model`` and ``levelling`` of the GCP fit (docs/noise-model.md#extrinsic-calibration);
+    ``method`` "gcp", "dynamic" or "joint" and ``dynamic`` its :class:`DynamicFit` (None for
+    "gcp"; the GCP fields are empty for "dynamic").
     """
 
     reference_station: str

@@ -38,19 +38,9 @@ COLLINEARITY_FACTOR = 3.0
 def polar_point_covariance(
     hz: np.ndarray, v: np.ndarray, d: np.ndarray, instrument: InstrumentProfile
 ) -> np.ndarray:
-    """First-order covariance of station-frame points from instrument and tilt noise.
-
-    Parameters
-    ----------
-    hz, v, d : ndarray, shape (N,)
-        Clockwise direction (rad), zenith angle (rad), slope distance (m, constant applied).
-    instrument : InstrumentProfile
-
-    Returns
-    -------
-    ndarray, shape (N, 3, 3)
-        ``J S J^T``, m^2, station frame (docs/noise-model.md#weights-of-the-gcps).
-    """
+    """``J S J^T`` (N, 3, 3), m^2, station frame: the first-order covariance of the points of
+    polar shots ``hz``, ``v`` (rad), ``d`` (m, constant applied), (N,), under the
+    ``instrument``'s angle, tilt and distance noise (docs/noise-model.md#weights-of-the-gcps)."""
     sa2 = instrument.sigma_angle**2
     st2 = instrument.sigma_tilt**2
     cot = 1.0 / np.tan(v)

@@ -53,7 +53,6 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.errors import InputError
 from rtsgt.evaluation.associate import (
     REASON_FAR,
@@ -67,6 +66,7 @@ from rtsgt.interpolation import GPTrack
 from rtsgt.interpolation.cross import gp_cross_covariance
 from rtsgt.interpolation.prisms import PrismsAtTimes, fit_gps, gp_velocities, query_prisms
 from rtsgt.io.run_dir import read_any_run, read_run
+from rtsgt.noise.coupling import StationCoupling
 from rtsgt.options import RunOptions, stage_rng
 from rtsgt.pose import POSE_ENGINES, ReferencePoints, estimate_poses
 from rtsgt.pose.estimate import pose_jacobians

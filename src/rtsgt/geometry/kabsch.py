@@ -14,15 +14,9 @@ from rtsgt.errors import GeometryError
 
 def point_pairs(p_b: ArrayLike, q_a: ArrayLike, min_points: int = 0,
                 what: str = "A rigid fit") -> tuple[np.ndarray, np.ndarray]:
-    """The two point clouds of a fit as float arrays of the same shape (..., N, 3).
-
-    Raises
-    ------
-    ValueError
-        Shapes that differ or are not (..., N, 3).
-    GeometryError
-        Fewer than ``min_points`` points (the message starts with ``what``).
-    """
+    """The two point clouds of a fit as float arrays of the same shape (..., N, 3); raises
+    ValueError for other shapes, :class:`GeometryError` (starting ``what``) under
+    ``min_points`` points."""
     p = np.asarray(p_b, dtype=float)
     q = np.asarray(q_a, dtype=float)
     if p.shape != q.shape or p.shape[-1] != 3 or p.ndim < 2:
@@ -54,26 +48,10 @@ def _centred(p_b: ArrayLike, q_a: ArrayLike, weights: ArrayLike | None, min_poin
 def kabsch(
     p_b: ArrayLike, q_a: ArrayLike, weights: ArrayLike | None = None, *, check: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid transform ``T_a_b`` that maps points ``p_b`` onto ``q_a``.
-
-    Parameters
-    ----------
-    p_b : array_like, shape (..., N, 3)
-        Points in the source frame b.
-    q_a : array_like, shape (..., N, 3)
-        The same points in the target frame a.
-    weights : array_like, shape (..., N), optional
-        Non-negative weights (uniform when None).
-    check : bool
-        Raise :class:`GeometryError` when a batch element is degenerate (fewer than 3 points, or
-        the points are collinear so that the rotation is not determined).
-
-    Returns
-    -------
-    R_a_b : ndarray, shape (..., 3, 3)
-    t_a_b : ndarray, shape (..., 3)
-        With ``q_a ~= R_a_b @ p_b + t_a_b``.
-    """
+    """``R_a_b`` (..., 3, 3), ``t_a_b`` (..., 3) with ``q_a ~= R_a_b p_b + t_a_b`` in least
+    squares, for the same points ``p_b`` in frame b and ``q_a`` in frame a (..., N, 3),
+    ``weights`` (..., N) non-negative (None: uniform); ``check``: raise :class:`GeometryError`
+    for fewer than 3 points or (nearly) collinear ones."""
     w, pc, qc, p0, q0 = _centred(p_b, q_a, weights, 3, "A rigid fit")
     H = np.einsum("...i,...ij,...ik->...jk", w, p0, q0)  # cross-covariance, sum w p q^T
     U, S, Vt = np.linalg.svd(H)
@@ -96,26 +74,9 @@ def kabsch(
 def kabsch_yaw(
     p_b: ArrayLike, q_a: ArrayLike, weights: ArrayLike | None = None, *, check: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid transform ``T_a_b`` about z only (4 DOF) that maps points ``p_b`` onto ``q_a``
-    (module docstring).
-
-    Parameters
-    ----------
-    p_b, q_a : array_like, shape (..., N, 3)
-        The same points in the source frame b and the target frame a; both frames have z
-        along the same vertical.
-    weights : array_like, shape (..., N), optional
-        Non-negative weights (uniform when None).
-    check : bool
-        Raise :class:`GeometryError` when a batch element has no horizontal spread (the yaw
-        is not determined).
-
-    Returns
-    -------
-    R_a_b : ndarray, shape (..., 3, 3)
-        Rotations about z.
-    t_a_b : ndarray, shape (..., 3)
-    """
+    """As :func:`kabsch` with the rotation about z only (4 DOF; both frames share the
+    vertical), in closed form; ``check``: raise :class:`GeometryError` for points without
+    horizontal spread (the yaw undetermined)."""
     w, pc, qc, p0, q0 = _centred(p_b, q_a, weights, 2, "A 4-DOF fit")
     if check:
         spread = np.einsum("...i,...i->...", w, np.sum(p0[..., :2] ** 2, axis=-1))

@@ -11,16 +11,7 @@ from scipy.spatial.transform import Rotation
 
 
 def hat(phi: ArrayLike) -> np.ndarray:
-    """Skew-symmetric matrix ``[phi]x`` with ``[phi]x @ v == cross(phi, v)``.
-
-    Parameters
-    ----------
-    phi : array_like, shape (..., 3)
-
-    Returns
-    -------
-    ndarray, shape (..., 3, 3)
-    """
+    """Skew-symmetric ``[phi]x`` (..., 3, 3) of ``phi`` (..., 3): ``[phi]x v = phi x v``."""
     phi = np.asarray(phi, dtype=float)
     out = np.zeros(phi.shape[:-1] + (3, 3))
     out[..., 0, 1] = -phi[..., 2]
@@ -33,16 +24,7 @@ def hat(phi: ArrayLike) -> np.ndarray:
 
 
 def exp_so3(phi: ArrayLike) -> np.ndarray:
-    """Exponential map: rotation vector (rad) to rotation matrix (Rodrigues' formula).
-
-    Parameters
-    ----------
-    phi : array_like, shape (..., 3)
-
-    Returns
-    -------
-    ndarray, shape (..., 3, 3)
-    """
+    """Rotation matrices (..., 3, 3) of rotation vectors ``phi`` (..., 3), rad (Rodrigues)."""
     phi = np.asarray(phi, dtype=float)
     theta2 = np.einsum("...i,...i->...", phi, phi)
     theta = np.sqrt(theta2)
@@ -57,15 +39,7 @@ def exp_so3(phi: ArrayLike) -> np.ndarray:
 
 
 def log_so3(R: ArrayLike) -> np.ndarray:
-    """Logarithm map: rotation matrix to rotation vector (rad), angle in [0, pi].
-
-    Parameters
-    ----------
-    R : array_like, shape (..., 3, 3)
-
-    Returns
-    -------
-    ndarray, shape (..., 3)
+    """Rotation vectors (..., 3), rad, angle in [0, pi], of rotation matrices ``R`` (..., 3, 3).
     """
     R = np.asarray(R, dtype=float)
     shape = R.shape[:-2]

@@ -13,28 +13,12 @@ from numpy.typing import ArrayLike
 
 from rtsgt.geometry.so3 import exp_so3, hat, log_so3
 
-#: Names of the six pose-covariance components, in order.
-POSE_COVARIANCE_ORDER = ("x", "y", "z", "rx", "ry", "rz")
-
 
 def perturbation(
     R_mean: ArrayLike, t_mean: ArrayLike, R: ArrayLike, t: ArrayLike
 ) -> np.ndarray:
-    """Left perturbation ``xi = (t - t_mean, log(R R_mean^T))`` of samples about a mean.
-
-    Parameters
-    ----------
-    R_mean : array_like, shape (..., 3, 3)
-    t_mean : array_like, shape (..., 3)
-    R : array_like, shape (..., 3, 3)
-    t : array_like, shape (..., 3)
-        Broadcast against the mean.
-
-    Returns
-    -------
-    ndarray, shape (..., 6)
-        Ordered (x, y, z, rx, ry, rz).
-    """
+    """Left perturbation ``xi = (t - t_mean, log(R R_mean^T))`` (..., 6), ordered (x, y, z, rx,
+    ry, rz), of samples ``R`` (..., 3, 3), ``t`` (..., 3) about the mean (broadcast)."""
     R_mean = np.asarray(R_mean, dtype=float)
     R = np.asarray(R, dtype=float)
     dtheta = log_so3(R @ np.swapaxes(R_mean, -1, -2))
@@ -53,14 +37,8 @@ def perturb(
 
 
 def check_covariance(cov: ArrayLike, dim: int, name: str = "covariance", tol: float = 1e-9) -> np.ndarray:
-    """Validate a (batch of) symmetric positive semi-definite ``dim x dim`` covariance(s).
-
-    Raises
-    ------
-    ValueError
-        "Expected ..., got ..." for a wrong shape, non-finite values, asymmetry or a negative
-        eigenvalue (relative to the largest one).
-    """
+    """``cov`` (..., dim, dim) as floats; raises ValueError ("Expected ..., got ...") unless of
+    that shape, finite, symmetric and positive semi-definite to ``tol`` of its largest entry."""
     cov = np.asarray(cov, dtype=float)
     if cov.shape[-2:] != (dim, dim):
         raise ValueError(f"Expected {name} of shape (..., {dim}, {dim}), got {cov.shape}")
@@ -78,21 +56,11 @@ def check_covariance(cov: ArrayLike, dim: int, name: str = "covariance", tol: fl
 
 @dataclass(frozen=True)
 class RigidTransform:
-    """A rigid transform ``T_a_b`` (maps frame b into frame a), optionally with covariance.
-
-    Attributes
-    ----------
-    rotation : ndarray, shape (3, 3)
-        ``R_a_b``, a proper rotation.
-    translation : ndarray, shape (3,)
-        ``t_a_b`` in metres, frame a.
-    covariance : ndarray, shape (6, 6) or None
-        Left-perturbation covariance in frame a, ordered (x, y, z, rx, ry, rz), m^2 / rad^2.
-    frame_to, frame_from : str
-        Names of frames a and b (for messages and files).
-    samples_rotation, samples_translation : ndarray, shape (M, 3, 3) / (M, 3), optional
-        Monte Carlo samples of the transform, when it was estimated by sampling; the prism
-        Monte Carlo uses sample m for its sample m.
+    """A rigid transform ``T_a_b`` (maps frame b into frame a): ``rotation`` ``R_a_b`` (3, 3),
+    ``translation`` ``t_a_b`` (3,), m; ``covariance`` (6, 6) of the left perturbation in frame
+    a, (x, y, z, rx, ry, rz), m^2 / rad^2, or None; the frames' names ``frame_to`` (a) and
+    ``frame_from`` (b); Monte Carlo samples (M, 3, 3) / (M, 3) when it was sampled (the prism
+    Monte Carlo uses sample m for its sample m), docs/conventions.md#rigid-transforms-and-pose-covariance.
     """
 
     rotation: np.ndarray
@@ -145,19 +113,6 @@ class RigidTransform:
     def apply(self, p_b: ArrayLike) -> np.ndarray:
         """Map points ``p_b`` (..., 3) into frame a."""
         return np.asarray(p_b, dtype=float) @ self.rotation.T + self.translation
-
-    def apply_samples(self, p_b: ArrayLike) -> np.ndarray:
-        """Map points with every Monte Carlo sample: ``p_b`` (M, ..., 3) to (M, ..., 3)."""
-        if self.samples_rotation is None or self.samples_translation is None:
-            raise ValueError("This transform carries no Monte Carlo samples")
-        p = np.asarray(p_b, dtype=float)
-        M = self.samples_rotation.shape[0]
-        if p.shape[0] != M:
-            raise ValueError(f"Expected {M} sample sets along axis 0, got {p.shape[0]}")
-        extra = (1,) * (p.ndim - 2)
-        Rm = self.samples_rotation.reshape((M,) + extra + (3, 3))
-        tm = self.samples_translation.reshape((M,) + extra + (3,))
-        return np.einsum("...ij,...j->...i", Rm, p) + tm
 
     def inverse(self) -> RigidTransform:
         """``T_b_a``; the covariance is mapped to frame b by the adjoint (first order)."""

@@ -21,12 +21,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rtsgt.calibration.coupling import StationCoupling, joint_prism_covariance
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.interpolation.gp import GPTrack, fit_track
 from rtsgt.interpolation.loo import fit_qc_loo
 from rtsgt.interpolation.motion import fit_motion_prior, motion_events
 from rtsgt.interpolation.windows import window_score
+from rtsgt.noise.coupling import StationCoupling, joint_prism_covariance
 from rtsgt.noise.sources import (
     CORRELATED_NOISE_SOURCE,
     SYSTEMATIC_NOISE_SOURCES,

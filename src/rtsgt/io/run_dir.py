@@ -97,7 +97,6 @@ from pathlib import Path
 import numpy as np
 
 from rtsgt import __version__
-from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.checks.verdict import record_verdict
 from rtsgt.choices import CALIBRATION_METHODS, CALIBRATION_MODELS
 from rtsgt.errors import InputError, RtsgtWarning
@@ -120,6 +119,7 @@ from rtsgt.io.trajectory import (
     write_covariance_csv,
     write_tum,
 )
+from rtsgt.noise.coupling import StationCoupling
 from rtsgt.options import (
     CORRELATED_NOISE,
     GP_NOISE,
@@ -328,7 +328,7 @@ def run_summary(record: RunRecord | PositionRunRecord, inputs: dict | None = Non
         # world position of each GCP (m), for the figures and the report
         "gcp_world": {n: [float(v) for v in p]
                       for n, p in zip(record.gcp_names, _gcp_rows(record), strict=True)},
-        # correlation of the station calibrations (calibration.coupling.StationCoupling):
+        # correlation of the station calibrations (noise.coupling.StationCoupling):
         # origins m, cross-covariances of the left perturbations (x, y, z, rx, ry, rz)
         "coupling": record.coupling.to_dict() if record.coupling is not None else None,
     }

@@ -47,19 +47,8 @@ def _check_formula(formula: str) -> str:
 
 
 def group_refractivity(wavelength_um: ArrayLike) -> np.ndarray:
-    """Group refractivity ``N_gr`` of standard air (0 degC, 1013.25 hPa, 0.0375 % CO2, dry).
-
-    Parameters
-    ----------
-    wavelength_um : array_like
-        Carrier wavelength in micrometres (e.g. 0.658 for Leica's red EDM, 0.905 for the
-        Trimble S-series pulsed laser diode).
-
-    Returns
-    -------
-    ndarray
-        ``N_gr = (n_gr - 1) * 1e6`` (dimensionless).
-    """
+    """``N_gr = (n_gr - 1) 1e6`` of standard air ([IAG99-1]) at the carrier wavelength
+    ``wavelength_um``, um (0.658 Leica's red EDM, 0.905 Trimble's S series)."""
     lam = np.asarray(wavelength_um, dtype=float)
     _check("wavelength_um", lam, 0.0, lo_open=True)
     lam2 = lam * lam
@@ -70,16 +59,8 @@ def group_refractivity(wavelength_um: ArrayLike) -> np.ndarray:
 def saturation_vapour_pressure(
     temperature_c: ArrayLike, pressure_hpa: ArrayLike | None = None, formula: str = "magnus"
 ) -> np.ndarray:
-    """Saturation water-vapour pressure over water ``E_w``, hPa.
-
-    Parameters
-    ----------
-    temperature_c : array_like
-        Dry-bulb temperature, degC.
-    pressure_hpa : array_like, optional
-        Air pressure, hPa; required by ``formula="buck"`` (enhancement factor).
-    formula : {"magnus", "buck"}
-    """
+    """Saturation water-vapour pressure over water ``E_w``, hPa, at ``temperature_c`` degC by
+    the "magnus" or "buck" ``formula`` (the latter needs ``pressure_hpa``, hPa)."""
     f = _check_formula(formula)
     t = np.asarray(temperature_c, dtype=float)
     if f == "magnus":
@@ -110,17 +91,6 @@ def _saturation_and_derivatives(t, p, f):
     return E, dE_dt, dE_dp
 
 
-def water_vapour_pressure(
-    temperature_c: ArrayLike,
-    humidity_pct: ArrayLike,
-    pressure_hpa: ArrayLike | None = None,
-    formula: str = "magnus",
-) -> np.ndarray:
-    """Partial water-vapour pressure ``e = RH / 100 * E_w(t)``, hPa."""
-    rh = np.asarray(humidity_pct, dtype=float)
-    return rh / 100.0 * saturation_vapour_pressure(temperature_c, pressure_hpa, formula)
-
-
 def refractivity(
     temperature_c: ArrayLike,
     pressure_hpa: ArrayLike,
@@ -128,17 +98,8 @@ def refractivity(
     wavelength_um: ArrayLike,
     formula: str = "magnus",
 ) -> np.ndarray:
-    """Ambient group refractivity ``N_L = (n_L - 1) * 1e6`` of moist air ([IAG99-2]).
-
-    Parameters
-    ----------
-    temperature_c, pressure_hpa, humidity_pct : array_like, broadcastable
-        degC (> -273.15), hPa (> 0), % in [0, 100].
-    wavelength_um : array_like
-        EDM carrier wavelength, um.
-    formula : {"magnus", "buck"}
-        Saturation vapour pressure formula.
-    """
+    """``N_L = (n_L - 1) 1e6`` of moist air ([IAG99-2]) at degC (> -273.15), hPa (> 0) and
+    % RH in [0, 100] (broadcastable), the wavelength in um, the "magnus" or "buck" formula."""
     f = _check_formula(formula)
     t = np.asarray(temperature_c, dtype=float)
     p = np.asarray(pressure_hpa, dtype=float)
@@ -165,26 +126,10 @@ def correction_ppm(
     reference: tuple[float, float, float] = (12.0, 1013.25, 60.0),
     formula: str = "magnus",
 ) -> np.ndarray:
-    """First-velocity correction ``K`` (ppm) relative to an instrument's reference atmosphere.
-
-    Parameters
-    ----------
-    temperature_c, pressure_hpa, humidity_pct : array_like, broadcastable
-        Ambient conditions along the line of sight: degC, hPa (station pressure, not
-        sea-level), % relative humidity.
-    wavelength_um : float
-        EDM carrier wavelength, um.
-    reference : (float, float, float)
-        The instrument's zero-ppm temperature (degC), pressure (hPa) and humidity (%).
-        The default is Leica's 12 degC, 1013.25 hPa, 60 %; use :func:`instrument_correction_ppm`
-        to take them from an :class:`~rtsgt.measurement.instruments.InstrumentProfile`.
-    formula : {"magnus", "buck"}
-        Saturation vapour-pressure formula (used for the reference and the ambient air).
-
-    Returns
-    -------
-    ndarray
-        ``K`` in ppm; the corrected distance is ``D' (1 + 1e-6 K)`` ([R02-D]).
+    """First-velocity correction ``K``, ppm ([R02-K]; the distance becomes ``D' (1 + 1e-6 K)``),
+    at degC, station hPa and % RH along the line of sight (broadcastable), against the
+    ``reference`` (degC, hPa, %) of zero ppm (default Leica's; :func:`instrument_correction_ppm`
+    takes an instrument's), the same vapour ``formula`` for both (docs/noise-model.md#atmosphere).
     """
     f = _check_formula(formula)
     t_ref, p_ref, rh_ref = reference
@@ -203,21 +148,8 @@ def correction_ppm_gradient(
     reference: tuple[float, float, float] = (12.0, 1013.25, 60.0),
     formula: str = "magnus",
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Analytic partial derivatives of :func:`correction_ppm`.
-
-    With ``K = (N_REF - N_L) / (1 + 1e-6 N_L)``:
-    ``dK/dx = -(dN_L/dx) (1 + 1e-6 N_REF) / (1 + 1e-6 N_L)^2`` and, from [IAG99-2] with
-    ``T = t + 273.15``, ``D = 273.15 / 1013.25 N_gr`` and ``e = RH/100 E_w``:
-
-    - ``dN_L/dt = -D p / T^2 - 11.27 (de/dt) / T + 11.27 e / T^2``
-    - ``dN_L/dp = D / T - 11.27 (de/dp) / T`` (``de/dp`` is zero for Magnus)
-    - ``dN_L/dRH = -11.27 E_w / (100 T)``
-
-    Returns
-    -------
-    dK_dT, dK_dp, dK_dRH : ndarray
-        ppm per degC, ppm per hPa, ppm per % RH.
-    """
+    """Analytic partial derivatives of :func:`correction_ppm`, ppm per degC, per hPa and per % RH
+    (``dK/dx = -(dN_L/dx) (1 + 1e-6 N_REF) / (1 + 1e-6 N_L)^2`` through [IAG99-2])."""
     f = _check_formula(formula)
     t = np.asarray(temperature_c, dtype=float)
     p = np.asarray(pressure_hpa, dtype=float)
@@ -265,13 +197,8 @@ def instrument_correction_ppm(
     humidity_pct: ArrayLike,
     formula: str = "magnus",
 ) -> np.ndarray:
-    """:func:`correction_ppm` with the wavelength and reference atmosphere of ``profile``.
-
-    Parameters
-    ----------
-    profile : InstrumentProfile
-        Supplies ``wavelength_um`` and the reference (zero-ppm) atmosphere.
-    """
+    """:func:`correction_ppm` with the wavelength and reference atmosphere of ``profile``
+    (an :class:`~rtsgt.measurement.instruments.InstrumentProfile`)."""
     return correction_ppm(
         temperature_c, pressure_hpa, humidity_pct,
         wavelength_um=profile.wavelength_um, reference=reference_atmosphere(profile),

@@ -29,28 +29,14 @@ _DICT_OPTIONAL = ("description",)
 
 @dataclass(frozen=True)
 class InstrumentProfile:
-    """Accuracy and EDM parameters of a total station, as its datasheet gives them.
+    """Accuracy and EDM parameters of a total station, as its datasheet gives them
+    (docs/noise-model.md#instrument).
 
-    Attributes
-    ----------
-    name : str
-        Identifier used in configurations (lower case, e.g. ``"trimble-s7"``).
-    distance_constant_m : float
-        Constant part of the distance accuracy ``a`` in ``a + b ppm`` (m), for the mode used.
-    distance_ppm : float
-        Proportional part ``b`` (parts per million of the distance).
-    angle_rad : float
-        Accuracy of the horizontal direction and of the zenith angle (rad).
-    tilt_rad : float
-        Accuracy of the tilt (dual-axis) compensator (rad).
-    confidence_sigma : float
-        How many standard deviations the numbers above are quoted at (1 or 2).
-    wavelength_um : float
-        EDM carrier wavelength (micrometres), for the group refractive index.
-    reference_temperature_c, reference_pressure_hpa, reference_humidity_pct : float
-        Atmosphere at which the instrument's atmospheric correction is zero ppm.
-    description : str
-        Mode and datasheet the numbers come from.
+    ``name`` (lower case, e.g. ``"trimble-s7"``); the distance accuracy ``a + b ppm`` as
+    ``distance_constant_m`` (m) and ``distance_ppm``; ``angle_rad`` of the direction and zenith
+    angle and ``tilt_rad`` of the compensator; ``confidence_sigma``: how many sigmas those are
+    quoted at; ``wavelength_um`` of the EDM; the reference atmosphere of zero ppm (degC, hPa,
+    %); ``description``: the mode and datasheet.
     """
 
     name: str
@@ -70,45 +56,22 @@ class InstrumentProfile:
             val = getattr(self, f)
             if not np.isfinite(val) or val < 0:
                 raise InputError(f"Instrument {self.name!r}: expected {f} >= 0, got {val}")
-        if not self.confidence_sigma > 0:
-            raise InputError(
-                f"Instrument {self.name!r}: expected confidence_sigma > 0, got {self.confidence_sigma}"
-            )
-        if not self.wavelength_um > 0:
-            raise InputError(
-                f"Instrument {self.name!r}: expected wavelength_um > 0, got {self.wavelength_um}"
-            )
-        if not self.reference_temperature_c > -273.15:
-            raise InputError(
-                f"Instrument {self.name!r}: expected reference_temperature_c > -273.15, "
-                f"got {self.reference_temperature_c}"
-            )
-        if not self.reference_pressure_hpa > 0:
-            raise InputError(
-                f"Instrument {self.name!r}: expected reference_pressure_hpa > 0, "
-                f"got {self.reference_pressure_hpa}"
-            )
-        if not 0 <= self.reference_humidity_pct <= 100:
-            raise InputError(
-                f"Instrument {self.name!r}: expected reference_humidity_pct in [0, 100], "
-                f"got {self.reference_humidity_pct}"
-            )
+        for f, ok, bound in (
+            ("confidence_sigma", self.confidence_sigma > 0, "> 0"),
+            ("wavelength_um", self.wavelength_um > 0, "> 0"),
+            ("reference_temperature_c", self.reference_temperature_c > -273.15, "> -273.15"),
+            ("reference_pressure_hpa", self.reference_pressure_hpa > 0, "> 0"),
+            ("reference_humidity_pct", 0 <= self.reference_humidity_pct <= 100, "in [0, 100]"),
+        ):
+            if not ok:
+                raise InputError(f"Instrument {self.name!r}: expected {f} {bound}, "
+                                 f"got {getattr(self, f)}")
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> InstrumentProfile:
-        """A user-defined profile from a configuration table.
-
-        Keys (all required except ``description``): ``name``, ``distance_constant_mm``,
-        ``distance_ppm``, ``angle_arcsec``, ``tilt_arcsec``, ``confidence_sigma``,
-        ``wavelength_um``, ``reference_temperature_c``, ``reference_pressure_hpa``,
-        ``reference_humidity_pct``. Angles are in arc seconds and the distance constant in mm,
-        as on datasheets.
-
-        Raises
-        ------
-        ConfigError
-            Naming the missing or unknown keys, or a value that is not a number.
-        """
+        """A user-defined profile from a configuration table of the keys ``_DICT_REQUIRED``
+        (and ``description``), in datasheet units (mm, arc seconds); raises
+        :class:`ConfigError` naming a missing or unknown key or a value not a number."""
         if not isinstance(d, Mapping):
             raise ConfigError(f"Expected an instrument table (mapping), got {type(d).__name__}")
         missing = [k for k in _DICT_REQUIRED if k not in d]
@@ -271,19 +234,11 @@ def get_instrument(name: str) -> InstrumentProfile:
 
 
 def instrument_from_config(table: Mapping[str, Any]) -> InstrumentProfile:
-    """The profile an ``[instrument]`` configuration table describes.
-
-    - ``{"profile": "trimble-s7"}``: a built-in profile;
-    - ``{"profile": "trimble-s7", "angle_arcsec": 1.0, ...}``: a built-in profile with some
-      fields overridden (keys of :meth:`InstrumentProfile.from_dict`; the name becomes
-      ``"<profile>-custom"`` unless ``name`` is given);
-    - the full set of :meth:`InstrumentProfile.from_dict` keys: a user-defined profile.
-
-    Raises
-    ------
-    ConfigError
-        For an unknown profile name, missing or unknown keys.
-    """
+    """The profile an ``[instrument]`` table describes: ``profile`` alone, a built-in one; with
+    keys of :meth:`InstrumentProfile.from_dict`, it with those overridden (named
+    ``"<profile>-custom"`` unless ``name`` is given); without ``profile``, a user-defined one
+    (docs/file-formats.md#deployment-toml). Raises :class:`ConfigError` for an unknown
+    profile or key."""
     if not isinstance(table, Mapping):
         raise ConfigError(f"Expected an [instrument] table, got {type(table).__name__}")
     table = dict(table)

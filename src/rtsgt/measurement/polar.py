@@ -18,19 +18,9 @@ SIGHT_COMPONENTS = ("range", "horizontal", "vertical")
 
 
 def polar_to_cartesian(hz: ArrayLike, v: ArrayLike, d: ArrayLike) -> np.ndarray:
-    """Station-frame Cartesian coordinates of polar measurements.
-
-    Parameters
-    ----------
-    hz, v, d : array_like, broadcastable, rad / rad / m
-        Clockwise horizontal direction, zenith angle and slope distance (additive constant
-        already applied).
-
-    Returns
-    -------
-    ndarray, shape (..., 3)
-        ``(x, y, z)`` in metres, station frame.
-    """
+    """Station-frame ``(x, y, z)`` (..., 3), m, of polar measurements: clockwise horizontal
+    direction ``hz`` and zenith angle ``v``, rad, slope distance ``d``, m (additive constant
+    applied), broadcastable (docs/conventions.md#station-polar-convention)."""
     hz = np.asarray(hz, dtype=float)
     v = np.asarray(v, dtype=float)
     d = np.asarray(d, dtype=float)
@@ -49,13 +39,8 @@ def cartesian_to_polar(p: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 
 def polar_jacobian(hz: ArrayLike, v: ArrayLike, d: ArrayLike) -> np.ndarray:
-    """Jacobian of :func:`polar_to_cartesian` with respect to ``(hz, v, d)``.
-
-    Returns
-    -------
-    ndarray, shape (..., 3, 3)
-        ``J[..., i, j] = d p_i / d (hz, v, d)_j``.
-    """
+    """Jacobian (..., 3, 3) of :func:`polar_to_cartesian`: ``J[..., i, j] = d p_i / d (hz, v,
+    d)_j``."""
     hz, v, d = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (hz, v, d)))
     sh, ch, sv, cv = np.sin(hz), np.cos(hz), np.sin(v), np.cos(v)
     J = np.empty(hz.shape + (3, 3))
@@ -72,71 +57,27 @@ def polar_jacobian(hz: ArrayLike, v: ArrayLike, d: ArrayLike) -> np.ndarray:
 
 
 def survey_polar_to_cartesian(hz: ArrayLike, v: ArrayLike, d: ArrayLike) -> np.ndarray:
-    """Survey-frame Cartesian coordinates of manual shots (survey convention, module docstring).
-
-    ``x = d cos(hz) sin(v), y = -d sin(hz) sin(v), z = d cos(v)``, computed as
-    ``R_SURVEY_TRACKING @ polar_to_cartesian(hz, v, d)``.
-
-    Parameters
-    ----------
-    hz, v, d : array_like, broadcastable, rad / rad / m
-        Clockwise horizontal direction, zenith angle and slope distance.
-
-    Returns
-    -------
-    ndarray, shape (..., 3)
-        ``(x, y, z)`` in metres, survey frame.
-    """
+    """Survey-frame ``(x, y, z)`` (..., 3), m, of manual shots: ``x = d cos(hz) sin(v)``,
+    ``y = -d sin(hz) sin(v)``, ``z = d cos(v)`` (docs/conventions.md#station-polar-convention)."""
     return polar_to_cartesian(hz, v, d) @ R_SURVEY_TRACKING.T
 
 
 def cartesian_to_survey_polar(p: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Inverse of :func:`survey_polar_to_cartesian`: ``(hz in [0, 2pi), v in [0, pi], d)``.
-
-    Parameters
-    ----------
-    p : array_like, shape (..., 3)
-        Survey-frame points, m.
-
-    Returns
-    -------
-    hz, v, d : ndarray, shape (...)
-        Clockwise horizontal direction (rad), zenith angle (rad), distance (m).
-    """
+    """Inverse of :func:`survey_polar_to_cartesian`: ``(hz in [0, 2pi), v in [0, pi], d)`` of
+    survey-frame points ``p`` (..., 3), m."""
     return cartesian_to_polar(np.asarray(p, dtype=float) @ R_SURVEY_TRACKING)
 
 
 def survey_polar_jacobian(hz: ArrayLike, v: ArrayLike, d: ArrayLike) -> np.ndarray:
-    """Jacobian of :func:`survey_polar_to_cartesian` with respect to ``(hz, v, d)``.
-
-    Returns
-    -------
-    ndarray, shape (..., 3, 3)
-        ``J[..., i, j] = d p_i / d (hz, v, d)_j``, survey frame.
-    """
+    """Jacobian (..., 3, 3) of :func:`survey_polar_to_cartesian` in ``(hz, v, d)``."""
     return R_SURVEY_TRACKING @ polar_jacobian(hz, v, d)
 
 
 def sight_frames(xyz: ArrayLike, station: ArrayLike) -> np.ndarray:
-    """Rows (N, 3, 3): the line of sight ``u`` from ``station`` to each point of ``xyz``
-    (N, 3) and two unit vectors across it, horizontal ``h = z x u`` (normalised) and vertical
-    ``u x h``: each measurement's own frame, the rows named by :data:`SIGHT_COMPONENTS`.
-    The two across the line of sight are the directions of a horizontal-angle and a
-    zenith-angle error (up to sign) of a levelled station, so a first-order instrument
-    covariance is diagonal in it.
-
-    Parameters
-    ----------
-    xyz : array_like, shape (N, 3)
-        Measured points, m.
-    station : array_like, shape (3,)
-        The station's position in the same frame, m.
-
-    Returns
-    -------
-    ndarray, shape (N, 3, 3)
-        ``E[i]``: rows ``u``, ``h``, ``u x h`` at point ``i``.
-    """
+    """Each measurement's own frame (N, 3, 3), rows named by :data:`SIGHT_COMPONENTS`: the line
+    of sight ``u`` from ``station`` (3,) to each point of ``xyz`` (N, 3), m, the horizontal
+    ``h = z x u`` (normalised) and the vertical ``u x h`` across it (the directions of a
+    horizontal- and a zenith-angle error of a levelled station)."""
     u = np.asarray(xyz, dtype=float) - np.asarray(station, dtype=float)
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     h = np.cross([0.0, 0.0, 1.0], u)

@@ -34,24 +34,9 @@ def _first_bad(mask: np.ndarray):
 
 
 def dms_to_rad(d: ArrayLike, m: ArrayLike = 0.0, s: ArrayLike = 0.0) -> np.ndarray:
-    """Degrees, minutes, seconds to radians, with robust sign handling.
-
-    Parameters
-    ----------
-    d, m, s : array_like, broadcastable
-        Degrees, minutes and seconds. The angle is negative when any of them is negative,
-        including ``d = -0.0``; the magnitudes ``|d| + |m|/60 + |s|/3600`` are summed.
-
-    Returns
-    -------
-    ndarray
-        Angle in radians, the broadcast shape of the inputs.
-
-    Raises
-    ------
-    InputError
-        Non-finite values, or minutes / seconds outside ``[0, 60)`` (in magnitude), naming the
-        first offending value and index.
+    """Degrees ``d``, minutes ``m``, seconds ``s`` (broadcastable) to radians: negative when any
+    is (``d = -0.0`` included), ``|d| + |m|/60 + |s|/3600`` in magnitude. Raises
+    :class:`InputError` naming the first non-finite value or minutes/seconds outside [0, 60).
     """
     d, m, s = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (d, m, s)))
     for name, a in (("degrees", d), ("minutes", m), ("seconds", s)):
@@ -70,22 +55,9 @@ def dms_to_rad(d: ArrayLike, m: ArrayLike = 0.0, s: ArrayLike = 0.0) -> np.ndarr
 
 
 def rad_to_dms(a: ArrayLike, decimals: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Radians to ``(d, m, s)`` with the sign carried by ``d`` (``-0.0`` when ``|a| < 1 deg``).
-
-    Parameters
-    ----------
-    a : array_like
-        Angle, rad.
-    decimals : int, optional
-        Round the seconds to this many decimals first, carrying 60 s into the minutes and
-        60 min into the degrees (so that ``59.99996"`` never prints as ``60.0000"``).
-
-    Returns
-    -------
-    d, m, s : ndarray
-        Whole degrees (float, signed), whole minutes and seconds (non-negative).
-        ``dms_to_rad(*rad_to_dms(a))`` returns ``a``.
-    """
+    """Radians ``a`` to whole degrees ``d`` (signed, ``-0.0`` under one degree), whole minutes
+    and seconds (non-negative), the seconds first rounded to ``decimals`` with the carries
+    (``59.99996"`` never prints as ``60.0000"``); ``dms_to_rad(*rad_to_dms(a))`` is ``a``."""
     a = np.asarray(a, dtype=float)
     negative = np.signbit(a)
     total_s = np.abs(a) / ARCSEC
@@ -147,17 +119,8 @@ def _parse_one_dms(text: str, index) -> float:
 
 
 def parse_dms(text: str | ArrayLike) -> np.ndarray | float:
-    """Parse DMS strings to radians (see the module docstring for the accepted forms).
-
-    Parameters
-    ----------
-    text : str or array_like of str
-
-    Returns
-    -------
-    float or ndarray
-        Radians, same shape as ``text``.
-    """
+    """Radians of DMS strings ``text`` (a str, or array_like of them: the same shape), in the
+    forms of docs/conventions.md#units."""
     if isinstance(text, str):
         return _parse_one_dms(text, 0)
     arr = np.asarray(text, dtype=object)
@@ -186,15 +149,8 @@ def format_dms(a: ArrayLike, decimals: int = 1) -> np.ndarray | str:
 
 
 def to_radians(value, unit: str) -> np.ndarray:
-    """Convert angles in ``unit`` to radians.
-
-    Parameters
-    ----------
-    value : array_like
-        For ``"dms"``: strings (see :func:`parse_dms`) or numbers of shape (..., 3) holding
-        ``(d, m, s)``; otherwise numbers.
-    unit : {"rad", "deg", "arcsec", "gon", "mgon", "dms"}
-    """
+    """Angles ``value`` in ``unit`` ("rad", "deg", "arcsec", "gon", "mgon" or "dms": strings
+    or (..., 3) numbers ``(d, m, s)``) to radians."""
     unit = unit.lower()
     if unit == "dms":
         arr = np.asarray(value)

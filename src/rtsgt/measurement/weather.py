@@ -31,28 +31,12 @@ def _duration(seconds: float) -> str:
 
 
 def weather_coverage(weather, t) -> dict:
-    """How well a weather record covers the times of the measurements that use it.
-
-    See the module docstring for the rule (a time is covered when a record lies within one
-    sampling interval, the median spacing of the records, of it).
-
-    Parameters
-    ----------
-    weather : rtsgt.types.WeatherSeries
-        Its ``t`` (s) and ``source`` are read.
-    t : array_like, shape (M,)
-        Measurement times, s (Unix, UTC); non-finite ones are ignored.
-
-    Returns
-    -------
-    dict
-        JSON-ready: ``file`` (the series' source), ``records``, ``first_t_s``, ``last_t_s``
-        and the same as UTC text (``first_utc``, ``last_utc``), ``sampling_interval_s``
-        (None for a single record), ``measurements``, ``measurements_first_t_s``,
-        ``measurements_last_t_s``, ``before_first_s`` and ``after_last_s`` (how far the
-        earliest measurement lies before the first record and the latest after the last one,
-        s, 0 when inside), ``max_distance_to_record_s`` (s), ``uncovered_measurements`` and
-        ``covered``.
+    """How well a weather record (a :class:`~rtsgt.types.WeatherSeries`) covers the finite
+    measurement times ``t`` (M,), s (Unix): a time is covered with a record within the median
+    spacing of the records (the module docstring). JSON-ready: the record's ``file``,
+    ``records``, span (s and UTC text) and ``sampling_interval_s``; the measurements' count and
+    span, ``before_first_s``/``after_last_s`` outside the record, ``max_distance_to_record_s``,
+    ``uncovered_measurements`` and ``covered``.
     """
     tw = np.asarray(weather.t, dtype=float)
     t = np.asarray(t, dtype=float).ravel()

@@ -28,19 +28,8 @@ def frobenius_norm_mm(cov: ArrayLike) -> np.ndarray:
 
 
 def source_norms_mm(track, *, total: bool = True) -> dict[str, np.ndarray]:
-    """``sqrt(||Sigma_s||_F)`` (mm) of every source of a track, alone; plus ``"total"``.
-
-    Parameters
-    ----------
-    track : PrismTrack
-        With ``cov_by_source`` (from :func:`rtsgt.noise.propagate`).
-    total : bool
-        Also return the norm of the total covariance under the key ``"total"``.
-
-    Returns
-    -------
-    dict str -> ndarray, shape (N,)
-    """
+    """``sqrt(||Sigma_s||_F)`` (N,), mm, of every source of a track (its ``cov_by_source``)
+    alone, plus the total's under ``"total"`` when ``total``."""
     out = {s: frobenius_norm_mm(c) for s, c in track.cov_by_source.items()}
     if total:
         out["total"] = frobenius_norm_mm(track.cov)
@@ -50,16 +39,9 @@ def source_norms_mm(track, *, total: bool = True) -> dict[str, np.ndarray]:
 def authors_source_norms_mm(
     obs, model, *, base: str = "instrument", **propagate_kwargs
 ) -> dict[str, np.ndarray]:
-    """The authors' variant: ``sqrt(||Sigma_(base + s) - Sigma_base||_F)`` (mm) per source.
-
-    Runs :func:`rtsgt.noise.propagate` once with ``base`` alone and once with ``base`` and
-    each other source of ``model.sources``; the ``base`` entry is ``sqrt(||Sigma_base||_F)``.
-    The keyword arguments (engine, samples, rng, T_world_station, weather, ...) are passed on.
-
-    Returns
-    -------
-    dict str -> ndarray, shape (N,)
-    """
+    """The authors' variant, ``sqrt(||Sigma_(base + s) - Sigma_base||_F)`` (N,), mm, per source
+    of ``model`` (``base`` alone: ``sqrt(||Sigma_base||_F)``), by :func:`rtsgt.noise.propagate`
+    with ``propagate_kwargs``."""
 
     if base not in model.sources:
         raise InputError(f"The base source {base!r} is not in the model's sources {model.sources}")
@@ -75,19 +57,9 @@ def authors_source_norms_mm(
 
 @dataclass(frozen=True)
 class RangeBins:
-    """Medians of a per-measurement quantity in range bins.
-
-    Attributes
-    ----------
-    edges : ndarray, shape (K + 1,)
-        Bin edges, m; bin k is ``[edges[k], edges[k + 1])``.
-    median : ndarray, shape (K,)
-        Median per bin (NaN for an empty bin).
-    count : ndarray of int, shape (K,)
-    overall_median : float
-        Median over all finite values.
-    overall_count : int
-    """
+    """Medians of a per-measurement quantity in range bins: bin k is ``[edges[k], edges[k+1])``
+    (K + 1 edges, m), its ``median`` (NaN if empty) and ``count`` (K,), and the median and
+    count of all finite values."""
 
     edges: np.ndarray
     median: np.ndarray
@@ -118,21 +90,9 @@ def bin_by_range(
     range_m: ArrayLike,
     edges: Sequence[float] = PAPER_RANGE_EDGES,
 ) -> RangeBins | dict[str, RangeBins]:
-    """Medians and counts of ``values`` per range bin (default: the paper's 0/75/150/inf m).
-
-    Parameters
-    ----------
-    values : array_like, shape (N,), or mapping str -> array_like (N,)
-        E.g. the output of :func:`source_norms_mm`; a mapping gives a mapping of results.
-    range_m : array_like, shape (N,)
-        Range of each measurement, m (``PrismTrack.range_m``).
-    edges : sequence of float
-        Increasing bin edges, m; bins are ``[edges[k], edges[k + 1])``.
-
-    Returns
-    -------
-    RangeBins, or dict str -> RangeBins
-    """
+    """:class:`RangeBins` of ``values`` (N,) (a mapping of them gives a mapping) by the range
+    ``range_m`` (N,), m, of each measurement; increasing ``edges``, m (default the paper's
+    0/75/150/inf m)."""
     if isinstance(values, Mapping):
         return {k: bin_by_range(v, range_m, edges) for k, v in values.items()}
     v = np.asarray(values, dtype=float)

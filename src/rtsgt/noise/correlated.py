@@ -25,23 +25,9 @@ CORRELATED = "optimistic"
 
 
 def independence_factor(f: ArrayLike, tau: ArrayLike, dt: ArrayLike) -> np.ndarray:
-    """The variance of a long average of white plus Gauss-Markov noise over that of white
-    noise of the same variance (module docstring).
-
-    Parameters
-    ----------
-    f : array_like
-        Correlated share of the variance, in [0, 1).
-    tau : array_like
-        Correlation time, s (> 0).
-    dt : array_like
-        Interval between measurements, s (> 0).
-
-    Returns
-    -------
-    ndarray
-        ``k = (1 - f) + f (1 + rho) / (1 - rho)``, ``rho = exp(-dt / tau)``: at least 1.
-    """
+    """``k = (1 - f) + f (1 + rho) / (1 - rho)``, ``rho = exp(-dt / tau)`` (>= 1): the variance
+    of a long average of white plus Gauss-Markov noise (correlated share ``f`` in [0, 1),
+    correlation time ``tau`` > 0, s) over that of white noise, measurements every ``dt`` s."""
     f = np.asarray(f, dtype=float)
     x = np.asarray(dt, dtype=float) / np.asarray(tau, dtype=float)
     return (1.0 - f) + f * (1.0 + np.exp(-x)) / -np.expm1(-x)
@@ -49,26 +35,14 @@ def independence_factor(f: ArrayLike, tau: ArrayLike, dt: ArrayLike) -> np.ndarr
 
 def correlated_noise_plan(static_check: Mapping[str, Any], tracks: Mapping[str, PrismTrack],
                           *, apply: bool) -> dict[str, Any]:
-    """Which prisms and components to inflate, by how much (JSON-ready).
+    """Which prisms and components to inflate, by how much (JSON-ready), from the run's
+    static-stretch check (:func:`rtsgt.checks.static_noise_check`) and the ``tracks`` (their
+    median interval is ``dt``); ``apply`` False gives the factors without applying them.
 
-    Parameters
-    ----------
-    static_check : mapping
-        The static-stretch check of the run (:func:`rtsgt.checks.static_noise_check`).
-    tracks : mapping str -> PrismTrack
-        The tracks to be inflated (their median measurement interval is ``dt``).
-    apply : bool
-        Whether the run inflates (``correlated_noise = "inflate"``); with False the factors
-        are given for comparison and nothing is applied.
-
-    Returns
-    -------
-    dict
-        ``mode`` (``"inflate"`` or ``"ignore"``), ``applied`` (any component inflated),
-        ``prisms``: per prism the check has, ``median_interval_s`` and per component
-        ``verdict`` (the check's correlation verdict), ``correlated_fraction``,
-        ``correlation_time_s``, ``rho``, ``factor`` (1 where not correlated) and
-        ``applied``; ``note`` where no prism has a result.
+    Returns ``mode`` ("inflate" or "ignore"), ``applied``, and per prism the
+    ``median_interval_s`` and per component the check's ``verdict``, ``correlated_fraction``,
+    ``correlation_time_s``, ``rho``, ``factor`` (1 where not correlated) and ``applied``;
+    ``note`` where no prism has a result.
     """
     out: dict[str, Any] = {"mode": "inflate" if apply else "ignore", "applied": False,
                            "prisms": {}}
@@ -95,25 +69,10 @@ def correlated_noise_plan(static_check: Mapping[str, Any], tracks: Mapping[str, 
 
 def inflate_tracks(tracks: Mapping[str, PrismTrack], stations: Mapping[str, ArrayLike],
                    plan: Mapping[str, Any]) -> dict[str, PrismTrack]:
-    """The tracks with the white covariance of the planned components inflated (module
-    docstring).
-
-    Parameters
-    ----------
-    tracks : mapping str -> PrismTrack
-        World-frame tracks with their station and per-source covariances.
-    stations : mapping str -> array_like (3,)
-        Station positions (world frame), m.
-    plan : mapping
-        :func:`correlated_noise_plan`.
-
-    Returns
-    -------
-    dict str -> PrismTrack
-        The same tracks (the same objects where nothing is applied); the others with the
-        covariance the inflation adds to their white sources, ``A W A - W``, as the source
-        ``correlated_noise`` (:data:`~rtsgt.types.CORRELATED_NOISE_SOURCE`,
-        given to the GP with the white sources) and in the total covariance.
+    """The world-frame ``tracks`` with the white covariance of the ``plan``'s components
+    inflated in the sight frame from their ``stations`` (world, m): the added ``A W A - W`` in
+    the total and as the source :data:`~rtsgt.noise.sources.CORRELATED_NOISE_SOURCE`; tracks
+    left alone are the same objects.
     """
     out = dict(tracks)
     for pid, prism in plan.get("prisms", {}).items():

@@ -23,26 +23,13 @@ __all__ = ["NOISE_SOURCES", "NoiseModel", "prism_velocity", "check_strictly_incr
 
 @dataclass(frozen=True)
 class NoiseModel:
-    """Which noise sources to propagate, and their parameters.
+    """Which noise sources to propagate, and their parameters (docs/noise-model.md).
 
-    Attributes
-    ----------
-    instrument : InstrumentProfile
-        Accuracy of the total station (distance, angles, compensator) and its EDM reference
-        atmosphere.
-    sources : tuple of str
-        Subset of :data:`rtsgt.types.NOISE_SOURCES` (``"instrument"``, ``"tilt"``,
-        ``"atmosphere"``, ``"time_sync"``, ``"calibration"``), kept in that order.
-    time_sync_mean_s, time_sync_std_s : float
-        Mean and standard deviation of the magnitude of the clock error, s (the authors'
-        values; the paper rounds them to 1.2 ms and 0.8 ms). See the module docstring for the
-        random sign.
-    temperature_halfwidth_c, pressure_halfwidth_hpa, humidity_halfwidth_pct : float
-        Half-widths of the zero-mean uniform errors of the weather, degC, hPa, %.
-    vapour_formula : {"magnus", "buck"}
-        Saturation vapour-pressure formula of the atmospheric correction.
-    max_velocity_gap_s : float
-        The velocity is differenced only across gaps of at most this many seconds.
+    ``instrument``: the station's accuracies and EDM reference atmosphere; ``sources``: a
+    subset of :data:`rtsgt.noise.sources.NOISE_SOURCES`, kept in its order;
+    ``time_sync_mean_s``, ``time_sync_std_s``: of the clock error's magnitude, s (the authors'
+    values); the weather errors' uniform half-widths, degC, hPa, %; the ``vapour_formula``
+    "magnus" or "buck"; ``max_velocity_gap_s``: the longest gap a velocity differences, s.
     """
 
     instrument: InstrumentProfile
@@ -130,34 +117,11 @@ def check_strictly_increasing(t: np.ndarray, source: str | None = None) -> None:
 def prism_velocity(
     t: ArrayLike, xyz: ArrayLike, max_gap_s: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Velocity of a prism by differencing consecutive positions, never across long gaps.
-
-    For measurement ``i`` with neighbours at gaps ``dt- = t_i - t_{i-1}`` and
-    ``dt+ = t_{i+1} - t_i``:
-
-    - both gaps ``<= max_gap_s``: central difference ``(p_{i+1} - p_{i-1}) / (dt- + dt+)``;
-    - only one: the one-sided difference over it;
-    - none (an isolated measurement): invalid, ``v = 0``.
-
-    Parameters
-    ----------
-    t : array_like, shape (N,)
-        Times, s, strictly increasing.
-    xyz : array_like, shape (N, 3)
-        Positions, m (any frame; the velocity is in the same frame).
-    max_gap_s : float
-        Largest gap, s, a difference may span.
-
-    Returns
-    -------
-    v : ndarray, shape (N, 3)
-        Velocity, m/s; zero where invalid.
-    valid : ndarray of bool, shape (N,)
-
-    Raises
-    ------
-    InputError
-        For shapes that do not match, non-finite or non-increasing times.
+    """Velocity (N, 3), m/s, of a prism at times ``t`` (N,), s, strictly increasing, from its
+    positions ``xyz`` (N, 3), m (any frame): central differences, one-sided at a block's end,
+    never across a gap over ``max_gap_s``; and ``valid`` (N,) (False, ``v = 0``: isolated)
+    (docs/noise-model.md#time-synchronisation). Raises :class:`InputError` for bad shapes or
+    times.
     """
     t = np.asarray(t, dtype=float)
     p = np.asarray(xyz, dtype=float)

@@ -15,8 +15,13 @@ import numpy as np
 
 from rtsgt.errors import InputError
 from rtsgt.geometry.so3 import exp_so3
-from rtsgt.measurement.atmosphere import KELVIN, P0_HPA, WATER_VAPOUR_COEFF, group_refractivity
-from rtsgt.measurement.atmosphere import refractivity as _refractivity_checked
+from rtsgt.measurement.atmosphere import (
+    KELVIN,
+    P0_HPA,
+    WATER_VAPOUR_COEFF,
+    group_refractivity,
+    refractivity,
+)
 from rtsgt.noise.model import NoiseModel, Nominal
 
 #: Target number of measurement-samples per chunk (n * M); the workspace holds 28 arrays of
@@ -32,16 +37,8 @@ _LN10 = np.log(10.0)
 
 
 def sample_gaussian(cov: np.ndarray, n_samples: int, rng: np.random.Generator) -> np.ndarray:
-    """Draw ``n_samples`` zero-mean Gaussian vectors with covariance ``cov`` (k, k).
-
-    Uses the symmetric square root ``V sqrt(w)`` of ``cov = V diag(w) V^T`` (the *columns* of
-    ``V`` are the eigenvectors; pitfall 1 of docs/noise-model.md#reference-code-pitfalls),
-    so positive semi-definite (singular) covariances are fine.
-
-    Returns
-    -------
-    ndarray, shape (n_samples, k)
-    """
+    """(n_samples, k) zero-mean Gaussian draws of covariance ``cov`` (k, k), positive
+    semi-definite, by its symmetric square root (docs/noise-model.md#reference-code-pitfalls)."""
     cov = np.asarray(cov, dtype=float)
     w, V = np.linalg.eigh(0.5 * (cov + cov.T))
     L = V * np.sqrt(np.clip(w, 0.0, None))[None, :]
@@ -52,19 +49,11 @@ def sample_gaussian(cov: np.ndarray, n_samples: int, rng: np.random.Generator) -
 def transform_samples(
     T_world_station, n_samples: int, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """The ``n_samples`` transform samples the calibration source uses, or None.
-
-    - With Monte Carlo samples on the transform: its first ``n_samples`` (sample m of the GCP
-      Monte Carlo is used by sample m of every measurement);
-    - else with a 6x6 covariance: ``R_m = exp([dtheta_m]x) R``, ``t_m = t + dt_m`` with
-      ``(dt_m, dtheta_m)`` drawn from the covariance (left perturbation, world frame);
-    - else (or no transform): None (no calibration uncertainty).
-
-    Raises
-    ------
-    InputError
-        When the transform carries fewer samples than ``n_samples``.
-    """
+    """The ``n_samples`` transform samples ``(R (M, 3, 3), t (M, 3))`` of the calibration
+    source: the transform's own first ones (sample m of every measurement uses sample m), else
+    drawn from its 6x6 covariance (left perturbation), else None
+    (docs/noise-model.md#extrinsic-calibration). Raises :class:`InputError` when it carries
+    fewer than ``n_samples``."""
     if T_world_station is None:
         return None
     Rs = T_world_station.samples_rotation
@@ -91,22 +80,9 @@ def transform_samples(
 def calibration_covariance_from_samples(
     p_station: np.ndarray, Rs: np.ndarray, ts: np.ndarray
 ) -> np.ndarray:
-    """Sample covariance of ``R_m p + t_m`` over the transform samples, for every point.
-
-    Parameters
-    ----------
-    p_station : ndarray, shape (N, 3)
-        Station-frame points ``p``.
-    Rs, ts : ndarray, shapes (M, 3, 3), (M, 3)
-        Transform samples.
-
-    Returns
-    -------
-    ndarray, shape (N, 3, 3)
-        Identical to the sample covariance (ddof = 1) of the M points ``R_m p + t_m``: the map
-        is linear in ``(vec R_m, t_m)``, so it is ``A(p) C A(p)^T`` with ``C`` their 12x12
-        sample covariance.
-    """
+    """(N, 3, 3) sample covariance (ddof 1) of ``R_m p + t_m`` over the samples ``Rs``
+    (M, 3, 3), ``ts`` (M, 3) for each point ``p_station`` (N, 3): ``A(p) C A(p)^T`` with ``C``
+    the 12x12 sample covariance of ``(vec R_m, t_m)``, the map being linear in them."""
     M = Rs.shape[0]
     X = np.concatenate([Rs.reshape(M, 9), ts], axis=1)
     X = X - X.mean(axis=0)
@@ -380,7 +356,7 @@ def _atmosphere_constants(model: NoiseModel) -> tuple[float, float]:
     :mod:`rtsgt.measurement.atmosphere` (the constants :func:`_alpha_samples` takes)."""
     prof = model.instrument
     n_gr = float(group_refractivity(prof.wavelength_um))
-    n_ref = float(_refractivity_checked(
+    n_ref = float(refractivity(
         prof.reference_temperature_c, prof.reference_pressure_hpa, prof.reference_humidity_pct,
         prof.wavelength_um, model.vapour_formula,
     ))
@@ -388,19 +364,10 @@ def _atmosphere_constants(model: NoiseModel) -> tuple[float, float]:
 
 
 def _alpha_samples(ws: _Workspace, ch: _Chunk, n_gr: float, n_ref: float):
-    """``alpha = 1e-6 K`` at the perturbed weather into ``ws.u1`` ([R02-K] of atmosphere.py).
-
-    ``ws.u0``, ``ws.u1``, ``ws.u2`` hold U[0, 1) draws for temperature, pressure, humidity;
-    they are overwritten. Returns ``ws.u1``.
-
-    The formulas of :func:`rtsgt.measurement.atmosphere.correction_ppm` ([MAG] / [BUCK],
-    [IAG99-2], [R02-K]) evaluated in place in the workspace and in the working dtype: calling
-    atmosphere.py's allocating float64 functions instead makes the engine 30 to 58 % (float32)
-    and 14 % (float64) slower. tests/test_noise_engines.py pins this copy to
-    :func:`~rtsgt.measurement.atmosphere.instrument_correction_ppm` at the same perturbed
-    weather (both vapour formulas, several weathers and wavelengths) to the rounding of the
-    working dtype.
-    """
+    """``alpha = 1e-6 K`` at the perturbed weather into ``ws.u1`` (returned), from the U[0, 1)
+    draws of temperature, pressure, humidity in ``ws.u0``, ``ws.u1``, ``ws.u2`` (overwritten):
+    :func:`rtsgt.measurement.atmosphere.correction_ppm` in place, in the working dtype
+    (docs/noise-model.md#monte-carlo)."""
     dt = ws.dtype
     model = ch.model
     t, p, rh, E = ws.u0, ws.u1, ws.u2, ws.a
@@ -782,33 +749,14 @@ def mc_covariances(
     workers: int = 1,
     dtype=np.float64,
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """World-frame total and per-source covariances by Monte Carlo.
+    """World-frame covariances (N, 3, 3) by Monte Carlo: the total and, per source of
+    ``model.sources``, that source alone (docs/noise-model.md#monte-carlo).
 
-    Parameters
-    ----------
-    nom : Nominal
-        From :func:`rtsgt.noise.model.prepare_nominal`.
-    model : NoiseModel
-    T_world_station : RigidTransform, optional
-        Supplies the calibration samples (see :func:`transform_samples`).
-    samples : int
-        M >= 2, samples per measurement.
-    rng : numpy.random.Generator
-    chunk_size : int, optional
-        Measurements per chunk; default ``max(1, CHUNK_ELEMENTS // M)``.
-    workers : int
-        Threads processing chunks in parallel (numpy releases the GIL); the result does not
-        depend on it.
-    dtype : {numpy.float64, numpy.float32}
-        Working precision of the sampled *displacements* (the model is evaluated as exact
-        displacements from the nominal point, so float32 loses nothing at the 1e-7 relative
-        level and is about twice as fast). Covariances are returned in float64.
-
-    Returns
-    -------
-    total : ndarray, shape (N, 3, 3)
-    by_source : dict str -> ndarray (N, 3, 3)
-        One entry per source of ``model.sources``, each the covariance with that source alone.
+    ``nom``: :func:`rtsgt.noise.model.prepare_nominal`'s; ``T_world_station``: the calibration
+    samples (:func:`transform_samples`); M = ``samples`` >= 2 draws of ``rng`` per
+    measurement, ``chunk_size`` measurements per chunk (default ``CHUNK_ELEMENTS // M``) on
+    ``workers`` threads (the result does not depend on it); ``dtype`` float64 or float32: the
+    working precision of the sampled displacements (results in float64).
     """
     M, chunk_size, workers, dtype = _checked_arguments(samples, rng, chunk_size, workers, dtype)
     # the total is sampled in the world frame with the transform samples (R_m, t_m) when the

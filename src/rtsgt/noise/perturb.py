@@ -23,24 +23,9 @@ def sample_polar_errors(
     instrument: bool = True,
     tilt: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Draw perturbed polar measurements.
-
-    Parameters
-    ----------
-    hz, v, d : array_like, shape (N,)
-        Nominal clockwise direction (rad), zenith angle (rad), slope distance (m, additive
-        constant applied).
-    profile : InstrumentProfile
-    n_samples : int
-        M, number of samples.
-    rng : numpy.random.Generator
-    instrument, tilt : bool
-        Which error sources to include.
-
-    Returns
-    -------
-    hz_s, v_s, d_s : ndarray, shape (M, N)
-    """
+    """M = ``n_samples`` perturbed draws (M, N) each of the polar measurements ``hz``, ``v``
+    (rad, clockwise direction and zenith angle) and ``d`` (m, additive constant applied), (N,),
+    with ``profile``'s ``instrument`` and/or ``tilt`` errors, drawn from ``rng``."""
     hz = np.asarray(hz, dtype=float)
     v = np.asarray(v, dtype=float)
     d = np.asarray(d, dtype=float)

@@ -33,7 +33,6 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rtsgt.calibration import CalibrationResult
-from rtsgt.calibration.coupling import StationCoupling
 from rtsgt.calibration.gcp import gcp_world_positions
 from rtsgt.calibration.shots import curvature_tilt
 from rtsgt.deployment import DeploymentData
@@ -42,6 +41,7 @@ from rtsgt.geometry.so3 import exp_so3
 from rtsgt.measurement.instruments import InstrumentProfile
 from rtsgt.measurement.polar import cartesian_to_polar
 from rtsgt.noise import NoiseModel
+from rtsgt.noise.coupling import StationCoupling
 from rtsgt.options import RunOptions
 from rtsgt.pipeline import calibrate_stations, noise_model
 from rtsgt.pose import ReferencePoints

@@ -21,7 +21,7 @@ engines and no data:
    a run adds them (``gp_noise = "all"``: the GP takes every source, nothing is added, as in
    a run with that option).
 4. **Joint covariance**: the calibration errors the stations share through the reference's
-   shots (:func:`rtsgt.calibration.coupling.joint_prism_covariance`, the run's own).
+   shots (:func:`rtsgt.noise.coupling.joint_prism_covariance`, the run's own).
 5. **Pose**: :func:`rtsgt.pose.estimate_poses` with the linear engine and the run's
    registration (weighted by default) against the rig's survey and its covariance.
 
@@ -50,12 +50,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rtsgt.calibration.coupling import joint_prism_covariance
 from rtsgt.errors import InputError
 from rtsgt.interpolation.motion import CLASS_NAMES, STANDING_SPEED_M_S
 from rtsgt.interpolation.prisms import SYSTEMATIC_SOURCES, gp_covariance
 from rtsgt.measurement.polar import cartesian_to_polar
 from rtsgt.noise import propagate
+from rtsgt.noise.coupling import joint_prism_covariance
 from rtsgt.planning.gp_factor import gp_posterior_covariance
 from rtsgt.planning.layout import Layout
 from rtsgt.pose import estimate_poses

@@ -7,7 +7,7 @@ import numpy as np
 
 from rtsgt.geometry.so3 import hat
 from rtsgt.geometry.transform import perturbation
-from rtsgt.noise.packed import SYM, small_matmul, unpack
+from rtsgt.noise.packed import SYM, small_matmul
 from rtsgt.noise.sources.base import FirstOrder, NoiseSource
 
 
@@ -46,11 +46,6 @@ def calibration_packed(q: np.ndarray, cov6: np.ndarray) -> np.ndarray:
     out += small_matmul(Hq.T, qq)
     out += A[sym_i, sym_j][:, None]
     return out
-
-
-def calibration_covariance(q_world: np.ndarray, cov6: np.ndarray) -> np.ndarray:
-    """:func:`calibration_packed` for points ``q_world`` (N, 3), unpacked: (N, 3, 3), m^2."""
-    return unpack(calibration_packed(np.ascontiguousarray(np.asarray(q_world, float).T), cov6))
 
 
 class Calibration(NoiseSource):

@@ -1,9 +1,8 @@
-"""Correlation of the calibrations of different stations, and the joint prism covariance.
+"""The calibration errors shared between stations, and the prisms' joint covariance.
 
-Two stations calibrated from the same reference shots have correlated calibration errors
-(:class:`StationCoupling`); the pose engines get the joint (3n x 3n) covariance of the prisms
-(:func:`joint_prism_covariance`), since errors that move the prisms together are not averaged
-out by the registration (docs/pose.md#errors-shared-between-prisms).
+Stations fitted to the same reference shots have correlated calibration errors
+(:class:`StationCoupling`); the pose engines take the prisms' joint (3n x 3n) covariance
+(:func:`joint_prism_covariance`): docs/pose.md#errors-shared-between-prisms.
 """
 
 from __future__ import annotations
@@ -12,7 +11,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rtsgt.calibration.result import CalibrationResult
 from rtsgt.geometry.so3 import hat
 from rtsgt.geometry.transform import perturbation
 from rtsgt.pose.reference import block_diagonal
@@ -22,30 +20,21 @@ __all__ = ["StationCoupling", "joint_prism_covariance"]
 
 @dataclass(frozen=True)
 class StationCoupling:
-    """How the calibration errors of different stations are correlated.
+    """The correlation of the calibration errors of the stations (their left perturbations
+    ``xi``, :mod:`rtsgt.geometry.transform`), from the shared reference shots.
 
-    Every station is fitted to the reference station's shots of the same markers, so the
-    errors of two calibrated stations share the reference's measurement noise: their left
-    perturbations ``xi_a``, ``xi_b`` (:mod:`rtsgt.geometry.transform`) are correlated, and so
-    are the errors of the prisms they track. The pose engines need that correlation: it moves
-    the prisms together, which a registration cannot average out.
-
-    Attributes
-    ----------
-    origin : dict str -> ndarray (3,)
-        World position of each station, m (the lever arm of its rotation error).
-    cross : dict (str, str) -> ndarray (6, 6)
-        ``Cov(xi_a, xi_b)`` for pairs of stations (``a <= b``, ``a == b`` included: one
-        sample covariance, so the joint matrix is positive semi-definite), m^2 / m rad / rad^2.
+    ``origin``: each station's world position, m (the lever arm of its rotation error);
+    ``cross``: ``Cov(xi_a, xi_b)`` (6, 6) for pairs ``a <= b`` (``a == b`` included: one sample
+    covariance, so the joint matrix is positive semi-definite), m^2 / m rad / rad^2.
     """
 
     origin: dict[str, np.ndarray]
     cross: dict[tuple[str, str], np.ndarray]
 
     @classmethod
-    def from_calibration(cls, calib: CalibrationResult) -> StationCoupling:
-        """From the calibration's Monte Carlo samples (sample m of every station comes from
-        the same perturbed GCP shots)."""
+    def from_calibration(cls, calib) -> StationCoupling:
+        """From the Monte Carlo samples of a :class:`rtsgt.calibration.CalibrationResult`
+        (sample m of every station comes from the same perturbed GCP shots)."""
         xi = {}
         for sid, T in calib.transforms.items():
             if T.samples_rotation is None or T.samples_translation is None:
@@ -89,13 +78,10 @@ class StationCoupling:
     def prism_covariance(
         self, xyz_a: np.ndarray, xyz_b: np.ndarray, stations: list[str]
     ) -> np.ndarray:
-        """(T, 3n, 3n) calibration part of ``Cov(q(a), q(b))`` for prisms at two positions.
-
-        Block ``(i, j)`` is ``J_i(a) Cov(xi_s_i, xi_s_j) J_j(b)^T`` with ``J = [I, -[q]x]``
-        and ``q`` the prism's position relative to its station (world axes), the Jacobian of
-        the calibration source (:func:`rtsgt.noise.linear.calibration_covariance`); zero where
-        the coupling is unknown. ``xyz_a``, ``xyz_b``: (T, n, 3) m; ``stations``: the station
-        of each prism.
+        """(T, 3n, 3n) calibration part of ``Cov(q(a), q(b))`` for prisms at ``xyz_a``,
+        ``xyz_b`` (T, n, 3) m, tracked by ``stations``: block ``(i, j)`` is
+        ``J_i(a) Cov(xi_s_i, xi_s_j) J_j(b)^T``, ``J = [I, -[q]x]`` with ``q`` the prism
+        relative to its station (as :mod:`rtsgt.noise.sources.calibration`); zero where unknown.
         """
         T, n, _ = xyz_a.shape
         eye = np.broadcast_to(np.eye(3), (T, 3, 3))
@@ -118,14 +104,9 @@ def joint_prism_covariance(
     xyz: np.ndarray, cov: np.ndarray, cov_calibration: np.ndarray, stations: list[str],
     coupling: StationCoupling,
 ) -> np.ndarray:
-    """(T, 3n, 3n) joint covariance of the prisms, the calibration part taken jointly.
-
-    ``cov`` (T, n, 3, 3) is each prism's total, ``cov_calibration`` its calibration part. For
-    every prism whose station the coupling knows, the calibration part is replaced by the
-    joint one of :meth:`StationCoupling.prism_covariance` (``i == j`` included): one sample
-    covariance of the stacked station perturbations, so the result is positive
-    semi-definite by construction.
-    """
+    """(T, 3n, 3n) joint covariance of the prisms at ``xyz`` (T, n, 3), m: each prism's total
+    ``cov`` (T, n, 3, 3) with its calibration part ``cov_calibration`` replaced, where the
+    coupling knows its station, by the joint one of :meth:`StationCoupling.prism_covariance`."""
     known = [coupling.block(s, s) is not None for s in stations]
     rest = np.where(np.array(known)[None, :, None, None], cov - cov_calibration, cov)
     out = block_diagonal(rest) + coupling.prism_covariance(xyz, xyz, stations)
