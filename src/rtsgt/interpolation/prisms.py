@@ -14,7 +14,6 @@ track the one whose held-out windows of 1-2 s are predicted better
 
 from __future__ import annotations
 
-import os
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -33,6 +32,7 @@ from rtsgt.noise.sources import (
     WHITE_NOISE_SOURCES,
 )
 from rtsgt.options import InterpolationOptions
+from rtsgt.parallel import available_cores
 from rtsgt.types import PrismTrack
 
 __all__ = ["PrismsAtTimes", "choose_prior", "fit_gps", "fit_prism_gp", "query_prisms", "query_grid",
@@ -181,7 +181,7 @@ def fit_prism_gp(data, qc: float | str, max_gap_s: float, name: str,
 def _each_prism(fit, tracks: dict[str, PrismTrack]) -> dict[str, tuple[GPTrack, dict]]:
     """``fit(pid, track)`` for every prism, in parallel threads (numpy releases the
     interpreter lock in its array operations; the result does not depend on it)."""
-    with ThreadPoolExecutor(max_workers=max(1, min(len(tracks), os.cpu_count() or 1))) as ex:
+    with ThreadPoolExecutor(max_workers=max(1, min(len(tracks), available_cores()))) as ex:
         futures = {pid: ex.submit(fit, pid, tr) for pid, tr in tracks.items()}
         return {pid: f.result() for pid, f in futures.items()}
 
