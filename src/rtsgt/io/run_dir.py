@@ -1,85 +1,15 @@
 """The run directory: the run record (:class:`rtsgt.record.RunRecord`) on disk, written by
 :func:`write_run` and read back by :func:`read_run` (the only writer and reader of its files).
 
-Layout of ``OUT/`` (every number in SI units, stated in the headers)::
-
-    groundtruth.tum                  t x y z qx qy qz qw (s, m, unit quaternion scalar last)
-    groundtruth_covariance.csv       t,x,y,z,qx,qy,qz,qw,cov_00,...,cov_55
-                                     6x6 row-major, order (x, y, z, rx, ry, rz), m^2 / rad^2,
-                                     left perturbation in the world frame
-    groundtruth_shared.csv           the kept poses' error split (rtsgt.shared), one row per
-                                     pose of groundtruth.tum: t, varying_00..varying_55 (the
-                                     varying covariance, 6x6 row-major like cov_*), then
-                                     shared.<name>.<x|y|z|rx|ry|rz>: column <name> of the
-                                     shared factor L (m or rad per unit of the whitened
-                                     parameter <name>); absent for older runs and gp_noise = all
-    rejected_poses.csv               t,reason for every pose removed by a gate
-    prisms/prism<i>.csv              interpolated track: t,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz
-    prisms/prism<i>_sources.csv      per-source covariance at the same times: t,<source>_xx,...
-    measurements/prism<i>.csv        measured track (world frame) after filtering, with the
-                                     covariance given to the GP, the range and every source's
-                                     covariance: t,x,y,z,cov_xx..cov_zz,range_m,<source>_xx..
-    measurements/removed.csv         the measurements the filters removed, in the world frame:
-                                     t,prism,station,x,y,z,stage,reason (stage: module1 = rates
-                                     of change or status, module2 = outside the intervals where
-                                     every prism is tracked, module4 = left out of the GP fits
-                                     inside a window of distance rejections; reason: the
-                                     filter's reason, e.g. rate_hz, status, not_all_tracked,
-                                     short_interval, distance_window)
-    reference.csv                    reference prisms in the body frame: name,x,y,z,cov_xx..cov_zz
-    summary.json                     schema (name, version), inputs, parameters, version,
-                                     seed, counts removed per filter and gate, Qc, calibration,
-                                     medians, timings, the weather file and its coverage, the
-                                     tracked inter-prism distances against the surveyed ones,
-                                     warnings (read back only by read_summary)
-    .rtsgt-output.json               manifest of the files rtsgt wrote (rtsgt.io.output_dir)
-
-The directory is assembled under a temporary name beside ``OUT`` and renamed at the end, and
-an existing ``OUT`` is replaced only if rtsgt wrote it (:mod:`rtsgt.io.output_dir`): a crash
-never leaves a half-written run, and ``--force`` never deletes a user's files.
-
-Position-only runs
-------------------
-A run with one or two tracked prisms (:class:`~rtsgt.record.PositionRunRecord`) writes
-``prisms/``, ``measurements/`` (with ``removed.csv``), ``summary.json`` and the manifest only:
-``prisms/prism<i>.csv`` is its ground truth (a position CSV, :mod:`rtsgt.io.positions`).
-Its ``summary.json`` has ``ground_truth`` (``kind`` :data:`POSITIONS_KIND`, the prisms, why,
-the files) and ``positions`` in place of ``gates``, ``poses``, ``median_uncertainty``,
-``inter_prism_distances`` and ``reference``. :func:`read_position_run` reads it back;
-:func:`read_run` refuses it, naming that reader; :func:`read_any_run` takes either.
-
-Reading
--------
-Columns are located by their header names, so extra columns are ignored and the order of the
-columns does not matter. Every problem is an :class:`~rtsgt.errors.InputError` naming the file
-(and the line where it applies).
-
-summary.json
-------------
-:func:`read_summary` is the only reader of ``summary.json``: it checks the layout's
-``schema`` (``{"name": "rtsgt-run", "version": 1}``; a summary without it is of the layout
-before, read as version 0; a newer version is refused), applies the fallbacks for older layouts
-(``options`` for ``parameters``, engine, samples, seed and gp_noise at the top level, ``name``
-for ``deployment``, ``gcp_world`` outside ``calibration``) and returns a typed
-:class:`RunSummary`, from which :func:`read_run` builds the :class:`~rtsgt.record.RunRecord`
-(the analysis, the report and the continuous ground truth take that record).
-
-Missing files
--------------
-A run whose files are not all there is a damaged run (a file deleted, a copy cut short), and
-reading what is left would analyse part of it as if it were the whole. So:
-
-- a file that ``summary.json`` says was written is **required**: every prism listed under
-  ``prisms`` has ``measurements/prism<i>.csv``, ``prisms/prism<i>.csv`` and
-  ``prisms/prism<i>_sources.csv``; one missing is an :class:`~rtsgt.errors.InputError` naming
-  it;
-- ``rejected_poses.csv`` and ``measurements/removed.csv`` are **optional** (runs of older
-  versions lack ``removed.csv``; the analysis works without them): one missing from a run
-  written by rtsgt (its ``summary.json`` names the software) is a
-  :class:`~rtsgt.errors.RtsgtWarning` naming it;
-- without ``summary.json`` (a directory assembled by hand), nothing says which files were
-  written: a prism of ``prisms/`` without its ``measurements/prism<i>.csv`` is read with a
-  warning naming the file.
+The directory is assembled under a temporary name and renamed at the end, replacing only an
+rtsgt output (:mod:`rtsgt.io.output_dir`). A position-only run
+(:class:`~rtsgt.record.PositionRunRecord`) writes its prisms, measurements and summary only
+(:func:`read_position_run`; :func:`read_any_run` takes either). :func:`read_summary` is the
+only reader of ``summary.json`` (its ``schema``, the fallbacks of older layouts, a typed
+:class:`RunSummary`). Columns are found by name; a damaged run is an error naming the file.
+Layout and rules: docs/file-formats.md#run-directory,
+docs/file-formats.md#reading-a-run-directory-back,
+docs/file-formats.md#position-only-run-directory.
 """
 
 from __future__ import annotations
@@ -244,94 +174,23 @@ def _median_sigmas(traj) -> dict:
 
 
 def run_summary(record: RunRecord | PositionRunRecord, inputs: dict | None = None) -> dict:
-    """The ``summary.json`` content of a run just computed (see the module docstring).
-
-    Besides the inputs, parameters and results: ``weather``, the weather record used (file,
-    span, sampling interval) and how it covers the measurements
-    (:func:`rtsgt.measurement.weather.weather_coverage`; null without weather);
-    ``inter_prism_distances``, per prism pair the median deviation of the tracked distance from
-    the surveyed one, its predicted sigma and their ratio
-    (:func:`rtsgt.filtering.gates.surveyed_distance_check`); ``warnings``, every warning of the
-    run, once each, as printed on the terminal. A position-only run
-    (:class:`~rtsgt.record.PositionRunRecord`) has ``ground_truth`` (``kind``
-    ``"positions"``, its prisms and files) and ``positions`` in place of the poses, gates,
-    inter-prism distances and reference.
-
-    Raises
-    ------
-    ValueError
-        ``record`` was read from files (it has no :attr:`~rtsgt.record.RunRecord.computation`).
-    """
+    """The ``summary.json`` content of a run just computed (docs/file-formats.md#summaryjson);
+    a position-only run has ``ground_truth`` and ``positions`` in place of the poses, gates,
+    inter-prism distances and reference. ValueError for a record read from files (no
+    :attr:`~rtsgt.record.RunRecord.computation`)."""
     c = _computation(record)
     opt = record.options
     cal = c.calibration
-    stations = {}
-    for sid, T in cal.transforms.items():
-        stations[sid] = {
-            "matrix": T.as_matrix(),
-            "yaw_deg": float(np.degrees(T.yaw)),
-            "translation_m": T.translation,
-            "sigma_translation_mm": np.sqrt(np.diag(T.covariance)[:3]) * 1e3,
-            "sigma_rotation_mrad": np.sqrt(np.diag(T.covariance)[3:]) * 1e3,
-        }
-    prisms = {}
-    for i, (pid, tr) in enumerate(record.measurements.items()):
-        sig = np.sqrt(np.trace(record.prisms_cov[:, i], axis1=1, axis2=2))
-        prisms[pid] = {
-            "station": tr.station,
-            "measurements_used": len(tr),
-            "qc_m2_s3": record.qc[pid],
-            "prior": record.prior.get(pid, "wnoa"),
-            "qc_fit": c.qc_info.get(pid, {}),
-            "median_sigma_mm": float(np.median(sig) * 1e3),
-        }
-    res = cal.residuals
+    prisms = _summary_prisms(record, c)
     head = {
         "schema": {"name": RUN_SCHEMA_NAME, "version": RUN_SCHEMA_VERSION},
         "software": {"name": "rtsgt", "version": __version__},
         "deployment": record.name,
         "inputs": inputs or {},
     }
-    parameters = {
-        "engine": opt.pose.engine,
-        "registration": opt.pose.registration,
-        "samples": opt.pose.samples,
-        "seed": opt.seed,
-        "calibration_model": opt.calibration.model,
-        "calibration_weighting": opt.calibration.weighting,
-        "calibration_method": opt.calibration.method,
-        "rate_hz": opt.interpolation.rate_hz,
-        "qc": opt.interpolation.qc,
-        "max_gap_s": opt.interpolation.max_gap_s,
-        "gp_noise": opt.interpolation.gp_noise,
-        "motion_prior": opt.interpolation.motion_prior,
-        "outlier_windows": opt.interpolation.outlier_windows,
-        "prior": opt.interpolation.prior,
-        "correlated_noise": opt.interpolation.correlated_noise,
-        "noise_sources": list(c.noise_model.sources),
-        "instrument": c.data.instrument.name,
-        "filter": _report_dict(opt.filter),
-        "distance_gate_m": opt.pose.distance_gate_m,
-        "uncertainty_gate_m": opt.pose.uncertainty_gate_m,
-    }
+    parameters = _summary_parameters(opt, c)
     filters = {k: _report_dict(v) for k, v in c.filter_reports.items()}
-    calibration = {
-        "reference_station": cal.reference_station,
-        "method": cal.method,
-        "model": cal.model,
-        "stations": stations,
-        "residuals_mm": {
-            "median": float(np.median(res.distance_m) * 1e3) if len(res) else None,
-            "max": float(np.max(res.distance_m) * 1e3) if len(res) else None,
-            "count": int(len(res)),
-        },
-        # world position of each GCP (m), for the figures and the report
-        "gcp_world": {n: [float(v) for v in p]
-                      for n, p in zip(record.gcp_names, _gcp_rows(record), strict=True)},
-        # correlation of the station calibrations (noise.coupling.StationCoupling):
-        # origins m, cross-covariances of the left perturbations (x, y, z, rx, ry, rz)
-        "coupling": record.coupling.to_dict() if record.coupling is not None else None,
-    }
+    calibration = _summary_calibration(record, cal)
     tail = {
         "self_checks": record.self_checks,
         # the time-correlated noise the static-stretch check found, as the GPs carried it
@@ -390,6 +249,80 @@ def run_summary(record: RunRecord | PositionRunRecord, inputs: dict | None = Non
                       "frame": ref.frame},
     }
 
+
+def _summary_prisms(record: RunRecord | PositionRunRecord, c: RunComputation) -> dict:
+    """``prisms`` of ``summary.json``: per prism its station, measurements, ``Qc``, prior,
+    ``Qc`` fit and median sigma (mm)."""
+    prisms = {}
+    for i, (pid, tr) in enumerate(record.measurements.items()):
+        sig = np.sqrt(np.trace(record.prisms_cov[:, i], axis1=1, axis2=2))
+        prisms[pid] = {
+            "station": tr.station,
+            "measurements_used": len(tr),
+            "qc_m2_s3": record.qc[pid],
+            "prior": record.prior.get(pid, "wnoa"),
+            "qc_fit": c.qc_info.get(pid, {}),
+            "median_sigma_mm": float(np.median(sig) * 1e3),
+        }
+    return prisms
+
+
+def _summary_parameters(opt: RunOptions, c: RunComputation) -> dict:
+    """``parameters`` of ``summary.json``: the options the run was made with."""
+    return {
+        "engine": opt.pose.engine,
+        "registration": opt.pose.registration,
+        "samples": opt.pose.samples,
+        "seed": opt.seed,
+        "calibration_model": opt.calibration.model,
+        "calibration_weighting": opt.calibration.weighting,
+        "calibration_method": opt.calibration.method,
+        "rate_hz": opt.interpolation.rate_hz,
+        "qc": opt.interpolation.qc,
+        "max_gap_s": opt.interpolation.max_gap_s,
+        "gp_noise": opt.interpolation.gp_noise,
+        "motion_prior": opt.interpolation.motion_prior,
+        "outlier_windows": opt.interpolation.outlier_windows,
+        "prior": opt.interpolation.prior,
+        "correlated_noise": opt.interpolation.correlated_noise,
+        "noise_sources": list(c.noise_model.sources),
+        "instrument": c.data.instrument.name,
+        "filter": _report_dict(opt.filter),
+        "distance_gate_m": opt.pose.distance_gate_m,
+        "uncertainty_gate_m": opt.pose.uncertainty_gate_m,
+    }
+
+
+def _summary_calibration(record: RunRecord | PositionRunRecord, cal) -> dict:
+    """``calibration`` of ``summary.json``: each station's transform and sigmas, the GCP
+    residuals, the GCPs' world positions and the stations' coupling."""
+    stations = {}
+    for sid, T in cal.transforms.items():
+        stations[sid] = {
+            "matrix": T.as_matrix(),
+            "yaw_deg": float(np.degrees(T.yaw)),
+            "translation_m": T.translation,
+            "sigma_translation_mm": np.sqrt(np.diag(T.covariance)[:3]) * 1e3,
+            "sigma_rotation_mrad": np.sqrt(np.diag(T.covariance)[3:]) * 1e3,
+        }
+    res = cal.residuals
+    return {
+        "reference_station": cal.reference_station,
+        "method": cal.method,
+        "model": cal.model,
+        "stations": stations,
+        "residuals_mm": {
+            "median": float(np.median(res.distance_m) * 1e3) if len(res) else None,
+            "max": float(np.max(res.distance_m) * 1e3) if len(res) else None,
+            "count": int(len(res)),
+        },
+        # world position of each GCP (m), for the figures and the report
+        "gcp_world": {n: [float(v) for v in p]
+                      for n, p in zip(record.gcp_names, _gcp_rows(record), strict=True)},
+        # correlation of the station calibrations (noise.coupling.StationCoupling):
+        # origins m, cross-covariances of the left perturbations (x, y, z, rx, ry, rz)
+        "coupling": record.coupling.to_dict() if record.coupling is not None else None,
+    }
 
 def _computation(record: RunRecord) -> RunComputation:
     if record.computation is None:
@@ -860,21 +793,9 @@ def _schema_version(doc: dict, path: Path) -> int:
 
 
 def read_summary(run_dir: str | PathLike) -> RunSummary:
-    """Read ``run_dir/summary.json``: the only reader of that file (module docstring).
-
-    Returns
-    -------
-    RunSummary
-        The defaults (and ``exists`` False) when the file is absent.
-
-    Raises
-    ------
-    InputError
-        Naming the file: not valid JSON, not a JSON object, a newer schema version, or an
-        entry of the wrong type (a section that is not an object, a non-positive
-        ``max_gap_s`` or gate, a ``gp_noise`` other than ``white`` or ``all``, a bad Qc,
-        interval or coupling).
-    """
+    """Read ``run_dir/summary.json``, the only reader of that file, into a :class:`RunSummary`
+    (the defaults, ``exists`` False, when absent). Invalid JSON, a newer schema or an entry of
+    the wrong type raise :class:`~rtsgt.errors.InputError` naming the file."""
     path = Path(run_dir) / "summary.json"
     if not path.is_file():
         return RunSummary(path)
@@ -899,23 +820,7 @@ def read_summary(run_dir: str | PathLike) -> RunSummary:
         name = name.get("name")
     software = doc.get("software")
 
-    prisms: dict[str, PrismSummary] = {}
-    listed = doc.get("prisms")
-    for pid, info in (listed.items() if isinstance(listed, dict) else ()):
-        info = info if isinstance(info, dict) else {}
-        q = info.get("qc_m2_s3")
-        if q is not None:
-            try:
-                q = np.asarray(q, dtype=float)
-            except (TypeError, ValueError) as exc:
-                raise InputError(f"prism {pid}: bad qc_m2_s3 {q!r}: {exc}", path) from None
-        station = info.get("station")
-        prior = str(info.get("prior", "wnoa"))
-        if prior not in PRIORS:
-            raise InputError(f"prism {pid}: prior: expected {' or '.join(map(repr, PRIORS))}, "
-                             f"got {prior!r}", path)
-        prisms[str(pid)] = PrismSummary(None if station is None else str(station), q, prior)
-
+    prisms = _read_summary_prisms(doc, path)
     iv = doc.get("intervals_s")
     if iv is not None:
         try:
@@ -923,16 +828,7 @@ def read_summary(run_dir: str | PathLike) -> RunSummary:
         except (TypeError, ValueError) as exc:
             raise InputError(f"bad intervals_s: {exc}", path) from None
 
-    ref = _section(doc, "reference", path)
-    ref_names = ref.get("names")
-    if ref_names is not None:
-        if not isinstance(ref_names, list):
-            raise InputError(f"reference.names: expected a list, got {ref_names!r}"[:200], path)
-        ref_names = tuple(str(x) for x in ref_names)
-    ref_xyz = None if ref.get("xyz_m") is None else _array(ref["xyz_m"], "reference.xyz_m", path)
-    ref_cov = (None if ref.get("cov_m2") is None
-               else _array(ref["cov_m2"], "reference.cov_m2", path))
-
+    ref, ref_names, ref_xyz, ref_cov = _read_summary_reference(doc, path)
     calibration = _section(doc, "calibration", path)
     coupling = None
     if calibration.get("coupling") is not None:  # runs written before rtsgt carried it
@@ -961,6 +857,40 @@ def read_summary(run_dir: str | PathLike) -> RunSummary:
         ground_truth=_ground_truth_kind(doc, path),
     )
 
+
+def _read_summary_prisms(doc: dict, path: Path) -> dict[str, PrismSummary]:
+    """``prisms`` of a summary: each prism's station, ``Qc`` and prior."""
+    prisms: dict[str, PrismSummary] = {}
+    listed = doc.get("prisms")
+    for pid, info in (listed.items() if isinstance(listed, dict) else ()):
+        info = info if isinstance(info, dict) else {}
+        q = info.get("qc_m2_s3")
+        if q is not None:
+            try:
+                q = np.asarray(q, dtype=float)
+            except (TypeError, ValueError) as exc:
+                raise InputError(f"prism {pid}: bad qc_m2_s3 {q!r}: {exc}", path) from None
+        station = info.get("station")
+        prior = str(info.get("prior", "wnoa"))
+        if prior not in PRIORS:
+            raise InputError(f"prism {pid}: prior: expected {' or '.join(map(repr, PRIORS))}, "
+                             f"got {prior!r}", path)
+        prisms[str(pid)] = PrismSummary(None if station is None else str(station), q, prior)
+    return prisms
+
+
+def _read_summary_reference(doc: dict, path: Path) -> tuple:
+    """``reference`` of a summary: the section, its names, points (n, 3) and covariance."""
+    ref = _section(doc, "reference", path)
+    ref_names = ref.get("names")
+    if ref_names is not None:
+        if not isinstance(ref_names, list):
+            raise InputError(f"reference.names: expected a list, got {ref_names!r}"[:200], path)
+        ref_names = tuple(str(x) for x in ref_names)
+    ref_xyz = None if ref.get("xyz_m") is None else _array(ref["xyz_m"], "reference.xyz_m", path)
+    ref_cov = (None if ref.get("cov_m2") is None
+               else _array(ref["cov_m2"], "reference.cov_m2", path))
+    return ref, ref_names, ref_xyz, ref_cov
 
 def _ground_truth_kind(doc: dict, path: Path) -> str:
     """``ground_truth.kind`` of a summary (``"poses"`` when absent)."""
@@ -1026,7 +956,7 @@ def _summary_options(params: dict, param: Callable, path: Path) -> RunOptions:
 
 def _check_files(root: Path, summary: RunSummary) -> None:
     """Refuse a run missing a file its summary says was written; warn for an optional one
-    (module docstring, section Missing files)."""
+    (docs/file-formats.md#reading-a-run-directory-back)."""
     for pid in summary.prisms:
         for path, what in ((root / "measurements" / f"prism{pid}.csv", "measured track"),
                            (root / "prisms" / f"prism{pid}.csv", "interpolated positions"),
@@ -1048,25 +978,10 @@ def _check_files(root: Path, summary: RunSummary) -> None:
 
 
 def read_run(run_dir: str | PathLike) -> RunRecord:
-    """Read a run directory written by :func:`write_run` back into its record.
-
-    Parameters
-    ----------
-    run_dir : path
-        The ``OUT`` directory of ``rtsgt run``.
-
-    Returns
-    -------
-    RunRecord
-        Without :attr:`~rtsgt.record.RunRecord.computation`; rejected poses, removed
-        measurements, GCPs and station positions are optional (empty when absent).
-
-    Raises
-    ------
-    InputError
-        A missing or malformed file, prisms whose query times disagree (module docstring,
-        section Missing files; an optional file missing is a warning).
-    """
+    """Read a run directory written by :func:`write_run` back into its
+    :class:`~rtsgt.record.RunRecord` (without ``computation``; rejected poses, removed
+    measurements, GCPs and stations optional). A missing or malformed file raises
+    :class:`~rtsgt.errors.InputError` (docs/file-formats.md#reading-a-run-directory-back)."""
     root = Path(run_dir)
     if not root.is_dir():
         raise InputError("run directory not found", root)
@@ -1114,16 +1029,8 @@ def read_run(run_dir: str | PathLike) -> RunRecord:
 
 
 def read_position_run(run_dir: str | PathLike) -> PositionRunRecord:
-    """Read a position-only run directory (one or two tracked prisms, written by
-    :func:`write_run`) back into its record.
-
-    Raises
-    ------
-    InputError
-        Not a position-only run (its ``summary.json`` says so; a run with poses is read by
-        :func:`read_run`), a missing or malformed file (module docstring, section Missing
-        files).
-    """
+    """Read a position-only run directory back into its record; a run with poses (read by
+    :func:`read_run`) or a missing or malformed file raises :class:`~rtsgt.errors.InputError`."""
     root = Path(run_dir)
     if not root.is_dir():
         raise InputError("run directory not found", root)

@@ -1,27 +1,10 @@
 """A deployment's layout as ``rtsgt plan`` sees it: stations, GCPs, the rig, the calibration.
 
-Two ways to a :class:`Layout`:
-
-- :func:`layout_from_deployment`: an existing deployment (its TOML read by
-  :func:`rtsgt.io.deployment.load_deployment`). The stations are calibrated from its own GCP
-  shots by :func:`rtsgt.pipeline.calibrate_stations`, the very calibration (same random
-  stream, same shots, variance components included) a run of that deployment gets; the
-  prisms on the robot are its survey; each station's measurement rate is the median of its
-  tracking file's intervals. Coordinates: the run's world frame (the reference station's).
-- :func:`layout_from_positions`: a layout that exists only on paper: station and marker
-  positions in any levelled frame (z up), e.g. from a site map. Every station shoots every
-  marker (:func:`synthetic_gcp_shots`, noise free: the Monte Carlo of the calibration draws
-  the noise), and the same :func:`~rtsgt.pipeline.calibrate_stations` fits them. The world
-  frame is then the reference station's: the given coordinates less its position
-  (:attr:`Layout.origin`), the axes unchanged (each synthetic station is levelled, its
-  vertical turned by the Earth's curvature as a real one's, and its ``Hz = 0`` along the
-  frame's +y).
-
-Noise-free shots leave the variance components of the calibration at zero (nothing in the
-residuals asks for them): a plan from positions predicts the calibration of a deployment whose
-GCP shots agree with the instrument model.
-
-This module reads no files.
+:func:`layout_from_deployment` takes an existing deployment (the run's own calibration of its
+GCP shots, its survey as the rig, each station's median tracking rate);
+:func:`layout_from_positions` a layout on paper (noise-free synthetic shots of every marker by
+every station, :func:`synthetic_gcp_shots`, the same calibration; the world frame the
+reference station's, :attr:`Layout.origin`). Reads no files. docs/planning.md#the-layout.
 """
 
 from __future__ import annotations
@@ -57,18 +40,8 @@ DEFAULT_RATE_HZ = 2.5
 
 @dataclass(frozen=True)
 class PlannedStation:
-    """A station of a layout on paper.
-
-    Attributes
-    ----------
-    xyz : (float, float, float)
-        Position of the instrument (its centre), m, in the plan's levelled frame.
-    prism : str or None
-        The prism it tracks; None for a station that only shoots the markers (there must be
-        at least three tracking ones).
-    rate_hz : float
-        Its tracking rate, Hz.
-    """
+    """A station of a layout on paper: instrument position ``xyz`` (m, the plan's levelled
+    frame), the ``prism`` it tracks (None: it only shoots the markers) and its ``rate_hz``."""
 
     xyz: tuple[float, float, float]
     prism: str | None = None
@@ -77,34 +50,12 @@ class PlannedStation:
 
 @dataclass(frozen=True)
 class Layout:
-    """Everything a plan needs of a deployment's layout (module docstring).
-
-    Attributes
-    ----------
-    name : str
-    stations : tuple of str
-        The tracking stations, in the order of :attr:`prisms`.
-    prisms : tuple of str
-        The prism each tracks.
-    rate_hz : tuple of float
-        The tracking rate of each, Hz.
-    calibration : CalibrationResult
-        ``T_world_station`` of every station, with its Monte Carlo samples and covariance.
-    coupling : StationCoupling
-        The correlation of the stations' calibrations (what a run gives its pose engine).
-    gcp_xyz : ndarray, shape (K, 3)
-        The markers, world frame, m.
-    gcp_names : tuple of str
-    reference : ReferencePoints
-        The prisms on the robot in the body frame (whose pose is the ground truth), in the
-        order of :attr:`prisms`.
-    options : RunOptions
-        Noise model (never None), calibration model, GP and registration of a run.
-    origin : ndarray, shape (3,)
-        Plan coordinates of the world origin (the reference station): plan = world + origin.
-    source : str
-        Where the layout comes from, in words.
-    """
+    """Everything a plan needs of a deployment's layout: the tracking ``stations`` with their
+    ``prisms`` and ``rate_hz``, the ``calibration`` (every station's ``T_world_station``, samples
+    and covariance) and its ``coupling``, the markers ``gcp_xyz`` (K, 3; world, m) and
+    ``gcp_names``, the rig ``reference`` (body frame, in the order of ``prisms``), the run
+    ``options`` (noise model never None), the plan coordinates ``origin`` (3,) of the world
+    origin (plan = world + origin) and the ``source`` in words."""
 
     name: str
     stations: tuple[str, ...]
@@ -171,18 +122,9 @@ def _layout(name: str, data: DeploymentData, options: RunOptions, stations, pris
 
 def layout_from_deployment(data: DeploymentData, options: RunOptions,
                            source: str = "deployment") -> Layout:
-    """The layout of an existing deployment (module docstring).
-
-    Parameters
-    ----------
-    data : DeploymentData
-        As :func:`rtsgt.io.deployment.load_deployment` reads it.
-    options : RunOptions
-        Its processing options (the noise model, calibration model, seed and samples of the
-        calibration's Monte Carlo, the GP, the registration).
-    source : str
-        What to call it in the plan's outputs.
-    """
+    """The layout of an existing deployment ``data`` (as :func:`rtsgt.io.deployment.load_deployment`
+    reads it) with its run ``options`` (noise model, calibration and its Monte Carlo, GP,
+    registration); ``source`` names it in the plan's outputs."""
     stations = [o.station for o in data.observations]
     prisms = [o.prism for o in data.observations]
     rates = []
@@ -199,22 +141,10 @@ def layout_from_deployment(data: DeploymentData, options: RunOptions,
 
 def synthetic_gcp_shots(station_xyz: Mapping[str, ArrayLike], gcp_xyz: ArrayLike,
                         gcp_names: Sequence[str]) -> GcpShots:
-    """Noise-free shots of every marker by every station (module docstring).
-
-    Parameters
-    ----------
-    station_xyz : mapping str -> (3,)
-        Instrument positions, world frame (the reference station at the origin), m.
-    gcp_xyz : array_like, shape (K, 3)
-        Marker positions, world frame, m.
-    gcp_names : sequence of str, length K
-
-    Returns
-    -------
-    GcpShots
-        Station-major, additive constant 0, each station levelled (its vertical turned by
-        :func:`rtsgt.calibration.gcp.curvature_tilt`) with ``Hz = 0`` along world +y.
-    """
+    """Noise-free shots of every marker ``gcp_xyz`` (K, 3; world, m) by every station
+    (``station_xyz``: name -> (3,), world, the reference at the origin): station-major, additive
+    constant 0, each station levelled (vertical turned by
+    :func:`rtsgt.calibration.gcp.curvature_tilt`) with ``Hz = 0`` along world +y."""
     g = np.asarray(gcp_xyz, dtype=float).reshape(-1, 3)
     station, marker, hz, v, d = [], [], [], [], []
     for s, p in station_xyz.items():  # a handful of stations
@@ -236,26 +166,10 @@ def layout_from_positions(
     instrument: InstrumentProfile, gcp_names: Sequence[str] | None = None,
     source: str = "planned positions",
 ) -> Layout:
-    """A layout on paper (module docstring).
-
-    Parameters
-    ----------
-    name : str
-    stations : mapping str -> PlannedStation
-        Every station, plan coordinates (levelled frame, z up), m.
-    gcp_xyz : array_like, shape (K, 3)
-        The markers, plan coordinates, m (every station shoots every one).
-    reference : ReferencePoints
-        The prisms on the robot, body frame, named by prism.
-    options : RunOptions
-        As for :func:`layout_from_deployment` (``options.noise`` None: every source).
-    reference_station : str
-        The station whose frame is the world's.
-    instrument : InstrumentProfile
-        The instrument of every station.
-    gcp_names : sequence of str, optional
-        Default ``"1"``, ``"2"``, ...
-    """
+    """A layout on paper: ``stations`` (name -> PlannedStation, plan coordinates, z up, m), the
+    markers ``gcp_xyz`` (K, 3; named ``gcp_names``, default "1", "2", ...), the rig
+    ``reference`` (body frame, by prism), the run ``options`` (``noise`` None: every source),
+    the ``reference_station`` whose frame is the world's and the ``instrument`` of every station."""
     if reference_station not in stations:
         raise InputError(f"reference station {reference_station!r} is not among the stations "
                          f"({', '.join(stations)})")

@@ -1,45 +1,12 @@
-r"""The pose uncertainty a run would report, predicted from a layout before any measurement.
+"""The pose uncertainty a run would report, predicted from a layout before any measurement.
 
-For a pose of the robot ``T_world_body = (R, t)`` moving at velocity ``v`` (world, m/s),
-:func:`predict_poses` goes through the stages of a run (:mod:`rtsgt.pipeline`) with the linear
-engines and no data:
-
-1. **Prisms**: ``q_i = R r_i + t`` for the rig's prisms ``r_i`` (body frame).
-2. **Measurements**: each prism's covariance as its station measures it, by the noise model's
-   first-order engine (:func:`rtsgt.noise.propagate`, ``engine="linear"``, the run's own code)
-   on three synthetic measurements ``q_i - v h``, ``q_i``, ``q_i + v h`` at ``-h, 0, h``
-   (``h = 1 / rate`` of the station) without weather (the instrument's reference atmosphere;
-   the atmosphere source still counts the weather's uncertainty). The middle measurement's
-   central difference is ``v`` exactly, so the time-synchronisation source is
-   ``(mu^2 + sigma^2) v v^T`` plus its interaction with the measurement noise, as in a run;
-   the calibration source is the one of the layout's calibration (:mod:`rtsgt.planning.layout`).
-3. **GP**: the white sources (instrument, tilt; what a run gives the GP) become the GP's
-   posterior on a stationary uniform track at the station's rate with the robot's ``Qc``,
-   averaged over the query's position between two measurements
-   (:func:`rtsgt.planning.gp_factor.gp_posterior_covariance`); the systematic sources
-   (atmosphere, time synchronisation, calibration) are added at their value at the pose, as
-   a run adds them (``gp_noise = "all"``: the GP takes every source, nothing is added, as in
-   a run with that option).
-4. **Joint covariance**: the calibration errors the stations share through the reference's
-   shots (:func:`rtsgt.noise.coupling.joint_prism_covariance`, the run's own).
-5. **Pose**: :func:`rtsgt.pose.estimate_poses` with the linear engine and the run's
-   registration (weighted by default) against the rig's survey and its covariance.
-
-The pose sigma is ``sqrt(tr Sigma_t)`` of the 3x3 position block (m), the quantity of
-``rtsgt run``'s summary ("median sigma translation (sqrt trace)"); the rotation sigma is the
-same of the rotation block (rad).
-
-``Qc`` (:class:`RobotMotion`): the GP's prior depends on how rough the robot's motion is,
-which only measurements tell. A run's leave-one-out ``Qc``
-(:mod:`rtsgt.interpolation.loo`) per world axis and its scale per motion class
-(:mod:`rtsgt.interpolation.motion`) give it for the same robot (:func:`qc_from_run`); without
-one the plan takes :data:`DEFAULT_QC_M2_S3` and says so. The horizontal axes share one value
-(the mean of a run's x and y: the plan's horizontal axes are not the run's).
-
-What it neglects (docs/planning.md#what-the-prediction-neglects): line-of-sight losses and the
-gaps they leave (the GP's variance grows in a gap), the ends of a track, a ``Qc`` that follows
-the motion within a class, the gates of module 4, the weather's own correction (0 ppm), the
-variance components of a calibration from noise-free shots (:mod:`rtsgt.planning.layout`).
+:func:`predict_poses` goes through a run's stages with the linear engines and no data, each
+stage the run's own code: prisms at the pose, their measurement covariance
+(:func:`rtsgt.noise.propagate`), the GP's posterior on a uniform track
+(:mod:`rtsgt.planning.gp_factor`) plus the systematic sources, the stations' shared
+calibration errors, and the pose fit. ``Qc`` comes from a run (:func:`qc_from_run`) or
+:data:`DEFAULT_QC_M2_S3`. Sigmas are ``sqrt(tr)`` of the position and rotation blocks.
+docs/planning.md#the-prediction-step-by-step, docs/planning.md#what-the-prediction-neglects.
 """
 
 from __future__ import annotations
@@ -85,20 +52,9 @@ def _qc_matrix(horizontal: float, vertical: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class RobotMotion:
-    """What a plan assumes of the robot's motion.
-
-    Attributes
-    ----------
-    speed_m_s : float
-        Speed where the plan gives no times, m/s.
-    qc_m2_s3 : ndarray, shape (3, 3)
-        The GP's ``Qc`` while the robot moves (world axes, horizontal ones equal).
-    qc_standing_m2_s3 : ndarray, shape (3, 3), or None
-        While it stands (speed below
-        :data:`rtsgt.interpolation.motion.STANDING_SPEED_M_S`); None: the same as moving.
-    qc_source : str
-        Where ``Qc`` comes from, in words.
-    """
+    """What a plan assumes of the robot's motion: ``speed_m_s`` where the plan gives no times,
+    the GP's ``qc_m2_s3`` (3, 3; world axes, horizontal ones equal) while moving and
+    ``qc_standing_m2_s3`` while standing (None: the same), and ``qc_source`` in words."""
 
     speed_m_s: float = DEFAULT_SPEED_M_S
     qc_m2_s3: np.ndarray = field(default_factory=lambda: _qc_matrix(*DEFAULT_QC_M2_S3))
@@ -137,23 +93,10 @@ class RobotMotion:
 
 def qc_from_run(prisms: Mapping[str, Mapping], speed_m_s: float = DEFAULT_SPEED_M_S,
                 source: str = "an earlier run") -> RobotMotion:
-    """The robot's ``Qc`` as a run found it: ``summary.json``'s ``prisms`` (per prism its
-    ``qc_m2_s3`` and ``qc_fit``).
-
-    Per prism, ``Qc`` while moving is the run's ``Qc`` times the mean scale of the moving
-    classes weighted by their intervals (the GP's variance between measurements is about
-    proportional to ``Qc``), and while standing times the standing class's scale (the run's
-    ``Qc`` where it kept one constant); the prisms are averaged, and the horizontal value is
-    the mean of x and y.
-
-    Parameters
-    ----------
-    prisms : mapping str -> mapping
-        ``{"qc_m2_s3": 3x3, "qc_fit": {"motion_prior": {"chosen", "scales", "intervals"}}}``
-        per prism.
-    speed_m_s : float
-    source : str
-    """
+    """The robot's ``Qc`` as a run found it, from ``summary.json``'s ``prisms`` (per prism
+    ``qc_m2_s3`` and ``qc_fit.motion_prior``): moving, the run's ``Qc`` times the moving
+    classes' mean scale weighted by their intervals; standing, times the standing class's; the
+    prisms averaged, the horizontal value the mean of x and y (docs/planning.md#the-gp-and-qc)."""
     moving, standing, any_standing = [], [], False
     for pid, info in prisms.items():
         qc = np.asarray(info.get("qc_m2_s3"), dtype=float)
@@ -184,27 +127,11 @@ def qc_from_run(prisms: Mapping[str, Mapping], speed_m_s: float = DEFAULT_SPEED_
 
 @dataclass(frozen=True)
 class PosePrediction:
-    """Predicted uncertainty of poses (:func:`predict_poses`).
-
-    Attributes
-    ----------
-    R, t : ndarray, shape (P, 3, 3), (P, 3)
-        The poses ``T_world_body`` predicted for.
-    prisms_xyz : ndarray, shape (P, n, 3)
-        The prisms, world frame, m.
-    cov : ndarray, shape (P, 6, 6)
-        Pose covariance (left perturbation, x, y, z, rx, ry, rz), m^2 / rad^2; NaN where not
-        predicted.
-    prism_cov : ndarray, shape (P, n, 3, 3)
-        Each prism's total covariance after the GP, m^2.
-    prism_cov_by_source : dict str -> ndarray (P, n, 3, 3)
-        ``"gp"`` (the GP's posterior of what it is given) and each systematic source added.
-    ranges_m : ndarray, shape (P, n)
-        Distance from each prism to its station, m.
-    valid : ndarray of bool, shape (P,)
-        Predicted (no prism nearer than :data:`MIN_RANGE_M` to its station, a
-        non-degenerate pose).
-    """
+    """Predicted uncertainty of P poses ``R`` (P, 3, 3), ``t`` (P, 3): the prisms ``prisms_xyz``
+    (P, n, 3), world, m; the pose ``cov`` (P, 6, 6; left perturbation, x, y, z, rx, ry, rz; NaN
+    where not predicted); each prism's total ``prism_cov`` (P, n, 3, 3) and by source
+    (``prism_cov_by_source``: ``"gp"`` and each systematic source); ``ranges_m`` (P, n) to the
+    stations; ``valid`` (P,): no prism nearer than :data:`MIN_RANGE_M`, not degenerate."""
 
     R: np.ndarray
     t: np.ndarray
@@ -227,9 +154,9 @@ class PosePrediction:
 
 
 def measurement_track(layout: Layout, k: int, q: np.ndarray, v: np.ndarray) -> PrismTrack:
-    """The linear engine's covariances of station ``k``'s measurements of its prism at the
-    world points ``q`` (P, 3) moving at ``v`` (P, 3): the middle one of three synthetic
-    measurements per point (module docstring, step 2)."""
+    """The linear engine's covariances of station ``k``'s measurements of its prism at the world
+    points ``q`` (P, 3) moving at ``v`` (P, 3): the middle one of three synthetic measurements
+    per point (docs/planning.md#the-prediction-step-by-step, step 2)."""
     station = layout.stations[k]
     T = layout.calibration.transforms[station]
     h = 1.0 / layout.rate_hz[k]
@@ -251,25 +178,8 @@ def measurement_track(layout: Layout, k: int, q: np.ndarray, v: np.ndarray) -> P
 
 def predict_poses(layout: Layout, R: ArrayLike, t: ArrayLike, velocity: ArrayLike,
                   motion: RobotMotion) -> PosePrediction:
-    """Predicted covariance of the poses ``(R, t)`` of a robot moving at ``velocity``
-    (module docstring).
-
-    Parameters
-    ----------
-    layout : Layout
-    R : array_like, shape (P, 3, 3)
-        ``R_world_body``.
-    t : array_like, shape (P, 3)
-        ``t_world_body``, world frame (the reference station's), m.
-    velocity : array_like, shape (P, 3)
-        World velocity of the robot, m/s (the prisms share it).
-    motion : RobotMotion
-        The GP's ``Qc`` (moving or standing, by the speed).
-
-    Returns
-    -------
-    PosePrediction
-    """
+    """Predicted covariance of the poses ``R`` (P, 3, 3), ``t`` (P, 3; world, m) of a robot moving
+    at ``velocity`` (P, 3), m/s, under ``motion`` (the GP's ``Qc`` by speed)."""
     R = np.asarray(R, dtype=float).reshape(-1, 3, 3)
     t = np.asarray(t, dtype=float).reshape(-1, 3)
     vel = np.broadcast_to(np.asarray(velocity, dtype=float), t.shape)
