@@ -38,6 +38,7 @@ from rtsgt.evaluation.associate import (
     ground_truth_rates,
 )
 from rtsgt.evaluation.drift import Drift, drift_metrics, kitti_errors
+from rtsgt.evaluation.handeye import coarse_clock_shift
 from rtsgt.evaluation.metrics import (
     NeesResult,
     alignment_sensitivity,
@@ -346,6 +347,9 @@ def mounting_step(
     start = given_mounting(options) or MountingFit.given(clock_offset=options.time_offset)
     offset = options.time_offset
     clock = "clock" in options.estimate
+    if clock:  # the coarse search over +-1 s (rotation angles over 1 s correlated)
+        assoc, g = associate_step(gt, est, options, gt_measurement_times, gt_cross_next)
+        offset += coarse_clock_shift(assoc.est.t, g.rotation, assoc.est.rotation)
     for _ in range(MAX_CLOCK_ASSOCIATIONS):
         assoc, g = associate_step(gt, est, dataclasses.replace(options, time_offset=offset),
                                   gt_measurement_times, gt_cross_next)

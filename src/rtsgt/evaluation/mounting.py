@@ -92,6 +92,17 @@ measurement by hand gives (:data:`MAX_SIGMA`: 0.02 m for the lever arm, 1 deg fo
 rotation, 0.01 s for the clock): the trajectory does not excite it (a lever arm from a straight
 drive, whose normal matrix is singular: its sigma is infinite), and a number would mislead.
 
+A drifting odometry
+-------------------
+An odometry's own errors (drift, noise) are not in ``C``: the absolute fit's chi2 / dof then
+far exceeds 1 and its sigmas, scaled by it, follow the drift. Above
+:data:`ODOMETRY_CHI2_RATIO` the fit's covariance gets the odometry's own error beside the
+ground truth's (:mod:`.handeye`: random walks of its position and yaw with the distance
+driven, white noise of its poses; the drift states eliminated by a banded factorisation, the
+four levels estimated by REML), so that the drift no longer enters as information. A refusal there says whether the motion does not excite the
+parameter (its sigma from the ground truth's covariance alone is too large) or the odometry's
+own error dominates (docs/evaluating.md#a-drifting-odometry).
+
 References
 ----------
 F. C. Park, B. J. Martin, "Robot sensor calibration: solving AX = XB on the Euclidean group",
@@ -110,6 +121,12 @@ from numpy.typing import ArrayLike
 from rtsgt.choices import JOINT_ALIGNMENTS  # the alignments the mounting is estimated with
 from rtsgt.errors import ExcitationError, GeometryError, InputError
 from rtsgt.evaluation.align import Alignment, align_yaw, umeyama
+from rtsgt.evaluation.handeye import (
+    ODOMETRY_COMPONENTS,
+    drift_model,
+    fit_levels,
+    profile_normal,
+)
 from rtsgt.evaluation.metrics import integrated_autocorrelation_time
 from rtsgt.geometry.so3 import exp_so3, hat, log_so3, matrix_to_quat_xyzw
 
@@ -138,6 +155,13 @@ ESTIMATE_ALIASES = {"mounting": ("rotation", "lever"), "all": ("rotation", "leve
 #: per axis; a network time synchronisation for the clock, s). Above it the trajectory does not
 #: excite the parameter and the estimate is refused.
 MAX_SIGMA = {"rotation": float(np.radians(1.0)), "lever": 0.02, "lever-xy": 0.02, "clock": 0.01}
+
+#: Above this chi2 / dof of the absolute fit the estimate's own errors (an odometry's drift and
+#: noise) are larger than the covariances it was weighted by: the mounting and the clock are
+#: then fitted on the relative motion with a model of those errors (:mod:`.handeye`).
+ODOMETRY_CHI2_RATIO = 2.0
+#: Rounds of the odometry's levels and the fit at most (:func:`fit_mounting`).
+ODOMETRY_ROUNDS = 5
 
 #: The clock is re-associated until its step is below this, s (a micrometre at 1 m/s).
 CLOCK_TOLERANCE_S = 1e-6
@@ -234,6 +258,13 @@ class MountingFit:
     start : str
         The start Gauss-Newton converged from (``positions``, ``hand-eye``, ``rotations``,
         ``given``).
+    model : str
+        ``absolute`` (weighted by the covariances given) or ``odometry`` (with the
+        odometry's own drift and noise estimated beside them, :mod:`.handeye`).
+    odometry : dict or None
+        With ``odometry``: its error levels (standard deviations of
+        :data:`~rtsgt.evaluation.handeye.ODOMETRY_COMPONENTS`: m, rad, m / sqrt(m),
+        rad / sqrt(m)).
     """
 
     rotation: np.ndarray
@@ -250,6 +281,8 @@ class MountingFit:
     iterations: int = 0
     n_used: int = 0
     start: str = "given"
+    model: str = "absolute"
+    odometry: dict | None = None
 
     @classmethod
     def given(cls, rotation: ArrayLike | None = None, lever: ArrayLike | None = None,
@@ -325,6 +358,8 @@ class MountingFit:
                 "scale_factor": float(self.scale_factor),
                 "iterations": int(self.iterations),
                 "start": self.start,
+                "model": self.model,
+                "odometry": self.odometry,
                 "alignment": None if self.alignment is None else self.alignment.to_dict(),
                 "max_sigma": {g: MAX_SIGMA[g] for g in self.estimated},
             }
@@ -783,7 +818,8 @@ def fit_mounting(
     Raises
     ------
     ExcitationError
-        A parameter the trajectory does not excite (its sigma above :data:`MAX_SIGMA`).
+        A parameter the trajectory does not excite, or that the odometry's own error hides
+        (its sigma above :data:`MAX_SIGMA`; the message says which).
     InputError
         Nothing to estimate, an alignment that cannot be estimated with the mounting, the
         mounting rotation from a position-only ground truth, the clock without velocities,
@@ -844,6 +880,8 @@ def fit_mounting(
             best = (name, x, nrm.chi2)
     start, x, _ = best
     x, nrm, Rh, iterations = _gauss_newton(x, D, align, est, max_iter)
+    if Rg is not None and nrm.chi2 > ODOMETRY_CHI2_RATIO * (N * d - p_total):
+        return _odometry(x, D, align, est, clock_offset, start, max_iter)
     if V is not None:  # the information the velocities' noise feigns (gt_rate_cov)
         k = _layout(align, est)["clock"].start
         feigned = float(np.einsum("nij,nji->", np.linalg.inv(_covariance(x, D, Rh)), V))
@@ -916,7 +954,105 @@ def _result(x: _State, D: _Data, align: str, est: tuple[str, ...], nrm: _Normal,
         time_correlation=tau, scale_factor=f, iterations=iterations, n_used=N, start=start)
 
 
-def _refusal(group: str, sigma: np.ndarray, bad: np.ndarray) -> str:
+def _odometry_start(x: _State, D: _Data) -> np.ndarray:
+    """The start levels: white noise from the absolute residual, a small drift."""
+    r = _residual(x, D)[0]
+    white = np.sqrt(np.mean(r * r, axis=0))
+    return np.array([white[:3].mean(), white[3:].mean(), 1e-3, 1e-4])
+
+
+def _odometry(x: _State, D: _Data, align: str, est: tuple[str, ...], clock_offset: float,
+              start: str, max_iter: int) -> MountingFit:
+    """The mounting and the clock with the odometry's own error (:mod:`.handeye`): its levels
+    (REML) and the fit alternated until the levels settle."""
+    levels = _odometry_start(x, D)
+    for _ in range(ODOMETRY_ROUNDS):
+        r, q, Rh, _ = _residual(x, D)
+        S = D.S if D.cov_e is None else _covariance(x, D, Rh)
+        if D.shared is not None:
+            S = S + D.shared @ np.swapaxes(D.shared, 1, 2)
+        model = drift_model(S, Rh, x.lever, q, x.s)
+        J = _jacobian(x, D, align, est, q, Rh, _predict(x, D)[2])
+        new = fit_levels(model, r, J, levels)
+        settled = np.all(np.abs(np.log(new / levels)) < 0.01)
+        levels = new
+        x, H, chi2, iterations = _odometry_gauss_newton(x, D, align, est, levels, S, max_iter)
+        if settled:
+            break
+    return _odometry_result(x, D, align, est, levels, H, chi2, S, iterations, start,
+                            clock_offset)
+
+
+def _odometry_gauss_newton(x: _State, D: _Data, align: str, est: tuple[str, ...],
+                           levels: np.ndarray, S: np.ndarray, max_iter: int):
+    """Gauss-Newton on ``r^T C^-1 r`` with the drift states eliminated, the levels fixed."""
+    it = 0
+    for it in range(1, max_iter + 1):  # noqa: B007 (the count is reported)
+        r, q, Rh, ph = _residual(x, D)
+        model = drift_model(S, Rh, x.lever, q, x.s)
+        H, g, chi2, _ = profile_normal(model, levels, r, _jacobian(x, D, align, est, q, Rh, ph))
+        dx = _step(H, g)
+        if -float(g @ dx) < _CHI2_DECREASE:
+            break
+        lam = 1.0
+        for _ in range(20):
+            y = _update(x, lam * dx, align, est, D.c)
+            if profile_normal(model, levels, _residual(y, D)[0])[2] < chi2:
+                break
+            lam *= 0.5
+        else:
+            break
+        x = y
+    return x, H, chi2, it
+
+
+def _odometry_result(x: _State, D: _Data, align: str, est: tuple[str, ...],
+                     levels: np.ndarray, H: np.ndarray, chi2: float, S: np.ndarray,
+                     iterations: int, start: str, clock_offset: float) -> MountingFit:
+    lay = _layout(align, est)
+    N = D.pe.shape[0]
+    p = lay["all"].stop
+    dof = 6 * N - p - len(levels)
+    f = max(1.0, chi2 / dof)
+    Hinv, singular = _scaled_inverse(H)
+    r, q, _, _ = _residual(x, D)
+    # what the motion excites: the Jacobian along the ground truth's motion (the estimate's
+    # noisy rotations would feign a turn), weighted by the ground truth's covariance alone
+    H_gt = _Weights(S, None).normal(r, _jacobian(x, D, align, est, q, D.Rg, D.pg)).H
+    Hinv_gt, singular_gt = _scaled_inverse(H_gt)
+    idx = np.r_[tuple(np.arange(p)[lay[g]] for g in est)]
+    names = tuple(n for g in est for n in PARAMETER_NAMES[g])
+    C = f * Hinv[np.ix_(idx, idx)]
+    C = 0.5 * (C + C.T)
+    sig = np.where(singular[idx], np.inf, np.sqrt(np.clip(np.diagonal(C), 0.0, None)))
+    sig_gt = np.where(singular_gt[idx], np.inf,
+                      np.sqrt(np.clip(np.diagonal(Hinv_gt)[idx], 0.0, None)))
+    sig = np.where(singular_gt[idx], np.inf, sig)
+    odometry = {c: float(v) for c, v in zip(ODOMETRY_COMPONENTS, levels, strict=True)}
+    for g in est:
+        k = [names.index(n) for n in PARAMETER_NAMES[g]]
+        bad = ~(sig[k] <= MAX_SIGMA[g])
+        if np.any(bad):
+            hidden = bool(np.all(sig_gt[k][bad] <= MAX_SIGMA[g]))
+            raise ExcitationError(_refusal(g, sig[k], bad, odometry if hidden else None))
+    return MountingFit(
+        rotation=x.Rbs, lever=x.lever, clock_offset=float(clock_offset + x.delta),
+        estimated=est, names=names, covariance=C, alignment=Alignment(align, x.Ra, x.ta, x.s, N,
+                                                                      True),
+        chi2=chi2, dof=dof, time_correlation=1.0, scale_factor=f, iterations=iterations,
+        n_used=N, start=start, model="odometry", odometry=odometry)
+
+
+def _odometry_text(levels: dict) -> str:
+    """The odometry's error levels in words."""
+    return (f"white noise {100 * levels['white_position']:.2g} cm and "
+            f"{np.degrees(levels['white_rotation']):.2g} deg per pose, drift "
+            f"{100 * levels['drift_position']:.2g} cm and "
+            f"{np.degrees(levels['drift_yaw']):.2g} deg (yaw) per sqrt(m)")
+
+
+def _refusal(group: str, sigma: np.ndarray, bad: np.ndarray,
+             odometry: dict | None = None) -> str:
     """The one-line reason of a refusal."""
     k = int(np.argmax(np.where(bad, np.nan_to_num(sigma, nan=np.inf), -1.0)))
     what = {"rotation": "the mounting rotation", "lever": "the lever arm",
@@ -930,6 +1066,15 @@ def _refusal(group: str, sigma: np.ndarray, bad: np.ndarray) -> str:
         part = f" about the body {'xyz'[k]} axis"
         val = _fmt(np.degrees(sigma[k]), "deg")
         lim = f"{np.degrees(MAX_SIGMA['rotation']):g} deg"
+    if odometry is not None:
+        return (f"cannot estimate {what}: the odometry's own error ({_odometry_text(odometry)})"
+                f" dominates what the motion excites (its standard deviation{part} would be "
+                f"{val}, above the {lim} of a measurement by hand); give it instead, or "
+                f"record a longer trajectory that "
+                + {"rotation": "rotates about more axes",
+                   "lever": "turns and tilts more (or estimate lever-xy)",
+                   "lever-xy": "turns more",
+                   "clock": "accelerates and turns more"}[group])
     return (f"cannot estimate {what}: the trajectory does not excite it (its standard "
             f"deviation{part} would be {val}, above the {lim} of a measurement by hand); "
             f"give it instead, or record a trajectory that "
