@@ -489,8 +489,9 @@ def test_the_odometry_refusal_names_its_error():
 
 def test_drift_model_elimination_equals_its_dense_form():
     """The banded elimination of the drift states gives ``J^T C^-1 J``, ``J^T C^-1 r``,
-    ``r^T C^-1 r`` and ``log det C`` of the dense ``C = blockdiag(W) + H Sigma_s H^T``, with
-    ``Sigma_s`` the random walk's covariance built step by step."""
+    ``r^T C^-1 r``, ``log det C`` and the scores ``J_k^T (C^-1 r)_k`` of the dense ``C =
+    blockdiag(W) + H Sigma_s H^T + L L^T``, with ``Sigma_s`` the random walk's covariance
+    built step by step and ``L`` a shared factor."""
     rng = np.random.default_rng(27)
     N, P = 9, 3
     S = np.stack([random_cov(rng) for _ in range(N)])
@@ -499,7 +500,8 @@ def test_drift_model_elimination_equals_its_dense_form():
     M = drift_model(S, Rh, LEVER, q)
     levels = np.array([0.02, 0.01, 0.005, 0.002])
     r, J = 1e-2 * rng.normal(size=(N, 6)), rng.normal(size=(N, 6, P))
-    H, g, chi2, logdet = profile_normal(M, levels, r, J)
+    L = 3e-3 * rng.normal(size=(N, 6, 2))
+    H, g, chi2, logdet, score = profile_normal(M, levels, r, J, L, score=True)
     W = S + levels[0] ** 2 * M.B[:, 0] + levels[1] ** 2 * M.B[:, 1]
     Sig = np.zeros((4 * N, 4 * N))  # states 0..N-1, s_0 = 0
     for k in range(N - 1):  # s_{k+1} = F_k s_k + q_k
@@ -513,13 +515,16 @@ def test_drift_model_elimination_equals_its_dense_form():
     for k in range(N):
         Hb[6 * k:6 * k + 6, 4 * k:4 * k + 4] = M.H[k]
         C[6 * k:6 * k + 6, 6 * k:6 * k + 6] = W[k]
-    C += Hb @ Sig @ Hb.T
+    C += Hb @ Sig @ Hb.T + L.reshape(6 * N, 2) @ L.reshape(6 * N, 2).T
     Ci = np.linalg.inv(C)
     Jd, rd = J.reshape(6 * N, P), r.reshape(6 * N)
     np.testing.assert_allclose(H, Jd.T @ Ci @ Jd, rtol=1e-8)
     np.testing.assert_allclose(g, Jd.T @ Ci @ rd, rtol=1e-8, atol=1e-12 * np.abs(g).max())
     assert chi2 == pytest.approx(rd @ Ci @ rd, rel=1e-8)
     assert logdet == pytest.approx(np.linalg.slogdet(C)[1], rel=1e-10)
+    u = (Ci @ rd).reshape(N, 6)
+    np.testing.assert_allclose(score, np.einsum("nip,ni->np", J, u), rtol=1e-7,
+                               atol=1e-10 * np.abs(score).max())
 
 
 def test_coarse_clock_search_finds_an_offset_of_hundreds_of_milliseconds():
@@ -529,3 +534,29 @@ def test_coarse_clock_search_finds_an_offset_of_hundreds_of_milliseconds():
     _, Rg = truth(t)
     _, Re = truth(t + 0.42)
     assert coarse_clock_shift(t, Rg, Re @ R_BS) == pytest.approx(0.42, abs=0.01)
+
+
+def test_a_position_only_ground_truth_gives_a_drifting_odometrys_lever_arm_and_clock():
+    """Item 4 of issue 24: one prism (positions only) against a drifting odometry. The
+    mounting rotation is not estimable (the prism sees the sensor's rotation only through the
+    lever arm: refused with that reason); with it given, the lever arm's horizontal components
+    are, with the odometry's error estimated from the position residuals (within 3.5 sigma);
+    the clock, which the poses' rotations no longer pin, is refused here (sigma 16 ms) with
+    the odometry's error as the reason."""
+    rng = np.random.default_rng(28)
+    t = T0 + 1.0 + 0.1 * np.arange(1200)
+    est, _ = drifting(t, rng, clock=0.05, white_m=0.01)
+    p, _ = truth(t)
+    v = (truth(t + 1e-4)[0] - truth(t - 1e-4)[0]) / 2e-4
+    S = np.broadcast_to(np.eye(3) * 1e-6, (t.size, 3, 3))
+    kw = {"rotation": R_BS, "lever": np.r_[0.0, 0.0, LEVER[2]], "gt_velocity": v}
+    fit = fit_mounting(p, None, S, est.position, est.rotation, estimate="lever-xy", **kw,
+                       clock_offset=0.05)
+    assert fit.model == "odometry"
+    e = (LEVER - fit.lever)[:2]
+    assert np.all(np.abs(e / np.sqrt(np.diagonal(fit.covariance))) < 3.5)
+    assert fit.odometry["white_position"] == pytest.approx(0.01, rel=0.15)
+    with pytest.raises(ExcitationError, match="clock offset: the odometry's own error"):
+        fit_mounting(p, None, S, est.position, est.rotation, estimate="lever-xy,clock", **kw)
+    with pytest.raises(InputError, match="only through the lever arm"):
+        fit_mounting(p, None, S, est.position, est.rotation, estimate="rotation,lever")

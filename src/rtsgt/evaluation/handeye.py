@@ -115,8 +115,9 @@ class DriftModel:
 
     Attributes
     ----------
-    S : ndarray, shape (N, 6, 6)
-        The covariance known beside it (the ground truth's, the estimate's given one).
+    S : ndarray, shape (N, d, d)
+        The covariance known beside it (the ground truth's, the estimate's given one); ``d``
+        6 for poses, 3 for positions (the rows below cut to ``d``).
     B : ndarray, shape (N, 2, 6, 6)
         The white errors' covariance per unit level: position (m^2), rotation (rad^2), the
         latter through the lever arm too.
@@ -137,7 +138,7 @@ class DriftModel:
 
 def drift_model(S: np.ndarray, R_hat: np.ndarray, lever: np.ndarray, q: np.ndarray,
                 scale: float = 1.0, up: np.ndarray | None = None) -> DriftModel:
-    """The model at a solution: ``S`` (N, 6, 6) the covariance known, ``R_hat`` (N, 3, 3)
+    """The model at a solution: ``S`` (N, d, d) the covariance known, ``R_hat`` (N, 3, 3)
     the predicted body rotations, ``lever`` (3,) m, ``q`` (N, 3) the aligned sensor
     positions, m, ``scale`` the estimate's, ``up`` the vertical (world z by default)."""
     u = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=float)
@@ -158,7 +159,8 @@ def drift_model(S: np.ndarray, R_hat: np.ndarray, lever: np.ndarray, q: np.ndarr
     F = np.broadcast_to(np.eye(4), (N - 1, 4, 4)).copy()
     F[:, :3, 3] = np.cross(u, dq)
     step = np.maximum(np.linalg.norm(dq, axis=1), MIN_STEP_M)
-    return DriftModel(S, B, H, F, step)
+    d = S.shape[1]
+    return DriftModel(S, B[:, :, :d, :d], H[:, :d], F, step)
 
 
 def _banded(M: DriftModel, Qi: np.ndarray, HWH: np.ndarray) -> np.ndarray:
@@ -180,34 +182,51 @@ def _banded(M: DriftModel, Qi: np.ndarray, HWH: np.ndarray) -> np.ndarray:
 
 
 def profile_normal(M: DriftModel, levels: np.ndarray, r: np.ndarray,
-                   J: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float, float]:
+                   J: np.ndarray | None = None, L: np.ndarray | None = None, *,
+                   score: bool = False):
     """The weighted least squares with the drift states eliminated: ``J^T C^-1 J``,
     ``J^T C^-1 r``, ``r^T C^-1 r`` and ``log det C`` for the levels
-    (:data:`ODOMETRY_COMPONENTS`, standard deviations). ``r`` (N, 6), ``J`` (N, 6, P)."""
+    (:data:`ODOMETRY_COMPONENTS`, standard deviations); ``C`` also holds ``L L^T``, the
+    errors all poses share (Woodbury). ``r`` (N, d), ``J`` (N, d, P), ``L`` (N, d, k). With
+    ``score``, also each pose's share of the gradient, ``J_k^T (C^-1 r)_k`` (N, P)."""
     sp, sr, qp, qy = np.asarray(levels, dtype=float)
     W = M.S + sp * sp * M.B[:, 0] + sr * sr * M.B[:, 1]
     Lw = np.linalg.cholesky(0.5 * (W + np.swapaxes(W, 1, 2)))
     logdet = 2.0 * float(np.sum(np.log(np.diagonal(Lw, axis1=1, axis2=2))))
     Wi = np.linalg.inv(W)
     J = np.zeros(r.shape + (0,)) if J is None else J
-    P = J.shape[2]
-    Jr = np.concatenate([J, r[:, :, None]], axis=2)
-    WiJr = Wi @ Jr
-    G = np.einsum("nip,niq->pq", Jr, WiJr)
+    P, k = J.shape[2], 0 if L is None else L.shape[2]
+    X = np.concatenate([J] + ([] if L is None else [L]) + [r[:, :, None]], axis=2)
+    WiX = Wi @ X
+    G = np.einsum("nip,niq->pq", X, WiX)
     Qvar = M.step[:, None] * np.array([qp * qp] * 3 + [qy * qy])
     logdet += float(np.sum(np.log(Qvar)))
     HWH = np.swapaxes(M.H, 1, 2) @ Wi @ M.H
     cb = cholesky_banded(_banded(M, 1.0 / Qvar, HWH), lower=False)
     logdet += 2.0 * float(np.sum(np.log(cb[7])))
-    Z = (np.swapaxes(M.H, 1, 2) @ WiJr)[1:].reshape(-1, P + 1)
-    G -= Z.T @ cho_solve_banded((cb, False), Z)
-    return G[:P, :P], G[:P, P], float(G[P, P]), logdet
+    Z = (np.swapaxes(M.H, 1, 2) @ WiX)[1:].reshape(-1, X.shape[2])
+    Y = cho_solve_banded((cb, False), Z)  # the states' response to each column
+    G -= Z.T @ Y
+    a, b, c = slice(0, P), slice(P, P + k), P + k
+    Mk = np.eye(k) + G[b, b]
+    logdet += float(np.linalg.slogdet(Mk)[1]) if k else 0.0
+    T = np.linalg.solve(Mk, G[b, :]) if k else np.zeros((0, G.shape[1]))
+    Gs = G - G[:, b] @ T  # Woodbury: C^-1 = C0^-1 - C0^-1 L (I + L^T C0^-1 L)^-1 L^T C0^-1
+    out = (Gs[a, a], Gs[a, c], float(Gs[c, c]), logdet)
+    if not score:
+        return out
+    Hs = np.concatenate([np.zeros((1,) + X.shape[1:]),
+                         M.H[1:] @ Y.reshape(-1, 4, X.shape[2])], axis=0)
+    U = WiX - Wi @ Hs  # C0^-1 applied to every column, pose by pose
+    u = U[:, :, c] - (U[:, :, b] @ T[:, c] if k else 0.0)
+    return (*out, np.einsum("nip,ni->np", J, u))
 
 
-def _reml(z: np.ndarray, M: DriftModel, r: np.ndarray, J: np.ndarray) -> float:
+def _reml(z: np.ndarray, M: DriftModel, r: np.ndarray, J: np.ndarray,
+          L: np.ndarray | None) -> float:
     """-2 log of the restricted likelihood (up to a constant) at the log levels ``z``."""
     try:
-        H, g, chi2, logdet = profile_normal(M, np.exp(z), r, J)
+        H, g, chi2, logdet = profile_normal(M, np.exp(z), r, J, L)
     except np.linalg.LinAlgError:
         return np.inf
     d = np.sqrt(np.clip(np.diagonal(H), np.finfo(float).tiny, None))
@@ -218,14 +237,15 @@ def _reml(z: np.ndarray, M: DriftModel, r: np.ndarray, J: np.ndarray) -> float:
             + 2.0 * float(np.sum(np.log(d))))
 
 
-def fit_levels(M: DriftModel, r: np.ndarray, J: np.ndarray, start: np.ndarray) -> np.ndarray:
+def fit_levels(M: DriftModel, r: np.ndarray, J: np.ndarray, start: np.ndarray,
+               L: np.ndarray | None = None) -> np.ndarray:
     """The levels (:data:`ODOMETRY_COMPONENTS`) of restricted maximum likelihood, for the
-    residuals ``r`` (N, 6) linear in the parameters through ``J`` (N, 6, P), from ``start``,
-    within :data:`LEVEL_BOUNDS`."""
+    residuals ``r`` (N, 6) linear in the parameters through ``J`` (N, 6, P), the shared
+    factor ``L`` (N, 6, k) beside, from ``start``, within :data:`LEVEL_BOUNDS`."""
     bounds = np.log(np.array(LEVEL_BOUNDS))
     z0 = np.clip(np.log(np.asarray(start, dtype=float)), bounds[:, 0], bounds[:, 1])
-    res = minimize(_reml, z0, args=(M, r, J), method="L-BFGS-B", bounds=bounds,
-                   options={"eps": 1e-6, "maxiter": 200, "ftol": 1e-14, "gtol": 1e-9})
+    res = minimize(_reml, z0, args=(M, r, J, L), method="L-BFGS-B", bounds=bounds,
+                   options={"eps": 1e-6, "maxiter": 200, "ftol": 1e-12, "gtol": 1e-8})
     if not np.isfinite(res.fun):
         raise InputError("Expected positive definite covariances to estimate the mounting of "
                          "a drifting odometry")

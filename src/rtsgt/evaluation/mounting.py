@@ -843,7 +843,9 @@ def fit_mounting(
     Re = _as_array(est_rotation, (N, 3, 3), "estimate rotations")
     if d == 3 and "rotation" in est:
         raise InputError("The mounting rotation cannot be estimated from a position-only "
-                         "ground truth; give it")
+                         "ground truth: it sees the sensor's rotation only through the lever "
+                         "arm (the lever arm in the sensor frame and the clock can be "
+                         "estimated); give it")
     v = w = None
     if "clock" in est:
         if gt_velocity is None or (d == 6 and gt_angular_velocity is None):
@@ -880,7 +882,7 @@ def fit_mounting(
             best = (name, x, nrm.chi2)
     start, x, _ = best
     x, nrm, Rh, iterations = _gauss_newton(x, D, align, est, max_iter)
-    if Rg is not None and nrm.chi2 > ODOMETRY_CHI2_RATIO * (N * d - p_total):
+    if nrm.chi2 > ODOMETRY_CHI2_RATIO * (N * d - p_total):
         return _odometry(x, D, align, est, clock_offset, start, max_iter)
     if V is not None:  # the information the velocities' noise feigns (gt_rate_cov)
         k = _layout(align, est)["clock"].start
@@ -958,7 +960,7 @@ def _odometry_start(x: _State, D: _Data) -> np.ndarray:
     """The start levels: white noise from the absolute residual, a small drift."""
     r = _residual(x, D)[0]
     white = np.sqrt(np.mean(r * r, axis=0))
-    return np.array([white[:3].mean(), white[3:].mean(), 1e-3, 1e-4])
+    return np.array([white[:3].mean(), white[3:].mean() if D.d == 6 else 1e-2, 1e-3, 1e-4])
 
 
 def _odometry(x: _State, D: _Data, align: str, est: tuple[str, ...], clock_offset: float,
@@ -968,13 +970,11 @@ def _odometry(x: _State, D: _Data, align: str, est: tuple[str, ...], clock_offse
     levels = _odometry_start(x, D)
     for _ in range(ODOMETRY_ROUNDS):
         r, q, Rh, _ = _residual(x, D)
-        S = D.S if D.cov_e is None else _covariance(x, D, Rh)
-        if D.shared is not None:
-            S = S + D.shared @ np.swapaxes(D.shared, 1, 2)
+        S = _covariance(x, D, Rh)
         model = drift_model(S, Rh, x.lever, q, x.s)
         J = _jacobian(x, D, align, est, q, Rh, _predict(x, D)[2])
-        new = fit_levels(model, r, J, levels)
-        settled = np.all(np.abs(np.log(new / levels)) < 0.01)
+        new = fit_levels(model, r, J, levels, D.shared)
+        settled = np.all(np.abs(np.log(new / levels)) < 0.03)
         levels = new
         x, H, chi2, iterations = _odometry_gauss_newton(x, D, align, est, levels, S, max_iter)
         if settled:
@@ -990,14 +990,15 @@ def _odometry_gauss_newton(x: _State, D: _Data, align: str, est: tuple[str, ...]
     for it in range(1, max_iter + 1):  # noqa: B007 (the count is reported)
         r, q, Rh, ph = _residual(x, D)
         model = drift_model(S, Rh, x.lever, q, x.s)
-        H, g, chi2, _ = profile_normal(model, levels, r, _jacobian(x, D, align, est, q, Rh, ph))
+        H, g, chi2, _ = profile_normal(model, levels, r, _jacobian(x, D, align, est, q, Rh, ph),
+                                       D.shared)
         dx = _step(H, g)
         if -float(g @ dx) < _CHI2_DECREASE:
             break
         lam = 1.0
         for _ in range(20):
             y = _update(x, lam * dx, align, est, D.c)
-            if profile_normal(model, levels, _residual(y, D)[0])[2] < chi2:
+            if profile_normal(model, levels, _residual(y, D)[0], None, D.shared)[2] < chi2:
                 break
             lam *= 0.5
         else:
@@ -1012,13 +1013,20 @@ def _odometry_result(x: _State, D: _Data, align: str, est: tuple[str, ...],
     lay = _layout(align, est)
     N = D.pe.shape[0]
     p = lay["all"].stop
-    dof = 6 * N - p - len(levels)
+    dof = D.d * N - p - len(levels)
     f = max(1.0, chi2 / dof)
     Hinv, singular = _scaled_inverse(H)
-    r, q, _, _ = _residual(x, D)
+    r, q, Rh, ph = _residual(x, D)
+    score = profile_normal(drift_model(S, Rh, x.lever, q, x.s), levels, r,
+                           _jacobian(x, D, align, est, q, Rh, ph), D.shared, score=True)[4]
+    # the ground truth's varying errors are correlated between nearby poses (module
+    # docstring): each variance inflated by its score's integrated autocorrelation time
+    root = np.sqrt([integrated_autocorrelation_time(score[:, j]) for j in range(p)])
+    Hinv = root[:, None] * Hinv * root[None, :]
     # what the motion excites: the Jacobian along the ground truth's motion (the estimate's
     # noisy rotations would feign a turn), weighted by the ground truth's covariance alone
-    H_gt = _Weights(S, None).normal(r, _jacobian(x, D, align, est, q, D.Rg, D.pg)).H
+    motion = (Rh, ph) if D.Rg is None else (D.Rg, D.pg)
+    H_gt = _Weights(S, D.shared).normal(r, _jacobian(x, D, align, est, q, *motion)).H
     Hinv_gt, singular_gt = _scaled_inverse(H_gt)
     idx = np.r_[tuple(np.arange(p)[lay[g]] for g in est)]
     names = tuple(n for g in est for n in PARAMETER_NAMES[g])
@@ -1039,7 +1047,8 @@ def _odometry_result(x: _State, D: _Data, align: str, est: tuple[str, ...],
         rotation=x.Rbs, lever=x.lever, clock_offset=float(clock_offset + x.delta),
         estimated=est, names=names, covariance=C, alignment=Alignment(align, x.Ra, x.ta, x.s, N,
                                                                       True),
-        chi2=chi2, dof=dof, time_correlation=1.0, scale_factor=f, iterations=iterations,
+        chi2=chi2, dof=dof, time_correlation=float(np.max(root[idx]) ** 2), scale_factor=f,
+        iterations=iterations,
         n_used=N, start=start, model="odometry", odometry=odometry)
 
 
