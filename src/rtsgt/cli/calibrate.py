@@ -4,7 +4,7 @@ From GCP shots, a thin wrapper over :func:`rtsgt.io.gcp_csv.read_gcp_shots` and
 :func:`rtsgt.calibration.calibrate`; ``GCP_FILE`` may be the word ``example`` for the small
 synthetic example shipped in the package (three stations, eight markers). From a deployment's
 TOML (``rtsgt calibrate --dynamic DEPLOYMENT.toml``, or ``--method dynamic|joint|gcp``), the
-pipeline's own calibration stage (:func:`rtsgt.pipeline.calibrate_by_method`: module 1, and for
+pipeline's own calibration stage (:func:`rtsgt.stages.front.calibrate_by_method`: module 1, and for
 ``dynamic`` and ``joint`` the tracks, their GPs and the inter-prism distances,
 :mod:`rtsgt.calibration.dynamic`); the method and the model default to the TOML's
 ``[calibration]``; a deployment's folder holding ``deployment.toml`` is taken for its TOML

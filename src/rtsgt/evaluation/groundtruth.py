@@ -61,17 +61,17 @@ from rtsgt.evaluation.associate import (
     _nearest_distance,
 )
 from rtsgt.evaluation.positions import PositionSample, PositionSplit
-from rtsgt.filtering.gates import apply_gates
 from rtsgt.interpolation import GPTrack
 from rtsgt.interpolation.cross import gp_cross_covariance
 from rtsgt.interpolation.prisms import PrismsAtTimes, fit_gps, gp_velocities, query_prisms
 from rtsgt.io.run_dir import read_any_run, read_run
 from rtsgt.noise.coupling import StationCoupling
-from rtsgt.options import RunOptions, stage_rng
+from rtsgt.options import RunOptions
 from rtsgt.pose import POSE_ENGINES, ReferencePoints, estimate_poses
 from rtsgt.pose.estimate import pose_jacobians
 from rtsgt.record import RunRecord
 from rtsgt.shared import SharedFactor, prism_shared_factor, rank_one_factor, split_ground_truth
+from rtsgt.stages.poses import gated_poses
 from rtsgt.types import PrismTrack
 
 __all__ = [
@@ -419,17 +419,8 @@ class ContinuousGroundTruth:
         if idx.size:
             prisms = query_prisms(self.tracks, self.gps, tau[idx], self.options.interpolation,
                                   self.coupling)
-            opt = self.options.pose
-            est = estimate_poses(
-                prisms.xyz, prisms.pose_covariance, self.reference, engine=opt.engine,
-                registration=opt.registration, samples=opt.samples,
-                rng=stage_rng(self.options.seed, "pose") if opt.engine == "mc" else None,
-            )
-            keep, report = apply_gates(
-                est, self.reference, distance_gate_m=opt.distance_gate_m,
-                uncertainty_gate_m=opt.uncertainty_gate_m,
-                uncertainty_measure=self.uncertainty_measure,
-            )
+            gated = gated_poses(prisms, self.reference, self.options, self.uncertainty_measure)
+            est, keep, report = gated.estimate, gated.keep, gated.report
             position[idx] = est.position
             quat[idx] = est.quat_xyzw
             cov[idx] = est.cov

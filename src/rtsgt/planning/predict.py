@@ -25,7 +25,7 @@ from rtsgt.noise import propagate
 from rtsgt.noise.coupling import joint_prism_covariance
 from rtsgt.planning.gp_factor import gp_posterior_covariance
 from rtsgt.planning.layout import Layout
-from rtsgt.pose import estimate_poses
+from rtsgt.stages.poses import pose_estimate
 from rtsgt.types import Observations, PrismTrack
 
 __all__ = ["DEFAULT_QC_M2_S3", "DEFAULT_SPEED_M_S", "MIN_RANGE_M", "PosePrediction",
@@ -209,8 +209,7 @@ def predict_poses(layout: Layout, R: ArrayLike, t: ArrayLike, velocity: ArrayLik
     out_cov = np.full((P, 6, 6), np.nan)
     valid = np.zeros(P, bool)
     if idx.size:
-        est = estimate_poses(q[idx], pose_cov, layout.reference, engine="linear",
-                             registration=layout.options.pose.registration)
+        est = pose_estimate(q[idx], pose_cov, layout.reference, layout.options, engine="linear")
         out_cov[idx] = est.cov
         valid[idx] = ~est.degenerate
 

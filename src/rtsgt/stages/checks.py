@@ -1,0 +1,73 @@
+"""The self-checks of a run, for either kind: the static stretches (and the plan to inflate
+time-correlated noise they give) on the first fit, the others on the fit that stands.
+docs/self-checks.md.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from rtsgt.checks import (
+    block_cv_check,
+    dynamic_calibration_check,
+    gcp_fit_check,
+    inter_prism_check,
+    run_structure_check,
+    static_noise_check,
+    static_stretches,
+)
+from rtsgt.noise.correlated import correlated_noise_plan
+from rtsgt.options import RunOptions
+from rtsgt.pose import ReferencePoints
+from rtsgt.stages.front import Front
+from rtsgt.stages.poses import PoseFit
+from rtsgt.stages.prisms import PrismFit
+from rtsgt.stages.timing import Progress, Stopwatch
+from rtsgt.types import PrismTrack
+
+__all__ = ["run_checks", "static_noise"]
+
+
+def static_noise(options: RunOptions, front: Front, fitted: dict[str, PrismTrack],
+                 t: np.ndarray, xyz: np.ndarray, say: Progress,
+                 clock: Stopwatch) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The noise on the static stretches of the prisms ``xyz`` (T, n, 3) at ``t`` (T,), the
+    measurements ``fitted`` taken as independent (:func:`rtsgt.checks.static_noise_check`),
+    and the plan to inflate the white covariance of module 2's tracks where it finds the noise
+    correlated (:func:`rtsgt.noise.correlated.correlated_noise_plan`): ``(static, plan)``."""
+    say("self-check: static stretches")
+    static = static_noise_check(fitted, front.origins, static_stretches(t, xyz))
+    correlated = correlated_noise_plan(
+        static, front.tracks, apply=options.interpolation.correlated_noise == "inflate")
+    clock.lap("static_noise")
+    return static, correlated
+
+
+def run_checks(options: RunOptions, front: Front, static: dict[str, Any],
+               fit: PoseFit | PrismFit, reference: ReferencePoints | None = None
+               ) -> dict[str, Any]:
+    """The self-checks of a run, JSON-ready by name: the GCP fit (of the GCP calibration beside
+    a dynamic one), block cross-validation and the ``static`` check; for a pose run (a
+    :class:`PoseFit` and its ``reference``) the inter-prism distances, the dynamic
+    calibration's agreement (a dynamic calibration) and the inter-prism structure too."""
+    calib, gcp_calib = front.calibration, front.gcp_calibration
+    gp_noise = options.interpolation.gp_noise
+    checks: dict[str, Any] = {"gcp_fit": gcp_fit_check(calib if gcp_calib is None else gcp_calib)}
+    poses = isinstance(fit, PoseFit)
+    if poses:
+        pr, keep, gt = fit.prisms, fit.keep, fit.groundtruth
+        checks["inter_prism_distances"] = inter_prism_check(
+            gt.t, gt.position, pr.xyz[keep], pr.pose_covariance[keep], pr.nearest_dt[keep],
+            reference.xyz, reference.cov, reference.names, varying_cov=pr.cov_gp[keep])
+    checks["block_cv"] = block_cv_check(fit.tracks, fit.gps, gp_noise=gp_noise,
+                                        max_gap_s=options.interpolation.max_gap_s)
+    checks["static_noise"] = static
+    if poses:
+        if calib.dynamic is not None:
+            checks["dynamic_calibration"] = dynamic_calibration_check(calib, gcp_calib)
+        checks["inter_prism_structure"] = run_structure_check(
+            fit.prisms, fit.gps, fit.tracks, calib, front.coupling, reference, fit.keep,
+            front.model, gp_noise)
+    return checks
