@@ -23,7 +23,8 @@ HEAVY_PACKAGES = ("numpy", "scipy", "matplotlib", "dask", "distributed")
 HEAVY_RTSGT = ("rtsgt.pipeline", "rtsgt.report", "rtsgt.io.run_dir", "rtsgt.calibration",
                "rtsgt.checks", "rtsgt.evaluation", "rtsgt.simulation", "rtsgt.planning",
                "rtsgt.interpolation", "rtsgt.pose", "rtsgt.filtering", "rtsgt.noise",
-               "rtsgt.options", "rtsgt.record", "rtsgt.stats", "rtsgt.batch", "rtsgt.types")
+               "rtsgt.options", "rtsgt.record", "rtsgt.stats", "rtsgt.batch", "rtsgt.types",
+               "rtsgt.app")
 
 #: Renders the help of the application and of each command, then prints the modules loaded.
 HELP_SCRIPT = """

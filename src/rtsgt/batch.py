@@ -1,7 +1,7 @@
 """Many deployments at once (``rtsgt batch``): one task per deployment, serially or on Dask.
 
 Orchestration only: each task is ``rtsgt run``'s single-deployment run
-(:func:`rtsgt.cli.run.run_deployment`), the summary is read back from each run's
+(:func:`rtsgt.app.run_deployment`), the summary is read back from each run's
 ``summary.json`` (:mod:`rtsgt.io.batch_summary`). :func:`find_deployments` finds the
 deployments, :func:`deployment_seed` gives each a seed from its name and the base seed alone,
 a complete run with the same inputs is skipped, a failure is one line (:func:`run_task`
@@ -21,7 +21,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rtsgt.cli.run import run_deployment
+from rtsgt.app.run import run_deployment
 from rtsgt.errors import InputError, RtsgtError
 from rtsgt.io.config import load_config
 from rtsgt.io.deployment import DEPLOYMENT_TOML
@@ -218,9 +218,10 @@ def run_task(task: BatchTask) -> Outcome:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            run_deployment(task.config, task.out, seed=task.seed, force=task.force or
-                           task.out.exists(), quiet=True, report=task.report,
-                           inputs=task.inputs, **task.options)
+            run_deployment(task.config, task.out, options=run_options(task.options),
+                           profile=task.options.get("profile"), seed=task.seed,
+                           force=task.force or task.out.exists(), report=task.report,
+                           inputs=task.inputs)
     except RtsgtError as exc:
         message = _one_line(exc)
     except Exception as exc:  # a bug: this deployment fails, the others go on
@@ -230,6 +231,13 @@ def run_task(task: BatchTask) -> Outcome:
     status = "failed" if message else "done"
     return Outcome(task.name, status, task.seed, task.out, task.config, message,
                    time.perf_counter() - t0)
+
+
+def run_options(given: dict) -> dict:
+    """The changes to a deployment's options (:meth:`RunOptions.updated
+    <rtsgt.options.RunOptions.updated>`'s names) of a task's command-line ``options``
+    (``rtsgt run``'s names: ``rate`` is ``rate_hz``; ``profile`` apart)."""
+    return {("rate_hz" if k == "rate" else k): v for k, v in given.items() if k != "profile"}
 
 
 def _one_line(exc: BaseException) -> str:

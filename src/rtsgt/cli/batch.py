@@ -47,7 +47,8 @@ def run_batch(
 ) -> tuple[list[Outcome], list[dict], Path]:
     """Run every deployment under ``inputs`` into ``out`` (module docstring); returns the
     outcomes, the summary rows and the output folder. ``run_options``: ``rtsgt run``'s
-    (``engine``, ``samples``, ``registration``, ``rate``, ``prior``, ``correlated_noise``).
+    (``engine``, ``samples``, ``registration``, ``rate``, ``prior``, ``correlated_noise``,
+    ``profile``).
 
     Raises
     ------
@@ -249,6 +250,8 @@ def register(app: typer.Typer) -> None:
                                              "(default: config)."),
         correlated_noise: str = typer.Option(None, "--correlated-noise",
                                              help="inflate or ignore (default: config)."),
+        profile: str = typer.Option(None, help="Preset of the switches: paper (a switch "
+                                               "given with it wins) (default: config)."),
         report: bool = typer.Option(False, "--report",
                                     help="Also write each run's HTML report."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress, no table."),
@@ -257,4 +260,4 @@ def register(app: typer.Typer) -> None:
         run_batch(inputs, out, seed=seed, workers=workers, scheduler=scheduler, serial=serial,
                   force=force, quiet=quiet, report=report, engine=engine,
                   registration=registration, samples=samples, rate=rate, prior=prior,
-                  correlated_noise=correlated_noise)
+                  correlated_noise=correlated_noise, profile=profile)

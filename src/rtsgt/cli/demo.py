@@ -9,7 +9,7 @@ from pathlib import Path
 import typer
 
 from rtsgt.cli.common import Stages, collected_warnings, print_warnings, usage_error
-from rtsgt.cli.run import option_overrides, run_deployment
+from rtsgt.cli.run import option_overrides, run_command
 from rtsgt.errors import InputError
 from rtsgt.io.output_dir import OutputDir, record_files
 
@@ -42,9 +42,10 @@ def run_demo(out: Path, *, seed: int, duration: float, engine: str, samples: int
             stages("simulating a deployment")
             sim = simulate_deployment(config, np.random.default_rng(seed))
             toml = write_deployment(sim, tmp / "deployment", name=f"demo-seed-{seed}")
-        result, run_dir = run_deployment(toml, tmp / "run", engine=engine, samples=samples,
-                                         seed=seed, quiet=quiet, registration=registration,
-                                         inputs={"config": "../deployment/deployment.toml"})
+        done = run_command(toml, tmp / "run", engine=engine, samples=samples, seed=seed,
+                           quiet=quiet, registration=registration,
+                           inputs={"config": "../deployment/deployment.toml"})
+        result, run_dir = done.record, done.path
         relocate_summary(run_dir, tmp, output.final)  # the paths the run will have
         if report:
             from rtsgt.report.html import write_report  # matplotlib: only for a report

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import typer
@@ -15,13 +14,11 @@ from rtsgt.cli.common import (
     print_run_summary,
     print_warnings,
 )
-from rtsgt.errors import RtsgtWarning
-from rtsgt.io.output_dir import check_target
 
 #: The command-line options that override keys of the deployment's configuration.
 RUN_OPTION_NAMES = {"engine": "--engine", "registration": "--registration",
                     "samples": "--samples", "rate_hz": "--rate", "prior": "--prior",
-                    "correlated_noise": "--correlated-noise"}
+                    "correlated_noise": "--correlated-noise", "profile": "--profile"}
 
 
 def option_overrides(**values) -> dict:
@@ -32,61 +29,21 @@ def option_overrides(**values) -> dict:
     return checked_options(RunOptions().updated, RUN_OPTION_NAMES, **values)
 
 
-def run_deployment(
-    config: Path,
-    out: Path,
-    *,
-    engine: str | None = None,
-    samples: int | None = None,
-    seed: int = 0,
-    registration: str | None = None,
-    rate: float | None = None,
-    correlated_noise: str | None = None,
-    force: bool = False,
-    quiet: bool = False,
-    report: bool = False,
-    inputs: dict | None = None,
-    prior: str | None = None,
-):
-    """Load, process and write one deployment; returns (RunRecord, output directory).
+def run_command(config: Path, out: Path, *, seed: int = 0, force: bool = False,
+                quiet: bool = False, report: bool = False, inputs: dict | None = None,
+                profile: str | None = None, **values):
+    """``rtsgt run``'s work: the command-line ``values`` (``engine``, ``samples``,
+    ``registration``, ``rate``, ``prior``, ``correlated_noise``; None: the configuration's)
+    and ``profile`` checked as usage errors, then :func:`rtsgt.app.run_deployment` with the
+    progress display on stderr; returns its :class:`~rtsgt.app.DeploymentRun`."""
+    from rtsgt.app import run_deployment
 
-    The options and the output directory are checked before any work; ``report`` adds the
-    HTML report to the run directory before it is put in place; ``inputs`` (default: the
-    configuration's absolute path) is what ``summary.json`` records as the run's inputs.
-    """
-    from rtsgt.io.deployment import load_deployment, resolve_config
-    from rtsgt.io.run_dir import write_run
-    from rtsgt.pipeline import run_pipeline
-    from rtsgt.record import PositionRunRecord
-
-    config = resolve_config(config)
-    changes = option_overrides(engine=engine, registration=registration, samples=samples,
-                               rate_hz=rate, prior=prior, correlated_noise=correlated_noise)
-    check_target(out, force=force, inputs=[config])
+    values = {("rate_hz" if k == "rate" else k): v for k, v in values.items()}
+    changes = option_overrides(profile=profile, **values)
+    profile = changes.pop("profile", None)
     with Stages(quiet) as stages:
-        stages("reading inputs")
-        data, options = load_deployment(config)
-        options = options.updated(seed=seed, **changes)
-        result = run_pipeline(data, options, progress=stages)
-        stages("writing outputs")
-
-        def add_report(tmp: Path, final: Path) -> None:
-            from rtsgt.report.html import write_report  # matplotlib: only for a report
-
-            stages("analysis, figures and HTML report")
-            write_report(tmp, shown_path=final)
-
-        if report and isinstance(result, PositionRunRecord):
-            warnings.warn("--report: the HTML report is of runs with poses; this run gives "
-                          "positions only (prisms/prism<i>.csv), and no report is written",
-                          RtsgtWarning, stacklevel=2)
-            report = False
-
-        if inputs is None:
-            inputs = {"config": str(Path(config).resolve())}
-        final = write_run(result, out, force=force, inputs=inputs, protect=[config],
-                          finish=add_report if report else None)
-    return result, final
+        return run_deployment(config, out, options=changes, profile=profile, seed=seed,
+                              force=force, report=report, inputs=inputs, progress=stages)
 
 
 def register(app: typer.Typer) -> None:
@@ -118,25 +75,29 @@ def register(app: typer.Typer) -> None:
                                    help="Only errors and the verdict line (no progress, "
                                         "warnings or table; all are in summary.json)."),
         report: bool = typer.Option(False, "--report", help="Also write the HTML report."),
+        profile: str = typer.Option(
+            None, help="Preset of the switches: paper (the published method, "
+                       "docs/honesty.md#the-papers-switches); a switch given with it wins "
+                       "(default: config)."),
     ) -> None:
         """Compute the ground truth of a deployment: poses with 6x6 covariance (with one or two
         tracked prisms: their positions with 3x3 covariance)."""
         from rtsgt.checks.verdict import record_verdict
 
-        final = None
+        done = None
         with collected_warnings() as caught:
             try:
-                result, final = run_deployment(
+                done = run_command(
                     config, out, engine=engine, samples=samples, seed=seed, rate=rate,
                     force=force, quiet=quiet, report=report, registration=registration,
-                    prior=prior, correlated_noise=correlated_noise)
+                    prior=prior, correlated_noise=correlated_noise, profile=profile)
             finally:
                 if not quiet:
-                    print_warnings(caught, None if final is None else final / "summary.json")
-        shown = final / "report.html"
+                    print_warnings(caught, None if done is None else done.summary)
+        shown = done.path / "report.html"
         if not quiet:
-            print_run_summary(result, final)
+            print_run_summary(done.record, done.path)
             if shown.exists():
                 echo_err(f"report: {shown}")
-        typer.echo(record_verdict(result).line(
-            str(shown if shown.exists() else final / "summary.json")))
+        typer.echo(record_verdict(done.record).line(
+            str(shown if shown.exists() else done.summary)))

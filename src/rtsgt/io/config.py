@@ -12,7 +12,7 @@ import json
 import math
 import re
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +22,13 @@ from rtsgt.io.rts_bag import TIME_SOURCES
 from rtsgt.measurement.instruments import InstrumentProfile, instrument_from_config
 from rtsgt.noise import NoiseModel
 from rtsgt.noise.sources import NOISE_SOURCES
-from rtsgt.options import CalibrationOptions, InterpolationOptions, PoseOptions, RunOptions
+from rtsgt.options import (
+    PROFILES,
+    CalibrationOptions,
+    InterpolationOptions,
+    PoseOptions,
+    RunOptions,
+)
 from rtsgt.record import MIN_POSE_PRISMS
 
 if sys.version_info >= (3, 11):
@@ -203,9 +209,10 @@ def load_config(path: str | Path) -> DeploymentConfig:
         raise ConfigError(f"invalid TOML: {exc}", path) from None
     known = {"deployment", "instrument", "stations", "measurements", "gcp", "weather",
              "reference", "noise", "calibration", "filter", "interpolation", "pose"}
-    unknown = sorted(set(doc) - known)
+    unknown = sorted(set(doc) - known - {"profile"})
     if unknown:
         raise ConfigError(f"unknown section(s) {', '.join(unknown)}", path)
+    _misplaced_profile(path, doc)
 
     dep = TomlSection(path, "deployment", doc.get("deployment", {}))
     name = dep.get("name", str, path.stem)
@@ -322,15 +329,17 @@ def read_options(path: Path, doc: dict, instrument: InstrumentProfile,
             f"[noise] unknown source(s) {', '.join(map(repr, bad))}; known: {', '.join(NOISE_SOURCES)}",
             path,
         )
+    profile = _profile(path, doc)
     noise = n.record(NoiseModel, NOISE_KEYS, instrument=instrument)
     n.done()
 
     f = TomlSection(path, "filter", doc.get("filter", {}))
-    filt = f.record(FilterParams, FILTER_KEYS)
+    filt = f.record(FilterParams, FILTER_KEYS, **_preset(profile, FilterParams))
     f.done()
 
     c = TomlSection(path, "calibration", doc.get("calibration", {}))
-    calibration = c.record(CalibrationOptions, CALIBRATION_KEYS)
+    calibration = c.record(CalibrationOptions, CALIBRATION_KEYS,
+                           **_preset(profile, CalibrationOptions))
     c.done()
 
     it = TomlSection(path, "interpolation", doc.get("interpolation", {}))
@@ -339,15 +348,46 @@ def read_options(path: Path, doc: dict, instrument: InstrumentProfile,
     times = it.file("query_times") if "query_times" in it.table else None
     if times is not None and "rate_hz" in it.table:
         raise ConfigError("[interpolation] give rate_hz or query_times, not both", path)
-    interp = it.record(InterpolationOptions, INTERPOLATION_KEYS)
+    interp = it.record(InterpolationOptions, INTERPOLATION_KEYS,
+                       **_preset(profile, InterpolationOptions))
     it.done()
 
     p = TomlSection(path, "pose", doc.get("pose", {}))
-    pose = p.record(PoseOptions, POSE_KEYS)
+    pose = p.record(PoseOptions, POSE_KEYS, **_preset(profile, PoseOptions))
     p.done()
 
     return RunOptions(filter=filt, noise=noise, calibration=calibration, interpolation=interp,
                       pose=pose), times
+
+
+def _profile(path: Path, doc: dict) -> str | None:
+    """The file's top-level ``profile`` key (None without it): a name of
+    :data:`rtsgt.options.PROFILES`."""
+    value = doc.get("profile")
+    if value is not None and (not isinstance(value, str) or value not in PROFILES):
+        raise ConfigError(f"profile = {value!r} is not one of "
+                          f"{', '.join(map(repr, PROFILES))}", path)
+    return value
+
+
+def _preset(profile: str | None, record: type) -> dict[str, Any]:
+    """The switches of ``profile`` that are fields of the option ``record``: its values where
+    the file's table does not give the key."""
+    names = {f.name for f in fields(record)}
+    return {k: v for k, v in PROFILES.get(profile, {}).items() if k in names}
+
+
+def _misplaced_profile(path: Path, doc: dict) -> None:
+    """Refuse the run's ``profile`` key inside a table (TOML puts a key written below a
+    table's header in that table)."""
+    tables = [(name, t) for name, t in doc.items() if isinstance(t, dict)]
+    tables += [(f"{name} #{i + 1}", t) for name, ts in doc.items() if isinstance(ts, list)
+               for i, t in enumerate(ts) if isinstance(t, dict)]
+    for name, table in tables:
+        # [instrument] profile names the instrument: misplaced only when it names a preset
+        if "profile" in table and (name != "instrument" or table["profile"] in PROFILES):
+            raise ConfigError(f"[{name}] profile = {table['profile']!r}: the run's profile is "
+                              "a key of the file's top, written before its first table", path)
 
 
 def toml_value(value: Any) -> str:
