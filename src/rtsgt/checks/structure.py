@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -25,6 +26,7 @@ from rtsgt.checks.distances import STATIC_SPEED_M_S, pose_speed
 from rtsgt.errors import RtsgtWarning
 from rtsgt.interpolation.cross import gp_joint_covariance
 from rtsgt.interpolation.prisms import gp_velocities
+from rtsgt.parallel import available_cores
 from rtsgt.pose.registration import register
 from rtsgt.shared import prism_shared_factor, reference_factor, select_prisms
 
@@ -351,7 +353,8 @@ def _whitened_gram(t, H, bounds, varying_cov, n, dense, Vc, window) -> np.ndarra
     nd, m = dense.shape[1], Vc.shape[1]
     nw = 0 if window is None else int(window.max(initial=-1)) + 1
     K = np.zeros((nd + nw * m, nd + nw * m))
-    for a, b in zip(*bounds, strict=True):  # loop over blocks
+
+    def block(a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
         S = np.zeros((b - a, b - a, P, P))  # H_a C_ab H_b^T, summed over the prisms
         for i in range(n):
             Hi = H[a:b, :, 3 * i:3 * i + 3]
@@ -365,7 +368,12 @@ def _whitened_gram(t, H, bounds, varying_cov, n, dense, Vc, window) -> np.ndarra
         W = solve_triangular(L, np.concatenate(
             [dense[a * P:b * P], Xc.reshape((b - a) * P, -1)], axis=1), lower=True)
         idx = np.r_[np.arange(nd), nd + (cs[:, None] * m + np.arange(m)).ravel()].astype(int)
-        K[np.ix_(idx, idx)] += W.T @ W
+        return idx, W.T @ W
+
+    # the blocks in threads (numpy releases the interpreter lock), summed in their order
+    with ThreadPoolExecutor(max_workers=available_cores()) as ex:
+        for idx, gram in ex.map(block, *bounds):
+            K[np.ix_(idx, idx)] += gram
     # the columns summed over the windows: K E and E^T K E, E the sum
     E = np.zeros((K.shape[0], m))
     E[nd:] = np.tile(np.eye(m), (nw, 1))
