@@ -2,11 +2,11 @@
 
 Run: ``python benchmarks/mounting.py [--deployments 60] [--duration 120] [--engine linear]
 [--align se3] [--estimate all] [--angle-deg 174] [--lever-m 0.5] [--clock-s 0.03]
-[--est-sigma-m 0] [--first-seed 11000] [--odometry] [--per-run 1] [--verbose]``
+[--est-sigma-m 0] [--first-seed 11000] [--odometry] [--per-run 1] [--verbose] [--example]``
 
 For each deployment ``first_seed + k`` (:mod:`rtsgt.simulation`): simulate, write the files,
 read them back, run the pipeline, write the run directory and load its continuous ground truth
-(:meth:`rtsgt.evaluation.ContinuousGroundTruth.from_run_dir`), as ``rtsgt evaluate`` does. The
+(:func:`rtsgt.app.read_ground_truth`), as ``rtsgt evaluate`` does. The
 estimate is the exact truth of a sensor mounted on the robot (``T_body_sensor``: a rotation of
 ``--angle-deg`` about an axis drawn within 10 deg of the vertical, a lever arm of
 ``--lever-m`` in a random direction; with ``lever-xy`` its z is given), seen in a random world frame (rotation and translation),
@@ -36,8 +36,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
+from rtsgt.app import read_ground_truth
 from rtsgt.errors import ExcitationError
-from rtsgt.evaluation import ContinuousGroundTruth, evaluate
+from rtsgt.evaluation import evaluate
 from rtsgt.geometry.so3 import log_so3, matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from rtsgt.geometry.transform import perturb
 from rtsgt.io.deployment import load_deployment
@@ -86,7 +87,7 @@ def simulated_run(seed: int, args, tmp: Path):
         warnings.simplefilter("ignore")
         rec = run_pipeline(data, opts.updated(seed=seed, engine=args.engine))
         run = write_run(rec, tmp / f"run-{seed}")
-    return sim, ContinuousGroundTruth.from_run_dir(run)
+    return sim, read_ground_truth(run)
 
 
 def one(seed: int, args, tmp: Path, cache: dict) -> dict:
@@ -125,6 +126,8 @@ def one(seed: int, args, tmp: Path, cache: dict) -> dict:
         start = None  # the identity, except for a lever arm's z given with lever-xy
         if "lever-xy" in args.estimate:
             start = (0.0, 0.0, float(lever[2]), 0.0, 0.0, 0.0, 1.0)
+        elif "lever" not in args.estimate and args.estimate != "all":  # the lever arm given
+            start = (*lever, 0.0, 0.0, 0.0, 1.0)
         try:
             res = evaluate(gt, est, align=args.align, estimate=args.estimate, mounting=start)
         except ExcitationError as exc:
@@ -164,6 +167,57 @@ def one(seed: int, args, tmp: Path, cache: dict) -> dict:
     return out
 
 
+def example(args) -> None:
+    """The worked example of docs/evaluating.md#a-drifting-odometry: deployment ``--first-seed``
+    (``--duration`` s), a SLAM output of a sensor mounted 174 deg about z with a lever arm
+    (0.4, 0, 0.45) m, 0.3 s late, drifting 0.5 % and 0.05 deg per sqrt(m) with white noise of
+    1 cm and 0.2 deg (a lidar odometry), evaluated without the mounting, with the rotation and
+    the clock estimated (the lever arm given), and with the truth; then asked for the lever
+    arm's horizontal components too."""
+    rng = np.random.default_rng(args.first_seed + 1)
+    R_bs = Rotation.from_rotvec(np.radians(174.0) * np.array([0.0, 0.0, 1.0])).as_matrix()
+    lever, clock = np.array([0.4, 0.0, 0.45]), 0.3
+    with tempfile.TemporaryDirectory() as tmp:
+        sim, gt = simulated_run(args.first_seed, args, Path(tmp))
+    a, b = gt.span
+    t = np.arange(a + 1.0, b - 1.0, 0.1)
+    p, q = sim.truth_at(t + clock)
+    R = quat_xyzw_to_matrix(q)
+    Rs, ps = drifting_odometry(rng, R @ R_bs, p + R @ lever, white_m=0.01, white_deg=0.2,
+                               drift=0.005, drift_deg_m=0.05)
+    est = PoseTrajectory(t, ps, matrix_to_quat_xyzw(Rs))
+    runs = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        runs["mounting not given"] = evaluate(gt, est, align="se3")
+        t0 = time.perf_counter()
+        runs["estimated"] = evaluate(gt, est, align="se3", estimate="rotation,clock",
+                                     mounting=(*lever, 0.0, 0.0, 0.0, 1.0))
+        dt = time.perf_counter() - t0
+        runs["truth given"] = evaluate(gt, est, align="se3", time_offset=clock,
+                                       mounting=tuple(np.r_[lever, matrix_to_quat_xyzw(R_bs)]))
+    print(f"{t.size} poses over {t[-1] - t[0]:.0f} s; the estimation {dt:.1f} s")
+    for name, res in runs.items():
+        n = res.nees.pose
+        print(f"  {name}: APE {1e3 * res.ape.translation_m.rmse:.1f} mm / "
+              f"{res.ape.rotation_deg.rmse:.3f} deg, RPE {1e3 * res.rpe.translation_m.rmse:.1f}"
+              f" mm / {res.rpe.rotation_deg.rmse:.3f} deg, pose NEES "
+              f"{n.mean if n is not None else float('nan'):.1f}")
+    m = runs["estimated"].mounting
+    rv = m.rotation_vector
+    print(f"  estimated: rotation {np.degrees(np.linalg.norm(rv)):.3f} deg about "
+          f"{np.round(rv / np.linalg.norm(rv), 4)}, sigma {np.degrees(m.group_sigma('rotation'))}"
+          f" deg; lever {m.lever.round(4)} m, sigma {m.group_sigma('lever')} m; clock "
+          f"{m.clock_offset:.4f} s, sigma {m.group_sigma('clock')[0]:.4f} s; model {m.model}; "
+          f"odometry {m.odometry}")
+    try:
+        evaluate(gt, est, align="se3", estimate="rotation,lever-xy,clock",
+                 mounting=(0.0, 0.0, 0.45, 0.0, 0.0, 0.0, 1.0))
+        print("  rotation,lever-xy,clock: estimated")
+    except ExcitationError as exc:
+        print(f"  rotation,lever-xy,clock: error: {exc}")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--deployments", type=int, default=60)
@@ -183,7 +237,12 @@ def main(argv=None) -> None:
     ap.add_argument("--per-run", type=int, default=1,
                     help="estimates simulated on each simulated ground-truth run")
     ap.add_argument("--verbose", action="store_true")
+    ap.add_argument("--example", action="store_true",
+                    help="the worked example of docs/evaluating.md (deployment --first-seed)")
     args = ap.parse_args(argv)
+    if args.example:
+        example(args)
+        return
     t0 = time.perf_counter()
     rows, refused, cache = [], [], {}
     with tempfile.TemporaryDirectory() as tmp:

@@ -371,6 +371,14 @@ def print_mounting(m: MountingFit, console: Console) -> None:
             f"x {m.time_correlation:.1f} at most for the ground truth's correlation between "
             f"poses, sigmas x {np.sqrt(m.scale_factor):.2f} for the residual's scale",
             highlight=False)
+    if m.odometry is not None:
+        lv = m.odometry
+        console.print(
+            f"with the odometry's own error estimated beside it: white noise "
+            f"{100 * lv['white_position']:.2g} cm and {np.degrees(lv['white_rotation']):.2g} deg "
+            f"per pose, drift {100 * lv['drift_position']:.2g} cm and "
+            f"{np.degrees(lv['drift_yaw']):.2g} deg (yaw) per sqrt(m) (docs/evaluating.md)",
+            highlight=False)
 
 
 def _print_association(console: Console, a, continuous: str, what: str, *, gt_source: str,
