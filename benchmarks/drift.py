@@ -32,7 +32,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from rtsgt.evaluation import ContinuousGroundTruth, evaluate
+from rtsgt.app import read_ground_truth
+from rtsgt.evaluation import evaluate
 from rtsgt.evaluation import evaluator as ev
 from rtsgt.geometry.so3 import matrix_to_quat_xyzw
 from rtsgt.io.deployment import load_deployment
@@ -59,7 +60,7 @@ def one(seed: int, duration: float, tmp: Path) -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         result = run_pipeline(data, opts.updated(engine="linear", seed=seed))
-    gt = ContinuousGroundTruth.from_run_dir(write_run(result, tmp / f"run{seed}"))
+    gt = read_ground_truth(write_run(result, tmp / f"run{seed}"))
     t = np.arange(result.groundtruth.t[0], result.groundtruth.t[-1], 0.1)
     p, q = sim.truth_at(t)
     R = Rotation.from_quat(q).as_matrix()

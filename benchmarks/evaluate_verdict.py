@@ -5,7 +5,7 @@ Run: ``python benchmarks/evaluate_verdict.py [--deployments 100] [--duration 120
 
 For each deployment ``first_seed + k`` (:mod:`rtsgt.simulation`): simulate, write the files,
 read them back, run the pipeline, write the run directory and load its continuous ground
-truth (:meth:`rtsgt.evaluation.ContinuousGroundTruth.from_run_dir`), as ``rtsgt evaluate``
+truth (:func:`rtsgt.app.read_ground_truth`), as ``rtsgt evaluate``
 does. The exact truth (``sim.truth_at``) at the run's pose times is then evaluated as an
 estimate (no covariance) through :func:`rtsgt.evaluation.evaluate`, once as it is and once
 shifted by a constant bias of ``--bias-m`` along a random horizontal direction. Counted: the
@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rtsgt.evaluation import ContinuousGroundTruth, evaluate
+from rtsgt.app import read_ground_truth
+from rtsgt.evaluation import evaluate
 from rtsgt.io.deployment import load_deployment
 from rtsgt.io.run_dir import write_run
 from rtsgt.pipeline import run_pipeline
@@ -42,7 +43,7 @@ def one(seed: int, args, tmp: Path) -> dict:
         rec = run_pipeline(data, opts.updated(seed=seed, engine=args.engine,
                                               samples=args.samples))
         run = write_run(rec, tmp / f"run-{seed}")
-        gt = ContinuousGroundTruth.from_run_dir(run)
+        gt = read_ground_truth(run)
         t = rec.groundtruth.t
         p, q = sim.truth_at(t)
         ang = np.random.default_rng(seed + 1).uniform(0, 2 * np.pi)

@@ -50,8 +50,6 @@ LAYER_EXCEPTIONS = {
     # which takes the GP's gap default from interpolation.gp: no module cycle, but the two
     # packages import each other (issue 27)
     ("rtsgt.interpolation.prisms", "rtsgt.options"),
-    # ContinuousGroundTruth.from_run_dir reads the run directory (moving to rtsgt.app next)
-    ("rtsgt.evaluation.groundtruth", "rtsgt.io.run_dir"),
 }
 PRIVATE_EXCEPTIONS = {
     # the GP's private building blocks, shared by the leave-one-out search (issue 27)

@@ -22,6 +22,7 @@ import pytest
 from scipy.signal import lfilter
 from typer.testing import CliRunner
 
+from rtsgt.app import read_ground_truth
 from rtsgt.checks.static import COMPONENTS
 from rtsgt.cli.main import app
 from rtsgt.errors import InputError
@@ -332,6 +333,6 @@ def test_an_inflated_run_is_written_and_read_back_with_what_the_gps_were_given(t
     from rtsgt.evaluation import ContinuousGroundTruth
     t = rec.groundtruth.t[::7]
     mem = ContinuousGroundTruth.from_record(rec).query_poses(t)
-    disk = ContinuousGroundTruth.from_run_dir(out).query_poses(t)
+    disk = read_ground_truth(out).query_poses(t)
     np.testing.assert_allclose(disk.position, mem.position, rtol=0, atol=1e-9)
     np.testing.assert_allclose(disk.cov, mem.cov, rtol=1e-6, atol=1e-14)

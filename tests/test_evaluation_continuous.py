@@ -15,6 +15,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
+from rtsgt.app import read_ground_truth
 from rtsgt.cli.main import app as main_app
 from rtsgt.errors import InputError
 from rtsgt.evaluation import evaluate
@@ -79,7 +80,7 @@ def _corr_scaled(c: np.ndarray) -> np.ndarray:
 
 def test_reproduces_the_run_at_its_grid_times_linear_engine(linear_run):
     sim, result, out = linear_run
-    cgt = ContinuousGroundTruth.from_run_dir(out)
+    cgt = read_ground_truth(out)
     assert isinstance(cgt, ValidatedGroundTruth)
     assert cgt.options.pose.engine == "linear" and cgt.prism_ids == ("1", "2", "3")
     # the refitted GPs are the run's (same Qc, same measurements read back exactly)
@@ -117,7 +118,7 @@ def test_gp_noise_all_refits_on_the_covariance_of_the_measurement_file(linear_ru
     summary = json.loads((run / "summary.json").read_text())
     summary["parameters"]["gp_noise"] = "all"
     (run / "summary.json").write_text(json.dumps(summary))
-    cgt = ContinuousGroundTruth.from_run_dir(run)
+    cgt = read_ground_truth(run)
     assert cgt.options.interpolation.gp_noise == "all"
     for pid, tr in cgt.tracks.items():
         header, data = read_table(run / "measurements" / f"prism{pid}.csv")
@@ -129,7 +130,7 @@ def test_reproduces_the_run_at_its_grid_times_monte_carlo(mc_run):
     """Monte Carlo: the run's own poses, covariances included, since the continuous ground
     truth draws from the run's pose stream (rtsgt.options.stage_rng)."""
     sim, result, out = mc_run
-    cgt = ContinuousGroundTruth.from_run_dir(out)
+    cgt = read_ground_truth(out)
     assert (cgt.options.pose.engine, cgt.options.pose.samples, cgt.options.seed) == ("mc", 400, 6)
     s = cgt.query_poses(result.computation.prisms.t)
     np.testing.assert_array_equal(s.valid, result.computation.keep)
@@ -144,7 +145,7 @@ def test_reproduces_the_run_at_its_grid_times_monte_carlo(mc_run):
     again = cgt.query_poses(result.computation.prisms.t)
     np.testing.assert_array_equal(again.cov, s.cov)
     # the linear engine agrees with the Monte Carlo one to its noise
-    lin = ContinuousGroundTruth.from_run_dir(out, engine="linear").query_poses(result.computation.prisms.t)
+    lin = read_ground_truth(out, engine="linear").query_poses(result.computation.prisms.t)
     r_lin = np.einsum("kii->ki", s.cov[v]) / np.einsum("kii->ki", lin.cov[v]) - 1.0
     assert np.all(np.abs(np.mean(r_lin, axis=0)) < 0.05)
 
@@ -154,7 +155,7 @@ def test_reproduces_the_run_at_its_grid_times_monte_carlo(mc_run):
 
 def test_off_grid_times_closer_to_the_truth_than_the_nearest_pose(linear_run):
     sim, result, out = linear_run
-    cgt = ContinuousGroundTruth.from_run_dir(out)
+    cgt = read_ground_truth(out)
     gt = result.groundtruth
     rng = np.random.default_rng(40)
     t = np.arange(gt.t[0], gt.t[-1], 0.1) + rng.uniform(0.0, 0.1)  # a 10 Hz estimate's clock
@@ -193,7 +194,7 @@ def _estimate_from_truth(sim, t, cov, rng, report=None) -> PoseTrajectory:
 
 def test_estimate_with_known_covariance_is_consistent_biased_or_overconfident_is_not(linear_run):
     sim, result, out = linear_run
-    cgt = ContinuousGroundTruth.from_run_dir(out)
+    cgt = read_ground_truth(out)
     gt = result.groundtruth
     rng = np.random.default_rng(41)
     t = np.arange(gt.t[0] - 2.0, gt.t[-1] + 2.0, 0.1) + rng.uniform(0.0, 0.1)
@@ -331,7 +332,7 @@ def test_times_outside_in_gaps_and_gated_are_dropped_with_their_reason(linear_ru
     # the run's gates apply: a run whose uncertainty gate is the median pose uncertainty
     gated = tmp_path / "gated"
     shutil.copytree(out, gated)
-    cgt = ContinuousGroundTruth.from_run_dir(out)
+    cgt = read_ground_truth(out)
     s = cgt.query_poses(t, max_gap_s=0.25)
     unc = position_uncertainty(s.cov[s.valid])
     gate = float(np.median(unc))
@@ -346,7 +347,7 @@ def test_times_outside_in_gaps_and_gated_are_dropped_with_their_reason(linear_ru
 
 def test_errors_name_the_problem(linear_run, tmp_path):
     sim, result, out = linear_run
-    cgt = ContinuousGroundTruth.from_run_dir(out)
+    cgt = read_ground_truth(out)
     gt = result.groundtruth
     late = PoseTrajectory(gt.t + 1e5, gt.position, gt.quat_xyzw)
     with pytest.raises(InputError, match="No time overlap"):
@@ -358,16 +359,16 @@ def test_errors_name_the_problem(linear_run, tmp_path):
     with pytest.raises(InputError, match="between intervals"):
         evaluate(cgt, PoseTrajectory(t_gap, p, q))
     with pytest.raises(InputError, match="engine"):
-        ContinuousGroundTruth.from_run_dir(out, engine="exact")
+        read_ground_truth(out, engine="exact")
     broken = tmp_path / "broken"
     shutil.copytree(out, broken)
     summary = json.loads((broken / "summary.json").read_text())
     del summary["prisms"]["2"]["qc_m2_s3"]
     (broken / "summary.json").write_text(json.dumps(summary))
     with pytest.raises(InputError, match=r"qc_m2_s3 for prism 2.*summary\.json|summary\.json.*2"):
-        ContinuousGroundTruth.from_run_dir(broken)
+        read_ground_truth(broken)
     with pytest.raises(InputError, match="measurements/"):
-        ContinuousGroundTruth.from_run_dir(tmp_path)
+        read_ground_truth(tmp_path)
 
 
 @pytest.mark.parametrize(
@@ -393,7 +394,7 @@ def test_malformed_summary_is_an_input_error_naming_it(linear_run, tmp_path, cha
     summary = json.loads((broken / "summary.json").read_text())
     (broken / "summary.json").write_text(json.dumps(change(summary)))
     with pytest.raises(InputError, match=match) as exc:
-        ContinuousGroundTruth.from_run_dir(broken)
+        read_ground_truth(broken)
     assert exc.value.path == str(broken / "summary.json")
     r = runner.invoke(_app(), ["evaluate", str(broken), str(out / "groundtruth.tum")])
     assert r.stderr.startswith("error: ")
@@ -430,7 +431,7 @@ def test_rpe_uses_the_correlation_between_ground_truth_poses(tmp_path):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             result = run_pipeline(data, opts.updated(engine="linear", seed=seed))
-        cgt = ContinuousGroundTruth.from_run_dir(write_run(result, tmp_path / f"run{seed}"))
+        cgt = read_ground_truth(write_run(result, tmp_path / f"run{seed}"))
         t = np.arange(result.groundtruth.t[0], result.groundtruth.t[-1], 0.1)
         est = PoseTrajectory(t, *sim.truth_at(t))  # exact: the RPE error is the GT's own
         for name, g in (("with", cgt), ("independent", Independent(cgt))):
@@ -449,7 +450,7 @@ def test_pose_cross_covariance_at_equal_times_is_the_runs_linear_covariance(line
     covariance the run computed with the linear engine from the per-source covariances: every
     shared term (GP, clock, atmosphere, calibration coupling, reference) in its right place."""
     _, result, out = linear_run
-    cgt = ContinuousGroundTruth.from_run_dir(out)
+    cgt = read_ground_truth(out)
     t = result.groundtruth.t[50:70]
     s = cgt.query_poses(t)
     C = cgt.cross_covariance(t, t)

@@ -23,7 +23,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from rtsgt.cli.evaluate import run_evaluate
+from rtsgt.app import run_evaluation
 from rtsgt.cli.main import app
 from rtsgt.evaluation import EvaluationOptions
 from rtsgt.io.evo_results import EVO_STATISTICS, EXTRA_STATISTICS, RTSGT_ENTRY
@@ -145,7 +145,7 @@ def test_load_res_file_arrays_equal_rtsgt(campaign):
     """Each zip through evo's reader: the arrays are rtsgt's, the extras are there."""
     d = campaign["dir"]
     for name in NOISE:
-        res = run_evaluate(campaign["gt_dir"], d / f"{name}.tum", est_cov=d / f"{name}_cov.csv")
+        res = run_evaluation(campaign["gt_dir"], d / f"{name}.tum", est_cov=d / f"{name}_cov.csv")
         ape = file_interface.load_res_file(str(d / f"{name}_ape.zip"), load_trajectories=True)
         assert ape.info["title"] == "APE w.r.t. translation part (m)\n(with SE(3) Umeyama alignment)"
         assert ape.info["label"] == "APE (m)" and ape.info["written_by"] == "rtsgt"
@@ -241,7 +241,7 @@ def test_position_only_ground_truth(tmp_path):
     assert _close(res.stats["noise_floor"], js["noise_floor"]["ape_translation_m"])
     assert _close(res.stats["nees_mean"], js["nees"]["position"]["mean"])
     assert res.info["ground_truth"].startswith("positions")
-    direct = run_evaluate(tmp_path / "prism.csv", tmp_path / "est.tum", lever_arm=lever,
+    direct = run_evaluation(tmp_path / "prism.csv", tmp_path / "est.tum", lever_arm=lever,
                           options=EvaluationOptions())
     np.testing.assert_array_equal(res.np_arrays["error_array"], direct.ape.translation_error)
     np.testing.assert_allclose(res.trajectories["est.tum"].positions_xyz, direct.est.position,

@@ -23,6 +23,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import binom, chi2
 from typer.testing import CliRunner
 
+from rtsgt.app import read_position_ground_truth
 from rtsgt.cli.main import app
 from rtsgt.errors import ConfigError, InputError
 from rtsgt.evaluation import ContinuousPositionGroundTruth, evaluate_positions
@@ -173,7 +174,7 @@ def test_the_continuous_ground_truth_is_the_same_from_the_files(written):
     the run's own GP, at the run's grid (its prisms/ file) and at any time."""
     sim, record, out = written
     mem = ContinuousPositionGroundTruth.from_record(record)
-    disk = ContinuousPositionGroundTruth.from_run_dir(out)
+    disk = read_position_ground_truth(out)
     t = _estimate_times(record)
     a, b = mem.query_positions(t, max_gap_s=3.0), disk.query_positions(t, max_gap_s=3.0)
     np.testing.assert_array_equal(a.reason, b.reason)

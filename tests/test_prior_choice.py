@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from rtsgt.app import read_ground_truth
 from rtsgt.errors import InputError
-from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
 from rtsgt.interpolation import fit_track, wnoj_phi, wnoj_q
 from rtsgt.interpolation.cross import gp_joint_covariance
 from rtsgt.interpolation.prisms import fit_gps
@@ -152,7 +152,7 @@ def test_a_run_records_each_prior_and_its_directory_rebuilds_the_same_gps(tmp_pa
         row = next(ln for ln in table.splitlines() if f"Qc prism {pid}" in ln)
         assert g.prior.upper() in row
         assert ("m^2/s^5" if g.prior == "wnoj" else "m^2/s^3") in row
-    cgt = ContinuousGroundTruth.from_run_dir(out)
+    cgt = read_ground_truth(out)
     for pid, g in cgt.gps.items():
         assert g.prior == gps[pid].prior
         np.testing.assert_array_equal(g.qc, gps[pid].qc)

@@ -14,6 +14,7 @@ import warnings
 import numpy as np
 import pytest
 
+from rtsgt.app import read_ground_truth
 from rtsgt.evaluation import ContinuousGroundTruth, evaluate
 from rtsgt.evaluation.metrics import alignment_sensitivity, shared_error_test
 from rtsgt.geometry.so3 import exp_so3, matrix_to_quat_xyzw, quat_xyzw_to_matrix
@@ -198,7 +199,7 @@ def test_the_split_round_trips_through_the_run_directory(deployment, linear):
     np.testing.assert_allclose(b.factor, a.factor, rtol=1e-15, atol=0)
     np.testing.assert_allclose(b.varying_cov, a.varying_cov, rtol=1e-15, atol=0)
     # the continuous ground truth gives the same split at the run's own times
-    gt = ContinuousGroundTruth.from_run_dir(disk.path)
+    gt = read_ground_truth(disk.path)
     again = gt.shared_split(a.t)
     assert again.names == a.names
     scale = np.abs(a.factor).max()
@@ -213,7 +214,7 @@ def test_an_older_run_without_the_file_has_no_split_and_the_old_verdict(deployme
     (run / SPLIT_FILE).unlink()
     (run / ".rtsgt-output.json").unlink()  # the manifest lists the file
     assert read_run(run).groundtruth_split is None
-    gt = ContinuousGroundTruth.from_run_dir(run)
+    gt = read_ground_truth(run)
     assert gt.shared_split(linear.groundtruth.t) is None
     t = linear.groundtruth.t
     p, q = sim.truth_at(t)

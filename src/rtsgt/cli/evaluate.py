@@ -1,30 +1,11 @@
 """``rtsgt evaluate``: evaluate a SLAM / odometry trajectory against an rtsgt ground truth.
 
-A thin wrapper over :func:`rtsgt.io.trajectory.read_trajectory`,
-:func:`rtsgt.evaluation.evaluate` and :func:`rtsgt.report.eval_plots.plot_evaluation`.
-``GT_DIR`` is an ``rtsgt run`` output directory or a trajectory file. A run directory with
-``measurements/`` gives a continuous-time ground truth
-(:class:`rtsgt.evaluation.groundtruth.ContinuousGroundTruth`: the pose and covariance at each
-estimate time from the run's GP tracks, and the run's gates); otherwise (or with
-``--gt-mode discrete``) its stored poses (``groundtruth_covariance.csv`` preferred, else
-``groundtruth.tum``) are interpolated.
-
-``--max-gap`` (the largest distance, s, from an estimate time to the nearest ground-truth
-measurement) defaults to the run's own gap limit when ``GT_DIR`` is a run directory
-(``parameters.max_gap_s`` of its ``summary.json``, 3 s by default; the continuous ground truth
-falls back to the run's default when the summary lacks it), so that every pose the run
-produced is evaluated; for a trajectory file, or a directory without that limit, it defaults
-to :data:`DEFAULT_MAX_GAP_FILE_S`. An explicit value always wins.
-
-A position-only ground truth (:func:`wants_positions`: a run with one or two tracked prisms, a
-position CSV, or ``--lever-arm``, ``--prism``, ``--gt-topic``) is evaluated by
-:func:`rtsgt.evaluation.evaluate_positions`: the estimate's sensor pose moved by the lever arm
-against the prism's positions (:func:`load_position_ground_truth`; docs/evaluation.md,
-section Position-only ground truth).
-
-``--save-results`` / ``--save-results-rpe`` write the APE / RPE as evo's result zips
-(:mod:`rtsgt.io.evo_results`; docs/evaluation.md, section evo result files), checked before
-any work and written whole after it.
+The command's options, their checks (a bad value is a usage error naming its option) and its
+tables; the work is :func:`rtsgt.app.evaluate.run_evaluation` (reading the ground truth and
+the estimate, the evaluation, the defaults of ``--max-gap``) and
+:func:`rtsgt.app.evaluate.save_evo_results` (``--save-results``, checked before any work and
+written whole after it); the figures are :func:`rtsgt.report.eval_plots.plot_evaluation`.
+Ground truths, gap limits, position-only runs and evo's result files: docs/evaluating.md.
 
 Every :class:`~rtsgt.errors.RtsgtWarning` of the reading and the evaluation is shown as one
 ``warning: ...`` line on stderr and, with ``--json``, listed under ``warnings``.
@@ -32,7 +13,6 @@ Every :class:`~rtsgt.errors.RtsgtWarning` of the reading and the evaluation is s
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import warnings
 from pathlib import Path
@@ -60,26 +40,8 @@ if TYPE_CHECKING:
         EvaluationResult,
         PositionEvaluationResult,
     )
-    from rtsgt.evaluation.associate import GroundTruthQuery, ValidatedGroundTruth
-    from rtsgt.evaluation.groundtruth import ContinuousPositionGroundTruth
     from rtsgt.evaluation.mounting import MountingFit
-    from rtsgt.types import PoseTrajectory, PositionTrajectory
 
-#: Ground-truth modes of ``--gt-mode``.
-GT_MODES = ("auto", "continuous", "discrete")
-
-
-def gt_engines() -> tuple[str, ...]:
-    """The pose engines of ``--gt-engine``: ``run`` (the run's own), then
-    :data:`rtsgt.pose.POSE_ENGINES`."""
-    from rtsgt.pose import POSE_ENGINES
-
-    return ("run", *POSE_ENGINES)
-
-
-#: Default ``--max-gap`` (s) for a ground-truth trajectory file (distance to the nearest stored
-#: pose): a few samples of a 5-10 Hz ground truth.
-DEFAULT_MAX_GAP_FILE_S = DEFAULT_MAX_DT_S
 #: The command-line options of the fields of :class:`~rtsgt.evaluation.EvaluationOptions`.
 EVALUATION_OPTION_NAMES = {
     "align": "--align",
@@ -122,199 +84,6 @@ def mounting_option(value: str | None) -> tuple[float, ...] | None:
         return read_transform(value)
     except InputError as exc:
         raise usage_error(str(exc), "--mounting") from None
-
-
-def run_gap_limit(gt: object, gt_dir: str | Path) -> float | None:
-    """The run's own gap limit, s: ``max_gap_s`` of a continuous ground truth, else that of
-    ``GT_DIR/summary.json`` (:func:`rtsgt.io.run_dir.read_summary`); None for a trajectory
-    file or a directory without a summary.
-
-    Raises
-    ------
-    InputError
-        ``summary.json`` cannot be read (naming it).
-    """
-    from rtsgt.io.run_dir import read_summary
-
-    options = getattr(gt, "options", None)
-    if options is not None:  # a continuous ground truth: its run's options
-        return float(options.interpolation.max_gap_s)
-    if not Path(gt_dir).is_dir():
-        return None
-    summary = read_summary(gt_dir)
-    return float(summary.options.interpolation.max_gap_s) if summary.exists else None
-
-
-def load_ground_truth(
-    gt_dir: str | Path, *, mode: str = "auto", engine: str | None = None
-) -> PoseTrajectory | ValidatedGroundTruth | GroundTruthQuery:
-    """The ground truth of ``GT_DIR``: continuous from a run directory with ``measurements/``
-    (``mode`` ``auto`` or ``continuous``), else the discrete stored poses or trajectory file.
-
-    ``engine``: pose engine of the continuous ground truth (None: the run's).
-    """
-    from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
-    from rtsgt.io.trajectory import read_groundtruth_dir, read_trajectory
-
-    if mode not in GT_MODES:
-        raise InputError(f"unknown ground-truth mode {mode!r}; expected one of {', '.join(GT_MODES)}")
-    gt_path = Path(gt_dir)
-    run_dir = gt_path.is_dir() and not (gt_path / "metadata.yaml").exists()
-    if run_dir and mode != "discrete" and (gt_path / "measurements").is_dir():
-        return ContinuousGroundTruth.from_run_dir(gt_path, engine=engine)
-    if mode == "continuous":
-        raise InputError(
-            "a continuous ground truth needs an rtsgt run directory with measurements/", gt_path
-        )
-    if run_dir:
-        return read_groundtruth_dir(gt_path)
-    if gt_path.exists():
-        return read_trajectory(gt_path)
-    raise InputError("ground truth not found", gt_path)
-
-
-def _is_run_dir(path: Path) -> bool:
-    return path.is_dir() and not (path / "metadata.yaml").exists()
-
-
-def wants_positions(gt_dir: str | Path, *, lever_arm=None, prism: str | None = None,
-                    gt_topic: str | None = None) -> bool:
-    """Whether ``GT_DIR`` is evaluated as a position-only ground truth
-    (:mod:`rtsgt.evaluation.positions`): it is one (a run with one or two tracked prisms, a
-    position CSV, :func:`rtsgt.io.positions.position_csv_form`), or one of ``--lever-arm``,
-    ``--prism``, ``--gt-topic`` asks for it."""
-    from rtsgt.io.positions import position_csv_form
-    from rtsgt.io.run_dir import POSITIONS_KIND, read_summary
-
-    if lever_arm is not None or prism is not None or gt_topic is not None:
-        return True
-    path = Path(gt_dir)
-    if _is_run_dir(path):
-        return read_summary(path).ground_truth == POSITIONS_KIND
-    return position_csv_form(path) is not None
-
-
-def load_position_ground_truth(
-    gt_dir: str | Path, *, prism: str | None = None, topic: str | None = None,
-    mode: str = "auto",
-) -> PositionTrajectory | ContinuousPositionGroundTruth:
-    """The position-only ground truth of ``GT_DIR``: one prism of a run directory
-    (continuous from its ``measurements/``, or with ``mode`` ``discrete`` its
-    ``prisms/prism<i>.csv``), a topic of a bag (``topic``) or a position CSV
-    (:mod:`rtsgt.io.positions`)."""
-    from rtsgt.evaluation.groundtruth import ContinuousPositionGroundTruth
-    from rtsgt.io.positions import read_position_csv, read_positions
-
-    if mode not in GT_MODES:
-        raise InputError(f"unknown ground-truth mode {mode!r}; expected one of {', '.join(GT_MODES)}")
-    path = Path(gt_dir)
-    if _is_run_dir(path):
-        if mode != "discrete" and (path / "measurements").is_dir():
-            return ContinuousPositionGroundTruth.from_run_dir(path, prism)
-        if mode == "continuous":
-            raise InputError("a continuous ground truth needs an rtsgt run directory with "
-                             "measurements/", path)
-        files = sorted(p.name[len("prism"):-len(".csv")] for p in (path / "prisms").glob(
-            "prism*.csv") if not p.name.endswith("_sources.csv"))
-        if prism is None and len(files) != 1:
-            raise InputError(f"choose the prism (--prism): prisms/ has {', '.join(files) or 'none'}",
-                             path)
-        pid = files[0] if prism is None else str(prism)
-        if pid not in files:
-            raise InputError(f"no prisms/prism{pid}.csv; prisms: {', '.join(files)}", path)
-        return read_position_csv(path / "prisms" / f"prism{pid}.csv", name=f"prism {pid}")
-    if prism is not None:
-        raise InputError("--prism selects a prism of an rtsgt run directory", path)
-    if not path.exists():
-        raise InputError("ground truth not found", path)
-    return read_positions(path, topic=topic)
-
-
-def run_evaluate(
-    gt_dir: str | Path,
-    est_file: str | Path,
-    *,
-    fmt: str | None = None,
-    topic: str | None = None,
-    child_frame: str | None = None,
-    timestamps: str | Path | None = None,
-    est_cov: str | Path | None = None,
-    options: EvaluationOptions | None = None,
-    max_gap: float | None = None,
-    gt_mode: str = "auto",
-    gt_engine: str | None = None,
-    lever_arm=None,
-    prism: str | None = None,
-    gt_topic: str | None = None,
-) -> EvaluationResult | PositionEvaluationResult:
-    """Read the ground truth and the estimate, then :func:`rtsgt.evaluation.evaluate` with
-    ``options`` (default: ``EvaluationOptions()``); for a position-only ground truth
-    (:func:`wants_positions`), :func:`rtsgt.evaluation.evaluate_positions` with the
-    ``lever_arm`` (``"x,y,z"`` m in the estimate's sensor frame; zero, with a warning, when
-    not given).
-
-    ``max_gap`` (s), the largest distance to the nearest ground-truth measurement
-    (continuous: of every prism; discrete: the nearest stored pose), replaces
-    ``options.max_dt``; its default depends on the ground truth: the run's own gap limit
-    (:func:`run_gap_limit`) or :data:`DEFAULT_MAX_GAP_FILE_S` (module docstring).
-    ``gt_mode`` and ``gt_engine``: :func:`load_ground_truth` (``gt_engine`` ``"run"`` or
-    None: the run's engine; no meaning for positions). ``prism``: the prism of a run
-    directory; ``gt_topic``: the ground truth's topic in a bag.
-    """
-    from rtsgt.evaluation import evaluate, evaluate_positions
-    from rtsgt.evaluation.lever_arm import parse_lever_arm
-
-    engines = gt_engines()
-    if gt_engine is not None and gt_engine not in engines:
-        raise InputError(
-            f"unknown ground-truth engine {gt_engine!r}; expected one of {', '.join(engines)}"
-        )
-    if wants_positions(gt_dir, lever_arm=lever_arm, prism=prism, gt_topic=gt_topic):
-        if options is not None and (options.estimate or options.mounting is not None):
-            raise InputError(
-                f"{gt_dir}: a position-only ground truth gives no rotation to fit a mounting or "
-                "a clock to (--estimate, --mounting); give the prism's lever arm in the sensor "
-                "frame with --lever-arm and the clock with --t-offset")
-        lever = parse_lever_arm(lever_arm)
-        gt_pos = load_position_ground_truth(gt_dir, prism=prism, topic=gt_topic, mode=gt_mode)
-        if lever_arm is None:
-            warnings.warn("position-only ground truth without --lever-arm: the estimate's "
-                          "sensor origin is compared with the tracked point (lever arm 0; the "
-                          "estimate's rotation does not enter)", RtsgtWarning, stacklevel=2)
-        est = _read_estimate(est_file, fmt, topic, timestamps, child_frame, est_cov)
-        options = _with_max_gap(gt_pos, gt_dir, options, max_gap)
-        return evaluate_positions(gt_pos, est, lever, options)
-    gt = load_ground_truth(
-        gt_dir, mode=gt_mode, engine=None if gt_engine in (None, "run") else gt_engine
-    )
-    est = _read_estimate(est_file, fmt, topic, timestamps, child_frame, est_cov)
-    return evaluate(gt, est, _with_max_gap(gt, gt_dir, options, max_gap))
-
-
-def _read_estimate(est_file, fmt, topic, timestamps, child_frame, est_cov) -> PoseTrajectory:
-    """The estimate's poses (and its covariance file)."""
-    from rtsgt.io.trajectory import attach_covariance, read_covariance_csv, read_trajectory
-
-    if fmt is not None and fmt not in FORMATS:
-        raise InputError(f"unknown format {fmt!r}; expected one of {', '.join(FORMATS)}")
-    est = read_trajectory(
-        est_file, fmt, topic=topic, timestamps=timestamps, child_frame=child_frame
-    )
-    if est_cov is not None:
-        est = attach_covariance(est, read_covariance_csv(est_cov), source=str(est_cov))
-    return est
-
-
-def _with_max_gap(gt, gt_dir, options: EvaluationOptions | None,
-                  max_gap: float | None) -> EvaluationOptions:
-    """``options`` with ``max_dt`` the given ``max_gap`` or its default (module docstring)."""
-    from rtsgt.evaluation import EvaluationOptions
-
-    if max_gap is None:
-        limit = run_gap_limit(gt, gt_dir) if Path(gt_dir).is_dir() else None
-        max_gap = DEFAULT_MAX_GAP_FILE_S if limit is None else limit
-    options = EvaluationOptions() if options is None else options
-    return dataclasses.replace(options, max_dt=max_gap)
 
 
 def _stats_row(name: str, s, scale: float, digits: int) -> list[str]:
@@ -600,21 +369,6 @@ def save_targets(ape: Path | None, rpe: Path | None, relation: str, *, force: bo
     return targets
 
 
-def save_evo_results(result, targets: dict[str, Path], *, gt_dir, est_file, relation: str,
-                     force: bool) -> list[Path]:
-    """Write the evo result files of ``targets`` (:func:`save_targets`); every result is
-    built before the first file is written, so that a refused one (a rotation of a
-    position-only ground truth, an RPE without pairs) leaves no file."""
-    from rtsgt.io.evo_results import evo_result, write_evo_result
-
-    results = {m: evo_result(result, metric=m, relation=relation, ref_name=str(gt_dir),
-                             est_name=str(est_file)) for m in targets}
-    option = {"ape": "--save-results", "rpe": "--save-results-rpe"}
-    inputs = [gt_dir, est_file]
-    return [write_evo_result(targets[m], res, option=option[m], force=force, inputs=inputs)
-            for m, res in results.items()]
-
-
 class _collect_warnings:
     """Record the warnings of a block, then show every one again (``warning: ...`` lines on
     stderr through the CLI's handler) also when the block raises; the messages of the
@@ -712,7 +466,7 @@ def register(app: typer.Typer) -> None:
             help="Max distance (s) to the nearest ground-truth measurement (continuous: of "
             "every prism; discrete: the nearest stored pose); poses farther are dropped. "
             "Default: the run's own gap limit (summary.json parameters.max_gap_s) for a run "
-            f"directory, {DEFAULT_MAX_GAP_FILE_S} s for a trajectory file.",
+            f"directory, {DEFAULT_MAX_DT_S} s for a trajectory file.",
         ),
         gt_mode: str = typer.Option(
             "auto",
@@ -769,6 +523,7 @@ def register(app: typer.Typer) -> None:
         """Evaluate an estimated trajectory against the uncertain ground truth (APE, RPE, NEES)."""
         from rich.console import Console
 
+        from rtsgt.app.evaluate import GT_MODES, gt_engines, run_evaluation, save_evo_results
         from rtsgt.evaluation import PositionEvaluationResult
         from rtsgt.evaluation.lever_arm import parse_lever_arm
 
@@ -780,7 +535,7 @@ def register(app: typer.Typer) -> None:
             delta_unit=delta_unit,
             all_pairs=all_pairs,
             time_offset=time_offset,
-            max_dt=max_dt,  # None: the run's own limit (run_evaluate), checked here when given
+            max_dt=max_dt,  # None: the run's own limit (run_evaluation), checked here when given
             estimate=estimate,
             mounting=mounting_option(mounting),
         )
@@ -802,7 +557,7 @@ def register(app: typer.Typer) -> None:
         saves = save_targets(save_results, save_results_rpe, pose_relation, force=force,
                              inputs=[p for p in (gt_dir, est_file, timestamps, est_cov) if p])
         with _collect_warnings() as notes:
-            result = run_evaluate(
+            result = run_evaluation(
                 gt_dir,
                 est_file,
                 fmt=fmt,

@@ -62,7 +62,7 @@ poses are still given; ``rpe`` then holds ``null`` statistics, ``n_pairs`` 0 and
 counted in a warning (:func:`evaluate`).
 
 The ground truth is best a :class:`~rtsgt.evaluation.groundtruth.ContinuousGroundTruth`
-(``ContinuousGroundTruth.from_run_dir(run)``): the pose and covariance at each estimate time
+(``rtsgt.app.read_ground_truth(run)``): the pose and covariance at each estimate time
 from the run's GP tracks, with a reason for every estimate pose it cannot vouch for.
 
 The four sections ``ape``, ``rpe``, ``nees``, ``noise_floor`` and the keys the issue names

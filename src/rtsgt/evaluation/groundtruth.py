@@ -47,8 +47,6 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from os import PathLike
-from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -64,7 +62,6 @@ from rtsgt.evaluation.positions import PositionSample, PositionSplit
 from rtsgt.interpolation import GPTrack
 from rtsgt.interpolation.cross import gp_cross_covariance
 from rtsgt.interpolation.prisms import PrismsAtTimes, fit_gps, gp_velocities, query_prisms
-from rtsgt.io.run_dir import read_any_run, read_run
 from rtsgt.noise.coupling import StationCoupling
 from rtsgt.options import RunOptions
 from rtsgt.pose import POSE_ENGINES, ReferencePoints, estimate_poses
@@ -105,7 +102,8 @@ DROP_REASONS = (
 class ContinuousGroundTruth:
     """The ground truth of a run, queryable at any time (module docstring).
 
-    Build it with :meth:`from_run_dir` (a written run) or :meth:`from_result` (in memory).
+    Build it with :meth:`from_record` (a run in memory, or one read back:
+    :func:`rtsgt.app.evaluate.read_ground_truth` reads a run directory).
     It is a :class:`~rtsgt.evaluation.associate.ValidatedGroundTruth`: pass it as the ground
     truth of :func:`rtsgt.evaluation.evaluate`.
 
@@ -249,35 +247,6 @@ class ContinuousGroundTruth:
                                coupling=record.coupling, qc_scale=record.qc_scale,
                                station_origins=record.stations, split=split,
                                prior=record.prior)
-
-    @classmethod
-    def from_run_dir(
-        cls,
-        run_dir: str | PathLike,
-        *,
-        engine: str | None = None,
-        samples: int | None = None,
-        seed: int | None = None,
-    ) -> ContinuousGroundTruth:
-        """From a run directory: :meth:`from_record` of :func:`rtsgt.io.run_dir.read_run`
-        (the only reader of its files), which needs ``measurements/prism<i>.csv`` and
-        ``summary.json`` with each prism's ``qc_m2_s3``.
-
-        Raises
-        ------
-        InputError
-            A missing or malformed file, no Qc in ``summary.json``, a bad engine.
-        """
-        root = Path(run_dir)
-        if not (root / "measurements").is_dir():
-            raise InputError(
-                "no measurements/ folder: not an rtsgt run directory with measured tracks", root
-            )
-        record = read_run(root)
-        if not record.summary:
-            raise InputError("missing or empty summary.json (the run's Qc and options)",
-                             root / "summary.json")
-        return cls.from_record(record, engine=engine, samples=samples, seed=seed)
 
     # ---------------------------------------------------------------------------------------
     # queries
@@ -532,20 +501,6 @@ class ContinuousPositionGroundTruth:
                          prior={prism: record.prior.get(prism, "wnoa")})[prism]
         return cls(prism, track, gp, np.asarray(intervals, dtype=float), opts, source,
                    record.coupling, origins)
-
-    @classmethod
-    def from_run_dir(cls, run_dir: str | PathLike,
-                     prism: str | None = None) -> ContinuousPositionGroundTruth:
-        """From a run directory of either kind (:func:`rtsgt.io.run_dir.read_any_run`)."""
-        root = Path(run_dir)
-        if not (root / "measurements").is_dir():
-            raise InputError(
-                "no measurements/ folder: not an rtsgt run directory with measured tracks", root)
-        record = read_any_run(root)
-        if not record.summary:
-            raise InputError("missing or empty summary.json (the run's Qc and options)",
-                             root / "summary.json")
-        return cls.from_record(record, prism)
 
     @property
     def name(self) -> str:
