@@ -192,3 +192,42 @@ def test_gp_noise_all_runs_on_a_simulated_deployment(tmp_path):
     assert np.linalg.eigvalsh(result.groundtruth.cov).min() > 0
     err = np.linalg.norm(cmp.error[:, :3], axis=1)
     assert np.median(err) < 0.01  # metres: the poses themselves are fine
+
+
+def test_a_run_written_by_two_processes_is_the_same_run(demo_run, tmp_path, monkeypatch):
+    """The command line writes the ground truth's covariances in a forked child beside the
+    rest (rtsgt.io.run_dir.WRITE_PROCESSES = 2): every file byte for byte as one process
+    writes it."""
+    from rtsgt.io import run_dir
+
+    _, result, _, out = demo_run
+    monkeypatch.setattr(run_dir, "WRITE_PROCESSES", 2)
+    two = write_run(result, tmp_path / "two")
+    files = sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file())
+    assert files == sorted(p.relative_to(two) for p in two.rglob("*") if p.is_file())
+    for rel in files:
+        if rel.name != "summary.json":  # it records where the run was written
+            assert (out / rel).read_bytes() == (two / rel).read_bytes(), rel
+
+
+def test_a_writer_child_that_fails_fails_the_run_and_leaves_nothing(demo_run, tmp_path,
+                                                                     monkeypatch):
+    """The child's error reaches the parent, which leaves no output behind."""
+    import os
+
+    from rtsgt.io import run_dir
+
+    pids = tmp_path / "pids"
+    pids.mkdir()
+
+    def full(path, split):
+        (pids / str(os.getpid())).touch()
+        raise OSError(f"No space left on device: {path.name}")
+
+    _, result, _, _ = demo_run
+    monkeypatch.setattr(run_dir, "WRITE_PROCESSES", 2)
+    monkeypatch.setattr(run_dir, "_write_split", full)
+    with pytest.raises(OSError, match="No space left on device: groundtruth_shared.csv"):
+        write_run(result, tmp_path / "out" / "run")
+    assert [p.name for p in pids.iterdir()] != [str(os.getpid())]  # it failed in the child
+    assert not (tmp_path / "out").exists() or list((tmp_path / "out").iterdir()) == []

@@ -64,3 +64,6 @@ REALITY_EFFECTS = ("correlated_noise", "prism_cyclic", "tracking_lag", "clock_dr
 #: The simulator's presets and the duration each simulates unless told (s)
 #: (:mod:`rtsgt.simulation.presets`).
 SIMULATION_PRESETS = {"field-hour": 3600.0}
+#: Environment variable with the number of processes that write a run directory
+#: (:data:`rtsgt.io.run_dir.WRITE_PROCESSES`; the command line sets 2 unless it is set).
+WRITE_PROCESSES_ENV = "RTSGT_WRITE_PROCESSES"

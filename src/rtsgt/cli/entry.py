@@ -18,6 +18,8 @@ import os
 import signal
 import sys
 
+from rtsgt.choices import WRITE_PROCESSES_ENV
+
 #: The BLAS thread counts the command line runs with unless the environment sets them: one.
 #: rtsgt's linear algebra is many small matrices (3x3 to a few hundred rows), where a second
 #: BLAS thread costs more than it gives (on the 2-core machine: a simulated hour 35.0 -> 26.8 s,
@@ -73,6 +75,7 @@ def main() -> None:
     status: int | str | None
     for name, value in BLAS_THREADS.items():  # before numpy loads; a user's setting wins
         os.environ.setdefault(name, value)
+    os.environ.setdefault(WRITE_PROCESSES_ENV, "2")  # rtsgt.io.run_dir.WRITE_PROCESSES
     try:
         if sys.argv[1:] == ["--version"]:  # as the application prints it, without its imports
             from rtsgt import __version__

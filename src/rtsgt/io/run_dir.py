@@ -17,7 +17,9 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import os
 import re
+import signal
 import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -28,7 +30,7 @@ import numpy as np
 
 from rtsgt import __version__
 from rtsgt.checks.verdict import record_verdict
-from rtsgt.choices import CALIBRATION_METHODS, CALIBRATION_MODELS
+from rtsgt.choices import CALIBRATION_METHODS, CALIBRATION_MODELS, WRITE_PROCESSES_ENV
 from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.filtering import FilterParams
 from rtsgt.filtering.modules import RemovedMeasurements
@@ -436,27 +438,85 @@ def write_run(record: RunRecord | PositionRunRecord, out: str | Path, *, force: 
                 finish(tmp, output.final)
             return output.final
         gt = record.groundtruth
-        write_tum(tmp / "groundtruth.tum", gt, decimals=(9, 12), comment=GROUNDTRUTH_TUM_COMMENT)
-        write_covariance_csv(tmp / "groundtruth_covariance.csv", gt, digits=17)
-        if record.groundtruth_split is not None:
-            _write_split(tmp / SPLIT_FILE, record.groundtruth_split)
-        with open(tmp / "rejected_poses.csv", "w", encoding="utf-8") as fh:
-            fh.write("t,reason\n")
-            for t, r in zip(record.rejected_t, record.rejected_reason, strict=True):
-                fh.write(f"{t:.9f},{r}\n")
-        _write_prisms(tmp, record)
-        _write_removed(tmp / "measurements" / "removed.csv", record.removed)
-        ref = record.reference
-        cov_cols = [f"cov_{c}" for c in COV3_NAMES]
-        with open(tmp / "reference.csv", "w", encoding="utf-8") as fh:
-            fh.write("name,x,y,z," + ",".join(cov_cols) + "\n")
-            blocks = cov3_to_columns(ref.cov_blocks())
-            for name, p, c in zip(ref.names, ref.xyz, blocks, strict=True):
-                fh.write(",".join([name] + [f"{v:.17g}" for v in (*p, *c)]) + "\n")
-        write_json(tmp / "summary.json", summary)
+
+        def ground_truth_files() -> None:  # about half of the text, written beside the rest
+            write_covariance_csv(tmp / "groundtruth_covariance.csv", gt, digits=17)
+            if record.groundtruth_split is not None:
+                _write_split(tmp / SPLIT_FILE, record.groundtruth_split)
+
+        beside = _beside(ground_truth_files)
+        try:
+            _write_pose_run_rest(tmp, record, summary)
+        except BaseException:
+            beside(check=False)  # never leave the child writing into a directory removed
+            raise
+        beside()
         if finish is not None:
             finish(tmp, output.final)
     return output.final
+
+
+def _write_pose_run_rest(tmp: Path, record: RunRecord, summary: dict) -> None:
+    """The files of a pose run besides the ground truth's covariances (:func:`write_run`)."""
+    gt = record.groundtruth
+    write_tum(tmp / "groundtruth.tum", gt, decimals=(9, 12), comment=GROUNDTRUTH_TUM_COMMENT)
+    with open(tmp / "rejected_poses.csv", "w", encoding="utf-8") as fh:
+        fh.write("t,reason\n")
+        for t, r in zip(record.rejected_t, record.rejected_reason, strict=True):
+            fh.write(f"{t:.9f},{r}\n")
+    _write_prisms(tmp, record)
+    _write_removed(tmp / "measurements" / "removed.csv", record.removed)
+    ref = record.reference
+    cov_cols = [f"cov_{c}" for c in COV3_NAMES]
+    with open(tmp / "reference.csv", "w", encoding="utf-8") as fh:
+        fh.write("name,x,y,z," + ",".join(cov_cols) + "\n")
+        blocks = cov3_to_columns(ref.cov_blocks())
+        for name, p, c in zip(ref.names, ref.xyz, blocks, strict=True):
+            fh.write(",".join([name] + [f"{v:.17g}" for v in (*p, *c)]) + "\n")
+    write_json(tmp / "summary.json", summary)
+
+
+#: Processes that write a run directory's files: 1 (this one) unless the environment variable
+#: :data:`~rtsgt.choices.WRITE_PROCESSES_ENV` says more, as the command line sets it (2): the
+#: ground truth's covariances are then written by a forked child (:func:`_beside`) while this
+#: process writes the rest. The text of an hour's run (about 170 MB, formatted by Python under
+#: its interpreter lock) then takes about half as long.
+WRITE_PROCESSES = max(1, int(os.environ.get(WRITE_PROCESSES_ENV, "1").strip() or 1)
+                      if os.environ.get(WRITE_PROCESSES_ENV, "1").strip().isdigit() else 1)
+
+
+def _beside(job: Callable[[], None]) -> Callable[..., None]:
+    """Start ``job`` (it writes files) in a forked child when :data:`WRITE_PROCESSES` > 1
+    and the platform forks, else run it now; returns the function that waits for it and
+    (unless called with ``check=False``) raises, in this process, an ``OSError`` with the
+    child's message if it failed."""
+    if WRITE_PROCESSES < 2 or not hasattr(os, "fork"):
+        job()
+        return lambda check=True: None
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: write, report a failure through the pipe, never return
+        os.close(read)
+        code = 1
+        try:
+            signal.signal(signal.SIGINT, signal.SIG_DFL)  # an interrupt ends it at once
+            job()
+            code = 0
+        except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises
+            os.write(write, str(exc).encode("utf-8", "replace")[:4000])
+        finally:
+            os._exit(code)
+    os.close(write)
+
+    def wait(check: bool = True) -> None:
+        with os.fdopen(read, "rb") as fh:
+            message = fh.read().decode("utf-8", "replace")
+        _, status = os.waitpid(pid, 0)
+        if check and status != 0:
+            raise OSError(message or f"the process writing the ground truth files ended with "
+                                     f"status {status}")
+
+    return wait
 
 
 # ------------------------------------------------------------------------------------------
