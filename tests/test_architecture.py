@@ -45,18 +45,8 @@ EXTRAS = ("plotly", "rosbags", "dask", "distributed", "evo")
 
 #: Known departures, (importer, imported), each with its reason; the tests fail when one is
 #: gone too, so that this list stays the truth.
-LAYER_EXCEPTIONS = {
-    # the per-prism GP set takes its options record (InterpolationOptions) from options.py,
-    # which takes the GP's gap default from interpolation.gp: no module cycle, but the two
-    # packages import each other (issue 27)
-    ("rtsgt.interpolation.prisms", "rtsgt.options"),
-}
+LAYER_EXCEPTIONS: set[tuple[str, str]] = set()
 PRIVATE_EXCEPTIONS = {
-    # the GP's private building blocks, shared by the leave-one-out search (issue 27)
-    ("rtsgt.interpolation.loo", "rtsgt.interpolation.gp", "_check_scale"),
-    ("rtsgt.interpolation.loo", "rtsgt.interpolation.gp", "_posteriors"),
-    ("rtsgt.interpolation.loo", "rtsgt.interpolation.gp", "_prepare"),
-    ("rtsgt.interpolation.loo", "rtsgt.interpolation.gp", "_track_arrays"),
     # the position evaluation beside the pose one, until one evaluation serves both
     # (issue 27: one evaluation for 3 and 6 DOF)
     ("rtsgt.evaluation.groundtruth", "rtsgt.evaluation.associate", "_nearest_distance"),

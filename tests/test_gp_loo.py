@@ -64,14 +64,14 @@ def test_candidates_solved_in_parts_give_the_whole_system_bit_for_bit(prior, mon
     the search's path, and so the fitted Qc, does not depend on the parts."""
     rng = np.random.default_rng(22)
     t, y, R, _ = _track(rng, 37, 0.02)
-    data = gp._prepare((t, y, R), prior=prior)
+    data = gp.prepare_track((t, y, R), prior=prior)
     qcs = [np.diag(rng.uniform(1e-3, 0.1, 3)) for _ in range(5)]
     scales = [None, rng.uniform(0.2, 3.0, 36), None, None, rng.uniform(0.2, 3.0, 36)]
     monkeypatch.setattr(gp, "_STACK_BLOCKS", 1 << 20)
-    whole = gp._posteriors(data, qcs, scales)
+    whole = gp.posteriors(data, qcs, scales)
     for blocks in (1, 37, 73, 111):
         monkeypatch.setattr(gp, "_STACK_BLOCKS", blocks)
-        parts = gp._posteriors(data, qcs, scales)
+        parts = gp.posteriors(data, qcs, scales)
         for a, b in zip(whole, parts, strict=True):
             np.testing.assert_array_equal(a, b)
 

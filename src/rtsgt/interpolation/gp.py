@@ -56,10 +56,10 @@ _LOG_2PI = math.log(2.0 * math.pi)
 _EYE3 = np.eye(3)
 _QUERY_CHUNK = 1 << 16
 #: Most blocks of the candidates' systems that the leave-one-out search solves at once
-#: (:func:`_posteriors`; its result does not depend on it, only its memory, about 5 blocks of
+#: (:func:`posteriors`; its result does not depend on it, only its memory, about 5 blocks of
 #: 6x6 or 9x9 per knot and candidate, and the fixed cost per call of a short track's).
 _STACK_BLOCKS = 1 << 13
-#: Threads that solve the parts of :func:`_posteriors`.
+#: Threads that solve the parts of :func:`posteriors`.
 _CORES = available_cores()
 
 
@@ -362,7 +362,7 @@ class _Data:
         return 3 * _check_prior(self.prior)
 
 
-def _track_arrays(track) -> tuple[np.ndarray, np.ndarray, np.ndarray, str, str]:
+def track_arrays(track) -> tuple[np.ndarray, np.ndarray, np.ndarray, str, str]:
     if isinstance(track, PrismTrack):
         return track.t, track.xyz, track.cov, track.prism, track.frame
     if isinstance(track, Sequence) and len(track) == 3:
@@ -427,11 +427,11 @@ def _check_measurements(t, xyz, cov) -> np.ndarray:
         ) from None
 
 
-def _prepare(track, initial_state_cov=None, initial_state_mean=None,
+def prepare_track(track, initial_state_cov=None, initial_state_mean=None,
              prior: str = "wnoa") -> _Data:
     order = _check_prior(prior)
     dim = 3 * order
-    t, xyz, cov, prism, frame = _track_arrays(track)
+    t, xyz, cov, prism, frame = track_arrays(track)
     L = _check_measurements(t, xyz, cov)
     if initial_state_cov is None and t.shape[0] < order:
         raise InputError(f"Expected at least {order} measurements to fit a track with the "
@@ -473,7 +473,7 @@ def _prepare(track, initial_state_cov=None, initial_state_mean=None,
                  prior=prior)
 
 
-def _check_scale(data: _Data, qc_scale: ArrayLike | None) -> np.ndarray | None:
+def check_scale(data: _Data, qc_scale: ArrayLike | None) -> np.ndarray | None:
     """``qc_scale`` (:func:`fit_track`) as an array of one positive factor per interval."""
     if qc_scale is None:
         return None
@@ -625,7 +625,7 @@ def _bcr(system: list, want_cov: bool, cholesky: bool = False, want_logdet: bool
     blocks are freed once reduced (about 5 blocks per knot at the peak). ``cholesky`` applies
     the pivots through their Cholesky factors (WNOJ, whose blocks span more orders of
     magnitude); without ``want_logdet`` ``log|J|`` is 0. ``offset``: the system is the part,
-    from block ``offset`` on, of a larger uncoupled one (:func:`_posteriors`), eliminated in
+    from block ``offset`` on, of a larger uncoupled one (:func:`posteriors`), eliminated in
     the order of the whole, so that it gets the whole's numbers bit for bit.
 
     Returns ``mean`` (N, d), ``log|J|``, ``S`` (N, d, d) the diagonal blocks of ``J^-1`` (None
@@ -842,7 +842,7 @@ def _solve(data: _Data, qc: np.ndarray, want_cov: bool, scale: np.ndarray | None
     return mean, S, C, loglik
 
 
-def _posteriors(data: _Data, qcs: list[np.ndarray], scales: list[np.ndarray | None],
+def posteriors(data: _Data, qcs: list[np.ndarray], scales: list[np.ndarray | None],
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Posterior means (K, N, d) and marginal position covariances (K, N, 3, 3), centred, of
     the same measurements under K candidate ``Qc`` (each times its ``scale`` per interval, or
@@ -1058,7 +1058,7 @@ def fit_qc(
         Convergence report; ``info.converged`` is False when the optimiser stopped early or the
         estimate sits on a bound.
     """
-    data = _prepare(track, initial_state_cov, initial_state_mean, prior)
+    data = prepare_track(track, initial_state_cov, initial_state_mean, prior)
     info = _fit_qc_data(data, mode, qc0, bounds, max_iter, tol)
     return np.array(info.qc), info.log_likelihood, info
 
@@ -1076,7 +1076,7 @@ def log_marginal_likelihood(
 
     See the module docstring for the formula and the meaning with the diffuse prior.
     """
-    data = _prepare(track, initial_state_cov, initial_state_mean, prior)
+    data = prepare_track(track, initial_state_cov, initial_state_mean, prior)
     return _solve(data, as_qc(qc), want_cov=False)[3]
 
 
@@ -1512,12 +1512,12 @@ def fit_track(
     mg = float(max_gap_s)
     if not mg > 0:
         raise InputError(f"Expected max_gap_s > 0 s, got {max_gap_s!r}")
-    data = _prepare(track, initial_state_cov, initial_state_mean, prior)
+    data = prepare_track(track, initial_state_cov, initial_state_mean, prior)
     if held_out is not None:
-        data = _held_out(data, held_out, _track_arrays(track)[2])
+        data = _held_out(data, held_out, track_arrays(track)[2])
     if qc_scale is not None and (qc is None or fit_qc):
         raise InputError("qc_scale needs a given qc (it scales that Qc per interval)")
-    scale = _check_scale(data, qc_scale)
+    scale = check_scale(data, qc_scale)
     info = None
     if qc is None or fit_qc:
         info = _fit_qc_data(data, qc_mode, qc, qc_bounds, max_iter, tol)

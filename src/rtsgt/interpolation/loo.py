@@ -18,11 +18,11 @@ from rtsgt.errors import InputError
 from rtsgt.interpolation.gp import (
     DEFAULT_MAX_GAP_S,
     QC_BOUNDS,
-    _check_scale,
-    _posteriors,
-    _prepare,
-    _track_arrays,
     as_qc,
+    check_scale,
+    posteriors,
+    prepare_track,
+    track_arrays,
 )
 
 __all__ = ["FD_STEP", "LooInfo", "LooScorer", "fit_qc_loo", "loo_predictive", "loo_score",
@@ -79,10 +79,10 @@ class LooScorer:
     """
 
     def __init__(self, track, max_gap_s: float = DEFAULT_MAX_GAP_S, prior: str = "wnoa"):
-        self._data = _prepare(track, prior=prior)
+        self._data = prepare_track(track, prior=prior)
         t = self._data.t
         self.used = _interior(t, max_gap_s)
-        R = _track_arrays(track)[2][self.used]
+        R = track_arrays(track)[2][self.used]
         self._R = 0.5 * (R + np.swapaxes(R, 1, 2))
         self._logdet_r = np.linalg.slogdet(self._R)[1]
         # the smallest variance of each R_k: the floor of A_k's eigenvalues below
@@ -97,8 +97,8 @@ class LooScorer:
         """``e_k = y_k - m_k`` (K, U, 3) and ``A_k = R_k - P_k`` (K, U, 3, 3) at the scored
         knots (module docstring) under K candidates, as ``A_k`` 's eigen-decomposition
         ``(w, V)`` or its Cholesky factor ``(L, None)``."""
-        mean, S = _posteriors(self._data, [as_qc(q) for q in qcs],
-                              [_check_scale(self._data, s) for s in scales])
+        mean, S = posteriors(self._data, [as_qc(q) for q in qcs],
+                              [check_scale(self._data, s) for s in scales])
         e = self._data.y[self.used] - mean[:, self.used, :3]
         A = self._R - S[:, self.used]
         A = 0.5 * (A + np.swapaxes(A, -1, -2))

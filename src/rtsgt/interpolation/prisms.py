@@ -24,6 +24,7 @@ from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.interpolation.gp import GPTrack, fit_track
 from rtsgt.interpolation.loo import fit_qc_loo
 from rtsgt.interpolation.motion import fit_motion_prior, motion_events
+from rtsgt.interpolation.options import InterpolationOptions
 from rtsgt.interpolation.windows import window_score
 from rtsgt.noise.coupling import StationCoupling, joint_prism_covariance
 from rtsgt.noise.sources import (
@@ -31,7 +32,6 @@ from rtsgt.noise.sources import (
     SYSTEMATIC_NOISE_SOURCES,
     WHITE_NOISE_SOURCES,
 )
-from rtsgt.options import InterpolationOptions
 from rtsgt.parallel import available_cores
 from rtsgt.types import PrismTrack
 
