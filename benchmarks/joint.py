@@ -1,8 +1,11 @@
-"""The joint engine (issue 23, step 2) against the per-prism linear engine on simulated
-deployments: NEES/dof, 95 % coverage, median sigma ratio, iterations, wall time and traced
-peak memory of the joint solve. Numbers: docs/joint.md#measured.
+"""The joint engine (issue 23, steps 2 and 2b) against the per-prism linear engine on
+simulated deployments: NEES/dof, 95 % coverage, median sigma ratio, iterations, wall time and
+traced peak memory of the joint solve; with ``--field`` the ``field-hour`` preset and the
+clock states (offsets against the truth at 1 Hz: share within 2 sigma). Numbers:
+docs/joint.md#measured.
 
 Usage: python benchmarks/joint.py [--duration 600] [--seeds 101 102 103] [--time-sync]
+       [--field] [--clocks]
 """
 
 from __future__ import annotations
@@ -24,14 +27,39 @@ from rtsgt.joint import estimate_joint
 from rtsgt.joint.knots import qc_from_prisms
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
+from rtsgt.simulation.presets import preset_config
 
 
-def case(duration_s: float, seed: int, time_sync: bool, folder: Path) -> dict:
+def clock_scores(jr, sim, t: np.ndarray) -> dict:
+    """Share of 1 Hz samples of each station's offset within 2 sigma of the field truth."""
+    f = sim.truth.field
+    ref = f.clock_error_s(0, t)
+    within, z2 = [], []
+    for sid, (kn, off, cov) in jr.clocks.items():
+        j = np.clip(np.searchsorted(kn, t, side="right") - 1, 0, kn.size - 2)
+        u = (t - kn[j]) / (kn[j + 1] - kn[j])
+        W = np.zeros((t.size, kn.size))
+        W[np.arange(t.size), j] = 1.0 - u
+        W[np.arange(t.size), j + 1] = u
+        sig = np.sqrt(np.einsum("ti,ij,tj->t", W, cov, W))
+        z = (W @ off + (f.clock_error_s(f.station_ids.index(sid), t) - ref)) / sig
+        within.append(np.abs(z) < 2)
+        z2.append(z**2)
+    return dict(clock_within_2s=np.mean(np.concatenate(within)),
+                clock_z2=np.mean(np.concatenate(z2)))
+
+
+def case(duration_s: float, seed: int, time_sync: bool, folder: Path, field: bool = False,
+         clocks: bool = False) -> dict:
     """One simulated deployment through the per-prism pipeline and the joint engine."""
-    cfg = SimulationConfig(duration_s=duration_s, noise_time_sync=time_sync, noise_survey=False)
+    if field:
+        cfg = preset_config("field-hour", duration_s=duration_s)
+    else:
+        cfg = SimulationConfig(duration_s=duration_s, noise_time_sync=time_sync,
+                               noise_survey=False)
     sim = simulate_deployment(cfg, np.random.default_rng(seed))
     data, opts = load_deployment(write_deployment(sim, folder / f"dep{seed}"))
-    srcs = tuple(s for s in opts.noise.sources if time_sync or s != "time_sync")
+    srcs = tuple(s for s in opts.noise.sources if time_sync or field or s != "time_sync")
     opts = replace(opts.updated(seed=seed, engine="linear"), noise=opts.noise.with_sources(srcs))
     res = run_pipeline(data, opts)
     comp = res.computation
@@ -42,7 +70,7 @@ def case(duration_s: float, seed: int, time_sync: bool, folder: Path) -> dict:
     tracemalloc.start()
     tick = time.perf_counter()
     jr = estimate_joint(obs, comp.calibration, data.reference, comp.noise_model, tq, tq,
-                        est.R[keep], est.t[keep], qc, weather=data.weather)
+                        est.R[keep], est.t[keep], qc, weather=data.weather, clocks=clocks)
     wall = time.perf_counter() - tick
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
@@ -60,13 +88,16 @@ def case(duration_s: float, seed: int, time_sync: bool, folder: Path) -> dict:
     rot = np.einsum("kii->k", jr.estimate.cov[:, 3:, 3:])
     rot_pp = np.einsum("kii->k", est.cov[keep][:, 3:, 3:])
     c95 = chi2.ppf(0.95, 6)
+    extra = clock_scores(jr, sim, np.arange(np.ceil(tq[0]), tq[-1], 1.0)) if field and clocks \
+        else {}
     return dict(
         seed=seed, poses=tq.size, knots=jr.n_knots, measurements=jr.n_measurements,
         nees_joint=nj.mean() / 6, nees_pp=npp.mean() / 6,
         cover_joint=np.mean(nj < c95), cover_pp=np.mean(npp < c95),
         ratio_pos=np.median(np.sqrt(pos / pos_pp)), ratio_rot=np.median(np.sqrt(rot / rot_pp)),
         iterations=jr.solve.iterations, converged=jr.solve.converged,
-        chi2=jr.chi2_per_dof, wall_s=wall, peak_mib=peak / 2**20,
+        chi2=jr.chi2_per_dof, wall_s=wall, peak_mib=peak / 2**20, vce=jr.qc.iterations,
+        **extra,
     )
 
 
@@ -76,11 +107,13 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[101, 102, 103])
     ap.add_argument("--time-sync", action="store_true",
                     help="the simulator's clock offsets on (the joint engine carries them white)")
+    ap.add_argument("--field", action="store_true", help="the field-hour preset")
+    ap.add_argument("--clocks", action="store_true", help="the joint engine's clock states")
     args = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
-            r = case(args.duration, seed, args.time_sync, Path(tmp))
+            r = case(args.duration, seed, args.time_sync, Path(tmp), args.field, args.clocks)
             rows.append(r)
             print(" ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
                            for k, v in r.items()), flush=True)

@@ -5,25 +5,42 @@ State, factors, update and covariance: docs/joint.md#the-solver.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from rtsgt.geometry.so3 import exp_so3, log_so3
+from rtsgt.joint.clock import ClockModel
 from rtsgt.joint.measurements import PolarMeasurements, predict, residual
 from rtsgt.joint.prior import prior_terms, wnoa_q_inv
+from rtsgt.joint.qc import (
+    MIN_REDUNDANCY,
+    N_CLASSES,
+    QC_FLOOR,
+    VCE_GN_ITER,
+    VCE_MAX_ITER,
+    VCE_TOL,
+    motion_classes,
+    prior_components,
+    qc_per_class,
+)
 from rtsgt.joint.se3 import exp_se3, so3_left_jacobian
 from rtsgt.joint.sparse import ArrowSystem, solve_arrow
 
 #: Prior standard deviation (m, rad) given to a station direction its calibration fixes
 #: exactly (a zero variance, e.g. the reference station).
 FIXED_SIGMA = 1e-7
+#: Gauss-Newton has converged when a step changes the cost by less than this fraction of it
+#: (the prior's Jacobian is first order in the interval's motion, so the predicted decrease
+#: need not vanish at the minimum).
+STALL_REL = 1e-9
 
 
 @dataclass(frozen=True)
 class JointState:
     """Knot poses ``R`` (K, 3, 3), ``t`` (K, 3) (``T_world_body``), body velocities ``w``
-    (K, 6); stations ``R_s`` (S, 3, 3), ``t_s`` (S, 3) (``T_world_station``); ``kappa_ppm``."""
+    (K, 6); stations ``R_s`` (S, 3, 3), ``t_s`` (S, 3) (``T_world_station``); ``kappa_ppm``;
+    ``clock`` (C, J) the clock knots' offsets, s (None without clocks)."""
 
     R: np.ndarray
     t: np.ndarray
@@ -31,6 +48,7 @@ class JointState:
     R_s: np.ndarray
     t_s: np.ndarray
     kappa_ppm: float
+    clock: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -39,7 +57,8 @@ class JointProblem:
     ``of_meas`` and offset ``tau`` (M,), the measurements, the prisms' body positions
     ``p_body`` (P, 3), the stations' prior means ``R_prior``, ``t_prior`` and information
     ``info_prior`` (S, 6, 6) of ``(dt, dtheta)``, the free stations ``free`` (F,) indices,
-    and ``qc`` (6,)."""
+    ``qc`` (6,) or one per interval (K-1, 6), and the clock states (None: no clocks).
+    Globals: the free stations' ``(dt, dtheta)``, ``kappa``, the clocks' knots (C, J)."""
 
     t_knot: np.ndarray
     of_meas: np.ndarray
@@ -51,10 +70,16 @@ class JointProblem:
     info_prior: np.ndarray
     free: np.ndarray
     qc: np.ndarray
+    clock: ClockModel | None = None
+
+    @property
+    def n_fixed(self) -> int:
+        """Globals before the clocks: the free stations' and ``kappa``."""
+        return 6 * self.free.size + 1
 
     @property
     def n_globals(self) -> int:
-        return 6 * self.free.size + 1
+        return self.n_fixed + (0 if self.clock is None else self.clock.size)
 
 
 def station_prior_info(cov: np.ndarray) -> np.ndarray:
@@ -64,12 +89,17 @@ def station_prior_info(cov: np.ndarray) -> np.ndarray:
 
 
 def _measurement_terms(prob: JointProblem, s: JointState):
+    """Residuals (M, 3), Jacobians wrt the knots (M, 3, 12), wrt the stations and ``kappa``
+    (M, 3, n_fixed), wrt each measurement's two clock knots (M, 3, 2) and their columns
+    (M, 2) (None without clocks)."""
     m = prob.meas
     k = prob.of_meas
-    h, Hk, Hs, Hkap = predict(s.R[k], s.t[k], s.w[k], prob.tau, prob.p_body[m.prism],
-                              s.R_s[m.station], s.t_s[m.station], s.kappa_ppm)
+    ck = prob.clock
+    tau = prob.tau if ck is None else prob.tau - ck.offsets(s.clock)
+    h, Hk, Hs, Hkap, Htau = predict(s.R[k], s.t[k], s.w[k], tau, prob.p_body[m.prism],
+                                    s.R_s[m.station], s.t_s[m.station], s.kappa_ppm)
     r = residual(m.y, h)
-    Hg = np.zeros(r.shape + (prob.n_globals,))
+    Hg = np.zeros(r.shape + (prob.n_fixed,))
     col = np.full(len(s.R_s), -1)
     col[prob.free] = np.arange(prob.free.size)
     c = col[m.station]
@@ -77,7 +107,38 @@ def _measurement_terms(prob: JointProblem, s: JointState):
     for j in range(6):  # six columns of each free station
         Hg[rows, :, 6 * c[rows] + j] = Hs[rows, :, j]
     Hg[:, :, -1] = Hkap
-    return r, Hk, Hg
+    if ck is None:
+        return r, Hk, Hg, None, None
+    has = (ck.row >= 0)[:, None]
+    Hc = -Htau[:, :, None] * np.stack([1.0 - ck.u, ck.u], axis=1)[:, None, :] * has[:, None]
+    first = prob.n_fixed + np.where(has[:, 0], ck.row, 0) * ck.knots.size + ck.j
+    return r, Hk, Hg, Hc, np.stack([first, first + 1], axis=1)
+
+
+def _clock_terms(prob: JointProblem, s: JointState, B, C, c, HtW, GtW, Hc, cols, r):
+    """Adds the clock columns of the measurements and the clocks' prior to ``B``, ``C``, ``c``
+    (in place); returns the prior's cost."""
+    info = prob.meas.info
+    Bt = np.swapaxes(B, 1, 2)  # (K, G, 12) view
+    CtW = np.swapaxes(Hc, 1, 2) @ info  # (M, 2, 3)
+    Ct = C[:prob.n_fixed].T  # (G, n_fixed) view
+    cross = np.einsum("mgi,mia->mag", GtW, Hc)  # (M, 2, n_fixed)
+    cc = CtW @ Hc
+    cr = np.einsum("mai,mi->ma", CtW, r)
+    for a in range(2):
+        np.add.at(Bt, (prob.of_meas, cols[:, a]), (HtW @ Hc[:, :, a:a + 1])[:, :, 0])
+        np.add.at(Ct, cols[:, a], cross[:, a])
+        np.add.at(c, cols[:, a], cr[:, a])
+        for b in range(2):
+            np.add.at(C, (cols[:, a], cols[:, b]), cc[:, a, b])
+    C[prob.n_fixed:, :prob.n_fixed] = C[:prob.n_fixed, prob.n_fixed:].T
+    ck = prob.clock
+    J = ck.knots.size
+    for i in range(ck.station.size):  # a handful of stations
+        sl = slice(prob.n_fixed + i * J, prob.n_fixed + (i + 1) * J)
+        C[sl, sl] += ck.info
+        c[sl] -= ck.info @ s.clock[i]
+    return float(np.einsum("ij,jk,ik->", s.clock, ck.info, s.clock))
 
 
 def _station_terms(prob: JointProblem, s: JointState):
@@ -107,17 +168,22 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
     a[:-1] -= np.einsum("kij,kj->ki", EtW, e)
     a[1:] -= np.einsum("kij,kj->ki", FtW, e)
     cost = float(np.einsum("ki,kij,kj->", e, W, e))
-    r, Hk, Hg = _measurement_terms(prob, s)
+    r, Hk, Hg, Hc, cols = _measurement_terms(prob, s)
     info = prob.meas.info
     HtW = np.swapaxes(Hk, 1, 2) @ info
     np.add.at(D, prob.of_meas, HtW @ Hk)
+    G0 = prob.n_fixed
     B = np.zeros((K, 12, G))
-    np.add.at(B, prob.of_meas, HtW @ Hg)
+    np.add.at(B[:, :, :G0], prob.of_meas, HtW @ Hg)
     np.add.at(a, prob.of_meas, np.einsum("mij,mj->mi", HtW, r))
     GtW = np.swapaxes(Hg, 1, 2) @ info
-    C = np.einsum("mgi,mih->gh", GtW, Hg)
-    c = np.einsum("mgi,mi->g", GtW, r)
+    C = np.zeros((G, G))
+    c = np.zeros(G)
+    C[:G0, :G0] = np.einsum("mgi,mih->gh", GtW, Hg)
+    c[:G0] = np.einsum("mgi,mi->g", GtW, r)
     cost += float(np.einsum("mi,mij,mj->", r, info, r))
+    if Hc is not None:
+        cost += _clock_terms(prob, s, B, C, c, HtW, GtW, Hc, cols, r)
     es, Js = _station_terms(prob, s)
     Wp = prob.info_prior[prob.free]
     JtW = np.swapaxes(Js, 1, 2) @ Wp
@@ -127,8 +193,8 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
         c[sl] -= JtW[i] @ es[i]
     cost += float(np.einsum("fi,fij,fj->", es, Wp, es))
     sk = prob.meas.kappa_sigma_ppm
-    C[-1, -1] += 1.0 / sk**2 if sk > 0 else 1.0 / FIXED_SIGMA**2
-    c[-1] -= s.kappa_ppm / sk**2 if sk > 0 else 0.0
+    C[G0 - 1, G0 - 1] += 1.0 / sk**2 if sk > 0 else 1.0 / FIXED_SIGMA**2
+    c[G0 - 1] -= s.kappa_ppm / sk**2 if sk > 0 else 0.0
     cost += (s.kappa_ppm / sk) ** 2 if sk > 0 else 0.0
     return ArrowSystem(D, U, B, C, a, c), cost
 
@@ -139,10 +205,12 @@ def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> 
     R = s.R @ dR
     t = s.t + np.einsum("kij,kj->ki", s.R, dp)
     R_s, t_s = s.R_s.copy(), s.t_s.copy()
-    gs = g[:-1].reshape(-1, 6)
+    G0 = prob.n_fixed
+    gs = g[:G0 - 1].reshape(-1, 6)
     t_s[prob.free] += gs[:, :3]
     R_s[prob.free] = exp_so3(gs[:, 3:]) @ R_s[prob.free]
-    return JointState(R, t, s.w + x[:, 6:], R_s, t_s, s.kappa_ppm + float(g[-1]))
+    clock = None if s.clock is None else s.clock + g[G0:].reshape(s.clock.shape)
+    return JointState(R, t, s.w + x[:, 6:], R_s, t_s, s.kappa_ppm + float(g[G0 - 1]), clock)
 
 
 @dataclass(frozen=True)
@@ -155,14 +223,17 @@ class SolveInfo:
 
 
 def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10, tol: float = 1e-6):
-    """Gauss-Newton from ``s`` until the predicted decrease of the cost is below ``tol``
-    (a step that raises the cost is halved, up to 8 times). Returns the state, the knots'
-    covariance (K, 12, 12) and the globals' (G, G) at it, and a :class:`SolveInfo`."""
+    """Gauss-Newton from ``s`` until the predicted decrease of the cost is below ``tol`` or a
+    step changes the cost by less than :data:`STALL_REL` of it (a step that raises the cost is
+    halved, up to 8 times). Returns the state, the
+    :class:`rtsgt.joint.sparse.ArrowSolution` at it (with its covariances) and a
+    :class:`SolveInfo`."""
     system, cost = assemble(prob, s)
     costs = [cost]
     converged = False
     for _ in range(max_iter):
-        x, g, _, _ = solve_arrow(system)
+        sol = solve_arrow(system)
+        x, g = sol.x, sol.g
         decrease = float(np.sum(x * system.a) + g @ system.c)
         step = 1.0
         for _ in range(8):
@@ -173,11 +244,60 @@ def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10, tol: flo
             step *= 0.5
         s, system, cost = trial, trial_system, trial_cost
         costs.append(cost)
-        if decrease < tol:
+        if decrease < tol or abs(costs[-2] - cost) <= STALL_REL * abs(cost):
             converged = True
             break
-    _, _, cov, cov_g = solve_arrow(system, want_cov=True)
-    return s, cov, cov_g, SolveInfo(len(costs) - 1, converged, tuple(costs))
+    return s, solve_arrow(system, want_cov=True), SolveInfo(len(costs) - 1, converged,
+                                                            tuple(costs))
 
 
-__all__ = ["JointProblem", "JointState", "SolveInfo", "assemble", "gauss_newton"]
+@dataclass(frozen=True)
+class QcFit:
+    """``table`` (N_CLASSES, 6) the ``Qc`` of each motion class (m^2/s^3, rad^2/s^3),
+    ``classes`` (K-1,) each interval's, ``redundancy`` (N_CLASSES, 6) each group's,
+    ``iterations`` of the variance components (0: ``Qc`` given, not estimated)."""
+
+    table: np.ndarray
+    classes: np.ndarray
+    redundancy: np.ndarray
+    iterations: int
+
+
+def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
+                  max_iter: int = 10, tol: float = 1e-6):
+    """Gauss-Newton with the prior's ``Qc`` per motion class by iterated variance components
+    (docs/joint.md#qc-from-the-data), starting from ``prob.qc`` (6,) for every class; each
+    iteration re-solves from the last state. Returns the problem with the final ``qc`` per
+    interval, the state, the :class:`rtsgt.joint.sparse.ArrowSolution`, the last
+    :class:`SolveInfo` and a :class:`QcFit`."""
+    n = prob.t_knot.size - 1
+    qc0 = np.asarray(prob.qc, dtype=float)
+    prob = replace(prob, qc=np.broadcast_to(qc0, (n, 6)).copy())
+    s, sol, info = gauss_newton(prob, s, max_iter, tol)
+    classes = motion_classes(prob.t_knot, s.R, s.w)
+    table = np.tile(qc0, (N_CLASSES, 1))
+    red_g = np.zeros_like(table)
+    own = None
+    it = 0
+    dt = np.diff(prob.t_knot)
+    while estimate and it < VCE_MAX_ITER:
+        it += 1
+        e, E, F = prior_terms(s.R, s.t, s.w, dt)
+        quad, red = prior_components(e, E, F, dt, prob.qc, sol.cov, sol.cov_next)
+        new, own = qc_per_class(quad, red, classes, own)
+        red_g = np.zeros_like(table)
+        np.add.at(red_g, classes, red)
+        # a group the data no longer inform (sinking to 0, its redundancy gone) may go on
+        moving = own & (red_g >= MIN_REDUNDANCY) & (new > 1.01 * QC_FLOOR)
+        change = float(np.max(np.abs(np.log(new / table))[moving], initial=0.0))
+        table = new
+        prob = replace(prob, qc=table[classes])
+        last = change < VCE_TOL or it == VCE_MAX_ITER
+        s, sol, info = gauss_newton(prob, s, max_iter if last else VCE_GN_ITER, tol)
+        if last:
+            break
+    return prob, s, sol, info, QcFit(table, classes, red_g, it)
+
+
+__all__ = ["JointProblem", "JointState", "QcFit", "SolveInfo", "assemble", "gauss_newton",
+           "solve_with_qc"]

@@ -13,20 +13,23 @@ import numpy as np
 
 from rtsgt.errors import InputError
 from rtsgt.geometry.transform import RigidTransform
+from rtsgt.joint.clock import clock_model
 from rtsgt.joint.engine import (
     JointProblem,
     JointState,
+    QcFit,
     SolveInfo,
-    gauss_newton,
+    solve_with_qc,
     station_prior_info,
 )
+from rtsgt.joint.interpolate import interpolate_poses_gp
 from rtsgt.joint.knots import (
     DEFAULT_MERGE_S,
     body_velocities,
     build_knots,
     interpolate_poses,
 )
-from rtsgt.joint.measurements import polar_measurements
+from rtsgt.joint.measurements import GLOBAL_SOURCES, polar_measurements
 from rtsgt.noise.model import NoiseModel
 from rtsgt.pose.estimate import PoseEstimate
 from rtsgt.pose.registration import shape_ratio
@@ -39,8 +42,8 @@ class JointResult:
     ``estimate``: a :class:`rtsgt.pose.estimate.PoseEstimate` (``engine = "joint"``; its 6x6
     covariances in the convention of :mod:`rtsgt.geometry.transform`); ``stations``: each
     station's estimated ``T_world_station`` with its covariance; ``kappa_ppm``,
-    ``kappa_sigma_ppm``: the weather's error of the distance correction; ``qc`` (6,) the
-    prior's PSD used; ``n_knots``, ``n_measurements``; ``solve``: iterations, convergence,
+    ``kappa_sigma_ppm``: the weather's error of the distance correction; ``qc``: the prior's
+    ``Qc`` per motion class (:class:`rtsgt.joint.engine.QcFit`); ``n_knots``, ``n_measurements``; ``solve``: iterations, convergence,
     costs; ``chi2_per_dof``: the final cost over the measurements' rows.
     """
 
@@ -49,7 +52,8 @@ class JointResult:
     stations: dict[str, RigidTransform]
     kappa_ppm: float
     kappa_sigma_ppm: float
-    qc: np.ndarray
+    qc: QcFit
+    clocks: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]
     n_knots: int
     n_measurements: int
     solve: SolveInfo
@@ -68,8 +72,9 @@ def _stations(calibration):
 
 def estimate_joint(observations, calibration, reference, model: NoiseModel, query_times,
                    init_t, init_R, init_p, qc, *, weather=None,
-                   merge_s: float = DEFAULT_MERGE_S, max_iter: int = 10, tol: float = 1e-6
-                   ) -> JointResult:
+                   merge_s: float = DEFAULT_MERGE_S, max_iter: int = 10, tol: float = 1e-6,
+                   estimate_qc: bool = True, query_knots: bool = False,
+                   clocks: bool = False) -> JointResult:
     """Poses ``T_world_body`` at ``query_times`` (Q,) s from every station's observations.
 
     ``observations``: one :class:`rtsgt.types.Observations` per station (valid, increasing
@@ -78,37 +83,63 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     (:class:`rtsgt.pose.ReferencePoints`, held fixed); ``model``: the noise model (its white
     sources per measurement, its atmosphere as one parameter); ``init_t`` (T,), ``init_R``
     (T, 3, 3), ``init_p`` (T, 3): poses to start from (another engine's); ``qc`` (6,) the
-    prior's diagonal PSD (m^2/s^3, rad^2/s^3; e.g. :func:`rtsgt.joint.knots.qc_from_prisms`).
+    prior's diagonal PSD (m^2/s^3, rad^2/s^3; e.g. :func:`rtsgt.joint.knots.qc_from_prisms`),
+    the start of its estimate per motion class (``estimate_qc``) or used as is. The poses at
+    ``query_times`` are the GP's interpolation between the knots (at the measurement times),
+    or with ``query_knots`` knots of their own (docs/joint.md#queries-between-knots). With
+    ``clocks``, each station's clock offset against the calibration's reference station is
+    estimated (docs/joint.md#clock-offsets) and the model's ``time_sync`` source is not
+    carried as white noise.
     """
     init_t = np.asarray(init_t, dtype=float)
     if init_t.size < 2:
         raise InputError(f"Expected at least 2 initial poses, got {init_t.size}")
     ids, R_s, t_s, cov_s, free = _stations(calibration)
     prisms = tuple(reference.names)
-    meas = polar_measurements(observations, ids, prisms, model, weather)
-    knots = build_knots(meas.t, np.asarray(query_times, dtype=float), merge_s)
+    carried = GLOBAL_SOURCES + (("time_sync",) if clocks else ())
+    meas = polar_measurements(observations, ids, prisms, model, weather, carried)
+    tq = np.asarray(query_times, dtype=float)
+    knots = build_knots(meas.t, tq if query_knots else np.zeros(0), merge_s)
     R0, p0 = interpolate_poses(knots.t, init_t, init_R, init_p)
     qc = np.asarray(qc, dtype=float)
     if qc.shape != (6,) or not np.all(qc > 0):
         raise InputError(f"Expected qc of shape (6,), positive, got {qc!r}")
     info = np.stack([station_prior_info(c) for c in cov_s])
+    ck = None
+    if clocks:
+        ck = clock_model(meas.t, meas.station, len(ids), ids.index(calibration.reference_station))
     prob = JointProblem(knots.t, knots.of_measurement, knots.tau, meas,
-                        np.asarray(reference.xyz, dtype=float), R_s, t_s, info, free, qc)
-    state = JointState(R0, p0, body_velocities(knots.t, R0, p0), R_s, t_s, 0.0)
-    state, cov, cov_g, solve = gauss_newton(prob, state, max_iter, tol)
-    q = knots.of_query
-    R = state.R[q]
-    cov_pose = body_to_world_cov(R, cov[q, :6, :6])
-    est = _pose_estimate(R, state.t[q], cov_pose, np.asarray(reference.xyz, dtype=float))
+                        np.asarray(reference.xyz, dtype=float), R_s, t_s, info, free, qc, ck)
+    state = JointState(R0, p0, body_velocities(knots.t, R0, p0), R_s, t_s, 0.0,
+                       None if ck is None else np.zeros((ck.station.size, ck.knots.size)))
+    prob, state, sol, solve, qc_fit = solve_with_qc(prob, state, estimate_qc, max_iter, tol)
+    cov_g = sol.cov_g
+    R, t, cov_body = interpolate_poses_gp(tq, knots.t, state.R, state.t, state.w, prob.qc,
+                                          sol.cov, sol.cov_next)
+    cov_pose = body_to_world_cov(R, cov_body)
+    est = _pose_estimate(R, t, cov_pose, np.asarray(reference.xyz, dtype=float))
     stations = {}
     for i, sid in enumerate(ids):
         j = np.nonzero(free == i)[0]
         c = cov_g[6 * j[0]:6 * j[0] + 6, 6 * j[0]:6 * j[0] + 6] if j.size else np.zeros((6, 6))
         stations[sid] = RigidTransform(state.R_s[i], state.t_s[i], 0.5 * (c + c.T),
                                        "world", f"station_{sid}")
-    return JointResult(np.asarray(query_times, dtype=float), est, stations, state.kappa_ppm,
-                       meas.kappa_sigma_ppm, qc, knots.t.size, meas.t.size, solve,
+    return JointResult(tq, est, stations, state.kappa_ppm,
+                       meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, cov_g, ids),
+                       knots.t.size, meas.t.size, solve,
                        solve.costs[-1] / (3 * meas.t.size))
+
+
+def _clocks(prob, state, cov_g, ids):
+    ck = prob.clock
+    if ck is None:
+        return {}
+    J = ck.knots.size
+    out = {}
+    for i, sidx in enumerate(ck.station):
+        sl = slice(prob.n_fixed + i * J, prob.n_fixed + (i + 1) * J)
+        out[ids[sidx]] = (ck.knots, state.clock[i].copy(), cov_g[sl, sl].copy())
+    return out
 
 
 def body_to_world_cov(R: np.ndarray, cov: np.ndarray) -> np.ndarray:

@@ -52,19 +52,22 @@ def polar_jacobian_inverse(q: np.ndarray) -> np.ndarray:
     return P
 
 
-def white_model(model: NoiseModel) -> NoiseModel:
-    """The noise model's sources the joint engine carries as white noise."""
-    srcs = tuple(s for s in model.sources if s not in GLOBAL_SOURCES)
+def white_model(model: NoiseModel, carried: tuple[str, ...] = GLOBAL_SOURCES) -> NoiseModel:
+    """The noise model's sources the joint engine carries as white noise (all but
+    ``carried``, those it estimates as parameters)."""
+    srcs = tuple(s for s in model.sources if s not in carried)
     if "instrument" not in srcs:
         raise InputError(f"Expected the 'instrument' noise source, got {model.sources}")
     return model.with_sources(srcs)
 
 
 def polar_measurements(observations, station_ids, prism_ids, model: NoiseModel,
-                       weather=None) -> PolarMeasurements:
+                       weather=None, carried: tuple[str, ...] = GLOBAL_SOURCES
+                       ) -> PolarMeasurements:
     """Stack every station's observations (one :class:`rtsgt.types.Observations` each, valid,
-    strictly increasing times) with their white covariance in (Hz, V, d)."""
-    white = white_model(model)
+    strictly increasing times) with their white covariance in (Hz, V, d) (the model's
+    sources but ``carried``)."""
+    white = white_model(model, carried)
     parts = []
     var_ppm = []
     for obs in observations:
@@ -103,10 +106,11 @@ def predict(R_k, t_k, w_k, tau, p_body, R_s, t_s, kappa_ppm):
     ``p_body`` (M, 3), its station ``R_s`` (M, 3, 3), ``t_s`` (M, 3), and ``kappa_ppm``.
     Returns ``h``, ``H_knot`` (M, 3, 12) with respect to ``(d_k, dw_k)`` (right perturbation),
     ``H_station`` (M, 3, 6) with respect to ``(dt, dtheta)`` of the station (world frame, left),
-    ``H_kappa`` (M, 3).
+    ``H_kappa`` (M, 3) and ``H_tau`` (M, 3) with respect to ``tau`` (the rate of ``h``, 1/s).
     """
     # body point at the measurement time, first order in tau: b = p + tau (v + omega x p)
-    b = p_body + tau[:, None] * (w_k[:, :3] + np.cross(w_k[:, 3:], p_body))
+    vb = w_k[:, :3] + np.cross(w_k[:, 3:], p_body)
+    b = p_body + tau[:, None] * vb
     p_w = np.einsum("mij,mj->mi", R_k, b) + t_k
     Rst = np.swapaxes(R_s, 1, 2)
     q = np.einsum("mij,mj->mi", Rst, p_w - t_s)
@@ -130,7 +134,7 @@ def predict(R_k, t_k, w_k, tau, p_body, R_s, t_s, kappa_ppm):
     H_station[:, :, 3:] = PRs @ hat(p_w - t_s)
     H_kappa = np.zeros((M, 3))
     H_kappa[:, 2] = 1e-6 * dist
-    return h, H_knot, H_station, H_kappa
+    return h, H_knot, H_station, H_kappa, np.einsum("mij,mj->mi", PR, vb)
 
 
 def residual(y: np.ndarray, h: np.ndarray) -> np.ndarray:

@@ -12,13 +12,20 @@ import numpy as np
 from rtsgt.joint.se3 import curly, jacobians_inv, log_se3
 
 
+def wnoa_coef(dt: np.ndarray) -> np.ndarray:
+    """``[[12/dt^3, -6/dt^2], [-6/dt^2, 4/dt]]`` (2, 2, K) of intervals ``dt`` (K,) s."""
+    dt = np.asarray(dt, dtype=float)
+    return np.stack([[12.0 / dt**3, -6.0 / dt**2], [-6.0 / dt**2, 4.0 / dt]])
+
+
 def wnoa_q_inv(dt: np.ndarray, qc: np.ndarray) -> np.ndarray:
     """``Q(dt)^-1 = [[12/dt^3, -6/dt^2], [-6/dt^2, 4/dt]] (x) Qc^-1`` (K, 12, 12) for a diagonal
-    ``Qc`` (6,) (m^2/s^3, rad^2/s^3) and ``dt`` (K,) s (Barfoot eq. 11.25)."""
+    ``Qc`` (6,) or one per interval (K, 6) (m^2/s^3, rad^2/s^3) and ``dt`` (K,) s (Barfoot
+    eq. 11.25)."""
     dt = np.asarray(dt, dtype=float)
-    qi = np.diag(1.0 / np.asarray(qc, dtype=float))
-    coef = np.stack([[12.0 / dt**3, -6.0 / dt**2], [-6.0 / dt**2, 4.0 / dt]])  # (2, 2, K)
-    return np.einsum("abk,ij->kaibj", coef, qi).reshape(dt.shape[0], 12, 12)
+    qi = np.broadcast_to(1.0 / np.asarray(qc, dtype=float), (dt.shape[0], 6))
+    out = np.einsum("abk,ki,ij->kaibj", wnoa_coef(dt), qi, np.eye(6))
+    return out.reshape(dt.shape[0], 12, 12)
 
 
 def relative_log(R: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -41,6 +41,24 @@ class ArrowSystem:
         return M, np.concatenate([self.a.ravel(), self.c])
 
 
+#: Knots per block of the globals' share of the knots' covariance (bounds its temporaries).
+CHUNK = 2048
+
+
+@dataclass(frozen=True)
+class ArrowSolution:
+    """Solution ``x`` (K, d), ``g`` (G,) of an :class:`ArrowSystem` and, where asked, the
+    covariances (the inverse of its matrix): the knots' blocks ``cov`` (K, d, d), those of
+    consecutive knots ``cov_next`` (K-1, d, d) (``Sigma_k,k+1``) and the globals' ``cov_g``
+    (G, G)."""
+
+    x: np.ndarray
+    g: np.ndarray
+    cov: np.ndarray | None
+    cov_next: np.ndarray | None
+    cov_g: np.ndarray | None
+
+
 def _spd_inv(a: np.ndarray) -> np.ndarray:
     """Inverses (..., d, d) of SPD blocks through their Cholesky factors."""
     li = np.linalg.inv(np.linalg.cholesky(a))
@@ -75,7 +93,8 @@ def _reduce(D, U, h):
 
 def solve_tridiagonal(D: np.ndarray, U: np.ndarray, h: np.ndarray, want_cov: bool = False):
     """Solve ``A X = h`` (h (K, d, m)) for a block-tridiagonal SPD ``A``; with ``want_cov`` also
-    the diagonal blocks (K, d, d) of ``A^-1`` (else None)."""
+    the diagonal blocks (K, d, d) of ``A^-1`` and its blocks ``(A^-1)_k,k+1`` (K-1, d, d)
+    (else None, None)."""
     levels = []
     while D.shape[0] > 1:
         (D, U, h), lev = _reduce(D, U, h)
@@ -107,16 +126,17 @@ def solve_tridiagonal(D: np.ndarray, U: np.ndarray, h: np.ndarray, want_cov: boo
         C = np.empty((n - 1, dim, dim))
         C[0::2] = np.swapaxes(s_ia, 1, 2)
         C[1::2] = s_ib[: (n - 1) // 2]
-    return x, (S if want_cov else None)
+    if not want_cov:
+        return x, None, None
+    return x, S, C
 
 
 def solve_arrow(system: ArrowSystem, want_cov: bool = False):
     """Solve an :class:`ArrowSystem` by eliminating the knots.
 
     ``Y = A^-1 [a, B]``, ``S = C - B^T A^-1 B``, ``g = S^-1 (c - B^T A^-1 a)``,
-    ``x = A^-1 a - A^-1 B g``. Returns ``x`` (K, d), ``g`` (G,), and with ``want_cov`` the
-    knots' marginal covariances ``(A^-1)_kk + Y_B,k S^-1 Y_B,k^T`` (K, d, d) and ``S^-1``
-    (G, G) (else None, None). The system is scaled by its diagonal first (Jacobi).
+    ``x = A^-1 a - A^-1 B g``. Returns an :class:`ArrowSolution`; its covariances are None
+    without ``want_cov``. The system is scaled by its diagonal first (Jacobi).
     """
     D, U, B, C = system.D, system.U, system.B, system.C
     K, d, _ = D.shape
@@ -125,10 +145,12 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
     sg = 1.0 / np.sqrt(np.diag(C)) if G else np.zeros(0)
     Ds = D * sx[:, :, None] * sx[:, None, :]
     Us = U * sx[:-1, :, None] * sx[1:, None, :]
-    Bs = B * sx[:, :, None] * sg[None, None, :]
     Cs = C * sg[:, None] * sg[None, :]
-    rhs = np.concatenate([(system.a * sx)[:, :, None], Bs], axis=2)
-    Y, Sd = solve_tridiagonal(Ds, Us, rhs, want_cov)
+    rhs = np.empty((K, d, G + 1))
+    rhs[:, :, 0] = system.a * sx
+    np.multiply(B, sx[:, :, None] * sg[None, None, :], out=rhs[:, :, 1:])
+    Bs = rhs[:, :, 1:]
+    Y, Sd, Cd = solve_tridiagonal(Ds, Us, rhs, want_cov)
     ya, yb = Y[:, :, 0], Y[:, :, 1:]
     if G:
         schur = Cs - np.einsum("kig,kih->gh", Bs, yb)
@@ -139,7 +161,15 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
         schur_inv, g, x = np.zeros((0, 0)), np.zeros(0), ya
     x, g = x * sx, g * sg
     if not want_cov:
-        return x, g, None, None
-    cov = Sd + yb @ schur_inv @ np.swapaxes(yb, 1, 2)
-    cov = cov * sx[:, :, None] * sx[:, None, :]
-    return x, g, cov, schur_inv * sg[:, None] * sg[None, :]
+        return ArrowSolution(x, g, None, None, None)
+    cov, nxt = Sd, np.concatenate([Cd, np.zeros((1, d, d))])
+    for lo in range(0, K, CHUNK):  # Y_B S^-1 Y_B^T a few thousand knots at a time
+        hi = min(K, lo + CHUNK)
+        ybs = yb[lo:hi] @ schur_inv
+        cov[lo:hi] += ybs @ np.swapaxes(yb[lo:hi], 1, 2)
+        nxt[lo:hi - 1] += ybs[:-1] @ np.swapaxes(yb[lo + 1:hi], 1, 2)
+        if hi < K:
+            nxt[hi - 1] += ybs[-1] @ yb[hi].T
+    cov *= sx[:, :, None] * sx[:, None, :]
+    nxt = nxt[:-1] * sx[:-1, :, None] * sx[1:, None, :]
+    return ArrowSolution(x, g, cov, nxt, schur_inv * sg[:, None] * sg[None, :])

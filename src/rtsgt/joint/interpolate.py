@@ -1,0 +1,83 @@
+"""Poses at arbitrary times between the knots: the WNOA GP's interpolation on SE(3), mean and
+covariance from the two neighbouring knots' joint posterior: docs/joint.md#queries-between-knots.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rtsgt.errors import InputError
+from rtsgt.joint.prior import relative_log
+from rtsgt.joint.se3 import adjoint, curly, exp_se3, jacobians_inv, left_jacobian
+
+
+def _phi(a: np.ndarray) -> np.ndarray:
+    """Transition ``[[1, a], [0, 1]]`` (N, 2, 2) of intervals ``a`` (N,)."""
+    out = np.zeros(a.shape + (2, 2))
+    out[:, 0, 0] = out[:, 1, 1] = 1.0
+    out[:, 0, 1] = a
+    return out
+
+
+def _q(a: np.ndarray) -> np.ndarray:
+    """Process covariance at unit ``Qc``, ``[[a^3/3, a^2/2], [a^2/2, a]]`` (N, 2, 2)."""
+    return np.stack([np.stack([a**3 / 3, a**2 / 2], -1), np.stack([a**2 / 2, a], -1)], -2)
+
+
+def gp_weights(h: np.ndarray, dt: np.ndarray):
+    """Interpolation weights of the local state ``[xi; xi']`` at ``h`` (N,) s after the left
+    knot of intervals of ``dt`` (N,) s: ``Lambda``, ``Psi`` (N, 2, 2) and the conditional
+    variance at unit ``Qc`` ``P`` (N, 2, 2) (Barfoot, 2nd ed., section 11.1; ``Qc`` cancels)."""
+    qh = _q(h)
+    psi = qh @ np.swapaxes(_phi(dt - h), 1, 2) @ np.linalg.inv(_q(dt))
+    lam = _phi(h) - psi @ _phi(dt)
+    return lam, psi, qh - psi @ _phi(dt - h) @ qh
+
+
+def interpolate_poses_gp(t_query, t_knot, R, t, w, qc, cov, cov_next):
+    """Poses ``T(t_query)`` (Q,) s of the GP through the knots and their covariance.
+
+    Knots at ``t_knot`` (K,) s, poses ``R`` (K, 3, 3), ``t`` (K, 3), body velocities ``w``
+    (K, 6), the prior's ``qc`` (K-1, 6) per interval, the knots' posterior covariance ``cov``
+    (K, 12, 12) and that of consecutive knots ``cov_next`` (K-1, 12, 12) (right perturbations).
+    Returns ``R`` (Q, 3, 3), ``t`` (Q, 3) and the covariance (Q, 6, 6) of the query poses'
+    right perturbation. A query time outside the knots' span is an InputError.
+    """
+    tq = np.asarray(t_query, dtype=float)
+    if tq.size and (tq.min() < t_knot[0] or tq.max() > t_knot[-1]):
+        bad = tq[(tq < t_knot[0]) | (tq > t_knot[-1])][0]
+        raise InputError(f"Query time {bad:.6f} s outside the measurements' span "
+                         f"[{t_knot[0]:.6f}, {t_knot[-1]:.6f}] s")
+    k = np.clip(np.searchsorted(t_knot, tq, side="right") - 1, 0, t_knot.size - 2)
+    dt = t_knot[k + 1] - t_knot[k]
+    lam, psi, pc = gp_weights(tq - t_knot[k], dt)
+    xi_k = relative_log(R, t)[k]
+    jl_inv, jr_inv = jacobians_inv(xi_k)
+    w0, w1 = w[k], w[k + 1]
+    psi_next = np.einsum("nij,nj->ni", jr_inv, w1)
+    xi = (lam[:, 0, 1, None] * w0 + psi[:, 0, 0, None] * xi_k
+          + psi[:, 0, 1, None] * psi_next)
+    dR, dp = exp_se3(xi)
+    Rq = R[k] @ dR
+    pq = t[k] + np.einsum("nij,nj->ni", R[k], dp)
+    # d xi(tau) / d (d_k, dw_k, d_k+1, dw_k+1), first order as the prior's Jacobians
+    eye = np.eye(6)
+    g = psi[:, 0, 0, None, None] * eye - 0.5 * psi[:, 0, 1, None, None] * curly(w1)
+    J = np.zeros((tq.size, 6, 24))
+    J[:, :, :6] = -g @ jl_inv
+    J[:, :, 6:12] = lam[:, 0, 1, None, None] * eye
+    J[:, :, 12:18] = g @ jr_inv
+    J[:, :, 18:] = psi[:, 0, 1, None, None] * jr_inv
+    jr = left_jacobian(-xi)
+    J = jr @ J
+    J[:, :, :6] += adjoint(np.swapaxes(dR, 1, 2), -np.einsum("nji,nj->ni", dR, dp))
+    Ja, Jb = J[:, :, :12], J[:, :, 12:]
+    cross = Ja @ cov_next[k] @ np.swapaxes(Jb, 1, 2)
+    out = (Ja @ cov[k] @ np.swapaxes(Ja, 1, 2) + Jb @ cov[k + 1] @ np.swapaxes(Jb, 1, 2)
+           + cross + np.swapaxes(cross, 1, 2))
+    cond = pc[:, 0, 0, None] * qc[k]
+    out += jr @ (cond[:, :, None] * np.swapaxes(jr, 1, 2))
+    return Rq, pq, 0.5 * (out + np.swapaxes(out, 1, 2))
+
+
+__all__ = ["gp_weights", "interpolate_poses_gp"]
