@@ -46,15 +46,7 @@ EXTRAS = ("plotly", "rosbags", "dask", "distributed", "evo")
 #: Known departures, (importer, imported), each with its reason; the tests fail when one is
 #: gone too, so that this list stays the truth.
 LAYER_EXCEPTIONS: set[tuple[str, str]] = set()
-PRIVATE_EXCEPTIONS = {
-    # the position evaluation beside the pose one, until one evaluation serves both
-    # (issue 27: one evaluation for 3 and 6 DOF)
-    ("rtsgt.evaluation.groundtruth", "rtsgt.evaluation.associate", "_nearest_distance"),
-    ("rtsgt.evaluation.positions", "rtsgt.evaluation.evaluator", "_check_trajectory"),
-    ("rtsgt.evaluation.positions", "rtsgt.evaluation.evaluator", "_nees"),
-    ("rtsgt.evaluation.positions", "rtsgt.evaluation.evaluator", "_no_pair_reason"),
-    ("rtsgt.evaluation.positions", "rtsgt.evaluation.evaluator", "_warn_gaps"),
-}
+PRIVATE_EXCEPTIONS: set[tuple[str, str, str]] = set()
 #: Imports inside a function outside ``cli`` beyond the extras: matplotlib (through the
 #: report's figures) only when a report is asked for, so that ``rtsgt run`` starts without
 #: it (tests/test_cli_startup.py).

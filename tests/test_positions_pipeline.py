@@ -189,7 +189,7 @@ def test_the_continuous_ground_truth_is_the_same_from_the_files(written):
     # the covariance between two times: at equal times, the covariance itself, to first
     # order (the clock's rank-one factor along the GP velocity, not the differenced
     # measurements': below 3e-2 of the total, rtsgt.shared)
-    P_a, P_b, C = disk.position_pair_covariances(t[ok], t[ok])
+    P_a, P_b, C = disk.pair_covariances(t[ok], t[ok])
     np.testing.assert_allclose(C, P_a, rtol=1e-9, atol=1e-15)
     rel = np.linalg.norm(P_a - a.cov[ok], axis=(1, 2)) / np.linalg.norm(a.cov[ok], axis=(1, 2))
     assert rel.max() < 3e-2, rel.max()

@@ -32,6 +32,7 @@ reason (:attr:`Association.dropped`).
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
@@ -39,10 +40,10 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rtsgt.errors import InputError
+from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.evaluation.metrics import chain_cross_covariance
 from rtsgt.geometry.so3 import exp_so3, log_so3, matrix_to_quat_xyzw
-from rtsgt.types import PoseTrajectory
+from rtsgt.types import PoseTrajectory, PositionTrajectory
 
 #: Signature of a continuous-time ground truth: times (M,) s -> poses at those times, with
 #: ``cov``, optionally with the (M - 1, 6, 6) cross-covariances of consecutive poses.
@@ -67,9 +68,9 @@ class GroundTruthSample:
         Query times, s (ground-truth clock).
     position : ndarray, shape (M, 3)
         m, world frame; NaN where no pose was computed.
-    quat_xyzw : ndarray, shape (M, 4)
-        NaN where no pose was computed.
-    cov : ndarray, shape (M, 6, 6) or None
+    quat_xyzw : ndarray, shape (M, 4), or None
+        NaN where no pose was computed; None for a ground truth of positions (3 dof).
+    cov : ndarray, shape (M, 6, 6) or (M, 3, 3) for positions, or None
         Left-perturbation covariance, world frame (``PoseTrajectory`` convention).
     reason : ndarray of str, shape (M,)
         ``""`` where the pose is valid, else why it is not (a short code).
@@ -82,7 +83,7 @@ class GroundTruthSample:
 
     t: np.ndarray
     position: np.ndarray
-    quat_xyzw: np.ndarray
+    quat_xyzw: np.ndarray | None
     cov: np.ndarray | None
     reason: np.ndarray
     nearest_dt: np.ndarray
@@ -131,7 +132,8 @@ class PairCovarianceGroundTruth(Protocol):
         self, tau_a: ArrayLike, tau_b: ArrayLike
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``Cov(xi(tau_a))``, ``Cov(xi(tau_b))`` and ``Cov(xi(tau_a), xi(tau_b))``, each of
-        shape (K, 6, 6), at ground-truth times (the ground truth's clock)."""
+        shape (K, d, d) (``d``: the ground truth's dof, 6 or 3), at ground-truth times (the
+        ground truth's clock)."""
         ...
 
 
@@ -144,7 +146,8 @@ class SharedFactorGroundTruth(Protocol):
     """
 
     def shared_split(self, times: ArrayLike):
-        """The split at ground-truth times (valid poses), or None when it is not known."""
+        """The split at ground-truth times (valid poses): a :class:`rtsgt.shared.SharedFactor`
+        (6 dof) or a :class:`PositionSplit` (3 dof), or None when it is not known."""
         ...
 
 
@@ -228,7 +231,8 @@ class Association:
         }
 
 
-def _nearest_distance(times: np.ndarray, tau: np.ndarray) -> np.ndarray:
+def nearest_distance(times: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """Distance of each of ``tau`` (M,) to the nearest of the sorted ``times`` (K >= 1), s."""
     k = np.clip(np.searchsorted(times, tau), 1, times.size - 1) if times.size > 1 else None
     if k is None:
         return np.abs(tau - times[0])
@@ -364,7 +368,7 @@ def associate(
     inside = (tau_all >= span[0] - TIME_EPS) & (tau_all <= span[1] + TIME_EPS)
     dt_all = np.full(tau_all.shape, np.nan)
     if mt is not None and mt.size:
-        dt_all = _nearest_distance(mt, tau_all)
+        dt_all = nearest_distance(mt, tau_all)
     near = np.ones_like(inside) if max_dt is None or mt is None else dt_all <= max_dt
     keep = inside & near
     n_outside = int(np.count_nonzero(~inside))
@@ -607,3 +611,207 @@ def ground_truth_rates(
     if P0 is not None:
         cov = np.where(moved[:, None, None], Pm + Pp, 0.0) / (safe * safe)[:, None, None]
     return GroundTruthRates(v, w, cov)
+
+
+# ------------------------------------------------------------------------------------------
+# ground truths of positions (3 dof): one tracked point, seen by the association as poses
+# ------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PositionSplit:
+    """A position ground truth's error split at some times, ``e_i = nu_i + F_i theta``:
+    ``varying_cov`` (N, 3, 3) m^2, ``factor`` (N, 3, k) m per unit of the whitened shared
+    parameters ``theta ~ N(0, I_k)``, ``names`` (k,) (docs/evaluation.md#position-only-ground-truth)."""
+
+    varying_cov: np.ndarray
+    factor: np.ndarray
+    names: tuple[str, ...]
+
+
+@runtime_checkable
+class ValidatedPositionGroundTruth(Protocol):
+    """A continuous-time position ground truth that says, per time, whether it can vouch for a
+    position (:class:`GroundTruthSample` with ``quat_xyzw`` None, ``cov`` (M, 3, 3))."""
+
+    def query_positions(self, times: np.ndarray, *,
+                        max_gap_s: float | None = None) -> GroundTruthSample:
+        """Positions at ``times`` with a drop reason per time."""
+        ...
+
+
+def ground_truth_dof(gt: object) -> int:
+    """The degrees of freedom a ground truth gives: 3 for positions (a
+    :class:`~rtsgt.types.PositionTrajectory`, a :class:`ValidatedPositionGroundTruth`, one
+    whose ``dof`` is 3), else 6 (poses)."""
+    if isinstance(gt, PositionTrajectory):
+        return 3
+    dof = getattr(gt, "dof", None)
+    if dof is not None:
+        return int(dof)
+    return 3 if isinstance(gt, ValidatedPositionGroundTruth) else 6
+
+
+_IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
+
+
+def _embed(cov3: np.ndarray | None) -> np.ndarray | None:
+    """(N, 3, 3) position covariances as (N, 6, 6) with a zero rotation block (never read)."""
+    if cov3 is None:
+        return None
+    out = np.zeros(cov3.shape[:-2] + (6, 6))
+    out[..., :3, :3] = cov3
+    return out
+
+
+class _AsPoses:
+    """A continuous position ground truth seen by the association of poses: a placeholder
+    orientation (identity, never read), the covariance in the position block."""
+
+    def __init__(self, gt: ValidatedPositionGroundTruth):
+        self._gt = gt
+        self.span = getattr(gt, "span", None)
+        self.info = getattr(gt, "info", None) or {}
+
+    def query_poses(self, times: np.ndarray, *,
+                    max_gap_s: float | None = None) -> GroundTruthSample:
+        s = self._gt.query_positions(times, max_gap_s=max_gap_s)
+        if not isinstance(s, GroundTruthSample) or s.t.shape != np.shape(times):
+            raise ValueError("Expected query_positions to return a GroundTruthSample per time")
+        quat = np.broadcast_to(_IDENTITY, (s.t.size, 4)).copy()
+        return GroundTruthSample(s.t, s.position, quat, _embed(s.cov), s.reason, s.nearest_dt)
+
+
+def positions_as_poses(gt: PositionTrajectory | ValidatedPositionGroundTruth):
+    """A ground truth of positions as the association takes poses: a placeholder orientation
+    (identity, never read), the covariance in the position block of a 6x6 one.
+
+    Raises
+    ------
+    InputError
+        Positions or covariances of a discrete ground truth not finite.
+    """
+    if isinstance(gt, PositionTrajectory):
+        if not np.all(np.isfinite(gt.position)):
+            k = int(np.argmax(~np.all(np.isfinite(gt.position), axis=1)))
+            raise InputError(f"Expected finite ground-truth positions, got NaN or inf at "
+                             f"position {k} (t = {gt.t[k]})")
+        if gt.cov is not None and not np.all(np.isfinite(gt.cov)):
+            raise InputError("Expected finite ground-truth covariances, got NaN or inf")
+        quat = np.broadcast_to(_IDENTITY, (len(gt), 4))
+        return PoseTrajectory(gt.t, gt.position, quat, _embed(gt.cov))
+    if isinstance(gt, ValidatedPositionGroundTruth):
+        return _AsPoses(gt)
+    raise TypeError(f"Expected a PositionTrajectory or a ValidatedPositionGroundTruth, got "
+                    f"{type(gt).__name__}")
+
+
+# ------------------------------------------------------------------------------------------
+# the inputs' check and the gaps of the ground truth (both kinds)
+# ------------------------------------------------------------------------------------------
+
+
+def check_trajectory(traj: PoseTrajectory, what: str) -> PoseTrajectory:
+    """``traj`` with finite values and unit quaternions (renormalised within 1e-3); an
+    InputError naming ``what`` and the pose otherwise."""
+    for name in ("position", "quat_xyzw"):
+        a = getattr(traj, name)
+        if not np.all(np.isfinite(a)):
+            k = int(np.argmax(~np.all(np.isfinite(a), axis=1)))
+            raise InputError(
+                f"Expected finite {what} {name}, got NaN or inf at pose {k} (t = {traj.t[k]})"
+            )
+    norm = np.linalg.norm(traj.quat_xyzw, axis=1)
+    bad = np.abs(norm - 1.0) > 1e-3
+    if np.any(bad):
+        k = int(np.argmax(bad))
+        raise InputError(
+            f"Expected unit {what} quaternions, got norm {norm[k]:.6g} at pose {k} "
+            f"(t = {traj.t[k]})"
+        )
+    if traj.cov is not None and not np.all(np.isfinite(traj.cov)):
+        k = int(np.argmax(~np.all(np.isfinite(traj.cov), axis=(1, 2))))
+        raise InputError(f"Expected finite {what} covariances, got NaN or inf at pose {k}")
+    return PoseTrajectory(traj.t, traj.position, traj.quat_xyzw / norm[:, None], traj.cov)
+
+
+def _range_max(values: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.ndarray:
+    """``max(values[start_k:stop_k])`` for every k (``start_k < stop_k <= values.size``)."""
+    v = np.append(values, 0.0)  # reduceat needs every index < size
+    return np.maximum.reduceat(v, np.ravel(np.column_stack([start, stop])))[::2]
+
+
+def gap_per_step(
+    tau: np.ndarray, index: np.ndarray, support: np.ndarray | None, limit: float
+) -> np.ndarray:
+    """Ground-truth gap between consecutive associated poses, s, shape (M - 1,); 0 where none.
+
+    Parameters
+    ----------
+    tau : ndarray, shape (M,)
+        Ground-truth times of the associated poses (estimate time + offset), increasing.
+    index : ndarray of int, shape (M,)
+        Their indices in the estimate.
+    support : ndarray, shape (K,), optional
+        Times the ground truth rests on (discrete samples, measurement times), sorted.
+    limit : float
+        The gap limit ``max_dt``, s.
+
+    Returns
+    -------
+    ndarray
+        The larger of: ``tau[k+1] - tau[k]`` when the association dropped estimate poses
+        between k and k + 1 and it exceeds ``limit``; the longest spacing of ``support`` over
+        ``[tau[k], tau[k+1]]`` when it exceeds ``2 limit`` (a stretch farther than ``limit``
+        from both samples: where the association would drop a pose).
+    """
+    dropped = np.diff(index) > 1
+    step = np.diff(tau)
+    gap = np.where(dropped & (step > limit), step, 0.0)
+    if support is not None and support.size > 1 and tau.size > 1:
+        spacing = np.diff(support)
+        last = spacing.size - 1
+        a = np.clip(np.searchsorted(support, tau[:-1], side="right") - 1, 0, last)
+        b = np.clip(np.searchsorted(support, tau[1:], side="left"), a + 1, last + 1)
+        longest = _range_max(spacing, a, b)
+        gap = np.maximum(gap, np.where(longest > 2.0 * limit, longest, 0.0))
+    return gap
+
+
+def warn_gaps(assoc: Association, pairs: np.ndarray, support: np.ndarray | None) -> None:
+    """A :class:`~rtsgt.errors.RtsgtWarning` counting the RPE pairs across ground-truth gaps."""
+    limit = assoc.max_dt
+    if limit is None or pairs.shape[0] == 0 or len(assoc) < 2:
+        return
+    gap = gap_per_step(assoc.est.t + assoc.time_offset, assoc.index, support, limit)
+    over = gap > 0
+    if not np.any(over):
+        return
+    span = _range_max(over.astype(float), pairs[:, 0], pairs[:, 1]) > 0
+    n = int(np.count_nonzero(span))
+    if n == 0:
+        return
+    covered = np.zeros(gap.size + 1, dtype=int)
+    np.add.at(covered, pairs[span, 0], 1)
+    np.add.at(covered, pairs[span, 1], -1)
+    inside = (np.cumsum(covered)[:-1] > 0) & over
+    k = int(np.flatnonzero(inside)[np.argmax(gap[inside])])
+    warnings.warn(
+        f"{n} of {pairs.shape[0]} RPE pairs span a gap of the ground truth (gap limit "
+        f"{limit:g} s; longest {gap[k]:.3g} s, after the estimate pose at t = "
+        f"{assoc.est.t[k]:.6f} s): their relative errors include the motion through the gap",
+        RtsgtWarning,
+        stacklevel=3,
+    )
+
+
+def gap_support(gt: object, gt_measurement_times: ArrayLike | None) -> np.ndarray | None:
+    """The sorted times the ground truth rests on, for the gap warning (:func:`gap_per_step`):
+    a discrete ground truth's samples, a query's measurement times; None for a validated
+    ground truth (its association already drops the poses in gaps)."""
+    if isinstance(gt, (PoseTrajectory, PositionTrajectory)):
+        return np.asarray(gt.t, dtype=float)
+    validated = isinstance(gt, (ValidatedGroundTruth, ValidatedPositionGroundTruth))
+    if gt_measurement_times is not None and not validated:
+        return np.sort(np.asarray(gt_measurement_times, dtype=float))
+    return None

@@ -10,7 +10,11 @@ The mounting step (:func:`mounting_step`, when something is estimated) fits the 
 clock offset; the estimate's sensor poses are then moved to the body frame by the mounting
 (given or estimated) and the chain goes on as evo would on that transformed trajectory.
 
-The ground truth's kinds (:mod:`rtsgt.evaluation.associate`) differ in what they give: a
+A ground truth of positions (3 dof, :func:`~rtsgt.evaluation.associate.ground_truth_dof`)
+goes through the same steps with the estimate's points ``p_S + R_S l`` in place of its poses
+(:func:`_evaluate_positions`; their alignment in :mod:`~rtsgt.evaluation.positions`, no
+mounting). The ground truth's kinds (:mod:`rtsgt.evaluation.associate`) differ in what they
+give: a
 :class:`~rtsgt.evaluation.associate.PairCovarianceGroundTruth` computes the covariances of
 pairs of its poses (the RPE's covariance); otherwise ``cross_next`` of the association is
 chained, or the poses are taken as independent.
@@ -34,18 +38,33 @@ from rtsgt.evaluation.associate import (
     PairCovarianceGroundTruth,
     SharedFactorGroundTruth,
     ValidatedGroundTruth,
+    ValidatedPositionGroundTruth,
     associate,
+    check_trajectory,
+    gap_per_step,
+    gap_support,
+    ground_truth_dof,
     ground_truth_rates,
+    positions_as_poses,
+    warn_gaps,
 )
-from rtsgt.evaluation.drift import Drift, drift_metrics, kitti_errors
+from rtsgt.evaluation.drift import (
+    POSITION_DRIFT_DEFINITION,
+    ROTATION_DRIFT_NOT_ESTIMABLE,
+    Drift,
+    drift_metrics,
+    kitti_errors,
+)
 from rtsgt.evaluation.handeye import coarse_clock_shift
+from rtsgt.evaluation.lever_arm import lever_arm_points, parse_lever_arm, point_covariance
 from rtsgt.evaluation.metrics import (
     NeesResult,
     alignment_sensitivity,
     ape_errors,
     chain_cross_covariance,
     error_statistics,
-    nees_consistency,
+    nees_test,
+    no_pair_reason,
     noise_floor,
     pose_error,
     relative_pose_covariance,
@@ -53,7 +72,6 @@ from rtsgt.evaluation.metrics import (
     remove_floor,
     rpe_errors,
     rpe_pairs,
-    squared_mahalanobis,
     with_split_verdict,
 )
 from rtsgt.evaluation.mounting import (
@@ -63,148 +81,35 @@ from rtsgt.evaluation.mounting import (
     mounting_sensitivity,
 )
 from rtsgt.evaluation.options import EvaluationOptions
-from rtsgt.evaluation.result import EvaluationResult, NeesSection, NoiseFloor, PoseErrors
+from rtsgt.evaluation.positions import align_step as align_points_step
+from rtsgt.evaluation.positions import (
+    check_position_alignment,
+    lever_arm_shared,
+    relative_position_covariance,
+)
+from rtsgt.evaluation.result import (
+    EvaluationResult,
+    NeesSection,
+    NoiseFloor,
+    PoseErrors,
+    PositionEvaluationResult,
+)
 from rtsgt.geometry.so3 import exp_so3, hat, matrix_to_quat_xyzw, quat_xyzw_to_matrix
-from rtsgt.types import PoseTrajectory
+from rtsgt.types import PoseTrajectory, PositionTrajectory
 
-__all__ = ["EvaluationOptions", "evaluate", "gap_per_step"]
+__all__ = ["EvaluationOptions", "evaluate", "evaluate_positions", "gap_per_step"]
 
-#: Ground-truth kinds :func:`evaluate` accepts.
-GroundTruth = PoseTrajectory | GroundTruthQuery | ValidatedGroundTruth
-
-
-def _check_trajectory(traj: PoseTrajectory, what: str) -> PoseTrajectory:
-    """Finite values and unit quaternions (renormalised within 1e-3)."""
-    for name in ("position", "quat_xyzw"):
-        a = getattr(traj, name)
-        if not np.all(np.isfinite(a)):
-            k = int(np.argmax(~np.all(np.isfinite(a), axis=1)))
-            raise InputError(
-                f"Expected finite {what} {name}, got NaN or inf at pose {k} (t = {traj.t[k]})"
-            )
-    norm = np.linalg.norm(traj.quat_xyzw, axis=1)
-    bad = np.abs(norm - 1.0) > 1e-3
-    if np.any(bad):
-        k = int(np.argmax(bad))
-        raise InputError(
-            f"Expected unit {what} quaternions, got norm {norm[k]:.6g} at pose {k} "
-            f"(t = {traj.t[k]})"
-        )
-    if traj.cov is not None and not np.all(np.isfinite(traj.cov)):
-        k = int(np.argmax(~np.all(np.isfinite(traj.cov), axis=(1, 2))))
-        raise InputError(f"Expected finite {what} covariances, got NaN or inf at pose {k}")
-    return PoseTrajectory(traj.t, traj.position, traj.quat_xyzw / norm[:, None], traj.cov)
-
-
-def _nees(e: np.ndarray, S: np.ndarray, dof: int, what: str, t: np.ndarray) -> NeesResult:
-    """NEES of errors ``e`` with covariances ``S`` and its consistency test (a covariance that
-    is not positive definite is an InputError naming ``what`` and the times ``t``)."""
-    try:
-        d2 = squared_mahalanobis(e, S)
-    except ValueError as exc:
-        raise InputError(f"Cannot compute the {what} NEES: {exc} (t = {t})") from None
-    return nees_consistency(d2, dof)
-
-
-def _no_pair_reason(source: PoseTrajectory, delta: float, unit: str) -> str:
-    """Why :func:`~rtsgt.evaluation.metrics.rpe_pairs` found no pair, and what to change."""
-    n = len(source)
-    if unit == "m":
-        path = float(np.sum(np.linalg.norm(np.diff(source.position, axis=0), axis=1)))
-        have, want = f"{path:.3g} m of path", f"{delta:g} m"
-    elif unit == "s":
-        span = float(source.t[-1] - source.t[0]) if n else 0.0
-        have, want = f"{span:.3g} s", f"{delta:g} s"
-    else:
-        have, want = f"{n} associated poses", f"{int(delta)} frames"
-    return (
-        f"no pose pair {want} apart: the {n} associated poses span {have}; "
-        "use a smaller RPE delta"
-    )
-
-
-def _range_max(values: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.ndarray:
-    """``max(values[start_k:stop_k])`` for every k (``start_k < stop_k <= values.size``)."""
-    v = np.append(values, 0.0)  # reduceat needs every index < size
-    return np.maximum.reduceat(v, np.ravel(np.column_stack([start, stop])))[::2]
-
-
-def gap_per_step(
-    tau: np.ndarray, index: np.ndarray, support: np.ndarray | None, limit: float
-) -> np.ndarray:
-    """Ground-truth gap between consecutive associated poses, s, shape (M - 1,); 0 where none.
-
-    Parameters
-    ----------
-    tau : ndarray, shape (M,)
-        Ground-truth times of the associated poses (estimate time + offset), increasing.
-    index : ndarray of int, shape (M,)
-        Their indices in the estimate.
-    support : ndarray, shape (K,), optional
-        Times the ground truth rests on (discrete samples, measurement times), sorted.
-    limit : float
-        The gap limit ``max_dt``, s.
-
-    Returns
-    -------
-    ndarray
-        The larger of: ``tau[k+1] - tau[k]`` when the association dropped estimate poses
-        between k and k + 1 and it exceeds ``limit``; the longest spacing of ``support`` over
-        ``[tau[k], tau[k+1]]`` when it exceeds ``2 limit`` (a stretch farther than ``limit``
-        from both samples: where the association would drop a pose).
-    """
-    dropped = np.diff(index) > 1
-    step = np.diff(tau)
-    gap = np.where(dropped & (step > limit), step, 0.0)
-    if support is not None and support.size > 1 and tau.size > 1:
-        spacing = np.diff(support)
-        last = spacing.size - 1
-        a = np.clip(np.searchsorted(support, tau[:-1], side="right") - 1, 0, last)
-        b = np.clip(np.searchsorted(support, tau[1:], side="left"), a + 1, last + 1)
-        longest = _range_max(spacing, a, b)
-        gap = np.maximum(gap, np.where(longest > 2.0 * limit, longest, 0.0))
-    return gap
-
-
-def _warn_gaps(assoc: Association, pairs: np.ndarray, support: np.ndarray | None) -> None:
-    """A :class:`~rtsgt.errors.RtsgtWarning` counting the RPE pairs across ground-truth gaps."""
-    limit = assoc.max_dt
-    if limit is None or pairs.shape[0] == 0 or len(assoc) < 2:
-        return
-    gap = gap_per_step(assoc.est.t + assoc.time_offset, assoc.index, support, limit)
-    over = gap > 0
-    if not np.any(over):
-        return
-    span = _range_max(over.astype(float), pairs[:, 0], pairs[:, 1]) > 0
-    n = int(np.count_nonzero(span))
-    if n == 0:
-        return
-    covered = np.zeros(gap.size + 1, dtype=int)
-    np.add.at(covered, pairs[span, 0], 1)
-    np.add.at(covered, pairs[span, 1], -1)
-    inside = (np.cumsum(covered)[:-1] > 0) & over
-    k = int(np.flatnonzero(inside)[np.argmax(gap[inside])])
-    warnings.warn(
-        f"{n} of {pairs.shape[0]} RPE pairs span a gap of the ground truth (gap limit "
-        f"{limit:g} s; longest {gap[k]:.3g} s, after the estimate pose at t = "
-        f"{assoc.est.t[k]:.6f} s): their relative errors include the motion through the gap",
-        RtsgtWarning,
-        stacklevel=3,
-    )
-
+#: Ground-truth kinds :func:`evaluate` accepts: poses (6 dof) or positions (3 dof).
+GroundTruth = (PoseTrajectory | GroundTruthQuery | ValidatedGroundTruth | PositionTrajectory
+               | ValidatedPositionGroundTruth)
 
 
 @dataclass(frozen=True)
 class RelativeCovariance:
-    """Covariance of the ground truth's relative poses of the RPE pairs.
-
-    Attributes
-    ----------
-    cov : ndarray, shape (K, 6, 6)
-        In the frame of the ground-truth pose ``i`` of each pair ``(i, j)``.
-    correlations : str
-        Where the cross-covariances of the two poses came from (``rpe_correlations``).
-    """
+    """Covariance of the ground truth's relative poses of the RPE pairs: ``cov`` (K, 6, 6) in
+    the frame of the ground-truth pose ``i`` of each pair ``(i, j)`` (of positions: (K, 3, 3),
+    of their displacement); ``correlations``: where the cross-covariances of the two came from
+    (``rpe_correlations``)."""
 
     cov: np.ndarray
     correlations: str
@@ -216,14 +121,23 @@ def associate_step(
     options: EvaluationOptions,
     gt_measurement_times: ArrayLike | None,
     gt_cross_next: ArrayLike | None,
-) -> tuple[Association, PoseTrajectory]:
+) -> tuple[Association, PoseTrajectory | PositionTrajectory]:
     """Check the inputs and pair each estimate pose with the ground truth at its offset time.
 
     Returns the association and the associated ground truth, checked (finite, unit
-    quaternions, renormalised; for a discrete ground truth that check comes first)."""
-    est = _check_trajectory(est, "estimate")
+    quaternions, renormalised; for a discrete ground truth that check comes first); for a
+    ground truth of positions (:func:`~rtsgt.evaluation.associate.ground_truth_dof` 3), its
+    positions as a :class:`~rtsgt.types.PositionTrajectory`."""
+    est = check_trajectory(est, "estimate")
+    if ground_truth_dof(gt) == 3:
+        assoc = associate(positions_as_poses(gt), est, time_offset=options.time_offset,
+                          max_dt=options.max_dt, measurement_times=gt_measurement_times,
+                          gt_cross_next=gt_cross_next)
+        a = assoc.gt
+        return assoc, PositionTrajectory(a.t, a.position, None if a.cov is None
+                                         else a.cov[:, :3, :3], getattr(gt, "name", ""))
     if isinstance(gt, PoseTrajectory):
-        gt = _check_trajectory(gt, "ground-truth")
+        gt = check_trajectory(gt, "ground-truth")
     assoc = associate(
         gt,
         est,
@@ -234,7 +148,7 @@ def associate_step(
     )
     if isinstance(gt, PoseTrajectory):
         return assoc, assoc.gt
-    return assoc, _check_trajectory(assoc.gt, "ground-truth")
+    return assoc, check_trajectory(assoc.gt, "ground-truth")
 
 
 def body_trajectory(
@@ -460,61 +374,56 @@ def compute_ape(g: PoseTrajectory, e: PoseTrajectory) -> PoseErrors:
     return PoseErrors.from_errors(ape_errors(g.rotation, g.position, e.rotation, e.position))
 
 
-def compute_rpe(
-    g: PoseTrajectory, e: PoseTrajectory, options: EvaluationOptions
-) -> tuple[np.ndarray, PoseErrors | None, str | None]:
-    """evo's RPE pairs, relative pose errors and, when there is no pair, why.
-
-    Returns
-    -------
-    pairs : ndarray of int, shape (K, 2)
-        Index pairs into the associated poses (K may be 0).
-    rpe : PoseErrors or None
-        None when K is 0.
-    absent_reason : str or None
-        Why there is no pair and what to change (None when there is one).
-    """
+def rpe_pair_step(g, e, options: EvaluationOptions) -> tuple[np.ndarray, str | None]:
+    """evo's RPE pairs (K, 2) of the associated poses, from the aligned estimate ``e`` (the
+    estimate's points against positions) or the ground truth ``g`` (``pairs_from_reference``),
+    and, when there is none (K = 0), why and what to change."""
     source = g if options.pairs_from_reference else e
     pairs = rpe_pairs(
         source.position, source.t, options.delta, options.delta_unit,
         all_pairs=options.all_pairs, rel_tol=options.rel_delta_tol,
     )
-    if pairs.shape[0] == 0:
-        return pairs, None, _no_pair_reason(source, float(options.delta), options.delta_unit)
+    if pairs.shape[0]:
+        return pairs, None
+    return pairs, no_pair_reason(source.position, source.t, float(options.delta),
+                                 options.delta_unit)
+
+
+def compute_rpe(
+    g: PoseTrajectory, e: PoseTrajectory, options: EvaluationOptions
+) -> tuple[np.ndarray, PoseErrors | None, str | None]:
+    """evo's RPE pairs (:func:`rpe_pair_step`), the relative pose errors (None without a
+    pair) and, without a pair, why."""
+    pairs, reason = rpe_pair_step(g, e, options)
+    if reason is not None:
+        return pairs, None, reason
     errs = rpe_errors(g.rotation, g.position, e.rotation, e.position, pairs)
     return pairs, PoseErrors.from_errors(errs, pairs), None
 
 
-def gap_support(gt: GroundTruth, gt_measurement_times: ArrayLike | None) -> np.ndarray | None:
-    """The sorted times the ground truth rests on, for the gap warning (:func:`gap_per_step`):
-    a discrete ground truth's samples, a query's measurement times; None for a validated
-    ground truth (its association already drops the poses in gaps)."""
-    if isinstance(gt, PoseTrajectory):
-        return np.asarray(gt.t, dtype=float)
-    if gt_measurement_times is not None and not isinstance(gt, ValidatedGroundTruth):
-        return np.sort(np.asarray(gt_measurement_times, dtype=float))
-    return None
-
-
-def error_covariance(g: PoseTrajectory, e: PoseTrajectory) -> np.ndarray | None:
-    """``S_k`` of the NEES: ground-truth covariance plus the estimate's when it has one; None
-    when the ground truth has none."""
-    if g.cov is None:
+def error_covariance(g_cov: np.ndarray | None, e_cov: np.ndarray | None) -> np.ndarray | None:
+    """``S_k`` of the NEES: the ground truth's covariance plus the estimate's when it has one;
+    None when the ground truth has none."""
+    if g_cov is None:
         return None
-    return g.cov + (0.0 if e.cov is None else e.cov)
+    return g_cov + (0.0 if e_cov is None else e_cov)
 
 
 def relative_covariance(
-    gt: GroundTruth, g: PoseTrajectory, assoc: Association, pairs: np.ndarray
+    gt: GroundTruth, g: PoseTrajectory | PositionTrajectory, assoc: Association,
+    pairs: np.ndarray
 ) -> RelativeCovariance:
-    """Covariance of the ground truth's relative poses of the RPE ``pairs`` (ground truth
-    with covariances, at least one pair).
+    """Covariance of the ground truth's relative poses (displacements, for positions:
+    :func:`~rtsgt.evaluation.positions.relative_position_covariance`) of the RPE ``pairs``
+    (ground truth with covariances, at least one pair).
 
     A :class:`~rtsgt.evaluation.associate.PairCovarianceGroundTruth` computes the marginals
     and the cross-covariance of each pair from one first-order model (so that the difference
     of two strongly correlated poses stays positive definite); else the association's
     ``cross_next`` are chained where known; else the two poses are taken as independent.
     """
+    if isinstance(g, PositionTrajectory):
+        return RelativeCovariance(*relative_position_covariance(gt, g, assoc, pairs))
     i, j = pairs[:, 0], pairs[:, 1]
     if isinstance(gt, PairCovarianceGroundTruth):
         ti, tj = g.t[i] + assoc.time_offset, g.t[j] + assoc.time_offset
@@ -543,125 +452,135 @@ def _chained_cross_covariance(
     return cross, f"provided for {n_known} of {pairs.shape[0]} pairs, others assumed independent"
 
 
-def absolute_nees(
-    xi: np.ndarray, S: np.ndarray, t: np.ndarray
-) -> tuple[NeesResult, NeesResult]:
-    """NEES of the positions (3 dof) and of the poses (6 dof) for errors ``xi`` (N, 6) with
-    covariances ``S`` (N, 6, 6) at times ``t``."""
-    return _nees(xi[:, :3], S[:, :3, :3], 3, "position", t), _nees(xi, S, 6, "pose", t)
+def absolute_nees(xi: np.ndarray, S: np.ndarray, t: np.ndarray,
+                  what: str = "") -> tuple[NeesResult, ...]:
+    """NEES of the positions (3 dof) and, for pose errors, of the poses (6 dof): errors ``xi``
+    (N, 6) or (N, 3) with covariances ``S`` (N, d, d) at times ``t`` (``what``: a prefix of
+    the names in the messages)."""
+    position = nees_test(xi[:, :3], S[:, :3, :3], 3, f"{what}position", t)
+    if xi.shape[1] == 3:
+        return (position,)
+    return position, nees_test(xi, S, 6, f"{what}pose", t)
 
 
 def split_nees(
     gt: GroundTruth,
-    g: PoseTrajectory,
-    e: PoseTrajectory,
+    g: PoseTrajectory | PositionTrajectory,
+    est_cov: np.ndarray | None,
     assoc: Association,
     xi: np.ndarray,
-    absolute: tuple[NeesResult, NeesResult],
+    absolute: tuple[NeesResult, ...],
     align: str,
     absorbed: np.ndarray | None = None,
-) -> tuple[NeesResult, NeesResult]:
+    extra: tuple[np.ndarray, tuple[str, ...]] | None = None,
+    *,
+    upper: bool,
+) -> tuple[NeesResult, ...]:
     """The absolute NEES with the split verdict when the ground truth gives its shared factor
-    (:func:`~rtsgt.evaluation.metrics.shared_error_test`; ``consistent`` becomes its verdict,
-    ``mean`` and ``fraction_inside_95`` stay those of the NEES against the total covariance);
-    unchanged otherwise (the verdict of the NEES series' autocorrelation). For an estimate
-    without covariance the tests are one-sided: is the error significant against the ground
-    truth's own uncertainty? ``absorbed`` (N, 6, m): further directions the evaluation fitted
-    (the mounting and clock, :func:`~rtsgt.evaluation.mounting.mounting_sensitivity`),
-    projected out with the alignment's."""
+    (:func:`~rtsgt.evaluation.metrics.with_split_verdict`, on the ``d`` rows of the errors
+    ``xi`` (N, d); ``consistent`` becomes its verdict, ``mean`` and ``fraction_inside_95``
+    stay those of the NEES against the total covariance); unchanged otherwise. ``est_cov``
+    (N, d, d): the estimate's varying covariance; ``upper``: one-sided tests (an estimate
+    without covariance: is the error significant against the ground truth's own
+    uncertainty?). ``absorbed`` (N, d, m): further directions the evaluation fitted (the
+    mounting and clock), projected out with the alignment's; ``extra``: a further shared
+    factor (N, d, k) and its names (an estimated lever arm)."""
     if not isinstance(gt, SharedFactorGroundTruth):
         return absolute
     split = gt.shared_split(g.t + assoc.time_offset)
     if split is None:
         return absolute
-    D = split.varying_cov + (0.0 if e.cov is None else e.cov)
+    D = split.varying_cov + (0.0 if est_cov is None else est_cov)
     K = alignment_sensitivity(g.position, align)
+    K = None if K is None else K[:, :xi.shape[1]]
     if absorbed is not None:
         K = absorbed if K is None else np.concatenate([K, absorbed], axis=2)
+    factor, names = split.factor, split.names
+    if extra is not None:
+        factor, names = np.concatenate([factor, extra[0]], axis=2), (*names, *extra[1])
     try:
-        return with_split_verdict(absolute, xi, D, split.factor, K, names=split.names,
-                                  upper=e.cov is None)
+        return with_split_verdict(absolute, xi, D, factor, K, names=names, upper=upper)
     except ValueError as exc:
         raise InputError(f"Cannot test the errors against the shared factor: {exc}") from None
 
 
 def nees_section(
-    g: PoseTrajectory,
-    e: PoseTrajectory,
-    absolute: tuple[NeesResult, NeesResult] | None,
-    pairs: np.ndarray,
+    absolute: tuple[NeesResult, ...] | None,
+    xi_rel: np.ndarray | None,
     relative: RelativeCovariance | None,
+    t_rel: np.ndarray | None,
+    estimate: str | None,
 ) -> NeesSection:
     """The NEES section: the absolute NEES (None without ground-truth covariances) and the
-    relative NEES of the RPE pairs against ``relative`` (None without pairs)."""
+    relative NEES of the RPE pairs, errors ``xi_rel`` (K, d) at times ``t_rel`` against
+    ``relative`` (None without pairs). ``estimate``: what of the estimate entered the
+    absolute NEES (None: no covariance)."""
     if absolute is None:
         return NeesSection(
             None, None, None, None, "none: the ground truth has no covariance", "not applicable"
         )
-    what = "ground truth" + (" + estimate" if e.cov is not None else "")
+    what = "ground truth" + ("" if estimate is None else f" + {estimate}")
+    absolute = (*absolute, None)[:2]
     if relative is None:
         return NeesSection(*absolute, None, None, what, "not applicable (no RPE pair)")
-    t_i = g.t[pairs[:, 0]]
-    xi_rel = relative_pose_error_vector(g.rotation, g.position, e.rotation, e.position, pairs)
-    S_rel = relative.cov
-    nees_rpos = _nees(xi_rel[:, :3], S_rel[:, :3, :3], 3, "relative position", t_i)
-    nees_rpose = _nees(xi_rel, S_rel, 6, "relative pose", t_i)
+    rel = absolute_nees(xi_rel, relative.cov, t_rel, "relative ")
     return NeesSection(
         *absolute,
-        nees_rpos,
-        nees_rpose,
-        what + (" (relative: ground truth only)" if e.cov is not None else ""),
+        *(*rel, None)[:2],
+        what + (" (relative: ground truth only)" if estimate is not None else ""),
         relative.correlations,
     )
 
 
 def noise_floor_section(
-    g: PoseTrajectory,
+    g: PoseTrajectory | PositionTrajectory,
     ape: PoseErrors,
     rpe: PoseErrors | None,
     relative: RelativeCovariance | None,
 ) -> NoiseFloor:
     """The errors a perfect estimate would show against this ground truth (APE: from the
     ground-truth covariances; RPE: from the relative covariance), and the rmse with that floor
-    removed; None values without covariances (or, for the RPE, without pairs)."""
+    removed; None values without covariances (or, for the RPE, without pairs; the rotation's
+    against positions)."""
     if g.cov is None:
         return NoiseFloor()
+    rotation = g.cov.shape[-1] == 6
     f_t = noise_floor(g.cov[:, :3, :3])
-    f_r = float(np.degrees(noise_floor(g.cov[:, 3:, 3:])))
-    floor = NoiseFloor(
-        f_t,
-        remove_floor(ape.translation_m.rmse, f_t),
-        f_r,
-        remove_floor(ape.rotation_deg.rmse, f_r),
-    )
+    floor = NoiseFloor(f_t, remove_floor(ape.translation_m.rmse, f_t))
+    if rotation:
+        f_r = float(np.degrees(noise_floor(g.cov[:, 3:, 3:])))
+        floor = dataclasses.replace(floor, ape_rotation_deg=f_r,
+                                    ape_rotation_rmse_floor_removed_deg=remove_floor(
+                                        ape.rotation_deg.rmse, f_r))
     if relative is None or rpe is None:
         return floor
     fr_t = noise_floor(relative.cov[:, :3, :3])
+    floor = dataclasses.replace(
+        floor, rpe_translation_m=fr_t,
+        rpe_translation_rmse_floor_removed_m=remove_floor(rpe.translation_m.rmse, fr_t))
+    if not rotation:
+        return floor
     fr_r = float(np.degrees(noise_floor(relative.cov[:, 3:, 3:])))
     return dataclasses.replace(
-        floor,
-        rpe_translation_m=fr_t,
-        rpe_translation_rmse_floor_removed_m=remove_floor(rpe.translation_m.rmse, fr_t),
-        rpe_rotation_deg=fr_r,
-        rpe_rotation_rmse_floor_removed_deg=remove_floor(rpe.rotation_deg.rmse, fr_r),
-    )
+        floor, rpe_rotation_deg=fr_r,
+        rpe_rotation_rmse_floor_removed_deg=remove_floor(rpe.rotation_deg.rmse, fr_r))
 
 
-def drift_step(gt: GroundTruth, g: PoseTrajectory, e: PoseTrajectory,
-               assoc: Association) -> Drift:
-    """Drift by segment length of the aligned estimate ``e`` against the associated ground
-    truth ``g`` (:func:`~rtsgt.evaluation.drift.drift_metrics`, the devkit's errors), with
-    the ground truth's floor from its relative covariance over the segments
-    (:func:`relative_covariance`) when it has covariances."""
-
-    def errors(first: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return kitti_errors(g.rotation, g.position, e.rotation, e.position, first, last)
+def drift_step(gt: GroundTruth, g: PoseTrajectory | PositionTrajectory, assoc: Association,
+               errors) -> Drift:
+    """Drift by segment length (:func:`~rtsgt.evaluation.drift.drift_metrics`) of the segment
+    errors ``errors(first, last)`` (the devkit's of poses; the norm of the displacement error
+    of positions, whose rotational drift is not estimable), with the ground truth's floor from
+    its relative covariance over the segments (:func:`relative_covariance`) when it has
+    covariances."""
 
     def covariance(first: np.ndarray, last: np.ndarray) -> np.ndarray:
         return relative_covariance(gt, g, assoc, np.column_stack([first, last])).cov
 
+    positions = {} if isinstance(g, PoseTrajectory) else {
+        "rotation": ROTATION_DRIFT_NOT_ESTIMABLE, "definition": POSITION_DRIFT_DEFINITION}
     return drift_metrics(assoc.est.t, g.position, errors,
-                         None if g.cov is None else covariance)
+                         None if g.cov is None else covariance, **positions)
 
 
 def evaluate(
@@ -669,73 +588,78 @@ def evaluate(
     est: PoseTrajectory,
     options: EvaluationOptions | None = None,
     *,
+    lever_arm: ArrayLike | str | None = None,
+    lever_arm_cov: ArrayLike | None = None,
+    lever_arm_source: str = "given",
     gt_measurement_times: ArrayLike | None = None,
     gt_cross_next: ArrayLike | None = None,
     **overrides,
-) -> EvaluationResult:
-    """Evaluate an estimated trajectory against an (uncertain) ground truth.
+) -> EvaluationResult | PositionEvaluationResult:
+    """Evaluate an estimated trajectory against an (uncertain) ground truth of poses (6 dof)
+    or of the positions of one tracked point (3 dof; docs/evaluation.md).
 
     Parameters
     ----------
-    gt : PoseTrajectory, ValidatedGroundTruth or callable
-        Ground truth in the world frame: a discrete trajectory (interpolated at the estimate's
-        times), a validated continuous-time ground truth such as
-        :class:`~rtsgt.evaluation.groundtruth.ContinuousGroundTruth` (the run's GP tracks
-        turned into poses at the estimate's times, with a drop reason per time), or a plain
-        query ``gt(times) -> PoseTrajectory`` (optionally ``(PoseTrajectory, cross_next)``);
-        see :mod:`rtsgt.evaluation.associate`. Covariances (``cov``) enable NEES and noise
-        floor; a :class:`~rtsgt.evaluation.associate.PairCovarianceGroundTruth` also gives
-        the RPE's relative-pose covariance its correlations.
+    gt : PoseTrajectory, PositionTrajectory, a validated ground truth or callable
+        World frame: discrete (interpolated at the estimate's times), validated continuous
+        (:class:`~rtsgt.evaluation.groundtruth.ContinuousGroundTruth`,
+        :class:`~rtsgt.evaluation.groundtruth.ContinuousPositionGroundTruth`: a drop reason
+        per time) or a query ``gt(times) -> PoseTrajectory`` (:mod:`~rtsgt.evaluation.
+        associate`); covariances enable the NEES and the noise floor. Its dof
+        (:func:`~rtsgt.evaluation.associate.ground_truth_dof`) chooses the result's kind.
     est : PoseTrajectory
-        Estimate in its own frame, strictly increasing times; an optional ``cov`` (6x6, the
-        left-perturbation convention in the estimate's frame) enters the NEES.
+        Estimate in its own frame, strictly increasing times; an optional 6x6 ``cov`` (left
+        perturbation, its frame) enters the NEES.
     options : EvaluationOptions, optional
-        Alignment, RPE pairs, time offset, ``max_dt``, the mounting given (``mounting``) and
-        what to estimate with the alignment (``estimate``: the mounting's rotation and lever
-        arm, the clock; docs/evaluation.md#mounting-and-clock) (default:
-        ``EvaluationOptions()``). ``est`` is then the sensor's pose, moved to the body
-        frame by the mounting before the alignment.
+        Alignment, RPE pairs, time offset, ``max_dt``, the mounting given and what to
+        estimate with the alignment (poses only; docs/evaluation.md#mounting-and-clock).
+    lever_arm, lever_arm_cov, lever_arm_source
+        Positions only: the tracked point in the sensor frame (m, ``"x,y,z"`` accepted; zero
+        when None), its covariance (3, 3) m^2 when estimated (one error for the whole
+        trajectory), where it comes from (``"given"``, ``"estimated"``).
     gt_measurement_times : array_like, optional
         Measurement times supporting a query ground truth (support and ``max_dt``).
     gt_cross_next : array_like, shape (N_gt - 1, 6, 6), optional
-        Cross-covariances of consecutive samples of a discrete ground truth.
+        Cross-covariances of consecutive samples of a discrete pose ground truth.
     **overrides
-        Fields of :class:`EvaluationOptions` (``align="sim3", delta=10, delta_unit="f"``,
-        ...) replacing those of ``options``.
+        Fields of :class:`EvaluationOptions` replacing those of ``options``.
 
     Returns
     -------
-    EvaluationResult
-        ``rpe`` is None, with ``rpe_absent_reason``, when no RPE pair exists (the APE and
-        the NEES are still computed).
+    EvaluationResult or PositionEvaluationResult
+        ``rpe`` None, with ``rpe_absent_reason``, when no RPE pair exists.
 
     Warns
     -----
     RtsgtWarning
-        RPE pairs that span a gap of the ground truth, a stretch it cannot vouch for within
-        the gap limit ``max_dt``: between the pair's poses, two consecutive associated poses
-        more than ``max_dt`` apart with dropped estimate poses between them, or two
-        consecutive samples of a discrete ground truth (measurement times of a query ground
-        truth) more than ``2 max_dt`` apart, i.e. with a stretch farther than ``max_dt`` from
-        both (:func:`gap_per_step`). They are kept, so that the RPE stays evo's; the warning
-        counts them and gives the longest gap. No check with ``max_dt=None``.
+        RPE pairs that span a gap of the ground truth longer than ``max_dt``
+        (:func:`~rtsgt.evaluation.associate.gap_per_step`): kept, counted in the warning.
 
     Raises
     ------
     ExcitationError
-        Something asked for in ``estimate`` that the trajectory does not excite (its
-        standard deviation above :data:`~rtsgt.evaluation.mounting.MAX_SIGMA`).
+        Something in ``estimate`` that the trajectory does not excite.
     InputError
-        No time overlap, too few associated poses for the alignment, bad values, an estimate
-        asked of a ground truth without covariances.
+        No time overlap, too few associated poses, bad values, an estimate asked of a ground
+        truth without covariances, a mounting or lever arm of the wrong kind of ground truth.
     GeometryError
         Degenerate alignment geometry.
-    TypeError
-        An override that is no field of :class:`EvaluationOptions`.
     """
     options = dataclasses.replace(
         EvaluationOptions() if options is None else options, **overrides
     )
+    if ground_truth_dof(gt) == 3:
+        return _evaluate_positions(gt, est, options, lever_arm, lever_arm_cov, lever_arm_source,
+                                   gt_measurement_times)
+    if lever_arm is not None or lever_arm_cov is not None:
+        raise InputError("A lever arm is that of a ground truth of positions; a pose ground "
+                         "truth takes the mounting (mounting=, estimate=)")
+    return _evaluate_poses(gt, est, options, gt_measurement_times, gt_cross_next)
+
+
+def _evaluate_poses(gt, est: PoseTrajectory, options: EvaluationOptions, gt_measurement_times,
+                    gt_cross_next) -> EvaluationResult:
+    """:func:`evaluate` against a ground truth of poses."""
     if options.estimate:
         fit, assoc, g = mounting_step(gt, est, options, gt_measurement_times, gt_cross_next)
     else:
@@ -745,9 +669,9 @@ def evaluate(
     ape = compute_ape(g, e)
     pairs, rpe, no_rpe = compute_rpe(g, e, options)
     if rpe is not None:
-        _warn_gaps(assoc, pairs, gap_support(gt, gt_measurement_times))
+        warn_gaps(assoc, pairs, gap_support(gt, gt_measurement_times))
     xi = pose_error(g.rotation, g.position, e.rotation, e.position)
-    S = error_covariance(g, e)
+    S = error_covariance(g.cov, e.cov)
     rates = _mounting_rates(gt, assoc, fit, gt_measurement_times)
     absolute = None if S is None else absolute_nees(xi, S, g.t)
     if absolute is not None:
@@ -755,25 +679,86 @@ def evaluate(
         if fit is not None and fit.estimated:
             absorbed = mounting_sensitivity(fit, e.rotation, *(
                 (None, None) if rates is None else (rates.v, rates.w)))
-        absolute = split_nees(gt, g, e, assoc, xi, absolute, options.align, absorbed)
+        absolute = split_nees(gt, g, e.cov, assoc, xi, absolute, options.align, absorbed,
+                              upper=e.cov is None)
     relative = None if S is None or rpe is None else relative_covariance(gt, g, assoc, pairs)
+    xi_rel = None if relative is None else relative_pose_error_vector(
+        g.rotation, g.position, e.rotation, e.position, pairs)
+
+    def errors(first: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return kitti_errors(g.rotation, g.position, e.rotation, e.position, first, last)
+
     return EvaluationResult(
-        t=assoc.est.t,
-        gt=g,
-        est=e,
-        alignment=alignment,
-        association=assoc,
-        ape=ape,
-        rpe=rpe,
-        nees=nees_section(g, e, absolute, pairs, relative),
-        noise_floor=noise_floor_section(g, ape, rpe, relative),
-        pose_error=xi,
-        cov_error=S,
-        rpe_delta=float(options.delta),
-        rpe_delta_unit=options.delta_unit,
-        rpe_all_pairs=bool(options.all_pairs),
-        rpe_absent_reason=no_rpe,
-        mounting=fit,
+        t=assoc.est.t, gt=g, est=e, alignment=alignment, association=assoc, ape=ape, rpe=rpe,
+        nees=nees_section(absolute, xi_rel, relative, g.t[pairs[:, 0]],
+                          None if e.cov is None else "estimate"),
+        noise_floor=noise_floor_section(g, ape, rpe, relative), pose_error=xi, cov_error=S,
+        rpe_delta=float(options.delta), rpe_delta_unit=options.delta_unit,
+        rpe_all_pairs=bool(options.all_pairs), rpe_absent_reason=no_rpe, mounting=fit,
         mounting_effect=mounting_effect(fit, g, assoc, options, rates, pairs),
-        drift=drift_step(gt, g, e, assoc),
+        drift=drift_step(gt, g, assoc, errors),
     )
+
+
+def _evaluate_positions(gt, est: PoseTrajectory, options: EvaluationOptions, lever_arm,
+                        lever_arm_cov, lever_arm_source: str,
+                        gt_measurement_times) -> PositionEvaluationResult:
+    """:func:`evaluate` against a ground truth of positions: the estimate's points ``p_S +
+    R_S l`` (:mod:`~rtsgt.evaluation.lever_arm`) take the place of its poses, their alignment
+    is :func:`~rtsgt.evaluation.positions.align_step`'s; the rest of the chain is the poses'
+    (docs/evaluation.md#position-only-ground-truth)."""
+    check_position_alignment(options.align)
+    if options.estimate or options.mounting is not None:
+        raise InputError("A ground truth of positions gives no rotation to fit a mounting or a "
+                         "clock to (estimate=, mounting=): give the lever arm and time_offset")
+    lever = parse_lever_arm(lever_arm)
+    assoc, g = associate_step(gt, est, options, gt_measurement_times, None)
+    alignment = align_points_step(g, assoc.est, lever, options)
+    e = alignment.apply(assoc.est)
+    pts = lever_arm_points(e.position, e.rotation, lever)
+    own_cov = point_covariance(pts, e.cov)
+    est_cov, shared = own_cov, None
+    if lever_arm_cov is not None:
+        shared = lever_arm_shared(pts, lever_arm_cov)
+        marginal = shared[0] @ np.swapaxes(shared[0], 1, 2)
+        est_cov = marginal if own_cov is None else own_cov + marginal
+    err = pts.position - g.position
+    ape = PoseErrors.of_positions(np.linalg.norm(err, axis=1))
+    points = PositionTrajectory(e.t, pts.position, est_cov, "estimate")
+    pairs, no_rpe = rpe_pair_step(g, points, options)
+    rpe = None
+    if no_rpe is None:
+        warn_gaps(assoc, pairs, gap_support(gt, None))
+        rpe = PoseErrors.of_positions(
+            np.linalg.norm(err[pairs[:, 1]] - err[pairs[:, 0]], axis=1), pairs)
+    S = error_covariance(g.cov, est_cov)
+    absolute = None if S is None else split_nees(
+        gt, g, own_cov, assoc, err, absolute_nees(err, S, g.t), options.align, extra=shared,
+        upper=e.cov is None and shared is None)
+    relative = None if S is None or rpe is None else relative_covariance(gt, g, assoc, pairs)
+    d_err = err[pairs[:, 1]] - err[pairs[:, 0]]
+
+    def errors(first: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, None]:
+        return np.linalg.norm(err[last] - err[first], axis=1), None
+
+    return PositionEvaluationResult(
+        t=assoc.est.t, gt=g, est=points, est_poses=e, lever_arm=lever, alignment=alignment,
+        association=assoc, ape=ape, rpe=rpe,
+        nees=nees_section(absolute, d_err, relative, g.t[pairs[:, 0]],
+                          None if est_cov is None else "estimate (through the lever arm)"),
+        noise_floor=noise_floor_section(g, ape, rpe, relative), position_error=err,
+        cov_error=S, rpe_delta=float(options.delta), rpe_delta_unit=options.delta_unit,
+        rpe_all_pairs=bool(options.all_pairs), rpe_absent_reason=no_rpe,
+        lever_arm_source=lever_arm_source,
+        lever_arm_cov=None if lever_arm_cov is None else np.asarray(lever_arm_cov, float),
+        drift=drift_step(gt, g, assoc, errors))
+
+
+def evaluate_positions(gt, est: PoseTrajectory, lever_arm=None,
+                       options: EvaluationOptions | None = None,
+                       **kwargs) -> PositionEvaluationResult:
+    """:func:`evaluate` against a ground truth of positions, the lever arm third (the keyword
+    arguments and overrides as :func:`evaluate`'s)."""
+    if ground_truth_dof(gt) != 3:
+        raise TypeError(f"Expected a ground truth of positions, got {type(gt).__name__}")
+    return evaluate(gt, est, options, lever_arm=lever_arm, **kwargs)

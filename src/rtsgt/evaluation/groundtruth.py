@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -56,9 +57,9 @@ from rtsgt.evaluation.associate import (
     REASON_FAR,
     REASON_OUTSIDE,
     GroundTruthSample,
-    _nearest_distance,
+    PositionSplit,
+    nearest_distance,
 )
-from rtsgt.evaluation.positions import PositionSample, PositionSplit
 from rtsgt.interpolation import GPTrack
 from rtsgt.interpolation.cross import gp_cross_covariance
 from rtsgt.interpolation.prisms import PrismsAtTimes, fit_gps, gp_velocities, query_prisms
@@ -142,6 +143,8 @@ class ContinuousGroundTruth:
     coupling: StationCoupling | None = None
     station_origins: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
     split: bool = False
+    #: The degrees of freedom it gives (poses).
+    dof: ClassVar[int] = 6
 
     def __post_init__(self) -> None:
         if not self.tracks:
@@ -286,7 +289,7 @@ class ContinuousGroundTruth:
     def nearest_measurement_dt(self, times: ArrayLike) -> np.ndarray:
         """Largest over the prisms of the distance to that prism's nearest measurement, s."""
         tau = np.asarray(times, dtype=float)
-        return np.max([_nearest_distance(tr.t, tau) for tr in self.tracks.values()], axis=0)
+        return np.max([nearest_distance(tr.t, tau) for tr in self.tracks.values()], axis=0)
 
     def cross_covariance(self, tau_a: ArrayLike, tau_b: ArrayLike) -> np.ndarray:
         """``Cov(xi(tau_a), xi(tau_b))`` (K, 6, 6) of the poses at pairs of times, first order.
@@ -400,8 +403,8 @@ class ContinuousGroundTruth:
 
 @dataclass(frozen=True)
 class ContinuousPositionGroundTruth:
-    """One prism of a run, queryable at any time: the position-only ground truth
-    (:mod:`rtsgt.evaluation.positions`) of a run with one or two tracked prisms, or of one
+    """One prism of a run, queryable at any time: the position-only ground truth (3 dof,
+    docs/evaluation.md#position-only-ground-truth) of a run with one or two tracked prisms, or of one
     prism of a run with three or more.
 
     What the pipeline computes at its query times, at any time: the prism's GP posterior
@@ -443,6 +446,8 @@ class ContinuousPositionGroundTruth:
     source: str = ""
     coupling: StationCoupling | None = None
     station_origins: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    #: The degrees of freedom it gives (positions).
+    dof: ClassVar[int] = 3
 
     def __post_init__(self) -> None:
         iv = np.asarray(self.intervals, dtype=float).reshape(-1, 2)
@@ -534,11 +539,12 @@ class ContinuousPositionGroundTruth:
 
         Returns
         -------
-        rtsgt.evaluation.positions.PositionSample
+        GroundTruthSample
+            ``quat_xyzw`` None, ``cov`` (M, 3, 3).
         """
         tau, reason, nearest = _query_times(
             times, max_gap_s, self.intervals, [self.gp],
-            lambda tau: _nearest_distance(np.asarray(self.track.t), tau))
+            lambda tau: nearest_distance(np.asarray(self.track.t), tau))
         M = tau.size
         position = np.full((M, 3), np.nan)
         cov = np.full((M, 3, 3), np.nan)
@@ -547,9 +553,9 @@ class ContinuousPositionGroundTruth:
             pr = self._prisms(tau[idx])
             position[idx] = pr.xyz[:, 0]
             cov[idx] = pr.cov[:, 0]
-        return PositionSample(tau.copy(), position, cov, reason, nearest)
+        return GroundTruthSample(tau.copy(), position, None, cov, reason, nearest)
 
-    def position_pair_covariances(
+    def pair_covariances(
         self, tau_a: ArrayLike, tau_b: ArrayLike
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``Cov(y(a))``, ``Cov(y(b))`` and ``Cov(y(a), y(b))`` (K, 3, 3) of one first-order
@@ -573,7 +579,7 @@ class ContinuousPositionGroundTruth:
         return (between(pa, pa, ta, ta, va, va), between(pb, pb, tb, tb, vb, vb),
                 between(pa, pb, ta, tb, va, vb))
 
-    def position_split(self, times: ArrayLike):
+    def shared_split(self, times: ArrayLike):
         """The error split at valid times: the GP posterior (varying) and the shared factor of
         the station's calibration, clock offset and atmosphere
         (:func:`rtsgt.shared.prism_shared_factor`); None with ``gp_noise = "all"`` (the GP
@@ -581,7 +587,7 @@ class ContinuousPositionGroundTruth:
 
         Returns
         -------
-        rtsgt.evaluation.positions.PositionSplit or None
+        rtsgt.evaluation.associate.PositionSplit or None
         """
         if self.options.interpolation.gp_noise != "white":
             return None

@@ -51,6 +51,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy import stats
 
+from rtsgt.errors import InputError
 from rtsgt.geometry.so3 import hat, log_so3
 
 #: Names of the statistics, in evo's order.
@@ -435,6 +436,24 @@ def chain_cross_covariance(cov: ArrayLike, cross_next: ArrayLike, pairs: ArrayLi
     return out
 
 
+def no_pair_reason(position: np.ndarray, t: np.ndarray, delta: float, unit: str) -> str:
+    """Why :func:`rpe_pairs` found no pair among the poses at ``position`` (N, 3) m and ``t``
+    (N,) s, and what to change."""
+    n = t.shape[0]
+    if unit == "m":
+        path = float(np.sum(np.linalg.norm(np.diff(position, axis=0), axis=1)))
+        have, want = f"{path:.3g} m of path", f"{delta:g} m"
+    elif unit == "s":
+        span = float(t[-1] - t[0]) if n else 0.0
+        have, want = f"{span:.3g} s", f"{delta:g} s"
+    else:
+        have, want = f"{n} associated poses", f"{int(delta)} frames"
+    return (
+        f"no pose pair {want} apart: the {n} associated poses span {have}; "
+        "use a smaller RPE delta"
+    )
+
+
 def squared_mahalanobis(e: ArrayLike, S: ArrayLike) -> np.ndarray:
     """``e_k^T S_k^-1 e_k`` through Cholesky factors.
 
@@ -556,6 +575,17 @@ class NeesResult:
                         "autocorrelation of the NEES series (no shared factor)"),
             **({} if self.split is None else {"split": self.split.to_dict()}),
         }
+
+
+def nees_test(e: np.ndarray, S: np.ndarray, dof: int, what: str, t: np.ndarray) -> NeesResult:
+    """NEES of errors ``e`` (N, dof) with covariances ``S`` (N, dof, dof) and its consistency
+    test (:func:`nees_consistency`); a covariance that is not positive definite is an
+    InputError naming ``what`` and the times ``t``."""
+    try:
+        d2 = squared_mahalanobis(e, S)
+    except ValueError as exc:
+        raise InputError(f"Cannot compute the {what} NEES: {exc} (t = {t})") from None
+    return nees_consistency(d2, dof)
 
 
 def nees_consistency(
@@ -930,7 +960,7 @@ def shared_error_test(
 
 
 def with_split_verdict(
-    nees: tuple[NeesResult, NeesResult],
+    nees: tuple[NeesResult, ...],
     e: ArrayLike,
     D: ArrayLike,
     L: ArrayLike,
@@ -938,12 +968,13 @@ def with_split_verdict(
     *,
     names: tuple[str, ...] = (),
     upper: bool = False,
-) -> tuple[NeesResult, NeesResult]:
-    """The position and pose NEES ``nees`` with the split test's verdict
+) -> tuple[NeesResult, ...]:
+    """The position and pose NEES ``nees`` (the position one alone for position errors) with
+    the split test's verdict
     (:func:`shared_error_test` of ``e``, ``D``, ``L``, ``K``): ``consistent`` becomes the
     split verdict and ``split`` holds it; ``mean`` and ``fraction_inside_95`` stay those of
     the NEES against the total covariance. Raises ``ValueError`` where
     :func:`shared_error_test` does."""
-    pos, pose = shared_error_test(e, D, L, K, names=names, upper=upper)
-    return (replace(nees[0], consistent=pos.consistent, split=pos),
-            replace(nees[1], consistent=pose.consistent, split=pose))
+    verdicts = shared_error_test(e, D, L, K, names=names, upper=upper)
+    return tuple(replace(n, consistent=v.consistent, split=v)
+                 for n, v in zip(nees, verdicts, strict=False))

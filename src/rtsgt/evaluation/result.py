@@ -14,9 +14,14 @@ from rtsgt.evaluation.associate import Association
 from rtsgt.evaluation.drift import Drift
 from rtsgt.evaluation.metrics import STATISTICS, NeesResult, error_statistics
 from rtsgt.evaluation.mounting import MountingFit
-from rtsgt.types import PoseTrajectory
+from rtsgt.types import PoseTrajectory, PositionTrajectory
 
-__all__ = ["ErrorStatistics", "EvaluationResult", "NeesSection", "NoiseFloor", "PoseErrors"]
+__all__ = ["ROTATION_NOT_REPORTED", "ErrorStatistics", "EvaluationResult", "NeesSection",
+           "NoiseFloor", "PoseErrors", "PositionEvaluationResult"]
+
+#: What the result of a position ground truth says about rotations (``rotation`` of the JSON).
+ROTATION_NOT_REPORTED = ("not reported: the ground truth has positions only; the estimate's "
+                         "rotation enters the position errors through the lever arm")
 
 
 @dataclass(frozen=True)
@@ -45,21 +50,22 @@ class PoseErrors:
     Attributes
     ----------
     translation_m, rotation_deg, full : ErrorStatistics
-        evo's translation part (m), rotation angle (deg) and full transformation (unitless).
+        evo's translation part (m), rotation angle (deg) and full transformation (unitless);
+        the last two None against a ground truth of positions (:meth:`of_positions`).
     translation_error : ndarray, shape (K,)
         m.
-    rotation_error_deg : ndarray, shape (K,)
-    full_error : ndarray, shape (K,)
+    rotation_error_deg : ndarray, shape (K,) or None
+    full_error : ndarray, shape (K,) or None
     pairs : ndarray of int, shape (K, 2) or None
         RPE index pairs into the associated poses (None for the APE).
     """
 
     translation_m: ErrorStatistics
-    rotation_deg: ErrorStatistics
-    full: ErrorStatistics
+    rotation_deg: ErrorStatistics | None
+    full: ErrorStatistics | None
     translation_error: np.ndarray
-    rotation_error_deg: np.ndarray
-    full_error: np.ndarray
+    rotation_error_deg: np.ndarray | None
+    full_error: np.ndarray | None
     pairs: np.ndarray | None = None
 
     @classmethod
@@ -77,11 +83,16 @@ class PoseErrors:
             pairs,
         )
 
+    @classmethod
+    def of_positions(cls, norms: np.ndarray, pairs: np.ndarray | None = None) -> PoseErrors:
+        """The errors of positions: their norms ``norms`` (K,) m, no rotation."""
+        return cls(ErrorStatistics.from_errors(norms), None, None, norms, None, None, pairs)
+
     def to_dict(self) -> dict:
         return {
             "translation_m": self.translation_m.to_dict(),
-            "rotation_deg": self.rotation_deg.to_dict(),
-            "full": self.full.to_dict(),
+            "rotation_deg": None if self.rotation_deg is None else self.rotation_deg.to_dict(),
+            "full": None if self.full is None else self.full.to_dict(),
         }
 
 
@@ -227,7 +238,7 @@ class EvaluationResult:
 def error_sections(result) -> tuple[dict, dict]:
     """The ``ape`` and ``rpe`` sections of the JSON layout (module docstring) of a result
     with the fields of :class:`EvaluationResult` named ``t``, ``ape``, ``rpe`` and
-    ``rpe_*`` (it and :class:`rtsgt.evaluation.positions.PositionEvaluationResult`)."""
+    ``rpe_*`` (it and :class:`PositionEvaluationResult`)."""
     ape = result.ape.to_dict()
     ape["n"] = int(result.t.shape[0])
     if result.rpe is None:
@@ -242,3 +253,63 @@ def error_sections(result) -> tuple[dict, dict]:
         absent_reason=result.rpe_absent_reason,
     )
     return ape, rpe
+
+
+@dataclass(frozen=True)
+class PositionEvaluationResult:
+    """What :func:`~rtsgt.evaluation.evaluator.evaluate` computed against a ground truth of
+    positions (3 dof): the fields of :class:`EvaluationResult` (``ape`` and ``rpe`` without
+    rotations; ``nees`` with ``position`` and ``relative_position`` only; translation floors),
+    and
+
+    - ``gt``: a :class:`~rtsgt.types.PositionTrajectory`; ``est``: the estimate's points
+      ``p_S + R_S l`` after the alignment, with their covariance ``J Sigma_S J^T`` when the
+      estimate has one; ``est_poses``: the aligned sensor poses (world frame, ``cov`` mapped);
+    - ``position_error`` (N, 3) ``p_P - y``, m; ``cov_error`` (N, 3, 3) ``S_k`` of the NEES;
+    - ``lever_arm`` (3,) ``l``, m, sensor frame, ``lever_arm_source`` (``"given"``,
+      ``"estimated"``), ``lever_arm_cov`` (3, 3) m^2 when known;
+    - ``drift``: translational drift by segment length (rotational drift not estimable).
+    """
+
+    t: np.ndarray
+    gt: PositionTrajectory
+    est: PositionTrajectory
+    est_poses: PoseTrajectory
+    lever_arm: np.ndarray
+    alignment: Alignment
+    association: Association
+    ape: PoseErrors
+    rpe: PoseErrors | None
+    nees: NeesSection
+    noise_floor: NoiseFloor
+    position_error: np.ndarray
+    cov_error: np.ndarray | None
+    rpe_delta: float
+    rpe_delta_unit: str
+    rpe_all_pairs: bool
+    rpe_absent_reason: str | None = None
+    lever_arm_source: str = "given"
+    lever_arm_cov: np.ndarray | None = None
+    drift: Drift | None = None
+
+    def to_dict(self) -> dict:
+        """The JSON layout of ``rtsgt evaluate --json`` (:meth:`EvaluationResult.to_dict`'s,
+        rotations ``null``), with ``ground_truth`` ``"positions"``, ``lever_arm`` and
+        ``rotation``."""
+        ape, rpe = error_sections(self)
+        rpe["definition"] = "|(p_est,j - p_est,i) - (p_gt,j - p_gt,i)|, world frame"
+        return {
+            "ground_truth": "positions",
+            "rotation": ROTATION_NOT_REPORTED,
+            "lever_arm": {"m": [float(v) for v in self.lever_arm], "frame": "sensor (estimate)",
+                          "source": self.lever_arm_source,
+                          "cov_m2": (None if self.lever_arm_cov is None
+                                     else self.lever_arm_cov.tolist())},
+            "ape": ape,
+            "rpe": rpe,
+            "nees": self.nees.to_dict(),
+            "noise_floor": self.noise_floor.to_dict(),
+            "alignment": self.alignment.to_dict(),
+            "association": self.association.to_dict(),
+            "drift": None if self.drift is None else self.drift.to_dict(),
+        }
