@@ -20,16 +20,8 @@ from rtsgt.types import PoseTrajectory
 
 @dataclass(frozen=True)
 class TruthComparison:
-    """Errors of estimated poses with respect to the true ones.
-
-    Attributes
-    ----------
-    error : ndarray, shape (N, 6)
-        Left perturbation taking the true pose to the estimate, world frame,
-        (x, y, z, rx, ry, rz), m / rad.
-    nees_position, nees_pose : NeesResult
-        Squared Mahalanobis distance of the position (3 dof) and pose (6 dof) errors with the
-        estimate's own covariance.
+    """Errors of estimated poses against the true ones: ``error`` (N, 6) left perturbation, world
+    frame (x, y, z, rx, ry, rz) m / rad; ``nees_position`` (3 dof), ``nees_pose`` (6 dof).
     """
 
     error: np.ndarray
@@ -66,21 +58,10 @@ def compare_to_truth(
     estimate: PoseTrajectory, position_true: np.ndarray, quat_xyzw_true: np.ndarray,
     split: SharedFactor | None = None,
 ) -> TruthComparison:
-    """Errors and NEES of ``estimate`` (with covariance) against the true poses at its times.
-
-    Parameters
-    ----------
-    estimate : PoseTrajectory
-        With ``cov`` (N, 6, 6) in the convention of :mod:`rtsgt.geometry.transform`.
-    position_true : ndarray, shape (N, 3)
-    quat_xyzw_true : ndarray, shape (N, 4)
-    split : SharedFactor, optional
-        The estimate's error split into varying and shared parts at the same times
-        (:attr:`rtsgt.record.RunRecord.groundtruth_split`). With it, the verdicts are the
-        split test's (:func:`~rtsgt.evaluation.metrics.with_split_verdict`): the errors one
-        simulated deployment draws once (calibration, clocks, weather, survey) are tested as
-        one draw, not as N; without it, the autocorrelation test of the NEES series, which
-        ignores them (it accepts an estimate too often or too rarely, by the deployment's draw).
+    """Errors and NEES of ``estimate`` (``cov`` (N, 6, 6)) against true positions (N, 3) and
+    quat_xyzw (N, 4) at its times. With ``split`` (the estimate's shared/varying error split) the
+    verdicts are the split test's (docs/evaluation.md#errors-shared-by-the-deployment); without,
+    the NEES series' autocorrelation test.
     """
     if estimate.cov is None:
         raise ValueError("Expected an estimate with covariances")

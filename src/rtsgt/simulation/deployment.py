@@ -1,66 +1,9 @@
-r"""Simulation of a robotic-total-station deployment with known truth.
+r"""Simulation of a robotic-total-station deployment with known truth (numeric core).
 
-A simulated deployment has what a real one has (Vaidis et al. 2023, the 2022-11-10 Warthog
-deployment of ``norlab-ulaval/RTS_project``): three or more levelled stations set up around a
-site, ground control points (GCPs) shot by every station, a robot carrying one prism per
-station driving a smooth path, each station tracking its own prism at ~2.5 Hz, hourly weather,
-and a static survey of the prisms on the robot. Every noise source of the paper is applied with
-the paper's magnitudes, and every source can be switched off (``SimulationConfig.noise_*``).
-
-Frames (all right-handed, z up unless said otherwise)
------------------------------------------------------
-- ``site``: internal frame in which the site is generated (not exported).
-- ``station k``: the levelled tracking frame of station k, RTS_project tracking convention
-  (:mod:`rtsgt.measurement.polar`): ``x = d sinV sinHz, y = d sinV cosHz, z = d cosV``.
-  Levelled: each station's z axis is its local vertical. The site is flat but the verticals
-  are those of a sphere of radius ``EARTH_RADIUS_M``: a station ``d`` metres (horizontally)
-  from station 1 has its vertical turned by ``d / EARTH_RADIUS_M`` rad towards ``d``
-  (:func:`_local_vertical`), so ``T_world_station`` is that small tilt after a rotation about z
-  (yaw), and a translation.
-- ``world``: the frame of station 1 (``T_world_station1 = identity``).
-- ``robot``: x forward, y left, z along the terrain normal, origin on the ground under the
-  robot's centre. The prisms are fixed in it (Warthog-like geometry).
-- ``body``: the frame of the static survey, i.e. the *manual-shot* frame of the survey station
-  (``x = d cosHz sinV, y = -d sinHz sinV, z = d cosV``, as in ``calibration_raw.csv``; the
-  survey convention of :mod:`rtsgt.measurement.polar`) at the time of the survey, rigidly
-  attached to the robot from then on. The surveyed points are therefore the reference prism
-  positions ``r_i`` in the body frame, and the true trajectory is
-  ``T_world_body(t)`` -- the pose that ``body_frame = "survey"`` asks the pipeline for. Its origin
-  is the survey station, ~10 m from the robot (as in the real data).
-
-Time
-----
-``t`` is Unix time (s). The truth is in true time. A station stamps a measurement taken at true
-time ``t_true`` with ``t_rec = t_true - e_ts``: ``e_ts`` (the clock error, s) is the station's
-constant offset ``s |e|`` with ``e ~ N(mu_ts, sigma_ts)`` and a random sign ``s`` per station
-(each station synchronises on its own; the authors measured the magnitude), plus a small
-jitter: the noise model's time-synchronisation assumption (:mod:`rtsgt.noise.model`). The position measured at
-the stamp ``t_rec`` is therefore ``p(t_rec + e_ts) ~ p(t_rec) + e_ts v``, the displacement of
-the paper's time-synchronisation model (docs/noise-model.md#time-synchronisation).
-
-Measurement model (inverse of the pipeline's, docs/noise-model.md)
-------------------------------------------------------------------
-For the true station-frame position ``p`` of a prism, ``(Hz, V, D) = cartesian_to_polar(p)``.
-The stations do not apply an atmospheric correction (their distances are at the instrument's
-reference atmosphere, 0 ppm), so with ``K`` the true correction (ppm) at ``t_true``
-(:mod:`rtsgt.measurement.atmosphere`) and ``c`` the additive (prism) constant::
-
-    d_raw = D / (1 + K 1e-6) + e_d - c
-    V^    = V + e_V + e_tilt
-    Hz^   = Hz + e_Hz + e_tilt cot(V^)
-
-so that ``(d_raw + c)(1 + K 1e-6) = D`` when the noise is off. ``e_d ~ N(0, sigma_d(D)^2)``,
-``e_V, e_Hz ~ N(0, sigma_angle^2)``, ``e_tilt ~ N(0, sigma_tilt^2)``, one-sigma values of the
-instrument profile (the Trimble S7 numbers are quoted at 2 sigma and halved there). GCP shots
-follow the same model. The reported (hourly) weather is the true weather plus a uniform error
-within the paper's half-widths (+-1 degC, +-10 hPa, +-2 %).
-
-These errors are the estimator's own model, except under ``SimulationConfig.field`` (the
-``field-hour`` preset, :mod:`rtsgt.simulation.field`), which draws the measurement noise, the
-clocks and a moved prism by models of its own. Errors it does not have (time-correlated noise,
-the prisms' cyclic error, tracking lag, clock drift, jerky starts and stops, a remote weather
-station, tripod settling) are the reality effects of :mod:`rtsgt.simulation.reality`, switched
-by ``SimulationConfig.reality`` and applied after the stages above (docs/simulation.md).
+Stations, GCP shots, a robot path, tracking measurements, weather and a static survey, drawn
+from ``SimulationConfig`` with one seeded Generator. Frames, clocks and the measurement model:
+docs/simulation.md#the-model; the reality effects (:mod:`rtsgt.simulation.reality`) and the
+field preset (:mod:`rtsgt.simulation.field`) are applied on top.
 """
 
 from __future__ import annotations
@@ -157,129 +100,7 @@ def _require(ok, message: str) -> None:
 
 @dataclass(frozen=True)
 class SimulationConfig:
-    """Parameters of a simulated deployment. Units are in the names or stated.
-
-    Attributes
-    ----------
-    duration_s : float
-        Length of the tracking session, s.
-    n_stations : int
-        Number of stations (>= 3); station k tracks prism k.
-    rate_hz : float
-        Nominal measurement rate of each station, Hz (the S7 tracks at ~2.5 Hz).
-    start_time_s : float
-        Unix time of the start of tracking, s (default 2022-11-10 15:00 UTC).
-    truth_rate_hz : float
-        Rate of the exported truth, Hz.
-    speed_min_m_s, speed_max_m_s : float
-        Range of the cruise speeds (horizontal speed of the robot centre), m/s.
-    accel_max_m_s2 : float
-        Largest longitudinal acceleration, m/s^2 (sets the length of the speed ramps).
-    initial_stop_s : (float, float)
-        Range of the static period at the start, s.
-    drive_segment_s : (float, float)
-        Range of the duration of a constant-speed segment, s.
-    stop_probability : float
-        Probability that a segment is followed by a stop.
-    stop_duration_s : (float, float)
-        Range of the duration of a stop, s.
-    site_size_m : float
-        Size of the area the robot drives in, m (the path's mean diameter is half of it).
-    min_turn_radius_m : float
-        Smallest radius of curvature of the path, m.
-    terrain_max_slope_deg : float
-        Largest terrain slope, deg (the robot's roll and pitch stay below it).
-    station_clearance_m : float
-        Smallest horizontal distance between a station and the path, m.
-    station_spread_m : float
-        Stations stand between ``clearance`` and ``clearance + spread`` beyond the path, m.
-    far_stations : int
-        The last ``far_stations`` stations stand far instead (0: none; fewer than
-        ``n_stations``): at a horizontal distance from the site's centre in ``far_distance_m``.
-    far_distance_m : (float, float)
-        Range of the far stations' horizontal distance from the site's centre, m.
-    instrument_height_m : (float, float)
-        Range of the height of the instruments above the ground, m.
-    n_gcp : int
-        Number of ground control points (markers).
-    gcp_blocked_max : int
-        Largest number of markers hidden from one station.
-    gcp_min_common : int
-        Smallest number of markers a station shares with station 1.
-    gcp_height_m : (float, float)
-        Range of the height of the markers above the ground, m.
-    gcp_lead_time_s : float
-        The GCP sessions start this long before tracking, s.
-    gcp_shot_interval_s : (float, float)
-        Range of the time between two GCP shots of a station, s.
-    instrument : InstrumentProfile
-        Accuracy of the stations (:data:`rtsgt.measurement.instruments.TRIMBLE_S7`).
-    additive_constant_m : float
-        Prism (additive) constant, m: the files hold distances without it (RTS_project: 0.01).
-    time_sync_mean_s, time_sync_std_s : float
-        Mean and standard deviation of the magnitude of the per-station clock error, s
-        (authors' values); its sign is drawn per station.
-    time_sync_jitter_s : float
-        Standard deviation of the per-measurement clock jitter around the offset, s.
-    sampling_jitter_s : float
-        Standard deviation of the true measurement epochs around their nominal grid, s.
-    temperature_c, pressure_hpa, humidity_pct : float
-        Mean true weather (degC, station pressure hPa, %); defaults near the real forest site
-        (~640 m a.s.l. in November).
-    temperature_amplitude_c : float
-        Amplitude of the daily temperature cycle, degC.
-    pressure_trend_hpa_h : float
-        Largest pressure trend, hPa/h (drawn in +-).
-    humidity_amplitude_pct : float
-        Amplitude of the daily humidity cycle, %.
-    weather_interval_s : float
-        Interval of the reported weather records, s (ECCC: hourly).
-    temperature_halfwidth_c, pressure_halfwidth_hpa, humidity_halfwidth_pct : float
-        Half-widths of the uniform errors of the reported weather (paper: 1, 10, 2).
-    dropouts : bool
-        Whether the line of sight is lost at times.
-    dropout_rate_per_min : float
-        Mean number of line-of-sight losses per minute and station.
-    common_dropout_rate_per_min : float
-        Mean number per minute of losses that hit all stations at once.
-    dropout_duration_s : (float, float)
-        Range of the duration of a loss, s.
-    single_loss_probability : float
-        Probability that one measurement is missing on its own.
-    outlier_probability : float
-        Probability that a measurement is a gross outlier (distance off by 1-5 m, the kind the
-        rate gates remove); 0 by default.
-    prism_positions_robot_m : tuple of (x, y, z)
-        Prism positions in the robot frame, m; the first ``n_stations`` are used.
-    gnss_positions_robot_m : tuple of (x, y, z)
-        Further surveyed points (GNSS antennas) in the robot frame, m.
-    survey_distance_m : (float, float)
-        Range of the distance from the survey station to the robot, m.
-    survey_tilt_deg : float
-        Largest roll and pitch of the robot during the survey, deg.
-    survey_instrument_height_m : (float, float)
-        Range of the survey instrument's height above the robot's ground, m.
-    survey_sigma_angle_rad : (float, float)
-        Range (log-uniform) of the one-sigma angle noise of a survey shot, rad (real: 1-10").
-    survey_sigma_distance_m : (float, float)
-        Range of the one-sigma distance noise of a survey shot, m (real: 0.6-0.7 mm).
-    noise_instrument, noise_tilt : bool
-        Instrument (distance and angles) and compensator noise, on tracking and GCP shots.
-    noise_weather : bool
-        Errors of the reported weather (the paper's "atmosphere" source).
-    noise_time_sync : bool
-        Clock offsets and jitter (off: every stamp is the true time).
-    noise_survey : bool
-        Noise of the static survey shots.
-    atmosphere : bool
-        Whether the true atmosphere scales the distances (the stations report at 0 ppm). Off:
-        the true atmosphere is the instrument's reference atmosphere (0 ppm) at all times.
-    reality : RealityEffects
-        Errors the estimator's noise model does not have (:mod:`rtsgt.simulation.reality`),
-        each off by default; with all off the deployment is the same, draw for draw.
-    field : FieldEffects or None
-        The field noise, clocks and moved prism (:mod:`rtsgt.simulation.field`) instead of the
-        instrument profile's noise (the profile stays what the written TOML says); None: off.
+    """Parameters of a simulated deployment; units in the names (docs/simulation.md#configuration).
     """
 
     duration_s: float = 600.0
@@ -430,24 +251,11 @@ class SimulationConfig:
 
 @dataclass(frozen=True, eq=False)
 class ObservationTruth:
-    """What really happened at each simulated measurement of one station.
+    """What really happened at each of one station's N measurements.
 
-    Attributes
-    ----------
-    t_true : ndarray, shape (N,)
-        True epoch of each measurement, s (the file holds ``t_true - clock_error_s``).
-    clock_error_s : ndarray, shape (N,)
-        ``t_true - t_recorded``, s.
-    hz, v, d : ndarray, shape (N,)
-        Noise-free values the station would have reported (rad, rad, m; ``d`` without the
-        additive constant, at the reference atmosphere): the residual ``measured - these`` is
-        the instrument and tilt noise.
-    ppm : ndarray, shape (N,)
-        True atmospheric correction, ppm: ``(d + c)(1 + ppm 1e-6)`` is the true distance.
-    xyz_world : ndarray, shape (N, 3)
-        True prism position at ``t_true``, world frame, m.
-    outlier : ndarray of bool, shape (N,)
-        Gross outliers (see ``SimulationConfig.outlier_probability``).
+    ``t_true`` (N,) s and ``clock_error_s = t_true - t_recorded`` (N,) s; ``hz, v, d`` (N,) the
+    noise-free readings (rad, rad, m; ``d`` without the additive constant, at 0 ppm); ``ppm`` (N,)
+    the true atmospheric correction; ``xyz_world`` (N, 3) the true prism, m; ``outlier`` (N,) bool.
     """
 
     t_true: np.ndarray
@@ -474,22 +282,9 @@ def _smoothstep_integral(x: np.ndarray) -> np.ndarray:
 
 
 def _rotation(axis: int, angle) -> np.ndarray:
-    """Rotations about the coordinate axis ``axis`` (0: x, 1: y, 2: z) by ``angle``, rad.
+    """Rotations (..., 3, 3) about axis ``axis`` (0: x, 1: y, 2: z) by ``angle`` (...), rad.
 
-    Parameters
-    ----------
-    axis : int
-    angle : float or ndarray, shape (...)
-
-    Returns
-    -------
-    ndarray, shape (..., 3, 3)
-
-    Notes
-    -----
-    Written with numpy's ``cos``/``sin`` rather than
-    :class:`scipy.spatial.transform.Rotation`, whose matrices (built from quaternions) differ
-    in the last bits: the simulated deployments of a seed stay byte-identical.
+    numpy's cos/sin rather than scipy's Rotation (last bits differ): seeds stay byte-identical.
     """
     angle = np.asarray(angle, dtype=float)
     c, s = np.cos(angle), np.sin(angle)
@@ -539,11 +334,8 @@ def atmospheric_ppm(
     temperature_c: np.ndarray, pressure_hpa: np.ndarray, humidity_pct: np.ndarray,
     profile: InstrumentProfile,
 ) -> np.ndarray:
-    """Atmospheric correction (ppm) of an instrument at the given weather.
-
-    :func:`rtsgt.measurement.atmosphere.instrument_correction_ppm` (IAG 1999 / Rueger 2002,
-    docs/noise-model.md#atmosphere, Magnus vapour pressure), with the instrument's wavelength and
-    reference atmosphere: the corrected distance is ``D = D' (1 + K 1e-6)``.
+    """Atmospheric correction K (ppm) of ``instrument`` at the given weather: ``D = D' (1 + K 1e-6)``
+    (docs/noise-model.md#atmosphere).
     """
     return np.asarray(
         instrument_correction_ppm(profile, temperature_c, pressure_hpa, humidity_pct), dtype=float
@@ -554,19 +346,9 @@ def atmospheric_ppm(
 class TruthModel:
     """Analytic truth of a simulated deployment: robot path, attitude, weather.
 
-    The robot centre follows a smooth closed loop in the site frame,
-    ``xy(u) = c + Rot(theta) [sx rho(u) cos u, sy rho(u) sin u]`` with
-    ``rho(u) = R0 (1 + sum_k a_k cos(k u + phi_k))``, travelled at the horizontal speed
-    ``v(t)``: constant plateaus joined by quintic-smoothstep ramps, whose arc length ``s(t)`` is
-    integrated in closed form. The loop parameter is ``u = u0 + direction w(s)``, with ``w(s)`` a
-    cubic Hermite spline through a fine arc-length table with the exact derivative
-    ``1/|xy'(u)|``, so the path is C1 and
-    evaluating it at any time is exact by construction (the observations and the truth use the
-    same function). The ground is ``h(x, y) = sum_j A_j sin(k_j . (x, y) + psi_j)``; the robot's z
-    axis is the terrain normal, its x axis the direction of travel.
-
-    Use :meth:`robot_at`, :meth:`body_at`, :meth:`prisms_at`, :meth:`weather_at`; all take Unix
-    times (s) of any shape (...) and are vectorised.
+    A smooth closed loop travelled at a speed of plateaus and quintic ramps, on a sum-of-sines
+    terrain (z along its normal, x along the travel); evaluated exactly at any Unix times (...)
+    by :meth:`robot_at`, :meth:`body_at`, :meth:`prisms_at`, :meth:`weather_at`.
     """
 
     t0: float
@@ -664,46 +446,15 @@ class TruthModel:
 
 @dataclass(frozen=True, eq=False)
 class SimulationTruth:
-    """Everything true about a simulated deployment.
+    """Everything true about a simulated deployment (P prisms, G GNSS points, N truth samples).
 
-    Attributes
-    ----------
-    t : ndarray, shape (N,)
-        Times of the exported truth (``truth_rate_hz``), s.
-    body : PoseTrajectory
-        ``T_world_body`` at ``t`` (no covariance).
-    prisms_world : ndarray, shape (N, P, 3)
-        True prism positions at ``t``, world frame, m.
-    prism_ids : tuple of str, length P
-    T_world_station : dict str -> RigidTransform
-        True station set-ups (station "1" is the identity).
-    station_prism : dict str -> str
-        Prism tracked by each station.
-    clock_offset_s : dict str -> float
-        Constant part of each station's clock error ``t_true - t_recorded``, s.
-    reference_body : ndarray, shape (P, 3)
-        True prism positions in the body frame (what the survey measures), m.
-    gnss_body : ndarray, shape (G, 3)
-        True GNSS antenna positions in the body frame, m.
-    T_body_robot : RigidTransform
-        The robot frame in the body (survey) frame.
-    gcp_markers : tuple of str
-    gcp_world : ndarray, shape (n_gcp, 3)
-        True marker positions, world frame, m.
-    observations : dict str -> ObservationTruth
-        Per station, what really happened at each of its measurements.
-    additive_constant : float
-        m.
-    model : TruthModel
-        Exact evaluator at any time.
-    reality : RealityTruth or None
-        What the reality effects drew (None when none is on). With an effect on, the residual
-        ``measured - (hz, v, d)`` of :class:`ObservationTruth` holds the effect as well, and
-        ``T_world_station`` is each station's set-up before any settling.
-    field : FieldTruth or None
-        What the field effects drew (None when off). With them, ``reference_body`` holds the
-        prisms where they are (one moved after the survey) and ``clock_offset_s`` the constant
-        part of each clock error only.
+    ``t`` (N,) s; ``body`` PoseTrajectory ``T_world_body``; ``prisms_world`` (N, P, 3) m;
+    ``prism_ids``; ``T_world_station`` (station "1" the identity; before any settling);
+    ``station_prism``; ``clock_offset_s`` (constant part of ``t_true - t_recorded``, s);
+    ``reference_body`` (P, 3) and ``gnss_body`` (G, 3) m in the body frame (with ``field``: where the
+    prisms are, one moved); ``T_body_robot``; ``gcp_markers``, ``gcp_world`` (n_gcp, 3) m;
+    ``observations`` per station; ``additive_constant`` m; ``model`` TruthModel; ``reality``
+    RealityTruth and ``field`` FieldTruth (None when off).
     """
 
     t: np.ndarray
@@ -727,26 +478,9 @@ class SimulationTruth:
 
 @dataclass(frozen=True, eq=False)
 class SimulatedDeployment:
-    """A simulated deployment: the data a real one yields, and its truth.
-
-    Attributes
-    ----------
-    observations : list of Observations
-        One per station (station k tracks prism k), raw distances without the additive
-        constant, times as stamped by the station's clock.
-    gcp : GcpShots
-        GCP shots of every station (raw distances, station-clock times).
-    survey : SurveyShots
-        Static survey of the prisms (and GNSS antennas) on the robot, survey (manual-shot)
-        convention, rows ``prism1..P`` then ``gnss1..G`` (:class:`rtsgt.types.SurveyShots`).
-    weather_true : WeatherSeries
-        True weather every minute over the whole deployment.
-    weather_reported : WeatherSeries
-        Reported weather (hourly), true weather plus the reporting errors.
-    truth : SimulationTruth
-    config : SimulationConfig
-    seed : int or None
-        Seed of the generator, when the simulation was started from one.
+    """A simulated deployment: the data a real one yields (station-clock times, raw distances
+    without the additive constant, survey rows ``prism1..P, gnss1..G``, true weather per minute and
+    reported hourly), its ``truth``, ``config`` and ``seed`` (None when given a Generator).
     """
 
     observations: list[Observations]
@@ -759,11 +493,8 @@ class SimulatedDeployment:
     seed: int | None = None
 
     def truth_at(self, t, frame: str = "robot") -> tuple[np.ndarray, np.ndarray]:
-        """Exact pose at any times: positions (..., 3) m and quat_xyzw (..., 4).
-
-        ``frame="robot"``: ``T_world_robot``, the frame the written deployment's ground truth
-        is computed in (and ``truth.tum``); ``frame="body"``: ``T_world_body`` (the survey
-        frame, ``truth.body``).
+        """Exact pose at any times: positions (..., 3) m, quat_xyzw (..., 4); ``frame`` "robot"
+        (``T_world_robot``, truth.tum) or "body" (``T_world_body``).
         """
         if frame == "robot":
             R, p = self.truth.model.robot_at(t)
@@ -1056,12 +787,8 @@ def _place_stations(
 def _clear_of_path(
     st_xy: np.ndarray, loop_xy: np.ndarray, clearance: float, max_pushes: int = 50
 ) -> np.ndarray:
-    """Push stations (S, 2) outwards until each is ``clearance`` (m) from the path points.
-
-    Raises
-    ------
-    InputError
-        A station is still too close after ``max_pushes`` pushes.
+    """Push stations (S, 2) outwards until each is ``clearance`` (m) from the path points; InputError
+    if still too close after ``max_pushes``.
     """
     for push in range(max_pushes + 1):
         dmin = np.linalg.norm(st_xy[:, None, :] - loop_xy[None], axis=-1).min(axis=1)
@@ -1182,13 +909,7 @@ def _track(
 def _gcp_visibility(
     cfg: SimulationConfig, rng: np.random.Generator, max_draws: int = 1000
 ) -> np.ndarray:
-    """Markers each station sees (S, n_gcp): up to ``gcp_blocked_max`` hidden per station and at
-    least ``gcp_min_common`` in common with station 1 (rejection sampling).
-
-    Raises
-    ------
-    InputError
-        No valid draw in ``max_draws``.
+    """Markers each station sees (S, n_gcp), by rejection sampling (InputError after ``max_draws``).
     """
     n_st, n_gcp = int(cfg.n_stations), int(cfg.n_gcp)
     for _ in range(max_draws):
@@ -1463,33 +1184,12 @@ def _truth(
 def simulate_deployment(
     config: SimulationConfig, rng: np.random.Generator | int
 ) -> SimulatedDeployment:
-    """Simulate a deployment with known truth.
+    """Simulate a deployment with known truth (``rng``: Generator or int seed); nothing is written.
 
-    The stages draw from ``rng`` in this order: path, terrain, speed profile, stations, robot
-    and survey frame (with ``config.field``: then one integer that seeds the field effects'
-    streams, :func:`rtsgt.simulation.field.field_rng`), weather, clocks, tracking, GCPs, survey
-    shots, reported weather; the field effects are applied to the measurements and the time
-    stamps; then, only when a reality effect is on (``config.reality``), one integer that seeds the effects'
-    own streams (:func:`rtsgt.simulation.reality.effect_rng`), and the effects are applied to
-    the measurements, the time stamps, the GCP shots and the reported weather.
-
-    Parameters
-    ----------
-    config : SimulationConfig
-    rng : numpy.random.Generator or int
-        Source of every random draw; an int is a seed (recorded in the result).
-
-    Returns
-    -------
-    SimulatedDeployment
-        Observations, GCP shots, survey, weather and the truth. Nothing is written to disk
-        (see :func:`rtsgt.simulation.files.write_deployment`).
-
-    Raises
-    ------
-    InputError
-        ``config`` is not a :class:`SimulationConfig`, ``rng`` neither a generator nor an int,
-        or the configuration leaves no valid path, station set-up or GCP visibility.
+    Draw order: path, terrain, speed, stations, robot and survey frame (``config.field``: one integer
+    seeding its streams), weather, clocks, tracking, GCPs, survey, reported weather; then, only with
+    a reality effect on, one integer seeding the effects' streams. InputError on a bad ``config`` or
+    ``rng``, or when no valid path, set-up or GCP visibility exists.
     """
     if not isinstance(config, SimulationConfig):
         raise InputError(f"Expected a SimulationConfig, got {type(config).__name__}")

@@ -1,13 +1,9 @@
 r"""Field effects: measurement noise, clocks and a moved prism drawn as a real hour is.
 
-Under ``SimulationConfig(field=FieldEffects())`` (``rtsgt simulate --preset field-hour``) the
-simulator no longer draws its errors with the estimator's model (the instrument profile's
-datasheet values): per station and channel (Hz, V, d) a white part whose sigma grows with the
-range, plus a first-order Gauss-Markov part; the clocks of the stations other than the
-reference drift against it and random-walk; one prism stands where its survey does not say.
-Each size is drawn per deployment from the ranges of :class:`FieldEffects`, and
-:class:`FieldTruth` records every draw (``truth.json``, section ``field``). Models, units and
-the sources of the values: docs/simulation.md#the-field-hour-preset.
+Under ``SimulationConfig(field=FieldEffects())`` (``--preset field-hour``): per station and
+channel a white sigma growing with range plus a Gauss-Markov part, drifting and random-walking
+clocks, one prism off its survey; :class:`FieldTruth` records every draw. Models and values:
+docs/simulation.md#the-field-hour-preset.
 """
 
 from __future__ import annotations
@@ -47,32 +43,8 @@ RANGE_UNIT_M = 100.0
 
 @dataclass(frozen=True)
 class FieldEffects:
-    """Ranges the field effects' sizes are drawn from (uniform; the correlation times
-    log-uniform). Pairs ``(low, high)``; units in the names (rad, m, s, ppm).
-
-    Attributes
-    ----------
-    angle_white_rad : (float, float)
-        White sigma of Hz and of V at short range, rad.
-    angle_range_rad : (float, float)
-        Angular range coefficient ``s``: the white variance grows by ``s^2 d / 100 m``, rad.
-    angle_gm_rad : (float, float)
-        Sigma of the Gauss-Markov part of Hz and V, rad.
-    distance_white_m : (float, float)
-        White sigma of the distance, constant part, m.
-    distance_ppm : (float, float)
-        White sigma of the distance, part proportional to the range, ppm.
-    distance_gm_m : (float, float)
-        Sigma of the Gauss-Markov part of the distance, m.
-    gm_time_s : (float, float)
-        Correlation time of every Gauss-Markov part, s (log-uniform, per station and channel).
-    clock_drift_s_per_h : (float, float)
-        Magnitude of a station's clock drift against the reference station's, s per hour
-        (sign drawn per station).
-    clock_walk_s_per_sqrt_h : float
-        Standard deviation of the clock's random walk after one hour, s.
-    prism_displacement_m : (float, float)
-        Size of the displacement of one prism from its survey, m (direction uniform).
+    """Ranges ``(low, high)`` the field effects' sizes are drawn from (uniform; correlation times
+    log-uniform); units in the names (docs/simulation.md#the-field-hour-preset).
     """
 
     angle_white_rad: tuple[float, float] = (0.10 * MGON, 0.25 * MGON)
@@ -160,36 +132,12 @@ def draw_displacement(fx: FieldEffects, n_prisms: int,
 
 @dataclass(frozen=True, eq=False)
 class FieldTruth:
-    """What the field effects drew (stations in order; channels :data:`CHANNELS`).
-
-    Attributes
-    ----------
-    effects : FieldEffects
-    station_ids : tuple of str
-        The first is the reference station (no clock drift, no walk).
-    white : ndarray, shape (S, 3)
-        White sigma at short range: Hz, V (rad), d (m).
-    range_coef : ndarray, shape (S, 3)
-        Angular range coefficients of Hz and V (rad, :func:`white_sigma`), distance ppm.
-    gm_sigma : ndarray, shape (S, 3)
-        Gauss-Markov sigma: rad, rad, m.
-    gm_tau_s : ndarray, shape (S, 3)
-        Gauss-Markov correlation times, s.
-    clock_drift_s_per_s : ndarray, shape (S,)
-        Signed drift of each clock against the reference's, s/s.
-    clock_walk_s2_per_s : ndarray, shape (S,)
-        Intensity ``q`` of each clock's random walk, s^2/s.
-    clock_t0_s, clock_step_s : float
-        The clocks' drift and walk start at ``clock_t0_s`` (the start of tracking) and are
-        sampled every ``clock_step_s``.
-    clock_drift_walk_s : ndarray, shape (S, M)
-        Drift plus walk of each clock at ``clock_t0_s + clock_step_s k``, s; linear between.
-    clock_offset_s : ndarray, shape (S,)
-        Each clock's constant offset (the simulator's :func:`_clock_offsets`), s.
-    displaced_prism : int
-        Index of the prism that moved after its survey.
-    displacement_robot_m, displacement_body_m : ndarray, shape (3,)
-        Its displacement in the robot and in the body (survey) frame, m.
+    """What the field effects drew (S stations in order, the first the reference; channels
+    :data:`CHANNELS`): per-channel ``white``, ``range_coef``, ``gm_sigma``, ``gm_tau_s`` (S, 3);
+    ``clock_drift_s_per_s``, ``clock_walk_s2_per_s``, ``clock_offset_s`` (S,); drift plus walk
+    ``clock_drift_walk_s`` (S, M) at ``clock_t0_s + clock_step_s k`` (linear between);
+    ``displaced_prism`` and its ``displacement_robot_m``, ``displacement_body_m`` (3,)
+    (docs/simulation.md#the-field-truth-truthjson-section-field).
     """
 
     effects: FieldEffects

@@ -1,33 +1,9 @@
 r"""Write a simulated deployment as the files of a real one, plus its truth.
 
-:func:`write_deployment` writes into ``OUT_DIR``:
-
-=====================  ========================================================================
-``prism<k>.csv``        station k tracking prism k, RTS_project format: no header, space
-                        separated ``t d V Hz`` (Unix time s, raw distance m *without* the
-                        additive constant, zenith angle rad, clockwise direction rad)
-``GCP.txt``             GCP shots, RTS_project format: header
-                        ``theodolite_number , marker_number , status , elevation , azimuth ,
-                        distance , sec , nsec``, separator `` , ``, ``elevation`` = zenith
-                        (rad), ``nsec`` not zero-padded
-``calibration_raw.csv`` static survey of the robot, DMS like the real file: ``Hz (d m s)``,
-                        ``sigma Hz (d m s)``, ``V (d m s)``, ``sigma V (d m s)``, distance (m),
-                        sigma distance (m), ``0``; manual-shot convention
-                        ``x = d cosHz sinV, y = -d sinHz sinV, z = d cosV``; rows prisms 1..P,
-                        then GNSS antennas
-``weather.csv``         reported weather, ``t_s,temperature_c,pressure_hpa,humidity_pct``
-``truth.tum``           true ``T_world_robot`` at ``truth_rate_hz``, TUM ``t x y z qx qy qz qw``
-                        (the frame ``deployment.toml`` asks the ground truth in)
-``truth_prisms.csv``    true prism positions, ``t_s,prism,x_m,y_m,z_m`` (world frame)
-``truth.json``          station transforms, clock offsets, reference points, seed, config,
-                        the reality effects with their draws when one is on, and the field
-                        effects' draws (section ``field``) under them
-``deployment.toml``     the configuration ``rtsgt run`` reads (paths relative to it)
-=====================  ========================================================================
-
-Numbers are written at full precision (shortest round-trip ``repr``; DMS seconds to 1e-10
-arcsec, 5e-16 rad). Everything is written into a temporary directory next to ``OUT_DIR`` and
-renamed at the end, so that ``OUT_DIR`` is never half-written (:mod:`rtsgt.io.output_dir`).
+:func:`write_deployment` writes ``prism<k>.csv``, ``GCP.txt``, ``calibration_raw.csv``,
+``weather.csv``, ``truth.tum``, ``truth_prisms.csv``, ``truth.json`` and ``deployment.toml``
+(docs/file-formats.md), at full precision (shortest round-trip ``repr``), through a temporary
+directory renamed at the end (:mod:`rtsgt.io.output_dir`): never half-written.
 """
 
 from __future__ import annotations
@@ -304,29 +280,10 @@ def write_deployment(
     sim: SimulatedDeployment, out_dir: str | os.PathLike, *, overwrite: bool = False,
     name: str | None = None,
 ) -> Path:
-    """Write a simulated deployment as a real deployment's files, with its truth.
+    """Write ``sim`` into ``out_dir``; returns ``out_dir / "deployment.toml"``.
 
-    Parameters
-    ----------
-    sim : SimulatedDeployment
-    out_dir : path
-        Directory to create. An existing non-empty directory is refused unless ``overwrite``.
-    overwrite : bool
-        Replace an earlier rtsgt output at ``out_dir``; a directory holding anything rtsgt did
-        not write is refused all the same (:mod:`rtsgt.io.output_dir`).
-    name : str, optional
-        Deployment name; default ``"sim-seed-<seed>"`` (``"sim"`` without a seed).
-
-    Returns
-    -------
-    Path
-        ``out_dir / "deployment.toml"``.
-
-    Raises
-    ------
-    InputError
-        ``out_dir`` exists and is not an empty directory (without ``overwrite``), holds files
-        rtsgt did not write, or is a file.
+    ``name`` defaults to ``"sim-seed-<seed>"``. InputError when ``out_dir`` is a file, a non-empty
+    directory (without ``overwrite``) or holds files rtsgt did not write.
     """
     if not isinstance(sim, SimulatedDeployment):
         raise ValueError(f"Expected a SimulatedDeployment, got {type(sim).__name__}")

@@ -1,50 +1,9 @@
 r"""Reality effects: errors of a real deployment that the estimator's noise model does not have.
 
-The simulator draws its standard errors with the estimator's own model
-(:func:`rtsgt.noise.perturb.sample_polar_errors`, the same clock and weather assumptions), so
-a run on such data can only confirm the algebra. The effects here are drawn by formulas of
-their own, independent of :mod:`rtsgt.noise`, each switched by :class:`RealityEffects` and off
-by default. They act on what the simulated files hold: the measured angles and distances, the
-time stamps, the reported weather and the station set-ups over time.
-
-Models (``t`` true time, s; station ``k``; the sizes are fields of :class:`RealityEffects`)
-------------------------------------------------------------------------------------------
-
-1. ``correlated_noise``: a first-order Gauss-Markov process per station and channel
-   (Hz, V, d), added to the white noise. Exact discretisation at the (irregular) measurement
-   times (e.g. Gelb 1974, *Applied Optimal Estimation*, table 3.8-1)::
-
-       x_0 = sigma w_0,   x_i = phi_i x_{i-1} + sigma sqrt(1 - phi_i^2) w_i,
-       phi_i = exp(-(t_i - t_{i-1}) / tau),   w_i ~ N(0, 1)
-
-   so that ``var x_i = sigma^2`` and ``corr(x_i, x_j) = exp(-|t_i - t_j| / tau)``.
-2. ``prism_cyclic``: the cyclic error of a 360-degree prism (six prisms glued together): with
-   ``alpha`` the azimuth, in the robot's frame, under which the prism sees the station, the
-   range is off by ``a_r sin(2 pi alpha / P + phi_r)`` and the point is off across the line of
-   sight (horizontally) by ``a_c sin(2 pi alpha / P + phi_c)``, period ``P = 60 deg``,
-   phases drawn per prism (how it is mounted).
-3. ``tracking_lag``: the station reports a first-order (exponential) lag of the prism path,
-   ``y(t) = int_0^inf p(t - tau_l x) e^{-x} dx`` (the response of ``tau_l y' + y = p``),
-   computed by Gauss-Laguerre quadrature. At constant velocity ``y(t) = p(t - tau_l)``, an
-   error ``|v| tau_l`` along the track; accelerations add ``tau_l^2 a``.
-4. ``clock_drift``: each station's clock drifts at ``s_k r`` (s/s, random sign ``s_k``) and
-   is re-synchronised every ``N`` s (random phase ``c_k``): a sawtooth clock error
-   ``e_k(t) = s_k r mod(t - c_k, N)`` added to the offset, ``t_recorded = t - e``.
-5. ``jerky_ramps``: starts and stops (speed ramps from or to standstill) reach the peak
-   acceleration ``a_j`` instead of the profile's ``accel_max_m_s2`` (shorter ramps, same
-   schedule).
-6. ``remote_weather``: the weather is reported by a station ``dT`` warmer and ``dh`` higher:
-   ``T_rep = T + dT`` and, by the hypsometric equation with the layer's mean temperature
-   ``T_m`` (K) (e.g. Wallace & Hobbs 2006, eq. 3.29),
-   ``p_rep = p exp(-g M dh / (R T_m))``.
-7. ``tripod_settling``: each station sinks by ``z_k(t) = s (1 - exp(-(t - t_k)/T_s))`` and its
-   horizontal circle twists about the vertical by ``psi_k(t) = +-psi (1 - exp(-(t - t_k)/T_s))``
-   from its set-up ``t_k`` (its first GCP shot) on. The tilt of the standing axis is what the
-   compensator measures and removes, so only the sink and the twist are modelled:
-   ``T_world_station(t) = T_world_station(t_k) [Rz(psi_k(t)), (0, 0, -z_k(t))]``.
-
-Units: s, m, rad, degC, hPa; rates in s/s. Random draws come from one stream per effect
-(:func:`effect_rng`), so that turning an effect on does not change another's draws.
+Drawn by formulas of their own (independent of :mod:`rtsgt.noise`), each switched by
+:class:`RealityEffects` and off by default, acting on the measured angles and distances, the
+time stamps, the reported weather and the station set-ups over time. One random stream per
+effect (:func:`effect_rng`). Models, sizes and units: docs/simulation.md#the-effects.
 """
 
 from __future__ import annotations
@@ -88,57 +47,10 @@ LAG_NODES = 24
 
 @dataclass(frozen=True)
 class RealityEffects:
-    """Which reality effects a simulation applies, and their sizes (module docstring).
+    """Which reality effects a simulation applies, and their sizes (docs/simulation.md#the-effects).
 
-    Every effect is off by default; with all off the simulation is the one without this
-    record, draw for draw.
-
-    Attributes
-    ----------
-    correlated_noise : bool
-        Time-correlated angle and distance noise (Gauss-Markov), added to the white noise.
-    correlated_time_s : float
-        Its correlation time ``tau``, s.
-    correlated_sigma_angle_rad : float
-        Its standard deviation on Hz and on V, rad (default 1", the S7's one-sigma angle).
-    correlated_sigma_distance_m : float
-        Its standard deviation on the distance, m.
-    prism_cyclic : bool
-        Orientation-dependent offset of the 360-degree prisms.
-    prism_cyclic_range_m : float
-        Amplitude ``a_r`` of the range error, m.
-    prism_cyclic_across_m : float
-        Amplitude ``a_c`` of the horizontal error across the line of sight, m.
-    prism_cyclic_period_rad : float
-        Period ``P`` of the error in the viewing azimuth, rad (60 deg: six prisms).
-    tracking_lag : bool
-        First-order lag of the tracked position.
-    tracking_lag_s : float
-        Its time constant ``tau_l``, s.
-    clock_drift : bool
-        Linear clock drift between periodic re-synchronisations (sawtooth).
-    clock_drift_rate : float
-        Drift rate ``r``, s/s (50e-6: 50 ppm, a free-running crystal).
-    clock_resync_interval_s : float
-        Time ``N`` between re-synchronisations, s.
-    jerky_ramps : bool
-        Starts and stops at a much higher acceleration.
-    jerky_accel_m_s2 : float
-        Peak acceleration ``a_j`` of those ramps, m/s^2.
-    remote_weather : bool
-        Weather reported by a station elsewhere.
-    remote_temperature_bias_c : float
-        ``dT``, degC (reported minus true).
-    remote_altitude_difference_m : float
-        ``dh``, height of the weather station above the site, m (negative: below).
-    tripod_settling : bool
-        Stations sink and twist after their set-up.
-    settling_sink_m : float
-        Final sink ``s``, m.
-    settling_twist_rad : float
-        Final twist ``psi`` about the vertical, rad (sign drawn per station).
-    settling_time_s : float
-        Time constant ``T_s``, s.
+    Every effect is off by default; with all off the simulation is the one without this record,
+    draw for draw. Units in the names (s, m, rad, degC; rates s/s).
     """
 
     correlated_noise: bool = False
@@ -203,12 +115,8 @@ class RealityEffects:
 
 
 def effect_rng(entropy: int, effect: str) -> np.random.Generator:
-    """The random stream of one reality effect.
-
-    Child ``i`` (the index of ``effect`` in :data:`REALITY_EFFECTS`) of
-    ``numpy.random.SeedSequence(entropy)``, the scheme of :func:`rtsgt.options.stage_rng`:
-    independent streams, the same on every machine. ``entropy`` is drawn once from the
-    simulation's generator after its own stages.
+    """The random stream of one reality effect: child ``REALITY_EFFECTS.index(effect)`` of
+    ``SeedSequence(entropy)`` (the scheme of :func:`rtsgt.options.stage_rng`).
     """
     return np.random.default_rng(
         np.random.SeedSequence(int(entropy), spawn_key=(REALITY_EFFECTS.index(effect),)))
@@ -216,30 +124,10 @@ def effect_rng(entropy: int, effect: str) -> np.random.Generator:
 
 def gauss_markov(t: ArrayLike, tau_s: float, sigma: ArrayLike,
                  rng: np.random.Generator) -> np.ndarray:
-    """First-order Gauss-Markov process sampled exactly at increasing times.
+    """First-order Gauss-Markov process (N, C) at non-decreasing times ``t`` (N,) s, correlation time
+    ``tau_s``, per-channel sigma (C,): stationary, ``corr = exp(-|t_i - t_j| / tau)``.
 
-    Parameters
-    ----------
-    t : array_like, shape (N,)
-        Times, s, non-decreasing.
-    tau_s : float
-        Correlation time, s (> 0).
-    sigma : array_like, shape (C,)
-        Standard deviation of each of ``C`` independent channels.
-    rng : numpy.random.Generator
-
-    Returns
-    -------
-    ndarray, shape (N, C)
-        ``x`` with ``var x = sigma^2`` and ``corr(x(t_i), x(t_j)) = exp(-|t_i - t_j| / tau)``
-        (module docstring, model 1), started in its stationary distribution.
-
-    Notes
-    -----
-    The recursion is summed in closed form, ``x_i = sum_{j <= i} exp(-(t_i - t_j)/tau) u_j``
-    with ``u_0 = sigma w_0`` and ``u_j = sigma sqrt(1 - phi_j^2) w_j``, by a cumulative sum in
-    blocks of ``300 tau`` (the factors ``exp(+-300)`` stay finite): a loop over blocks, not
-    over samples.
+    Summed in closed form by cumulative sums in blocks of ``300 tau`` (no loop over samples).
     """
     t = np.asarray(t, dtype=float)
     sigma = np.atleast_1d(np.asarray(sigma, dtype=float))
@@ -269,13 +157,8 @@ def gauss_markov(t: ArrayLike, tau_s: float, sigma: ArrayLike,
 
 def prism_cyclic_error(alpha_rad: ArrayLike, amplitude_m: float, period_rad: float,
                        phase_rad: float) -> np.ndarray:
-    """Cyclic error of a 360-degree prism, ``a sin(2 pi alpha / P + phi)``, m.
-
-    Parameters
-    ----------
-    alpha_rad : array_like, shape (...)
-        Azimuth of the line of sight (prism to station) in the robot's frame, rad.
-    amplitude_m, period_rad, phase_rad : float
+    """Cyclic error of a 360-degree prism, ``a sin(2 pi alpha / P + phi)`` (...) m, for the viewing
+    azimuth ``alpha_rad`` (...) in the robot's frame.
     """
     return amplitude_m * np.sin(2.0 * np.pi * np.asarray(alpha_rad, dtype=float) / period_rad
                                 + phase_rad)
@@ -283,22 +166,8 @@ def prism_cyclic_error(alpha_rad: ArrayLike, amplitude_m: float, period_rad: flo
 
 def first_order_lag(path: Callable[[np.ndarray], np.ndarray], t: ArrayLike,
                     lag_s: float, nodes: int = LAG_NODES) -> np.ndarray:
-    """First-order lag of a path: ``int_0^inf path(t - lag x) e^{-x} dx`` (Gauss-Laguerre).
-
-    Parameters
-    ----------
-    path : callable
-        ``path(times)`` for times of shape (N, M) returns positions of shape (N, M, 3), m.
-    t : array_like, shape (N,)
-        Times, s.
-    lag_s : float
-        Time constant, s (0: the path itself).
-    nodes : int
-        Quadrature nodes.
-
-    Returns
-    -------
-    ndarray, shape (N, 3)
+    """First-order lag (N, 3) m of ``path`` (times (N, M) -> (N, M, 3)) at ``t`` (N,) s:
+    ``int_0^inf path(t - lag_s x) e^{-x} dx`` by Gauss-Laguerre with ``nodes`` nodes.
     """
     t = np.asarray(t, dtype=float)
     if lag_s == 0:
@@ -336,16 +205,8 @@ def settling_fraction(t: ArrayLike, t_start_s: float, time_constant_s: float) ->
 
 
 def settle_points(p_station: ArrayLike, sink_m: ArrayLike, twist_rad: ArrayLike) -> np.ndarray:
-    """Points (N, 3) of a station's initial frame in its settled frame.
-
-    The settled frame is ``[Rz(psi), (0, 0, -z)]`` in the initial one (sunk by ``z``, twisted
-    by ``psi`` about the vertical), so ``p' = Rz(psi)^T (p + (0, 0, z))``.
-
-    Parameters
-    ----------
-    p_station : array_like, shape (N, 3)
-        m.
-    sink_m, twist_rad : array_like, shape (N,)
+    """Points (N, 3) m of a station's initial frame in its settled frame ``[Rz(psi), (0, 0, -z)]``:
+    ``p' = Rz(psi)^T (p + (0, 0, z))``, ``sink_m``, ``twist_rad`` (N,).
     """
     p = np.asarray(p_station, dtype=float)
     c, s = np.cos(twist_rad), np.sin(twist_rad)
@@ -355,24 +216,10 @@ def settle_points(p_station: ArrayLike, sink_m: ArrayLike, twist_rad: ArrayLike)
 
 @dataclass(frozen=True, eq=False)
 class RealityTruth:
-    """What the reality effects of a simulation drew (per station, in station order).
-
-    Attributes
-    ----------
-    effects : RealityEffects
-    station_ids : tuple of str
-    clock_rate : ndarray, shape (S,)
-        Signed drift rate ``s_k r`` of each clock, s/s (zeros without ``clock_drift``).
-    clock_sync_phase_s : ndarray, shape (S,)
-        Re-synchronisation phase ``c_k``, s (Unix time modulo the interval).
-    settling_start_s : ndarray, shape (S,)
-        Set-up time ``t_k`` of each station (its first GCP shot), s.
-    settling_twist_rad : ndarray, shape (S,)
-        Signed final twist, rad (zeros without ``tripod_settling``).
-    settling_sink_m : ndarray, shape (S,)
-        Final sink, m (zeros without ``tripod_settling``).
-    prism_phase_rad : ndarray, shape (S, 2)
-        Phases ``(phi_r, phi_c)`` of the cyclic error of the prism each station tracks.
+    """What the reality effects drew, per station (S) in order: ``clock_rate`` (S,) signed s/s,
+    ``clock_sync_phase_s`` (S,), ``settling_start_s`` (S,) (first GCP shot), ``settling_twist_rad``
+    and ``settling_sink_m`` (S,) signed finals, ``prism_phase_rad`` (S, 2) ``(phi_r, phi_c)``;
+    zeros for effects off.
     """
 
     effects: RealityEffects
