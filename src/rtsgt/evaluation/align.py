@@ -1,50 +1,8 @@
 r"""Alignment of an estimated trajectory onto the ground truth before computing errors.
 
-An odometry or SLAM estimate lives in its own frame (and, for monocular methods, its own
-scale). Before comparing it with the ground truth, its positions ``p_est`` are mapped into the
-ground-truth (world) frame by a similarity transform::
-
-    p_world = s R p_est + t          R_world_body = R R_est_body
-
-estimated by least squares on the associated positions ``p_gt``:
-
-.. math::
-
-    (s, R, t) = \arg\min \sum_k w_k \| p_{gt,k} - (s R p_{est,k} + t) \|^2
-
-Methods
--------
-``none``
-    Identity.
-``se3``
-    Rotation and translation (Umeyama 1991 without scale: Kabsch), as ``evo -a``.
-``sim3``
-    Rotation, translation and scale (Umeyama 1991), as ``evo -a -s``.
-``4dof``
-    Translation and a rotation about the world z axis only (yaw), for gravity-aligned
-    odometry (VIO, wheel-inertial), where roll and pitch are observable and must not be
-    "aligned away". Closed form below.
-``scale``
-    Scale only (``s`` of the Sim(3) fit, ``R = I``, ``t = 0``), as ``evo -s`` without ``-a``.
-``origin``
-    The first estimated pose is mapped onto the first ground-truth pose
-    (``T = T_gt,0 T_est,0^-1``), as ``evo --align_origin``.
-
-Weighted variant
-----------------
-With ``weighted=True`` each pose gets the scalar weight ``w_k = 1 / tr(Sigma_k)`` where
-``Sigma_k`` is the 3x3 ground-truth position covariance (plus the estimate's own position
-covariance when it has one; the trace is invariant under the rotation of the alignment). A
-scalar weight keeps Umeyama's closed form exact (weighted means, weighted cross-covariance);
-the fully anisotropic weighting ``sum e^T Sigma^-1 e`` has no closed form and is not used.
-Poses whose ground truth is less certain then pull less on the alignment.
-
-References
-----------
-S. Umeyama, "Least-squares estimation of transformation parameters between two point
-patterns", IEEE TPAMI 13(4), 1991, eqs. 34-43 (weights enter through the means and the
-cross-covariance). The ``4dof`` closed form is the 2-D Procrustes (Kabsch) solution in the
-horizontal plane after removing the weighted centroids.
+``p_world = s R p_est + t`` by (weighted) least squares on the associated positions, methods
+:data:`ALIGN_METHODS` (none, se3, sim3, 4dof, scale, origin; Umeyama 1991 and its yaw-only
+form); docs/evaluation.md#alignment.
 """
 
 from __future__ import annotations
@@ -66,22 +24,8 @@ MIN_POSES = {"none": 0, "se3": 3, "sim3": 3, "4dof": 2, "scale": 3, "origin": 1}
 
 @dataclass(frozen=True)
 class Alignment:
-    """A similarity transform ``p_world = s R p_est + t`` applied to the estimate.
-
-    Attributes
-    ----------
-    method : str
-        One of :data:`ALIGN_METHODS`.
-    rotation : ndarray, shape (3, 3)
-        ``R_world_est``.
-    translation : ndarray, shape (3,)
-        ``t_world_est``, m.
-    scale : float
-        ``s`` (1 unless the method is ``sim3`` or ``scale``).
-    n_used : int
-        Number of poses the transform was fitted on.
-    weighted : bool
-        Whether the covariance weights were used.
+    """A similarity ``p_world = s R p_est + t`` (``method``, ``rotation`` (3, 3), ``translation``
+    (3,) m, ``scale``) fitted on ``n_used`` poses, ``weighted`` or not.
     """
 
     method: str
@@ -167,39 +111,9 @@ def umeyama(
     *,
     with_scale: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    r"""Weighted least-squares similarity ``p_gt ~= s R p_est + t`` (Umeyama 1991).
-
-    Parameters
-    ----------
-    p_est : array_like, shape (N, 3)
-        Points in the estimate frame, m.
-    p_gt : array_like, shape (N, 3)
-        The same points in the world frame, m.
-    weights : array_like, shape (N,), optional
-        Non-negative weights (uniform when None, which is evo's ``umeyama_alignment``).
-    with_scale : bool
-        Estimate ``s`` as well (Sim(3)); otherwise ``s = 1`` (SE(3)).
-
-    Returns
-    -------
-    R : ndarray, shape (3, 3)
-    t : ndarray, shape (3,)
-    s : float
-
-    Notes
-    -----
-    With normalised weights ``w`` (Umeyama eqs. 34-38, weights inserted in the sums)::
-
-        mu_x = sum w x,  mu_y = sum w y,  sigma_x^2 = sum w |x - mu_x|^2
-        Sigma_xy = sum w (y - mu_y)(x - mu_x)^T = U D V^T
-        S = diag(1, 1, sign(det U det V))                (eq. 39/43, no reflection)
-        R = U S V^T,  s = tr(D S) / sigma_x^2,  t = mu_y - s R mu_x    (eqs. 40-42)
-
-    Raises
-    ------
-    GeometryError
-        Fewer than 3 points, or points that are (nearly) collinear so that the rotation is not
-        determined.
+    r"""Weighted least-squares ``p_gt ~= s R p_est + t`` (Umeyama 1991) of points (N, 3) m with
+    ``weights`` (N,) (None: uniform, evo's); returns R (3, 3), t (3,), s (1 unless ``with_scale``).
+    GeometryError for fewer than 3 or collinear points (docs/evaluation.md#alignment).
     """
     x, y = _check_points(p_est, p_gt)
     n = x.shape[0]
@@ -232,23 +146,8 @@ def umeyama(
 def align_yaw(
     p_est: ArrayLike, p_gt: ArrayLike, weights: ArrayLike | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    r"""Weighted least-squares ``p_gt ~= R_z(psi) p_est + t`` (4 DOF: x, y, z, yaw).
-
-    Parameters
-    ----------
-    p_est, p_gt : array_like, shape (N, 3)
-        Positions in the estimate and world frames, m. Both frames must have z along gravity.
-    weights : array_like, shape (N,), optional
-
-    Returns
-    -------
-    R : ndarray, shape (3, 3)
-        A rotation about z.
-    t : ndarray, shape (3,)
-
-    Notes
-    -----
-    The closed form of :func:`rtsgt.geometry.kabsch.kabsch_yaw`.
+    r"""Weighted least-squares ``p_gt ~= R_z(psi) p_est + t`` (x, y, z, yaw) of positions (N, 3) m,
+    z along gravity in both frames: R (3, 3), t (3,) (:func:`rtsgt.geometry.kabsch.kabsch_yaw`).
     """
     x, y = _check_points(p_est, p_gt)
     n = x.shape[0]
@@ -264,19 +163,8 @@ def align_yaw(
 
 
 def alignment_weights(cov_gt: ArrayLike, cov_est: ArrayLike | None = None) -> np.ndarray:
-    """Scalar weights ``1 / tr(Sigma_gt,pos + Sigma_est,pos)`` for a weighted alignment.
-
-    Parameters
-    ----------
-    cov_gt : array_like, shape (N, 6, 6) or (N, 3, 3)
-        Ground-truth covariance; its position block (top-left 3x3, m^2) is used.
-    cov_est : array_like, shape (N, 6, 6) or (N, 3, 3), optional
-        The estimate's own covariance (its trace is frame independent).
-
-    Returns
-    -------
-    ndarray, shape (N,)
-        Weights, 1/m^2 (unnormalised).
+    """Weights (N,) 1/m^2 ``1 / tr(Sigma_gt,pos + Sigma_est,pos)`` from the position blocks of
+    ``cov_gt`` and ``cov_est`` ((N, 6, 6) or (N, 3, 3)).
     """
     tr = np.trace(np.asarray(cov_gt, dtype=float)[:, :3, :3], axis1=1, axis2=2)
     if cov_est is not None:
@@ -308,31 +196,11 @@ def align_trajectories(
     n_align: int | None = None,
     weighted: bool = False,
 ) -> Alignment:
-    """Fit the alignment of ``est`` onto ``gt`` (already associated: pose k with pose k).
+    """Fit the :class:`Alignment` of ``est`` onto the associated ``gt`` (pose k with pose k).
 
-    Parameters
-    ----------
-    gt : PoseTrajectory
-        Ground truth at the estimate's times (world frame); needs ``cov`` when ``weighted``.
-    est : PoseTrajectory
-        Estimate, same length as ``gt``.
-    method : str
-        One of :data:`ALIGN_METHODS`.
-    n_align : int, optional
-        Fit on the first ``n_align`` poses only (evo's ``--n_to_align``); all when None.
-    weighted : bool
-        Use the scalar covariance weights of :func:`alignment_weights`.
-
-    Returns
-    -------
-    Alignment
-
-    Raises
-    ------
-    InputError
-        Unknown method, too few poses for the method, weights without a covariance.
-    GeometryError
-        Degenerate geometry (collinear positions, no horizontal motion for 4dof).
+    ``method`` in :data:`ALIGN_METHODS`; ``n_align``: the first poses only (evo); ``weighted``:
+    :func:`alignment_weights` (needs ``gt.cov``). InputError on an unknown method, too few poses,
+    weights without covariance; GeometryError on degenerate geometry.
     """
     if method not in ALIGN_METHODS:
         raise InputError(f"Expected an alignment in {ALIGN_METHODS}, got {method!r}")

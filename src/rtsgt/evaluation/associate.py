@@ -1,33 +1,11 @@
 r"""Association of estimated poses with the (uncertain) ground truth, in time.
 
-For each estimated pose at time ``t`` the ground truth is taken at ``tau = t + time_offset``
-(``time_offset`` is evo's ``--t_offset``: it is added to the estimate's clock). Two kinds of
-ground truth are accepted:
-
-- a **continuous-time query** ``gt_query(tau) -> PoseTrajectory`` (with ``cov``), such as the
-  posterior of the GP prism tracks turned into poses: the pose and covariance at ``tau``, not
-  the nearest stored pose. It may also return ``(PoseTrajectory, cross_next)`` with
-  ``cross_next`` of shape (M - 1, 6, 6) the cross-covariances ``Cov(xi_k, xi_{k+1})`` between
-  consecutive returned poses (the GP smoother provides them); the RPE then uses them.
-  ``measurement_times`` (the times of the measurements the ground truth rests on) bound the
-  support and give the distance to the nearest measurement;
-- a **discrete** :class:`~rtsgt.types.PoseTrajectory`: interpolated between its two
-  neighbours, linearly in translation and by slerp in rotation
-  (``R = exp(f log(R_b R_a^T)) R_a``, the shortest path, as evo's ``--sync_method
-  interpolation``); its covariance is interpolated linearly, ``(1 - f) P_a + f P_b``, which is
-  only an approximation of the posterior between samples, so those poses are flagged
-  (``cov_interpolated``). A pose that falls exactly on a ground-truth time takes that sample
-  unchanged. No extrapolation: estimate poses outside the ground-truth span are dropped.
-
-In both cases a pose is kept only when the nearest ground-truth measurement time is at most
-``max_dt`` away (this rejects poses inside the gaps of the ground truth).
-
-A third kind, a **validated continuous-time ground truth** (:class:`ValidatedGroundTruth`, e.g.
-:class:`rtsgt.evaluation.groundtruth.ContinuousGroundTruth` built from a run directory),
-answers at every offset time with a pose and a drop reason (:class:`GroundTruthSample`):
-outside the ground truth, in a gap, farther than ``max_dt`` from the nearest measurement of a
-prism, or rejected by the run's quality gates. Each dropped estimate pose is counted under its
-reason (:attr:`Association.dropped`).
+The ground truth at ``tau = t + time_offset`` of each estimate pose: a discrete
+:class:`~rtsgt.types.PoseTrajectory` (interpolated, covariance flagged), a continuous query
+``gt(times) -> PoseTrajectory`` (or with ``cross_next`` (M - 1, 6, 6)), or a
+:class:`ValidatedGroundTruth` that says why it drops a time. Poses outside the ground truth or
+farther than ``max_dt`` from its measurements are dropped, counted per reason
+(docs/evaluation.md#association).
 """
 
 from __future__ import annotations
@@ -60,25 +38,12 @@ REASON_FAR = "far_from_measurement"
 
 @dataclass(frozen=True)
 class GroundTruthSample:
-    """A validated continuous-time ground truth at query times (one entry per time).
+    """A validated continuous-time ground truth at M query times ``t`` (s, ground-truth clock).
 
-    Attributes
-    ----------
-    t : ndarray, shape (M,)
-        Query times, s (ground-truth clock).
-    position : ndarray, shape (M, 3)
-        m, world frame; NaN where no pose was computed.
-    quat_xyzw : ndarray, shape (M, 4), or None
-        NaN where no pose was computed; None for a ground truth of positions (3 dof).
-    cov : ndarray, shape (M, 6, 6) or (M, 3, 3) for positions, or None
-        Left-perturbation covariance, world frame (``PoseTrajectory`` convention).
-    reason : ndarray of str, shape (M,)
-        ``""`` where the pose is valid, else why it is not (a short code).
-    nearest_dt : ndarray, shape (M,)
-        Distance to the nearest measurement supporting the pose, s (the largest over the
-        tracks the pose rests on; NaN where unknown).
-    cross_next : ndarray, shape (V - 1, 6, 6) or None
-        ``Cov(xi_k, xi_{k+1})`` of consecutive *valid* poses (NaN where unknown), or None.
+    ``position`` (M, 3) m and ``quat_xyzw`` (M, 4) (None for positions), NaN where no pose;
+    ``cov`` (M, 6, 6) or (M, 3, 3) or None; ``reason`` (M,) str, "" where valid; ``nearest_dt``
+    (M,) s to the farthest track's nearest measurement; ``cross_next`` (V - 1, 6, 6) of
+    consecutive valid poses, or None.
     """
 
     t: np.ndarray
@@ -155,40 +120,11 @@ class SharedFactorGroundTruth(Protocol):
 class Association:
     """Estimate poses paired with the ground truth at the same (offset) times.
 
-    Attributes
-    ----------
-    index : ndarray of int, shape (M,)
-        Indices of the associated poses in the estimate.
-    est : PoseTrajectory
-        The associated estimate poses (estimate frame, times of the estimate).
-    gt : PoseTrajectory
-        Ground truth at ``est.t + time_offset`` (world frame), stored with the estimate's
-        times so that both share one time axis.
-    dt_nearest : ndarray, shape (M,)
-        Distance to the nearest ground-truth measurement time, s (NaN when unknown).
-    cov_interpolated : ndarray of bool, shape (M,)
-        True where the ground-truth covariance was interpolated linearly between samples.
-    cross_next : ndarray, shape (M - 1, 6, 6) or None
-        ``Cov(xi_k, xi_{k+1})`` of consecutive associated ground-truth poses, NaN where
-        unknown; None when no correlation is known at all.
-    time_offset : float
-        s, added to the estimate's times.
-    max_dt : float or None
-        s.
-    n_est : int
-        Number of estimate poses given.
-    n_outside : int
-        Estimate poses outside the ground-truth time span.
-    n_gap : int
-        Estimate poses inside the span but farther than ``max_dt`` from any measurement
-        (for a validated ground truth: every drop that is neither outside its span nor a
-        quality gate, i.e. gaps and ``max_dt``).
-    dropped : dict str -> int
-        Dropped estimate poses per reason (module docstring), only reasons that occurred.
-    ground_truth : str
-        ``"discrete"``, ``"query"`` or ``"continuous"`` (validated).
-    ground_truth_detail : dict
-        What a validated ground truth says about itself (its ``info``: source, engine...).
+    ``index`` (M,) into the estimate; ``est``; ``gt`` at ``est.t + time_offset`` stored with the
+    estimate's times; ``dt_nearest`` (M,) s; ``cov_interpolated`` (M,) bool; ``cross_next``
+    (M - 1, 6, 6) or None; ``time_offset``, ``max_dt`` s; counts ``n_est``, ``n_outside``,
+    ``n_gap`` (every drop neither outside nor a gate) and ``dropped`` per reason;
+    ``ground_truth`` "discrete", "query" or "continuous", ``ground_truth_detail`` its ``info``.
     """
 
     index: np.ndarray
@@ -242,25 +178,9 @@ def nearest_distance(times: np.ndarray, tau: np.ndarray) -> np.ndarray:
 def interpolate_trajectory(
     gt: PoseTrajectory, tau: ArrayLike
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
-    """Interpolate a discrete trajectory at times inside its span.
-
-    Parameters
-    ----------
-    gt : PoseTrajectory
-        Strictly increasing times, at least 2 poses.
-    tau : array_like, shape (M,)
-        Query times within ``[gt.t[0], gt.t[-1]]``, s.
-
-    Returns
-    -------
-    position : ndarray, shape (M, 3)
-    rotation : ndarray, shape (M, 3, 3)
-    cov : ndarray, shape (M, 6, 6) or None
-        Linearly interpolated covariance.
-    exact : ndarray of int, shape (M,)
-        Index of the ground-truth sample the query coincides with, or -1.
-    frac : ndarray, shape (M,)
-        Interpolation fraction between the left and right neighbours.
+    """Interpolate ``gt`` (>= 2 poses, increasing times) at ``tau`` (M,) inside its span: position
+    (M, 3), rotation (M, 3, 3), linear cov (M, 6, 6) or None, ``exact`` (M,) index of a coinciding
+    sample or -1, ``frac`` (M,) between the neighbours.
     """
     tau = np.asarray(tau, dtype=float)
     t = gt.t
@@ -308,38 +228,13 @@ def associate(
     measurement_times: ArrayLike | None = None,
     gt_cross_next: ArrayLike | None = None,
 ) -> Association:
-    """Pair each estimate pose with the ground truth at its (offset) time.
+    """Pair each estimate pose (increasing times) with the ground truth ``gt`` at its time plus
+    ``time_offset`` s; returns :class:`Association`.
 
-    Parameters
-    ----------
-    gt : PoseTrajectory or callable
-        Discrete ground truth (interpolated) or a continuous-time query
-        ``gt(times) -> PoseTrajectory`` or ``(PoseTrajectory, cross_next)`` (module docstring).
-    est : PoseTrajectory
-        Estimate, strictly increasing times.
-    time_offset : float
-        s, added to the estimate's times before the association (evo ``--t_offset``).
-    max_dt : float or None
-        Maximum distance (s) from a query time to the nearest ground-truth measurement time;
-        None disables the check.
-    measurement_times : array_like, shape (K,), optional
-        Times of the measurements supporting the ground truth. For a query, they bound the
-        support (no pose outside ``[min, max]``) and feed ``max_dt``; without them every time
-        is queried (the query may raise :class:`~rtsgt.errors.ExtrapolationError`). For a
-        discrete ground truth the default is its own times.
-    gt_cross_next : array_like, shape (N_gt - 1, 6, 6), optional
-        For a discrete ground truth: ``Cov(xi_k, xi_{k+1})`` of consecutive ground-truth
-        samples. Used for associated poses that fall exactly on ground-truth samples (chained
-        over the samples in between, :func:`~rtsgt.evaluation.metrics.chain_cross_covariance`).
-
-    Returns
-    -------
-    Association
-
-    Raises
-    ------
-    InputError
-        No time overlap, every overlapping pose in a gap, bad shapes or times.
+    ``max_dt`` s (None: no check) to the nearest of ``measurement_times`` (K,) (for a query: also
+    its support; for a discrete truth: its own times by default); ``gt_cross_next``
+    (N_gt - 1, 6, 6) for a discrete truth, chained between samples. InputError when nothing
+    overlaps, every overlapping pose is in a gap, or on bad shapes or times.
     """
     t_est = np.asarray(est.t, dtype=float)
     _check_times(t_est, "estimate")
@@ -528,17 +423,8 @@ RATE_STEP_S = 0.25
 
 @dataclass(frozen=True)
 class GroundTruthRates:
-    """World-frame velocities of the ground truth at the associated times.
-
-    Attributes
-    ----------
-    v : ndarray, shape (M, 3)
-        Linear velocity, m/s.
-    w : ndarray, shape (M, 3)
-        Angular velocity, rad/s (``R(tau + dt) = exp(w dt) R(tau)``).
-    cov : ndarray, shape (M, 6, 6) or None
-        Covariance of their errors ``(v, w)`` from the ground truth's own errors (None without
-        covariances).
+    """World-frame velocities of the ground truth at the associated times: ``v`` (M, 3) m/s, ``w``
+    (M, 3) rad/s (``R(tau + dt) = exp(w dt) R(tau)``), ``cov`` (M, 6, 6) of ``(v, w)`` or None.
     """
 
     v: np.ndarray
@@ -553,31 +439,8 @@ def ground_truth_rates(
     measurement_times: ArrayLike | None = None,
     step: float = RATE_STEP_S,
 ) -> GroundTruthRates:
-    r"""World-frame linear and angular velocity of the ground truth at the associated times.
-
-    Central differences of the ground truth queried (as :func:`associate` queries it, any
-    kind) at ``tau -+ step``, ``tau = t + time_offset``: ``v = (p_+ - p_-) / (2 step)``,
-    ``w = log(R_+ R_-^T) / (2 step)`` (so that ``R(tau + dt) = exp(w dt) R(tau)``); one-sided
-    against the associated pose where one side is outside the ground truth, zero where both
-    are. Their error covariance is that of the difference of the two poses' errors over the
-    squared time between them, the two taken as independent (an upper bound for a ground
-    truth whose errors are correlated in time: what it is used for,
-    :func:`~rtsgt.evaluation.mounting.fit_mounting`'s ``gt_rate_cov``, then errs on the
-    cautious side).
-
-    Parameters
-    ----------
-    gt : PoseTrajectory, callable or ValidatedGroundTruth
-        The ground truth of the association.
-    assoc : Association
-    measurement_times : array_like, optional
-        As for :func:`associate`.
-    step : float
-        s.
-
-    Returns
-    -------
-    GroundTruthRates
+    r""":class:`GroundTruthRates` of ``gt`` (any kind) at ``assoc``'s times by central differences of
+    ``step`` s (docs/evaluation.md#association); ``measurement_times`` as for :func:`associate`.
     """
     tau = assoc.est.t + assoc.time_offset
     M = tau.size
@@ -744,26 +607,11 @@ def _range_max(values: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.nd
 def gap_per_step(
     tau: np.ndarray, index: np.ndarray, support: np.ndarray | None, limit: float
 ) -> np.ndarray:
-    """Ground-truth gap between consecutive associated poses, s, shape (M - 1,); 0 where none.
+    """Ground-truth gap (M - 1,) s between consecutive associated poses (0 where none).
 
-    Parameters
-    ----------
-    tau : ndarray, shape (M,)
-        Ground-truth times of the associated poses (estimate time + offset), increasing.
-    index : ndarray of int, shape (M,)
-        Their indices in the estimate.
-    support : ndarray, shape (K,), optional
-        Times the ground truth rests on (discrete samples, measurement times), sorted.
-    limit : float
-        The gap limit ``max_dt``, s.
-
-    Returns
-    -------
-    ndarray
-        The larger of: ``tau[k+1] - tau[k]`` when the association dropped estimate poses
-        between k and k + 1 and it exceeds ``limit``; the longest spacing of ``support`` over
-        ``[tau[k], tau[k+1]]`` when it exceeds ``2 limit`` (a stretch farther than ``limit``
-        from both samples: where the association would drop a pose).
+    For ground-truth times ``tau`` (M,) and estimate ``index`` (M,): the larger of ``tau[k+1] -
+    tau[k]`` when poses were dropped between and it exceeds ``limit``, and the longest spacing of
+    ``support`` (sorted) over ``[tau[k], tau[k+1]]`` when it exceeds ``2 limit``.
     """
     dropped = np.diff(index) > 1
     step = np.diff(tau)

@@ -1,12 +1,6 @@
-"""Drift by segment length: the KITTI odometry benchmark's translational and rotational errors
-(Geiger et al. 2012, the devkit's ``evaluate_odometry``) over segments of ground-truth path,
-the same over segments of time (per-second drift), each beside the ground truth's own drift
-over the segments (its noise floor, from the covariance of its relative poses).
-
-Definitions, the choice of the lengths for short runs and the floor:
-docs/evaluating.md#drift-by-segment-length. Numeric core: no I/O; the caller gives the
-errors of segments and, for the floor, the ground truth's relative covariance of segments
-(:func:`drift_metrics`).
+"""Drift by segment length: KITTI's translational and rotational errors (Geiger et al. 2012) over
+segments of ground-truth path and of time, beside the ground truth's own drift (its floor).
+Definitions: docs/evaluating.md#drift-by-segment-length.
 """
 
 from __future__ import annotations
@@ -84,16 +78,8 @@ def distance_lengths(path_m: float) -> tuple[np.ndarray, str]:
 
 @dataclass(frozen=True)
 class Segments:
-    """Segments of a trajectory (the devkit's selection).
-
-    Attributes
-    ----------
-    first, last : ndarray of int, shape (K,)
-        Indices of the first and last pose of each segment.
-    which : ndarray of int, shape (K,)
-        Index of its length in ``lengths``.
-    lengths : ndarray, shape (B,)
-        Nominal lengths (m of path, or s).
+    """Segments (the devkit's): ``first``, ``last`` (K,) pose indices, ``which`` (K,) index into
+    ``lengths`` (B,) (m of path, or s).
     """
 
     first: np.ndarray
@@ -103,17 +89,9 @@ class Segments:
 
 
 def segments(along: ArrayLike, lengths: ArrayLike, step: int = KITTI_STEP_FRAMES) -> Segments:
-    """The devkit's segments: for every first frame ``0, step, 2 step, ...`` and every length
-    ``L``, the last frame is the first one with ``along[last] > along[first] + L`` (none:
-    no segment).
-
-    Parameters
-    ----------
-    along : array_like, shape (N,)
-        Non-decreasing: path length (:func:`path_distances`, m) or time (s).
-    lengths : array_like, shape (B,)
-    step : int
-        Frames between first frames.
+    """The devkit's :class:`Segments`: for first frames ``0, step, 2 step, ...`` and each length ``L``
+    of ``lengths`` (B,), the first frame with ``along[last] > along[first] + L``; ``along`` (N,)
+    non-decreasing path length (m) or time (s).
     """
     a = np.asarray(along, dtype=float)
     L = np.asarray(lengths, dtype=float).reshape(-1)
@@ -168,27 +146,12 @@ def floor_sample(which: np.ndarray, n_bins: int, per_bin: int = FLOOR_SEGMENTS) 
 
 @dataclass(frozen=True)
 class SegmentDrift:
-    """Drift over segments of one kind (path or time).
+    """Drift over segments of one ``kind`` ("distance", m of ground-truth path, or "time", s).
 
-    Per length (arrays of shape (B,)) and pooled over all segments (``*_all``, the KITTI
-    leaderboard's average), the mean of ``error / L``: translation in m per unit (m/m for
-    path, m/s for time), rotation in rad per unit (None: not estimable). The floors are the
-    ground truth's own rms ``sqrt(mean tr Sigma_rel / L^2)`` over the segments (translation
-    and rotation blocks of its relative covariance; None without covariances).
-
-    Attributes
-    ----------
-    kind : str
-        ``"distance"`` (lengths in m of ground-truth path) or ``"time"`` (s).
-    lengths : ndarray, shape (B,)
-    lengths_from : str
-        Where the lengths come from.
-    n : ndarray of int, shape (B,)
-    translation, rotation, translation_floor, rotation_floor : ndarray, shape (B,) or None
-    translation_all, rotation_all, translation_floor_all, rotation_floor_all : float or None
-    segments : Segments
-    translation_error, rotation_error : ndarray, shape (K,)
-        Per segment: ``|t_E| / L``, ``angle(R_E) / L`` (rotation None when not estimable).
+    Per length (B,) and pooled (``*_all``, KITTI's average): the mean of ``error / L``, translation
+    in m per unit, rotation in rad per unit (None: not estimable), and the ground truth's floors
+    ``sqrt(mean tr Sigma_rel / L^2)`` (None without covariances); ``n`` (B,), ``lengths_from``,
+    ``segments`` and the per-segment ``translation_error``, ``rotation_error`` (K,).
     """
 
     kind: str
@@ -291,18 +254,9 @@ def segment_drift(kind: str, seg: Segments, lengths_from: str, errors: ErrorsFn,
 
 @dataclass(frozen=True)
 class Drift:
-    """Drift by segment length (:func:`drift_metrics`).
-
-    Attributes
-    ----------
-    distance : SegmentDrift or None
-        Over segments of ground-truth path (None: it does not move).
-    time : SegmentDrift or None
-        Over segments of time (None: the run is shorter than the shortest).
-    rotation : str or None
-        Why rotational drift is not reported (None: it is).
-    definition : str
-        The translation error's definition.
+    """Drift by segment length: ``distance`` and ``time`` :class:`SegmentDrift` (None: no motion, or
+    a run shorter than the shortest), ``rotation`` why rotational drift is absent (None: it is
+    not), ``definition`` of the translation error.
     """
 
     distance: SegmentDrift | None
@@ -327,28 +281,12 @@ def drift_metrics(
     time: ArrayLike | None = TIME_LENGTHS_S, rotation: str | None = None,
     definition: str | None = None,
 ) -> Drift:
-    """Drift over segments of ground-truth path and of time.
-
-    Parameters
-    ----------
-    t : array_like, shape (N,)
-        Times of the associated poses, s, increasing.
-    gt_position : array_like, shape (N, 3)
-        The ground truth's positions (its path length selects the segments), m.
-    errors : callable
-        ``errors(first, last)``: translation error (m) and rotation angle (rad, or None) of
-        each segment (:func:`kitti_errors`).
-    covariance : callable, optional
-        ``covariance(first, last)``: the ground truth's relative covariance over segments,
-        (K, 6, 6) or (K, 3, 3), translation first (None: no floor).
-    distance : array_like, optional
-        Path lengths, m (default: :func:`distance_lengths` of the path).
-    time : array_like, optional
-        Time lengths, s; those not shorter than the run are left out.
-    rotation : str, optional
-        Why rotational drift is not reported (a position-only ground truth).
-    definition : str, optional
-        The translation error's definition, when it is not the devkit's.
+    """:class:`Drift` over segments of ground-truth path and of time, for poses at ``t`` (N,) s with
+    ground-truth positions (N, 3) m. ``errors(first, last)``: each segment's translation error (m)
+    and rotation angle (rad or None) (:func:`kitti_errors`); ``covariance(first, last)``: the
+    ground truth's relative covariance (K, 6, 6) or (K, 3, 3) (None: no floor); ``distance`` (m,
+    default :func:`distance_lengths`) and ``time`` (s) lengths; ``rotation``, ``definition`` as
+    :class:`Drift`.
     """
     tt = np.asarray(t, dtype=float)
     along = path_distances(gt_position)

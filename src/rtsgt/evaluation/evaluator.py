@@ -4,20 +4,8 @@
       (+ gap warning) -> error covariances, relative-pose covariance -> NEES -> noise floor
       -> [the mounting's effect on APE / RPE] -> drift by segment length -> result
 
-The mounting step (:func:`mounting_step`, when something is estimated) fits the mounting
-``T_body_sensor`` and the clock offset jointly with an alignment
-(:func:`~rtsgt.evaluation.mounting.fit_mounting`), re-associating the ground truth at each new
-clock offset; the estimate's sensor poses are then moved to the body frame by the mounting
-(given or estimated) and the chain goes on as evo would on that transformed trajectory.
-
-A ground truth of positions (3 dof, :func:`~rtsgt.evaluation.associate.ground_truth_dof`)
-goes through the same steps with the estimate's points ``p_S + R_S l`` in place of its poses
-(:func:`_evaluate_positions`; their alignment in :mod:`~rtsgt.evaluation.positions`, no
-mounting). The ground truth's kinds (:mod:`rtsgt.evaluation.associate`) differ in what they
-give: a
-:class:`~rtsgt.evaluation.associate.PairCovarianceGroundTruth` computes the covariances of
-pairs of its poses (the RPE's covariance); otherwise ``cross_next`` of the association is
-chained, or the poses are taken as independent.
+A ground truth of positions (3 dof) goes through the same steps with the estimate's points
+``p_S + R_S l`` in place of its poses (no mounting). docs/evaluation.md.
 """
 
 from __future__ import annotations
@@ -249,14 +237,9 @@ def mounting_step(
     gt_measurement_times: ArrayLike | None,
     gt_cross_next: ArrayLike | None,
 ) -> tuple[MountingFit, Association, PoseTrajectory]:
-    """Estimate what ``options.estimate`` asks for, jointly with the alignment, and the
-    association at the final clock offset.
-
-    The ground truth is associated at the offset, the mounting and the clock step fitted with
-    the ground truth's velocities there (:func:`~rtsgt.evaluation.associate.
-    ground_truth_rates`), and the ground truth associated again at the new offset, until the
-    step is below :data:`~rtsgt.evaluation.mounting.CLOCK_TOLERANCE_S` (at most
-    :data:`MAX_CLOCK_ASSOCIATIONS` times; a warning says when it did not settle).
+    """Fit what ``options.estimate`` asks for jointly with the alignment, re-associating the ground
+    truth at each new clock offset until the step is below ``CLOCK_TOLERANCE_S`` (at most
+    :data:`MAX_CLOCK_ASSOCIATIONS` times, else a warning); returns the fit and the association.
     """
     start = given_mounting(options) or MountingFit.given(clock_offset=options.time_offset)
     offset = options.time_offset
@@ -315,25 +298,9 @@ def mounting_effect(
     pairs: np.ndarray,
 ) -> dict[str, float | None] | None:
     r"""How much the rmse of the APE and RPE would move within the uncertainty of the estimated
-    mounting and clock (None when nothing was estimated).
-
-    With ``c_i`` the columns of a square root of the parameters' covariance and ``f`` the rmse
-    as a function of the parameters (the whole chain: mounting, alignment, errors; the clock
-    moves the ground truth along its velocity; the RPE pairs are kept), ``a_i = (f(+c_i) -
-    f(-c_i)) / 2`` and ``b_i = (f(+c_i) + f(-c_i)) / 2 - f(0)`` give the first- and second-order
-    terms, and
-
-    .. math:: u^2 = \sum a_i^2 + 2 \sum b_i^2 + (\sum b_i)^2
-
-    is the rms of ``f(true) - f(estimate)`` for a quadratic ``f`` whose curvature is diagonal
-    in those directions (the rmse is near a minimum in the mounting, so that the second-order
-    term matters). ``2 p`` evaluations (p <= 7 parameters), each vectorised.
-
-    Returns
-    -------
-    dict
-        ``ape_translation_m``, ``ape_rotation_deg``, ``rpe_translation_m``,
-        ``rpe_rotation_deg`` (the RPE's None without pairs).
+    mounting and clock (docs/evaluation.md#mounting-and-clock): dict ``ape_translation_m``,
+    ``ape_rotation_deg``, ``rpe_translation_m``, ``rpe_rotation_deg`` (RPE None without pairs), or
+    None when nothing was estimated. ``2 p`` vectorised evaluations (p <= 7).
     """
     if fit is None or fit.covariance is None:
         return None
@@ -413,14 +380,9 @@ def relative_covariance(
     gt: GroundTruth, g: PoseTrajectory | PositionTrajectory, assoc: Association,
     pairs: np.ndarray
 ) -> RelativeCovariance:
-    """Covariance of the ground truth's relative poses (displacements, for positions:
-    :func:`~rtsgt.evaluation.positions.relative_position_covariance`) of the RPE ``pairs``
-    (ground truth with covariances, at least one pair).
-
-    A :class:`~rtsgt.evaluation.associate.PairCovarianceGroundTruth` computes the marginals
-    and the cross-covariance of each pair from one first-order model (so that the difference
-    of two strongly correlated poses stays positive definite); else the association's
-    ``cross_next`` are chained where known; else the two poses are taken as independent.
+    """Covariance of the ground truth's relative poses (displacements for positions) of the RPE
+    ``pairs``: a :class:`~rtsgt.evaluation.associate.PairCovarianceGroundTruth`'s own pair model,
+    else the association's chained ``cross_next``, else independent poses.
     """
     if isinstance(g, PositionTrajectory):
         return RelativeCovariance(*relative_position_covariance(gt, g, assoc, pairs))
@@ -476,15 +438,12 @@ def split_nees(
     *,
     upper: bool,
 ) -> tuple[NeesResult, ...]:
-    """The absolute NEES with the split verdict when the ground truth gives its shared factor
-    (:func:`~rtsgt.evaluation.metrics.with_split_verdict`, on the ``d`` rows of the errors
-    ``xi`` (N, d); ``consistent`` becomes its verdict, ``mean`` and ``fraction_inside_95``
-    stay those of the NEES against the total covariance); unchanged otherwise. ``est_cov``
-    (N, d, d): the estimate's varying covariance; ``upper``: one-sided tests (an estimate
-    without covariance: is the error significant against the ground truth's own
-    uncertainty?). ``absorbed`` (N, d, m): further directions the evaluation fitted (the
-    mounting and clock), projected out with the alignment's; ``extra``: a further shared
-    factor (N, d, k) and its names (an estimated lever arm)."""
+    """The absolute NEES with the split verdict when the ground truth gives its shared factor (on the
+    ``d`` rows of ``xi`` (N, d); ``mean`` and ``fraction_inside_95`` stay the total's); unchanged
+    otherwise. ``est_cov`` (N, d, d) the estimate's varying covariance; ``upper`` one-sided;
+    ``absorbed`` (N, d, m) further fitted directions (mounting, clock); ``extra`` a further shared
+    factor (N, d, k) with its names (an estimated lever arm).
+    """
     if not isinstance(gt, SharedFactorGroundTruth):
         return absolute
     split = gt.shared_split(g.t + assoc.time_offset)
@@ -595,55 +554,18 @@ def evaluate(
     gt_cross_next: ArrayLike | None = None,
     **overrides,
 ) -> EvaluationResult | PositionEvaluationResult:
-    """Evaluate an estimated trajectory against an (uncertain) ground truth of poses (6 dof)
-    or of the positions of one tracked point (3 dof; docs/evaluation.md).
+    """Evaluate an estimated trajectory against an (uncertain) ground truth of poses (6 dof) or of
+    one tracked point's positions (3 dof); docs/evaluation.md.
 
-    Parameters
-    ----------
-    gt : PoseTrajectory, PositionTrajectory, a validated ground truth or callable
-        World frame: discrete (interpolated at the estimate's times), validated continuous
-        (:class:`~rtsgt.evaluation.groundtruth.ContinuousGroundTruth`,
-        :class:`~rtsgt.evaluation.groundtruth.ContinuousPositionGroundTruth`: a drop reason
-        per time) or a query ``gt(times) -> PoseTrajectory`` (:mod:`~rtsgt.evaluation.
-        associate`); covariances enable the NEES and the noise floor. Its dof
-        (:func:`~rtsgt.evaluation.associate.ground_truth_dof`) chooses the result's kind.
-    est : PoseTrajectory
-        Estimate in its own frame, strictly increasing times; an optional 6x6 ``cov`` (left
-        perturbation, its frame) enters the NEES.
-    options : EvaluationOptions, optional
-        Alignment, RPE pairs, time offset, ``max_dt``, the mounting given and what to
-        estimate with the alignment (poses only; docs/evaluation.md#mounting-and-clock).
-    lever_arm, lever_arm_cov, lever_arm_source
-        Positions only: the tracked point in the sensor frame (m, ``"x,y,z"`` accepted; zero
-        when None), its covariance (3, 3) m^2 when estimated (one error for the whole
-        trajectory), where it comes from (``"given"``, ``"estimated"``).
-    gt_measurement_times : array_like, optional
-        Measurement times supporting a query ground truth (support and ``max_dt``).
-    gt_cross_next : array_like, shape (N_gt - 1, 6, 6), optional
-        Cross-covariances of consecutive samples of a discrete pose ground truth.
-    **overrides
-        Fields of :class:`EvaluationOptions` replacing those of ``options``.
-
-    Returns
-    -------
-    EvaluationResult or PositionEvaluationResult
-        ``rpe`` None, with ``rpe_absent_reason``, when no RPE pair exists.
-
-    Warns
-    -----
-    RtsgtWarning
-        RPE pairs that span a gap of the ground truth longer than ``max_dt``
-        (:func:`~rtsgt.evaluation.associate.gap_per_step`): kept, counted in the warning.
-
-    Raises
-    ------
-    ExcitationError
-        Something in ``estimate`` that the trajectory does not excite.
-    InputError
-        No time overlap, too few associated poses, bad values, an estimate asked of a ground
-        truth without covariances, a mounting or lever arm of the wrong kind of ground truth.
-    GeometryError
-        Degenerate alignment geometry.
+    ``gt``: world frame, discrete (PoseTrajectory, PositionTrajectory), validated continuous
+    (:mod:`rtsgt.evaluation.groundtruth`) or a query ``gt(times)``; covariances enable the NEES and
+    the noise floor, its dof chooses the result. ``est``: own frame, increasing times, optional
+    ``cov`` (N, 6, 6). ``options`` (or ``**overrides`` of its fields): alignment, RPE, offset,
+    ``max_dt``, mounting. Positions only: ``lever_arm`` (3,) m or "x,y,z", its ``lever_arm_cov``
+    (3, 3) m^2 and ``lever_arm_source``. ``gt_measurement_times`` and ``gt_cross_next`` as for
+    :func:`~rtsgt.evaluation.associate.associate`. Returns an EvaluationResult or
+    PositionEvaluationResult (``rpe`` None with ``rpe_absent_reason``); warns about RPE pairs over
+    gaps; ExcitationError, InputError or GeometryError on what cannot be evaluated.
     """
     options = dataclasses.replace(
         EvaluationOptions() if options is None else options, **overrides

@@ -1,46 +1,10 @@
-r"""Continuous-time ground truth: the poses of a run at any time, from its GP prism tracks.
+r"""Continuous-time ground truth: the poses (or one prism's positions) of a run at any time.
 
-An ``rtsgt run`` directory stores poses on a regular grid (``groundtruth_covariance.csv``), but
-an estimate to evaluate has its own times. Picking the nearest stored pose is wrong by up to
-half a grid period times the robot's speed (centimetres at 5 Hz), and interpolating stored
-poses gives a covariance that is not the posterior between them. :class:`ContinuousGroundTruth`
-instead redoes, at the requested times, what the pipeline did on its grid
-(:mod:`rtsgt.pipeline`):
-
-1. refit each prism's GP from ``measurements/prism<i>.csv`` (the filtered measured track in the
-   world frame with the covariance the GP was given) with the ``Qc`` the run found
-   (``summary.json``): the same posterior, since the GP with a given ``Qc`` is exact;
-2. query every prism at the times (:func:`rtsgt.interpolation.prisms.query_prisms`: GP posterior plus the
-   systematic sources interpolated from the measurements when ``gp_noise = "white"``);
-3. compute the poses and their 6x6 covariances with the run's pose engine, samples and seed
-   (:func:`rtsgt.pose.estimate_poses`), or another engine (``"linear"`` is the fastest);
-4. apply the run's quality gates (:func:`rtsgt.filtering.gates.apply_gates`).
-
-At the run's own grid times this reproduces ``groundtruth_covariance.csv``, for the Monte
-Carlo engine too: its draws come from the run's pose stream (:func:`rtsgt.options.stage_rng`,
-``"pose"``), the stream the run itself drew its poses from, at every call (a query is
-reproducible; at other sets of times the draws differ, since they depend on the set).
-
-Every time gets a reason when no pose is given there (``GroundTruthSample.reason``), checked in
-this order:
-
-``outside_ground_truth``
-    before the first or after the last interval the run kept;
-``between_intervals``
-    between two of the intervals where every prism was tracked (module 2 of the pipeline);
-``gp_gap``
-    inside a gap of a prism's measurements longer than the run's ``max_gap_s``;
-``far_from_measurement``
-    the nearest measurement of some prism is farther than ``max_gap_s`` of the query (the
-    evaluation's ``--max-gap``);
-``gate_degenerate``, ``gate_distance``, ``gate_uncertainty``
-    the pose fails the run's quality gate of that name.
-
-Correlations between the poses at different times, which the relative pose of the RPE
-needs, come from :meth:`ContinuousGroundTruth.cross_covariance` (first order: the GP's
-posterior cross-covariance, the systematic sources shared by both times, the calibration
-coupling between stations and the reference survey); :func:`rtsgt.evaluation.evaluate` uses
-it for the RPE NEES. Two ground-truth poses 1 s apart are typically 75-97 % correlated.
+:class:`ContinuousGroundTruth` redoes at the requested times what the pipeline did on its
+grid: the prisms' GPs refitted with the run's ``Qc``, queried with the systematic sources, turned
+into poses by the run's engine and gated; each dropped time gets a reason (:data:`DROP_REASONS`).
+:class:`ContinuousPositionGroundTruth` does it for one prism (3 dof). Both give the
+covariance between two times (the RPE) and the error split. docs/evaluation.md#association.
 """
 
 from __future__ import annotations
@@ -101,36 +65,13 @@ DROP_REASONS = (
 
 @dataclass(frozen=True)
 class ContinuousGroundTruth:
-    """The ground truth of a run, queryable at any time (module docstring).
+    """The ground truth of a run, queryable at any time; build it with :meth:`from_record`.
 
-    Build it with :meth:`from_record` (a run in memory, or one read back:
-    :func:`rtsgt.app.evaluate.read_ground_truth` reads a run directory).
-    It is a :class:`~rtsgt.evaluation.associate.ValidatedGroundTruth`: pass it as the ground
-    truth of :func:`rtsgt.evaluation.evaluate`.
-
-    Attributes
-    ----------
-    tracks : dict str -> PrismTrack
-        Measured track of every prism (world frame) with its per-source covariances.
-    gps : dict str -> GPTrack
-        Their GP posteriors (the run's ``Qc``).
-    intervals : ndarray, shape (K, 2)
-        Intervals where every prism was tracked (the run's module 2), s.
-    reference : ReferencePoints
-        Reference prisms in the body frame, in the order of ``tracks``.
-    options : RunOptions
-        Engine, samples, seed, ``gp_noise``, ``max_gap_s`` and gates used for the poses.
-    uncertainty_measure : str
-        Measure of the uncertainty gate (:func:`rtsgt.filtering.gates.position_uncertainty`).
-    source : str
-        Where it comes from (for messages).
-    coupling : StationCoupling, optional
-        Correlation of the station calibrations (the run's), for the joint prism covariance.
-    station_origins : dict str -> ndarray (3,)
-        World position of each station, m (the lever arm of the shared errors).
-    split : bool
-        Whether the run split its errors into varying and shared parts (it wrote
-        ``groundtruth_shared.csv``); :meth:`shared_split` then gives the split at any time.
+    A :class:`~rtsgt.evaluation.associate.ValidatedGroundTruth`: ``tracks`` and their ``gps`` per
+    prism, ``intervals`` (K, 2) s, ``reference`` prisms in the body frame, ``options`` (engine,
+    samples, seed, ``gp_noise``, ``max_gap_s``, gates), ``uncertainty_measure``, ``source`` (for
+    messages), ``coupling`` of the calibrations, ``station_origins`` (3,) m, ``split`` (the run
+    wrote ``groundtruth_shared.csv``).
     """
 
     tracks: dict[str, PrismTrack]
@@ -203,17 +144,9 @@ class ContinuousGroundTruth:
         samples: int | None = None,
         seed: int | None = None,
     ) -> ContinuousGroundTruth:
-        """From a run record: one just computed by :func:`rtsgt.pipeline.run_pipeline` (its
-        GPs are reused as fitted) or one read back by :func:`rtsgt.io.run_dir.read_run` (the
-        GPs fitted again to the measured tracks, with the covariance and the Qc the run gave
-        them: the same GPs).
-
-        ``engine``, ``samples``, ``seed``: override the run's.
-
-        Raises
-        ------
-        InputError
-            A prism without its measured track or its Qc, a bad engine.
+        """From a run record, just computed (its GPs reused) or read back (GPs refitted with the run's
+        covariance and Qc: the same); ``engine``, ``samples``, ``seed`` override the run's. InputError
+        for a prism without track or Qc, or a bad engine.
         """
         opts = _override(record.options, engine, samples, seed)
         source = record.name if record.path is None else str(record.path)
@@ -292,15 +225,8 @@ class ContinuousGroundTruth:
         return np.max([nearest_distance(tr.t, tau) for tr in self.tracks.values()], axis=0)
 
     def cross_covariance(self, tau_a: ArrayLike, tau_b: ArrayLike) -> np.ndarray:
-        """``Cov(xi(tau_a), xi(tau_b))`` (K, 6, 6) of the poses at pairs of times, first order.
-
-        What the relative pose between two ground-truth times needs (the RPE's covariance):
-        the errors the two poses share. Per prism, the GP posterior's cross-covariance between
-        the two times (:func:`rtsgt.interpolation.cross.gp_cross_covariance`); a station's
-        clock offset and atmosphere are one draw for both times (rank-one factors along the
-        velocity and the line of sight); the calibrations through :class:`StationCoupling`
-        (across prisms too); the reference survey is the same at both times. All times must
-        be valid (:meth:`query_poses`).
+        """``Cov(xi(tau_a), xi(tau_b))`` (K, 6, 6) of the poses at pairs of valid times, first order
+        (docs/evaluation.md#relative-pose-covariance).
         """
         return self._between(self._linearise(tau_a), self._linearise(tau_b))
 
@@ -365,20 +291,8 @@ class ContinuousGroundTruth:
     def query_poses(
         self, times: ArrayLike, *, max_gap_s: float | None = None
     ) -> GroundTruthSample:
-        """Poses, covariances and validity at arbitrary times.
-
-        Parameters
-        ----------
-        times : array_like, shape (M,)
-            Query times on the ground truth's clock, s, any order.
-        max_gap_s : float, optional
-            Drop the times whose nearest measurement of some prism is farther than this, s
-            (``far_from_measurement``); None: only the run's own limits apply.
-
-        Returns
-        -------
-        GroundTruthSample
-            ``reason`` is ``""`` for a valid pose, else a code of :data:`DROP_REASONS`.
+        """:class:`GroundTruthSample` at ``times`` (M,) s (ground-truth clock, any order); ``max_gap_s``
+        drops times farther from some prism's nearest measurement (None: the run's limits only).
         """
         tau, reason, nearest = _query_times(
             times, max_gap_s, self.intervals, list(self.gps.values()),
@@ -404,38 +318,11 @@ class ContinuousGroundTruth:
 @dataclass(frozen=True)
 class ContinuousPositionGroundTruth:
     """One prism of a run, queryable at any time: the position-only ground truth (3 dof,
-    docs/evaluation.md#position-only-ground-truth) of a run with one or two tracked prisms, or of one
-    prism of a run with three or more.
+    docs/evaluation.md#position-only-ground-truth).
 
-    What the pipeline computes at its query times, at any time: the prism's GP posterior
-    (refitted from ``measurements/prism<i>.csv`` with the run's ``Qc``, its scale per interval
-    and its prior) plus the systematic sources interpolated from the measurements
-    (:func:`rtsgt.interpolation.prisms.query_prisms`). A time gets a drop reason as a pose
-    does (module docstring): ``outside_ground_truth``, ``between_intervals``, ``gp_gap``,
-    ``far_from_measurement``; there is no gate (the gates judge poses).
-
-    The covariance between two times (the relative NEES) is
-    :func:`prism_cross_covariance` plus the calibration through the run's
-    :class:`StationCoupling`; the error split (the split verdict) is the GP posterior
-    (varying) and :func:`rtsgt.shared.prism_shared_factor` (the station's calibration, clock
-    offset and atmosphere, shared).
-
-    Attributes
-    ----------
-    prism : str
-    track : PrismTrack
-        The measured track (world frame) with its per-source covariances.
-    gp : GPTrack
-        Its GP posterior (the run's ``Qc``).
-    intervals : ndarray, shape (K, 2)
-        The run's intervals (every prism tracked), s.
-    options : RunOptions
-    source : str
-        Where it comes from (for messages).
-    coupling : StationCoupling, optional
-        The run's calibration coupling.
-    station_origins : dict str -> ndarray (3,)
-        World position of each station, m.
+    The prism's GP posterior plus the systematic sources; drop reasons as for poses, without the
+    gates. ``prism``, ``track``, ``gp``, ``intervals`` (K, 2) s, ``options``, ``source``,
+    ``coupling``, ``station_origins`` as in :class:`ContinuousGroundTruth`.
     """
 
     prism: str
@@ -458,16 +345,9 @@ class ContinuousPositionGroundTruth:
 
     @classmethod
     def from_record(cls, record, prism: str | None = None) -> ContinuousPositionGroundTruth:
-        """From a run record, of a pose run (:class:`~rtsgt.record.RunRecord`) or a
-        position-only run (:class:`~rtsgt.record.PositionRunRecord`), just computed (its GP
-        reused) or read from files (the GP fitted again with the run's ``Qc``).
-
-        ``prism``: the prism id; may be left out when the run tracked one prism.
-
-        Raises
-        ------
-        InputError
-            An unknown prism (or none chosen among several), no measured track or ``Qc``.
+        """From a pose or position-only run record (GP reused, or refitted with the run's Qc); ``prism``
+        may be left out when the run tracked one. InputError for an unknown or unchosen prism, or no
+        track or Qc.
         """
         ids = tuple(record.prism_ids)
         source = record.name if record.path is None else str(record.path)
@@ -533,14 +413,8 @@ class ContinuousPositionGroundTruth:
                             self.options.interpolation, self.coupling)
 
     def query_positions(self, times: ArrayLike, *, max_gap_s: float | None = None):
-        """Positions, covariances (GP posterior plus the systematic sources) and validity at
-        arbitrary times (ground-truth clock, any order); ``max_gap_s`` as
-        :meth:`ContinuousGroundTruth.query_poses`.
-
-        Returns
-        -------
-        GroundTruthSample
-            ``quat_xyzw`` None, ``cov`` (M, 3, 3).
+        """:class:`GroundTruthSample` of positions (``quat_xyzw`` None, ``cov`` (M, 3, 3)) at ``times``;
+        ``max_gap_s`` as :meth:`ContinuousGroundTruth.query_poses`.
         """
         tau, reason, nearest = _query_times(
             times, max_gap_s, self.intervals, [self.gp],
@@ -580,14 +454,8 @@ class ContinuousPositionGroundTruth:
                 between(pa, pb, ta, tb, va, vb))
 
     def shared_split(self, times: ArrayLike):
-        """The error split at valid times: the GP posterior (varying) and the shared factor of
-        the station's calibration, clock offset and atmosphere
-        (:func:`rtsgt.shared.prism_shared_factor`); None with ``gp_noise = "all"`` (the GP
-        had every source).
-
-        Returns
-        -------
-        rtsgt.evaluation.associate.PositionSplit or None
+        """The error split at valid times (GP posterior varying; station calibration, clock and
+        atmosphere shared, :func:`rtsgt.shared.prism_shared_factor`), or None with ``gp_noise = "all"``.
         """
         if self.options.interpolation.gp_noise != "white":
             return None
@@ -644,15 +512,9 @@ def prism_cross_covariance(gp: GPTrack, t_a: np.ndarray, t_b: np.ndarray,
                            prisms_a: PrismsAtTimes, prisms_b: PrismsAtTimes, i: int,
                            velocity_a: np.ndarray, velocity_b: np.ndarray,
                            origin: np.ndarray | None) -> np.ndarray:
-    """``Cov(q_i(a), q_i(b))`` (K, 3, 3) of one prism at pairs of times, first order, without
-    the calibration (across prisms: :meth:`StationCoupling.prism_covariance`).
-
-    The GP posterior's cross-covariance (:func:`rtsgt.interpolation.cross.gp_cross_covariance`)
-    and, with ``origin`` (the station's position; None with ``gp_noise = "all"``, where the GP
-    had every source), the station's clock offset and atmosphere, one draw for both times:
-    rank-one factors along the GP velocity and the line of sight
-    (:func:`rtsgt.shared.rank_one_factor`) at each time, from the sources' covariances of
-    ``prisms_a`` and ``prisms_b`` (prism ``i``).
+    """``Cov(q_i(a), q_i(b))`` (K, 3, 3) of prism ``i`` at pairs of times, first order, without the
+    calibration: the GP's cross-covariance plus, with ``origin`` (None under ``gp_noise = "all"``),
+    rank-one factors of the clock offset and atmosphere from ``prisms_a``, ``prisms_b``.
     """
     blk = gp_cross_covariance(gp, t_a, t_b)[:, :3, :3]
     if origin is None:

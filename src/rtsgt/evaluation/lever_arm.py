@@ -1,28 +1,6 @@
-r"""The lever arm from an estimated sensor pose to a tracked point (a prism) on the robot.
-
-A position-only ground truth (one prism tracked by one total station) gives the position of a
-point ``P`` on the robot; a SLAM or odometry method estimates the pose of its own sensor
-``S``. With ``l`` the position of ``P`` in the sensor frame (the lever arm, m), the estimate's
-point is
-
-.. math::
-
-    p_P = p_S + R_S\, l ,
-
-with ``(p_S, R_S)`` the sensor pose in the world frame (after the alignment). Every
-comparison of an estimate with a position-only ground truth goes through this one function
-(:func:`lever_arm_points`), with its Jacobians:
-
-- with respect to the sensor pose, in the left-perturbation convention of
-  :mod:`rtsgt.geometry.transform` (``p_S -> p_S + dt``, ``R_S -> exp([dtheta]x) R_S``):
-  ``dp_P = dt - [R_S l]x dtheta``, so ``J_pose = [I, -[R_S l]x]`` (3 x 6). The estimate's
-  rotation error enters the point through it: ``Sigma_P = J_pose Sigma_S J_pose^T``;
-- with respect to the lever arm: ``dp_P = R_S dl``, ``J_lever = R_S`` (3 x 3). A lever arm
-  known with covariance ``Sigma_l`` (estimated, :func:`lever_arm_factor`) is **one** error
-  for the whole trajectory: its contribution ``R_S Sigma_l R_S^T`` to each point is shared by
-  all of them (a factor ``R_S A_l`` with ``A_l A_l^T = Sigma_l``, not a varying error).
-
-This module imports only numpy and rtsgt.
+r"""The lever arm from an estimated sensor pose to a tracked point (a prism) on the robot:
+``p_P = p_S + R_S l`` and its Jacobians, the one function every comparison with a
+position-only ground truth goes through (docs/evaluation.md#position-only-ground-truth).
 """
 
 from __future__ import annotations
@@ -41,16 +19,8 @@ __all__ = ["LeverArmPoints", "lever_arm_factor", "lever_arm_points", "parse_leve
 
 @dataclass(frozen=True)
 class LeverArmPoints:
-    """The point ``p_S + R_S l`` of N sensor poses, with its Jacobians.
-
-    Attributes
-    ----------
-    position : ndarray, shape (N, 3)
-        ``p_S + R_S l``, m.
-    jacobian_pose : ndarray, shape (N, 3, 6)
-        ``d p / d (dt, dtheta)``: ``[I, -[R_S l]x]``.
-    jacobian_lever : ndarray, shape (N, 3, 3)
-        ``d p / d l``: ``R_S``.
+    """``position`` (N, 3) m of ``p_S + R_S l``; ``jacobian_pose`` (N, 3, 6) ``[I, -[R_S l]x]`` (left
+    perturbation); ``jacobian_lever`` (N, 3, 3) ``R_S``.
     """
 
     position: np.ndarray
@@ -60,20 +30,8 @@ class LeverArmPoints:
 
 def lever_arm_points(position: ArrayLike, rotation: ArrayLike,
                      lever_arm: ArrayLike) -> LeverArmPoints:
-    """The point at ``lever_arm`` in the sensor frame of each pose, and its Jacobians.
-
-    Parameters
-    ----------
-    position : array_like, shape (N, 3)
-        ``p_S``, sensor positions, m.
-    rotation : array_like, shape (N, 3, 3)
-        ``R_S``, sensor orientations (sensor to world).
-    lever_arm : array_like, shape (3,)
-        ``l``, the point in the sensor frame, m.
-
-    Returns
-    -------
-    LeverArmPoints
+    """:class:`LeverArmPoints` of sensor positions (N, 3) m, rotations (N, 3, 3) sensor to world, and
+    ``lever_arm`` (3,) m in the sensor frame.
     """
     p = np.asarray(position, dtype=float)
     R = np.asarray(rotation, dtype=float)

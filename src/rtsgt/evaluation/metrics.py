@@ -1,46 +1,10 @@
 r"""Trajectory error metrics: evo's APE and RPE, and the uncertainty-aware ones.
 
-evo-compatible metrics (M. Grupp, evo, ``evo/core/metrics.py``; same definitions, same
-statistics, checked against evo in the tests):
-
-- **APE**: for associated poses ``Q_k`` (ground truth) and ``P_k`` (aligned estimate),
-  ``E_k = P_k^-1 Q_k`` (Kümmerle et al. 2009). *translation part*: ``|t_P,k - t_Q,k|`` (m);
-  *rotation angle*: ``|log(R_E,k)|`` (deg); *full*: ``||E_k - I_4||_F`` (unitless).
-- **RPE** (Sturm et al. 2012, TUM RGB-D benchmark): for index pairs ``(i, j)`` selected from the
-  estimate, ``E_ij = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``; translation part ``|t_E|``, rotation angle
-  ``|log(R_E)|``, full ``||E - I||_F``. Pairs are selected as in evo
-  (:func:`rpe_pairs`): every ``delta`` frames, or every ``delta`` metres of travelled path
-  (consecutive, non-overlapping segments), or all pairs whose separation is ``delta`` within a
-  relative tolerance. rtsgt adds ``delta`` in seconds, and resolves exact ties of the
-  consecutive mode (10 steps of 0.1 m against 1 m) on purpose, where evo's choice depends on
-  rounding (:data:`RPE_TIE_RTOL`).
-- Statistics: ``rmse = sqrt(mean(e^2))``, ``mean``, ``median``, ``std`` (population, ddof 0),
-  ``min``, ``max``.
-
-Uncertainty-aware metrics (docs/evaluation.md#nees):
-
-- pose error in the left-perturbation convention of :mod:`rtsgt.geometry.transform`,
-  ``e_k = perturbation(gt_k, est_k) = (t_est - t_gt, log(R_est R_gt^T))`` (world frame,
-  ordered x, y, z, rx, ry, rz); its rotation part has the norm of evo's rotation angle;
-- squared Mahalanobis distance ``NEES_k = e_k^T S_k^-1 e_k`` with ``S_k = Sigma_gt,k`` (plus the
-  estimate's own covariance when it has one, mapped into the world frame by the alignment);
-  under consistency it follows chi-square(3) for the position and chi-square(6) for the pose
-  (95 % quantiles 7.815 and 12.592);
-- the chi-square consistency test of :func:`nees_consistency` (Bar-Shalom, Li, Kirubarajan,
-  *Estimation with Applications to Tracking and Navigation*, 2001, sec. 5.4.2: the sum of N
-  independent NEES values is chi-square(N dof)), made robust to the correlation between
-  consecutive poses by an effective sample size;
-- with a ground truth that splits its error into a varying and a shared part
-  (:mod:`rtsgt.shared`: ``C = blockdiag(V_k) + L L^T``), the split test of
-  :func:`shared_error_test`: the shared parameters' generalised-least-squares estimate
-  against its own covariance (chi-square), and the varying residual's NEES, with what an
-  alignment absorbs projected out (:func:`alignment_sensitivity`);
-- the ground-truth noise floor ``sqrt(mean_k tr Sigma_gt,pos,k)``: the APE rmse a perfect
-  estimate would get, from ``E|dp|^2 = tr Sigma_est + tr Sigma_gt + |bias|^2``;
-- the covariance of the relative ground-truth pose ``Q_i^-1 Q_j`` for the RPE, with the
-  cross-covariance of the two poses when it is known (:func:`relative_pose_covariance`).
-
-This module imports only numpy, scipy and rtsgt.
+APE, RPE and their statistics as evo (docs/evaluation.md#ape-and-rpe); the pose error in the
+left-perturbation convention, NEES and its consistency test (docs/evaluation.md#nees); the
+split test of errors shared by the deployment
+(docs/evaluation.md#errors-shared-by-the-deployment); the noise floor and the relative pose
+covariance (docs/evaluation.md#relative-pose-covariance). Imports only numpy, scipy and rtsgt.
 """
 
 from __future__ import annotations
@@ -68,16 +32,8 @@ RPE_TIE_RTOL = 1e-9
 
 
 def error_statistics(errors: ArrayLike) -> dict[str, float]:
-    """evo's statistics of an error array: rmse, mean, median, std (ddof 0), min, max.
-
-    Parameters
-    ----------
-    errors : array_like, shape (N,)
-
-    Returns
-    -------
-    dict
-        Keys :data:`STATISTICS`, Python floats.
+    """evo's statistics of errors (N,): dict of :data:`STATISTICS` (rmse, mean, median, std ddof 0,
+    min, max), Python floats.
     """
     e = np.asarray(errors, dtype=float)
     if e.ndim != 1 or e.size == 0:
@@ -105,20 +61,9 @@ def _full_error(R_E: np.ndarray, t_E: np.ndarray) -> np.ndarray:
 def ape_errors(
     R_gt: ArrayLike, t_gt: ArrayLike, R_est: ArrayLike, t_est: ArrayLike
 ) -> dict[str, np.ndarray]:
-    """Per-pose absolute pose errors with evo's definitions.
-
-    Parameters
-    ----------
-    R_gt, R_est : array_like, shape (N, 3, 3)
-        ``R_world_body`` of the ground truth and of the aligned estimate.
-    t_gt, t_est : array_like, shape (N, 3)
-        ``t_world_body``, m.
-
-    Returns
-    -------
-    dict of ndarray, shape (N,)
-        ``translation`` (m), ``rotation_rad`` (rad), ``full`` (unitless), with
-        ``E = P^-1 Q``: ``|t_est - t_gt|``, ``|log(R_E)|``, ``||E - I||_F``.
+    """Per-pose APE with evo's definitions, ``E = P^-1 Q``, from ``R_world_body`` (N, 3, 3) and
+    ``t_world_body`` (N, 3) m of the ground truth and the aligned estimate: dict of (N,)
+    ``translation`` (m), ``rotation_rad``, ``full`` (``||E - I||_F``).
     """
     R_gt = np.asarray(R_gt, dtype=float)
     R_est = np.asarray(R_est, dtype=float)
@@ -221,48 +166,13 @@ def rpe_pairs(
     all_pairs: bool = False,
     rel_tol: float = 0.1,
 ) -> np.ndarray:
-    """Index pairs ``(i, j)`` for the RPE, selected as evo does.
+    """Index pairs (K, 2) for the RPE, selected as evo does (docs/evaluation.md#ape-and-rpe).
 
-    Parameters
-    ----------
-    position : array_like, shape (N, 3)
-        Positions of the trajectory the pairs are taken from (evo: the aligned estimate).
-    t : array_like, shape (N,), optional
-        Times, s (needed for ``delta_unit="s"``).
-    delta : float
-        Separation, in ``delta_unit``.
-    delta_unit : {"f", "m", "s"}
-        ``f``: frames (integer ``delta``); ``m``: metres of travelled path; ``s``: seconds.
-    all_pairs : bool
-        ``False`` (evo's default): consecutive, non-overlapping pairs: every ``delta`` frames,
-        or each time the path travelled (time elapsed) since the last selected pose reaches
-        ``delta`` (ties: see Notes). ``True``: for every i, the pair (i, i + delta) in frames,
-        or the j > i whose path (time) separation is closest to ``delta``, kept if within
-        ``rel_tol * delta``.
-    rel_tol : float
-        Relative tolerance of the all-pairs mode (evo's ``--delta_tol``, default 0.1).
-
-    Returns
-    -------
-    ndarray of int, shape (K, 2)
-        May be empty.
-
-    Notes
-    -----
-    evo ``filters.filter_pairs_by_index`` and ``filter_pairs_by_path``; the path is the sum of
-    the distances between consecutive positions. The seconds unit (not in evo) uses the same
-    rules with the elapsed time in place of the path.
-
-    Ties. Regular data makes the path since the last selected pose equal ``delta`` up to
-    rounding (10 steps of 0.1 m sum to 0.9999999999999999 or 1.0000000000000002 m depending
-    on the last bit of each step length; evo's one-vector-at-a-time norms change that bit with
-    the BLAS kernel). In the consecutive mode a path (elapsed time) therefore reaches
-    ``delta`` when it is at least ``delta - tol``, with ``tol = RPE_TIE_RTOL * delta``
-    (:data:`RPE_TIE_RTOL` = 1e-9) for the path, plus ``16 ulp(max |t|)`` for times (the
-    rounding of the time stamps themselves: 4e-6 s on a Unix-epoch clock): 10 x 0.1 m give a
-    pair every 10 steps on every machine. Without ties the pairs are evo's. The all-pairs
-    mode keeps evo's arithmetic exactly (vectorised norms, cumulative sum, first index of the
-    smallest ``|separation - delta|``), which involves no BLAS.
+    ``position`` (N, 3) of the trajectory the pairs come from, ``t`` (N,) s for ``delta_unit="s"``;
+    ``delta`` in frames ("f"), metres of path ("m") or seconds ("s"). Consecutive non-overlapping
+    pairs (evo's default; a separation reaches ``delta`` within :data:`RPE_TIE_RTOL`, plus
+    16 ulp of the stamps for times, so exact ties give the same pairs on every machine), or with
+    ``all_pairs`` the j > i closest to ``delta`` within ``rel_tol * delta`` (evo's arithmetic).
     """
     p = np.asarray(position, dtype=float)
     n = p.shape[0]
@@ -340,36 +250,10 @@ def relative_pose_covariance(
     cov_j: ArrayLike,
     cross_ij: ArrayLike | None = None,
 ) -> np.ndarray:
-    r"""First-order covariance of the relative pose ``T_ij = T_i^-1 T_j``.
-
-    Parameters
-    ----------
-    R_i : array_like, shape (K, 3, 3)
-        Mean ``R_world_i``.
-    t_i, t_j : array_like, shape (K, 3)
-        Mean positions, m, world frame.
-    cov_i, cov_j : array_like, shape (K, 6, 6)
-        Pose covariances in the world-frame left-perturbation convention.
-    cross_ij : array_like, shape (K, 6, 6), optional
-        ``Cov(xi_i, xi_j)``; zero (independent poses) when None.
-
-    Returns
-    -------
-    ndarray, shape (K, 6, 6)
-        Covariance of ``T_ij`` in the same convention, expressed in frame i:
-        ``t_ij = mean + dt``, ``R_ij = exp([dphi]x) mean``.
-
-    Notes
-    -----
-    With ``Delta = t_j - t_i`` and ``t_ij = R_i^T Delta``, ``R_ij = R_i^T R_j``, perturbing
-    ``t = t + dt``, ``R = exp([dtheta]x) R`` at both poses gives to first order::
-
-        dt_ij   = R_i^T (dt_j - dt_i + [Delta]x dtheta_i)
-        dphi_ij = R_i^T (dtheta_j - dtheta_i)
-
-    so ``xi_ij = J_i xi_i + J_j xi_j`` with ``J_i = B [[-I, [Delta]x], [0, -I]]``,
-    ``J_j = B``, ``B = blockdiag(R_i^T, R_i^T)``, and
-    ``Cov = J_i P_i J_i^T + J_j P_j J_j^T + J_i C J_j^T + J_j C^T J_i^T``.
+    r"""First-order covariance (K, 6, 6), in frame i, of ``T_ij = T_i^-1 T_j`` from ``R_i`` (K, 3, 3),
+    ``t_i``, ``t_j`` (K, 3) m, world-frame left-perturbation covariances ``cov_i``, ``cov_j``
+    (K, 6, 6) and ``cross_ij = Cov(xi_i, xi_j)`` (None: independent);
+    docs/evaluation.md#relative-pose-covariance.
     """
     R_i = np.asarray(R_i, dtype=float)
     K = R_i.shape[0]
@@ -393,28 +277,9 @@ def relative_pose_covariance(
 
 
 def chain_cross_covariance(cov: ArrayLike, cross_next: ArrayLike, pairs: ArrayLike) -> np.ndarray:
-    r"""``Cov(xi_i, xi_j)`` for index pairs from consecutive cross-covariances.
-
-    Parameters
-    ----------
-    cov : array_like, shape (M, 6, 6)
-        ``P_k = Cov(xi_k)``.
-    cross_next : array_like, shape (M - 1, 6, 6)
-        ``C_k = Cov(xi_k, xi_{k+1})``; NaN where unknown.
-    pairs : array_like of int, shape (K, 2)
-        With ``i < j``.
-
-    Returns
-    -------
-    ndarray, shape (K, 6, 6)
-        NaN for pairs whose chain crosses an unknown ``C_k``.
-
-    Notes
-    -----
-    For a Gauss-Markov sequence ``xi_{k+1} = A_k xi_k + w_k``, ``C_k = P_k A_k^T`` and
-    ``Cov(xi_i, xi_j) = C_i P_{i+1}^-1 C_{i+1} ... P_{j-1}^-1 C_{j-1}`` (exact for a
-    Markov sequence, e.g. the states of a GP with a white-noise-on-acceleration prior; an
-    approximation for poses derived from several such tracks). For ``j = i + 1`` it is ``C_i``.
+    r"""``Cov(xi_i, xi_j)`` (K, 6, 6) for ``pairs`` (K, 2), i < j, from ``cov`` (M, 6, 6) and
+    consecutive ``cross_next`` (M - 1, 6, 6) by the Markov chain rule
+    (docs/evaluation.md#relative-pose-covariance); NaN across an unknown (NaN) link.
     """
     P = np.asarray(cov, dtype=float)
     C = np.asarray(cross_next, dtype=float)
@@ -455,18 +320,8 @@ def no_pair_reason(position: np.ndarray, t: np.ndarray, delta: float, unit: str)
 
 
 def squared_mahalanobis(e: ArrayLike, S: ArrayLike) -> np.ndarray:
-    """``e_k^T S_k^-1 e_k`` through Cholesky factors.
-
-    Parameters
-    ----------
-    e : array_like, shape (N, d)
-    S : array_like, shape (N, d, d)
-        Symmetric positive definite.
-
-    Raises
-    ------
-    ValueError
-        Naming the first covariance that is not positive definite.
+    """``e_k^T S_k^-1 e_k`` (N,) for ``e`` (N, d), ``S`` (N, d, d) by Cholesky; ValueError naming the
+    first ``S_k`` that is not positive definite.
     """
     e = np.asarray(e, dtype=float)
     S = np.asarray(S, dtype=float)
@@ -507,33 +362,12 @@ def integrated_autocorrelation_time(x: ArrayLike) -> float:
 
 @dataclass(frozen=True)
 class NeesResult:
-    """NEES of N poses against chi-square(dof), with a consistency verdict.
+    """NEES of N poses against chi-square(dof), with a consistency verdict (docs/evaluation.md#nees).
 
-    Attributes
-    ----------
-    values : ndarray, shape (N,)
-        Per-pose squared Mahalanobis distance.
-    dof : int
-    mean : float
-        Average NEES (ANEES times dof); ``dof`` when consistent.
-    fraction_inside_95 : float
-        Share of poses with ``NEES <= chi2.ppf(0.95, dof)``; 0.95 when consistent.
-    quantile_95 : float
-        ``chi2.ppf(0.95, dof)``: 7.815 (3 dof), 12.592 (6 dof).
-    n : int
-    n_eff : float
-        Effective number of independent poses for the mean (``n / tau``).
-    mean_interval : tuple of float
-        Two-sided ``1 - alpha`` acceptance interval of ``mean``.
-    fraction_interval : tuple of float
-        Two-sided ``1 - alpha`` acceptance interval of ``fraction_inside_95``.
-    consistent : bool
-        Both ``mean`` and ``fraction_inside_95`` inside their intervals; with ``split``, the
-        split test's verdict instead.
-    alpha : float
-    split : SplitVerdict, optional
-        The test that accounts for the errors shared by the deployment (when the ground truth
-        gives its shared factor); ``consistent`` is then its verdict.
+    ``values`` (N,); ``mean`` (``dof`` when consistent); ``fraction_inside_95`` below
+    ``quantile_95 = chi2.ppf(0.95, dof)``; ``n``, ``n_eff = n / tau``; two-sided ``1 - alpha``
+    ``mean_interval`` and ``fraction_interval``; ``consistent``: both inside, or with ``split``
+    (a :class:`SplitVerdict`) its verdict.
     """
 
     values: np.ndarray
@@ -591,47 +425,10 @@ def nees_test(e: np.ndarray, S: np.ndarray, dof: int, what: str, t: np.ndarray) 
 def nees_consistency(
     nees: ArrayLike, dof: int, *, alpha: float = 0.05, correlated: bool = True
 ) -> NeesResult:
-    r"""Chi-square consistency test of per-pose NEES values.
-
-    Parameters
-    ----------
-    nees : array_like, shape (N,)
-        Squared Mahalanobis distances, each chi-square(dof) under consistency.
-    dof : int
-        3 (position) or 6 (pose).
-    alpha : float
-        Significance of each two-sided test.
-    correlated : bool
-        Account for the correlation between consecutive poses through an effective sample
-        size (recommended). ``False`` gives the textbook test, which assumes independence.
-
-    Returns
-    -------
-    NeesResult
-
-    Notes
-    -----
-    Textbook test (Bar-Shalom et al. 2001, sec. 5.4.2): with independent poses,
-    ``N * mean(NEES) ~ chi2(N dof)``, so the mean is accepted when it lies in
-    ``[chi2.ppf(alpha/2, N dof) / N, chi2.ppf(1 - alpha/2, N dof) / N]``.
-
-    Consecutive poses of a ground truth (GP-smoothed) and of an odometry are correlated, so
-    the N values carry fewer than N independent samples and the textbook interval is too
-    narrow: a consistent estimate would be called inconsistent. The test is therefore
-    approximate; rtsgt makes it robust in two ways:
-
-    1. N is replaced by ``N_eff = N / tau``, with ``tau`` the integrated autocorrelation time
-       of the NEES series (:func:`integrated_autocorrelation_time`); the mean of ``N_eff``
-       independent chi-square(dof) values has the same variance as the correlated mean.
-    2. The share of poses inside the 95 % region (NEES below the chi-square 0.95 quantile) is
-       tested too, against a binomial(``N_eff'``, 0.95) interval, ``N_eff'`` from the
-       autocorrelation of the inside/outside indicator. It is insensitive to a few gross
-       outliers in the mean and sensitive to the shape of the distribution.
-
-    The verdict is ``consistent`` when both pass. An over-confident estimate (mean too high,
-    too few inside), a biased one (mean too high) and an under-confident one (mean too low,
-    too many inside) fail. The alignment fitted on the same poses lowers the NEES slightly
-    (by at most 7 of ``N dof`` degrees of freedom); this is neglected.
+    r"""Chi-square consistency test (:class:`NeesResult`) of per-pose NEES values (N,) with ``dof``
+    3 or 6, at significance ``alpha`` per two-sided test: the mean and the share inside the 95 %
+    region, with effective sample sizes from the autocorrelation (``correlated=False``: the
+    textbook independent test); docs/evaluation.md#nees.
     """
     v = np.asarray(nees, dtype=float)
     if v.ndim != 1 or v.size == 0:
@@ -654,15 +451,8 @@ def nees_consistency(
 
 
 def noise_floor(cov_pos: ArrayLike) -> float:
-    """Ground-truth noise floor ``sqrt(mean_k tr Sigma_k)`` (m for positions, rad for rotations).
-
-    The rmse of the error between a perfect estimate and a ground truth whose errors have
-    covariances ``Sigma_k`` (docs/evaluation.md#noise-floor: ``E|dp|^2 = tr Sigma_gt`` when
-    ``Sigma_est = 0`` and there is no bias).
-
-    Parameters
-    ----------
-    cov_pos : array_like, shape (N, d, d)
+    """Ground-truth noise floor ``sqrt(mean_k tr Sigma_k)`` of ``cov_pos`` (N, d, d), m or rad
+    (docs/evaluation.md#noise-floor).
     """
     c = np.asarray(cov_pos, dtype=float)
     return float(np.sqrt(np.mean(np.trace(c, axis1=-2, axis2=-1))))
@@ -688,28 +478,9 @@ MIN_OBSERVED_VARIANCE = 1e-2
 
 
 def alignment_sensitivity(position: ArrayLike, method: str) -> np.ndarray | None:
-    r"""``K_k = d e_k / d a``: how an alignment's small change moves the pose errors.
-
-    The alignment maps the estimate by ``p -> s R p + t``; a small change ``a`` of it about the
-    fitted one moves the aligned position ``p_k`` by ``dt - [p_k]x dphi + ds p_k`` and the
-    rotation error by ``dphi`` (left perturbation, world frame, :func:`pose_error`). Columns
-    (positions centred on their mean, which changes the translation columns only, not the
-    span):
-
-    ``se3``, ``origin``: ``(dt, dphi)``, 6; ``sim3``: and ``ds``, 7; ``4dof``: ``dt`` and the
-    yaw ``dphi_z``, 4; ``scale``: ``ds`` about the world origin, 1 (not centred); ``none``:
-    None.
-
-    Parameters
-    ----------
-    position : array_like, shape (N, 3)
-        Ground-truth positions at the poses, m.
-    method : str
-        A method of :data:`ALIGNMENT_PARAMETERS`.
-
-    Returns
-    -------
-    ndarray, shape (N, 6, m), or None
+    r"""``K_k = d e_k / d a`` (N, 6, m): how a small change ``a`` of an alignment ``method`` (a key of
+    :data:`ALIGNMENT_PARAMETERS`) moves the pose errors at ground-truth positions (N, 3) m; None for
+    "none" (docs/evaluation.md#errors-shared-by-the-deployment).
     """
     if method not in ALIGNMENT_PARAMETERS:
         raise ValueError(f"Expected an alignment in {tuple(ALIGNMENT_PARAMETERS)}, got {method!r}")
@@ -737,32 +508,10 @@ def alignment_sensitivity(position: ArrayLike, method: str) -> np.ndarray | None
 
 @dataclass(frozen=True)
 class SharedTest:
-    """The shared parameters' estimate tested against its own covariance.
-
-    Attributes
-    ----------
-    theta : ndarray, shape (k,)
-        GLS estimate of the whitened shared parameters.
-    statistic : float
-        ``theta^T Sigma_theta^+ theta`` over the observed directions.
-    dof : int
-        Number of observed directions (eigenvalue of ``Sigma_theta`` above
-        :data:`MIN_OBSERVED_VARIANCE`).
-    interval : tuple of float
-        Two-sided ``1 - alpha`` chi-square(dof) acceptance interval of ``statistic``.
-    p_value : float
-        Upper tail ``P(chi2(dof) > statistic)``.
-    tau : float
-        Integrated autocorrelation time of the whitened varying residual (the inflation of
-        the varying part's contribution to ``Sigma_theta``).
-    absorbed : int
-        Parameters of the alignment projected out.
-    consistent : bool
-        ``statistic`` inside ``interval`` (two-sided), or below its upper end (``upper``).
-    alpha : float
-    upper : bool
-        One-sided: only errors too large for the covariance fail (an estimate without
-        covariance: is its error significant against the ground truth's uncertainty?).
+    """The shared parameters' GLS estimate ``theta`` (k,) tested against its own covariance:
+    ``statistic`` over the ``dof`` observed directions (above :data:`MIN_OBSERVED_VARIANCE`), its
+    ``1 - alpha`` ``interval`` and ``p_value``; ``tau`` of the whitened residual; ``absorbed``
+    alignment parameters; ``consistent`` (one-sided with ``upper``).
     """
 
     theta: np.ndarray
@@ -787,19 +536,9 @@ class SharedTest:
 
 @dataclass(frozen=True)
 class SplitVerdict:
-    """The verdict of the split test for one NEES (position or pose).
-
-    Attributes
-    ----------
-    shared : SharedTest
-    varying : NeesResult
-        NEES of the varying residual ``e - L theta - K a`` against ``V`` (scaled by its exact
-        expectation under consistency, so that its mean is ``dof``), tested with the effective
-        sample size of :func:`nees_consistency`.
-    consistent : bool
-        Both passed (each at half the significance).
-    names : tuple of str
-        The shared parameters.
+    """The split test's verdict for one NEES: ``shared`` (:class:`SharedTest`), ``varying``
+    (:class:`NeesResult` of the residual, scaled to mean ``dof``), ``consistent`` (both, each at
+    ``alpha / 2``), ``names`` of the shared parameters.
     """
 
     shared: SharedTest
@@ -842,66 +581,13 @@ def shared_error_test(
     names: tuple[str, ...] = (),
     upper: bool = False,
 ) -> tuple[SplitVerdict, SplitVerdict]:
-    r"""Consistency of errors with a covariance ``C = blockdiag(D_k) + L L^T`` (the split test).
+    r"""The split test of errors ``e`` (N, d) (d = 6 poses, 3 positions; m, rad) against
+    ``C = blockdiag(D_k) + L L^T`` with alignment sensitivity ``K`` (N, d, m) or None.
 
-    Model: ``e_k = nu_k + L_k theta + K_k a`` with ``nu_k ~ N(0, D_k)`` (the varying error:
-    the ground truth's, plus the estimate's own when it has one), ``theta ~ N(0, I_k)`` the
-    whitened shared parameters (:mod:`rtsgt.shared`) and ``a`` the alignment's small change,
-    unknown (flat prior: what the alignment absorbs is projected out, and nothing else).
-
-    With ``U = [L, K]``, ``A = U^T D^-1 U``, ``Lambda = diag(I_k, 0)`` and ``H = Lambda + A``
-    (Woodbury: every sum is over poses of 6 x (k + m) blocks, no 6N x 6N matrix), the GLS
-    estimate is ``(theta, a) = H^-1 U^T D^-1 e``; it does not depend on ``a`` (the alignment
-    is projected out exactly). Under consistency its covariance is
-
-    .. math::
-
-        \mathrm{Cov} = \tau (H^{-1} - H^{-1} \Lambda H^{-1}) + (E - H^{-1} E)(E - H^{-1} E)^T,
-        \qquad E = [I_k; 0],
-
-    where ``tau`` (the integrated autocorrelation time of the whitened residual, averaged over
-    its components) accounts for the correlation of the varying error between nearby poses.
-
-    1. **Shared**: ``theta^T Sigma_theta^+ theta ~ chi2(dof)`` over the directions the data
-       observe (``Sigma_theta``'s eigenvalues above :data:`MIN_OBSERVED_VARIANCE`), tested
-       two-sided at ``alpha / 2``.
-    2. **Varying**: ``r_k = e_k - L_k theta - K_k a``, ``NEES_k = r_k^T D_k^-1 r_k``, divided by
-       its expectation under consistency per degree of freedom,
-       ``(d N - tr(M A_d)) / (d N)`` with ``M = 2 H^-1 - H^-1 A H^-1 - H_k H_k^T``
-       (``H_k``: the first ``k`` columns of ``H^-1``; ``A_d``: ``A`` over the position rows
-       only for ``d = 3``), then :func:`nees_consistency` at ``alpha / 2``.
-
-    The verdict is consistent when both pass. With ``upper`` both tests are one-sided, against
-    the upper ends of the same intervals (for the varying NEES: the mean below its interval's
-    upper end and the share inside the 95 % region above its interval's lower end): only
-    errors too large fail. That is the question for an estimate without covariance (is its
-    error significant against the ground truth's own uncertainty?), where errors smaller
-    than the ground truth's uncertainty are no fault of the estimate.
-
-    Parameters
-    ----------
-    e : array_like, shape (N, 6) or (N, 3)
-        Pose errors (:func:`pose_error`), m and rad; or position errors only (a position
-        ground truth, :mod:`rtsgt.evaluation.positions`), m.
-    D : array_like, shape (N, d, d)
-        Varying covariances, positive definite (``d`` = 6 or 3, as ``e``).
-    L : array_like, shape (N, d, k)
-        Shared factor.
-    K : array_like, shape (N, d, m), optional
-        Alignment sensitivity (:func:`alignment_sensitivity`, its position rows for
-        ``d = 3``); None: no alignment.
-    alpha : float
-        Significance of the whole verdict.
-    names : tuple of str
-        Names of the shared parameters (for the report).
-    upper : bool
-        One-sided tests (above).
-
-    Returns
-    -------
-    position, pose : SplitVerdict
-        The verdicts with the position NEES (3 dof) and the pose NEES (6 dof); the shared test
-        is the same in both. ``pose`` is None for position errors (``d = 3``).
+    ``D`` (N, d, d) varying covariances, ``L`` (N, d, k) shared factor, ``names`` its parameters;
+    ``upper``: one-sided tests (an estimate without covariance). Returns the ``position`` and
+    ``pose`` :class:`SplitVerdict` (pose None for d = 3);
+    docs/evaluation.md#errors-shared-by-the-deployment.
     """
     e = np.asarray(e, dtype=float)
     D = np.asarray(D, dtype=float)

@@ -21,44 +21,15 @@ __all__ = ["EvaluationOptions", "DEFAULT_MAX_DT_S"]
 
 @dataclass(frozen=True)
 class EvaluationOptions:
-    """How an estimate is associated, aligned and compared (evo's options).
+    """How an estimate is associated, aligned and compared (evo's options; docs/evaluation.md).
 
-    Attributes
-    ----------
-    align : str
-        ``none``, ``se3``, ``sim3``, ``4dof``, ``scale`` or ``origin``
-        (:mod:`rtsgt.evaluation.align`).
-    n_align : int, optional
-        Align on the first ``n_align`` associated poses only (None: all).
-    weighted : bool
-        Covariance-weighted alignment (weights ``1 / tr Sigma_pos``).
-    delta, delta_unit, all_pairs, rel_delta_tol, pairs_from_reference :
-        RPE pair selection as evo (:func:`~rtsgt.evaluation.metrics.rpe_pairs`); units
-        ``m`` (path), ``s``, ``f`` (frames, an integer ``delta``); pairs from the aligned
-        estimate unless ``pairs_from_reference``.
-    time_offset : float
-        s added to the estimate's times (evo ``--t_offset``).
-    max_dt : float or None
-        Max distance (s) to the nearest ground-truth measurement time (for a continuous ground
-        truth: to the nearest measurement of every prism, ``--max-gap``); also the gap limit
-        of the RPE's gap warning (None: no limit).
-    estimate : tuple of str
-        What to estimate jointly with the alignment (:mod:`rtsgt.evaluation.mounting`): any of
-        ``rotation``, ``lever`` (the mounting ``T_body_sensor``), ``lever-xy`` (the lever
-        arm's x and y in the body frame, its z given), ``clock`` (the time offset, starting
-        from ``time_offset``); ``mounting`` stands for ``rotation, lever``, ``all`` for
-        ``rotation, lever, clock``. A comma-separated string is accepted; stored as a tuple in the order
-        of :data:`~rtsgt.evaluation.mounting.MOUNTING_PARAMETERS`. Needs an alignment of
-        :data:`~rtsgt.evaluation.mounting.JOINT_ALIGNMENTS`.
-    mounting : tuple of 7 float, optional
-        The given ``T_body_sensor`` as ``(x, y, z, qx, qy, qz, qw)`` (the sensor's pose in the
-        body frame; the quaternion renormalised); the start of what is estimated, the value
-        of the rest. None: the identity (the estimate is of the body frame itself).
-
-    Raises
-    ------
-    InputError
-        A value outside its rule (``bare_message`` says which and why).
+    ``align`` (:data:`~rtsgt.evaluation.align.ALIGN_METHODS`), ``n_align``, ``weighted``; RPE pairs
+    ``delta``, ``delta_unit`` (m, s, f), ``all_pairs``, ``rel_delta_tol``,
+    ``pairs_from_reference``; ``time_offset`` s; ``max_dt`` s (also the RPE gap warning's limit);
+    ``estimate`` any of rotation, lever, lever-xy, clock (mounting, all; a comma-separated string
+    accepted, stored in :data:`~rtsgt.evaluation.mounting.MOUNTING_PARAMETERS` order);
+    ``mounting`` the given ``T_body_sensor`` as ``(x, y, z, qx, qy, qz, qw)`` (None: identity).
+    InputError for a value outside its rule.
     """
 
     align: str = "se3"

@@ -60,39 +60,14 @@ def align_points(
     n_align: int | None = None,
     weights: ArrayLike | None = None,
 ) -> Alignment:
-    """Fit the alignment of the estimate's points ``p_S + R_S l`` onto ground-truth positions
+    """Fit the :class:`~rtsgt.evaluation.align.Alignment` (for the sensor poses) of the estimate's
+    points ``p_S + R_S l`` onto ground-truth positions (N, 3) m
     (docs/evaluation.md#position-only-ground-truth).
 
-    Parameters
-    ----------
-    gt_position : array_like, shape (N, 3)
-        Ground-truth positions at the estimate's times, world frame, m.
-    est_position : array_like, shape (N, 3)
-        Sensor positions in the estimate's frame.
-    est_rotation : array_like, shape (N, 3, 3)
-        Sensor orientations in the estimate's frame.
-    lever_arm : array_like, shape (3,)
-        The point in the sensor frame, m.
-    method : str
-        One of :data:`POSITION_ALIGN_METHODS`.
-    n_align : int, optional
-        Fit on the first ``n_align`` positions only.
-    weights : array_like, shape (N,) or (N, 3, 3), optional
-        Non-negative scalar weights (:func:`~rtsgt.evaluation.align.alignment_weights`), or
-        information matrices ``W_k`` (the inverse covariances of the errors): generalised
-        least squares, :func:`gls_alignment` from the unweighted fit.
-
-    Returns
-    -------
-    Alignment
-        To apply to the sensor poses (:meth:`~rtsgt.evaluation.align.Alignment.apply`).
-
-    Raises
-    ------
-    InputError
-        An unknown method (``origin`` among them), too few positions.
-    GeometryError
-        Degenerate geometry (collinear positions, no horizontal motion for ``4dof``).
+    ``est_position`` (N, 3), ``est_rotation`` (N, 3, 3) in the estimate's frame, ``lever_arm``
+    (3,) m; ``method`` of :data:`POSITION_ALIGN_METHODS`; ``n_align``; ``weights`` (N,) scalar or
+    (N, 3, 3) information matrices (then :func:`gls_alignment`). InputError on an unknown method
+    or too few positions; GeometryError on degenerate geometry.
     """
     check_position_alignment(method)
     y = np.asarray(gt_position, dtype=float)
@@ -159,26 +134,9 @@ GLS_TOL = 1e-12
 
 def gls_alignment(start: Alignment, y: np.ndarray, p: np.ndarray, arm: np.ndarray,
                   W: np.ndarray) -> Alignment:
-    r"""The alignment of ``start``'s method that minimises ``sum_k r_k^T W_k r_k``.
-
-    ``r_k = y_k - (R u_k + t)``, ``u_k = s p_k + a_k`` (``a_k = R_S,k l``, estimate frame).
-    Gauss-Newton from ``start`` (the unweighted fit), on a perturbation of the alignment about
-    the aligned points' centroid ``c`` (so that coordinates far from the origin, e.g. UTM,
-    keep the rotation and the translation apart): ``x -> exp([dphi]x) (x - c) + c + dt`` and
-    ``s -> s + ds``, which moves the point ``x_k = R u_k + t`` by
-    ``dt - [x_k - c]x dphi + ds R p_k``, restricted to the method's parameters (``se3``: ``dt,
-    dphi``; ``4dof``: ``dt, dphi_z``; ``sim3``: and ``ds``; ``scale``: ``ds``, about the
-    origin). With ``W_k``
-    the inverse covariance of the errors the NEES after the alignment is what it leaves:
-    the fit removes as much of it as its parameters can, not more in one direction than in
-    another.
-
-    Raises
-    ------
-    GeometryError
-        The normal equations are singular (the method's parameters are not determined).
-    ConvergenceError
-        No convergence in :data:`GLS_MAX_ITER` steps.
+    r"""The alignment of ``start``'s method minimising ``sum_k r_k^T W_k r_k`` by Gauss-Newton about
+    the aligned points' centroid (docs/evaluation.md#position-only-ground-truth). GeometryError
+    when the normal equations are singular; ConvergenceError after :data:`GLS_MAX_ITER` steps.
     """
     method = start.method
     R, t, s = start.rotation.copy(), start.translation.copy(), float(start.scale)

@@ -45,19 +45,9 @@ class ErrorStatistics:
 
 @dataclass(frozen=True)
 class PoseErrors:
-    """APE or RPE: per-pose (per-pair) errors and their statistics.
-
-    Attributes
-    ----------
-    translation_m, rotation_deg, full : ErrorStatistics
-        evo's translation part (m), rotation angle (deg) and full transformation (unitless);
-        the last two None against a ground truth of positions (:meth:`of_positions`).
-    translation_error : ndarray, shape (K,)
-        m.
-    rotation_error_deg : ndarray, shape (K,) or None
-    full_error : ndarray, shape (K,) or None
-    pairs : ndarray of int, shape (K, 2) or None
-        RPE index pairs into the associated poses (None for the APE).
+    """APE or RPE: per-pose (per-pair) errors (K,) and their :class:`ErrorStatistics`:
+    ``translation_m``/``translation_error`` (m), ``rotation_deg``/``rotation_error_deg`` and
+    ``full``/``full_error`` (None for positions), ``pairs`` (K, 2) for the RPE (None for the APE).
     """
 
     translation_m: ErrorStatistics
@@ -130,21 +120,9 @@ class NeesSection:
 
 @dataclass(frozen=True)
 class NoiseFloor:
-    """The errors a perfect estimate would show against this ground truth, and the APE/RPE
-    with that floor removed (``sqrt(max(rmse^2 - floor^2, 0))``). None without covariances.
-
-    Attributes
-    ----------
-    ape_translation_m : float
-        ``sqrt(mean tr Sigma_gt,pos)``, m.
-    ape_translation_rmse_floor_removed_m : float
-    ape_rotation_deg : float
-        ``sqrt(mean tr Sigma_gt,rot)`` in degrees (small-angle rms of the rotation angle).
-    ape_rotation_rmse_floor_removed_deg : float
-    rpe_translation_m : float
-        ``sqrt(mean tr Sigma_rel,pos)`` over the RPE pairs, m.
-    rpe_translation_rmse_floor_removed_m : float
-    rpe_rotation_deg, rpe_rotation_rmse_floor_removed_deg : float
+    """What a perfect estimate would show against this ground truth (``sqrt(mean tr Sigma)``, m or
+    deg, APE and RPE) and the rmse with it removed, ``sqrt(max(rmse^2 - floor^2, 0))``
+    (docs/evaluation.md#noise-floor).
     """
 
     ape_translation_m: float | None = None
@@ -162,42 +140,13 @@ class NoiseFloor:
 
 @dataclass(frozen=True)
 class EvaluationResult:
-    """Everything :func:`evaluate` computed.
+    """Everything :func:`evaluate` computed against a pose ground truth.
 
-    Attributes
-    ----------
-    t : ndarray, shape (N,)
-        Times of the associated estimate poses, s (estimate clock).
-    gt : PoseTrajectory
-        Ground truth at those times (world frame, with ``cov`` when available).
-    est : PoseTrajectory
-        The associated estimate after alignment (world frame; ``cov`` mapped too).
-    alignment : Alignment
-    association : Association
-    ape : PoseErrors
-    rpe : PoseErrors or None
-        None when no RPE pair exists (``rpe_absent_reason`` says why).
-    nees : NeesSection
-    noise_floor : NoiseFloor
-    pose_error : ndarray, shape (N, 6)
-        ``perturbation(gt, est)``: (x, y, z, rx, ry, rz), m and rad, world frame.
-    cov_error : ndarray, shape (N, 6, 6) or None
-        ``S_k`` used for the NEES (ground truth + estimate when it has one).
-    rpe_delta : float
-    rpe_delta_unit : str
-    rpe_all_pairs : bool
-    rpe_absent_reason : str or None
-        Why there is no RPE (None when there is one).
-    mounting : MountingFit or None
-        The mounting ``T_body_sensor`` and the clock offset the estimate was moved by, given
-        or estimated (None: neither given nor estimated).
-    mounting_effect : dict or None
-        How much the rmse of the APE and RPE move within the estimated parameters'
-        uncertainty (:func:`~rtsgt.evaluation.evaluator.mounting_effect`; None when nothing
-        was estimated).
-    drift : Drift or None
-        Drift by segment length (KITTI's, and per second) with the ground truth's floor
-        (:mod:`rtsgt.evaluation.drift`).
+    ``t`` (N,) s (estimate clock); ``gt`` and aligned ``est`` (world frame, covariances);
+    ``alignment``, ``association``; ``ape``, ``rpe`` (None: ``rpe_absent_reason``) with
+    ``rpe_delta``, ``rpe_delta_unit``, ``rpe_all_pairs``; ``nees``; ``noise_floor``; ``pose_error``
+    (N, 6) m, rad; ``cov_error`` (N, 6, 6) the NEES's ``S_k``; ``mounting`` (MountingFit or None),
+    ``mounting_effect``; ``drift`` (:mod:`rtsgt.evaluation.drift`).
     """
 
     t: np.ndarray
@@ -257,18 +206,11 @@ def error_sections(result) -> tuple[dict, dict]:
 
 @dataclass(frozen=True)
 class PositionEvaluationResult:
-    """What :func:`~rtsgt.evaluation.evaluator.evaluate` computed against a ground truth of
-    positions (3 dof): the fields of :class:`EvaluationResult` (``ape`` and ``rpe`` without
-    rotations; ``nees`` with ``position`` and ``relative_position`` only; translation floors),
-    and
-
-    - ``gt``: a :class:`~rtsgt.types.PositionTrajectory`; ``est``: the estimate's points
-      ``p_S + R_S l`` after the alignment, with their covariance ``J Sigma_S J^T`` when the
-      estimate has one; ``est_poses``: the aligned sensor poses (world frame, ``cov`` mapped);
-    - ``position_error`` (N, 3) ``p_P - y``, m; ``cov_error`` (N, 3, 3) ``S_k`` of the NEES;
-    - ``lever_arm`` (3,) ``l``, m, sensor frame, ``lever_arm_source`` (``"given"``,
-      ``"estimated"``), ``lever_arm_cov`` (3, 3) m^2 when known;
-    - ``drift``: translational drift by segment length (rotational drift not estimable).
+    """What :func:`evaluate` computed against a ground truth of positions (3 dof): the fields of
+    :class:`EvaluationResult` without rotations (``drift`` translational only), and ``est`` the
+    aligned points ``p_S + R_S l``, ``est_poses`` the aligned sensor poses, ``position_error``
+    (N, 3) m, ``cov_error`` (N, 3, 3), ``lever_arm`` (3,) m with ``lever_arm_source`` and
+    ``lever_arm_cov`` (3, 3) m^2.
     """
 
     t: np.ndarray
