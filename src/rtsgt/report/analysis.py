@@ -1,49 +1,9 @@
 r"""Noise-source analysis of one run: the numbers behind the paper's figures, for any deployment.
 
-Two questions, one answer each per noise source (instrument, tilt, atmosphere, time_sync,
-calibration) and for all of them together:
-
-**How large is each source at the prisms?** (Vaidis et al. 2023, Fig. 4 / Table II.) For every
-measurement of every prism, the size of a source's 3x3 position covariance ``Sigma_s`` (world
-frame, m^2) is the square root of its Frobenius norm, in mm:
-
-.. math::  n_s = \sqrt{\lVert \Sigma_s \rVert_F} \cdot 10^3
-
-(:func:`rtsgt.noise.analysis.frobenius_norm_mm`). The values are binned by the range of the
-measurement (default bins 0-75, 75-150, > 150 m, the paper's) and summarised by their median
-per bin and overall, with the share of measurements falling in each bin. ``Sigma_s`` is the
-covariance of the source *alone* (``PrismTrack.cov_by_source``); the authors' figure code
-measured a source other than the instrument as ``sqrt(||Sigma_(instrument + s) -
-Sigma_instrument||_F)`` instead. The two are identical for first-order propagation (independent
-sources add) and agree to Monte Carlo noise otherwise (see
-:func:`rtsgt.noise.analysis.authors_source_norms_mm`). ``"all"`` is the sum of the sources'
-covariances (the covariance of the sum of independent errors).
-
-**How much of it reaches the pose?** A pose engine (by default the linear one,
-:data:`DEFAULT_ANALYSIS_ENGINE`; ``mc`` or ``ut`` on request) is run
-again at the kept pose times with each source's prism covariance alone
-(``PrismsAtTimes.cov_by_source[s]``, interpolated from the measurements) and an exactly known
-reference (zero covariance), which isolates that source; the run's fit is kept (a weighted
-registration keeps the weights of the total covariance, the per-prism blocks the run recorded,
-so only what is propagated changes). Three further entries: ``"gp"`` (the
-GP posterior covariance alone: the white sources after interpolation, with the motion model's
-uncertainty between measurements; present when the run has it), ``"reference"`` (the survey of
-the reference prisms on the robot alone, prisms exact) and ``"all"``, the run's own pose
-covariance (GP posterior of the white sources, plus the systematic sources, plus the
-reference). The ``"all"`` entry is therefore not the sum of the others: the GP smooths the white
-sources (instrument, tilt) over neighbouring measurements and adds its motion-model uncertainty
-between them. Each 6x6 pose covariance (x, y, z, rx, ry, rz) is summarised by
-
-- translation (mm): ``sqrt(tr Sigma_tt) * 1e3`` (the RMS of the 3-D position error), and
-- rotation (mrad): ``sqrt(tr Sigma_rr) * 1e3`` (the RMS of the rotation-vector error),
-
-the default measure ``"sqrt_trace"``; ``pose_measure="max_std"`` uses the square root of the
-largest eigenvalue instead (the standard deviation along the worst direction). Both are
-:func:`rtsgt.filtering.gates.position_uncertainty` applied to each 3x3 block.
-
-Nothing here reads files or prints: :func:`analyze` takes a run record
-(:class:`rtsgt.record.RunRecord`), the one :func:`rtsgt.pipeline.run_pipeline` returns or the
-one :func:`rtsgt.io.run_dir.read_run` reads back; :func:`analyze_dir` reads it first.
+Per noise source and for all together: its size at the prisms (``sqrt(||Sigma_s||_F)`` in mm,
+binned by range; docs/paper-figures.md#per-source-medians) and how much of it reaches the pose
+(docs/paper-figures.md#how-much-reaches-the-pose). No files, no printing: :func:`analyze` takes
+a run record (:class:`rtsgt.record.RunRecord`).
 """
 
 from __future__ import annotations
@@ -166,19 +126,9 @@ def bin_labels(lower_edges: Sequence[float]) -> tuple[str, ...]:
 
 
 def pose_sigmas(cov: np.ndarray, measure: str = "sqrt_trace") -> tuple[np.ndarray, np.ndarray]:
-    """Translation (mm) and rotation (mrad) uncertainty of 6x6 pose covariances.
-
-    Parameters
-    ----------
-    cov : ndarray, shape (T, 6, 6)
-        Ordered (x, y, z, rx, ry, rz), m^2 / rad^2.
-    measure : {"sqrt_trace", "max_std"}
-        ``sqrt(trace)`` or ``sqrt(largest eigenvalue)`` of each 3x3 block.
-
-    Returns
-    -------
-    translation_mm, rotation_mrad : ndarray, shape (T,)
-        NaN where the covariance is not finite.
+    """Translation (mm) and rotation (mrad) uncertainty (T,) of pose covariances (T, 6, 6):
+    ``sqrt(trace)`` (``"sqrt_trace"``) or ``sqrt(largest eigenvalue)`` (``"max_std"``) of each 3x3
+    block; NaN where not finite.
     """
     if measure not in POSE_MEASURES:
         raise InputError(f"Expected pose measure in {POSE_MEASURES}, got {measure!r}")
@@ -200,53 +150,15 @@ def _num(x: float) -> float | None:
 
 @dataclass(frozen=True)
 class Analysis:
-    """Per-source noise analysis of one run (module docstring for the definitions).
+    """Per-source noise analysis of one run (docs/paper-figures.md#per-source-medians).
 
-    Attributes
-    ----------
-    name : str
-        Deployment name.
-    sources : tuple of str
-        Measurement-level entries: the sources present, in :data:`NOISE_SOURCES` order, then
-        ``"all"``.
-    bin_lower_m : tuple of float
-        Lower edges of the range bins, m (the last bin is open).
-    bin_labels : tuple of str
-    bin_counts : tuple of int
-        Measurements per bin (all prisms).
-    bin_shares : tuple of float
-        Share of the measurements in each bin (sums to 1 when every range is >= the first
-        edge).
-    n_measurements : int
-    prism : ndarray of str, shape (N,)
-        Prism of each measurement (all prisms concatenated).
-    t : ndarray, shape (N,)
-        Time of each measurement, s.
-    range_m : ndarray, shape (N,)
-        Slope distance of each measurement from its station, m.
-    bin_index : ndarray of int, shape (N,)
-        Bin of each measurement (-1: below the first edge).
-    norm_mm : dict str -> ndarray (N,)
-        ``sqrt(||Sigma_s||_F)`` per measurement, mm.
-    median_mm : dict str -> float
-        Overall median per entry, mm.
-    bin_median_mm : dict str -> tuple of float
-        Median per bin, mm (NaN for an empty bin).
-    pose_sources : tuple of str
-        Pose-level entries: the sources present at the query times, ``"gp"`` (when known),
-        ``"reference"`` (when the reference has a covariance), ``"all"``.
-    pose_t : ndarray, shape (K,)
-        Kept pose times, s.
-    pose_cov : dict str -> ndarray (K, 6, 6)
-        Pose covariance per entry.
-    translation_mm, rotation_mrad : dict str -> ndarray (K,)
-        :func:`pose_sigmas` of ``pose_cov``.
-    pose_median_translation_mm, pose_median_rotation_mrad : dict str -> float
-    pose_measure : str
-    engine : str
-        Pose engine used for the per-source poses.
-    samples : int or None
-        Monte Carlo samples (``"mc"``) of the per-source poses.
+    Measurements (N, all prisms): ``sources`` (then "all"), range bins ``bin_lower_m``,
+    ``bin_labels``, ``bin_counts``, ``bin_shares``, ``n_measurements``; per measurement ``prism``,
+    ``t`` s, ``range_m``, ``bin_index`` (-1 below the first edge); ``norm_mm`` per entry and its
+    ``median_mm``, ``bin_median_mm`` (NaN for an empty bin). Poses (K): ``pose_sources``
+    ("gp", "reference", "all" added), ``pose_t`` s, ``pose_cov`` (K, 6, 6), ``translation_mm``,
+    ``rotation_mrad`` (:func:`pose_sigmas`) and their medians; ``pose_measure``, ``engine``,
+    ``samples``; ``name`` of the deployment.
     """
 
     name: str
@@ -392,15 +304,8 @@ DEFAULT_ANALYSIS_ENGINE = "linear"
 
 
 def nearest_psd(cov: np.ndarray) -> np.ndarray:
-    """Covariances with their round-off negative eigenvalues set to zero (others untouched).
-
-    A single source's 3x3 covariance is often rank deficient (the tilt compensator moves a
-    point along one direction: rank one), so round-off in its computation, a Monte Carlo
-    estimate or a linear interpolation in time leaves eigenvalues like ``-1e-9 * ||Sigma||``
-    that the pose engines rightly refuse. Every finite matrix is symmetrised (which leaves a
-    symmetric one bit for bit as it is) and, where it has a negative eigenvalue, replaced by
-    its eigen-decomposition with the negative eigenvalues set to zero (the nearest PSD
-    matrix in the Frobenius norm). Non-finite matrices are returned unchanged.
+    """Covariances (..., n, n) symmetrised, with round-off negative eigenvalues set to zero where
+    they occur (others bit for bit unchanged; non-finite matrices as they are).
     """
     c = np.array(cov, dtype=float)
     if c.size == 0:
@@ -463,30 +368,12 @@ def analyze(
     seed: int | None = None,
     pose_measure: str = "sqrt_trace",
 ) -> Analysis:
-    """Per-source analysis of a run.
+    """:class:`Analysis` of a run record (just computed or read back: the same numbers).
 
-    Parameters
-    ----------
-    data : RunRecord
-        Of a run just computed (:func:`rtsgt.pipeline.run_pipeline`) or read back
-        (:func:`rtsgt.io.run_dir.read_run`): the same numbers either way.
-    bins : sequence of float or str
-        Lower edges of the range bins, m (``"0,75,150"``; the last bin is open).
-    engine : {"mc", "ut", "linear"}, optional
-        Pose engine for the per-source poses; default :data:`DEFAULT_ANALYSIS_ENGINE`
-        (the first-order split: within 1 % of the Monte Carlo engine's medians per source on
-        the real excerpt and a simulated deployment, 3-4 % for the survey's, 26-32x faster;
-        docs/paper-figures.md#the-real-excerpt).
-    samples : int, optional
-        Monte Carlo samples (``"mc"``); default the run's.
-    seed : int, optional
-        Seed of the per-source Monte Carlo; default the run's (results are reproducible).
-    pose_measure : {"sqrt_trace", "max_std"}
-        Scalar measure of the 3x3 blocks of the pose covariance (module docstring).
-
-    Returns
-    -------
-    Analysis
+    ``bins``: lower range edges, m (``"0,75,150"``; the last open); ``engine`` of the per-source
+    poses (default :data:`DEFAULT_ANALYSIS_ENGINE`, docs/paper-figures.md#the-real-excerpt);
+    ``samples`` and ``seed`` of its Monte Carlo (default the run's); ``pose_measure`` as
+    :func:`pose_sigmas`.
     """
     lower = parse_bins(bins)
     if pose_measure not in POSE_MEASURES:

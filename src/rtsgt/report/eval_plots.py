@@ -1,36 +1,10 @@
 """Figures of ``rtsgt evaluate --plot DIR`` (matplotlib, Agg canvas, no pyplot state).
 
-Three figures, each written as PNG and SVG:
-
-``translation_error``
-    The APE translation error over time: its norm against the ground truth's own noise
-    (``k sqrt(tr Sigma_gt,pos)``, k = 1, 2, 3, the rms norm a perfect estimate would show),
-    and each component x, y, z with the ground truth's ``+-1/2/3 sigma`` bands
-    (``sigma = sqrt(Sigma_gt,ii)``).
-``top_view``
-    Ground truth and aligned estimate in the x-y plane, with 95 % ellipses of the ground-truth
-    horizontal position covariance (chi-square 2 dof, 5.991), magnified by a stated factor so
-    that millimetre ellipses remain visible on a trajectory of metres.
-``nees_histogram``
-    Histograms (densities) of the position and pose NEES against the chi-square(3) and
-    chi-square(6) densities, with the 95 % quantiles.
-``drift``
-    Drift by segment length (:mod:`rtsgt.evaluation.drift`): the translational (%) and
-    rotational (deg/m) drift over segments of ground-truth path, and per second over
-    segments of time, each length's mean with every segment's value behind it and the ground
-    truth's own floor (docs/evaluating.md#drift-by-segment-length).
-
-The lines along time (the errors, the sigma lines and bands, the paths of the top view) break
-where the associated poses leave a gap, a step longer than
-:data:`rtsgt.report.figures.GAP_FACTOR` times the median step.
-
-When the estimate was moved by a mounting (given or estimated, ``--mounting``,
-``--estimate``), the top view and the translation error say so in a text box: the mounting
-rotation and lever arm, the clock offset, each with its standard deviation when estimated
-(:func:`mounting_text`).
-
-:func:`plot_evaluation` returns a :class:`EvalPlots` holding what was drawn (file names,
-number of ellipses, histogram counts and edges, band widths) so that tests can check it.
+PNG and SVG of ``translation_error`` (APE norm and x, y, z against the ground truth's sigma
+bands), ``top_view`` (x-y paths with magnified 95 % ellipses), ``nees_histogram`` (against the
+chi-square densities) and ``drift`` (by segment length); lines break at gaps longer than
+:data:`rtsgt.report.figures.GAP_FACTOR` median steps; a text box gives the mounting and clock
+when the estimate was moved by one. docs/evaluating.md.
 """
 
 from __future__ import annotations
@@ -54,28 +28,9 @@ CHI2_2_95 = float(stats.chi2.ppf(0.95, 2))
 
 @dataclass(frozen=True)
 class EvalPlots:
-    """What :func:`plot_evaluation` drew.
-
-    Attributes
-    ----------
-    files : list of Path
-        Written files (PNG and SVG of every figure).
-    n_ellipses : int
-        Covariance ellipses on the top view.
-    ellipse_scale : float
-        Magnification of the ellipses.
-    sigma_norm : ndarray, shape (N,) or None
-        ``sqrt(tr Sigma_gt,pos)`` per pose, m (the 1-sigma line of the norm panel).
-    sigma_xyz : ndarray, shape (N, 3) or None
-        Per-axis ground-truth standard deviations, m.
-    hist : dict
-        ``{"position": (counts, edges), "pose": (counts, edges)}`` of the NEES histograms.
-    mounting_text : str or None
-        The text box of the mounting and clock (None without a mounting).
-    drift : dict
-        ``{(kind, part): (lengths, mean, floor)}`` of the drift panels drawn (kind
-        ``distance`` or ``time``, part ``translation`` or ``rotation``; floor None without
-        one), in the units shown.
+    """What :func:`plot_evaluation` drew (for the tests): ``files``, ``n_ellipses``,
+    ``ellipse_scale``, ``sigma_norm`` (N,) and ``sigma_xyz`` (N, 3) m, ``hist`` {"position",
+    "pose": (counts, edges)}, ``mounting_text``, ``drift`` {(kind, part): (lengths, mean, floor)}.
     """
 
     files: list[Path]
@@ -348,27 +303,9 @@ def plot_evaluation(
     ellipse_scale: float | None = None,
     force: bool = False,
 ) -> EvalPlots:
-    """Write the evaluation figures (PNG and SVG) into the directory ``out_dir``.
-
-    The directory is written whole or not at all; an existing one is replaced only with
-    ``force`` and only if rtsgt wrote it (:mod:`rtsgt.io.output_dir`).
-
-    Parameters
-    ----------
-    result : rtsgt.evaluation.EvaluationResult or rtsgt.evaluation.PositionEvaluationResult
-        For a position-only ground truth the estimate drawn is its tracked point (the lever
-        arm applied) and the pose NEES panel says that rotations are not reported.
-    out_dir : str or PathLike
-    max_ellipses : int
-        Covariance ellipses drawn on the top view (evenly spaced poses).
-    ellipse_scale : float, optional
-        Magnification of the ellipses; chosen automatically (1-2-5 steps) when None.
-    force : bool
-        Replace an earlier output of rtsgt at ``out_dir``.
-
-    Returns
-    -------
-    EvalPlots
+    """Write the evaluation figures into ``out_dir``, whole or not at all (an earlier rtsgt output
+    replaced only with ``force``); ``max_ellipses`` on the top view, ``ellipse_scale`` (None:
+    1-2-5 automatic). A position result draws its tracked point. Returns :class:`EvalPlots`.
     """
     output = OutputDir(out_dir, "evaluation plots", force=force)
     with output as tmp:
