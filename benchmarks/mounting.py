@@ -278,7 +278,7 @@ def main(argv=None) -> None:
     if np.any(np.isfinite(cz)):
         print(f"clock within 2 sigma of the truth: {100 * np.mean(np.abs(cz) <= 2):.1f} %; "
               f"models: " + ", ".join(f"{k} {sum(r['model'] == k for r in rows)}"
-                                      for k in ("absolute", "relative")))
+                                      for k in ("absolute", "odometry")))
     print(f"refused: {len(refused)} of {n + len(refused)} deployments"
           + "".join(f"\n  {seed}: {why}" for seed, why in refused))
     for g in rows[0]["groups"]:
