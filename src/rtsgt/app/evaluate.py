@@ -1,9 +1,6 @@
 """The use case "evaluate an estimated trajectory against an rtsgt ground truth": read the
-ground truth (a run directory, continuous from its measured tracks, or a trajectory or
-position file) and the estimate, evaluate them (:mod:`rtsgt.evaluation`, which takes records
-and never reads files), write evo's result files. ``rtsgt evaluate`` (:mod:`rtsgt.cli.evaluate`:
-its options, checks and tables) and Python users call :func:`run_evaluation`. The defaults
-of the gap limit and the ground truth's kinds: docs/evaluating.md.
+ground truth and the estimate, evaluate (:mod:`rtsgt.evaluation`), write evo's result files.
+Ground truths and gap limits: docs/evaluating.md.
 """
 
 from __future__ import annotations
@@ -47,26 +44,17 @@ GT_MODES = ("auto", "continuous", "discrete")
 
 
 def gt_engines() -> tuple[str, ...]:
-    """The pose engines of ``--gt-engine``: ``run`` (the run's own), then
-    :data:`rtsgt.pose.POSE_ENGINES`."""
+    """The pose engines of ``--gt-engine``: ``run`` (the run's own) and the engines."""
     return ("run", *POSE_ENGINES)
 
 
-#: Default ``--max-gap`` (s) for a ground-truth trajectory file (distance to the nearest stored
-#: pose): a few samples of a 5-10 Hz ground truth.
+#: Default ``--max-gap`` (s) for a ground-truth trajectory file.
 DEFAULT_MAX_GAP_FILE_S = DEFAULT_MAX_DT_S
 
 
 def run_gap_limit(gt: object, gt_dir: str | Path) -> float | None:
-    """The run's own gap limit, s: ``max_gap_s`` of a continuous ground truth, else that of
-    ``GT_DIR/summary.json`` (:func:`rtsgt.io.run_dir.read_summary`); None for a trajectory
-    file or a directory without a summary.
-
-    Raises
-    ------
-    InputError
-        ``summary.json`` cannot be read (naming it).
-    """
+    """The run's own gap limit, s (a continuous ground truth's, else ``summary.json``'s);
+    None for a trajectory file or a directory without a summary."""
     options = getattr(gt, "options", None)
     if options is not None:  # a continuous ground truth: its run's options
         return float(options.interpolation.max_gap_s)
@@ -79,17 +67,8 @@ def run_gap_limit(gt: object, gt_dir: str | Path) -> float | None:
 def read_ground_truth(run_dir: str | PathLike, *, engine: str | None = None,
                       samples: int | None = None, seed: int | None = None
                       ) -> ContinuousGroundTruth:
-    """The continuous ground truth of a run directory: :meth:`ContinuousGroundTruth.from_record
-    <rtsgt.evaluation.groundtruth.ContinuousGroundTruth.from_record>` of
-    :func:`rtsgt.io.run_dir.read_run`, which needs ``measurements/prism<i>.csv`` and
-    ``summary.json`` with each prism's ``qc_m2_s3``; ``engine``, ``samples``, ``seed``
-    override the run's.
-
-    Raises
-    ------
-    InputError
-        A missing or malformed file, no Qc in ``summary.json``, a bad engine.
-    """
+    """The continuous ground truth of a run directory (its ``measurements/`` and
+    ``summary.json``); ``engine``, ``samples``, ``seed`` override the run's."""
     root = _run_with_measurements(run_dir)
     record = read_run(root)
     _check_summary(record, root)
@@ -98,9 +77,8 @@ def read_ground_truth(run_dir: str | PathLike, *, engine: str | None = None,
 
 def read_position_ground_truth(run_dir: str | PathLike, prism: str | None = None
                                ) -> ContinuousPositionGroundTruth:
-    """The continuous position ground truth of one prism (``prism``; may be left out when the
-    run tracked one) of a run directory of either kind (:func:`rtsgt.io.run_dir.read_any_run`).
-    """
+    """The continuous position ground truth of one prism of a run directory of either kind
+    (``prism`` may be left out when the run tracked one)."""
     root = _run_with_measurements(run_dir)
     record = read_any_run(root)
     _check_summary(record, root)
@@ -125,21 +103,12 @@ def load_ground_truth(
     gt_dir: str | Path, *, mode: str = "auto", engine: str | None = None
 ) -> PoseTrajectory | ValidatedGroundTruth | GroundTruthQuery:
     """The ground truth of ``GT_DIR``: continuous from a run directory with ``measurements/``
-    (``mode`` ``auto`` or ``continuous``), else the discrete stored poses or trajectory file.
-
-    ``engine``: pose engine of the continuous ground truth (None: the run's).
-    """
-    if mode not in GT_MODES:
-        raise InputError(f"unknown ground-truth mode {mode!r}; expected one of {', '.join(GT_MODES)}")
+    (``mode`` ``auto`` or ``continuous``; ``engine`` None: the run's), else the stored poses
+    or the trajectory file."""
     gt_path = Path(gt_dir)
-    run_dir = gt_path.is_dir() and not (gt_path / "metadata.yaml").exists()
-    if run_dir and mode != "discrete" and (gt_path / "measurements").is_dir():
+    if _continuous(gt_path, mode):
         return read_ground_truth(gt_path, engine=engine)
-    if mode == "continuous":
-        raise InputError(
-            "a continuous ground truth needs an rtsgt run directory with measurements/", gt_path
-        )
-    if run_dir:
+    if _is_run_dir(gt_path):
         return read_groundtruth_dir(gt_path)
     if gt_path.exists():
         return read_trajectory(gt_path)
@@ -150,12 +119,23 @@ def _is_run_dir(path: Path) -> bool:
     return path.is_dir() and not (path / "metadata.yaml").exists()
 
 
+def _continuous(path: Path, mode: str) -> bool:
+    """Whether ``mode`` (checked) takes the continuous ground truth of ``path``."""
+    if mode not in GT_MODES:
+        raise InputError(f"unknown ground-truth mode {mode!r}; expected one of "
+                         f"{', '.join(GT_MODES)}")
+    if _is_run_dir(path) and mode != "discrete" and (path / "measurements").is_dir():
+        return True
+    if mode == "continuous":
+        raise InputError("a continuous ground truth needs an rtsgt run directory with "
+                         "measurements/", path)
+    return False
+
+
 def wants_positions(gt_dir: str | Path, *, lever_arm=None, prism: str | None = None,
                     gt_topic: str | None = None) -> bool:
-    """Whether ``GT_DIR`` is evaluated as a position-only ground truth
-    (:mod:`rtsgt.evaluation.positions`): it is one (a run with one or two tracked prisms, a
-    position CSV, :func:`rtsgt.io.positions.position_csv_form`), or one of ``--lever-arm``,
-    ``--prism``, ``--gt-topic`` asks for it."""
+    """Whether ``GT_DIR`` is evaluated as a position-only ground truth: it is one (a run of one
+    or two prisms, a position CSV), or ``lever_arm``, ``prism`` or ``gt_topic`` asks for it."""
     if lever_arm is not None or prism is not None or gt_topic is not None:
         return True
     path = Path(gt_dir)
@@ -169,18 +149,12 @@ def load_position_ground_truth(
     mode: str = "auto",
 ) -> PositionTrajectory | ContinuousPositionGroundTruth:
     """The position-only ground truth of ``GT_DIR``: one prism of a run directory
-    (continuous from its ``measurements/``, or with ``mode`` ``discrete`` its
-    ``prisms/prism<i>.csv``), a topic of a bag (``topic``) or a position CSV
-    (:mod:`rtsgt.io.positions`)."""
-    if mode not in GT_MODES:
-        raise InputError(f"unknown ground-truth mode {mode!r}; expected one of {', '.join(GT_MODES)}")
+    (continuous, or with ``mode`` ``discrete`` its ``prisms/prism<i>.csv``), a bag's
+    ``topic`` or a position CSV."""
     path = Path(gt_dir)
+    if _continuous(path, mode):
+        return read_position_ground_truth(path, prism)
     if _is_run_dir(path):
-        if mode != "discrete" and (path / "measurements").is_dir():
-            return read_position_ground_truth(path, prism)
-        if mode == "continuous":
-            raise InputError("a continuous ground truth needs an rtsgt run directory with "
-                             "measurements/", path)
         files = sorted(p.name[len("prism"):-len(".csv")] for p in (path / "prisms").glob(
             "prism*.csv") if not p.name.endswith("_sources.csv"))
         if prism is None and len(files) != 1:
@@ -214,20 +188,11 @@ def run_evaluation(
     prism: str | None = None,
     gt_topic: str | None = None,
 ) -> EvaluationResult | PositionEvaluationResult:
-    """Read the ground truth and the estimate, then :func:`rtsgt.evaluation.evaluate` with
-    ``options`` (default: ``EvaluationOptions()``); for a position-only ground truth
-    (:func:`wants_positions`), :func:`rtsgt.evaluation.evaluate_positions` with the
-    ``lever_arm`` (``"x,y,z"`` m in the estimate's sensor frame; zero, with a warning, when
-    not given).
-
-    ``max_gap`` (s), the largest distance to the nearest ground-truth measurement
-    (continuous: of every prism; discrete: the nearest stored pose), replaces
-    ``options.max_dt``; its default depends on the ground truth: the run's own gap limit
-    (:func:`run_gap_limit`) or :data:`DEFAULT_MAX_GAP_FILE_S` (module docstring).
-    ``gt_mode`` and ``gt_engine``: :func:`load_ground_truth` (``gt_engine`` ``"run"`` or
-    None: the run's engine; no meaning for positions). ``prism``: the prism of a run
-    directory; ``gt_topic``: the ground truth's topic in a bag.
-    """
+    """Read the ground truth and the estimate and evaluate them with ``options`` (against a
+    position-only ground truth, :func:`wants_positions`, with ``lever_arm``, ``"x,y,z"`` m in
+    the sensor frame, zero with a warning when not given). ``max_gap`` (s) replaces
+    ``options.max_dt`` (default: :func:`run_gap_limit`, else :data:`DEFAULT_MAX_GAP_FILE_S`);
+    ``gt_mode``, ``gt_engine`` (``"run"``: the run's): :func:`load_ground_truth`."""
     engines = gt_engines()
     if gt_engine is not None and gt_engine not in engines:
         raise InputError(
@@ -269,7 +234,7 @@ def _read_estimate(est_file, fmt, topic, timestamps, child_frame, est_cov) -> Po
 
 def _with_max_gap(gt, gt_dir, options: EvaluationOptions | None,
                   max_gap: float | None) -> EvaluationOptions:
-    """``options`` with ``max_dt`` the given ``max_gap`` or its default (module docstring)."""
+    """``options`` with ``max_dt`` the given ``max_gap`` or its default."""
     if max_gap is None:
         limit = run_gap_limit(gt, gt_dir) if Path(gt_dir).is_dir() else None
         max_gap = DEFAULT_MAX_GAP_FILE_S if limit is None else limit
@@ -277,17 +242,13 @@ def _with_max_gap(gt, gt_dir, options: EvaluationOptions | None,
     return dataclasses.replace(options, max_dt=max_gap)
 
 
-
 def save_evo_results(result, targets: dict[str, Path], *, gt_dir, est_file, relation: str,
                      force: bool) -> list[Path]:
-    """Write the evo result files of ``targets`` (:func:`save_targets`); every result is
-    built before the first file is written, so that a refused one (a rotation of a
-    position-only ground truth, an RPE without pairs) leaves no file."""
+    """Write the evo result files of ``targets``; all are built before the first is written
+    (a refused one leaves no file)."""
     results = {m: evo_result(result, metric=m, relation=relation, ref_name=str(gt_dir),
                              est_name=str(est_file)) for m in targets}
     option = {"ape": "--save-results", "rpe": "--save-results-rpe"}
     inputs = [gt_dir, est_file]
     return [write_evo_result(targets[m], res, option=option[m], force=force, inputs=inputs)
             for m, res in results.items()]
-
-

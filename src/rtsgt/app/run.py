@@ -1,6 +1,5 @@
 """The use case "compute the ground truth of a deployment": read it, run the pipeline, write
-the run directory (``rtsgt run``, ``rtsgt demo``, ``rtsgt batch`` and Python users call
-:func:`run_deployment`). Layers: docs/architecture.md#layers.
+the run directory (docs/architecture.md#layers).
 """
 
 from __future__ import annotations
@@ -41,18 +40,11 @@ def run_deployment(
     profile: str | None = None, seed: int = 0, force: bool = False, report: bool = False,
     inputs: dict | None = None, progress: Callable[[str], None] | None = None,
 ) -> DeploymentRun:
-    """Read the deployment ``config`` (a TOML, or a folder holding ``deployment.toml``), run
-    the pipeline and write its run directory at ``out`` atomically.
-
-    ``options``: changes to the configuration's options by the flat names of
-    :meth:`RunOptions.updated <rtsgt.options.RunOptions.updated>` (``engine``, ``rate_hz``,
-    ...), after the switches of ``profile`` (a name of :data:`rtsgt.options.PROFILES`, over
-    the configuration's); both are checked, and ``out`` too (``force``: replace an earlier
-    rtsgt output), before any work. ``report`` adds the HTML report (runs with poses only; a
-    warning otherwise). ``inputs`` (default: the configuration's absolute path) is what
-    ``summary.json`` records as the run's inputs. ``progress`` is called with the name of
-    each stage as it starts.
-    """
+    """Read the deployment ``config`` (a TOML or its folder), run the pipeline and write its
+    run directory at ``out`` atomically. ``options``: flat names of
+    :meth:`rtsgt.options.RunOptions.updated`, over ``profile``'s switches, checked (with
+    ``out``) before any work; ``report`` adds the HTML report (poses only); ``inputs``: what
+    ``summary.json`` records (default: the config's path); ``progress(stage name)``."""
     say = progress if progress is not None else _silent
     changes = dict(options or {})
     RunOptions().updated(profile=profile, **changes)  # a bad value: InputError, before any work

@@ -117,9 +117,8 @@ def register(app: typer.Typer) -> None:
             help="Size of a 3x3 pose covariance block: sqrt_trace or max_std "
                  "(sqrt of the largest eigenvalue)."),
         no_figures: bool = typer.Option(False, "--no-figures", help="Write no figures."),
-        figure_format: str = typer.Option(
-            "png,svg", "--figure-format", metavar="FORMATS",
-            help="Figure formats, comma separated: png, svg, pdf."),
+        figure_format: str = typer.Option("png,svg", "--figure-format", metavar="FORMATS",
+                                          help="Figure formats, comma separated: png, svg, pdf."),
         old_formats: str = typer.Option(None, "--formats", hidden=True,
                                         help="The old spelling of --figure-format."),
         force: bool = typer.Option(False, "--force",

@@ -1,17 +1,9 @@
 """``rtsgt batch``: the ground truth of many deployments, on Dask or one after the other.
 
-A thin layer over :mod:`rtsgt.batch` (deployments, seeds, resuming, the tasks on Dask) and
-:mod:`rtsgt.io.batch_summary` / :mod:`rtsgt.report.batch` (the table across deployments):
-a progress bar and one ``failed: NAME: message`` line per failed deployment on stderr, the
-table on stdout, ``OUT/batch_summary.csv`` and ``OUT/batch_summary.html``. Exit status 1 when
-a deployment failed (after the others are done and the summary written).
-
-Ctrl-C ends the batch with the one line of every command (:mod:`rtsgt.cli.entry`) and exit
-status 130: the progress bar is taken off the screen and the Dask cluster is closed without
-its log lines (the workers still running are stopped); the deployments done are complete
-run directories, and a later ``rtsgt batch`` into the same folder resumes. While the local
-cluster starts (seconds), Ctrl-C is ignored, so that its worker processes start ignoring it
-(:func:`dask_setup`): press it again once the progress bar moves.
+Over :mod:`rtsgt.batch` and :mod:`rtsgt.io.batch_summary` / :mod:`rtsgt.report.batch`: a
+progress bar, one ``failed: NAME: message`` line per failed deployment, the table and
+``OUT/batch_summary.{csv,html}``; Ctrl-C: docs/cli.md#start-up-interrupts-threads-and-help;
+failures: docs/batch.md#failures.
 """
 
 from __future__ import annotations
@@ -45,19 +37,9 @@ def run_batch(
     scheduler: str | None = None, serial: bool = False, force: bool = False,
     quiet: bool = False, report: bool = False, **run_options,
 ) -> tuple[list[Outcome], list[dict], Path]:
-    """Run every deployment under ``inputs`` into ``out`` (module docstring); returns the
-    outcomes, the summary rows and the output folder. ``run_options``: ``rtsgt run``'s
-    (``engine``, ``samples``, ``registration``, ``rate``, ``prior``, ``correlated_noise``,
-    ``profile``).
-
-    Raises
-    ------
-    typer.BadParameter
-        ``serial`` with ``workers`` or ``scheduler``, a bad option value (exit status 2).
-    InputError
-        No deployment, duplicated names, an output folder that is not a batch's, Dask missing
-        (without ``serial``), a deployment that failed (after the others).
-    """
+    """Run every deployment under ``inputs`` into ``out``; returns the outcomes, the summary
+    rows and the output folder. ``run_options``: ``rtsgt run``'s (``engine``, ``rate``, ...).
+    A bad option is a usage error; a failed deployment an InputError after the others."""
     from rich.console import Console
     from rich.progress import (
         BarColumn,
@@ -148,9 +130,7 @@ def run_batch(
 
 @contextlib.contextmanager
 def _quiet_interrupt(progress: Progress):
-    """While the batch runs, Ctrl-C (SIGINT) raises KeyboardInterrupt as usual, having first
-    made the progress bar transient (gone from the screen) and silenced the log of Dask's
-    cluster, which its closing would fill with lines about the workers it stops."""
+    """Ctrl-C while the batch runs: the progress bar off the screen, Dask's log silenced."""
     def handler(signum, frame):
         if progress.console.is_terminal:
             progress.live.transient = True
@@ -171,11 +151,7 @@ def _quiet_interrupt(progress: Progress):
 
 
 def dask_setup(worker) -> None:
-    """Dask's preload hook, run by each worker process of the local cluster as it starts.
-
-    Ctrl-C at the terminal signals the whole process group: the batch's own process stops and
-    closes the cluster (one line, exit status 130), while a worker only silences its log, which
-    the closing would otherwise fill with the tasks it cancels (no traceback, no line)."""
+    """Dask's preload hook of each local worker: Ctrl-C only silences the worker's log."""
     def silence(signum, frame):
         logging.getLogger("distributed").setLevel(logging.CRITICAL)
 
@@ -238,12 +214,10 @@ def register(app: typer.Typer) -> None:
                                          "(no Dask; for debugging)."),
         force: bool = typer.Option(False, "--force",
                                    help="Run every deployment again, complete or not "
-                                        "(replacing run directories rtsgt wrote, nothing "
-                                        "else)."),
+                                   "(replacing run directories rtsgt wrote, nothing " "else)."),
         engine: str = typer.Option(None, help="Pose engine: mc, ut or linear (default: each "
                                               "deployment's config)."),
-        registration: str = typer.Option(None, help="weighted or unweighted (default: "
-                                                    "config)."),
+        registration: str = typer.Option(None, help="weighted or unweighted (default: " "config)."),
         samples: int = typer.Option(None, help="Monte Carlo samples M (default: config)."),
         rate: float = typer.Option(None, help="Query rate, Hz (default: config)."),
         prior: str = typer.Option(None, help="GP motion prior: wnoa, wnoj or select "
@@ -252,8 +226,7 @@ def register(app: typer.Typer) -> None:
                                              help="inflate or ignore (default: config)."),
         profile: str = typer.Option(None, help="Preset of the switches: paper (a switch "
                                                "given with it wins) (default: config)."),
-        report: bool = typer.Option(False, "--report",
-                                    help="Also write each run's HTML report."),
+        report: bool = typer.Option(False, "--report", help="Also write each run's HTML report."),
         quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress, no table."),
     ) -> None:
         """Compute the ground truth of many deployments (resumable; on Dask by default)."""

@@ -1,19 +1,8 @@
-"""``rtsgt calibrate``: extrinsic calibration of the stations.
+"""``rtsgt calibrate``: extrinsic calibration of the stations (docs/calibration.md).
 
-From GCP shots, a thin wrapper over :func:`rtsgt.io.gcp_csv.read_gcp_shots` and
-:func:`rtsgt.calibration.calibrate`; ``GCP_FILE`` may be the word ``example`` for the small
-synthetic example shipped in the package (three stations, eight markers). From a deployment's
-TOML (``rtsgt calibrate --dynamic DEPLOYMENT.toml``, or ``--method dynamic|joint|gcp``), the
-pipeline's own calibration stage (:func:`rtsgt.stages.front.calibrate_by_method`: module 1, and for
-``dynamic`` and ``joint`` the tracks, their GPs and the inter-prism distances,
-:mod:`rtsgt.calibration.dynamic`); the method and the model default to the TOML's
-``[calibration]``; a deployment's folder holding ``deployment.toml`` is taken for its TOML
-(:func:`rtsgt.io.deployment.resolve_config`). The GCP fit's self-check is shown and written
-as a run's summary has it: each station's variance factor with its 95 % interval and verdict,
-and the variance components the calibration added to every shot
-(:func:`rtsgt.checks.calibration.gcp_fit_check`). ``--out FILE`` writes the JSON object to a file, atomically (complete or not
-at all: a failed run leaves no file and keeps a previous one), which a shell redirection of
-``--json`` cannot promise.
+From a GCP file (or ``example``, the packaged one) by :func:`rtsgt.calibration.calibrate`; from
+a deployment's TOML or folder as its run calibrates (:func:`rtsgt.pipeline.calibrate_by_method`;
+``--method`` or ``--dynamic``). ``--out`` writes the JSON atomically.
 """
 
 from __future__ import annotations
@@ -47,19 +36,8 @@ def _station_id(s: str) -> int | str:
 
 
 def result_to_json(result: CalibrationResult, **extra) -> dict:
-    """The JSON object printed by ``rtsgt calibrate --json``.
-
-    ``stations`` holds every station except the reference (whose transform is the identity):
-    ``matrix`` (4x4 ``T_world_station``), ``yaw_deg``, ``translation_m``, ``covariance`` (6x6,
-    x, y, z, rx, ry, rz, m^2 / rad^2, left perturbation in the world frame; null without
-    samples), the 1-sigma values in mm and mrad, and the markers used (none for a dynamic
-    calibration). ``method`` says what the stations were fitted to; a dynamic or joint
-    calibration adds ``dynamic`` (:func:`rtsgt.checks.calibration.dynamic_calibration_check`:
-    the clock offsets, the fit check and, for ``dynamic``, the agreement with the GCPs).
-    ``extra`` adds keys, e.g. ``gcp_fit`` (:func:`rtsgt.checks.calibration.gcp_fit_check`: per
-    station the variance factor of the GCP residuals with its 95 % interval and verdict, and
-    ``added_shot_sigma_mm``, the variance components added to every shot).
-    """
+    """The JSON object of ``rtsgt calibrate --json`` (docs/file-formats.md#other-outputs); ``extra``
+    adds keys (``dynamic``, ``gcp_fit``: :mod:`rtsgt.checks.calibration`)."""
     import numpy as np
 
     stations = {}
@@ -163,9 +141,7 @@ def _print_table(result: CalibrationResult, source: str, console: Console,
 
 
 def _print_gcp_fit(check: dict, console: Console) -> None:
-    """The GCP fit's self-check as ``rtsgt run``'s summary has it: per station the variance
-    factor of its residuals with the 95 % interval and verdict, then the variance components
-    added to every shot (:func:`rtsgt.checks.calibration.gcp_fit_check`)."""
+    """The GCP fit's self-check (:func:`rtsgt.checks.calibration.gcp_fit_check`)."""
     for s, v in check.get("stations", {}).items():
         if not v.get("dof"):
             continue
@@ -225,12 +201,9 @@ def run_calibrate_deployment(
     config: Path, *, method: str | None = None, model: str | None = None,
     weighting: str | None = None, samples: int = 1000, seed: int = 0,
 ) -> tuple[CalibrationResult, dict | None, CalibrationResult | None]:
-    """Calibrate the stations of a deployment as its run would (its TOML's ``[calibration]``,
-    ``method``, ``model`` and ``weighting`` overriding it); returns the result, for a
-    dynamic or joint calibration its self-check
-    (:func:`rtsgt.checks.calibration.dynamic_calibration_check`), and the GCP calibration of
-    the deployment (``result`` itself for ``gcp``; None when the GCP shots cannot calibrate
-    the stations), whose fit the run's self-check reports."""
+    """Calibrate a deployment's stations as its run would (``method``, ``model``,
+    ``weighting`` over its ``[calibration]``); returns the result, the dynamic self-check
+    (None for ``gcp``) and the GCP calibration (None when the GCPs cannot calibrate)."""
     from rtsgt.checks.calibration import dynamic_calibration_check
     from rtsgt.filtering import module1
     from rtsgt.io.deployment import load_deployment
@@ -267,52 +240,41 @@ def register(app: typer.Typer) -> None:
         gcp_file: str = typer.Argument(
             ..., metavar="GCP_FILE",
             help="GCP shots file, `example` for the small example shipped with rtsgt, or a "
-            "deployment's TOML (the calibration of its run: its [calibration], or --method).",
-        ),
+            "deployment's TOML (the calibration of its run: its [calibration], or --method)."),
         format: str = typer.Option(
             "auto", "--format",
             help=f"File format: {' | '.join(GCP_FORMATS)} (auto: RTS_project if its header "
-            "line is there, else the native CSV).",
-        ),
-        reference_station: str = typer.Option(
-            "1", "--reference-station", help="Station whose frame is the world frame."
-        ),
+            "line is there, else the native CSV)."),
+        reference_station: str = typer.Option("1", "--reference-station",
+                                              help="Station whose frame is the world frame."),
         additive_constant: float | None = typer.Option(
             None, "--additive-constant",
             help="Additive (prism) constant in m added to every distance "
-            "(default: 0.01 for rts-project files, 0 for csv).",
-        ),
-        samples: int = typer.Option(
-            1000, "--samples", min=0, help="Monte Carlo samples (0: fit only)."
-        ),
+            "(default: 0.01 for rts-project files, 0 for csv)."),
+        samples: int = typer.Option(1000, "--samples", min=0,
+                                    help="Monte Carlo samples (0: fit only)."),
         seed: int = typer.Option(0, "--seed", min=0, help="Seed of the random generator (>= 0)."),
         weighting: str | None = typer.Option(
             None, "--weighting",
             help="Markers' weights: gls (the full covariance of each shot), trace (its "
-            f"trace) or none (the paper). Default: {DEFAULT_WEIGHTING}, or the TOML's.",
-        ),
-        instrument: str = typer.Option(
-            "trimble-s7", "--instrument", help="Instrument profile for the noise model."
-        ),
+            f"trace) or none (the paper). Default: {DEFAULT_WEIGHTING}, or the TOML's."),
+        instrument: str = typer.Option("trimble-s7", "--instrument",
+                                       help="Instrument profile for the noise model."),
         model: str | None = typer.Option(
             None, "--model",
             help="Each station's transform: 6dof (free rotation) or 4dof (levelled stations: "
-            "yaw only, the tilt that of the Earth's curvature). Default: 6dof, or the TOML's.",
-        ),
+            "yaw only, the tilt that of the Earth's curvature). Default: 6dof, or the TOML's."),
         method: str | None = typer.Option(
             None, "--method",
             help=f"What to fit the stations to: {' | '.join(CALIBRATION_METHODS)} (the GCPs, "
             "the robot's motion through the inter-prism distances, or both; dynamic and "
-            "joint need a deployment's TOML). Default: gcp, or the TOML's.",
-        ),
-        dynamic: bool = typer.Option(
-            False, "--dynamic", help="The same as --method dynamic (a deployment's TOML).",
-        ),
+            "joint need a deployment's TOML). Default: gcp, or the TOML's."),
+        dynamic: bool = typer.Option(False, "--dynamic",
+                                     help="The same as --method dynamic (a deployment's TOML)."),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
         out: Path | None = typer.Option(
             None, "--out", "-o",
-            help="Also write the JSON object to this file (atomically: complete or absent).",
-        ),
+            help="Also write the JSON object to this file (atomically: complete or absent)."),
     ) -> None:
         """Calibrate every station into the reference station's frame from GCP shots."""
         from rich.console import Console

@@ -1,14 +1,8 @@
 """The ``rtsgt`` console script: the command line, with Ctrl-C handled from its first moment.
 
-The application (:mod:`rtsgt.cli.main`) imports light modules only (a tenth of a second); a
-command imports numpy, scipy, the pipeline, ... when it runs, which takes seconds. This module
-imports nothing heavy: it imports the application inside the ``try`` that turns an interrupt
-into one line on stderr, :data:`INTERRUPTED_LINE`, and the exit status
-:data:`EXIT_INTERRUPTED`, as an interrupt while a command runs is (:mod:`rtsgt.cli.main`):
-never a traceback, at start-up included. After the command (or the interrupt), a further Ctrl-C
-while the interpreter shuts down is ignored rather than shown as a traceback, and after the
-interrupt's line the process writes nothing more on stderr. ``rtsgt --version`` answers without
-importing the application.
+It imports the application (:mod:`rtsgt.cli.main`) inside the ``try`` that turns an interrupt
+into :data:`INTERRUPTED_LINE` and :data:`EXIT_INTERRUPTED`, at start-up included; after it,
+nothing more on stderr (docs/cli.md#errors-warnings-and-exit-statuses).
 """
 
 from __future__ import annotations
@@ -21,16 +15,11 @@ import sys
 
 from rtsgt.choices import WRITE_PROCESSES_ENV
 
-#: The BLAS thread counts the command line runs with unless the environment sets them: one.
-#: rtsgt's linear algebra is many small matrices (3x3 to a few hundred rows), where a second
-#: BLAS thread costs more than it gives (on the 2-core machine: a simulated hour 35.0 -> 26.8 s,
-#: the self-checks 7.4 -> 2.5 s; docs/benchmarks.md#speed), and a run then gives the same bits
-#: serially as in a Dask worker.
+#: The BLAS thread counts the command line runs with unless the environment sets them: one
+#: (many small matrices; docs/benchmarks.md#speed).
 BLAS_THREADS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
-#: The most malloc arenas (glibc) the command line runs with: each thread of the numeric
-#: stages otherwise keeps an arena of its own, whose freed memory stays with the process (a
-#: simulated hour's peak 370 -> 357 MB; one arena: 334 MB; docs/benchmarks.md#speed).
+#: The most malloc arenas (glibc) the command line runs with (docs/benchmarks.md#speed).
 MALLOC_ARENAS = 2
 #: glibc's ``mallopt`` parameter ``M_ARENA_MAX``.
 _M_ARENA_MAX = -8
@@ -58,17 +47,13 @@ def _silence_stderr() -> None:
 
 
 def _nothing_more() -> None:
-    """After the interrupt's line: no further interrupt, and, once the interpreter shuts down,
-    nothing more on stderr (what library code says then, e.g. Dask closing a cluster whose
-    start was interrupted, is noise). A caller of :func:`main` in its own process keeps its
-    stderr until it exits."""
+    """After the interrupt's line: no further interrupt, nothing more on stderr at exit."""
     _ignore_interrupts()
     atexit.register(_silence_stderr)
 
 
 def interrupted() -> int:
-    """Print :data:`INTERRUPTED_LINE` on stderr, then nothing more, and ignore further
-    interrupts (the command is over); returns :data:`EXIT_INTERRUPTED`."""
+    """Print :data:`INTERRUPTED_LINE`, then nothing more; returns :data:`EXIT_INTERRUPTED`."""
     _ignore_interrupts()
     try:
         sys.stderr.write(INTERRUPTED_LINE + "\n")
@@ -79,8 +64,7 @@ def interrupted() -> int:
 
 
 def _limit_malloc_arenas() -> None:
-    """At most :data:`MALLOC_ARENAS` malloc arenas where the C library is glibc (elsewhere,
-    nothing): before any thread of the run allocates."""
+    """At most :data:`MALLOC_ARENAS` malloc arenas under glibc (elsewhere nothing)."""
     try:
         ctypes.CDLL(None).mallopt(_M_ARENA_MAX, MALLOC_ARENAS)
     except (AttributeError, OSError, TypeError):  # not glibc

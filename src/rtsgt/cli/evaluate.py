@@ -1,14 +1,8 @@
-"""``rtsgt evaluate``: evaluate a SLAM / odometry trajectory against an rtsgt ground truth.
+"""``rtsgt evaluate``: its options, their checks and its tables (docs/evaluating.md).
 
-The command's options, their checks (a bad value is a usage error naming its option) and its
-tables; the work is :func:`rtsgt.app.evaluate.run_evaluation` (reading the ground truth and
-the estimate, the evaluation, the defaults of ``--max-gap``) and
-:func:`rtsgt.app.evaluate.save_evo_results` (``--save-results``, checked before any work and
-written whole after it); the figures are :func:`rtsgt.report.eval_plots.plot_evaluation`.
-Ground truths, gap limits, position-only runs and evo's result files: docs/evaluating.md.
-
-Every :class:`~rtsgt.errors.RtsgtWarning` of the reading and the evaluation is shown as one
-``warning: ...`` line on stderr and, with ``--json``, listed under ``warnings``.
+The work is :func:`rtsgt.app.evaluate.run_evaluation` and
+:func:`rtsgt.app.evaluate.save_evo_results`; every :class:`~rtsgt.errors.RtsgtWarning` is a
+``warning: ...`` line and, with ``--json``, listed under ``warnings``.
 """
 
 from __future__ import annotations
@@ -58,10 +52,8 @@ EVALUATION_OPTION_NAMES = {
 
 
 def evaluation_options(**values) -> EvaluationOptions:
-    """The :class:`~rtsgt.evaluation.EvaluationOptions` of the given (not None) command-line
-    values, each checked by the record's own rule first; a bad one is a usage error naming its
-    option (a bad combination names the first option it involves: ``--delta`` with
-    ``--delta-unit f``, ``--estimate`` with an ``--align`` it cannot be estimated with)."""
+    """The :class:`~rtsgt.evaluation.EvaluationOptions` of the given (not None) values; a bad
+    value or combination is a usage error naming its (first) option."""
     from rtsgt.evaluation import EvaluationOptions
 
     changes = checked_options(EvaluationOptions, EVALUATION_OPTION_NAMES, **values)
@@ -74,8 +66,7 @@ def evaluation_options(**values) -> EvaluationOptions:
 
 
 def mounting_option(value: str | None) -> tuple[float, ...] | None:
-    """``--mounting``: seven numbers or a file (:func:`rtsgt.io.transform.read_transform`); a
-    bad one is a usage error naming the option."""
+    """``--mounting``: seven numbers or a file (:func:`rtsgt.io.transform.read_transform`)."""
     if value is None:
         return None
     from rtsgt.io.transform import read_transform
@@ -101,8 +92,7 @@ def _vector(v, scale: float, digits: int) -> str:
 
 
 def print_mounting(m: MountingFit, console: Console) -> None:
-    """The mounting ``T_body_sensor`` and the clock offset, with the sigma of what was
-    estimated, and how the fit went."""
+    """The mounting ``T_body_sensor``, the clock offset, their sigmas and the fit."""
     import numpy as np
 
     from rtsgt.cli.tables import TextTable
@@ -152,9 +142,8 @@ def print_mounting(m: MountingFit, console: Console) -> None:
 
 def _print_association(console: Console, a, continuous: str, what: str, *, gt_source: str,
                        est_source: str) -> None:
-    """The association's line of a report: what was associated, dropped, and the limits
-    (``continuous``: what a continuous ground truth is, in parentheses; ``what``: the kind of
-    ground truth, in words)."""
+    """The association's line of a report (``continuous``, ``what``: the ground truth, in
+    words)."""
     if a.ground_truth == "continuous":
         kind, limit = f"continuous {what} ({continuous})", "max gap"
     else:
@@ -302,8 +291,7 @@ def print_report(
 def print_position_report(
     result: PositionEvaluationResult, console: Console, *, gt_source: str, est_source: str
 ) -> None:
-    """The readable report of a position-only ground truth: association, alignment, lever
-    arm, APE / RPE of positions, NEES (3 dof), noise floor; rotations not reported."""
+    """The readable report against a position-only ground truth (no rotations)."""
     a = result.association
     prism = a.ground_truth_detail.get("prism", "?") if a.ground_truth == "continuous" else ""
     _print_association(console, a, f"GP track of prism {prism}", "position ground truth",
@@ -349,8 +337,7 @@ def print_position_report(
 
 def save_targets(ape: Path | None, rpe: Path | None, relation: str, *, force: bool,
                  inputs) -> dict[str, Path]:
-    """The result files asked for (``{"ape": path, "rpe": path}``), each checked before any
-    work (:func:`rtsgt.io.evo_results.check_results_file`, which names the option)."""
+    """The result files asked for (``{"ape": path, "rpe": path}``), checked before any work."""
     from rtsgt.io.evo_results import check_results_file
 
     if relation not in POSE_RELATIONS:
@@ -370,9 +357,8 @@ def save_targets(ape: Path | None, rpe: Path | None, relation: str, *, force: bo
 
 
 class _collect_warnings:
-    """Record the warnings of a block, then show every one again (``warning: ...`` lines on
-    stderr through the CLI's handler) also when the block raises; the messages of the
-    :class:`~rtsgt.errors.RtsgtWarning` ones are the list the block gives (``--json``)."""
+    """Record a block's warnings, then show each again, also when it raises; the block gets
+    the list of the RtsgtWarning messages (``--json``)."""
 
     def __enter__(self) -> list[str]:
         self._ctx = warnings.catch_warnings(record=True)
@@ -396,125 +382,89 @@ def register(app: typer.Typer) -> None:
     @app.command("evaluate")
     def evaluate_command(
         gt_dir: Path = typer.Argument(
-            ...,
-            metavar="GT_DIR",
+            ..., metavar="GT_DIR",
             help="rtsgt run directory (continuous ground truth from its measurements/, else "
             "groundtruth_covariance.csv or groundtruth.tum; a run of one or two prisms: their "
-            "positions), a ground-truth trajectory file, a position CSV or a bag (--gt-topic).",
-        ),
+            "positions), a ground-truth trajectory file, a position CSV or a bag (--gt-topic)."),
         est_file: Path = typer.Argument(
-            ..., metavar="EST_FILE", help="Estimated trajectory (file, or ROS 2 bag directory)."
-        ),
+            ..., metavar="EST_FILE", help="Estimated trajectory (file, or ROS 2 bag directory)."),
         fmt: str | None = typer.Option(
-            None,
-            "--format",
-            help=f"Estimate format: {' | '.join(FORMATS)} (default: from the extension/content).",
-        ),
+            None, "--format",
+            help=f"Estimate format: {' | '.join(FORMATS)} (default: from the extension/content)."),
         topic: str | None = typer.Option(None, "--topic", help="Bag topic of the estimate."),
         child_frame: str | None = typer.Option(
-            None, "--child-frame", help="Child frame to take from a TF / TransformStamped topic."
-        ),
+            None, "--child-frame", help="Child frame to take from a TF / TransformStamped topic."),
         timestamps: Path | None = typer.Option(
-            None, "--timestamps", help="Timestamps file of KITTI poses (one time in s per line)."
-        ),
+            None, "--timestamps", help="Timestamps file of KITTI poses (one time in s per line)."),
         est_cov: Path | None = typer.Option(
-            None, "--est-cov", help="Covariances of the estimate (rtsgt covariance CSV)."
-        ),
+            None, "--est-cov", help="Covariances of the estimate (rtsgt covariance CSV)."),
         align: str = typer.Option(
-            "se3", "--align", help=f"Alignment: {' | '.join(ALIGN_METHODS)}."
-        ),
+            "se3", "--align", help=f"Alignment: {' | '.join(ALIGN_METHODS)}."),
         n_align: int | None = typer.Option(
-            None, "--n-align", min=1, help="Align on the first N associated poses (default: all)."
-        ),
+            None, "--n-align", min=1, help="Align on the first N associated poses (default: all)."),
         weighted: bool = typer.Option(
-            False,
-            "--weighted",
-            help="Weight the alignment by 1 / trace of the GT position covariance.",
-        ),
+            False, "--weighted",
+            help="Weight the alignment by 1 / trace of the GT position covariance."),
         delta: float = typer.Option(1.0, "--delta", help="RPE pair separation."),
-        delta_unit: str = typer.Option(
-            "m", "--delta-unit", help="RPE delta unit: m (path) | s | f (frames)."
-        ),
-        all_pairs: bool = typer.Option(
-            False, "--all-pairs", help="RPE on all pairs (evo --all_pairs)."
-        ),
+        delta_unit: str = typer.Option("m", "--delta-unit",
+                                       help="RPE delta unit: m (path) | s | f (frames)."),
+        all_pairs: bool = typer.Option(False, "--all-pairs",
+                                       help="RPE on all pairs (evo --all_pairs)."),
         time_offset: float = typer.Option(
             0.0, "--t-offset", "--time-offset",
-            help="Seconds added to the estimate's times (the start of --estimate clock).",
-        ),
+            help="Seconds added to the estimate's times (the start of --estimate clock)."),
         estimate: str | None = typer.Option(
-            None,
-            "--estimate",
+            None, "--estimate",
             help="Estimate jointly with the alignment (comma-separated): rotation, lever (the "
             "mounting T_body_sensor), lever-xy (its x, y in the body frame, z given: for a "
             "ground robot), clock (the time offset); mounting = rotation,lever; all = "
             "rotation,lever,clock. "
             f"Needs --align {' | '.join(JOINT_ALIGNMENTS)}; refused, with the reason, when the "
-            "trajectory does not excite it.",
-        ),
+            "trajectory does not excite it."),
         mounting: str | None = typer.Option(
-            None,
-            "--mounting",
+            None, "--mounting",
             help="Given T_body_sensor (the sensor's pose in the body frame, p_body = R "
             "p_sensor + t): x,y,z,qx,qy,qz,qw, or a file (evo's JSON transform, or a 4x4 "
-            "matrix). The start of what --estimate asks, the value of the rest.",
-        ),
+            "matrix). The start of what --estimate asks, the value of the rest."),
         max_dt: float | None = typer.Option(
-            None,
-            "--max-gap",
-            "--max-dt",
+            None, "--max-gap", "--max-dt",
             help="Max distance (s) to the nearest ground-truth measurement (continuous: of "
             "every prism; discrete: the nearest stored pose); poses farther are dropped. "
             "Default: the run's own gap limit (summary.json parameters.max_gap_s) for a run "
-            f"directory, {DEFAULT_MAX_DT_S} s for a trajectory file.",
-        ),
+            f"directory, {DEFAULT_MAX_DT_S} s for a trajectory file."),
         gt_mode: str = typer.Option(
-            "auto",
-            "--gt-mode",
+            "auto", "--gt-mode",
             help="Ground truth: auto (continuous when GT_DIR has measurements/) | continuous "
-            "| discrete (interpolate the stored poses).",
-        ),
+            "| discrete (interpolate the stored poses)."),
         gt_engine: str = typer.Option(
-            "run",
-            "--gt-engine",
+            "run", "--gt-engine",
             help="Pose engine of the continuous ground truth: run (the run's) | mc | ut | "
-            "linear (fastest).",
-        ),
+            "linear (fastest)."),
         lever_arm: str | None = typer.Option(
-            None,
-            "--lever-arm",
+            None, "--lever-arm",
             help="x,y,z (m): the ground truth's tracked point (prism) in the estimate's sensor "
-            "frame; evaluates against a position-only ground truth (p + R l).",
-        ),
+            "frame; evaluates against a position-only ground truth (p + R l)."),
         prism: str | None = typer.Option(
-            None,
-            "--prism",
+            None, "--prism",
             help="The prism of a run directory that is the (position-only) ground truth "
-            "(needed when the run tracked more than one).",
-        ),
+            "(needed when the run tracked more than one)."),
         gt_topic: str | None = typer.Option(
-            None,
-            "--gt-topic",
+            None, "--gt-topic",
             help="Topic of a position ground truth in a bag GT_DIR (PointStamped, "
-            "PoseStamped, ...).",
-        ),
+            "PoseStamped, ...)."),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object."),
         plot: Path | None = typer.Option(None, "--plot",
                                          help="Write PNG and SVG figures into this directory."),
         save_results: Path | None = typer.Option(
             None, "--save-results",
             help="Write the APE as an evo result zip (evo_ape --save_results layout, with "
-            "rtsgt's NEES and noise floor added), for evo_res.",
-        ),
+            "rtsgt's NEES and noise floor added), for evo_res."),
         save_results_rpe: Path | None = typer.Option(
             None, "--save-results-rpe",
-            help="Write the RPE as an evo result zip (evo_rpe --save_results layout).",
-        ),
-        pose_relation: str = typer.Option(
-            "trans_part", "--pose-relation",
-            help="Pose relation of the saved results (evo's -r): "
-            f"{' | '.join(POSE_RELATIONS)}.",
-        ),
+            help="Write the RPE as an evo result zip (evo_rpe --save_results layout)."),
+        pose_relation: str = typer.Option("trans_part", "--pose-relation",
+                                          help="Pose relation of the saved results (evo's -r): "
+                                          f"{' | '.join(POSE_RELATIONS)}."),
         force: bool = typer.Option(False, "--force",
                                    help="Replace an earlier output of rtsgt at --plot, "
                                         "--save-results, --save-results-rpe (never a file or "

@@ -1,10 +1,5 @@
-"""``rtsgt interpolate``: GP interpolation of one prism track at query times.
-
-A thin wrapper over :func:`rtsgt.io.track_csv.read_track_csv`,
-:func:`rtsgt.interpolation.prisms.fit_prism_gp` (Qc chosen as ``rtsgt run`` chooses it:
-leave-one-out per axis by default) and :func:`rtsgt.io.track_csv.track_csv_text`. The output
-has the header of the input (``t,x,y,z,cov_xx,...``): the posterior mean position and its
-covariance at each query time. The Qc used (given or fitted) is printed on stderr.
+"""``rtsgt interpolate``: GP interpolation of one prism track at query times, with
+covariance, Qc chosen as ``rtsgt run`` chooses it (:func:`rtsgt.interpolation.prisms.fit_prism_gp`).
 """
 
 from __future__ import annotations
@@ -27,14 +22,8 @@ if TYPE_CHECKING:
 
 
 def rate_times(gp: GPTrack, rate_hz: float) -> tuple[np.ndarray, int]:
-    """Times ``t_0 + k / rate`` inside the track, without those across gaps > ``max_gap_s``.
-
-    Returns
-    -------
-    times : ndarray, shape (Q,)
-    n_skipped : int
-        Grid times dropped because they fall in a long gap.
-    """
+    """Times ``t_0 + k / rate`` inside the track, shape (Q,), and how many grid times fell
+    in gaps longer than ``max_gap_s`` (dropped)."""
     import numpy as np
 
     if not (math.isfinite(rate_hz) and rate_hz > 0):
@@ -50,9 +39,7 @@ def rate_times(gp: GPTrack, rate_hz: float) -> tuple[np.ndarray, int]:
 
 
 def parse_qc(text: str | None) -> float | str:
-    """The value of ``--qc``: ``loo``, ``likelihood`` or a number (m^2/s^3), checked by the rule
-    the configuration's ``qc`` meets (:class:`rtsgt.options.InterpolationOptions`); a usage
-    error else."""
+    """``--qc``: ``loo``, ``likelihood`` or a number (m^2/s^3), by the configuration's rule."""
     from rtsgt.options import QC_METHODS, InterpolationOptions
 
     text = DEFAULT_QC if text is None else str(text).strip()
@@ -77,22 +64,9 @@ def interpolate_file(
     max_gap: float = DEFAULT_MAX_GAP_S,
     prior: str = DEFAULT_PRIOR,
 ) -> tuple[str, GPTrack, dict, int]:
-    """Fit the track of ``track_path`` with rtsgt's Qc policy and answer the queries.
-
-    ``qc``: ``"loo"``, ``"likelihood"`` or a number (:func:`rtsgt.interpolation.prisms.
-    fit_prism_gp`, the policy ``rtsgt run`` uses); ``prior``: ``"wnoa"``, ``"wnoj"`` or
-    ``"select"`` (the GP's motion prior; one track has no motion classes).
-
-    Returns
-    -------
-    text : str
-        Prism track CSV of the posterior at the query times.
-    gp : GPTrack
-    info : dict
-        How Qc was chosen (:func:`~rtsgt.interpolation.prisms.fit_prism_gp`).
-    n_skipped : int
-        Rate-grid times dropped in long gaps (0 with ``at``).
-    """
+    """Fit the track of ``track_path`` (``qc``, ``prior`` as ``rtsgt run``) and answer the
+    queries; returns the posterior as track CSV text, the GP, how Qc was chosen and the
+    number of rate-grid times dropped in long gaps (0 with ``at``)."""
     import numpy as np
 
     from rtsgt.interpolation.prisms import fit_prism_gp
@@ -125,8 +99,7 @@ def interpolate_file(
 
 
 def _check_query_times(gp: GPTrack, times: np.ndarray, lines: np.ndarray, path: Path) -> None:
-    """Query times must be distinct and supported by the track: name the line of the first
-    one that is not."""
+    """Query times must be distinct and supported: name the line of the first that is not."""
     import numpy as np
 
     order = np.argsort(times, kind="stable")
@@ -194,32 +167,23 @@ def register(app: typer.Typer) -> None:
     @app.command("interpolate")
     def interpolate(
         track: Path = typer.Argument(
-            ..., help="Prism track CSV: t,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz."
-        ),
-        at: Path | None = typer.Option(
-            None, "--at", help="File of query times, one per line (s)."
-        ),
+            ..., help="Prism track CSV: t,x,y,z,cov_xx,cov_xy,cov_xz,cov_yy,cov_yz,cov_zz."),
+        at: Path | None = typer.Option(None, "--at", help="File of query times, one per line (s)."),
         rate: float | None = typer.Option(
-            None, "--rate", help="Query on a regular grid at this rate (Hz), skipping long gaps."
-        ),
+            None, "--rate", help="Query on a regular grid at this rate (Hz), skipping long gaps."),
         qc: str = typer.Option(
             DEFAULT_QC, "--qc",
             help="Qc, as rtsgt run chooses it: 'loo' (leave-one-out per axis, calibrated for "
-                 "interpolation), 'likelihood' (maximum marginal likelihood, isotropic) or a "
-                 "number, the isotropic power spectral density in m^2/s^3.",
-        ),
-        max_gap: float = typer.Option(
-            DEFAULT_MAX_GAP_S, "--max-gap", help="Refuse queries across longer gaps (s)."
-        ),
+            "interpolation), 'likelihood' (maximum marginal likelihood, isotropic) or a "
+            "number, the isotropic power spectral density in m^2/s^3."),
+        max_gap: float = typer.Option(DEFAULT_MAX_GAP_S, "--max-gap",
+                                      help="Refuse queries across longer gaps (s)."),
         prior: str = typer.Option(
             DEFAULT_PRIOR, "--prior",
             help="GP motion prior: wnoa (white noise on acceleration, the paper's), wnoj (on "
-                 "jerk) or select (the one whose held-out windows of 1-2 s are predicted "
-                 "better).",
-        ),
-        out: Path | None = typer.Option(
-            None, "--out", "-o", help="Output CSV (default: standard output)."
-        ),
+            "jerk) or select (the one whose held-out windows of 1-2 s are predicted " "better)."),
+        out: Path | None = typer.Option(None, "--out", "-o",
+                                        help="Output CSV (default: standard output)."),
     ) -> None:
         """Interpolate a prism track (exact GP, WNOA or WNOJ prior) at query times, with
         covariance."""

@@ -1,38 +1,8 @@
-"""The ``rtsgt`` command line: a thin layer over the library.
+"""The ``rtsgt`` command line: the application, its exit statuses and its style of help.
 
-Each command lives in its own module of :mod:`rtsgt.cli` and registers itself on :data:`app`
-through a ``register(app)`` function.
-
-The command line starts at once: ``rtsgt --help`` and every ``rtsgt <command> --help`` import
-typer and rtsgt's light modules only, never numpy, scipy, matplotlib or the pipeline
-(``tests/test_cli_startup.py``). A command module's top level holds its typer declaration
-(options, help, defaults); the defaults and choices that declaration shows come from
-:mod:`rtsgt.choices`, which imports nothing. What a command does it imports inside its
-function, when it runs: function-level imports are the rule at this edge of the package (and
-only here). matplotlib is imported only when a figure is drawn (``rtsgt run`` without
-``--report`` draws none).
-
-Exit status and messages (one rule for every command):
-
-====  ======================================================================================
-0     success (warnings, if any, are ``warning: ...`` lines on stderr)
-1     the input is wrong or cannot be used: a file, a line, a value of the configuration, an
-      output path that may not be written (:class:`rtsgt.errors.RtsgtError`)
-2     the command line is wrong: an unknown command or option, a missing argument, a value
-      an option does not accept
-3     an unexpected error inside rtsgt (a bug: please report it); ``RTSGT_TRACEBACK=1``
-      shows the traceback
-130   interrupted (Ctrl-C), at any moment, start-up included (:mod:`rtsgt.cli.entry`, the
-      console script); the one line is ``error: interrupted``; nothing half-written is left
-====  ======================================================================================
-
-Every error is one line on stderr, ``error: ...``, naming the file, line, option or value;
-never a traceback.
-
-Help texts follow one style in every command (:class:`_Command`): the value of an argument or
-option is an upper-case word, the one its declaration gives (``FOLDER``, ``CONFIG``,
-``RUN_DIR``, ``DEPLOYMENTS...``) or else its type in words (``PATH``, ``INTEGER``, ``NUMBER``,
-``TEXT``); an output is ``-o, --out``; the figure formats are ``--figure-format``.
+Each command module registers itself through ``register(app)``; its top level holds only the
+typer declaration and imports light modules (start-up, exit statuses and help style:
+docs/cli.md#rules-every-command-keeps).
 """
 
 from __future__ import annotations
@@ -63,7 +33,7 @@ from rtsgt.cli.entry import EXIT_INTERRUPTED, INTERRUPTED_LINE
 from rtsgt.cli.entry import main as entry_main
 from rtsgt.errors import RtsgtError
 
-#: Exit statuses (see the module docstring; :data:`EXIT_INTERRUPTED` is the entry point's).
+#: Exit statuses (docs/cli.md#errors-warnings-and-exit-statuses).
 EXIT_INPUT, EXIT_USAGE, EXIT_BUG = 1, 2, 3
 
 # click's exception classes, from typer's own public exception (typer vendors click)
@@ -142,8 +112,7 @@ def _type_word(param) -> str:
 
 
 class _Command(TyperCommand):
-    """typer's command with rtsgt's style of help (module docstring): typer would write
-    ``{config}`` and ``config <path>`` for an argument, ``--engine <str>`` for an option."""
+    """typer's command with rtsgt's style of help (``CONFIG``, ``--engine TEXT``)."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -219,6 +188,5 @@ for _info in app.registered_commands:  # every command in rtsgt's style of help
 
 
 def main() -> None:  # pragma: no cover - console entry point
-    """The console entry point (:func:`rtsgt.cli.entry.main`, which imports this module inside
-    its handling of interrupts)."""
+    """The console entry point (:func:`rtsgt.cli.entry.main`)."""
     entry_main()

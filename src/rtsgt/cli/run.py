@@ -61,8 +61,7 @@ def register(app: typer.Typer) -> None:
         seed: int = typer.Option(0, min=0, help="Seed of every random draw (>= 0)."),
         rate: float = typer.Option(None, help="Query rate, Hz (default: config)."),
         prior: str = typer.Option(None, help="GP motion prior: wnoa (the paper's), wnoj, or "
-                                             "select (per track, by held-out windows) "
-                                             "(default: config)."),
+                                  "select (per track, by held-out windows) " "(default: config)."),
         correlated_noise: str = typer.Option(
             None, "--correlated-noise",
             help="Noise the static stretches find time-correlated: inflate the white "
