@@ -235,6 +235,7 @@ def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10, tol: flo
         sol = solve_arrow(system)
         x, g = sol.x, sol.g
         decrease = float(np.sum(x * system.a) + g @ system.c)
+        del system, sol  # the trial's system replaces it: one (K, 12, G) B at a time
         step = 1.0
         for _ in range(8):
             trial = retract(prob, s, step * x, step * g)

@@ -106,7 +106,7 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
         raise InputError(f"Expected qc of shape (6,), positive, got {qc!r}")
     info = np.stack([station_prior_info(c) for c in cov_s])
     ck = None
-    if clocks:
+    if clocks and len(ids) > 1:  # a lone station has no clock to estimate against
         ck = clock_model(meas.t, meas.station, len(ids), ids.index(calibration.reference_station))
     prob = JointProblem(knots.t, knots.of_measurement, knots.tau, meas,
                         np.asarray(reference.xyz, dtype=float), R_s, t_s, info, free, qc, ck)

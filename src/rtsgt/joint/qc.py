@@ -20,7 +20,7 @@ VCE_MAX_ITER = 8
 VCE_TOL = 0.05
 #: Gauss-Newton iterations between two variance-component updates (the last solve runs to
 #: convergence).
-VCE_GN_ITER = 2
+VCE_GN_ITER = 1
 #: Smallest ``Qc`` of a group (m^2/s^3 and rad^2/s^3): a direction the robot does not move in
 #: (a wheeled robot's lateral velocity) has a maximum-likelihood ``Qc`` of 0; held here, its
 #: prior is as stiff as the solver's conditioning allows (docs/joint.md#qc-from-the-data).
