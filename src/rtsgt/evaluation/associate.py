@@ -248,18 +248,7 @@ def associate(
     if not isinstance(gt, PoseTrajectory) and isinstance(gt, ValidatedGroundTruth):
         return _associate_validated(gt, est, tau_all, float(time_offset), max_dt)
     discrete = isinstance(gt, PoseTrajectory)
-    if discrete:
-        _check_times(np.asarray(gt.t), "ground-truth")
-        if len(gt) < 2:
-            raise InputError(f"Expected a ground truth with at least 2 poses, got {len(gt)}")
-        mt = np.asarray(gt.t if measurement_times is None else measurement_times, dtype=float)
-        span = (float(gt.t[0]), float(gt.t[-1]))
-    elif callable(gt):
-        mt = None if measurement_times is None else np.sort(np.asarray(measurement_times, float))
-        span = (-np.inf, np.inf) if mt is None or mt.size == 0 else (float(mt[0]), float(mt[-1]))
-    else:
-        raise TypeError(f"Expected a PoseTrajectory or a callable ground truth, got {type(gt)}")
-
+    mt, span = _support(gt, measurement_times)
     inside = (tau_all >= span[0] - TIME_EPS) & (tau_all <= span[1] + TIME_EPS)
     dt_all = np.full(tau_all.shape, np.nan)
     if mt is not None and mt.size:
@@ -280,52 +269,16 @@ def associate(
             f"is within max_dt = {max_dt} s of a ground-truth measurement; raise --max-dt"
         )
     index = np.flatnonzero(keep)
-    tau = tau_all[index]
     est_k = PoseTrajectory(
         est.t[index],
         est.position[index],
         est.quat_xyzw[index],
         None if est.cov is None else est.cov[index],
     )
-    cross = None
     if discrete:
-        pos, rot, cov, exact, frac = interpolate_trajectory(gt, tau)
-        interp = (exact < 0) if gt.cov is not None else np.zeros(index.size, dtype=bool)
-        if gt_cross_next is not None:
-            C = np.asarray(gt_cross_next, dtype=float)
-            if C.shape != (len(gt) - 1, 6, 6):
-                raise ValueError(
-                    f"Expected gt_cross_next of shape ({len(gt) - 1}, 6, 6), got {C.shape}"
-                )
-            if gt.cov is None:
-                raise ValueError("gt_cross_next needs a ground truth with covariances")
-            cross = np.full((index.size - 1, 6, 6), np.nan)
-            ok = (exact[:-1] >= 0) & (exact[1:] >= 0) & (exact[1:] > exact[:-1])
-            if np.any(ok):
-                pairs = np.stack([exact[:-1][ok], exact[1:][ok]], axis=1)
-                cross[ok] = chain_cross_covariance(gt.cov, C, pairs)
-        gt_k = PoseTrajectory(est_k.t, pos, matrix_to_quat_xyzw(rot), cov)
+        gt_k, interp, cross = _discrete_at(gt, tau_all[index], est_k.t, gt_cross_next)
     else:
-        out = gt(tau)
-        if isinstance(out, tuple):
-            if len(out) != 2:
-                raise ValueError(
-                    "Expected the ground-truth query to return a PoseTrajectory or a pair"
-                )
-            traj, cross = out[0], None if out[1] is None else np.asarray(out[1], dtype=float)
-        else:
-            traj = out
-        if not isinstance(traj, PoseTrajectory) or len(traj) != index.size:
-            raise ValueError(
-                f"Expected the ground-truth query to return a PoseTrajectory of {index.size} poses"
-            )
-        if cross is not None and cross.shape != (index.size - 1, 6, 6):
-            raise ValueError(
-                f"Expected query cross-covariances of shape ({index.size - 1}, 6, 6), "
-                f"got {cross.shape}"
-            )
-        interp = np.zeros(index.size, dtype=bool)
-        gt_k = PoseTrajectory(est_k.t, traj.position, traj.quat_xyzw, traj.cov)
+        gt_k, interp, cross = _query_at(gt, tau_all[index], est_k.t)
     return Association(
         index=index,
         est=est_k,
@@ -343,6 +296,68 @@ def associate(
         },
         ground_truth="discrete" if discrete else "query",
     )
+
+
+def _support(gt, measurement_times) -> tuple[np.ndarray | None, tuple[float, float]]:
+    """Measurement times (sorted, or None) and time span of a discrete or query ground truth."""
+    if isinstance(gt, PoseTrajectory):
+        _check_times(np.asarray(gt.t), "ground-truth")
+        if len(gt) < 2:
+            raise InputError(f"Expected a ground truth with at least 2 poses, got {len(gt)}")
+        mt = np.asarray(gt.t if measurement_times is None else measurement_times, dtype=float)
+        return mt, (float(gt.t[0]), float(gt.t[-1]))
+    if callable(gt):
+        mt = None if measurement_times is None else np.sort(np.asarray(measurement_times, float))
+        span = (-np.inf, np.inf) if mt is None or mt.size == 0 else (float(mt[0]), float(mt[-1]))
+        return mt, span
+    raise TypeError(f"Expected a PoseTrajectory or a callable ground truth, got {type(gt)}")
+
+
+def _discrete_at(gt: PoseTrajectory, tau: np.ndarray, t_est: np.ndarray, gt_cross_next):
+    """A discrete ground truth at ``tau`` (M,), stored at ``t_est``: the poses, which
+    covariances were interpolated (M,), and the chained ``cross_next`` (M - 1, 6, 6) or None."""
+    pos, rot, cov, exact, _ = interpolate_trajectory(gt, tau)
+    interp = (exact < 0) if gt.cov is not None else np.zeros(tau.size, dtype=bool)
+    cross = None
+    if gt_cross_next is not None:
+        C = np.asarray(gt_cross_next, dtype=float)
+        if C.shape != (len(gt) - 1, 6, 6):
+            raise ValueError(
+                f"Expected gt_cross_next of shape ({len(gt) - 1}, 6, 6), got {C.shape}"
+            )
+        if gt.cov is None:
+            raise ValueError("gt_cross_next needs a ground truth with covariances")
+        cross = np.full((tau.size - 1, 6, 6), np.nan)
+        ok = (exact[:-1] >= 0) & (exact[1:] >= 0) & (exact[1:] > exact[:-1])
+        if np.any(ok):
+            pairs = np.stack([exact[:-1][ok], exact[1:][ok]], axis=1)
+            cross[ok] = chain_cross_covariance(gt.cov, C, pairs)
+    return PoseTrajectory(t_est, pos, matrix_to_quat_xyzw(rot), cov), interp, cross
+
+
+def _query_at(gt, tau: np.ndarray, t_est: np.ndarray):
+    """A query ground truth at ``tau`` (M,), stored at ``t_est``, as :func:`_discrete_at`."""
+    out = gt(tau)
+    cross = None
+    if isinstance(out, tuple):
+        if len(out) != 2:
+            raise ValueError(
+                "Expected the ground-truth query to return a PoseTrajectory or a pair"
+            )
+        traj, cross = out[0], None if out[1] is None else np.asarray(out[1], dtype=float)
+    else:
+        traj = out
+    if not isinstance(traj, PoseTrajectory) or len(traj) != tau.size:
+        raise ValueError(
+            f"Expected the ground-truth query to return a PoseTrajectory of {tau.size} poses"
+        )
+    if cross is not None and cross.shape != (tau.size - 1, 6, 6):
+        raise ValueError(
+            f"Expected query cross-covariances of shape ({tau.size - 1}, 6, 6), "
+            f"got {cross.shape}"
+        )
+    interp = np.zeros(tau.size, dtype=bool)
+    return PoseTrajectory(t_est, traj.position, traj.quat_xyzw, traj.cov), interp, cross
 
 
 def _associate_validated(

@@ -539,16 +539,36 @@ def _time_label(t0: float) -> str:
     return f"time since t = {t0:g} s (s)"
 
 
+def _shade_gaps(axes, data: RunRecord, gap: float, t0: float, drawn: DrawnFigure) -> None:
+    """Shade each prism's measurement gaps longer than ``gap`` s in its colour on every panel,
+    and those of every prism in one neutral grey; counted in ``drawn``."""
+    n_spans = 0
+    all_gaps = []
+    for i, (pid, tr) in enumerate(data.measurements.items()):
+        col = _PRISM_COLORS[i % 7]
+        g = _gaps(tr.t, gap)
+        all_gaps.append(np.asarray(g, dtype=float).reshape(-1, 2))
+        for a, b in g:
+            for ax in axes:
+                ax.axvspan(a - t0, b - t0, color=col, alpha=0.15, lw=0, zorder=0.4)
+            n_spans += 1
+        axes[0].plot([], [], "s", ms=9, color=col, alpha=0.3,
+                     label=f"prism {pid}: gap > {gap:.1f} s")
+    drawn.spans = n_spans
+    common = _intersect_intervals(all_gaps) if len(all_gaps) > 1 else np.empty((0, 2))
+    for a, b in common:
+        for ax in axes:
+            ax.axvspan(a - t0, b - t0, color="#d4d4d4", alpha=0.95, lw=0, zorder=0.5)
+    if common.shape[0]:
+        axes[0].plot([], [], "s", ms=9, color="#d4d4d4", label="no prism measured")
+    drawn.common_spans = int(common.shape[0])
+
+
 def plot_uncertainty_time(data: RunRecord, *, gap_s: float | None = None,
                           pose_measure: str = "sqrt_trace") -> DrawnFigure:
-    """Uncertainty along time, with each prism's measurement gaps shaded.
-
-    Panels: ``sqrt(tr Sigma)`` of each interpolated prism (mm; every query time), the pose's
-    translation (mm) and rotation (mrad) uncertainty (kept poses; ``pose_measure``). A gap is
-    an interval longer than ``gap_s`` between two consecutive measurements of a prism
-    (default :func:`default_gap_s`); it is shaded in the prism's colour in every panel.
-    Rejected poses are ticked along the bottom of the translation panel.
-    """
+    """Uncertainty along time: ``sqrt(tr Sigma)`` of each interpolated prism (mm), the pose's
+    translation (mm) and rotation (mrad) (``pose_measure``); measurement gaps over ``gap_s``
+    (default :func:`default_gap_s`) shaded, rejected poses ticked."""
     fig = Figure(figsize=(11, 8), layout="constrained")
     axes = fig.subplots(3, 1, sharex=True)
     drawn = DrawnFigure("uncertainty_time", fig)
@@ -582,27 +602,7 @@ def plot_uncertainty_time(data: RunRecord, *, gap_s: float | None = None,
                      mew=2, color="#D55E00", transform=axes[1].get_xaxis_transform(),
                      label=f"rejected poses ({data.rejected_t.size})")
         drawn.points["rejected poses"] = int(data.rejected_t.size)
-    n_spans = 0
-    all_gaps = []
-    for i, (pid, tr) in enumerate(data.measurements.items()):
-        col = _PRISM_COLORS[i % 7]
-        g = _gaps(tr.t, gap)
-        all_gaps.append(np.asarray(g, dtype=float).reshape(-1, 2))
-        for a, b in g:
-            for ax in axes:
-                ax.axvspan(a - t0, b - t0, color=col, alpha=0.15, lw=0, zorder=0.4)
-            n_spans += 1
-        axes[0].plot([], [], "s", ms=9, color=col, alpha=0.3,
-                     label=f"prism {pid}: gap > {gap:.1f} s")
-    drawn.spans = n_spans
-    # where no prism is measured, one neutral shade instead of the prisms' colours stacked
-    common = _intersect_intervals(all_gaps) if len(all_gaps) > 1 else np.empty((0, 2))
-    for a, b in common:
-        for ax in axes:
-            ax.axvspan(a - t0, b - t0, color="#d4d4d4", alpha=0.95, lw=0, zorder=0.5)
-    if common.shape[0]:
-        axes[0].plot([], [], "s", ms=9, color="#d4d4d4", label="no prism measured")
-    drawn.common_spans = int(common.shape[0])
+    _shade_gaps(axes, data, gap, t0, drawn)
     unit = "sqrt(trace)" if pose_measure == "sqrt_trace" else "sqrt(largest eigenvalue)"
     axes[0].set_ylabel("prism sqrt(tr Σ) (mm)")
     axes[1].set_ylabel(f"translation {unit}\n(mm)")

@@ -766,7 +766,25 @@ def view3d_figure(data: RunRecord, max_ellipsoids: int = 150, scale: float | Non
                                        if lever >= 0.5 else ")")))
         everything.append(gt.position)
     everything += [p[None] for p in data.stations.values()]
-    shown = list(everything)  # everything drawn, which the scene's box holds
+    marks, points = _marker_traces(go, data)
+    traces += marks
+    shown = everything + points  # everything drawn, which the scene's box holds
+    if len(gt) and gt.cov is not None and max_ellipsoids > 0:
+        mesh = _ellipsoids_trace(go, gt, everything, max_ellipsoids, scale)
+        if mesh is not None:
+            traces.append(mesh[0])
+            shown.append(mesh[1])
+            n_ell, used_scale = mesh[2], mesh[3]
+    ranges, aspect = scene_box(np.concatenate(shown) if shown else np.zeros((1, 3)))
+    fig = go.Figure(traces)
+    fig.update_layout(**_scene_layout(data.name, ranges, aspect, used_scale))
+    return fig, n_ell, used_scale
+
+
+def _marker_traces(go, data: RunRecord) -> tuple[list, list]:
+    """The 3D view's stations, GCPs and rejected poses (one trace per gate), and the points
+    (n, 3) drawn (GCPs, rejected) for the scene's box."""
+    traces, shown = [], []
     if data.gcp_xyz is not None and len(data.gcp_xyz):
         shown.append(data.gcp_xyz)
     if data.stations:
@@ -793,18 +811,14 @@ def view3d_figure(data: RunRecord, max_ellipsoids: int = 150, scale: float | Non
         traces.append(go.Scatter3d(x=c[:, 0], y=c[:, 1], z=c[:, 2], mode="markers",
                                    marker=dict(size=4, symbol="x", color="#D55E00"),
                                    name=f"rejected: {reason or 'unspecified'} ({len(c)})"))
-    if len(gt) and gt.cov is not None and max_ellipsoids > 0:
-        mesh = _ellipsoids_trace(go, gt, everything, max_ellipsoids, scale)
-        if mesh is not None:
-            traces.append(mesh[0])
-            shown.append(mesh[1])
-            n_ell, used_scale = mesh[2], mesh[3]
-    ranges, aspect = scene_box(np.concatenate(shown) if shown else np.zeros((1, 3)))
-    fig = go.Figure(traces)
+    return traces, shown
+
+
+def _scene_layout(name: str, ranges: np.ndarray, aspect: np.ndarray, scale) -> dict:
+    """The 3D view's layout: axes holding every point drawn at one scale (plotly's aspectmode
+    "data" would size the box to a volume of one and cut a long, flat site off the view)."""
     axis = dict(autorange=False)
-    fig.update_layout(
-        # the axes' ranges hold every point drawn, at one scale (plotly's aspectmode "data"
-        # would size the box to a volume of one, and cut a long, flat site off the view)
+    return dict(
         scene=dict(aspectmode="manual",
                    aspectratio=dict(x=aspect[0], y=aspect[1], z=aspect[2]),
                    xaxis=dict(axis, range=ranges[0].tolist(), title="x (m)"),
@@ -813,10 +827,9 @@ def view3d_figure(data: RunRecord, max_ellipsoids: int = 150, scale: float | Non
                    camera=dict(eye=dict(zip("xyz", CAMERA_EYE, strict=True)))),
         margin=dict(l=0, r=0, t=30, b=0),
         legend=dict(x=0, y=1, bgcolor="rgba(255,255,255,.8)", itemsizing="constant"),
-        title=dict(text=f"{data.name}: world frame; ellipsoids magnified {used_scale or 1:g} x",
+        title=dict(text=f"{name}: world frame; ellipsoids magnified {scale or 1:g} x",
                    font=dict(size=13)),
     )
-    return fig, n_ell, used_scale
 
 
 def _ellipsoids_trace(go, gt, everything: list, max_ellipsoids: int, scale: float | None):
