@@ -18,7 +18,7 @@ import pytest
 from rtsgt.calibration import calibrate
 from rtsgt.calibration.dynamic import DistanceSamples, calibrate_dynamic
 from rtsgt.calibration.shots import curvature_tilt
-from rtsgt.errors import GeometryError, InputError
+from rtsgt.errors import GeometryError, InputError, RtsgtWarning
 from rtsgt.geometry.so3 import exp_so3
 from rtsgt.geometry.transform import perturbation
 from rtsgt.measurement.polar import cartesian_to_polar
@@ -423,3 +423,22 @@ def test_simulated_deployments_the_whole_chain(tmp_path):
     for name in ("dynamic", "joint"):
         assert 0.5 < nees[name] / dof[name] < 1.6, (name, nees[name] / dof[name])
     assert np.mean(np.square(clock_z)) < 2.0, np.round(clock_z, 2)
+
+
+def test_a_station_the_gcps_place_elsewhere_is_named_with_its_axis_and_size():
+    """Issue 23: where the GCP and the dynamic calibration disagree beyond their sigmas, the
+    run names the station, the axis and the size (a GCP fit 16 mm higher for station 2)."""
+    from dataclasses import replace
+
+    from rtsgt.checks.calibration import dynamic_calibration_check
+
+    rng = np.random.default_rng(4)
+    smp, T = synthetic(rng)
+    dyn = calibrate_dynamic(smp, model="6dof", n_samples=10, rng=np.random.default_rng(0))
+    up = dyn.transforms["2"]
+    moved = replace(up, translation=np.asarray(up.translation) + [0.0, 0.0, 0.016])
+    gcp = replace(dyn, transforms={**dyn.transforms, "2": moved}, dynamic=None)
+    with pytest.warns(RtsgtWarning, match=r"station 2: .* largest along z: the dynamic -16\.0 mm from the GCPs'"):
+        check = dynamic_calibration_check(dyn, gcp)
+    assert check["gcp_agreement"]["2"]["verdict"] == "disagree"
+    assert check["gcp_agreement"]["3"]["verdict"] == "agree"

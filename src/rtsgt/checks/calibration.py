@@ -121,11 +121,14 @@ def dynamic_calibration_check(calibration: CalibrationResult,
         out["gcp_agreement"] = agree
         for s, v in agree.items():
             if warn and v["verdict"] == "disagree":
-                worst = max(v["z"].items(), key=lambda kv: abs(kv[1]))
+                axis, z = max(v["z"].items(), key=lambda kv: abs(kv[1]))
+                k = _AXES.index(axis)
+                size = f"{v['difference_mm_mrad'][k]:+.1f} {'mm' if k < 3 else 'mrad'}"
                 warnings.warn(
                     f"self-check, calibration of station {s}: the dynamic and the GCP "
                     f"calibrations differ by chi2 {v['chi2']:.1f} ({v['dof']} dof, "
-                    f"p = {v['p_value']:.2g}; largest along {worst[0]}, {worst[1]:+.1f} "
-                    "combined sigma): one of them, or its covariance, is wrong",
+                    f"p = {v['p_value']:.2g}; largest along {axis}: the dynamic {size} from "
+                    f"the GCPs', {z:+.1f} combined sigma): one of them, or its covariance, is "
+                    "wrong",
                     RtsgtWarning, stacklevel=2)
     return out
