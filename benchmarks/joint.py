@@ -5,7 +5,7 @@ clock states (offsets against the truth at 1 Hz: share within 2 sigma). Numbers:
 docs/joint.md#measured.
 
 Usage: python benchmarks/joint.py [--duration 600] [--seeds 101 102 103] [--time-sync]
-       [--field] [--clocks]
+       [--field [--without displacement gm reality survey]] [--clocks]
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from rtsgt.joint.knots import qc_from_prisms
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 from rtsgt.simulation.presets import preset_config
+from rtsgt.simulation.reality import RealityEffects
 
 
 def clock_scores(jr, sim, t: np.ndarray) -> dict:
@@ -49,11 +50,25 @@ def clock_scores(jr, sim, t: np.ndarray) -> dict:
                 clock_z2=np.mean(np.concatenate(z2)))
 
 
+def field_config(duration_s: float, without: tuple[str, ...] = ()) -> SimulationConfig:
+    """The field-hour preset, some of its effects off: ``displacement`` (the moved prism),
+    ``gm`` (the Gauss-Markov noise), ``reality`` (settling, the prisms' cyclic error),
+    ``survey`` (the survey's noise)."""
+    cfg = preset_config("field-hour", duration_s=duration_s)
+    fe = cfg.field
+    if "displacement" in without:
+        fe = replace(fe, prism_displacement_m=(0.0, 0.0))
+    if "gm" in without:
+        fe = replace(fe, angle_gm_rad=(0.0, 0.0), distance_gm_m=(0.0, 0.0))
+    cfg = replace(cfg, field=fe, noise_survey=cfg.noise_survey and "survey" not in without)
+    return replace(cfg, reality=RealityEffects()) if "reality" in without else cfg
+
+
 def case(duration_s: float, seed: int, time_sync: bool, folder: Path, field: bool = False,
-         clocks: bool = False) -> dict:
+         clocks: bool = False, without: tuple[str, ...] = ()) -> dict:
     """One simulated deployment through the per-prism pipeline and the joint engine."""
     if field:
-        cfg = preset_config("field-hour", duration_s=duration_s)
+        cfg = field_config(duration_s, without)
     else:
         cfg = SimulationConfig(duration_s=duration_s, noise_time_sync=time_sync,
                                noise_survey=False)
@@ -109,11 +124,15 @@ def main() -> None:
                     help="the simulator's clock offsets on (the joint engine carries them white)")
     ap.add_argument("--field", action="store_true", help="the field-hour preset")
     ap.add_argument("--clocks", action="store_true", help="the joint engine's clock states")
+    ap.add_argument("--without", nargs="*", default=[],
+                    choices=["displacement", "gm", "reality", "survey"],
+                    help="field-hour effects left out")
     args = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
-            r = case(args.duration, seed, args.time_sync, Path(tmp), args.field, args.clocks)
+            r = case(args.duration, seed, args.time_sync, Path(tmp), args.field, args.clocks,
+                     tuple(args.without))
             rows.append(r)
             print(" ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
                            for k, v in r.items()), flush=True)
