@@ -158,8 +158,8 @@ def load_position_ground_truth(
         files = sorted(p.name[len("prism"):-len(".csv")] for p in (path / "prisms").glob(
             "prism*.csv") if not p.name.endswith("_sources.csv"))
         if prism is None and len(files) != 1:
-            raise InputError(f"choose the prism (--prism): prisms/ has {', '.join(files) or 'none'}",
-                             path)
+            raise InputError("choose the prism (--prism): prisms/ has "
+                             f"{', '.join(files) or 'none'}", path)
         pid = files[0] if prism is None else str(prism)
         if pid not in files:
             raise InputError(f"no prisms/prism{pid}.csv; prisms: {', '.join(files)}", path)
@@ -196,8 +196,7 @@ def run_evaluation(
     engines = gt_engines()
     if gt_engine is not None and gt_engine not in engines:
         raise InputError(
-            f"unknown ground-truth engine {gt_engine!r}; expected one of {', '.join(engines)}"
-        )
+            f"unknown ground-truth engine {gt_engine!r}; expected one of {', '.join(engines)}")
     if wants_positions(gt_dir, lever_arm=lever_arm, prism=prism, gt_topic=gt_topic):
         if options is not None and (options.estimate or options.mounting is not None):
             raise InputError(
@@ -213,9 +212,8 @@ def run_evaluation(
         est = _read_estimate(est_file, fmt, topic, timestamps, child_frame, est_cov)
         options = _with_max_gap(gt_pos, gt_dir, options, max_gap)
         return evaluate_positions(gt_pos, est, lever, options)
-    gt = load_ground_truth(
-        gt_dir, mode=gt_mode, engine=None if gt_engine in (None, "run") else gt_engine
-    )
+    gt = load_ground_truth(gt_dir, mode=gt_mode,
+                           engine=None if gt_engine in (None, "run") else gt_engine)
     est = _read_estimate(est_file, fmt, topic, timestamps, child_frame, est_cov)
     return evaluate(gt, est, _with_max_gap(gt, gt_dir, options, max_gap))
 
@@ -224,9 +222,8 @@ def _read_estimate(est_file, fmt, topic, timestamps, child_frame, est_cov) -> Po
     """The estimate's poses (and its covariance file)."""
     if fmt is not None and fmt not in FORMATS:
         raise InputError(f"unknown format {fmt!r}; expected one of {', '.join(FORMATS)}")
-    est = read_trajectory(
-        est_file, fmt, topic=topic, timestamps=timestamps, child_frame=child_frame
-    )
+    est = read_trajectory(est_file, fmt, topic=topic, timestamps=timestamps,
+                          child_frame=child_frame)
     if est_cov is not None:
         est = attach_covariance(est, read_covariance_csv(est_cov), source=str(est_cov))
     return est

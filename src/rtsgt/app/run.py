@@ -52,8 +52,7 @@ def run_deployment(
     check_target(out, force=force, inputs=[config])
     say("reading inputs")
     data, read = load_deployment(config)
-    record = run_pipeline(data, read.updated(profile=profile, seed=seed, **changes),
-                          progress=say)
+    record = run_pipeline(data, read.updated(profile=profile, seed=seed, **changes), progress=say)
     say("writing outputs")
     if report and isinstance(record, PositionRunRecord):
         warnings.warn("--report: the HTML report is of runs with poses; this run gives "

@@ -71,12 +71,8 @@ def run_analyze(run_dir: Path, *, bins: str = DEFAULT_BINS, out: Path | None = N
                 pose_measure: str = "sqrt_trace", figures: bool = True,
                 formats: tuple[str, ...] = ("png", "svg"),
                 force: bool = False) -> tuple[Analysis, list[Path]]:
-    """Analyse a run directory; write the figures and ``analysis.json`` into ``out``.
-
-    Returns the analysis and the written files (``out`` defaults to ``RUN_DIR/analysis``).
-    ``out`` is written whole or not at all; ``force`` replaces an earlier output of rtsgt
-    there (:mod:`rtsgt.io.output_dir`).
-    """
+    """Analyse a run directory, write the figures and ``analysis.json`` into ``out`` (default
+    ``RUN_DIR/analysis``, whole or not at all); returns the analysis and the files."""
     from rtsgt.io.run_dir import read_run
     from rtsgt.report.analysis import analyze
     from rtsgt.report.figures import draw_all, save_figures
@@ -84,8 +80,7 @@ def run_analyze(run_dir: Path, *, bins: str = DEFAULT_BINS, out: Path | None = N
     folder = Path(run_dir) / "analysis" if out is None else Path(out)
     output = OutputDir(folder, "analysis", force=force, inputs=[run_dir])
     data = read_run(run_dir)
-    analysis = analyze(data, bins=bins, engine=engine, samples=samples,
-                       pose_measure=pose_measure)
+    analysis = analyze(data, bins=bins, engine=engine, samples=samples, pose_measure=pose_measure)
     with output as tmp:
         names: list[str] = []
         if figures:

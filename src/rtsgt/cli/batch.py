@@ -50,14 +50,11 @@ def run_batch(
         TimeRemainingColumn,
     )
 
-    from rtsgt.batch import dask_client, default_workers, find_deployments, make_tasks
+    from rtsgt.batch import find_deployments, make_tasks
     from rtsgt.batch import run_batch as run_tasks
-    from rtsgt.io.batch_summary import batch_row, write_batch_csv
-    from rtsgt.report.batch import write_batch_html
 
     if serial and (workers is not None or scheduler is not None):
-        raise usage_error("runs in this process: leave out --workers and --scheduler",
-                          "--serial")
+        raise usage_error("runs in this process: leave out --workers and --scheduler", "--serial")
     if workers is not None and scheduler is not None:
         raise usage_error("an existing cluster has its own workers: leave out --workers",
                           "--scheduler")
@@ -72,6 +69,34 @@ def run_batch(
         err.print(f"note: {note}", highlight=False, markup=False, soft_wrap=True)
 
     where = {"ran": "serially, in this process"}
+    t0 = time.perf_counter()
+    progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                        TimeElapsedColumn(), TimeRemainingColumn(), console=err, disable=quiet)
+    with progress, _quiet_interrupt(progress):
+        bar = progress.add_task("deployments", total=len(tasks))
+
+        def on_outcome(o: Outcome) -> None:
+            if o.status == "failed":
+                progress.console.print(f"failed: {o.name}: {o.message}", highlight=False,
+                                       markup=False, soft_wrap=True)
+            progress.advance(bar)
+
+        factory = None if serial else _client_factory(workers, scheduler, where)
+        outcomes = run_tasks(tasks, client_factory=factory, on_outcome=on_outcome)
+    wall = time.perf_counter() - t0
+    rows, info = _write_summary(outcomes, folder, seed, where["ran"], wall)
+    if not quiet:
+        _print_table(rows, folder, info)
+    if info["failed"]:
+        raise InputError(f"{info['failed']} of {len(outcomes)} deployments failed (the "
+                         f"'failed:' lines above); the others' runs and the summary are in "
+                         f"{folder}")
+    return outcomes, rows, folder
+
+
+def _client_factory(workers: int | None, scheduler: str | None, where: dict):
+    """The batch's Dask client factory (``n_todo -> client``); says in ``where`` where it ran."""
+    from rtsgt.batch import dask_client, default_workers
 
     def client_factory(n_todo: int):
         if scheduler is not None:
@@ -84,8 +109,8 @@ def run_batch(
             from dask import config
         except ImportError:  # dask_client says how to install it
             return dask_client(workers=workers, n_tasks=n_todo)
-        # Ctrl-C stops the batch, not the workers (module docstring): they start with SIGINT
-        # ignored, then run dask_setup below
+        # Ctrl-C stops the batch, not the workers: they start with SIGINT ignored, then
+        # run dask_setup below
         previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
         try:
             with config.set({"distributed.worker.preload": [__name__]}):
@@ -93,39 +118,26 @@ def run_batch(
         finally:
             signal.signal(signal.SIGINT, previous)
 
-    t0 = time.perf_counter()
-    progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                        TimeElapsedColumn(), TimeRemainingColumn(), console=err,
-                        disable=quiet)
-    with progress, _quiet_interrupt(progress):
-        bar = progress.add_task("deployments", total=len(tasks))
+    return client_factory
 
-        def on_outcome(o: Outcome) -> None:
-            if o.status == "failed":
-                progress.console.print(f"failed: {o.name}: {o.message}", highlight=False,
-                                       markup=False, soft_wrap=True)
-            progress.advance(bar)
 
-        outcomes = run_tasks(tasks, client_factory=None if serial else client_factory,
-                             on_outcome=on_outcome)
-    wall = time.perf_counter() - t0
+def _write_summary(outcomes: list[Outcome], folder: Path, seed: int, ran: str,
+                   wall: float) -> tuple[list[dict], dict]:
+    """Write ``batch_summary.csv`` and ``.html`` into ``folder``; returns its rows and info."""
+    from rtsgt.io.batch_summary import batch_row, write_batch_csv
+    from rtsgt.report.batch import write_batch_html
+
     rows = [batch_row(o.name, o.status, o.seed, o.out, o.config, elapsed_s=o.elapsed_s,
                       error=o.message) for o in outcomes]
     counts = {s: sum(o.status == s for o in outcomes) for s in ("done", "skipped", "failed")}
     info = {"deployments": len(outcomes), "run now": counts["done"],
             "skipped (complete)": counts["skipped"], "failed": counts["failed"],
-            "base seed": seed, "ran": where["ran"] if counts["done"] + counts["failed"]
+            "base seed": seed, "ran": ran if counts["done"] + counts["failed"]
             else "nothing to run", "wall time": f"{wall:.1f} s"}
     write_batch_csv(folder / SUMMARY_CSV, rows)
     write_batch_html(folder / SUMMARY_HTML, rows, info)
     record_files(folder, [folder / SUMMARY_CSV, folder / SUMMARY_HTML])
-    if not quiet:
-        _print_table(rows, folder, info)
-    if counts["failed"]:
-        raise InputError(f"{counts['failed']} of {len(outcomes)} deployments failed (the "
-                         f"'failed:' lines above); the others' runs and the summary are in "
-                         f"{folder}")
-    return outcomes, rows, folder
+    return rows, info
 
 
 @contextlib.contextmanager

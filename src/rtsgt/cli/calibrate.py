@@ -112,8 +112,7 @@ def _print_table(result: CalibrationResult, source: str, console: Console,
         console.print(
             f"GCP residuals between stations: {len(res)}, median {res.median_m * 1e3:.2f} mm, "
             f"max {res.max_m * 1e3:.2f} mm (marker {res.marker[worst]}, stations "
-            f"{res.station_a[worst]}-{res.station_b[worst]})"
-        )
+            f"{res.station_a[worst]}-{res.station_b[worst]})")
     console.print(f"calibrated from {CALIBRATION_METHOD_NAMES[result.method]}, model "
                   f"{result.model}")
     if dynamic is not None:
@@ -134,10 +133,8 @@ def _print_table(result: CalibrationResult, source: str, console: Console,
     if result.excluded_shots:
         console.print(f"note: {result.excluded_shots} shot(s) with non-zero status excluded")
     if result.markers_skipped:
-        console.print(
-            f"note: marker(s) {', '.join(result.markers_skipped)} shot by fewer than 2 "
-            "stations were skipped"
-        )
+        console.print(f"note: marker(s) {', '.join(result.markers_skipped)} shot by fewer than 2 "
+                      "stations were skipped")
 
 
 def _print_gcp_fit(check: dict, console: Console) -> None:
@@ -189,11 +186,9 @@ def run_calibrate(
         with warnings.catch_warnings():
             # skipped markers are reported from the result, not as a Python warning
             warnings.simplefilter("ignore", UserWarning)
-            result = calibrate(
-                shots, reference_station=reference_station, instrument=profile,
-                samples=samples, rng=np.random.default_rng(seed), weighting=weighting,
-                model=model,
-            )
+            result = calibrate(shots, reference_station=reference_station, instrument=profile,
+                               samples=samples, rng=np.random.default_rng(seed),
+                               weighting=weighting, model=model)
     return result, source
 
 
@@ -221,8 +216,7 @@ def run_calibrate_deployment(
                              "module 1", obs.source)
         filtered.append(kept)
     result, gcp = calibrate_by_method(data, options, filtered)
-    check = None if result.dynamic is None else dynamic_calibration_check(result, gcp,
-                                                                          warn=False)
+    check = None if result.dynamic is None else dynamic_calibration_check(result, gcp, warn=False)
     return result, check, result if result.dynamic is None else gcp
 
 
@@ -230,6 +224,29 @@ def is_calibration_json(head: str) -> bool:
     """Whether a file's first characters are those of ``rtsgt calibrate``'s JSON object."""
     return head.lstrip().startswith("{") and all(
         f'"{k}"' in head for k in ("reference_station", "stations", "residuals_mm"))
+
+
+def _checked_method(gcp_file: str, method: str | None, dynamic: bool,
+                    samples: int) -> tuple[str | None, bool]:
+    """``--method`` (``--dynamic``: ``dynamic``) and whether ``GCP_FILE`` is a deployment's,
+    checked as usage errors with ``--samples``."""
+    if samples == 1:
+        raise typer.BadParameter("use 0 (fit only) or at least 2", param_hint="--samples")
+    if dynamic:
+        if method not in (None, "dynamic"):
+            raise typer.BadParameter(f"--dynamic with --method {method}: give one",
+                                     param_hint="--dynamic")
+        method = "dynamic"
+    if method is not None and method not in CALIBRATION_METHODS:
+        raise typer.BadParameter(f"expected {' or '.join(CALIBRATION_METHODS)}, got "
+                                 f"{method!r}", param_hint="--method")
+    deployment = gcp_file.lower().endswith(".toml") or Path(gcp_file).is_dir()
+    if not deployment and method not in (None, "gcp"):
+        raise typer.BadParameter(
+            f"method {method} fits the stations to the tracked prisms: give a deployment's "
+            "TOML (its tracks and the survey of the prisms), not a GCP file",
+            param_hint="GCP_FILE")
+    return method, deployment
 
 
 def register(app: typer.Typer) -> None:
@@ -283,22 +300,7 @@ def register(app: typer.Typer) -> None:
         from rtsgt.io._parse import atomic_write_text
         from rtsgt.io.deployment import resolve_config
 
-        if samples == 1:
-            raise typer.BadParameter("use 0 (fit only) or at least 2", param_hint="--samples")
-        if dynamic:
-            if method not in (None, "dynamic"):
-                raise typer.BadParameter(f"--dynamic with --method {method}: give one",
-                                         param_hint="--dynamic")
-            method = "dynamic"
-        if method is not None and method not in CALIBRATION_METHODS:
-            raise typer.BadParameter(f"expected {' or '.join(CALIBRATION_METHODS)}, got "
-                                     f"{method!r}", param_hint="--method")
-        deployment = gcp_file.lower().endswith(".toml") or Path(gcp_file).is_dir()
-        if not deployment and method not in (None, "gcp"):
-            raise typer.BadParameter(
-                f"method {method} fits the stations to the tracked prisms: give a deployment's "
-                "TOML (its tracks and the survey of the prisms), not a GCP file",
-                param_hint="GCP_FILE")
+        method, deployment = _checked_method(gcp_file, method, dynamic, samples)
         if out is not None:
             check_output_file(out, option="--out", written_by_rtsgt=is_calibration_json)
         check = None
@@ -309,12 +311,11 @@ def register(app: typer.Typer) -> None:
                 seed=seed)
             source = str(config)
         else:
-            result, source = run_calibrate(
-                gcp_file, format=format, reference_station=reference_station,
-                additive_constant=additive_constant, samples=samples, seed=seed,
-                weighting=weighting or DEFAULT_WEIGHTING, instrument=instrument,
-                model=model or "6dof",
-            )
+            result, source = run_calibrate(gcp_file, format=format,
+                                           reference_station=reference_station,
+                                           additive_constant=additive_constant, samples=samples,
+                                           seed=seed, weighting=weighting or DEFAULT_WEIGHTING,
+                                           instrument=instrument, model=model or "6dof")
             gcp_result = result
         extra = {} if check is None else {"dynamic": check}
         gcp_fit = None if gcp_result is None else gcp_fit_check(gcp_result, warn=False)

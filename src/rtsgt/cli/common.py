@@ -1,8 +1,5 @@
-"""Helpers shared by the commands: progress display and run summaries (CLI edge only).
-
-Light at import (:mod:`rtsgt.cli.main`): numpy, rich and the library are imported by the
-helper that needs them, when it is called.
-"""
+"""Helpers of the commands: usage errors, warnings, progress display and run summaries
+(light at import: what is heavy is imported by the helper that needs it)."""
 
 from __future__ import annotations
 
@@ -23,18 +20,15 @@ if TYPE_CHECKING:
 
 
 def usage_error(message: str, option: str) -> typer.BadParameter:
-    """A bad value of a command-line option, for ``raise`` (exit status 2, see
-    :mod:`rtsgt.cli.main`)."""
+    """A bad value of a command-line option, for ``raise`` (exit status 2)."""
     if message[:1].isupper() and message[1:2].islower():  # "Expected ..." -> "expected ..."
         message = message[0].lower() + message[1:]
     return typer.BadParameter(message, param_hint=option)
 
 
 def checked_options(build: Callable[..., object], names: dict[str, str], **values) -> dict:
-    """The given (not None) command-line values, each checked by the rule of the options
-    ``build`` makes (a record whose ``__post_init__`` raises :class:`~rtsgt.errors.InputError`:
-    the rule the configuration file's values meet too); a bad one is a usage error naming
-    its option (``names``: field -> option)."""
+    """The given (not None) values, each checked by ``build``'s rule (the configuration's); a
+    bad one is a usage error naming its option (``names``: field -> option)."""
     changes = {k: v for k, v in values.items() if v is not None}
     for key, value in changes.items():
         try:
@@ -46,8 +40,7 @@ def checked_options(build: Callable[..., object], names: dict[str, str], **value
 
 @contextlib.contextmanager
 def collected_warnings():
-    """Collect the warnings of a command (a list of ``warnings.WarningMessage``) instead of
-    printing each as it comes; print them with :func:`print_warnings`."""
+    """Collect a command's warnings (for :func:`print_warnings`) instead of printing them."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         yield caught
@@ -58,15 +51,9 @@ SHORT_WARNING = 160
 
 
 def warning_groups(messages: list[str]) -> list[tuple[str, list[str]]]:
-    """Warnings grouped by topic: ``(topic, subjects)`` in the order of their first warning.
-
-    A warning reads ``topic: details``; the topic without its parentheses and without what
-    follows ``of``, ``over`` or ``for`` names the group ("self-check, GCP fit of station 2"
-    -> "self-check, GCP fit"), and what was cut, or else the details' first part, names the
-    warning's subject within it ("station 2"; "prism 1"). A group of one warning is the
-    warning itself, shortened to its first clause (outside parentheses) when longer than
-    :data:`SHORT_WARNING`.
-    """
+    """Warnings grouped by topic, ``(topic, subjects)`` in order of first warning; a group of
+    one is the warning itself, shortened beyond :data:`SHORT_WARNING`
+    (docs/cli.md#errors-warnings-and-exit-statuses)."""
     groups: dict[str, list[tuple[str, str]]] = {}
     for message in messages:
         topic, _, detail = message.partition(": ")
@@ -101,9 +88,8 @@ def _first_clause(message: str) -> str:
 
 
 def print_warnings(caught, where) -> None:
-    """The collected warnings (:func:`collected_warnings`) on stderr, one short line per group
-    (:func:`warning_groups`), and where their whole text is (``where``, a run's summary.json);
-    each whole where there is no such file (``where`` None: the command failed)."""
+    """The collected warnings on stderr, one line per group, and where their whole text is
+    (``where``; None: the command failed, each warning whole)."""
     messages = [" ".join(str(w.message).split()) for w in caught]
     if not messages:
         return
@@ -126,10 +112,7 @@ def echo_err(msg: str) -> None:
 
 
 class Stages:
-    """A progress display of pipeline stages on stderr (a spinner and the elapsed time).
-
-    Call the object with a stage name when the stage starts; nothing is shown with ``quiet``.
-    """
+    """A progress display on stderr: call it with each stage's name as the stage starts."""
 
     def __init__(self, quiet: bool = False):
         from rich.console import Console
@@ -166,9 +149,7 @@ class Stages:
 
 
 def print_run_summary(record: RunRecord | PositionRunRecord, out) -> None:
-    """A short key-value table of what a run produced (a position-only run: its prisms'
-    positions) and what its self-checks found, one row per check; the whole of each check is
-    in ``summary.json`` and the report."""
+    """A short key-value table of what a run produced and what its self-checks found."""
     import numpy as np
     from rich.console import Console
 
@@ -241,8 +222,7 @@ def _ratio_rows(table: TextTable, name: str, count: tuple[str, str], key: str,
     (``count``: the key of its sample count and its unit in words), one for the regimes."""
     overall = check.get("overall")
     if overall and overall.get("interval_95"):
-        table.add_row(f"{name}, whole run ({overall[count[0]]} {count[1]})",
-                      _ratio(overall, key))
+        table.add_row(f"{name}, whole run ({overall[count[0]]} {count[1]})", _ratio(overall, key))
     regimes = [f"{k} {_ratio(v, key)}" for k, v in check.get("regimes", {}).items()
                if v and v.get("interval_95")]
     if regimes:
@@ -250,8 +230,7 @@ def _ratio_rows(table: TextTable, name: str, count: tuple[str, str], key: str,
 
 
 def _calibration_rows(table: TextTable, record) -> None:
-    """The calibration's model and method, the GCP fit's variance factor per station (95 %
-    interval) and the variance component added, the dynamic calibration's check."""
+    """The calibration's model, method and self-checks."""
     from rtsgt.calibration.result import (
         CALIBRATION_METHOD_NAMES,
         CALIBRATION_MODEL_NAMES,
@@ -263,8 +242,7 @@ def _calibration_rows(table: TextTable, record) -> None:
         table.add_row("calibration model", CALIBRATION_MODEL_NAMES[gcp["model"]]
                       + (f"; {CALIBRATION_WEIGHTING_NAMES[gcp['weighting']]}"
                          if gcp.get("weighting") else ""))
-    table.add_row("calibration method",
-                  CALIBRATION_METHOD_NAMES[record.options.calibration.method])
+    table.add_row("calibration method", CALIBRATION_METHOD_NAMES[record.options.calibration.method])
     dyn = record.self_checks.get("dynamic_calibration")
     if dyn:
         lo, hi = dyn["interval_95"]
@@ -290,9 +268,7 @@ def _calibration_rows(table: TextTable, record) -> None:
 
 
 def _static_rows(table: TextTable, static: dict, plan: dict) -> None:
-    """The noise on the static stretches, one row per prism (scatter against the predicted
-    white sigma and the verdict of each component, the correlation times found), and whether
-    the GPs carried the correlated part (:mod:`rtsgt.noise.correlated`)."""
+    """The static stretches' noise per prism, and whether the correlated part was inflated."""
     if static and not static.get("prisms"):
         table.add_row("self-check static", static.get("note", "no static stretch"))
     for pid, e in static.get("prisms", {}).items():
@@ -319,8 +295,7 @@ def _static_rows(table: TextTable, static: dict, plan: dict) -> None:
 
 
 def _structure_rows(table: TextTable, check: dict) -> None:
-    """The inter-prism residual structure check (:mod:`rtsgt.checks.structure`): each test's
-    statistic against its critical value, and the clock offsets of the whole run."""
+    """The inter-prism residual structure check (:mod:`rtsgt.checks.structure`)."""
     ck, po = check.get("clock"), check.get("prism_orientation")
     if ck and ck.get("verdict"):
         table.add_row(f"self-check clock offsets ({ck.get('windows', 0)} windows)",

@@ -19,12 +19,8 @@ _SHORT_S = 60.0
 
 def run_demo(out: Path, *, seed: int, duration: float, engine: str, samples: int,
              force: bool, quiet: bool, report: bool = True, registration: str | None = None):
-    """Simulate into ``out/deployment``, run into ``out/run``; returns (result, run directory,
-    comparison with the truth).
-
-    ``out`` appears whole when everything succeeded (report included), and not at all
-    otherwise; the options are checked before any work.
-    """
+    """Simulate into ``out/deployment``, run into ``out/run`` (``out`` whole or not at all);
+    returns (result, run directory, comparison with the truth)."""
     import numpy as np
 
     from rtsgt.io.run_dir import relocate_summary
@@ -63,9 +59,8 @@ def run_demo(out: Path, *, seed: int, duration: float, engine: str, samples: int
 
 @contextlib.contextmanager
 def _as_final(tmp: Path, final: Path, duration: float):
-    """Messages about the demo's files name them where they will be (``final``), not in the
-    temporary directory they are written to; an error says that the simulation was too
-    short when it was."""
+    """Messages name the demo's files at ``final``, not ``tmp``; an error says when the
+    simulation was too short."""
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -94,12 +89,8 @@ def _test(n) -> str:
 
 
 def demo_verdict(comparison) -> str:
-    """The demo's last line: is the ground truth's pose covariance consistent with the truth?
-
-    The verdict is the pose NEES's (6 dof), by the test that decided it (the split test when
-    the run gives its shared factor), as ``rtsgt evaluate`` judges a ground truth; the
-    position's own verdict (3 dof, a marginal of the same covariance) is added when it
-    disagrees."""
+    """The demo's last line: the pose NEES's verdict (6 dof) against the truth, with the
+    position's (3 dof) when it disagrees."""
     pose, position = comparison.nees_pose, comparison.nees_position
     word = "consistent" if pose.consistent else "inconsistent"
     line = (f"verdict: {word}: the ground truth's pose covariance "
@@ -156,8 +147,7 @@ def print_demo_table(result, comparison, run_dir: Path) -> None:
                   highlight=False)
     out = run_dir.parent
     console.print(f"simulated inputs: {out / 'deployment'} (deployment.toml, the measurement "
-                  "files, and the truth: truth.tum, truth.json)", highlight=False,
-                  soft_wrap=True)
+                  "files, and the truth: truth.tum, truth.json)", highlight=False, soft_wrap=True)
     console.print(f"ground truth: {run_dir / 'groundtruth.tum'} (+ groundtruth_covariance.csv)",
                   highlight=False, soft_wrap=True)
     report = run_dir / "report.html"

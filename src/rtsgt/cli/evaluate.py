@@ -103,24 +103,14 @@ def print_mounting(m: MountingFit, console: Console) -> None:
     angle = float(np.linalg.norm(rv))
     axis = rv / angle if angle > 0 else np.array([0.0, 0.0, 1.0])
     rs, ls, cs = (m.group_sigma(g) for g in ("rotation", "lever", "clock"))
-    table.add_row(
-        "rotation",
-        f"{np.degrees(angle):.4f} deg about {_vector(axis, 1.0, 4)}",
-        "-" if rs is None else f"{_vector(rs, 57.29577951308232, 4)} deg (body x, y, z)",
-        "estimated" if rs is not None else "given",
-    )
-    table.add_row(
-        "lever arm (m, body frame)",
-        _vector(m.lever, 1.0, 4),
-        "-" if ls is None else _vector(ls, 1.0, 4),
-        "estimated" if ls is not None else "given",
-    )
-    table.add_row(
-        "clock offset (s)",
-        f"{m.clock_offset:.6f}",
-        "-" if cs is None else f"{cs[0]:.6f}",
-        "estimated" if cs is not None else "given",
-    )
+    table.add_row("rotation", f"{np.degrees(angle):.4f} deg about {_vector(axis, 1.0, 4)}",
+                  "-" if rs is None else f"{_vector(rs, 57.29577951308232, 4)} deg (body x, y, z)",
+                  "estimated" if rs is not None else "given")
+    table.add_row("lever arm (m, body frame)", _vector(m.lever, 1.0, 4),
+                  "-" if ls is None else _vector(ls, 1.0, 4),
+                  "estimated" if ls is not None else "given")
+    table.add_row("clock offset (s)", f"{m.clock_offset:.6f}",
+                  "-" if cs is None else f"{cs[0]:.6f}", "estimated" if cs is not None else "given")
     table.print(console)
     if m.covariance is not None:
         console.print(
@@ -203,12 +193,11 @@ def _print_nees_table(console: Console, title: str, rows) -> None:
 def _print_split_verdict(console: Console, what: str, sp) -> None:
     """The line of the verdict with the shared and varying parts apart (``what``: its name)."""
     sh, v = sp.shared, sp.varying
-    console.print(
-        f"{what}, shared and varying parts apart ({'one' if sh.upper else 'two'}-"
-        f"sided): shared {sh.statistic:.1f} on {sh.dof} dof (accepted <= "
-        f"{sh.interval[1]:.1f}{'' if sh.upper else f', >= {sh.interval[0]:.1f}'}), "
-        f"varying NEES {v.mean:.2f} / {v.dof} (accepted <= {v.mean_interval[1]:.2f})",
-        highlight=False)
+    console.print(f"{what}, shared and varying parts apart ({'one' if sh.upper else 'two'}-"
+                  f"sided): shared {sh.statistic:.1f} on {sh.dof} dof (accepted <= "
+                  f"{sh.interval[1]:.1f}{'' if sh.upper else f', >= {sh.interval[0]:.1f}'}), "
+                  f"varying NEES {v.mean:.2f} / {v.dof} (accepted <= {v.mean_interval[1]:.2f})",
+                  highlight=False)
 
 
 def print_report(
@@ -225,7 +214,7 @@ def print_report(
     table = _error_table("Pose errors (evo definitions)")
     table.add_row(*_stats_row("APE translation (mm)", result.ape.translation_m, 1e3, 3))
     table.add_row(*_stats_row("APE rotation (deg)", result.ape.rotation_deg, 1.0, 4))
-    unit = {"m": "m", "s": "s", "f": "frames"}[result.rpe_delta_unit]
+    unit = "frames" if result.rpe_delta_unit == "f" else result.rpe_delta_unit
     table.add_section()
     if result.rpe is None:
         table.add_row(f"RPE, {result.rpe_delta:g} {unit}", *(["-"] * 6))
@@ -233,12 +222,8 @@ def print_report(
         kind = "all" if result.rpe_all_pairs else "consecutive"
         pairs = f"{result.rpe.pairs.shape[0]} {kind} pairs"
         table.add_row(
-            *_stats_row(
-                f"RPE translation (mm), {result.rpe_delta:g} {unit}",
-                result.rpe.translation_m,
-                1e3,
-                3,
-            )
+            *_stats_row(f"RPE translation (mm), {result.rpe_delta:g} {unit}",
+                        result.rpe.translation_m, 1e3, 3)
         )
         table.add_row(*_stats_row(f"RPE rotation (deg), {pairs}", result.rpe.rotation_deg, 1.0, 4))
     table.print(console)
@@ -251,11 +236,8 @@ def print_report(
             f"within the uncertainty of the estimated {', '.join(result.mounting.estimated)}: "
             f"APE rmse +- {1e3 * u['ape_translation_m']:.3f} mm, "
             f"+- {u['ape_rotation_deg']:.4f} deg{rpe_u}", highlight=False)
-    if result.rpe is None:
-        console.print(f"no RPE: {result.rpe_absent_reason}", highlight=False)
     n = result.nees
-    if n.position is None:
-        console.print(f"NEES: {n.covariance}")
+    if not _print_rpe_absence_and_nees(console, result):
         return
     _print_nees_table(console, f"NEES (covariance: {n.covariance})", (
         ("position", n.position), ("pose", n.pose),
@@ -268,24 +250,17 @@ def print_report(
         _print_split_verdict(console, "absolute verdict", n.pose.split)
     console.print(f"relative poses: ground-truth correlations {n.rpe_correlations}")
     f = result.noise_floor
-    console.print(
-        f"noise floor of the ground truth: APE {1e3 * f.ape_translation_m:.3f} mm, "
-        f"{f.ape_rotation_deg:.4f} deg; APE rmse with the floor removed "
-        f"{1e3 * f.ape_translation_rmse_floor_removed_m:.3f} mm, "
-        f"{f.ape_rotation_rmse_floor_removed_deg:.4f} deg"
-    )
+    console.print(f"noise floor of the ground truth: APE {1e3 * f.ape_translation_m:.3f} mm, "
+                  f"{f.ape_rotation_deg:.4f} deg; APE rmse with the floor removed "
+                  f"{1e3 * f.ape_translation_rmse_floor_removed_m:.3f} mm, "
+                  f"{f.ape_rotation_rmse_floor_removed_deg:.4f} deg")
     if f.rpe_translation_m is not None:
         console.print(
             f"RPE floor {1e3 * f.rpe_translation_m:.3f} mm, {f.rpe_rotation_deg:.4f} deg; "
             f"RPE rmse with the floor removed "
             f"{1e3 * f.rpe_translation_rmse_floor_removed_m:.3f} mm, "
-            f"{f.rpe_rotation_rmse_floor_removed_deg:.4f} deg"
-        )
-    if a.cov_interpolated.any():
-        console.print(
-            f"note: {int(a.cov_interpolated.sum())} ground-truth covariances were interpolated "
-            "linearly between samples"
-        )
+            f"{f.rpe_rotation_rmse_floor_removed_deg:.4f} deg")
+    _print_interpolated(console, a)
 
 
 def print_position_report(
@@ -302,7 +277,7 @@ def print_position_report(
     _print_alignment(console, result.alignment, "alignment of the points", "positions")
     table = _error_table("Position errors (rotations not reported: position-only ground truth)")
     table.add_row(*_stats_row("APE position (mm)", result.ape.translation_m, 1e3, 3))
-    unit = {"m": "m", "s": "s", "f": "frames"}[result.rpe_delta_unit]
+    unit = "frames" if result.rpe_delta_unit == "f" else result.rpe_delta_unit
     if result.rpe is None:
         table.add_row(f"RPE position, {result.rpe_delta:g} {unit}", *(["-"] * 6))
     else:
@@ -310,11 +285,8 @@ def print_position_report(
             f"RPE position (mm), {result.rpe_delta:g} {unit}, {result.rpe.pairs.shape[0]} pairs",
             result.rpe.translation_m, 1e3, 3))
     table.print(console)
-    if result.rpe is None:
-        console.print(f"no RPE: {result.rpe_absent_reason}", highlight=False)
     n = result.nees
-    if n.position is None:
-        console.print(f"NEES: {n.covariance}")
+    if not _print_rpe_absence_and_nees(console, result):
         return
     _print_nees_table(console, f"NEES, 3 dof (covariance: {n.covariance})", (
         ("position", n.position), ("relative position", n.relative_position)))
@@ -328,11 +300,82 @@ def print_position_report(
         + ("" if f.rpe_translation_m is None else
            f"; RPE floor {1e3 * f.rpe_translation_m:.3f} mm, rmse with it removed "
            f"{1e3 * f.rpe_translation_rmse_floor_removed_m:.3f} mm"), highlight=False)
+    _print_interpolated(console, a)
+
+
+def _print_rpe_absence_and_nees(console: Console, result) -> bool:
+    """Say why there is no RPE, if so, and the NEES's absence; False when it is absent."""
+    if result.rpe is None:
+        console.print(f"no RPE: {result.rpe_absent_reason}", highlight=False)
+    if result.nees.position is None:
+        console.print(f"NEES: {result.nees.covariance}")
+        return False
+    return True
+
+
+def _print_interpolated(console: Console, a) -> None:
+    """The note on the ground-truth covariances interpolated between samples, if any."""
     if a.cov_interpolated.any():
-        console.print(
-            f"note: {int(a.cov_interpolated.sum())} ground-truth covariances were interpolated "
-            "linearly between samples"
-        )
+        console.print(f"note: {int(a.cov_interpolated.sum())} ground-truth covariances were "
+                      "interpolated linearly between samples")
+
+
+#: (kind, unit of the lengths, translation key and unit shown, its scale from the JSON,
+#: rotation key and unit shown).
+_DRIFT_KINDS = (
+    ("distance", "m", "pct", "%", 1.0, "deg_per_m", "deg/m"),
+    ("time", "s", "m_per_s", "mm/s", 1e3, "deg_per_s", "deg/s"),
+)
+
+
+def _drift_cell(value: float | None, floor: float | None, unit: str, scale: float = 1.) -> str:
+    if value is None:
+        return "-"
+    text = f"{scale * value:.3g} {unit}"
+    return text + (" (<= floor)" if floor is not None and value <= floor else "")
+
+
+def _drift_rows(table: TextTable, sec: dict, kind: tuple) -> None:
+    """The rows of one kind of segment: each length, then all pooled."""
+    _, lu, tk, tu, ts, rk, ru = kind
+    entries = [(f"{r[f'length_{lu}']:g} {lu}", r) for r in sec["by_length"]]
+    lengths = sec[f"lengths_{lu}"]
+    entries.append((f"all, {lengths[0]:g}-{lengths[-1]:g} {lu}", {**sec, "n": sec["n_segments"]}))
+    for name, r in entries:
+        t, tf = r[f"translation_{tk}"], r[f"translation_floor_{tk}"]
+        rot, rf = r[f"rotation_{rk}"], r[f"rotation_floor_{rk}"]
+        table.add_row(name, str(r["n"]), _drift_cell(t, tf, tu, ts),
+                      "-" if tf is None else f"{ts * tf:.3g} {tu}",
+                      _drift_cell(rot, rf, ru), "-" if rf is None else f"{rf:.3g} {ru}")
+
+
+def print_drift(drift: dict | None, console: Console) -> None:
+    """The drift table of the JSON's ``drift`` section (None: nothing printed;
+    docs/evaluating.md#drift-by-segment-length)."""
+    from rtsgt.cli.tables import TextTable
+
+    if drift is None or (drift["distance"] is None and drift["time"] is None):
+        return
+    table = TextTable("Drift by segment length (KITTI devkit definition: mean over segments "
+                      "every 10 poses; floor: the ground truth's own, rms)",
+                      ("segment", "n", "translation", "floor", "rotation", "floor"))
+    first = True
+    for kind in _DRIFT_KINDS:
+        sec = drift[kind[0]]
+        if sec is None:
+            continue
+        if not first:
+            table.add_section()
+        first = False
+        _drift_rows(table, sec, kind)
+    table.print(console)
+    d = drift["distance"]
+    notes = [] if d is None else [f"lengths of path: {d['lengths_from']}"]
+    notes.append("rotation per metre as the devkit (KITTI's leaderboard shows deg/100 m); "
+                 "'<= floor': not resolved by this ground truth")
+    if drift["rotation"]:
+        notes.append(f"rotational drift {drift['rotation']}")
+    console.print("; ".join(notes), highlight=False)
 
 
 def save_targets(ape: Path | None, rpe: Path | None, relation: str, *, force: bool,
@@ -471,58 +514,24 @@ def register(app: typer.Typer) -> None:
                                         "directory rtsgt did not write)."),
     ) -> None:
         """Evaluate an estimated trajectory against the uncertain ground truth (APE, RPE, NEES)."""
-        from rich.console import Console
+        from rtsgt.app.evaluate import run_evaluation, save_evo_results
 
-        from rtsgt.app.evaluate import GT_MODES, gt_engines, run_evaluation, save_evo_results
-        from rtsgt.evaluation import PositionEvaluationResult
-        from rtsgt.evaluation.lever_arm import parse_lever_arm
-
+        # max_dt None: the run's own limit (run_evaluation), checked here when given
         options = evaluation_options(
-            align=align,
-            n_align=n_align,
-            weighted=weighted,
-            delta=delta,
-            delta_unit=delta_unit,
-            all_pairs=all_pairs,
-            time_offset=time_offset,
-            max_dt=max_dt,  # None: the run's own limit (run_evaluation), checked here when given
-            estimate=estimate,
-            mounting=mounting_option(mounting),
-        )
-        if fmt is not None and fmt not in FORMATS:
-            raise typer.BadParameter(f"expected one of {', '.join(FORMATS)}", param_hint="--format")
-        if gt_mode not in GT_MODES:
-            raise typer.BadParameter(f"expected one of {', '.join(GT_MODES)}", param_hint="--gt-mode")
-        if gt_engine not in gt_engines():
-            raise typer.BadParameter(
-                f"expected one of {', '.join(gt_engines())}", param_hint="--gt-engine"
-            )
-        if lever_arm is not None:
-            try:
-                parse_lever_arm(lever_arm)
-            except InputError as exc:
-                raise usage_error(exc.bare_message, "--lever-arm") from None
+            align=align, n_align=n_align, weighted=weighted, delta=delta, delta_unit=delta_unit,
+            all_pairs=all_pairs, time_offset=time_offset, max_dt=max_dt, estimate=estimate,
+            mounting=mounting_option(mounting))
+        _check_choices(fmt, gt_mode, gt_engine, lever_arm)
         if plot is not None:
             check_target(plot, force=force)  # before any work
         saves = save_targets(save_results, save_results_rpe, pose_relation, force=force,
                              inputs=[p for p in (gt_dir, est_file, timestamps, est_cov) if p])
         with _collect_warnings() as notes:
-            result = run_evaluation(
-                gt_dir,
-                est_file,
-                fmt=fmt,
-                topic=topic,
-                child_frame=child_frame,
-                timestamps=timestamps,
-                est_cov=est_cov,
-                options=options,
-                max_gap=max_dt,
-                gt_mode=gt_mode,
-                gt_engine=gt_engine,
-                lever_arm=lever_arm,
-                prism=prism,
-                gt_topic=gt_topic,
-            )
+            result = run_evaluation(gt_dir, est_file, fmt=fmt, topic=topic,
+                                    child_frame=child_frame, timestamps=timestamps,
+                                    est_cov=est_cov, options=options, max_gap=max_dt,
+                                    gt_mode=gt_mode, gt_engine=gt_engine, lever_arm=lever_arm,
+                                    prism=prism, gt_topic=gt_topic)
         saved = save_evo_results(result, saves, gt_dir=gt_dir, est_file=est_file,
                                  relation=pose_relation, force=force)
         written = None
@@ -532,15 +541,38 @@ def register(app: typer.Typer) -> None:
             written = plot_evaluation(result, plot, force=force)
         if as_json:
             typer.echo(json.dumps({**result.to_dict(), "warnings": notes}))
-            return
-        console = Console()
-        report = (print_position_report if isinstance(result, PositionEvaluationResult)
-                  else print_report)
-        report(result, console, gt_source=str(gt_dir), est_source=str(est_file))
-        from rtsgt.cli.drift_table import print_drift
+        else:
+            _print_result(result, str(gt_dir), str(est_file), written, plot, saved)
 
-        print_drift(None if result.drift is None else result.drift.to_dict(), console)
-        if written is not None:
-            console.print(f"figures: {', '.join(p.name for p in written.files)} in {plot}")
-        for path in saved:
-            console.print(f"evo result: {path}", highlight=False)
+
+def _check_choices(fmt: str | None, gt_mode: str, gt_engine: str, lever_arm: str | None) -> None:
+    """``--format``, ``--gt-mode``, ``--gt-engine`` and ``--lever-arm``, as usage errors."""
+    from rtsgt.app.evaluate import GT_MODES, gt_engines
+    from rtsgt.evaluation.lever_arm import parse_lever_arm
+
+    for value, choices, option in ((fmt, FORMATS, "--format"), (gt_mode, GT_MODES, "--gt-mode"),
+                                   (gt_engine, gt_engines(), "--gt-engine")):
+        if value is not None and value not in choices:
+            raise typer.BadParameter(f"expected one of {', '.join(choices)}", param_hint=option)
+    if lever_arm is not None:
+        try:
+            parse_lever_arm(lever_arm)
+        except InputError as exc:
+            raise usage_error(exc.bare_message, "--lever-arm") from None
+
+
+def _print_result(result, gt_source: str, est_source: str, written, plot, saved) -> None:
+    """The readable report, the drift table and the files written."""
+    from rich.console import Console
+
+    from rtsgt.evaluation import PositionEvaluationResult
+
+    console = Console()
+    report = (print_position_report if isinstance(result, PositionEvaluationResult)
+              else print_report)
+    report(result, console, gt_source=gt_source, est_source=est_source)
+    print_drift(None if result.drift is None else result.drift.to_dict(), console)
+    if written is not None:
+        console.print(f"figures: {', '.join(p.name for p in written.files)} in {plot}")
+    for path in saved:
+        console.print(f"evo result: {path}", highlight=False)

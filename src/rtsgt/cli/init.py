@@ -1,9 +1,5 @@
-"""``rtsgt init FOLDER``: the deployment TOML of an RTS_project-like folder, as it is.
-
-A thin layer over :mod:`rtsgt.io.project_folder`: scan the folder, print one line per input
-found, per choice made and per input missing, and write the TOML (atomically) when nothing
-required is missing. An existing TOML is replaced only with ``--force``, and only if
-``rtsgt init`` wrote it (:func:`rtsgt.io.output_dir.check_output_file`).
+"""``rtsgt init FOLDER``: the deployment TOML of an RTS_project-like folder, as it is
+(:mod:`rtsgt.io.project_folder`), written atomically when nothing required is missing.
 """
 
 from __future__ import annotations
@@ -21,15 +17,8 @@ def run_init(folder: Path, *, out: Path | None = None, force: bool = False,
              weather: Path | None = None, utc_offset: float | None = None,
              measurements: str = "auto", name: str | None = None,
              echo=typer.echo) -> Path:
-    """Scan ``folder``, say what is there and what is missing, write its deployment TOML;
-    returns the TOML's path.
-
-    Raises
-    ------
-    InputError
-        The TOML exists (without ``force``, or not written by ``rtsgt init``), a required
-        input is missing (each listed first, one line each), or an input cannot be read.
-    """
+    """Scan ``folder``, say what is there and what is missing (``echo``), write its deployment
+    TOML (replacing only one ``rtsgt init`` wrote, with ``force``); returns its path."""
     from rtsgt.io._parse import atomic_write_text
     from rtsgt.io.config import load_config
     from rtsgt.io.deployment import DEPLOYMENT_TOML

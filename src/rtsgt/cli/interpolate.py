@@ -77,8 +77,7 @@ def interpolate_file(
         raise usage_error("give exactly one of --at TIMES.txt and --rate HZ", "--at / --rate")
     # the rule [interpolation] meets (inf: no gap limit)
     checked_options(InterpolationOptions, {"rate_hz": "--rate", "max_gap_s": "--max-gap",
-                                           "prior": "--prior"},
-                    rate_hz=rate, max_gap_s=max_gap, prior=prior)
+                    "prior": "--prior"}, rate_hz=rate, max_gap_s=max_gap, prior=prior)
     track = read_track_csv(track_path)
     try:
         gp, info = fit_prism_gp(track, qc, max_gap, str(track_path), prior)
@@ -106,11 +105,8 @@ def _check_query_times(gp: GPTrack, times: np.ndarray, lines: np.ndarray, path: 
     dup = np.flatnonzero(np.diff(times[order]) == 0)
     if dup.size:
         i, j = sorted((order[dup[0]], order[dup[0] + 1]))
-        raise InputError(
-            f"duplicated query time {float(times[j])!r} s (same as line {lines[i]}): "
-            "the output is a track, its times must be distinct",
-            path, int(lines[j]),
-        )
+        raise InputError(f"duplicated query time {float(times[j])!r} s (same as line {lines[i]}): "
+                         "the output is a track, its times must be distinct", path, int(lines[j]))
     ok = gp.supported(times)
     if ok.all():
         return
@@ -127,9 +123,7 @@ def _check_query_times(gp: GPTrack, times: np.ndarray, lines: np.ndarray, path: 
         )
     raise InputError(
         f"query time {tau!r} s is {why}; {int((~ok).sum())} of {times.size} query times "
-        "are not supported by the track (no extrapolation)",
-        path, int(lines[i]),
-    )
+        "are not supported by the track (no extrapolation)", path, int(lines[i]))
 
 
 def _describe_qc(gp: GPTrack, info: dict) -> str:
@@ -197,9 +191,8 @@ def register(app: typer.Typer) -> None:
                                                      max_gap=max_gap, prior=prior)
         typer.echo(_describe_qc(gp, info), err=True)
         if n_skipped:
-            typer.echo(
-                f"skipped {n_skipped} grid times inside gaps longer than {max_gap} s", err=True
-            )
+            typer.echo(f"skipped {n_skipped} grid times inside gaps longer than {max_gap} s",
+                       err=True)
         if out is None:
             typer.echo(text, nl=False)
         else:

@@ -156,14 +156,10 @@ class _Command(TyperCommand):
 
 
 app = typer.Typer(
-    name="rtsgt",
-    cls=_Group,
+    name="rtsgt", cls=_Group,
     help="Robotic total station ground truth: 6-DOF trajectories with honest covariances.",
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-    rich_markup_mode=None,
-)
+    no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
+    rich_markup_mode=None)
 
 
 def _version(value: bool) -> None:
@@ -174,7 +170,8 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _main(
-    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version."),
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                 help="Print the version."),
 ) -> None:
     """Robotic total station ground truth."""
 

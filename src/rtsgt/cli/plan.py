@@ -53,12 +53,8 @@ def _motion(inputs: PlanInputs, qc_run: Path | None) -> RobotMotion:
 
 def compute_plan(plan: Path, *, path: Path | None = None,
                  qc_run: Path | None = None) -> PlanResult:
-    """Read a plan file (or a deployment TOML, or its folder) and predict over its area or
-    path.
-
-    ``path`` replaces the plan's area or path by a path file; ``qc_run`` takes the GP's Qc
-    from that run directory (:func:`rtsgt.planning.qc_from_run`).
-    """
+    """Read a plan file (or a deployment's TOML or folder) and predict over its area or path
+    (``path``: a path file instead; ``qc_run``: the GP's Qc from that run directory)."""
     import numpy as np
 
     from rtsgt.geometry.so3 import quat_xyzw_to_matrix
@@ -127,8 +123,7 @@ def write_plan(results: list[PlanResult], out: Path, *, inputs: list[Path],
                                        encoding="utf-8")
         (tmp / "sigma.csv").write_text(plan_table_text(results[0]), encoding="utf-8")
         if len(results) > 1:
-            (tmp / "sigma_compare.csv").write_text(plan_table_text(results[1]),
-                                                   encoding="utf-8")
+            (tmp / "sigma_compare.csv").write_text(plan_table_text(results[1]), encoding="utf-8")
             names.insert(2, "sigma_compare.csv")
         fig = draw_plan_map(results)
         fig.save(tmp, ("png", "svg"))

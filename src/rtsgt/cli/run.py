@@ -32,10 +32,8 @@ def option_overrides(**values) -> dict:
 def run_command(config: Path, out: Path, *, seed: int = 0, force: bool = False,
                 quiet: bool = False, report: bool = False, inputs: dict | None = None,
                 profile: str | None = None, **values):
-    """``rtsgt run``'s work: the command-line ``values`` (``engine``, ``samples``,
-    ``registration``, ``rate``, ``prior``, ``correlated_noise``; None: the configuration's)
-    and ``profile`` checked as usage errors, then :func:`rtsgt.app.run_deployment` with the
-    progress display on stderr; returns its :class:`~rtsgt.app.DeploymentRun`."""
+    """The command-line ``values`` (None: the configuration's) and ``profile`` checked as
+    usage errors, then :func:`rtsgt.app.run_deployment` with progress on stderr."""
     from rtsgt.app import run_deployment
 
     values = {("rate_hz" if k == "rate" else k): v for k, v in values.items()}
@@ -98,5 +96,4 @@ def register(app: typer.Typer) -> None:
             print_run_summary(done.record, done.path)
             if shown.exists():
                 echo_err(f"report: {shown}")
-        typer.echo(record_verdict(done.record).line(
-            str(shown if shown.exists() else done.summary)))
+        typer.echo(record_verdict(done.record).line(str(shown if shown.exists() else done.summary)))

@@ -1,8 +1,4 @@
-"""``rtsgt simulate``: write a simulated deployment with known truth.
-
-A thin wrapper over :func:`rtsgt.simulation.simulate_deployment` and
-:func:`rtsgt.simulation.write_deployment`.
-"""
+"""``rtsgt simulate``: write a simulated deployment with known truth (:mod:`rtsgt.simulation`)."""
 
 from __future__ import annotations
 
@@ -24,12 +20,7 @@ def run_simulate(
     force: bool = False, reality: tuple[str, ...] = (), preset: str | None = None,
 ):
     """Simulate and write a deployment; returns ``(sim, path to deployment.toml)``.
-
-    ``duration``: s, None for 600 s (a preset's own without ``--duration``); ``reality``:
-    reality effects (:data:`rtsgt.simulation.reality.REALITY_EFFECTS`) to switch on at their
-    default sizes; ``preset``: a name of :data:`rtsgt.choices.SIMULATION_PRESETS`
-    (:mod:`rtsgt.simulation.presets`), the effects of ``reality`` added to its own.
-    """
+    ``duration`` s (None: 600, or the ``preset``'s); ``reality``: effects switched on."""
     from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
     from rtsgt.simulation.presets import preset_config
     from rtsgt.simulation.reality import RealityEffects
@@ -80,13 +71,11 @@ def _print_summary(sim, toml: Path, console: Console) -> None:
         o = tr.observations[obs.station]
         rng = (o.d.min() + tr.additive_constant, o.d.max() + tr.additive_constant)
         name = f"prism{obs.prism}.csv"
-        table.add_row(
-            name,
-            f"station {obs.station} -> prism {obs.prism}: {len(obs)} measurements, "
-            f"range {rng[0]:.0f}-{rng[1]:.0f} m, clock offset "
-            f"{tr.clock_offset_s[obs.station] * 1e3:.3f} ms" + drift(obs.station),
-            size(name),
-        )
+        table.add_row(name,
+                      f"station {obs.station} -> prism {obs.prism}: {len(obs)} measurements, "
+                      f"range {rng[0]:.0f}-{rng[1]:.0f} m, clock offset "
+                      f"{tr.clock_offset_s[obs.station] * 1e3:.3f} ms" + drift(obs.station),
+                      size(name))
     n_markers = len(set(sim.gcp.marker.tolist()))
     table.add_row("GCP.txt", f"{len(sim.gcp)} shots of {n_markers} markers", size("GCP.txt"))
     table.add_row("calibration_raw.csv",

@@ -1,10 +1,5 @@
-"""Tables for the terminal that never cut a word or a number (CLI edge only).
-
-A :class:`TextTable` is printed as a rich table when every column can hold its longest word
-at the console's width (rich then wraps cells at spaces only); otherwise, and always when the
-console is narrower than :data:`MIN_TABLE_WIDTH`, as key-value lines wrapped at spaces
-(``row: column value, ...``). Piped or redirected output has the console's width of 80
-columns unless ``COLUMNS`` says otherwise; nothing is ever cut to fit it.
+"""Tables for the terminal that never cut a word or a number: a rich table when every column
+holds its longest word at the console's width, else key-value lines wrapped at spaces.
 """
 
 from __future__ import annotations
@@ -32,22 +27,9 @@ def _longest_word(text: str) -> int:
 
 @dataclass
 class TextTable:
-    """Rows of strings under a title; cells may hold rich markup (``[red]...[/red]``).
-
-    Attributes
-    ----------
-    title : str
-    columns : tuple of str
-        The column headings; the first column names the rows.
-    header : bool
-        Show the headings (a key-value table has none).
-    right : tuple of bool
-        Right-justify the column (numbers); default: every column but the first.
-    caption : str
-        A line under the table.
-    box : rich.box.Box, optional
-        rich's box of the table (default: rich's).
-    """
+    """Rows of strings (rich markup allowed) under a title; ``columns``: the headings, the
+    first naming the rows; ``header``: show them; ``right``: right-justified columns (default:
+    all but the first); ``caption``: a line under the table; ``box``: rich's box."""
 
     title: str
     columns: tuple[str, ...]
