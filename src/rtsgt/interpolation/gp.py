@@ -1285,23 +1285,7 @@ class GPTrack:
         gap = interior & ((t[ki + 1] - t[ki]) > self.max_gap_s)
         unsupported = extrap | gap
         if not allow_gaps and unsupported.any():
-            i = int(np.flatnonzero(unsupported)[0])
-            count = int(unsupported.sum())
-            if before[i]:
-                why = f"before the first measurement (t = {float(t[0])!r} s)"
-            elif after[i]:
-                why = f"after the last measurement (t = {float(t[-1])!r} s)"
-            else:
-                why = (
-                    f"inside a gap of {t[ki[i] + 1] - t[ki[i]]:.3f} s between measurements at "
-                    f"{float(t[ki[i]])!r} s and {float(t[ki[i] + 1])!r} s, longer than max_gap_s = "
-                    f"{self.max_gap_s!r} s"
-                )
-            raise ExtrapolationError(
-                f"query time {float(tau[i])!r} s is {why} "
-                f"({count} of {tau.size} queries unsupported); query inside the track, "
-                "or pass allow_gaps=True to get a flagged answer"
-            )
+            self._refuse(tau, ki, before, after, unsupported)
         full = self.state_dim
         dim = full if with_velocity else 3
         q = tau.shape[0]
@@ -1327,6 +1311,28 @@ class GPTrack:
             nearest_measurement_dt=_readonly(near),
             across_gap=_readonly(unsupported),
             extrapolated=_readonly(extrap),
+        )
+
+    def _refuse(self, tau, ki, before, after, unsupported) -> None:
+        """Raise the :class:`ExtrapolationError` of :meth:`query`, naming the first query time
+        it cannot answer and why."""
+        t = self.t
+        i = int(np.flatnonzero(unsupported)[0])
+        count = int(unsupported.sum())
+        if before[i]:
+            why = f"before the first measurement (t = {float(t[0])!r} s)"
+        elif after[i]:
+            why = f"after the last measurement (t = {float(t[-1])!r} s)"
+        else:
+            why = (
+                f"inside a gap of {t[ki[i] + 1] - t[ki[i]]:.3f} s between measurements at "
+                f"{float(t[ki[i]])!r} s and {float(t[ki[i] + 1])!r} s, longer than max_gap_s = "
+                f"{self.max_gap_s!r} s"
+            )
+        raise ExtrapolationError(
+            f"query time {float(tau[i])!r} s is {why} "
+            f"({count} of {tau.size} queries unsupported); query inside the track, "
+            "or pass allow_gaps=True to get a flagged answer"
         )
 
     def _query_chunk(self, tau, kc, ki, on_knot, interior, before, after, dim):
