@@ -35,6 +35,7 @@ from rtsgt.measurement.weather import check_weather_coverage
 from rtsgt.noise import NoiseModel, propagate
 from rtsgt.noise.coupling import StationCoupling
 from rtsgt.options import RunOptions, stage_rng
+from rtsgt.parallel import available_cores
 from rtsgt.stages.timing import Progress, Stopwatch
 from rtsgt.types import Observations, PrismTrack
 
@@ -215,6 +216,7 @@ def world_tracks(data: DeploymentData, options: RunOptions, model: NoiseModel,
         tracks[obs.prism] = propagate(
             obs, model, T_world_station=calib.transforms[obs.station], weather=data.weather,
             engine=options.noise_engine, samples=options.pose.samples, rng=noise_rng,
+            workers=available_cores(),  # the same numbers on any number (one stream per chunk)
         )
     return tracks
 
