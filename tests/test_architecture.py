@@ -54,11 +54,7 @@ LAZY_EXCEPTIONS = {
     ("rtsgt.app.run", "rtsgt.report.html"),
 }
 #: Known import cycles between modules.
-CYCLE_EXCEPTIONS: set[frozenset[str]] = {
-    # the console script (entry) imports the application inside its handling of Ctrl-C, so
-    # that an interrupt at start-up is one line; the application's main() hands back to it
-    frozenset({"rtsgt.cli.entry", "rtsgt.cli.main"}),
-}
+CYCLE_EXCEPTIONS: set[frozenset[str]] = set()
 
 
 @dataclass(frozen=True)

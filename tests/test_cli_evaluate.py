@@ -260,14 +260,14 @@ def test_errors(files, tmp_path):
 
 
 def test_entry_point_prints_one_line_error_and_exit_code_1(files, tmp_path):
-    """Through the real `rtsgt` entry point (rtsgt.cli.main.main)."""
+    """Through the real `rtsgt` entry point (rtsgt.cli.entry.main)."""
     d, gt_dir, _ = files
     (tmp_path / "nan.tum").write_text("1 0 0 0 0 0 0 1\n2 nan 0 0 0 0 0 1\n")
     p = subprocess.run(
         [
             sys.executable,
             "-c",
-            "from rtsgt.cli.main import main; main()",
+            "from rtsgt.cli.entry import main; main()",
             "evaluate",
             str(gt_dir),
             str(tmp_path / "nan.tum"),
@@ -372,7 +372,7 @@ def test_warnings_are_shown_and_listed_in_json(files, tmp_path):
 
     def entry_point(*args: str) -> subprocess.CompletedProcess:
         return subprocess.run(
-            [sys.executable, "-c", "from rtsgt.cli.main import main; main()", "evaluate", *args],
+            [sys.executable, "-c", "from rtsgt.cli.entry import main; main()", "evaluate", *args],
             capture_output=True, text=True, timeout=120,
         )
 
@@ -494,7 +494,7 @@ def test_refusal_is_one_line_and_exit_code_1(tmp_path):
     gt = perturbed(t, p, R, random_covariances(n, rng, 2e-3, 5e-4), rng)
     gt_dir = write_gt_dir(tmp_path / "run", gt)
     write_tum(tmp_path / "est.tum", trajectory(t, p + [0.3, 0.4, 0.0], R))
-    exe = [sys.executable, "-c", "from rtsgt.cli.main import main; main()"]
+    exe = [sys.executable, "-c", "from rtsgt.cli.entry import main; main()"]
     pr = subprocess.run([*exe, "evaluate", str(gt_dir), str(tmp_path / "est.tum"), "--estimate",
                          "lever", "--align", "4dof", "--json"], capture_output=True, text=True,
                         timeout=120)

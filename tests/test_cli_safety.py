@@ -24,7 +24,7 @@ from rtsgt.cli.main import app
 from rtsgt.io.output_dir import MANIFEST
 
 runner = CliRunner()
-ENTRY = "from rtsgt.cli.main import main; main()"
+ENTRY = "from rtsgt.cli.entry import main; main()"
 
 
 def invoke(*args):

@@ -25,7 +25,7 @@ from rtsgt.checks.verdict import SHOWN_REASONS, run_verdict
 from rtsgt.cli.common import warning_groups
 from rtsgt.cli.tables import TextTable
 
-ENTRY = "from rtsgt.cli.main import main; main()"
+ENTRY = "from rtsgt.cli.entry import main; main()"
 
 
 def _ratio(value, lo, hi, verdict, **extra):

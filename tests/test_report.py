@@ -795,7 +795,7 @@ def test_cli_bad_input(run_dir, tmp_path):
     r = runner.invoke(app, ["report", str(run_dir), "--figure-format", "gif"])
     assert r.exit_code == 2
     # through the console entry point: one line on stderr, exit code 1
-    p = subprocess.run([sys.executable, "-c", "from rtsgt.cli.main import main; main()",
+    p = subprocess.run([sys.executable, "-c", "from rtsgt.cli.entry import main; main()",
                         "analyze", str(tmp_path / "missing")], capture_output=True, text=True,
                        timeout=120)
     assert p.returncode == 1 and p.stderr.startswith("error:") and "missing" in p.stderr
@@ -812,7 +812,7 @@ def test_cli_report_open_prints_the_path_and_opens_it(run_dir, tmp_path):
     browser = tmp_path / "browser.sh"
     browser.write_text(f"#!/bin/sh\nprintf '%s' \"$1\" > '{seen}'\n")
     browser.chmod(0o755)
-    p = subprocess.run([sys.executable, "-c", "from rtsgt.cli.main import main; main()",
+    p = subprocess.run([sys.executable, "-c", "from rtsgt.cli.entry import main; main()",
                         "report", str(run_dir), "--open", "--figure-format", "png"],
                        capture_output=True, text=True, timeout=300,
                        env=dict(os.environ, BROWSER=str(browser)))

@@ -67,3 +67,8 @@ SIMULATION_PRESETS = {"field-hour": 3600.0}
 #: Environment variable with the number of processes that write a run directory
 #: (:data:`rtsgt.io.run_dir.WRITE_PROCESSES`; the command line sets 2 unless it is set).
 WRITE_PROCESSES_ENV = "RTSGT_WRITE_PROCESSES"
+
+#: Exit status of an interrupted command (128 + SIGINT, as a shell reports it).
+EXIT_INTERRUPTED = 130
+#: The line an interrupted command prints on stderr.
+INTERRUPTED_LINE = "error: interrupted"

@@ -13,7 +13,7 @@ import os
 import signal
 import sys
 
-from rtsgt.choices import WRITE_PROCESSES_ENV
+from rtsgt.choices import EXIT_INTERRUPTED, INTERRUPTED_LINE, WRITE_PROCESSES_ENV
 
 #: The BLAS thread counts the command line runs with unless the environment sets them: one
 #: (many small matrices; docs/benchmarks.md#speed).
@@ -24,10 +24,6 @@ MALLOC_ARENAS = 2
 #: glibc's ``mallopt`` parameter ``M_ARENA_MAX``.
 _M_ARENA_MAX = -8
 
-#: Exit status of an interrupted command (128 + SIGINT, as a shell reports it).
-EXIT_INTERRUPTED = 130
-#: The line an interrupted command prints on stderr.
-INTERRUPTED_LINE = "error: interrupted"
 
 
 def _ignore_interrupts() -> None:

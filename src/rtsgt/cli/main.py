@@ -17,6 +17,7 @@ import typer
 from typer.core import TyperCommand, TyperGroup
 
 from rtsgt import __version__
+from rtsgt.choices import EXIT_INTERRUPTED, INTERRUPTED_LINE
 from rtsgt.cli import (
     analyze,
     batch,
@@ -29,8 +30,6 @@ from rtsgt.cli import (
     run,
     simulate,
 )
-from rtsgt.cli.entry import EXIT_INTERRUPTED, INTERRUPTED_LINE
-from rtsgt.cli.entry import main as entry_main
 from rtsgt.errors import RtsgtError
 
 #: Exit statuses (docs/cli.md#errors-warnings-and-exit-statuses).
@@ -183,7 +182,3 @@ for _info in app.registered_commands:  # every command in rtsgt's style of help
     if _info.cls in (None, TyperCommand):
         _info.cls = _Command
 
-
-def main() -> None:  # pragma: no cover - console entry point
-    """The console entry point (:func:`rtsgt.cli.entry.main`)."""
-    entry_main()
