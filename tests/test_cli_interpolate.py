@@ -138,10 +138,10 @@ def test_max_gap_option(track_file):
 
 
 def run_main(monkeypatch, capsys, *args):
-    """The console entry point in-process: exit code, stdout, stderr."""
+    """The application the console script runs, in-process: exit code, stdout, stderr."""
     monkeypatch.setattr(sys, "argv", ["rtsgt", "interpolate", *map(str, args)])
     with pytest.raises(SystemExit) as exc:
-        cli_main.main()
+        cli_main.app()
     cap = capsys.readouterr()
     return exc.value.code, cap.out, cap.err
 
