@@ -27,6 +27,7 @@ from rtsgt.io.config import load_config
 from rtsgt.io.deployment import DEPLOYMENT_TOML
 from rtsgt.io.output_dir import MANIFEST, complete_output, output_kind
 from rtsgt.io.run_dir import read_summary
+from rtsgt.parallel import available_cores
 
 #: What each deployment's task ends with.
 STATUSES = ("done", "skipped", "failed")
@@ -252,10 +253,7 @@ def skipped(task: BatchTask) -> Outcome:
 def default_workers(n_tasks: int) -> int:
     """Workers of the default local cluster: the machine's CPUs (those this process may
     use), at most one per task and one per :data:`MEMORY_PER_WORKER` of memory."""
-    try:
-        cpus = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not on Linux
-        cpus = os.cpu_count() or 1
+    cpus = available_cores()
     try:
         memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     except (ValueError, OSError, AttributeError):  # pragma: no cover - not POSIX
