@@ -481,8 +481,8 @@ def _write_pose_run_rest(tmp: Path, record: RunRecord, summary: dict) -> None:
 #: ground truth's covariances are then written by a forked child (:func:`_beside`) while this
 #: process writes the rest. The text of an hour's run (about 170 MB, formatted by Python under
 #: its interpreter lock) then takes about half as long.
-WRITE_PROCESSES = max(1, int(os.environ.get(WRITE_PROCESSES_ENV, "1").strip() or 1)
-                      if os.environ.get(WRITE_PROCESSES_ENV, "1").strip().isdigit() else 1)
+_WRITE_PROCESSES_SET = os.environ.get(WRITE_PROCESSES_ENV, "").strip()
+WRITE_PROCESSES = max(1, int(_WRITE_PROCESSES_SET)) if _WRITE_PROCESSES_SET.isdigit() else 1
 
 
 def _beside(job: Callable[[], None]) -> Callable[..., None]:
