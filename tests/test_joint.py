@@ -180,6 +180,17 @@ def test_arrow_solver_matches_a_dense_solve_of_the_same_normal_equations(chunk, 
         blk = inv[12 * k:12 * k + 12, 12 * k + 12:12 * k + 24]
         np.testing.assert_allclose(sol.cov_next[k], blk, atol=1e-9 * np.abs(blk).max())
     np.testing.assert_allclose(cov_g, inv[n:, n:], atol=1e-9 * np.abs(inv[n:, n:]).max())
+    # the split: A^-1's blocks (the knots given the globals) and Cov(x_k, g) = L_k chol_g^T
+    inv_a = np.linalg.inv(M[:n, :n])
+    cross = np.einsum("kig,hg->kih", sol.factor, sol.chol_g).reshape(n, -1)
+    np.testing.assert_allclose(cross, inv[:n, n:], atol=1e-9 * np.abs(inv[:n, n:]).max())
+    np.testing.assert_allclose(sol.chol_g @ sol.chol_g.T, cov_g, rtol=1e-12, atol=0)
+    for k in range(13):
+        blk = inv_a[12 * k:12 * k + 12, 12 * k:12 * k + 12]
+        np.testing.assert_allclose(sol.cov_var[k], blk, atol=1e-9 * np.abs(blk).max())
+        if k < 12:
+            blk = inv_a[12 * k:12 * k + 12, 12 * k + 12:12 * k + 24]
+            np.testing.assert_allclose(sol.cov_var_next[k], blk, atol=1e-9 * np.abs(blk).max())
 
 
 def test_gauss_newton_recovers_a_noise_free_trajectory_from_a_perturbed_start():
@@ -369,6 +380,18 @@ def test_joint_poses_are_within_their_covariance_and_more_precise(simulated):
     the numbers)."""
     for jr, _, _, _ in simulated:
         assert jr.solve.converged and jr.solve.iterations <= 8, jr.solve
+        # the shared split (docs/joint.md#the-shared-error) adds up to the pose covariance
+        sh = jr.shared
+        total = jr.estimate.cov
+        assert np.abs(sh.total_cov - total).max() < 1e-9 * np.abs(total).max()
+        np.testing.assert_array_equal(sh.t, jr.t)
+        assert sh.names[:6] == tuple(f"calibration_station{sh.names[0][19]}_{c}"
+                                     for c in ("x", "y", "z", "rx", "ry", "rz"))
+        assert sh.names[-1] == "atmosphere_ppm" and len(sh.names) % 6 == 1, sh.names
+        # the stations' calibration is a large share of the position variance (docs)
+        frac = np.einsum("kii->k", sh.shared_cov[:, :3, :3]) / np.einsum("kii->k",
+                                                                        total[:, :3, :3])
+        assert 0.05 < np.median(frac) < 0.95, np.median(frac)
         assert jr.qc.iterations >= 2 and jr.n_knots <= jr.n_measurements, jr.qc
     nees = np.concatenate([s[1] for s in simulated])
     ratio = np.concatenate([s[2] for s in simulated])

@@ -22,7 +22,7 @@ from rtsgt.joint.engine import (
     solve_with_qc,
     station_prior_info,
 )
-from rtsgt.joint.interpolate import interpolate_poses_gp
+from rtsgt.joint.interpolate import interpolate_poses_gp, interpolate_split_gp
 from rtsgt.joint.knots import (
     DEFAULT_MERGE_S,
     body_velocities,
@@ -33,6 +33,7 @@ from rtsgt.joint.measurements import GLOBAL_SOURCES, polar_measurements
 from rtsgt.noise.model import NoiseModel
 from rtsgt.pose.estimate import PoseEstimate
 from rtsgt.pose.registration import shape_ratio
+from rtsgt.shared import POSE_COMPONENTS, SharedFactor
 
 
 @dataclass(frozen=True)
@@ -58,6 +59,7 @@ class JointResult:
     n_measurements: int
     solve: SolveInfo
     chi2_per_dof: float
+    shared: SharedFactor | None = None
 
 
 def _stations(calibration):
@@ -117,6 +119,7 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     R, t, cov_body = interpolate_poses_gp(tq, knots.t, state.R, state.t, state.w, prob.qc,
                                           sol.cov, sol.cov_next)
     cov_pose = body_to_world_cov(R, cov_body)
+    shared = _shared(tq, knots.t, state, prob, sol, global_names(prob, ids))
     est = _pose_estimate(R, t, cov_pose, np.asarray(reference.xyz, dtype=float))
     stations = {}
     for i, sid in enumerate(ids):
@@ -127,7 +130,31 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     return JointResult(tq, est, stations, state.kappa_ppm,
                        meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, cov_g, ids),
                        knots.t.size, meas.t.size, solve,
-                       solve.costs[-1] / (3 * meas.t.size))
+                       solve.costs[-1] / (3 * meas.t.size), shared)
+
+
+def global_names(prob: JointProblem, ids) -> tuple[str, ...]:
+    """Names of the problem's global parameters in their order: the free stations'
+    ``calibration_station<id>_<x|y|z|rx|ry|rz>`` (world frame, as the per-prism pipeline's
+    shared columns), ``atmosphere_ppm``, the clocks' knots ``clock_station<id>_<jjjj>``."""
+    names = [f"calibration_station{ids[i]}_{c}" for i in prob.free for c in POSE_COMPONENTS]
+    names.append("atmosphere_ppm")
+    ck = prob.clock
+    if ck is not None:
+        names += [f"clock_station{ids[i]}_{j:04d}" for i in ck.station
+                  for j in range(ck.knots.size)]
+    return tuple(names)
+
+
+def _shared(tq, t_knot, state, prob, sol, names) -> SharedFactor:
+    """The query poses' :class:`SharedFactor` in the world frame (columns: the globals'
+    Cholesky factor, named by ``names``)."""
+    R, _, var, L = interpolate_split_gp(tq, t_knot, state.R, state.t, state.w, prob.qc,
+                                        sol.cov_var, sol.cov_var_next, sol.factor)
+    A = np.zeros(R.shape[:1] + (6, 6))
+    A[:, :3, :3] = R
+    A[:, 3:, 3:] = R
+    return SharedFactor(tq, A @ L, names, body_to_world_cov(R, var))
 
 
 def _clocks(prob, state, cov_g, ids):

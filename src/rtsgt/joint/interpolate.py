@@ -34,16 +34,10 @@ def gp_weights(h: np.ndarray, dt: np.ndarray):
     return lam, psi, qh - psi @ _phi(dt - h) @ qh
 
 
-def interpolate_poses_gp(t_query, t_knot, R, t, w, qc, cov, cov_next):
-    """Poses ``T(t_query)`` (Q,) s of the GP through the knots and their covariance.
-
-    Knots at ``t_knot`` (K,) s, poses ``R`` (K, 3, 3), ``t`` (K, 3), body velocities ``w``
-    (K, 6), the prior's ``qc`` (K-1, 6) per interval, the knots' posterior covariance ``cov``
-    (K, 12, 12) and that of consecutive knots ``cov_next`` (K-1, 12, 12) (right perturbations).
-    Returns ``R`` (Q, 3, 3), ``t`` (Q, 3) and the covariance (Q, 6, 6) of the query poses'
-    right perturbation. A query time outside the knots' span is an InputError.
-    """
-    tq = np.asarray(t_query, dtype=float)
+def _query(tq, t_knot, R, t, w):
+    """Each query's interval ``k`` (Q,), pose ``Rq``, ``pq``, the Jacobian ``J`` (Q, 6, 24) of
+    its right perturbation with respect to the two knots' ``(d, dw)``, ``jr`` (Q, 6, 6)
+    ``J_r(xi(tau))`` and the conditional variance at unit ``Qc`` ``pc`` (Q,)."""
     if tq.size and (tq.min() < t_knot[0] or tq.max() > t_knot[-1]):
         bad = tq[(tq < t_knot[0]) | (tq > t_knot[-1])][0]
         raise InputError(f"Query time {bad:.6f} s outside the measurements' span "
@@ -71,13 +65,44 @@ def interpolate_poses_gp(t_query, t_knot, R, t, w, qc, cov, cov_next):
     jr = left_jacobian(-xi)
     J = jr @ J
     J[:, :, :6] += adjoint(np.swapaxes(dR, 1, 2), -np.einsum("nji,nj->ni", dR, dp))
+    return k, Rq, pq, J, jr, pc[:, 0, 0]
+
+
+def _propagate(k, J, jr, pc, qc, cov, cov_next):
+    """``J Sigma_k,k+1 J^T`` plus the GP's conditional variance (Q, 6, 6), symmetrised."""
     Ja, Jb = J[:, :, :12], J[:, :, 12:]
     cross = Ja @ cov_next[k] @ np.swapaxes(Jb, 1, 2)
     out = (Ja @ cov[k] @ np.swapaxes(Ja, 1, 2) + Jb @ cov[k + 1] @ np.swapaxes(Jb, 1, 2)
            + cross + np.swapaxes(cross, 1, 2))
-    cond = pc[:, 0, 0, None] * qc[k]
+    cond = pc[:, None] * qc[k]
     out += jr @ (cond[:, :, None] * np.swapaxes(jr, 1, 2))
-    return Rq, pq, 0.5 * (out + np.swapaxes(out, 1, 2))
+    return 0.5 * (out + np.swapaxes(out, 1, 2))
 
 
-__all__ = ["gp_weights", "interpolate_poses_gp"]
+def interpolate_poses_gp(t_query, t_knot, R, t, w, qc, cov, cov_next):
+    """Poses ``T(t_query)`` (Q,) s of the GP through the knots and their covariance.
+
+    Knots at ``t_knot`` (K,) s, poses ``R`` (K, 3, 3), ``t`` (K, 3), body velocities ``w``
+    (K, 6), the prior's ``qc`` (K-1, 6) per interval, the knots' posterior covariance ``cov``
+    (K, 12, 12) and that of consecutive knots ``cov_next`` (K-1, 12, 12) (right perturbations).
+    Returns ``R`` (Q, 3, 3), ``t`` (Q, 3) and the covariance (Q, 6, 6) of the query poses'
+    right perturbation. A query time outside the knots' span is an InputError.
+    """
+    tq = np.asarray(t_query, dtype=float)
+    k, Rq, pq, J, jr, pc = _query(tq, t_knot, R, t, w)
+    return Rq, pq, _propagate(k, J, jr, pc, qc, cov, cov_next)
+
+
+def interpolate_split_gp(t_query, t_knot, R, t, w, qc, cov_var, cov_var_next, factor):
+    """As :func:`interpolate_poses_gp`, the covariance split (docs/joint.md#the-shared-error):
+    from the knots' covariance given the globals ``cov_var`` (K, 12, 12), ``cov_var_next``
+    (K-1, 12, 12) and their shared factor ``factor`` (K, 12, G), returns ``R`` (Q, 3, 3),
+    ``t`` (Q, 3), the varying covariance (Q, 6, 6) (with the GP's conditional variance) and
+    the shared factor (Q, 6, G) of the query poses' right perturbation."""
+    tq = np.asarray(t_query, dtype=float)
+    k, Rq, pq, J, jr, pc = _query(tq, t_knot, R, t, w)
+    L = J[:, :, :12] @ factor[k] + J[:, :, 12:] @ factor[k + 1]
+    return Rq, pq, _propagate(k, J, jr, pc, qc, cov_var, cov_var_next), L
+
+
+__all__ = ["gp_weights", "interpolate_poses_gp", "interpolate_split_gp"]

@@ -50,13 +50,21 @@ class ArrowSolution:
     """Solution ``x`` (K, d), ``g`` (G,) of an :class:`ArrowSystem` and, where asked, the
     covariances (the inverse of its matrix): the knots' blocks ``cov`` (K, d, d), those of
     consecutive knots ``cov_next`` (K-1, d, d) (``Sigma_k,k+1``) and the globals' ``cov_g``
-    (G, G)."""
+    (G, G); their split (docs/joint.md#the-shared-error): ``cov_var`` (K, d, d) and
+    ``cov_var_next`` (K-1, d, d) the blocks of ``A^-1`` (the knots' error given the
+    globals), ``factor`` (K, d, G) ``L_k = -Y_B,k chol(S^-1)`` (the knots' error per unit
+    whitened global error, ``cov = cov_var + L L^T``) and ``chol_g`` (G, G) the lower
+    Cholesky factor of ``cov_g`` (``Cov(x_k, g) = L_k chol_g^T``)."""
 
     x: np.ndarray
     g: np.ndarray
     cov: np.ndarray | None
     cov_next: np.ndarray | None
     cov_g: np.ndarray | None
+    cov_var: np.ndarray | None = None
+    cov_var_next: np.ndarray | None = None
+    factor: np.ndarray | None = None
+    chol_g: np.ndarray | None = None
 
 
 def _spd_inv(a: np.ndarray) -> np.ndarray:
@@ -162,14 +170,20 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
     x, g = x * sx, g * sg
     if not want_cov:
         return ArrowSolution(x, g, None, None, None)
-    cov, nxt = Sd, np.concatenate([Cd, np.zeros((1, d, d))])
-    for lo in range(0, K, CHUNK):  # Y_B S^-1 Y_B^T a few thousand knots at a time
+    # L_k = -Y_B,k chol(S^-1) = -Sx yb_s chol(Ss^-1) (the globals' scale cancels), written
+    # over yb in place, a few thousand knots at a time (no second (K, d, G) array)
+    chol_s = np.linalg.cholesky(schur_inv) if G else np.zeros((0, 0))
+    for lo in range(0, K, CHUNK):
         hi = min(K, lo + CHUNK)
-        ybs = yb[lo:hi] @ schur_inv
-        cov[lo:hi] += ybs @ np.swapaxes(yb[lo:hi], 1, 2)
-        nxt[lo:hi - 1] += ybs[:-1] @ np.swapaxes(yb[lo + 1:hi], 1, 2)
+        yb[lo:hi] = -sx[lo:hi, :, None] * (yb[lo:hi] @ chol_s)
+    var = Sd * (sx[:, :, None] * sx[:, None, :])
+    var_next = Cd * (sx[:-1, :, None] * sx[1:, None, :])
+    cov, nxt = var.copy(), np.concatenate([var_next, np.zeros((1, d, d))])
+    for lo in range(0, K, CHUNK):  # L L^T a few thousand knots at a time
+        hi = min(K, lo + CHUNK)
+        cov[lo:hi] += yb[lo:hi] @ np.swapaxes(yb[lo:hi], 1, 2)
+        nxt[lo:hi - 1] += yb[lo:hi - 1] @ np.swapaxes(yb[lo + 1:hi], 1, 2)
         if hi < K:
-            nxt[hi - 1] += ybs[-1] @ yb[hi].T
-    cov *= sx[:, :, None] * sx[:, None, :]
-    nxt = nxt[:-1] * sx[:-1, :, None] * sx[1:, None, :]
-    return ArrowSolution(x, g, cov, nxt, schur_inv * sg[:, None] * sg[None, :])
+            nxt[hi - 1] += yb[hi - 1] @ yb[hi].T
+    return ArrowSolution(x, g, cov, nxt[:-1], schur_inv * sg[:, None] * sg[None, :],
+                         var, var_next, yb, sg[:, None] * chol_s)
