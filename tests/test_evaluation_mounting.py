@@ -20,6 +20,7 @@ from rtsgt.evaluation.mounting import (
     fit_mounting,
     mounting_sensitivity,
     parse_estimate,
+    sigma_limits,
 )
 from rtsgt.geometry.so3 import exp_so3, log_so3, matrix_to_quat_xyzw
 from rtsgt.geometry.transform import perturb
@@ -279,8 +280,21 @@ def test_clock_refused_at_constant_velocity_and_rotation_without_excitation():
 
 
 def test_refusal_thresholds_are_the_documented_ones():
+    """The mounting's limits are a measurement by hand (0.02 m, 1 deg); the clock's is where
+    its effect at the ground truth's rms speeds reaches them, at most the 1 s searched."""
     assert MAX_SIGMA == {"rotation": pytest.approx(np.radians(1.0)), "lever": 0.02,
-                         "lever-xy": 0.02, "clock": 0.01}
+                         "lever-xy": 0.02}
+    v = np.c_[np.full(10, 2.0), np.zeros(10), np.r_[[1.5] * 5, [-1.5] * 5]]  # rms 2.5 m/s
+    w = np.c_[np.zeros((10, 2)), np.full(10, 0.1)]
+    lim = sigma_limits("all", v, w)
+    assert lim["clock"][0] == pytest.approx(0.02 / 2.5)
+    assert "2.5 m/s" in lim["clock"][1] and "0.02 m of a lever arm" in lim["clock"][1]
+    assert lim["lever"][0] == 0.02 and lim["rotation"][0] == pytest.approx(np.radians(1.0))
+    fast_turn = sigma_limits("clock", v / 100, w * 10)["clock"]  # 1 deg at 57 deg/s
+    assert fast_turn[0] == pytest.approx(np.radians(1.0))
+    assert "deg/s" in fast_turn[1]
+    assert sigma_limits("clock", 0 * v, 0 * w)["clock"][0] == 1.0  # standing: the search
+    assert sigma_limits("clock", v, None)["clock"][0] == pytest.approx(0.008)  # positions
 
 
 def test_what_a_turning_drive_excites_is_estimated_not_refused():
@@ -555,8 +569,9 @@ def test_a_position_only_ground_truth_gives_a_drifting_odometrys_lever_arm_and_c
     mounting rotation is not estimable (the prism sees the sensor's rotation only through the
     lever arm: refused with that reason); with it given, the lever arm's horizontal components
     are, with the odometry's error estimated from the position residuals (within 3.5 sigma);
-    the clock, which the poses' rotations no longer pin, is refused here (80 s, sigma above
-    10 ms) with the odometry's error as the reason."""
+    the clock, which the poses' rotations no longer pin, has a sigma of 17 ms: below the 35 ms
+    at which its effect at the drive's rms speed (0.58 m/s) reaches the 2 cm of a lever arm
+    by hand, so it is estimated (within 3.5 sigma); it was refused against a fixed 10 ms."""
     rng = np.random.default_rng(28)
     t = T0 + 1.0 + 0.1 * np.arange(800)
     est, _ = drifting(t, rng, clock=0.05, white_m=0.01)
@@ -570,7 +585,9 @@ def test_a_position_only_ground_truth_gives_a_drifting_odometrys_lever_arm_and_c
     e = (LEVER - fit.lever)[:2]
     assert np.all(np.abs(e / np.sqrt(np.diagonal(fit.covariance))) < 3.5)
     assert fit.odometry["white_position"] == pytest.approx(0.01, rel=0.15)
-    with pytest.raises(ExcitationError, match="clock offset: the odometry's own error"):
-        fit_mounting(p, None, S, est.position, est.rotation, estimate="lever-xy,clock", **kw)
+    fit = fit_mounting(p, None, S, est.position, est.rotation, estimate="lever-xy,clock", **kw)
+    assert fit.limits["clock"] == pytest.approx(0.02 / np.sqrt(np.mean(np.sum(v * v, axis=1))))
+    assert 0.01 < fit.sigma["clock"] < fit.limits["clock"]
+    assert abs(fit.clock_offset - 0.05) < 3.5 * fit.sigma["clock"]
     with pytest.raises(InputError, match="only through the lever arm"):
         fit_mounting(p, None, S, est.position, est.rotation, estimate="rotation,lever")

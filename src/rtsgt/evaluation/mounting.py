@@ -87,10 +87,13 @@ keeps the residual's correlation, a quickly varying one averages it out. ``f = m
 covariance does not carry: the sigmas then follow the residual, not only the ground truth's
 covariance).
 
-A parameter is refused, with the reason, when its standard deviation exceeds what a careful
-measurement by hand gives (:data:`MAX_SIGMA`: 0.02 m for the lever arm, 1 deg for the mounting
-rotation, 0.01 s for the clock): the trajectory does not excite it (a lever arm from a straight
-drive, whose normal matrix is singular: its sigma is infinite), and a number would mislead.
+A parameter is refused, with the reason, when its estimate would cost the evaluation more
+than giving it by hand (:func:`sigma_limits`, docs/evaluating.md#the-refusal-rule): 0.02 m
+for a lever-arm component, 1 deg per axis for the mounting rotation (:data:`HAND_LIMIT`), and
+for the clock the sigma whose effect at the ground truth's rms speeds (``sigma v``, ``sigma
+w``) reaches those, at most the 1 s searched. A parameter the trajectory does not excite (a
+lever arm from a straight drive: the normal matrix is singular, its sigma infinite) is
+always refused: a number would mislead.
 
 A drifting odometry
 -------------------
@@ -122,6 +125,7 @@ from rtsgt.choices import JOINT_ALIGNMENTS  # the alignments the mounting is est
 from rtsgt.errors import ExcitationError, GeometryError, InputError
 from rtsgt.evaluation.align import Alignment, align_yaw, umeyama
 from rtsgt.evaluation.handeye import (
+    CLOCK_SEARCH_S,
     ODOMETRY_COMPONENTS,
     drift_model,
     fit_levels,
@@ -132,6 +136,7 @@ from rtsgt.geometry.so3 import exp_so3, hat, log_so3, matrix_to_quat_xyzw
 
 __all__ = [
     "CLOCK_TOLERANCE_S",
+    "HAND_LIMIT",
     "JOINT_ALIGNMENTS",
     "MAX_SIGMA",
     "MOUNTING_PARAMETERS",
@@ -139,6 +144,7 @@ __all__ = [
     "fit_mounting",
     "mounting_sensitivity",
     "parse_estimate",
+    "sigma_limits",
 ]
 
 #: What can be estimated: the mounting rotation, the lever arm (all three components, or its
@@ -150,11 +156,17 @@ MOUNTING_PARAMETERS = ("rotation", "lever", "lever-xy", "clock")
 ESTIMATE_ALIASES = {"mounting": ("rotation", "lever"), "all": ("rotation", "lever", "clock")}
 
 
-#: Largest standard deviation of an estimated parameter, per group (a careful measurement by
-#: hand: a tape measure for the lever arm, m; a CAD model or protractor for the rotation, rad,
-#: per axis; a network time synchronisation for the clock, s). Above it the trajectory does not
-#: excite the parameter and the estimate is refused.
-MAX_SIGMA = {"rotation": float(np.radians(1.0)), "lever": 0.02, "lever-xy": 0.02, "clock": 0.01}
+#: What a mounting measured by hand costs the evaluation: the error of a careful measurement
+#: with a tape (the lever arm: a position error, m) and a CAD model or protractor (the
+#: rotation: a rotation error, rad, per axis). An estimate whose own error costs more than
+#: this is refused (:func:`sigma_limits`; docs/evaluating.md#the-refusal-rule).
+HAND_LIMIT = {"position": 0.02, "rotation": float(np.radians(1.0))}
+
+#: Largest standard deviation of the mounting's parameters (their effect on the evaluated
+#: pose is their error itself): :data:`HAND_LIMIT`. The clock's depends on the motion
+#: (:func:`sigma_limits`).
+MAX_SIGMA = {"rotation": HAND_LIMIT["rotation"], "lever": HAND_LIMIT["position"],
+             "lever-xy": HAND_LIMIT["position"]}
 
 #: Above this chi2 / dof of the absolute fit the estimate's own errors (an odometry's drift and
 #: noise) are larger than the covariances it was weighted by: the mounting and the clock are
@@ -221,6 +233,46 @@ def _lever_axes(estimate: tuple[str, ...]) -> list[int]:
     return [] if g is None else [0, 1, 2][:len(PARAMETER_NAMES[g])]
 
 
+def sigma_limits(estimate: Iterable[str], velocity: ArrayLike | None = None,
+                 angular_velocity: ArrayLike | None = None) -> dict[str, tuple[float, str]]:
+    """The largest standard deviation of each estimated group, and its reason in words.
+
+    The rotation and the lever arm: :data:`MAX_SIGMA`. The clock: an error ``delta`` moves the
+    ground truth by ``v delta`` and ``w delta``; the limit is where that effect, at the ground
+    truth's rms speeds over the associated poses (``velocity`` (N, 3) m/s, ``angular_velocity``
+    (N, 3) rad/s or None for positions), reaches :data:`HAND_LIMIT`, and at most
+    :data:`~rtsgt.evaluation.handeye.CLOCK_SEARCH_S` (the range searched: a wider sigma says
+    nothing of the offset). docs/evaluating.md#the-refusal-rule.
+    """
+    out = {}
+    for g in parse_estimate(estimate):
+        if g == "rotation":
+            out[g] = (MAX_SIGMA[g], f"{np.degrees(MAX_SIGMA[g]):g} deg of a measurement by hand")
+        elif g in ("lever", "lever-xy"):
+            out[g] = (MAX_SIGMA[g], f"{MAX_SIGMA[g]:g} m of a measurement by hand")
+        else:
+            out[g] = _clock_limit(velocity, angular_velocity)
+    return out
+
+
+def _clock_limit(velocity: ArrayLike | None,
+                 angular_velocity: ArrayLike | None) -> tuple[float, str]:
+    """:func:`sigma_limits` of the clock."""
+    cands = [(CLOCK_SEARCH_S, f"{CLOCK_SEARCH_S:g} s searched")]
+    for rates, hand, unit, what in ((velocity, "position", "m/s", "a lever arm"),
+                                    (angular_velocity, "rotation", "deg/s", "a rotation")):
+        if rates is None:
+            continue
+        rms = float(np.sqrt(np.mean(np.sum(np.square(rates), axis=-1))))
+        lim = HAND_LIMIT[hand] / rms if rms > 0 else np.inf
+        size = (f"{HAND_LIMIT[hand]:g} m" if hand == "position"
+                else f"{np.degrees(HAND_LIMIT[hand]):g} deg")
+        rate = rms if hand == "position" else np.degrees(rms)
+        cands.append((lim, f"{lim:.3g} s, where its effect at the ground truth's rms speed of "
+                           f"{rate:.3g} {unit} reaches the {size} of {what} measured by hand"))
+    return min(cands, key=lambda c: c[0])
+
+
 @dataclass(frozen=True)
 class MountingFit:
     """The mounting ``T_body_sensor`` and the clock offset, given or estimated.
@@ -265,6 +317,9 @@ class MountingFit:
         With ``odometry``: its error levels (standard deviations of
         :data:`~rtsgt.evaluation.handeye.ODOMETRY_COMPONENTS`: m, rad, m / sqrt(m),
         rad / sqrt(m)).
+    limits : dict or None
+        The largest standard deviation each estimated group was accepted with
+        (:func:`sigma_limits`: rad, m, s).
     """
 
     rotation: np.ndarray
@@ -283,6 +338,7 @@ class MountingFit:
     start: str = "given"
     model: str = "absolute"
     odometry: dict | None = None
+    limits: dict | None = None
 
     @classmethod
     def given(cls, rotation: ArrayLike | None = None, lever: ArrayLike | None = None,
@@ -361,7 +417,7 @@ class MountingFit:
                 "model": self.model,
                 "odometry": self.odometry,
                 "alignment": None if self.alignment is None else self.alignment.to_dict(),
-                "max_sigma": {g: MAX_SIGMA[g] for g in self.estimated},
+                "max_sigma": {g: (self.limits or MAX_SIGMA)[g] for g in self.estimated},
             }
         return out
 
@@ -944,16 +1000,18 @@ def _result(x: _State, D: _Data, align: str, est: tuple[str, ...], nrm: _Normal,
     C = cov[np.ix_(idx, idx)]
     C = 0.5 * (C + C.T)
     sig = np.where(singular[idx], np.inf, np.sqrt(np.clip(np.diagonal(C), 0.0, None)))
+    limits = sigma_limits(est, D.v, D.w)
     for g in est:
         gs = sig[[names.index(n) for n in PARAMETER_NAMES[g]]]
-        bad = ~(gs <= MAX_SIGMA[g])
+        bad = ~(gs <= limits[g][0])
         if np.any(bad):
-            raise ExcitationError(_refusal(g, gs, bad))
+            raise ExcitationError(_refusal(g, gs, bad, limits[g][1]))
     a = Alignment(align, x.Ra, x.ta, x.s, N, True)
     return MountingFit(
         rotation=x.Rbs, lever=x.lever, clock_offset=float(clock_offset + x.delta),
         estimated=est, names=names, covariance=C, alignment=a, chi2=nrm.chi2, dof=dof,
-        time_correlation=tau, scale_factor=f, iterations=iterations, n_used=N, start=start)
+        time_correlation=tau, scale_factor=f, iterations=iterations, n_used=N, start=start,
+        limits={g: v[0] for g, v in limits.items()})
 
 
 def _odometry_start(x: _State, D: _Data) -> np.ndarray:
@@ -1037,19 +1095,22 @@ def _odometry_result(x: _State, D: _Data, align: str, est: tuple[str, ...],
                       np.sqrt(np.clip(np.diagonal(Hinv_gt)[idx], 0.0, None)))
     sig = np.where(singular_gt[idx], np.inf, sig)
     odometry = {c: float(v) for c, v in zip(ODOMETRY_COMPONENTS, levels, strict=True)}
+    limits = sigma_limits(est, D.v, D.w)
     for g in est:
         k = [names.index(n) for n in PARAMETER_NAMES[g]]
-        bad = ~(sig[k] <= MAX_SIGMA[g])
+        lim, why = limits[g]
+        bad = ~(sig[k] <= lim)
         if np.any(bad):
-            hidden = bool(np.all(sig_gt[k][bad] <= MAX_SIGMA[g]))
-            raise ExcitationError(_refusal(g, sig[k], bad, odometry if hidden else None))
+            hidden = bool(np.all(sig_gt[k][bad] <= lim))
+            raise ExcitationError(_refusal(g, sig[k], bad, why, odometry if hidden else None))
     return MountingFit(
         rotation=x.Rbs, lever=x.lever, clock_offset=float(clock_offset + x.delta),
         estimated=est, names=names, covariance=C, alignment=Alignment(align, x.Ra, x.ta, x.s, N,
                                                                       True),
         chi2=chi2, dof=dof, time_correlation=float(np.max(root[idx]) ** 2), scale_factor=f,
         iterations=iterations,
-        n_used=N, start=start, model="odometry", odometry=odometry)
+        n_used=N, start=start, model="odometry", odometry=odometry,
+        limits={g: v[0] for g, v in limits.items()})
 
 
 def _odometry_text(levels: dict) -> str:
@@ -1060,37 +1121,37 @@ def _odometry_text(levels: dict) -> str:
             f"{np.degrees(levels['drift_yaw']):.2g} deg (yaw) per sqrt(m)")
 
 
-def _refusal(group: str, sigma: np.ndarray, bad: np.ndarray,
+def _refusal(group: str, sigma: np.ndarray, bad: np.ndarray, limit: str,
              odometry: dict | None = None) -> str:
-    """The one-line reason of a refusal."""
+    """The one-line reason of a refusal; ``limit``: the limit in words (:func:`sigma_limits`)."""
     k = int(np.argmax(np.where(bad, np.nan_to_num(sigma, nan=np.inf), -1.0)))
     what = {"rotation": "the mounting rotation", "lever": "the lever arm",
             "lever-xy": "the lever arm", "clock": "the clock offset"}[group]
     if group == "clock":
-        part, val, lim = "", _fmt(sigma[k], "s"), f"{MAX_SIGMA['clock']:g} s"
+        part, val = "", _fmt(sigma[k], "s")
     elif group in ("lever", "lever-xy"):
         part = f" of its {'xyz'[k]} component (body frame)"
-        val, lim = _fmt(sigma[k], "m"), f"{MAX_SIGMA['lever']:g} m"
+        val = _fmt(sigma[k], "m")
     else:
         part = f" about the body {'xyz'[k]} axis"
         val = _fmt(np.degrees(sigma[k]), "deg")
-        lim = f"{np.degrees(MAX_SIGMA['rotation']):g} deg"
+    lim = limit
     if odometry is not None:
         return (f"cannot estimate {what}: the odometry's own error ({_odometry_text(odometry)})"
                 f" dominates what the motion excites (its standard deviation{part} would be "
-                f"{val}, above the {lim} of a measurement by hand); give it instead, or "
+                f"{val}, above the {lim}); give it instead, or "
                 f"record a longer trajectory that "
                 + {"rotation": "rotates about more axes",
                    "lever": "turns and tilts more (or estimate lever-xy)",
                    "lever-xy": "turns more",
                    "clock": "accelerates and turns more"}[group])
     return (f"cannot estimate {what}: the trajectory does not excite it (its standard "
-            f"deviation{part} would be {val}, above the {lim} of a measurement by hand); "
+            f"deviation{part} would be {val}, above the {lim}); "
             f"give it instead, or record a trajectory that "
             + {"rotation": "rotates about more axes",
                "lever": "turns (and tilts, for a vertical component; or estimate lever-xy)",
                "lever-xy": "turns",
-               "clock": "moves faster"}[group])
+               "clock": "accelerates or turns"}[group])
 
 
 def _fmt(value: float, unit: str) -> str:
