@@ -160,6 +160,22 @@ def _static(check: dict, carried: dict, out: list[Finding]) -> None:
                            f"{3 * len(prisms)} components)"))
 
 
+def _static_relative(check: dict, out: list[Finding]) -> None:
+    lags = check.get("lags") or {}
+    bad = {k: v for k, v in lags.items() if v.get("verdict") == "optimistic"}
+    if bad:
+        out.append(Finding(1, "static relative poses",
+                           "covariance too small for motion over "
+                           + _names([f"{k} s (NEES/dof {v['nees_per_dof']:.2f} > "
+                                     f"{v['interval_95'][1]:.2f})" for k, v in bad.items()])
+                           + " on the static stretches"))
+    low = [k for k, v in lags.items() if v.get("verdict") == "pessimistic"]
+    if low:
+        out.append(Finding(0, "static relative poses",
+                           "covariance larger than the errors for motion over "
+                           + _names([f"{k} s" for k in low]) + " on the static stretches"))
+
+
 def _gcp(check: dict, out: list[Finding]) -> None:
     bad = {s: v for s, v in (check.get("stations") or {}).items()
            if v.get("verdict") == "optimistic"}
@@ -228,6 +244,7 @@ def run_verdict(self_checks: dict, *, kept: int, queried: int,
     _survey(distance_check or {}, survey_sigma, out)
     _block_cv(self_checks.get("block_cv") or {}, out)
     _static(self_checks.get("static_noise") or {}, correlated_noise or {}, out)
+    _static_relative(self_checks.get("static_relative") or {}, out)
     _gcp(self_checks.get("gcp_fit") or {}, out)
     _dynamic(self_checks.get("dynamic_calibration") or {}, out)
     return RunVerdict(tuple(sorted(out, key=lambda f: -f.severity)))
