@@ -25,6 +25,11 @@ DEFAULT_WEIGHTING = "none"
 #: GCP file formats understood by :func:`rtsgt.io.gcp_csv.read_gcp_shots`.
 GCP_FORMATS = ("auto", "rts-project", "csv")
 
+#: The pose engine that estimates the trajectory from every raw measurement at once, after the
+#: per-prism poses (docs/joint.md); the per-prism engines are :data:`rtsgt.pose.POSE_ENGINES`
+#: (:class:`rtsgt.options.PoseOptions`).
+JOINT_ENGINE = "joint"
+
 #: How Qc is chosen by default (:class:`rtsgt.options.InterpolationOptions`).
 DEFAULT_QC = "loo"
 #: The GP's motion prior by default, white noise on the acceleration (the paper's;

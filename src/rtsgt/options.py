@@ -19,6 +19,7 @@ from rtsgt.choices import (
     CALIBRATION_MODELS,
     CALIBRATION_WEIGHTINGS,
     DEFAULT_WEIGHTING,
+    JOINT_ENGINE,
 )
 from rtsgt.errors import InputError
 from rtsgt.filtering import FilterParams
@@ -48,8 +49,9 @@ from rtsgt.pose.estimate import (
 #: :mod:`rtsgt.evaluation.groundtruth`) can reproduce one stage's draws alone.
 RANDOM_STAGES = ("calibration", "noise", "pose", "analysis")
 
-__all__ = ["CORRELATED_NOISE", "GP_NOISE", "MOTION_PRIORS", "OUTLIER_WINDOWS", "PRIOR_CHOICES",
-           "PROFILES", "QC_METHODS", "RANDOM_STAGES",
+__all__ = ["CORRELATED_NOISE", "GP_NOISE", "JOINT_START_ENGINE", "MOTION_PRIORS",
+           "OUTLIER_WINDOWS", "PRIOR_CHOICES", "PROFILES", "QC_METHODS", "RANDOM_STAGES",
+           "RUN_ENGINES",
            "InterpolationOptions", "PoseOptions", "RunOptions", "stage_rng"]
 
 #: Presets of the switches, by name (:meth:`RunOptions.updated`): ``"paper"`` is the method of
@@ -59,6 +61,13 @@ PROFILES: dict[str, dict[str, str]] = {
               "motion_prior": "constant", "outlier_windows": "keep", "prior": "wnoa",
               "correlated_noise": "ignore", "registration": "unweighted"},
 }
+
+
+#: The engines of a run's ``[pose] engine``: the per-prism ones and the joint engine.
+RUN_ENGINES: tuple[str, ...] = (*POSE_ENGINES, JOINT_ENGINE)
+#: The per-prism engine whose poses the joint engine starts from (and whose poses the
+#: continuous ground truth of a joint run recomputes): docs/pipeline.md#the-joint-engine.
+JOINT_START_ENGINE = "linear"
 
 
 def stage_rng(seed: int, stage: str) -> np.random.Generator:
@@ -92,20 +101,25 @@ class CalibrationOptions:
 @dataclass(frozen=True)
 class PoseOptions:
     """Pose engine, samples and module 4's gates (TOML ``[pose]``; docs/pose.md): ``engine`` of
-    :data:`~rtsgt.pose.POSE_ENGINES` (also the per-measurement engine,
-    :attr:`RunOptions.noise_engine`); ``samples`` of every Monte Carlo stage, at least 10;
+    :data:`RUN_ENGINES` (a per-prism one of :data:`~rtsgt.pose.POSE_ENGINES`, also the
+    per-measurement engine, :attr:`RunOptions.noise_engine`; or ``"joint"``,
+    docs/pipeline.md#the-joint-engine); ``samples`` of every Monte Carlo stage, at least 10;
     ``distance_gate_m``, ``uncertainty_gate_m``, m (``inf``: off); ``registration``
-    ``"weighted"`` or ``"unweighted"`` (the paper's)."""
+    ``"weighted"`` or ``"unweighted"`` (the paper's); ``clocks``: whether the joint engine
+    estimates the stations' clock offsets (docs/joint.md#clock-offsets)."""
 
     engine: PoseEngine = "mc"
     samples: int = 1000
     distance_gate_m: float = DEFAULT_DISTANCE_GATE_M
     uncertainty_gate_m: float = DEFAULT_UNCERTAINTY_GATE_M
     registration: Registration = DEFAULT_REGISTRATION
+    clocks: bool = True
 
     def __post_init__(self) -> None:
-        if self.engine not in POSE_ENGINES:
-            raise InputError(f"Expected engine {', '.join(POSE_ENGINES)}, got {self.engine!r}")
+        if self.engine not in RUN_ENGINES:
+            raise InputError(f"Expected engine {', '.join(RUN_ENGINES)}, got {self.engine!r}")
+        if not isinstance(self.clocks, (bool, np.bool_)):
+            raise InputError(f"Expected clocks true or false, got {self.clocks!r}")
         one_of("registration", self.registration, REGISTRATIONS)
         if isinstance(self.samples, bool) or not isinstance(self.samples, (int, np.integer)) \
                 or self.samples < 10:
@@ -159,6 +173,17 @@ class RunOptions:
     def noise_engine(self) -> str:
         """The per-measurement engine: Monte Carlo for the MC pose engine, else first order."""
         return "mc" if self.pose.engine == "mc" else "linear"
+
+    @property
+    def joint(self) -> bool:
+        """Whether the run's poses are the joint engine's."""
+        return self.pose.engine == JOINT_ENGINE
+
+    @property
+    def prism_engine(self) -> str:
+        """The per-prism pose engine: the run's, or for the joint engine the one it starts
+        from (:data:`JOINT_START_ENGINE`)."""
+        return JOINT_START_ENGINE if self.joint else self.pose.engine
 
 
 _FIELDS = {record: {f.name for f in fields(record)} for record in _NESTED.values()}

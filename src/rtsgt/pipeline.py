@@ -2,8 +2,9 @@
 
 The stages are in :mod:`rtsgt.stages` (module 1, calibration, noise model, module 2; the GPs;
 the chain prisms -> poses -> gates with the refit without the windows of distance rejections;
-the self-checks; the shared errors and the record). This module holds no mathematics: it
-orders them, once more from the GPs on where the static stretches find time-correlated noise
+the joint engine's poses after the per-prism ones, ``[pose] engine = "joint"``; the
+self-checks; the shared errors and the record). This module holds no mathematics: it orders
+them, once more from the GPs on where the static stretches find time-correlated noise
 to inflate, and stops after the GPs for a deployment with fewer than three tracked prisms (a
 :class:`~rtsgt.record.PositionRunRecord`). The order and its rules: docs/pipeline.md.
 """
@@ -29,6 +30,7 @@ from rtsgt.stages.front import (
     noise_model,
     run_front,
 )
+from rtsgt.stages.joint import joint_fit
 from rtsgt.stages.poses import fit_to_gates
 from rtsgt.stages.prisms import fit_prisms
 from rtsgt.stages.records import pose_record, position_record, shared_errors
@@ -113,9 +115,15 @@ def _pose_stages(data: DeploymentData, options: RunOptions, front: Front, say: P
     if fit.window_report is not None:
         front.reports["module4"] = fit.window_report
         removed = front.removal.measurements([fit.left_out[o.prism] for o in front.filtered])
+    joint = None
+    if options.joint:
+        joint = joint_fit(options, front.filtered, front.calibration, front.model,
+                          data.weather, fit, reference, say)
+        fit = joint.fit
+        clock.lap("joint")
 
     say("shared errors")
-    split = shared_errors(options, front, fit, reference)
+    split = shared_errors(options, front, fit, reference, joint)
     clock.lap("shared_errors")
 
     say("self-checks")
@@ -125,7 +133,7 @@ def _pose_stages(data: DeploymentData, options: RunOptions, front: Front, say: P
                                  fit.tracks, fit.gps, fit.prisms, fit.estimate, fit.keep,
                                  fit.gate_report, clock.timings, fit.qc_info)
     return pose_record(options, computation, front, fit, removed, self_checks, split,
-                       correlated)
+                       correlated, joint)
 
 
 def _position_stages(data: DeploymentData, options: RunOptions, front: Front, say: Progress,

@@ -101,7 +101,9 @@ class RunRecord:
       the filters removed; ``warnings``; ``weather_coverage``; ``distance_check``: tracked against
       surveyed inter-prism distances; ``self_checks``: JSON-ready results of :mod:`rtsgt.checks`
       (empty for an older run); ``correlated_noise``: how the run carried the time-correlated
-      noise (:func:`rtsgt.noise.correlated.correlated_noise_plan`).
+      noise (:func:`rtsgt.noise.correlated.correlated_noise_plan`); ``joint``: what the joint
+      engine estimated besides the poses (:func:`rtsgt.stages.joint.joint_summary`; empty for
+      a per-prism engine).
     - ``summary``: ``summary.json`` as read; ``path``: the directory read; ``computation``: what
       only exists in memory.
     """
@@ -137,6 +139,7 @@ class RunRecord:
     self_checks: dict = field(default_factory=dict)
     correlated_noise: dict = field(default_factory=dict)
     groundtruth_split: SharedFactor | None = None
+    joint: dict = field(default_factory=dict)
     summary: dict = field(default_factory=dict)
     path: Path | None = None
     computation: RunComputation | None = None

@@ -125,7 +125,9 @@ def _continuous(path: Path, mode: str) -> bool:
         raise InputError(f"unknown ground-truth mode {mode!r}; expected one of "
                          f"{', '.join(GT_MODES)}")
     if _is_run_dir(path) and mode != "discrete" and (path / "measurements").is_dir():
-        return True
+        # a joint run's poses are not recomputed at other times: auto takes its stored poses
+        # (docs/pipeline.md#the-joint-engine)
+        return mode == "continuous" or not read_summary(path).options.joint
     if mode == "continuous":
         raise InputError("a continuous ground truth needs an rtsgt run directory with "
                          "measurements/", path)

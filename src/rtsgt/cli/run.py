@@ -51,7 +51,9 @@ def register(app: typer.Typer) -> None:
     def run(
         config: Path = typer.Argument(..., help="Deployment configuration (TOML)."),
         out: Path = typer.Option(Path("rtsgt-out"), "--out", "-o", help="Output directory."),
-        engine: str = typer.Option(None, help="Pose engine: mc, ut or linear (default: config)."),
+        engine: str = typer.Option(
+            None, help="Pose engine: mc, ut or linear (per prism), or joint (every raw "
+                       "measurement at once, after the per-prism poses) (default: config)."),
         registration: str = typer.Option(
             None, help="Fit of the prisms: weighted (by their covariance) or unweighted (the "
                        "paper's) (default: config)."),

@@ -312,7 +312,7 @@ INTERPOLATION_KEYS = {
     "correlated_noise": ("correlated_noise", str, None, None)}
 POSE_KEYS = {k: (k, kind, None, None) for k, kind in (
     ("engine", str), ("registration", str), ("samples", int), ("distance_gate_m", float),
-    ("uncertainty_gate_m", float))}
+    ("uncertainty_gate_m", float), ("clocks", bool))}
 
 
 def read_options(path: Path, doc: dict, instrument: InstrumentProfile,

@@ -242,6 +242,8 @@ def run_summary(record: RunRecord | PositionRunRecord, inputs: dict | None = Non
         "calibration": calibration,
         "weather": record.weather_coverage,
         "inter_prism_distances": record.distance_check,
+        # the joint engine's estimates besides the poses (rtsgt.stages.joint.joint_summary)
+        **({"joint": record.joint} if record.joint else {}),
         "self_checks": tail.pop("self_checks"),
         "interpolation": tail.pop("interpolation"),
         "warnings": tail.pop("warnings"),
@@ -292,6 +294,8 @@ def _summary_parameters(opt: RunOptions, c: RunComputation) -> dict:
         "filter": _report_dict(opt.filter),
         "distance_gate_m": opt.pose.distance_gate_m,
         "uncertainty_gate_m": opt.pose.uncertainty_gate_m,
+        # the joint engine's switch, only where it has a meaning
+        **({"clocks": opt.pose.clocks} if opt.joint else {}),
     }
 
 
@@ -999,6 +1003,8 @@ def _summary_options(params: dict, param: Callable, path: Path) -> RunOptions:
         "uncertainty_gate_m": _positive(params, "uncertainty_gate_m",
                                         PoseOptions.uncertainty_gate_m, path),
     }
+    if params.get("clocks") is not None:
+        changes["clocks"] = params["clocks"]
     if params.get("rate_hz") is not None:
         changes["rate_hz"] = _positive(params, "rate_hz", InterpolationOptions.rate_hz, path)
     if params.get("qc") is not None:
@@ -1084,7 +1090,7 @@ def read_run(run_dir: str | PathLike) -> RunRecord:
         distance_check=summary.distance_check, self_checks=summary.self_checks,
         correlated_noise=summary.correlated_noise,
         groundtruth_split=_read_split(root / SPLIT_FILE, groundtruth.t),
-        summary=summary.document, path=root,
+        joint=summary.document.get("joint") or {}, summary=summary.document, path=root,
     )
 
 

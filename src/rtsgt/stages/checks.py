@@ -27,7 +27,7 @@ from rtsgt.stages.prisms import PrismFit
 from rtsgt.stages.timing import Progress, Stopwatch
 from rtsgt.types import PrismTrack
 
-__all__ = ["run_checks", "static_noise"]
+__all__ = ["JOINT_INTER_PRISM", "run_checks", "static_noise"]
 
 
 def static_noise(options: RunOptions, front: Front, fitted: dict[str, PrismTrack],
@@ -51,12 +51,16 @@ def run_checks(options: RunOptions, front: Front, static: dict[str, Any],
     """The self-checks of a run, JSON-ready by name: the GCP fit (of the GCP calibration beside
     a dynamic one), block cross-validation and the ``static`` check; for a pose run (a
     :class:`PoseFit` and its ``reference``) the inter-prism distances, the dynamic
-    calibration's agreement (a dynamic calibration) and the inter-prism structure too."""
+    calibration's agreement (a dynamic calibration) and the inter-prism structure too; a joint
+    run skips the inter-prism distances (:data:`JOINT_INTER_PRISM`) and marks the structure
+    check (:func:`_joint_structure`)."""
     calib, gcp_calib = front.calibration, front.gcp_calibration
     gp_noise = options.interpolation.gp_noise
     checks: dict[str, Any] = {"gcp_fit": gcp_fit_check(calib if gcp_calib is None else gcp_calib)}
     poses = isinstance(fit, PoseFit)
-    if poses:
+    if poses and options.joint:
+        checks["inter_prism_distances"] = {"skipped": JOINT_INTER_PRISM}
+    elif poses:
         pr, keep, gt = fit.prisms, fit.keep, fit.groundtruth
         checks["inter_prism_distances"] = inter_prism_check(
             gt.t, gt.position, pr.xyz[keep], pr.pose_covariance[keep], pr.nearest_dt[keep],
@@ -70,4 +74,24 @@ def run_checks(options: RunOptions, front: Front, static: dict[str, Any],
         checks["inter_prism_structure"] = run_structure_check(
             fit.prisms, fit.gps, fit.tracks, calib, front.coupling, reference, fit.keep,
             front.model, gp_noise)
+        if options.joint:
+            checks["inter_prism_structure"] = _joint_structure(
+                checks["inter_prism_structure"], options.pose.clocks)
     return checks
+
+
+#: Why a joint run skips the inter-prism distance check.
+JOINT_INTER_PRISM = ("the joint engine holds the prisms rigid at the survey: the distances "
+                     "between its prisms are not independent of its fit")
+
+
+def _joint_structure(check: dict[str, Any], clocks: bool) -> dict[str, Any]:
+    """The inter-prism structure check of a joint run: it judges the per-prism GPs' prisms
+    (the joint engine's start), said in ``note``; with the clock states estimated, its clock
+    test's verdict becomes ``"carried"`` (the one it had: ``verdict_per_prism``)."""
+    out = dict(check, note="judges the residuals of the per-prism GPs' prisms, the joint "
+                           "engine's start, not the joint engine's poses")
+    ck = out.get("clock")
+    if clocks and isinstance(ck, dict) and "verdict" in ck:
+        out["clock"] = dict(ck, verdict="carried", verdict_per_prism=ck["verdict"])
+    return out

@@ -49,9 +49,11 @@ def pose_estimate(xyz: ArrayLike, cov: ArrayLike, reference: ReferencePoints,
     """The poses of prisms ``xyz`` (T, n, 3), m, with their covariance ``cov`` (T, n, 3, 3) or
     joint (T, 3n, 3n), m^2: the run's pose options, its ``"pose"`` random stream drawn afresh
     (a call's Monte Carlo draws follow its poses in order); ``engine`` overrides the run's
-    (the planner's ``"linear"``)."""
+    per-prism engine (:attr:`~rtsgt.options.RunOptions.prism_engine`; the planner's
+    ``"linear"``)."""
     opt = options.pose
-    return estimate_poses(xyz, cov, reference, engine=opt.engine if engine is None else engine,
+    return estimate_poses(xyz, cov, reference,
+                          engine=options.prism_engine if engine is None else engine,
                           registration=opt.registration, samples=opt.samples,
                           rng=stage_rng(options.seed, "pose"))
 

@@ -15,6 +15,7 @@ from rtsgt.pose import ReferencePoints
 from rtsgt.record import PositionRunRecord, RunComputation, RunRecord, ordered_sources
 from rtsgt.shared import SharedFactor, select_prisms, split_ground_truth
 from rtsgt.stages.front import Front
+from rtsgt.stages.joint import JointFit, joint_split, joint_summary
 from rtsgt.stages.poses import PoseFit
 from rtsgt.stages.prisms import PrismFit
 from rtsgt.types import PrismTrack
@@ -23,10 +24,13 @@ __all__ = ["measured_tracks", "pose_record", "position_record", "shared_errors"]
 
 
 def shared_errors(options: RunOptions, front: Front, fit: PoseFit,
-                  reference: ReferencePoints) -> SharedFactor | None:
+                  reference: ReferencePoints, joint: JointFit | None = None
+                  ) -> SharedFactor | None:
     """The kept poses' error split into varying and shared parts (:mod:`rtsgt.shared`); None
     when the GP was given the total covariance (``gp_noise = "all"``: no separate shared
-    sources)."""
+    sources). For the ``joint`` engine, its own split (:func:`rtsgt.stages.joint.joint_split`)."""
+    if joint is not None:
+        return joint_split(joint)
     if options.interpolation.gp_noise != "white":
         return None
     idx = np.flatnonzero(fit.keep)
@@ -76,9 +80,10 @@ def _common(options: RunOptions, front: Front, fit: PoseFit | PrismFit) -> dict[
 
 def pose_record(options: RunOptions, c: RunComputation, front: Front, fit: PoseFit,
                 removed: Any, self_checks: dict, split: SharedFactor | None,
-                correlated: dict) -> RunRecord:
+                correlated: dict, joint: JointFit | None = None) -> RunRecord:
     """The run record of a pose run (the prisms in the order of the tracks): ``c`` what exists
-    only in memory, ``removed`` the measurements modules 1, 2 and 4 removed."""
+    only in memory, ``removed`` the measurements modules 1, 2 and 4 removed, ``joint`` the
+    joint engine's fit (its summary in :attr:`~rtsgt.record.RunRecord.joint`)."""
     reject = ~fit.keep
     return RunRecord(
         name=c.data.name, **_common(options, front, fit), groundtruth=fit.groundtruth,
@@ -86,7 +91,8 @@ def pose_record(options: RunOptions, c: RunComputation, front: Front, fit: PoseF
         rejected_reason=np.asarray(fit.gate_report.reason, dtype=str)[reject],
         reference=c.data.reference, uncertainty_measure=fit.gate_report.uncertainty_measure,
         removed=removed, distance_check=fit.distance_check, self_checks=self_checks,
-        computation=c, groundtruth_split=split, correlated_noise=correlated)
+        computation=c, groundtruth_split=split, correlated_noise=correlated,
+        joint={} if joint is None else joint_summary(joint.result, front.calibration))
 
 
 def position_record(options: RunOptions, c: RunComputation, front: Front, fit: PrismFit,

@@ -1,0 +1,200 @@
+"""The joint engine's stage (``[pose] engine = "joint"``): after the per-prism poses, every
+raw polar measurement to the robot's trajectory, the stations and (optionally) their clocks at
+once (:func:`rtsgt.joint.estimate_joint`, docs/joint.md), its poses gated as the per-prism
+ones, and the summary of what it estimated. docs/pipeline.md#the-joint-engine.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from rtsgt.calibration import CalibrationResult
+from rtsgt.errors import InputError
+from rtsgt.geometry.so3 import log_so3, matrix_to_quat_xyzw
+from rtsgt.geometry.transform import RigidTransform
+from rtsgt.interpolation.motion import CLASS_NAMES
+from rtsgt.joint import estimate_joint
+from rtsgt.joint.estimate import JointResult
+from rtsgt.joint.knots import qc_from_prisms
+from rtsgt.noise import NoiseModel
+from rtsgt.options import RunOptions
+from rtsgt.pose import PoseEstimate, ReferencePoints
+from rtsgt.pose.estimate import REASON_MISSING
+from rtsgt.shared import SharedFactor
+from rtsgt.stages.poses import PoseFit, gate_poses
+from rtsgt.stages.timing import Progress
+from rtsgt.types import Observations, PoseTrajectory, WeatherSeries
+
+__all__ = ["JointFit", "joint_fit", "joint_poses", "joint_split", "joint_summary"]
+
+#: The reason of a query time the joint engine does not answer (outside the measurements'
+#: span): the per-prism engines' reason for a pose without every prism.
+REASON_UNANSWERED = REASON_MISSING
+
+
+def joint_poses(observations: Sequence[Observations], calibration: CalibrationResult,
+                reference: ReferencePoints, model: NoiseModel, weather: WeatherSeries | None,
+                start_t: np.ndarray, start_R: np.ndarray, start_p: np.ndarray,
+                qc_prisms: np.ndarray, query_times: np.ndarray, *,
+                clocks: bool = True) -> JointResult:
+    """The joint engine's poses at ``query_times`` (Q,) s, those inside the measurements' span.
+
+    ``observations``: each station's measurements the run keeps (module 1 and 2, the windows
+    of distance rejections out); ``calibration``: the stations' prior (its
+    ``reference_station`` the clocks' reference); ``reference``: the prisms' body positions;
+    ``model``, ``weather``: the noise model and the weather of the distance correction;
+    ``start_t`` (T,), ``start_R`` (T, 3, 3), ``start_p`` (T, 3): the per-prism poses to start
+    from; ``qc_prisms`` (P, 3, 3): the per-prism GPs' WNOA ``Qc`` (m^2/s^3), the start of the prior's ``Qc`` (:func:`rtsgt.joint.knots.qc_from_prisms`);
+    ``clocks``: estimate each station's clock offset. InputError when no query time falls
+    inside the measurements' span.
+    """
+    lo = min(float(o.t[0]) for o in observations)
+    hi = max(float(o.t[-1]) for o in observations)
+    tq = np.asarray(query_times, dtype=float)
+    tq = tq[(tq >= lo) & (tq <= hi)]
+    if tq.size == 0:
+        raise InputError(f"joint engine: no query time inside the measurements' span "
+                         f"{lo:.3f}-{hi:.3f} s")
+    qc = qc_from_prisms(qc_prisms, reference.xyz)
+    return estimate_joint(observations, calibration, reference, model, tq, start_t, start_R,
+                          start_p, qc, weather=weather, clocks=clocks)
+
+
+@dataclass(frozen=True)
+class JointFit:
+    """The per-prism fit with the joint engine's poses in place of its own (``fit``: its
+    ``estimate`` at every query time, ``keep``, ``gate_report`` and ``groundtruth`` the joint
+    engine's; its prisms, GPs and tracks the per-prism ones) and the engine's ``result``."""
+
+    fit: PoseFit
+    result: JointResult
+
+
+def joint_fit(options: RunOptions, filtered: Sequence[Observations],
+              calibration: CalibrationResult, model: NoiseModel,
+              weather: WeatherSeries | None, fit: PoseFit, reference: ReferencePoints,
+              say: Progress) -> JointFit:
+    """The joint engine after the per-prism ``fit`` (:func:`rtsgt.stages.poses.fit_to_gates`):
+    its measurements are ``filtered``'s (module 1) at the times of the tracks the GPs were
+    fitted to, its start the per-prism kept poses and the GPs' ``Qc``, its query times the
+    per-prism fit's; then module 4's gates on its poses (a query time it does not answer is
+    rejected as a pose without every prism)."""
+    say("joint engine")
+    obs = [o.select(np.isin(o.t, fit.tracks[o.prism].t)) for o in filtered
+           if o.prism in fit.tracks]
+    keep0 = fit.keep
+    if int(keep0.sum()) < 2:
+        raise InputError(f"joint engine: it starts from the per-prism poses, and "
+                         f"{int(keep0.sum())} passed the gates (at least 2 needed)")
+    est0 = fit.estimate
+    wnoa = [p for p in reference.names if fit.gps[p].prior == "wnoa"]
+    if not wnoa:
+        raise InputError("joint engine: its motion prior starts from the Qc of the per-prism "
+                         "GPs with the WNOA prior, and none has it ([interpolation] prior)")
+    qc_prisms = np.stack([np.asarray(fit.gps[p].qc, dtype=float) for p in wnoa])
+    tq = fit.prisms.t
+    jr = joint_poses(obs, calibration, reference, model, weather, tq[keep0], est0.R[keep0],
+                     est0.t[keep0], qc_prisms, tq, clocks=options.pose.clocks)
+    est = _on_every_time(jr.estimate, np.isin(tq, jr.t))
+    keep, report = gate_poses(est, reference, options)
+    gt = PoseTrajectory(tq[keep], est.t[keep], matrix_to_quat_xyzw(est.R[keep]), est.cov[keep])
+    return JointFit(replace(fit, estimate=est, keep=keep, gate_report=report, groundtruth=gt),
+                    jr)
+
+
+def _on_every_time(est: PoseEstimate, answered: np.ndarray) -> PoseEstimate:
+    """``est`` (its rows the ``answered`` times) on every time of ``answered`` (T,): the others
+    degenerate (NaN), with :data:`REASON_UNANSWERED`."""
+    if answered.all():
+        return est
+    T = answered.size
+
+    def spread(a: np.ndarray, fill) -> np.ndarray:
+        out = np.full((T,) + a.shape[1:], fill, dtype=a.dtype)
+        out[answered] = a
+        return out
+
+    eye = np.broadcast_to(np.eye(3), (T, 3, 3)).copy()
+    eye[answered] = est.R
+    return replace(est, R=eye, t=spread(est.t, np.nan), cov=spread(est.cov, np.nan),
+                   degenerate=~answered,
+                   reason=np.where(answered, spread(est.reason, ""), REASON_UNANSWERED),
+                   inter_prism_distance=spread(est.inter_prism_distance, np.nan),
+                   rms_residual=spread(est.rms_residual, np.nan),
+                   shape=spread(est.shape, np.nan))
+
+
+def joint_split(joint: JointFit) -> SharedFactor | None:
+    """The joint engine's kept poses' error split into varying and shared parts
+    (:mod:`rtsgt.shared`, ``JointResult.shared``: the part given the global parameters and the
+    part shared through them, docs/joint.md#the-shared-error); None where it has none."""
+    shared = joint.result.shared
+    if shared is None:
+        return None
+    fit = joint.fit
+    return shared.select(fit.keep[np.isin(fit.prisms.t, joint.result.t)])
+
+
+def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, Any]:
+    """``joint`` of ``summary.json``: what the joint engine estimated besides the poses, JSON
+    ready (docs/file-formats.md#summaryjson). ``qc``: the prior's ``Qc`` per motion class
+    (m^2/s^3 and rad^2/s^3, body axes forward, lateral, vertical, roll, pitch, yaw) with its
+    redundancy; ``kappa_ppm`` with its sigma; ``stations``: each station's posterior shift
+    from its calibration (mm, mrad, and in the calibration's sigmas per axis); ``clocks``: per
+    station but the reference its offset (ms) at the start and the end, the largest
+    ``|offset|`` and the median sigma; the solve's iterations, convergence, chi^2 per row,
+    knots and measurements."""
+    q = jr.qc
+    used = np.bincount(q.classes, minlength=len(CLASS_NAMES))
+    return {
+        "qc": {CLASS_NAMES[c]: {"qc": q.table[c].tolist(), "redundancy": q.redundancy[c].tolist(),
+                                "intervals": int(used[c])}
+               for c in range(len(CLASS_NAMES)) if used[c] > 0},
+        "qc_axes": ["forward", "lateral", "vertical", "roll", "pitch", "yaw"],
+        "qc_iterations": int(q.iterations),
+        "kappa_ppm": float(jr.kappa_ppm), "kappa_sigma_ppm": float(jr.kappa_sigma_ppm),
+        "stations": {sid: _station_shift(calibration.transforms[sid], T)
+                     for sid, T in jr.stations.items()},
+        "clocks": {sid: _clock_summary(kn, off, cov) for sid, (kn, off, cov)
+                   in jr.clocks.items()},
+        "clock_reference": calibration.reference_station if jr.clocks else None,
+        "iterations": int(jr.solve.iterations), "converged": bool(jr.solve.converged),
+        "chi2_per_dof": float(jr.chi2_per_dof), "knots": int(jr.n_knots),
+        "measurements": int(jr.n_measurements), "poses": int(jr.t.size),
+    }
+
+
+def _station_shift(prior: RigidTransform, post: RigidTransform) -> dict[str, Any]:
+    """A station's posterior shift from its calibration: translation (mm), rotation (mrad,
+    world frame, ``R_post = exp(dtheta^) R_prior``), each axis in the calibration's sigmas
+    (None where the calibration holds it: the reference station)."""
+    shift = np.concatenate([post.translation - prior.translation,
+                            log_so3(post.rotation @ prior.rotation.T)])
+    cov = np.zeros((6, 6)) if prior.covariance is None else prior.covariance
+    sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    post_sig = np.sqrt(np.clip(np.diag(post.covariance), 0.0, None))
+    held = bool(np.all(sig == 0))
+    return {
+        "shift_mm": (shift[:3] * 1e3).tolist(), "shift_mrad": (shift[3:] * 1e3).tolist(),
+        "shift_sigmas": None if held else
+        np.where(sig > 0, shift / np.where(sig > 0, sig, 1.0), 0.0).tolist(),
+        "posterior_sigma_mm": (post_sig[:3] * 1e3).tolist(),
+        "posterior_sigma_mrad": (post_sig[3:] * 1e3).tolist(),
+        "held": held,
+    }
+
+
+def _clock_summary(knots: np.ndarray, offset: np.ndarray, cov: np.ndarray) -> dict[str, Any]:
+    """One station's clock offset against the reference (piecewise linear on ``knots``), ms."""
+    sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return {
+        "start_ms": float(offset[0] * 1e3), "end_ms": float(offset[-1] * 1e3),
+        "max_abs_ms": float(np.max(np.abs(offset)) * 1e3),
+        "median_sigma_ms": float(np.median(sig) * 1e3),
+        "knots": int(knots.size),
+        "span_s": [float(knots[0]), float(knots[-1])],
+    }
