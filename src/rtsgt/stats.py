@@ -3,14 +3,18 @@
 A variance ratio (an observed mean of squared normalised errors) is 1 if the predicted
 covariance is right; with ``dof`` independent unit-variance Gaussian terms it is distributed
 as ``chi2_dof / dof``. :func:`ratio_interval` is where it falls 95 % of the time (or with
-another probability), and :func:`ratio_verdict` names where a value lies against that interval.
+another probability), and :func:`ratio_verdict` names where a value lies against that interval;
+:func:`integrated_autocorrelation_time` gives the effective sample size of a correlated series.
 """
 
 from __future__ import annotations
 
+import numpy as np
+from numpy.typing import ArrayLike
 from scipy import stats
 
-__all__ = ["VERDICTS", "failed_regimes", "ratio_interval", "ratio_verdict", "verdict_meaning"]
+__all__ = ["VERDICTS", "failed_regimes", "integrated_autocorrelation_time", "ratio_interval",
+           "ratio_verdict", "verdict_meaning"]
 
 #: Inside the interval, below it (the covariance too large), above it (too small).
 VERDICTS = ("consistent", "pessimistic", "optimistic")
@@ -41,3 +45,25 @@ def failed_regimes(check: dict, unit: str):
     parts = (("the whole run", check["overall"]),
              *((f"the {k} {unit}", v) for k, v in check["regimes"].items()))
     return [(name, v) for name, v in parts if v["verdict"] in VERDICTS[1:]]
+
+
+def integrated_autocorrelation_time(x: ArrayLike) -> float:
+    r"""Integrated autocorrelation time ``tau = 1 + 2 sum_{k>=1} rho_k`` of a series.
+
+    The sum stops at the first lag whose sample autocorrelation is not positive (the initial
+    positive sequence, Geyer 1992, in its simplest form). ``tau >= 1``; the effective number of
+    independent samples of an average over N values is ``N / tau``.
+    """
+    x = np.asarray(x, dtype=float)
+    n = x.size
+    if n < 3:
+        return 1.0
+    x0 = x - x.mean()
+    var = float(x0 @ x0)
+    if var <= 0:
+        return 1.0
+    f = np.fft.rfft(x0, 2 * n)
+    acf = np.fft.irfft(f * np.conj(f), 2 * n)[:n] / var
+    nonpos = np.flatnonzero(acf[1:] <= 0)
+    stop = int(nonpos[0]) + 1 if nonpos.size else n
+    return max(1.0, 1.0 + 2.0 * float(np.sum(acf[1:stop])))

@@ -17,6 +17,7 @@ from scipy import stats
 
 from rtsgt.errors import InputError
 from rtsgt.geometry.so3 import hat, log_so3
+from rtsgt.stats import integrated_autocorrelation_time
 
 #: Names of the statistics, in evo's order.
 STATISTICS = ("rmse", "mean", "median", "std", "min", "max")
@@ -336,28 +337,6 @@ def squared_mahalanobis(e: ArrayLike, S: ArrayLike) -> np.ndarray:
         ) from None
     z = np.linalg.solve(L, e[..., None])[..., 0]
     return np.einsum("...i,...i->...", z, z)
-
-
-def integrated_autocorrelation_time(x: ArrayLike) -> float:
-    r"""Integrated autocorrelation time ``tau = 1 + 2 sum_{k>=1} rho_k`` of a series.
-
-    The sum stops at the first lag whose sample autocorrelation is not positive (the initial
-    positive sequence, Geyer 1992, in its simplest form). ``tau >= 1``; the effective number of
-    independent samples of an average over N values is ``N / tau``.
-    """
-    x = np.asarray(x, dtype=float)
-    n = x.size
-    if n < 3:
-        return 1.0
-    x0 = x - x.mean()
-    var = float(x0 @ x0)
-    if var <= 0:
-        return 1.0
-    f = np.fft.rfft(x0, 2 * n)
-    acf = np.fft.irfft(f * np.conj(f), 2 * n)[:n] / var
-    nonpos = np.flatnonzero(acf[1:] <= 0)
-    stop = int(nonpos[0]) + 1 if nonpos.size else n
-    return max(1.0, 1.0 + 2.0 * float(np.sum(acf[1:stop])))
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,173 @@
+"""Block cross-validation of the raw measurements, from the joint solution without a refit.
+
+Each station's measurements are cut into blocks of 1 s and 2 s alternately (the windows of
+:mod:`rtsgt.interpolation.windows`); a block ``b`` deleted, the other stations and the prior
+predict it, and its deletion residual has ``NEES_b = e_b^T Q_b^-1 e_b``, ``Q_b = R_b - H_b
+Sigma H_b^T`` (``e_b`` the fitted residuals, ``Sigma`` the posterior: the knots' Markov chain
+and the globals' factor of :class:`rtsgt.joint.sparse.ArrowSolution`). Derivation, effective
+sample size and measurements: docs/joint.md#block-cross-validation-of-the-measurements.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from rtsgt.errors import RtsgtWarning
+from rtsgt.interpolation.windows import BLOCK_LENGTHS_S, cv_blocks
+from rtsgt.joint.sparse import ArrowSolution
+from rtsgt.stats import integrated_autocorrelation_time, ratio_interval, ratio_verdict
+
+__all__ = ["MIN_BLOCKS", "RawBlocks", "raw_block_cv", "raw_block_summary"]
+
+#: Fewest blocks for a verdict.
+MIN_BLOCKS = 30
+#: Blocks whose deletion covariance is assembled at once (bounds the temporaries).
+_CHUNK = 512
+
+
+@dataclass(frozen=True)
+class RawBlocks:
+    """One row per held-out block: ``station`` (B,) index, ``t0``, ``t1`` (B,) s its first
+    and last measurement, ``n`` (B,) measurements, ``nees`` (B,) of its deletion residual."""
+
+    station: np.ndarray
+    t0: np.ndarray
+    t1: np.ndarray
+    n: np.ndarray
+    nees: np.ndarray
+
+
+def _gains(sol: ArrowSolution) -> np.ndarray:
+    """``G_k = Cov(x_k, x_k+1) Cov(x_k+1)^-1`` (K-1, d, d) of the knots' chain given the
+    globals, so that ``Cov(x_i, x_j) = G_i ... G_j-1 Cov(x_j)`` for ``i < j``."""
+    return np.linalg.solve(sol.cov_var[1:], np.swapaxes(sol.cov_var_next, 1, 2)).swapaxes(1, 2)
+
+
+def _block_index(t, station, max_gap_s):
+    """Measurement indices (B, n_max) of each block of one station, -1 padded, time order."""
+    rows, owner = [], []
+    for s in np.unique(station):  # a handful of stations
+        idx = np.flatnonzero(station == s)
+        idx = idx[np.argsort(t[idx], kind="stable")]
+        block, _ = cv_blocks(t[idx], max_gap_s)
+        order = np.argsort(block, kind="stable")
+        bounds = np.flatnonzero(np.r_[True, np.diff(block[order]) != 0, True])
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+            rows.append(idx[order[a:b]])
+            owner.append(s)
+    n_max = max((r.size for r in rows), default=0)
+    out = np.full((len(rows), n_max), -1)
+    for i, r in enumerate(rows):  # one row per block
+        out[i, :r.size] = r
+    return out, np.asarray(owner, dtype=int)
+
+
+def _chain(gains, k_a, k_b):
+    """``G_ka ... G_kb-1`` (N, d, d) for ``k_a <= k_b`` (N,) (the identity where equal)."""
+    d = gains.shape[1]
+    T = np.broadcast_to(np.eye(d), (k_a.size, d, d)).copy()
+    steps = k_b - k_a
+    for j in range(int(steps.max(initial=0))):  # the knots between two measurements
+        on = steps > j
+        T[on] = T[on] @ gains[k_a[on] + j]
+    return T
+
+
+def raw_block_cv(t, station, of_meas, r, info, Hk, Hg, sol: ArrowSolution,
+                 max_gap_s: float) -> RawBlocks:
+    """Deletion NEES of every block of every station's measurements.
+
+    ``t`` (M,) s, ``station`` (M,) index, ``of_meas`` (M,) knot; ``r`` (M, 3) the fitted
+    residuals, ``info`` (M, 3, 3) their weights (``R^-1``), ``Hk`` (M, 3, d) the Jacobian on
+    the knot's state, ``Hg`` (M, 3, G) on the globals; ``sol`` the solution with its
+    covariances (``want_cov``); ``max_gap_s``: a longer gap starts new blocks."""
+    t = np.asarray(t, dtype=float)
+    idx, owner = _block_index(t, np.asarray(station), max_gap_s)
+    gains = _gains(sol)
+    u = Hk @ sol.factor[of_meas] + Hg @ sol.chol_g  # (M, 3, G): the globals' part
+    R = np.linalg.inv(info)
+    nees = np.zeros(idx.shape[0])
+    for lo in range(0, idx.shape[0], _CHUNK):
+        nees[lo:lo + _CHUNK] = _chunk_nees(idx[lo:lo + _CHUNK], of_meas, r, R, Hk, u, sol,
+                                           gains)
+    valid = idx >= 0
+    first, last = idx[:, 0], idx[np.arange(idx.shape[0]), valid.sum(axis=1) - 1]
+    return RawBlocks(owner, t[first], t[last], valid.sum(axis=1), nees)
+
+
+def _chunk_nees(idx, of_meas, r, R, Hk, u, sol, gains):
+    """Deletion NEES of blocks ``idx`` (B, n): ``Q_b`` assembled from ``Cov(x_ka, x_kb) =
+    P_a ... P_b-1 Cov(x_kb)``, ``P_a`` the chain between consecutive measurements."""
+    B, n = idx.shape
+    valid = idx >= 0
+    m = np.where(valid, idx, 0)
+    k = np.where(valid, of_meas[m], of_meas[m[:, :1]])  # padding: no chain
+    k = np.maximum.accumulate(k, axis=1)
+    P = [_chain(gains, k[:, a], k[:, a + 1]) for a in range(n - 1)]
+    Q = np.zeros((B, n, 3, n, 3))
+    Hm = Hk[m]
+    for b in range(n):  # places in the blocks (a block's measurements, not all of them)
+        C = sol.cov_var[k[:, b]]
+        for a in range(b, -1, -1):
+            if a < b:
+                C = P[a] @ C
+            S = Hm[:, a] @ C @ np.swapaxes(Hm[:, b], 1, 2) + u[m[:, a]] @ np.swapaxes(
+                u[m[:, b]], 1, 2)
+            Q[:, a, :, b, :] = -S
+            Q[:, b, :, a, :] = -np.swapaxes(S, 1, 2)
+    pad = ~(valid[:, :, None] & valid[:, None, :])
+    Q[np.broadcast_to(pad[:, :, None, :, None], Q.shape)] = 0.0
+    pos = np.arange(n)
+    Q[:, pos, :, pos, :] += np.where(valid.T[:, :, None, None], R[m.T], np.eye(3))
+    e = np.where(valid[:, :, None], r[m], 0.0).reshape(B, 3 * n)
+    Q = Q.reshape(B, 3 * n, 3 * n)
+    return np.einsum("bi,bi->b", e, np.linalg.solve(Q, e[:, :, None])[:, :, 0])
+
+
+def _verdict(blocks: RawBlocks, mask: np.ndarray) -> dict[str, Any]:
+    nees, dof = blocks.nees[mask], 3.0 * blocks.n[mask]
+    out: dict[str, Any] = {"blocks": int(mask.sum()), "measurements": int(blocks.n[mask].sum()),
+                           "nees_per_dof": float(nees.sum() / dof.sum()) if dof.sum() else None}
+    if mask.sum() < MIN_BLOCKS:
+        out.update(n_eff=None, interval_95=None, verdict="too few blocks")
+        return out
+    # the blocks' NEES series (per station, time order) gives the effective sample size
+    tau = integrated_autocorrelation_time(nees / dof)
+    n_eff = float(dof.sum()) / tau
+    interval = ratio_interval(n_eff)
+    out.update(n_eff=round(n_eff, 1), interval_95=list(interval),
+               verdict=ratio_verdict(out["nees_per_dof"], interval))
+    return out
+
+
+def raw_block_summary(blocks: RawBlocks, station_ids: tuple[str, ...],
+                      warn: bool = True) -> dict[str, Any]:
+    """JSON-ready: ``overall`` and per station (``stations``) ``blocks``, ``measurements``,
+    ``nees_per_dof`` (3 dof per measurement), ``n_eff``, ``interval_95``, ``verdict``; one
+    warning per verdict not consistent (``warn``)."""
+    out = {
+        "statistic": "NEES / dof of blocks of one station's raw measurements (Hz, V, d), each "
+                     "predicted from the other stations and the prior; 1 if the measurements' "
+                     "covariance and the motion prior are honest",
+        "block_lengths_s": list(BLOCK_LENGTHS_S),
+        "overall": _verdict(blocks, np.ones(blocks.nees.shape, bool)),
+        "stations": {sid: _verdict(blocks, blocks.station == i)
+                     for i, sid in enumerate(station_ids) if np.any(blocks.station == i)},
+    }
+    if warn:
+        named = [("the whole run", out["overall"])] + [(f"station {s}", v)
+                                                       for s, v in out["stations"].items()]
+        for name, v in named:
+            if v["interval_95"] is None or v["verdict"] == "consistent":
+                continue
+            lo, hi = v["interval_95"]
+            warnings.warn(
+                f"self-check, block cross-validation of the raw measurements over {name} "
+                f"({v['blocks']} blocks): NEES / dof = {v['nees_per_dof']:.2f}, outside "
+                f"[{lo:.2f}, {hi:.2f}] (95 %, {v['n_eff']:.0f} effective samples)",
+                RtsgtWarning, stacklevel=2)
+    return out

@@ -1,0 +1,91 @@
+"""Block cross-validation of the raw measurements (rtsgt.joint.blockcv): the deletion NEES
+from the banded posterior against a dense inverse and against deleting the block and solving
+again, and its verdict on honest and on too-small measurement covariances."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from rtsgt.joint import engine
+from rtsgt.joint.blockcv import RawBlocks, raw_block_cv, raw_block_summary
+from rtsgt.joint.engine import assemble, gauss_newton
+from rtsgt.stats import ratio_interval
+from test_joint import _synthetic  # the joint tests' synthetic problem
+
+#: The synthetic robot moves at constant velocity: a prior of (almost) no process noise is
+#: its truth, so the held-out blocks' predictions are honest and informed by the prior.
+QC_TRUE = np.full(6, 1e-8)
+
+
+def _dense_rows(prob, Hk, Hg):
+    K, G = prob.t_knot.size, prob.n_globals
+    H = np.zeros((Hk.shape[0], 3, 12 * K + G))
+    for m, k in enumerate(prob.of_meas):  # a small test problem
+        H[m, :, 12 * k:12 * k + 12] = Hk[m]
+        H[m, :, 12 * K:12 * K + Hg.shape[2]] = Hg[m]
+    return H
+
+
+def test_deletion_nees_equals_a_dense_inverse_and_a_solve_without_the_block():
+    rng = np.random.default_rng(31)
+    prob, truth = _synthetic(rng, K=30, noise=1.0)
+    prob = replace(prob, qc=QC_TRUE)
+    s, sol, info = gauss_newton(prob, truth, max_iter=20, tol=1e-14)
+    r, Hk, Hg, _, _ = engine._measurement_terms(prob, s)
+    m = prob.meas
+    out = raw_block_cv(m.t, m.station, prob.of_meas, r, m.info, Hk, Hg, sol, max_gap_s=5.0)
+    assert out.n.sum() == m.t.size and out.nees.size >= 15
+    system, _ = assemble(prob, s)
+    N, _ = system.dense()
+    cov = np.linalg.inv(N)
+    H = _dense_rows(prob, Hk, Hg)
+    R = np.linalg.inv(m.info)
+    for b in range(out.nees.size):
+        sel = np.flatnonzero((m.station == out.station[b]) & (m.t >= out.t0[b])
+                             & (m.t <= out.t1[b]))
+        assert sel.size == out.n[b]
+        Hb = H[sel].reshape(-1, H.shape[2])
+        Rb = np.zeros((3 * sel.size, 3 * sel.size))
+        for i, j in enumerate(sel):
+            Rb[3 * i:3 * i + 3, 3 * i:3 * i + 3] = R[j]
+        e = r[sel].ravel()
+        Q = Rb - Hb @ cov @ Hb.T
+        ref = e @ np.linalg.solve(Q, e)
+        assert out.nees[b] == pytest.approx(ref, rel=1e-7)
+        if b % 4 == 0:  # deleted, solved again (one step: the problem is linear at s)
+            Wb = np.linalg.inv(Rb)
+            N_minus = N - Hb.T @ Wb @ Hb
+            delta = np.linalg.solve(N_minus, -Hb.T @ Wb @ e)
+            pred = e - Hb @ delta
+            C = Rb + Hb @ np.linalg.solve(N_minus, Hb.T)
+            assert out.nees[b] == pytest.approx(pred @ np.linalg.solve(C, pred), rel=1e-5)
+
+
+def test_verdict_consistent_for_the_model_and_optimistic_for_noise_larger_than_stated():
+    """Pooled over synthetic problems: noise as stated gives NEES/dof about 1; noise 1.5
+    times the stated sigma (2.25 in variance) is caught."""
+    def pooled(scale, seeds):
+        rows = []
+        for seed in seeds:
+            rng = np.random.default_rng(seed)
+            prob, truth = _synthetic(rng, K=60, noise=scale)
+            prob = replace(prob, qc=QC_TRUE)
+            s, sol, _ = gauss_newton(prob, truth, max_iter=20, tol=1e-12)
+            r, Hk, Hg, _, _ = engine._measurement_terms(prob, s)
+            m = prob.meas
+            rows.append(raw_block_cv(m.t, m.station, prob.of_meas, r, m.info, Hk, Hg, sol,
+                                     max_gap_s=5.0))
+        return RawBlocks(*(np.concatenate([getattr(x, f) for x in rows])
+                           for f in ("station", "t0", "t1", "n", "nees")))
+
+    honest = raw_block_summary(pooled(1.0, range(40, 52)), ("1", "2", "3"), warn=False)
+    v = honest["overall"]
+    lo, hi = ratio_interval(3.0 * 60 * 12)
+    assert lo < v["nees_per_dof"] < hi, v
+    assert v["verdict"] == "consistent"
+    small = raw_block_summary(pooled(1.5, range(60, 72)), ("1", "2", "3"), warn=False)
+    assert small["overall"]["verdict"] == "optimistic", small["overall"]
+    assert small["overall"]["nees_per_dof"] > 1.8
