@@ -5,7 +5,7 @@ clock states (offsets against the truth at 1 Hz: share within 2 sigma). Numbers:
 docs/joint.md#measured.
 
 Usage: python benchmarks/joint.py [--duration 600] [--seeds 101 102 103] [--time-sync]
-       [--field [--without displacement gm reality survey]] [--clocks]
+       [--field [--without displacement gm reality survey]] [--clocks] [--prisms]
 """
 
 from __future__ import annotations
@@ -64,8 +64,25 @@ def field_config(duration_s: float, without: tuple[str, ...] = ()) -> Simulation
     return replace(cfg, reality=RealityEffects()) if "reality" in without else cfg
 
 
+def prism_scores(jr, sim) -> dict:
+    """The prisms found moved, and the displaced prism's estimated shift against the truth's
+    (field preset), in its posterior sigmas."""
+    pf = jr.prisms
+    out = dict(found=",".join(np.array(pf.names)[pf.moved]) or "-",
+               shift_sigma=",".join(f"{x:.1f}" for x in pf.shift_sigma))
+    f = sim.truth.field  # the poses and the survey are in the robot frame
+    if f is not None and np.any(f.displacement_robot_m):
+        j = f.displaced_prism
+        out.update(moved_prism=pf.names[j],
+                   moved_mm=float(np.linalg.norm(f.displacement_robot_m)) * 1e3,
+                   shift_err_mm=float(np.linalg.norm(pf.shift[j] - f.displacement_robot_m)) * 1e3,
+                   shift_sig_mm=float(np.sqrt(np.trace(pf.cov[3 * j:3 * j + 3, 3 * j:3 * j + 3])))
+                   * 1e3)
+    return out
+
+
 def case(duration_s: float, seed: int, time_sync: bool, folder: Path, field: bool = False,
-         clocks: bool = False, without: tuple[str, ...] = ()) -> dict:
+         clocks: bool = False, without: tuple[str, ...] = (), prisms: bool = False) -> dict:
     """One simulated deployment through the per-prism pipeline and the joint engine."""
     if field:
         cfg = field_config(duration_s, without)
@@ -85,7 +102,8 @@ def case(duration_s: float, seed: int, time_sync: bool, folder: Path, field: boo
     tracemalloc.start()
     tick = time.perf_counter()
     jr = estimate_joint(obs, comp.calibration, data.reference, comp.noise_model, tq, tq,
-                        est.R[keep], est.t[keep], qc, weather=data.weather, clocks=clocks)
+                        est.R[keep], est.t[keep], qc, weather=data.weather, clocks=clocks,
+                        prisms=prisms)
     wall = time.perf_counter() - tick
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
@@ -105,6 +123,8 @@ def case(duration_s: float, seed: int, time_sync: bool, folder: Path, field: boo
     c95 = chi2.ppf(0.95, 6)
     extra = clock_scores(jr, sim, np.arange(np.ceil(tq[0]), tq[-1], 1.0)) if field and clocks \
         else {}
+    if prisms and jr.prisms is not None:
+        extra.update(prism_scores(jr, sim))
     return dict(
         seed=seed, poses=tq.size, knots=jr.n_knots, measurements=jr.n_measurements,
         nees_joint=nj.mean() / 6, nees_pp=npp.mean() / 6,
@@ -124,6 +144,8 @@ def main() -> None:
                     help="the simulator's clock offsets on (the joint engine carries them white)")
     ap.add_argument("--field", action="store_true", help="the field-hour preset")
     ap.add_argument("--clocks", action="store_true", help="the joint engine's clock states")
+    ap.add_argument("--prisms", action="store_true",
+                    help="the prisms' body positions as parameters (the survey as prior)")
     ap.add_argument("--without", nargs="*", default=[],
                     choices=["displacement", "gm", "reality", "survey"],
                     help="field-hour effects left out")
@@ -132,7 +154,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
             r = case(args.duration, seed, args.time_sync, Path(tmp), args.field, args.clocks,
-                     tuple(args.without))
+                     tuple(args.without), args.prisms)
             rows.append(r)
             print(" ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
                            for k, v in r.items()), flush=True)

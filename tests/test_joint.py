@@ -8,6 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.stats import chi2
 
 from rtsgt.errors import InputError
 from rtsgt.geometry.so3 import exp_so3, quat_xyzw_to_matrix
@@ -15,7 +16,16 @@ from rtsgt.geometry.transform import perturbation
 from rtsgt.io.deployment import load_deployment
 from rtsgt.joint import estimate_joint, sparse
 from rtsgt.joint.clock import clock_model
-from rtsgt.joint.engine import JointProblem, JointState, assemble, gauss_newton, retract
+from rtsgt.joint.engine import (
+    JointProblem,
+    JointState,
+    assemble,
+    gauss_newton,
+    measurement_hsh,
+    measurement_terms,
+    retract,
+    solve_with_qc,
+)
 from rtsgt.joint.estimate import body_to_world_cov
 from rtsgt.joint.interpolate import interpolate_poses_gp
 from rtsgt.joint.knots import build_knots, qc_from_prisms
@@ -125,11 +135,13 @@ def test_measurement_jacobians_against_finite_differences():
     np.testing.assert_allclose(residual(hs[0], hs[1]) / (2 * EPS), Htau, atol=1e-7)
 
 
-def _synthetic(rng, K=40, noise=0.0, speed=1.0, clock_s=None):
+def _synthetic(rng, K=40, noise=0.0, speed=1.0, clock_s=None, moved=None):
     """Noise-free (or noisy) polar measurements of three prisms on a constant-velocity
     trajectory (its velocity times ``speed``) by three stations, the first fixed, the others
     with a prior; with ``clock_s`` (3,) each station's clock ``t_recorded - t_true``, s, and
-    clock states in the problem (knots every 6 s)."""
+    clock states in the problem (knots every 6 s); with ``moved`` (3,) m the first prism is
+    measured there away from its survey, and the prisms are parameters with the survey
+    (1 mm per axis) as prior."""
     w0 = np.array([1.0, 0.1, 0.0, 0.0, 0.0, 0.15]) * speed
     t = np.arange(K) * 0.4
     R0, p0 = exp_so3(np.array([0.0, 0.0, 0.3])), np.array([2.0, -1.0, 0.5])
@@ -141,7 +153,10 @@ def _synthetic(rng, K=40, noise=0.0, speed=1.0, clock_s=None):
     R_s = exp_so3(np.array([[0.0, 0.0, 0.0], [0.001, -0.002, 1.0], [0.0, 0.001, -2.0]]))
     sid = np.arange(K) % 3
     k = np.arange(K)
-    pw = np.einsum("kij,kj->ki", Rm, pb[sid]) + pm
+    pt = pb.copy()
+    if moved is not None:
+        pt[0] += moved
+    pw = np.einsum("kij,kj->ki", Rm, pt[sid]) + pm
     q = np.einsum("kji,kj->ki", R_s[sid], pw - t_s[sid])
     y = np.stack(cartesian_to_polar(q), axis=1)
     sig = np.array([3e-5, 3e-5, 1e-3])
@@ -151,10 +166,13 @@ def _synthetic(rng, K=40, noise=0.0, speed=1.0, clock_s=None):
     cov_s = np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8])
     info_s = np.stack([np.eye(6), np.linalg.inv(cov_s), np.linalg.inv(cov_s)])
     ck = None if clock_s is None else clock_model(t, sid, 3, 0, spacing=6.0)
+    p_info = None if moved is None else np.eye(9) / 1e-6
     prob = JointProblem(t, k, np.zeros(K), meas, pb, R_s, t_s, info_s, np.array([1, 2]),
-                        np.array([0.1, 0.1, 0.01, 1e-3, 1e-3, 0.01]), ck)
+                        np.array([0.1, 0.1, 0.01, 1e-3, 1e-3, 0.01]), ck, p_info,
+                        None if moved is None else np.eye(9) * 1e-6)
     clock = None if ck is None else np.repeat(np.asarray(clock_s)[1:, None], ck.knots.size, 1)
-    truth = JointState(R, p, np.broadcast_to(w0, (K, 6)).copy(), R_s, t_s, 0.0, clock)
+    truth = JointState(R, p, np.broadcast_to(w0, (K, 6)).copy(), R_s, t_s, 0.0, clock,
+                       None if moved is None else pt)
     return prob, truth
 
 
@@ -225,6 +243,47 @@ def test_gauss_newton_recovers_the_clock_offsets_of_a_noise_free_problem():
     blind = replace(prob, clock=None)
     _, _, info0 = gauss_newton(blind, replace(start, clock=None), max_iter=10, tol=1e-12)
     assert info0.costs[-1] > 1e3 * max(info.costs[-1], 1e-6), info0.costs
+
+
+def test_a_prism_moved_after_its_survey_is_found_and_estimated():
+    """Prism 1 measured 2 cm (in the prisms' plane) away from its survey, noise-free: the
+    prisms as parameters with the survey as prior (1 mm) find it (its test beyond the
+    critical value, docs/joint.md#prism-positions), free its survey where the data determine
+    it and recover the move within its sigma and the poses exactly; held at the survey, the
+    poses are biased by centimetres; an unmoved rig frees nothing."""
+    pb = np.array([[0.5, 0.3, 0.4], [-0.4, 0.35, 0.45], [0.0, -0.4, 0.5]])
+    n = np.cross(pb[1] - pb[0], pb[2] - pb[0])
+    n /= np.linalg.norm(n)
+    d = np.array([1.0, 0.0, 0.0]) - n[0] * n
+    d *= 0.02 / np.linalg.norm(d)
+    prob, truth = _synthetic(np.random.default_rng(9), moved=d)
+    prob = replace(prob, qc=prob.qc * 1e-4)  # a smooth robot: the rig's shape is determined
+    start = replace(truth, p_body=prob.p_body.copy())
+    prob2, est, sol, info, _ = solve_with_qc(prob, start, False, 20, 1e-12)
+    assert info.converged and [f[0] for f in prob2.prism_found] == [0], prob2.prism_found
+    assert prob2.prism_found[0][1] > 10 * chi2.ppf(1 - 1e-3 / 3, prob2.prism_found[0][2])
+    sig = np.sqrt(np.diag(sol.cov_g)[prob.kappa_col + 1:prob.kappa_col + 4])
+    assert np.all(np.abs(est.p_body[0] - prob.p_body[0] - d) < sig), (est.p_body[0], sig)
+    assert np.all(sig < 2e-3), sig
+    np.testing.assert_allclose(est.t, truth.t, atol=1e-5)
+    blind = replace(prob, prism_info=None)
+    e0, _, i0 = gauss_newton(blind, replace(start, p_body=None), 20, 1e-12)
+    assert np.abs(e0.t - truth.t).max() > 0.01 and i0.costs[-1] > 100, i0.costs[-1]
+    prob, truth = _synthetic(np.random.default_rng(9), moved=np.zeros(3))
+    prob3, est, _, info, _ = solve_with_qc(replace(prob, qc=prob.qc * 1e-4), truth, False, 20,
+                                           1e-12)
+    assert prob3.prism_found == () and info.converged
+    np.testing.assert_allclose(est.p_body, prob.p_body, atol=1e-9)
+    # the prisms' columns of the gradient against finite differences of the cost (off the
+    # knots' times: tau != 0)
+    prob = replace(prob, tau=np.random.default_rng(1).uniform(-1e-3, 1e-3, prob.tau.size))
+    system, _ = assemble(prob, replace(truth, p_body=truth.p_body + 1e-3))
+    for j in range(9):
+        dp = np.zeros(9)
+        dp[j] = 1e-7
+        cp, cm = (assemble(prob, replace(truth, p_body=truth.p_body + 1e-3 + s * dp.reshape(3, 3)))[1]
+                  for s in (1.0, -1.0))
+        assert (cp - cm) / 2e-7 == pytest.approx(-2 * system.c[prob.kappa_col + 1 + j], rel=1e-5)
 
 
 def _with_knots_at(prob, s, sol, tq):
@@ -299,6 +358,33 @@ def test_prior_redundancy_numbers_match_a_dense_inverse():
             assert quad[k, i] == pytest.approx(e[k, [i, 6 + i]] @ W[k][rows] @ e[k, [i, 6 + i]]
                                                * qc[k, i], rel=1e-9)
     assert 0 < red.min() and red.max() < 2
+
+
+def test_measurement_redundancy_numbers_match_a_dense_inverse():
+    """Each measurement's ``H Sigma H^T`` (rtsgt.joint.engine.measurement_hsh: the knot's
+    marginal and its covariance with the globals, stations, prisms and clocks) against the
+    dense normal matrix's inverse; the redundancy numbers of all rows and priors add to the
+    rows minus the unknowns."""
+    rng = np.random.default_rng(12)
+    prob, truth = _synthetic(rng, K=14, noise=1.0, clock_s=[0.0, 0.004, -0.002],
+                             moved=np.zeros(3))
+    prob = replace(prob, tau=rng.uniform(-1e-3, 1e-3, 14))
+    s, sol, _ = gauss_newton(prob, truth, 10, 1e-12)
+    system, _ = assemble(prob, s)
+    M, _ = system.dense()
+    inv = np.linalg.inv(M)
+    _, Hk, Hg, Hc, cols = measurement_terms(prob, s)
+    n = 12 * 14
+    H = np.zeros((14, 3, M.shape[0]))
+    for m in range(14):
+        H[m, :, 12 * m:12 * m + 12] = Hk[m]  # one measurement per knot
+        H[m, :, n:n + prob.n_fixed] = Hg[m]
+        H[m][:, n + cols[m]] += Hc[m]
+    ref = np.einsum("mia,ab,mjb->mij", H, inv, H)
+    got = measurement_hsh(prob, s, sol)
+    np.testing.assert_allclose(got, ref, atol=1e-9 * np.abs(ref).max())
+    red = 3 * 14 - np.einsum("mij,mji->", prob.meas.info, got)
+    assert 0 < red < 3 * 14, red
 
 
 def test_qc_per_class_pools_the_uninformed_groups_and_holds_the_floor():

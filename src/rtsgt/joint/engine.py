@@ -9,10 +9,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from rtsgt.geometry.so3 import exp_so3, log_so3
+from rtsgt.geometry.so3 import exp_so3, hat, log_so3
 from rtsgt.joint.clock import ClockModel
 from rtsgt.joint.measurements import PolarMeasurements, predict, residual
 from rtsgt.joint.prior import prior_terms, wnoa_q_inv
+from rtsgt.joint.prisms import free_prism, gauge_directions, prism_tests
 from rtsgt.joint.qc import (
     MIN_REDUNDANCY,
     N_CLASSES,
@@ -40,7 +41,8 @@ STALL_REL = 1e-9
 class JointState:
     """Knot poses ``R`` (K, 3, 3), ``t`` (K, 3) (``T_world_body``), body velocities ``w``
     (K, 6); stations ``R_s`` (S, 3, 3), ``t_s`` (S, 3) (``T_world_station``); ``kappa_ppm``;
-    ``clock`` (C, J) the clock knots' offsets, s (None without clocks)."""
+    ``clock`` (C, J) the clock knots' offsets, s (None without clocks); ``p_body`` (P, 3) the
+    prisms' body positions, m (None: the problem's survey, held)."""
 
     R: np.ndarray
     t: np.ndarray
@@ -49,6 +51,7 @@ class JointState:
     t_s: np.ndarray
     kappa_ppm: float
     clock: np.ndarray | None = None
+    p_body: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -57,8 +60,11 @@ class JointProblem:
     ``of_meas`` and offset ``tau`` (M,), the measurements, the prisms' body positions
     ``p_body`` (P, 3), the stations' prior means ``R_prior``, ``t_prior`` and information
     ``info_prior`` (S, 6, 6) of ``(dt, dtheta)``, the free stations ``free`` (F,) indices,
-    ``qc`` (6,) or one per interval (K-1, 6), and the clock states (None: no clocks).
-    Globals: the free stations' ``(dt, dtheta)``, ``kappa``, the clocks' knots (C, J)."""
+    ``qc`` (6,) or one per interval (K-1, 6), the clock states (None: no clocks) and the
+    information ``prism_info`` (3P, 3P) of the survey ``p_body`` as the prior of the prisms'
+    body positions (None: held at the survey) and the survey's covariance ``prism_cov``, and the prisms found moved ``prism_found``
+    (index, test statistic, dof at detection; docs/joint.md#prism-positions). Globals: the free stations' ``(dt, dtheta)``,
+    ``kappa``, the prisms' positions (3P), the clocks' knots (C, J)."""
 
     t_knot: np.ndarray
     of_meas: np.ndarray
@@ -71,11 +77,24 @@ class JointProblem:
     free: np.ndarray
     qc: np.ndarray
     clock: ClockModel | None = None
+    prism_info: np.ndarray | None = None
+    prism_cov: np.ndarray | None = None
+    prism_found: tuple[tuple[int, float, int], ...] = ()
+
+    @property
+    def kappa_col(self) -> int:
+        """Column of ``kappa`` among the globals (after the free stations')."""
+        return 6 * self.free.size
+
+    @property
+    def n_prism(self) -> int:
+        """Prism position globals (3 per prism, or 0 when held)."""
+        return 0 if self.prism_info is None else self.p_body.size
 
     @property
     def n_fixed(self) -> int:
-        """Globals before the clocks: the free stations' and ``kappa``."""
-        return 6 * self.free.size + 1
+        """Globals before the clocks: the free stations', ``kappa`` and the prisms'."""
+        return 6 * self.free.size + 1 + self.n_prism
 
     @property
     def n_globals(self) -> int:
@@ -88,7 +107,7 @@ def station_prior_info(cov: np.ndarray) -> np.ndarray:
     return np.linalg.inv(cov + FIXED_SIGMA**2 * np.eye(6))
 
 
-def _measurement_terms(prob: JointProblem, s: JointState):
+def measurement_terms(prob: JointProblem, s: JointState):
     """Residuals (M, 3), Jacobians wrt the knots (M, 3, 12), wrt the stations and ``kappa``
     (M, 3, n_fixed), wrt each measurement's two clock knots (M, 3, 2) and their columns
     (M, 2) (None without clocks)."""
@@ -96,7 +115,8 @@ def _measurement_terms(prob: JointProblem, s: JointState):
     k = prob.of_meas
     ck = prob.clock
     tau = prob.tau if ck is None else prob.tau - ck.offsets(s.clock)
-    h, Hk, Hs, Hkap, Htau = predict(s.R[k], s.t[k], s.w[k], tau, prob.p_body[m.prism],
+    pb = prob.p_body if s.p_body is None else s.p_body
+    h, Hk, Hs, Hkap, Htau = predict(s.R[k], s.t[k], s.w[k], tau, pb[m.prism],
                                     s.R_s[m.station], s.t_s[m.station], s.kappa_ppm)
     r = residual(m.y, h)
     Hg = np.zeros(r.shape + (prob.n_fixed,))
@@ -106,13 +126,32 @@ def _measurement_terms(prob: JointProblem, s: JointState):
     rows = np.nonzero(c >= 0)[0]
     for j in range(6):  # six columns of each free station
         Hg[rows, :, 6 * c[rows] + j] = Hs[rows, :, j]
-    Hg[:, :, -1] = Hkap
+    Hg[:, :, prob.kappa_col] = Hkap
+    if prob.n_prism:  # d h / d p = PR (I + tau omega^)
+        Hp = Hk[:, :, :3] + tau[:, None, None] * (Hk[:, :, :3] @ hat(s.w[k, 3:]))
+        cols = prob.kappa_col + 1 + 3 * m.prism[:, None] + np.arange(3)
+        np.put_along_axis(Hg, np.broadcast_to(cols[:, None, :], Hp.shape), Hp, axis=2)
     if ck is None:
         return r, Hk, Hg, None, None
     has = (ck.row >= 0)[:, None]
     Hc = -Htau[:, :, None] * np.stack([1.0 - ck.u, ck.u], axis=1)[:, None, :] * has[:, None]
     first = prob.n_fixed + np.where(has[:, 0], ck.row, 0) * ck.knots.size + ck.j
     return r, Hk, Hg, Hc, np.stack([first, first + 1], axis=1)
+
+
+def measurement_hsh(prob: JointProblem, s: JointState, sol) -> np.ndarray:
+    """Covariance (M, 3, 3) of the measurements' fitted values, ``H Sigma H^T`` with the
+    knot's marginal and its cross covariance with the globals: ``Hk V_k Hk^T + Z Z^T``,
+    ``Z = Hk L_k + Hg chol_g`` (:class:`rtsgt.joint.sparse.ArrowSolution`'s split)."""
+    _, Hk, Hg, Hc, cols = measurement_terms(prob, s)
+    k = prob.of_meas
+    G0 = prob.n_fixed
+    Z = Hk @ sol.factor[k] + Hg @ sol.chol_g[:G0]
+    if Hc is not None:
+        for a in range(2):
+            Z += Hc[:, :, a:a + 1] * sol.chol_g[cols[:, a]][:, None, :]
+    out = Hk @ sol.cov_var[k] @ np.swapaxes(Hk, 1, 2) + Z @ np.swapaxes(Z, 1, 2)
+    return 0.5 * (out + np.swapaxes(out, 1, 2))
 
 
 def _clock_terms(prob: JointProblem, s: JointState, B, C, c, HtW, GtW, Hc, cols, r):
@@ -168,7 +207,7 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
     a[:-1] -= np.einsum("kij,kj->ki", EtW, e)
     a[1:] -= np.einsum("kij,kj->ki", FtW, e)
     cost = float(np.einsum("ki,kij,kj->", e, W, e))
-    r, Hk, Hg, Hc, cols = _measurement_terms(prob, s)
+    r, Hk, Hg, Hc, cols = measurement_terms(prob, s)
     info = prob.meas.info
     HtW = np.swapaxes(Hk, 1, 2) @ info
     np.add.at(D, prob.of_meas, HtW @ Hk)
@@ -193,9 +232,16 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
         c[sl] -= JtW[i] @ es[i]
     cost += float(np.einsum("fi,fij,fj->", es, Wp, es))
     sk = prob.meas.kappa_sigma_ppm
-    C[G0 - 1, G0 - 1] += 1.0 / sk**2 if sk > 0 else 1.0 / FIXED_SIGMA**2
-    c[G0 - 1] -= s.kappa_ppm / sk**2 if sk > 0 else 0.0
+    kc = prob.kappa_col
+    C[kc, kc] += 1.0 / sk**2 if sk > 0 else 1.0 / FIXED_SIGMA**2
+    c[kc] -= s.kappa_ppm / sk**2 if sk > 0 else 0.0
     cost += (s.kappa_ppm / sk) ** 2 if sk > 0 else 0.0
+    if prob.n_prism:  # the survey as the prisms' prior
+        ep = (s.p_body - prob.p_body).ravel()
+        sl = slice(kc + 1, kc + 1 + prob.n_prism)
+        C[sl, sl] += prob.prism_info
+        c[sl] -= prob.prism_info @ ep
+        cost += float(ep @ prob.prism_info @ ep)
     return ArrowSystem(D, U, B, C, a, c), cost
 
 
@@ -205,12 +251,15 @@ def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> 
     R = s.R @ dR
     t = s.t + np.einsum("kij,kj->ki", s.R, dp)
     R_s, t_s = s.R_s.copy(), s.t_s.copy()
-    G0 = prob.n_fixed
-    gs = g[:G0 - 1].reshape(-1, 6)
+    G0, kc = prob.n_fixed, prob.kappa_col
+    gs = g[:kc].reshape(-1, 6)
     t_s[prob.free] += gs[:, :3]
     R_s[prob.free] = exp_so3(gs[:, 3:]) @ R_s[prob.free]
     clock = None if s.clock is None else s.clock + g[G0:].reshape(s.clock.shape)
-    return JointState(R, t, s.w + x[:, 6:], R_s, t_s, s.kappa_ppm + float(g[G0 - 1]), clock)
+    pb = s.p_body
+    if prob.n_prism:
+        pb = s.p_body + g[kc + 1:kc + 1 + prob.n_prism].reshape(s.p_body.shape)
+    return JointState(R, t, s.w + x[:, 6:], R_s, t_s, s.kappa_ppm + float(g[kc]), clock, pb)
 
 
 @dataclass(frozen=True)
@@ -281,23 +330,52 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     own = None
     it = 0
     dt = np.diff(prob.t_knot)
-    while estimate and it < VCE_MAX_ITER:
+    prob, freed = snoop_prisms(prob, s, sol)
+    while (estimate or freed) and it < VCE_MAX_ITER:
         it += 1
-        e, E, F = prior_terms(s.R, s.t, s.w, dt)
-        quad, red = prior_components(e, E, F, dt, prob.qc, sol.cov, sol.cov_next)
-        new, own = qc_per_class(quad, red, classes, own)
-        red_g = np.zeros_like(table)
-        np.add.at(red_g, classes, red)
-        # a group the data no longer inform (sinking to 0, its redundancy gone) may go on
-        moving = own & (red_g >= MIN_REDUNDANCY) & (new > 1.01 * QC_FLOOR)
-        change = float(np.max(np.abs(np.log(new / table))[moving], initial=0.0))
-        table = new
-        prob = replace(prob, qc=table[classes])
-        last = change < VCE_TOL or it == VCE_MAX_ITER
-        s, sol, info = gauss_newton(prob, s, max_iter if last else VCE_GN_ITER, tol)
+        change = 0.0
+        if estimate:
+            e, E, F = prior_terms(s.R, s.t, s.w, dt)
+            quad, red = prior_components(e, E, F, dt, prob.qc, sol.cov, sol.cov_next)
+            new, own = qc_per_class(quad, red, classes, own)
+            red_g = np.zeros_like(table)
+            np.add.at(red_g, classes, red)
+            # a group the data no longer inform (sinking to 0, its redundancy gone) may go on
+            moving = own & (red_g >= MIN_REDUNDANCY) & (new > 1.01 * QC_FLOOR)
+            change = float(np.max(np.abs(np.log(new / table))[moving], initial=0.0))
+            table = new
+            prob = replace(prob, qc=table[classes])
+        last = (change < VCE_TOL and not freed) or it == VCE_MAX_ITER
+        full = last or not estimate  # a freed prism alone: solve to convergence, test again
+        s, sol, info = gauss_newton(prob, s, max_iter if full else VCE_GN_ITER, tol)
         if last:
             break
-    return prob, s, sol, info, QcFit(table, classes, red_g, it)
+        prob, freed = snoop_prisms(prob, s, sol)
+    return prob, s, sol, info, QcFit(table, classes, red_g, it if estimate else 0)
+
+
+def snoop_prisms(prob: JointProblem, s: JointState, sol) -> tuple[JointProblem, bool]:
+    """Test each trusted prism against its survey (:func:`rtsgt.joint.prisms.prism_tests`);
+    the one beyond its critical value by the most (if any, and if at least two would stay
+    trusted) has its survey freed where the data determine its move. Returns the problem and
+    whether a prism was freed."""
+    if prob.prism_info is None:
+        return prob, False
+    sl = slice(prob.kappa_col + 1, prob.kappa_col + 1 + prob.n_prism)
+    tests = prism_tests(prob.p_body, prob.prism_info, s.p_body, sol.cov_g[sl, sl])
+    found = [f[0] for f in prob.prism_found]
+    ratio = tests.stat / tests.critical()
+    ratio[found] = 0.0
+    ratio[tests.dof == 0] = 0.0
+    j = int(np.argmax(ratio))
+    if ratio[j] <= 1.0 or len(found) + 3 > prob.p_body.shape[0]:
+        return prob, False
+    trusted = np.ones(prob.p_body.shape[0], bool)
+    trusted[found + [j]] = False
+    gauge = gauge_directions(prob.p_body, trusted, j)
+    info = free_prism(prob.prism_info, prob.prism_cov, j, tests, gauge)
+    entry = (j, float(tests.stat[j]), int(tests.dof[j]))
+    return replace(prob, prism_info=info, prism_found=prob.prism_found + (entry,)), True
 
 
 __all__ = ["JointProblem", "JointState", "QcFit", "SolveInfo", "assemble", "gauss_newton",

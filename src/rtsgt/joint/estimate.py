@@ -30,6 +30,7 @@ from rtsgt.joint.knots import (
     interpolate_poses,
 )
 from rtsgt.joint.measurements import GLOBAL_SOURCES, polar_measurements
+from rtsgt.joint.prisms import PrismFit, prism_prior_info, prism_tests
 from rtsgt.noise.model import NoiseModel
 from rtsgt.pose.estimate import PoseEstimate
 from rtsgt.pose.registration import shape_ratio
@@ -44,8 +45,15 @@ class JointResult:
     covariances in the convention of :mod:`rtsgt.geometry.transform`); ``stations``: each
     station's estimated ``T_world_station`` with its covariance; ``kappa_ppm``,
     ``kappa_sigma_ppm``: the weather's error of the distance correction; ``qc``: the prior's
-    ``Qc`` per motion class (:class:`rtsgt.joint.engine.QcFit`); ``n_knots``, ``n_measurements``; ``solve``: iterations, convergence,
-    costs; ``chi2_per_dof``: the final cost over the measurements' rows.
+    ``Qc`` per motion class (:class:`rtsgt.joint.engine.QcFit`); ``clocks``: per
+    non-reference station its clock knots' times, offsets and covariance; ``n_knots``,
+    ``n_measurements``; ``solve``: iterations, convergence, costs; ``chi2_per_dof``: the
+    final cost over the measurements' rows; ``shared``: the poses' error split
+    (:class:`rtsgt.shared.SharedFactor`, ``total_cov`` = ``estimate.cov``) into the part
+    given the global parameters and the part shared through them, one column per whitened
+    global (:func:`global_names`; docs/joint.md#the-shared-error); ``prisms``: the prisms'
+    estimated body positions and each one's test against its survey
+    (:class:`rtsgt.joint.prisms.PrismFit`; None where they are held at the survey).
     """
 
     t: np.ndarray
@@ -60,6 +68,7 @@ class JointResult:
     solve: SolveInfo
     chi2_per_dof: float
     shared: SharedFactor | None = None
+    prisms: PrismFit | None = None
 
 
 def _stations(calibration):
@@ -76,13 +85,14 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                    init_t, init_R, init_p, qc, *, weather=None,
                    merge_s: float = DEFAULT_MERGE_S, max_iter: int = 10, tol: float = 1e-6,
                    estimate_qc: bool = True, query_knots: bool = False,
-                   clocks: bool = False) -> JointResult:
+                   clocks: bool = False, prisms: bool = False) -> JointResult:
     """Poses ``T_world_body`` at ``query_times`` (Q,) s from every station's observations.
 
     ``observations``: one :class:`rtsgt.types.Observations` per station (valid, increasing
     times); ``calibration``: a :class:`rtsgt.calibration.result.CalibrationResult` (the
     stations' prior, its reference held); ``reference``: the prisms' body positions
-    (:class:`rtsgt.pose.ReferencePoints`, held fixed); ``model``: the noise model (its white
+    (:class:`rtsgt.pose.ReferencePoints`; with ``prisms`` estimated, its covariance their
+    prior, docs/joint.md#prism-positions; else held); ``model``: the noise model (its white
     sources per measurement, its atmosphere as one parameter); ``init_t`` (T,), ``init_R``
     (T, 3, 3), ``init_p`` (T, 3): poses to start from (another engine's); ``qc`` (6,) the
     prior's diagonal PSD (m^2/s^3, rad^2/s^3; e.g. :func:`rtsgt.joint.knots.qc_from_prisms`),
@@ -97,9 +107,9 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     if init_t.size < 2:
         raise InputError(f"Expected at least 2 initial poses, got {init_t.size}")
     ids, R_s, t_s, cov_s, free = _stations(calibration)
-    prisms = tuple(reference.names)
+    names = tuple(reference.names)
     carried = GLOBAL_SOURCES + (("time_sync",) if clocks else ())
-    meas = polar_measurements(observations, ids, prisms, model, weather, carried)
+    meas = polar_measurements(observations, ids, names, model, weather, carried)
     tq = np.asarray(query_times, dtype=float)
     knots = build_knots(meas.t, tq if query_knots else np.zeros(0), merge_s)
     R0, p0 = interpolate_poses(knots.t, init_t, init_R, init_p)
@@ -110,35 +120,59 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     ck = None
     if clocks and len(ids) > 1:  # a lone station has no clock to estimate against
         ck = clock_model(meas.t, meas.station, len(ids), ids.index(calibration.reference_station))
-    prob = JointProblem(knots.t, knots.of_measurement, knots.tau, meas,
-                        np.asarray(reference.xyz, dtype=float), R_s, t_s, info, free, qc, ck)
+    survey = np.asarray(reference.xyz, dtype=float)
+    p_info = prism_prior_info(reference.cov) if prisms else None
+    prob = JointProblem(knots.t, knots.of_measurement, knots.tau, meas, survey, R_s, t_s, info,
+                        free, qc, ck, p_info, np.asarray(reference.cov, dtype=float))
     state = JointState(R0, p0, body_velocities(knots.t, R0, p0), R_s, t_s, 0.0,
-                       None if ck is None else np.zeros((ck.station.size, ck.knots.size)))
+                       None if ck is None else np.zeros((ck.station.size, ck.knots.size)),
+                       None if p_info is None else survey.copy())
     prob, state, sol, solve, qc_fit = solve_with_qc(prob, state, estimate_qc, max_iter, tol)
     cov_g = sol.cov_g
+    pfit = None if p_info is None else _prism_fit(names, prob, state, cov_g)
     R, t, cov_body = interpolate_poses_gp(tq, knots.t, state.R, state.t, state.w, prob.qc,
                                           sol.cov, sol.cov_next)
     cov_pose = body_to_world_cov(R, cov_body)
-    shared = _shared(tq, knots.t, state, prob, sol, global_names(prob, ids))
-    est = _pose_estimate(R, t, cov_pose, np.asarray(reference.xyz, dtype=float))
+    shared = _shared(tq, knots.t, state, prob, sol, global_names(prob, ids, names))
+    est = _pose_estimate(R, t, cov_pose, survey if pfit is None else pfit.xyz)
+    return JointResult(tq, est, _station_results(ids, free, state, cov_g), state.kappa_ppm,
+                       meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, cov_g, ids),
+                       knots.t.size, meas.t.size, solve,
+                       solve.costs[-1] / (3 * meas.t.size), shared, pfit)
+
+
+def _prism_fit(names, prob: JointProblem, state: JointState, cov_g) -> PrismFit:
+    """The prisms' estimates and tests: a prism found moved keeps its statistic at detection."""
+    sl = slice(prob.kappa_col + 1, prob.kappa_col + 1 + prob.n_prism)
+    cov = cov_g[sl, sl]
+    tests = prism_tests(prob.p_body, prob.prism_info, state.p_body, cov)
+    stat, dof = tests.stat.copy(), tests.dof.copy()
+    moved = np.zeros(len(names), bool)
+    for j, st, df in prob.prism_found:
+        moved[j], stat[j], dof[j] = True, st, df
+    return PrismFit(names, state.p_body.copy(), 0.5 * (cov + cov.T), prob.p_body.copy(), moved,
+                    np.sqrt(stat), dof)
+
+
+def _station_results(ids, free, state, cov_g) -> dict[str, RigidTransform]:
     stations = {}
     for i, sid in enumerate(ids):
         j = np.nonzero(free == i)[0]
         c = cov_g[6 * j[0]:6 * j[0] + 6, 6 * j[0]:6 * j[0] + 6] if j.size else np.zeros((6, 6))
         stations[sid] = RigidTransform(state.R_s[i], state.t_s[i], 0.5 * (c + c.T),
                                        "world", f"station_{sid}")
-    return JointResult(tq, est, stations, state.kappa_ppm,
-                       meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, cov_g, ids),
-                       knots.t.size, meas.t.size, solve,
-                       solve.costs[-1] / (3 * meas.t.size), shared)
+    return stations
 
 
-def global_names(prob: JointProblem, ids) -> tuple[str, ...]:
+def global_names(prob: JointProblem, ids, prisms=()) -> tuple[str, ...]:
     """Names of the problem's global parameters in their order: the free stations'
     ``calibration_station<id>_<x|y|z|rx|ry|rz>`` (world frame, as the per-prism pipeline's
-    shared columns), ``atmosphere_ppm``, the clocks' knots ``clock_station<id>_<jjjj>``."""
+    shared columns), ``atmosphere_ppm``, the prisms' ``reference_<prism>_<x|y|z>`` (where
+    estimated; ``prisms`` their names), the clocks' knots ``clock_station<id>_<jjjj>``."""
     names = [f"calibration_station{ids[i]}_{c}" for i in prob.free for c in POSE_COMPONENTS]
     names.append("atmosphere_ppm")
+    if prob.n_prism:
+        names += [f"reference_{p}_{c}" for p in prisms for c in "xyz"]
     ck = prob.clock
     if ck is not None:
         names += [f"clock_station{ids[i]}_{j:04d}" for i in ck.station

@@ -27,7 +27,10 @@ class PolarMeasurements:
     stations and prisms; ``y`` (M, 3) ``(hz, v, d)`` rad, rad, m (``d`` with the additive
     constant and the atmospheric correction, as :func:`rtsgt.noise.model.prepare_nominal`);
     ``info`` (M, 3, 3) the inverse of their white covariance (rad, rad, m);
-    ``kappa_sigma_ppm`` the prior sigma of the weather's error of the correction, ppm."""
+    ``kappa_sigma_ppm`` the prior sigma of the weather's error of the correction, ppm;
+    ``var_instrument`` (M, 3) the instrument's (datasheet) white variances of (Hz, V, d) and
+    ``cov_rest`` (M, 3, 3) the other white sources' covariance (``info`` is the inverse of
+    ``cov_rest + diag(var_instrument)``; docs/joint.md#noise-identification)."""
 
     t: np.ndarray
     station: np.ndarray
@@ -35,6 +38,8 @@ class PolarMeasurements:
     y: np.ndarray
     info: np.ndarray
     kappa_sigma_ppm: float
+    var_instrument: np.ndarray | None = None
+    cov_rest: np.ndarray | None = None
 
 
 def polar_jacobian_inverse(q: np.ndarray) -> np.ndarray:
@@ -68,6 +73,7 @@ def polar_measurements(observations, station_ids, prism_ids, model: NoiseModel,
     strictly increasing times) with their white covariance in (Hz, V, d) (the model's
     sources but ``carried``)."""
     white = white_model(model, carried)
+    instrument = model.with_sources(("instrument",))
     parts = []
     var_ppm = []
     for obs in observations:
@@ -81,10 +87,13 @@ def polar_measurements(observations, station_ids, prism_ids, model: NoiseModel,
         cov_station, _ = linear_covariances(nom, white)
         P = polar_jacobian_inverse(nom.xyz_station)
         cov = P @ cov_station @ np.swapaxes(P, 1, 2)
+        inst = P @ linear_covariances(nom, instrument)[0] @ np.swapaxes(P, 1, 2)
+        var_i = np.einsum("mii->mi", inst)
         y = np.stack([nom.hz, nom.v, nom.d_corr], axis=1)
         n = y.shape[0]
         parts.append((nom.t, np.full(n, station_ids.index(obs.station)),
-                      np.full(n, prism_ids.index(obs.prism)), y, np.linalg.inv(cov)))
+                      np.full(n, prism_ids.index(obs.prism)), y, np.linalg.inv(cov), var_i,
+                      cov - var_i[:, :, None] * np.eye(3)))
         prof = model.instrument
         g = correction_ppm_gradient(
             nom.temperature_c, nom.pressure_hpa, nom.humidity_pct,
@@ -92,10 +101,11 @@ def polar_measurements(observations, station_ids, prism_ids, model: NoiseModel,
             reference=(prof.reference_temperature_c, prof.reference_pressure_hpa,
                        prof.reference_humidity_pct))
         var_ppm.append(sum(np.mean(gi) ** 2 * v for gi, v in zip(g, model.weather_variances, strict=True)))
-    t, st, pr, y, info = (np.concatenate(a) for a in zip(*parts, strict=True))
+    t, st, pr, y, info, var_i, rest = (np.concatenate(a) for a in zip(*parts, strict=True))
     order = np.argsort(t, kind="stable")
     sigma = float(np.sqrt(np.mean(var_ppm))) if "atmosphere" in model.sources else 0.0
-    return PolarMeasurements(t[order], st[order], pr[order], y[order], info[order], sigma)
+    return PolarMeasurements(t[order], st[order], pr[order], y[order], info[order], sigma,
+                             var_i[order], rest[order])
 
 
 def predict(R_k, t_k, w_k, tau, p_body, R_s, t_s, kappa_ppm):

@@ -1,0 +1,159 @@
+"""The prisms' body positions as estimated parameters with the survey as their prior, and the
+test of each prism against its survey (a prism moved after the survey is found, not trusted):
+docs/joint.md#prism-positions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from rtsgt.geometry.so3 import hat
+
+#: Prior standard deviation (m) given to a direction the survey's covariance fixes exactly
+#: (the survey's own frame: points that define it). As the stations' ``FIXED_SIGMA``.
+FIXED_SIGMA_M = 1e-7
+#: A direction of a prism's move is determined by the data when their information on it is at
+#: least this fraction of the survey's (the move's sigma at most 10 times the survey's); the
+#: others (the gauge: a rigid motion of the prisms is the pose's) are neither tested nor freed.
+DETERMINED_RATIO = 0.01
+#: False-alarm rate of the test that a prism moved, over all prisms of a deployment
+#: (Bonferroni: each prism's at this over their number).
+TEST_ALPHA = 1e-3
+
+
+def prism_prior_info(cov: np.ndarray) -> np.ndarray | None:
+    """Information (3P, 3P) of the survey's covariance ``cov`` (3P, 3P) m^2 (directions of
+    zero variance held at :data:`FIXED_SIGMA_M`), or None for a survey known exactly (the
+    prisms are then held)."""
+    cov = np.asarray(cov, dtype=float)
+    if not np.any(cov):
+        return None
+    return np.linalg.inv(cov + FIXED_SIGMA_M**2 * np.eye(cov.shape[0]))
+
+
+@dataclass(frozen=True)
+class PrismTests:
+    """Each prism's test against its survey: ``displacement`` (P, 3) m the move of prism j
+    alone that the data support (its survey freed, the others kept), ``cov`` (P, 3, 3) m^2
+    its covariance (in the determined directions), ``stat`` (P,) the test statistic (chi^2
+    with ``dof`` (P,) degrees of freedom if it did not move), ``directions`` (P, 3, 3) the
+    eigenvectors (columns) of the data's information on the move and ``determined`` (P, 3)
+    which of them the data determine (:data:`DETERMINED_RATIO`), ``information`` (P, 3, 3)
+    that information (``N_jj``) and ``prior`` (P, 3, 3) the survey's (``info_jj``)."""
+
+    displacement: np.ndarray
+    cov: np.ndarray
+    stat: np.ndarray
+    dof: np.ndarray
+    directions: np.ndarray
+    determined: np.ndarray
+    information: np.ndarray
+    prior: np.ndarray
+
+    def critical(self, alpha: float = TEST_ALPHA) -> np.ndarray:
+        """Critical values (P,) of ``stat`` at the family-wise rate ``alpha`` (Bonferroni)."""
+        return chi2.ppf(1.0 - alpha / self.stat.size, np.maximum(self.dof, 1))
+
+
+def prism_tests(survey: np.ndarray, info: np.ndarray, xyz: np.ndarray,
+                cov: np.ndarray) -> PrismTests:
+    """Outlier tests of the survey's prism groups (Baarda's test for a group of the prior).
+
+    Estimates ``xyz`` (P, 3) with posterior ``cov`` (3P, 3P) under the prior ``N(survey,
+    info^-1)``: the prior's residual ``v = xyz - survey`` has covariance ``Q = info^-1 - cov``
+    under no move; ``u = info v``, ``N = info Q info = info - info cov info`` (the data's
+    information on a move);
+    prism j's move ``N_jj^+ u_j``, statistic ``u_j^T N_jj^+ u_j`` over the determined
+    directions of ``N_jj``."""
+    P = survey.shape[0]
+    v = (xyz - survey).ravel()
+    N = info - info @ cov @ info
+    u = (info @ v).reshape(P, 3)
+    blk = np.stack([N[3 * j:3 * j + 3, 3 * j:3 * j + 3] for j in range(P)])
+    pri = np.stack([info[3 * j:3 * j + 3, 3 * j:3 * j + 3] for j in range(P)])
+    blk = 0.5 * (blk + np.swapaxes(blk, 1, 2))
+    w, U, det = _determined(blk, pri)
+    winv = np.where(det, 1.0 / np.where(det, w, 1.0), 0.0)
+    Ninv = (U * winv[:, None, :]) @ np.swapaxes(U, 1, 2)
+    disp = np.einsum("pij,pj->pi", Ninv, u)
+    stat = np.clip(np.einsum("pi,pi->p", u, disp), 0.0, None)
+    return PrismTests(disp, Ninv, stat, det.sum(axis=1), U, det, blk, pri)
+
+
+def _determined(N: np.ndarray, prior: np.ndarray):
+    """Eigenvalues (..., n), eigenvectors (..., n, n) of the data's information ``N``
+    (..., n, n) and which directions it determines against the ``prior``'s information."""
+    w, U = np.linalg.eigh(N)
+    prior_w = np.einsum("...ia,...ij,...ja->...a", U, prior, U)
+    return w, U, w >= DETERMINED_RATIO * prior_w
+
+
+def gauge_directions(p_body: np.ndarray, trusted: np.ndarray, j: int) -> np.ndarray:
+    """Orthonormal directions (3, m) in which prism ``j`` moves under the rigid motions that
+    keep the ``trusted`` prisms (boolean (P,)) of ``p_body`` (P, 3) fixed: none for three or
+    more not collinear, the tangent of the circle about their line for two (the body frame
+    is the survey's: there prism j's survey defines it)."""
+    rows = np.concatenate([np.concatenate([np.eye(3), -hat(p)], axis=1)
+                           for p in p_body[trusted]])
+    _, sv, Vt = np.linalg.svd(rows)
+    null = Vt[np.sum(sv > 1e-9 * sv[0]):].T  # (6, m) rigid motions fixing the trusted
+    D = np.concatenate([np.eye(3), -hat(p_body[j])], axis=1) @ null
+    if D.size == 0:
+        return np.zeros((3, 0))
+    U, sd, _ = np.linalg.svd(D, full_matrices=False)
+    return U[:, sd > 1e-9 * max(sd.max(), 1e-300)]
+
+
+def free_prism(info: np.ndarray, cov: np.ndarray, j: int, tests: PrismTests,
+               gauge: np.ndarray) -> np.ndarray:
+    """The prior information with prism ``j``'s survey (covariance ``cov`` (3P, 3P)) kept only
+    in the ``gauge`` (3, m) directions and, orthogonal to them, those the data do not
+    determine (its marginal there; dropped elsewhere, with its correlations with the other
+    prisms)."""
+    out = info.copy()
+    sl = slice(3 * j, 3 * j + 3)
+    comp = np.linalg.svd(gauge, full_matrices=True)[0][:, gauge.shape[1]:]  # (3, 3-m)
+    _, V, det = _determined(comp.T @ tests.information[j] @ comp,
+                            comp.T @ tests.prior[j] @ comp)
+    K = np.concatenate([gauge, comp @ V[:, ~det]], axis=1)
+    out[sl, :] = 0.0
+    out[:, sl] = 0.0
+    if K.shape[1]:
+        blk = K @ np.linalg.inv(K.T @ cov[sl, sl] @ K) @ K.T
+        out[sl, sl] = 0.5 * (blk + blk.T)
+    return out
+
+
+@dataclass(frozen=True)
+class PrismFit:
+    """The prisms' estimated body positions: ``names`` (P,), ``xyz`` (P, 3) m, ``cov``
+    (3P, 3P) m^2 (posterior), ``survey`` (P, 3) m (the prior's mean); ``moved`` (P,) the
+    prisms found moved (their survey freed where the data determine it); ``shift`` (P, 3) m
+    the estimate minus the survey; ``shift_sigma`` (P,) the test statistic's square root
+    (for a moved prism: at its detection; chi with ``dof`` (P,) degrees of freedom if the
+    prism did not move)."""
+
+    names: tuple[str, ...]
+    xyz: np.ndarray
+    cov: np.ndarray
+    survey: np.ndarray
+    moved: np.ndarray
+    shift_sigma: np.ndarray
+    dof: np.ndarray
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """Posterior standard deviations (P, 3), m."""
+        return np.sqrt(np.diag(self.cov)).reshape(-1, 3)
+
+    @property
+    def shift(self) -> np.ndarray:
+        """Estimate minus survey (P, 3), m."""
+        return self.xyz - self.survey
+
+
+__all__ = ["DETERMINED_RATIO", "FIXED_SIGMA_M", "PrismFit", "PrismTests", "TEST_ALPHA",
+           "free_prism", "gauge_directions", "prism_prior_info", "prism_tests"]
