@@ -163,10 +163,12 @@ def test_run_ends_with_one_verdict_line(excerpt):
     assert last.endswith(f"in {run / 'summary.json'}")
     # warnings: one line per check in the terminal, whole in summary.json
     shown = [ln for ln in stderr.splitlines() if ln.startswith("warning: ")]
-    assert len(shown) == 3 < len(summary["warnings"]) == 8
+    assert len(shown) == 4 < len(summary["warnings"]) == 9
     assert ("warning: self-check, static stretches (3 warnings: prism 1, prism 2, prism 3)"
             in shown)
-    assert f"(the whole text of 8 warnings: {run / 'summary.json'})" in stderr
+    assert f"(the whole text of 9 warnings: {run / 'summary.json'})" in stderr
+    assert any(ln.startswith("warning: self-check, static relative poses over 1 s: NEES / dof")
+               for ln in shown)
     assert max(len(ln) for ln in shown) < 120
     # -q: the verdict line alone
     q_out, q_err, q_run = excerpt["quiet"]

@@ -188,7 +188,10 @@ def test_the_run_says_what_its_self_checks_found_on_the_real_excerpt(tmp_path):
     verdict = page[page.index("<section id='verdict'>"):]
     verdict = verdict[:verdict.index("</section>")]
     assert "<h2>Verdict: usable, with caveats</h2>" in verdict
-    assert verdict.count("<li>") == len(doc["verdict"]["findings"]) == 5
+    assert verdict.count("<li>") == len(doc["verdict"]["findings"]) == 6
+    # the relative poses on the static stretches: a table per lag, as in summary.json
+    assert set(doc["self_checks"]["static_relative"]["lags"]) == {"1", "10", "60"}
+    assert "<table id='check-static-relative'>" in page
     section = page[page.index("<section id=\"checks\">"):]
     section = section[:section.index("</section>")]
     gcp_table = section[section.index("<table id='check-gcp'>"):]

@@ -17,7 +17,10 @@ from dataclasses import replace
 
 import numpy as np
 
+from rtsgt.checks.static import static_stretches
 from rtsgt.deployment import DeploymentData
+from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
+from rtsgt.evaluation.static_poses import static_relative_check
 from rtsgt.noise.correlated import inflate_tracks
 from rtsgt.options import RunOptions
 from rtsgt.record import MIN_POSE_PRISMS, PositionRunRecord, RunComputation, RunRecord
@@ -132,8 +135,26 @@ def _pose_stages(data: DeploymentData, options: RunOptions, front: Front, say: P
     computation = RunComputation(data, front.calibration, front.model, front.reports,
                                  fit.tracks, fit.gps, fit.prisms, fit.estimate, fit.keep,
                                  fit.gate_report, clock.timings, fit.qc_info)
-    return pose_record(options, computation, front, fit, removed, self_checks, split,
-                       correlated, joint)
+    record = pose_record(options, computation, front, fit, removed, self_checks, split,
+                         correlated, joint)
+    say("self-check: relative poses on the static stretches")
+    record = _static_relative(record, joint is not None)
+    clock.lap("static_relative")
+    return record
+
+
+def _static_relative(record: RunRecord, joint: bool) -> RunRecord:
+    """The record with its static relative-pose check (``self_checks.static_relative``),
+    from the continuous ground truth of its own GPs; a joint run's poses are not the GPs'
+    (its relative-pose covariance is not built yet): a note instead."""
+    if joint:
+        check = {"note": "not computed for the joint engine (its relative-pose covariance "
+                         "between distant times is not built yet)"}
+    else:
+        c = record.computation
+        stretches = static_stretches(c.prisms.t[c.keep], c.prisms.xyz[c.keep])
+        check = static_relative_check(ContinuousGroundTruth.from_record(record), stretches)
+    return replace(record, self_checks={**record.self_checks, "static_relative": check})
 
 
 def _position_stages(data: DeploymentData, options: RunOptions, front: Front, say: Progress,

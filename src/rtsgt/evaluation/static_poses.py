@@ -140,9 +140,8 @@ def static_relative_check(gt: ContinuousGroundTruth, stretches: ArrayLike,
                 continue
             lo, hi = v["interval_95"]
             warnings.warn(
-                f"self-check, relative poses over {name} s on the static stretches "
-                f"({v['pairs']} pairs): NEES / dof = {v['nees_per_dof']:.2f}, outside "
-                f"[{lo:.2f}, {hi:.2f}] (95 %, {v['n_eff']:.0f} effective samples); the "
-                f"predicted uncertainty of motion over {name} s is "
-                f"{verdict_meaning(v['verdict'])}", RtsgtWarning, stacklevel=2)
+                f"self-check, static relative poses over {name} s: NEES / dof "
+                f"{v['nees_per_dof']:.2f} outside [{lo:.2f}, {hi:.2f}] ({v['pairs']} pairs); "
+                f"95 % interval, {v['n_eff']:.0f} effective samples; the predicted "
+                f"uncertainty of motion over {name} s is {verdict_meaning(v['verdict'])}", RtsgtWarning, stacklevel=2)
     return out

@@ -204,6 +204,7 @@ def _self_checks_html(checks: Mapping) -> str:
     parts.append(_levelling_html(g.get("levelling")))
     parts.append(_dynamic_calibration_html(checks.get("dynamic_calibration")))
     parts.append(_static_noise_html(checks.get("static_noise")))
+    parts.append(_static_relative_html(checks.get("static_relative")))
     parts.append(_structure_html(checks.get("inter_prism_structure")))
     return "".join(parts)
 
@@ -335,6 +336,25 @@ def _tau(co: Mapping) -> str:
         return _fmt(tau, 2)
     return f"{_fmt(tau, 2)} ({_fmt(iv[0], 2)} – " + ("…)" if iv[1] is None
                                                      else f"{_fmt(iv[1], 2)})")
+
+
+def _static_relative_html(c: Mapping | None) -> str:
+    """The relative poses on the static stretches per lag (docs/self-checks.md)."""
+    if not c or "lags" not in c:
+        return "" if not c else f"<p class='note'>{html.escape(c.get('note', ''))}</p>"
+    body = "".join(
+        f"<tr><td class='s'>{html.escape(k)} s</td><td>{v['pairs']}</td>"
+        f"<td>{_fmt(v['nees_per_dof'], 3)}</td><td>{_fmt(v['position_nees_per_dof'], 3)}</td>"
+        f"<td>{_fmt(v['rotation_nees_per_dof'], 3)}</td><td>{_fmt(v.get('n_eff'), 3)}</td>"
+        f"<td>{_interval(v)}</td><td class='verdict'>{html.escape(v['verdict'])}</td></tr>"
+        for k, v in c["lags"].items())
+    return ("<h3>Relative poses on the static stretches</h3><table id='check-static-relative'>"
+            "<tr><th class='k'>lag</th><th>pairs</th><th>NEES / dof</th><th>position</th>"
+            "<th>rotation</th><th>n_eff</th><th>95 % interval</th><th>verdict</th></tr>"
+            f"{body}</table><p><small>Where the robot stands, the ground truth's relative pose "
+            "between two times is all error; its NEES against the run's covariance of the "
+            f"difference is 1 if honest at that time scale ({c['stretches']} stretches, "
+            f"{_fmt(c['static_s'], 3)} s). Method: rtsgt's docs/self-checks.md.</small></p>")
 
 
 def _static_noise_html(s: Mapping | None) -> str:
