@@ -42,6 +42,6 @@ def test_a_lever_arm_or_a_mounting_of_the_wrong_kind_is_refused():
         evaluate(poses, est, lever_arm=LEVER)
     points = PositionTrajectory(t, p + R @ LEVER)
     with pytest.raises(InputError, match="no rotation to fit a mounting"):
-        evaluate(points, est, lever_arm=LEVER, estimate=("clock",))
+        evaluate(points, est, lever_arm=LEVER, mounting=(0, 0, 0, 0, 0, 0, 1))
     with pytest.raises(TypeError, match="ground truth of positions"):
         evaluate_positions(poses, est, LEVER)

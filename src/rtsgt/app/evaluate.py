@@ -200,14 +200,14 @@ def run_evaluation(
         raise InputError(
             f"unknown ground-truth engine {gt_engine!r}; expected one of {', '.join(engines)}")
     if wants_positions(gt_dir, lever_arm=lever_arm, prism=prism, gt_topic=gt_topic):
-        if options is not None and (options.estimate or options.mounting is not None):
+        if options is not None and options.mounting is not None:
             raise InputError(
-                f"{gt_dir}: a position-only ground truth gives no rotation to fit a mounting or "
-                "a clock to (--estimate, --mounting); give the prism's lever arm in the sensor "
-                "frame with --lever-arm and the clock with --t-offset")
+                f"{gt_dir}: a position-only ground truth gives no rotation to fit a mounting "
+                "to (--mounting); give the prism's lever arm in the sensor frame with "
+                "--lever-arm (--estimate lever, lever-xy, clock to estimate it and the clock)")
         lever = parse_lever_arm(lever_arm)
         gt_pos = load_position_ground_truth(gt_dir, prism=prism, topic=gt_topic, mode=gt_mode)
-        if lever_arm is None:
+        if lever_arm is None and not (options is not None and options.estimate):
             warnings.warn("position-only ground truth without --lever-arm: the estimate's "
                           "sensor origin is compared with the tracked point (lever arm 0; the "
                           "estimate's rotation does not enter)", RtsgtWarning, stacklevel=2)

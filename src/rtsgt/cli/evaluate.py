@@ -274,6 +274,15 @@ def print_position_report(
     lever = ", ".join(f"{v:.4f}" for v in result.lever_arm)
     console.print(f"lever arm (sensor frame): [{lever}] m, {result.lever_arm_source}: the "
                   "estimate's point p + R l is compared", highlight=False)
+    m = result.mounting
+    if m is not None:  # the lever arm and the clock estimated (docs/evaluating.md)
+        d = m.to_prism_dict()
+        sig = ", ".join("given" if v is None else f"{1e3 * v:.2f}"
+                        for v in d["lever_arm_sigma_m"])
+        clock = ("given" if d["clock_sigma_s"] is None else
+                 f"{m.clock_offset:.4f} s +- {1e3 * d['clock_sigma_s']:.2f} ms")
+        console.print(f"estimated ({m.model} model): lever arm sigma [{sig}] mm; clock offset "
+                      f"{clock}", highlight=False)
     _print_alignment(console, result.alignment, "alignment of the points", "positions")
     table = _error_table("Position errors (rotations not reported: position-only ground truth)")
     table.add_row(*_stats_row("APE position (mm)", result.ape.translation_m, 1e3, 3))

@@ -67,6 +67,7 @@ from rtsgt.evaluation.mounting import (
     MountingFit,
     fit_mounting,
     mounting_sensitivity,
+    prism_lever_arm,
 )
 from rtsgt.evaluation.options import EvaluationOptions
 from rtsgt.evaluation.positions import align_step as align_points_step
@@ -211,17 +212,19 @@ def _fit_at(
             "(the weights of the least squares)"
         )
     S, L = g.cov, None
+    rotation = getattr(g, "rotation", None)  # None: a ground truth of positions
     if isinstance(gt, SharedFactorGroundTruth):
         split = gt.shared_split(g.t + assoc.time_offset)
         if split is not None:
             S, L = split.varying_cov, split.factor
+    d = 6 if rotation is not None else 3
     return fit_mounting(
-        g.position, g.rotation, S, assoc.est.position, assoc.est.rotation,
+        g.position, rotation, S, assoc.est.position, assoc.est.rotation,
         estimate=options.estimate, align=options.align, rotation=start.rotation,
         lever=start.lever, clock_offset=assoc.time_offset,
         gt_velocity=None if rates is None else rates.v,
-        gt_angular_velocity=None if rates is None else rates.w,
-        gt_rate_cov=None if rates is None else rates.cov,
+        gt_angular_velocity=None if rates is None or d == 3 else rates.w,
+        gt_rate_cov=None if rates is None or rates.cov is None else rates.cov[:, :d, :d],
         est_cov=assoc.est.cov, shared=L,
     )
 
@@ -236,21 +239,29 @@ def mounting_step(
     options: EvaluationOptions,
     gt_measurement_times: ArrayLike | None,
     gt_cross_next: ArrayLike | None,
+    start: MountingFit | None = None,
 ) -> tuple[MountingFit, Association, PoseTrajectory]:
     """Fit what ``options.estimate`` asks for jointly with the alignment, re-associating the ground
     truth at each new clock offset until the step is below ``CLOCK_TOLERANCE_S`` (at most
     :data:`MAX_CLOCK_ASSOCIATIONS` times, else a warning); returns the fit and the association.
+    ``start``: the mounting to start from (default: ``options``'); against a ground truth of
+    positions, the body frame is the tracked point's with the sensor's axes.
     """
-    start = given_mounting(options) or MountingFit.given(clock_offset=options.time_offset)
+    start = start or given_mounting(options) or MountingFit.given(
+        clock_offset=options.time_offset)
     offset = options.time_offset
     clock = "clock" in options.estimate
+    positions = ground_truth_dof(gt) == 3
+    rate_gt = positions_as_poses(gt) if positions else gt
     if clock:  # the coarse search over +-1 s (rotation angles over 1 s correlated)
         assoc, g = associate_step(gt, est, options, gt_measurement_times, gt_cross_next)
-        offset += coarse_clock_shift(assoc.est.t, g.rotation, assoc.est.rotation)
+        offset += (coarse_clock_shift(assoc.est.t, None, None, g.position, assoc.est.position)
+                   if positions else
+                   coarse_clock_shift(assoc.est.t, g.rotation, assoc.est.rotation))
     for _ in range(MAX_CLOCK_ASSOCIATIONS):
         assoc, g = associate_step(gt, est, dataclasses.replace(options, time_offset=offset),
                                   gt_measurement_times, gt_cross_next)
-        rates = ground_truth_rates(gt, assoc, measurement_times=gt_measurement_times) \
+        rates = ground_truth_rates(rate_gt, assoc, measurement_times=gt_measurement_times) \
             if clock else None
         fit = _fit_at(gt, g, assoc, options, start, rates)
         if not clock:
@@ -630,10 +641,17 @@ def _evaluate_positions(gt, est: PoseTrajectory, options: EvaluationOptions, lev
     is :func:`~rtsgt.evaluation.positions.align_step`'s; the rest of the chain is the poses'
     (docs/evaluation.md#position-only-ground-truth)."""
     check_position_alignment(options.align)
-    if options.estimate or options.mounting is not None:
-        raise InputError("A ground truth of positions gives no rotation to fit a mounting or a "
-                         "clock to (estimate=, mounting=): give the lever arm and time_offset")
+    if options.mounting is not None:
+        raise InputError("A ground truth of positions gives no rotation to fit a mounting to "
+                         "(mounting=): give the lever arm (estimate= lever, lever-xy, clock)")
     lever = parse_lever_arm(lever_arm)
+    fit = None
+    if options.estimate:  # the lever arm and the clock (docs/evaluating.md#a-drifting-odometry)
+        fit = mounting_step(gt, est, options, gt_measurement_times, None,
+                            MountingFit.given(np.eye(3), -lever, options.time_offset))[0]
+        lever, lever_arm_cov = prism_lever_arm(fit)
+        lever_arm_source = "estimated"
+        options = dataclasses.replace(options, time_offset=fit.clock_offset)
     assoc, g = associate_step(gt, est, options, gt_measurement_times, None)
     alignment = align_points_step(g, assoc.est, lever, options)
     e = alignment.apply(assoc.est)
@@ -673,7 +691,7 @@ def _evaluate_positions(gt, est: PoseTrajectory, options: EvaluationOptions, lev
         rpe_all_pairs=bool(options.all_pairs), rpe_absent_reason=no_rpe,
         lever_arm_source=lever_arm_source,
         lever_arm_cov=None if lever_arm_cov is None else np.asarray(lever_arm_cov, float),
-        drift=drift_step(gt, g, assoc, errors))
+        drift=drift_step(gt, g, assoc, errors), mounting=fit)
 
 
 def evaluate_positions(gt, est: PoseTrajectory, lever_arm=None,

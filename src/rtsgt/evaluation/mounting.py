@@ -144,6 +144,7 @@ __all__ = [
     "fit_mounting",
     "mounting_sensitivity",
     "parse_estimate",
+    "prism_lever_arm",
     "sigma_limits",
 ]
 
@@ -380,6 +381,29 @@ class MountingFit:
     def rotation_vector(self) -> np.ndarray:
         """``log(R_body_sensor)``, rad."""
         return log_so3(self.rotation)
+
+    def to_prism_dict(self) -> dict:
+        """JSON-ready, against a ground truth of positions: the tracked point's lever arm in
+        the sensor frame (:func:`prism_lever_arm`) and the clock, their sigmas (null where
+        given) and the fit."""
+        lever, cov = prism_lever_arm(self)
+        ls = self.group_sigma("lever")
+        cs = self.group_sigma("clock")
+        out = self.to_dict()
+        for key in ("T_body_sensor", "quat_xyzw", "rotation_angle_deg", "rotation_axis",
+                    "rotation_sigma_deg", "lever_m", "lever_sigma_m"):
+            out.pop(key)
+        out["given"] = [g for g in out["given"] if g != "rotation"]
+        out.update({
+            "lever_arm_m": lever.tolist(), "lever_arm_frame": "sensor (estimate)",
+            "lever_arm_sigma_m": None if ls is None else [
+                None if not np.isfinite(v) else float(v) for v in ls],
+            "lever_arm_cov_m2": cov.tolist(),
+            "clock_sigma_s": None if cs is None else float(cs[0])})
+        if "covariance" in out:  # the lever arm's sign flipped: l = -t_body_sensor
+            sign = np.array([-1.0 if n.startswith("lever_") else 1.0 for n in self.names])
+            out["covariance"] = (sign[:, None] * self.covariance * sign[None, :]).tolist()
+        return out
 
     def to_dict(self) -> dict:
         """JSON-ready: the values, their sigmas (null where given) and the fit."""
@@ -1158,6 +1182,19 @@ def _fmt(value: float, unit: str) -> str:
     if not np.isfinite(value):
         return "unbounded (the normal matrix is singular along it)"
     return f"{value:.3g} {unit}"
+
+
+def prism_lever_arm(fit: MountingFit) -> tuple[np.ndarray, np.ndarray]:
+    """The lever arm of a tracked point in the sensor frame, ``l`` (3,) m, and its covariance
+    (3, 3) m^2 (zero for a component given), from a fit against a ground truth of positions:
+    its body frame is the point's with the sensor's axes (``R_bs = I``), so ``l = -t_body_sensor``
+    (docs/evaluating.md#position-only-ground-truth-one-tracked-prism)."""
+    cov = np.zeros((3, 3))
+    idx = [i for i, n in enumerate(fit.names) if n.startswith("lever_")]
+    axes = ["xyz".index(fit.names[i][-1]) for i in idx]
+    if fit.covariance is not None and idx:
+        cov[np.ix_(axes, axes)] = fit.covariance[np.ix_(idx, idx)]
+    return -np.asarray(fit.lever, dtype=float), cov
 
 
 def mounting_sensitivity(fit: MountingFit, R_hat: ArrayLike, velocity: ArrayLike | None = None,

@@ -233,11 +233,12 @@ class PositionEvaluationResult:
     lever_arm_source: str = "given"
     lever_arm_cov: np.ndarray | None = None
     drift: Drift | None = None
+    mounting: MountingFit | None = None  # the lever arm and the clock, when estimated
 
     def to_dict(self) -> dict:
         """The JSON layout of ``rtsgt evaluate --json`` (:meth:`EvaluationResult.to_dict`'s,
         rotations ``null``), with ``ground_truth`` ``"positions"``, ``lever_arm`` and
-        ``rotation``."""
+        ``rotation`` (and ``mounting``: :meth:`MountingFit.to_prism_dict`, or null)."""
         ape, rpe = error_sections(self)
         rpe["definition"] = "|(p_est,j - p_est,i) - (p_gt,j - p_gt,i)|, world frame"
         return {
@@ -254,4 +255,5 @@ class PositionEvaluationResult:
             "alignment": self.alignment.to_dict(),
             "association": self.association.to_dict(),
             "drift": None if self.drift is None else self.drift.to_dict(),
+            "mounting": None if self.mounting is None else self.mounting.to_prism_dict(),
         }
