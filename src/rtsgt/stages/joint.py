@@ -142,7 +142,7 @@ def joint_split(joint: JointFit) -> SharedFactor | None:
 def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, Any]:
     """``joint`` of ``summary.json``: what the joint engine estimated besides the poses, JSON
     ready (docs/file-formats.md#summaryjson). ``qc``: the prior's ``Qc`` per motion class
-    (m^2/s^3 and rad^2/s^3, body axes forward, lateral, vertical, roll, pitch, yaw) with its
+    (m^2/s^3 and rad^2/s^3, the body frame's axes: the reference prisms' frame) with its
     redundancy; ``kappa_ppm`` with its sigma; ``stations``: each station's posterior shift
     from its calibration (mm, mrad, and in the calibration's sigmas per axis); ``clocks``: per
     station but the reference its offset (ms) at the start and the end, the largest
@@ -154,7 +154,7 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
         "qc": {CLASS_NAMES[c]: {"qc": q.table[c].tolist(), "redundancy": q.redundancy[c].tolist(),
                                 "intervals": int(used[c])}
                for c in range(len(CLASS_NAMES)) if used[c] > 0},
-        "qc_axes": ["forward", "lateral", "vertical", "roll", "pitch", "yaw"],
+        "qc_axes": ["x", "y", "z", "rx", "ry", "rz"],
         "qc_iterations": int(q.iterations),
         "kappa_ppm": float(jr.kappa_ppm), "kappa_sigma_ppm": float(jr.kappa_sigma_ppm),
         "stations": {sid: _station_shift(calibration.transforms[sid], T)
