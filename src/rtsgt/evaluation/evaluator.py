@@ -43,7 +43,7 @@ from rtsgt.evaluation.drift import (
     drift_metrics,
     kitti_errors,
 )
-from rtsgt.evaluation.handeye import coarse_clock_shift
+from rtsgt.evaluation.handeye import ODOMETRY_COMPONENTS, coarse_clock_shift
 from rtsgt.evaluation.lever_arm import lever_arm_points, parse_lever_arm, point_covariance
 from rtsgt.evaluation.metrics import (
     NeesResult,
@@ -225,7 +225,8 @@ def _fit_at(
         gt_velocity=None if rates is None else rates.v,
         gt_angular_velocity=None if rates is None or d == 3 else rates.w,
         gt_rate_cov=None if rates is None or rates.cov is None else rates.cov[:, :d, :d],
-        est_cov=assoc.est.cov, shared=L,
+        est_cov=assoc.est.cov, shared=L, odometry_levels=None if start.odometry is None
+        else [start.odometry[c] for c in ODOMETRY_COMPONENTS],
     )
 
 
@@ -266,6 +267,7 @@ def mounting_step(
         fit = _fit_at(gt, g, assoc, options, start, rates)
         if not clock:
             return fit, assoc, g
+        start = dataclasses.replace(start, odometry=fit.odometry)  # the next levels start there
         step = fit.clock_offset - offset
         offset = fit.clock_offset
         if abs(step) < CLOCK_TOLERANCE_S:

@@ -198,14 +198,15 @@ def profile_normal(M: DriftModel, levels: np.ndarray, r: np.ndarray,
     P, k = J.shape[2], 0 if L is None else L.shape[2]
     X = np.concatenate([J] + ([] if L is None else [L]) + [r[:, :, None]], axis=2)
     WiX = Wi @ X
-    G = np.einsum("nip,niq->pq", X, WiX)
+    m = X.shape[2]
+    G = X.reshape(-1, m).T @ WiX.reshape(-1, m)  # sum_k X_k^T W_k^-1 X_k
     Qvar = M.step[:, None] * np.array([qp * qp] * 3 + [qy * qy])
     logdet += float(np.sum(np.log(Qvar)))
     HWH = np.swapaxes(M.H, 1, 2) @ Wi @ M.H
-    cb = cholesky_banded(_banded(M, 1.0 / Qvar, HWH), lower=False)
+    cb = cholesky_banded(_banded(M, 1.0 / Qvar, HWH), lower=False, check_finite=False)
     logdet += 2.0 * float(np.sum(np.log(cb[7])))
     Z = (np.swapaxes(M.H, 1, 2) @ WiX)[1:].reshape(-1, X.shape[2])
-    Y = cho_solve_banded((cb, False), Z)  # the states' response to each column
+    Y = cho_solve_banded((cb, False), Z, check_finite=False)  # the states' response
     G -= Z.T @ Y
     a, b, c = slice(0, P), slice(P, P + k), P + k
     Mk = np.eye(k) + G[b, b]

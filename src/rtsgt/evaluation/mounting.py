@@ -851,6 +851,7 @@ def fit_mounting(
     est_cov: ArrayLike | None = None,
     shared: ArrayLike | None = None,
     max_iter: int = 50,
+    odometry_levels: ArrayLike | None = None,
 ) -> MountingFit:
     r"""Estimate the mounting ``T_body_sensor`` and/or the clock offset with the alignment.
 
@@ -890,6 +891,10 @@ def fit_mounting(
         Factor of the ground truth's errors shared by the poses (:mod:`rtsgt.shared`).
     max_iter : int
         Gauss-Newton iterations at most.
+    odometry_levels : array_like, shape (4,), optional
+        Where the odometry's levels (:data:`~rtsgt.evaluation.handeye.ODOMETRY_COMPONENTS`)
+        start when its error is modelled (a previous fit's, at the last clock association);
+        by default from the absolute fit's residual.
 
     Returns
     -------
@@ -963,7 +968,7 @@ def fit_mounting(
     start, x, _ = best
     x, nrm, Rh, iterations = _gauss_newton(x, D, align, est, max_iter)
     if nrm.chi2 > ODOMETRY_CHI2_RATIO * (N * d - p_total):
-        return _odometry(x, D, align, est, clock_offset, start, max_iter)
+        return _odometry(x, D, align, est, clock_offset, start, max_iter, odometry_levels)
     if V is not None:  # the information the velocities' noise feigns (gt_rate_cov)
         k = _layout(align, est)["clock"].start
         feigned = float(np.einsum("nij,nji->", np.linalg.inv(_covariance(x, D, Rh)), V))
@@ -1046,10 +1051,10 @@ def _odometry_start(x: _State, D: _Data) -> np.ndarray:
 
 
 def _odometry(x: _State, D: _Data, align: str, est: tuple[str, ...], clock_offset: float,
-              start: str, max_iter: int) -> MountingFit:
+              start: str, max_iter: int, levels: ArrayLike | None = None) -> MountingFit:
     """The mounting and the clock with the odometry's own error (:mod:`.handeye`): its levels
-    (REML) and the fit alternated until the levels settle."""
-    levels = _odometry_start(x, D)
+    (REML, from ``levels`` when given) and the fit alternated until the levels settle."""
+    levels = _odometry_start(x, D) if levels is None else np.asarray(levels, dtype=float)
     for _ in range(ODOMETRY_ROUNDS):
         r, q, Rh, _ = _residual(x, D)
         S = _covariance(x, D, Rh)
