@@ -1,6 +1,7 @@
 """Block cross-validation of the raw measurements (rtsgt.joint.blockcv): the deletion NEES
 from the banded posterior against a dense inverse and against deleting the block and solving
-again, and its verdict on honest and on too-small measurement covariances."""
+again, and its verdict on honest and on too-small measurement covariances; the covariance of
+distant knots and query poses (rtsgt.joint.relative) against a dense inverse."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import pytest
 from rtsgt.joint import engine
 from rtsgt.joint.blockcv import RawBlocks, raw_block_cv, raw_block_summary
 from rtsgt.joint.engine import assemble, gauss_newton
+from rtsgt.joint.relative import chain_gains, knot_cross_covariance, query_cross_covariance
 from rtsgt.stats import ratio_interval
 from test_joint import _synthetic  # the joint tests' synthetic problem
 
@@ -20,28 +22,35 @@ from test_joint import _synthetic  # the joint tests' synthetic problem
 QC_TRUE = np.full(6, 1e-8)
 
 
-def _dense_rows(prob, Hk, Hg):
+def _dense_rows(prob, Hk, Hg, Hc=None, cols=None):
     K, G = prob.t_knot.size, prob.n_globals
     H = np.zeros((Hk.shape[0], 3, 12 * K + G))
     for m, k in enumerate(prob.of_meas):  # a small test problem
         H[m, :, 12 * k:12 * k + 12] = Hk[m]
         H[m, :, 12 * K:12 * K + Hg.shape[2]] = Hg[m]
+        if Hc is not None:
+            for a in range(2):
+                H[m, :, 12 * K + cols[m, a]] += Hc[m, :, a]
     return H
 
 
-def test_deletion_nees_equals_a_dense_inverse_and_a_solve_without_the_block():
+@pytest.mark.parametrize("extra", [{}, {"clock_s": [0.0, 0.008, -0.005],
+                                      "moved": [0.01, -0.02, 0.0]}])
+def test_deletion_nees_equals_a_dense_inverse_and_a_solve_without_the_block(extra):
+    """Without globals beyond the stations and the atmosphere, and with clock knots and the
+    prisms' positions among them."""
     rng = np.random.default_rng(31)
-    prob, truth = _synthetic(rng, K=30, noise=1.0)
+    prob, truth = _synthetic(rng, K=30, noise=1.0, **extra)
     prob = replace(prob, qc=QC_TRUE)
     s, sol, info = gauss_newton(prob, truth, max_iter=20, tol=1e-14)
-    r, Hk, Hg, _, _ = engine._measurement_terms(prob, s)
+    r, Hk, Hg, Hc, cols = engine.measurement_terms(prob, s)
     m = prob.meas
-    out = raw_block_cv(m.t, m.station, prob.of_meas, r, m.info, Hk, Hg, sol, max_gap_s=5.0)
+    out = raw_block_cv(prob, s, sol, max_gap_s=5.0)
     assert out.n.sum() == m.t.size and out.nees.size >= 15
     system, _ = assemble(prob, s)
     N, _ = system.dense()
     cov = np.linalg.inv(N)
-    H = _dense_rows(prob, Hk, Hg)
+    H = _dense_rows(prob, Hk, Hg, Hc, cols)
     R = np.linalg.inv(m.info)
     for b in range(out.nees.size):
         sel = np.flatnonzero((m.station == out.station[b]) & (m.t >= out.t0[b])
@@ -74,10 +83,7 @@ def test_verdict_consistent_for_the_model_and_optimistic_for_noise_larger_than_s
             prob, truth = _synthetic(rng, K=60, noise=scale)
             prob = replace(prob, qc=QC_TRUE)
             s, sol, _ = gauss_newton(prob, truth, max_iter=20, tol=1e-12)
-            r, Hk, Hg, _, _ = engine._measurement_terms(prob, s)
-            m = prob.meas
-            rows.append(raw_block_cv(m.t, m.station, prob.of_meas, r, m.info, Hk, Hg, sol,
-                                     max_gap_s=5.0))
+            rows.append(raw_block_cv(prob, s, sol, max_gap_s=5.0))
         return RawBlocks(*(np.concatenate([getattr(x, f) for x in rows])
                            for f in ("station", "t0", "t1", "n", "nees")))
 
@@ -89,3 +95,26 @@ def test_verdict_consistent_for_the_model_and_optimistic_for_noise_larger_than_s
     small = raw_block_summary(pooled(1.5, range(60, 72)), ("1", "2", "3"), warn=False)
     assert small["overall"]["verdict"] == "optimistic", small["overall"]
     assert small["overall"]["nees_per_dof"] > 1.8
+
+
+def test_cross_covariance_of_distant_knots_and_queries_equals_a_dense_inverse():
+    rng = np.random.default_rng(33)
+    prob, truth = _synthetic(rng, K=30, noise=1.0, clock_s=[0.0, 0.004, -0.002])
+    s, sol, _ = gauss_newton(prob, truth, max_iter=20, tol=1e-14)
+    system, _ = assemble(prob, s)
+    N, _ = system.dense()
+    cov = np.linalg.inv(N)
+    k_a, k_b = np.array([0, 3, 7, 12, 20]), np.array([1, 3, 19, 28, 28])
+    C = knot_cross_covariance(sol, chain_gains(sol), k_a, k_b)
+    for i, (a, b) in enumerate(zip(k_a, k_b, strict=True)):
+        ref = cov[12 * a:12 * a + 12, 12 * b:12 * b + 12]
+        np.testing.assert_allclose(C[i], ref, rtol=1e-5, atol=1e-5 * np.abs(ref).max())
+    # query poses: any Jacobians on their intervals' two knots
+    q_a, q_b = np.array([0, 4, 10]), np.array([2, 26, 28])
+    J_a, J_b = rng.normal(size=(3, 6, 24)), rng.normal(size=(3, 6, 24))
+    out = query_cross_covariance(sol, q_a, J_a, q_b, J_b)
+    for i, (a, b) in enumerate(zip(q_a, q_b, strict=True)):
+        ref = J_a[i] @ cov[12 * a:12 * a + 24, 12 * b:12 * b + 24] @ J_b[i].T
+        np.testing.assert_allclose(out[i], ref, rtol=1e-5, atol=1e-5 * np.abs(ref).max())
+    with pytest.raises(ValueError):
+        query_cross_covariance(sol, q_b, J_b, q_a, J_a)

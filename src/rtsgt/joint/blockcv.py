@@ -18,6 +18,8 @@ import numpy as np
 
 from rtsgt.errors import RtsgtWarning
 from rtsgt.interpolation.windows import BLOCK_LENGTHS_S, cv_blocks
+from rtsgt.joint.engine import JointProblem, JointState, measurement_terms
+from rtsgt.joint.relative import chain_gains, chain_products
 from rtsgt.joint.sparse import ArrowSolution
 from rtsgt.stats import integrated_autocorrelation_time, ratio_interval, ratio_verdict
 
@@ -41,12 +43,6 @@ class RawBlocks:
     nees: np.ndarray
 
 
-def _gains(sol: ArrowSolution) -> np.ndarray:
-    """``G_k = Cov(x_k, x_k+1) Cov(x_k+1)^-1`` (K-1, d, d) of the knots' chain given the
-    globals, so that ``Cov(x_i, x_j) = G_i ... G_j-1 Cov(x_j)`` for ``i < j``."""
-    return np.linalg.solve(sol.cov_var[1:], np.swapaxes(sol.cov_var_next, 1, 2)).swapaxes(1, 2)
-
-
 def _block_index(t, station, max_gap_s):
     """Measurement indices (B, n_max) of each block of one station, -1 padded, time order."""
     rows, owner = [], []
@@ -66,37 +62,27 @@ def _block_index(t, station, max_gap_s):
     return out, np.asarray(owner, dtype=int)
 
 
-def _chain(gains, k_a, k_b):
-    """``G_ka ... G_kb-1`` (N, d, d) for ``k_a <= k_b`` (N,) (the identity where equal)."""
-    d = gains.shape[1]
-    T = np.broadcast_to(np.eye(d), (k_a.size, d, d)).copy()
-    steps = k_b - k_a
-    for j in range(int(steps.max(initial=0))):  # the knots between two measurements
-        on = steps > j
-        T[on] = T[on] @ gains[k_a[on] + j]
-    return T
-
-
-def raw_block_cv(t, station, of_meas, r, info, Hk, Hg, sol: ArrowSolution,
+def raw_block_cv(prob: JointProblem, s: JointState, sol: ArrowSolution,
                  max_gap_s: float) -> RawBlocks:
-    """Deletion NEES of every block of every station's measurements.
-
-    ``t`` (M,) s, ``station`` (M,) index, ``of_meas`` (M,) knot; ``r`` (M, 3) the fitted
-    residuals, ``info`` (M, 3, 3) their weights (``R^-1``), ``Hk`` (M, 3, d) the Jacobian on
-    the knot's state, ``Hg`` (M, 3, G) on the globals; ``sol`` the solution with its
-    covariances (``want_cov``); ``max_gap_s``: a longer gap starts new blocks."""
-    t = np.asarray(t, dtype=float)
-    idx, owner = _block_index(t, np.asarray(station), max_gap_s)
-    gains = _gains(sol)
-    u = Hk @ sol.factor[of_meas] + Hg @ sol.chol_g  # (M, 3, G): the globals' part
-    R = np.linalg.inv(info)
+    """Deletion NEES of every block of every station's measurements of the problem ``prob``
+    at its solution ``s`` with the covariances ``sol`` (``want_cov``); ``max_gap_s``: a
+    longer gap starts new blocks."""
+    m = prob.meas
+    r, Hk, Hg, Hc, cols = measurement_terms(prob, s)
+    k = prob.of_meas
+    u = Hk @ sol.factor[k] + Hg @ sol.chol_g[:prob.n_fixed]  # (M, 3, G): the globals' part
+    if Hc is not None:
+        for a in range(2):  # the two clock knots of each measurement
+            u += Hc[:, :, a:a + 1] * sol.chol_g[cols[:, a]][:, None, :]
+    idx, owner = _block_index(m.t, m.station, max_gap_s)
+    gains = chain_gains(sol)
+    R = np.linalg.inv(m.info)
     nees = np.zeros(idx.shape[0])
     for lo in range(0, idx.shape[0], _CHUNK):
-        nees[lo:lo + _CHUNK] = _chunk_nees(idx[lo:lo + _CHUNK], of_meas, r, R, Hk, u, sol,
-                                           gains)
+        nees[lo:lo + _CHUNK] = _chunk_nees(idx[lo:lo + _CHUNK], k, r, R, Hk, u, sol, gains)
     valid = idx >= 0
     first, last = idx[:, 0], idx[np.arange(idx.shape[0]), valid.sum(axis=1) - 1]
-    return RawBlocks(owner, t[first], t[last], valid.sum(axis=1), nees)
+    return RawBlocks(owner, m.t[first], m.t[last], valid.sum(axis=1), nees)
 
 
 def _chunk_nees(idx, of_meas, r, R, Hk, u, sol, gains):
@@ -107,7 +93,7 @@ def _chunk_nees(idx, of_meas, r, R, Hk, u, sol, gains):
     m = np.where(valid, idx, 0)
     k = np.where(valid, of_meas[m], of_meas[m[:, :1]])  # padding: no chain
     k = np.maximum.accumulate(k, axis=1)
-    P = [_chain(gains, k[:, a], k[:, a + 1]) for a in range(n - 1)]
+    P = [chain_products(gains, k[:, a], k[:, a + 1]) for a in range(n - 1)]
     Q = np.zeros((B, n, 3, n, 3))
     Hm = Hk[m]
     for b in range(n):  # places in the blocks (a block's measurements, not all of them)

@@ -1,0 +1,67 @@
+"""Covariance between the joint engine's poses at two distant times (the relative pose).
+
+The knots given the globals are a Gauss-Markov chain (block-tridiagonal precision), so
+``Cov(x_i, x_j) = G_i ... G_j-1 Cov(x_j)`` for ``i < j``, ``G_k = Cov(x_k, x_k+1)
+Cov(x_k+1)^-1``; the globals add ``L_i L_j^T``. A query pose is the GP's interpolation of its
+interval's two knots: docs/joint.md#poses-at-two-times.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from rtsgt.joint.sparse import ArrowSolution
+
+__all__ = ["chain_gains", "chain_products", "knot_cross_covariance", "query_cross_covariance"]
+
+
+def chain_gains(sol: ArrowSolution) -> np.ndarray:
+    """``G_k = Cov(x_k, x_k+1) Cov(x_k+1)^-1`` (K-1, d, d) of the knots given the globals."""
+    return np.linalg.solve(sol.cov_var[1:], np.swapaxes(sol.cov_var_next, 1, 2)).swapaxes(1, 2)
+
+
+def chain_products(gains: np.ndarray, k_a: np.ndarray, k_b: np.ndarray) -> np.ndarray:
+    """``G_ka ... G_kb-1`` (N, d, d) for ``k_a <= k_b`` (N,) (the identity where equal); a
+    loop over the knots between, each step batched over the pairs still going."""
+    d = gains.shape[1]
+    T = np.broadcast_to(np.eye(d), (k_a.size, d, d)).copy()
+    steps = np.asarray(k_b) - np.asarray(k_a)
+    for j in range(int(steps.max(initial=0))):
+        on = np.flatnonzero(steps > j)
+        T[on] = T[on] @ gains[k_a[on] + j]
+    return T
+
+
+def knot_cross_covariance(sol: ArrowSolution, gains: np.ndarray, k_a: np.ndarray,
+                          k_b: np.ndarray) -> np.ndarray:
+    """``Cov(x_ka, x_kb)`` (N, d, d) of the knots' states, ``k_a <= k_b`` (N,): the chain's
+    part and the globals' ``L_ka L_kb^T``."""
+    k_a, k_b = np.asarray(k_a), np.asarray(k_b)
+    C = chain_products(gains, k_a, k_b) @ sol.cov_var[k_b]
+    return C + sol.factor[k_a] @ np.swapaxes(sol.factor[k_b], 1, 2)
+
+
+def query_cross_covariance(sol: ArrowSolution, k_a: np.ndarray, J_a: np.ndarray,
+                           k_b: np.ndarray, J_b: np.ndarray) -> np.ndarray:
+    """``Cov(d_a, d_b)`` (N, 6, 6) of the right perturbations of query poses ``a`` and ``b``
+    (``a`` in an earlier interval: ``k_a < k_b``), each the GP's interpolation of its
+    interval ``k`` (N,) with Jacobian ``J`` (N, 6, 24) on the two knots' ``(d, dw)``
+    (:func:`rtsgt.joint.interpolate.query_jacobians`). Within one interval the GP's own
+    conditional variance would correlate them too: such pairs are an error here."""
+    k_a, k_b = np.asarray(k_a), np.asarray(k_b)
+    if np.any(k_a >= k_b):
+        raise ValueError("Expected each pair's first pose in an earlier interval")
+    gains = chain_gains(sol)
+    d = sol.cov_var.shape[1]
+    T1 = chain_products(gains, k_a + 1, k_b)  # knot k_a+1 to knot k_b
+    C11 = T1 @ sol.cov_var[k_b]                            # (k_a+1, k_b)
+    C12 = T1 @ gains[k_b] @ sol.cov_var[k_b + 1]           # (k_a+1, k_b+1)
+    G0 = gains[k_a]
+    C01, C02 = G0 @ C11, G0 @ C12                          # (k_a, k_b), (k_a, k_b+1)
+    block = np.zeros((k_a.size, 2 * d, 2 * d))
+    block[:, :d, :d], block[:, :d, d:] = C01, C02
+    block[:, d:, :d], block[:, d:, d:] = C11, C12
+    La = np.concatenate([sol.factor[k_a], sol.factor[k_a + 1]], axis=1)
+    Lb = np.concatenate([sol.factor[k_b], sol.factor[k_b + 1]], axis=1)
+    block += La @ np.swapaxes(Lb, 1, 2)
+    return J_a @ block @ np.swapaxes(J_b, 1, 2)
