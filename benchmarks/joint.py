@@ -5,7 +5,7 @@ clock states (offsets against the truth at 1 Hz: share within 2 sigma). Numbers:
 docs/joint.md#measured.
 
 Usage: python benchmarks/joint.py [--duration 600] [--seeds 101 102 103] [--time-sync]
-       [--field [--without displacement gm reality survey]] [--clocks] [--prisms]
+       [--field [--without displacement gm reality survey]] [--clocks] [--prisms] [--noise]
 """
 
 from __future__ import annotations
@@ -25,6 +25,8 @@ from rtsgt.geometry.transform import perturbation
 from rtsgt.io.deployment import load_deployment
 from rtsgt.joint import estimate_joint
 from rtsgt.joint.knots import qc_from_prisms
+from rtsgt.joint.measurements import GLOBAL_SOURCES, polar_measurements
+from rtsgt.joint.noise import CHANNELS, RANGE_UNIT_M, noise_basis
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 from rtsgt.simulation.presets import preset_config
@@ -81,8 +83,41 @@ def prism_scores(jr, sim) -> dict:
     return out
 
 
+def noise_scores(jr, meas, sim) -> dict:
+    """The white noise's components per station and channel: the datasheet's variance factor
+    and the range part (estimate, sigma); on the field preset each channel's variance at the
+    station's median range against the truth's (angles ``w^2 + s^2 d / 100 m``, distance
+    ``(w + ppm 1e-6 d)^2``; both over the datasheet's there): share within 2 sigma, |z|."""
+    nf = jr.noise
+    out = {}
+    z = []
+    f = sim.truth.field
+    for i, sid in enumerate(nf.stations):
+        sel = meas.station == i
+        for c, ch in enumerate(CHANNELS):
+            th, sg, det = nf.theta[i, c], nf.sigma[i, c], nf.determined[i, c]
+            out[f"f_{sid}{ch}"] = f"{th[0]:.3g}+-{sg[0]:.2g}" + ("" if det[0] else "(prior)")
+            out[f"r_{sid}{ch}"] = f"{np.sqrt(max(th[1], 0)):.2g}" if det[1] else "-"
+            if f is None or not sel.any():
+                continue
+            k = f.station_ids.index(sid)
+            d = float(np.median(meas.y[sel, 2]))
+            q = noise_basis(np.median(meas.var_white[sel], axis=0)[None, :], np.array([d]))[0, c]
+            w, rc = f.white[k, c], f.range_coef[k, c]
+            v_true = w**2 + rc**2 * d / RANGE_UNIT_M if c < 2 else (w + 1e-6 * rc * d) ** 2
+            g = q * det
+            C = nf.cov[i][2 * c:2 * c + 2, 2 * c:2 * c + 2]
+            z.append((th @ q - v_true) / np.sqrt(g @ C @ g))
+            out[f"t_{sid}{ch}"] = f"{v_true / q[0]:.3g}@{d:.0f}m,z={z[-1]:.1f}"
+    if z:
+        z = np.abs(np.array(z))
+        out.update(noise_within_2s=float(np.mean(z < 2)), noise_max_z=float(z.max()))
+    return out
+
+
 def case(duration_s: float, seed: int, time_sync: bool, folder: Path, field: bool = False,
-         clocks: bool = False, without: tuple[str, ...] = (), prisms: bool = False) -> dict:
+         clocks: bool = False, without: tuple[str, ...] = (), prisms: bool = False,
+         noise: bool = False) -> dict:
     """One simulated deployment through the per-prism pipeline and the joint engine."""
     if field:
         cfg = field_config(duration_s, without)
@@ -103,7 +138,7 @@ def case(duration_s: float, seed: int, time_sync: bool, folder: Path, field: boo
     tick = time.perf_counter()
     jr = estimate_joint(obs, comp.calibration, data.reference, comp.noise_model, tq, tq,
                         est.R[keep], est.t[keep], qc, weather=data.weather, clocks=clocks,
-                        prisms=prisms)
+                        prisms=prisms, noise=noise)
     wall = time.perf_counter() - tick
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
@@ -125,6 +160,12 @@ def case(duration_s: float, seed: int, time_sync: bool, folder: Path, field: boo
         else {}
     if prisms and jr.prisms is not None:
         extra.update(prism_scores(jr, sim))
+    if noise:
+        carried = GLOBAL_SOURCES + (("time_sync",) if clocks else ())
+        meas = polar_measurements(obs, tuple(comp.calibration.transforms),
+                                  tuple(data.reference.names), comp.noise_model, data.weather,
+                                  carried)
+        extra.update(noise_scores(jr, meas, sim))
     return dict(
         seed=seed, poses=tq.size, knots=jr.n_knots, measurements=jr.n_measurements,
         nees_joint=nj.mean() / 6, nees_pp=npp.mean() / 6,
@@ -146,6 +187,8 @@ def main() -> None:
     ap.add_argument("--clocks", action="store_true", help="the joint engine's clock states")
     ap.add_argument("--prisms", action="store_true",
                     help="the prisms' body positions as parameters (the survey as prior)")
+    ap.add_argument("--noise", action="store_true",
+                    help="the white noise per station and channel estimated")
     ap.add_argument("--without", nargs="*", default=[],
                     choices=["displacement", "gm", "reality", "survey"],
                     help="field-hour effects left out")
@@ -154,7 +197,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
             r = case(args.duration, seed, args.time_sync, Path(tmp), args.field, args.clocks,
-                     tuple(args.without), args.prisms)
+                     tuple(args.without), args.prisms, args.noise)
             rows.append(r)
             print(" ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
                            for k, v in r.items()), flush=True)

@@ -12,6 +12,14 @@ import numpy as np
 from rtsgt.geometry.so3 import exp_so3, hat, log_so3
 from rtsgt.joint.clock import ClockModel
 from rtsgt.joint.measurements import PolarMeasurements, predict, residual
+from rtsgt.joint.noise import (
+    PRIOR,
+    NoiseFit,
+    component_sums,
+    measurement_cov,
+    noise_basis,
+    update_components,
+)
 from rtsgt.joint.prior import prior_terms, wnoa_q_inv
 from rtsgt.joint.prisms import free_prism, gauge_directions, prism_tests
 from rtsgt.joint.qc import (
@@ -63,7 +71,8 @@ class JointProblem:
     ``qc`` (6,) or one per interval (K-1, 6), the clock states (None: no clocks) and the
     information ``prism_info`` (3P, 3P) of the survey ``p_body`` as the prior of the prisms'
     body positions (None: held at the survey) and the survey's covariance ``prism_cov``, and the prisms found moved ``prism_found``
-    (index, test statistic, dof at detection; docs/joint.md#prism-positions). Globals: the free stations' ``(dt, dtheta)``,
+    (index, test statistic, dof at detection; docs/joint.md#prism-positions), and the white
+    noise's components where estimated (``noise``; ``meas.info`` follows them). Globals: the free stations' ``(dt, dtheta)``,
     ``kappa``, the prisms' positions (3P), the clocks' knots (C, J)."""
 
     t_knot: np.ndarray
@@ -80,6 +89,7 @@ class JointProblem:
     prism_info: np.ndarray | None = None
     prism_cov: np.ndarray | None = None
     prism_found: tuple[tuple[int, float, int], ...] = ()
+    noise: NoiseFit | None = None
 
     @property
     def kappa_col(self) -> int:
@@ -139,11 +149,12 @@ def measurement_terms(prob: JointProblem, s: JointState):
     return r, Hk, Hg, Hc, np.stack([first, first + 1], axis=1)
 
 
-def measurement_hsh(prob: JointProblem, s: JointState, sol) -> np.ndarray:
+def measurement_hsh(prob: JointProblem, s: JointState, sol, terms=None) -> np.ndarray:
     """Covariance (M, 3, 3) of the measurements' fitted values, ``H Sigma H^T`` with the
     knot's marginal and its cross covariance with the globals: ``Hk V_k Hk^T + Z Z^T``,
-    ``Z = Hk L_k + Hg chol_g`` (:class:`rtsgt.joint.sparse.ArrowSolution`'s split)."""
-    _, Hk, Hg, Hc, cols = measurement_terms(prob, s)
+    ``Z = Hk L_k + Hg chol_g`` (:class:`rtsgt.joint.sparse.ArrowSolution`'s split);
+    ``terms`` the Jacobians of :func:`measurement_terms` at ``s`` where already computed."""
+    Hk, Hg, Hc, cols = measurement_terms(prob, s)[1:] if terms is None else terms
     k = prob.of_meas
     G0 = prob.n_fixed
     Z = Hk @ sol.factor[k] + Hg @ sol.chol_g[:G0]
@@ -314,11 +325,13 @@ class QcFit:
 
 
 def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
-                  max_iter: int = 10, tol: float = 1e-6):
+                  max_iter: int = 10, tol: float = 1e-6, estimate_noise: bool = False):
     """Gauss-Newton with the prior's ``Qc`` per motion class by iterated variance components
-    (docs/joint.md#qc-from-the-data), starting from ``prob.qc`` (6,) for every class; each
-    iteration re-solves from the last state. Returns the problem with the final ``qc`` per
-    interval, the state, the :class:`rtsgt.joint.sparse.ArrowSolution`, the last
+    (docs/joint.md#qc-from-the-data), starting from ``prob.qc`` (6,) for every class, with
+    (``estimate_noise``) the white noise's components (docs/joint.md#noise-identification;
+    the problem's ``noise``) and the prisms' tests (where they are parameters) in the same
+    loop; each iteration re-solves from the last state. Returns the problem with the final
+    ``qc`` per interval, the state, the :class:`rtsgt.joint.sparse.ArrowSolution`, the last
     :class:`SolveInfo` and a :class:`QcFit`."""
     n = prob.t_knot.size - 1
     qc0 = np.asarray(prob.qc, dtype=float)
@@ -329,29 +342,64 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     red_g = np.zeros_like(table)
     own = None
     it = 0
-    dt = np.diff(prob.t_knot)
     prob, freed = snoop_prisms(prob, s, sol)
-    while (estimate or freed) and it < VCE_MAX_ITER:
+    while (estimate or estimate_noise or freed) and it < VCE_MAX_ITER:
         it += 1
         change = 0.0
         if estimate:
-            e, E, F = prior_terms(s.R, s.t, s.w, dt)
-            quad, red = prior_components(e, E, F, dt, prob.qc, sol.cov, sol.cov_next)
-            new, own = qc_per_class(quad, red, classes, own)
-            red_g = np.zeros_like(table)
-            np.add.at(red_g, classes, red)
-            # a group the data no longer inform (sinking to 0, its redundancy gone) may go on
-            moving = own & (red_g >= MIN_REDUNDANCY) & (new > 1.01 * QC_FLOOR)
-            change = float(np.max(np.abs(np.log(new / table))[moving], initial=0.0))
-            table = new
-            prob = replace(prob, qc=table[classes])
+            prob, table, own, red_g, change = _qc_step(prob, s, sol, classes, table, own)
+        if estimate_noise:
+            prob, dn = noise_step(prob, s, sol, it)
+            change = max(change, dn)
         last = (change < VCE_TOL and not freed) or it == VCE_MAX_ITER
-        full = last or not estimate  # a freed prism alone: solve to convergence, test again
+        full = last or not (estimate or estimate_noise)  # a freed prism alone: to the end
         s, sol, info = gauss_newton(prob, s, max_iter if full else VCE_GN_ITER, tol)
         if last:
             break
         prob, freed = snoop_prisms(prob, s, sol)
     return prob, s, sol, info, QcFit(table, classes, red_g, it if estimate else 0)
+
+
+def _qc_step(prob: JointProblem, s: JointState, sol, classes, table, own):
+    """One variance-component update of ``Qc`` per class: the problem with it, the table,
+    the groups with their own, their redundancy and the largest relative change."""
+    dt = np.diff(prob.t_knot)
+    e, E, F = prior_terms(s.R, s.t, s.w, dt)
+    quad, red = prior_components(e, E, F, dt, prob.qc, sol.cov, sol.cov_next)
+    new, own = qc_per_class(quad, red, classes, own)
+    red_g = np.zeros_like(table)
+    np.add.at(red_g, classes, red)
+    # a group the data no longer inform (sinking to 0, its redundancy gone) may go on
+    moving = own & (red_g >= MIN_REDUNDANCY) & (new > 1.01 * QC_FLOOR)
+    change = float(np.max(np.abs(np.log(new / table))[moving], initial=0.0))
+    return replace(prob, qc=new[classes]), new, own, red_g, change
+
+
+def noise_step(prob: JointProblem, s: JointState, sol, iteration: int = 1):
+    """One REML update of the white noise's components (:mod:`rtsgt.joint.noise`) from the
+    residuals at ``s``: the problem with the new weights and its ``noise``
+    (:class:`rtsgt.joint.noise.NoiseFit`), and the largest change of a determined channel's
+    sigma at its station's median range (relative)."""
+    m = prob.meas
+    S = prob.R_prior.shape[0]
+    Q = noise_basis(m.var_white, m.y[:, 2])
+    e, Hk, Hg, Hc, cols = measurement_terms(prob, s)
+    HSH = measurement_hsh(prob, s, sol, (Hk, Hg, Hc, cols))
+    old = prob.noise
+    theta = np.tile(PRIOR, (S, 3, 1)) if old is None else old.theta
+    cov = measurement_cov(m.corr, Q, m.station, theta)
+    q, r, F = component_sums(e, m.info, HSH, Q, cov * (1.0 - np.eye(3)), m.station, S)
+    new, sigma, det, share, cov_th = update_components(theta, q, r, F,
+                                               None if old is None else old.determined)
+    med = np.stack([np.median(Q[m.station == i], axis=0) if np.any(m.station == i)
+                    else np.ones((3, 2)) for i in range(S)])  # a handful of stations
+    v_old = np.einsum("sck,sck->sc", theta, med)
+    v_new = np.einsum("sck,sck->sc", new, med)
+    changed = 0.5 * np.abs(np.log(np.maximum(v_new, 1e-300) / np.maximum(v_old, 1e-300)))
+    change = float(np.max(changed[det.any(axis=2)], initial=0.0))
+    info = np.linalg.inv(measurement_cov(m.corr, Q, m.station, new))
+    fit = NoiseFit(new, sigma, det, share, iteration, cov=cov_th)
+    return replace(prob, meas=replace(m, info=info), noise=fit), change
 
 
 def snoop_prisms(prob: JointProblem, s: JointState, sol) -> tuple[JointProblem, bool]:
@@ -379,4 +427,5 @@ def snoop_prisms(prob: JointProblem, s: JointState, sol) -> tuple[JointProblem, 
 
 
 __all__ = ["JointProblem", "JointState", "QcFit", "SolveInfo", "assemble", "gauss_newton",
+           "measurement_hsh", "measurement_terms", "noise_step", "snoop_prisms",
            "solve_with_qc"]

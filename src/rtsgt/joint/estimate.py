@@ -7,7 +7,7 @@ project's convention: docs/joint.md.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -30,6 +30,7 @@ from rtsgt.joint.knots import (
     interpolate_poses,
 )
 from rtsgt.joint.measurements import GLOBAL_SOURCES, polar_measurements
+from rtsgt.joint.noise import NoiseFit
 from rtsgt.joint.prisms import PrismFit, prism_prior_info, prism_tests
 from rtsgt.noise.model import NoiseModel
 from rtsgt.pose.estimate import PoseEstimate
@@ -53,7 +54,9 @@ class JointResult:
     given the global parameters and the part shared through them, one column per whitened
     global (:func:`global_names`; docs/joint.md#the-shared-error); ``prisms``: the prisms'
     estimated body positions and each one's test against its survey
-    (:class:`rtsgt.joint.prisms.PrismFit`; None where they are held at the survey).
+    (:class:`rtsgt.joint.prisms.PrismFit`; None where they are held at the survey);
+    ``noise``: the white noise's components per station and channel
+    (:class:`rtsgt.joint.noise.NoiseFit`; None where the datasheet's is used as is).
     """
 
     t: np.ndarray
@@ -69,6 +72,7 @@ class JointResult:
     chi2_per_dof: float
     shared: SharedFactor | None = None
     prisms: PrismFit | None = None
+    noise: NoiseFit | None = None
 
 
 def _stations(calibration):
@@ -85,7 +89,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                    init_t, init_R, init_p, qc, *, weather=None,
                    merge_s: float = DEFAULT_MERGE_S, max_iter: int = 10, tol: float = 1e-6,
                    estimate_qc: bool = True, query_knots: bool = False,
-                   clocks: bool = False, prisms: bool = False) -> JointResult:
+                   clocks: bool = False, prisms: bool = False,
+                   noise: bool = False) -> JointResult:
     """Poses ``T_world_body`` at ``query_times`` (Q,) s from every station's observations.
 
     ``observations``: one :class:`rtsgt.types.Observations` per station (valid, increasing
@@ -101,7 +106,9 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     or with ``query_knots`` knots of their own (docs/joint.md#queries-between-knots). With
     ``clocks``, each station's clock offset against the calibration's reference station is
     estimated (docs/joint.md#clock-offsets) and the model's ``time_sync`` source is not
-    carried as white noise.
+    carried as white noise. With ``noise``, the white noise per station and channel is
+    estimated from the residuals, the model's white part its prior
+    (docs/joint.md#noise-identification).
     """
     init_t = np.asarray(init_t, dtype=float)
     if init_t.size < 2:
@@ -127,7 +134,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     state = JointState(R0, p0, body_velocities(knots.t, R0, p0), R_s, t_s, 0.0,
                        None if ck is None else np.zeros((ck.station.size, ck.knots.size)),
                        None if p_info is None else survey.copy())
-    prob, state, sol, solve, qc_fit = solve_with_qc(prob, state, estimate_qc, max_iter, tol)
+    prob, state, sol, solve, qc_fit = solve_with_qc(prob, state, estimate_qc, max_iter, tol,
+                                                    noise)
     cov_g = sol.cov_g
     pfit = None if p_info is None else _prism_fit(names, prob, state, cov_g)
     R, t, cov_body = interpolate_poses_gp(tq, knots.t, state.R, state.t, state.w, prob.qc,
@@ -138,7 +146,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     return JointResult(tq, est, _station_results(ids, free, state, cov_g), state.kappa_ppm,
                        meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, cov_g, ids),
                        knots.t.size, meas.t.size, solve,
-                       solve.costs[-1] / (3 * meas.t.size), shared, pfit)
+                       solve.costs[-1] / (3 * meas.t.size), shared, pfit,
+                       None if prob.noise is None else replace(prob.noise, stations=ids))
 
 
 def _prism_fit(names, prob: JointProblem, state: JointState, cov_g) -> PrismFit:

@@ -28,9 +28,9 @@ class PolarMeasurements:
     constant and the atmospheric correction, as :func:`rtsgt.noise.model.prepare_nominal`);
     ``info`` (M, 3, 3) the inverse of their white covariance (rad, rad, m);
     ``kappa_sigma_ppm`` the prior sigma of the weather's error of the correction, ppm;
-    ``var_instrument`` (M, 3) the instrument's (datasheet) white variances of (Hz, V, d) and
-    ``cov_rest`` (M, 3, 3) the other white sources' covariance (``info`` is the inverse of
-    ``cov_rest + diag(var_instrument)``; docs/joint.md#noise-identification)."""
+    ``var_white`` (M, 3) the noise model's (datasheet) white variances of (Hz, V, d) and
+    ``corr`` (M, 3, 3) their correlation (``info`` the inverse of their covariance, until
+    the noise is identified: docs/joint.md#noise-identification)."""
 
     t: np.ndarray
     station: np.ndarray
@@ -38,8 +38,8 @@ class PolarMeasurements:
     y: np.ndarray
     info: np.ndarray
     kappa_sigma_ppm: float
-    var_instrument: np.ndarray | None = None
-    cov_rest: np.ndarray | None = None
+    var_white: np.ndarray | None = None
+    corr: np.ndarray | None = None
 
 
 def polar_jacobian_inverse(q: np.ndarray) -> np.ndarray:
@@ -73,7 +73,6 @@ def polar_measurements(observations, station_ids, prism_ids, model: NoiseModel,
     strictly increasing times) with their white covariance in (Hz, V, d) (the model's
     sources but ``carried``)."""
     white = white_model(model, carried)
-    instrument = model.with_sources(("instrument",))
     parts = []
     var_ppm = []
     for obs in observations:
@@ -87,13 +86,13 @@ def polar_measurements(observations, station_ids, prism_ids, model: NoiseModel,
         cov_station, _ = linear_covariances(nom, white)
         P = polar_jacobian_inverse(nom.xyz_station)
         cov = P @ cov_station @ np.swapaxes(P, 1, 2)
-        inst = P @ linear_covariances(nom, instrument)[0] @ np.swapaxes(P, 1, 2)
-        var_i = np.einsum("mii->mi", inst)
+        var_w = np.einsum("mii->mi", cov)
+        sd = np.sqrt(var_w)
         y = np.stack([nom.hz, nom.v, nom.d_corr], axis=1)
         n = y.shape[0]
         parts.append((nom.t, np.full(n, station_ids.index(obs.station)),
-                      np.full(n, prism_ids.index(obs.prism)), y, np.linalg.inv(cov), var_i,
-                      cov - var_i[:, :, None] * np.eye(3)))
+                      np.full(n, prism_ids.index(obs.prism)), y, np.linalg.inv(cov), var_w,
+                      cov / (sd[:, :, None] * sd[:, None, :])))
         prof = model.instrument
         g = correction_ppm_gradient(
             nom.temperature_c, nom.pressure_hpa, nom.humidity_pct,
