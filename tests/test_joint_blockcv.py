@@ -10,10 +10,17 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from rtsgt.evaluation.joint_truth import JointGroundTruth
 from rtsgt.joint import engine
 from rtsgt.joint.blockcv import RawBlocks, raw_block_cv, raw_block_summary
 from rtsgt.joint.engine import assemble, gauss_newton
-from rtsgt.joint.relative import chain_gains, knot_cross_covariance, query_cross_covariance
+from rtsgt.joint.relative import (
+    JointPosterior,
+    chain_gains,
+    knot_cross_covariance,
+    query_cross_covariance,
+    world_covariance,
+)
 from rtsgt.stats import ratio_interval
 from test_joint import _synthetic  # the joint tests' synthetic problem
 
@@ -118,3 +125,27 @@ def test_cross_covariance_of_distant_knots_and_queries_equals_a_dense_inverse():
         np.testing.assert_allclose(out[i], ref, rtol=1e-5, atol=1e-5 * np.abs(ref).max())
     with pytest.raises(ValueError):
         query_cross_covariance(sol, q_b, J_b, q_a, J_a)
+
+
+def test_joint_ground_truth_between_two_knot_times_equals_a_dense_inverse():
+    """At knot times a query is its knot: its covariance and the cross covariance of two of
+    them are the dense inverse's blocks, in the world frame."""
+    rng = np.random.default_rng(35)
+    prob, truth = _synthetic(rng, K=30, noise=1.0)
+    s, sol, _ = gauss_newton(prob, truth, max_iter=20, tol=1e-14)
+    system, _ = assemble(prob, s)
+    N, _ = system.dense()
+    cov = np.linalg.inv(N)
+    qc = np.broadcast_to(prob.qc, (prob.t_knot.size - 1, 6))
+    gt = JointGroundTruth(JointPosterior(prob.t_knot, s.R, s.t, s.w, qc, sol))
+    a, b = np.array([2, 5, 11]), np.array([9, 6, 27])
+    t_a, t_b = prob.t_knot[a], prob.t_knot[b]
+    sample = gt.query_poses(np.r_[t_a, prob.t_knot[-1] + 1.0])
+    assert list(sample.reason[:3]) == ["", "", ""] and sample.reason[3] != ""
+    np.testing.assert_allclose(sample.position[:3], s.t[a], atol=1e-12)
+    Caa, Cbb, Cab = gt.pair_covariances(t_a, t_b)
+    for i in range(3):
+        for C, (x, y) in ((Caa[i], (a[i], a[i])), (Cab[i], (a[i], b[i]))):
+            body = cov[12 * x:12 * x + 6, 12 * y:12 * y + 6]
+            ref = world_covariance(s.R[x][None], body[None], s.R[y][None])[0]
+            np.testing.assert_allclose(C, ref, rtol=1e-5, atol=1e-5 * np.abs(ref).max())

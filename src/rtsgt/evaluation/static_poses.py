@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike
 
 from rtsgt.errors import RtsgtWarning
 from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
+from rtsgt.evaluation.joint_truth import JointGroundTruth
 from rtsgt.geometry.so3 import log_so3, quat_xyzw_to_matrix
 from rtsgt.stats import ratio_interval, ratio_verdict, verdict_meaning
 
@@ -103,10 +104,11 @@ def _lag_check(gt: ContinuousGroundTruth, stretches: np.ndarray, lag: float) -> 
     return out
 
 
-def static_relative_check(gt: ContinuousGroundTruth, stretches: ArrayLike,
+def static_relative_check(gt: ContinuousGroundTruth | JointGroundTruth, stretches: ArrayLike,
                           lags: tuple[float, ...] = STATIC_LAGS_S,
                           warn: bool = True) -> dict[str, Any]:
-    """Relative poses of the ground truth ``gt`` over each of ``lags`` (s) inside the static
+    """Relative poses of the ground truth ``gt`` (a per-prism run's continuous ground truth or a
+    joint run's) over each of ``lags`` (s) inside the static
     ``stretches`` (K, 2) s (:func:`rtsgt.checks.static_stretches`), against the covariance the
     run claims for them. Returns, JSON-ready, per lag (``"1"``, ``"10"``, ``"60"``): ``pairs``,
     ``nees_per_dof`` (6 dof per pair; ``position_`` and ``rotation_nees_per_dof`` of their

@@ -105,4 +105,12 @@ def interpolate_split_gp(t_query, t_knot, R, t, w, qc, cov_var, cov_var_next, fa
     return Rq, pq, _propagate(k, J, jr, pc, qc, cov_var, cov_var_next), L
 
 
-__all__ = ["gp_weights", "interpolate_poses_gp", "interpolate_split_gp"]
+__all__ = ["gp_weights", "interpolate_poses_gp", "interpolate_split_gp", "query_jacobians"]
+
+
+def query_jacobians(t_query, t_knot, R, t, w):
+    """Each query's interval ``k`` (Q,), its pose ``R`` (Q, 3, 3), ``t`` (Q, 3) and the
+    Jacobian (Q, 6, 24) of its right perturbation on the interval's two knots' ``(d, dw)``
+    (the interpolation of :func:`interpolate_poses_gp`)."""
+    k, Rq, pq, J, _, _ = _query(np.asarray(t_query, dtype=float), t_knot, R, t, w)
+    return k, Rq, pq, J

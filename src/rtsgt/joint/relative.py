@@ -8,11 +8,15 @@ interval's two knots: docs/joint.md#poses-at-two-times.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from rtsgt.joint.interpolate import interpolate_poses_gp, query_jacobians
 from rtsgt.joint.sparse import ArrowSolution
 
-__all__ = ["chain_gains", "chain_products", "knot_cross_covariance", "query_cross_covariance"]
+__all__ = ["JointPosterior", "chain_gains", "chain_products", "knot_cross_covariance",
+           "query_cross_covariance", "world_covariance"]
 
 
 def chain_gains(sol: ArrowSolution) -> np.ndarray:
@@ -65,3 +69,65 @@ def query_cross_covariance(sol: ArrowSolution, k_a: np.ndarray, J_a: np.ndarray,
     Lb = np.concatenate([sol.factor[k_b], sol.factor[k_b + 1]], axis=1)
     block += La @ np.swapaxes(Lb, 1, 2)
     return J_a @ block @ np.swapaxes(J_b, 1, 2)
+
+
+def world_covariance(R_a: np.ndarray, cov: np.ndarray, R_b: np.ndarray | None = None):
+    """Covariance (N, 6, 6) of right (body) perturbations of poses ``R_a`` (N, 3, 3) (and
+    ``R_b`` for a cross covariance) as the world-frame ``(dt, dtheta)`` of
+    :mod:`rtsgt.geometry.transform`: ``A_a cov A_b^T``, ``A = diag(R, R)`` (``dt = R rho``,
+    ``dtheta = R phi`` to first order)."""
+    R_b = R_a if R_b is None else R_b
+
+    def lift(R):
+        A = np.zeros(R.shape[:1] + (6, 6))
+        A[:, :3, :3] = A[:, 3:, 3:] = R
+        return A
+
+    return lift(R_a) @ cov @ np.swapaxes(lift(R_b), 1, 2)
+
+
+@dataclass(frozen=True)
+class JointPosterior:
+    """What the joint engine's poses at any time inside the knots need: knot times ``t_knot``
+    (K,) s, poses ``R`` (K, 3, 3), ``t`` (K, 3), body velocities ``w`` (K, 6), the prior's
+    ``qc`` (K-1, 6) per interval and the solution ``sol`` with its covariances."""
+
+    t_knot: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    w: np.ndarray
+    qc: np.ndarray
+    sol: ArrowSolution
+
+    @property
+    def span(self) -> tuple[float, float]:
+        return float(self.t_knot[0]), float(self.t_knot[-1])
+
+    def poses(self, t_query) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``R`` (Q, 3, 3), ``t`` (Q, 3) and the world-frame covariance (Q, 6, 6) at
+        ``t_query`` (Q,) s inside :attr:`span`."""
+        R, p, cov = interpolate_poses_gp(t_query, self.t_knot, self.R, self.t, self.w,
+                                         self.qc, self.sol.cov, self.sol.cov_next)
+        out = world_covariance(R, cov)
+        return R, p, 0.5 * (out + np.swapaxes(out, 1, 2))
+
+    def cross_covariance(self, t_a, t_b) -> np.ndarray:
+        """World-frame ``Cov(xi(t_a), xi(t_b))`` (N, 6, 6) of pairs of times (N,) inside
+        :attr:`span`, ``t_a < t_b``; two times in one interval between knots share its two
+        knots' joint covariance (the GP's conditional part between them left out)."""
+        k_a, R_a, _, J_a = query_jacobians(t_a, self.t_knot, self.R, self.t, self.w)
+        k_b, R_b, _, J_b = query_jacobians(t_b, self.t_knot, self.R, self.t, self.w)
+        out = np.zeros((k_a.size, 6, 6))
+        apart = k_a < k_b
+        if apart.any():
+            out[apart] = query_cross_covariance(self.sol, k_a[apart], J_a[apart], k_b[apart],
+                                                J_b[apart])
+        same = ~apart
+        if same.any():
+            k, sol = k_a[same], self.sol
+            block = np.zeros((k.size, 24, 24))
+            block[:, :12, :12], block[:, 12:, 12:] = sol.cov[k], sol.cov[k + 1]
+            block[:, :12, 12:] = sol.cov_next[k]
+            block[:, 12:, :12] = np.swapaxes(sol.cov_next[k], 1, 2)
+            out[same] = J_a[same] @ block @ np.swapaxes(J_b[same], 1, 2)
+        return world_covariance(R_a, out, R_b)
