@@ -49,8 +49,9 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
     ``model``, ``weather``: the noise model and the weather of the distance correction;
     ``start_t`` (T,), ``start_R`` (T, 3, 3), ``start_p`` (T, 3): the per-prism poses to start
     from; ``qc_prisms`` (P, 3, 3): the per-prism GPs' WNOA ``Qc`` (m^2/s^3), the start of the prior's ``Qc`` (:func:`rtsgt.joint.knots.qc_from_prisms`);
-    ``clocks``: estimate each station's clock offset. InputError when no query time falls
-    inside the measurements' span.
+    ``clocks``: estimate each station's clock offset. The prisms' body positions are
+    estimated with the survey as their prior (docs/joint.md#prism-positions). InputError when
+    no query time falls inside the measurements' span.
     """
     lo = min(float(o.t[0]) for o in observations)
     hi = max(float(o.t[-1]) for o in observations)
@@ -61,7 +62,7 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
                          f"{lo:.3f}-{hi:.3f} s")
     qc = qc_from_prisms(qc_prisms, reference.xyz)
     return estimate_joint(observations, calibration, reference, model, tq, start_t, start_R,
-                          start_p, qc, weather=weather, clocks=clocks)
+                          start_p, qc, weather=weather, clocks=clocks, prisms=True)
 
 
 @dataclass(frozen=True)
