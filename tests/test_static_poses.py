@@ -74,3 +74,19 @@ def test_an_optimistic_lag_is_a_caveat_of_the_verdict_and_a_pessimistic_one_a_no
     assert [(f.severity, f.check) for f in v.findings] == [(1, "static relative poses"),
                                                           (0, "static relative poses")]
     assert "10 s (NEES/dof 5.20 > 1.40)" in v.line() and "60 s" not in v.line()
+
+
+def test_the_raw_block_cross_validation_of_a_joint_run_enters_the_verdict():
+    whole = {"blocks": 300, "nees_per_dof": 2.4, "interval_95": [0.9, 1.1],
+             "verdict": "optimistic"}
+    one = {"blocks": 100, "nees_per_dof": 3.1, "interval_95": [0.8, 1.2],
+           "verdict": "optimistic"}
+    fine = {"blocks": 100, "nees_per_dof": 1.0, "interval_95": [0.8, 1.2],
+            "verdict": "consistent"}
+    v = run_verdict({"raw_block_cv": {"overall": whole, "stations": {"2": one, "1": fine}}},
+                    kept=10, queried=10)
+    assert v.level == "not usable as is"
+    assert [(f.severity, f.check) for f in v.findings] == [
+        (2, "raw block cross-validation"), (1, "raw block cross-validation")]
+    assert "NEES/dof 2.40 above [0.90, 1.10] (300 blocks)" in v.line()
+    assert "station 2 (NEES/dof 3.10 > 1.20)" in v.findings[1].text

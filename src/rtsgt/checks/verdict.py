@@ -160,6 +160,25 @@ def _static(check: dict, carried: dict, out: list[Finding]) -> None:
                            f"{3 * len(prisms)} components)"))
 
 
+def _raw_block_cv(check: dict, out: list[Finding]) -> None:
+    overall = check.get("overall") or {}
+    if overall.get("verdict") == "optimistic":
+        out.append(Finding(2, "raw block cross-validation",
+                           f"covariance too small: the raw measurements held out in blocks "
+                           f"have NEES/dof {overall['nees_per_dof']:.2f} above "
+                           f"{_interval(overall)} ({overall['blocks']} blocks)"))
+    elif overall.get("verdict") == "pessimistic":
+        out.append(Finding(0, "raw block cross-validation",
+                           f"covariance larger than the errors: raw measurements' NEES/dof "
+                           f"{overall['nees_per_dof']:.2f} below {_interval(overall)}"))
+    bad = {k: v for k, v in (check.get("stations") or {}).items()
+           if v.get("verdict") == "optimistic"}
+    if bad:
+        out.append(Finding(1, "raw block cross-validation", "covariance too small for station "
+                           + _names([f"{k} (NEES/dof {v['nees_per_dof']:.2f} > "
+                                     f"{v['interval_95'][1]:.2f})" for k, v in bad.items()])))
+
+
 def _static_relative(check: dict, out: list[Finding]) -> None:
     lags = check.get("lags") or {}
     bad = {k: v for k, v in lags.items() if v.get("verdict") == "optimistic"}
@@ -243,6 +262,7 @@ def run_verdict(self_checks: dict, *, kept: int, queried: int,
     _structure(self_checks.get("inter_prism_structure") or {}, out)
     _survey(distance_check or {}, survey_sigma, out)
     _block_cv(self_checks.get("block_cv") or {}, out)
+    _raw_block_cv(self_checks.get("raw_block_cv") or {}, out)
     _static(self_checks.get("static_noise") or {}, correlated_noise or {}, out)
     _static_relative(self_checks.get("static_relative") or {}, out)
     _gcp(self_checks.get("gcp_fit") or {}, out)
