@@ -421,7 +421,8 @@ def snoop_prisms(prob: JointProblem, s: JointState, sol) -> tuple[JointProblem, 
     trusted = np.ones(prob.p_body.shape[0], bool)
     trusted[found + [j]] = False
     gauge = gauge_directions(prob.p_body, trusted, j)
-    info = free_prism(prob.prism_info, prob.prism_cov, j, tests, gauge)
+    cov = np.linalg.inv(prob.prism_info) if prob.prism_cov is None else prob.prism_cov
+    info = free_prism(prob.prism_info, cov, j, tests, gauge)
     entry = (j, float(tests.stat[j]), int(tests.dof[j]))
     return replace(prob, prism_info=info, prism_found=prob.prism_found + (entry,)), True
 

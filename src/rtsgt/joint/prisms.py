@@ -122,7 +122,8 @@ def free_prism(info: np.ndarray, cov: np.ndarray, j: int, tests: PrismTests,
     out[sl, :] = 0.0
     out[:, sl] = 0.0
     if K.shape[1]:
-        blk = K @ np.linalg.inv(K.T @ cov[sl, sl] @ K) @ K.T
+        c = cov[sl, sl] + FIXED_SIGMA_M**2 * np.eye(3)  # as the prior's information
+        blk = K @ np.linalg.inv(K.T @ c @ K) @ K.T
         out[sl, sl] = 0.5 * (blk + blk.T)
     return out
 
