@@ -20,6 +20,7 @@ import numpy as np
 from rtsgt.checks.static import static_stretches
 from rtsgt.deployment import DeploymentData
 from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
+from rtsgt.evaluation.joint_truth import JointGroundTruth
 from rtsgt.evaluation.static_poses import static_relative_check
 from rtsgt.noise.correlated import inflate_tracks
 from rtsgt.options import RunOptions
@@ -33,7 +34,7 @@ from rtsgt.stages.front import (
     noise_model,
     run_front,
 )
-from rtsgt.stages.joint import joint_fit
+from rtsgt.stages.joint import JointFit, joint_fit
 from rtsgt.stages.poses import fit_to_gates
 from rtsgt.stages.prisms import fit_prisms
 from rtsgt.stages.records import pose_record, position_record, shared_errors
@@ -131,29 +132,31 @@ def _pose_stages(data: DeploymentData, options: RunOptions, front: Front, say: P
 
     say("self-checks")
     self_checks = run_checks(options, front, static, fit, reference)
+    if joint is not None:
+        self_checks["raw_block_cv"] = joint.result.raw_block_cv
     clock.lap("self_checks")
     computation = RunComputation(data, front.calibration, front.model, front.reports,
                                  fit.tracks, fit.gps, fit.prisms, fit.estimate, fit.keep,
-                                 fit.gate_report, clock.timings, fit.qc_info)
+                                 fit.gate_report, clock.timings, fit.qc_info,
+                                 None if joint is None else joint.result)
     record = pose_record(options, computation, front, fit, removed, self_checks, split,
                          correlated, joint)
     say("self-check: relative poses on the static stretches")
-    record = _static_relative(record, joint is not None)
+    record = _static_relative(record, joint)
     clock.lap("static_relative")
     return record
 
 
-def _static_relative(record: RunRecord, joint: bool) -> RunRecord:
-    """The record with its static relative-pose check (``self_checks.static_relative``),
-    from the continuous ground truth of its own GPs; a joint run's poses are not the GPs'
-    (its relative-pose covariance is not built yet): a note instead."""
-    if joint:
-        check = {"note": "not computed for the joint engine (its relative-pose covariance "
-                         "between distant times is not built yet)"}
-    else:
-        c = record.computation
-        stretches = static_stretches(c.prisms.t[c.keep], c.prisms.xyz[c.keep])
-        check = static_relative_check(ContinuousGroundTruth.from_record(record), stretches)
+def _static_relative(record: RunRecord, joint: JointFit | None) -> RunRecord:
+    """The record with its static relative-pose check (``self_checks.static_relative``), on
+    the static stretches of its kept poses, from the continuous ground truth of its GPs or of
+    the joint engine's knots."""
+    c = record.computation
+    gt = record.groundtruth
+    stretches = static_stretches(gt.t, c.prisms.xyz[c.keep])
+    truth = (ContinuousGroundTruth.from_record(record) if joint is None
+             else JointGroundTruth(joint.result.posterior))
+    check = static_relative_check(truth, stretches)
     return replace(record, self_checks={**record.self_checks, "static_relative": check})
 
 

@@ -22,6 +22,7 @@ from rtsgt.filtering.gates import GateReport
 from rtsgt.filtering.modules import RemovedMeasurements
 from rtsgt.interpolation import GPTrack
 from rtsgt.interpolation.prisms import PrismsAtTimes
+from rtsgt.joint.estimate import JointResult
 from rtsgt.noise import NoiseModel
 from rtsgt.noise.coupling import StationCoupling
 from rtsgt.noise.sources import NOISE_SOURCES
@@ -76,6 +77,9 @@ class RunComputation:
     gate_report: GateReport | None
     timings_s: dict[str, float]
     qc_info: dict[str, dict] = field(default_factory=dict)
+    #: The joint engine's result (:class:`rtsgt.joint.estimate.JointResult`); None for the
+    #: per-prism engines.
+    joint: JointResult | None = None
 
 
 @dataclass(frozen=True)

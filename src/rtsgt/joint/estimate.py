@@ -11,8 +11,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from rtsgt.choices import DEFAULT_MAX_GAP_S
 from rtsgt.errors import InputError
 from rtsgt.geometry.transform import RigidTransform
+from rtsgt.joint.blockcv import raw_block_cv, raw_block_summary
 from rtsgt.joint.clock import clock_model
 from rtsgt.joint.engine import (
     JointProblem,
@@ -32,6 +34,7 @@ from rtsgt.joint.knots import (
 from rtsgt.joint.measurements import GLOBAL_SOURCES, polar_measurements
 from rtsgt.joint.noise import NoiseFit
 from rtsgt.joint.prisms import PrismFit, prism_prior_info, prism_tests
+from rtsgt.joint.relative import JointPosterior
 from rtsgt.noise.model import NoiseModel
 from rtsgt.pose.estimate import PoseEstimate
 from rtsgt.pose.registration import shape_ratio
@@ -56,7 +59,11 @@ class JointResult:
     estimated body positions and each one's test against its survey
     (:class:`rtsgt.joint.prisms.PrismFit`; None where they are held at the survey);
     ``noise``: the white noise's components per station and channel
-    (:class:`rtsgt.joint.noise.NoiseFit`; None where the datasheet's is used as is).
+    (:class:`rtsgt.joint.noise.NoiseFit`; None where the datasheet's is used as is);
+    ``posterior``: the knots and the solution's covariances, for poses and their covariance
+    between two times anywhere inside the knots (:class:`rtsgt.joint.relative.JointPosterior`);
+    ``raw_block_cv``: the block cross-validation of the raw measurements
+    (:func:`rtsgt.joint.blockcv.raw_block_summary`, JSON-ready).
     """
 
     t: np.ndarray
@@ -73,6 +80,8 @@ class JointResult:
     shared: SharedFactor | None = None
     prisms: PrismFit | None = None
     noise: NoiseFit | None = None
+    posterior: JointPosterior | None = None
+    raw_block_cv: dict | None = None
 
 
 def _stations(calibration):
@@ -90,7 +99,7 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                    merge_s: float = DEFAULT_MERGE_S, max_iter: int = 10, tol: float = 1e-6,
                    estimate_qc: bool = True, query_knots: bool = False,
                    clocks: bool = False, prisms: bool = False,
-                   noise: bool = False) -> JointResult:
+                   noise: bool = False, max_gap_s: float = DEFAULT_MAX_GAP_S) -> JointResult:
     """Poses ``T_world_body`` at ``query_times`` (Q,) s from every station's observations.
 
     ``observations``: one :class:`rtsgt.types.Observations` per station (valid, increasing
@@ -108,7 +117,9 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     estimated (docs/joint.md#clock-offsets) and the model's ``time_sync`` source is not
     carried as white noise. With ``noise``, the white noise per station and channel is
     estimated from the residuals, the model's white part its prior
-    (docs/joint.md#noise-identification).
+    (docs/joint.md#noise-identification). ``max_gap_s``: a longer gap between a station's
+    measurements starts new blocks of the raw block cross-validation
+    (docs/joint.md#block-cross-validation-of-the-measurements).
     """
     init_t = np.asarray(init_t, dtype=float)
     if init_t.size < 2:
@@ -147,7 +158,9 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, cov_g, ids),
                        knots.t.size, meas.t.size, solve,
                        solve.costs[-1] / (3 * meas.t.size), shared, pfit,
-                       None if prob.noise is None else replace(prob.noise, stations=ids))
+                       None if prob.noise is None else replace(prob.noise, stations=ids),
+                       JointPosterior(knots.t, state.R, state.t, state.w, prob.qc, sol),
+                       raw_block_summary(raw_block_cv(prob, state, sol, max_gap_s), ids))
 
 
 def _prism_fit(names, prob: JointProblem, state: JointState, cov_g) -> PrismFit:

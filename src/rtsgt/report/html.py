@@ -205,6 +205,7 @@ def _self_checks_html(checks: Mapping) -> str:
     parts.append(_dynamic_calibration_html(checks.get("dynamic_calibration")))
     parts.append(_static_noise_html(checks.get("static_noise")))
     parts.append(_static_relative_html(checks.get("static_relative")))
+    parts.append(_raw_block_cv_html(checks.get("raw_block_cv")))
     parts.append(_structure_html(checks.get("inter_prism_structure")))
     return "".join(parts)
 
@@ -336,6 +337,27 @@ def _tau(co: Mapping) -> str:
         return _fmt(tau, 2)
     return f"{_fmt(tau, 2)} ({_fmt(iv[0], 2)} – " + ("…)" if iv[1] is None
                                                      else f"{_fmt(iv[1], 2)})")
+
+
+def _raw_block_cv_html(c: Mapping | None) -> str:
+    """The joint engine's block cross-validation of the raw measurements, overall and per
+    station (docs/joint.md)."""
+    if not c:
+        return ""
+    rows = [("whole run", c.get("overall")),
+            *((f"station {k}", v) for k, v in (c.get("stations") or {}).items())]
+    body = "".join(
+        f"<tr><td class='s'>{html.escape(k)}</td><td>{v['blocks']}</td>"
+        f"<td>{v['measurements']}</td><td>{_fmt(v['nees_per_dof'], 3)}</td>"
+        f"<td>{_fmt(v.get('n_eff'), 3)}</td><td>{_interval(v)}</td>"
+        f"<td class='verdict'>{html.escape(v['verdict'])}</td></tr>" for k, v in rows if v)
+    return ("<h3>Block cross-validation of the raw measurements</h3><table "
+            "id='check-raw-block-cv'><tr><th class='k'></th><th>blocks</th><th>measurements"
+            "</th><th>NEES / dof</th><th>n_eff</th><th>95 % interval</th><th>verdict</th></tr>"
+            f"{body}</table><p><small>Blocks of 1 s and 2 s of each station's measurements "
+            "(Hz, V, d), each predicted from the other stations and the prior by the joint "
+            "solution without it; 1 if the measurements' covariance and the motion prior are "
+            "honest. Method: rtsgt's docs/joint.md.</small></p>")
 
 
 def _static_relative_html(c: Mapping | None) -> str:

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from rtsgt.calibration import CalibrationResult
+from rtsgt.choices import DEFAULT_MAX_GAP_S
 from rtsgt.errors import InputError
 from rtsgt.geometry.so3 import log_so3, matrix_to_quat_xyzw
 from rtsgt.geometry.transform import RigidTransform
@@ -40,7 +41,7 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
                 reference: ReferencePoints, model: NoiseModel, weather: WeatherSeries | None,
                 start_t: np.ndarray, start_R: np.ndarray, start_p: np.ndarray,
                 qc_prisms: np.ndarray, query_times: np.ndarray, *,
-                clocks: bool = True) -> JointResult:
+                clocks: bool = True, max_gap_s: float = DEFAULT_MAX_GAP_S) -> JointResult:
     """The joint engine's poses at ``query_times`` (Q,) s, those inside the measurements' span.
 
     ``observations``: each station's measurements the run keeps (module 1 and 2, the windows
@@ -49,7 +50,8 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
     ``model``, ``weather``: the noise model and the weather of the distance correction;
     ``start_t`` (T,), ``start_R`` (T, 3, 3), ``start_p`` (T, 3): the per-prism poses to start
     from; ``qc_prisms`` (P, 3, 3): the per-prism GPs' WNOA ``Qc`` (m^2/s^3), the start of the prior's ``Qc`` (:func:`rtsgt.joint.knots.qc_from_prisms`);
-    ``clocks``: estimate each station's clock offset. The prisms' body positions are
+    ``clocks``: estimate each station's clock offset; ``max_gap_s``: the run's longest gap
+    bridged (the raw block cross-validation's segments). The prisms' body positions are
     estimated with the survey as their prior (docs/joint.md#prism-positions). InputError when
     no query time falls inside the measurements' span.
     """
@@ -62,7 +64,8 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
                          f"{lo:.3f}-{hi:.3f} s")
     qc = qc_from_prisms(qc_prisms, reference.xyz)
     return estimate_joint(observations, calibration, reference, model, tq, start_t, start_R,
-                          start_p, qc, weather=weather, clocks=clocks, prisms=True)
+                          start_p, qc, weather=weather, clocks=clocks, prisms=True,
+                          max_gap_s=max_gap_s)
 
 
 @dataclass(frozen=True)
@@ -99,7 +102,8 @@ def joint_fit(options: RunOptions, filtered: Sequence[Observations],
     qc_prisms = np.stack([np.asarray(fit.gps[p].qc, dtype=float) for p in wnoa])
     tq = fit.prisms.t
     jr = joint_poses(obs, calibration, reference, model, weather, tq[keep0], est0.R[keep0],
-                     est0.t[keep0], qc_prisms, tq, clocks=options.pose.clocks)
+                     est0.t[keep0], qc_prisms, tq, clocks=options.pose.clocks,
+                     max_gap_s=options.interpolation.max_gap_s)
     est = _on_every_time(jr.estimate, np.isin(tq, jr.t))
     keep, report = gate_poses(est, reference, options)
     gt = PoseTrajectory(tq[keep], est.t[keep], matrix_to_quat_xyzw(est.R[keep]), est.cov[keep])
