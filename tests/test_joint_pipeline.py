@@ -32,12 +32,9 @@ SEEDS = (11, 12)
 
 
 def _deployment(tmp, seed):
-    """A 60 s simulated deployment whose effects the joint engine models today: no survey
-    noise (the prisms are held at the survey) and no clock offsets (the reference station's
-    own offset is not carried once the clock states are on: docs/pipeline.md)."""
-    sim = simulate_deployment(SimulationConfig(duration_s=60.0, noise_time_sync=False,
-                                               noise_survey=False),
-                              np.random.default_rng(seed))
+    """A 60 s simulated deployment of the default simulator (survey noise, the stations'
+    clock offsets: the joint engine estimates the prisms and the offsets)."""
+    sim = simulate_deployment(SimulationConfig(duration_s=60.0), np.random.default_rng(seed))
     return sim, write_deployment(sim, tmp / f"dep{seed}")
 
 
@@ -63,7 +60,8 @@ def _nees(sim, gt: PoseTrajectory) -> np.ndarray:
 
 def test_a_joint_run_keeps_the_joint_poses_within_their_covariance(runs):
     """Pooled over two 60 s runs the joint poses' NEES/dof against the truth is near 1
-    (measured 1.13 and 1.20; the per-prism linear engine 0.78, 0.65 on the same inputs)."""
+    (the default simulator: measured 1.04 and 1.83, the shared errors drawn once per
+    deployment; 16 such deployments: 0.96 without the clock states, docs/pipeline.md)."""
     nees = []
     for sim, _, record, _ in runs:
         c = record.computation
@@ -76,7 +74,7 @@ def test_a_joint_run_keeps_the_joint_poses_within_their_covariance(runs):
 
 
 def test_the_summary_has_the_joint_section_and_the_checks_say_what_they_judge(runs):
-    _, _, record, path = runs[0]
+    sim, _, record, path = runs[0]
     doc = json.loads((path / "summary.json").read_text())
     assert doc["parameters"]["engine"] == "joint" and doc["parameters"]["clocks"] is True
     j = doc["joint"]
@@ -86,8 +84,21 @@ def test_the_summary_has_the_joint_section_and_the_checks_say_what_they_judge(ru
     held = [s for s, v in j["stations"].items() if v["held"]]
     assert held == [j["clock_reference"]]  # the reference station: held, no clock
     assert set(j["clocks"]) == set(record.stations) - set(held)
-    for v in j["clocks"].values():  # no clock offset simulated: each within 3 sigma of 0
-        assert abs(v["start_ms"]) < 3 * v["median_sigma_ms"] + 1e-3, v
+    # each station's constant clock offset (the simulation's is t_true - t_recorded, the
+    # engine's t_recorded - t_true) against the reference's within 3 sigma (the two
+    # sigmas added: their errors share the common offset, so this bounds it); no drift
+    # simulated: the clock states (the drift from their first knot) within 3 sigma of 0
+    sync, ref = j["time_sync"], j["clock_reference"]
+    assert set(sync) == set(record.stations)
+    for sid, v in sync.items():
+        truth_ms = -1e3 * (sim.truth.clock_offset_s[sid] - sim.truth.clock_offset_s[ref])
+        est_ms = v["offset_ms"] - sync[ref]["offset_ms"]
+        assert abs(est_ms - truth_ms) < 3 * (v["sigma_ms"] + sync[ref]["sigma_ms"]), (sid, v)
+        assert 0.05 < v["sigma_ms"] < 1.5, v
+    for sid, v in j["clocks"].items():  # no drift simulated: start and end alike
+        truth_ms = -1e3 * (sim.truth.clock_offset_s[sid] - sim.truth.clock_offset_s[ref])
+        assert abs(v["end_ms"] - truth_ms) < 3 * v["median_sigma_ms"] + 1e-3, (sid, v)
+    assert set(j["prisms"]) == set(record.prism_ids)
     for v in j["stations"].values():
         assert v["held"] or np.all(np.abs(v["shift_sigmas"]) < 4), v
     assert j["kappa_sigma_ppm"] > 0 and "standing" in j["qc"]

@@ -50,7 +50,8 @@ class JointState:
     """Knot poses ``R`` (K, 3, 3), ``t`` (K, 3) (``T_world_body``), body velocities ``w``
     (K, 6); stations ``R_s`` (S, 3, 3), ``t_s`` (S, 3) (``T_world_station``); ``kappa_ppm``;
     ``clock`` (C, J) the clock knots' offsets, s (None without clocks); ``p_body`` (P, 3) the
-    prisms' body positions, m (None: the problem's survey, held)."""
+    prisms' body positions, m (None: the problem's survey, held); ``sync`` (N,) the stations'
+    constant clock offsets against the robot's, s (None: not estimated)."""
 
     R: np.ndarray
     t: np.ndarray
@@ -60,6 +61,7 @@ class JointState:
     kappa_ppm: float
     clock: np.ndarray | None = None
     p_body: np.ndarray | None = None
+    sync: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -72,8 +74,11 @@ class JointProblem:
     information ``prism_info`` (3P, 3P) of the survey ``p_body`` as the prior of the prisms'
     body positions (None: held at the survey) and the survey's covariance ``prism_cov``, and the prisms found moved ``prism_found``
     (index, test statistic, dof at detection; docs/joint.md#prism-positions), and the white
-    noise's components where estimated (``noise``; ``meas.info`` follows them). Globals: the free stations' ``(dt, dtheta)``,
-    ``kappa``, the prisms' positions (3P), the clocks' knots (C, J)."""
+    noise's components where estimated (``noise``; ``meas.info`` follows them), the
+    stations' constant clock offsets against the robot's (``sync_column`` (S,) each station's
+    column, -1 none, with the prior variance ``sync_var`` s^2; docs/joint.md#clock-offsets).
+    Globals: the free stations' ``(dt, dtheta)``, ``kappa``, the prisms' positions (3P), the
+    constant clock offsets, the clocks' knots (C, J)."""
 
     t_knot: np.ndarray
     of_meas: np.ndarray
@@ -90,6 +95,8 @@ class JointProblem:
     prism_cov: np.ndarray | None = None
     prism_found: tuple[tuple[int, float, int], ...] = ()
     noise: NoiseFit | None = None
+    sync_column: np.ndarray | None = None
+    sync_var: float = 0.0
 
     @property
     def kappa_col(self) -> int:
@@ -102,9 +109,20 @@ class JointProblem:
         return 0 if self.prism_info is None else self.p_body.size
 
     @property
+    def n_sync(self) -> int:
+        """Constant clock offsets estimated (0: none)."""
+        return 0 if self.sync_column is None else int(self.sync_column.max(initial=-1)) + 1
+
+    @property
+    def sync_col(self) -> int:
+        """Column of the first constant clock offset among the globals."""
+        return self.kappa_col + 1 + self.n_prism
+
+    @property
     def n_fixed(self) -> int:
-        """Globals before the clocks: the free stations', ``kappa`` and the prisms'."""
-        return 6 * self.free.size + 1 + self.n_prism
+        """Globals before the clocks: the free stations', ``kappa``, the prisms' and the
+        constant clock offsets."""
+        return 6 * self.free.size + 1 + self.n_prism + self.n_sync
 
     @property
     def n_globals(self) -> int:
@@ -125,6 +143,9 @@ def measurement_terms(prob: JointProblem, s: JointState):
     k = prob.of_meas
     ck = prob.clock
     tau = prob.tau if ck is None else prob.tau - ck.offsets(s.clock)
+    sc = None if prob.n_sync == 0 else prob.sync_column[m.station]
+    if sc is not None:  # recorded at t, measured at t - e: the offset from its knot shifts
+        tau = tau - np.where(sc >= 0, s.sync[np.maximum(sc, 0)], 0.0)
     pb = prob.p_body if s.p_body is None else s.p_body
     h, Hk, Hs, Hkap, Htau = predict(s.R[k], s.t[k], s.w[k], tau, pb[m.prism],
                                     s.R_s[m.station], s.t_s[m.station], s.kappa_ppm)
@@ -141,6 +162,9 @@ def measurement_terms(prob: JointProblem, s: JointState):
         Hp = Hk[:, :, :3] + tau[:, None, None] * (Hk[:, :, :3] @ hat(s.w[k, 3:]))
         cols = prob.kappa_col + 1 + 3 * m.prism[:, None] + np.arange(3)
         np.put_along_axis(Hg, np.broadcast_to(cols[:, None, :], Hp.shape), Hp, axis=2)
+    if sc is not None:
+        rows = np.nonzero(sc >= 0)[0]
+        Hg[rows, :, prob.sync_col + sc[rows]] = -Htau[rows]
     if ck is None:
         return r, Hk, Hg, None, None
     has = (ck.row >= 0)[:, None]
@@ -253,11 +277,17 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
         C[sl, sl] += prob.prism_info
         c[sl] -= prob.prism_info @ ep
         cost += float(ep @ prob.prism_info @ ep)
+    if prob.n_sync:  # the clock error's prior: the noise model's time_sync second moment
+        sl = slice(prob.sync_col, prob.sync_col + prob.n_sync)
+        C[sl, sl] += np.eye(prob.n_sync) / prob.sync_var
+        c[sl] -= s.sync / prob.sync_var
+        cost += float(s.sync @ s.sync) / prob.sync_var
     return ArrowSystem(D, U, B, C, a, c), cost
 
 
 def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> JointState:
-    """``T_k exp(d_k^)``, ``w_k + dw_k``, ``t_s + dt``, ``exp(dtheta) R_s``, ``kappa + dk``."""
+    """``T_k exp(d_k^)``, ``w_k + dw_k``, ``t_s + dt``, ``exp(dtheta) R_s``, ``kappa + dk``,
+    the prisms, the constant clock offsets and the clock knots plus their steps."""
     dR, dp = exp_se3(x[:, :6])
     R = s.R @ dR
     t = s.t + np.einsum("kij,kj->ki", s.R, dp)
@@ -270,7 +300,11 @@ def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> 
     pb = s.p_body
     if prob.n_prism:
         pb = s.p_body + g[kc + 1:kc + 1 + prob.n_prism].reshape(s.p_body.shape)
-    return JointState(R, t, s.w + x[:, 6:], R_s, t_s, s.kappa_ppm + float(g[kc]), clock, pb)
+    sync = s.sync
+    if prob.n_sync:
+        sync = s.sync + g[prob.sync_col:prob.sync_col + prob.n_sync]
+    return JointState(R, t, s.w + x[:, 6:], R_s, t_s, s.kappa_ppm + float(g[kc]), clock, pb,
+                      sync)
 
 
 @dataclass(frozen=True)

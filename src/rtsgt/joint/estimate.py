@@ -7,7 +7,7 @@ project's convention: docs/joint.md.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -40,6 +40,10 @@ from rtsgt.pose.estimate import PoseEstimate
 from rtsgt.pose.registration import shape_ratio
 from rtsgt.shared import POSE_COMPONENTS, SharedFactor
 
+#: Information (s^-2) holding a clock state's first knot at 0 when the stations' constant
+#: offsets are parameters of their own (the clock states are then their drift): 0.1 us.
+ANCHOR_INFO = 1.0 / (1e-7) ** 2
+
 
 @dataclass(frozen=True)
 class JointResult:
@@ -63,7 +67,9 @@ class JointResult:
     ``posterior``: the knots and the solution's covariances, for poses and their covariance
     between two times anywhere inside the knots (:class:`rtsgt.joint.relative.JointPosterior`);
     ``raw_block_cv``: the block cross-validation of the raw measurements
-    (:func:`rtsgt.joint.blockcv.raw_block_summary`, JSON-ready).
+    (:func:`rtsgt.joint.blockcv.raw_block_summary`, JSON-ready); ``time_sync``: each
+    station's constant clock offset against the robot's (``t_recorded - t_true``),
+    ``(offset, sigma)`` s, by station (with the clock states, at their first knot).
     """
 
     t: np.ndarray
@@ -82,6 +88,7 @@ class JointResult:
     noise: NoiseFit | None = None
     posterior: JointPosterior | None = None
     raw_block_cv: dict | None = None
+    time_sync: dict[str, tuple[float, float]] = field(default_factory=dict)
 
 
 def _stations(calibration):
@@ -126,7 +133,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
         raise InputError(f"Expected at least 2 initial poses, got {init_t.size}")
     ids, R_s, t_s, cov_s, free = _stations(calibration)
     names = tuple(reference.names)
-    carried = GLOBAL_SOURCES + (("time_sync",) if clocks else ())
+    sync = "time_sync" in model.sources and model.time_sync_second_moment_s2 > 0
+    carried = GLOBAL_SOURCES + (("time_sync",) if clocks or sync else ())
     meas = polar_measurements(observations, ids, names, model, weather, carried)
     tq = np.asarray(query_times, dtype=float)
     knots = build_knots(meas.t, tq if query_knots else np.zeros(0), merge_s)
@@ -136,15 +144,24 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
         raise InputError(f"Expected qc of shape (6,), positive, got {qc!r}")
     info = np.stack([station_prior_info(c) for c in cov_s])
     ck = None
+    ref = ids.index(calibration.reference_station)
     if clocks and len(ids) > 1:  # a lone station has no clock to estimate against
-        ck = clock_model(meas.t, meas.station, len(ids), ids.index(calibration.reference_station))
+        ck = clock_model(meas.t, meas.station, len(ids), ref)
     survey = np.asarray(reference.xyz, dtype=float)
     p_info = prism_prior_info(reference.cov) if prisms else None
+    # each station's constant clock offset against the robot's (the time_sync source, once
+    # per deployment); with the clock states, those are its drift from the first knot on
+    sync_col = np.arange(len(ids)) if sync else None
+    if ck is not None and sync:
+        ck = replace(ck, info=ck.info + ANCHOR_INFO * np.eye(ck.knots.size)[:, :1]
+                     @ np.eye(ck.knots.size)[:1])
     prob = JointProblem(knots.t, knots.of_measurement, knots.tau, meas, survey, R_s, t_s, info,
-                        free, qc, ck, p_info, np.asarray(reference.cov, dtype=float))
+                        free, qc, ck, p_info, np.asarray(reference.cov, dtype=float),
+                        sync_column=sync_col, sync_var=model.time_sync_second_moment_s2)
     state = JointState(R0, p0, body_velocities(knots.t, R0, p0), R_s, t_s, 0.0,
                        None if ck is None else np.zeros((ck.station.size, ck.knots.size)),
-                       None if p_info is None else survey.copy())
+                       None if p_info is None else survey.copy(),
+                       None if sync_col is None else np.zeros(prob.n_sync))
     prob, state, sol, solve, qc_fit = solve_with_qc(prob, state, estimate_qc, max_iter, tol,
                                                     noise)
     cov_g = sol.cov_g
@@ -155,12 +172,26 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     shared = _shared(tq, knots.t, state, prob, sol, global_names(prob, ids, names))
     est = _pose_estimate(R, t, cov_pose, survey if pfit is None else pfit.xyz)
     return JointResult(tq, est, _station_results(ids, free, state, cov_g), state.kappa_ppm,
-                       meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, cov_g, ids),
+                       meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, cov_g, ids, ref),
                        knots.t.size, meas.t.size, solve,
                        solve.costs[-1] / (3 * meas.t.size), shared, pfit,
                        None if prob.noise is None else replace(prob.noise, stations=ids),
                        JointPosterior(knots.t, state.R, state.t, state.w, prob.qc, sol),
-                       raw_block_summary(raw_block_cv(prob, state, sol, max_gap_s), ids))
+                       raw_block_summary(raw_block_cv(prob, state, sol, max_gap_s), ids),
+                       _time_sync(prob, state, cov_g, global_names(prob, ids, names)))
+
+
+def _time_sync(prob: JointProblem, state: JointState, cov_g, names) -> dict:
+    """Each constant clock offset's estimate and sigma, s, by station (``names``: the
+    globals', :func:`global_names`)."""
+    if not prob.n_sync:
+        return {}
+    out = {}
+    for j in range(prob.n_sync):
+        c = prob.sync_col + j
+        sid = names[c].removeprefix("time_sync_station")
+        out[sid] = (float(state.sync[j]), float(np.sqrt(max(cov_g[c, c], 0.0))))
+    return out
 
 
 def _prism_fit(names, prob: JointProblem, state: JointState, cov_g) -> PrismFit:
@@ -190,12 +221,15 @@ def global_names(prob: JointProblem, ids, prisms=()) -> tuple[str, ...]:
     """Names of the problem's global parameters in their order: the free stations'
     ``calibration_station<id>_<x|y|z|rx|ry|rz>`` (world frame, as the per-prism pipeline's
     shared columns), ``atmosphere_ppm``, the prisms' ``reference_<prism>_<x|y|z>`` (where
-    estimated; ``prisms`` their names), the clocks' knots ``clock_station<id>_<jjjj>``."""
+    estimated; ``prisms`` their names), the stations' constant clock offsets
+    ``time_sync_station<id>``, the clocks' knots ``clock_station<id>_<jjjj>``."""
     names = [f"calibration_station{ids[i]}_{c}" for i in prob.free for c in POSE_COMPONENTS]
     names.append("atmosphere_ppm")
     if prob.n_prism:
         names += [f"reference_{p}_{c}" for p in prisms for c in "xyz"]
     ck = prob.clock
+    if prob.n_sync:
+        names += [f"time_sync_station{s}" for s in ids]
     if ck is not None:
         names += [f"clock_station{ids[i]}_{j:04d}" for i in ck.station
                   for j in range(ck.knots.size)]
@@ -213,15 +247,24 @@ def _shared(tq, t_knot, state, prob, sol, names) -> SharedFactor:
     return SharedFactor(tq, A @ L, names, body_to_world_cov(R, var))
 
 
-def _clocks(prob, state, cov_g, ids):
+def _clocks(prob, state, cov_g, ids, reference: int):
+    """Each non-reference station's clock offset against the ``reference`` station at the
+    clock knots: its drift (the clock states) plus, where estimated, the difference of the
+    two stations' constant offsets; ``(knots, offsets, covariance)``."""
     ck = prob.clock
     if ck is None:
         return {}
     J = ck.knots.size
     out = {}
     for i, sidx in enumerate(ck.station):
-        sl = slice(prob.n_fixed + i * J, prob.n_fixed + (i + 1) * J)
-        out[ids[sidx]] = (ck.knots, state.clock[i].copy(), cov_g[sl, sl].copy())
+        A = np.zeros((J, cov_g.shape[0]))
+        A[:, prob.n_fixed + i * J:prob.n_fixed + (i + 1) * J] = np.eye(J)
+        off = state.clock[i].copy()
+        if prob.n_sync:
+            A[:, prob.sync_col + sidx] += 1.0
+            A[:, prob.sync_col + reference] -= 1.0
+            off += state.sync[sidx] - state.sync[reference]
+        out[ids[sidx]] = (ck.knots, off, A @ cov_g @ A.T)
     return out
 
 

@@ -21,6 +21,10 @@ from rtsgt.interpolation.motion import CLASS_NAMES
 from rtsgt.joint import estimate_joint
 from rtsgt.joint.estimate import JointResult
 from rtsgt.joint.knots import qc_from_prisms
+from rtsgt.joint.noise import CHANNELS as NOISE_CHANNELS
+from rtsgt.joint.noise import NoiseFit
+from rtsgt.joint.prisms import PrismFit
+from rtsgt.measurement.units import MGON
 from rtsgt.noise import NoiseModel
 from rtsgt.options import RunOptions
 from rtsgt.pose import PoseEstimate, ReferencePoints
@@ -151,8 +155,11 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
     redundancy; ``kappa_ppm`` with its sigma; ``stations``: each station's posterior shift
     from its calibration (mm, mrad, and in the calibration's sigmas per axis); ``clocks``: per
     station but the reference its offset (ms) at the start and the end, the largest
-    ``|offset|`` and the median sigma; the solve's iterations, convergence, chi^2 per row,
-    knots and measurements."""
+    ``|offset|`` and the median sigma; ``time_sync``: the constant clock offsets against the
+    robot's (ms, with sigma); ``prisms``: each prism's shift from its survey (mm, with its
+    sigma), its test statistic in sigmas and whether it was found moved; ``noise``: the
+    white noise's components per station and channel where identified; the solve's
+    iterations, convergence, chi^2 per row, knots and measurements."""
     q = jr.qc
     used = np.bincount(q.classes, minlength=len(CLASS_NAMES))
     return {
@@ -167,10 +174,36 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
         "clocks": {sid: _clock_summary(kn, off, cov) for sid, (kn, off, cov)
                    in jr.clocks.items()},
         "clock_reference": calibration.reference_station if jr.clocks else None,
+        "time_sync": {sid: {"offset_ms": 1e3 * v, "sigma_ms": 1e3 * sd}
+                      for sid, (v, sd) in jr.time_sync.items()},
+        "prisms": None if jr.prisms is None else _prisms_summary(jr.prisms),
+        "noise": None if jr.noise is None else _noise_summary(jr.noise),
         "iterations": int(jr.solve.iterations), "converged": bool(jr.solve.converged),
         "chi2_per_dof": float(jr.chi2_per_dof), "knots": int(jr.n_knots),
         "measurements": int(jr.n_measurements), "poses": int(jr.t.size),
     }
+
+
+def _prisms_summary(pf: PrismFit) -> dict[str, Any]:
+    """Each prism's estimate against its survey (body frame), mm."""
+    return {p: {"shift_mm": (1e3 * pf.shift[i]).tolist(), "sigma_mm": (1e3 * pf.sigma[i]).tolist(),
+                "test_sigmas": float(pf.shift_sigma[i]), "moved": bool(pf.moved[i])}
+            for i, p in enumerate(pf.names)}
+
+
+def _noise_summary(nf: NoiseFit) -> dict[str, Any]:
+    """Each station's white-noise components per channel: the datasheet's factor and the
+    range part (angles: mgon at 100 m; distance: ppm) with their sigmas, and whether the data
+    determined them (else the prior, kept)."""
+    out = {}
+    for i, sid in enumerate(nf.stations or range(nf.theta.shape[0])):
+        out[str(sid)] = {c: {"factor": float(nf.theta[i, j, 0]),
+                             "factor_sigma": float(nf.sigma[i, j, 0]),
+                             "range_part": float(nf.range_sigma[i, j]
+                                                 / (1.0 if c == "d" else MGON)),
+                             "determined": [bool(x) for x in nf.determined[i, j]]}
+                         for j, c in enumerate(NOISE_CHANNELS)}
+    return out
 
 
 def _station_shift(prior: RigidTransform, post: RigidTransform) -> dict[str, Any]:
