@@ -37,6 +37,7 @@ from scipy.stats import chi2
 
 from rtsgt.checks.verdict import record_verdict
 from rtsgt.evaluation import ContinuousGroundTruth
+from rtsgt.evaluation.joint_truth import JointGroundTruth
 from rtsgt.evaluation.metrics import (
     relative_pose_covariance,
     relative_pose_error_vector,
@@ -59,6 +60,13 @@ def seeds(text: str) -> list[int]:
     return list(range(int(lo), int(hi or lo) + 1))
 
 
+def continuous(record):
+    """The run's ground truth between two times: the per-prism GPs' or the joint engine's."""
+    joint = record.computation.joint
+    return (ContinuousGroundTruth.from_record(record) if joint is None
+            else JointGroundTruth(joint.posterior))
+
+
 def relative_nees(record, truth_at, delta_s: float) -> np.ndarray:
     """Relative-pose NEES (6 dof) of consecutive ground-truth pairs ``delta_s`` apart."""
     gt = record.groundtruth
@@ -67,12 +75,31 @@ def relative_nees(record, truth_at, delta_s: float) -> np.ndarray:
     if pairs.shape[0] == 0:
         return np.zeros(0)
     i, j = pairs.T
-    P_i, P_j, cross = ContinuousGroundTruth.from_record(record).pair_covariances(gt.t[i], gt.t[j])
+    P_i, P_j, cross = continuous(record).pair_covariances(gt.t[i], gt.t[j])
     cov = relative_pose_covariance(gt.rotation[i], gt.position[i], gt.position[j], P_i, P_j,
                                    cross)
     p, q = truth_at(gt.t)
     xi = relative_pose_error_vector(quat_xyzw_to_matrix(q), p, gt.rotation, gt.position, pairs)
     return squared_mahalanobis(xi, cov)
+
+
+def clocks_within(record, sim) -> float | None:
+    """Share of 1 Hz samples of every non-reference station's clock offset against the
+    reference (the joint engine's, piecewise linear on its knots) within 2 sigma of the
+    field truth's; None without clock states."""
+    joint = record.computation.joint
+    f = sim.truth.field
+    if joint is None or not joint.clocks or f is None:
+        return None
+    inside = []
+    for sid, (kn, off, cov) in joint.clocks.items():
+        t = np.arange(np.ceil(kn[0]), min(kn[-1], float(record.groundtruth.t[-1])), 1.0)
+        W = np.clip(1.0 - np.abs(t[:, None] - kn[None, :]) / np.diff(kn)[0], 0.0, None)
+        ref = f.station_ids.index(record.joint["clock_reference"])
+        true = -(f.clock_error_s(f.station_ids.index(sid), t) - f.clock_error_s(ref, t))
+        sig = np.sqrt(np.einsum("ti,ij,tj->t", W, cov, W))
+        inside.append(np.abs(W @ off - true) < 2 * sig)
+    return float(np.mean(np.concatenate(inside)))
 
 
 def config(args):
@@ -103,10 +130,13 @@ def one(seed: int, args, tmp: Path) -> dict:
         p, q = sim.truth_at(gt.t)
         c = compare_to_truth(gt, p, q, split=rec.groundtruth_split)
         rel = {f"{d:g}s": relative_nees(rec, sim.truth_at, d) for d in DELTAS_S}
-    ip = rec.self_checks["inter_prism_distances"]["overall"]
+    ip = rec.self_checks["inter_prism_distances"].get("overall") or {}
     n6 = c.nees_pose
     verdict = record_verdict(rec)
+    raw = (rec.self_checks.get("raw_block_cv") or {}).get("overall") or {}
     return {
+        "clocks_within_2sigma": clocks_within(rec, sim),
+        "raw_block_cv": raw.get("nees_per_dof"),
         "seed": seed, "poses": len(gt), "wall_s": wall,
         "nees6": n6.mean / 6, "in95": float(np.mean(n6.values <= chi2.ppf(0.95, 6))),
         "split_consistent": bool(n6.consistent),
@@ -130,32 +160,54 @@ def main() -> None:
     ap.add_argument("--without", nargs="*", default=[],
                     choices=["displacement", "clocks", "prism_cyclic", "tripod_settling"],
                     help="effects of the preset to leave out (to see what each costs)")
+    ap.add_argument("--out", default=None,
+                    help="folder: each seed's result as <seed>.json when it is done")
     args = ap.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in seeds(args.seeds):
             r = one(seed, args, Path(tmp))
             rows.append(r)
-            print(json.dumps({k: v for k, v in r.items() if not k.endswith("values")}),
-                  flush=True)
+            line = json.dumps({k: v for k, v in r.items() if not k.endswith("values")})
+            print(line, flush=True)
+            if args.out:
+                Path(args.out).mkdir(parents=True, exist_ok=True)
+                (Path(args.out) / f"{seed}.json").write_text(json.dumps(
+                    {**json.loads(line), "n6_values": r["n6_values"].tolist(),
+                     "rel_values": {k: v.tolist() for k, v in r["rel_values"].items()}}))
+    table(rows)
+
+
+def _f(v, fmt: str = ".2f") -> str:
+    return "-" if v is None else format(v, fmt)
+
+
+def table(rows: list[dict]) -> None:
+    """The Markdown table of the seeds' results and their pooled line."""
     print("\n| seed | poses | pose NEES/dof | in 95 % | split test | rel. NEES/dof 1 s | 10 s "
-          "| 60 s | inter-prism z^2 (accepted) | verdict | median sigma mm | run s |")
-    print("|---|---:|---:|---:|---|---:|---:|---:|---|---|---:|---:|")
+          "| 60 s | inter-prism z^2 (accepted) | raw block CV | clocks in 2 sigma | verdict "
+          "| median sigma mm | run s |")
+    print("|---|---:|---:|---:|---|---:|---:|---:|---|---:|---:|---|---:|---:|")
     for r in rows:
-        rel = " | ".join("-" if r["rel"][k][0] is None else f"{r['rel'][k][0]:.2f}"
-                         for k in r["rel"])
+        rel = " | ".join(_f(r["rel"][k][0]) for k in r["rel"])
         lo, hi = r["z2_interval"] or (np.nan, np.nan)
+        z2 = "-" if r["z2"] is None else f"{r['z2']:.2f} ({lo:.2f}-{hi:.2f})"
+        ck = r.get("clocks_within_2sigma")
         print(f"| {r['seed']} | {r['poses']} | {r['nees6']:.2f} | {100 * r['in95']:.1f} % | "
-              f"{'consistent' if r['split_consistent'] else 'rejected'} | {rel} | "
-              f"{r['z2']:.2f} ({lo:.2f}-{hi:.2f}) | {r['verdict']} | {r['sigma_mm']:.2f} | "
-              f"{r['wall_s']:.0f} |")
-    n6 = np.concatenate([r["n6_values"] for r in rows])
-    rel = " | ".join(f"{np.concatenate([r['rel_values'][k] for r in rows]).mean() / 6:.2f}"
+              f"{'consistent' if r['split_consistent'] else 'rejected'} | {rel} | {z2} | "
+              f"{_f(r.get('raw_block_cv'))} | {_f(None if ck is None else 100 * ck, '.1f')} | "
+              f"{r['verdict']} | {r['sigma_mm']:.2f} | {r['wall_s']:.0f} |")
+    n6 = np.concatenate([np.asarray(r["n6_values"]) for r in rows])
+    rel = " | ".join(_f(np.concatenate([np.asarray(r["rel_values"][k]) for r in rows]).mean() / 6)
                      for k in rows[0]["rel"])
+    z2 = [r["z2"] for r in rows if r["z2"] is not None]
+    cks = [r["clocks_within_2sigma"] for r in rows if r.get("clocks_within_2sigma") is not None]
+    raw = [r["raw_block_cv"] for r in rows if r.get("raw_block_cv") is not None]
     print(f"| pooled | {n6.size} | {n6.mean() / 6:.2f} | "
           f"{100 * np.mean(n6 <= chi2.ppf(0.95, 6)):.1f} % | "
           f"{sum(r['split_consistent'] for r in rows)} of {len(rows)} | {rel} | "
-          f"{np.mean([r['z2'] for r in rows]):.2f} | "
+          f"{_f(np.mean(z2) if z2 else None)} | {_f(np.mean(raw) if raw else None)} | "
+          f"{_f(100 * np.mean(cks) if cks else None, '.1f')} | "
           f"{sum(r['verdict'] == 'not usable as is' for r in rows)} not usable | "
           f"{np.median([r['sigma_mm'] for r in rows]):.2f} | "
           f"{np.mean([r['wall_s'] for r in rows]):.0f} |")
