@@ -34,7 +34,7 @@ from rtsgt.joint.knots import (
 from rtsgt.joint.measurements import GLOBAL_SOURCES, polar_measurements
 from rtsgt.joint.noise import NoiseFit
 from rtsgt.joint.prisms import PrismFit, prism_prior_info, prism_tests
-from rtsgt.joint.relative import JointPosterior
+from rtsgt.joint.relative import JointPosterior, body_to_world, world_covariance
 from rtsgt.noise.model import NoiseModel
 from rtsgt.pose.estimate import PoseEstimate
 from rtsgt.pose.registration import shape_ratio
@@ -241,10 +241,7 @@ def _shared(tq, t_knot, state, prob, sol, names) -> SharedFactor:
     Cholesky factor, named by ``names``)."""
     R, _, var, L = interpolate_split_gp(tq, t_knot, state.R, state.t, state.w, prob.qc,
                                         sol.cov_var, sol.cov_var_next, sol.factor)
-    A = np.zeros(R.shape[:1] + (6, 6))
-    A[:, :3, :3] = R
-    A[:, 3:, 3:] = R
-    return SharedFactor(tq, A @ L, names, body_to_world_cov(R, var))
+    return SharedFactor(tq, body_to_world(R) @ L, names, body_to_world_cov(R, var))
 
 
 def _clocks(prob, state, cov_g, ids, reference: int):
@@ -271,11 +268,9 @@ def _clocks(prob, state, cov_g, ids, reference: int):
 def body_to_world_cov(R: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """Covariance (Q, 6, 6) of a right (body) perturbation ``T exp(d^)`` of poses ``R``
     (Q, 3, 3) as the world-frame ``(dt, dtheta)`` of :mod:`rtsgt.geometry.transform`:
-    ``A cov A^T``, ``A = diag(R, R)`` (``dt = R rho``, ``dtheta = R phi`` to first order)."""
-    A = np.zeros(R.shape[:1] + (6, 6))
-    A[:, :3, :3] = R
-    A[:, 3:, 3:] = R
-    out = A @ cov @ np.swapaxes(A, 1, 2)
+    ``A cov A^T``, ``A = diag(R, R)`` (``dt = R rho``, ``dtheta = R phi`` to first order),
+    symmetrised (:func:`rtsgt.joint.relative.world_covariance`)."""
+    out = world_covariance(R, cov)
     return 0.5 * (out + np.swapaxes(out, 1, 2))
 
 

@@ -15,7 +15,7 @@ import numpy as np
 from rtsgt.joint.interpolate import interpolate_poses_gp, query_jacobians
 from rtsgt.joint.sparse import ArrowSolution
 
-__all__ = ["JointPosterior", "chain_gains", "chain_products", "knot_cross_covariance",
+__all__ = ["JointPosterior", "body_to_world", "chain_gains", "chain_products", "knot_cross_covariance",
            "query_cross_covariance", "world_covariance"]
 
 
@@ -71,19 +71,20 @@ def query_cross_covariance(sol: ArrowSolution, k_a: np.ndarray, J_a: np.ndarray,
     return J_a @ block @ np.swapaxes(J_b, 1, 2)
 
 
+def body_to_world(R: np.ndarray) -> np.ndarray:
+    """``A = diag(R, R)`` (N, 6, 6) of poses ``R`` (N, 3, 3): a right (body) perturbation
+    ``(rho, phi)`` as the world-frame ``(dt, dtheta)`` of :mod:`rtsgt.geometry.transform`
+    (``dt = R rho``, ``dtheta = R phi`` to first order)."""
+    A = np.zeros(R.shape[:1] + (6, 6))
+    A[:, :3, :3] = A[:, 3:, 3:] = R
+    return A
+
+
 def world_covariance(R_a: np.ndarray, cov: np.ndarray, R_b: np.ndarray | None = None):
-    """Covariance (N, 6, 6) of right (body) perturbations of poses ``R_a`` (N, 3, 3) (and
-    ``R_b`` for a cross covariance) as the world-frame ``(dt, dtheta)`` of
-    :mod:`rtsgt.geometry.transform`: ``A_a cov A_b^T``, ``A = diag(R, R)`` (``dt = R rho``,
-    ``dtheta = R phi`` to first order)."""
-    R_b = R_a if R_b is None else R_b
-
-    def lift(R):
-        A = np.zeros(R.shape[:1] + (6, 6))
-        A[:, :3, :3] = A[:, 3:, 3:] = R
-        return A
-
-    return lift(R_a) @ cov @ np.swapaxes(lift(R_b), 1, 2)
+    """Covariance (N, 6, 6) of right perturbations of poses ``R_a`` (N, 3, 3) (and ``R_b``
+    for a cross covariance) in the world frame: ``A_a cov A_b^T`` (:func:`body_to_world`)."""
+    return body_to_world(R_a) @ cov @ np.swapaxes(body_to_world(R_a if R_b is None else R_b),
+                                                  1, 2)
 
 
 @dataclass(frozen=True)
