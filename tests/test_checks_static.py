@@ -13,6 +13,7 @@ from scipy.signal import lfilter
 from rtsgt.checks.static import (
     COMPONENTS,
     EDGE_MARGIN_S,
+    MIN_STATIC_S,
     gauss_markov_fit,
     lag_one_test,
     static_noise_check,
@@ -81,14 +82,55 @@ def test_static_stretches_cut_the_margins_and_end_at_motion_gaps_and_turns():
     xyz = np.stack([np.column_stack([x, 0 * x, 0 * x]) + r * arm for r in (0.0, 0.5)], axis=1)
     iv = static_stretches(t, xyz)
     # standing poses: 0-19.8 s (the pose at 20 s has a moving neighbour), 30.2-41 s, 43-54.8
-    # s, 65.2-79.8 s; each shortened by the margin at both ends (the run of 30.2-41 s keeps
-    # 6.8 s, above the 5 s minimum)
+    # s, 65.2-79.8 s; each shortened by the margin at both ends
     runs = [(0.0, 19.8), (30.2, 41.0), (43.0, 54.8), (65.2, 79.8)]
     expected = [(a + EDGE_MARGIN_S, b - EDGE_MARGIN_S) for a, b in runs]
     np.testing.assert_allclose(iv, expected, atol=1e-9)
-    # a run shorter than margins plus 5 s is no stretch
-    assert static_stretches(t[t < 8.5], xyz[t < 8.5]).shape == (0, 2)
+    # a run shorter than the margins plus the minimum is no stretch
+    short = t < 2 * EDGE_MARGIN_S + MIN_STATIC_S - 0.1
+    assert static_stretches(t[short], xyz[short]).shape == (0, 2)
     assert static_stretches(t[:1], xyz[:1]).shape == (0, 2)
+
+
+def _stops(rng, smooth_s, dt=0.2, stop_s=(7.0, 30.0), noise_m=0.3e-3):
+    """Poses every ``dt`` of two prisms of a robot standing ``stop_s[0]`` s, starting along a
+    quintic ramp to 1 m/s over 3.75 s (the simulator's peak acceleration of 0.5 m/s^2),
+    driving, braking the same way, standing ``stop_s[1]`` s and starting again; the poses'
+    noise ``noise_m`` (m, each axis) smoothed over ``smooth_s`` as a GP's between measurements
+    that far apart. Returns the times,
+    the prisms (T, 2, 3) and the true stops (2, 2), s."""
+    ramp = 3.75
+    edges = np.cumsum([0.0, stop_s[0], ramp, 10.0, ramp, stop_s[1], ramp, 5.0])
+    t = np.arange(0.0, edges[-1], dt)
+    s = np.clip((t - edges[1]) / ramp, 0, 1)
+    v = s ** 3 * (10 - 15 * s + 6 * s * s)
+    s = np.clip((t - edges[3]) / ramp, 0, 1)
+    v -= s ** 3 * (10 - 15 * s + 6 * s * s)
+    s = np.clip((t - edges[5]) / ramp, 0, 1)
+    v += s ** 3 * (10 - 15 * s + 6 * s * s)
+    x = np.r_[0.0, np.cumsum(0.5 * (v[1:] + v[:-1]) * dt)]
+    k = int(round(smooth_s / dt))
+    noise = np.stack([np.convolve(rng.standard_normal(t.size + k - 1), np.ones(k) / np.sqrt(k),
+                                  "valid") for _ in range(6)], axis=1).reshape(-1, 2, 3)
+    xyz = np.stack([np.column_stack([x, 0 * x, 0 * x]) + [0.0, 0.5 * p, 0.0]
+                    for p in range(2)], axis=1) + noise_m * noise
+    return t, xyz, np.array([[0.0, edges[1]], [edges[4], edges[5]]])
+
+
+@pytest.mark.parametrize("smooth_s", [0.4, 1.2])
+def test_a_short_stop_is_found_and_every_stretch_ends_before_the_robot_moves(smooth_s):
+    """A 7 s stop (the real deployment of 2022-11-09 has 5-8 s ones) was no stretch when the
+    stretch ended where the speed passed 0.05 m/s less 2 s margins: the robot has moved 8 mm
+    when its speed reaches 0.05 m/s. The speed's noise floor ends the run within 0.5 s of
+    the truth, at the rate of the real pose noise (2.5 Hz) and of sparse data."""
+    for seed in range(5):
+        t, xyz, stops = _stops(np.random.default_rng(seed), smooth_s)
+        iv = static_stretches(t, xyz)
+        assert iv.shape == (2, 2), (seed, iv)
+        # inside the true stops, and covering them but for at most the margins
+        assert np.all(iv[:, 0] >= stops[:, 0]) and np.all(iv[:, 1] <= stops[:, 1]), (seed, iv)
+        lost = (stops[:, 1] - stops[:, 0]) - (iv[:, 1] - iv[:, 0])
+        assert np.all(lost <= 2 * EDGE_MARGIN_S), (seed, lost)
 
 
 @pytest.mark.parametrize("confidence", [0.95, 0.99])

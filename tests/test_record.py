@@ -179,7 +179,7 @@ def test_the_run_says_what_its_self_checks_found_on_the_real_excerpt(tmp_path):
         assert e["range"]["level"]["verdict"] == "pessimistic"
         assert e["range"]["observed_sigma_mm"] < 0.5 * e["range"]["predicted_sigma_mm"]
         assert e["vertical"]["correlation"]["verdict"] == "optimistic"
-    assert "self-check static, prism 1" in text and "51 samples; scatter / predicted" in text
+    assert "self-check static, prism 1" in text and "59 samples; scatter / predicted" in text
     assert "warning: self-check, static stretches (3 warnings: prism 1, prism 2, prism 3)" in text
     assert any(w.startswith("self-check, static stretches: prism 1") for w in doc["warnings"])
     # the report's self-check section: the same verdicts

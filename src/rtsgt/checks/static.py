@@ -27,13 +27,18 @@ from rtsgt.stats import ratio_interval, ratio_verdict
 from rtsgt.types import PrismTrack
 
 __all__ = ["COMPONENTS", "EDGE_MARGIN_S", "FAMILY_FALSE_ALARM", "MIN_SAMPLES", "MIN_STATIC_S",
-           "WHITE_SOURCES", "gauss_markov_fit", "lag_one_test", "static_noise_check",
-           "static_stretches"]
+           "NOISE_FLOOR_FACTOR", "WHITE_SOURCES", "gauss_markov_fit", "lag_one_test",
+           "static_noise_check", "static_stretches"]
 
 #: Cut from both ends of a run of standing poses, s.
-EDGE_MARGIN_S = 2.0
-#: Shortest static stretch the check uses (after the margins), s.
-MIN_STATIC_S = 5.0
+EDGE_MARGIN_S = 0.5
+#: Shortest static stretch the checks use (after the margins), s: twice the shortest lag of
+#: the relative-pose check.
+MIN_STATIC_S = 2.0
+#: A pose of a candidate run stands where its speed is at most this times the run's median
+#: speed: the 99.9 % quantile of a chi distribution over its median, at one degree of freedom
+#: (the largest such ratio: the speed's noise along one direction only).
+NOISE_FLOOR_FACTOR = float(np.sqrt(stats.chi2.ppf(0.999, 1) / stats.chi2.ppf(0.5, 1)))
 #: The sources whose errors change from one measurement to the next.
 WHITE_SOURCES = WHITE_NOISE_SOURCES
 #: Fewest samples of a prism (over its stretches) for a verdict.
@@ -53,21 +58,39 @@ _F_GRID = np.linspace(0.0, F_MAX, 12)
 _TAU_POINTS = 24
 
 
+def _runs(mask: np.ndarray, joined: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First and last indices of the runs of ``mask`` (T,), consecutive poses counting as one
+    run where ``joined`` (T - 1,) allows."""
+    link = mask[:-1] & mask[1:] & joined
+    return (np.flatnonzero(mask & ~np.r_[False, link]),
+            np.flatnonzero(mask & ~np.r_[link, False]))
+
+
 def static_stretches(t: ArrayLike, prisms_xyz: ArrayLike) -> np.ndarray:
     """Intervals (K, 2), s, in which the robot stands, from the kept poses' times ``t`` (T,) and
     prisms ``prisms_xyz`` (T, n, 3), m: runs where every prism is slower than
-    ``STANDING_SPEED_M_S`` (no gap over 1.5 median intervals), shortened by ``EDGE_MARGIN_S`` at
-    both ends, kept if at least ``MIN_STATIC_S`` long."""
+    ``STANDING_SPEED_M_S`` (no gap over 1.5 median intervals), within each the poses whose
+    speed is at most ``NOISE_FLOOR_FACTOR`` times the run's median speed (its noise floor; at
+    least ``STANDING_SPEED_M_S / 1000``), shortened by ``EDGE_MARGIN_S`` at both ends, kept
+    if at least ``MIN_STATIC_S`` long (docs/self-checks.md#stretches)."""
     t = np.asarray(t, dtype=float)
     q = np.asarray(prisms_xyz, dtype=float).reshape(t.size, -1, 3)
     if t.size < 2:
         return np.zeros((0, 2))
     speed = np.max([pose_speed(t, q[:, i]) for i in range(q.shape[1])], axis=0)
-    still = speed < STANDING_SPEED_M_S  # NaN (a pose alone between gaps): not still
     dt = np.diff(t)
-    joined = still[:-1] & still[1:] & (dt <= 1.5 * float(np.median(dt)))
-    first = np.flatnonzero(still & ~np.r_[False, joined])
-    last = np.flatnonzero(still & ~np.r_[joined, False])
+    joined = dt <= 1.5 * float(np.median(dt))
+    first, last = _runs(speed < STANDING_SPEED_M_S, joined)  # NaN (a pose alone): not still
+    if not first.size:
+        return np.zeros((0, 2))
+    # each candidate's own noise floor: its poses' median speed (a few runs, not samples)
+    floor = np.array([np.median(speed[a:b + 1]) for a, b in zip(first, last, strict=True)])
+    run = np.maximum(np.searchsorted(first, np.arange(t.size), side="right") - 1, 0)
+    inside = (np.arange(t.size) >= first[run]) & (np.arange(t.size) <= last[run])
+    # at least a thousandth of the standing speed: a noise-free run's speed is round-off
+    limit = np.clip(NOISE_FLOOR_FACTOR * floor, 1e-3 * STANDING_SPEED_M_S, STANDING_SPEED_M_S)
+    limit = np.where(inside, limit[run], -1.0)
+    first, last = _runs(speed <= limit, joined)
     iv = np.column_stack([t[first] + EDGE_MARGIN_S, t[last] - EDGE_MARGIN_S])
     return iv[iv[:, 1] - iv[:, 0] >= MIN_STATIC_S]
 
