@@ -11,10 +11,14 @@ and the alignment with that covariance is a banded system (the states eliminated
 Cholesky factorisation: no loop over poses); the four levels are estimated by restricted
 maximum likelihood (REML) on the same factorisation. The clock is first searched over +-1 s
 by correlating the rotation angle over 1 s of both trajectories (invariant to the mounting and
-the alignment). Derivation and numbers: docs/evaluating.md#a-drifting-odometry.
+the alignment). Derivation and numbers: docs/evaluating.md#a-drifting-odometry. The noisy
+rotations also enter the Jacobian (errors in variables): the gradient's expectation at the
+truth, :func:`score_bias`, is removed by the position-only fit (docs/evaluating.md#errors-in-variables).
 
 References: F. C. Park, B. J. Martin, IEEE Trans. Robotics and Automation 10(5), 1994 (the
-hand-eye start); H. D. Patterson, R. Thompson, Biometrika 58(3), 1971 (REML).
+hand-eye start); H. D. Patterson, R. Thompson, Biometrika 58(3), 1971 (REML); L. A.
+Stefanski, Commun. Statist. Theory Meth. 18(12), 1989 (corrected score); R. N. Kackar,
+D. A. Harville, JASA 79(388), 1984 (the levels' error in the covariance).
 """
 
 from __future__ import annotations
@@ -35,7 +39,9 @@ __all__ = [
     "coarse_clock_shift",
     "drift_model",
     "fit_levels",
+    "level_covariance",
     "profile_normal",
+    "score_bias",
 ]
 
 #: The clock search: offsets within +-CLOCK_SEARCH_S of the given one, on a grid of
@@ -127,6 +133,8 @@ class DriftModel:
         ``s_{k+1} = F_k s_k + q_k``.
     step : ndarray, shape (N - 1,)
         Distance driven between poses, m (at least :data:`MIN_STEP_M`).
+    E : ndarray, shape (N, 2, d, 3)
+        ``d r_k`` per unit white error (position; rotation): ``B = E E^T``.
     """
 
     S: np.ndarray
@@ -134,6 +142,7 @@ class DriftModel:
     H: np.ndarray
     F: np.ndarray
     step: np.ndarray
+    E: np.ndarray
 
 
 def drift_model(S: np.ndarray, R_hat: np.ndarray, lever: np.ndarray, q: np.ndarray,
@@ -144,13 +153,11 @@ def drift_model(S: np.ndarray, R_hat: np.ndarray, lever: np.ndarray, q: np.ndarr
     u = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=float)
     N = q.shape[0]
     arm = R_hat @ np.asarray(lever, dtype=float)
-    L = hat(arm)
-    B = np.zeros((N, 2, 6, 6))
-    B[:, 0, :3, :3] = scale * scale * np.eye(3)
-    B[:, 1, :3, :3] = L @ np.swapaxes(L, 1, 2)
-    B[:, 1, :3, 3:] = L
-    B[:, 1, 3:, :3] = np.swapaxes(L, 1, 2)
-    B[:, 1, 3:, 3:] = np.eye(3)
+    E = np.zeros((N, 2, 6, 3))
+    E[:, 0, :3] = scale * np.eye(3)
+    E[:, 1, :3] = hat(arm)
+    E[:, 1, 3:] = np.eye(3)
+    B = E @ np.swapaxes(E, 2, 3)
     H = np.zeros((N, 6, 4))
     H[:, :3, :3] = np.eye(3)
     H[:, :3, 3] = -np.cross(u, arm)
@@ -160,7 +167,7 @@ def drift_model(S: np.ndarray, R_hat: np.ndarray, lever: np.ndarray, q: np.ndarr
     F[:, :3, 3] = np.cross(u, dq)
     step = np.maximum(np.linalg.norm(dq, axis=1), MIN_STEP_M)
     d = S.shape[1]
-    return DriftModel(S, B[:, :, :d, :d], H[:, :d], F, step)
+    return DriftModel(S, B[:, :, :d, :d], H[:, :d], F, step, E[:, :, :d])
 
 
 def _banded(M: DriftModel, Qi: np.ndarray, HWH: np.ndarray) -> np.ndarray:
@@ -223,6 +230,67 @@ def profile_normal(M: DriftModel, levels: np.ndarray, r: np.ndarray,
     return (*out, np.einsum("nip,ni->np", J, u))
 
 
+def _state_covariances(cb: np.ndarray) -> np.ndarray:
+    """The diagonal 4 x 4 blocks of the inverse of the states' normal matrix from its upper
+    banded Cholesky factor ``U`` (:func:`_banded`): ``X_k = A_k X_{k+1} A_k^T + Q_k`` with
+    ``A_k = D_k^-1 E_k``, ``Q_k = D_k^-1 D_k^-T`` (``D``, ``E`` the diagonal and upper
+    blocks of ``U``), solved by doubling (log2 of the states' count vectorised steps)."""
+    m = cb.shape[1] // 4
+    cols = 4 * np.arange(m)
+    D = np.zeros((m, 4, 4))
+    E = np.zeros((m, 4, 4))
+    for i in range(4):
+        for j in range(4):
+            if j >= i:
+                D[:, i, j] = cb[7 + i - j, cols + j]
+            E[:-1, i, j] = cb[3 + i - j, cols[1:] + j]
+    Di = np.linalg.inv(D)
+    A, Q = Di @ E, Di @ np.swapaxes(Di, 1, 2)
+    s = 1
+    while s < m:  # compose each map with the one s states later
+        Q = np.concatenate([A[:-s] @ Q[s:] @ np.swapaxes(A[:-s], 1, 2) + Q[:-s], Q[-s:]])
+        A = np.concatenate([A[:-s] @ A[s:], A[-s:]])
+        s *= 2
+    return Q
+
+
+def score_bias(M: DriftModel, levels: np.ndarray, G: np.ndarray, Gs: np.ndarray,
+               L: np.ndarray | None = None) -> np.ndarray:
+    """The expectation of the weighted least squares' gradient ``J^T C^-1 r`` at the truth
+    when the Jacobian ``J`` is itself noisy (errors in variables: the estimate's rotations
+    turn the lever arm, its positions the alignment): ``J_k = J0_k + G_k eps_k + Gs_k s_k``
+    with ``eps_k`` the white errors per unit level (of :attr:`DriftModel.E`) and ``s_k`` the
+    drift state. ``G`` (N, 2, d, 3, P), ``Gs`` (N, d, 4, P), ``L`` as in
+    :func:`profile_normal`. Returns (P,): ``sum_k level_c^2 tr(G_ck^T (C^-1)_kk E_ck) +
+    tr(Gs_k^T (C^-1 H P)_kk)`` (``P`` the states' prior covariance). A root of the gradient
+    minus it is consistent (the corrected score, docs/evaluating.md#errors-in-variables)."""
+    sp, sr, qp, qy = np.asarray(levels, dtype=float)
+    W = M.S + sp * sp * M.B[:, 0] + sr * sr * M.B[:, 1]
+    Wi = np.linalg.inv(W)
+    Qvar = M.step[:, None] * np.array([qp * qp] * 3 + [qy * qy])
+    HWH = np.swapaxes(M.H, 1, 2) @ Wi @ M.H
+    cb = cholesky_banded(_banded(M, 1.0 / Qvar, HWH), lower=False, check_finite=False)
+    X = _state_covariances(cb)  # (N - 1, 4, 4), states 1..N-1
+    WiH = Wi @ M.H
+    A = Wi.copy()  # (C^-1)_kk
+    A[1:] -= WiH[1:] @ X @ np.swapaxes(WiH[1:], 1, 2)
+    T = np.zeros(M.H.shape)  # (C^-1 H P)_kk
+    T[1:] = WiH[1:] @ X
+    if L is not None and L.shape[2]:
+        k = L.shape[2]
+        Z = (np.swapaxes(M.H, 1, 2) @ Wi @ L)[1:].reshape(-1, k)
+        Y = cho_solve_banded((cb, False), Z, check_finite=False).reshape(-1, 4, k)
+        U = Wi @ L
+        U[1:] -= WiH[1:] @ Y  # C0^-1 L, pose by pose
+        Mk = np.eye(k) + np.einsum("nia,nib->ab", L, U)
+        UM = U @ np.linalg.inv(Mk)
+        A -= UM @ np.swapaxes(U, 1, 2)
+        T[1:] -= UM[1:] @ np.swapaxes(Y, 1, 2)
+    AE = A[:, None] @ M.E
+    return (np.einsum("ncdep,ncde,c->p", G, AE, np.array([sp * sp, sr * sr]))
+            + np.einsum("ndsp,nds->p", Gs, T))
+
+
 def _reml(z: np.ndarray, M: DriftModel, r: np.ndarray, J: np.ndarray,
           L: np.ndarray | None) -> float:
     """-2 log of the restricted likelihood (up to a constant) at the log levels ``z``."""
@@ -236,6 +304,41 @@ def _reml(z: np.ndarray, M: DriftModel, r: np.ndarray, J: np.ndarray,
     gs = V[:, keep].T @ (g / d)
     return (logdet + chi2 - float(gs @ (gs / w[keep])) + float(np.sum(np.log(w[keep])))
             + 2.0 * float(np.sum(np.log(d))))
+
+
+def level_covariance(M: DriftModel, r: np.ndarray, J: np.ndarray, levels: np.ndarray,
+                     L: np.ndarray | None = None, h: float = 0.05) -> np.ndarray:
+    """The covariance (4, 4) of the log levels of :func:`fit_levels` at its optimum
+    ``levels``: twice the inverse of the restricted likelihood's Hessian (-2 log, central
+    differences of step ``h`` in the log levels), with the levels at a bound of
+    :data:`LEVEL_BOUNDS` held (zero rows) and directions it does not curve left out (all,
+    should a step leave the positive definite covariances)."""
+    z = np.log(np.asarray(levels, dtype=float))
+    bounds = np.log(np.array(LEVEL_BOUNDS))
+    free = np.flatnonzero((z > bounds[:, 0] + h) & (z < bounds[:, 1] - h))
+    n = free.size
+    out = np.zeros((4, 4))
+    if n == 0:
+        return out
+    steps = h * np.eye(4)[free]
+
+    def f(dz):
+        return _reml(z + dz, M, r, J, L)
+
+    f0 = f(np.zeros(4))
+    fp = np.array([f(e) for e in steps])
+    fm = np.array([f(-e) for e in steps])
+    Hs = np.diag((fp - 2 * f0 + fm) / h**2)
+    for i in range(n):
+        for j in range(i + 1, n):
+            a, b = steps[i], steps[j]
+            Hs[i, j] = Hs[j, i] = (f(a + b) - f(a - b) - f(b - a) + f(-a - b)) / (4 * h * h)
+    if not np.all(np.isfinite(Hs)):  # a step left the positive definite covariances
+        return out
+    w, V = np.linalg.eigh(0.5 * (Hs + Hs.T))
+    keep = w > 1e-9 * max(float(w.max()), np.finfo(float).tiny)
+    out[np.ix_(free, free)] = 2.0 * (V[:, keep] / w[keep]) @ V[:, keep].T
+    return out
 
 
 def fit_levels(M: DriftModel, r: np.ndarray, J: np.ndarray, start: np.ndarray,

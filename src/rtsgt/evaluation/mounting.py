@@ -127,9 +127,12 @@ from rtsgt.evaluation.align import Alignment, align_yaw, umeyama
 from rtsgt.evaluation.handeye import (
     CLOCK_SEARCH_S,
     ODOMETRY_COMPONENTS,
+    DriftModel,
     drift_model,
     fit_levels,
+    level_covariance,
     profile_normal,
+    score_bias,
 )
 from rtsgt.evaluation.metrics import integrated_autocorrelation_time
 from rtsgt.geometry.so3 import exp_so3, hat, log_so3, matrix_to_quat_xyzw
@@ -1070,28 +1073,89 @@ def _odometry(x: _State, D: _Data, align: str, est: tuple[str, ...], clock_offse
                             clock_offset)
 
 
+def _regressor_noise(x: _State, D: _Data, align: str, est: tuple[str, ...],
+                     model: DriftModel, ph: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How the Jacobian of a position-only fit moves with the odometry's errors (the ``G``,
+    ``Gs`` of :func:`~rtsgt.evaluation.handeye.score_bias`): the lever arm's columns
+    ``-R^ e_j`` turn with the rotation errors (white and yaw drift), the alignment's rotation
+    ``[e_i]x (p^ - c)`` and scale ``q - c`` columns move with the predicted positions."""
+    lay = _layout(align, est)
+    N, P = ph.shape[0], lay["all"].stop
+    G = np.zeros((N, 2, 3, 3, P))
+    Gs = np.zeros((N, 3, 4, P))
+    if align != "none":
+        keep = {"se3": [0, 1, 2, 3, 4, 5], "sim3": list(range(7)), "4dof": [0, 1, 2, 5]}[align]
+        for col, j in enumerate(keep):
+            if 3 <= j < 6:  # [e_i]x times the position errors
+                e = hat(np.eye(3)[j - 3])
+                G[:, :, :, :, col] = e @ model.E
+                Gs[:, :, :, col] = e @ model.H
+            elif j == 6:
+                G[:, 0, :, :, col] = model.E[:, 0]
+                Gs[:, :, :3, col] = np.eye(3)
+    lever = _lever_group(est)
+    if lever is not None:
+        _, Rh, _ = _predict(x, D)
+        for col, j in zip(range(lay[lever].start, lay[lever].stop), _lever_axes(est),
+                          strict=True):
+            G[:, 1, :, :, col] = hat(Rh[:, :, j])
+            Gs[:, :, 3, col] = np.cross(Rh[:, :, j], [0.0, 0.0, 1.0])  # the yaw's axis
+    return G, Gs
+
+
 def _odometry_gauss_newton(x: _State, D: _Data, align: str, est: tuple[str, ...],
                            levels: np.ndarray, S: np.ndarray, max_iter: int):
-    """Gauss-Newton on ``r^T C^-1 r`` with the drift states eliminated, the levels fixed."""
+    """Gauss-Newton on ``r^T C^-1 r`` with the drift states eliminated, the levels fixed;
+    with a position-only ground truth, on its gradient less the expectation the noisy
+    Jacobian gives it (the corrected score: the lever arm is otherwise shrunk)."""
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 (the count is reported)
         r, q, Rh, ph = _residual(x, D)
         model = drift_model(S, Rh, x.lever, q, x.s)
         H, g, chi2, _ = profile_normal(model, levels, r, _jacobian(x, D, align, est, q, Rh, ph),
                                        D.shared)
-        dx = _step(H, g)
-        if -float(g @ dx) < _CHI2_DECREASE:
+        bias = (score_bias(model, levels, *_regressor_noise(x, D, align, est, model, ph),
+                           D.shared) if D.d == 3 else np.zeros_like(g))
+        dx = _step(H, g - bias)
+        if -float((g - bias) @ dx) < _CHI2_DECREASE:
             break
         lam = 1.0
         for _ in range(20):
             y = _update(x, lam * dx, align, est, D.c)
-            if profile_normal(model, levels, _residual(y, D)[0], None, D.shared)[2] < chi2:
+            chi2_y = profile_normal(model, levels, _residual(y, D)[0], None, D.shared)[2]
+            if chi2_y - 2.0 * lam * float(bias @ dx) < chi2:
                 break
             lam *= 0.5
         else:
             break
         x = y
     return x, H, chi2, it
+
+
+def _level_share(x: _State, D: _Data, align: str, est: tuple[str, ...], levels: np.ndarray,
+                 S: np.ndarray, H: np.ndarray, r: np.ndarray, q: np.ndarray, Rh: np.ndarray,
+                 ph: np.ndarray) -> np.ndarray:
+    """The parameters' covariance (P, P) from the levels' own error (Kackar and Harville
+    1984), for a position-only ground truth, where the corrected score depends much on them
+    (its expectation grows with the rotation noise's variance): ``K Cov(log levels) K^T``,
+    ``K = H^-1 d(gradient - bias) / d log levels`` at the solution."""
+    P = H.shape[0]
+    if D.d != 3:
+        return np.zeros((P, P))
+    model = drift_model(S, Rh, x.lever, q, x.s)
+    J = _jacobian(x, D, align, est, q, Rh, ph)
+    G, Gs = _regressor_noise(x, D, align, est, model, ph)
+    h = 0.05
+    dz = h * np.eye(4)
+
+    def score(lev):
+        return (profile_normal(model, lev, r, J, D.shared)[1]
+                - score_bias(model, lev, G, Gs, D.shared))
+
+    dF = np.stack([score(levels * np.exp(e)) - score(levels * np.exp(-e)) for e in dz],
+                  axis=1) / (2 * h)
+    K = _scaled_inverse(H)[0] @ dF
+    return K @ level_covariance(model, r, J, levels, D.shared) @ K.T
 
 
 def _odometry_result(x: _State, D: _Data, align: str, est: tuple[str, ...],
@@ -1109,7 +1173,8 @@ def _odometry_result(x: _State, D: _Data, align: str, est: tuple[str, ...],
     # the ground truth's varying errors are correlated between nearby poses (module
     # docstring): each variance inflated by its score's integrated autocorrelation time
     root = np.sqrt([integrated_autocorrelation_time(score[:, j]) for j in range(p)])
-    Hinv = root[:, None] * Hinv * root[None, :]
+    Hinv = root[:, None] * Hinv * root[None, :] + _level_share(x, D, align, est, levels, S,
+                                                                 H, r, q, Rh, ph)
     # what the motion excites: the Jacobian along the ground truth's motion (the estimate's
     # noisy rotations would feign a turn), weighted by the ground truth's covariance alone
     motion = (Rh, ph) if D.Rg is None else (D.Rg, D.pg)
