@@ -71,6 +71,10 @@ def test_deletion_nees_equals_a_dense_inverse_and_a_solve_without_the_block(extr
         Q = Rb - Hb @ cov @ Hb.T
         ref = e @ np.linalg.solve(Q, e)
         assert out.nees[b] == pytest.approx(ref, rel=1e-7)
+        for c in range(3):  # each channel's rows alone: their marginal covariance
+            rows = np.arange(c, 3 * sel.size, 3)
+            ref_c = e[rows] @ np.linalg.solve(Q[np.ix_(rows, rows)], e[rows])
+            assert out.nees_channel[b, c] == pytest.approx(ref_c, rel=1e-6)
         if b % 4 == 0:  # deleted, solved again (one step: the problem is linear at s)
             Wb = np.linalg.inv(Rb)
             N_minus = N - Hb.T @ Wb @ Hb
@@ -92,16 +96,19 @@ def test_verdict_consistent_for_the_model_and_optimistic_for_noise_larger_than_s
             s, sol, _ = gauss_newton(prob, truth, max_iter=20, tol=1e-12)
             rows.append(raw_block_cv(prob, s, sol, max_gap_s=5.0))
         return RawBlocks(*(np.concatenate([getattr(x, f) for x in rows])
-                           for f in ("station", "t0", "t1", "n", "nees")))
+                           for f in ("station", "t0", "t1", "n", "nees", "nees_channel")))
 
     honest = raw_block_summary(pooled(1.0, range(40, 52)), ("1", "2", "3"), warn=False)
     v = honest["overall"]
     lo, hi = ratio_interval(3.0 * 60 * 12)
     assert lo < v["nees_per_dof"] < hi, v
     assert v["verdict"] == "consistent"
+    assert {c: x["verdict"] for c, x in honest["channels"].items()} == {
+        "hz": "consistent", "v": "consistent", "d": "consistent"}, honest["channels"]
     small = raw_block_summary(pooled(1.5, range(60, 72)), ("1", "2", "3"), warn=False)
     assert small["overall"]["verdict"] == "optimistic", small["overall"]
     assert small["overall"]["nees_per_dof"] > 1.8
+    assert all(x["verdict"] == "optimistic" for x in small["channels"].values())
 
 
 def test_cross_covariance_of_distant_knots_and_queries_equals_a_dense_inverse():

@@ -19,6 +19,7 @@ import numpy as np
 from rtsgt.errors import RtsgtWarning
 from rtsgt.interpolation.windows import BLOCK_LENGTHS_S, cv_blocks
 from rtsgt.joint.engine import JointProblem, JointState, measurement_terms
+from rtsgt.joint.noise import CHANNELS
 from rtsgt.joint.relative import chain_gains, chain_products
 from rtsgt.joint.sparse import ArrowSolution
 from rtsgt.stats import integrated_autocorrelation_time, ratio_interval, ratio_verdict
@@ -27,6 +28,8 @@ __all__ = ["MIN_BLOCKS", "RawBlocks", "raw_block_cv", "raw_block_summary"]
 
 #: Fewest blocks for a verdict.
 MIN_BLOCKS = 30
+#: Lengths of the blocks, s, alternating along each station's measurements.
+RAW_BLOCK_LENGTHS_S = BLOCK_LENGTHS_S
 #: Blocks whose deletion covariance is assembled at once (bounds the temporaries).
 _CHUNK = 512
 
@@ -34,22 +37,25 @@ _CHUNK = 512
 @dataclass(frozen=True)
 class RawBlocks:
     """One row per held-out block: ``station`` (B,) index, ``t0``, ``t1`` (B,) s its first
-    and last measurement, ``n`` (B,) measurements, ``nees`` (B,) of its deletion residual."""
+    and last measurement, ``n`` (B,) measurements, ``nees`` (B,) of its deletion residual
+    (3 n dof) and ``nees_channel`` (B, 3) of each channel's rows alone (Hz, V, d; n dof
+    each, their marginal covariance)."""
 
     station: np.ndarray
     t0: np.ndarray
     t1: np.ndarray
     n: np.ndarray
     nees: np.ndarray
+    nees_channel: np.ndarray
 
 
-def _block_index(t, station, max_gap_s):
+def _block_index(t, station, max_gap_s, lengths):
     """Measurement indices (B, n_max) of each block of one station, -1 padded, time order."""
     rows, owner = [], []
     for s in np.unique(station):  # a handful of stations
         idx = np.flatnonzero(station == s)
         idx = idx[np.argsort(t[idx], kind="stable")]
-        block, _ = cv_blocks(t[idx], max_gap_s)
+        block, _ = cv_blocks(t[idx], max_gap_s, lengths)
         order = np.argsort(block, kind="stable")
         bounds = np.flatnonzero(np.r_[True, np.diff(block[order]) != 0, True])
         for a, b in zip(bounds[:-1], bounds[1:], strict=True):
@@ -63,7 +69,7 @@ def _block_index(t, station, max_gap_s):
 
 
 def raw_block_cv(prob: JointProblem, s: JointState, sol: ArrowSolution,
-                 max_gap_s: float) -> RawBlocks:
+                 max_gap_s: float, lengths: tuple[float, ...] | None = None) -> RawBlocks:
     """Deletion NEES of every block of every station's measurements of the problem ``prob``
     at its solution ``s`` with the covariances ``sol`` (``want_cov``); ``max_gap_s``: a
     longer gap starts new blocks."""
@@ -74,15 +80,18 @@ def raw_block_cv(prob: JointProblem, s: JointState, sol: ArrowSolution,
     if Hc is not None:
         for a in range(2):  # the two clock knots of each measurement
             u += Hc[:, :, a:a + 1] * sol.chol_g[cols[:, a]][:, None, :]
-    idx, owner = _block_index(m.t, m.station, max_gap_s)
+    idx, owner = _block_index(m.t, m.station, max_gap_s,
+                              RAW_BLOCK_LENGTHS_S if lengths is None else lengths)
     gains = chain_gains(sol)
     R = np.linalg.inv(m.info)
     nees = np.zeros(idx.shape[0])
+    per = np.zeros((idx.shape[0], 3))
     for lo in range(0, idx.shape[0], _CHUNK):
-        nees[lo:lo + _CHUNK] = _chunk_nees(idx[lo:lo + _CHUNK], k, r, R, Hk, u, sol, gains)
+        nees[lo:lo + _CHUNK], per[lo:lo + _CHUNK] = _chunk_nees(idx[lo:lo + _CHUNK], k, r, R,
+                                                                 Hk, u, sol, gains)
     valid = idx >= 0
     first, last = idx[:, 0], idx[np.arange(idx.shape[0]), valid.sum(axis=1) - 1]
-    return RawBlocks(owner, m.t[first], m.t[last], valid.sum(axis=1), nees)
+    return RawBlocks(owner, m.t[first], m.t[last], valid.sum(axis=1), nees, per)
 
 
 def _chunk_nees(idx, of_meas, r, R, Hk, u, sol, gains):
@@ -109,13 +118,23 @@ def _chunk_nees(idx, of_meas, r, R, Hk, u, sol, gains):
     Q[np.broadcast_to(pad[:, :, None, :, None], Q.shape)] = 0.0
     pos = np.arange(n)
     Q[:, pos, :, pos, :] += np.where(valid.T[:, :, None, None], R[m.T], np.eye(3))
-    e = np.where(valid[:, :, None], r[m], 0.0).reshape(B, 3 * n)
+    e = np.where(valid[:, :, None], r[m], 0.0)
+    per = np.stack([np.einsum("bi,bi->b", e[:, :, c],
+                              np.linalg.solve(Q[:, :, c, :, c], e[:, :, c, None])[:, :, 0])
+                    for c in range(3)], axis=1)
+    e = e.reshape(B, 3 * n)
     Q = Q.reshape(B, 3 * n, 3 * n)
-    return np.einsum("bi,bi->b", e, np.linalg.solve(Q, e[:, :, None])[:, :, 0])
+    return np.einsum("bi,bi->b", e, np.linalg.solve(Q, e[:, :, None])[:, :, 0]), per
 
 
-def _verdict(blocks: RawBlocks, mask: np.ndarray) -> dict[str, Any]:
-    nees, dof = blocks.nees[mask], 3.0 * blocks.n[mask]
+def _verdict(blocks: RawBlocks, mask: np.ndarray, channel: int | None = None
+             ) -> dict[str, Any]:
+    """NEES / dof of the blocks ``mask`` selects (one ``channel``'s rows, or all), its
+    effective sample size, 95 % interval and verdict."""
+    if channel is None:
+        nees, dof = blocks.nees[mask], 3.0 * blocks.n[mask]
+    else:
+        nees, dof = blocks.nees_channel[mask, channel], 1.0 * blocks.n[mask]
     out: dict[str, Any] = {"blocks": int(mask.sum()), "measurements": int(blocks.n[mask].sum()),
                            "nees_per_dof": float(nees.sum() / dof.sum()) if dof.sum() else None}
     if mask.sum() < MIN_BLOCKS:
@@ -132,9 +151,10 @@ def _verdict(blocks: RawBlocks, mask: np.ndarray) -> dict[str, Any]:
 
 def raw_block_summary(blocks: RawBlocks, station_ids: tuple[str, ...],
                       warn: bool = True) -> dict[str, Any]:
-    """JSON-ready: ``overall`` and per station (``stations``) ``blocks``, ``measurements``,
-    ``nees_per_dof`` (3 dof per measurement), ``n_eff``, ``interval_95``, ``verdict``; one
-    warning per verdict not consistent (``warn``)."""
+    """JSON-ready: ``overall``, per station (``stations``) and per channel (``channels``:
+    ``hz``, ``v``, ``d``, each channel's rows alone) ``blocks``, ``measurements``,
+    ``nees_per_dof`` (3 dof per measurement, 1 per channel), ``n_eff``, ``interval_95``,
+    ``verdict``; one warning per verdict not consistent (``warn``)."""
     out = {
         "statistic": "NEES / dof of blocks of one station's raw measurements (Hz, V, d), each "
                      "predicted from the other stations and the prior; 1 if the measurements' "
@@ -143,10 +163,13 @@ def raw_block_summary(blocks: RawBlocks, station_ids: tuple[str, ...],
         "overall": _verdict(blocks, np.ones(blocks.nees.shape, bool)),
         "stations": {sid: _verdict(blocks, blocks.station == i)
                      for i, sid in enumerate(station_ids) if np.any(blocks.station == i)},
+        "channels": {c: _verdict(blocks, np.ones(blocks.nees.shape, bool), j)
+                     for j, c in enumerate(CHANNELS)},
     }
     if warn:
-        named = [("the whole run", out["overall"])] + [(f"station {s}", v)
-                                                       for s, v in out["stations"].items()]
+        named = ([("the whole run", out["overall"])]
+                 + [(f"station {s}", v) for s, v in out["stations"].items()]
+                 + [(f"channel {c}", v) for c, v in out["channels"].items()])
         for name, v in named:
             if v["interval_95"] is None or v["verdict"] == "consistent":
                 continue
