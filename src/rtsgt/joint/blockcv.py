@@ -1,8 +1,8 @@
 """Block cross-validation of the raw measurements, from the joint solution without a refit.
 
-Each station's measurements are cut into blocks of 1 s and 2 s alternately (the windows of
-:mod:`rtsgt.interpolation.windows`); a block ``b`` deleted, the other stations and the prior
-predict it, and its deletion residual has ``NEES_b = e_b^T Q_b^-1 e_b``, ``Q_b = R_b - H_b
+Each station's measurements are cut into blocks of 5 s and 10 s alternately
+(:data:`RAW_BLOCK_LENGTHS_S`, the windows of :mod:`rtsgt.interpolation.windows`); a block
+``b`` deleted, the other stations and the prior predict it, and its deletion residual has ``NEES_b = e_b^T Q_b^-1 e_b``, ``Q_b = R_b - H_b
 Sigma H_b^T`` (``e_b`` the fitted residuals, ``Sigma`` the posterior: the knots' Markov chain
 and the globals' factor of :class:`rtsgt.joint.sparse.ArrowSolution`). Derivation, effective
 sample size and measurements: docs/joint.md#block-cross-validation-of-the-measurements.
@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from rtsgt.errors import RtsgtWarning
-from rtsgt.interpolation.windows import BLOCK_LENGTHS_S, cv_blocks
+from rtsgt.interpolation.windows import cv_blocks
 from rtsgt.joint.engine import JointProblem, JointState, measurement_terms
 from rtsgt.joint.noise import CHANNELS
 from rtsgt.joint.relative import chain_gains, chain_products
@@ -28,8 +28,11 @@ __all__ = ["MIN_BLOCKS", "RawBlocks", "raw_block_cv", "raw_block_summary"]
 
 #: Fewest blocks for a verdict.
 MIN_BLOCKS = 30
-#: Lengths of the blocks, s, alternating along each station's measurements.
-RAW_BLOCK_LENGTHS_S = BLOCK_LENGTHS_S
+#: Lengths of the blocks, s, alternating along each station's measurements: longer than the
+#: 1-12 s over which real total stations' noise is correlated (issue 23), so that a block's
+#: neighbours do not predict its correlated error
+#: (docs/joint.md#block-cross-validation-of-the-measurements).
+RAW_BLOCK_LENGTHS_S = (5.0, 10.0)
 #: Blocks whose deletion covariance is assembled at once (bounds the temporaries).
 _CHUNK = 512
 
@@ -159,7 +162,7 @@ def raw_block_summary(blocks: RawBlocks, station_ids: tuple[str, ...],
         "statistic": "NEES / dof of blocks of one station's raw measurements (Hz, V, d), each "
                      "predicted from the other stations and the prior; 1 if the measurements' "
                      "covariance and the motion prior are honest",
-        "block_lengths_s": list(BLOCK_LENGTHS_S),
+        "block_lengths_s": list(RAW_BLOCK_LENGTHS_S),
         "overall": _verdict(blocks, np.ones(blocks.nees.shape, bool)),
         "stations": {sid: _verdict(blocks, blocks.station == i)
                      for i, sid in enumerate(station_ids) if np.any(blocks.station == i)},

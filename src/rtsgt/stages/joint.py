@@ -56,7 +56,9 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
     from; ``qc_prisms`` (P, 3, 3): the per-prism GPs' WNOA ``Qc`` (m^2/s^3), the start of the prior's ``Qc`` (:func:`rtsgt.joint.knots.qc_from_prisms`);
     ``clocks``: estimate each station's clock offset; ``max_gap_s``: the run's longest gap
     bridged (the raw block cross-validation's segments). The prisms' body positions are
-    estimated with the survey as their prior (docs/joint.md#prism-positions). InputError when
+    estimated with the survey as their prior (docs/joint.md#prism-positions), the white
+    noise per station and channel with the noise model's as its prior
+    (docs/joint.md#noise-identification). InputError when
     no query time falls inside the measurements' span.
     """
     lo = min(float(o.t[0]) for o in observations)
@@ -69,7 +71,7 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
     qc = qc_from_prisms(qc_prisms, reference.xyz)
     return estimate_joint(observations, calibration, reference, model, tq, start_t, start_R,
                           start_p, qc, weather=weather, clocks=clocks, prisms=True,
-                          max_gap_s=max_gap_s)
+                          noise=True, max_gap_s=max_gap_s)
 
 
 @dataclass(frozen=True)
