@@ -154,7 +154,8 @@ def _static_relative(record: RunRecord, joint: JointFit | None) -> RunRecord:
     c = record.computation
     gt = record.groundtruth
     stretches = static_stretches(gt.t, c.prisms.xyz[c.keep])
-    truth = (ContinuousGroundTruth.from_record(record) if joint is None
+    # the linear engine's poses: the check's covariances are its first-order model anyway
+    truth = (ContinuousGroundTruth.from_record(record, engine="linear") if joint is None
              else JointGroundTruth(joint.result.posterior))
     check = static_relative_check(truth, stretches)
     return replace(record, self_checks={**record.self_checks, "static_relative": check})
