@@ -27,6 +27,8 @@ from test_joint import _synthetic  # the joint tests' synthetic problem
 #: The synthetic robot moves at constant velocity: a prior of (almost) no process noise is
 #: its truth, so the held-out blocks' predictions are honest and informed by the prior.
 QC_TRUE = np.full(6, 1e-8)
+#: Blocks of 1 s and 2 s: these problems last 12-24 s (the algebra does not depend on it).
+SHORT_BLOCKS_S = (1.0, 2.0)
 
 
 def _dense_rows(prob, Hk, Hg, Hc=None, cols=None):
@@ -52,7 +54,7 @@ def test_deletion_nees_equals_a_dense_inverse_and_a_solve_without_the_block(extr
     s, sol, info = gauss_newton(prob, truth, max_iter=20, tol=1e-14)
     r, Hk, Hg, Hc, cols = engine.measurement_terms(prob, s)
     m = prob.meas
-    out = raw_block_cv(prob, s, sol, max_gap_s=5.0)
+    out = raw_block_cv(prob, s, sol, max_gap_s=5.0, lengths=SHORT_BLOCKS_S)
     assert out.n.sum() == m.t.size and out.nees.size >= 15
     system, _ = assemble(prob, s)
     N, _ = system.dense()
@@ -94,7 +96,7 @@ def test_verdict_consistent_for_the_model_and_optimistic_for_noise_larger_than_s
             prob, truth = _synthetic(rng, K=60, noise=scale)
             prob = replace(prob, qc=QC_TRUE)
             s, sol, _ = gauss_newton(prob, truth, max_iter=20, tol=1e-12)
-            rows.append(raw_block_cv(prob, s, sol, max_gap_s=5.0))
+            rows.append(raw_block_cv(prob, s, sol, max_gap_s=5.0, lengths=SHORT_BLOCKS_S))
         return RawBlocks(*(np.concatenate([getattr(x, f) for x in rows])
                            for f in ("station", "t0", "t1", "n", "nees", "nees_channel")))
 

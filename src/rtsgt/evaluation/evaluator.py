@@ -65,6 +65,7 @@ from rtsgt.evaluation.metrics import (
 from rtsgt.evaluation.mounting import (
     CLOCK_TOLERANCE_S,
     MountingFit,
+    check_position_only,
     fit_mounting,
     mounting_sensitivity,
     prism_lever_arm,
@@ -206,13 +207,15 @@ def _fit_at(
     start: MountingFit, rates: GroundTruthRates | None,
 ) -> MountingFit:
     """One fit of :func:`~rtsgt.evaluation.mounting.fit_mounting` on an association."""
+    rotation = getattr(g, "rotation", None)  # None: a ground truth of positions
+    if rotation is None:
+        check_position_only(options.estimate)
     if g.cov is None:
         raise InputError(
             f"Estimating {', '.join(options.estimate)} needs a ground truth with covariances "
             "(the weights of the least squares)"
         )
     S, L = g.cov, None
-    rotation = getattr(g, "rotation", None)  # None: a ground truth of positions
     if isinstance(gt, SharedFactorGroundTruth):
         split = gt.shared_split(g.t + assoc.time_offset)
         if split is not None:

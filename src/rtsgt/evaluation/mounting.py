@@ -139,6 +139,7 @@ from rtsgt.geometry.so3 import exp_so3, hat, log_so3, matrix_to_quat_xyzw
 
 __all__ = [
     "CLOCK_TOLERANCE_S",
+    "check_position_only",
     "HAND_LIMIT",
     "JOINT_ALIGNMENTS",
     "MAX_SIGMA",
@@ -836,6 +837,16 @@ def _as_array(a: ArrayLike, shape: tuple, what: str) -> np.ndarray:
     return x
 
 
+def check_position_only(estimate) -> None:
+    """InputError when ``estimate`` asks for what a position-only ground truth cannot give:
+    the mounting rotation."""
+    if "rotation" in estimate:
+        raise InputError("The mounting rotation cannot be estimated from a position-only "
+                         "ground truth: it sees the sensor's rotation only through the lever "
+                         "arm (the lever arm in the sensor frame and the clock can be "
+                         "estimated); give it")
+
+
 def fit_mounting(
     gt_position: ArrayLike,
     gt_rotation: ArrayLike | None,
@@ -929,11 +940,8 @@ def fit_mounting(
     S = _as_array(gt_cov, (N, d, d), "ground-truth covariances")
     pe = _as_array(est_position, (N, 3), "estimate positions")
     Re = _as_array(est_rotation, (N, 3, 3), "estimate rotations")
-    if d == 3 and "rotation" in est:
-        raise InputError("The mounting rotation cannot be estimated from a position-only "
-                         "ground truth: it sees the sensor's rotation only through the lever "
-                         "arm (the lever arm in the sensor frame and the clock can be "
-                         "estimated); give it")
+    if d == 3:
+        check_position_only(est)
     v = w = None
     if "clock" in est:
         if gt_velocity is None or (d == 6 and gt_angular_velocity is None):
