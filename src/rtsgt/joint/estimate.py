@@ -153,8 +153,9 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     # per deployment); with the clock states, those are its drift from the first knot on
     sync_col = np.arange(len(ids)) if sync else None
     if ck is not None and sync:
-        ck = replace(ck, info=ck.info + ANCHOR_INFO * np.eye(ck.knots.size)[:, :1]
-                     @ np.eye(ck.knots.size)[:1])
+        anchored = ck.info.copy()
+        anchored[0, 0] += ANCHOR_INFO
+        ck = replace(ck, info=anchored)
     prob = JointProblem(knots.t, knots.of_measurement, knots.tau, meas, survey, R_s, t_s, info,
                         free, qc, ck, p_info, np.asarray(reference.cov, dtype=float),
                         sync_column=sync_col, sync_var=model.time_sync_second_moment_s2)
