@@ -18,7 +18,12 @@ import numpy as np
 
 from rtsgt.errors import RtsgtWarning
 from rtsgt.interpolation.windows import cv_blocks
-from rtsgt.joint.engine import JointProblem, JointState, measurement_terms
+from rtsgt.joint.engine import (
+    JointProblem,
+    JointState,
+    measurement_global_factor,
+    measurement_terms,
+)
 from rtsgt.joint.noise import CHANNELS
 from rtsgt.joint.relative import chain_gains, chain_products
 from rtsgt.joint.sparse import ArrowSolution
@@ -78,12 +83,9 @@ def raw_block_cv(prob: JointProblem, s: JointState, sol: ArrowSolution,
     at its solution ``s`` with the covariances ``sol`` (``want_cov``); ``max_gap_s``: a
     longer gap starts new blocks."""
     m = prob.meas
-    r, Hk, Hg, Hc, cols = measurement_terms(prob, s)
-    k = prob.of_meas
-    u = Hk @ sol.factor[k] + Hg @ sol.chol_g[:prob.n_fixed]  # (M, 3, G): the globals' part
-    if Hc is not None:
-        for a in range(2):  # the two clock knots of each measurement
-            u += Hc[:, :, a:a + 1] * sol.chol_g[cols[:, a]][:, None, :]
+    r, *terms = measurement_terms(prob, s)
+    Hk, k = terms[0], prob.of_meas
+    u = measurement_global_factor(prob, sol, terms)  # (M, 3, G): the globals' part
     idx, owner = _block_index(m.t, m.station, max_gap_s,
                               RAW_BLOCK_LENGTHS_S if lengths is None else lengths)
     gains = chain_gains(sol)

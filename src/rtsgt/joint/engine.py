@@ -173,18 +173,27 @@ def measurement_terms(prob: JointProblem, s: JointState):
     return r, Hk, Hg, Hc, np.stack([first, first + 1], axis=1)
 
 
+def measurement_global_factor(prob: JointProblem, sol, terms) -> np.ndarray:
+    """``Z = Hk L_k + Hg chol_g`` (M, 3, G): each measurement's fitted value per unit
+    whitened global error (knots' share through the globals and its own global columns,
+    clocks included; :class:`rtsgt.joint.sparse.ArrowSolution`'s split), from the Jacobians
+    ``terms`` (``Hk, Hg, Hc, cols``) of :func:`measurement_terms`."""
+    Hk, Hg, Hc, cols = terms
+    Z = Hk @ sol.factor[prob.of_meas] + Hg @ sol.chol_g[:prob.n_fixed]
+    if Hc is not None:
+        for a in range(2):  # the two clock knots of each measurement
+            Z += Hc[:, :, a:a + 1] * sol.chol_g[cols[:, a]][:, None, :]
+    return Z
+
+
 def measurement_hsh(prob: JointProblem, s: JointState, sol, terms=None) -> np.ndarray:
     """Covariance (M, 3, 3) of the measurements' fitted values, ``H Sigma H^T`` with the
-    knot's marginal and its cross covariance with the globals: ``Hk V_k Hk^T + Z Z^T``,
-    ``Z = Hk L_k + Hg chol_g`` (:class:`rtsgt.joint.sparse.ArrowSolution`'s split);
-    ``terms`` the Jacobians of :func:`measurement_terms` at ``s`` where already computed."""
-    Hk, Hg, Hc, cols = measurement_terms(prob, s)[1:] if terms is None else terms
-    k = prob.of_meas
-    G0 = prob.n_fixed
-    Z = Hk @ sol.factor[k] + Hg @ sol.chol_g[:G0]
-    if Hc is not None:
-        for a in range(2):
-            Z += Hc[:, :, a:a + 1] * sol.chol_g[cols[:, a]][:, None, :]
+    knot's marginal and its cross covariance with the globals: ``Hk V_k Hk^T + Z Z^T``
+    (:func:`measurement_global_factor`); ``terms`` the Jacobians of :func:`measurement_terms`
+    at ``s`` where already computed."""
+    terms = measurement_terms(prob, s)[1:] if terms is None else terms
+    Hk, k = terms[0], prob.of_meas
+    Z = measurement_global_factor(prob, sol, terms)
     out = Hk @ sol.cov_var[k] @ np.swapaxes(Hk, 1, 2) + Z @ np.swapaxes(Z, 1, 2)
     return 0.5 * (out + np.swapaxes(out, 1, 2))
 
@@ -462,5 +471,5 @@ def snoop_prisms(prob: JointProblem, s: JointState, sol) -> tuple[JointProblem, 
 
 
 __all__ = ["JointProblem", "JointState", "QcFit", "SolveInfo", "assemble", "gauss_newton",
-           "measurement_hsh", "measurement_terms", "noise_step", "snoop_prisms",
-           "solve_with_qc"]
+           "measurement_global_factor", "measurement_hsh", "measurement_terms", "noise_step",
+           "snoop_prisms", "solve_with_qc"]
