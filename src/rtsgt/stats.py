@@ -13,8 +13,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy import stats
 
-__all__ = ["VERDICTS", "failed_regimes", "integrated_autocorrelation_time", "ratio_interval",
-           "ratio_verdict", "verdict_meaning"]
+__all__ = ["VERDICTS", "failed", "failed_regimes", "integrated_autocorrelation_time",
+           "ratio_interval", "ratio_verdict", "verdict_meaning"]
 
 #: Inside the interval, below it (the covariance too large), above it (too small).
 VERDICTS = ("consistent", "pessimistic", "optimistic")
@@ -39,12 +39,17 @@ def verdict_meaning(verdict: str) -> str:
             else "larger than the errors: the covariance is too large")
 
 
+def failed(parts) -> list[tuple[str, dict]]:
+    """The ``(name, result)`` of ``parts`` whose verdict is pessimistic or optimistic (not
+    consistent, and not without a verdict), in their order."""
+    return [(name, v) for name, v in parts if v["verdict"] in VERDICTS[1:]]
+
+
 def failed_regimes(check: dict, unit: str):
     """``(name, result)`` of a check's ``overall`` and each of its ``regimes`` whose verdict is
     not consistent (``name``: "the whole run" or "the <regime> <unit>"), in that order."""
-    parts = (("the whole run", check["overall"]),
-             *((f"the {k} {unit}", v) for k, v in check["regimes"].items()))
-    return [(name, v) for name, v in parts if v["verdict"] in VERDICTS[1:]]
+    return failed((("the whole run", check["overall"]),
+                   *((f"the {k} {unit}", v) for k, v in check["regimes"].items())))
 
 
 def integrated_autocorrelation_time(x: ArrayLike) -> float:

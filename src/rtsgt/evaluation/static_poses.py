@@ -20,7 +20,7 @@ from rtsgt.errors import RtsgtWarning
 from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
 from rtsgt.evaluation.joint_truth import JointGroundTruth
 from rtsgt.geometry.so3 import log_so3, quat_xyzw_to_matrix
-from rtsgt.stats import ratio_interval, ratio_verdict, verdict_meaning
+from rtsgt.stats import failed, ratio_interval, ratio_verdict, verdict_meaning
 
 __all__ = ["MIN_PAIRS", "STATIC_LAGS_S", "static_pairs", "static_relative_check"]
 
@@ -122,11 +122,9 @@ def static_relative_check(gt: ContinuousGroundTruth | JointGroundTruth, stretche
     pairs = sum(v["pairs"] for v in per_lag.values())
     pooled = (sum(v["nees_per_dof"] * v["pairs"] for v in per_lag.values() if v["pairs"])
               / pairs) if pairs else None
-    failed = [v for v in judged if v["verdict"] != "consistent"]
-    verdict = ("too few pairs" if not judged else
-               "consistent" if not failed else
-               "optimistic" if all(v["verdict"] == "optimistic" for v in failed) else
-               "pessimistic" if all(v["verdict"] == "pessimistic" for v in failed) else "mixed")
+    bad = [v["verdict"] for _, v in failed(per_lag.items())]
+    verdict = ("too few pairs" if not judged else "consistent" if not bad else
+               bad[0] if len(set(bad)) == 1 else "mixed")
     out = {
         "statistic": "NEES / dof of the ground truth's relative pose between two times of a "
                      "static stretch (its truth: no motion), against the run's covariance of "
@@ -137,13 +135,12 @@ def static_relative_check(gt: ContinuousGroundTruth | JointGroundTruth, stretche
         "static_s": float(np.sum(iv[:, 1] - iv[:, 0])) if iv.size else 0.0,
     }
     if warn:
-        for name, v in per_lag.items():
-            if v["interval_95"] is None or v["verdict"] == "consistent":
-                continue
+        for name, v in failed(per_lag.items()):
             lo, hi = v["interval_95"]
             warnings.warn(
                 f"self-check, static relative poses over {name} s: NEES / dof "
                 f"{v['nees_per_dof']:.2f} outside [{lo:.2f}, {hi:.2f}] ({v['pairs']} pairs); "
                 f"95 % interval, {v['n_eff']:.0f} effective samples; the predicted "
-                f"uncertainty of motion over {name} s is {verdict_meaning(v['verdict'])}", RtsgtWarning, stacklevel=2)
+                f"uncertainty of motion over {name} s is {verdict_meaning(v['verdict'])}",
+                RtsgtWarning, stacklevel=2)
     return out

@@ -27,7 +27,7 @@ from rtsgt.joint.engine import (
 from rtsgt.joint.noise import CHANNELS
 from rtsgt.joint.relative import chain_gains, chain_products
 from rtsgt.joint.sparse import ArrowSolution
-from rtsgt.stats import integrated_autocorrelation_time, ratio_interval, ratio_verdict
+from rtsgt.stats import failed, integrated_autocorrelation_time, ratio_interval, ratio_verdict
 
 __all__ = ["MIN_BLOCKS", "RawBlocks", "raw_block_cv", "raw_block_summary"]
 
@@ -177,9 +177,7 @@ def raw_block_summary(blocks: RawBlocks, station_ids: tuple[str, ...],
         named = ([("the whole run", out["overall"])]
                  + [(f"station {s}", v) for s, v in out["stations"].items()]
                  + [(f"channel {c}", v) for c, v in out["channels"].items()])
-        for name, v in named:
-            if v["interval_95"] is None or v["verdict"] == "consistent":
-                continue
+        for name, v in failed(named):
             lo, hi = v["interval_95"]
             warnings.warn(
                 f"self-check, block cross-validation of the raw measurements over {name} "
