@@ -170,18 +170,25 @@ class EvaluationResult:
 
     def to_dict(self) -> dict:
         """The JSON layout of ``rtsgt evaluate --json`` (module docstring)."""
-        ape, rpe = error_sections(self)
         return {
-            "ape": ape,
-            "rpe": rpe,
-            "nees": self.nees.to_dict(),
-            "noise_floor": self.noise_floor.to_dict(),
-            "alignment": self.alignment.to_dict(),
-            "association": self.association.to_dict(),
+            **common_sections(self),
             "mounting": None if self.mounting is None else {
                 **self.mounting.to_dict(), "effect": self.mounting_effect},
             "drift": None if self.drift is None else self.drift.to_dict(),
         }
+
+
+def common_sections(result, rpe_definition: str | None = None) -> dict:
+    """The sections of the JSON layout every result has, in order: ``ape``, ``rpe``
+    (:func:`error_sections`; with ``rpe_definition`` as its ``definition``), ``nees``,
+    ``noise_floor``, ``alignment``, ``association``."""
+    ape, rpe = error_sections(result)
+    if rpe_definition is not None:
+        rpe["definition"] = rpe_definition
+    return {"ape": ape, "rpe": rpe, "nees": result.nees.to_dict(),
+            "noise_floor": result.noise_floor.to_dict(),
+            "alignment": result.alignment.to_dict(),
+            "association": result.association.to_dict()}
 
 
 def error_sections(result) -> tuple[dict, dict]:
@@ -239,8 +246,6 @@ class PositionEvaluationResult:
         """The JSON layout of ``rtsgt evaluate --json`` (:meth:`EvaluationResult.to_dict`'s,
         rotations ``null``), with ``ground_truth`` ``"positions"``, ``lever_arm`` and
         ``rotation`` (and ``mounting``: :meth:`MountingFit.to_prism_dict`, or null)."""
-        ape, rpe = error_sections(self)
-        rpe["definition"] = "|(p_est,j - p_est,i) - (p_gt,j - p_gt,i)|, world frame"
         return {
             "ground_truth": "positions",
             "rotation": ROTATION_NOT_REPORTED,
@@ -248,12 +253,8 @@ class PositionEvaluationResult:
                           "source": self.lever_arm_source,
                           "cov_m2": (None if self.lever_arm_cov is None
                                      else self.lever_arm_cov.tolist())},
-            "ape": ape,
-            "rpe": rpe,
-            "nees": self.nees.to_dict(),
-            "noise_floor": self.noise_floor.to_dict(),
-            "alignment": self.alignment.to_dict(),
-            "association": self.association.to_dict(),
+            **common_sections(
+                self, "|(p_est,j - p_est,i) - (p_gt,j - p_gt,i)|, world frame"),
             "drift": None if self.drift is None else self.drift.to_dict(),
             "mounting": None if self.mounting is None else self.mounting.to_prism_dict(),
         }

@@ -170,7 +170,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     R, t, cov_body = interpolate_poses_gp(tq, knots.t, state.R, state.t, state.w, prob.qc,
                                           sol.cov, sol.cov_next)
     cov_pose = body_to_world_cov(R, cov_body)
-    shared = _shared(tq, knots.t, state, prob, sol, global_names(prob, ids, names))
+    globals_ = global_names(prob, ids, names)
+    shared = _shared(tq, knots.t, state, prob, sol, globals_)
     est = _pose_estimate(R, t, cov_pose, survey if pfit is None else pfit.xyz)
     return JointResult(tq, est, _station_results(ids, free, state, cov_g), state.kappa_ppm,
                        meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, cov_g, ids, ref),
@@ -179,7 +180,7 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        None if prob.noise is None else replace(prob.noise, stations=ids),
                        JointPosterior(knots.t, state.R, state.t, state.w, prob.qc, sol),
                        raw_block_summary(raw_block_cv(prob, state, sol, max_gap_s), ids),
-                       _time_sync(prob, state, cov_g, global_names(prob, ids, names)))
+                       _time_sync(prob, state, cov_g, globals_))
 
 
 def _time_sync(prob: JointProblem, state: JointState, cov_g, names) -> dict:
