@@ -17,7 +17,7 @@ Against the simulation's truth:
 - the inter-prism distance check's mean z^2 and its accepted interval, the run's verdict,
   the median pose position sigma, and the run's wall time (``run_pipeline`` alone).
 
-``--without displacement clocks ...`` leaves effects of the preset out, to see what each
+``--without displacement clocks gm ...`` leaves effects of the preset out, to see what each
 costs. Development seeds are 0-4; issue 23's acceptance must be measured on seeds never used here
 (e.g. 1000-1019). Prints one line per seed and a Markdown table (docs/simulation.md).
 """
@@ -109,6 +109,8 @@ def config(args):
     for name in args.without:
         if name == "displacement":
             fx = dataclasses.replace(fx, prism_displacement_m=(0.0, 0.0))
+        elif name == "gm":
+            fx = dataclasses.replace(fx, angle_gm_rad=(0.0, 0.0), distance_gm_m=(0.0, 0.0))
         elif name == "clocks":
             fx = dataclasses.replace(fx, clock_drift_s_per_h=(0.0, 0.0),
                                      clock_walk_s_per_sqrt_h=0.0)
@@ -158,7 +160,7 @@ def main() -> None:
                     help="s (default: the preset's, 3600)")
     ap.add_argument("--engine", default=None, help="pose engine (default: the deployment's)")
     ap.add_argument("--without", nargs="*", default=[],
-                    choices=["displacement", "clocks", "prism_cyclic", "tripod_settling"],
+                    choices=["displacement", "clocks", "gm", "prism_cyclic", "tripod_settling"],
                     help="effects of the preset to leave out (to see what each costs)")
     ap.add_argument("--out", default=None,
                     help="folder: each seed's result as <seed>.json when it is done")
