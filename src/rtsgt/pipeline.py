@@ -122,7 +122,7 @@ def _pose_stages(data: DeploymentData, options: RunOptions, front: Front, say: P
     joint = None
     if options.joint:
         joint = joint_fit(options, front.filtered, front.calibration, front.model,
-                          data.weather, fit, reference, say)
+                          data.weather, fit, reference, say, data.gcp)
         fit = joint.fit
         clock.lap("joint")
 

@@ -34,6 +34,7 @@ from rtsgt.joint.qc import (
     qc_per_class,
 )
 from rtsgt.joint.se3 import exp_se3, so3_left_jacobian
+from rtsgt.joint.settling import KIND_COLUMNS, SettleModel
 from rtsgt.joint.sparse import ArrowSystem, solve_arrow
 
 #: Prior standard deviation (m, rad) given to a station direction its calibration fixes
@@ -51,7 +52,9 @@ class JointState:
     (K, 6); stations ``R_s`` (S, 3, 3), ``t_s`` (S, 3) (``T_world_station``); ``kappa_ppm``;
     ``clock`` (C, J) the clock knots' offsets, s (None without clocks); ``p_body`` (P, 3) the
     prisms' body positions, m (None: the problem's survey, held); ``sync`` (N,) the stations'
-    constant clock offsets against the robot's, s (None: not estimated)."""
+    constant clock offsets against the robot's, s (None: not estimated); ``settle`` (S, 2, J)
+    the stations' settling since their calibration at its knots, height m and yaw rad (None:
+    not estimated)."""
 
     R: np.ndarray
     t: np.ndarray
@@ -62,6 +65,7 @@ class JointState:
     clock: np.ndarray | None = None
     p_body: np.ndarray | None = None
     sync: np.ndarray | None = None
+    settle: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -76,9 +80,10 @@ class JointProblem:
     (index, test statistic, dof at detection; docs/joint.md#prism-positions), and the white
     noise's components where estimated (``noise``; ``meas.info`` follows them), the
     stations' constant clock offsets against the robot's (``sync_column`` (S,) each station's
-    column, -1 none, with the prior variance ``sync_var`` s^2; docs/joint.md#clock-offsets).
+    column, -1 none, with the prior variance ``sync_var`` s^2; docs/joint.md#clock-offsets),
+    the stations' settling states (``settle``; None: none, docs/joint.md#settling-tripods).
     Globals: the free stations' ``(dt, dtheta)``, ``kappa``, the prisms' positions (3P), the
-    constant clock offsets, the clocks' knots (C, J)."""
+    constant clock offsets, the clocks' knots (C, J), the settling's knots (S, 2, J)."""
 
     t_knot: np.ndarray
     of_meas: np.ndarray
@@ -97,6 +102,7 @@ class JointProblem:
     noise: NoiseFit | None = None
     sync_column: np.ndarray | None = None
     sync_var: float = 0.0
+    settle: SettleModel | None = None
 
     @property
     def kappa_col(self) -> int:
@@ -125,8 +131,13 @@ class JointProblem:
         return 6 * self.free.size + 1 + self.n_prism + self.n_sync
 
     @property
-    def n_globals(self) -> int:
+    def settle_col(self) -> int:
+        """Column of the first settling state among the globals (after the clocks')."""
         return self.n_fixed + (0 if self.clock is None else self.clock.size)
+
+    @property
+    def n_globals(self) -> int:
+        return self.settle_col + (0 if self.settle is None else self.settle.size)
 
 
 def station_prior_info(cov: np.ndarray) -> np.ndarray:
@@ -137,8 +148,10 @@ def station_prior_info(cov: np.ndarray) -> np.ndarray:
 
 def measurement_terms(prob: JointProblem, s: JointState):
     """Residuals (M, 3), Jacobians wrt the knots (M, 3, 12), wrt the stations and ``kappa``
-    (M, 3, n_fixed), wrt each measurement's two clock knots (M, 3, 2) and their columns
-    (M, 2) (None without clocks)."""
+    (M, 3, n_fixed), wrt each measurement's slowly varying states (M, 3, A) and their columns
+    (M, A): its two clock knots (without clocks none), then its station's settling, height
+    and yaw at two knots (with ``prob.settle``); None without either. The settling enters to
+    first order (its sizes: millimetres and arc seconds)."""
     m = prob.meas
     k = prob.of_meas
     ck = prob.clock
@@ -150,6 +163,15 @@ def measurement_terms(prob: JointProblem, s: JointState):
     h, Hk, Hs, Hkap, Htau = predict(s.R[k], s.t[k], s.w[k], tau, pb[m.prism],
                                     s.R_s[m.station], s.t_s[m.station], s.kappa_ppm)
     r = residual(m.y, h)
+    Hset = cols_set = None
+    st = prob.settle
+    if st is not None:
+        off = st.at(s.settle, m.station)  # (M, 2)
+        Hkind = Hs[:, :, KIND_COLUMNS]  # (M, 3, 2)
+        r = r - np.einsum("mik,mk->mi", Hkind, off)
+        w = np.stack([1.0 - st.u, st.u], axis=1)  # (M, 2)
+        Hset = (Hkind[:, :, :, None] * w[:, None, None, :]).reshape(r.shape + (4,))
+        cols_set = st.columns(m.station, prob.settle_col)
     Hg = np.zeros(r.shape + (prob.n_fixed,))
     col = np.full(len(s.R_s), -1)
     col[prob.free] = np.arange(prob.free.size)
@@ -166,11 +188,14 @@ def measurement_terms(prob: JointProblem, s: JointState):
         rows = np.nonzero(sc >= 0)[0]
         Hg[rows, :, prob.sync_col + sc[rows]] = -Htau[rows]
     if ck is None:
-        return r, Hk, Hg, None, None
+        return r, Hk, Hg, Hset, cols_set
     has = (ck.row >= 0)[:, None]
     Hc = -Htau[:, :, None] * np.stack([1.0 - ck.u, ck.u], axis=1)[:, None, :] * has[:, None]
     first = prob.n_fixed + np.where(has[:, 0], ck.row, 0) * ck.knots.size + ck.j
-    return r, Hk, Hg, Hc, np.stack([first, first + 1], axis=1)
+    cols = np.stack([first, first + 1], axis=1)
+    if Hset is None:
+        return r, Hk, Hg, Hc, cols
+    return r, Hk, Hg, np.concatenate([Hc, Hset], axis=2), np.concatenate([cols, cols_set], 1)
 
 
 def measurement_global_factor(prob: JointProblem, sol, terms) -> np.ndarray:
@@ -181,7 +206,7 @@ def measurement_global_factor(prob: JointProblem, sol, terms) -> np.ndarray:
     Hk, Hg, Hc, cols = terms
     Z = Hk @ sol.factor[prob.of_meas] + Hg @ sol.chol_g[:prob.n_fixed]
     if Hc is not None:
-        for a in range(2):  # the two clock knots of each measurement
+        for a in range(Hc.shape[2]):  # each measurement's clock and settling knots
             Z += Hc[:, :, a:a + 1] * sol.chol_g[cols[:, a]][:, None, :]
     return Z
 
@@ -198,30 +223,46 @@ def measurement_hsh(prob: JointProblem, s: JointState, sol, terms=None) -> np.nd
     return 0.5 * (out + np.swapaxes(out, 1, 2))
 
 
-def _clock_terms(prob: JointProblem, s: JointState, B, C, c, HtW, GtW, Hc, cols, r):
-    """Adds the clock columns of the measurements and the clocks' prior to ``B``, ``C``, ``c``
-    (in place); returns the prior's cost."""
+def _slow_terms(prob: JointProblem, B, C, c, HtW, GtW, Hc, cols, r) -> None:
+    """Adds the measurements' columns of the slowly varying states (clocks, settling;
+    :func:`measurement_terms`) to ``B``, ``C``, ``c`` (in place)."""
     info = prob.meas.info
     Bt = np.swapaxes(B, 1, 2)  # (K, G, 12) view
-    CtW = np.swapaxes(Hc, 1, 2) @ info  # (M, 2, 3)
+    CtW = np.swapaxes(Hc, 1, 2) @ info  # (M, A, 3)
     Ct = C[:prob.n_fixed].T  # (G, n_fixed) view
-    cross = np.einsum("mgi,mia->mag", GtW, Hc)  # (M, 2, n_fixed)
+    cross = np.einsum("mgi,mia->mag", GtW, Hc)  # (M, A, n_fixed)
     cc = CtW @ Hc
     cr = np.einsum("mai,mi->ma", CtW, r)
-    for a in range(2):
+    A = Hc.shape[2]
+    for a in range(A):  # a few columns per measurement
         np.add.at(Bt, (prob.of_meas, cols[:, a]), (HtW @ Hc[:, :, a:a + 1])[:, :, 0])
         np.add.at(Ct, cols[:, a], cross[:, a])
         np.add.at(c, cols[:, a], cr[:, a])
-        for b in range(2):
+        for b in range(A):
             np.add.at(C, (cols[:, a], cols[:, b]), cc[:, a, b])
     C[prob.n_fixed:, :prob.n_fixed] = C[:prob.n_fixed, prob.n_fixed:].T
-    ck = prob.clock
-    J = ck.knots.size
-    for i in range(ck.station.size):  # a handful of stations
-        sl = slice(prob.n_fixed + i * J, prob.n_fixed + (i + 1) * J)
-        C[sl, sl] += ck.info
-        c[sl] -= ck.info @ s.clock[i]
-    return float(np.einsum("ij,jk,ik->", s.clock, ck.info, s.clock))
+
+
+def _slow_priors(prob: JointProblem, s: JointState, C, c) -> float:
+    """Adds the clocks' and the settling's priors to ``C``, ``c`` (in place); returns their
+    cost."""
+    cost = 0.0
+    blocks = []
+    if prob.clock is not None:
+        ck = prob.clock
+        blocks += [(ck.info, s.clock[i]) for i in range(ck.station.size)]
+    if prob.settle is not None:
+        st = prob.settle
+        blocks += [(st.info[i, k], s.settle[i, k]) for i in range(st.n_stations)
+                   for k in range(2)]
+    start = prob.n_fixed
+    for info, x in blocks:  # a handful of stations
+        sl = slice(start, start + x.size)
+        C[sl, sl] += info
+        c[sl] -= info @ x
+        cost += float(x @ info @ x)
+        start += x.size
+    return cost
 
 
 def _station_terms(prob: JointProblem, s: JointState):
@@ -266,7 +307,8 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
     c[:G0] = np.einsum("mgi,mi->g", GtW, r)
     cost += float(np.einsum("mi,mij,mj->", r, info, r))
     if Hc is not None:
-        cost += _clock_terms(prob, s, B, C, c, HtW, GtW, Hc, cols, r)
+        _slow_terms(prob, B, C, c, HtW, GtW, Hc, cols, r)
+    cost += _slow_priors(prob, s, C, c)
     es, Js = _station_terms(prob, s)
     Wp = prob.info_prior[prob.free]
     JtW = np.swapaxes(Js, 1, 2) @ Wp
@@ -296,7 +338,7 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
 
 def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> JointState:
     """``T_k exp(d_k^)``, ``w_k + dw_k``, ``t_s + dt``, ``exp(dtheta) R_s``, ``kappa + dk``,
-    the prisms, the constant clock offsets and the clock knots plus their steps."""
+    the prisms, the constant clock offsets, the clock and settling knots plus their steps."""
     dR, dp = exp_se3(x[:, :6])
     R = s.R @ dR
     t = s.t + np.einsum("kij,kj->ki", s.R, dp)
@@ -305,7 +347,11 @@ def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> 
     gs = g[:kc].reshape(-1, 6)
     t_s[prob.free] += gs[:, :3]
     R_s[prob.free] = exp_so3(gs[:, 3:]) @ R_s[prob.free]
-    clock = None if s.clock is None else s.clock + g[G0:].reshape(s.clock.shape)
+    clock = None if s.clock is None else s.clock + g[G0:G0 + s.clock.size].reshape(s.clock.shape)
+    settle = s.settle
+    if prob.settle is not None:
+        sc = prob.settle_col
+        settle = s.settle + g[sc:sc + s.settle.size].reshape(s.settle.shape)
     pb = s.p_body
     if prob.n_prism:
         pb = s.p_body + g[kc + 1:kc + 1 + prob.n_prism].reshape(s.p_body.shape)
@@ -313,7 +359,7 @@ def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> 
     if prob.n_sync:
         sync = s.sync + g[prob.sync_col:prob.sync_col + prob.n_sync]
     return JointState(R, t, s.w + x[:, 6:], R_s, t_s, s.kappa_ppm + float(g[kc]), clock, pb,
-                      sync)
+                      sync, settle)
 
 
 @dataclass(frozen=True)

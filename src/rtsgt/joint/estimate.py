@@ -35,6 +35,8 @@ from rtsgt.joint.measurements import GLOBAL_SOURCES, polar_measurements
 from rtsgt.joint.noise import NoiseFit
 from rtsgt.joint.prisms import PrismFit, prism_prior_info, prism_tests
 from rtsgt.joint.relative import JointPosterior, body_to_world, world_covariance
+from rtsgt.joint.settling import KINDS as SETTLE_KINDS
+from rtsgt.joint.settling import settle_model
 from rtsgt.noise.model import NoiseModel
 from rtsgt.pose.estimate import PoseEstimate
 from rtsgt.pose.registration import shape_ratio
@@ -69,7 +71,10 @@ class JointResult:
     ``raw_block_cv``: the block cross-validation of the raw measurements
     (:func:`rtsgt.joint.blockcv.raw_block_summary`, JSON-ready); ``time_sync``: each
     station's constant clock offset against the robot's (``t_recorded - t_true``),
-    ``(offset, sigma)`` s, by station (with the clock states, at their first knot).
+    ``(offset, sigma)`` s, by station (with the clock states, at their first knot);
+    ``settling``: by station, its settling knots' times (J,), height change (J,) m, yaw change
+    (J,) rad and their sigmas (J, 2) (docs/joint.md#settling-tripods; empty where not
+    estimated).
     """
 
     t: np.ndarray
@@ -89,6 +94,8 @@ class JointResult:
     posterior: JointPosterior | None = None
     raw_block_cv: dict | None = None
     time_sync: dict[str, tuple[float, float]] = field(default_factory=dict)
+    settling: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = field(
+        default_factory=dict)
 
 
 def _stations(calibration):
@@ -106,7 +113,9 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                    merge_s: float = DEFAULT_MERGE_S, max_iter: int = 10, tol: float = 1e-6,
                    estimate_qc: bool = True, query_knots: bool = False,
                    clocks: bool = False, prisms: bool = False,
-                   noise: bool = False, max_gap_s: float = DEFAULT_MAX_GAP_S) -> JointResult:
+                   noise: bool = False, settling: bool = False,
+                   calibrated_at: dict[str, float] | None = None,
+                   max_gap_s: float = DEFAULT_MAX_GAP_S) -> JointResult:
     """Poses ``T_world_body`` at ``query_times`` (Q,) s from every station's observations.
 
     ``observations``: one :class:`rtsgt.types.Observations` per station (valid, increasing
@@ -124,7 +133,10 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     estimated (docs/joint.md#clock-offsets) and the model's ``time_sync`` source is not
     carried as white noise. With ``noise``, the white noise per station and channel is
     estimated from the residuals, the model's white part its prior
-    (docs/joint.md#noise-identification). ``max_gap_s``: a longer gap between a station's
+    (docs/joint.md#noise-identification). With ``settling``, each station's height and yaw
+    change since its calibration are estimated (docs/joint.md#settling-tripods; the
+    reference station's from their prior alone), from rest at ``calibrated_at`` (s, by
+    station; a station not in it, or None: at its first measurement). ``max_gap_s``: a longer gap between a station's
     measurements starts new blocks of the raw block cross-validation
     (docs/joint.md#block-cross-validation-of-the-measurements).
     """
@@ -158,11 +170,14 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
         ck = replace(ck, info=anchored)
     prob = JointProblem(knots.t, knots.of_measurement, knots.tau, meas, survey, R_s, t_s, info,
                         free, qc, ck, p_info, np.asarray(reference.cov, dtype=float),
-                        sync_column=sync_col, sync_var=model.time_sync_second_moment_s2)
+                        sync_column=sync_col, sync_var=model.time_sync_second_moment_s2,
+                        settle=_settle(meas.t, ids, calibrated_at) if settling else None)
     state = JointState(R0, p0, body_velocities(knots.t, R0, p0), R_s, t_s, 0.0,
                        None if ck is None else np.zeros((ck.station.size, ck.knots.size)),
                        None if p_info is None else survey.copy(),
-                       None if sync_col is None else np.zeros(prob.n_sync))
+                       None if sync_col is None else np.zeros(prob.n_sync),
+                       None if not settling else np.zeros((len(ids), 2,
+                                                           prob.settle.knots.size)))
     prob, state, sol, solve, qc_fit = solve_with_qc(prob, state, estimate_qc, max_iter, tol,
                                                     noise)
     cov_g = sol.cov_g
@@ -180,7 +195,26 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        None if prob.noise is None else replace(prob.noise, stations=ids),
                        JointPosterior(knots.t, state.R, state.t, state.w, prob.qc, sol),
                        raw_block_summary(raw_block_cv(prob, state, sol, max_gap_s), ids),
-                       _time_sync(prob, state, cov_g, globals_))
+                       _time_sync(prob, state, cov_g, globals_),
+                       _settling(prob, state, cov_g, ids))
+
+
+def _settle(t, ids, calibrated_at):
+    """The settling model from rest at each station's calibration time."""
+    cal = calibrated_at or {}
+    return settle_model(t, np.array([cal.get(sid, float(t.min())) for sid in ids]))
+
+
+def _settling(prob: JointProblem, state: JointState, cov_g, ids) -> dict:
+    """Each station's settling knots, height and yaw changes and their sigmas."""
+    st = prob.settle
+    if st is None:
+        return {}
+    J = st.knots.size
+    var = np.diag(cov_g)[prob.settle_col:prob.settle_col + st.size].reshape(-1, 2, J)
+    sd = np.sqrt(np.clip(var, 0.0, None))
+    return {sid: (st.knots, state.settle[i, 0].copy(), state.settle[i, 1].copy(), sd[i].T.copy())
+            for i, sid in enumerate(ids)}
 
 
 def _time_sync(prob: JointProblem, state: JointState, cov_g, names) -> dict:
@@ -224,7 +258,8 @@ def global_names(prob: JointProblem, ids, prisms=()) -> tuple[str, ...]:
     ``calibration_station<id>_<x|y|z|rx|ry|rz>`` (world frame, as the per-prism pipeline's
     shared columns), ``atmosphere_ppm``, the prisms' ``reference_<prism>_<x|y|z>`` (where
     estimated; ``prisms`` their names), the stations' constant clock offsets
-    ``time_sync_station<id>``, the clocks' knots ``clock_station<id>_<jjjj>``."""
+    ``time_sync_station<id>``, the clocks' knots ``clock_station<id>_<jjjj>``, the
+    settling's ``settle_station<id>_<height|yaw>_<jjjj>``."""
     names = [f"calibration_station{ids[i]}_{c}" for i in prob.free for c in POSE_COMPONENTS]
     names.append("atmosphere_ppm")
     if prob.n_prism:
@@ -235,6 +270,10 @@ def global_names(prob: JointProblem, ids, prisms=()) -> tuple[str, ...]:
     if ck is not None:
         names += [f"clock_station{ids[i]}_{j:04d}" for i in ck.station
                   for j in range(ck.knots.size)]
+    st = prob.settle
+    if st is not None:
+        names += [f"settle_station{sid}_{kind}_{j:04d}" for sid in ids for kind in SETTLE_KINDS
+                  for j in range(st.knots.size)]
     return tuple(names)
 
 

@@ -24,6 +24,7 @@ from rtsgt.joint.knots import qc_from_prisms
 from rtsgt.joint.noise import CHANNELS as NOISE_CHANNELS
 from rtsgt.joint.noise import NoiseFit
 from rtsgt.joint.prisms import PrismFit
+from rtsgt.measurement.instruments import ARCSEC
 from rtsgt.measurement.units import MGON
 from rtsgt.noise import NoiseModel
 from rtsgt.options import RunOptions
@@ -32,7 +33,7 @@ from rtsgt.pose.estimate import REASON_MISSING
 from rtsgt.shared import SharedFactor
 from rtsgt.stages.poses import PoseFit, gate_poses
 from rtsgt.stages.timing import Progress
-from rtsgt.types import Observations, PoseTrajectory, WeatherSeries
+from rtsgt.types import GcpShots, Observations, PoseTrajectory, WeatherSeries
 
 __all__ = ["JointFit", "joint_fit", "joint_poses", "joint_split", "joint_summary"]
 
@@ -45,7 +46,8 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
                 reference: ReferencePoints, model: NoiseModel, weather: WeatherSeries | None,
                 start_t: np.ndarray, start_R: np.ndarray, start_p: np.ndarray,
                 qc_prisms: np.ndarray, query_times: np.ndarray, *,
-                clocks: bool = True, max_gap_s: float = DEFAULT_MAX_GAP_S) -> JointResult:
+                clocks: bool = True, max_gap_s: float = DEFAULT_MAX_GAP_S,
+                calibrated_at: dict[str, float] | None = None) -> JointResult:
     """The joint engine's poses at ``query_times`` (Q,) s, those inside the measurements' span.
 
     ``observations``: each station's measurements the run keeps (module 1 and 2, the windows
@@ -55,7 +57,9 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
     ``start_t`` (T,), ``start_R`` (T, 3, 3), ``start_p`` (T, 3): the per-prism poses to start
     from; ``qc_prisms`` (P, 3, 3): the per-prism GPs' WNOA ``Qc`` (m^2/s^3), the start of the prior's ``Qc`` (:func:`rtsgt.joint.knots.qc_from_prisms`);
     ``clocks``: estimate each station's clock offset; ``max_gap_s``: the run's longest gap
-    bridged (the raw block cross-validation's segments). The prisms' body positions are
+    bridged (the raw block cross-validation's segments); ``calibrated_at``: each station's
+    calibration time, s (:func:`calibration_times`), from which its set-up settles
+    (docs/joint.md#settling-tripods). The prisms' body positions are
     estimated with the survey as their prior (docs/joint.md#prism-positions), the white
     noise per station and channel with the noise model's as its prior
     (docs/joint.md#noise-identification). InputError when
@@ -71,7 +75,21 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
     qc = qc_from_prisms(qc_prisms, reference.xyz)
     return estimate_joint(observations, calibration, reference, model, tq, start_t, start_R,
                           start_p, qc, weather=weather, clocks=clocks, prisms=True,
-                          noise=True, max_gap_s=max_gap_s)
+                          noise=True, settling=True, calibrated_at=calibrated_at,
+                          max_gap_s=max_gap_s)
+
+
+def calibration_times(gcp: GcpShots | None, calibration: CalibrationResult) -> dict[str, float]:
+    """Each station's calibration time, s: the median time of its valid shots of a GCP
+    calibration; empty for a dynamic one (the tracking is the calibration) or shots without
+    times."""
+    if calibration.method != "gcp" or gcp is None or gcp.t is None:
+        return {}
+    ok = np.ones(gcp.t.size, bool) if gcp.status is None else gcp.status == 0
+    ok &= np.isfinite(gcp.t)
+    st = np.asarray(gcp.station).astype(str)
+    return {sid: float(np.median(gcp.t[ok & (st == sid)]))
+            for sid in calibration.transforms if np.any(ok & (st == sid))}
 
 
 @dataclass(frozen=True)
@@ -87,12 +105,13 @@ class JointFit:
 def joint_fit(options: RunOptions, filtered: Sequence[Observations],
               calibration: CalibrationResult, model: NoiseModel,
               weather: WeatherSeries | None, fit: PoseFit, reference: ReferencePoints,
-              say: Progress) -> JointFit:
+              say: Progress, gcp: GcpShots | None = None) -> JointFit:
     """The joint engine after the per-prism ``fit`` (:func:`rtsgt.stages.poses.fit_to_gates`):
     its measurements are ``filtered``'s (module 1) at the times of the tracks the GPs were
     fitted to, its start the per-prism kept poses and the GPs' ``Qc``, its query times the
     per-prism fit's; then module 4's gates on its poses (a query time it does not answer is
-    rejected as a pose without every prism)."""
+    rejected as a pose without every prism); ``gcp``: the calibration's shots (their times
+    the stations' calibration times)."""
     say("joint engine")
     obs = [o.select(np.isin(o.t, fit.tracks[o.prism].t)) for o in filtered
            if o.prism in fit.tracks]
@@ -109,7 +128,8 @@ def joint_fit(options: RunOptions, filtered: Sequence[Observations],
     tq = fit.prisms.t
     jr = joint_poses(obs, calibration, reference, model, weather, tq[keep0], est0.R[keep0],
                      est0.t[keep0], qc_prisms, tq, clocks=options.pose.clocks,
-                     max_gap_s=options.interpolation.max_gap_s)
+                     max_gap_s=options.interpolation.max_gap_s,
+                     calibrated_at=calibration_times(gcp, calibration))
     est = _on_every_time(jr.estimate, np.isin(tq, jr.t))
     keep, report = gate_poses(est, reference, options)
     gt = PoseTrajectory(tq[keep], est.t[keep], matrix_to_quat_xyzw(est.R[keep]), est.cov[keep])
@@ -160,7 +180,9 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
     ``|offset|`` and the median sigma; ``time_sync``: the constant clock offsets against the
     robot's (ms, with sigma); ``prisms``: each prism's shift from its survey (mm, with its
     sigma), its test statistic in sigmas and whether it was found moved; ``noise``: the
-    white noise's components per station and channel where identified; the solve's
+    white noise's components per station and channel where identified; ``settling``: per
+    station its height (mm) and yaw (arc seconds) change since its calibration at the first
+    and the last knot, with their sigmas (docs/joint.md#settling-tripods); the solve's
     iterations, convergence, chi^2 per row, knots and measurements."""
     q = jr.qc
     used = np.bincount(q.classes, minlength=len(CLASS_NAMES))
@@ -180,10 +202,20 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
                       for sid, (v, sd) in jr.time_sync.items()},
         "prisms": None if jr.prisms is None else _prisms_summary(jr.prisms),
         "noise": None if jr.noise is None else _noise_summary(jr.noise),
+        "settling": {sid: _settling_summary(*v) for sid, v in jr.settling.items()},
         "iterations": int(jr.solve.iterations), "converged": bool(jr.solve.converged),
         "chi2_per_dof": float(jr.chi2_per_dof), "knots": int(jr.n_knots),
         "measurements": int(jr.n_measurements), "poses": int(jr.t.size),
     }
+
+
+def _settling_summary(knots, height, yaw, sd) -> dict[str, Any]:
+    """A station's settling at its first and last knot: height mm, yaw arc seconds, sigmas."""
+    ends = [0, -1]
+    return {"t_s": knots[ends].tolist(), "height_mm": (1e3 * height[ends]).tolist(),
+            "height_sigma_mm": (1e3 * sd[ends, 0]).tolist(),
+            "yaw_arcsec": (yaw[ends] / ARCSEC).tolist(),
+            "yaw_sigma_arcsec": (sd[ends, 1] / ARCSEC).tolist()}
 
 
 def _prisms_summary(pf: PrismFit) -> dict[str, Any]:
