@@ -179,3 +179,25 @@ def test_the_papers_profile_and_the_default_engine_are_untouched():
     joint = RunOptions().updated(profile="paper", engine="joint")
     assert joint.prism_engine == "linear" and joint.interpolation == paper.interpolation
     assert replace(joint.pose, engine="mc") == paper.pose
+
+
+def test_calibration_times_are_the_gcp_shots_within_the_hour_before_the_tracking():
+    """A GCP calibration's station settles from the median time of its valid shots
+    (docs/joint.md#settling-tripods) where that is at most an hour before the first
+    measurement; a stamp 100 days old (another clock), a station without valid shots and a
+    dynamic calibration give none."""
+    from types import SimpleNamespace
+
+    from rtsgt.stages.joint import MAX_CALIBRATION_AGE_S, calibration_times
+    from rtsgt.types import GcpShots
+
+    t0 = 1.668e9
+    st = np.array(["1", "1", "1", "2", "2", "3"])
+    t = np.array([t0 - 1800.0, t0 - 1700.0, t0 - 1200.0, t0 - 8.64e6, t0 - 8.64e6, t0 - 60.0])
+    z = np.ones(6)
+    shots = GcpShots(st, np.array(list("abcabc")), z, z, z, t, np.array([0, 0, 0, 0, 0, 1]))
+    cal = SimpleNamespace(method="gcp", transforms={"1": None, "2": None, "3": None})
+    assert calibration_times(shots, cal, t0) == {"1": pytest.approx(t0 - 1700.0)}
+    late = replace(shots, t=t + 8.64e6 - 0.5 * MAX_CALIBRATION_AGE_S)
+    assert set(calibration_times(late, cal, t0)) == {"1", "2"}
+    assert calibration_times(shots, SimpleNamespace(method="dynamic", transforms={}), t0) == {}

@@ -37,6 +37,9 @@ from rtsgt.types import GcpShots, Observations, PoseTrajectory, WeatherSeries
 
 __all__ = ["JointFit", "joint_fit", "joint_poses", "joint_split", "joint_summary"]
 
+#: Oldest a GCP shot's time stamp may be, before the first measurement, to be taken as its
+#: station's calibration time (the set-up the tracking uses), s.
+MAX_CALIBRATION_AGE_S = 3600.0
 #: The reason of a query time the joint engine does not answer (outside the measurements'
 #: span): the per-prism engines' reason for a pose without every prism.
 REASON_UNANSWERED = REASON_MISSING
@@ -79,17 +82,26 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
                           max_gap_s=max_gap_s)
 
 
-def calibration_times(gcp: GcpShots | None, calibration: CalibrationResult) -> dict[str, float]:
+def calibration_times(gcp: GcpShots | None, calibration: CalibrationResult,
+                      t_first: float) -> dict[str, float]:
     """Each station's calibration time, s: the median time of its valid shots of a GCP
-    calibration; empty for a dynamic one (the tracking is the calibration) or shots without
-    times."""
+    calibration, where it lies within :data:`MAX_CALIBRATION_AGE_S` before the first
+    measurement ``t_first`` s (older stamps are another clock's: the shipped excerpt's are
+    13-125 days before its tracking); empty for a dynamic calibration (the tracking is the
+    calibration) or shots without times. A station left out settles from ``t_first`` on."""
     if calibration.method != "gcp" or gcp is None or gcp.t is None:
         return {}
     ok = np.ones(gcp.t.size, bool) if gcp.status is None else gcp.status == 0
     ok &= np.isfinite(gcp.t)
     st = np.asarray(gcp.station).astype(str)
-    return {sid: float(np.median(gcp.t[ok & (st == sid)]))
-            for sid in calibration.transforms if np.any(ok & (st == sid))}
+    out = {}
+    for sid in calibration.transforms:  # a handful of stations
+        mine = ok & (st == sid)
+        if np.any(mine):
+            t = float(np.median(gcp.t[mine]))
+            if t_first - MAX_CALIBRATION_AGE_S <= t:
+                out[sid] = t
+    return out
 
 
 @dataclass(frozen=True)
@@ -129,7 +141,8 @@ def joint_fit(options: RunOptions, filtered: Sequence[Observations],
     jr = joint_poses(obs, calibration, reference, model, weather, tq[keep0], est0.R[keep0],
                      est0.t[keep0], qc_prisms, tq, clocks=options.pose.clocks,
                      max_gap_s=options.interpolation.max_gap_s,
-                     calibrated_at=calibration_times(gcp, calibration))
+                     calibrated_at=calibration_times(
+                         gcp, calibration, min(float(o.t[0]) for o in obs)))
     est = _on_every_time(jr.estimate, np.isin(tq, jr.t))
     keep, report = gate_poses(est, reference, options)
     gt = PoseTrajectory(tq[keep], est.t[keep], matrix_to_quat_xyzw(est.R[keep]), est.cov[keep])
