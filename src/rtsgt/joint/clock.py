@@ -69,9 +69,16 @@ def clock_model(t: np.ndarray, station: np.ndarray, n_stations: int, reference: 
     with_clock = np.array([s for s in range(n_stations) if s != reference], dtype=int)
     row_of = np.full(n_stations, -1)
     row_of[with_clock] = np.arange(with_clock.size)
-    j = np.clip(np.searchsorted(knots, t, side="right") - 1, 0, knots.size - 2)
-    u = (t - knots[j]) / (knots[j + 1] - knots[j])
+    j, u = knot_intervals(knots, t)
     return ClockModel(with_clock, knots, clock_prior_info(knots), row_of[station], j, u)
 
 
-__all__ = ["ClockModel", "clock_knots", "clock_model", "clock_prior_info"]
+def knot_intervals(knots: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each time's interval of ``knots`` (J,): its left knot ``j`` (M,) (the first or last
+    interval for times outside) and its position ``u`` (M,) in it (0-1 inside), for
+    piecewise linear states on the knots."""
+    j = np.clip(np.searchsorted(knots, t, side="right") - 1, 0, knots.size - 2)
+    return j, (t - knots[j]) / (knots[j + 1] - knots[j])
+
+
+__all__ = ["ClockModel", "clock_knots", "clock_model", "clock_prior_info", "knot_intervals"]

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rtsgt.clocks import KNOT_SPACING_S
-from rtsgt.joint.clock import clock_knots
+from rtsgt.joint.clock import clock_knots, knot_intervals
 from rtsgt.measurement.instruments import ARCSEC
 
 #: The settling's kinds, in the order of every (..., 2) axis here: the station's height (m,
@@ -95,9 +95,7 @@ def settle_model(t: np.ndarray, calibrated_at: np.ndarray, spacing: float = KNOT
     info = np.stack([[settle_prior_info(knots, HOUR_WALK_SIGMA[k] * scale[k],
                                         HOUR_DRIFT_SIGMA[k] * scale[k], c, ANCHOR_SIGMA[k])
                       for k in range(2)] for c in cal])
-    j = np.clip(np.searchsorted(knots, t, side="right") - 1, 0, knots.size - 2)
-    u = (t - knots[j]) / (knots[j + 1] - knots[j])
-    return SettleModel(knots, info, j, u)
+    return SettleModel(knots, info, *knot_intervals(knots, t))
 
 
 __all__ = ["HOUR_DRIFT_SIGMA", "HOUR_WALK_SIGMA", "KINDS", "KIND_COLUMNS", "SettleModel",
