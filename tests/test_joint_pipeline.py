@@ -135,7 +135,10 @@ def test_the_run_is_read_back_and_evaluated_on_its_own_poses(runs):
     res = runner.invoke(app, ["evaluate", str(path), str(est), "--json", "--align", "none"])
     assert res.exit_code == 0, res.output
     nees = json.loads(res.stdout)["nees"]
-    assert 0.5 < nees["pose"]["mean"] / 6 < 2.0 and nees["pose"]["n"] == gt.t.size, nees
+    # the run's own poses and covariance against the truth (the honesty of a 60 s run: the
+    # runs' test above)
+    assert nees["pose"]["n"] == gt.t.size, nees
+    assert nees["pose"]["mean"] == pytest.approx(_nees(sim, gt).mean(), rel=1e-3), nees
 
 
 def test_the_shared_split_adds_up_to_the_pose_covariance(runs):

@@ -11,6 +11,12 @@ import numpy as np
 
 from rtsgt.geometry.so3 import exp_so3, hat, log_so3
 from rtsgt.joint.clock import ClockModel
+from rtsgt.joint.deviation import (
+    deviation_chain,
+    deviation_jacobian,
+    n_coefficients,
+    viewing_azimuth_body,
+)
 from rtsgt.joint.measurements import PolarMeasurements, predict, residual
 from rtsgt.joint.noise import (
     PRIOR,
@@ -44,6 +50,11 @@ FIXED_SIGMA = 1e-7
 #: (the prior's Jacobian is first order in the interval's motion, so the predicted decrease
 #: need not vanish at the minimum).
 STALL_REL = 1e-9
+#: A step whose predicted decrease of the cost is below this (chi^2 units: the state moves
+#: by a tenth of its sigma in all) is taken whole even where the cost rises: near the
+#: solution the rise is the first-order Jacobians' error (the prior's, the settling's), and
+#: halving the step would only creep towards the same point.
+WHOLE_STEP_DECREASE = 1e-2
 
 
 @dataclass(frozen=True)
@@ -54,7 +65,8 @@ class JointState:
     prisms' body positions, m (None: the problem's survey, held); ``sync`` (N,) the stations'
     constant clock offsets against the robot's, s (None: not estimated); ``settle`` (S, 2, J)
     the stations' settling since their calibration at its knots, height m and yaw rad (None:
-    not estimated)."""
+    not estimated); ``deviation`` (P, C) the prisms' deviation coefficients, m
+    (:mod:`rtsgt.joint.deviation`; None: not estimated)."""
 
     R: np.ndarray
     t: np.ndarray
@@ -66,6 +78,7 @@ class JointState:
     p_body: np.ndarray | None = None
     sync: np.ndarray | None = None
     settle: np.ndarray | None = None
+    deviation: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -81,9 +94,12 @@ class JointProblem:
     noise's components where estimated (``noise``; ``meas.info`` follows them), the
     stations' constant clock offsets against the robot's (``sync_column`` (S,) each station's
     column, -1 none, with the prior variance ``sync_var`` s^2; docs/joint.md#clock-offsets),
-    the stations' settling states (``settle``; None: none, docs/joint.md#settling-tripods).
+    the stations' settling states (``settle``; None: none, docs/joint.md#settling-tripods),
+    the harmonics of the prisms' deviation ``deviation_orders`` (empty: none) with the prior
+    sigma ``deviation_sigma`` (P, C) m of each coefficient (docs/joint.md#prism-deviation).
     Globals: the free stations' ``(dt, dtheta)``, ``kappa``, the prisms' positions (3P), the
-    constant clock offsets, the clocks' knots (C, J), the settling's knots (S, 2, J)."""
+    constant clock offsets, the prisms' deviation (P, C), the clocks' knots (C, J), the
+    settling's knots (S, 2, J)."""
 
     t_knot: np.ndarray
     of_meas: np.ndarray
@@ -103,6 +119,8 @@ class JointProblem:
     sync_column: np.ndarray | None = None
     sync_var: float = 0.0
     settle: SettleModel | None = None
+    deviation_orders: tuple[int, ...] = ()
+    deviation_sigma: np.ndarray | None = None
 
     @property
     def kappa_col(self) -> int:
@@ -125,10 +143,22 @@ class JointProblem:
         return self.kappa_col + 1 + self.n_prism
 
     @property
+    def n_deviation(self) -> int:
+        """The prisms' deviation coefficients estimated (0: none)."""
+        if not self.deviation_orders:
+            return 0
+        return self.p_body.shape[0] * n_coefficients(self.deviation_orders)
+
+    @property
+    def deviation_col(self) -> int:
+        """Column of the first deviation coefficient among the globals."""
+        return self.sync_col + self.n_sync
+
+    @property
     def n_fixed(self) -> int:
-        """Globals before the clocks: the free stations', ``kappa``, the prisms' and the
-        constant clock offsets."""
-        return 6 * self.free.size + 1 + self.n_prism + self.n_sync
+        """Globals before the clocks: the free stations', ``kappa``, the prisms', the
+        constant clock offsets and the prisms' deviation."""
+        return 6 * self.free.size + 1 + self.n_prism + self.n_sync + self.n_deviation
 
     @property
     def settle_col(self) -> int:
@@ -151,7 +181,9 @@ def measurement_terms(prob: JointProblem, s: JointState):
     (M, 3, n_fixed), wrt each measurement's slowly varying states (M, 3, A) and their columns
     (M, A): its two clock knots (without clocks none), then its station's settling, height
     and yaw at two knots (with ``prob.settle``); None without either. The settling enters to
-    first order (its sizes: millimetres and arc seconds)."""
+    first order (its sizes: millimetres and arc seconds); the prisms' deviation
+    (``prob.deviation_orders``) at the knot's pose, its slope in the viewing azimuth in the
+    knots', the stations' and the prisms' columns (docs/joint.md#prism-deviation)."""
     m = prob.meas
     k = prob.of_meas
     ck = prob.clock
@@ -163,6 +195,21 @@ def measurement_terms(prob: JointProblem, s: JointState):
     h, Hk, Hs, Hkap, Htau = predict(s.R[k], s.t[k], s.w[k], tau, pb[m.prism],
                                     s.R_s[m.station], s.t_s[m.station], s.kappa_ppm)
     r = residual(m.y, h)
+    PR = Hk[:, :, :3]  # d h / d (body point), without the deviation's slope
+    Hdev = da_p = None
+    if prob.n_deviation:  # the deviation at the knot's pose, with its slope in the azimuth
+        alpha, da_xi, da_st, da_p = viewing_azimuth_body(s.R[k], s.t[k], pb[m.prism],
+                                                          s.t_s[m.station])
+        Hdev, dH = deviation_jacobian(alpha, h[:, 1], h[:, 2], prob.deviation_orders)
+        dev = np.einsum("mic,mc->mi", Hdev, s.deviation[m.prism])
+        r = r - dev
+        L = deviation_chain(dev, h[:, 1], h[:, 2])
+        Hk, Hs = L @ Hk, L @ Hs
+        Hkap, Htau = (np.einsum("mij,mj->mi", L, x) for x in (Hkap, Htau))
+        PR = Hk[:, :, :3].copy()
+        slope = np.einsum("mic,mc->mi", dH, s.deviation[m.prism])  # d deviation / d alpha
+        Hk[:, :, :6] += slope[:, :, None] * da_xi[:, None, :]
+        Hs[:, :, :3] += slope[:, :, None] * da_st[:, None, :]
     Hset = cols_set = None
     st = prob.settle
     if st is not None:
@@ -180,13 +227,19 @@ def measurement_terms(prob: JointProblem, s: JointState):
     for j in range(6):  # six columns of each free station
         Hg[rows, :, 6 * c[rows] + j] = Hs[rows, :, j]
     Hg[:, :, prob.kappa_col] = Hkap
-    if prob.n_prism:  # d h / d p = PR (I + tau omega^)
-        Hp = Hk[:, :, :3] + tau[:, None, None] * (Hk[:, :, :3] @ hat(s.w[k, 3:]))
+    if prob.n_prism:  # d h / d p = PR (I + tau omega^) (and the deviation's slope)
+        Hp = PR + tau[:, None, None] * (PR @ hat(s.w[k, 3:]))
+        if da_p is not None:
+            Hp = Hp + slope[:, :, None] * da_p[:, None, :]
         cols = prob.kappa_col + 1 + 3 * m.prism[:, None] + np.arange(3)
         np.put_along_axis(Hg, np.broadcast_to(cols[:, None, :], Hp.shape), Hp, axis=2)
     if sc is not None:
         rows = np.nonzero(sc >= 0)[0]
         Hg[rows, :, prob.sync_col + sc[rows]] = -Htau[rows]
+    if Hdev is not None:
+        n_c = Hdev.shape[2]
+        cols = prob.deviation_col + n_c * m.prism[:, None] + np.arange(n_c)
+        np.put_along_axis(Hg, np.broadcast_to(cols[:, None, :], Hdev.shape), Hdev, axis=2)
     if ck is None:
         return r, Hk, Hg, Hset, cols_set
     has = (ck.row >= 0)[:, None]
@@ -303,7 +356,7 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
     GtW = np.swapaxes(Hg, 1, 2) @ info
     C = np.zeros((G, G))
     c = np.zeros(G)
-    C[:G0, :G0] = np.einsum("mgi,mih->gh", GtW, Hg)
+    C[:G0, :G0] = np.tensordot(GtW, Hg, axes=([0, 2], [0, 1]))
     c[:G0] = np.einsum("mgi,mi->g", GtW, r)
     cost += float(np.einsum("mi,mij,mj->", r, info, r))
     if Hc is not None:
@@ -333,12 +386,19 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
         C[sl, sl] += np.eye(prob.n_sync) / prob.sync_var
         c[sl] -= s.sync / prob.sync_var
         cost += float(s.sync @ s.sync) / prob.sync_var
+    if prob.n_deviation:  # zero mean, deviation_sigma each
+        sl = slice(prob.deviation_col, prob.deviation_col + prob.n_deviation)
+        w = 1.0 / prob.deviation_sigma.ravel() ** 2
+        C[sl, sl] += np.diag(w)
+        c[sl] -= w * s.deviation.ravel()
+        cost += float(w @ s.deviation.ravel() ** 2)
     return ArrowSystem(D, U, B, C, a, c), cost
 
 
 def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> JointState:
     """``T_k exp(d_k^)``, ``w_k + dw_k``, ``t_s + dt``, ``exp(dtheta) R_s``, ``kappa + dk``,
-    the prisms, the constant clock offsets, the clock and settling knots plus their steps."""
+    the prisms, the constant clock offsets, the deviation, the clock and settling knots plus
+    their steps."""
     dR, dp = exp_se3(x[:, :6])
     R = s.R @ dR
     t = s.t + np.einsum("kij,kj->ki", s.R, dp)
@@ -358,8 +418,12 @@ def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> 
     sync = s.sync
     if prob.n_sync:
         sync = s.sync + g[prob.sync_col:prob.sync_col + prob.n_sync]
+    dev = s.deviation
+    if prob.n_deviation:
+        dc = prob.deviation_col
+        dev = s.deviation + g[dc:dc + prob.n_deviation].reshape(s.deviation.shape)
     return JointState(R, t, s.w + x[:, 6:], R_s, t_s, s.kappa_ppm + float(g[kc]), clock, pb,
-                      sync, settle)
+                      sync, settle, dev)
 
 
 @dataclass(frozen=True)
@@ -374,7 +438,8 @@ class SolveInfo:
 def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10, tol: float = 1e-6):
     """Gauss-Newton from ``s`` until the predicted decrease of the cost is below ``tol`` or a
     step changes the cost by less than :data:`STALL_REL` of it (a step that raises the cost is
-    halved, up to 8 times). Returns the state, the
+    halved, up to 8 times, unless its predicted decrease is below
+    :data:`WHOLE_STEP_DECREASE`). Returns the state, the
     :class:`rtsgt.joint.sparse.ArrowSolution` at it (with its covariances) and a
     :class:`SolveInfo`."""
     system, cost = assemble(prob, s)
@@ -389,7 +454,7 @@ def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10, tol: flo
         for _ in range(8):
             trial = retract(prob, s, step * x, step * g)
             trial_system, trial_cost = assemble(prob, trial)
-            if trial_cost <= cost + 1e-9 * abs(cost):
+            if trial_cost <= cost + 1e-9 * abs(cost) or decrease < WHOLE_STEP_DECREASE:
                 break
             step *= 0.5
         s, system, cost = trial, trial_system, trial_cost

@@ -14,6 +14,7 @@ import numpy as np
 from rtsgt.choices import DEFAULT_MAX_GAP_S
 from rtsgt.errors import InputError
 from rtsgt.geometry.transform import RigidTransform
+from rtsgt.joint import deviation as pdev
 from rtsgt.joint.blockcv import raw_block_cv, raw_block_summary
 from rtsgt.joint.clock import clock_model
 from rtsgt.joint.engine import (
@@ -74,7 +75,9 @@ class JointResult:
     ``(offset, sigma)`` s, by station (with the clock states, at their first knot);
     ``settling``: by station, its settling knots' times (J,), height change (J,) m, yaw change
     (J,) rad and their sigmas (J, 2) (docs/joint.md#settling-tripods; empty where not
-    estimated).
+    estimated); ``deviation``: the prisms' deviation with their viewing angle
+    (:class:`rtsgt.joint.deviation.DeviationFit`, docs/joint.md#prism-deviation; None where
+    not estimated).
     """
 
     t: np.ndarray
@@ -96,6 +99,7 @@ class JointResult:
     time_sync: dict[str, tuple[float, float]] = field(default_factory=dict)
     settling: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = field(
         default_factory=dict)
+    deviation: pdev.DeviationFit | None = None
 
 
 def _stations(calibration):
@@ -114,7 +118,7 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                    estimate_qc: bool = True, query_knots: bool = False,
                    clocks: bool = False, prisms: bool = False,
                    noise: bool = False, settling: bool = False,
-                   calibrated_at: dict[str, float] | None = None,
+                   calibrated_at: dict[str, float] | None = None, deviation: bool = False,
                    max_gap_s: float = DEFAULT_MAX_GAP_S) -> JointResult:
     """Poses ``T_world_body`` at ``query_times`` (Q,) s from every station's observations.
 
@@ -136,7 +140,9 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     (docs/joint.md#noise-identification). With ``settling``, each station's height and yaw
     change since its calibration are estimated (docs/joint.md#settling-tripods; the
     reference station's from their prior alone), from rest at ``calibrated_at`` (s, by
-    station; a station not in it, or None: at its first measurement). ``max_gap_s``: a longer gap between a station's
+    station; a station not in it, or None: at its first measurement). With ``deviation``,
+    each prism's deviation with the azimuth its station sees it under is estimated, low
+    harmonics with a prior of a few millimetres (docs/joint.md#prism-deviation). ``max_gap_s``: a longer gap between a station's
     measurements starts new blocks of the raw block cross-validation
     (docs/joint.md#block-cross-validation-of-the-measurements).
     """
@@ -171,13 +177,18 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     prob = JointProblem(knots.t, knots.of_measurement, knots.tau, meas, survey, R_s, t_s, info,
                         free, qc, ck, p_info, np.asarray(reference.cov, dtype=float),
                         sync_column=sync_col, sync_var=model.time_sync_second_moment_s2,
-                        settle=_settle(meas.t, ids, calibrated_at) if settling else None)
+                        settle=_settle(meas.t, ids, calibrated_at) if settling else None,
+                        deviation_orders=pdev.ORDERS if deviation else (),
+                        deviation_sigma=_deviation_sigma(knots, meas, R0, p0, survey, t_s)
+                        if deviation else None)
     state = JointState(R0, p0, body_velocities(knots.t, R0, p0), R_s, t_s, 0.0,
                        None if ck is None else np.zeros((ck.station.size, ck.knots.size)),
                        None if p_info is None else survey.copy(),
                        None if sync_col is None else np.zeros(prob.n_sync),
                        None if not settling else np.zeros((len(ids), 2,
-                                                           prob.settle.knots.size)))
+                                                           prob.settle.knots.size)),
+                       None if not deviation else np.zeros((len(names),
+                                                            pdev.n_coefficients(pdev.ORDERS))))
     prob, state, sol, solve, qc_fit = solve_with_qc(prob, state, estimate_qc, max_iter, tol,
                                                     noise)
     cov_g = sol.cov_g
@@ -196,7 +207,7 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        JointPosterior(knots.t, state.R, state.t, state.w, prob.qc, sol),
                        raw_block_summary(raw_block_cv(prob, state, sol, max_gap_s), ids),
                        _time_sync(prob, state, cov_g, globals_),
-                       _settling(prob, state, cov_g, ids))
+                       _settling(prob, state, cov_g, ids), _deviation(prob, state, cov_g, names))
 
 
 def _settle(t, ids, calibrated_at):
@@ -215,6 +226,25 @@ def _settling(prob: JointProblem, state: JointState, cov_g, ids) -> dict:
     sd = np.sqrt(np.clip(var, 0.0, None))
     return {sid: (st.knots, state.settle[i, 0].copy(), state.settle[i, 1].copy(), sd[i].T.copy())
             for i, sid in enumerate(ids)}
+
+
+def _deviation_sigma(knots, meas, R0, p0, survey, t_s) -> np.ndarray:
+    """The deviation's prior sigmas from the viewing azimuths of the poses to start from."""
+    k = knots.of_measurement
+    alpha = pdev.viewing_azimuth_body(R0[k], p0[k], survey[meas.prism], t_s[meas.station])[0]
+    return pdev.deviation_prior_sigma(alpha, meas.prism, survey.shape[0])
+
+
+def _deviation(prob: JointProblem, state: JointState, cov_g, names) -> pdev.DeviationFit | None:
+    """The prisms' deviation coefficients, their covariance and which the data determine."""
+    if not prob.n_deviation:
+        return None
+    sl = slice(prob.deviation_col, prob.deviation_col + prob.n_deviation)
+    cov = 0.5 * (cov_g[sl, sl] + cov_g[sl, sl].T)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None)).reshape(state.deviation.shape)
+    return pdev.DeviationFit(tuple(names), prob.deviation_orders, state.deviation.copy(), cov,
+                        sd <= pdev.DETERMINED_RATIO * prob.deviation_sigma,
+                        prob.deviation_sigma <= pdev.HELD_SIGMA_M)
 
 
 def _time_sync(prob: JointProblem, state: JointState, cov_g, names) -> dict:
@@ -258,8 +288,9 @@ def global_names(prob: JointProblem, ids, prisms=()) -> tuple[str, ...]:
     ``calibration_station<id>_<x|y|z|rx|ry|rz>`` (world frame, as the per-prism pipeline's
     shared columns), ``atmosphere_ppm``, the prisms' ``reference_<prism>_<x|y|z>`` (where
     estimated; ``prisms`` their names), the stations' constant clock offsets
-    ``time_sync_station<id>``, the clocks' knots ``clock_station<id>_<jjjj>``, the
-    settling's ``settle_station<id>_<height|yaw>_<jjjj>``."""
+    ``time_sync_station<id>``, the prisms' deviation
+    ``deviation_<prism>_<order>_<cos|sin>_<range|across|vertical>``, the clocks' knots
+    ``clock_station<id>_<jjjj>``, the settling's ``settle_station<id>_<height|yaw>_<jjjj>``."""
     names = [f"calibration_station{ids[i]}_{c}" for i in prob.free for c in POSE_COMPONENTS]
     names.append("atmosphere_ppm")
     if prob.n_prism:
@@ -267,6 +298,10 @@ def global_names(prob: JointProblem, ids, prisms=()) -> tuple[str, ...]:
     ck = prob.clock
     if prob.n_sync:
         names += [f"time_sync_station{s}" for s in ids]
+    if prob.n_deviation:
+        names += [f"deviation_{p}_{k}_{trig}_{comp}" for p in prisms
+                  for k in prob.deviation_orders for trig in pdev.TRIG
+                  for comp in pdev.COMPONENTS]
     if ck is not None:
         names += [f"clock_station{ids[i]}_{j:04d}" for i in ck.station
                   for j in range(ck.knots.size)]

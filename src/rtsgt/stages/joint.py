@@ -19,6 +19,9 @@ from rtsgt.geometry.so3 import log_so3, matrix_to_quat_xyzw
 from rtsgt.geometry.transform import RigidTransform
 from rtsgt.interpolation.motion import CLASS_NAMES
 from rtsgt.joint import estimate_joint
+from rtsgt.joint.deviation import COMPONENTS as DEVIATION_COMPONENTS
+from rtsgt.joint.deviation import TRIG as DEVIATION_TRIG
+from rtsgt.joint.deviation import DeviationFit
 from rtsgt.joint.estimate import JointResult
 from rtsgt.joint.knots import qc_from_prisms
 from rtsgt.joint.noise import CHANNELS as NOISE_CHANNELS
@@ -79,7 +82,7 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
     return estimate_joint(observations, calibration, reference, model, tq, start_t, start_R,
                           start_p, qc, weather=weather, clocks=clocks, prisms=True,
                           noise=True, settling=True, calibrated_at=calibrated_at,
-                          max_gap_s=max_gap_s)
+                          deviation=True, max_gap_s=max_gap_s)
 
 
 def calibration_times(gcp: GcpShots | None, calibration: CalibrationResult,
@@ -195,7 +198,9 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
     sigma), its test statistic in sigmas and whether it was found moved; ``noise``: the
     white noise's components per station and channel where identified; ``settling``: per
     station its height (mm) and yaw (arc seconds) change since its calibration at the first
-    and the last knot, with their sigmas (docs/joint.md#settling-tripods); the solve's
+    and the last knot, with their sigmas (docs/joint.md#settling-tripods); ``deviation``: the
+    prisms' deviation with their viewing angle per prism, harmonic and component (mm, with
+    sigma and whether the data determine it; docs/joint.md#prism-deviation); the solve's
     iterations, convergence, chi^2 per row, knots and measurements."""
     q = jr.qc
     used = np.bincount(q.classes, minlength=len(CLASS_NAMES))
@@ -216,6 +221,7 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
         "prisms": None if jr.prisms is None else _prisms_summary(jr.prisms),
         "noise": None if jr.noise is None else _noise_summary(jr.noise),
         "settling": {sid: _settling_summary(*v) for sid, v in jr.settling.items()},
+        "deviation": None if jr.deviation is None else _deviation_summary(jr.deviation),
         "iterations": int(jr.solve.iterations), "converged": bool(jr.solve.converged),
         "chi2_per_dof": float(jr.chi2_per_dof), "knots": int(jr.n_knots),
         "measurements": int(jr.n_measurements), "poses": int(jr.t.size),
@@ -229,6 +235,23 @@ def _settling_summary(knots, height, yaw, sd) -> dict[str, Any]:
             "height_sigma_mm": (1e3 * sd[ends, 0]).tolist(),
             "yaw_arcsec": (yaw[ends] / ARCSEC).tolist(),
             "yaw_sigma_arcsec": (sd[ends, 1] / ARCSEC).tolist()}
+
+
+def _deviation_summary(fit: DeviationFit) -> dict[str, Any]:
+    """The prisms' deviation: per prism, ``coefficients_mm``, ``sigma_mm`` and ``determined``
+    as (order, term, component) nested lists, ``amplitude_mm`` as (order, component),
+    ``held`` per order (the viewing azimuth swept too few of its periods)."""
+    shape = (len(fit.orders), len(DEVIATION_TRIG), len(DEVIATION_COMPONENTS))
+    amp = fit.amplitude()
+    sd = fit.sigma
+    return {"orders": list(fit.orders), "terms": list(DEVIATION_TRIG),
+            "components": list(DEVIATION_COMPONENTS),
+            "prisms": {p: {"coefficients_mm": (1e3 * fit.coef[i]).reshape(shape).tolist(),
+                           "sigma_mm": (1e3 * sd[i]).reshape(shape).tolist(),
+                           "determined": fit.determined[i].reshape(shape).tolist(),
+                           "held": fit.held[i].reshape(shape)[:, 0, 0].tolist(),
+                           "amplitude_mm": (1e3 * amp[i]).tolist()}
+                       for i, p in enumerate(fit.names)}}
 
 
 def _prisms_summary(pf: PrismFit) -> dict[str, Any]:
