@@ -21,7 +21,7 @@ import pytest
 from rich.console import Console
 
 from _paths import EXAMPLE_TOML
-from rtsgt.checks.verdict import JOINT_ESTIMATES, SHOWN_REASONS, run_verdict
+from rtsgt.checks.verdict import SHOWN_REASONS, run_verdict
 from rtsgt.cli.common import warning_groups
 from rtsgt.cli.tables import TextTable
 
@@ -80,25 +80,6 @@ def test_verdict_of_no_pose_and_of_a_prism_off_its_survey():
     assert "1-3 -27.5 mm (-6.2 sigma)" in moved.line() and "1-2" not in moved.line()
     few = run_verdict({}, kept=40, queried=100)
     assert few.level == "usable, with caveats" and "40 of 100" in few.line()
-
-
-def test_findings_the_joint_engine_estimates_are_notes_of_its_runs():
-    """A joint run estimates the clocks, the prisms' positions and their deviation: what the
-    per-prism checks find of them is a note there (the checks independent of the fit judge
-    the run); a per-prism run is not usable with the same findings."""
-    checks = _checks(clock="optimistic")
-    checks["inter_prism_structure"]["prism_orientation"].update(verdict="optimistic", f=5.2)
-    survey = {"1-3": {"median_deviation_mm": -27.5, "ratio": -6.2}}
-    per_prism = run_verdict(checks, kept=100, queried=100, distance_check=survey)
-    assert per_prism.level == "not usable as is" and len(per_prism.reasons) == 3
-    names = frozenset(JOINT_ESTIMATES)
-    joint = run_verdict(checks, kept=100, queried=100, distance_check=survey, estimated=names)
-    assert joint.level == "usable" and [f.severity for f in joint.findings] == [0, 0, 0]
-    assert all("estimated and carried by the joint engine" in f.text for f in joint.findings)
-    # the clocks alone estimated (a joint run without the prisms' deviation)
-    part = run_verdict(checks, kept=100, queried=100, distance_check=survey,
-                       estimated=frozenset({"clock offsets"}))
-    assert [f.check for f in part.reasons] == ["prism orientation", "surveyed distances"]
 
 
 def test_static_correlation_is_a_caveat_only_where_the_gps_do_not_carry_it():

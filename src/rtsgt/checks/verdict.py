@@ -23,10 +23,6 @@ SHOWN_REASONS = 2
 #: A share of rejected poses above this is a caveat.
 REJECTED_SHARE_CAVEAT = 0.5
 
-#: The per-prism checks whose finding the joint engine can estimate and carry
-#: (docs/self-checks.md#the-runs-verdict).
-JOINT_ESTIMATES = ("clock offsets", "prism orientation", "surveyed distances")
-
 
 @dataclass(frozen=True)
 class Finding:
@@ -214,37 +210,27 @@ def _gcp(check: dict, out: list[Finding]) -> None:
                            f"predicts (variance factor {factors}{carried})"))
 
 
-def _estimated(name: str, text: str, estimated: frozenset[str]) -> Finding:
-    """A per-prism check's finding: not usable (2), or a note (0) where the pose engine
-    estimates and carries what it found (``estimated``: the checks' names)."""
-    if name in estimated:
-        return Finding(0, name, text + "; estimated and carried by the joint engine")
-    return Finding(2, name, text)
-
-
-def _structure(check: dict, out: list[Finding], estimated: frozenset[str]) -> None:
+def _structure(check: dict, out: list[Finding]) -> None:
     ck, po = check.get("clock") or {}, check.get("prism_orientation") or {}
     if ck.get("verdict") == "optimistic":
-        out.append(_estimated("clock offsets",
-                              f"the stations' clock offsets vary over the run: chi2/dof "
-                              f"{ck['chi2_per_dof']:.2f} above {ck['critical']:.2f}", estimated))
+        out.append(Finding(2, "clock offsets",
+                           f"the stations' clock offsets vary over the run: chi2/dof "
+                           f"{ck['chi2_per_dof']:.2f} above {ck['critical']:.2f}"))
     if po.get("verdict") == "optimistic":
-        out.append(_estimated("prism orientation",
-                              f"the inter-prism residuals follow the prisms' viewing angle: F "
-                              f"{po['f']:.2f} above {po['critical']:.2f}", estimated))
+        out.append(Finding(2, "prism orientation",
+                           f"the inter-prism residuals follow the prisms' viewing angle: F "
+                           f"{po['f']:.2f} above {po['critical']:.2f}"))
 
 
-def _survey(distance_check: dict, threshold: float, out: list[Finding],
-            estimated: frozenset[str]) -> None:
+def _survey(distance_check: dict, threshold: float, out: list[Finding]) -> None:
     bad = {k: v for k, v in (distance_check or {}).items()
            if v.get("ratio") is not None and abs(v["ratio"]) > threshold}
     if bad:
-        out.append(_estimated("surveyed distances",
-                              "tracked inter-prism distance "
-                              + _names([f"{k} {v['median_deviation_mm']:+.1f} mm "
-                                        f"({v['ratio']:+.1f} sigma)" for k, v in bad.items()])
-                              + " off the survey: a prism moved or was mis-surveyed",
-                              estimated))
+        out.append(Finding(2, "surveyed distances",
+                           "tracked inter-prism distance "
+                           + _names([f"{k} {v['median_deviation_mm']:+.1f} mm "
+                                     f"({v['ratio']:+.1f} sigma)" for k, v in bad.items()])
+                           + " off the survey: a prism moved or was mis-surveyed"))
 
 
 def _dynamic(check: dict, out: list[Finding]) -> None:
@@ -262,22 +248,19 @@ def _dynamic(check: dict, out: list[Finding]) -> None:
 
 def run_verdict(self_checks: dict, *, kept: int, queried: int,
                 distance_check: dict | None = None, correlated_noise: dict | None = None,
-                survey_sigma: float = SURVEY_DISTANCE_WARNING_SIGMA,
-                estimated: frozenset[str] = frozenset()) -> RunVerdict:
+                survey_sigma: float = SURVEY_DISTANCE_WARNING_SIGMA) -> RunVerdict:
     """The verdict of a run from its ``self_checks`` (``RunRecord.self_checks``), the poses ``kept``
     of ``queried``, its ``distance_check`` (tracked distances against the survey; a pair over
     ``survey_sigma`` predicted sigmas is a finding) and ``correlated_noise`` (what the GPs
-    carried); ``estimated``: the per-prism checks whose finding the pose engine estimates
-    and carries (among :data:`JOINT_ESTIMATES`; their findings are then notes: the checks
-    independent of the fit judge the run)."""
+    carried)."""
     out: list[Finding] = []
     if kept == 0:
         out.append(Finding(2, "poses", f"no pose passed the quality gates (0 of {queried})"))
     elif queried and (queried - kept) / queried > REJECTED_SHARE_CAVEAT:
         out.append(Finding(1, "poses", f"only {kept} of {queried} queried poses kept"))
     _distances(self_checks.get("inter_prism_distances") or {}, out)
-    _structure(self_checks.get("inter_prism_structure") or {}, out, estimated)
-    _survey(distance_check or {}, survey_sigma, out, estimated)
+    _structure(self_checks.get("inter_prism_structure") or {}, out)
+    _survey(distance_check or {}, survey_sigma, out)
     _block_cv(self_checks.get("block_cv") or {}, out)
     _raw_block_cv(self_checks.get("raw_block_cv") or {}, out)
     _static(self_checks.get("static_noise") or {}, correlated_noise or {}, out)
@@ -292,12 +275,7 @@ def record_verdict(record) -> RunVerdict:
     :class:`~rtsgt.record.PositionRunRecord`, whose positions are all kept)."""
     gt = getattr(record, "groundtruth", None)
     queried = int(record.prisms_t.shape[0])
-    joint = getattr(record, "joint", None) or {}
-    dev = (joint.get("deviation") or {}).get("prisms") or {}
-    on = (bool(joint.get("clocks")), any(not all(p["held"]) for p in dev.values()),
-          bool(joint.get("prisms")))
-    estimated = frozenset(name for name, o in zip(JOINT_ESTIMATES, on, strict=True) if o)
     return run_verdict(record.self_checks, kept=queried if gt is None else len(gt),
                        queried=queried,
                        distance_check=getattr(record, "distance_check", None),
-                       correlated_noise=record.correlated_noise, estimated=estimated)
+                       correlated_noise=record.correlated_noise)
