@@ -483,8 +483,9 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     """Gauss-Newton with the prior's ``Qc`` per motion class by iterated variance components
     (docs/joint.md#qc-from-the-data), starting from ``prob.qc`` (6,) for every class, with
     (``estimate_noise``) the white noise's components (docs/joint.md#noise-identification;
-    the problem's ``noise``) and the prisms' tests (where they are parameters) in the same
-    loop; each iteration re-solves from the last state. Returns the problem with the final
+    the problem's ``noise``) and the prisms' tests (where they are parameters; with the noise
+    estimated, from its first update on) in the same loop; each iteration re-solves from the
+    last state. Returns the problem with the final
     ``qc`` per interval, the state, the :class:`rtsgt.joint.sparse.ArrowSolution`, the last
     :class:`SolveInfo` and a :class:`QcFit`."""
     n = prob.t_knot.size - 1
@@ -496,7 +497,10 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     red_g = np.zeros_like(table)
     own = None
     it = 0
-    prob, freed = snoop_prisms(prob, s, sol)
+    freed = False
+    snooped = not estimate_noise  # else after the noise's first update: weighted by the
+    if snooped:  # datasheet, another prism can explain a move better (docs/joint.md)
+        prob, freed = snoop_prisms(prob, s, sol)
     while (estimate or estimate_noise or freed) and it < VCE_MAX_ITER:
         it += 1
         change = 0.0
@@ -505,12 +509,13 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
         if estimate_noise:
             prob, dn = noise_step(prob, s, sol, it)
             change = max(change, dn)
-        last = (change < VCE_TOL and not freed) or it == VCE_MAX_ITER
+        last = (change < VCE_TOL and not freed and snooped) or it == VCE_MAX_ITER
         full = last or not (estimate or estimate_noise)  # a freed prism alone: to the end
         s, sol, info = gauss_newton(prob, s, max_iter if full else VCE_GN_ITER, tol)
         if last:
             break
         prob, freed = snoop_prisms(prob, s, sol)
+        snooped = True
     return prob, s, sol, info, QcFit(table, classes, red_g, it if estimate else 0)
 
 
