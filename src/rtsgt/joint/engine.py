@@ -55,6 +55,9 @@ STALL_REL = 1e-9
 #: solution the rise is the first-order Jacobians' error (the prior's, the settling's), and
 #: halving the step would only creep towards the same point.
 WHOLE_STEP_DECREASE = 1e-2
+#: Gauss-Newton iterations of each candidate's trial solve when several prisms' tests find a
+#: move (:func:`snoop_prisms`).
+TRIAL_GN_ITER = 5
 
 
 @dataclass(frozen=True)
@@ -563,9 +566,12 @@ def noise_step(prob: JointProblem, s: JointState, sol, iteration: int = 1):
 
 def snoop_prisms(prob: JointProblem, s: JointState, sol) -> tuple[JointProblem, bool]:
     """Test each trusted prism against its survey (:func:`rtsgt.joint.prisms.prism_tests`);
-    the one beyond its critical value by the most (if any, and if at least two would stay
-    trusted) has its survey freed where the data determine its move. Returns the problem and
-    whether a prism was freed."""
+    of those beyond their critical value (if at least two would stay trusted), one has its
+    survey freed where the data determine its move: the only one, or of several the one
+    whose Gauss-Newton solve with it freed (:data:`TRIAL_GN_ITER` iterations from ``s``)
+    ends at the lowest cost plus freed directions (the tests' order is first order: two
+    prisms' moves can explain the data alike there, docs/joint.md#prism-positions). Returns
+    the problem and whether a prism was freed."""
     if prob.prism_info is None:
         return prob, False
     sl = slice(prob.kappa_col + 1, prob.kappa_col + 1 + prob.n_prism)
@@ -574,16 +580,26 @@ def snoop_prisms(prob: JointProblem, s: JointState, sol) -> tuple[JointProblem, 
     ratio = tests.stat / tests.critical()
     ratio[found] = 0.0
     ratio[tests.dof == 0] = 0.0
-    j = int(np.argmax(ratio))
-    if ratio[j] <= 1.0 or len(found) + 3 > prob.p_body.shape[0]:
+    candidates = [int(j) for j in np.argsort(-ratio) if ratio[j] > 1.0]
+    if not candidates or len(found) + 3 > prob.p_body.shape[0]:
         return prob, False
+    freed = [_freed(prob, tests, found, j) for j in candidates]
+    if len(freed) == 1:
+        return freed[0], True
+    score = [gauss_newton(p, s, TRIAL_GN_ITER)[2].costs[-1] + tests.dof[j]
+             for p, j in zip(freed, candidates, strict=True)]  # a handful of prisms
+    return freed[int(np.argmin(score))], True
+
+
+def _freed(prob: JointProblem, tests, found: list[int], j: int) -> JointProblem:
+    """The problem with prism ``j``'s survey freed (:func:`rtsgt.joint.prisms.free_prism`)."""
     trusted = np.ones(prob.p_body.shape[0], bool)
     trusted[found + [j]] = False
     gauge = gauge_directions(prob.p_body, trusted, j)
     cov = np.linalg.inv(prob.prism_info) if prob.prism_cov is None else prob.prism_cov
     info = free_prism(prob.prism_info, cov, j, tests, gauge)
     entry = (j, float(tests.stat[j]), int(tests.dof[j]))
-    return replace(prob, prism_info=info, prism_found=prob.prism_found + (entry,)), True
+    return replace(prob, prism_info=info, prism_found=prob.prism_found + (entry,))
 
 
 __all__ = ["JointProblem", "JointState", "QcFit", "SolveInfo", "assemble", "gauss_newton",
