@@ -488,9 +488,9 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     (``estimate_noise``) the white noise's components (docs/joint.md#noise-identification;
     the problem's ``noise``) and the prisms' tests (where they are parameters; with the noise
     estimated, from its first update on) in the same loop; each iteration re-solves from the
-    last state. Returns the problem with the final
-    ``qc`` per interval, the state, the :class:`rtsgt.joint.sparse.ArrowSolution`, the last
-    :class:`SolveInfo` and a :class:`QcFit`."""
+    last state. Returns the problem with the final ``qc`` per interval, the state, the
+    :class:`rtsgt.joint.sparse.ArrowSolution`, the last :class:`SolveInfo` and a
+    :class:`QcFit`."""
     n = prob.t_knot.size - 1
     qc0 = np.asarray(prob.qc, dtype=float)
     prob = replace(prob, qc=np.broadcast_to(qc0, (n, 6)).copy())

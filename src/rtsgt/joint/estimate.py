@@ -142,9 +142,9 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     reference station's from their prior alone), from rest at ``calibrated_at`` (s, by
     station; a station not in it, or None: at its first measurement). With ``deviation``,
     each prism's deviation with the azimuth its station sees it under is estimated, low
-    harmonics with a prior of a few millimetres (docs/joint.md#prism-deviation). ``max_gap_s``: a longer gap between a station's
-    measurements starts new blocks of the raw block cross-validation
-    (docs/joint.md#block-cross-validation-of-the-measurements).
+    harmonics with a prior of a few millimetres (docs/joint.md#prism-deviation).
+    ``max_gap_s``: a longer gap between a station's measurements starts new blocks of the
+    raw block cross-validation (docs/joint.md#block-cross-validation-of-the-measurements).
     """
     init_t = np.asarray(init_t, dtype=float)
     if init_t.size < 2:
@@ -243,8 +243,8 @@ def _deviation(prob: JointProblem, state: JointState, cov_g, names) -> pdev.Devi
     cov = 0.5 * (cov_g[sl, sl] + cov_g[sl, sl].T)
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None)).reshape(state.deviation.shape)
     return pdev.DeviationFit(tuple(names), prob.deviation_orders, state.deviation.copy(), cov,
-                        sd <= pdev.DETERMINED_RATIO * prob.deviation_sigma,
-                        prob.deviation_sigma <= pdev.HELD_SIGMA_M)
+                             sd <= pdev.DETERMINED_RATIO * prob.deviation_sigma,
+                             prob.deviation_sigma <= pdev.HELD_SIGMA_M)
 
 
 def _time_sync(prob: JointProblem, state: JointState, cov_g, names) -> dict:

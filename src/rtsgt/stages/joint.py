@@ -66,7 +66,8 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
     bridged (the raw block cross-validation's segments); ``calibrated_at``: each station's
     calibration time, s (:func:`calibration_times`), from which its set-up settles
     (docs/joint.md#settling-tripods). The prisms' body positions are
-    estimated with the survey as their prior (docs/joint.md#prism-positions), the white
+    estimated with the survey as their prior (docs/joint.md#prism-positions), their
+    deviation with the viewing angle (docs/joint.md#prism-deviation), the white
     noise per station and channel with the noise model's as its prior
     (docs/joint.md#noise-identification). InputError when
     no query time falls inside the measurements' span.
