@@ -568,11 +568,10 @@ def snoop_prisms(prob: JointProblem, s: JointState, sol) -> tuple[JointProblem, 
     """Test each trusted prism against its survey (:func:`rtsgt.joint.prisms.prism_tests`);
     of those beyond their critical value (if at least two would stay trusted), one has its
     survey freed where the data determine its move: the only one, or of several the one
-    whose Gauss-Newton solve with it freed (:data:`TRIAL_GN_ITER` iterations from ``s``;
-    where the data do not determine the move, the survey's variance alone: a larger move
-    would loosen the rig) ends at the lowest cost plus freed directions (the tests' order is
-    first order: two prisms' moves can explain the data alike there,
-    docs/joint.md#prism-positions). Returns the problem and whether a prism was freed."""
+    whose Gauss-Newton solve with it freed (:data:`TRIAL_GN_ITER` iterations from ``s``)
+    ends at the lowest cost plus freed directions (the tests' order is first order: two
+    prisms' moves can explain the data alike there, docs/joint.md#prism-positions). Returns
+    the problem and whether a prism was freed."""
     if prob.prism_info is None:
         return prob, False
     sl = slice(prob.kappa_col + 1, prob.kappa_col + 1 + prob.n_prism)
@@ -584,22 +583,21 @@ def snoop_prisms(prob: JointProblem, s: JointState, sol) -> tuple[JointProblem, 
     candidates = [int(j) for j in np.argsort(-ratio) if ratio[j] > 1.0]
     if not candidates or len(found) + 3 > prob.p_body.shape[0]:
         return prob, False
-    if len(candidates) > 1:  # each freed where the data determine it, the rest at the survey
-        score = [gauss_newton(_freed(prob, tests, found, j, False), s,
-                              TRIAL_GN_ITER)[2].costs[-1] + tests.dof[j]
-                 for j in candidates]  # a handful of prisms
-        candidates = [candidates[int(np.argmin(score))]]
-    return _freed(prob, tests, found, candidates[0]), True
+    freed = [_freed(prob, tests, found, j) for j in candidates]
+    if len(freed) == 1:
+        return freed[0], True
+    score = [gauss_newton(p, s, TRIAL_GN_ITER)[2].costs[-1] + tests.dof[j]
+             for p, j in zip(freed, candidates, strict=True)]  # a handful of prisms
+    return freed[int(np.argmin(score))], True
 
 
-def _freed(prob: JointProblem, tests, found: list[int], j: int,
-           with_move: bool = True) -> JointProblem:
+def _freed(prob: JointProblem, tests, found: list[int], j: int) -> JointProblem:
     """The problem with prism ``j``'s survey freed (:func:`rtsgt.joint.prisms.free_prism`)."""
     trusted = np.ones(prob.p_body.shape[0], bool)
     trusted[found + [j]] = False
     gauge = gauge_directions(prob.p_body, trusted, j)
     cov = np.linalg.inv(prob.prism_info) if prob.prism_cov is None else prob.prism_cov
-    info = free_prism(prob.prism_info, cov, j, tests, gauge, with_move)
+    info = free_prism(prob.prism_info, cov, j, tests, gauge)
     entry = (j, float(tests.stat[j]), int(tests.dof[j]))
     return replace(prob, prism_info=info, prism_found=prob.prism_found + (entry,))
 

@@ -108,13 +108,12 @@ def gauge_directions(p_body: np.ndarray, trusted: np.ndarray, j: int) -> np.ndar
 
 
 def free_prism(info: np.ndarray, cov: np.ndarray, j: int, tests: PrismTests,
-               gauge: np.ndarray, with_move: bool = True) -> np.ndarray:
+               gauge: np.ndarray) -> np.ndarray:
     """The prior information with prism ``j``'s survey (covariance ``cov`` (3P, 3P)) dropped
     in the directions the data determine (with its correlations with the other prisms) and
     kept in the ``gauge`` (3, m) directions and, orthogonal to them, those the data do not
     determine, where the move may be as large as the one the data show: there the survey's
-    marginal variance plus ``|move|^2`` (``tests.displacement[j]``; docs/joint.md#prism-positions;
-    the survey's alone without ``with_move``: hypotheses compared on what the data determine)."""
+    marginal variance plus ``|move|^2`` (``tests.displacement[j]``; docs/joint.md#prism-positions)."""
     out = info.copy()
     sl = slice(3 * j, 3 * j + 3)
     comp = np.linalg.svd(gauge, full_matrices=True)[0][:, gauge.shape[1]:]  # (3, 3-m)
@@ -125,7 +124,7 @@ def free_prism(info: np.ndarray, cov: np.ndarray, j: int, tests: PrismTests,
     out[:, sl] = 0.0
     if K.shape[1]:
         c = cov[sl, sl] + FIXED_SIGMA_M**2 * np.eye(3)  # as the prior's information
-        move2 = float(tests.displacement[j] @ tests.displacement[j]) if with_move else 0.0
+        move2 = float(tests.displacement[j] @ tests.displacement[j])
         blk = K @ np.linalg.inv(K.T @ c @ K + move2 * np.eye(K.shape[1])) @ K.T
         out[sl, sl] = 0.5 * (blk + blk.T)
     return out
