@@ -99,6 +99,18 @@ def test_the_summary_has_the_joint_section_and_the_checks_say_what_they_judge(ru
         truth_ms = -1e3 * (sim.truth.clock_offset_s[sid] - sim.truth.clock_offset_s[ref])
         assert abs(v["end_ms"] - truth_ms) < 3 * v["median_sigma_ms"] + 1e-3, (sid, v)
     assert set(j["prisms"]) == set(record.prism_ids)
+    # the prisms' deviation: per prism (order, term, component); a held order is 0 with its
+    # prior's 0.1 um, an estimated one has a sigma under its prior's 2 mm / sqrt(6)
+    dev = j["deviation"]
+    assert dev["orders"] == [3, 6, 12] and set(dev["prisms"]) == set(record.prism_ids)
+    for v in dev["prisms"].values():
+        coef, sd = np.array(v["coefficients_mm"]), np.array(v["sigma_mm"])
+        assert coef.shape == sd.shape == (3, 2, 3) and len(v["held"]) == 3
+        held = np.array(v["held"])
+        assert np.all(np.abs(coef[held]) < 1e-6) and np.all(sd[held] < 1e-3), v
+        assert np.all(sd[~held] < 2.0 / np.sqrt(6) + 1e-9), v
+        np.testing.assert_allclose(np.array(v["amplitude_mm"]),
+                                   np.hypot(coef[:, 0], coef[:, 1]), rtol=1e-12)
     for v in j["stations"].values():
         assert v["held"] or np.all(np.abs(v["shift_sigmas"]) < 4), v
     assert j["kappa_sigma_ppm"] > 0 and "standing" in j["qc"]

@@ -116,20 +116,28 @@ def deviation_chain(dev: np.ndarray, v: np.ndarray, d: np.ndarray) -> np.ndarray
 class DeviationFit:
     """The prisms' estimated deviation: ``names`` (P,) the prisms, ``orders`` the harmonics,
     ``coef`` (P, C) m (:func:`n_coefficients`' order), ``cov`` (P C, P C) m^2 their
-    covariance, ``determined`` (P, C) which the data determine (:data:`DETERMINED_RATIO`),
-    ``held`` (P, C) which were held at 0 (:data:`MIN_PERIODS`)."""
+    covariance, ``prior_sigma`` (P, C) m their prior's (:func:`deviation_prior_sigma`)."""
 
     names: tuple[str, ...]
     orders: tuple[int, ...]
     coef: np.ndarray
     cov: np.ndarray
-    determined: np.ndarray
-    held: np.ndarray
+    prior_sigma: np.ndarray
 
     @property
     def sigma(self) -> np.ndarray:
         """Sigmas (P, C) of the coefficients, m."""
         return np.sqrt(np.clip(np.diag(self.cov), 0.0, None)).reshape(self.coef.shape)
+
+    @property
+    def determined(self) -> np.ndarray:
+        """Which coefficients (P, C) the data determine (:data:`DETERMINED_RATIO`)."""
+        return self.sigma <= DETERMINED_RATIO * self.prior_sigma
+
+    @property
+    def held(self) -> np.ndarray:
+        """Which coefficients (P, C) were held at 0 (:data:`MIN_PERIODS`)."""
+        return self.prior_sigma <= HELD_SIGMA_M
 
     def amplitude(self) -> np.ndarray:
         """Amplitude (P, O, 3) m of each prism's harmonic per component,
@@ -138,6 +146,7 @@ class DeviationFit:
         return np.hypot(c[:, :, 0], c[:, :, 1])
 
 
-__all__ = ["COMPONENTS", "DETERMINED_RATIO", "DeviationFit", "ORDERS", "PRIOR_RMS_M",
-           "PRIOR_SIGMA_M", "TRIG",
-           "deviation_chain", "deviation_jacobian", "deviation_prior_sigma", "n_coefficients", "viewing_azimuth_body"]
+__all__ = ["COMPONENTS", "DETERMINED_RATIO", "DeviationFit", "HELD_SIGMA_M", "MIN_PERIODS",
+           "ORDERS", "PRIOR_RMS_M", "PRIOR_SIGMA_M", "TRIG", "deviation_chain",
+           "deviation_jacobian", "deviation_prior_sigma", "n_coefficients",
+           "viewing_azimuth_body"]

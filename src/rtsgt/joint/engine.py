@@ -204,13 +204,14 @@ def measurement_terms(prob: JointProblem, s: JointState):
         alpha, da_xi, da_st, da_p = viewing_azimuth_body(s.R[k], s.t[k], pb[m.prism],
                                                           s.t_s[m.station])
         Hdev, dH = deviation_jacobian(alpha, h[:, 1], h[:, 2], prob.deviation_orders)
-        dev = np.einsum("mic,mc->mi", Hdev, s.deviation[m.prism])
+        coef = s.deviation[m.prism]
+        dev = np.einsum("mic,mc->mi", Hdev, coef)
         r = r - dev
         L = deviation_chain(dev, h[:, 1], h[:, 2])
         Hk, Hs = L @ Hk, L @ Hs
         Hkap, Htau = (np.einsum("mij,mj->mi", L, x) for x in (Hkap, Htau))
         PR = Hk[:, :, :3].copy()
-        slope = np.einsum("mic,mc->mi", dH, s.deviation[m.prism])  # d deviation / d alpha
+        slope = np.einsum("mic,mc->mi", dH, coef)  # d deviation / d alpha
         Hk[:, :, :6] += slope[:, :, None] * da_xi[:, None, :]
         Hs[:, :, :3] += slope[:, :, None] * da_st[:, None, :]
     Hset = cols_set = None

@@ -241,10 +241,8 @@ def _deviation(prob: JointProblem, state: JointState, cov_g, names) -> pdev.Devi
         return None
     sl = slice(prob.deviation_col, prob.deviation_col + prob.n_deviation)
     cov = 0.5 * (cov_g[sl, sl] + cov_g[sl, sl].T)
-    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None)).reshape(state.deviation.shape)
     return pdev.DeviationFit(tuple(names), prob.deviation_orders, state.deviation.copy(), cov,
-                             sd <= pdev.DETERMINED_RATIO * prob.deviation_sigma,
-                             prob.deviation_sigma <= pdev.HELD_SIGMA_M)
+                             prob.deviation_sigma)
 
 
 def _time_sync(prob: JointProblem, state: JointState, cov_g, names) -> dict:
