@@ -127,6 +127,26 @@ def deviation_within(record, sim, data) -> float | None:
     return float(np.mean(np.abs(z) < 2.0))
 
 
+def gm_within(record, sim) -> float | None:
+    """Share of the Gauss-Markov noise's determined components (each station's and channel's
+    sigma and correlation time) within 2 sigma of the field truth's (in log); None without
+    the estimate."""
+    joint = record.computation.joint
+    f = sim.truth.field
+    fit = None if joint is None else joint.gauss_markov
+    if fit is None or f is None:
+        return None
+    z = []
+    for i, sid in enumerate(fit.stations):
+        k = f.station_ids.index(sid)
+        for c in range(3):
+            if not fit.determined[i, c] or f.gm_sigma[k, c] <= 0:
+                continue
+            z.append(np.log(fit.sigma[i, c] / f.gm_sigma[k, c]) / fit.sd_log[i, c, 0])
+            z.append(np.log(fit.tau_s[i, c] / f.gm_tau_s[k, c]) / fit.sd_log[i, c, 1])
+    return float(np.mean(np.abs(z) < 2.0)) if z else None
+
+
 def config(args):
     """The preset's configuration, less the effects ``--without`` names."""
     cfg = preset_config("field-hour", duration_s=args.duration)
@@ -164,6 +184,7 @@ def one(seed: int, args, tmp: Path) -> dict:
     return {
         "clocks_within_2sigma": clocks_within(rec, sim),
         "deviation_within_2sigma": deviation_within(rec, sim, data),
+        "gm_within_2sigma": gm_within(rec, sim),
         "raw_block_cv": raw.get("nees_per_dof"),
         "seed": seed, "poses": len(gt), "wall_s": wall,
         "nees6": n6.mean / 6, "in95": float(np.mean(n6.values <= chi2.ppf(0.95, 6))),
@@ -210,36 +231,46 @@ def _f(v, fmt: str = ".2f") -> str:
     return "-" if v is None else format(v, fmt)
 
 
+#: The shares of estimated parameters within 2 sigma of the truth: key, column title.
+SHARES = (("clocks_within_2sigma", "clocks"), ("deviation_within_2sigma", "deviation"),
+          ("gm_within_2sigma", "Gauss-Markov"))
+
+
+def _shares(values) -> str:
+    """Each of :data:`SHARES`' values (None or a list of per-seed shares, pooled) in %."""
+    out = []
+    for v in values:
+        v = [x for x in (v if isinstance(v, list) else [v]) if x is not None]
+        out.append(_f(100 * np.mean(v) if v else None, ".1f"))
+    return " | ".join(out)
+
+
 def table(rows: list[dict]) -> None:
     """The Markdown table of the seeds' results and their pooled line."""
+    titles = " | ".join(f"{t} in 2 sigma" for _, t in SHARES)
     print("\n| seed | poses | pose NEES/dof | in 95 % | split test | rel. NEES/dof 1 s | 10 s "
-          "| 60 s | inter-prism z^2 (accepted) | raw block CV | clocks in 2 sigma "
-          "| deviation in 2 sigma | verdict | median sigma mm | run s |")
-    print("|---|---:|---:|---:|---|---:|---:|---:|---|---:|---:|---:|---|---:|---:|")
+          f"| 60 s | inter-prism z^2 (accepted) | raw block CV | {titles} "
+          "| verdict | median sigma mm | run s |")
+    print("|---|---:|---:|---:|---|---:|---:|---:|---|---:|" + "---:|" * len(SHARES)
+          + "---|---:|---:|")
     for r in rows:
         rel = " | ".join(_f(r["rel"][k][0]) for k in r["rel"])
         lo, hi = r["z2_interval"] or (np.nan, np.nan)
         z2 = "-" if r["z2"] is None else f"{r['z2']:.2f} ({lo:.2f}-{hi:.2f})"
-        ck = r.get("clocks_within_2sigma")
-        dv = r.get("deviation_within_2sigma")
         print(f"| {r['seed']} | {r['poses']} | {r['nees6']:.2f} | {100 * r['in95']:.1f} % | "
               f"{'consistent' if r['split_consistent'] else 'rejected'} | {rel} | {z2} | "
-              f"{_f(r.get('raw_block_cv'))} | {_f(None if ck is None else 100 * ck, '.1f')} | "
-              f"{_f(None if dv is None else 100 * dv, '.1f')} | {r['verdict']} | {r['sigma_mm']:.2f} | {r['wall_s']:.0f} |")
+              f"{_f(r.get('raw_block_cv'))} | {_shares(r.get(k) for k, _ in SHARES)} | "
+              f"{r['verdict']} | {r['sigma_mm']:.2f} | {r['wall_s']:.0f} |")
     n6 = np.concatenate([np.asarray(r["n6_values"]) for r in rows])
     rel = " | ".join(_f(np.concatenate([np.asarray(r["rel_values"][k]) for r in rows]).mean() / 6)
                      for k in rows[0]["rel"])
     z2 = [r["z2"] for r in rows if r["z2"] is not None]
-    cks = [r["clocks_within_2sigma"] for r in rows if r.get("clocks_within_2sigma") is not None]
     raw = [r["raw_block_cv"] for r in rows if r.get("raw_block_cv") is not None]
-    dvs = [r["deviation_within_2sigma"] for r in rows
-           if r.get("deviation_within_2sigma") is not None]
     print(f"| pooled | {n6.size} | {n6.mean() / 6:.2f} | "
           f"{100 * np.mean(n6 <= chi2.ppf(0.95, 6)):.1f} % | "
           f"{sum(r['split_consistent'] for r in rows)} of {len(rows)} | {rel} | "
           f"{_f(np.mean(z2) if z2 else None)} | {_f(np.mean(raw) if raw else None)} | "
-          f"{_f(100 * np.mean(cks) if cks else None, '.1f')} | "
-          f"{_f(100 * np.mean(dvs) if dvs else None, '.1f')} | "
+          f"{_shares([r.get(k) for r in rows] for k, _ in SHARES)} | "
           f"{sum(r['verdict'] == 'not usable as is' for r in rows)} not usable | "
           f"{np.median([r['sigma_mm'] for r in rows]):.2f} | "
           f"{np.mean([r['wall_s'] for r in rows]):.0f} |")

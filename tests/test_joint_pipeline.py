@@ -21,6 +21,7 @@ from rtsgt.geometry.so3 import quat_xyzw_to_matrix
 from rtsgt.geometry.transform import perturbation
 from rtsgt.io.deployment import load_deployment
 from rtsgt.io.run_dir import read_run, write_run
+from rtsgt.joint.gm import TAU_RANGE_S
 from rtsgt.options import RUN_ENGINES, RunOptions
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
@@ -111,6 +112,15 @@ def test_the_summary_has_the_joint_section_and_the_checks_say_what_they_judge(ru
         assert np.all(sd[~held] < 2.0 / np.sqrt(6) + 1e-9), v
         np.testing.assert_allclose(np.array(v["amplitude_mm"]),
                                    np.hypot(coef[:, 0], coef[:, 1]), rtol=1e-12)
+    # the Gauss-Markov noise per station and channel: a determined chain has its sigmas, an
+    # undetermined one its start and none; tau inside the searched range
+    gmj = j["gauss_markov"]
+    assert set(gmj) == set(record.stations)
+    for per in gmj.values():
+        assert set(per) == {"hz", "v", "d"}
+        for v in per.values():
+            assert TAU_RANGE_S[0] <= v["tau_s"] <= TAU_RANGE_S[1] and v["sigma"] > 0, v
+            assert (v["sigma_sigma"] > 0 and v["tau_sigma_s"] > 0) == v["determined"], v
     for v in j["stations"].values():
         assert v["held"] or np.all(np.abs(v["shift_sigmas"]) < 4), v
     assert j["kappa_sigma_ppm"] > 0 and "standing" in j["qc"]

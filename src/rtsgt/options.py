@@ -47,7 +47,7 @@ from rtsgt.pose.estimate import (
 #: (:func:`stage_rng`), so that a stage's draws do not depend on how many the stages before it
 #: made, and a later reader of the run (the continuous ground truth of
 #: :mod:`rtsgt.evaluation.groundtruth`) can reproduce one stage's draws alone.
-RANDOM_STAGES = ("calibration", "noise", "pose", "analysis")
+RANDOM_STAGES = ("calibration", "noise", "pose", "analysis", "joint")
 
 __all__ = ["CORRELATED_NOISE", "GP_NOISE", "JOINT_START_ENGINE", "MOTION_PRIORS",
            "OUTLIER_WINDOWS", "PRIOR_CHOICES", "PROFILES", "QC_METHODS", "RANDOM_STAGES",

@@ -10,6 +10,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from rtsgt.geometry.so3 import exp_so3, hat, log_so3
+from rtsgt.joint import gm as gmn
 from rtsgt.joint.clock import ClockModel
 from rtsgt.joint.deviation import (
     deviation_chain,
@@ -26,7 +27,7 @@ from rtsgt.joint.noise import (
     noise_basis,
     update_components,
 )
-from rtsgt.joint.prior import prior_terms, wnoa_q_inv
+from rtsgt.joint.prior import TRAJECTORY_DIM, prior_terms, wnoa_q_inv
 from rtsgt.joint.prisms import free_prism, gauge_directions, prism_tests
 from rtsgt.joint.qc import (
     MIN_REDUNDANCY,
@@ -39,6 +40,7 @@ from rtsgt.joint.qc import (
     prior_components,
     qc_per_class,
 )
+from rtsgt.joint.relative import chain_gains, knot_cross_covariance
 from rtsgt.joint.se3 import exp_se3, so3_left_jacobian
 from rtsgt.joint.settling import KIND_COLUMNS, SettleModel
 from rtsgt.joint.sparse import ArrowSystem, solve_arrow
@@ -69,7 +71,8 @@ class JointState:
     constant clock offsets against the robot's, s (None: not estimated); ``settle`` (S, 2, J)
     the stations' settling since their calibration at its knots, height m and yaw rad (None:
     not estimated); ``deviation`` (P, C) the prisms' deviation coefficients, m
-    (:mod:`rtsgt.joint.deviation`; None: not estimated)."""
+    (:mod:`rtsgt.joint.deviation`; None: not estimated); ``gm`` (K, n) the Gauss-Markov
+    noise's chains at the knots (:mod:`rtsgt.joint.gm`; None: not estimated)."""
 
     R: np.ndarray
     t: np.ndarray
@@ -82,6 +85,7 @@ class JointState:
     sync: np.ndarray | None = None
     settle: np.ndarray | None = None
     deviation: np.ndarray | None = None
+    gm: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -99,7 +103,9 @@ class JointProblem:
     column, -1 none, with the prior variance ``sync_var`` s^2; docs/joint.md#clock-offsets),
     the stations' settling states (``settle``; None: none, docs/joint.md#settling-tripods),
     the harmonics of the prisms' deviation ``deviation_orders`` (empty: none) with the prior
-    sigma ``deviation_sigma`` (P, C) m of each coefficient (docs/joint.md#prism-deviation).
+    sigma ``deviation_sigma`` (P, C) m of each coefficient (docs/joint.md#prism-deviation),
+    the Gauss-Markov noise's chains (``gm``; None: none, docs/joint.md#gauss-markov-noise;
+    each knot's state is then its trajectory's and its chains' values).
     Globals: the free stations' ``(dt, dtheta)``, ``kappa``, the prisms' positions (3P), the
     constant clock offsets, the prisms' deviation (P, C), the clocks' knots (C, J), the
     settling's knots (S, 2, J)."""
@@ -124,6 +130,17 @@ class JointProblem:
     settle: SettleModel | None = None
     deviation_orders: tuple[int, ...] = ()
     deviation_sigma: np.ndarray | None = None
+    gm: gmn.GaussMarkov | None = None
+
+    @property
+    def n_gm(self) -> int:
+        """Gauss-Markov chains at each knot (0: none)."""
+        return 0 if self.gm is None else self.gm.n
+
+    @property
+    def knot_dim(self) -> int:
+        """A knot's state: its trajectory's, then its Gauss-Markov chains'."""
+        return TRAJECTORY_DIM + self.n_gm
 
     @property
     def kappa_col(self) -> int:
@@ -180,7 +197,9 @@ def station_prior_info(cov: np.ndarray) -> np.ndarray:
 
 
 def measurement_terms(prob: JointProblem, s: JointState):
-    """Residuals (M, 3), Jacobians wrt the knots (M, 3, 12), wrt the stations and ``kappa``
+    """Residuals (M, 3), Jacobians wrt the knots (M, 3, d) (:attr:`JointProblem.knot_dim`: the
+    trajectory's 12 and the measurement's station's Gauss-Markov chains), wrt the stations and
+    ``kappa``
     (M, 3, n_fixed), wrt each measurement's slowly varying states (M, 3, A) and their columns
     (M, A): its two clock knots (without clocks none), then its station's settling, height
     and yaw at two knots (with ``prob.settle``); None without either. The settling enters to
@@ -214,6 +233,9 @@ def measurement_terms(prob: JointProblem, s: JointState):
         slope = np.einsum("mic,mc->mi", dH, coef)  # d deviation / d alpha
         Hk[:, :, :6] += slope[:, :, None] * da_xi[:, None, :]
         Hs[:, :, :3] += slope[:, :, None] * da_st[:, None, :]
+    if prob.gm is not None:  # the station's chains add to its measurements
+        r = r - gmn.chain_values(s.gm, k, m.station)
+        Hk = np.concatenate([Hk, gmn.chain_jacobian(m.station, prob.n_gm)], axis=2)
     Hset = cols_set = None
     st = prob.settle
     if st is not None:
@@ -284,7 +306,7 @@ def _slow_terms(prob: JointProblem, B, C, c, HtW, GtW, Hc, cols, r) -> None:
     """Adds the measurements' columns of the slowly varying states (clocks, settling;
     :func:`measurement_terms`) to ``B``, ``C``, ``c`` (in place)."""
     info = prob.meas.info
-    Bt = np.swapaxes(B, 1, 2)  # (K, G, 12) view
+    Bt = np.swapaxes(B, 1, 2)  # (K, G, d) view
     CtW = np.swapaxes(Hc, 1, 2) @ info  # (M, A, 3)
     Ct = C[:prob.n_fixed].T  # (G, n_fixed) view
     cross = np.einsum("mgi,mia->mag", GtW, Hc)  # (M, A, n_fixed)
@@ -337,24 +359,28 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
     """The normal equations at ``s`` and the cost (sum of squared whitened errors)."""
     K = prob.t_knot.size
     G = prob.n_globals
-    D = np.zeros((K, 12, 12))
-    U = np.zeros((K - 1, 12, 12))
-    a = np.zeros((K, 12))
-    e, E, F = prior_terms(s.R, s.t, s.w, np.diff(prob.t_knot))
-    W = wnoa_q_inv(np.diff(prob.t_knot), prob.qc)
+    d, n = prob.knot_dim, TRAJECTORY_DIM
+    D = np.zeros((K, d, d))
+    U = np.zeros((K - 1, d, d))
+    a = np.zeros((K, d))
+    dt = np.diff(prob.t_knot)
+    e, E, F = prior_terms(s.R, s.t, s.w, dt)
+    W = wnoa_q_inv(dt, prob.qc)
     EtW, FtW = np.swapaxes(E, 1, 2) @ W, np.swapaxes(F, 1, 2) @ W
-    D[:-1] += EtW @ E
-    D[1:] += FtW @ F
-    U += EtW @ F
-    a[:-1] -= np.einsum("kij,kj->ki", EtW, e)
-    a[1:] -= np.einsum("kij,kj->ki", FtW, e)
+    D[:-1, :n, :n] += EtW @ E
+    D[1:, :n, :n] += FtW @ F
+    U[:, :n, :n] += EtW @ F
+    a[:-1, :n] -= np.einsum("kij,kj->ki", EtW, e)
+    a[1:, :n] -= np.einsum("kij,kj->ki", FtW, e)
     cost = float(np.einsum("ki,kij,kj->", e, W, e))
+    if prob.gm is not None:
+        cost += gmn.add_prior(D, U, a, s.gm, dt, prob.gm, n)
     r, Hk, Hg, Hc, cols = measurement_terms(prob, s)
     info = prob.meas.info
     HtW = np.swapaxes(Hk, 1, 2) @ info
     np.add.at(D, prob.of_meas, HtW @ Hk)
     G0 = prob.n_fixed
-    B = np.zeros((K, 12, G))
+    B = np.zeros((K, d, G))
     np.add.at(B[:, :, :G0], prob.of_meas, HtW @ Hg)
     np.add.at(a, prob.of_meas, np.einsum("mij,mj->mi", HtW, r))
     GtW = np.swapaxes(Hg, 1, 2) @ info
@@ -401,8 +427,8 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
 
 def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> JointState:
     """``T_k exp(d_k^)``, ``w_k + dw_k``, ``t_s + dt``, ``exp(dtheta) R_s``, ``kappa + dk``,
-    the prisms, the constant clock offsets, the deviation, the clock and settling knots plus
-    their steps."""
+    the prisms, the constant clock offsets, the deviation, the clock and settling knots and
+    the Gauss-Markov chains plus their steps."""
     dR, dp = exp_se3(x[:, :6])
     R = s.R @ dR
     t = s.t + np.einsum("kij,kj->ki", s.R, dp)
@@ -426,8 +452,10 @@ def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> 
     if prob.n_deviation:
         dc = prob.deviation_col
         dev = s.deviation + g[dc:dc + prob.n_deviation].reshape(s.deviation.shape)
-    return JointState(R, t, s.w + x[:, 6:], R_s, t_s, s.kappa_ppm + float(g[kc]), clock, pb,
-                      sync, settle, dev)
+    n = TRAJECTORY_DIM
+    chains = None if prob.gm is None else s.gm + x[:, n:]
+    return JointState(R, t, s.w + x[:, 6:n], R_s, t_s, s.kappa_ppm + float(g[kc]), clock, pb,
+                      sync, settle, dev, chains)
 
 
 @dataclass(frozen=True)
@@ -453,7 +481,7 @@ def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10, tol: flo
         sol = solve_arrow(system)
         x, g = sol.x, sol.g
         decrease = float(np.sum(x * system.a) + g @ system.c)
-        del system, sol  # the trial's system replaces it: one (K, 12, G) B at a time
+        del system, sol  # the trial's system replaces it: one (K, d, G) B at a time
         step = 1.0
         for _ in range(8):
             trial = retract(prob, s, step * x, step * g)
@@ -483,11 +511,12 @@ class QcFit:
 
 
 def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
-                  max_iter: int = 10, tol: float = 1e-6, estimate_noise: bool = False):
+                  max_iter: int = 10, tol: float = 1e-6, estimate_noise: bool = False,
+                  rng: np.random.Generator | None = None):
     """Gauss-Newton with the prior's ``Qc`` per motion class by iterated variance components
     (docs/joint.md#qc-from-the-data), starting from ``prob.qc`` (6,) for every class, with
     (``estimate_noise``) the white noise's components (docs/joint.md#noise-identification;
-    the problem's ``noise``) and the prisms' tests (where they are parameters; with the noise
+    the problem's ``noise``) and the Gauss-Markov chains' (where the problem has them) and the prisms' tests (where they are parameters; with the noise
     estimated, from its first update on) in the same loop; each iteration re-solves from the
     last state. Returns the problem with the final ``qc`` per interval, the state, the
     :class:`rtsgt.joint.sparse.ArrowSolution`, the last :class:`SolveInfo` and a
@@ -513,7 +542,12 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
         if estimate_noise:
             prob, dn = noise_step(prob, s, sol, it)
             change = max(change, dn)
+        if estimate_noise and prob.gm is not None:
+            prob, dn = gm_step(prob, s, sol, rng)
+            change = max(change, dn)
         last = (change < VCE_TOL and not freed and snooped) or it == VCE_MAX_ITER
+        if last and estimate_noise and prob.gm is not None:  # the last solve without them
+            prob = replace(prob, gm=gmn.without_undetermined(prob.gm))
         full = last or not (estimate or estimate_noise)  # a freed prism alone: to the end
         s, sol, info = gauss_newton(prob, s, max_iter if full else VCE_GN_ITER, tol)
         if last:
@@ -528,7 +562,9 @@ def _qc_step(prob: JointProblem, s: JointState, sol, classes, table, own):
     the groups with their own, their redundancy and the largest relative change."""
     dt = np.diff(prob.t_knot)
     e, E, F = prior_terms(s.R, s.t, s.w, dt)
-    quad, red = prior_components(e, E, F, dt, prob.qc, sol.cov, sol.cov_next)
+    n = TRAJECTORY_DIM
+    quad, red = prior_components(e, E, F, dt, prob.qc, sol.cov[:, :n, :n],
+                                 sol.cov_next[:, :n, :n])
     new, own = qc_per_class(quad, red, classes, own)
     red_g = np.zeros_like(table)
     np.add.at(red_g, classes, red)
@@ -560,9 +596,38 @@ def noise_step(prob: JointProblem, s: JointState, sol, iteration: int = 1):
     v_new = np.einsum("sck,sck->sc", new, med)
     changed = 0.5 * np.abs(np.log(np.maximum(v_new, 1e-300) / np.maximum(v_old, 1e-300)))
     change = float(np.max(changed[det.any(axis=2)], initial=0.0))
-    info = np.linalg.inv(measurement_cov(m.corr, Q, m.station, new))
     fit = NoiseFit(new, sigma, det, share, iteration, cov=cov_th)
-    return replace(prob, meas=replace(m, info=info), noise=fit), change
+    return _with_weights(prob, fit), change
+
+
+def _with_weights(prob: JointProblem, fit: NoiseFit) -> JointProblem:
+    """The problem with the white noise's components ``fit`` and its measurements' weights
+    from them."""
+    m = prob.meas
+    Q = noise_basis(m.var_white, m.y[:, 2])
+    info = np.linalg.inv(measurement_cov(m.corr, Q, m.station, fit.theta))
+    return replace(prob, meas=replace(m, info=info), noise=fit)
+
+
+def gm_step(prob: JointProblem, s: JointState, sol,
+            rng: np.random.Generator | None = None) -> tuple[JointProblem, float]:
+    """One update of the Gauss-Markov chains' sigma and tau (:func:`rtsgt.joint.gm.update`,
+    ``rng`` its draws) from the posterior at ``s``: the problem with them and the largest
+    change of a determined one's log."""
+    old = prob.gm
+    gains = chain_gains(sol)
+    moments = []
+    for i in range(old.sigma.shape[0]):  # a handful of stations
+        k = np.unique(prob.of_meas[prob.meas.station == i])
+        if k.size < 2:
+            moments.append(None)
+            continue
+        j = TRAJECTORY_DIM + 3 * i + np.arange(3)
+        cross = knot_cross_covariance(sol, gains, k[:-1], k[1:])[:, j, j]
+        moments.append((s.gm[k][:, j - TRAJECTORY_DIM], sol.cov[k][:, j, j], cross,
+                        np.diff(prob.t_knot[k])))
+    new = gmn.update(old, moments, old.determined if old.iterations else None, rng)
+    return replace(prob, gm=new), gmn.log_change(old, new)
 
 
 def snoop_prisms(prob: JointProblem, s: JointState, sol) -> tuple[JointProblem, bool]:
@@ -604,5 +669,6 @@ def _freed(prob: JointProblem, tests, found: list[int], j: int) -> JointProblem:
 
 
 __all__ = ["JointProblem", "JointState", "QcFit", "SolveInfo", "assemble", "gauss_newton",
-           "measurement_global_factor", "measurement_hsh", "measurement_terms", "noise_step",
+           "gm_step", "measurement_global_factor", "measurement_hsh", "measurement_terms",
+           "noise_step",
            "snoop_prisms", "solve_with_qc"]

@@ -15,6 +15,7 @@ from rtsgt.choices import DEFAULT_MAX_GAP_S
 from rtsgt.errors import InputError
 from rtsgt.geometry.transform import RigidTransform
 from rtsgt.joint import deviation as pdev
+from rtsgt.joint import gm as gmn
 from rtsgt.joint.blockcv import raw_block_cv, raw_block_summary
 from rtsgt.joint.clock import clock_model
 from rtsgt.joint.engine import (
@@ -77,7 +78,9 @@ class JointResult:
     (J,) rad and their sigmas (J, 2) (docs/joint.md#settling-tripods; empty where not
     estimated); ``deviation``: the prisms' deviation with their viewing angle
     (:class:`rtsgt.joint.deviation.DeviationFit`, docs/joint.md#prism-deviation; None where
-    not estimated).
+    not estimated); ``gauss_markov``: the Gauss-Markov noise's sigma and correlation time per
+    station and channel (:class:`rtsgt.joint.gm.GaussMarkov`, docs/joint.md#gauss-markov-noise;
+    None where not estimated).
     """
 
     t: np.ndarray
@@ -100,6 +103,7 @@ class JointResult:
     settling: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = field(
         default_factory=dict)
     deviation: pdev.DeviationFit | None = None
+    gauss_markov: gmn.GaussMarkov | None = None
 
 
 def _stations(calibration):
@@ -119,6 +123,7 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                    clocks: bool = False, prisms: bool = False,
                    noise: bool = False, settling: bool = False,
                    calibrated_at: dict[str, float] | None = None, deviation: bool = False,
+                   gauss_markov: bool = False, rng: np.random.Generator | None = None,
                    max_gap_s: float = DEFAULT_MAX_GAP_S) -> JointResult:
     """Poses ``T_world_body`` at ``query_times`` (Q,) s from every station's observations.
 
@@ -142,7 +147,11 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     reference station's from their prior alone), from rest at ``calibrated_at`` (s, by
     station; a station not in it, or None: at its first measurement). With ``deviation``,
     each prism's deviation with the azimuth its station sees it under is estimated, low
-    harmonics with a prior of a few millimetres (docs/joint.md#prism-deviation).
+    harmonics with a prior of a few millimetres (docs/joint.md#prism-deviation). With
+    ``gauss_markov`` (and ``noise``), each station's channels carry a first-order
+    Gauss-Markov noise as states of the knots, its sigma and correlation time estimated
+    (docs/joint.md#gauss-markov-noise; ``rng`` the draws of their observed information,
+    None: approximated without draws).
     ``max_gap_s``: a longer gap between a station's measurements starts new blocks of the
     raw block cross-validation (docs/joint.md#block-cross-validation-of-the-measurements).
     """
@@ -180,7 +189,9 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                         settle=_settle(meas.t, ids, calibrated_at) if settling else None,
                         deviation_orders=pdev.ORDERS if deviation else (),
                         deviation_sigma=_deviation_sigma(knots, meas, R0, p0, survey, t_s)
-                        if deviation else None)
+                        if deviation else None,
+                        gm=gmn.start_model(meas.var_white, meas.station, len(ids))
+                        if gauss_markov and noise else None)
     state = JointState(R0, p0, body_velocities(knots.t, R0, p0), R_s, t_s, 0.0,
                        None if ck is None else np.zeros((ck.station.size, ck.knots.size)),
                        None if p_info is None else survey.copy(),
@@ -188,9 +199,10 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        None if not settling else np.zeros((len(ids), 2,
                                                            prob.settle.knots.size)),
                        None if not deviation else np.zeros((len(names),
-                                                            pdev.n_coefficients(pdev.ORDERS))))
+                                                            pdev.n_coefficients(pdev.ORDERS))),
+                       None if prob.gm is None else np.zeros((knots.t.size, prob.n_gm)))
     prob, state, sol, solve, qc_fit = solve_with_qc(prob, state, estimate_qc, max_iter, tol,
-                                                    noise)
+                                                    noise, rng)
     cov_g = sol.cov_g
     pfit = None if p_info is None else _prism_fit(names, prob, state, cov_g)
     R, t, cov_body = interpolate_poses_gp(tq, knots.t, state.R, state.t, state.w, prob.qc,
@@ -207,7 +219,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        JointPosterior(knots.t, state.R, state.t, state.w, prob.qc, sol),
                        raw_block_summary(raw_block_cv(prob, state, sol, max_gap_s), ids),
                        _time_sync(prob, state, cov_g, globals_),
-                       _settling(prob, state, cov_g, ids), _deviation(prob, state, cov_g, names))
+                       _settling(prob, state, cov_g, ids), _deviation(prob, state, cov_g, names),
+                       None if prob.gm is None else replace(prob.gm, stations=ids))
 
 
 def _settle(t, ids, calibrated_at):

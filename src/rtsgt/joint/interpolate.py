@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from rtsgt.errors import InputError
-from rtsgt.joint.prior import relative_log
+from rtsgt.joint.prior import TRAJECTORY_DIM, relative_log
 from rtsgt.joint.se3 import adjoint, curly, exp_se3, jacobians_inv, left_jacobian
 
 
@@ -69,11 +69,13 @@ def _query(tq, t_knot, R, t, w):
 
 
 def _propagate(k, J, jr, pc, qc, cov, cov_next):
-    """``J Sigma_k,k+1 J^T`` plus the GP's conditional variance (Q, 6, 6), symmetrised."""
-    Ja, Jb = J[:, :, :12], J[:, :, 12:]
-    cross = Ja @ cov_next[k] @ np.swapaxes(Jb, 1, 2)
-    out = (Ja @ cov[k] @ np.swapaxes(Ja, 1, 2) + Jb @ cov[k + 1] @ np.swapaxes(Jb, 1, 2)
-           + cross + np.swapaxes(cross, 1, 2))
+    """``J Sigma_k,k+1 J^T`` plus the GP's conditional variance (Q, 6, 6), symmetrised (of
+    the knots' states only their trajectory's first :data:`TRAJECTORY_DIM`)."""
+    n = TRAJECTORY_DIM
+    Ja, Jb = J[:, :, :n], J[:, :, n:]
+    cross = Ja @ cov_next[k, :n, :n] @ np.swapaxes(Jb, 1, 2)
+    out = (Ja @ cov[k, :n, :n] @ np.swapaxes(Ja, 1, 2)
+           + Jb @ cov[k + 1, :n, :n] @ np.swapaxes(Jb, 1, 2) + cross + np.swapaxes(cross, 1, 2))
     cond = pc[:, None] * qc[k]
     out += jr @ (cond[:, :, None] * np.swapaxes(jr, 1, 2))
     return 0.5 * (out + np.swapaxes(out, 1, 2))
@@ -84,7 +86,8 @@ def interpolate_poses_gp(t_query, t_knot, R, t, w, qc, cov, cov_next):
 
     Knots at ``t_knot`` (K,) s, poses ``R`` (K, 3, 3), ``t`` (K, 3), body velocities ``w``
     (K, 6), the prior's ``qc`` (K-1, 6) per interval, the knots' posterior covariance ``cov``
-    (K, 12, 12) and that of consecutive knots ``cov_next`` (K-1, 12, 12) (right perturbations).
+    (K, d, d) and that of consecutive knots ``cov_next`` (K-1, d, d) (right perturbations; their
+    first :data:`TRAJECTORY_DIM` rows and columns the trajectory's).
     Returns ``R`` (Q, 3, 3), ``t`` (Q, 3) and the covariance (Q, 6, 6) of the query poses'
     right perturbation. A query time outside the knots' span is an InputError.
     """
@@ -95,13 +98,14 @@ def interpolate_poses_gp(t_query, t_knot, R, t, w, qc, cov, cov_next):
 
 def interpolate_split_gp(t_query, t_knot, R, t, w, qc, cov_var, cov_var_next, factor):
     """As :func:`interpolate_poses_gp`, the covariance split (docs/joint.md#the-shared-error):
-    from the knots' covariance given the globals ``cov_var`` (K, 12, 12), ``cov_var_next``
-    (K-1, 12, 12) and their shared factor ``factor`` (K, 12, G), returns ``R`` (Q, 3, 3),
+    from the knots' covariance given the globals ``cov_var`` (K, d, d), ``cov_var_next``
+    (K-1, d, d) and their shared factor ``factor`` (K, d, G), returns ``R`` (Q, 3, 3),
     ``t`` (Q, 3), the varying covariance (Q, 6, 6) (with the GP's conditional variance) and
     the shared factor (Q, 6, G) of the query poses' right perturbation."""
     tq = np.asarray(t_query, dtype=float)
     k, Rq, pq, J, jr, pc = _query(tq, t_knot, R, t, w)
-    L = J[:, :, :12] @ factor[k] + J[:, :, 12:] @ factor[k + 1]
+    n = TRAJECTORY_DIM
+    L = J[:, :, :n] @ factor[k, :n] + J[:, :, n:] @ factor[k + 1, :n]
     return Rq, pq, _propagate(k, J, jr, pc, qc, cov_var, cov_var_next), L
 
 

@@ -11,6 +11,11 @@ import numpy as np
 
 from rtsgt.joint.se3 import curly, jacobians_inv, log_se3
 
+#: A knot's trajectory state ``(d, dw)``: the pose's right perturbation and the body
+#: velocity's change; the first columns of every knot's state (others may follow it, e.g. the
+#: Gauss-Markov noise's chains, :mod:`rtsgt.joint.gm`).
+TRAJECTORY_DIM = 12
+
 
 def wnoa_coef(dt: np.ndarray) -> np.ndarray:
     """``[[12/dt^3, -6/dt^2], [-6/dt^2, 4/dt]]`` (2, 2, K) of intervals ``dt`` (K,) s."""

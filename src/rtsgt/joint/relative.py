@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rtsgt.joint.interpolate import interpolate_poses_gp, query_jacobians
+from rtsgt.joint.prior import TRAJECTORY_DIM
 from rtsgt.joint.sparse import ArrowSolution
 
 __all__ = ["JointPosterior", "body_to_world", "chain_gains", "chain_products", "knot_cross_covariance",
@@ -55,18 +56,18 @@ def query_cross_covariance(sol: ArrowSolution, k_a: np.ndarray, J_a: np.ndarray,
     k_a, k_b = np.asarray(k_a), np.asarray(k_b)
     if np.any(k_a >= k_b):
         raise ValueError("Expected each pair's first pose in an earlier interval")
-    gains = chain_gains(sol)
-    d = sol.cov_var.shape[1]
+    gains = chain_gains(sol)  # the whole knot state's chain; the trajectory's part of it
+    n = TRAJECTORY_DIM
     T1 = chain_products(gains, k_a + 1, k_b)  # knot k_a+1 to knot k_b
     C11 = T1 @ sol.cov_var[k_b]                            # (k_a+1, k_b)
     C12 = T1 @ gains[k_b] @ sol.cov_var[k_b + 1]           # (k_a+1, k_b+1)
     G0 = gains[k_a]
     C01, C02 = G0 @ C11, G0 @ C12                          # (k_a, k_b), (k_a, k_b+1)
-    block = np.zeros((k_a.size, 2 * d, 2 * d))
-    block[:, :d, :d], block[:, :d, d:] = C01, C02
-    block[:, d:, :d], block[:, d:, d:] = C11, C12
-    La = np.concatenate([sol.factor[k_a], sol.factor[k_a + 1]], axis=1)
-    Lb = np.concatenate([sol.factor[k_b], sol.factor[k_b + 1]], axis=1)
+    block = np.zeros((k_a.size, 2 * n, 2 * n))
+    block[:, :n, :n], block[:, :n, n:] = C01[:, :n, :n], C02[:, :n, :n]
+    block[:, n:, :n], block[:, n:, n:] = C11[:, :n, :n], C12[:, :n, :n]
+    La = np.concatenate([sol.factor[k_a, :n], sol.factor[k_a + 1, :n]], axis=1)
+    Lb = np.concatenate([sol.factor[k_b, :n], sol.factor[k_b + 1, :n]], axis=1)
     block += La @ np.swapaxes(Lb, 1, 2)
     return J_a @ block @ np.swapaxes(J_b, 1, 2)
 
@@ -125,10 +126,10 @@ class JointPosterior:
                                                 J_b[apart])
         same = ~apart
         if same.any():
-            k, sol = k_a[same], self.sol
-            block = np.zeros((k.size, 24, 24))
-            block[:, :12, :12], block[:, 12:, 12:] = sol.cov[k], sol.cov[k + 1]
-            block[:, :12, 12:] = sol.cov_next[k]
-            block[:, 12:, :12] = np.swapaxes(sol.cov_next[k], 1, 2)
+            k, sol, n = k_a[same], self.sol, TRAJECTORY_DIM
+            block = np.zeros((k.size, 2 * n, 2 * n))
+            block[:, :n, :n], block[:, n:, n:] = sol.cov[k, :n, :n], sol.cov[k + 1, :n, :n]
+            block[:, :n, n:] = sol.cov_next[k, :n, :n]
+            block[:, n:, :n] = np.swapaxes(sol.cov_next[k, :n, :n], 1, 2)
             out[same] = J_a[same] @ block @ np.swapaxes(J_b[same], 1, 2)
         return world_covariance(R_a, out, R_b)

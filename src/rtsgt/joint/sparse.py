@@ -161,9 +161,9 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
     Y, Sd, Cd = solve_tridiagonal(Ds, Us, rhs, want_cov)
     ya, yb = Y[:, :, 0], Y[:, :, 1:]
     if G:
-        schur = Cs - np.einsum("kig,kih->gh", Bs, yb)
+        schur = Cs - np.tensordot(Bs, yb, axes=([0, 1], [0, 1]))  # BLAS, not einsum's loop
         schur_inv = _spd_inv(_sym(schur))
-        g = schur_inv @ (system.c * sg - np.einsum("kig,ki->g", Bs, ya))
+        g = schur_inv @ (system.c * sg - np.tensordot(Bs, ya, axes=([0, 1], [0, 1])))
         x = ya - yb @ g
     else:
         schur_inv, g, x = np.zeros((0, 0)), np.zeros(0), ya

@@ -23,6 +23,7 @@ from rtsgt.joint.deviation import COMPONENTS as DEVIATION_COMPONENTS
 from rtsgt.joint.deviation import TRIG as DEVIATION_TRIG
 from rtsgt.joint.deviation import DeviationFit
 from rtsgt.joint.estimate import JointResult
+from rtsgt.joint.gm import GaussMarkov
 from rtsgt.joint.knots import qc_from_prisms
 from rtsgt.joint.noise import CHANNELS as NOISE_CHANNELS
 from rtsgt.joint.noise import NoiseFit
@@ -30,7 +31,7 @@ from rtsgt.joint.prisms import PrismFit
 from rtsgt.measurement.instruments import ARCSEC
 from rtsgt.measurement.units import MGON
 from rtsgt.noise import NoiseModel
-from rtsgt.options import RunOptions
+from rtsgt.options import RunOptions, stage_rng
 from rtsgt.pose import PoseEstimate, ReferencePoints
 from rtsgt.pose.estimate import REASON_MISSING
 from rtsgt.shared import SharedFactor
@@ -53,7 +54,8 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
                 start_t: np.ndarray, start_R: np.ndarray, start_p: np.ndarray,
                 qc_prisms: np.ndarray, query_times: np.ndarray, *,
                 clocks: bool = True, max_gap_s: float = DEFAULT_MAX_GAP_S,
-                calibrated_at: dict[str, float] | None = None) -> JointResult:
+                calibrated_at: dict[str, float] | None = None,
+                rng: np.random.Generator | None = None) -> JointResult:
     """The joint engine's poses at ``query_times`` (Q,) s, those inside the measurements' span.
 
     ``observations``: each station's measurements the run keeps (module 1 and 2, the windows
@@ -69,8 +71,9 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
     estimated with the survey as their prior (docs/joint.md#prism-positions), their
     deviation with the viewing angle (docs/joint.md#prism-deviation), the white
     noise per station and channel with the noise model's as its prior
-    (docs/joint.md#noise-identification). InputError when
-    no query time falls inside the measurements' span.
+    (docs/joint.md#noise-identification) and its Gauss-Markov part
+    (docs/joint.md#gauss-markov-noise; ``rng`` the draws of its observed information).
+    InputError when no query time falls inside the measurements' span.
     """
     lo = min(float(o.t[0]) for o in observations)
     hi = max(float(o.t[-1]) for o in observations)
@@ -83,7 +86,7 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
     return estimate_joint(observations, calibration, reference, model, tq, start_t, start_R,
                           start_p, qc, weather=weather, clocks=clocks, prisms=True,
                           noise=True, settling=True, calibrated_at=calibrated_at,
-                          deviation=True, max_gap_s=max_gap_s)
+                          deviation=True, gauss_markov=True, max_gap_s=max_gap_s, rng=rng)
 
 
 def calibration_times(gcp: GcpShots | None, calibration: CalibrationResult,
@@ -146,7 +149,8 @@ def joint_fit(options: RunOptions, filtered: Sequence[Observations],
                      est0.t[keep0], qc_prisms, tq, clocks=options.pose.clocks,
                      max_gap_s=options.interpolation.max_gap_s,
                      calibrated_at=calibration_times(
-                         gcp, calibration, min(float(o.t[0]) for o in obs)))
+                         gcp, calibration, min(float(o.t[0]) for o in obs)),
+                     rng=stage_rng(options.seed, "joint"))
     est = _on_every_time(jr.estimate, np.isin(tq, jr.t))
     keep, report = gate_poses(est, reference, options)
     gt = PoseTrajectory(tq[keep], est.t[keep], matrix_to_quat_xyzw(est.R[keep]), est.cov[keep])
@@ -197,7 +201,10 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
     ``|offset|`` and the median sigma; ``time_sync``: the constant clock offsets against the
     robot's (ms, with sigma); ``prisms``: each prism's shift from its survey (mm, with its
     sigma), its test statistic in sigmas and whether it was found moved; ``noise``: the
-    white noise's components per station and channel where identified; ``settling``: per
+    white noise's components per station and channel where identified; ``gauss_markov``:
+    the correlated noise's sigma (mgon, mm) and correlation time (s) per station and channel,
+    with their sigmas, redundancy and whether the data determined them
+    (docs/joint.md#gauss-markov-noise); ``settling``: per
     station its height (mm) and yaw (arc seconds) change since its calibration at the first
     and the last knot, with their sigmas (docs/joint.md#settling-tripods); ``deviation``: the
     prisms' deviation with their viewing angle per prism, harmonic and component (mm, with
@@ -221,6 +228,7 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
                       for sid, (v, sd) in jr.time_sync.items()},
         "prisms": None if jr.prisms is None else _prisms_summary(jr.prisms),
         "noise": None if jr.noise is None else _noise_summary(jr.noise),
+        "gauss_markov": None if jr.gauss_markov is None else _gm_summary(jr.gauss_markov),
         "settling": {sid: _settling_summary(*v) for sid, v in jr.settling.items()},
         "deviation": None if jr.deviation is None else _deviation_summary(jr.deviation),
         "iterations": int(jr.solve.iterations), "converged": bool(jr.solve.converged),
@@ -274,6 +282,25 @@ def _noise_summary(nf: NoiseFit) -> dict[str, Any]:
                                                  / (1.0 if c == "d" else MGON)),
                              "determined": [bool(x) for x in nf.determined[i, j]]}
                          for j, c in enumerate(NOISE_CHANNELS)}
+    return out
+
+
+def _gm_summary(fit: GaussMarkov) -> dict[str, Any]:
+    """Each station's Gauss-Markov noise per channel: sigma (angles mgon, distance mm) and
+    correlation time (s) with their sigmas, the chain's redundancy, whether the data
+    determined it (else its start, kept) and the correlation of the two estimates."""
+    out = {}
+    for i, sid in enumerate(fit.stations or range(fit.sigma.shape[0])):
+        out[str(sid)] = {}
+        for j, c in enumerate(NOISE_CHANNELS):
+            unit = 1e-3 if c == "d" else MGON
+            out[str(sid)][c] = {
+                "sigma": float(fit.sigma[i, j] / unit),
+                "sigma_sigma": float(fit.sigma_sd[i, j] / unit),
+                "tau_s": float(fit.tau_s[i, j]), "tau_sigma_s": float(fit.tau_sd[i, j]),
+                "correlation": float(0.0 if fit.corr is None else fit.corr[i, j]),
+                "redundancy": float(0.0 if fit.redundancy is None else fit.redundancy[i, j]),
+                "determined": bool(fit.determined[i, j])}
     return out
 
 
