@@ -516,9 +516,10 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     """Gauss-Newton with the prior's ``Qc`` per motion class by iterated variance components
     (docs/joint.md#qc-from-the-data), starting from ``prob.qc`` (6,) for every class, with
     (``estimate_noise``) the white noise's components (docs/joint.md#noise-identification;
-    the problem's ``noise``) and the Gauss-Markov chains' (where the problem has them) and the prisms' tests (where they are parameters; with the noise
-    estimated, from its first update on) in the same loop; each iteration re-solves from the
-    last state. Returns the problem with the final ``qc`` per interval, the state, the
+    the problem's ``noise``) and the Gauss-Markov chains' (where the problem has them;
+    ``rng`` their draws, docs/joint.md#gauss-markov-noise) and the prisms' tests (where they
+    are parameters; with the noise estimated, from its first update on) in the same loop;
+    each iteration re-solves from the last state. Returns the problem with the final ``qc`` per interval, the state, the
     :class:`rtsgt.joint.sparse.ArrowSolution`, the last :class:`SolveInfo` and a
     :class:`QcFit`."""
     n = prob.t_knot.size - 1
@@ -624,7 +625,7 @@ def gm_step(prob: JointProblem, s: JointState, sol,
             continue
         j = TRAJECTORY_DIM + 3 * i + np.arange(3)
         cross = knot_cross_covariance(sol, gains, k[:-1], k[1:])[:, j, j]
-        moments.append((s.gm[k][:, j - TRAJECTORY_DIM], sol.cov[k][:, j, j], cross,
+        moments.append((s.gm[k][:, j - TRAJECTORY_DIM], sol.cov[k[:, None], j, j], cross,
                         np.diff(prob.t_knot[k])))
     new = gmn.update(old, moments, old.determined if old.iterations else None, rng)
     return replace(prob, gm=new), gmn.log_change(old, new)
@@ -670,5 +671,4 @@ def _freed(prob: JointProblem, tests, found: list[int], j: int) -> JointProblem:
 
 __all__ = ["JointProblem", "JointState", "QcFit", "SolveInfo", "assemble", "gauss_newton",
            "gm_step", "measurement_global_factor", "measurement_hsh", "measurement_terms",
-           "noise_step",
-           "snoop_prisms", "solve_with_qc"]
+           "noise_step", "snoop_prisms", "solve_with_qc"]
