@@ -156,12 +156,8 @@ def _log_params(model: GaussMarkov) -> np.ndarray:
 def _derivatives(x, g, var, cross, dt, h: float = 1e-3):
     """Gradient (n, 2) and Hessian (n, 2, 2) of :func:`_q` in ``x`` (n, 2) (central
     differences, step ``h``)."""
-    f = {}
-    for a in (-1, 0, 1):
-        for b in (-1, 0, 1):
-            if a and b and (a, b) not in ((1, 1), (-1, -1), (1, -1), (-1, 1)):
-                continue
-            f[a, b] = _q(x[:, 0] + a * h, x[:, 1] + b * h, g, var, cross, dt)
+    f = {(a, b): _q(x[:, 0] + a * h, x[:, 1] + b * h, g, var, cross, dt)
+         for a in (-1, 0, 1) for b in (-1, 0, 1)}  # the 3x3 stencil
     grad = np.stack([f[1, 0] - f[-1, 0], f[0, 1] - f[0, -1]], axis=1) / (2.0 * h)
     H = np.empty((x.shape[0], 2, 2))
     H[:, 0, 0] = (f[1, 0] - 2.0 * f[0, 0] + f[-1, 0]) / h**2
@@ -298,11 +294,10 @@ def update(model: GaussMarkov, moments, determined: np.ndarray | None = None,
     louis = _positive(np.nan_to_num(obs, nan=-1.0))
     info = np.where(louis[:, None, None], obs, -H * share[:, None, None])
     ok = _positive(info)
-    newton = np.einsum("nij,nj->ni", np.linalg.inv(np.where(ok[:, None, None], info,
-                                                             np.eye(2))), score)
-    step = np.clip(np.where(louis[:, None], newton, target - x), -MAX_LOG_STEP, MAX_LOG_STEP)
     cov = np.where(ok[:, None, None], np.linalg.inv(np.where(ok[:, None, None], info,
                                                              np.eye(2))), 0.0)
+    newton = np.einsum("nij,nj->ni", cov, score)
+    step = np.clip(np.where(louis[:, None], newton, target - x), -MAX_LOG_STEP, MAX_LOG_STEP)
     sd = np.sqrt(np.clip(np.einsum("nii->ni", cov), 0.0, None)) * np.array([0.5, 1.0])
     corr = np.where(det & ok, cov[:, 0, 1] / np.maximum(
         np.sqrt(cov[:, 0, 0] * cov[:, 1, 1]), 1e-300), 0.0)
