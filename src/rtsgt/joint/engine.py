@@ -597,17 +597,9 @@ def noise_step(prob: JointProblem, s: JointState, sol, iteration: int = 1):
     v_new = np.einsum("sck,sck->sc", new, med)
     changed = 0.5 * np.abs(np.log(np.maximum(v_new, 1e-300) / np.maximum(v_old, 1e-300)))
     change = float(np.max(changed[det.any(axis=2)], initial=0.0))
+    info = np.linalg.inv(measurement_cov(m.corr, Q, m.station, new))
     fit = NoiseFit(new, sigma, det, share, iteration, cov=cov_th)
-    return _with_weights(prob, fit), change
-
-
-def _with_weights(prob: JointProblem, fit: NoiseFit) -> JointProblem:
-    """The problem with the white noise's components ``fit`` and its measurements' weights
-    from them."""
-    m = prob.meas
-    Q = noise_basis(m.var_white, m.y[:, 2])
-    info = np.linalg.inv(measurement_cov(m.corr, Q, m.station, fit.theta))
-    return replace(prob, meas=replace(m, info=info), noise=fit)
+    return replace(prob, meas=replace(m, info=info), noise=fit), change
 
 
 def gm_step(prob: JointProblem, s: JointState, sol,

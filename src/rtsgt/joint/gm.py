@@ -283,6 +283,8 @@ def update(model: GaussMarkov, moments, determined: np.ndarray | None = None,
         score[j], H[j] = _derivatives(x[j], g, var, cross, dt)
         if rng is not None:
             obs[j] = _observed_information(x[j], g, var, cross, dt, H[j], rng, n_draws)
+            if _positive(obs[j]).all():
+                continue  # Newton's steps: EM's target is not needed
         target[j] = _em_target(g, var, cross, dt)
         e = g[1:] - phi * g[:-1]  # sigma^2 by Förstner's variance component at this tau
         quad = np.sum(e**2 / c, axis=0) + g[0] ** 2

@@ -288,7 +288,8 @@ def _noise_summary(nf: NoiseFit) -> dict[str, Any]:
 def _gm_summary(fit: GaussMarkov) -> dict[str, Any]:
     """Each station's Gauss-Markov noise per channel: sigma (angles mgon, distance mm) and
     correlation time (s) with their sigmas, the chain's redundancy, whether the data
-    determined it (else its start, kept) and the correlation of the two estimates."""
+    determined it (else it was left out of the last solve, its sigma at the floor) and the
+    correlation of the two estimates."""
     out = {}
     for i, sid in enumerate(fit.stations or range(fit.sigma.shape[0])):
         out[str(sid)] = {}
