@@ -100,6 +100,8 @@ def test_the_summary_has_the_joint_section_and_the_checks_say_what_they_judge(ru
         truth_ms = -1e3 * (sim.truth.clock_offset_s[sid] - sim.truth.clock_offset_s[ref])
         assert abs(v["end_ms"] - truth_ms) < 3 * v["median_sigma_ms"] + 1e-3, (sid, v)
     assert set(j["prisms"]) == set(record.prism_ids)
+    for v in j["prisms"].values():  # the default simulator moves no prism
+        assert not v["moved"] and v["moved_weight"] == 0 and v["cost_above_found"] is None, v
     # the prisms' deviation: per prism (order, term, component); a held order is 0 with its
     # prior's 0.1 um, an estimated one has a sigma under its prior's 2 mm / sqrt(6)
     dev = j["deviation"]

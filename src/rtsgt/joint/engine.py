@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.stats import chi2
 
 from rtsgt.geometry.so3 import exp_so3, hat, log_so3
 from rtsgt.joint import gm as gmn
@@ -28,7 +29,7 @@ from rtsgt.joint.noise import (
     update_components,
 )
 from rtsgt.joint.prior import TRAJECTORY_DIM, prior_terms, wnoa_q_inv
-from rtsgt.joint.prisms import free_prism, gauge_directions, prism_tests
+from rtsgt.joint.prisms import TEST_ALPHA, free_prism, gauge_directions, prism_tests
 from rtsgt.joint.qc import (
     MIN_REDUNDANCY,
     N_CLASSES,
@@ -41,9 +42,9 @@ from rtsgt.joint.qc import (
     qc_per_class,
 )
 from rtsgt.joint.relative import chain_gains, knot_cross_covariance
-from rtsgt.joint.se3 import exp_se3, so3_left_jacobian
+from rtsgt.joint.se3 import exp_se3, log_se3, so3_left_jacobian
 from rtsgt.joint.settling import KIND_COLUMNS, SettleModel
-from rtsgt.joint.sparse import ArrowSystem, solve_arrow
+from rtsgt.joint.sparse import ArrowSystem, add_shared_columns, solve_arrow
 
 #: Prior standard deviation (m, rad) given to a station direction its calibration fixes
 #: exactly (a zero variance, e.g. the reference station).
@@ -57,9 +58,16 @@ STALL_REL = 1e-9
 #: solution the rise is the first-order Jacobians' error (the prior's, the settling's), and
 #: halving the step would only creep towards the same point.
 WHOLE_STEP_DECREASE = 1e-2
-#: Gauss-Newton iterations of each candidate's trial solve when several prisms' tests find a
-#: move (:func:`snoop_prisms`).
-TRIAL_GN_ITER = 5
+#: Of several prisms whose tests find a move, another's hypothesis stays beside the chosen
+#: one's (:func:`carry_alternatives`) unless its solve ends at a cost (plus freed directions)
+#: higher by at least this: the likelihood ratio of the two beyond its critical value at the
+#: prisms' test rate (``chi2(1).ppf(1 - TEST_ALPHA)``, 10.8; docs/joint.md#which-prism-moved).
+UNDECIDED_COST = float(chi2.ppf(1.0 - TEST_ALPHA, 1))
+#: Most Gauss-Newton iterations of a prism hypothesis's solve (:func:`snoop_prisms`,
+#: :func:`carry_alternatives`): they run to convergence, their costs compared; a move along
+#: the direction the data hardly see takes more than the final solve's 10 (13 on the field
+#: preset, docs/joint.md#which-prism-moved).
+HYPOTHESIS_MAX_ITER = 30
 
 
 @dataclass(frozen=True)
@@ -105,7 +113,10 @@ class JointProblem:
     the harmonics of the prisms' deviation ``deviation_orders`` (empty: none) with the prior
     sigma ``deviation_sigma`` (P, C) m of each coefficient (docs/joint.md#prism-deviation),
     the Gauss-Markov noise's chains (``gm``; None: none, docs/joint.md#gauss-markov-noise;
-    each knot's state is then its trajectory's and its chains' values).
+    each knot's state is then its trajectory's and its chains' values), and the other
+    prisms whose move explains the data as well as the one found's
+    (``prism_alternatives``: index, cost above the chosen's, weight;
+    docs/joint.md#which-prism-moved).
     Globals: the free stations' ``(dt, dtheta)``, ``kappa``, the prisms' positions (3P), the
     constant clock offsets, the prisms' deviation (P, C), the clocks' knots (C, J), the
     settling's knots (S, 2, J)."""
@@ -131,6 +142,7 @@ class JointProblem:
     deviation_orders: tuple[int, ...] = ()
     deviation_sigma: np.ndarray | None = None
     gm: gmn.GaussMarkov | None = None
+    prism_alternatives: tuple[tuple[int, float, float], ...] = ()
 
     @property
     def n_gm(self) -> int:
@@ -458,6 +470,36 @@ def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> 
                       sync, settle, dev, chains)
 
 
+def difference(prob: JointProblem, a: JointState, b: JointState
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """The steps ``x`` (K, :attr:`JointProblem.knot_dim`), ``g`` (G,) from ``a`` to ``b``:
+    the inverse of :func:`retract` (``retract(prob, a, x, g)`` is ``b``)."""
+    x = np.zeros((a.R.shape[0], prob.knot_dim))
+    x[:, :6] = log_se3(np.swapaxes(a.R, 1, 2) @ b.R,
+                       np.einsum("kji,kj->ki", a.R, b.t - a.t))
+    n = TRAJECTORY_DIM
+    x[:, 6:n] = b.w - a.w
+    if prob.gm is not None:
+        x[:, n:] = b.gm - a.gm
+    g = np.zeros(prob.n_globals)
+    kc, f = prob.kappa_col, prob.free
+    g[:kc] = np.concatenate([b.t_s[f] - a.t_s[f],
+                             log_so3(b.R_s[f] @ np.swapaxes(a.R_s[f], 1, 2))], axis=1).ravel()
+    g[kc] = b.kappa_ppm - a.kappa_ppm
+    if prob.n_prism:
+        g[kc + 1:kc + 1 + prob.n_prism] = (b.p_body - a.p_body).ravel()
+    if prob.n_sync:
+        g[prob.sync_col:prob.sync_col + prob.n_sync] = b.sync - a.sync
+    if prob.n_deviation:
+        dc = prob.deviation_col
+        g[dc:dc + prob.n_deviation] = (b.deviation - a.deviation).ravel()
+    if prob.clock is not None:
+        g[prob.n_fixed:prob.settle_col] = (b.clock - a.clock).ravel()
+    if prob.settle is not None:
+        g[prob.settle_col:] = (b.settle - a.settle).ravel()
+    return x, g
+
+
 @dataclass(frozen=True)
 class SolveInfo:
     """``iterations``, ``converged``, ``costs`` (one per iteration, the first at the start)."""
@@ -519,7 +561,8 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     the problem's ``noise``) and the Gauss-Markov chains' (where the problem has them;
     ``rng`` their draws, docs/joint.md#gauss-markov-noise) and the prisms' tests (where they
     are parameters; with the noise estimated, from its first update on) in the same loop;
-    each iteration re-solves from the last state. Returns the problem with the final ``qc`` per interval, the state, the
+    each iteration re-solves from the last state; other prisms' moves that explain the data
+    as well as the one found are carried at the end (:func:`carry_alternatives`). Returns the problem with the final ``qc`` per interval, the state, the
     :class:`rtsgt.joint.sparse.ArrowSolution`, the last :class:`SolveInfo` and a
     :class:`QcFit`."""
     n = prob.t_knot.size - 1
@@ -532,9 +575,10 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     own = None
     it = 0
     freed = False
+    alternatives = ()
     snooped = not estimate_noise  # else after the noise's first update: weighted by the
     if snooped:  # datasheet, another prism can explain a move better (docs/joint.md)
-        prob, freed = snoop_prisms(prob, s, sol)
+        prob, freed, alternatives = snoop_prisms(prob, s, sol, tol)
     while (estimate or estimate_noise or freed) and it < VCE_MAX_ITER:
         it += 1
         change = 0.0
@@ -553,8 +597,11 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
         s, sol, info = gauss_newton(prob, s, max_iter if full else VCE_GN_ITER, tol)
         if last:
             break
-        prob, freed = snoop_prisms(prob, s, sol)
+        prob, freed, alts = snoop_prisms(prob, s, sol, tol)
+        alternatives = alts if freed else alternatives
         snooped = True
+    if alternatives:
+        prob, s, sol, info = carry_alternatives(prob, s, sol, info, alternatives, tol)
     return prob, s, sol, info, QcFit(table, classes, red_g, it if estimate else 0)
 
 
@@ -623,31 +670,69 @@ def gm_step(prob: JointProblem, s: JointState, sol,
     return replace(prob, gm=new), gmn.log_change(old, new)
 
 
-def snoop_prisms(prob: JointProblem, s: JointState, sol) -> tuple[JointProblem, bool]:
+def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = 1e-6
+                 ) -> tuple[JointProblem, bool, tuple[JointProblem, ...]]:
     """Test each trusted prism against its survey (:func:`rtsgt.joint.prisms.prism_tests`);
-    of those beyond their critical value (if at least two would stay trusted), one has its
-    survey freed where the data determine its move: the only one, or of several the one
-    whose Gauss-Newton solve with it freed (:data:`TRIAL_GN_ITER` iterations from ``s``)
-    ends at the lowest cost plus freed directions (the tests' order is first order: two
-    prisms' moves can explain the data alike there, docs/joint.md#prism-positions). Returns
-    the problem and whether a prism was freed."""
+    where one is beyond its critical value (and at least two would stay trusted) a move is
+    detected, and one prism has its survey freed where the data determine its move: of the
+    trusted prisms whose move the data determine (its test's own verdict aside: most of a
+    move can lie where the data hardly see it), the one whose Gauss-Newton solve with it
+    freed (from ``s``, to convergence: ``tol``, :data:`HYPOTHESIS_MAX_ITER`) ends at the
+    lowest cost plus freed directions (the tests rank to first order only: two prisms' moves
+    can explain the data alike, docs/joint.md#which-prism-moved). Returns the problem,
+    whether a prism was freed and the problems with each other prism freed instead whose
+    cost is within :data:`UNDECIDED_COST` of the chosen's (its alternatives)."""
     if prob.prism_info is None:
-        return prob, False
+        return prob, False, ()
     sl = slice(prob.kappa_col + 1, prob.kappa_col + 1 + prob.n_prism)
     tests = prism_tests(prob.p_body, prob.prism_info, s.p_body, sol.cov_g[sl, sl])
     found = [f[0] for f in prob.prism_found]
-    ratio = tests.stat / tests.critical()
-    ratio[found] = 0.0
-    ratio[tests.dof == 0] = 0.0
-    candidates = [int(j) for j in np.argsort(-ratio) if ratio[j] > 1.0]
-    if not candidates or len(found) + 3 > prob.p_body.shape[0]:
-        return prob, False
+    open_ = tests.dof > 0
+    open_[found] = False
+    ratio = np.where(open_, tests.stat / tests.critical(), 0.0)
+    if not np.any(ratio > 1.0) or len(found) + 3 > prob.p_body.shape[0]:
+        return prob, False, ()
+    candidates = [int(j) for j in np.argsort(-ratio) if open_[j]]
     freed = [_freed(prob, tests, found, j) for j in candidates]
     if len(freed) == 1:
-        return freed[0], True
-    score = [gauss_newton(p, s, TRIAL_GN_ITER)[2].costs[-1] + tests.dof[j]
-             for p, j in zip(freed, candidates, strict=True)]  # a handful of prisms
-    return freed[int(np.argmin(score))], True
+        return freed[0], True, ()
+    score = np.array([gauss_newton(p, s, HYPOTHESIS_MAX_ITER, tol)[2].costs[-1] + tests.dof[j]
+                      for p, j in zip(freed, candidates, strict=True)])  # a handful of prisms
+    best = int(np.argmin(score))
+    alternatives = tuple(p for i, p in enumerate(freed)
+                         if i != best and score[i] - score[best] < UNDECIDED_COST)
+    return freed[best], True, alternatives
+
+
+def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,
+                       alternatives: tuple[JointProblem, ...], tol: float = 1e-6):
+    """The solve ``prob``, ``s``, ``sol``, ``info`` with the hypotheses of other prisms'
+    moves carried (docs/joint.md#which-prism-moved): each of ``alternatives`` (problems with
+    another prism freed instead of the last one found, :func:`snoop_prisms`) solved with
+    ``prob``'s final noise and ``Qc`` from ``s`` (to convergence, as the trials); of them all the lowest cost plus freed
+    directions is the estimate, and those within :data:`UNDECIDED_COST` of it stay, with
+    equal weights ``w``: each its state's difference from the estimate's
+    (:func:`difference`) times ``sqrt(w)`` as a shared error of the solution
+    (:func:`rtsgt.joint.sparse.add_shared_columns`; the mixture's covariance about the
+    estimate). Returns the problem (its ``prism_alternatives``), state, solution and
+    :class:`SolveInfo` of the estimate."""
+    runs = [(prob, s, sol, info)]
+    for alt in alternatives:  # a handful of prisms
+        p = replace(prob, prism_info=alt.prism_info, prism_found=alt.prism_found)
+        runs.append((p, *gauss_newton(p, s, HYPOTHESIS_MAX_ITER, tol)))
+    score = np.array([r[3].costs[-1] + r[0].prism_found[-1][2] for r in runs])
+    best = int(np.argmin(score))
+    kept = [i for i in range(len(runs)) if i != best and score[i] - score[best] < UNDECIDED_COST]
+    prob, s, sol, info = runs[best]
+    if not kept:
+        return replace(prob, prism_alternatives=()), s, sol, info
+    w = 1.0 / (len(kept) + 1)
+    steps = [difference(prob, s, runs[i][1]) for i in kept]
+    dx = np.sqrt(w) * np.stack([x for x, _ in steps])
+    dg = np.sqrt(w) * np.stack([g for _, g in steps])
+    entries = tuple((runs[i][0].prism_found[-1][0], float(score[i] - score[best]), w)
+                    for i in kept)
+    return replace(prob, prism_alternatives=entries), s, add_shared_columns(sol, dx, dg), info
 
 
 def _freed(prob: JointProblem, tests, found: list[int], j: int) -> JointProblem:
@@ -661,6 +746,7 @@ def _freed(prob: JointProblem, tests, found: list[int], j: int) -> JointProblem:
     return replace(prob, prism_info=info, prism_found=prob.prism_found + (entry,))
 
 
-__all__ = ["JointProblem", "JointState", "QcFit", "SolveInfo", "assemble", "gauss_newton",
-           "gm_step", "measurement_global_factor", "measurement_hsh", "measurement_terms",
-           "noise_step", "snoop_prisms", "solve_with_qc"]
+__all__ = ["HYPOTHESIS_MAX_ITER", "UNDECIDED_COST", "JointProblem", "JointState", "QcFit", "SolveInfo", "assemble",
+           "carry_alternatives", "difference", "gauss_newton", "gm_step",
+           "measurement_global_factor", "measurement_hsh", "measurement_terms", "noise_step",
+           "snoop_prisms", "solve_with_qc"]

@@ -209,7 +209,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                                           sol.cov, sol.cov_next)
     cov_pose = body_to_world_cov(R, cov_body)
     globals_ = global_names(prob, ids, names)
-    shared = _shared(tq, knots.t, state, prob, sol, globals_)
+    shared = _shared(tq, knots.t, state, prob, sol,
+                     globals_ + tuple(f"moved_{names[j]}" for j, _, _ in prob.prism_alternatives))
     est = _pose_estimate(R, t, cov_pose, survey if pfit is None else pfit.xyz)
     return JointResult(tq, est, _station_results(ids, free, state, cov_g), state.kappa_ppm,
                        meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, cov_g, ids, ref),
@@ -280,8 +281,13 @@ def _prism_fit(names, prob: JointProblem, state: JointState, cov_g) -> PrismFit:
     moved = np.zeros(len(names), bool)
     for j, st, df in prob.prism_found:
         moved[j], stat[j], dof[j] = True, st, df
+    weight = moved.astype(float)
+    above = np.full(len(names), np.nan)
+    for j, cost, w in prob.prism_alternatives:
+        weight[j], above[j] = w, cost
+        weight[prob.prism_found[-1][0]] = w
     return PrismFit(names, state.p_body.copy(), 0.5 * (cov + cov.T), prob.p_body.copy(), moved,
-                    np.sqrt(stat), dof)
+                    np.sqrt(stat), dof, weight, above)
 
 
 def _station_results(ids, free, state, cov_g) -> dict[str, RigidTransform]:

@@ -137,7 +137,11 @@ class PrismFit:
     prisms found moved (their survey freed where the data determine it); ``shift`` (P, 3) m
     the estimate minus the survey; ``shift_sigma`` (P,) the test statistic's square root
     (for a moved prism: at its detection; chi with ``dof`` (P,) degrees of freedom if the
-    prism did not move)."""
+    prism did not move); ``weight`` (P,) the weight of the hypothesis that the prism moved
+    (1 for one found alone, equal for the found and the others whose move explains the data
+    as well, carried in the covariance: docs/joint.md#which-prism-moved; 0 otherwise) and
+    ``cost_above`` (P,) the cost of such another prism's hypothesis above the found one's
+    (NaN for the others)."""
 
     names: tuple[str, ...]
     xyz: np.ndarray
@@ -146,6 +150,8 @@ class PrismFit:
     moved: np.ndarray
     shift_sigma: np.ndarray
     dof: np.ndarray
+    weight: np.ndarray
+    cost_above: np.ndarray
 
     @property
     def sigma(self) -> np.ndarray:

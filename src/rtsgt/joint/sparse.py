@@ -54,7 +54,8 @@ class ArrowSolution:
     ``cov_var_next`` (K-1, d, d) the blocks of ``A^-1`` (the knots' error given the
     globals), ``factor`` (K, d, G) ``L_k = -Y_B,k chol(S^-1)`` (the knots' error per unit
     whitened global error, ``cov = cov_var + L L^T``) and ``chol_g`` (G, G) the lower
-    Cholesky factor of ``cov_g`` (``Cov(x_k, g) = L_k chol_g^T``)."""
+    Cholesky factor of ``cov_g`` (``Cov(x_k, g) = L_k chol_g^T``; with more whitened errors
+    than globals, :func:`add_shared_columns`, ``factor`` (K, d, G') and ``chol_g`` (G, G'))."""
 
     x: np.ndarray
     g: np.ndarray
@@ -65,6 +66,21 @@ class ArrowSolution:
     cov_var_next: np.ndarray | None = None
     factor: np.ndarray | None = None
     chol_g: np.ndarray | None = None
+
+
+def add_shared_columns(sol: ArrowSolution, dx: np.ndarray, dg: np.ndarray) -> ArrowSolution:
+    """``sol`` with ``n`` more whitened shared errors: the knots' error ``dx`` (n, K, d) and
+    the globals' ``dg`` (n, G) per unit of each (an unknown that moves every state at once:
+    docs/joint.md#which-prism-moved), as columns of ``factor`` (K, d, G' + n) and ``chol_g``
+    (G, G' + n) (no longer square), added to ``cov``, ``cov_next`` and ``cov_g``; the
+    solution ``x``, ``g`` and the knots' part given the globals (``cov_var``,
+    ``cov_var_next``) are kept."""
+    lx = np.moveaxis(dx, 0, -1)  # (K, d, n)
+    cov = sol.cov + lx @ np.swapaxes(lx, 1, 2)
+    cov_next = sol.cov_next + lx[:-1] @ np.swapaxes(lx[1:], 1, 2)
+    return ArrowSolution(sol.x, sol.g, cov, cov_next, sol.cov_g + dg.T @ dg, sol.cov_var,
+                         sol.cov_var_next, np.concatenate([sol.factor, lx], axis=2),
+                         np.concatenate([sol.chol_g, dg.T], axis=1))
 
 
 def _spd_inv(a: np.ndarray) -> np.ndarray:
