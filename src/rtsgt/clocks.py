@@ -20,7 +20,8 @@ from numpy.typing import ArrayLike
 from rtsgt.checks.distances import effective_sample_size
 from rtsgt.errors import InputError
 
-__all__ = ["KNOT_SPACING_S", "RATE_WALK_S2_PER_S3", "WALK_S2_PER_S", "ClockEstimate", "estimate_clock_offsets"]
+__all__ = ["KNOT_SPACING_S", "LEVEL_SIGMA_S", "RATE_SIGMA", "RATE_WALK_S2_PER_S3", "WALK_S2_PER_S",
+           "ClockEstimate", "estimate_clock_offsets", "walk_prior_info"]
 
 #: Spacing of the knots of each station's piecewise-linear clock offset, s: a clock that
 #: drifts is linear between them, and its random walk moves it by about
@@ -30,10 +31,13 @@ KNOT_SPACING_S = 60.0
 #: 2 ms an hour, above the walk of the quartz clocks of the stations' controllers and loggers.
 WALK_S2_PER_S = 1.0e-9
 #: Intensity of the prior random walk of a clock's rate, s^2/s^3 (random-walk frequency
-#: noise): the rate may change by about 10 ppm an hour; a constant drift costs nothing.
+#: noise): the rate may change by about 10 ppm an hour.
 RATE_WALK_S2_PER_S3 = 2.8e-14
 #: Prior sigma of the level of each clock offset, s (a bound, not information).
 LEVEL_SIGMA_S = 1.0
+#: Prior sigma of each clock's rate at its first knot, s/s (a bound, not information: a
+#: quartz oscillator's tolerance is tens of ppm): a constant drift costs next to nothing.
+RATE_SIGMA = 1.0e-4
 
 
 @dataclass(frozen=True)
@@ -198,18 +202,40 @@ def estimate_clock_offsets(
 
 
 def _walk_prior(knots: np.ndarray, S: int, q: float, q_rate: float) -> np.ndarray:
-    """Information (S K, S K) of the prior of each station's knots: a random walk of intensity
-    ``q`` (s^2/s) on the offset (first differences, variance ``q dt``), one of intensity
-    ``q_rate`` (s^2/s^3) on its rate (second differences, variance ``2/3 q_rate dt^3`` at equal
-    spacing ``dt``) and a weak prior on its level (:data:`LEVEL_SIGMA_S`)."""
-    K = knots.size
-    one = np.eye(K) / (LEVEL_SIGMA_S**2 * K)
-    if K > 1:
+    """Information (S K, S K) of the prior of each of ``S`` stations' knots
+    (:func:`walk_prior_info`)."""
+    return np.kron(np.eye(S), walk_prior_info(knots, q, q_rate))
+
+
+def walk_prior_info(knots: np.ndarray, q: float = WALK_S2_PER_S,
+                    q_rate: float = RATE_WALK_S2_PER_S3, level_sigma: float = LEVEL_SIGMA_S,
+                    rate_sigma: float = RATE_SIGMA) -> np.ndarray:
+    """Information (J, J) of one clock's offsets at ``knots`` (J,) s, increasing: the offset
+    is a level (sigma ``level_sigma`` s) plus a drift (its rate at the first knot of sigma
+    ``rate_sigma`` s/s) plus a random walk of intensity ``q`` (s^2/s) plus the integral of a
+    random walk of the rate of intensity ``q_rate`` (s^2/s^3, > 0): the sum of the processes,
+    not the product of their priors (a constant drift costs next to nothing). The offset and
+    rate at the knots are Markov (transition ``[[1, dt], [0, 1]]``, noise covariance
+    ``[[q dt + q_rate dt^3/3, q_rate dt^2/2], [q_rate dt^2/2, q_rate dt]]``); the rates are
+    marginalised (Schur complement). docs/clocks.md#the-prior."""
+    knots = np.asarray(knots, dtype=float)
+    J = knots.size
+    A = np.zeros((2 * J, 2 * J))  # (offsets, rates)
+    A[0, 0] += 1.0 / level_sigma**2
+    A[J, J] += 1.0 / rate_sigma**2
+    if J > 1:
         dt = np.diff(knots)
-        D1 = np.diff(np.eye(K), axis=0)
-        one += D1.T @ (D1 / (q * dt)[:, None])
-    if K > 2:
-        D2 = np.diff(np.eye(K), n=2, axis=0)
-        step = float(np.mean(np.diff(knots)))
-        one += D2.T @ D2 / (2.0 / 3.0 * q_rate * step**3)
-    return np.kron(np.eye(S), one)
+        Q = np.empty((J - 1, 2, 2))
+        Q[:, 0, 0] = q * dt + q_rate * dt**3 / 3.0
+        Q[:, 0, 1] = Q[:, 1, 0] = q_rate * dt**2 / 2.0
+        Q[:, 1, 1] = q_rate * dt
+        M = np.zeros((J - 1, 2, 4))  # x_k+1 - F x_k over (e_k, r_k, e_k+1, r_k+1)
+        M[:, 0, 0] = M[:, 1, 1] = -1.0
+        M[:, 0, 1] = -dt
+        M[:, 0, 2] = M[:, 1, 3] = 1.0
+        blocks = np.swapaxes(M, 1, 2) @ np.linalg.solve(Q, M)
+        k = np.arange(J - 1)
+        idx = np.stack([k, J + k, k + 1, J + k + 1], axis=1)
+        np.add.at(A, (idx[:, :, None], idx[:, None, :]), blocks)
+    info = A[:J, :J] - A[:J, J:] @ np.linalg.solve(A[J:, J:], A[J:, :J])
+    return 0.5 * (info + info.T)

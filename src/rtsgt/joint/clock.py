@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rtsgt.clocks import KNOT_SPACING_S, LEVEL_SIGMA_S, RATE_WALK_S2_PER_S3, WALK_S2_PER_S
+from rtsgt.clocks import KNOT_SPACING_S, walk_prior_info
 
 
 @dataclass(frozen=True)
@@ -45,22 +45,6 @@ def clock_knots(t0: float, t1: float, spacing: float = KNOT_SPACING_S) -> np.nda
     return t0 + spacing * np.arange(n + 1)
 
 
-def clock_prior_info(knots: np.ndarray) -> np.ndarray:
-    """Information (J, J) of one station's knot offsets: a random walk of the offset
-    (:data:`rtsgt.clocks.WALK_S2_PER_S`; first differences of variance ``q dt``), one of its
-    rate (:data:`rtsgt.clocks.RATE_WALK_S2_PER_S3`; second differences of variance
-    ``2/3 q_rate dt^3``) and a weak level (:data:`rtsgt.clocks.LEVEL_SIGMA_S` over J knots)."""
-    J = knots.size
-    out = np.eye(J) / (LEVEL_SIGMA_S**2 * J)
-    dt = np.diff(knots)
-    D1 = np.diff(np.eye(J), axis=0)
-    out += D1.T @ (D1 / (WALK_S2_PER_S * dt)[:, None])
-    if J > 2:
-        D2 = np.diff(np.eye(J), n=2, axis=0)
-        out += D2.T @ D2 / (2.0 / 3.0 * RATE_WALK_S2_PER_S3 * float(np.mean(dt)) ** 3)
-    return out
-
-
 def clock_model(t: np.ndarray, station: np.ndarray, n_stations: int, reference: int,
                 spacing: float = KNOT_SPACING_S) -> ClockModel:
     """The clock states of every station but ``reference`` for measurements at recorded times
@@ -70,7 +54,7 @@ def clock_model(t: np.ndarray, station: np.ndarray, n_stations: int, reference: 
     row_of = np.full(n_stations, -1)
     row_of[with_clock] = np.arange(with_clock.size)
     j, u = knot_intervals(knots, t)
-    return ClockModel(with_clock, knots, clock_prior_info(knots), row_of[station], j, u)
+    return ClockModel(with_clock, knots, walk_prior_info(knots), row_of[station], j, u)
 
 
 def knot_intervals(knots: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -81,4 +65,4 @@ def knot_intervals(knots: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.nda
     return j, (t - knots[j]) / (knots[j + 1] - knots[j])
 
 
-__all__ = ["ClockModel", "clock_knots", "clock_model", "clock_prior_info", "knot_intervals"]
+__all__ = ["ClockModel", "clock_knots", "clock_model", "knot_intervals"]
