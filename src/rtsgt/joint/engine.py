@@ -562,7 +562,8 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     ``rng`` their draws, docs/joint.md#gauss-markov-noise) and the prisms' tests (where they
     are parameters; with the noise estimated, from its first update on) in the same loop;
     each iteration re-solves from the last state; other prisms' moves that explain the data
-    as well as the one found are carried at the end (:func:`carry_alternatives`). Returns the problem with the final ``qc`` per interval, the state, the
+    as well as the one found are carried at the end (:func:`carry_alternatives`). Returns
+    the problem with the final ``qc`` per interval, the state, the
     :class:`rtsgt.joint.sparse.ArrowSolution`, the last :class:`SolveInfo` and a
     :class:`QcFit`."""
     n = prob.t_knot.size - 1
@@ -709,9 +710,10 @@ def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,
     """The solve ``prob``, ``s``, ``sol``, ``info`` with the hypotheses of other prisms'
     moves carried (docs/joint.md#which-prism-moved): each of ``alternatives`` (problems with
     another prism freed instead of the last one found, :func:`snoop_prisms`) solved with
-    ``prob``'s final noise and ``Qc`` from ``s`` (to convergence, as the trials); of them all the lowest cost plus freed
-    directions is the estimate, and those within :data:`UNDECIDED_COST` of it stay, with
-    equal weights ``w``: each its state's difference from the estimate's
+    ``prob``'s final noise and ``Qc`` from ``s`` (to convergence, as the trials); of them
+    all the lowest cost plus freed directions is the estimate (the trials' noise weights
+    were an earlier update's: the order can turn), and those within :data:`UNDECIDED_COST`
+    of it stay, with equal weights ``w``: each its state's difference from the estimate's
     (:func:`difference`) times ``sqrt(w)`` as a shared error of the solution
     (:func:`rtsgt.joint.sparse.add_shared_columns`; the mixture's covariance about the
     estimate). Returns the problem (its ``prism_alternatives``), state, solution and
@@ -746,7 +748,7 @@ def _freed(prob: JointProblem, tests, found: list[int], j: int) -> JointProblem:
     return replace(prob, prism_info=info, prism_found=prob.prism_found + (entry,))
 
 
-__all__ = ["HYPOTHESIS_MAX_ITER", "UNDECIDED_COST", "JointProblem", "JointState", "QcFit", "SolveInfo", "assemble",
-           "carry_alternatives", "difference", "gauss_newton", "gm_step",
+__all__ = ["HYPOTHESIS_MAX_ITER", "UNDECIDED_COST", "JointProblem", "JointState", "QcFit",
+           "SolveInfo", "assemble", "carry_alternatives", "difference", "gauss_newton", "gm_step",
            "measurement_global_factor", "measurement_hsh", "measurement_terms", "noise_step",
            "snoop_prisms", "solve_with_qc"]
