@@ -15,11 +15,15 @@ Against the simulation's truth:
   with the poses' cross-covariance from the run's continuous ground truth
   (:meth:`rtsgt.evaluation.ContinuousGroundTruth.pair_covariances`);
 - the inter-prism distance check's mean z^2 and its accepted interval, the run's verdict,
-  the median pose position sigma, and the run's wall time (``run_pipeline`` alone).
+  the median pose position sigma, and the run's wall time (``run_pipeline`` alone);
+- with the joint engine: the clocks', the deviation's and the Gauss-Markov chains' shares
+  within 2 sigma of the truth, the raw block cross-validation, and the prism the truth moved
+  with those found and carried (:func:`moved_prism`).
 
 ``--without displacement clocks gm ...`` leaves effects of the preset out, to see what each
-costs. Development seeds are 0-4; issue 23's acceptance must be measured on seeds never used here
-(e.g. 1000-1019). Prints one line per seed and a Markdown table (docs/simulation.md).
+costs. Development seeds are 0-14; issue 23's acceptance must be measured on seeds never used
+(1000-1019, 2000-2019 and 3000-3019 have been: 4000 on). Prints one line per seed and a
+Markdown table (docs/simulation.md).
 """
 
 from __future__ import annotations
@@ -102,6 +106,20 @@ def clocks_within(record, sim) -> float | None:
     return float(np.mean(np.concatenate(inside)))
 
 
+def moved_prism(record, sim) -> dict:
+    """The prism the field truth moved, those the joint engine found moved and the others'
+    hypotheses it carried beside them (docs/joint.md#which-prism-moved), by index; empty
+    without the joint engine's prisms or the field truth."""
+    joint = record.computation.joint
+    f = sim.truth.field
+    pf = None if joint is None else joint.prisms
+    if pf is None or f is None:
+        return {}
+    return {"prism_moved": int(f.displaced_prism),
+            "prism_found": [int(j) for j in np.flatnonzero(pf.moved)],
+            "prism_carried": [int(j) for j in np.flatnonzero((pf.weight > 0) & ~pf.moved)]}
+
+
 def deviation_within(record, sim, data) -> float | None:
     """Share of the prisms' deviation coefficients (every harmonic and component the joint
     engine estimates) within 2 sigma of the simulation's (the reality effect's one harmonic,
@@ -182,6 +200,7 @@ def one(seed: int, args, tmp: Path) -> dict:
     verdict = record_verdict(rec)
     raw = (rec.self_checks.get("raw_block_cv") or {}).get("overall") or {}
     return {
+        **moved_prism(rec, sim),
         "clocks_within_2sigma": clocks_within(rec, sim),
         "deviation_within_2sigma": deviation_within(rec, sim, data),
         "gm_within_2sigma": gm_within(rec, sim),
