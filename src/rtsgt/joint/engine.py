@@ -697,8 +697,8 @@ def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = 1e-6
     freed = [_freed(prob, tests, found, j) for j in candidates]
     if len(freed) == 1:
         return freed[0], True, ()
-    score = np.array([gauss_newton(p, s, HYPOTHESIS_MAX_ITER, tol)[2].costs[-1] + tests.dof[j]
-                      for p, j in zip(freed, candidates, strict=True)])  # a handful of prisms
+    score = np.array([_hypothesis_score(p, gauss_newton(p, s, HYPOTHESIS_MAX_ITER, tol)[2])
+                      for p in freed])  # a handful of prisms
     best = int(np.argmin(score))
     alternatives = tuple(p for i, p in enumerate(freed)
                          if i != best and score[i] - score[best] < UNDECIDED_COST)
@@ -722,7 +722,7 @@ def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,
     for alt in alternatives:  # a handful of prisms
         p = replace(prob, prism_info=alt.prism_info, prism_found=alt.prism_found)
         runs.append((p, *gauss_newton(p, s, HYPOTHESIS_MAX_ITER, tol)))
-    score = np.array([r[3].costs[-1] + r[0].prism_found[-1][2] for r in runs])
+    score = np.array([_hypothesis_score(r[0], r[3]) for r in runs])
     best = int(np.argmin(score))
     kept = [i for i in range(len(runs)) if i != best and score[i] - score[best] < UNDECIDED_COST]
     prob, s, sol, info = runs[best]
@@ -735,6 +735,12 @@ def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,
     entries = tuple((runs[i][0].prism_found[-1][0], float(score[i] - score[best]), w)
                     for i in kept)
     return replace(prob, prism_alternatives=entries), s, add_shared_columns(sol, dx, dg), info
+
+
+def _hypothesis_score(prob: JointProblem, info: SolveInfo) -> float:
+    """A prism hypothesis's score: the final cost of its solve plus the directions its
+    freed prism (the last found) frees (the expected decrease of freeing an unmoved one)."""
+    return info.costs[-1] + prob.prism_found[-1][2]
 
 
 def _freed(prob: JointProblem, tests, found: list[int], j: int) -> JointProblem:

@@ -285,7 +285,8 @@ def _prism_fit(names, prob: JointProblem, state: JointState, cov_g) -> PrismFit:
     above = np.full(len(names), np.nan)
     for j, cost, w in prob.prism_alternatives:
         weight[j], above[j] = w, cost
-        weight[prob.prism_found[-1][0]] = w
+    if prob.prism_alternatives:  # the found one shares the weights
+        weight[prob.prism_found[-1][0]] = prob.prism_alternatives[0][2]
     return PrismFit(names, state.p_body.copy(), 0.5 * (cov + cov.T), prob.p_body.copy(), moved,
                     np.sqrt(stat), dof, weight, above)
 
