@@ -12,6 +12,7 @@ from scipy.stats import chi2
 
 from rtsgt.geometry.so3 import exp_so3, hat, log_so3
 from rtsgt.joint import gm as gmn
+from rtsgt.joint.axes import axes_prior, body_rotation
 from rtsgt.joint.clock import ClockModel
 from rtsgt.joint.deviation import (
     deviation_chain,
@@ -80,7 +81,9 @@ class JointState:
     the stations' settling since their calibration at its knots, height m and yaw rad (None:
     not estimated); ``deviation`` (P, C) the prisms' deviation coefficients, m
     (:mod:`rtsgt.joint.deviation`; None: not estimated); ``gm`` (K, n) the Gauss-Markov
-    noise's chains at the knots (:mod:`rtsgt.joint.gm`; None: not estimated)."""
+    noise's chains at the knots (:mod:`rtsgt.joint.gm`; None: not estimated); ``R_mb`` (3, 3)
+    the motion prior's axes (:mod:`rtsgt.joint.axes`: the knots are then motion-frame poses,
+    a prism at ``R_mb p_body``; None: the body frame's)."""
 
     R: np.ndarray
     t: np.ndarray
@@ -94,6 +97,7 @@ class JointState:
     settle: np.ndarray | None = None
     deviation: np.ndarray | None = None
     gm: np.ndarray | None = None
+    R_mb: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -116,10 +120,11 @@ class JointProblem:
     each knot's state is then its trajectory's and its chains' values), and the other
     prisms whose move explains the data as well as the one found's
     (``prism_alternatives``: index, cost above the chosen's, weight;
-    docs/joint.md#which-prism-moved).
+    docs/joint.md#which-prism-moved), and whether the motion prior's axes are estimated
+    (``motion_axes``, docs/joint.md#the-motion-axes).
     Globals: the free stations' ``(dt, dtheta)``, ``kappa``, the prisms' positions (3P), the
-    constant clock offsets, the prisms' deviation (P, C), the clocks' knots (C, J), the
-    settling's knots (S, 2, J)."""
+    constant clock offsets, the prisms' deviation (P, C), the motion axes (3), the clocks'
+    knots (C, J), the settling's knots (S, 2, J)."""
 
     t_knot: np.ndarray
     of_meas: np.ndarray
@@ -143,6 +148,7 @@ class JointProblem:
     deviation_sigma: np.ndarray | None = None
     gm: gmn.GaussMarkov | None = None
     prism_alternatives: tuple[tuple[int, float, float], ...] = ()
+    motion_axes: bool = False
 
     @property
     def n_gm(self) -> int:
@@ -187,10 +193,20 @@ class JointProblem:
         return self.sync_col + self.n_sync
 
     @property
+    def axes_col(self) -> int:
+        """Column of the motion axes' first (after the deviation's)."""
+        return self.deviation_col + self.n_deviation
+
+    @property
+    def n_axes(self) -> int:
+        """The motion axes' globals (3, or 0 where they are the body frame's)."""
+        return 3 if self.motion_axes else 0
+
+    @property
     def n_fixed(self) -> int:
         """Globals before the clocks: the free stations', ``kappa``, the prisms', the
-        constant clock offsets and the prisms' deviation."""
-        return 6 * self.free.size + 1 + self.n_prism + self.n_sync + self.n_deviation
+        constant clock offsets, the prisms' deviation and the motion axes."""
+        return self.axes_col + self.n_axes
 
     @property
     def settle_col(self) -> int:
@@ -226,13 +242,14 @@ def measurement_terms(prob: JointProblem, s: JointState):
     if sc is not None:  # recorded at t, measured at t - e: the offset from its knot shifts
         tau = tau - np.where(sc >= 0, s.sync[np.maximum(sc, 0)], 0.0)
     pb = prob.p_body if s.p_body is None else s.p_body
-    h, Hk, Hs, Hkap, Htau = predict(s.R[k], s.t[k], s.w[k], tau, pb[m.prism],
+    R_mb = np.eye(3) if s.R_mb is None else s.R_mb
+    h, Hk, Hs, Hkap, Htau = predict(s.R[k], s.t[k], s.w[k], tau, pb[m.prism] @ R_mb.T,
                                     s.R_s[m.station], s.t_s[m.station], s.kappa_ppm)
     r = residual(m.y, h)
     PR = Hk[:, :, :3]  # d h / d (body point), without the deviation's slope
     Hdev = da_p = None
     if prob.n_deviation:  # the deviation at the knot's pose, with its slope in the azimuth
-        alpha, da_xi, da_st, da_p = viewing_azimuth_body(s.R[k], s.t[k], pb[m.prism],
+        alpha, da_xi, da_st, da_p = viewing_azimuth_body(s.R[k] @ R_mb, s.t[k], pb[m.prism],
                                                           s.t_s[m.station])
         Hdev, dH = deviation_jacobian(alpha, h[:, 1], h[:, 2], prob.deviation_orders)
         coef = s.deviation[m.prism]
@@ -243,7 +260,7 @@ def measurement_terms(prob: JointProblem, s: JointState):
         Hkap, Htau = (np.einsum("mij,mj->mi", L, x) for x in (Hkap, Htau))
         PR = Hk[:, :, :3].copy()
         slope = np.einsum("mic,mc->mi", dH, coef)  # d deviation / d alpha
-        Hk[:, :, :6] += slope[:, :, None] * da_xi[:, None, :]
+        Hk[:, :, :6] += slope[:, :, None] * (da_xi @ body_rotation(R_mb))[:, None, :]
         Hs[:, :, :3] += slope[:, :, None] * da_st[:, None, :]
     if prob.gm is not None:  # the station's chains add to its measurements
         r = r - gmn.chain_values(s.gm, k, m.station)
@@ -265,12 +282,19 @@ def measurement_terms(prob: JointProblem, s: JointState):
     for j in range(6):  # six columns of each free station
         Hg[rows, :, 6 * c[rows] + j] = Hs[rows, :, j]
     Hg[:, :, prob.kappa_col] = Hkap
-    if prob.n_prism:  # d h / d p = PR (I + tau omega^) (and the deviation's slope)
-        Hp = PR + tau[:, None, None] * (PR @ hat(s.w[k, 3:]))
+    # d h / d (the prism in the knots' frame) = PR (I + tau omega^); that is R_mb p_body
+    Hpm = PR + tau[:, None, None] * (PR @ hat(s.w[k, 3:]))
+    if prob.n_prism:  # (and the deviation's slope)
+        Hp = Hpm @ R_mb
         if da_p is not None:
             Hp = Hp + slope[:, :, None] * da_p[:, None, :]
         cols = prob.kappa_col + 1 + 3 * m.prism[:, None] + np.arange(3)
         np.put_along_axis(Hg, np.broadcast_to(cols[:, None, :], Hp.shape), Hp, axis=2)
+    if prob.n_axes:  # R_mb exp(a^) p = R_mb p - R_mb p^ a; the body pose R R_mb exp(a^)
+        Ha = -Hpm @ (R_mb @ hat(pb[m.prism]))
+        if da_p is not None:
+            Ha = Ha + slope[:, :, None] * da_xi[:, None, 3:]
+        Hg[:, :, prob.axes_col:prob.axes_col + 3] = Ha
     if sc is not None:
         rows = np.nonzero(sc >= 0)[0]
         Hg[rows, :, prob.sync_col + sc[rows]] = -Htau[rows]
@@ -434,13 +458,19 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
         C[sl, sl] += np.diag(w)
         c[sl] -= w * s.deviation.ravel()
         cost += float(w @ s.deviation.ravel() ** 2)
+    if prob.n_axes:  # the motion axes' broad prior about the body frame's
+        sl = slice(prob.axes_col, prob.axes_col + 3)
+        Wa, ga, ca = axes_prior(s.R_mb)
+        C[sl, sl] += Wa
+        c[sl] -= ga
+        cost += ca
     return ArrowSystem(D, U, B, C, a, c), cost
 
 
 def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> JointState:
     """``T_k exp(d_k^)``, ``w_k + dw_k``, ``t_s + dt``, ``exp(dtheta) R_s``, ``kappa + dk``,
-    the prisms, the constant clock offsets, the deviation, the clock and settling knots and
-    the Gauss-Markov chains plus their steps."""
+    the prisms, the constant clock offsets, the deviation, ``R_mb exp(a^)``, the clock and
+    settling knots and the Gauss-Markov chains plus their steps."""
     dR, dp = exp_se3(x[:, :6])
     R = s.R @ dR
     t = s.t + np.einsum("kij,kj->ki", s.R, dp)
@@ -464,10 +494,13 @@ def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> 
     if prob.n_deviation:
         dc = prob.deviation_col
         dev = s.deviation + g[dc:dc + prob.n_deviation].reshape(s.deviation.shape)
+    R_mb = s.R_mb
+    if prob.n_axes:
+        R_mb = s.R_mb @ exp_so3(g[prob.axes_col:prob.axes_col + 3])
     n = TRAJECTORY_DIM
     chains = None if prob.gm is None else s.gm + x[:, n:]
     return JointState(R, t, s.w + x[:, 6:n], R_s, t_s, s.kappa_ppm + float(g[kc]), clock, pb,
-                      sync, settle, dev, chains)
+                      sync, settle, dev, chains, R_mb)
 
 
 def difference(prob: JointProblem, a: JointState, b: JointState
@@ -493,6 +526,8 @@ def difference(prob: JointProblem, a: JointState, b: JointState
     if prob.n_deviation:
         dc = prob.deviation_col
         g[dc:dc + prob.n_deviation] = (b.deviation - a.deviation).ravel()
+    if prob.n_axes:
+        g[prob.axes_col:prob.axes_col + 3] = log_so3(a.R_mb.T @ b.R_mb)
     if prob.clock is not None:
         g[prob.n_fixed:prob.settle_col] = (b.clock - a.clock).ravel()
     if prob.settle is not None:

@@ -16,6 +16,7 @@ from rtsgt.errors import InputError
 from rtsgt.geometry.transform import RigidTransform
 from rtsgt.joint import deviation as pdev
 from rtsgt.joint import gm as gmn
+from rtsgt.joint.axes import body_qc, body_solution, velocities_in_body
 from rtsgt.joint.blockcv import raw_block_cv, raw_block_summary
 from rtsgt.joint.clock import clock_model
 from rtsgt.joint.engine import (
@@ -124,7 +125,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                    noise: bool = False, settling: bool = False,
                    calibrated_at: dict[str, float] | None = None, deviation: bool = False,
                    gauss_markov: bool = False, rng: np.random.Generator | None = None,
-                   max_gap_s: float = DEFAULT_MAX_GAP_S) -> JointResult:
+                   max_gap_s: float = DEFAULT_MAX_GAP_S, motion_axes: bool = False
+                   ) -> JointResult:
     """Poses ``T_world_body`` at ``query_times`` (Q,) s from every station's observations.
 
     ``observations``: one :class:`rtsgt.types.Observations` per station (valid, increasing
@@ -154,6 +156,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     None: approximated without draws).
     ``max_gap_s``: a longer gap between a station's measurements starts new blocks of the
     raw block cross-validation (docs/joint.md#block-cross-validation-of-the-measurements).
+    With ``motion_axes``, the motion prior is written in axes of its own, their rotation from
+    the body frame estimated (docs/joint.md#the-motion-axes); the poses are the body frame's.
     """
     init_t = np.asarray(init_t, dtype=float)
     if init_t.size < 2:
@@ -191,7 +195,7 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                         deviation_sigma=_deviation_sigma(knots, meas, R0, p0, survey, t_s)
                         if deviation else None,
                         gm=gmn.start_model(meas.var_white, meas.station, len(ids))
-                        if gauss_markov and noise else None)
+                        if gauss_markov and noise else None, motion_axes=motion_axes)
     state = JointState(R0, p0, body_velocities(knots.t, R0, p0), R_s, t_s, 0.0,
                        None if ck is None else np.zeros((ck.station.size, ck.knots.size)),
                        None if p_info is None else survey.copy(),
@@ -200,16 +204,18 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                                                            prob.settle.knots.size)),
                        None if not deviation else np.zeros((len(names),
                                                             pdev.n_coefficients(pdev.ORDERS))),
-                       None if prob.gm is None else np.zeros((knots.t.size, prob.n_gm)))
+                       None if prob.gm is None else np.zeros((knots.t.size, prob.n_gm)),
+                       np.eye(3) if motion_axes else None)
     prob, state, sol, solve, qc_fit = solve_with_qc(prob, state, estimate_qc, max_iter, tol,
                                                     noise, rng)
     cov_g = sol.cov_g
     pfit = None if p_info is None else _prism_fit(names, prob, state, cov_g)
-    R, t, cov_body = interpolate_poses_gp(tq, knots.t, state.R, state.t, state.w, prob.qc,
-                                          sol.cov, sol.cov_next)
+    block_cv = raw_block_summary(raw_block_cv(prob, state, sol, max_gap_s), ids)
+    body = _body_knots(prob, state, sol)
+    R, t, cov_body = interpolate_poses_gp(tq, knots.t, *body[:4], body[4].cov, body[4].cov_next)
     cov_pose = body_to_world_cov(R, cov_body)
     globals_ = global_names(prob, ids, names)
-    shared = _shared(tq, knots.t, state, prob, sol,
+    shared = _shared(tq, knots.t, body,
                      globals_ + tuple(f"moved_{names[j]}" for j, _, _ in prob.prism_alternatives))
     est = _pose_estimate(R, t, cov_pose, survey if pfit is None else pfit.xyz)
     return JointResult(tq, est, _station_results(ids, free, state, cov_g), state.kappa_ppm,
@@ -217,8 +223,7 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        knots.t.size, meas.t.size, solve,
                        solve.costs[-1] / (3 * meas.t.size), shared, pfit,
                        None if prob.noise is None else replace(prob.noise, stations=ids),
-                       JointPosterior(knots.t, state.R, state.t, state.w, prob.qc, sol),
-                       raw_block_summary(raw_block_cv(prob, state, sol, max_gap_s), ids),
+                       JointPosterior(knots.t, *body[:4], body[4]), block_cv,
                        _time_sync(prob, state, cov_g, globals_),
                        _settling(prob, state, cov_g, ids), _deviation(prob, state, cov_g, names),
                        None if prob.gm is None else replace(prob.gm, stations=ids))
@@ -307,7 +312,8 @@ def global_names(prob: JointProblem, ids, prisms=()) -> tuple[str, ...]:
     shared columns), ``atmosphere_ppm``, the prisms' ``reference_<prism>_<x|y|z>`` (where
     estimated; ``prisms`` their names), the stations' constant clock offsets
     ``time_sync_station<id>``, the prisms' deviation
-    ``deviation_<prism>_<order>_<cos|sin>_<range|across|vertical>``, the clocks' knots
+    ``deviation_<prism>_<order>_<cos|sin>_<range|across|vertical>``, the motion axes'
+    ``motion_axes_<rx|ry|rz>`` (where estimated), the clocks' knots
     ``clock_station<id>_<jjjj>``, the settling's ``settle_station<id>_<height|yaw>_<jjjj>``."""
     names = [f"calibration_station{ids[i]}_{c}" for i in prob.free for c in POSE_COMPONENTS]
     names.append("atmosphere_ppm")
@@ -320,6 +326,8 @@ def global_names(prob: JointProblem, ids, prisms=()) -> tuple[str, ...]:
         names += [f"deviation_{p}_{k}_{trig}_{comp}" for p in prisms
                   for k in prob.deviation_orders for trig in pdev.TRIG
                   for comp in pdev.COMPONENTS]
+    if prob.n_axes:
+        names += [f"motion_axes_{c}" for c in POSE_COMPONENTS[3:]]
     if ck is not None:
         names += [f"clock_station{ids[i]}_{j:04d}" for i in ck.station
                   for j in range(ck.knots.size)]
@@ -330,11 +338,23 @@ def global_names(prob: JointProblem, ids, prisms=()) -> tuple[str, ...]:
     return tuple(names)
 
 
-def _shared(tq, t_knot, state, prob, sol, names) -> SharedFactor:
+def _body_knots(prob: JointProblem, s: JointState, sol):
+    """The knots as body-frame poses: ``R`` (K, 3, 3), ``t`` (K, 3), velocities ``w`` (K, 6),
+    the prior's ``qc`` per interval and the :class:`rtsgt.joint.sparse.ArrowSolution`
+    (turned from the motion axes where they are estimated, :mod:`rtsgt.joint.axes`)."""
+    if not prob.n_axes:
+        return s.R, s.t, s.w, prob.qc, sol
+    w = velocities_in_body(s.w, s.R_mb)
+    return (s.R @ s.R_mb, s.t, w, body_qc(prob.qc, s.R_mb),
+            body_solution(sol, s.R_mb, w, prob.axes_col))
+
+
+def _shared(tq, t_knot, body, names) -> SharedFactor:
     """The query poses' :class:`SharedFactor` in the world frame (columns: the globals'
-    Cholesky factor, named by ``names``)."""
-    R, _, var, L = interpolate_split_gp(tq, t_knot, state.R, state.t, state.w, prob.qc,
-                                        sol.cov_var, sol.cov_var_next, sol.factor)
+    Cholesky factor, named by ``names``) from the knots ``body`` (:func:`_body_knots`)."""
+    R_k, t_k, w_k, qc, sol = body
+    R, _, var, L = interpolate_split_gp(tq, t_knot, R_k, t_k, w_k, qc, sol.cov_var,
+                                        sol.cov_var_next, sol.factor)
     return SharedFactor(tq, body_to_world(R) @ L, names, body_to_world_cov(R, var))
 
 

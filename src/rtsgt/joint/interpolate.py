@@ -76,8 +76,8 @@ def _propagate(k, J, jr, pc, qc, cov, cov_next):
     cross = Ja @ cov_next[k, :n, :n] @ np.swapaxes(Jb, 1, 2)
     out = (Ja @ cov[k, :n, :n] @ np.swapaxes(Ja, 1, 2)
            + Jb @ cov[k + 1, :n, :n] @ np.swapaxes(Jb, 1, 2) + cross + np.swapaxes(cross, 1, 2))
-    cond = pc[:, None] * qc[k]
-    out += jr @ (cond[:, :, None] * np.swapaxes(jr, 1, 2))
+    q = qc[k] if qc.ndim == 3 else qc[k][:, :, None] * np.eye(6)
+    out += jr @ (pc[:, None, None] * q) @ np.swapaxes(jr, 1, 2)
     return 0.5 * (out + np.swapaxes(out, 1, 2))
 
 
@@ -85,7 +85,8 @@ def interpolate_poses_gp(t_query, t_knot, R, t, w, qc, cov, cov_next):
     """Poses ``T(t_query)`` (Q,) s of the GP through the knots and their covariance.
 
     Knots at ``t_knot`` (K,) s, poses ``R`` (K, 3, 3), ``t`` (K, 3), body velocities ``w``
-    (K, 6), the prior's ``qc`` (K-1, 6) per interval, the knots' posterior covariance ``cov``
+    (K, 6), the prior's ``qc`` (K-1, 6) per interval (or (K-1, 6, 6), the motion axes' turned
+    into the knots' frame), the knots' posterior covariance ``cov``
     (K, d, d) and that of consecutive knots ``cov_next`` (K-1, d, d) (right perturbations; their
     first :data:`TRAJECTORY_DIM` rows and columns the trajectory's).
     Returns ``R`` (Q, 3, 3), ``t`` (Q, 3) and the covariance (Q, 6, 6) of the query poses'

@@ -86,7 +86,8 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
     return estimate_joint(observations, calibration, reference, model, tq, start_t, start_R,
                           start_p, qc, weather=weather, clocks=clocks, prisms=True,
                           noise=True, settling=True, calibrated_at=calibrated_at,
-                          deviation=True, gauss_markov=True, max_gap_s=max_gap_s, rng=rng)
+                          deviation=True, gauss_markov=True, max_gap_s=max_gap_s, rng=rng,
+                          motion_axes=True)
 
 
 def calibration_times(gcp: GcpShots | None, calibration: CalibrationResult,
