@@ -20,12 +20,19 @@ from rtsgt.joint.sparse import ArrowSolution
 AXES_SIGMA = 5e-3
 
 
-def axes_prior(R_mb: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+#: The axes' prior sigma while a moved prism is searched for (rad): held at the body frame's,
+#: the motion prior's frame lends the prisms' tests its power (solve_with_qc).
+AXES_HELD_SIGMA = 1e-7
+
+
+def axes_prior(R_mb: np.ndarray, sigma: float = AXES_SIGMA
+               ) -> tuple[np.ndarray, np.ndarray, float]:
     """The prior's information (3, 3), gradient term (3,) (``J^T W e``) and cost for a right
-    perturbation of ``R_mb`` (3, 3) about the identity (rad^-2, rad^-1, chi^2)."""
+    perturbation of ``R_mb`` (3, 3) about the identity with ``sigma`` rad per axis (rad^-2,
+    rad^-1, chi^2)."""
     phi = log_so3(R_mb)
     J = so3_left_jacobian(-phi, inverse=True)  # d log(R exp(d)) / d d = J_r^-1(phi)
-    w = 1.0 / AXES_SIGMA**2
+    w = 1.0 / sigma**2
     return w * J.T @ J, w * J.T @ phi, float(w * phi @ phi)
 
 
@@ -87,5 +94,5 @@ def _t(a: np.ndarray) -> np.ndarray:
     return np.swapaxes(a, -1, -2)
 
 
-__all__ = ["AXES_SIGMA", "axes_prior", "body_qc", "body_rotation", "body_solution",
+__all__ = ["AXES_HELD_SIGMA", "AXES_SIGMA", "axes_prior", "body_qc", "body_rotation", "body_solution",
            "velocities_in_body"]

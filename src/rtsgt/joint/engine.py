@@ -12,7 +12,7 @@ from scipy.stats import chi2
 
 from rtsgt.geometry.so3 import exp_so3, hat, log_so3
 from rtsgt.joint import gm as gmn
-from rtsgt.joint.axes import axes_prior, body_rotation
+from rtsgt.joint.axes import AXES_HELD_SIGMA, AXES_SIGMA, axes_prior, body_rotation
 from rtsgt.joint.clock import ClockModel
 from rtsgt.joint.deviation import (
     deviation_chain,
@@ -121,7 +121,7 @@ class JointProblem:
     prisms whose move explains the data as well as the one found's
     (``prism_alternatives``: index, cost above the chosen's, weight;
     docs/joint.md#which-prism-moved), and whether the motion prior's axes are estimated
-    (``motion_axes``, docs/joint.md#the-motion-axes).
+    (``motion_axes``, with the prior sigma ``axes_sigma`` rad, docs/joint.md#the-motion-axes).
     Globals: the free stations' ``(dt, dtheta)``, ``kappa``, the prisms' positions (3P), the
     constant clock offsets, the prisms' deviation (P, C), the motion axes (3), the clocks'
     knots (C, J), the settling's knots (S, 2, J)."""
@@ -149,6 +149,7 @@ class JointProblem:
     gm: gmn.GaussMarkov | None = None
     prism_alternatives: tuple[tuple[int, float, float], ...] = ()
     motion_axes: bool = False
+    axes_sigma: float = AXES_SIGMA
 
     @property
     def n_gm(self) -> int:
@@ -460,7 +461,7 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
         cost += float(w @ s.deviation.ravel() ** 2)
     if prob.n_axes:  # the motion axes' broad prior about the body frame's
         sl = slice(prob.axes_col, prob.axes_col + 3)
-        Wa, ga, ca = axes_prior(s.R_mb)
+        Wa, ga, ca = axes_prior(s.R_mb, prob.axes_sigma)
         C[sl, sl] += Wa
         c[sl] -= ga
         cost += ca
@@ -597,13 +598,18 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     ``rng`` their draws, docs/joint.md#gauss-markov-noise) and the prisms' tests (where they
     are parameters; with the noise estimated, from its first update on) in the same loop;
     each iteration re-solves from the last state; other prisms' moves that explain the data
-    as well as the one found are carried at the end (:func:`carry_alternatives`). Returns
+    as well as the one found are carried at the end (:func:`carry_alternatives`). The motion
+    axes (where estimated) are held at the body frame's through the loop, so that the
+    prisms' tests have the motion prior's frame, and freed with ``prob.axes_sigma`` for a
+    last solve (docs/joint.md#the-motion-axes). Returns
     the problem with the final ``qc`` per interval, the state, the
     :class:`rtsgt.joint.sparse.ArrowSolution`, the last :class:`SolveInfo` and a
     :class:`QcFit`."""
     n = prob.t_knot.size - 1
     qc0 = np.asarray(prob.qc, dtype=float)
-    prob = replace(prob, qc=np.broadcast_to(qc0, (n, 6)).copy())
+    axes_sigma = prob.axes_sigma  # held at the body frame's until the last solve
+    prob = replace(prob, qc=np.broadcast_to(qc0, (n, 6)).copy(),
+                   axes_sigma=AXES_HELD_SIGMA if prob.n_axes else axes_sigma)
     s, sol, info = gauss_newton(prob, s, max_iter, tol)
     classes = motion_classes(prob.t_knot, s.R, s.w)
     table = np.tile(qc0, (N_CLASSES, 1))
@@ -636,6 +642,9 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
         prob, freed, alts = snoop_prisms(prob, s, sol, tol)
         alternatives = alts if freed else alternatives
         snooped = True
+    if prob.n_axes:  # the axes free: the covariance does not rest on the motion prior's tilt
+        prob = replace(prob, axes_sigma=axes_sigma)
+        s, sol, info = gauss_newton(prob, s, max_iter, tol)
     if alternatives:
         prob, s, sol, info = carry_alternatives(prob, s, sol, info, alternatives, tol)
     return prob, s, sol, info, QcFit(table, classes, red_g, it if estimate else 0)
