@@ -8,9 +8,11 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from rtsgt.evaluation.joint_truth import JointGroundTruth
 from rtsgt.geometry.so3 import exp_so3, hat
+from rtsgt.joint import axes
 from rtsgt.joint.axes import body_qc, body_rotation, body_solution, velocities_in_body
 from rtsgt.joint.deviation import n_coefficients
 from rtsgt.joint.engine import assemble, gauss_newton, measurement_terms, retract
@@ -62,10 +64,13 @@ def test_measurement_jacobian_of_the_motion_axes_and_the_prisms_against_finite_d
                                    atol=1e-7)
 
 
-def test_the_body_frame_solution_is_the_dense_inverse_mapped_to_the_body_frame():
+@pytest.mark.parametrize("chunk", [7, 2048])
+def test_the_body_frame_solution_is_the_dense_inverse_mapped_to_the_body_frame(chunk,
+                                                                                monkeypatch):
     """``M x_k + N_k a`` of every knot, mapped through the dense inverse of the normal
     equations: the covariances, consecutive cross covariances, the split's part given the
-    globals and ``Cov(y_k, g)`` = factor chol_g^T."""
+    globals and ``Cov(y_k, g)`` = factor chol_g^T (the factor turned a few knots at a time)."""
+    monkeypatch.setattr(axes, "CHUNK", chunk)
     rng = np.random.default_rng(32)
     prob, truth = _problem(rng, noise=1.0)
     K = prob.t_knot.size

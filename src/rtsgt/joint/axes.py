@@ -11,15 +11,13 @@ import numpy as np
 from rtsgt.geometry.so3 import hat, log_so3
 from rtsgt.joint.prior import TRAJECTORY_DIM
 from rtsgt.joint.se3 import so3_left_jacobian
-from rtsgt.joint.sparse import ArrowSolution
+from rtsgt.joint.sparse import CHUNK, ArrowSolution
 
 #: Prior sigma of each axis of ``R_mb`` about the identity, rad (a quarter of a degree): the
 #: survey's axes are the vehicle's to its survey, and a vehicle rolls in turns and pitches
 #: under acceleration, which a diagonal ``Qc`` does not model; chosen among 2, 5, 20 and
 #: 100 mrad on development seeds (docs/joint.md#the-motion-axes).
 AXES_SIGMA = 5e-3
-
-
 #: The axes' prior sigma while a moved prism is searched for (rad): held at the body frame's,
 #: the motion prior's frame lends the prisms' tests its power (solve_with_qc).
 AXES_HELD_SIGMA = 1e-7
@@ -58,7 +56,9 @@ def body_qc(qc: np.ndarray, R_mb: np.ndarray) -> np.ndarray:
 
 def body_solution(sol: ArrowSolution, R_mb: np.ndarray, w_body: np.ndarray,
                   col: int) -> ArrowSolution:
-    """``sol`` with its knots' trajectory states as the body frame's perturbations.
+    """``sol`` with its knots' trajectory states as the body frame's perturbations; its
+    ``factor`` (K, d, G') is turned in place, a few thousand knots at a time (the hour's is
+    the largest array of a run: the motion-frame solution is not read after this).
 
     A knot's body-frame perturbation is ``M x_k + N_k a``: ``M = diag(A, A, I)``
     (:func:`body_rotation`; the Gauss-Markov chains as they are), ``a`` the right
@@ -77,7 +77,12 @@ def body_solution(sol: ArrowSolution, R_mb: np.ndarray, w_body: np.ndarray,
     N[:, 6:9, :] = hat(w_body[:, :3])
     N[:, 9:n, :] = hat(w_body[:, 3:])
     c = sol.chol_g[col:col + 3]  # (3, G')
-    X = sol.factor @ c.T  # Cov(x_k, a) (K, d, 3)
+    X = np.empty((K, d, 3))  # Cov(x_k, a)
+    factor = sol.factor
+    for lo in range(0, K, CHUNK):
+        f = factor[lo:lo + CHUNK]
+        X[lo:lo + CHUNK] = f @ c.T
+        f[:] = M @ f + N[lo:lo + CHUNK] @ c
 
     def cross(cov_ab, X_a, X_b, N_a, N_b):  # Cov(M x_a + N_a a, M x_b + N_b a)
         out = M @ cov_ab @ M.T + M @ X_a @ _t(N_b) + N_a @ _t(X_b) @ M.T
@@ -86,13 +91,12 @@ def body_solution(sol: ArrowSolution, R_mb: np.ndarray, w_body: np.ndarray,
     cov = cross(sol.cov, X, X, N, N)
     return ArrowSolution(sol.x, sol.g, 0.5 * (cov + _t(cov)),
                          cross(sol.cov_next, X[:-1], X[1:], N[:-1], N[1:]), sol.cov_g,
-                         M @ sol.cov_var @ M.T, M @ sol.cov_var_next @ M.T,
-                         M @ sol.factor + N @ c, sol.chol_g)
+                         M @ sol.cov_var @ M.T, M @ sol.cov_var_next @ M.T, factor, sol.chol_g)
 
 
 def _t(a: np.ndarray) -> np.ndarray:
     return np.swapaxes(a, -1, -2)
 
 
-__all__ = ["AXES_HELD_SIGMA", "AXES_SIGMA", "axes_prior", "body_qc", "body_rotation", "body_solution",
-           "velocities_in_body"]
+__all__ = ["AXES_HELD_SIGMA", "AXES_SIGMA", "axes_prior", "body_qc", "body_rotation",
+           "body_solution", "velocities_in_body"]

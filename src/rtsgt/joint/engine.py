@@ -247,7 +247,7 @@ def measurement_terms(prob: JointProblem, s: JointState):
     h, Hk, Hs, Hkap, Htau = predict(s.R[k], s.t[k], s.w[k], tau, pb[m.prism] @ R_mb.T,
                                     s.R_s[m.station], s.t_s[m.station], s.kappa_ppm)
     r = residual(m.y, h)
-    PR = Hk[:, :, :3]  # d h / d (body point), without the deviation's slope
+    PR = Hk[:, :, :3]  # d h / d (a point in the knots' frame), without the deviation's slope
     Hdev = da_p = None
     if prob.n_deviation:  # the deviation at the knot's pose, with its slope in the azimuth
         alpha, da_xi, da_st, da_p = viewing_azimuth_body(s.R[k] @ R_mb, s.t[k], pb[m.prism],
@@ -459,7 +459,7 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
         C[sl, sl] += np.diag(w)
         c[sl] -= w * s.deviation.ravel()
         cost += float(w @ s.deviation.ravel() ** 2)
-    if prob.n_axes:  # the motion axes' broad prior about the body frame's
+    if prob.n_axes:  # the motion axes' prior about the body frame's
         sl = slice(prob.axes_col, prob.axes_col + 3)
         Wa, ga, ca = axes_prior(s.R_mb, prob.axes_sigma)
         C[sl, sl] += Wa
