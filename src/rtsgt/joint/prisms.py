@@ -16,7 +16,8 @@ from rtsgt.geometry.so3 import hat
 #: (the survey's own frame: points that define it). As the stations' ``FIXED_SIGMA``.
 FIXED_SIGMA_M = 1e-7
 #: A direction of a prism's move is determined by the data when their information on it is at
-#: least this fraction of the survey's (the move's sigma at most 10 times the survey's); the
+#: least this fraction of the survey's, taken on the survey's common scale (the move's sigma
+#: at most 10 times the survey's least precise direction's, :func:`_common_scale`); the
 #: others (the gauge: a rigid motion of the prisms is the pose's) are neither tested nor freed.
 DETERMINED_RATIO = 0.01
 #: False-alarm rate of the test that a prism moved, over all prisms of a deployment
@@ -42,7 +43,8 @@ class PrismTests:
     with ``dof`` (P,) degrees of freedom if it did not move), ``directions`` (P, 3, 3) the
     eigenvectors (columns) of the data's information on the move and ``determined`` (P, 3)
     which of them the data determine (:data:`DETERMINED_RATIO`), ``information`` (P, 3, 3)
-    that information (``N_jj``) and ``prior`` (P, 3, 3) the survey's (``info_jj``)."""
+    that information (``N_jj``) and ``prior`` (P, 3, 3) the survey's (``info_jj``, on the
+    common scale: :func:`_common_scale`)."""
 
     displacement: np.ndarray
     cov: np.ndarray
@@ -75,12 +77,23 @@ def prism_tests(survey: np.ndarray, info: np.ndarray, xyz: np.ndarray,
     blk = np.stack([N[3 * j:3 * j + 3, 3 * j:3 * j + 3] for j in range(P)])
     pri = np.stack([info[3 * j:3 * j + 3, 3 * j:3 * j + 3] for j in range(P)])
     blk = 0.5 * (blk + np.swapaxes(blk, 1, 2))
+    pri = _common_scale(pri)
     w, U, det = _determined(blk, pri)
     winv = np.where(det, 1.0 / np.where(det, w, 1.0), 0.0)
     Ninv = (U * winv[:, None, :]) @ np.swapaxes(U, 1, 2)
     disp = np.einsum("pij,pj->pi", Ninv, u)
     stat = np.clip(np.einsum("pi,pi->p", u, disp), 0.0, None)
     return PrismTests(disp, Ninv, stat, det.sum(axis=1), U, det, blk, pri)
+
+
+def _common_scale(prior: np.ndarray) -> np.ndarray:
+    """The prisms' survey information blocks (P, 3, 3), each capped at the survey's least
+    precise direction (the smallest eigenvalue of them all): a prism surveyed more tightly
+    than the others (or defining the survey's frame) is judged on the same scale, else the
+    data could never determine its move (docs/joint.md#which-prism-moved)."""
+    lam, V = np.linalg.eigh(prior)
+    cap = lam.min()
+    return (V * np.minimum(lam, cap)[:, None, :]) @ np.swapaxes(V, 1, 2)
 
 
 def _determined(N: np.ndarray, prior: np.ndarray):
