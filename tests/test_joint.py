@@ -160,6 +160,19 @@ def _apparent_shift(q, coef):
     return q + coef[:, :1] * los + coef[:, 1:2] * across + coef[:, 2:] * up
 
 
+#: The synthetic rig's prisms in the body frame, m (:func:`_synthetic`).
+SURVEY = np.array([[0.5, 0.3, 0.4], [-0.4, 0.35, 0.45], [0.0, -0.4, 0.5]])
+
+
+def _in_plane_move(size: float = 0.02):
+    """The synthetic rig's unit normal (3,) and a move (3,) of ``size`` m of prism 1 in the
+    prisms' plane (along x, the normal's part taken out)."""
+    n = np.cross(SURVEY[1] - SURVEY[0], SURVEY[2] - SURVEY[0])
+    n /= np.linalg.norm(n)
+    d = np.array([1.0, 0.0, 0.0]) - n[0] * n
+    return n, d * size / np.linalg.norm(d)
+
+
 def _synthetic(rng, K=40, noise=0.0, speed=1.0, clock_s=None, moved=None, settle_rate=None,
                deviation=None):
     """Noise-free (or noisy) polar measurements of three prisms on a constant-velocity
@@ -178,7 +191,7 @@ def _synthetic(rng, K=40, noise=0.0, speed=1.0, clock_s=None, moved=None, settle
     R, p = _compose(R0, p0, *exp_se3(t[:, None] * w0))
     lag = np.zeros(K) if clock_s is None else np.asarray(clock_s)[np.arange(K) % 3]
     Rm, pm = _compose(R0, p0, *exp_se3((t - lag)[:, None] * w0))  # where it was measured
-    pb = np.array([[0.5, 0.3, 0.4], [-0.4, 0.35, 0.45], [0.0, -0.4, 0.5]])
+    pb = SURVEY.copy()
     t_s = np.array([[0.0, 0.0, 0.0], [25.0, 5.0, 0.3], [-5.0, 22.0, -0.2]])
     R_s = exp_so3(np.array([[0.0, 0.0, 0.0], [0.001, -0.002, 1.0], [0.0, 0.001, -2.0]]))
     sid = np.arange(K) % 3
@@ -410,11 +423,7 @@ def test_a_prism_moved_after_its_survey_is_found_and_estimated():
     critical value, docs/joint.md#prism-positions), free its survey where the data determine
     it and recover the move within its sigma and the poses exactly; held at the survey, the
     poses are biased by centimetres; an unmoved rig frees nothing."""
-    pb = np.array([[0.5, 0.3, 0.4], [-0.4, 0.35, 0.45], [0.0, -0.4, 0.5]])
-    n = np.cross(pb[1] - pb[0], pb[2] - pb[0])
-    n /= np.linalg.norm(n)
-    d = np.array([1.0, 0.0, 0.0]) - n[0] * n
-    d *= 0.02 / np.linalg.norm(d)
+    n, d = _in_plane_move()
     prob, truth = _synthetic(np.random.default_rng(9), moved=d)
     prob = replace(prob, qc=prob.qc * 1e-4)  # a smooth robot: the rig's shape is determined
     start = replace(truth, p_body=prob.p_body.copy())
@@ -469,11 +478,7 @@ def test_a_moved_prism_surveyed_more_tightly_than_the_others_is_still_found():
     its own survey the data would determine no direction of its move (held-out seed 4001);
     on the survey's common scale (its least precise direction) prism 1 is tested, found and
     freed, and the poses come back."""
-    pb = np.array([[0.5, 0.3, 0.4], [-0.4, 0.35, 0.45], [0.0, -0.4, 0.5]])
-    n = np.cross(pb[1] - pb[0], pb[2] - pb[0])
-    n /= np.linalg.norm(n)
-    d = np.array([1.0, 0.0, 0.0]) - n[0] * n
-    d *= 0.02 / np.linalg.norm(d)
+    n, d = _in_plane_move()
     prob, truth = _synthetic(np.random.default_rng(9), moved=d)
     var = np.r_[[1e-12] * 3, [1e-6] * 6]
     prob = replace(prob, qc=prob.qc * 1e-4, prism_info=np.diag(1.0 / var),
@@ -494,7 +499,7 @@ def test_a_move_two_prisms_explain_alike_is_carried_as_both_hypotheses():
     within their covariance (NEES/dof below 1, where the chosen hypothesis alone misses the
     truth by NEES/dof above 20 on the two that chose prism 2). ``difference`` inverts
     ``retract``."""
-    pb = np.array([[0.5, 0.3, 0.4], [-0.4, 0.35, 0.45], [0.0, -0.4, 0.5]])
+    pb = SURVEY
     n = np.cross(pb[1] - pb[0], pb[2] - pb[0])
     d = np.cross(n, pb[0] - pb[2])
     d *= 0.02 / np.linalg.norm(d)
@@ -531,11 +536,7 @@ def test_with_the_noise_estimated_a_moved_prism_is_found_after_its_first_update(
     """The prisms' test waits for the noise's first update (weighted by the datasheet, the
     field preset freed the wrong prism of two whose moves explain the data alike:
     docs/joint.md#prism-positions) and still finds the moved prism, here with noise."""
-    pb = np.array([[0.5, 0.3, 0.4], [-0.4, 0.35, 0.45], [0.0, -0.4, 0.5]])
-    n = np.cross(pb[1] - pb[0], pb[2] - pb[0])
-    n /= np.linalg.norm(n)
-    d = np.array([1.0, 0.0, 0.0]) - n[0] * n
-    d *= 0.02 / np.linalg.norm(d)
+    n, d = _in_plane_move()
     prob, truth = _synthetic(np.random.default_rng(9), K=40, noise=1.0, moved=d)
     prob = replace(prob, qc=prob.qc * 1e-4)
     out, est, sol, info, _ = solve_with_qc(prob, replace(truth, p_body=prob.p_body.copy()),
