@@ -283,8 +283,8 @@ def measurement_terms(prob: JointProblem, s: JointState):
     for j in range(6):  # six columns of each free station
         Hg[rows, :, 6 * c[rows] + j] = Hs[rows, :, j]
     Hg[:, :, prob.kappa_col] = Hkap
-    # d h / d (the prism in the knots' frame) = PR (I + tau omega^); that is R_mb p_body
-    Hpm = PR + tau[:, None, None] * (PR @ hat(s.w[k, 3:]))
+    if prob.n_prism or prob.n_axes:  # d h / d (the prism in the knots' frame, R_mb p_body)
+        Hpm = PR + tau[:, None, None] * (PR @ hat(s.w[k, 3:]))  # = PR (I + tau omega^)
     if prob.n_prism:  # (and the deviation's slope)
         Hp = Hpm @ R_mb
         if da_p is not None:
