@@ -21,6 +21,7 @@ from rtsgt.geometry.so3 import quat_xyzw_to_matrix
 from rtsgt.geometry.transform import perturbation
 from rtsgt.io.deployment import load_deployment
 from rtsgt.io.run_dir import read_run, write_run
+from rtsgt.joint.axes import AXES_SIGMA
 from rtsgt.joint.gm import TAU_RANGE_S
 from rtsgt.options import RUN_ENGINES, RunOptions
 from rtsgt.pipeline import run_pipeline
@@ -123,6 +124,13 @@ def test_the_summary_has_the_joint_section_and_the_checks_say_what_they_judge(ru
         for v in per.values():
             assert TAU_RANGE_S[0] <= v["tau_s"] <= TAU_RANGE_S[1] and v["sigma"] > 0, v
             assert (v["sigma_sigma"] > 0 and v["tau_sigma_s"] > 0) == v["determined"], v
+    # the motion prior's axes (docs/joint.md#the-motion-axes): informed by the data beyond
+    # their prior, in its sigmas as stated
+    ax = j["motion_axes"]
+    assert ax["axes"] == ["rx", "ry", "rz"], ax
+    assert all(0 < s < 1e3 * AXES_SIGMA for s in ax["sigma_mrad"]), ax
+    np.testing.assert_allclose(np.array(ax["prior_sigmas"]) * 1e3 * AXES_SIGMA,
+                               ax["rotation_mrad"], rtol=1e-12)
     for v in j["stations"].values():
         assert v["held"] or np.all(np.abs(v["shift_sigmas"]) < 4), v
     assert j["kappa_sigma_ppm"] > 0 and "standing" in j["qc"]

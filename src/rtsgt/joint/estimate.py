@@ -13,6 +13,7 @@ import numpy as np
 
 from rtsgt.choices import DEFAULT_MAX_GAP_S
 from rtsgt.errors import InputError
+from rtsgt.geometry.so3 import log_so3
 from rtsgt.geometry.transform import RigidTransform
 from rtsgt.joint import deviation as pdev
 from rtsgt.joint import gm as gmn
@@ -81,7 +82,9 @@ class JointResult:
     (:class:`rtsgt.joint.deviation.DeviationFit`, docs/joint.md#prism-deviation; None where
     not estimated); ``gauss_markov``: the Gauss-Markov noise's sigma and correlation time per
     station and channel (:class:`rtsgt.joint.gm.GaussMarkov`, docs/joint.md#gauss-markov-noise;
-    None where not estimated).
+    None where not estimated); ``motion_axes``: the motion prior's axes as a rotation vector
+    from the body frame's, ``log(R_mb)`` (3,) rad, and its covariance (3, 3) rad^2
+    (docs/joint.md#the-motion-axes; None where not estimated).
     """
 
     t: np.ndarray
@@ -105,6 +108,7 @@ class JointResult:
         default_factory=dict)
     deviation: pdev.DeviationFit | None = None
     gauss_markov: gmn.GaussMarkov | None = None
+    motion_axes: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def _stations(calibration):
@@ -226,7 +230,18 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        JointPosterior(knots.t, *body[:4], body[4]), block_cv,
                        _time_sync(prob, state, cov_g, globals_),
                        _settling(prob, state, cov_g, ids), _deviation(prob, state, cov_g, names),
-                       None if prob.gm is None else replace(prob.gm, stations=ids))
+                       None if prob.gm is None else replace(prob.gm, stations=ids),
+                       _motion_axes(prob, state, cov_g))
+
+
+def _motion_axes(prob: JointProblem, state: JointState, cov_g):
+    """The motion axes' rotation from the body frame, ``log(R_mb)`` (3,) rad, with its
+    covariance (3, 3) rad^2; None where they are not estimated."""
+    if not prob.n_axes:
+        return None
+    sl = slice(prob.axes_col, prob.axes_col + 3)
+    c = cov_g[sl, sl]
+    return log_so3(state.R_mb), 0.5 * (c + c.T)
 
 
 def _settle(t, ids, calibrated_at):

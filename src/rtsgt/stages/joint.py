@@ -19,6 +19,7 @@ from rtsgt.geometry.so3 import log_so3, matrix_to_quat_xyzw
 from rtsgt.geometry.transform import RigidTransform
 from rtsgt.interpolation.motion import CLASS_NAMES
 from rtsgt.joint import estimate_joint
+from rtsgt.joint.axes import AXES_SIGMA
 from rtsgt.joint.deviation import COMPONENTS as DEVIATION_COMPONENTS
 from rtsgt.joint.deviation import TRIG as DEVIATION_TRIG
 from rtsgt.joint.deviation import DeviationFit
@@ -209,7 +210,9 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
     station its height (mm) and yaw (arc seconds) change since its calibration at the first
     and the last knot, with their sigmas (docs/joint.md#settling-tripods); ``deviation``: the
     prisms' deviation with their viewing angle per prism, harmonic and component (mm, with
-    sigma and whether the data determine it; docs/joint.md#prism-deviation); the solve's
+    sigma and whether the data determine it; docs/joint.md#prism-deviation); ``motion_axes``:
+    the motion prior's axes' rotation from the body frame about its x, y, z (mrad, with
+    sigma and in sigmas of their prior; docs/joint.md#the-motion-axes); the solve's
     iterations, convergence, chi^2 per row, knots and measurements."""
     q = jr.qc
     used = np.bincount(q.classes, minlength=len(CLASS_NAMES))
@@ -232,10 +235,19 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
         "gauss_markov": None if jr.gauss_markov is None else _gm_summary(jr.gauss_markov),
         "settling": {sid: _settling_summary(*v) for sid, v in jr.settling.items()},
         "deviation": None if jr.deviation is None else _deviation_summary(jr.deviation),
+        "motion_axes": None if jr.motion_axes is None else _axes_summary(*jr.motion_axes),
         "iterations": int(jr.solve.iterations), "converged": bool(jr.solve.converged),
         "chi2_per_dof": float(jr.chi2_per_dof), "knots": int(jr.n_knots),
         "measurements": int(jr.n_measurements), "poses": int(jr.t.size),
     }
+
+
+def _axes_summary(phi: np.ndarray, cov: np.ndarray) -> dict[str, Any]:
+    """The motion axes' rotation vector ``phi`` (3,) rad with covariance ``cov`` (3, 3):
+    ``rotation_mrad``, ``sigma_mrad`` and ``prior_sigmas`` (each axis over its prior sigma)."""
+    return {"axes": ["rx", "ry", "rz"], "rotation_mrad": (1e3 * phi).tolist(),
+            "sigma_mrad": (1e3 * np.sqrt(np.diag(cov))).tolist(),
+            "prior_sigmas": (phi / AXES_SIGMA).tolist()}
 
 
 def _settling_summary(knots, height, yaw, sd) -> dict[str, Any]:
