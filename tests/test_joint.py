@@ -46,7 +46,7 @@ from rtsgt.joint.settling import (
     settle_model,
     settle_prior_info,
 )
-from rtsgt.joint.sparse import solve_arrow
+from rtsgt.joint.sparse import scatter_add, solve_arrow
 from rtsgt.measurement.polar import cartesian_to_polar
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
@@ -237,6 +237,25 @@ def _synthetic(rng, K=40, noise=0.0, speed=1.0, clock_s=None, moved=None, settle
                        None if moved is None else pt, settle=settle,
                        deviation=None if deviation is None else np.asarray(deviation, float))
     return prob, truth
+
+
+@pytest.mark.parametrize("order", ["sorted", "shuffled"])
+def test_scatter_add_sums_each_rows_values_as_add_at_does(order):
+    """Knots with several measurements, none or one (a run of equal indices, a gap), into a
+    view of a larger array as the normal equations' ``B``; shuffled: ``np.add.at``'s path."""
+    rng = np.random.default_rng(41)
+    empty = np.array([7, 8, 20])  # knots no measurement falls on
+    index = np.sort(rng.choice(np.setdiff1d(np.arange(30), empty), size=200))
+    index[:5] = 0  # a run at the first row
+    if order == "shuffled":
+        index = rng.permutation(index)
+    values = rng.normal(size=(200, 4, 3))
+    out = np.zeros((30, 4, 5))
+    ref = out.copy()
+    scatter_add(out[:, :, :3], index, values)
+    np.add.at(ref[:, :, :3], index, values)
+    np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-12)
+    assert np.all(out[:, :, 3:] == 0.0) and np.all(out[empty] == 0.0)
 
 
 @pytest.mark.parametrize("chunk", [4, 2048])

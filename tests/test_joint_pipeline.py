@@ -103,6 +103,10 @@ def test_the_summary_has_the_joint_section_and_the_checks_say_what_they_judge(ru
     assert set(j["prisms"]) == set(record.prism_ids)
     for v in j["prisms"].values():  # the default simulator moves no prism
         assert not v["moved"] and v["moved_weight"] == 0 and v["cost_above_found"] is None, v
+        # the largest eigenvalue of a 3x3 covariance: between its largest diagonal and trace
+        sd = np.array(v["sigma_mm"])
+        assert sd.max() - 1e-9 <= v["largest_sigma_mm"] <= np.sqrt(sd @ sd) + 1e-9, v
+    assert not [f for f in doc["verdict"]["findings"] if f["check"] == "moved prism"]
     # the prisms' deviation: per prism (order, term, component); a held order is 0 with its
     # prior's 0.1 um, an estimated one has a sigma under its prior's 2 mm / sqrt(6)
     dev = j["deviation"]

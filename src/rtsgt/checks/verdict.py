@@ -246,13 +246,26 @@ def _dynamic(check: dict, out: list[Finding]) -> None:
                            f"{'s' if len(bad) > 1 else ''} {_names(bad)}"))
 
 
+def _moved_prisms(joint: dict, out: list[Finding]) -> None:
+    moved = {k: v for k, v in (joint.get("prisms") or {}).items() if v.get("moved")}
+    for name, v in moved.items():
+        shift = sum(x * x for x in v["shift_mm"]) ** 0.5
+        out.append(Finding(1, "moved prism",
+                           f"prism {name} moved {shift:.1f} mm from its survey: where the other "
+                           f"prisms cannot place it only the motion model does (sigma up to "
+                           f"{v['largest_sigma_mm']:.1f} mm); a survey after the deployment "
+                           f"would determine it"))
+
+
 def run_verdict(self_checks: dict, *, kept: int, queried: int,
                 distance_check: dict | None = None, correlated_noise: dict | None = None,
-                survey_sigma: float = SURVEY_DISTANCE_WARNING_SIGMA) -> RunVerdict:
+                survey_sigma: float = SURVEY_DISTANCE_WARNING_SIGMA,
+                joint: dict | None = None) -> RunVerdict:
     """The verdict of a run from its ``self_checks`` (``RunRecord.self_checks``), the poses ``kept``
     of ``queried``, its ``distance_check`` (tracked distances against the survey; a pair over
-    ``survey_sigma`` predicted sigmas is a finding) and ``correlated_noise`` (what the GPs
-    carried)."""
+    ``survey_sigma`` predicted sigmas is a finding), ``correlated_noise`` (what the GPs
+    carried) and ``joint`` (``summary.json``'s ``joint``: a prism the joint engine found
+    moved is a caveat)."""
     out: list[Finding] = []
     if kept == 0:
         out.append(Finding(2, "poses", f"no pose passed the quality gates (0 of {queried})"))
@@ -267,6 +280,7 @@ def run_verdict(self_checks: dict, *, kept: int, queried: int,
     _static_relative(self_checks.get("static_relative") or {}, out)
     _gcp(self_checks.get("gcp_fit") or {}, out)
     _dynamic(self_checks.get("dynamic_calibration") or {}, out)
+    _moved_prisms(joint or {}, out)
     return RunVerdict(tuple(sorted(out, key=lambda f: -f.severity)))
 
 
@@ -278,4 +292,5 @@ def record_verdict(record) -> RunVerdict:
     return run_verdict(record.self_checks, kept=queried if gt is None else len(gt),
                        queried=queried,
                        distance_check=getattr(record, "distance_check", None),
-                       correlated_noise=record.correlated_noise)
+                       correlated_noise=record.correlated_noise,
+                       joint=getattr(record, "joint", None))

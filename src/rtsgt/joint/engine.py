@@ -45,7 +45,7 @@ from rtsgt.joint.qc import (
 from rtsgt.joint.relative import chain_gains, knot_cross_covariance
 from rtsgt.joint.se3 import exp_se3, log_se3, so3_left_jacobian
 from rtsgt.joint.settling import KIND_COLUMNS, SettleModel
-from rtsgt.joint.sparse import ArrowSystem, add_shared_columns, solve_arrow
+from rtsgt.joint.sparse import ArrowSystem, add_shared_columns, scatter_add, solve_arrow
 
 #: Prior standard deviation (m, rad) given to a station direction its calibration fixes
 #: exactly (a zero variance, e.g. the reference station).
@@ -415,11 +415,11 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
     r, Hk, Hg, Hc, cols = measurement_terms(prob, s)
     info = prob.meas.info
     HtW = np.swapaxes(Hk, 1, 2) @ info
-    np.add.at(D, prob.of_meas, HtW @ Hk)
+    scatter_add(D, prob.of_meas, HtW @ Hk)
     G0 = prob.n_fixed
     B = np.zeros((K, d, G))
-    np.add.at(B[:, :, :G0], prob.of_meas, HtW @ Hg)
-    np.add.at(a, prob.of_meas, np.einsum("mij,mj->mi", HtW, r))
+    scatter_add(B[:, :, :G0], prob.of_meas, HtW @ Hg)
+    scatter_add(a, prob.of_meas, np.einsum("mij,mj->mi", HtW, r))
     GtW = np.swapaxes(Hg, 1, 2) @ info
     C = np.zeros((G, G))
     c = np.zeros(G)
@@ -545,13 +545,14 @@ class SolveInfo:
     costs: tuple[float, ...]
 
 
-def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10, tol: float = 1e-6):
+def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10, tol: float = 1e-6,
+                 want_cov: bool = True):
     """Gauss-Newton from ``s`` until the predicted decrease of the cost is below ``tol`` or a
     step changes the cost by less than :data:`STALL_REL` of it (a step that raises the cost is
     halved, up to 8 times, unless its predicted decrease is below
     :data:`WHOLE_STEP_DECREASE`). Returns the state, the
-    :class:`rtsgt.joint.sparse.ArrowSolution` at it (with its covariances) and a
-    :class:`SolveInfo`."""
+    :class:`rtsgt.joint.sparse.ArrowSolution` at it (with its covariances; None without
+    ``want_cov``: a trial scored by its cost alone) and a :class:`SolveInfo`."""
     system, cost = assemble(prob, s)
     costs = [cost]
     converged = False
@@ -572,8 +573,8 @@ def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10, tol: flo
         if decrease < tol or abs(costs[-2] - cost) <= STALL_REL * abs(cost):
             converged = True
             break
-    return s, solve_arrow(system, want_cov=True), SolveInfo(len(costs) - 1, converged,
-                                                            tuple(costs))
+    info = SolveInfo(len(costs) - 1, converged, tuple(costs))
+    return s, solve_arrow(system, want_cov=True) if want_cov else None, info
 
 
 @dataclass(frozen=True)
@@ -741,7 +742,8 @@ def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = 1e-6
     freed = [_freed(prob, tests, found, j) for j in candidates]
     if len(freed) == 1:
         return freed[0], True, ()
-    score = np.array([_hypothesis_score(p, gauss_newton(p, s, HYPOTHESIS_MAX_ITER, tol)[2])
+    score = np.array([_hypothesis_score(p, gauss_newton(p, s, HYPOTHESIS_MAX_ITER, tol,
+                                                        want_cov=False)[2])
                       for p in freed])  # a handful of prisms
     best = int(np.argmin(score))
     alternatives = tuple(p for i, p in enumerate(freed)

@@ -176,6 +176,15 @@ class PrismFit:
         """Estimate minus survey (P, 3), m."""
         return self.xyz - self.survey
 
+    @property
+    def largest_sigma(self) -> np.ndarray:
+        """Each prism's posterior standard deviation along its least determined direction
+        (P,), m: for a prism found moved, where only the survey, the motion axes' prior and
+        the motion prior place it (docs/joint.md#a-freed-prisms-gauge)."""
+        P = self.xyz.shape[0]
+        blocks = np.stack([self.cov[3 * j:3 * j + 3, 3 * j:3 * j + 3] for j in range(P)])
+        return np.sqrt(np.clip(np.linalg.eigvalsh(blocks)[:, -1], 0.0, None))
+
 
 __all__ = ["DETERMINED_RATIO", "FIXED_SIGMA_M", "PrismFit", "PrismTests", "TEST_ALPHA",
            "free_prism", "gauge_directions", "prism_prior_info", "prism_tests"]
