@@ -25,6 +25,8 @@ from rtsgt.joint.axes import AXES_SIGMA
 from rtsgt.joint.gm import TAU_RANGE_S
 from rtsgt.options import RUN_ENGINES, RunOptions
 from rtsgt.pipeline import run_pipeline
+from rtsgt.report.analysis import analyze
+from rtsgt.report.html import render_report
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
 from rtsgt.stages.checks import JOINT_INTER_PRISM
 from rtsgt.types import PoseTrajectory
@@ -240,3 +242,42 @@ def test_calibration_times_are_the_gcp_shots_within_the_hour_before_the_tracking
     late = replace(shots, t=t + 8.64e6 - 0.5 * MAX_CALIBRATION_AGE_S)
     assert set(calibration_times(late, cal, t0)) == {"1", "2"}
     assert calibration_times(shots, SimpleNamespace(method="dynamic", transforms={}), t0) == {}
+
+
+def test_the_report_shows_the_joint_estimates_with_their_sigmas(runs):
+    """The report's run section has the joint engine's estimates from summary.json, each with
+    its sigma: the stations' shifts, the clocks, the prisms, the noise and the motion axes."""
+    _, _, _, path = runs[0]
+    data = read_run(path)
+    page, _ = render_report(data, analyze(data), figures={})
+    j = json.loads((path / "summary.json").read_text())["joint"]
+
+    def table(name):
+        part = page[page.index(f"<table id='{name}'"):]
+        return part[:part.index("</table>")]
+
+    stations = table("run-joint-stations")
+    for sid, v in j["stations"].items():
+        row = stations[stations.index(f"<td class='s'>{sid}</td>"):]
+        row = row[:row.index("</tr>")]
+        assert ("held" in row) == v["held"], row
+        if not v["held"]:
+            assert ", ".join(f"{x:.2f}" for x in v["shift_mm"]) in row, (row, v)
+    clocks = table("run-joint-clocks")
+    for v in j["time_sync"].values():
+        assert f"{v['offset_ms']:.3g} ± {v['sigma_ms']:.2g}" in clocks, (clocks, v)
+    prisms = table("run-joint-prisms")
+    for v in j["prisms"].values():
+        assert f"{v['largest_sigma_mm']:.3g}" in prisms and ">kept<" in prisms
+    noise = table("run-joint-noise")
+    rows = noise.split("<tr>")[1:]
+    for sid, per in j["gauss_markov"].items():
+        for ch, v in per.items():
+            row = next(r for r in rows if f"<td class='s'>{sid}</td><td class='s'>{ch}</td>" in r)
+            text = (f"τ {v['tau_s']:.3g} ± {v['tau_sigma_s']:.2g} s" if v["determined"]
+                    else "not determined, not carried")
+            assert text in row, (text, row)
+    axes = table("run-joint-axes")
+    for r, sd in zip(j["motion_axes"]["rotation_mrad"], j["motion_axes"]["sigma_mrad"],
+                     strict=True):
+        assert f"{r:.3g} ± {sd:.2g}" in axes, axes

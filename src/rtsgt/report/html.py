@@ -637,6 +637,101 @@ def _calibration_html(cal: Mapping) -> str:
             f"<th>sigma rotation (mrad)</th></tr>{''.join(rows)}</table>{note}")
 
 
+def _pm(v, sd, digits: int = 3) -> str:
+    """``v ± sd`` (numbers or None)."""
+    return f"{_fmt(v, digits)} ± {_fmt(sd, 2)}"
+
+
+def _joint_html(j: Mapping) -> str:
+    """What the joint engine estimated besides the poses (``summary.json``'s ``joint``), each
+    estimate with its sigma: the solve, the stations' shifts from their calibration, the
+    clocks, the prisms against their survey, the noise's white and correlated components,
+    the tripods' settling and the motion axes (docs/joint.md)."""
+    if not j:
+        return ""
+    parts = [_kv_table("run-joint", [
+        ("solve", f"{_fmt(j.get('iterations'))} iterations, "
+                  f"{'converged' if j.get('converged') else 'not converged'}, "
+                  f"χ² / row {_fmt(j.get('chi2_per_dof'), 3)}"),
+        ("knots, measurements, poses",
+         f"{_fmt(j.get('knots'))}, {_fmt(j.get('measurements'))}, {_fmt(j.get('poses'))}"),
+        ("atmosphere", f"{_pm(j.get('kappa_ppm'), j.get('kappa_sigma_ppm'))} ppm")])]
+    rows = [f"<tr><td class='s'>{html.escape(str(sid))}</td>"
+            + ("<td class='s' colspan='3'>held (the reference)</td>" if v.get("held") else
+               f"<td>{_vec(v.get('shift_mm'), '.2f')}</td>"
+               f"<td>{_vec(v.get('shift_mrad'), '.3f')}</td>"
+               f"<td>{_vec(v.get('shift_sigmas'), '.1f')}</td>") + "</tr>"
+            for sid, v in (j.get("stations") or {}).items()]
+    if rows:
+        parts.append("<table id='run-joint-stations'><tr><th class='k'>station</th>"
+                     "<th>shift from its calibration (mm)</th><th>(mrad)</th>"
+                     f"<th>in the calibration's sigmas</th></tr>{''.join(rows)}</table>")
+    sync = j.get("time_sync") or {}
+    clocks = j.get("clocks") or {}
+    rows = [f"<tr><td class='s'>{html.escape(str(sid))}</td>"
+            f"<td>{_pm((sync.get(sid) or {}).get('offset_ms'), (sync.get(sid) or {}).get('sigma_ms'))}</td>"
+            f"<td>{_fmt((clocks.get(sid) or {}).get('start_ms'), 3)}</td>"
+            f"<td>{_fmt((clocks.get(sid) or {}).get('end_ms'), 3)}</td>"
+            f"<td>{_fmt((clocks.get(sid) or {}).get('median_sigma_ms'), 3)}</td></tr>"
+            for sid in dict.fromkeys([*sync, *clocks])]
+    if rows:
+        parts.append("<table id='run-joint-clocks'><tr><th class='k'>station</th>"
+                     "<th>constant clock offset (ms)</th><th>against the reference "
+                     f"{html.escape(str(j.get('clock_reference')))}: start (ms)</th>"
+                     f"<th>end (ms)</th><th>median sigma (ms)</th></tr>{''.join(rows)}</table>")
+    rows = [f"<tr><td class='s'>{html.escape(str(pid))}</td>"
+            f"<td>{_vec(v.get('shift_mm'), '.2f')}</td><td>{_vec(v.get('sigma_mm'), '.2f')}</td>"
+            f"<td>{_fmt(v.get('largest_sigma_mm'), 3)}</td><td>{_fmt(v.get('test_sigmas'), 3)}</td>"
+            f"<td class='s'>{'moved' if v.get('moved') else 'kept'}</td>"
+            f"<td>{_fmt(v.get('moved_weight'), 3)}</td></tr>"
+            for pid, v in (j.get("prisms") or {}).items()]
+    if rows:
+        parts.append("<table id='run-joint-prisms'><tr><th class='k'>prism</th>"
+                     "<th>shift from the survey (mm)</th><th>sigma (mm)</th>"
+                     "<th>largest sigma (mm)</th><th>test (sigmas)</th><th>survey</th>"
+                     f"<th>weight of the move</th></tr>{''.join(rows)}</table>")
+    noise, gm = j.get("noise") or {}, j.get("gauss_markov") or {}
+    rows = []
+    for sid in dict.fromkeys([*noise, *gm]):
+        for ch in ("hz", "v", "d"):
+            w, g = (noise.get(sid) or {}).get(ch), (gm.get(sid) or {}).get(ch)
+            if not w and not g:
+                continue
+            unit = "mm" if ch == "d" else "mgon"
+            det = (w or {}).get("determined") or [False, False]
+            white = ("–" if not w else
+                     (_pm(w.get("factor"), w.get("factor_sigma")) if det[0]
+                      else f"{_fmt(w.get('factor'), 3)} (the prior, kept)")
+                     + (f"; range part {_fmt(w.get('range_part'), 3)} "
+                        f"{'ppm' if ch == 'd' else 'mgon at 100 m'}" if det[1] else ""))
+            corr = ("–" if not g else "not determined, not carried" if not g.get("determined")
+                    else f"{_pm(g.get('sigma'), g.get('sigma_sigma'))} {unit}, τ "
+                         f"{_pm(g.get('tau_s'), g.get('tau_sigma_s'))} s")
+            rows.append(f"<tr><td class='s'>{html.escape(str(sid))}</td><td class='s'>{ch}</td>"
+                        f"<td class='s'>{white}</td><td class='s'>{corr}</td></tr>")
+    if rows:
+        parts.append("<table id='run-joint-noise'><tr><th class='k'>station</th><th>channel</th>"
+                     "<th>white: factor of the datasheet's variance</th>"
+                     f"<th>correlated (Gauss-Markov)</th></tr>{''.join(rows)}</table>")
+    rows = [f"<tr><td class='s'>{html.escape(str(sid))}</td>"
+            f"<td>{_pm((v.get('height_mm') or [None])[-1], (v.get('height_sigma_mm') or [None])[-1])}</td>"
+            f"<td>{_pm((v.get('yaw_arcsec') or [None])[-1], (v.get('yaw_sigma_arcsec') or [None])[-1])}</td></tr>"
+            for sid, v in (j.get("settling") or {}).items()]
+    if rows:
+        parts.append("<table id='run-joint-settling'><tr><th class='k'>station</th>"
+                     "<th>height change at the end (mm)</th><th>yaw change at the end (″)</th>"
+                     f"</tr>{''.join(rows)}</table>")
+    ax = j.get("motion_axes")
+    if ax:
+        parts.append(_kv_table("run-joint-axes", [
+            (f"motion axes {a} (mrad)", _pm(r, sd))
+            for a, r, sd in zip(ax["axes"], ax["rotation_mrad"], ax["sigma_mrad"], strict=True)]))
+    parts.append("<p><small>Each estimate with its sigma; the components the data do not "
+                 "determine keep their prior and say so. Method: rtsgt's docs/joint.md."
+                 "</small></p>")
+    return "".join(parts)
+
+
 def _distances_html(d: Mapping) -> str:
     rows = "".join(
         f"<tr><td class='s'>{html.escape(str(pair))}</td><td>{_fmt(v.get('surveyed_m'), 5)}</td>"
@@ -669,8 +764,8 @@ def _timings_html(timings: Mapping, per_row: int = 6) -> str:
 
 def _run_html(summary: Mapping, summary_href: str | None) -> str:
     """What ``summary.json`` holds that a reader needs, in tables: the run, the options used,
-    the filters, the prisms' GP fits, the calibration, the inter-prism distances, the warnings
-    and the timings (s); a link to the file for the rest."""
+    the filters, the prisms' GP fits, the calibration, the inter-prism distances, the joint
+    engine's estimates, the warnings and the timings (s); a link to the file for the rest."""
     if not summary:
         return "<p class='note'>No summary.json in this run.</p>"
     name = "summary.json"
@@ -684,7 +779,8 @@ def _run_html(summary: Mapping, summary_href: str | None) -> str:
                         ("Extrinsic calibration",
                          _calibration_html(summary.get("calibration") or {})),
                         ("Inter-prism distances",
-                         _distances_html(summary.get("inter_prism_distances") or {}))):
+                         _distances_html(summary.get("inter_prism_distances") or {})),
+                        ("Joint engine's estimates", _joint_html(summary.get("joint") or {}))):
         if text:
             parts.append(f"<h3>{title}</h3>{text}")
     warns = summary.get("warnings") or []
