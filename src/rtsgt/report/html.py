@@ -668,20 +668,23 @@ def _joint_html(j: Mapping) -> str:
                      f"<th>in the calibration's sigmas</th></tr>{''.join(rows)}</table>")
     sync = j.get("time_sync") or {}
     clocks = j.get("clocks") or {}
-    rows = [f"<tr><td class='s'>{html.escape(str(sid))}</td>"
-            f"<td>{_pm((sync.get(sid) or {}).get('offset_ms'), (sync.get(sid) or {}).get('sigma_ms'))}</td>"
-            f"<td>{_fmt((clocks.get(sid) or {}).get('start_ms'), 3)}</td>"
-            f"<td>{_fmt((clocks.get(sid) or {}).get('end_ms'), 3)}</td>"
-            f"<td>{_fmt((clocks.get(sid) or {}).get('median_sigma_ms'), 3)}</td></tr>"
-            for sid in dict.fromkeys([*sync, *clocks])]
+    rows = []
+    for sid in dict.fromkeys([*sync, *clocks]):
+        o, c = sync.get(sid) or {}, clocks.get(sid) or {}
+        rows.append(f"<tr><td class='s'>{html.escape(str(sid))}</td>"
+                    f"<td>{_pm(o.get('offset_ms'), o.get('sigma_ms'))}</td>"
+                    + "".join(f"<td>{_fmt(c.get(k), 3)}</td>"
+                              for k in ("start_ms", "end_ms", "median_sigma_ms")) + "</tr>")
     if rows:
         parts.append("<table id='run-joint-clocks'><tr><th class='k'>station</th>"
                      "<th>constant clock offset (ms)</th><th>against the reference "
                      f"{html.escape(str(j.get('clock_reference')))}: start (ms)</th>"
                      f"<th>end (ms)</th><th>median sigma (ms)</th></tr>{''.join(rows)}</table>")
     rows = [f"<tr><td class='s'>{html.escape(str(pid))}</td>"
-            f"<td>{_vec(v.get('shift_mm'), '.2f')}</td><td>{_vec(v.get('sigma_mm'), '.2f')}</td>"
-            f"<td>{_fmt(v.get('largest_sigma_mm'), 3)}</td><td>{_fmt(v.get('test_sigmas'), 3)}</td>"
+            f"<td>{_vec(v.get('shift_mm'), '.2f')}</td>"
+            f"<td>{_vec(v.get('sigma_mm'), '.2f')}</td>"
+            f"<td>{_fmt(v.get('largest_sigma_mm'), 3)}</td>"
+            f"<td>{_fmt(v.get('test_sigmas'), 3)}</td>"
             f"<td class='s'>{'moved' if v.get('moved') else 'kept'}</td>"
             f"<td>{_fmt(v.get('moved_weight'), 3)}</td></tr>"
             for pid, v in (j.get("prisms") or {}).items()]
@@ -707,15 +710,19 @@ def _joint_html(j: Mapping) -> str:
             corr = ("–" if not g else "not determined, not carried" if not g.get("determined")
                     else f"{_pm(g.get('sigma'), g.get('sigma_sigma'))} {unit}, τ "
                          f"{_pm(g.get('tau_s'), g.get('tau_sigma_s'))} s")
-            rows.append(f"<tr><td class='s'>{html.escape(str(sid))}</td><td class='s'>{ch}</td>"
-                        f"<td class='s'>{white}</td><td class='s'>{corr}</td></tr>")
+            rows.append(f"<tr><td class='s'>{html.escape(str(sid))}</td>"
+                        f"<td class='s'>{ch}</td><td class='s'>{white}</td>"
+                        f"<td class='s'>{corr}</td></tr>")
     if rows:
-        parts.append("<table id='run-joint-noise'><tr><th class='k'>station</th><th>channel</th>"
-                     "<th>white: factor of the datasheet's variance</th>"
+        parts.append("<table id='run-joint-noise'><tr><th class='k'>station</th>"
+                     "<th>channel</th><th>white: factor of the datasheet's variance</th>"
                      f"<th>correlated (Gauss-Markov)</th></tr>{''.join(rows)}</table>")
+    def last(v, key):  # the settling at its last knot
+        return (v.get(key) or [None])[-1]
+
     rows = [f"<tr><td class='s'>{html.escape(str(sid))}</td>"
-            f"<td>{_pm((v.get('height_mm') or [None])[-1], (v.get('height_sigma_mm') or [None])[-1])}</td>"
-            f"<td>{_pm((v.get('yaw_arcsec') or [None])[-1], (v.get('yaw_sigma_arcsec') or [None])[-1])}</td></tr>"
+            f"<td>{_pm(last(v, 'height_mm'), last(v, 'height_sigma_mm'))}</td>"
+            f"<td>{_pm(last(v, 'yaw_arcsec'), last(v, 'yaw_sigma_arcsec'))}</td></tr>"
             for sid, v in (j.get("settling") or {}).items()]
     if rows:
         parts.append("<table id='run-joint-settling'><tr><th class='k'>station</th>"

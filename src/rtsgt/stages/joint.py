@@ -278,8 +278,8 @@ def _deviation_summary(fit: DeviationFit) -> dict[str, Any]:
 
 def _prisms_summary(pf: PrismFit) -> dict[str, Any]:
     """Each prism's estimate against its survey (body frame), mm, its sigma per axis and
-    along its least determined direction, and the weight of the hypothesis that it moved (with the cost above the found one's of another prism's
-    hypothesis carried beside it)."""
+    along its least determined direction, and the weight of the hypothesis that it moved
+    (with the cost above the found one's of another prism's hypothesis carried beside it)."""
     largest = pf.largest_sigma
     return {p: {"shift_mm": (1e3 * pf.shift[i]).tolist(), "sigma_mm": (1e3 * pf.sigma[i]).tolist(),
                 "largest_sigma_mm": float(1e3 * largest[i]),
