@@ -642,6 +642,32 @@ def _pm(v, sd, digits: int = 3) -> str:
     return f"{_fmt(v, digits)} ± {_fmt(sd, 2)}"
 
 
+def _rows_table(table_id: str, headers: Sequence[str], rows: Sequence[str]) -> str:
+    """A table of ``rows`` (``<tr>`` HTML) under ``headers`` (HTML, the first the key's);
+    empty without rows."""
+    if not rows:
+        return ""
+    head = "".join(f"<th class='k'>{h}</th>" if i == 0 else f"<th>{h}</th>"
+                   for i, h in enumerate(headers))
+    return f"<table id='{table_id}'><tr>{head}</tr>{''.join(rows)}</table>"
+
+
+def _joint_noise_row(sid, ch: str, w: Mapping | None, g: Mapping | None) -> str:
+    """One station's and channel's noise row: the white factor (and range part) where
+    determined, else the prior's, and the Gauss-Markov chain's sigma and tau where determined."""
+    det = (w or {}).get("determined") or [False, False]
+    white = ("–" if not w else
+             (_pm(w.get("factor"), w.get("factor_sigma")) if det[0]
+              else f"{_fmt(w.get('factor'), 3)} (the prior, kept)")
+             + (f"; range part {_fmt(w.get('range_part'), 3)} "
+                f"{'ppm' if ch == 'd' else 'mgon at 100 m'}" if det[1] else ""))
+    corr = ("–" if not g else "not determined, not carried" if not g.get("determined")
+            else f"{_pm(g.get('sigma'), g.get('sigma_sigma'))} {'mm' if ch == 'd' else 'mgon'}"
+                 f", τ {_pm(g.get('tau_s'), g.get('tau_sigma_s'))} s")
+    return (f"<tr><td class='s'>{html.escape(str(sid))}</td><td class='s'>{ch}</td>"
+            f"<td class='s'>{white}</td><td class='s'>{corr}</td></tr>")
+
+
 def _joint_html(j: Mapping) -> str:
     """What the joint engine estimated besides the poses (``summary.json``'s ``joint``), each
     estimate with its sigma: the solve, the stations' shifts from their calibration, the
@@ -656,18 +682,16 @@ def _joint_html(j: Mapping) -> str:
         ("knots, measurements, poses",
          f"{_fmt(j.get('knots'))}, {_fmt(j.get('measurements'))}, {_fmt(j.get('poses'))}"),
         ("atmosphere", f"{_pm(j.get('kappa_ppm'), j.get('kappa_sigma_ppm'))} ppm")])]
-    rows = [f"<tr><td class='s'>{html.escape(str(sid))}</td>"
-            + ("<td class='s' colspan='3'>held (the reference)</td>" if v.get("held") else
-               f"<td>{_vec(v.get('shift_mm'), '.2f')}</td>"
-               f"<td>{_vec(v.get('shift_mrad'), '.3f')}</td>"
-               f"<td>{_vec(v.get('shift_sigmas'), '.1f')}</td>") + "</tr>"
-            for sid, v in (j.get("stations") or {}).items()]
-    if rows:
-        parts.append("<table id='run-joint-stations'><tr><th class='k'>station</th>"
-                     "<th>shift from its calibration (mm)</th><th>(mrad)</th>"
-                     f"<th>in the calibration's sigmas</th></tr>{''.join(rows)}</table>")
-    sync = j.get("time_sync") or {}
-    clocks = j.get("clocks") or {}
+    parts.append(_rows_table(
+        "run-joint-stations", ("station", "shift from its calibration (mm)", "(mrad)",
+                               "in the calibration's sigmas"),
+        [f"<tr><td class='s'>{html.escape(str(sid))}</td>"
+         + ("<td class='s' colspan='3'>held (the reference)</td>" if v.get("held") else
+            f"<td>{_vec(v.get('shift_mm'), '.2f')}</td>"
+            f"<td>{_vec(v.get('shift_mrad'), '.3f')}</td>"
+            f"<td>{_vec(v.get('shift_sigmas'), '.1f')}</td>") + "</tr>"
+         for sid, v in (j.get("stations") or {}).items()]))
+    sync, clocks = j.get("time_sync") or {}, j.get("clocks") or {}
     rows = []
     for sid in dict.fromkeys([*sync, *clocks]):
         o, c = sync.get(sid) or {}, clocks.get(sid) or {}
@@ -675,59 +699,37 @@ def _joint_html(j: Mapping) -> str:
                     f"<td>{_pm(o.get('offset_ms'), o.get('sigma_ms'))}</td>"
                     + "".join(f"<td>{_fmt(c.get(k), 3)}</td>"
                               for k in ("start_ms", "end_ms", "median_sigma_ms")) + "</tr>")
-    if rows:
-        parts.append("<table id='run-joint-clocks'><tr><th class='k'>station</th>"
-                     "<th>constant clock offset (ms)</th><th>against the reference "
-                     f"{html.escape(str(j.get('clock_reference')))}: start (ms)</th>"
-                     f"<th>end (ms)</th><th>median sigma (ms)</th></tr>{''.join(rows)}</table>")
-    rows = [f"<tr><td class='s'>{html.escape(str(pid))}</td>"
-            f"<td>{_vec(v.get('shift_mm'), '.2f')}</td>"
-            f"<td>{_vec(v.get('sigma_mm'), '.2f')}</td>"
-            f"<td>{_fmt(v.get('largest_sigma_mm'), 3)}</td>"
-            f"<td>{_fmt(v.get('test_sigmas'), 3)}</td>"
-            f"<td class='s'>{'moved' if v.get('moved') else 'kept'}</td>"
-            f"<td>{_fmt(v.get('moved_weight'), 3)}</td></tr>"
-            for pid, v in (j.get("prisms") or {}).items()]
-    if rows:
-        parts.append("<table id='run-joint-prisms'><tr><th class='k'>prism</th>"
-                     "<th>shift from the survey (mm)</th><th>sigma (mm)</th>"
-                     "<th>largest sigma (mm)</th><th>test (sigmas)</th><th>survey</th>"
-                     f"<th>weight of the move</th></tr>{''.join(rows)}</table>")
+    ref = html.escape(str(j.get("clock_reference")))
+    parts.append(_rows_table(
+        "run-joint-clocks", ("station", "constant clock offset (ms)",
+                             f"against the reference {ref}: start (ms)", "end (ms)",
+                             "median sigma (ms)"), rows))
+    parts.append(_rows_table(
+        "run-joint-prisms", ("prism", "shift from the survey (mm)", "sigma (mm)",
+                             "largest sigma (mm)", "test (sigmas)", "survey",
+                             "weight of the move"),
+        [f"<tr><td class='s'>{html.escape(str(pid))}</td>"
+         f"<td>{_vec(v.get('shift_mm'), '.2f')}</td><td>{_vec(v.get('sigma_mm'), '.2f')}</td>"
+         f"<td>{_fmt(v.get('largest_sigma_mm'), 3)}</td><td>{_fmt(v.get('test_sigmas'), 3)}</td>"
+         f"<td class='s'>{'moved' if v.get('moved') else 'kept'}</td>"
+         f"<td>{_fmt(v.get('moved_weight'), 3)}</td></tr>"
+         for pid, v in (j.get("prisms") or {}).items()]))
     noise, gm = j.get("noise") or {}, j.get("gauss_markov") or {}
-    rows = []
-    for sid in dict.fromkeys([*noise, *gm]):
-        for ch in ("hz", "v", "d"):
-            w, g = (noise.get(sid) or {}).get(ch), (gm.get(sid) or {}).get(ch)
-            if not w and not g:
-                continue
-            unit = "mm" if ch == "d" else "mgon"
-            det = (w or {}).get("determined") or [False, False]
-            white = ("–" if not w else
-                     (_pm(w.get("factor"), w.get("factor_sigma")) if det[0]
-                      else f"{_fmt(w.get('factor'), 3)} (the prior, kept)")
-                     + (f"; range part {_fmt(w.get('range_part'), 3)} "
-                        f"{'ppm' if ch == 'd' else 'mgon at 100 m'}" if det[1] else ""))
-            corr = ("–" if not g else "not determined, not carried" if not g.get("determined")
-                    else f"{_pm(g.get('sigma'), g.get('sigma_sigma'))} {unit}, τ "
-                         f"{_pm(g.get('tau_s'), g.get('tau_sigma_s'))} s")
-            rows.append(f"<tr><td class='s'>{html.escape(str(sid))}</td>"
-                        f"<td class='s'>{ch}</td><td class='s'>{white}</td>"
-                        f"<td class='s'>{corr}</td></tr>")
-    if rows:
-        parts.append("<table id='run-joint-noise'><tr><th class='k'>station</th>"
-                     "<th>channel</th><th>white: factor of the datasheet's variance</th>"
-                     f"<th>correlated (Gauss-Markov)</th></tr>{''.join(rows)}</table>")
-    def last(v, key):  # the settling at its last knot
-        return (v.get(key) or [None])[-1]
-
-    rows = [f"<tr><td class='s'>{html.escape(str(sid))}</td>"
-            f"<td>{_pm(last(v, 'height_mm'), last(v, 'height_sigma_mm'))}</td>"
-            f"<td>{_pm(last(v, 'yaw_arcsec'), last(v, 'yaw_sigma_arcsec'))}</td></tr>"
-            for sid, v in (j.get("settling") or {}).items()]
-    if rows:
-        parts.append("<table id='run-joint-settling'><tr><th class='k'>station</th>"
-                     "<th>height change at the end (mm)</th><th>yaw change at the end (″)</th>"
-                     f"</tr>{''.join(rows)}</table>")
+    parts.append(_rows_table(
+        "run-joint-noise", ("station", "channel", "white: factor of the datasheet's variance",
+                            "correlated (Gauss-Markov)"),
+        [_joint_noise_row(sid, ch, (noise.get(sid) or {}).get(ch), (gm.get(sid) or {}).get(ch))
+         for sid in dict.fromkeys([*noise, *gm]) for ch in ("hz", "v", "d")
+         if (noise.get(sid) or {}).get(ch) or (gm.get(sid) or {}).get(ch)]))
+    end = {sid: {k: (v.get(k) or [None])[-1] for k in v} for sid, v
+           in (j.get("settling") or {}).items()}  # at the last knot
+    parts.append(_rows_table(
+        "run-joint-settling", ("station", "height change at the end (mm)",
+                               "yaw change at the end (″)"),
+        [f"<tr><td class='s'>{html.escape(str(sid))}</td>"
+         f"<td>{_pm(v.get('height_mm'), v.get('height_sigma_mm'))}</td>"
+         f"<td>{_pm(v.get('yaw_arcsec'), v.get('yaw_sigma_arcsec'))}</td></tr>"
+         for sid, v in end.items()]))
     ax = j.get("motion_axes")
     if ax:
         parts.append(_kv_table("run-joint-axes", [
