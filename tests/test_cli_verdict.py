@@ -89,6 +89,9 @@ def test_a_prism_the_joint_engine_found_moved_is_a_caveat_with_its_size():
     assert v.level == "usable, with caveats" and len(v.findings) == 1, v.findings
     assert "prism 2 moved 10.0 mm" in v.line() and "11.2 mm" in v.line(), v.line()
     assert run_verdict({}, kept=100, queried=100, joint={"prisms": None}).level == "usable"
+    del prisms["2"]["largest_sigma_mm"]  # a run written before the field was
+    v = run_verdict({}, kept=100, queried=100, joint={"prisms": prisms})
+    assert "prism 2 moved 10.0 mm" in v.line() and "sigma up to" not in v.line(), v.line()
 
 
 def test_static_correlation_is_a_caveat_only_where_the_gps_do_not_carry_it():

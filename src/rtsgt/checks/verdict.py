@@ -249,12 +249,13 @@ def _dynamic(check: dict, out: list[Finding]) -> None:
 def _moved_prisms(joint: dict, out: list[Finding]) -> None:
     moved = {k: v for k, v in (joint.get("prisms") or {}).items() if v.get("moved")}
     for name, v in moved.items():
-        shift = sum(x * x for x in v["shift_mm"]) ** 0.5
+        shift = sum(x * x for x in v.get("shift_mm") or ()) ** 0.5
+        largest = v.get("largest_sigma_mm")  # absent from runs written before it was
+        sigma = "" if largest is None else f" (sigma up to {largest:.1f} mm)"
         out.append(Finding(1, "moved prism",
                            f"prism {name} moved {shift:.1f} mm from its survey: where the other "
-                           f"prisms cannot place it only the motion model does (sigma up to "
-                           f"{v['largest_sigma_mm']:.1f} mm); a survey after the deployment "
-                           f"would determine it"))
+                           f"prisms cannot place it only the motion model does{sigma}; a survey "
+                           f"after the deployment would determine it"))
 
 
 def run_verdict(self_checks: dict, *, kept: int, queried: int,
