@@ -74,8 +74,7 @@ def prism_tests(survey: np.ndarray, info: np.ndarray, xyz: np.ndarray,
     v = (xyz - survey).ravel()
     N = info - info @ cov @ info
     u = (info @ v).reshape(P, 3)
-    blk = np.stack([N[3 * j:3 * j + 3, 3 * j:3 * j + 3] for j in range(P)])
-    pri = np.stack([info[3 * j:3 * j + 3, 3 * j:3 * j + 3] for j in range(P)])
+    blk, pri = _prism_blocks(N), _prism_blocks(info)
     blk = 0.5 * (blk + np.swapaxes(blk, 1, 2))
     pri = _common_scale(pri)
     w, U, det = _determined(blk, pri)
@@ -84,6 +83,12 @@ def prism_tests(survey: np.ndarray, info: np.ndarray, xyz: np.ndarray,
     disp = np.einsum("pij,pj->pi", Ninv, u)
     stat = np.clip(np.einsum("pi,pi->p", u, disp), 0.0, None)
     return PrismTests(disp, Ninv, stat, det.sum(axis=1), U, det, blk, pri)
+
+
+def _prism_blocks(M: np.ndarray) -> np.ndarray:
+    """The prisms' 3x3 diagonal blocks (P, 3, 3) of a (3P, 3P) matrix ``M``."""
+    P = M.shape[0] // 3
+    return np.stack([M[3 * j:3 * j + 3, 3 * j:3 * j + 3] for j in range(P)])
 
 
 def _common_scale(prior: np.ndarray) -> np.ndarray:
@@ -181,9 +186,8 @@ class PrismFit:
         """Each prism's posterior standard deviation along its least determined direction
         (P,), m: for a prism found moved, where only the survey, the motion axes' prior and
         the motion prior place it (docs/joint.md#a-freed-prisms-gauge)."""
-        P = self.xyz.shape[0]
-        blocks = np.stack([self.cov[3 * j:3 * j + 3, 3 * j:3 * j + 3] for j in range(P)])
-        return np.sqrt(np.clip(np.linalg.eigvalsh(blocks)[:, -1], 0.0, None))
+        lam = np.linalg.eigvalsh(_prism_blocks(self.cov))[:, -1]
+        return np.sqrt(np.clip(lam, 0.0, None))
 
 
 __all__ = ["DETERMINED_RATIO", "FIXED_SIGMA_M", "PrismFit", "PrismTests", "TEST_ALPHA",
