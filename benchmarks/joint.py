@@ -39,11 +39,7 @@ def clock_scores(jr, sim, t: np.ndarray) -> dict:
     ref = f.clock_error_s(0, t)
     within, z2 = [], []
     for sid, (kn, off, cov) in jr.clocks.items():
-        j = np.clip(np.searchsorted(kn, t, side="right") - 1, 0, kn.size - 2)
-        u = (t - kn[j]) / (kn[j + 1] - kn[j])
-        W = np.zeros((t.size, kn.size))
-        W[np.arange(t.size), j] = 1.0 - u
-        W[np.arange(t.size), j + 1] = u
+        W = np.stack([np.interp(t, kn, e) for e in np.eye(kn.size)], axis=1)  # linear between
         sig = np.sqrt(np.einsum("ti,ij,tj->t", W, cov, W))
         z = (W @ off + (f.clock_error_s(f.station_ids.index(sid), t) - ref)) / sig
         within.append(np.abs(z) < 2)

@@ -45,7 +45,7 @@ def _problem(rng, deviation=False, noise=0.0):
 def test_measurement_jacobian_of_the_motion_axes_and_the_prisms_against_finite_differences():
     rng = np.random.default_rng(31)
     prob, s = _problem(rng, deviation=True)
-    _, _, Hg, _, _ = measurement_terms(prob, s)
+    _, _, Hg = measurement_terms(prob, s)
     a = prob.axes_col
     for j in range(3):
         d = np.zeros(3)

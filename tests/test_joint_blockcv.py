@@ -18,6 +18,7 @@ from rtsgt.joint.relative import (
     JointPosterior,
     chain_gains,
     knot_cross_covariance,
+    linear_covariance,
     query_cross_covariance,
     world_covariance,
 )
@@ -31,35 +32,32 @@ QC_TRUE = np.full(6, 1e-8)
 SHORT_BLOCKS_S = (1.0, 2.0)
 
 
-def _dense_rows(prob, Hk, Hg, Hc=None, cols=None):
-    K, G = prob.t_knot.size, prob.n_globals
-    H = np.zeros((Hk.shape[0], 3, 12 * K + G))
+def _dense_rows(prob, Hk, Hg):
+    K, G, d = prob.t_knot.size, prob.n_globals, prob.knot_dim
+    H = np.zeros((Hk.shape[0], 3, d * K + G))
     for m, k in enumerate(prob.of_meas):  # a small test problem
-        H[m, :, 12 * k:12 * k + 12] = Hk[m]
-        H[m, :, 12 * K:12 * K + Hg.shape[2]] = Hg[m]
-        if Hc is not None:
-            for a in range(2):
-                H[m, :, 12 * K + cols[m, a]] += Hc[m, :, a]
+        H[m, :, d * k:d * k + d] = Hk[m]
+        H[m, :, d * K:] = Hg[m]
     return H
 
 
 @pytest.mark.parametrize("extra", [{}, {"clock_s": [0.0, 0.008, -0.005],
                                       "moved": [0.01, -0.02, 0.0]}])
 def test_deletion_nees_equals_a_dense_inverse_and_a_solve_without_the_block(extra):
-    """Without globals beyond the stations and the atmosphere, and with clock knots and the
-    prisms' positions among them."""
+    """Without globals beyond the stations and the atmosphere, and with clock states at the
+    knots and the prisms' positions among the globals."""
     rng = np.random.default_rng(31)
     prob, truth = _synthetic(rng, K=30, noise=1.0, **extra)
     prob = replace(prob, qc=QC_TRUE)
     s, sol, info = gauss_newton(prob, truth, max_iter=20, tol=1e-14)
-    r, Hk, Hg, Hc, cols = engine.measurement_terms(prob, s)
+    r, Hk, Hg = engine.measurement_terms(prob, s)
     m = prob.meas
     out = raw_block_cv(prob, s, sol, max_gap_s=5.0, lengths=SHORT_BLOCKS_S)
     assert out.n.sum() == m.t.size and out.nees.size >= 15
     system, _ = assemble(prob, s)
     N, _ = system.dense()
     cov = np.linalg.inv(N)
-    H = _dense_rows(prob, Hk, Hg, Hc, cols)
+    H = _dense_rows(prob, Hk, Hg)
     R = np.linalg.inv(m.info)
     for b in range(out.nees.size):
         sel = np.flatnonzero((m.station == out.station[b]) & (m.t >= out.t0[b])
@@ -120,18 +118,30 @@ def test_cross_covariance_of_distant_knots_and_queries_equals_a_dense_inverse():
     system, _ = assemble(prob, s)
     N, _ = system.dense()
     cov = np.linalg.inv(N)
+    d, K = prob.knot_dim, prob.t_knot.size  # the trajectory's 12 and the clocks' 4
     k_a, k_b = np.array([0, 3, 7, 12, 20]), np.array([1, 3, 19, 28, 28])
     C = knot_cross_covariance(sol, chain_gains(sol), k_a, k_b)
     for i, (a, b) in enumerate(zip(k_a, k_b, strict=True)):
-        ref = cov[12 * a:12 * a + 12, 12 * b:12 * b + 12]
+        ref = cov[d * a:d * a + d, d * b:d * b + d]
         np.testing.assert_allclose(C[i], ref, rtol=1e-5, atol=1e-5 * np.abs(ref).max())
-    # query poses: any Jacobians on their intervals' two knots
+    # query poses: any Jacobians on their intervals' two knots' trajectories
     q_a, q_b = np.array([0, 4, 10]), np.array([2, 26, 28])
     J_a, J_b = rng.normal(size=(3, 6, 24)), rng.normal(size=(3, 6, 24))
     out = query_cross_covariance(sol, q_a, J_a, q_b, J_b)
     for i, (a, b) in enumerate(zip(q_a, q_b, strict=True)):
-        ref = J_a[i] @ cov[12 * a:12 * a + 24, 12 * b:12 * b + 24] @ J_b[i].T
+        ia, ib = (np.r_[d * k:d * k + 12, d * (k + 1):d * (k + 1) + 12] for k in (a, b))
+        ref = J_a[i] @ cov[np.ix_(ia, ib)] @ J_b[i].T
         np.testing.assert_allclose(out[i], ref, rtol=1e-5, atol=1e-5 * np.abs(ref).max())
+    # linear functions of knots' states and globals (the clocks' and settling's reports)
+    k = np.array([3, 25, 3, 0, 10, 25])
+    Ax = rng.normal(size=(k.size, d))
+    Ag = rng.normal(size=(k.size, prob.n_globals))
+    A = np.zeros((k.size, N.shape[0]))
+    for i, j in enumerate(k):
+        A[i, d * j:d * j + d], A[i, d * K:] = Ax[i], Ag[i]
+    ref = A @ cov @ A.T
+    np.testing.assert_allclose(linear_covariance(sol, k, Ax, Ag), ref, rtol=1e-5,
+                               atol=1e-6 * np.abs(ref).max())
     with pytest.raises(ValueError):
         query_cross_covariance(sol, q_b, J_b, q_a, J_a)
 

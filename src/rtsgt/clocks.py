@@ -21,7 +21,8 @@ from rtsgt.checks.distances import effective_sample_size
 from rtsgt.errors import InputError
 
 __all__ = ["KNOT_SPACING_S", "LEVEL_SIGMA_S", "RATE_SIGMA", "RATE_WALK_S2_PER_S3", "WALK_S2_PER_S",
-           "ClockEstimate", "estimate_clock_offsets", "walk_prior_info"]
+           "ClockEstimate", "estimate_clock_offsets", "level_rate_noise",
+           "walk_prior_info"]
 
 #: Spacing of the knots of each station's piecewise-linear clock offset, s: a clock that
 #: drifts is linear between them, and its random walk moves it by about
@@ -207,6 +208,19 @@ def _walk_prior(knots: np.ndarray, S: int, q: float, q_rate: float) -> np.ndarra
     return np.kron(np.eye(S), walk_prior_info(knots, q, q_rate))
 
 
+def level_rate_noise(dt: np.ndarray, q: float, q_rate: float) -> np.ndarray:
+    """Covariance (N, 2, 2) of ``(level, rate)`` gathered over intervals ``dt`` (N,) s by a
+    random walk of the level of intensity ``q`` (unit^2/s) plus the integral of a random walk
+    of the rate of intensity ``q_rate`` (unit^2/s^3): ``[[q dt + q_rate dt^3/3,
+    q_rate dt^2/2], [q_rate dt^2/2, q_rate dt]]`` (the transition is ``[[1, dt], [0, 1]]``)."""
+    dt = np.asarray(dt, dtype=float)
+    Q = np.empty(dt.shape + (2, 2))
+    Q[..., 0, 0] = q * dt + q_rate * dt**3 / 3.0
+    Q[..., 0, 1] = Q[..., 1, 0] = q_rate * dt**2 / 2.0
+    Q[..., 1, 1] = q_rate * dt
+    return Q
+
+
 def walk_prior_info(knots: np.ndarray, q: float = WALK_S2_PER_S,
                     q_rate: float = RATE_WALK_S2_PER_S3, level_sigma: float = LEVEL_SIGMA_S,
                     rate_sigma: float = RATE_SIGMA) -> np.ndarray:
@@ -225,10 +239,7 @@ def walk_prior_info(knots: np.ndarray, q: float = WALK_S2_PER_S,
     A[J, J] += 1.0 / rate_sigma**2
     if J > 1:
         dt = np.diff(knots)
-        Q = np.empty((J - 1, 2, 2))
-        Q[:, 0, 0] = q * dt + q_rate * dt**3 / 3.0
-        Q[:, 0, 1] = Q[:, 1, 0] = q_rate * dt**2 / 2.0
-        Q[:, 1, 1] = q_rate * dt
+        Q = level_rate_noise(dt, q, q_rate)
         M = np.zeros((J - 1, 2, 4))  # x_k+1 - F x_k over (e_k, r_k, e_k+1, r_k+1)
         M[:, 0, 0] = M[:, 1, 1] = -1.0
         M[:, 0, 1] = -dt

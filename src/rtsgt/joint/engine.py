@@ -75,11 +75,12 @@ HYPOTHESIS_MAX_ITER = 30
 class JointState:
     """Knot poses ``R`` (K, 3, 3), ``t`` (K, 3) (``T_world_body``), body velocities ``w``
     (K, 6); stations ``R_s`` (S, 3, 3), ``t_s`` (S, 3) (``T_world_station``); ``kappa_ppm``;
-    ``clock`` (C, J) the clock knots' offsets, s (None without clocks); ``p_body`` (P, 3) the
+    ``clock`` (K, 2 C) the clocks' offsets, s, and rates at the knots
+    (:class:`rtsgt.joint.clock.ClockModel`; None without clocks); ``p_body`` (P, 3) the
     prisms' body positions, m (None: the problem's survey, held); ``sync`` (N,) the stations'
-    constant clock offsets against the robot's, s (None: not estimated); ``settle`` (S, 2, J)
-    the stations' settling since their calibration at its knots, height m and yaw rad (None:
-    not estimated); ``deviation`` (P, C) the prisms' deviation coefficients, m
+    constant clock offsets against the robot's, s (None: not estimated); ``settle`` (K, 4 S)
+    the stations' settling since their calibration and its rate at the knots
+    (:class:`rtsgt.joint.settling.SettleModel`; None: not estimated); ``deviation`` (P, C) the prisms' deviation coefficients, m
     (:mod:`rtsgt.joint.deviation`; None: not estimated); ``gm`` (K, n) the Gauss-Markov
     noise's chains at the knots (:mod:`rtsgt.joint.gm`; None: not estimated); ``R_mb`` (3, 3)
     the motion prior's axes (:mod:`rtsgt.joint.axes`: the knots are then motion-frame poses,
@@ -117,14 +118,14 @@ class JointProblem:
     the harmonics of the prisms' deviation ``deviation_orders`` (empty: none) with the prior
     sigma ``deviation_sigma`` (P, C) m of each coefficient (docs/joint.md#prism-deviation),
     the Gauss-Markov noise's chains (``gm``; None: none, docs/joint.md#gauss-markov-noise;
-    each knot's state is then its trajectory's and its chains' values), and the other
+    each knot's state is then its trajectory's, its chains', its clocks' and its settling's
+    values: :attr:`knot_dim`), and the other
     prisms whose move explains the data as well as the one found's
     (``prism_alternatives``: index, cost above the chosen's, weight;
     docs/joint.md#which-prism-moved), and whether the motion prior's axes are estimated
     (``motion_axes``, with the prior sigma ``axes_sigma`` rad, docs/joint.md#the-motion-axes).
     Globals: the free stations' ``(dt, dtheta)``, ``kappa``, the prisms' positions (3P), the
-    constant clock offsets, the prisms' deviation (P, C), the motion axes (3), the clocks'
-    knots (C, J), the settling's knots (S, 2, J)."""
+    constant clock offsets, the prisms' deviation (P, C), the motion axes (3)."""
 
     t_knot: np.ndarray
     of_meas: np.ndarray
@@ -157,9 +158,20 @@ class JointProblem:
         return 0 if self.gm is None else self.gm.n
 
     @property
-    def knot_dim(self) -> int:
-        """A knot's state: its trajectory's, then its Gauss-Markov chains'."""
+    def clock_col(self) -> int:
+        """Column of the first clock state in a knot's (after the Gauss-Markov chains')."""
         return TRAJECTORY_DIM + self.n_gm
+
+    @property
+    def settle_col(self) -> int:
+        """Column of the first settling state in a knot's (after the clocks')."""
+        return self.clock_col + (0 if self.clock is None else self.clock.size)
+
+    @property
+    def knot_dim(self) -> int:
+        """A knot's state: its trajectory's, then its Gauss-Markov chains', its clocks' and
+        its settling's (docs/joint.md#slowly-varying-states)."""
+        return self.settle_col + (0 if self.settle is None else self.settle.size)
 
     @property
     def kappa_col(self) -> int:
@@ -204,19 +216,10 @@ class JointProblem:
         return 3 if self.motion_axes else 0
 
     @property
-    def n_fixed(self) -> int:
-        """Globals before the clocks: the free stations', ``kappa``, the prisms', the
-        constant clock offsets, the prisms' deviation and the motion axes."""
-        return self.axes_col + self.n_axes
-
-    @property
-    def settle_col(self) -> int:
-        """Column of the first settling state among the globals (after the clocks')."""
-        return self.n_fixed + (0 if self.clock is None else self.clock.size)
-
-    @property
     def n_globals(self) -> int:
-        return self.settle_col + (0 if self.settle is None else self.settle.size)
+        """The globals: the free stations', ``kappa``, the prisms', the constant clock
+        offsets, the prisms' deviation and the motion axes."""
+        return self.axes_col + self.n_axes
 
 
 def station_prior_info(cov: np.ndarray) -> np.ndarray:
@@ -227,18 +230,15 @@ def station_prior_info(cov: np.ndarray) -> np.ndarray:
 
 def measurement_terms(prob: JointProblem, s: JointState):
     """Residuals (M, 3), Jacobians wrt the knots (M, 3, d) (:attr:`JointProblem.knot_dim`: the
-    trajectory's 12 and the measurement's station's Gauss-Markov chains), wrt the stations and
-    ``kappa``
-    (M, 3, n_fixed), wrt each measurement's slowly varying states (M, 3, A) and their columns
-    (M, A): its two clock knots (without clocks none), then its station's settling, height
-    and yaw at two knots (with ``prob.settle``); None without either. The settling enters to
-    first order (its sizes: millimetres and arc seconds); the prisms' deviation
+    trajectory's 12, the measurement's station's Gauss-Markov chains, clock and settling)
+    and wrt the globals (M, 3, G). The settling enters to first order (its sizes:
+    millimetres and arc seconds); the prisms' deviation
     (``prob.deviation_orders``) at the knot's pose, its slope in the viewing azimuth in the
     knots', the stations' and the prisms' columns (docs/joint.md#prism-deviation)."""
     m = prob.meas
     k = prob.of_meas
     ck = prob.clock
-    tau = prob.tau if ck is None else prob.tau - ck.offsets(s.clock)
+    tau = prob.tau if ck is None else prob.tau - ck.offsets(s.clock, k, prob.tau)
     sc = None if prob.n_sync == 0 else prob.sync_column[m.station]
     if sc is not None:  # recorded at t, measured at t - e: the offset from its knot shifts
         tau = tau - np.where(sc >= 0, s.sync[np.maximum(sc, 0)], 0.0)
@@ -266,16 +266,14 @@ def measurement_terms(prob: JointProblem, s: JointState):
     if prob.gm is not None:  # the station's chains add to its measurements
         r = r - gmn.chain_values(s.gm, k, m.station)
         Hk = np.concatenate([Hk, gmn.chain_jacobian(m.station, prob.n_gm)], axis=2)
-    Hset = cols_set = None
+    if ck is not None:  # recorded at t, measured at t - e
+        Hk = np.concatenate([Hk, -Htau[:, :, None] * ck.jacobian(prob.tau)[:, None, :]], 2)
     st = prob.settle
     if st is not None:
-        off = st.at(s.settle, m.station)  # (M, 2)
         Hkind = Hs[:, :, KIND_COLUMNS]  # (M, 3, 2)
-        r = r - np.einsum("mik,mk->mi", Hkind, off)
-        w = np.stack([1.0 - st.u, st.u], axis=1)  # (M, 2)
-        Hset = (Hkind[:, :, :, None] * w[:, None, None, :]).reshape(r.shape + (4,))
-        cols_set = st.columns(m.station, prob.settle_col)
-    Hg = np.zeros(r.shape + (prob.n_fixed,))
+        r = r - np.einsum("mik,mk->mi", Hkind, st.at(s.settle, k, m.station, prob.tau))
+        Hk = np.concatenate([Hk, Hkind @ st.jacobian(m.station, prob.tau)], axis=2)
+    Hg = np.zeros(r.shape + (prob.n_globals,))
     col = np.full(len(s.R_s), -1)
     col[prob.free] = np.arange(prob.free.size)
     c = col[m.station]
@@ -303,28 +301,16 @@ def measurement_terms(prob: JointProblem, s: JointState):
         n_c = Hdev.shape[2]
         cols = prob.deviation_col + n_c * m.prism[:, None] + np.arange(n_c)
         np.put_along_axis(Hg, np.broadcast_to(cols[:, None, :], Hdev.shape), Hdev, axis=2)
-    if ck is None:
-        return r, Hk, Hg, Hset, cols_set
-    has = (ck.row >= 0)[:, None]
-    Hc = -Htau[:, :, None] * np.stack([1.0 - ck.u, ck.u], axis=1)[:, None, :] * has[:, None]
-    first = prob.n_fixed + np.where(has[:, 0], ck.row, 0) * ck.knots.size + ck.j
-    cols = np.stack([first, first + 1], axis=1)
-    if Hset is None:
-        return r, Hk, Hg, Hc, cols
-    return r, Hk, Hg, np.concatenate([Hc, Hset], axis=2), np.concatenate([cols, cols_set], 1)
+    return r, Hk, Hg
 
 
 def measurement_global_factor(prob: JointProblem, sol, terms) -> np.ndarray:
     """``Z = Hk L_k + Hg chol_g`` (M, 3, G): each measurement's fitted value per unit
-    whitened global error (knots' share through the globals and its own global columns,
-    clocks included; :class:`rtsgt.joint.sparse.ArrowSolution`'s split), from the Jacobians
-    ``terms`` (``Hk, Hg, Hc, cols``) of :func:`measurement_terms`."""
-    Hk, Hg, Hc, cols = terms
-    Z = Hk @ sol.factor[prob.of_meas] + Hg @ sol.chol_g[:prob.n_fixed]
-    if Hc is not None:
-        for a in range(Hc.shape[2]):  # each measurement's clock and settling knots
-            Z += Hc[:, :, a:a + 1] * sol.chol_g[cols[:, a]][:, None, :]
-    return Z
+    whitened global error (knots' share through the globals and its own global columns;
+    :class:`rtsgt.joint.sparse.ArrowSolution`'s split), from the Jacobians ``terms``
+    (``Hk, Hg``) of :func:`measurement_terms`."""
+    Hk, Hg = terms
+    return Hk @ sol.factor[prob.of_meas] + Hg @ sol.chol_g
 
 
 def measurement_hsh(prob: JointProblem, s: JointState, sol, terms=None) -> np.ndarray:
@@ -337,48 +323,6 @@ def measurement_hsh(prob: JointProblem, s: JointState, sol, terms=None) -> np.nd
     Z = measurement_global_factor(prob, sol, terms)
     out = Hk @ sol.cov_var[k] @ np.swapaxes(Hk, 1, 2) + Z @ np.swapaxes(Z, 1, 2)
     return 0.5 * (out + np.swapaxes(out, 1, 2))
-
-
-def _slow_terms(prob: JointProblem, B, C, c, HtW, GtW, Hc, cols, r) -> None:
-    """Adds the measurements' columns of the slowly varying states (clocks, settling;
-    :func:`measurement_terms`) to ``B``, ``C``, ``c`` (in place)."""
-    info = prob.meas.info
-    Bt = np.swapaxes(B, 1, 2)  # (K, G, d) view
-    CtW = np.swapaxes(Hc, 1, 2) @ info  # (M, A, 3)
-    Ct = C[:prob.n_fixed].T  # (G, n_fixed) view
-    cross = np.einsum("mgi,mia->mag", GtW, Hc)  # (M, A, n_fixed)
-    cc = CtW @ Hc
-    cr = np.einsum("mai,mi->ma", CtW, r)
-    A = Hc.shape[2]
-    for a in range(A):  # a few columns per measurement
-        np.add.at(Bt, (prob.of_meas, cols[:, a]), (HtW @ Hc[:, :, a:a + 1])[:, :, 0])
-        np.add.at(Ct, cols[:, a], cross[:, a])
-        np.add.at(c, cols[:, a], cr[:, a])
-        for b in range(A):
-            np.add.at(C, (cols[:, a], cols[:, b]), cc[:, a, b])
-    C[prob.n_fixed:, :prob.n_fixed] = C[:prob.n_fixed, prob.n_fixed:].T
-
-
-def _slow_priors(prob: JointProblem, s: JointState, C, c) -> float:
-    """Adds the clocks' and the settling's priors to ``C``, ``c`` (in place); returns their
-    cost."""
-    cost = 0.0
-    blocks = []
-    if prob.clock is not None:
-        ck = prob.clock
-        blocks += [(ck.info, s.clock[i]) for i in range(ck.station.size)]
-    if prob.settle is not None:
-        st = prob.settle
-        blocks += [(st.info[i, k], s.settle[i, k]) for i in range(st.n_stations)
-                   for k in range(2)]
-    start = prob.n_fixed
-    for info, x in blocks:  # a handful of stations
-        sl = slice(start, start + x.size)
-        C[sl, sl] += info
-        c[sl] -= info @ x
-        cost += float(x @ info @ x)
-        start += x.size
-    return cost
 
 
 def _station_terms(prob: JointProblem, s: JointState):
@@ -412,23 +356,21 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
     cost = float(np.einsum("ki,kij,kj->", e, W, e))
     if prob.gm is not None:
         cost += gmn.add_prior(D, U, a, s.gm, dt, prob.gm, n)
-    r, Hk, Hg, Hc, cols = measurement_terms(prob, s)
+    if prob.clock is not None:
+        cost += prob.clock.prior.add_prior(D, U, a, s.clock, dt, prob.clock_col)
+    if prob.settle is not None:
+        cost += prob.settle.prior.add_prior(D, U, a, s.settle, dt, prob.settle_col)
+    r, Hk, Hg = measurement_terms(prob, s)
     info = prob.meas.info
     HtW = np.swapaxes(Hk, 1, 2) @ info
     scatter_add(D, prob.of_meas, HtW @ Hk)
-    G0 = prob.n_fixed
     B = np.zeros((K, d, G))
-    scatter_add(B[:, :, :G0], prob.of_meas, HtW @ Hg)
+    scatter_add(B, prob.of_meas, HtW @ Hg)
     scatter_add(a, prob.of_meas, np.einsum("mij,mj->mi", HtW, r))
     GtW = np.swapaxes(Hg, 1, 2) @ info
-    C = np.zeros((G, G))
-    c = np.zeros(G)
-    C[:G0, :G0] = np.tensordot(GtW, Hg, axes=([0, 2], [0, 1]))
-    c[:G0] = np.einsum("mgi,mi->g", GtW, r)
+    C = np.tensordot(GtW, Hg, axes=([0, 2], [0, 1]))
+    c = np.einsum("mgi,mi->g", GtW, r)
     cost += float(np.einsum("mi,mij,mj->", r, info, r))
-    if Hc is not None:
-        _slow_terms(prob, B, C, c, HtW, GtW, Hc, cols, r)
-    cost += _slow_priors(prob, s, C, c)
     es, Js = _station_terms(prob, s)
     Wp = prob.info_prior[prob.free]
     JtW = np.swapaxes(Js, 1, 2) @ Wp
@@ -471,20 +413,15 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
 def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> JointState:
     """``T_k exp(d_k^)``, ``w_k + dw_k``, ``t_s + dt``, ``exp(dtheta) R_s``, ``kappa + dk``,
     the prisms, the constant clock offsets, the deviation, ``R_mb exp(a^)``, the clock and
-    settling knots and the Gauss-Markov chains plus their steps."""
+    the Gauss-Markov chains, the clocks and the settling plus their steps."""
     dR, dp = exp_se3(x[:, :6])
     R = s.R @ dR
     t = s.t + np.einsum("kij,kj->ki", s.R, dp)
     R_s, t_s = s.R_s.copy(), s.t_s.copy()
-    G0, kc = prob.n_fixed, prob.kappa_col
+    kc = prob.kappa_col
     gs = g[:kc].reshape(-1, 6)
     t_s[prob.free] += gs[:, :3]
     R_s[prob.free] = exp_so3(gs[:, 3:]) @ R_s[prob.free]
-    clock = None if s.clock is None else s.clock + g[G0:G0 + s.clock.size].reshape(s.clock.shape)
-    settle = s.settle
-    if prob.settle is not None:
-        sc = prob.settle_col
-        settle = s.settle + g[sc:sc + s.settle.size].reshape(s.settle.shape)
     pb = s.p_body
     if prob.n_prism:
         pb = s.p_body + g[kc + 1:kc + 1 + prob.n_prism].reshape(s.p_body.shape)
@@ -498,8 +435,10 @@ def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> 
     R_mb = s.R_mb
     if prob.n_axes:
         R_mb = s.R_mb @ exp_so3(g[prob.axes_col:prob.axes_col + 3])
-    n = TRAJECTORY_DIM
-    chains = None if prob.gm is None else s.gm + x[:, n:]
+    n, cc, sc = TRAJECTORY_DIM, prob.clock_col, prob.settle_col
+    chains = None if prob.gm is None else s.gm + x[:, n:cc]
+    clock = None if s.clock is None else s.clock + x[:, cc:sc]
+    settle = None if s.settle is None else s.settle + x[:, sc:prob.knot_dim]
     return JointState(R, t, s.w + x[:, 6:n], R_s, t_s, s.kappa_ppm + float(g[kc]), clock, pb,
                       sync, settle, dev, chains, R_mb)
 
@@ -514,7 +453,11 @@ def difference(prob: JointProblem, a: JointState, b: JointState
     n = TRAJECTORY_DIM
     x[:, 6:n] = b.w - a.w
     if prob.gm is not None:
-        x[:, n:] = b.gm - a.gm
+        x[:, n:prob.clock_col] = b.gm - a.gm
+    if prob.clock is not None:
+        x[:, prob.clock_col:prob.settle_col] = b.clock - a.clock
+    if prob.settle is not None:
+        x[:, prob.settle_col:] = b.settle - a.settle
     g = np.zeros(prob.n_globals)
     kc, f = prob.kappa_col, prob.free
     g[:kc] = np.concatenate([b.t_s[f] - a.t_s[f],
@@ -529,10 +472,6 @@ def difference(prob: JointProblem, a: JointState, b: JointState
         g[dc:dc + prob.n_deviation] = (b.deviation - a.deviation).ravel()
     if prob.n_axes:
         g[prob.axes_col:prob.axes_col + 3] = log_so3(a.R_mb.T @ b.R_mb)
-    if prob.clock is not None:
-        g[prob.n_fixed:prob.settle_col] = (b.clock - a.clock).ravel()
-    if prob.settle is not None:
-        g[prob.settle_col:] = (b.settle - a.settle).ravel()
     return x, g
 
 
@@ -676,8 +615,8 @@ def noise_step(prob: JointProblem, s: JointState, sol, iteration: int = 1):
     m = prob.meas
     S = prob.R_prior.shape[0]
     Q = noise_basis(m.var_white, m.y[:, 2])
-    e, Hk, Hg, Hc, cols = measurement_terms(prob, s)
-    HSH = measurement_hsh(prob, s, sol, (Hk, Hg, Hc, cols))
+    e, Hk, Hg = measurement_terms(prob, s)
+    HSH = measurement_hsh(prob, s, sol, (Hk, Hg))
     old = prob.noise
     theta = np.tile(PRIOR, (S, 3, 1)) if old is None else old.theta
     cov = measurement_cov(m.corr, Q, m.station, theta)

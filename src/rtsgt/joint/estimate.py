@@ -19,7 +19,7 @@ from rtsgt.joint import deviation as pdev
 from rtsgt.joint import gm as gmn
 from rtsgt.joint.axes import body_qc, body_solution, velocities_in_body
 from rtsgt.joint.blockcv import raw_block_cv, raw_block_summary
-from rtsgt.joint.clock import clock_model
+from rtsgt.joint.clock import clock_model, report_times
 from rtsgt.joint.engine import (
     JointProblem,
     JointState,
@@ -38,17 +38,18 @@ from rtsgt.joint.knots import (
 from rtsgt.joint.measurements import GLOBAL_SOURCES, polar_measurements
 from rtsgt.joint.noise import NoiseFit
 from rtsgt.joint.prisms import PrismFit, prism_prior_info, prism_tests
-from rtsgt.joint.relative import JointPosterior, body_to_world, world_covariance
-from rtsgt.joint.settling import KINDS as SETTLE_KINDS
+from rtsgt.joint.relative import (
+    JointPosterior,
+    body_to_world,
+    linear_covariance,
+    world_covariance,
+)
 from rtsgt.joint.settling import settle_model
+from rtsgt.joint.slow import at_times
 from rtsgt.noise.model import NoiseModel
 from rtsgt.pose.estimate import PoseEstimate
 from rtsgt.pose.registration import shape_ratio
 from rtsgt.shared import POSE_COMPONENTS, SharedFactor
-
-#: Information (s^-2) holding a clock state's first knot at 0 when the stations' constant
-#: offsets are parameters of their own (the clock states are then their drift): 0.1 us.
-ANCHOR_INFO = 1.0 / (1e-7) ** 2
 
 
 @dataclass(frozen=True)
@@ -180,35 +181,31 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     info = np.stack([station_prior_info(c) for c in cov_s])
     ck = None
     ref = ids.index(calibration.reference_station)
-    if clocks and len(ids) > 1:  # a lone station has no clock to estimate against
-        ck = clock_model(meas.t, meas.station, len(ids), ref)
-    survey = np.asarray(reference.xyz, dtype=float)
-    p_info = prism_prior_info(reference.cov) if prisms else None
     # each station's constant clock offset against the robot's (the time_sync source, once
     # per deployment); with the clock states, those are its drift from the first knot on
     sync_col = np.arange(len(ids)) if sync else None
-    if ck is not None and sync:
-        anchored = ck.info.copy()
-        anchored[0, 0] += ANCHOR_INFO
-        ck = replace(ck, info=anchored)
+    if clocks and len(ids) > 1:  # a lone station has no clock to estimate against
+        ck = clock_model(meas.station, len(ids), ref, anchored=sync)
+    survey = np.asarray(reference.xyz, dtype=float)
+    p_info = prism_prior_info(reference.cov) if prisms else None
     prob = JointProblem(knots.t, knots.of_measurement, knots.tau, meas, survey, R_s, t_s, info,
                         free, qc, ck, p_info, np.asarray(reference.cov, dtype=float),
                         sync_column=sync_col, sync_var=model.time_sync_second_moment_s2,
-                        settle=_settle(meas.t, ids, calibrated_at) if settling else None,
+                        settle=_settle(knots.t[0], ids, calibrated_at) if settling else None,
                         deviation_orders=pdev.ORDERS if deviation else (),
                         deviation_sigma=_deviation_sigma(knots, meas, R0, p0, survey, t_s)
                         if deviation else None,
                         gm=gmn.start_model(meas.var_white, meas.station, len(ids))
                         if gauss_markov and noise else None, motion_axes=motion_axes)
+    K = knots.t.size
     state = JointState(R0, p0, body_velocities(knots.t, R0, p0), R_s, t_s, 0.0,
-                       None if ck is None else np.zeros((ck.station.size, ck.knots.size)),
+                       None if ck is None else np.zeros((K, ck.size)),
                        None if p_info is None else survey.copy(),
                        None if sync_col is None else np.zeros(prob.n_sync),
-                       None if not settling else np.zeros((len(ids), 2,
-                                                           prob.settle.knots.size)),
+                       None if not settling else np.zeros((K, prob.settle.size)),
                        None if not deviation else np.zeros((len(names),
                                                             pdev.n_coefficients(pdev.ORDERS))),
-                       None if prob.gm is None else np.zeros((knots.t.size, prob.n_gm)),
+                       None if prob.gm is None else np.zeros((K, prob.n_gm)),
                        np.eye(3) if motion_axes else None)
     prob, state, sol, solve, qc_fit = solve_with_qc(prob, state, estimate_qc, max_iter, tol,
                                                     noise, rng)
@@ -223,13 +220,13 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                      globals_ + tuple(f"moved_{names[j]}" for j, _, _ in prob.prism_alternatives))
     est = _pose_estimate(R, t, cov_pose, survey if pfit is None else pfit.xyz)
     return JointResult(tq, est, _station_results(ids, free, state, cov_g), state.kappa_ppm,
-                       meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, cov_g, ids, ref),
+                       meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, sol, ids, ref),
                        knots.t.size, meas.t.size, solve,
                        solve.costs[-1] / (3 * meas.t.size), shared, pfit,
                        None if prob.noise is None else replace(prob.noise, stations=ids),
                        JointPosterior(knots.t, *body[:4], body[4]), block_cv,
                        _time_sync(prob, state, cov_g, globals_),
-                       _settling(prob, state, cov_g, ids), _deviation(prob, state, cov_g, names),
+                       _settling(prob, state, sol, ids), _deviation(prob, state, cov_g, names),
                        None if prob.gm is None else replace(prob.gm, stations=ids),
                        _motion_axes(prob, state, cov_g))
 
@@ -244,22 +241,40 @@ def _motion_axes(prob: JointProblem, state: JointState, cov_g):
     return log_so3(state.R_mb), 0.5 * (c + c.T)
 
 
-def _settle(t, ids, calibrated_at):
-    """The settling model from rest at each station's calibration time."""
+def _settle(t0, ids, calibrated_at):
+    """The settling model from rest at each station's calibration time (``t0`` the first
+    knot's)."""
     cal = calibrated_at or {}
-    return settle_model(t, np.array([cal.get(sid, float(t.min())) for sid in ids]))
+    return settle_model(t0, np.array([cal.get(sid, t0) for sid in ids]))
 
 
-def _settling(prob: JointProblem, state: JointState, cov_g, ids) -> dict:
-    """Each station's settling knots, height and yaw changes and their sigmas."""
+def _report(prob: JointProblem, sol, z: np.ndarray, col: int, Ag: np.ndarray | None = None):
+    """The levels of slowly varying processes (:mod:`rtsgt.joint.slow`; ``z`` (K, 2 n) the
+    knots' states, at knot columns ``col`` on) at the report times (J,)
+    (:func:`rtsgt.joint.clock.report_times`): the times, the levels (J, n) and their
+    covariance (n J, n J), process-major, with ``Ag`` (n, G) adding globals to each level."""
+    t = report_times(float(prob.t_knot[0]), float(prob.t_knot[-1]))
+    lv, k, w = at_times(z, prob.t_knot, t)
+    n, J = z.shape[1] // 2, t.size
+    Ax = np.zeros((n, J, prob.knot_dim))
+    for i in range(n):  # a handful of processes
+        Ax[i, :, col + 2 * i:col + 2 * i + 2] = w
+    Ag = np.zeros((n, prob.n_globals)) if Ag is None else Ag
+    cov = linear_covariance(sol, np.tile(k, n), Ax.reshape(n * J, -1), np.repeat(Ag, J, 0))
+    return t, lv, cov
+
+
+def _settling(prob: JointProblem, state: JointState, sol, ids) -> dict:
+    """Each station's settling at the report times: the times, height and yaw changes and
+    their sigmas (J, 2)."""
     st = prob.settle
     if st is None:
         return {}
-    J = st.knots.size
-    var = np.diag(cov_g)[prob.settle_col:prob.settle_col + st.size].reshape(-1, 2, J)
-    sd = np.sqrt(np.clip(var, 0.0, None))
-    return {sid: (st.knots, state.settle[i, 0].copy(), state.settle[i, 1].copy(), sd[i].T.copy())
-            for i, sid in enumerate(ids)}
+    t, lv, cov = _report(prob, sol, state.settle, prob.settle_col)
+    J = t.size
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None)).reshape(-1, J)  # (2 S, J)
+    return {sid: (t, lv[:, 2 * i].copy(), lv[:, 2 * i + 1].copy(),
+                  sd[2 * i:2 * i + 2].T.copy()) for i, sid in enumerate(ids)}
 
 
 def _deviation_sigma(knots, meas, R0, p0, survey, t_s) -> np.ndarray:
@@ -328,13 +343,11 @@ def global_names(prob: JointProblem, ids, prisms=()) -> tuple[str, ...]:
     estimated; ``prisms`` their names), the stations' constant clock offsets
     ``time_sync_station<id>``, the prisms' deviation
     ``deviation_<prism>_<order>_<cos|sin>_<range|across|vertical>``, the motion axes'
-    ``motion_axes_<rx|ry|rz>`` (where estimated), the clocks' knots
-    ``clock_station<id>_<jjjj>``, the settling's ``settle_station<id>_<height|yaw>_<jjjj>``."""
+    ``motion_axes_<rx|ry|rz>`` (where estimated)."""
     names = [f"calibration_station{ids[i]}_{c}" for i in prob.free for c in POSE_COMPONENTS]
     names.append("atmosphere_ppm")
     if prob.n_prism:
         names += [f"reference_{p}_{c}" for p in prisms for c in "xyz"]
-    ck = prob.clock
     if prob.n_sync:
         names += [f"time_sync_station{s}" for s in ids]
     if prob.n_deviation:
@@ -343,13 +356,6 @@ def global_names(prob: JointProblem, ids, prisms=()) -> tuple[str, ...]:
                   for comp in pdev.COMPONENTS]
     if prob.n_axes:
         names += [f"motion_axes_{c}" for c in POSE_COMPONENTS[3:]]
-    if ck is not None:
-        names += [f"clock_station{ids[i]}_{j:04d}" for i in ck.station
-                  for j in range(ck.knots.size)]
-    st = prob.settle
-    if st is not None:
-        names += [f"settle_station{sid}_{kind}_{j:04d}" for sid in ids for kind in SETTLE_KINDS
-                  for j in range(st.knots.size)]
     return tuple(names)
 
 
@@ -373,25 +379,24 @@ def _shared(tq, t_knot, body, names) -> SharedFactor:
     return SharedFactor(tq, body_to_world(R) @ L, names, body_to_world_cov(R, var))
 
 
-def _clocks(prob, state, cov_g, ids, reference: int):
+def _clocks(prob, state, sol, ids, reference: int):
     """Each non-reference station's clock offset against the ``reference`` station at the
-    clock knots: its drift (the clock states) plus, where estimated, the difference of the
-    two stations' constant offsets; ``(knots, offsets, covariance)``."""
+    report times: its drift (the clock states) plus, where estimated, the difference of the
+    two stations' constant offsets; ``(times, offsets (J,), covariance (J, J))``."""
     ck = prob.clock
     if ck is None:
         return {}
-    J = ck.knots.size
-    out = {}
-    for i, sidx in enumerate(ck.station):
-        A = np.zeros((J, cov_g.shape[0]))
-        A[:, prob.n_fixed + i * J:prob.n_fixed + (i + 1) * J] = np.eye(J)
-        off = state.clock[i].copy()
-        if prob.n_sync:
-            A[:, prob.sync_col + sidx] += 1.0
-            A[:, prob.sync_col + reference] -= 1.0
-            off += state.sync[sidx] - state.sync[reference]
-        out[ids[sidx]] = (ck.knots, off, A @ cov_g @ A.T)
-    return out
+    C = ck.station.size
+    Ag = np.zeros((C, prob.n_globals))
+    if prob.n_sync:
+        Ag[np.arange(C), prob.sync_col + ck.station] += 1.0
+        Ag[:, prob.sync_col + reference] -= 1.0
+    t, lv, cov = _report(prob, sol, state.clock, prob.clock_col, Ag)
+    if prob.n_sync:
+        lv = lv + state.sync[ck.station] - state.sync[reference]
+    J = t.size
+    return {ids[sidx]: (t, lv[:, i].copy(), cov[i * J:(i + 1) * J, i * J:(i + 1) * J].copy())
+            for i, sidx in enumerate(ck.station)}
 
 
 def body_to_world_cov(R: np.ndarray, cov: np.ndarray) -> np.ndarray:

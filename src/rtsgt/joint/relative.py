@@ -17,7 +17,7 @@ from rtsgt.joint.prior import TRAJECTORY_DIM
 from rtsgt.joint.sparse import ArrowSolution
 
 __all__ = ["JointPosterior", "body_to_world", "chain_gains", "chain_products", "knot_cross_covariance",
-           "query_cross_covariance", "world_covariance"]
+           "linear_covariance", "query_cross_covariance", "world_covariance"]
 
 
 def chain_gains(sol: ArrowSolution) -> np.ndarray:
@@ -44,6 +44,32 @@ def knot_cross_covariance(sol: ArrowSolution, gains: np.ndarray, k_a: np.ndarray
     k_a, k_b = np.asarray(k_a), np.asarray(k_b)
     C = chain_products(gains, k_a, k_b) @ sol.cov_var[k_b]
     return C + sol.factor[k_a] @ np.swapaxes(sol.factor[k_b], 1, 2)
+
+
+def linear_covariance(sol: ArrowSolution, k: np.ndarray, Ax: np.ndarray, Ag: np.ndarray
+                      ) -> np.ndarray:
+    """Covariance (N, N) of ``N`` linear functions ``y_i = Ax_i x_ki + Ag_i g`` of the knots'
+    states and the globals: ``k`` (N,) each one's knot, ``Ax`` (N, d), ``Ag`` (N, G). The
+    chain's part ``Ax_a G_ka ... G_kb-1 Cov(x_kb) Ax_b^T`` (:func:`chain_gains`; one product
+    of gains between each two consecutive knots of ``k``, then one matrix per pair of them:
+    for a few hundred functions, not for every knot), the globals' ``Z Z^T``,
+    ``Z_i = Ax_i L_ki + Ag_i chol_g``."""
+    k = np.asarray(k)
+    u, of = np.unique(k, return_inverse=True)
+    P = chain_products(chain_gains(sol), u[:-1], u[1:])
+    out = np.zeros((k.size, k.size))
+    for b in range(u.size):  # the knots in ``k``: a few dozen
+        rb = np.flatnonzero(of == b)
+        M = sol.cov_var[u[b]] @ Ax[rb].T  # Cov(x_ua, x_ub) Ax_b^T, from a = b down
+        for a in range(b, -1, -1):
+            if a < b:
+                M = P[a] @ M
+            ra = np.flatnonzero(of == a)
+            out[np.ix_(ra, rb)] = Ax[ra] @ M
+            out[np.ix_(rb, ra)] = out[np.ix_(ra, rb)].T
+    Z = np.einsum("nd,ndg->ng", Ax, sol.factor[k]) + Ag @ sol.chol_g
+    out += Z @ Z.T
+    return 0.5 * (out + out.T)
 
 
 def query_cross_covariance(sol: ArrowSolution, k_a: np.ndarray, J_a: np.ndarray,

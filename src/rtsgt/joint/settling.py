@@ -1,7 +1,7 @@
-"""The stations' set-ups settling during the deployment, as global parameters of the joint
-engine: each station's height and yaw change since its calibration, piecewise linear with
-knots every :data:`rtsgt.clocks.KNOT_SPACING_S` (the clocks' grid), with a prior of a random
-walk plus a drift from its calibration on: docs/joint.md#settling-tripods.
+"""The stations' set-ups settling during the deployment in the joint engine: each station's
+height and yaw change since its calibration, a level and its rate at every knot
+(:mod:`rtsgt.joint.slow`), from rest at its calibration: a random walk plus a drift
+(docs/joint.md#settling-tripods).
 """
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rtsgt.clocks import KNOT_SPACING_S
-from rtsgt.joint.clock import clock_knots, knot_intervals
+from rtsgt.clocks import level_rate_noise
+from rtsgt.joint.slow import LevelRate
 from rtsgt.measurement.instruments import ARCSEC
 
 #: The settling's kinds, in the order of every (..., 2) axis here: the station's height (m,
@@ -36,67 +36,66 @@ HOUR_S = 3600.0
 
 @dataclass(frozen=True)
 class SettleModel:
-    """``knots`` (J,) s; ``info`` (S, 2, J, J) the prior information of each station's knots
-    per kind (:data:`KINDS`; m^-2, rad^-2); per measurement ``j`` (M,) its interval's left
-    knot and ``u`` (M,) its position in it (0-1). The states, (S, 2, J), are the globals
-    ``base + (2 s + kind) J + j``."""
+    """``n_stations`` stations' settling, per station and kind (:data:`KINDS`) one process of
+    ``prior`` (:class:`rtsgt.joint.slow.LevelRate`; process ``2 s + kind``, m and rad). A
+    knot's settling states (``4 S``) are, per station and kind, the change (level) and its
+    rate."""
 
-    knots: np.ndarray
-    info: np.ndarray
-    j: np.ndarray
-    u: np.ndarray
-
-    @property
-    def n_stations(self) -> int:
-        return self.info.shape[0]
+    n_stations: int
+    prior: LevelRate
 
     @property
     def size(self) -> int:
-        return self.n_stations * 2 * self.knots.size
+        """States per knot."""
+        return self.prior.size
 
-    def at(self, states: np.ndarray, station: np.ndarray) -> np.ndarray:
-        """Each measurement's settling (M, 2) (height m, yaw rad) from the knots' ``states``
-        (S, 2, J) and its ``station`` (M,)."""
-        a = states[station, :, self.j]
-        b = states[station, :, self.j + 1]
-        return (1.0 - self.u)[:, None] * a + self.u[:, None] * b
+    def at(self, z: np.ndarray, knot: np.ndarray, station: np.ndarray, tau: np.ndarray
+           ) -> np.ndarray:
+        """Each measurement's settling (M, 2) (height m, yaw rad), ``level + tau rate`` of
+        its knot ``knot`` (M,) at ``tau`` (M,) s from it, its station ``station`` (M,), from
+        the knots' states ``z`` (K, 4 S)."""
+        c = 4 * station[:, None] + 2 * np.arange(2)[None, :]  # (M, 2) the levels' columns
+        k = knot[:, None]
+        return z[k, c] + tau[:, None] * z[k, c + 1]
 
-    def columns(self, station: np.ndarray, base: int) -> np.ndarray:
-        """Each measurement's four global columns (M, 4): height at its interval's two knots,
-        then yaw at them; ``base`` the first settling column."""
-        J = self.knots.size
-        first = base + (2 * station[:, None] + np.arange(2)[None, :]) * J + self.j[:, None]
-        return np.stack([first[:, 0], first[:, 0] + 1, first[:, 1], first[:, 1] + 1], axis=1)
-
-
-def settle_prior_info(knots: np.ndarray, walk_sigma: float, drift_sigma: float,
-                      calibrated_at: float, anchor_sigma: float) -> np.ndarray:
-    """Information (J, J) of one station's knots ``knots`` (J,) s of one kind: the inverse of
-    the covariance of a random walk (``q_w = walk_sigma^2 / 1 h``, ``q_w min(a, b)``) plus an
-    integrated one from rest (``q_d = 3 drift_sigma^2 / (1 h)^3``,
-    ``q_d min^2 (3 max - min) / 6``), both 0 at ``calibrated_at`` s (at or before the first
-    knot; ``a``, ``b`` the knots' times since it), plus ``anchor_sigma^2`` on the diagonal."""
-    tau = np.maximum(np.asarray(knots, dtype=float) - calibrated_at, 0.0)
-    lo = np.minimum.outer(tau, tau)
-    hi = np.maximum.outer(tau, tau)
-    cov = (walk_sigma**2 / HOUR_S * lo + 3.0 * drift_sigma**2 / HOUR_S**3
-           * lo**2 * (3.0 * hi - lo) / 6.0 + anchor_sigma**2 * np.eye(tau.size))
-    info = np.linalg.inv(cov)
-    return 0.5 * (info + info.T)
+    def jacobian(self, station: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        """``d settling / d z_k`` (M, 2, 4 S) of :meth:`at`."""
+        M = station.size
+        J = np.zeros((M, 2, self.size))
+        m = np.arange(M)
+        for kind in range(2):
+            c = 4 * station + 2 * kind
+            J[m, kind, c] = 1.0
+            J[m, kind, c + 1] = tau
+        return J
 
 
-def settle_model(t: np.ndarray, calibrated_at: np.ndarray, spacing: float = KNOT_SPACING_S,
+def settle_start(walk_sigma: float, drift_sigma: float, elapsed: float,
+                 anchor_sigma: float) -> np.ndarray:
+    """Covariance (2, 2) of one kind's ``(change, rate)`` ``elapsed`` s after its calibration
+    (from rest, zero change, there): a random walk of intensity ``walk_sigma^2 / 1 h`` and an
+    integrated one of ``3 drift_sigma^2 / (1 h)^3`` (:func:`rtsgt.clocks.level_rate_noise`)
+    plus ``anchor_sigma^2`` on the change and ``(anchor_sigma / 1 h)^2`` on its rate."""
+    Q = level_rate_noise(np.asarray(max(elapsed, 0.0)), walk_sigma**2 / HOUR_S,
+                         3.0 * drift_sigma**2 / HOUR_S**3)
+    return Q + np.diag([anchor_sigma**2, (anchor_sigma / HOUR_S) ** 2])
+
+
+def settle_model(t0: float, calibrated_at: np.ndarray,
                  scale: tuple[float, float] = (1.0, 1.0)) -> SettleModel:
-    """The settling states of each station for measurements at times ``t`` (M,) s;
-    ``calibrated_at`` (S,) s each station's calibration time (at most the first measurement's;
-    later ones are taken as at it); ``scale`` multiplies each kind's sigmas."""
-    knots = clock_knots(float(t.min()), float(t.max()), spacing)
-    cal = np.minimum(np.asarray(calibrated_at, dtype=float), knots[0])
-    info = np.stack([[settle_prior_info(knots, HOUR_WALK_SIGMA[k] * scale[k],
-                                        HOUR_DRIFT_SIGMA[k] * scale[k], c, ANCHOR_SIGMA[k])
-                      for k in range(2)] for c in cal])
-    return SettleModel(knots, info, *knot_intervals(knots, t))
+    """The settling states of each station from the first knot's time ``t0`` s on;
+    ``calibrated_at`` (S,) s each station's calibration time (at most ``t0``; later ones are
+    taken as at it); ``scale`` multiplies each kind's sigmas."""
+    cal = np.minimum(np.asarray(calibrated_at, dtype=float), t0)
+    walk = np.array([HOUR_WALK_SIGMA[k] * scale[k] for k in range(2)])
+    drift = np.array([HOUR_DRIFT_SIGMA[k] * scale[k] for k in range(2)])
+    start = np.stack([settle_start(walk[k], drift[k], t0 - c, ANCHOR_SIGMA[k])
+                      for c in cal for k in range(2)])
+    n = cal.size
+    prior = LevelRate(np.tile(walk**2 / HOUR_S, n), np.tile(3.0 * drift**2 / HOUR_S**3, n),
+                      start)
+    return SettleModel(n, prior)
 
 
 __all__ = ["HOUR_DRIFT_SIGMA", "HOUR_WALK_SIGMA", "KINDS", "KIND_COLUMNS", "SettleModel",
-           "settle_model", "settle_prior_info"]
+           "settle_model", "settle_start"]
