@@ -264,12 +264,15 @@ def test_scatter_add_sums_each_rows_values_as_add_at_does(order):
     assert np.all(out[:, :, 3:] == 0.0) and np.all(out[empty] == 0.0)
 
 
-@pytest.mark.parametrize("chunk", [4, 2048])
-def test_arrow_solver_matches_a_dense_solve_of_the_same_normal_equations(chunk, monkeypatch):
+@pytest.mark.parametrize(("chunk", "K"), [(4, 13), (2048, 14)])
+def test_arrow_solver_matches_a_dense_solve_of_the_same_normal_equations(chunk, K,
+                                                                        monkeypatch):
+    """With the covariances and without (the Schur complement from the forward pass alone),
+    an odd and an even number of knots."""
     monkeypatch.setattr(sparse, "CHUNK", chunk)  # the globals' share in blocks of knots
     rng = np.random.default_rng(4)
-    prob, truth = _synthetic(rng, K=13, noise=1.0)
-    start = retract(prob, truth, 1e-3 * rng.normal(size=(13, 12)), 1e-4 * rng.normal(size=13))
+    prob, truth = _synthetic(rng, K=K, noise=1.0)
+    start = retract(prob, truth, 1e-3 * rng.normal(size=(K, 12)), 1e-4 * rng.normal(size=13))
     system, _ = assemble(prob, start)
     sol = solve_arrow(system, want_cov=True)
     x, g, cov, cov_g = sol.x, sol.g, sol.cov, sol.cov_g
@@ -277,12 +280,15 @@ def test_arrow_solver_matches_a_dense_solve_of_the_same_normal_equations(chunk, 
     ref = np.linalg.solve(M, b)
     scale = np.abs(ref).max()
     np.testing.assert_allclose(np.concatenate([x.ravel(), g]), ref, atol=1e-9 * scale)
+    bare = solve_arrow(system)
+    assert bare.cov is None
+    np.testing.assert_allclose(np.concatenate([bare.x.ravel(), bare.g]), ref, atol=1e-9 * scale)
     inv = np.linalg.inv(M)
     n = x.size
-    for k in range(13):
+    for k in range(K):
         blk = inv[12 * k:12 * k + 12, 12 * k:12 * k + 12]
         np.testing.assert_allclose(cov[k], blk, atol=1e-9 * np.abs(blk).max())
-    for k in range(12):  # consecutive knots' cross covariance
+    for k in range(K - 1):  # consecutive knots' cross covariance
         blk = inv[12 * k:12 * k + 12, 12 * k + 12:12 * k + 24]
         np.testing.assert_allclose(sol.cov_next[k], blk, atol=1e-9 * np.abs(blk).max())
     np.testing.assert_allclose(cov_g, inv[n:, n:], atol=1e-9 * np.abs(inv[n:, n:]).max())
@@ -291,10 +297,10 @@ def test_arrow_solver_matches_a_dense_solve_of_the_same_normal_equations(chunk, 
     cross = np.einsum("kig,hg->kih", sol.factor, sol.chol_g).reshape(n, -1)
     np.testing.assert_allclose(cross, inv[:n, n:], atol=1e-9 * np.abs(inv[:n, n:]).max())
     np.testing.assert_allclose(sol.chol_g @ sol.chol_g.T, cov_g, rtol=1e-12, atol=0)
-    for k in range(13):
+    for k in range(K):
         blk = inv_a[12 * k:12 * k + 12, 12 * k:12 * k + 12]
         np.testing.assert_allclose(sol.cov_var[k], blk, atol=1e-9 * np.abs(blk).max())
-        if k < 12:
+        if k < K - 1:
             blk = inv_a[12 * k:12 * k + 12, 12 * k + 12:12 * k + 24]
             np.testing.assert_allclose(sol.cov_var_next[k], blk, atol=1e-9 * np.abs(blk).max())
 

@@ -109,49 +109,86 @@ def _sym(a: np.ndarray) -> np.ndarray:
     return 0.5 * (a + np.swapaxes(a, -1, -2))
 
 
-def _reduce(D, U, h):
-    """One level: eliminate the odd blocks; returns the even system and what back-solves."""
-    n, d, _ = D.shape
-    n_even, n_odd = (n + 1) // 2, n // 2
-    b_left = U[0::2]  # A_{i-1,i}, i odd
-    b_right = U[1::2]  # A_{i,i+1}, i odd
-    if n % 2 == 0:
-        b_right = np.concatenate([b_right, np.zeros((1, d, d))])
-    d_inv = _spd_inv(D[1::2])
-    ga = d_inv @ np.swapaxes(b_left, 1, 2)  # D_i^-1 A_{i,i-1}
-    gb = d_inv @ b_right  # D_i^-1 A_{i,i+1}
-    g = d_inv @ h[1::2]
-    d_e = D[0::2].copy()
-    d_e[:n_odd] -= b_left @ ga
-    d_e[1:] -= (np.swapaxes(b_right, 1, 2) @ gb)[: n_even - 1]
-    h_e = h[0::2].copy()
-    h_e[:n_odd] -= b_left @ g
-    h_e[1:] -= (np.swapaxes(b_right, 1, 2) @ g)[: n_even - 1]
-    u_e = -(b_left @ gb)[: n_even - 1]
-    return (_sym(d_e), u_e, h_e), (d_inv, ga, gb, g, n)
+@dataclass(frozen=True)
+class _Level:
+    """One level of the reduction: its ``n`` blocks, the odd ones' ``d_inv`` (D_i^-1),
+    ``ga`` (D_i^-1 A_i,i-1), ``gb`` (D_i^-1 A_i,i+1) and couplings ``b_left`` (A_i-1,i),
+    ``b_right`` (A_i,i+1; zero past the end)."""
+
+    n: int
+    d_inv: np.ndarray
+    ga: np.ndarray
+    gb: np.ndarray
+    b_left: np.ndarray
+    b_right: np.ndarray
 
 
-def solve_tridiagonal(D: np.ndarray, U: np.ndarray, h: np.ndarray, want_cov: bool = False):
-    """Solve ``A X = h`` (h (K, d, m)) for a block-tridiagonal SPD ``A``; with ``want_cov`` also
-    the diagonal blocks (K, d, d) of ``A^-1`` and its blocks ``(A^-1)_k,k+1`` (K-1, d, d)
-    (else None, None)."""
+def _eliminate(D, U) -> tuple[list[_Level], np.ndarray]:
+    """The block-tridiagonal matrix's reduction: its levels (the odd blocks eliminated, a
+    level at a time) and the inverse (d, d) of the last block left."""
     levels = []
     while D.shape[0] > 1:
-        (D, U, h), lev = _reduce(D, U, h)
-        levels.append(lev)
-    S = _spd_inv(D)
+        n, d, _ = D.shape
+        n_even, n_odd = (n + 1) // 2, n // 2
+        b_left = U[0::2]
+        b_right = U[1::2]
+        if n % 2 == 0:
+            b_right = np.concatenate([b_right, np.zeros((1, d, d))])
+        d_inv = _spd_inv(D[1::2])
+        ga = d_inv @ np.swapaxes(b_left, 1, 2)
+        gb = d_inv @ b_right
+        d_e = D[0::2].copy()
+        d_e[:n_odd] -= b_left @ ga
+        d_e[1:] -= (np.swapaxes(b_right, 1, 2) @ gb)[: n_even - 1]
+        U = -(b_left @ gb)[: n_even - 1]
+        D = _sym(d_e)
+        levels.append(_Level(n, d_inv, ga, gb, b_left, b_right))
+    return levels, _spd_inv(D)
+
+
+def _forward(levels: list[_Level], h: np.ndarray, keep: bool = True, schur: bool = False):
+    """The right-hand side ``h`` (K, d, m) through the reduction: the root's (1, d, m), each
+    level's ``g = D_i^-1 h_i`` of its odd blocks (where ``keep``, for :func:`_back`) and,
+    with ``schur``, ``sum_i h_i^T D_i^-1 h_i`` (m, m) over the odd blocks (with the root's,
+    ``h^T A^-1 h``: the elimination is an ``L D L^T`` factorisation)."""
+    gs = []
+    T = np.zeros((h.shape[2], h.shape[2])) if schur else None
+    for lev in levels:
+        n_even, n_odd = (lev.n + 1) // 2, lev.n // 2
+        h_o = h[1::2]
+        g = lev.d_inv @ h_o
+        if schur:
+            T += np.tensordot(h_o, g, axes=([0, 1], [0, 1]))  # BLAS, not einsum's loop
+        h_e = h[0::2].copy()
+        h_e[:n_odd] -= lev.b_left @ g
+        h_e[1:] -= (np.swapaxes(lev.b_right, 1, 2) @ g)[: n_even - 1]
+        if keep:
+            gs.append(g)
+        h = h_e
+    return h, gs, T
+
+
+def _back(levels: list[_Level], S: np.ndarray, h: np.ndarray, gs: list) -> np.ndarray:
+    """The solution (K, d, m) from the root's right-hand side ``h`` and the levels' ``g``
+    (:func:`_forward`), ``S`` the root's inverse."""
     x = S @ h
-    C = np.zeros((0,) + D.shape[1:])
-    while levels:
-        d_inv, ga, gb, g, n = levels.pop()
-        dim = ga.shape[-1]
+    for lev, g in zip(reversed(levels), reversed(gs), strict=True):
+        n = lev.n
         x_e = x if n % 2 else np.concatenate([x, np.zeros((1,) + x.shape[1:])])
-        x_o = g - ga @ x_e[:-1] - gb @ x_e[1:]
+        x_o = g - lev.ga @ x_e[:-1] - lev.gb @ x_e[1:]
         x = np.empty((n,) + x_o.shape[1:])
         x[0::2] = x_e[: (n + 1) // 2]
         x[1::2] = x_o
-        if not want_cov:
-            continue
+    return x
+
+
+def _inverse_blocks(levels: list[_Level], S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The diagonal blocks (K, d, d) of ``A^-1`` and its blocks ``(A^-1)_k,k+1`` (K-1, d, d)
+    from the reduction (``S`` the root's inverse): the recursion of interpolation/gp.py."""
+    dim = S.shape[-1]
+    C = np.zeros((0, dim, dim))
+    for lev in reversed(levels):
+        n, ga, gb = lev.n, lev.ga, lev.gb
         s_e, c_e = S, C
         if n % 2 == 0:
             s_e = np.concatenate([s_e, np.zeros((1, dim, dim))])
@@ -159,16 +196,26 @@ def solve_tridiagonal(D: np.ndarray, U: np.ndarray, h: np.ndarray, want_cov: boo
         # rows i (odd) of A Sigma = I with neighbours a = i-1, b = i+1
         s_ia = -(ga @ s_e[:-1] + gb @ np.swapaxes(c_e, 1, 2))
         s_ib = -(ga @ c_e + gb @ s_e[1:])
-        s_ii = d_inv - ga @ np.swapaxes(s_ia, 1, 2) - gb @ np.swapaxes(s_ib, 1, 2)
+        s_ii = lev.d_inv - ga @ np.swapaxes(s_ia, 1, 2) - gb @ np.swapaxes(s_ib, 1, 2)
         S = np.empty((n, dim, dim))
         S[0::2] = s_e[: (n + 1) // 2]
         S[1::2] = _sym(s_ii)
         C = np.empty((n - 1, dim, dim))
         C[0::2] = np.swapaxes(s_ia, 1, 2)
         C[1::2] = s_ib[: (n - 1) // 2]
+    return S, C
+
+
+def solve_tridiagonal(D: np.ndarray, U: np.ndarray, h: np.ndarray, want_cov: bool = False):
+    """Solve ``A X = h`` (h (K, d, m)) for a block-tridiagonal SPD ``A``; with ``want_cov`` also
+    the diagonal blocks (K, d, d) of ``A^-1`` and its blocks ``(A^-1)_k,k+1`` (K-1, d, d)
+    (else None, None)."""
+    levels, S = _eliminate(D, U)
+    root, gs, _ = _forward(levels, h)
+    x = _back(levels, S, root, gs)
     if not want_cov:
         return x, None, None
-    return x, S, C
+    return (x, *_inverse_blocks(levels, S))
 
 
 def solve_arrow(system: ArrowSystem, want_cov: bool = False):
@@ -176,7 +223,9 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
 
     ``Y = A^-1 [a, B]``, ``S = C - B^T A^-1 B``, ``g = S^-1 (c - B^T A^-1 a)``,
     ``x = A^-1 a - A^-1 B g``. Returns an :class:`ArrowSolution`; its covariances are None
-    without ``want_cov``. The system is scaled by its diagonal first (Jacobi).
+    without ``want_cov``, and then ``A^-1 B`` is not formed: ``B^T A^-1 B`` comes out of the
+    reduction's forward pass and ``x`` from one more column, ``A^-1 (a - B g)``. The system
+    is scaled by its diagonal first (Jacobi).
     """
     D, U, B, C = system.D, system.U, system.B, system.C
     K, d, _ = D.shape
@@ -190,7 +239,20 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
     rhs[:, :, 0] = system.a * sx
     np.multiply(B, sx[:, :, None] * sg[None, None, :], out=rhs[:, :, 1:])
     Bs = rhs[:, :, 1:]
-    Y, Sd, Cd = solve_tridiagonal(Ds, Us, rhs, want_cov)
+    levels, S = _eliminate(Ds, Us)
+    if not want_cov:  # the Schur complement from the forward pass; one column back
+        root, _, T = _forward(levels, rhs, keep=False, schur=True)
+        T += np.tensordot(root, S @ root, axes=([0, 1], [0, 1]))  # [a, B]^T A^-1 [a, B]
+        g = np.zeros(0)
+        if G:
+            g = _spd_inv(_sym(Cs - T[1:, 1:])) @ (system.c * sg - T[1:, 0])
+        r = rhs[:, :, :1] - Bs @ g[:, None]
+        root, gs, _ = _forward(levels, r)
+        x = _back(levels, S, root, gs)[:, :, 0]
+        return ArrowSolution(x * sx, g * sg, None, None, None)
+    root, gs, _ = _forward(levels, rhs)
+    Y = _back(levels, S, root, gs)
+    del gs
     ya, yb = Y[:, :, 0], Y[:, :, 1:]
     if G:
         schur = Cs - np.tensordot(Bs, yb, axes=([0, 1], [0, 1]))  # BLAS, not einsum's loop
@@ -200,8 +262,7 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
     else:
         schur_inv, g, x = np.zeros((0, 0)), np.zeros(0), ya
     x, g = x * sx, g * sg
-    if not want_cov:
-        return ArrowSolution(x, g, None, None, None)
+    Sd, Cd = _inverse_blocks(levels, S)
     # L_k = -Y_B,k chol(S^-1) = -Sx yb_s chol(Ss^-1) (the globals' scale cancels), written
     # over yb in place, a few thousand knots at a time (no second (K, d, G) array)
     chol_s = np.linalg.cholesky(schur_inv) if G else np.zeros((0, 0))
