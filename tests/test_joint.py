@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from rtsgt.clocks import walk_prior_info
 from rtsgt.errors import InputError
 from rtsgt.geometry.so3 import exp_so3, quat_xyzw_to_matrix
 from rtsgt.geometry.transform import perturbation
@@ -17,7 +18,7 @@ from rtsgt.io.deployment import load_deployment
 from rtsgt.joint import engine as engine_module
 from rtsgt.joint import estimate_joint, sparse
 from rtsgt.joint import gm as gmn
-from rtsgt.joint.clock import clock_model
+from rtsgt.joint.clock import clock_model, report_times
 from rtsgt.joint.deviation import ORDERS as DEVIATION_ORDERS
 from rtsgt.joint.deviation import n_coefficients
 from rtsgt.joint.engine import (
@@ -454,6 +455,27 @@ def test_the_settling_prior_is_the_covariance_of_its_two_processes():
     assert corr_err.max() < 5 * np.sqrt(2.0 / n), corr_err.max()  # ~ 0.05 at 5 sigma
     hour = np.searchsorted(knots, 3600.0)
     assert np.sqrt(cov[hour, hour]) == pytest.approx(np.hypot(walk, drift), rel=1e-3)
+
+
+def test_the_clocks_chain_prior_marginalised_is_the_per_prism_estimates_prior():
+    """The joint engine's clock states (offset and rate at every knot, rtsgt.joint.slow)
+    with their rates marginalised at a 60 s grid give the information of
+    rtsgt.clocks.walk_prior_info (the per-prism clock estimate's, the same processes) to
+    round-off; the report times cover the knots' span every 60 s."""
+    knots = np.array([0.0, 60.0, 120.0, 180.0, 240.0, 290.0])
+    model = clock_model(np.zeros(3, dtype=int), 2, 1)
+    K = knots.size
+    D, U, a = np.zeros((K, 2, 2)), np.zeros((K - 1, 2, 2)), np.zeros((K, 2))
+    model.prior.add_prior(D, U, a, np.zeros((K, 2)), np.diff(knots), 0)
+    info, _ = ArrowSystem(D, U, np.zeros((K, 2, 0)), np.zeros((0, 0)), a, np.zeros(0)).dense()
+    e, r = np.arange(0, 2 * K, 2), np.arange(1, 2 * K, 2)
+    marg = info[np.ix_(e, e)] - info[np.ix_(e, r)] @ np.linalg.solve(info[np.ix_(r, r)],
+                                                                      info[np.ix_(r, e)])
+    ref = walk_prior_info(knots)
+    np.testing.assert_allclose(marg, ref, rtol=1e-7, atol=1e-9 * np.abs(ref).max())
+    np.testing.assert_allclose(report_times(10.0, 130.0), [10.0, 70.0, 130.0])
+    np.testing.assert_allclose(report_times(0.0, 100.0), [0.0, 60.0, 100.0])
+    np.testing.assert_allclose(report_times(0.0, 20.0), [0.0, 20.0])
 
 
 def test_a_prism_moved_after_its_survey_is_found_and_estimated():

@@ -80,8 +80,9 @@ class JointState:
     prisms' body positions, m (None: the problem's survey, held); ``sync`` (N,) the stations'
     constant clock offsets against the robot's, s (None: not estimated); ``settle`` (K, 4 S)
     the stations' settling since their calibration and its rate at the knots
-    (:class:`rtsgt.joint.settling.SettleModel`; None: not estimated); ``deviation`` (P, C) the prisms' deviation coefficients, m
-    (:mod:`rtsgt.joint.deviation`; None: not estimated); ``gm`` (K, n) the Gauss-Markov
+    (:class:`rtsgt.joint.settling.SettleModel`; None: not estimated); ``deviation`` (P, C)
+    the prisms' deviation coefficients, m (:mod:`rtsgt.joint.deviation`; None: not
+    estimated); ``gm`` (K, n) the Gauss-Markov
     noise's chains at the knots (:mod:`rtsgt.joint.gm`; None: not estimated); ``R_mb`` (3, 3)
     the motion prior's axes (:mod:`rtsgt.joint.axes`: the knots are then motion-frame poses,
     a prism at ``R_mb p_body``; None: the body frame's)."""

@@ -220,13 +220,13 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                      globals_ + tuple(f"moved_{names[j]}" for j, _, _ in prob.prism_alternatives))
     est = _pose_estimate(R, t, cov_pose, survey if pfit is None else pfit.xyz)
     return JointResult(tq, est, _station_results(ids, free, state, cov_g), state.kappa_ppm,
-                       meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, sol, ids, ref),
+                       meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, body[4], ids, ref),
                        knots.t.size, meas.t.size, solve,
                        solve.costs[-1] / (3 * meas.t.size), shared, pfit,
                        None if prob.noise is None else replace(prob.noise, stations=ids),
                        JointPosterior(knots.t, *body[:4], body[4]), block_cv,
                        _time_sync(prob, state, cov_g, globals_),
-                       _settling(prob, state, sol, ids), _deviation(prob, state, cov_g, names),
+                       _settling(prob, state, body[4], ids), _deviation(prob, state, cov_g, names),
                        None if prob.gm is None else replace(prob.gm, stations=ids),
                        _motion_axes(prob, state, cov_g))
 
