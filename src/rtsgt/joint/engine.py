@@ -45,7 +45,13 @@ from rtsgt.joint.qc import (
 from rtsgt.joint.relative import chain_gains, knot_cross_covariance
 from rtsgt.joint.se3 import exp_se3, log_se3, so3_left_jacobian
 from rtsgt.joint.settling import KIND_COLUMNS, SettleModel
-from rtsgt.joint.sparse import ArrowSystem, add_shared_columns, scatter_add, solve_arrow
+from rtsgt.joint.sparse import (
+    ArrowSystem,
+    add_shared_columns,
+    chunks,
+    scatter_add,
+    solve_arrow,
+)
 
 #: Prior standard deviation (m, rad) given to a station direction its calibration fixes
 #: exactly (a zero variance, e.g. the reference station).
@@ -311,7 +317,10 @@ def measurement_global_factor(prob: JointProblem, sol, terms) -> np.ndarray:
     :class:`rtsgt.joint.sparse.ArrowSolution`'s split), from the Jacobians ``terms``
     (``Hk, Hg``) of :func:`measurement_terms`."""
     Hk, Hg = terms
-    return Hk @ sol.factor[prob.of_meas] + Hg @ sol.chol_g
+    Z = np.empty(Hk.shape[:2] + (sol.chol_g.shape[1],))
+    for sl in chunks(Hk.shape[0]):  # the knots' factor, a few thousand rows at a time
+        Z[sl] = Hk[sl] @ sol.factor[prob.of_meas[sl]] + Hg[sl] @ sol.chol_g
+    return Z
 
 
 def measurement_hsh(prob: JointProblem, s: JointState, sol, terms=None) -> np.ndarray:
@@ -322,7 +331,9 @@ def measurement_hsh(prob: JointProblem, s: JointState, sol, terms=None) -> np.nd
     terms = measurement_terms(prob, s)[1:] if terms is None else terms
     Hk, k = terms[0], prob.of_meas
     Z = measurement_global_factor(prob, sol, terms)
-    out = Hk @ sol.cov_var[k] @ np.swapaxes(Hk, 1, 2) + Z @ np.swapaxes(Z, 1, 2)
+    out = Z @ np.swapaxes(Z, 1, 2)
+    for sl in chunks(k.size):
+        out[sl] += Hk[sl] @ sol.cov_var[k[sl]] @ np.swapaxes(Hk[sl], 1, 2)
     return 0.5 * (out + np.swapaxes(out, 1, 2))
 
 
@@ -364,9 +375,10 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
     r, Hk, Hg = measurement_terms(prob, s)
     info = prob.meas.info
     HtW = np.swapaxes(Hk, 1, 2) @ info
-    scatter_add(D, prob.of_meas, HtW @ Hk)
     B = np.zeros((K, d, G))
-    scatter_add(B, prob.of_meas, HtW @ Hg)
+    for sl in chunks(r.shape[0]):  # (M, d, d) and (M, d, G) temporaries, bounded
+        scatter_add(D, prob.of_meas[sl], HtW[sl] @ Hk[sl])
+        scatter_add(B, prob.of_meas[sl], HtW[sl] @ Hg[sl])
     scatter_add(a, prob.of_meas, np.einsum("mij,mj->mi", HtW, r))
     GtW = np.swapaxes(Hg, 1, 2) @ info
     C = np.tensordot(GtW, Hg, axes=([0, 2], [0, 1]))

@@ -57,8 +57,16 @@ def scatter_add(out: np.ndarray, index: np.ndarray, values: np.ndarray) -> None:
     out[index[starts]] += np.add.reduceat(values, starts, axis=0)
 
 
-#: Knots per block of the globals' share of the knots' covariance (bounds its temporaries).
+#: Knots (or measurements) per block of the products whose temporaries have a knot's or the
+#: globals' width (the globals' share of the knots' covariance, the measurements' normal
+#: equations): bounds them on an hour's run.
 CHUNK = 2048
+
+
+def chunks(n: int, size: int | None = None):
+    """Slices covering ``range(n)`` in order, each of at most ``size`` (:data:`CHUNK`)."""
+    size = CHUNK if size is None else size
+    return (slice(lo, min(n, lo + size)) for lo in range(0, n, size))
 
 
 @dataclass(frozen=True)
