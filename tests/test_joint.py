@@ -48,7 +48,7 @@ from rtsgt.joint.settling import (
     settle_start,
 )
 from rtsgt.joint.slow import LevelRate
-from rtsgt.joint.sparse import ArrowSystem, scatter_add, solve_arrow
+from rtsgt.joint.sparse import ArrowSystem, knot_rows, solve_arrow
 from rtsgt.measurement.polar import cartesian_to_polar
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
@@ -247,22 +247,21 @@ def _synthetic(rng, K=40, noise=0.0, speed=1.0, clock_s=None, moved=None, settle
 
 
 @pytest.mark.parametrize("order", ["sorted", "shuffled"])
-def test_scatter_add_sums_each_rows_values_as_add_at_does(order):
-    """Knots with several measurements, none or one (a run of equal indices, a gap), into a
-    view of a larger array as the normal equations' ``B``; shuffled: ``np.add.at``'s path."""
+def test_knot_rows_sum_each_knots_products_as_add_at_does(order):
+    """Knots with several measurements, none or one (a run of equal indices, a gap): the
+    batched product of the knots' rows equals ``np.add.at`` of each item's product."""
     rng = np.random.default_rng(41)
     empty = np.array([7, 8, 20])  # knots no measurement falls on
     index = np.sort(rng.choice(np.setdiff1d(np.arange(30), empty), size=200))
     index[:5] = 0  # a run at the first row
     if order == "shuffled":
         index = rng.permutation(index)
-    values = rng.normal(size=(200, 4, 3))
-    out = np.zeros((30, 4, 5))
-    ref = out.copy()
-    scatter_add(out[:, :, :3], index, values)
-    np.add.at(ref[:, :, :3], index, values)
+    A, B = rng.normal(size=(200, 3, 4)), rng.normal(size=(200, 3, 5))
+    out = np.swapaxes(knot_rows(index, 30, A), 1, 2) @ knot_rows(index, 30, B)
+    ref = np.zeros((30, 4, 5))
+    np.add.at(ref, index, np.swapaxes(A, 1, 2) @ B)
     np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-12)
-    assert np.all(out[:, :, 3:] == 0.0) and np.all(out[empty] == 0.0)
+    assert np.all(out[empty] == 0.0)
 
 
 @pytest.mark.parametrize(("chunk", "K"), [(4, 13), (2048, 14)])

@@ -49,7 +49,7 @@ from rtsgt.joint.sparse import (
     ArrowSystem,
     add_shared_columns,
     chunks,
-    scatter_add,
+    knot_rows,
     solve_arrow,
 )
 
@@ -351,7 +351,6 @@ def _station_terms(prob: JointProblem, s: JointState):
 def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
     """The normal equations at ``s`` and the cost (sum of squared whitened errors)."""
     K = prob.t_knot.size
-    G = prob.n_globals
     d, n = prob.knot_dim, TRAJECTORY_DIM
     D = np.zeros((K, d, d))
     U = np.zeros((K - 1, d, d))
@@ -374,12 +373,11 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
         cost += prob.settle.prior.add_prior(D, U, a, s.settle, dt, prob.settle_col)
     r, Hk, Hg = measurement_terms(prob, s)
     info = prob.meas.info
-    HtW = np.swapaxes(Hk, 1, 2) @ info
-    B = np.zeros((K, d, G))
-    for sl in chunks(r.shape[0]):  # (M, d, d) and (M, d, G) temporaries, bounded
-        scatter_add(D, prob.of_meas[sl], HtW[sl] @ Hk[sl])
-        scatter_add(B, prob.of_meas[sl], HtW[sl] @ Hg[sl])
-    scatter_add(a, prob.of_meas, np.einsum("mij,mj->mi", HtW, r))
+    rows = np.swapaxes(knot_rows(prob.of_meas, K, Hk), 1, 2)  # (K, d, 3 R): H_k^T
+    D += rows @ knot_rows(prob.of_meas, K, info @ Hk)
+    B = rows @ knot_rows(prob.of_meas, K, info @ Hg)
+    a += np.einsum("kdr,kr->kd", rows, knot_rows(prob.of_meas, K, np.einsum("mij,mj->mi",
+                                                                             info, r)))
     GtW = np.swapaxes(Hg, 1, 2) @ info
     C = np.tensordot(GtW, Hg, axes=([0, 2], [0, 1]))
     c = np.einsum("mgi,mi->g", GtW, r)

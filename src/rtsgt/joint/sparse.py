@@ -41,20 +41,21 @@ class ArrowSystem:
         return M, np.concatenate([self.a.ravel(), self.c])
 
 
-def scatter_add(out: np.ndarray, index: np.ndarray, values: np.ndarray) -> None:
-    """``out[index[i]] += values[i]`` for every ``i`` (in place; ``index`` (M,), ``values``
-    (M, ...) as ``out``'s rows), as ``np.add.at``: for a nondecreasing ``index`` (the
-    measurements in time order, each at its knot) by sums over its runs
-    (``np.add.reduceat``, a tenth of ``np.add.at``'s time), else ``np.add.at``."""
-    index = np.asarray(index)
-    if index.size == 0:
-        return
-    step = np.diff(index)
-    if np.any(step < 0):
-        np.add.at(out, index, values)
-        return
-    starts = np.concatenate([[0], np.flatnonzero(step) + 1])
-    out[index[starts]] += np.add.reduceat(values, starts, axis=0)
+def knot_rows(index: np.ndarray, n: int, values: np.ndarray) -> np.ndarray:
+    """``values`` (M, r, ...) of ``M`` items, item ``i`` at knot ``index[i]`` (below ``n``),
+    as each knot's rows (n, R r, ...): its items' in their order, ``R`` the most items at one
+    knot, zero past a knot's own. A sum over each knot's items of ``A_i^T B_i`` is then one
+    batched product of their rows, ``rows(A)^T rows(B)`` (n, ., .), without an (M, ., .)
+    product to sum (the measurements' normal equations; a knot has one to three)."""
+    index = np.asarray(index, dtype=int)
+    counts = np.bincount(index, minlength=n)
+    order = np.argsort(index, kind="stable")
+    pos = np.empty(index.size, dtype=int)
+    pos[order] = np.arange(index.size) - (np.cumsum(counts) - counts)[index[order]]
+    R = int(counts.max(initial=1))
+    out = np.zeros((n, R) + values.shape[1:])
+    out[index, pos] = values
+    return out.reshape((n, R * values.shape[1]) + values.shape[2:])
 
 
 #: Knots (or measurements) per block of the products whose temporaries have a knot's or the
@@ -163,7 +164,7 @@ def _forward(levels: list[_Level], h: np.ndarray, keep: bool = True, schur: bool
     T = np.zeros((h.shape[2], h.shape[2])) if schur else None
     for lev in levels:
         n_even, n_odd = (lev.n + 1) // 2, lev.n // 2
-        h_o = h[1::2]
+        h_o = np.ascontiguousarray(h[1::2])  # (for the products; tensordot would copy it)
         g = lev.d_inv @ h_o
         if schur:
             T += np.tensordot(h_o, g, axes=([0, 1], [0, 1]))  # BLAS, not einsum's loop
@@ -245,7 +246,8 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
     Cs = C * sg[:, None] * sg[None, :]
     rhs = np.empty((K, d, G + 1))
     rhs[:, :, 0] = system.a * sx
-    np.multiply(B, sx[:, :, None] * sg[None, None, :], out=rhs[:, :, 1:])
+    np.multiply(B, sx[:, :, None], out=rhs[:, :, 1:])  # (no (K, d, G) array of scales)
+    rhs[:, :, 1:] *= sg
     Bs = rhs[:, :, 1:]
     levels, S = _eliminate(Ds, Us)
     if not want_cov:  # the Schur complement from the forward pass; one column back
@@ -263,9 +265,9 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
     del gs
     ya, yb = Y[:, :, 0], Y[:, :, 1:]
     if G:
-        schur = Cs - np.tensordot(Bs, yb, axes=([0, 1], [0, 1]))  # BLAS, not einsum's loop
-        schur_inv = _spd_inv(_sym(schur))
-        g = schur_inv @ (system.c * sg - np.tensordot(Bs, ya, axes=([0, 1], [0, 1])))
+        T = np.tensordot(rhs, Y, axes=([0, 1], [0, 1]))  # [a, B]^T A^-1 [a, B], contiguous
+        schur_inv = _spd_inv(_sym(Cs - T[1:, 1:]))
+        g = schur_inv @ (system.c * sg - T[1:, 0])
         x = ya - yb @ g
     else:
         schur_inv, g, x = np.zeros((0, 0)), np.zeros(0), ya
