@@ -59,8 +59,8 @@ def knot_rows(index: np.ndarray, n: int, values: np.ndarray) -> np.ndarray:
 
 
 #: Knots (or measurements) per block of the products whose temporaries have a knot's or the
-#: globals' width (the globals' share of the knots' covariance, the measurements' normal
-#: equations): bounds them on an hour's run.
+#: globals' width (the globals' share of the knots' covariance, the measurements' share of
+#: it and their ``H Sigma H^T``): bounds them on an hour's run.
 CHUNK = 2048
 
 
