@@ -215,18 +215,6 @@ def _inverse_blocks(levels: list[_Level], S: np.ndarray) -> tuple[np.ndarray, np
     return S, C
 
 
-def solve_tridiagonal(D: np.ndarray, U: np.ndarray, h: np.ndarray, want_cov: bool = False):
-    """Solve ``A X = h`` (h (K, d, m)) for a block-tridiagonal SPD ``A``; with ``want_cov`` also
-    the diagonal blocks (K, d, d) of ``A^-1`` and its blocks ``(A^-1)_k,k+1`` (K-1, d, d)
-    (else None, None)."""
-    levels, S = _eliminate(D, U)
-    root, gs, _ = _forward(levels, h)
-    x = _back(levels, S, root, gs)
-    if not want_cov:
-        return x, None, None
-    return (x, *_inverse_blocks(levels, S))
-
-
 def solve_arrow(system: ArrowSystem, want_cov: bool = False):
     """Solve an :class:`ArrowSystem` by eliminating the knots.
 
