@@ -22,15 +22,18 @@ from rtsgt.joint.clock import clock_model, report_times
 from rtsgt.joint.deviation import ORDERS as DEVIATION_ORDERS
 from rtsgt.joint.deviation import n_coefficients
 from rtsgt.joint.engine import (
+    HYPOTHESIS_MAX_ITER,
     UNDECIDED_COST,
     JointProblem,
     JointState,
     assemble,
+    carry_alternatives,
     difference,
     gauss_newton,
     measurement_hsh,
     measurement_terms,
     retract,
+    snoop_prisms,
     solve_with_qc,
 )
 from rtsgt.joint.estimate import body_to_world_cov
@@ -590,6 +593,32 @@ def test_a_move_two_prisms_explain_alike_is_carried_as_both_hypotheses():
     back = retract(out, est, x, g)
     for a in ("R", "t", "w", "R_s", "t_s", "p_body"):
         np.testing.assert_allclose(getattr(back, a), getattr(b, a), atol=1e-12)
+
+
+def test_the_hypotheses_carried_do_not_depend_on_which_was_found_first():
+    """The two prisms' hypotheses of the move above, each as the one found with the other
+    carried beside it (rtsgt.joint.engine.carry_alternatives; the alternatives are solved
+    without covariances and the estimate's taken at its state): the same estimate, the same
+    covariance and the same hypotheses kept, whichever order."""
+    pb = SURVEY
+    n = np.cross(pb[1] - pb[0], pb[2] - pb[0])
+    d = np.cross(n, pb[0] - pb[2])
+    d *= 0.02 / np.linalg.norm(d)
+    prob, truth = _synthetic(np.random.default_rng(9), noise=1.0, moved=d)
+    prob = replace(prob, qc=prob.qc * 1e-4)
+    s0, sol0, _ = gauss_newton(prob, replace(truth, p_body=prob.p_body.copy()), 20, 1e-12)
+    first, freed, alts = snoop_prisms(prob, s0, sol0, 1e-12)
+    assert freed and len(alts) == 1, (freed, alts)
+    out = []
+    for p, other in ((first, alts[0]), (alts[0], first)):
+        s, sol, info = gauss_newton(p, s0, HYPOTHESIS_MAX_ITER, 1e-12)
+        out.append(carry_alternatives(p, s, sol, info, (other,), 1e-12))
+    (pa, sa, sola, _), (pb_, sb, solb, _) = out
+    assert pa.prism_found[-1][0] == pb_.prism_found[-1][0]
+    assert len(pa.prism_alternatives) == len(pb_.prism_alternatives) == 1
+    np.testing.assert_allclose(sa.t, sb.t, atol=1e-6)
+    np.testing.assert_allclose(sola.cov[:, :6, :6], solb.cov[:, :6, :6], rtol=1e-4,
+                               atol=1e-6 * np.abs(sola.cov[:, :6, :6]).max())
 
 
 def test_with_the_noise_estimated_a_moved_prism_is_found_after_its_first_update():

@@ -587,6 +587,7 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
         if last and estimate_noise and prob.gm is not None:  # the last solve without them
             prob = replace(prob, gm=gmn.without_undetermined(prob.gm))
         full = last or not (estimate or estimate_noise)  # a freed prism alone: to the end
+        sol = None  # (its covariances' memory for the next solve's)
         s, sol, info = gauss_newton(prob, s, max_iter if full else VCE_GN_ITER, tol)
         if last:
             break
@@ -595,6 +596,7 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
         snooped = True
     if prob.n_axes:  # the axes free: the covariance does not rest on the motion prior's tilt
         prob = replace(prob, axes_sigma=axes_sigma)
+        sol = None
         s, sol, info = gauss_newton(prob, s, max_iter, tol)
     if alternatives:
         prob, s, sol, info = carry_alternatives(prob, s, sol, info, alternatives, tol)
@@ -715,13 +717,16 @@ def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,
     estimate). Returns the problem (its ``prism_alternatives``), state, solution and
     :class:`SolveInfo` of the estimate."""
     runs = [(prob, s, sol, info)]
-    for alt in alternatives:  # a handful of prisms
+    for alt in alternatives:  # a handful of prisms, scored by their cost alone
         p = replace(prob, prism_info=alt.prism_info, prism_found=alt.prism_found)
-        runs.append((p, *gauss_newton(p, s, HYPOTHESIS_MAX_ITER, tol)))
+        runs.append((p, *gauss_newton(p, s, HYPOTHESIS_MAX_ITER, tol, want_cov=False)))
     score = np.array([_hypothesis_score(r[0], r[3]) for r in runs])
     best = int(np.argmin(score))
     kept = [i for i in range(len(runs)) if i != best and score[i] - score[best] < UNDECIDED_COST]
     prob, s, sol, info = runs[best]
+    if sol is None:  # an alternative's: its covariances at its state, the first's dropped
+        runs[0] = (runs[0][0], runs[0][1], None, runs[0][3])
+        sol = solve_arrow(assemble(prob, s)[0], want_cov=True)
     if not kept:
         return replace(prob, prism_alternatives=()), s, sol, info
     w = 1.0 / (len(kept) + 1)

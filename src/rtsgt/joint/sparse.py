@@ -179,9 +179,13 @@ def _forward(levels: list[_Level], h: np.ndarray, keep: bool = True, schur: bool
 
 def _back(levels: list[_Level], S: np.ndarray, h: np.ndarray, gs: list) -> np.ndarray:
     """The solution (K, d, m) from the root's right-hand side ``h`` and the levels' ``g``
-    (:func:`_forward`), ``S`` the root's inverse."""
+    (:func:`_forward`; taken from ``gs`` as they are used, so that their memory goes as the
+    solution's comes), ``S`` the root's inverse."""
+    if len(gs) != len(levels):
+        raise ValueError(f"Expected {len(levels)} levels' right-hand sides, got {len(gs)}")
     x = S @ h
-    for lev, g in zip(reversed(levels), reversed(gs), strict=True):
+    for lev in reversed(levels):
+        g = gs.pop()
         n = lev.n
         x_e = x if n % 2 else np.concatenate([x, np.zeros((1,) + x.shape[1:])])
         x_o = g - lev.ga @ x_e[:-1] - lev.gb @ x_e[1:]
@@ -250,7 +254,6 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
         return ArrowSolution(x * sx, g * sg, None, None, None)
     root, gs, _ = _forward(levels, rhs)
     Y = _back(levels, S, root, gs)
-    del gs
     ya, yb = Y[:, :, 0], Y[:, :, 1:]
     if G:
         T = np.tensordot(rhs, Y, axes=([0, 1], [0, 1]))  # [a, B]^T A^-1 [a, B], contiguous
@@ -259,16 +262,18 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
         x = ya - yb @ g
     else:
         schur_inv, g, x = np.zeros((0, 0)), np.zeros(0), ya
+    del rhs, Bs  # (the scaled B: its memory for the covariances')
     x, g = x * sx, g * sg
-    Sd, Cd = _inverse_blocks(levels, S)
+    var, var_next = _inverse_blocks(levels, S)
+    del levels
     # L_k = -Y_B,k chol(S^-1) = -Sx yb_s chol(Ss^-1) (the globals' scale cancels), written
     # over yb in place, a few thousand knots at a time (no second (K, d, G) array)
     chol_s = np.linalg.cholesky(schur_inv) if G else np.zeros((0, 0))
     for lo in range(0, K, CHUNK):
         hi = min(K, lo + CHUNK)
         yb[lo:hi] = -sx[lo:hi, :, None] * (yb[lo:hi] @ chol_s)
-    var = Sd * (sx[:, :, None] * sx[:, None, :])
-    var_next = Cd * (sx[:-1, :, None] * sx[1:, None, :])
+    var *= sx[:, :, None] * sx[:, None, :]
+    var_next *= sx[:-1, :, None] * sx[1:, None, :]
     cov, nxt = var.copy(), np.concatenate([var_next, np.zeros((1, d, d))])
     for lo in range(0, K, CHUNK):  # L L^T a few thousand knots at a time
         hi = min(K, lo + CHUNK)
