@@ -346,7 +346,8 @@ def _station_shift(prior: RigidTransform, post: RigidTransform) -> dict[str, Any
 
 
 def _clock_summary(knots: np.ndarray, offset: np.ndarray, cov: np.ndarray) -> dict[str, Any]:
-    """One station's clock offset against the reference (piecewise linear on ``knots``), ms."""
+    """One station's clock offset against the reference at its report times ``knots``
+    (:func:`rtsgt.joint.clock.report_times`), ms."""
     sig = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     return {
         "start_ms": float(offset[0] * 1e3), "end_ms": float(offset[-1] * 1e3),
