@@ -12,7 +12,7 @@ import pytest
 
 from rtsgt.evaluation.joint_truth import JointGroundTruth
 from rtsgt.geometry.so3 import exp_so3, hat
-from rtsgt.joint import axes
+from rtsgt.joint import sparse
 from rtsgt.joint.axes import body_qc, body_rotation, body_solution, velocities_in_body
 from rtsgt.joint.deviation import n_coefficients
 from rtsgt.joint.engine import assemble, gauss_newton, measurement_terms, retract
@@ -70,7 +70,7 @@ def test_the_body_frame_solution_is_the_dense_inverse_mapped_to_the_body_frame(c
     """``M x_k + N_k a`` of every knot, mapped through the dense inverse of the normal
     equations: the covariances, consecutive cross covariances, the split's part given the
     globals and ``Cov(y_k, g)`` = factor chol_g^T (the factor turned a few knots at a time)."""
-    monkeypatch.setattr(axes, "CHUNK", chunk)
+    monkeypatch.setattr(sparse, "CHUNK", chunk)  # the blocks of rtsgt.joint.sparse.chunks
     rng = np.random.default_rng(32)
     prob, truth = _problem(rng, noise=1.0)
     K = prob.t_knot.size

@@ -140,7 +140,7 @@ def test_cross_covariance_of_distant_knots_and_queries_equals_a_dense_inverse():
     for i, j in enumerate(k):
         A[i, d * j:d * j + d], A[i, d * K:] = Ax[i], Ag[i]
     ref = A @ cov @ A.T
-    np.testing.assert_allclose(linear_covariance(sol, k, Ax, Ag), ref, rtol=1e-5,
+    np.testing.assert_allclose(linear_covariance(sol, chain_gains(sol), k, Ax, Ag), ref, rtol=1e-5,
                                atol=1e-6 * np.abs(ref).max())
     with pytest.raises(ValueError):
         query_cross_covariance(sol, q_b, J_b, q_a, J_a)

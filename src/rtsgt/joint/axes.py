@@ -11,7 +11,7 @@ import numpy as np
 from rtsgt.geometry.so3 import hat, log_so3
 from rtsgt.joint.prior import TRAJECTORY_DIM
 from rtsgt.joint.se3 import so3_left_jacobian
-from rtsgt.joint.sparse import CHUNK, ArrowSolution
+from rtsgt.joint.sparse import ArrowSolution, chunks
 
 #: Prior sigma of each axis of ``R_mb`` about the identity, rad (a quarter of a degree): the
 #: survey's axes are the vehicle's to its survey, and a vehicle rolls in turns and pitches
@@ -79,10 +79,10 @@ def body_solution(sol: ArrowSolution, R_mb: np.ndarray, w_body: np.ndarray,
     c = sol.chol_g[col:col + 3]  # (3, G')
     X = np.empty((K, d, 3))  # Cov(x_k, a)
     factor = sol.factor
-    for lo in range(0, K, CHUNK):
-        f = factor[lo:lo + CHUNK]
-        X[lo:lo + CHUNK] = f @ c.T
-        f[:] = M @ f + N[lo:lo + CHUNK] @ c
+    for sl in chunks(K):
+        f = factor[sl]
+        X[sl] = f @ c.T
+        f[:] = M @ f + N[sl] @ c
 
     def cross(cov_ab, X_a, X_b, N_a, N_b):  # Cov(M x_a + N_a a, M x_b + N_b a)
         out = M @ cov_ab @ M.T + M @ X_a @ _t(N_b) + N_a @ _t(X_b) @ M.T

@@ -48,6 +48,7 @@ from rtsgt.joint.settling import KIND_COLUMNS, SettleModel
 from rtsgt.joint.sparse import (
     ArrowSystem,
     add_shared_columns,
+    add_transitions,
     chunks,
     knot_rows,
     solve_arrow,
@@ -357,14 +358,7 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
     a = np.zeros((K, d))
     dt = np.diff(prob.t_knot)
     e, E, F = prior_terms(s.R, s.t, s.w, dt)
-    W = wnoa_q_inv(dt, prob.qc)
-    EtW, FtW = np.swapaxes(E, 1, 2) @ W, np.swapaxes(F, 1, 2) @ W
-    D[:-1, :n, :n] += EtW @ E
-    D[1:, :n, :n] += FtW @ F
-    U[:, :n, :n] += EtW @ F
-    a[:-1, :n] -= np.einsum("kij,kj->ki", EtW, e)
-    a[1:, :n] -= np.einsum("kij,kj->ki", FtW, e)
-    cost = float(np.einsum("ki,kij,kj->", e, W, e))
+    cost = add_transitions(D, U, a, slice(0, n), e, E, F, wnoa_q_inv(dt, prob.qc))
     if prob.gm is not None:
         cost += gmn.add_prior(D, U, a, s.gm, dt, prob.gm, n)
     if prob.clock is not None:
@@ -373,11 +367,13 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
         cost += prob.settle.prior.add_prior(D, U, a, s.settle, dt, prob.settle_col)
     r, Hk, Hg = measurement_terms(prob, s)
     info = prob.meas.info
-    rows = np.swapaxes(knot_rows(prob.of_meas, K, Hk), 1, 2)  # (K, d, 3 R): H_k^T
-    D += rows @ knot_rows(prob.of_meas, K, info @ Hk)
-    B = rows @ knot_rows(prob.of_meas, K, info @ Hg)
-    a += np.einsum("kdr,kr->kd", rows, knot_rows(prob.of_meas, K, np.einsum("mij,mj->mi",
-                                                                             info, r)))
+    # each knot's rows (K, 3 R, .) of H, W H, W Hg and W r, gathered at once
+    rows = knot_rows(prob.of_meas, K, np.concatenate(
+        [Hk, info @ Hk, info @ Hg, (info @ r[:, :, None])], axis=2))
+    Ht = np.swapaxes(rows[:, :, :d], 1, 2)  # (K, d, 3 R)
+    D += Ht @ rows[:, :, d:2 * d]
+    B = Ht @ rows[:, :, 2 * d:-1]
+    a += (Ht @ rows[:, :, -1:])[:, :, 0]
     GtW = np.swapaxes(Hg, 1, 2) @ info
     C = np.tensordot(GtW, Hg, axes=([0, 2], [0, 1]))
     c = np.einsum("mgi,mi->g", GtW, r)

@@ -41,6 +41,7 @@ from rtsgt.joint.prisms import PrismFit, prism_prior_info, prism_tests
 from rtsgt.joint.relative import (
     JointPosterior,
     body_to_world,
+    chain_gains,
     linear_covariance,
     world_covariance,
 )
@@ -213,6 +214,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     pfit = None if p_info is None else _prism_fit(names, prob, state, cov_g)
     block_cv = raw_block_summary(raw_block_cv(prob, state, sol, max_gap_s), ids)
     body = _body_knots(prob, state, sol)
+    slow = prob.clock is not None or prob.settle is not None  # reported along the chain
+    gains = chain_gains(body[4]) if slow else None
     R, t, cov_body = interpolate_poses_gp(tq, knots.t, *body[:4], body[4].cov, body[4].cov_next)
     cov_pose = body_to_world_cov(R, cov_body)
     globals_ = global_names(prob, ids, names)
@@ -220,13 +223,13 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                      globals_ + tuple(f"moved_{names[j]}" for j, _, _ in prob.prism_alternatives))
     est = _pose_estimate(R, t, cov_pose, survey if pfit is None else pfit.xyz)
     return JointResult(tq, est, _station_results(ids, free, state, cov_g), state.kappa_ppm,
-                       meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, body[4], ids, ref),
+                       meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, body[4], gains, ids, ref),
                        knots.t.size, meas.t.size, solve,
                        solve.costs[-1] / (3 * meas.t.size), shared, pfit,
                        None if prob.noise is None else replace(prob.noise, stations=ids),
                        JointPosterior(knots.t, *body[:4], body[4]), block_cv,
                        _time_sync(prob, state, cov_g, globals_),
-                       _settling(prob, state, body[4], ids), _deviation(prob, state, cov_g, names),
+                       _settling(prob, state, body[4], gains, ids), _deviation(prob, state, cov_g, names),
                        None if prob.gm is None else replace(prob.gm, stations=ids),
                        _motion_axes(prob, state, cov_g))
 
@@ -248,11 +251,13 @@ def _settle(t0, ids, calibrated_at):
     return settle_model(t0, np.array([cal.get(sid, t0) for sid in ids]))
 
 
-def _report(prob: JointProblem, sol, z: np.ndarray, col: int, Ag: np.ndarray | None = None):
+def _report(prob: JointProblem, sol, gains, z: np.ndarray, col: int,
+            Ag: np.ndarray | None = None):
     """The levels of slowly varying processes (:mod:`rtsgt.joint.slow`; ``z`` (K, 2 n) the
     knots' states, at knot columns ``col`` on) at the report times (J,)
     (:func:`rtsgt.joint.clock.report_times`): the times, the levels (J, n) and their
-    covariance (n J, n J), process-major, with ``Ag`` (n, G) adding globals to each level."""
+    covariance (n J, n J), process-major, with ``Ag`` (n, G) adding globals to each level
+    (``gains`` the chain's of ``sol``, :func:`rtsgt.joint.relative.chain_gains`)."""
     t = report_times(float(prob.t_knot[0]), float(prob.t_knot[-1]))
     lv, k, w = at_times(z, prob.t_knot, t)
     n, J = z.shape[1] // 2, t.size
@@ -260,17 +265,17 @@ def _report(prob: JointProblem, sol, z: np.ndarray, col: int, Ag: np.ndarray | N
     for i in range(n):  # a handful of processes
         Ax[i, :, col + 2 * i:col + 2 * i + 2] = w
     Ag = np.zeros((n, prob.n_globals)) if Ag is None else Ag
-    cov = linear_covariance(sol, np.tile(k, n), Ax.reshape(n * J, -1), np.repeat(Ag, J, 0))
+    cov = linear_covariance(sol, gains, np.tile(k, n), Ax.reshape(n * J, -1), np.repeat(Ag, J, 0))
     return t, lv, cov
 
 
-def _settling(prob: JointProblem, state: JointState, sol, ids) -> dict:
+def _settling(prob: JointProblem, state: JointState, sol, gains, ids) -> dict:
     """Each station's settling at the report times: the times, height and yaw changes and
     their sigmas (J, 2)."""
     st = prob.settle
     if st is None:
         return {}
-    t, lv, cov = _report(prob, sol, state.settle, prob.settle_col)
+    t, lv, cov = _report(prob, sol, gains, state.settle, prob.settle_col)
     J = t.size
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None)).reshape(-1, J)  # (2 S, J)
     return {sid: (t, lv[:, 2 * i].copy(), lv[:, 2 * i + 1].copy(),
@@ -379,7 +384,7 @@ def _shared(tq, t_knot, body, names) -> SharedFactor:
     return SharedFactor(tq, body_to_world(R) @ L, names, body_to_world_cov(R, var))
 
 
-def _clocks(prob, state, sol, ids, reference: int):
+def _clocks(prob, state, sol, gains, ids, reference: int):
     """Each non-reference station's clock offset against the ``reference`` station at the
     report times: its drift (the clock states) plus, where estimated, the difference of the
     two stations' constant offsets; ``(times, offsets (J,), covariance (J, J))``."""
@@ -391,7 +396,7 @@ def _clocks(prob, state, sol, ids, reference: int):
     if prob.n_sync:
         Ag[np.arange(C), prob.sync_col + ck.station] += 1.0
         Ag[:, prob.sync_col + reference] -= 1.0
-    t, lv, cov = _report(prob, sol, state.clock, prob.clock_col, Ag)
+    t, lv, cov = _report(prob, sol, gains, state.clock, prob.clock_col, Ag)
     if prob.n_sync:
         lv = lv + state.sync[ck.station] - state.sync[reference]
     J = t.size

@@ -46,17 +46,18 @@ def knot_cross_covariance(sol: ArrowSolution, gains: np.ndarray, k_a: np.ndarray
     return C + sol.factor[k_a] @ np.swapaxes(sol.factor[k_b], 1, 2)
 
 
-def linear_covariance(sol: ArrowSolution, k: np.ndarray, Ax: np.ndarray, Ag: np.ndarray
-                      ) -> np.ndarray:
+def linear_covariance(sol: ArrowSolution, gains: np.ndarray, k: np.ndarray, Ax: np.ndarray,
+                      Ag: np.ndarray) -> np.ndarray:
     """Covariance (N, N) of ``N`` linear functions ``y_i = Ax_i x_ki + Ag_i g`` of the knots'
     states and the globals: ``k`` (N,) each one's knot, ``Ax`` (N, d), ``Ag`` (N, G). The
-    chain's part ``Ax_a G_ka ... G_kb-1 Cov(x_kb) Ax_b^T`` (:func:`chain_gains`; one product
+    chain's part ``Ax_a G_ka ... G_kb-1 Cov(x_kb) Ax_b^T`` (``gains``: :func:`chain_gains`'s;
+    one product
     of gains between each two consecutive knots of ``k``, then one matrix per pair of them:
     for a few hundred functions, not for every knot), the globals' ``Z Z^T``,
     ``Z_i = Ax_i L_ki + Ag_i chol_g``."""
     k = np.asarray(k)
     u, of = np.unique(k, return_inverse=True)
-    P = chain_products(chain_gains(sol), u[:-1], u[1:])
+    P = chain_products(gains, u[:-1], u[1:])
     out = np.zeros((k.size, k.size))
     for b in range(u.size):  # the knots in ``k``: a few dozen
         rb = np.flatnonzero(of == b)

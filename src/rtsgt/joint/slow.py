@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rtsgt.clocks import level_rate_noise
+from rtsgt.joint.sparse import add_transitions
 
 #: A process's two states at a knot, in this order (columns ``2 i``, ``2 i + 1`` of process
 #: ``i`` in :meth:`LevelRate.add_prior`'s ``z``).
@@ -58,24 +59,18 @@ class LevelRate:
         F = np.zeros((dt.size, 2, 2))
         F[:, 0, 0] = F[:, 1, 1] = 1.0
         F[:, 0, 1] = dt
-        Ft = np.swapaxes(F, 1, 2)
+        eye = np.broadcast_to(np.eye(2), F.shape)
         cost = 0.0
         for i in range(self.n):  # a handful of processes, each vectorised over the knots
-            c = col + 2 * i + np.arange(2)
+            c = slice(col + 2 * i, col + 2 * i + 2)
             zi = z[:, 2 * i:2 * i + 2]
             W = _inv2(level_rate_noise(dt, self.q[i], self.q_rate[i]))
             e = zi[1:] - np.einsum("kij,kj->ki", F, zi[:-1])
-            We = np.einsum("kij,kj->ki", W, e)
-            FtW = Ft @ W
-            D[:-1, c[:, None], c[None, :]] += FtW @ F
-            D[1:, c[:, None], c[None, :]] += W
-            U[:, c[:, None], c[None, :]] -= FtW
-            a[:-1, c] += np.einsum("kij,kj->ki", Ft, We)
-            a[1:, c] -= We
+            cost += add_transitions(D, U, a, c, e, -F, eye, W)
             W0 = _inv2(self.start[i])
-            D[0, c[:, None], c[None, :]] += W0
+            D[0, c, c] += W0
             a[0, c] -= W0 @ zi[0]
-            cost += float(np.einsum("ki,ki->", e, We) + zi[0] @ W0 @ zi[0])
+            cost += float(zi[0] @ W0 @ zi[0])
         return cost
 
 

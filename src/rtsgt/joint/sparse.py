@@ -58,6 +58,22 @@ def knot_rows(index: np.ndarray, n: int, values: np.ndarray) -> np.ndarray:
     return out.reshape((n, R * values.shape[1]) + values.shape[2:])
 
 
+def add_transitions(D: np.ndarray, U: np.ndarray, a: np.ndarray, cols: slice, e: np.ndarray,
+                    E: np.ndarray, F: np.ndarray, W: np.ndarray) -> float:
+    """Adds terms between consecutive knots to their normal equations ``D`` (K, d, d), ``U``
+    (K-1, d, d), ``a`` (K, d) (in place): each interval's error ``e`` (K-1, n) with
+    information ``W`` (K-1, n, n) and Jacobians ``E``, ``F`` (K-1, n, n) wrt the knots' states
+    ``cols`` (n of d) at its start and end (a motion prior, a chain's transition); returns
+    their cost ``sum e^T W e``."""
+    EtW, FtW = np.swapaxes(E, 1, 2) @ W, np.swapaxes(F, 1, 2) @ W
+    D[:-1, cols, cols] += EtW @ E
+    D[1:, cols, cols] += FtW @ F
+    U[:, cols, cols] += EtW @ F
+    a[:-1, cols] -= np.einsum("kij,kj->ki", EtW, e)
+    a[1:, cols] -= np.einsum("kij,kj->ki", FtW, e)
+    return float(np.einsum("ki,kij,kj->", e, W, e))
+
+
 #: Knots (or measurements) per block of the products whose temporaries have a knot's or the
 #: globals' width (the globals' share of the knots' covariance, the measurements' share of
 #: it and their ``H Sigma H^T``): bounds them on an hour's run.
@@ -269,14 +285,13 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
     # L_k = -Y_B,k chol(S^-1) = -Sx yb_s chol(Ss^-1) (the globals' scale cancels), written
     # over yb in place, a few thousand knots at a time (no second (K, d, G) array)
     chol_s = np.linalg.cholesky(schur_inv) if G else np.zeros((0, 0))
-    for lo in range(0, K, CHUNK):
-        hi = min(K, lo + CHUNK)
-        yb[lo:hi] = -sx[lo:hi, :, None] * (yb[lo:hi] @ chol_s)
+    for sl in chunks(K):
+        yb[sl] = -sx[sl, :, None] * (yb[sl] @ chol_s)
     var *= sx[:, :, None] * sx[:, None, :]
     var_next *= sx[:-1, :, None] * sx[1:, None, :]
     cov, nxt = var.copy(), np.concatenate([var_next, np.zeros((1, d, d))])
-    for lo in range(0, K, CHUNK):  # L L^T a few thousand knots at a time
-        hi = min(K, lo + CHUNK)
+    for sl in chunks(K):  # L L^T a few thousand knots at a time
+        lo, hi = sl.start, sl.stop
         cov[lo:hi] += yb[lo:hi] @ np.swapaxes(yb[lo:hi], 1, 2)
         nxt[lo:hi - 1] += yb[lo:hi - 1] @ np.swapaxes(yb[lo + 1:hi], 1, 2)
         if hi < K:
