@@ -50,6 +50,7 @@ from rtsgt.evaluation.metrics import (
 )
 from rtsgt.geometry.so3 import quat_xyzw_to_matrix
 from rtsgt.io.deployment import load_deployment
+from rtsgt.joint.noise import RANGE_UNIT_M
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import simulate_deployment, write_deployment
 from rtsgt.simulation.compare import compare_to_truth
@@ -145,10 +146,10 @@ def deviation_within(record, sim, data) -> float | None:
     return float(np.mean(np.abs(z) < 2.0))
 
 
-def gm_within(record, sim) -> float | None:
-    """Share of the Gauss-Markov noise's determined components (each station's and channel's
-    sigma and correlation time) within 2 sigma of the field truth's (in log); None without
-    the estimate."""
+def gm_z(record, sim) -> list[float] | None:
+    """The Gauss-Markov noise's determined components (each station's and channel's sigma and
+    correlation time) against the field truth's, in their sigmas (in log); None without the
+    estimate."""
     joint = record.computation.joint
     f = sim.truth.field
     fit = None if joint is None else joint.gauss_markov
@@ -162,6 +163,33 @@ def gm_within(record, sim) -> float | None:
                 continue
             z.append(np.log(fit.sigma[i, c] / f.gm_sigma[k, c]) / fit.sd_log[i, c, 0])
             z.append(np.log(fit.tau_s[i, c] / f.gm_tau_s[k, c]) / fit.sd_log[i, c, 1])
+    return [float(x) for x in z]
+
+
+def white_z(record, sim) -> list[float] | None:
+    """The white noise's determined channels (each station's Hz, V, d): the variance at the
+    station's median range against the field truth's there (angles ``w^2 + s^2 d / 100 m``,
+    distance ``(w + ppm 1e-6 d)^2``), in its sigmas; None without the estimate."""
+    joint = record.computation.joint
+    f = sim.truth.field
+    fit = None if joint is None else joint.noise
+    if fit is None or f is None or fit.median_basis is None:
+        return None
+    v, sd = fit.median_variance()
+    z = []
+    for i, sid in enumerate(fit.stations):
+        k = f.station_ids.index(sid)
+        d = RANGE_UNIT_M * fit.median_basis[i, 0, 1]
+        w, rc = f.white[k], f.range_coef[k]
+        truth = np.array([w[0] ** 2 + rc[0] ** 2 * d / RANGE_UNIT_M,
+                          w[1] ** 2 + rc[1] ** 2 * d / RANGE_UNIT_M, (w[2] + 1e-6 * rc[2] * d) ** 2])
+        on = fit.determined[i, :, 0] & (sd[i] > 0)
+        z.extend((v[i, on] - truth[on]) / sd[i, on])
+    return [float(x) for x in z]
+
+
+def within(z: list[float] | None) -> float | None:
+    """Share of ``z`` within 2 (None where there is none)."""
     return float(np.mean(np.abs(z) < 2.0)) if z else None
 
 
@@ -203,7 +231,8 @@ def one(seed: int, args, tmp: Path) -> dict:
         **moved_prism(rec, sim),
         "clocks_within_2sigma": clocks_within(rec, sim),
         "deviation_within_2sigma": deviation_within(rec, sim, data),
-        "gm_within_2sigma": gm_within(rec, sim),
+        "gm_z": (zg := gm_z(rec, sim)), "gm_within_2sigma": within(zg),
+        "white_z": (zw := white_z(rec, sim)), "white_within_2sigma": within(zw),
         "raw_block_cv": raw.get("nees_per_dof"),
         "seed": seed, "poses": len(gt), "wall_s": wall,
         "nees6": n6.mean / 6, "in95": float(np.mean(n6.values <= chi2.ppf(0.95, 6))),
@@ -252,7 +281,7 @@ def _f(v, fmt: str = ".2f") -> str:
 
 #: The shares of estimated parameters within 2 sigma of the truth: key, column title.
 SHARES = (("clocks_within_2sigma", "clocks"), ("deviation_within_2sigma", "deviation"),
-          ("gm_within_2sigma", "Gauss-Markov"))
+          ("gm_within_2sigma", "Gauss-Markov"), ("white_within_2sigma", "white"))
 
 
 def _shares(values) -> str:

@@ -639,7 +639,7 @@ def noise_step(prob: JointProblem, s: JointState, sol, iteration: int = 1):
     changed = 0.5 * np.abs(np.log(np.maximum(v_new, 1e-300) / np.maximum(v_old, 1e-300)))
     change = float(np.max(changed[det.any(axis=2)], initial=0.0))
     info = np.linalg.inv(measurement_cov(m.corr, Q, m.station, new))
-    fit = NoiseFit(new, sigma, det, share, iteration, cov=cov_th)
+    fit = NoiseFit(new, sigma, det, share, iteration, cov=cov_th, median_basis=med)
     return replace(prob, meas=replace(m, info=info), noise=fit), change
 
 

@@ -35,7 +35,9 @@ class NoiseFit:
     2) their standard deviations; ``determined`` (S, 3, 2) those estimated (else the prior,
     flagged); ``redundancy`` (S, 3, 2) each component's redundancy share; ``iterations``;
     ``stations`` (S,) their ids (where known); ``cov`` (S, 6, 6) the covariance of each
-    station's six (channel-major: ``theta[s].ravel()``), zero where not determined."""
+    station's six (channel-major: ``theta[s].ravel()``), zero where not determined;
+    ``median_basis`` (S, 3, 2) :func:`noise_basis` at each station's median (the channel's
+    variance there is ``theta @ median_basis``)."""
 
     theta: np.ndarray
     sigma: np.ndarray
@@ -44,6 +46,20 @@ class NoiseFit:
     iterations: int
     stations: tuple[str, ...] = ()
     cov: np.ndarray | None = None
+    median_basis: np.ndarray | None = None
+
+    def median_variance(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each channel's white variance (S, 3) at its station's median and its standard
+        deviation (S, 3) (first order; zero where not determined)."""
+        B = self.median_basis
+        v = np.einsum("sck,sck->sc", self.theta, B)
+        g = B * self.determined
+        S = B.shape[0]
+        cov = np.zeros((S, 6, 6)) if self.cov is None else self.cov
+        sd = np.stack([np.sqrt(np.einsum("si,sij,sj->s", g[:, c], cov[:, 2 * c:2 * c + 2,
+                                                                     2 * c:2 * c + 2], g[:, c]))
+                       for c in range(3)], axis=1)
+        return v, sd
 
     @property
     def range_sigma(self) -> np.ndarray:
