@@ -202,6 +202,9 @@ def config(args):
             fx = dataclasses.replace(fx, prism_displacement_m=(0.0, 0.0))
         elif name == "gm":
             fx = dataclasses.replace(fx, angle_gm_rad=(0.0, 0.0), distance_gm_m=(0.0, 0.0))
+        elif name == "rocking":
+            fx = dataclasses.replace(fx, rocking_angle_rad=(0.0, 0.0), rocking_shift_m=(0.0, 0.0),
+                                     rocking_heave_m=(0.0, 0.0))
         elif name == "clocks":
             fx = dataclasses.replace(fx, clock_drift_s_per_h=(0.0, 0.0),
                                      clock_walk_s_per_sqrt_h=0.0)
@@ -255,7 +258,8 @@ def main() -> None:
                     help="s (default: the preset's, 3600)")
     ap.add_argument("--engine", default=None, help="pose engine (default: the deployment's)")
     ap.add_argument("--without", nargs="*", default=[],
-                    choices=["displacement", "clocks", "gm", "prism_cyclic", "tripod_settling"],
+                    choices=["displacement", "clocks", "gm", "rocking", "prism_cyclic",
+                             "tripod_settling"],
                     help="effects of the preset to leave out (to see what each costs)")
     ap.add_argument("--out", default=None,
                     help="folder: each seed's result as <seed>.json when it is done")

@@ -140,6 +140,46 @@ def test_a_prism_moved_after_its_survey(field_sim):
     assert doc["displaced_prism"]["prism"] == tr.prism_ids[k]
 
 
+def test_the_vehicle_rocks_as_it_drives(field_sim):
+    """The truth's robot pose is its path's turned and shifted by the rocking (the pose with
+    the rocking removed is the path's, 1e-12); the rocking's size follows the speed: none
+    where the robot stands, and scaled to full speed each axis's RMS over the moving times
+    is the drawn one (sinusoids of 0.5-3 Hz over minutes: within 15 %), drawn inside the
+    preset's ranges and written to truth.json."""
+    sim, toml = field_sim
+    m, ft = sim.truth.model, sim.truth.field
+    fx = ft.effects
+    rms = ft.rocking_rms
+    assert np.all((rms[:3] >= fx.rocking_angle_rad[0]) & (rms[:3] <= fx.rocking_angle_rad[1]))
+    assert np.all((rms[3:5] >= fx.rocking_shift_m[0]) & (rms[3:5] <= fx.rocking_shift_m[1]))
+    assert fx.rocking_heave_m[0] <= rms[5] <= fx.rocking_heave_m[1]
+    t = m.t0 + np.arange(0.0, sim.config.duration_s, 0.01)
+    R, p = m.robot_at(t)
+    R0, p0 = dataclasses.replace(m, rocking=None).robot_at(t)
+    x = m.rocking_at(t)
+    # the rocking's rotation (z y x) and shift in the path's frame
+    c, s_ = np.cos(x[:, :3]), np.sin(x[:, :3])
+    Rx = np.zeros((t.size, 3, 3))
+    Rx[:, 0, 0] = 1.0
+    Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = c[:, 0], -s_[:, 0], s_[:, 0], c[:, 0]
+    Ry = np.zeros((t.size, 3, 3))
+    Ry[:, 1, 1] = 1.0
+    Ry[:, 0, 0], Ry[:, 0, 2], Ry[:, 2, 0], Ry[:, 2, 2] = c[:, 1], s_[:, 1], -s_[:, 1], c[:, 1]
+    Rz = np.zeros((t.size, 3, 3))
+    Rz[:, 2, 2] = 1.0
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = c[:, 2], -s_[:, 2], s_[:, 2], c[:, 2]
+    np.testing.assert_allclose(R, R0 @ Rz @ Ry @ Rx, atol=1e-12)
+    np.testing.assert_allclose(p, p0 + np.einsum("nij,nj->ni", R0, x[:, 3:]), atol=1e-12)
+    v = m.speed_at(t)
+    assert np.all(x[v == 0.0] == 0.0) and np.any(v == 0.0)
+    moving = v > 0.2 * m.rocking_speed_m_s
+    assert moving.sum() > 5000
+    unit = x[moving] / (v[moving] / m.rocking_speed_m_s)[:, None]  # as at full speed
+    np.testing.assert_allclose(np.sqrt(np.mean(unit**2, axis=0)) / rms, 1.0, atol=0.15)
+    doc = json.loads((toml.parent / "truth.json").read_text())["field"]
+    np.testing.assert_allclose(list(doc["rocking_rms_at_top_speed"].values()), rms, rtol=1e-12)
+
+
 def test_far_station_and_truth_json(field_sim):
     sim, toml = field_sim
     ranges = [sim.truth.observations[o.station].d for o in sim.observations]

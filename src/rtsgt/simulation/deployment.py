@@ -26,6 +26,7 @@ from rtsgt.simulation.field import (
     FieldTruth,
     draw_displacement,
     draw_field_truth,
+    draw_rocking,
     field_noise,
     field_rng,
 )
@@ -378,6 +379,10 @@ class TruthModel:
     t_robot_body: np.ndarray
     # weather: (mean, amplitude, phase, trend per hour) for T, P, RH
     weather_params: np.ndarray  # (3, 4)
+    # the vehicle's rocking at full speed (field preset, rtsgt.simulation.field.draw_rocking):
+    # rows (axis, amplitude, frequency Hz, phase), scaled by the speed over rocking_speed_m_s
+    rocking: np.ndarray | None = None
+    rocking_speed_m_s: float = 1.0
 
     # -- robot motion ------------------------------------------------------------------------
     def speed_at(self, t) -> np.ndarray:
@@ -414,7 +419,27 @@ class TruthModel:
         R = np.stack([a @ self.R_world_site.T for a in (x_axis, y_axis, z_axis)], axis=-1)
         p_site = np.concatenate([xy, h[..., None]], axis=-1)
         p = p_site @ self.R_world_site.T + self.t_world_site
+        if self.rocking is not None:
+            R, p = self._rocked(t, R, p)
         return R, p
+
+    def rocking_at(self, t) -> np.ndarray:
+        """The vehicle's rocking (..., 6) at times ``t``: rotations about the robot's x, y, z
+        (rad) and shifts along them (m), each its sinusoids' sum times the speed over
+        ``rocking_speed_m_s`` (none where the robot stands)."""
+        tau = np.asarray(t, dtype=float) - self.t0
+        out = np.zeros(tau.shape + (6,))
+        for k in range(6):  # six axes, each a few dozen sinusoids
+            a, f, ph = self.rocking[self.rocking[:, 0] == k, 1:].T
+            out[..., k] = np.sin(np.multiply.outer(tau, 2.0 * np.pi * f) + ph) @ a
+        return out * (self.speed_at(t) / self.rocking_speed_m_s)[..., None]
+
+    def _rocked(self, t, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``T_world_robot T_rock``: the path's pose (``R``, ``p``) turned and shifted by the
+        rocking (:meth:`rocking_at`) about the robot's origin on the ground."""
+        x = self.rocking_at(t)
+        R_rock = _rotation(2, x[..., 2]) @ _rotation(1, x[..., 1]) @ _rotation(0, x[..., 0])
+        return R @ R_rock, p + np.einsum("...ij,...j->...i", R, x[..., 3:])
 
     def body_from_robot(self, R_wr: np.ndarray, t_wr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``T_world_body = T_world_robot T_robot_body``: R (..., 3, 3), t (..., 3)."""
@@ -1207,18 +1232,20 @@ def simulate_deployment(
         speed = _jerky_ramps(speed, cfg.reality.jerky_accel_m_s2)
     stations = _place_stations(cfg, rng, loop, terrain)
     robot = _robot_geometry(cfg, rng)
-    true_robot, displaced, entropy = robot, None, 0
+    true_robot, displaced, entropy, rocking = robot, None, 0, None
     if cfg.field is not None:  # a prism moved after the survey: the survey keeps `robot`
         entropy = int(rng.integers(0, 2**63 - 1))
         displaced = draw_displacement(cfg.field, robot.prisms_robot.shape[0],
                                       field_rng(entropy, "displacement"))
         true_robot = _displaced(robot, *displaced)
+        rocking = draw_rocking(cfg.field, field_rng(entropy, "rocking"))
     R_robot_body = robot.R_body_robot.T
     model = TruthModel(
         t0=float(cfg.start_time_s), **speed._asdict(), **loop._asdict(), terrain=terrain,
         R_world_site=stations.R_world_site, t_world_site=stations.t_world_site,
         prisms_robot=true_robot.prisms_robot, R_robot_body=R_robot_body,
         t_robot_body=-R_robot_body @ robot.t_body_robot, weather_params=_weather_params(cfg, rng),
+        rocking=rocking, rocking_speed_m_s=float(np.max(speed.level, initial=0.0)) or 1.0,
     )
     offsets = _clock_offsets(cfg, rng)
     observations, observations_truth = _track(cfg, rng, model, stations, offsets)
@@ -1229,7 +1256,8 @@ def simulate_deployment(
     field_truth = None
     if cfg.field is not None:
         field_truth = draw_field_truth(cfg.field, stations.ids, offsets, float(cfg.start_time_s),
-                                       cfg.duration_s, displaced, robot.R_body_robot, entropy)
+                                       cfg.duration_s, displaced, robot.R_body_robot, entropy,
+                                       rocking)
         observations, observations_truth, gcp = _field(cfg, field_truth, entropy, observations,
                                                        observations_truth, gcp)
     reality = None

@@ -2,7 +2,8 @@ r"""Field effects: measurement noise, clocks and a moved prism drawn as a real h
 
 Under ``SimulationConfig(field=FieldEffects())`` (``--preset field-hour``): per station and
 channel a white sigma growing with range plus a Gauss-Markov part, drifting and random-walking
-clocks, one prism off its survey; :class:`FieldTruth` records every draw. Models and values:
+clocks, one prism off its survey, the vehicle rocking on its suspension as it drives;
+:class:`FieldTruth` records every draw. Models and values:
 docs/simulation.md#the-field-hour-preset.
 """
 
@@ -26,6 +27,7 @@ __all__ = [
     "clock_walk",
     "draw_displacement",
     "draw_field_truth",
+    "draw_rocking",
     "field_noise",
     "field_rng",
     "white_sigma",
@@ -36,7 +38,9 @@ MGON = np.pi / 200.0 * 1e-3
 #: The measurement channels, in the order of every (..., 3) array here.
 CHANNELS = ("hz", "v", "d")
 #: The field effects' random streams, in the order of their spawn keys (:func:`field_rng`).
-FIELD_STREAMS = ("displacement", "parameters", "clock", "noise")
+FIELD_STREAMS = ("displacement", "parameters", "clock", "noise", "rocking")
+#: Sinusoids per axis of the vehicle's rocking (:func:`draw_rocking`).
+ROCKING_TERMS = 24
 #: Range at which the angular range coefficient is stated, m.
 RANGE_UNIT_M = 100.0
 
@@ -57,6 +61,10 @@ class FieldEffects:
     clock_drift_s_per_h: tuple[float, float] = (10e-3, 20e-3)
     clock_walk_s_per_sqrt_h: float = 1.0e-3
     prism_displacement_m: tuple[float, float] = (0.01, 0.03)
+    rocking_angle_rad: tuple[float, float] = (0.7e-3, 2.8e-3)
+    rocking_shift_m: tuple[float, float] = (1.0e-3, 5.0e-3)
+    rocking_heave_m: tuple[float, float] = (0.35e-3, 1.4e-3)
+    rocking_hz: tuple[float, float] = (0.5, 3.0)
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -69,6 +77,8 @@ class FieldEffects:
                                  f"{getattr(self, f.name)!r}")
         if not self.gm_time_s[0] > 0:
             raise InputError(f"Expected gm_time_s > 0, got {self.gm_time_s!r}")
+        if not self.rocking_hz[0] > 0:
+            raise InputError(f"Expected rocking_hz > 0, got {self.rocking_hz!r}")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready: every range."""
@@ -121,6 +131,25 @@ def clock_walk(n_steps: int, step_s: float, drift_s_per_s: float, walk_s2_per_s:
         [[0.0], np.cumsum(steps)])
 
 
+def draw_rocking(fx: FieldEffects, rng: np.random.Generator) -> np.ndarray:
+    """The vehicle's rocking as it drives, relative to its path at full speed: per axis of the
+    robot frame (rotations about x, y, z, then shifts along x, y, z) :data:`ROCKING_TERMS`
+    sinusoids, rows ``(axis, amplitude, frequency Hz, phase rad)`` (6 x terms, 4): each axis's
+    RMS drawn uniform in ``rocking_angle_rad`` (rotations), ``rocking_shift_m`` (along and
+    across the travel) or ``rocking_heave_m`` (up), shared equally by its sinusoids (a sum of
+    many random-phase sinusoids: nearly Gaussian), frequencies log-uniform in ``rocking_hz``
+    (docs/simulation.md#the-field-hour-preset)."""
+    n = ROCKING_TERMS
+    rms = np.concatenate([rng.uniform(*fx.rocking_angle_rad, 3), rng.uniform(*fx.rocking_shift_m, 2),
+                          rng.uniform(*fx.rocking_heave_m, 1)])
+    lo, hi = np.log(fx.rocking_hz)
+    freq = np.exp(rng.uniform(lo, hi, (6, n)))
+    phase = rng.uniform(0.0, 2.0 * np.pi, (6, n))
+    axis = np.repeat(np.arange(6.0), n).reshape(6, n)
+    amp = np.repeat(rms * np.sqrt(2.0 / n), n).reshape(6, n)
+    return np.stack([axis, amp, freq, phase], axis=-1).reshape(6 * n, 4)
+
+
 def draw_displacement(fx: FieldEffects, n_prisms: int,
                       rng: np.random.Generator) -> tuple[int, np.ndarray]:
     """Which prism moved (index) and its displacement in the robot frame (3,), m: size
@@ -136,7 +165,8 @@ class FieldTruth:
     :data:`CHANNELS`): per-channel ``white``, ``range_coef``, ``gm_sigma``, ``gm_tau_s`` (S, 3);
     ``clock_drift_s_per_s``, ``clock_walk_s2_per_s``, ``clock_offset_s`` (S,); drift plus walk
     ``clock_drift_walk_s`` (S, M) at ``clock_t0_s + clock_step_s k`` (linear between);
-    ``displaced_prism`` and its ``displacement_robot_m``, ``displacement_body_m`` (3,)
+    ``displaced_prism`` and its ``displacement_robot_m``, ``displacement_body_m`` (3,);
+    ``rocking`` the vehicle's rocking at full speed (:func:`draw_rocking`)
     (docs/simulation.md#the-field-truth-truthjson-section-field).
     """
 
@@ -155,6 +185,16 @@ class FieldTruth:
     displaced_prism: int
     displacement_robot_m: np.ndarray
     displacement_body_m: np.ndarray
+    rocking: np.ndarray | None = None
+
+    @property
+    def rocking_rms(self) -> np.ndarray:
+        """The rocking's RMS (6,) per axis at full speed (rotations about the robot's x, y, z,
+        rad, then shifts along them, m; zero without it): ``sqrt(sum a^2 / 2)``."""
+        if self.rocking is None:
+            return np.zeros(6)
+        return np.sqrt(np.bincount(self.rocking[:, 0].astype(int), self.rocking[:, 1] ** 2 / 2.0,
+                                   minlength=6))
 
     @property
     def clock_t(self) -> np.ndarray:
@@ -199,15 +239,20 @@ class FieldTruth:
                                 "robot_m": self.displacement_robot_m.tolist(),
                                 "body_m": self.displacement_body_m.tolist(),
                                 "size_m": float(np.linalg.norm(self.displacement_robot_m))},
+            "rocking_rms_at_top_speed": dict(zip(
+                ("roll_rad", "pitch_rad", "yaw_rad", "surge_m", "sway_m", "heave_m"),
+                map(float, self.rocking_rms), strict=True)),
         }
 
 
 def draw_field_truth(fx: FieldEffects, station_ids: tuple[str, ...], clock_offset_s: ArrayLike,
                      t0_s: float, duration_s: float, displaced: tuple[int, np.ndarray],
-                     R_body_robot: np.ndarray, entropy: int) -> FieldTruth:
+                     R_body_robot: np.ndarray, entropy: int,
+                     rocking: np.ndarray | None = None) -> FieldTruth:
     """Draw the noise parameters (stream ``parameters``) and the clocks (stream ``clock``, sampled
     at 1 Hz over ``[t0_s, t0_s + duration_s]`` and one step beyond) of a deployment;
-    ``displaced`` from :func:`draw_displacement`."""
+    ``displaced`` from :func:`draw_displacement`, ``rocking`` from :func:`draw_rocking` (kept
+    as drawn)."""
     n = len(station_ids)
     g = field_rng(entropy, "parameters")
     white = np.stack([g.uniform(*fx.angle_white_rad, n), g.uniform(*fx.angle_white_rad, n),
@@ -227,4 +272,4 @@ def draw_field_truth(fx: FieldEffects, station_ids: tuple[str, ...], clock_offse
     k_prism, disp = displaced
     return FieldTruth(fx, tuple(station_ids), white, range_coef, gm_sigma, gm_tau, drift, walk,
                       float(t0_s), step, clocks, np.asarray(clock_offset_s, dtype=float),
-                      k_prism, disp, R_body_robot @ disp)
+                      k_prism, disp, R_body_robot @ disp, rocking)
