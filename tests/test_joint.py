@@ -41,7 +41,7 @@ from rtsgt.joint.interpolate import interpolate_poses_gp
 from rtsgt.joint.knots import build_knots, qc_from_prisms
 from rtsgt.joint.measurements import PolarMeasurements, predict, residual
 from rtsgt.joint.prior import prior_terms, wnoa_q_inv
-from rtsgt.joint.qc import QC_FLOOR, prior_components, qc_per_class
+from rtsgt.joint.qc import QC_FLOOR, prior_components, qc_per_class, with_gaps
 from rtsgt.joint.se3 import exp_se3, jacobians_inv, left_jacobian, log_se3, so3_left_jacobian
 from rtsgt.joint.settling import (
     HOUR_DRIFT_SIGMA,
@@ -179,7 +179,7 @@ def _in_plane_move(size: float = 0.02):
 
 
 def _synthetic(rng, K=40, noise=0.0, speed=1.0, clock_s=None, moved=None, settle_rate=None,
-               deviation=None):
+               deviation=None, jump=None):
     """Noise-free (or noisy) polar measurements of three prisms on a constant-velocity
     trajectory (its velocity times ``speed``) by three stations, the first fixed, the others
     with a prior; with ``clock_s`` (3,) each station's clock ``t_recorded - t_true``, s, and
@@ -189,13 +189,19 @@ def _synthetic(rng, K=40, noise=0.0, speed=1.0, clock_s=None, moved=None, settle
     (rad/s, about the vertical) change from t = 0 on, and settling states in the problem
     (calibrated at t = 0, their prior 100 times the default); with ``deviation`` (3, C) each
     prism's deviation coefficients (rtsgt.joint.deviation.ORDERS) applied to its
-    measurements and deviation states in the problem (prior sigma 1 m: the data alone)."""
+    measurements and deviation states in the problem (prior sigma 1 m: the data alone); with
+    ``jump`` ``(k, shift)`` the robot is moved by ``shift`` (3,) m (world) from knot ``k``
+    on."""
     w0 = np.array([1.0, 0.1, 0.0, 0.0, 0.0, 0.15]) * speed
     t = np.arange(K) * 0.4
     R0, p0 = exp_so3(np.array([0.0, 0.0, 0.3])), np.array([2.0, -1.0, 0.5])
     R, p = _compose(R0, p0, *exp_se3(t[:, None] * w0))
+    if jump is not None:
+        p[jump[0]:] += np.asarray(jump[1], dtype=float)
     lag = np.zeros(K) if clock_s is None else np.asarray(clock_s)[np.arange(K) % 3]
     Rm, pm = _compose(R0, p0, *exp_se3((t - lag)[:, None] * w0))  # where it was measured
+    if jump is not None:
+        pm[jump[0]:] += np.asarray(jump[1], dtype=float)
     pb = SURVEY.copy()
     t_s = np.array([[0.0, 0.0, 0.0], [25.0, 5.0, 0.3], [-5.0, 22.0, -0.2]])
     R_s = exp_so3(np.array([[0.0, 0.0, 0.0], [0.001, -0.002, 1.0], [0.0, 0.001, -2.0]]))
@@ -247,6 +253,60 @@ def _synthetic(rng, K=40, noise=0.0, speed=1.0, clock_s=None, moved=None, settle
                        None if moved is None else pt, settle=settle,
                        deviation=None if deviation is None else np.asarray(deviation, float))
     return prob, truth
+
+
+def test_a_gap_between_knots_takes_the_loosest_qc_of_the_others():
+    """An interval longer than ``max_gap_s`` gets the largest ``Qc`` of the moving intervals
+    whose ``Qc`` the data determine, per axis (of every moving one on an axis none is); the
+    others keep theirs; without a gap (or all gaps) nothing changes."""
+    prob, _ = _synthetic(np.random.default_rng(5), K=6)
+    t = np.array([0.0, 0.4, 0.8, 4.8, 5.2, 5.6])
+    prob = replace(prob, t_knot=t, max_gap_s=3.0)
+    qc = np.random.default_rng(7).uniform(0.1, 1.0, (5, 6))
+    out = prob.with_qc(qc).qc
+    np.testing.assert_array_equal(prob.gaps, [False, False, True, False, False])
+    np.testing.assert_array_equal(np.delete(out, 2, axis=0), np.delete(qc, 2, axis=0))
+    np.testing.assert_array_equal(out[2], np.delete(qc, 2, axis=0).max(axis=0))
+    np.testing.assert_array_equal(replace(prob, max_gap_s=np.inf).with_qc(qc).qc, qc)
+    np.testing.assert_array_equal(with_gaps(qc, np.ones(5, bool)), qc)
+    # only the moving intervals whose Qc the data determine count; an axis determined on
+    # none of them: every moving interval's
+    moving = np.array([False, True, False, True, True])
+    trusted = np.ones((5, 6), bool)
+    trusted[4, :3] = False
+    trusted[:, 5] = False
+    qc[4] = 10.0  # an undetermined class's wild value
+    qc[0] = 20.0  # standing: never the gap's
+    out = prob.with_qc(qc, trusted, moving).qc[2]
+    np.testing.assert_array_equal(out[:3], qc[[1, 3], :3].max(axis=0))
+    np.testing.assert_array_equal(out[3:5], np.full(2, 10.0))
+    np.testing.assert_array_equal(out[5], 10.0)
+
+
+def test_a_robot_moved_while_no_station_tracked_it_is_not_tied_across_the_gap():
+    """A standing robot moved by 1.5 m while no station measured (4 s, knots 25-34 dropped),
+    its motion prior as stiff as a standing class's but for a few intervals where it moved
+    (``Qc`` 1 there): with the gap's prior the loosest of the run's (``max_gap_s`` 3 s) both
+    sides come out where they are (noise-free: 1e-6 m); tied by the standing prior across
+    the gap, they are pulled off by decimetres."""
+    prob, truth = _synthetic(np.random.default_rng(6), K=60, speed=0.0,
+                             jump=(30, [1.5, 0.5, 0.0]))
+    keep = np.r_[0:25, 35:60]
+    m = prob.meas
+    sel = PolarMeasurements(m.t[keep], m.station[keep], m.prism[keep], m.y[keep],
+                            m.info[keep], m.kappa_sigma_ppm, m.var_white[keep], m.corr[keep])
+    qc = np.full((keep.size - 1, 6), 1e-8)
+    qc[5:8] = 1.0  # where it moved elsewhere in the run
+    prob = replace(prob, t_knot=prob.t_knot[keep], of_meas=np.arange(keep.size),
+                   tau=prob.tau[keep], meas=sel, qc=qc)
+    truth = replace(truth, R=truth.R[keep], t=truth.t[keep], w=truth.w[keep])
+    start = replace(truth, t=truth.t + 0.01)
+    err = {}
+    for gap in (3.0, np.inf):
+        _, est, _, info, _ = solve_with_qc(replace(prob, max_gap_s=gap), start, False, 30, 1e-12)
+        err[gap] = np.max(np.abs(est.t - truth.t))
+    assert err[3.0] < 1e-6, err
+    assert err[np.inf] > 0.1, err
 
 
 @pytest.mark.parametrize("order", ["sorted", "shuffled"])

@@ -41,6 +41,7 @@ from rtsgt.joint.qc import (
     motion_classes,
     prior_components,
     qc_per_class,
+    with_gaps,
 )
 from rtsgt.joint.relative import chain_gains, knot_cross_covariance
 from rtsgt.joint.se3 import exp_se3, log_se3, so3_left_jacobian
@@ -159,6 +160,21 @@ class JointProblem:
     prism_alternatives: tuple[tuple[int, float, float], ...] = ()
     motion_axes: bool = False
     axes_sigma: float = AXES_SIGMA
+    max_gap_s: float = np.inf
+
+    @property
+    def gaps(self) -> np.ndarray:
+        """Which intervals between knots (K-1,) are longer than ``max_gap_s``: no station
+        measured there; their motion prior is the loosest of the run's
+        (:func:`rtsgt.joint.qc.with_gaps`), not a motion class's (docs/joint.md#gaps)."""
+        return np.diff(self.t_knot) > self.max_gap_s
+
+    def with_qc(self, qc: np.ndarray, trusted: np.ndarray | None = None,
+                moving: np.ndarray | None = None) -> JointProblem:
+        """The problem with ``Qc`` ``qc`` (K-1, 6) per interval, the gaps' the loosest of the
+        moving intervals' (``moving`` (K-1,), None: all) that the data determine
+        (``trusted`` (K-1, 6), None: all; :func:`rtsgt.joint.qc.with_gaps`)."""
+        return replace(self, qc=with_gaps(qc, self.gaps, trusted, moving))
 
     @property
     def n_gm(self) -> int:
@@ -555,8 +571,8 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     n = prob.t_knot.size - 1
     qc0 = np.asarray(prob.qc, dtype=float)
     axes_sigma = prob.axes_sigma  # held at the body frame's until the last solve
-    prob = replace(prob, qc=np.broadcast_to(qc0, (n, 6)).copy(),
-                   axes_sigma=AXES_HELD_SIGMA if prob.n_axes else axes_sigma)
+    prob = replace(prob, axes_sigma=AXES_HELD_SIGMA if prob.n_axes else axes_sigma
+                   ).with_qc(np.broadcast_to(qc0, (n, 6)))
     s, sol, info = gauss_newton(prob, s, max_iter, tol)
     classes = motion_classes(prob.t_knot, s.R, s.w)
     table = np.tile(qc0, (N_CLASSES, 1))
@@ -607,13 +623,14 @@ def _qc_step(prob: JointProblem, s: JointState, sol, classes, table, own):
     n = TRAJECTORY_DIM
     quad, red = prior_components(e, E, F, dt, prob.qc, sol.cov[:, :n, :n],
                                  sol.cov_next[:, :n, :n])
-    new, own = qc_per_class(quad, red, classes, own)
+    on = ~prob.gaps  # a gap's interval is not its class's
+    new, own = qc_per_class(quad[on], red[on], classes[on], own)
     red_g = np.zeros_like(table)
-    np.add.at(red_g, classes, red)
+    np.add.at(red_g, classes[on], red[on])
     # a group the data no longer inform (sinking to 0, its redundancy gone) may go on
     moving = own & (red_g >= MIN_REDUNDANCY) & (new > 1.01 * QC_FLOOR)
     change = float(np.max(np.abs(np.log(new / table))[moving], initial=0.0))
-    return replace(prob, qc=new[classes]), new, own, red_g, change
+    return prob.with_qc(new[classes], own[classes], classes > 0), new, own, red_g, change
 
 
 def noise_step(prob: JointProblem, s: JointState, sol, iteration: int = 1):

@@ -161,7 +161,9 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     (docs/joint.md#gauss-markov-noise; ``rng`` the draws of their observed information,
     None: approximated without draws).
     ``max_gap_s``: a longer gap between a station's measurements starts new blocks of the
-    raw block cross-validation (docs/joint.md#block-cross-validation-of-the-measurements).
+    raw block cross-validation (docs/joint.md#block-cross-validation-of-the-measurements),
+    and a longer interval between knots (no station measured) has a motion prior of its own,
+    the loosest of the run's moving classes' (docs/joint.md#gaps).
     With ``motion_axes``, the motion prior is written in axes of its own, their rotation from
     the body frame estimated (docs/joint.md#the-motion-axes); the poses are the body frame's.
     """
@@ -197,7 +199,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                         deviation_sigma=_deviation_sigma(knots, meas, R0, p0, survey, t_s)
                         if deviation else None,
                         gm=gmn.start_model(meas.var_white, meas.station, len(ids))
-                        if gauss_markov and noise else None, motion_axes=motion_axes)
+                        if gauss_markov and noise else None, motion_axes=motion_axes,
+                        max_gap_s=max_gap_s)
     K = knots.t.size
     state = JointState(R0, p0, body_velocities(knots.t, R0, p0), R_s, t_s, 0.0,
                        None if ck is None else np.zeros((K, ck.size)),

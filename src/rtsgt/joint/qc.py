@@ -67,6 +67,25 @@ def prior_components(e, E, F, dt, qc, cov, cov_next):
     return quad, red
 
 
+def with_gaps(qc: np.ndarray, gap: np.ndarray, trusted: np.ndarray | None = None,
+              moving: np.ndarray | None = None) -> np.ndarray:
+    """``Qc`` (K-1, 6) per interval with the gaps' (``gap`` (K-1,): intervals no measurement
+    is near) set, per axis, to the loosest of the moving intervals' (``moving`` (K-1,), None:
+    every other interval) whose ``Qc`` the data determine (``trusted`` (K-1, 6), None: all),
+    or, on an axis where none is, of every moving interval's (their pooled estimate): while
+    no station tracked it the robot may have moved as it does anywhere else in the run, no
+    more tightly (docs/joint.md#gaps). Unchanged without a gap, or without other intervals."""
+    qc = np.array(qc, dtype=float)
+    cand = ~gap if moving is None else ~gap & np.asarray(moving, bool)
+    if not gap.any() or not cand.any():
+        return qc
+    ok = cand[:, None] & (np.ones(qc.shape, bool) if trusted is None
+                          else np.asarray(trusted, bool))
+    ok[:, ~ok.any(axis=0)] = cand[:, None]
+    qc[gap] = np.where(ok, qc, 0.0).max(axis=0)
+    return qc
+
+
 def qc_per_class(quad: np.ndarray, red: np.ndarray, classes: np.ndarray,
                  own: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The variance-component estimate of ``Qc`` (N_CLASSES, 6): each (class, axis) group the
@@ -88,5 +107,6 @@ def qc_per_class(quad: np.ndarray, red: np.ndarray, classes: np.ndarray,
     return np.maximum(out, QC_FLOOR), own
 
 
-__all__ = ["ACC_WINDOW_S", "MIN_REDUNDANCY", "N_CLASSES", "QC_FLOOR", "VCE_GN_ITER", "VCE_MAX_ITER", "VCE_TOL",
-           "motion_classes", "prior_components", "qc_per_class"]
+__all__ = ["ACC_WINDOW_S", "MIN_REDUNDANCY", "N_CLASSES", "QC_FLOOR", "VCE_GN_ITER",
+           "VCE_MAX_ITER", "VCE_TOL", "motion_classes", "prior_components", "qc_per_class",
+           "with_gaps"]
