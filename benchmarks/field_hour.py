@@ -16,11 +16,12 @@ Against the simulation's truth:
   (:meth:`rtsgt.evaluation.ContinuousGroundTruth.pair_covariances`);
 - the inter-prism distance check's mean z^2 and its accepted interval, the run's verdict,
   the median pose position sigma, and the run's wall time (``run_pipeline`` alone);
-- with the joint engine: the clocks', the deviation's and the Gauss-Markov chains' shares
-  within 2 sigma of the truth, the raw block cross-validation, and the prism the truth moved
-  with those found and carried (:func:`moved_prism`).
+- with the joint engine: the clocks', the deviation's, the Gauss-Markov chains' and the
+  white noise's shares within 2 sigma of the truth (and each seed's z of the last two), the
+  raw block cross-validation, and the prism the truth moved with those found and carried
+  (:func:`moved_prism`).
 
-``--without displacement clocks gm ...`` leaves effects of the preset out, to see what each
+``--without displacement clocks gm rocking ...`` leaves effects of the preset out, to see what each
 costs. Development seeds are 0-14; issue 23's acceptance must be measured on seeds never used
 (1000-1019 to 5000-5019, by thousands, have been: 6000 on). Prints one line per seed
 and a Markdown table (docs/simulation.md).
