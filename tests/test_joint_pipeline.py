@@ -23,6 +23,7 @@ from rtsgt.io.deployment import load_deployment
 from rtsgt.io.run_dir import read_run, write_run
 from rtsgt.joint.axes import AXES_SIGMA
 from rtsgt.joint.gm import TAU_RANGE_S
+from rtsgt.measurement.units import MGON
 from rtsgt.options import RUN_ENGINES, RunOptions
 from rtsgt.pipeline import run_pipeline
 from rtsgt.report.analysis import analyze
@@ -88,6 +89,20 @@ def test_the_summary_has_the_joint_section_and_the_checks_say_what_they_judge(ru
     held = [s for s, v in j["stations"].items() if v["held"]]
     assert held == [j["clock_reference"]]  # the reference station: held, no clock
     assert set(j["clocks"]) == set(record.stations) - set(held)
+    # the white noise at each station's median range: that range is the median of the
+    # station's tracked distances (within 2 %), its sigma the components' at it (mgon, mm),
+    # with a sigma where the data determine a component
+    nf = record.computation.joint.noise
+    v, sd = nf.median_variance()
+    for i, sid in enumerate(nf.stations):
+        o = next(o for o in sim.observations if o.station == sid)
+        d = np.median(o.d[np.isin(o.t, record.computation.tracks[o.prism].t)])
+        for c, ch in enumerate(("hz", "v", "d")):
+            w = j["noise"][sid][ch]
+            assert abs(w["median_range_m"] / d - 1.0) < 0.02, (w, d)
+            unit = 1e-3 if ch == "d" else MGON
+            assert w["sigma_at_median"] == pytest.approx(np.sqrt(v[i, c]) / unit, rel=1e-12)
+            assert (w["sigma_at_median_sigma"] > 0) == any(w["determined"]), w
     # each station's constant clock offset (the simulation's is t_true - t_recorded, the
     # engine's t_recorded - t_true) against the reference's within 3 sigma (the two
     # sigmas added: their errors share the common offset, so this bounds it); no drift
@@ -271,6 +286,10 @@ def test_the_report_shows_the_joint_estimates_with_their_sigmas(runs):
         assert f"{v['largest_sigma_mm']:.3g}" in prisms and ">kept<" in prisms
     noise = table("run-joint-noise")
     rows = noise.split("<tr>")[1:]
+    for sid, per in j["noise"].items():
+        for ch, w in per.items():
+            row = next(r for r in rows if f"<td class='s'>{sid}</td><td class='s'>{ch}</td>" in r)
+            assert f"at {w['median_range_m']:.3g} m" in row and f"σ {w['sigma_at_median']:.3g}" in row, row
     for sid, per in j["gauss_markov"].items():
         for ch, v in per.items():
             row = next(r for r in rows if f"<td class='s'>{sid}</td><td class='s'>{ch}</td>" in r)

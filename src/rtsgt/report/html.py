@@ -654,13 +654,19 @@ def _rows_table(table_id: str, headers: Sequence[str], rows: Sequence[str]) -> s
 
 def _joint_noise_row(sid, ch: str, w: Mapping | None, g: Mapping | None) -> str:
     """One station's and channel's noise row: the white factor (and range part) where
-    determined, else the prior's, and the Gauss-Markov chain's sigma and tau where determined."""
+    determined, else the prior's, the white sigma at the station's median range, and the
+    Gauss-Markov chain's sigma and tau where determined."""
     det = (w or {}).get("determined") or [False, False]
+    at = (w or {}).get("sigma_at_median")
+    at_text = "" if at is None else (
+        f"; σ {_pm(at, w.get('sigma_at_median_sigma')) if any(det) else _fmt(at, 3)} "
+        f"{'mm' if ch == 'd' else 'mgon'} at {_fmt(w.get('median_range_m'), 3)} m")
     white = ("–" if not w else
              (_pm(w.get("factor"), w.get("factor_sigma")) if det[0]
               else f"{_fmt(w.get('factor'), 3)} (the prior, kept)")
              + (f"; range part {_fmt(w.get('range_part'), 3)} "
-                f"{'ppm' if ch == 'd' else 'mgon at 100 m'}" if det[1] else ""))
+                f"{'ppm' if ch == 'd' else 'mgon at 100 m'}" if det[1] else "")
+             + at_text)
     corr = ("–" if not g else "not determined, not carried" if not g.get("determined")
             else f"{_pm(g.get('sigma'), g.get('sigma_sigma'))} {'mm' if ch == 'd' else 'mgon'}"
                  f", τ {_pm(g.get('tau_s'), g.get('tau_sigma_s'))} s")
