@@ -51,10 +51,10 @@ from rtsgt.evaluation.metrics import (
 )
 from rtsgt.geometry.so3 import quat_xyzw_to_matrix
 from rtsgt.io.deployment import load_deployment
-from rtsgt.joint.noise import RANGE_UNIT_M
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import simulate_deployment, write_deployment
 from rtsgt.simulation.compare import compare_to_truth
+from rtsgt.simulation.field import white_sigma
 from rtsgt.simulation.presets import preset_config
 
 #: Separations of the relative poses, s.
@@ -169,8 +169,9 @@ def gm_z(record, sim) -> list[float] | None:
 
 def white_z(record, sim) -> list[float] | None:
     """The white noise's determined channels (each station's Hz, V, d): the variance at the
-    station's median range against the field truth's there (angles ``w^2 + s^2 d / 100 m``,
-    distance ``(w + ppm 1e-6 d)^2``), in its sigmas; None without the estimate."""
+    station's median range against the field truth's there
+    (:func:`rtsgt.simulation.field.white_sigma` squared), in its sigmas; None without the
+    estimate."""
     joint = record.computation.joint
     f = sim.truth.field
     fit = None if joint is None else joint.noise
@@ -180,10 +181,8 @@ def white_z(record, sim) -> list[float] | None:
     z = []
     for i, sid in enumerate(fit.stations):
         k = f.station_ids.index(sid)
-        d = RANGE_UNIT_M * fit.median_basis[i, 0, 1]
-        w, rc = f.white[k], f.range_coef[k]
-        truth = np.array([w[0] ** 2 + rc[0] ** 2 * d / RANGE_UNIT_M,
-                          w[1] ** 2 + rc[1] ** 2 * d / RANGE_UNIT_M, (w[2] + 1e-6 * rc[2] * d) ** 2])
+        d = fit.median_range_m[i]
+        truth = white_sigma(np.array([d]), f.white[k], f.range_coef[k])[0] ** 2
         on = fit.determined[i, :, 0] & (sd[i] > 0)
         z.extend((v[i, on] - truth[on]) / sd[i, on])
     return [float(x) for x in z]

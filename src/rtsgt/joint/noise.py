@@ -48,6 +48,11 @@ class NoiseFit:
     cov: np.ndarray | None = None
     median_basis: np.ndarray | None = None
 
+    @property
+    def median_range_m(self) -> np.ndarray:
+        """Each station's median range (S,), m: where :meth:`median_variance` holds."""
+        return RANGE_UNIT_M * self.median_basis[:, 0, 1]
+
     def median_variance(self) -> tuple[np.ndarray, np.ndarray]:
         """Each channel's white variance (S, 3) at its station's median and its standard
         deviation (S, 3) (first order; zero where not determined)."""

@@ -27,7 +27,7 @@ from rtsgt.joint.estimate import JointResult
 from rtsgt.joint.gm import GaussMarkov
 from rtsgt.joint.knots import qc_from_prisms
 from rtsgt.joint.noise import CHANNELS as NOISE_CHANNELS
-from rtsgt.joint.noise import RANGE_UNIT_M, NoiseFit
+from rtsgt.joint.noise import NoiseFit
 from rtsgt.joint.prisms import PrismFit
 from rtsgt.measurement.instruments import ARCSEC
 from rtsgt.measurement.units import MGON
@@ -298,21 +298,19 @@ def _noise_summary(nf: NoiseFit) -> dict[str, Any]:
     out = {}
     v, sd = (None, None) if nf.median_basis is None else nf.median_variance()
     for i, sid in enumerate(nf.stations or range(nf.theta.shape[0])):
-        out[str(sid)] = {c: {"factor": float(nf.theta[i, j, 0]),
-                             "factor_sigma": float(nf.sigma[i, j, 0]),
-                             "range_part": float(nf.range_sigma[i, j]
-                                                 / (1.0 if c == "d" else MGON)),
-                             "determined": [bool(x) for x in nf.determined[i, j]]}
-                         for j, c in enumerate(NOISE_CHANNELS)}
-        if v is None:
-            continue
-        for j, c in enumerate(NOISE_CHANNELS):  # sigma = sqrt(v), its sd sd(v) / (2 sigma)
-            unit = 1e-3 if c == "d" else MGON
+        per = out[str(sid)] = {}
+        for j, c in enumerate(NOISE_CHANNELS):
+            per[c] = {"factor": float(nf.theta[i, j, 0]),
+                      "factor_sigma": float(nf.sigma[i, j, 0]),
+                      "range_part": float(nf.range_sigma[i, j] / (1.0 if c == "d" else MGON)),
+                      "determined": [bool(x) for x in nf.determined[i, j]]}
+            if v is None:
+                continue
+            unit = 1e-3 if c == "d" else MGON  # sigma = sqrt(v), its sd sd(v) / (2 sigma)
             sig = float(np.sqrt(max(v[i, j], 0.0)))
-            out[str(sid)][c].update(
-                median_range_m=float(RANGE_UNIT_M * nf.median_basis[i, 0, 1]),
-                sigma_at_median=sig / unit,
-                sigma_at_median_sigma=float(sd[i, j] / (2.0 * sig) / unit) if sig > 0 else 0.0)
+            per[c].update(median_range_m=float(nf.median_range_m[i]), sigma_at_median=sig / unit,
+                          sigma_at_median_sigma=float(sd[i, j] / (2.0 * sig) / unit)
+                          if sig > 0 else 0.0)
     return out
 
 
