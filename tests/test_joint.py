@@ -41,7 +41,14 @@ from rtsgt.joint.interpolate import interpolate_poses_gp
 from rtsgt.joint.knots import build_knots, qc_from_prisms
 from rtsgt.joint.measurements import PolarMeasurements, predict, residual
 from rtsgt.joint.prior import prior_terms, wnoa_q_inv
-from rtsgt.joint.qc import QC_FLOOR, prior_components, qc_per_class, with_gaps
+from rtsgt.joint.qc import (
+    N_CLASSES,
+    QC_FLOOR,
+    class_members,
+    prior_components,
+    qc_per_class,
+    with_gaps,
+)
 from rtsgt.joint.se3 import exp_se3, jacobians_inv, left_jacobian, log_se3, so3_left_jacobian
 from rtsgt.joint.settling import (
     HOUR_DRIFT_SIGMA,
@@ -283,23 +290,28 @@ def test_a_gap_between_knots_takes_the_loosest_qc_of_the_others():
     np.testing.assert_array_equal(out[5], 10.0)
 
 
-def test_a_robot_moved_while_no_station_tracked_it_is_not_tied_across_the_gap():
+def _moved_in_a_gap(noise: float = 0.0, stiff: float = 1e-8):
     """A standing robot moved by 1.5 m while no station measured (4 s, knots 25-34 dropped),
-    its motion prior as stiff as a standing class's but for a few intervals where it moved
-    (``Qc`` 1 there): with the gap's prior the loosest of the run's (``max_gap_s`` 3 s) both
-    sides come out where they are (noise-free: 1e-6 m); tied by the standing prior across
-    the gap, they are pulled off by decimetres."""
-    prob, truth = _synthetic(np.random.default_rng(6), K=60, speed=0.0,
+    its motion prior's ``Qc`` ``stiff`` (a standing class's) but for a few intervals where it
+    moved elsewhere in the run (``Qc`` 1 there): the problem and the truth at its knots."""
+    prob, truth = _synthetic(np.random.default_rng(6), K=60, speed=0.0, noise=noise,
                              jump=(30, [1.5, 0.5, 0.0]))
     keep = np.r_[0:25, 35:60]
     m = prob.meas
     sel = PolarMeasurements(m.t[keep], m.station[keep], m.prism[keep], m.y[keep],
                             m.info[keep], m.kappa_sigma_ppm, m.var_white[keep], m.corr[keep])
-    qc = np.full((keep.size - 1, 6), 1e-8)
-    qc[5:8] = 1.0  # where it moved elsewhere in the run
+    qc = np.full((keep.size - 1, 6), stiff)
+    qc[5:8] = 1.0
     prob = replace(prob, t_knot=prob.t_knot[keep], of_meas=np.arange(keep.size),
                    tau=prob.tau[keep], meas=sel, qc=qc)
-    truth = replace(truth, R=truth.R[keep], t=truth.t[keep], w=truth.w[keep])
+    return prob, replace(truth, R=truth.R[keep], t=truth.t[keep], w=truth.w[keep])
+
+
+def test_a_robot_moved_while_no_station_tracked_it_is_not_tied_across_the_gap():
+    """The robot moved untracked (:func:`_moved_in_a_gap`): with the gap's prior the loosest
+    of the run's (``max_gap_s`` 3 s) both sides come out where they are (noise-free: 1e-6
+    m); tied by the standing prior across the gap, they are pulled off by decimetres."""
+    prob, truth = _moved_in_a_gap()
     start = replace(truth, t=truth.t + 0.01)
     err = {}
     for gap in (3.0, np.inf):
@@ -307,6 +319,31 @@ def test_a_robot_moved_while_no_station_tracked_it_is_not_tied_across_the_gap():
         err[gap] = np.max(np.abs(est.t - truth.t))
     assert err[3.0] < 1e-6, err
     assert err[np.inf] > 0.1, err
+
+
+def test_a_gap_counts_in_its_class_variance_components_only_between_moving_ends():
+    """The robot moved untracked (:func:`_moved_in_a_gap`, noisy): its gap enters its
+    class's ``Qc`` estimate where its ends move, not where they stand. The update's table is
+    the variance components over the intervals :func:`class_members` keeps, recomputed
+    here from the prior's terms, and the gap's 1.6 m raises the moving class's along-track
+    ``Qc`` a hundredfold over the standing class's, which never sees it."""
+    prob, truth = _moved_in_a_gap(noise=0.1, stiff=1e-4)
+    prob, est, sol, _, _ = solve_with_qc(replace(prob, max_gap_s=3.0), truth, False, 30, 1e-12)
+    dt = np.diff(prob.t_knot)
+    e, E, F = prior_terms(est.R, est.t, est.w, dt)
+    quad, red = prior_components(e, E, F, dt, prob.qc, sol.cov[:, :12, :12],
+                                 sol.cov_next[:, :12, :12])
+    table = np.ones((N_CLASSES, 6))
+    rows = {}
+    for cls in (0, 1):
+        classes = np.full(dt.size, cls)
+        on = class_members(classes, prob.gaps)
+        np.testing.assert_array_equal(on, ~prob.gaps if cls == 0 else np.ones(dt.size, bool))
+        _, new, _, _, _ = engine_module._qc_step(prob, est, sol, classes, table, None)
+        ref, _ = qc_per_class(quad[on], red[on], classes[on])
+        np.testing.assert_allclose(new[cls], ref[cls], rtol=1e-12)
+        rows[cls] = new[cls]
+    assert rows[1][0] > 100.0 * rows[0][0], rows
 
 
 @pytest.mark.parametrize("order", ["sorted", "shuffled"])

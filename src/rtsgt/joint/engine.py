@@ -38,6 +38,7 @@ from rtsgt.joint.qc import (
     VCE_GN_ITER,
     VCE_MAX_ITER,
     VCE_TOL,
+    class_members,
     motion_classes,
     prior_components,
     qc_per_class,
@@ -166,7 +167,9 @@ class JointProblem:
     def gaps(self) -> np.ndarray:
         """Which intervals between knots (K-1,) are longer than ``max_gap_s``: no station
         measured there; their motion prior is the loosest of the run's
-        (:func:`rtsgt.joint.qc.with_gaps`), not a motion class's (docs/joint.md#gaps)."""
+        (:func:`rtsgt.joint.qc.with_gaps`), not a motion class's, and only those between
+        moving ends count in their class's variance components
+        (:func:`rtsgt.joint.qc.class_members`; docs/joint.md#gaps)."""
         return np.diff(self.t_knot) > self.max_gap_s
 
     def with_qc(self, qc: np.ndarray, trusted: np.ndarray | None = None,
@@ -623,7 +626,7 @@ def _qc_step(prob: JointProblem, s: JointState, sol, classes, table, own):
     n = TRAJECTORY_DIM
     quad, red = prior_components(e, E, F, dt, prob.qc, sol.cov[:, :n, :n],
                                  sol.cov_next[:, :n, :n])
-    on = ~prob.gaps  # a gap's interval is not its class's
+    on = class_members(classes, prob.gaps)
     new, own = qc_per_class(quad[on], red[on], classes[on], own)
     red_g = np.zeros_like(table)
     np.add.at(red_g, classes[on], red[on])

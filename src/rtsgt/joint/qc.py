@@ -86,6 +86,16 @@ def with_gaps(qc: np.ndarray, gap: np.ndarray, trusted: np.ndarray | None = None
     return qc
 
 
+def class_members(classes: np.ndarray, gap: np.ndarray) -> np.ndarray:
+    """Which intervals (K-1,) enter their motion class's variance components, of classes
+    ``classes`` (K-1,) (0 standing) and gaps ``gap`` (K-1,): all but a gap between two
+    stops. A gap between moving ends is its class's motion over a longer interval, and the
+    only measure the run has of how that motion drifts from the prior's white acceleration
+    over seconds; a standing class's gap is the robot driven between two stops, not its
+    standing (docs/joint.md#gaps)."""
+    return ~np.asarray(gap, bool) | (np.asarray(classes) > 0)
+
+
 def qc_per_class(quad: np.ndarray, red: np.ndarray, classes: np.ndarray,
                  own: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The variance-component estimate of ``Qc`` (N_CLASSES, 6): each (class, axis) group the
@@ -108,5 +118,5 @@ def qc_per_class(quad: np.ndarray, red: np.ndarray, classes: np.ndarray,
 
 
 __all__ = ["ACC_WINDOW_S", "MIN_REDUNDANCY", "N_CLASSES", "QC_FLOOR", "VCE_GN_ITER",
-           "VCE_MAX_ITER", "VCE_TOL", "motion_classes", "prior_components", "qc_per_class",
-           "with_gaps"]
+           "VCE_MAX_ITER", "VCE_TOL", "class_members", "motion_classes", "prior_components",
+           "qc_per_class", "with_gaps"]
