@@ -150,16 +150,19 @@ def update_components(theta: np.ndarray, q: np.ndarray, r: np.ndarray, F: np.nda
     ``e^T W Q_i W e = tr(W_P Q_i)``; for a single component it is Förstner's ``theta q / r``.
     A factor is determined when its redundancy share ``theta_i r_i`` reaches
     :data:`MIN_REDUNDANCY` (decided when ``determined`` is None), a range part once its score
-    test at 0 (:func:`range_scores`) passes :data:`SCORE_Z`. Returns ``theta``, their sigmas
+    test at 0 (:func:`range_scores`) passes :data:`SCORE_Z`, from the second update on (at the
+    prior's weights the statistic's spread follows the factors' error,
+    docs/joint.md#noise-identification). Returns ``theta``, their sigmas
     (S, 3, 2) from ``2 F_dd^-1``, the determined components, the redundancy shares (S, 3, 2)
     and the covariance (S, 6, 6)."""
     S = theta.shape[0]
     th = theta.reshape(S, 6)
     share = th * r
-    if determined is None:
+    if determined is None:  # the weights are the prior's: no range part is tested yet
         determined = np.zeros((S, 3, 2), bool)
         determined[:, :, 0] = share.reshape(S, 3, 2)[:, :, 0] >= MIN_REDUNDANCY
-    determined = determined | (range_scores(q, r, F, th, determined) >= SCORE_Z)
+    else:
+        determined = determined | (range_scores(q, r, F, th, determined) >= SCORE_Z)
     det = determined.reshape(S, 6)
     prior = np.tile(PRIOR, 3)
     new = np.where(det, th, prior[None, :])
