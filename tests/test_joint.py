@@ -41,6 +41,7 @@ from rtsgt.joint.interpolate import interpolate_poses_gp
 from rtsgt.joint.knots import build_knots, qc_from_prisms
 from rtsgt.joint.measurements import PolarMeasurements, predict, residual
 from rtsgt.joint.prior import prior_terms, wnoa_q_inv
+from rtsgt.joint.prisms import prism_tests
 from rtsgt.joint.qc import (
     N_CLASSES,
     QC_FLOOR,
@@ -650,6 +651,37 @@ def test_a_moved_prism_surveyed_more_tightly_than_the_others_is_still_found():
     np.testing.assert_allclose(est.t, truth.t, atol=1e-5)
 
 
+def test_a_prisms_move_along_its_gauge_is_not_tested():
+    """A move of prism 1 along the normal to the prisms' plane turns the body about the other
+    two prisms' line (prism 1's gauge): no measurement sees it, only a motion model does
+    (its anisotropic ``Qc`` places the body's tilt; under a rocking body wrongly,
+    docs/joint.md#which-prism-moved). With the data's information strong in every direction
+    (as a motion prior's can be), 2 cm along the normal are not tested (the directions
+    tested are the plane's two) and 2 cm in the plane are found; with prism 1 freed (its
+    survey gone where the data see it), the others' tests are judged on the trusted prisms'
+    survey scale: each one direction (its distance to the other), no move found."""
+    n, d = _in_plane_move()
+    info = np.eye(9) * 1e6  # the survey: 1 mm
+    data = np.eye(9) * 1e8  # the data: 0.1 mm in every direction, the gauge's included
+
+    def tests(move, info=info, trusted=None):
+        cov = np.linalg.inv(info + data)
+        xyz = SURVEY + (cov @ data @ np.r_[move, np.zeros(6)]).reshape(3, 3)  # noise-free
+        return prism_tests(SURVEY, info, xyz, cov, trusted)
+
+    along = tests(0.02 * n)
+    assert along.dof[0] == 2 and along.stat[0] < 1e-12, (along.dof, along.stat)
+    assert np.all(np.abs(n @ along.directions[0][:, along.determined[0]]) < 1e-9)
+    alone = tests(d, trusted=np.zeros(3, bool))  # no other prism trusted: every move is a
+    assert alone.dof[0] == 0  # rigid motion of the body, prism 1's gauge
+    inplane = tests(d)
+    assert inplane.stat[0] > 10 * inplane.critical()[0], inplane.stat
+    freed = info.copy()
+    freed[:3, :] = freed[:, :3] = 0.0
+    after = tests(np.zeros(3), freed, np.array([False, True, True]))
+    assert np.all(after.dof[1:] == 1) and np.all(after.stat[1:] < 1e-12), (after.dof, after.stat)
+
+
 def test_a_move_two_prisms_explain_alike_is_carried_as_both_hypotheses():
     """Prism 1 moved 2 cm in the prisms' plane across its line to prism 3: to first order
     only its distance to prism 2 changes, so a move of prism 2 explains the data as well
@@ -696,7 +728,8 @@ def test_the_hypotheses_carried_do_not_depend_on_which_was_found_first():
     """The two prisms' hypotheses of the move above, each as the one found with the other
     carried beside it (rtsgt.joint.engine.carry_alternatives; the alternatives are solved
     without covariances and the estimate's taken at its state): the same estimate, the same
-    covariance and the same hypotheses kept, whichever order."""
+    covariance and the same hypotheses kept, whichever order; the third prism's hypothesis,
+    solved again beside them, is dropped."""
     pb = SURVEY
     n = np.cross(pb[1] - pb[0], pb[2] - pb[0])
     d = np.cross(n, pb[0] - pb[2])
@@ -705,14 +738,21 @@ def test_the_hypotheses_carried_do_not_depend_on_which_was_found_first():
     prob = replace(prob, qc=prob.qc * 1e-4)
     s0, sol0, _ = gauss_newton(prob, replace(truth, p_body=prob.p_body.copy()), 20, 1e-12)
     first, freed, alts = snoop_prisms(prob, s0, sol0, 1e-12)
-    assert freed and len(alts) == 1, (freed, alts)
+    assert freed and len(alts) == 2, (freed, alts)  # every other candidate, to be solved again
+    alike = [a for a in alts if a.prism_found[-1][0] in (0, 1)]
+    assert first.prism_found[-1][0] in (0, 1) and len(alike) == 1, first.prism_found
     out = []
-    for p, other in ((first, alts[0]), (alts[0], first)):
+    for p, other in ((first, alike[0]), (alike[0], first)):
         s, sol, info = gauss_newton(p, s0, HYPOTHESIS_MAX_ITER, 1e-12)
         out.append(carry_alternatives(p, s, sol, info, (other,), 1e-12))
     (pa, sa, sola, _), (pb_, sb, solb, _) = out
     assert pa.prism_found[-1][0] == pb_.prism_found[-1][0]
     assert len(pa.prism_alternatives) == len(pb_.prism_alternatives) == 1
+    # with the third prism's hypothesis as well: solved again, far above, not carried
+    s, sol, info = gauss_newton(first, s0, HYPOTHESIS_MAX_ITER, 1e-12)
+    pc, sc, _, _ = carry_alternatives(first, s, sol, info, alts, 1e-12)
+    assert [a[0] for a in pc.prism_alternatives] == [a[0] for a in pa.prism_alternatives]
+    np.testing.assert_allclose(sc.t, sa.t, atol=1e-6)
     np.testing.assert_allclose(sa.t, sb.t, atol=1e-6)
     np.testing.assert_allclose(sola.cov[:, :6, :6], solb.cov[:, :6, :6], rtol=1e-4,
                                atol=1e-6 * np.abs(sola.cov[:, :6, :6]).max())

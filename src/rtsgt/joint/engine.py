@@ -68,10 +68,11 @@ STALL_REL = 1e-9
 #: solution the rise is the first-order Jacobians' error (the prior's, the settling's), and
 #: halving the step would only creep towards the same point.
 WHOLE_STEP_DECREASE = 1e-2
-#: Of several prisms whose tests find a move, another's hypothesis stays beside the chosen
-#: one's (:func:`carry_alternatives`) unless its solve ends at a cost (plus freed directions)
-#: higher by at least this: the likelihood ratio of the two beyond its critical value at the
-#: prisms' test rate (``chi2(1).ppf(1 - TEST_ALPHA)``, 10.8; docs/joint.md#which-prism-moved).
+#: Of several prisms whose move explains the data, another's hypothesis stays beside the
+#: chosen one's (:func:`carry_alternatives`) unless its final solve ends at a cost (plus
+#: freed directions) higher by at least this: the likelihood ratio of the two beyond its
+#: critical value at the prisms' test rate (``chi2(1).ppf(1 - TEST_ALPHA)``, 10.8;
+#: docs/joint.md#which-prism-moved).
 UNDECIDED_COST = float(chi2.ppf(1.0 - TEST_ALPHA, 1))
 #: Most Gauss-Newton iterations of a prism hypothesis's solve (:func:`snoop_prisms`,
 #: :func:`carry_alternatives`): they run to convergence, their costs compared; a move along
@@ -694,13 +695,16 @@ def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = 1e-6
     freed (from ``s``, to convergence: ``tol``, :data:`HYPOTHESIS_MAX_ITER`) ends at the
     lowest cost plus freed directions (the tests rank to first order only: two prisms' moves
     can explain the data alike, docs/joint.md#which-prism-moved). Returns the problem,
-    whether a prism was freed and the problems with each other prism freed instead whose
-    cost is within :data:`UNDECIDED_COST` of the chosen's (its alternatives)."""
+    whether a prism was freed and the problems with each other candidate freed instead (its
+    alternatives, solved again with the final noise by :func:`carry_alternatives`: the
+    trials' weights are an early update's, and the order can turn)."""
     if prob.prism_info is None:
         return prob, False, ()
     sl = slice(prob.kappa_col + 1, prob.kappa_col + 1 + prob.n_prism)
-    tests = prism_tests(prob.p_body, prob.prism_info, s.p_body, sol.cov_g[sl, sl])
     found = [f[0] for f in prob.prism_found]
+    trusted = np.ones(prob.p_body.shape[0], bool)
+    trusted[found] = False
+    tests = prism_tests(prob.p_body, prob.prism_info, s.p_body, sol.cov_g[sl, sl], trusted)
     open_ = tests.dof > 0
     open_[found] = False
     ratio = np.where(open_, tests.stat / tests.critical(), 0.0)
@@ -714,9 +718,7 @@ def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = 1e-6
                                                         want_cov=False)[2])
                       for p in freed])  # a handful of prisms
     best = int(np.argmin(score))
-    alternatives = tuple(p for i, p in enumerate(freed)
-                         if i != best and score[i] - score[best] < UNDECIDED_COST)
-    return freed[best], True, alternatives
+    return freed[best], True, tuple(p for i, p in enumerate(freed) if i != best)
 
 
 def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,

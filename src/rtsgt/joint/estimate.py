@@ -319,11 +319,12 @@ def _prism_fit(names, prob: JointProblem, state: JointState, cov_g) -> PrismFit:
     """The prisms' estimates and tests: a prism found moved keeps its statistic at detection."""
     sl = slice(prob.kappa_col + 1, prob.kappa_col + 1 + prob.n_prism)
     cov = cov_g[sl, sl]
-    tests = prism_tests(prob.p_body, prob.prism_info, state.p_body, cov)
-    stat, dof = tests.stat.copy(), tests.dof.copy()
     moved = np.zeros(len(names), bool)
+    moved[[j for j, _, _ in prob.prism_found]] = True
+    tests = prism_tests(prob.p_body, prob.prism_info, state.p_body, cov, ~moved)
+    stat, dof = tests.stat.copy(), tests.dof.copy()
     for j, st, df in prob.prism_found:
-        moved[j], stat[j], dof[j] = True, st, df
+        stat[j], dof[j] = st, df
     weight = moved.astype(float)
     above = np.full(len(names), np.nan)
     for j, cost, w in prob.prism_alternatives:

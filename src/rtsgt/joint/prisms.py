@@ -41,10 +41,13 @@ class PrismTests:
     alone that the data support (its survey freed, the others kept), ``cov`` (P, 3, 3) m^2
     its covariance (in the determined directions), ``stat`` (P,) the test statistic (chi^2
     with ``dof`` (P,) degrees of freedom if it did not move), ``directions`` (P, 3, 3) the
-    eigenvectors (columns) of the data's information on the move and ``determined`` (P, 3)
-    which of them the data determine (:data:`DETERMINED_RATIO`), ``information`` (P, 3, 3)
-    that information (``N_jj``) and ``prior`` (P, 3, 3) the survey's (``info_jj``, on the
-    common scale: :func:`_common_scale`)."""
+    eigenvectors (columns) of the data's information on the move outside the prism's gauge
+    and ``determined`` (P, 3) which of them the data determine (:data:`DETERMINED_RATIO`;
+    never the gauge), ``information`` (P, 3, 3) the data's information (``N_jj``, the gauge's
+    included), ``prior`` (P, 3, 3) the survey's (``info_jj``, on the common scale:
+    :func:`_common_scale`) and ``size`` (P,) m the size of the move over every direction the
+    data determine, the gauge's included (where only the motion model sees it): the scale of
+    a freed prism's survey where it is kept (:func:`free_prism`)."""
 
     displacement: np.ndarray
     cov: np.ndarray
@@ -54,6 +57,7 @@ class PrismTests:
     determined: np.ndarray
     information: np.ndarray
     prior: np.ndarray
+    size: np.ndarray
 
     def critical(self, alpha: float = TEST_ALPHA) -> np.ndarray:
         """Critical values (P,) of ``stat`` at the family-wise rate ``alpha`` (Bonferroni)."""
@@ -61,7 +65,7 @@ class PrismTests:
 
 
 def prism_tests(survey: np.ndarray, info: np.ndarray, xyz: np.ndarray,
-                cov: np.ndarray) -> PrismTests:
+                cov: np.ndarray, trusted: np.ndarray | None = None) -> PrismTests:
     """Outlier tests of the survey's prism groups (Baarda's test for a group of the prior).
 
     Estimates ``xyz`` (P, 3) with posterior ``cov`` (3P, 3P) under the prior ``N(survey,
@@ -69,20 +73,35 @@ def prism_tests(survey: np.ndarray, info: np.ndarray, xyz: np.ndarray,
     under no move; ``u = info v``, ``N = info Q info = info - info cov info`` (the data's
     information on a move);
     prism j's move ``N_jj^+ u_j``, statistic ``u_j^T N_jj^+ u_j`` over the determined
-    directions of ``N_jj``."""
+    directions of ``N_jj`` outside prism j's gauge (:func:`gauge_directions` with the other
+    ``trusted`` (P,) prisms, None: all): a move there is a rotation of the body frame, which
+    no measurement sees and only the motion model places; it is neither tested nor freed
+    (docs/joint.md#a-prisms-gauge-is-not-tested)."""
     P = survey.shape[0]
     v = (xyz - survey).ravel()
     N = info - info @ cov @ info
     u = (info @ v).reshape(P, 3)
     blk, pri = _prism_blocks(N), _prism_blocks(info)
     blk = 0.5 * (blk + np.swapaxes(blk, 1, 2))
-    pri = _common_scale(pri)
-    w, U, det = _determined(blk, pri)
+    trusted = np.ones(P, bool) if trusted is None else np.asarray(trusted, bool)
+    pri = _common_scale(pri, trusted)
+    outside = np.stack([np.eye(3) - G @ G.T for G in
+                        (gauge_directions(survey, trusted & (np.arange(P) != j), j)
+                         for j in range(P))])  # a handful of prisms
+    U, det, Ninv, disp = _moves(outside @ blk @ outside, pri, u)
+    stat = np.clip(np.einsum("pi,pi->p", u, disp), 0.0, None)
+    size = np.linalg.norm(_moves(blk, pri, u)[3], axis=1)
+    return PrismTests(disp, Ninv, stat, det.sum(axis=1), U, det, blk, pri, size)
+
+
+def _moves(N: np.ndarray, prior: np.ndarray, u: np.ndarray):
+    """Eigenvectors (P, 3, 3) of the data's information ``N`` (P, 3, 3) on each prism's move,
+    which the data determine (P, 3) against ``prior`` (P, 3, 3), the moves' covariance
+    ``N^+`` (P, 3, 3) over those and the moves ``N^+ u`` (P, 3) from the scores ``u``."""
+    w, U, det = _determined(N, prior)
     winv = np.where(det, 1.0 / np.where(det, w, 1.0), 0.0)
     Ninv = (U * winv[:, None, :]) @ np.swapaxes(U, 1, 2)
-    disp = np.einsum("pij,pj->pi", Ninv, u)
-    stat = np.clip(np.einsum("pi,pi->p", u, disp), 0.0, None)
-    return PrismTests(disp, Ninv, stat, det.sum(axis=1), U, det, blk, pri)
+    return U, det, Ninv, np.einsum("pij,pj->pi", Ninv, u)
 
 
 def _prism_blocks(M: np.ndarray) -> np.ndarray:
@@ -91,13 +110,14 @@ def _prism_blocks(M: np.ndarray) -> np.ndarray:
     return np.stack([M[3 * j:3 * j + 3, 3 * j:3 * j + 3] for j in range(P)])
 
 
-def _common_scale(prior: np.ndarray) -> np.ndarray:
+def _common_scale(prior: np.ndarray, trusted: np.ndarray) -> np.ndarray:
     """The prisms' survey information blocks (P, 3, 3), each capped at the survey's least
-    precise direction (the smallest eigenvalue of them all): a prism surveyed more tightly
+    precise direction (the smallest eigenvalue of the ``trusted`` (P,) prisms' blocks: a
+    freed prism's survey is gone where the data determine it): a prism surveyed more tightly
     than the others (or defining the survey's frame) is judged on the same scale, else the
     data could never determine its move (docs/joint.md#which-prism-moved)."""
     lam, V = np.linalg.eigh(prior)
-    cap = lam.min()
+    cap = lam[trusted].min() if np.any(trusted) else lam.max()
     return (V * np.minimum(lam, cap)[:, None, :]) @ np.swapaxes(V, 1, 2)
 
 
@@ -106,7 +126,7 @@ def _determined(N: np.ndarray, prior: np.ndarray):
     (..., n, n) and which directions it determines against the ``prior``'s information."""
     w, U = np.linalg.eigh(N)
     prior_w = np.einsum("...ia,...ij,...ja->...a", U, prior, U)
-    return w, U, w >= DETERMINED_RATIO * prior_w
+    return w, U, (w > 0.0) & (w >= DETERMINED_RATIO * prior_w)
 
 
 def gauge_directions(p_body: np.ndarray, trusted: np.ndarray, j: int) -> np.ndarray:
@@ -114,6 +134,8 @@ def gauge_directions(p_body: np.ndarray, trusted: np.ndarray, j: int) -> np.ndar
     keep the ``trusted`` prisms (boolean (P,)) of ``p_body`` (P, 3) fixed: none for three or
     more not collinear, the tangent of the circle about their line for two (the body frame
     is the survey's: there prism j's survey defines it)."""
+    if not np.any(trusted):
+        return np.eye(3)
     rows = np.concatenate([np.concatenate([np.eye(3), -hat(p)], axis=1)
                            for p in p_body[trusted]])
     _, sv, Vt = np.linalg.svd(rows)
@@ -142,7 +164,7 @@ def free_prism(info: np.ndarray, cov: np.ndarray, j: int, tests: PrismTests,
     out[:, sl] = 0.0
     if K.shape[1]:
         c = cov[sl, sl] + FIXED_SIGMA_M**2 * np.eye(3)  # as the prior's information
-        move2 = float(tests.displacement[j] @ tests.displacement[j])
+        move2 = float(tests.size[j]) ** 2
         blk = K @ np.linalg.inv(K.T @ c @ K + move2 * np.eye(K.shape[1])) @ K.T
         out[sl, sl] = 0.5 * (blk + blk.T)
     return out
