@@ -50,6 +50,7 @@ from rtsgt.joint.qc import (
     qc_per_class,
     with_gaps,
 )
+from rtsgt.joint.rocking import bridge_variance, rocked_knots, start_rocking
 from rtsgt.joint.se3 import exp_se3, jacobians_inv, left_jacobian, log_se3, so3_left_jacobian
 from rtsgt.joint.settling import (
     HOUR_DRIFT_SIGMA,
@@ -1114,3 +1115,105 @@ def test_bad_inputs_are_named(simulated):
     with pytest.raises(InputError, match="station '9'"):
         estimate_joint(moved, comp.calibration, data.reference, comp.noise_model, tq, tq,
                        est.R[keep], est.t[keep], np.ones(6))
+
+
+def test_the_vehicles_rocking_is_estimated_with_the_trajectory(monkeypatch):
+    """The knots' poses rocked by a first-order Gauss-Markov process per axis (shifts 2 mm,
+    rotations 1 mrad, tau 1 s; the measurements see the rocked pose, to first order) over a
+    white noise of half the datasheet's: with the rocking as knot states
+    (rtsgt.joint.rocking) the solve with the noise estimated determines every axis's chain;
+    the shifts' sigma within 10 % and tau within a factor 2 of the truth, the rotations'
+    sigma within a factor 2 (their correlated part, 0.6 mm at the prisms, is shared with
+    the trajectory's turning: their tau reads 0.1-0.2 s); the knots' poses with their
+    rocking are the rocked truth's to NEES/dof 0.7-1.3; the rocking's columns of the gradient
+    equal finite differences of the cost (docs/joint.md#the-vehicles-rocking)."""
+    monkeypatch.setattr(engine_module, "VCE_MAX_ITER", 30)
+    rng = np.random.default_rng(41)
+    K = 600
+    prob, truth = _synthetic(rng, K=K, noise=0.0)
+    sigma = np.array([2e-3, 2e-3, 2e-3, 1e-3, 1e-3, 1e-3])
+    tau = 1.0
+    x = np.zeros((K, 6))
+    x[0] = rng.standard_normal(6)
+    phi = np.exp(-np.diff(prob.t_knot) / tau)
+    for i in range(1, K):  # the process's recursion, in the test's own code
+        x[i] = phi[i - 1] * x[i - 1] + np.sqrt(1 - phi[i - 1] ** 2) * rng.standard_normal(6)
+    rock = sigma * x
+    rocked = replace(prob, rocking=start_rocking())
+    y = prob.meas.y - measurement_terms(rocked, replace(truth, rocking=rock))[0]  # h(rocked)
+    sig = np.sqrt(prob.meas.var_white[0])
+    y = y + 0.5 * sig * rng.standard_normal(y.shape)
+    prob = replace(rocked, meas=replace(prob.meas, y=y), qc=prob.qc * 1e-4)
+    start = replace(truth, rocking=np.zeros((K, 6)))
+    out, est, sol, info, _ = solve_with_qc(prob, start, True, 10, 1e-9, estimate_noise=True,
+                                           rng=np.random.default_rng(42))
+    fit = out.rocking
+    assert info.converged and fit.determined.all(), (info, fit)
+    ratio = fit.sigma.ravel() / sigma
+    assert np.all(np.abs(ratio[:3] - 1) < 0.1) and np.all(np.abs(np.log(ratio[3:])) < np.log(2)), ratio
+    assert np.all(np.abs(np.log(fit.tau_s[0] / tau)) < np.log(2)), fit.tau_s
+    # the knots' poses with their rocking against the rocked truth (first order)
+    err = log_se3(*_compose(np.swapaxes(truth.R, 1, 2),
+                            -np.einsum("kji,kj->ki", truth.R, truth.t), est.R, est.t))
+    err = err + est.rocking - rock
+    c = out.rocking_col
+    J = np.zeros((6, out.knot_dim))
+    J[:, :6] = J[:, c:c + 6] = np.eye(6)
+    cov = J @ sol.cov @ J.T
+    nees = np.einsum("ki,kij,kj->k", err, np.linalg.inv(cov), err).mean() / 6
+    assert 0.7 < nees < 1.3, nees
+    # the rocking's columns of the gradient against finite differences of the cost
+    half = replace(truth, rocking=0.5 * rock)
+    system, _ = assemble(out, half)
+    for knot, j in ((0, c), (3, c + 1), (301, c + 5), (K - 1, c + 3), (450, c + 2)):
+        dx = np.zeros((K, out.knot_dim))
+        dx[knot, j] = 1e-9
+        cp, cm = (assemble(out, retract(out, half, sgn * dx, np.zeros(out.n_globals)))[1]
+                  for sgn in (1.0, -1.0))
+        assert (cp - cm) / 2e-9 == pytest.approx(-2 * system.a[knot, j], rel=1e-4,
+                                                 abs=1e-2), (knot, j)
+
+
+def test_the_rockings_bridge_variance_and_the_rocked_knots():
+    """Between two knots the rocking's variance given its values there
+    (rtsgt.joint.rocking.bridge_variance) is the Gauss-Markov process's conditional variance
+    from its dense covariance at the three times (the test's own), zero at the knots; the
+    rocked knots' covariances (rocked_knots) are ``J Sigma J^T`` with the pose's rows the
+    pose's plus the rocking's, their shared factor ``J L``, their poses ``T exp(r^)``."""
+    model = start_rocking()
+    model = replace(model, sigma=np.array([[1e-3, 2e-3, 3e-3], [4e-3, 5e-3, 6e-3]]),
+                    tau_s=np.array([[0.1, 0.3, 1.0], [2.0, 0.05, 0.5]]))
+    t_knot = np.array([0.0, 0.2, 0.5, 1.5])
+    tq = np.array([0.0, 0.05, 0.2, 0.31, 0.49, 1.0, 1.5])
+    got = bridge_variance(tq, t_knot, model)
+    sig, tau = model.sigma.ravel(), model.tau_s.ravel()
+    for q, t in enumerate(tq):
+        k = min(np.searchsorted(t_knot, t, side="right") - 1, t_knot.size - 2)
+        times = np.array([t_knot[k], t, t_knot[k + 1]])
+        for a in range(6):
+            C = sig[a] ** 2 * np.exp(-np.abs(times[:, None] - times[None, :]) / tau[a])
+            ends = [0, 2]
+            cond = C[1, 1] - C[1, ends] @ np.linalg.solve(C[np.ix_(ends, ends)], C[ends, 1])
+            assert got[q, a] == pytest.approx(cond, rel=1e-6, abs=1e-12 * sig[a] ** 2), (t, a)
+    assert np.all(got[[0, 2, 6]] < 1e-20)
+    rng = np.random.default_rng(5)
+    K, d, G, col = 4, 20, 3, 14
+    A = rng.standard_normal((K * d + G, K * d + G))
+    full = A @ A.T
+    cov = np.stack([full[k * d:(k + 1) * d, k * d:(k + 1) * d] for k in range(K)])
+    nxt = np.stack([full[k * d:(k + 1) * d, (k + 1) * d:(k + 2) * d] for k in range(K - 1)])
+    factor = rng.standard_normal((K, d, G))
+    sol = sparse.ArrowSolution(np.zeros((K, d)), np.zeros(G), cov, nxt, np.eye(G), cov.copy(),
+                               nxt.copy(), factor.copy(), np.eye(G))
+    R = exp_so3(rng.normal(0, 0.3, (K, 3)))
+    t = rng.standard_normal((K, 3))
+    r = rng.normal(0, 1e-3, (K, 6))
+    Rr, tr, out = rocked_knots(R, t, r, sol, col)
+    J = np.eye(d)
+    J[:6, col:col + 6] += np.eye(6)
+    np.testing.assert_allclose(out.cov, J @ cov @ J.T, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(out.cov_next, J @ nxt @ J.T, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(out.factor, J @ factor, rtol=1e-12, atol=1e-12)
+    dR, dp = exp_se3(r)
+    np.testing.assert_allclose(Rr, R @ dR, atol=1e-15)
+    np.testing.assert_allclose(tr, t + np.einsum("kij,kj->ki", R, dp), atol=1e-15)

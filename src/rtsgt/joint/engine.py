@@ -45,6 +45,7 @@ from rtsgt.joint.qc import (
     with_gaps,
 )
 from rtsgt.joint.relative import chain_gains, knot_cross_covariance
+from rtsgt.joint.rocking import ROCKING_DIM, rocking_moments
 from rtsgt.joint.se3 import exp_se3, log_se3, so3_left_jacobian
 from rtsgt.joint.settling import KIND_COLUMNS, SettleModel
 from rtsgt.joint.sparse import (
@@ -95,7 +96,8 @@ class JointState:
     estimated); ``gm`` (K, n) the Gauss-Markov
     noise's chains at the knots (:mod:`rtsgt.joint.gm`; None: not estimated); ``R_mb`` (3, 3)
     the motion prior's axes (:mod:`rtsgt.joint.axes`: the knots are then motion-frame poses,
-    a prism at ``R_mb p_body``; None: the body frame's)."""
+    a prism at ``R_mb p_body``; None: the body frame's); ``rocking`` (K, 6) the vehicle's
+    rocking at the knots (:mod:`rtsgt.joint.rocking`; None: not estimated)."""
 
     R: np.ndarray
     t: np.ndarray
@@ -110,6 +112,7 @@ class JointState:
     deviation: np.ndarray | None = None
     gm: np.ndarray | None = None
     R_mb: np.ndarray | None = None
+    rocking: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -134,7 +137,9 @@ class JointProblem:
     prisms whose move explains the data as well as the one found's
     (``prism_alternatives``: index, cost above the chosen's, weight;
     docs/joint.md#which-prism-moved), and whether the motion prior's axes are estimated
-    (``motion_axes``, with the prior sigma ``axes_sigma`` rad, docs/joint.md#the-motion-axes).
+    (``motion_axes``, with the prior sigma ``axes_sigma`` rad, docs/joint.md#the-motion-axes),
+    and the vehicle's rocking (``rocking``: its chains, states of every knot after the
+    settling's; None: none, docs/joint.md#the-vehicles-rocking).
     Globals: the free stations' ``(dt, dtheta)``, ``kappa``, the prisms' positions (3P), the
     constant clock offsets, the prisms' deviation (P, C), the motion axes (3)."""
 
@@ -163,6 +168,7 @@ class JointProblem:
     motion_axes: bool = False
     axes_sigma: float = AXES_SIGMA
     max_gap_s: float = np.inf
+    rocking: gmn.GaussMarkov | None = None
 
     @property
     def gaps(self) -> np.ndarray:
@@ -196,10 +202,16 @@ class JointProblem:
         return self.clock_col + (0 if self.clock is None else self.clock.size)
 
     @property
-    def knot_dim(self) -> int:
-        """A knot's state: its trajectory's, then its Gauss-Markov chains', its clocks' and
-        its settling's (docs/joint.md#slowly-varying-states)."""
+    def rocking_col(self) -> int:
+        """Column of the first rocking state in a knot's (after the settling's)."""
         return self.settle_col + (0 if self.settle is None else self.settle.size)
+
+    @property
+    def knot_dim(self) -> int:
+        """A knot's state: its trajectory's, then its Gauss-Markov chains', its clocks', its
+        settling's (docs/joint.md#slowly-varying-states) and the rocking's
+        (docs/joint.md#the-vehicles-rocking)."""
+        return self.rocking_col + (0 if self.rocking is None else ROCKING_DIM)
 
     @property
     def kappa_col(self) -> int:
@@ -258,7 +270,8 @@ def station_prior_info(cov: np.ndarray) -> np.ndarray:
 
 def measurement_terms(prob: JointProblem, s: JointState):
     """Residuals (M, 3), Jacobians wrt the knots (M, 3, d) (:attr:`JointProblem.knot_dim`: the
-    trajectory's 12, the measurement's station's Gauss-Markov chains, clock and settling)
+    trajectory's 12, the measurement's station's Gauss-Markov chains, clock and settling,
+    the rocking: the pose's columns)
     and wrt the globals (M, 3, G). The settling enters to first order (its sizes:
     millimetres and arc seconds); the prisms' deviation
     (``prob.deviation_orders``) at the knot's pose, its slope in the viewing azimuth in the
@@ -291,6 +304,9 @@ def measurement_terms(prob: JointProblem, s: JointState):
         slope = np.einsum("mic,mc->mi", dH, coef)  # d deviation / d alpha
         Hk[:, :, :6] += slope[:, :, None] * (da_xi @ body_rotation(R_mb))[:, None, :]
         Hs[:, :, :3] += slope[:, :, None] * da_st[:, None, :]
+    Hpose = Hk[:, :, :6].copy()  # d h / d (the knot's pose), as the rocking moves it
+    if prob.rocking is not None:
+        r = r - np.einsum("mij,mj->mi", Hpose, s.rocking[k])
     if prob.gm is not None:  # the station's chains add to its measurements
         r = r - gmn.chain_values(s.gm, k, m.station)
         Hk = np.concatenate([Hk, gmn.chain_jacobian(m.station, prob.n_gm)], axis=2)
@@ -301,6 +317,8 @@ def measurement_terms(prob: JointProblem, s: JointState):
         Hkind = Hs[:, :, KIND_COLUMNS]  # (M, 3, 2)
         r = r - np.einsum("mik,mk->mi", Hkind, st.at(s.settle, k, m.station, prob.tau))
         Hk = np.concatenate([Hk, Hkind @ st.jacobian(m.station, prob.tau)], axis=2)
+    if prob.rocking is not None:
+        Hk = np.concatenate([Hk, Hpose], axis=2)
     Hg = np.zeros(r.shape + (prob.n_globals,))
     col = np.full(len(s.R_s), -1)
     col[prob.free] = np.arange(prob.free.size)
@@ -385,6 +403,8 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
         cost += prob.clock.prior.add_prior(D, U, a, s.clock, dt, prob.clock_col)
     if prob.settle is not None:
         cost += prob.settle.prior.add_prior(D, U, a, s.settle, dt, prob.settle_col)
+    if prob.rocking is not None:
+        cost += gmn.add_prior(D, U, a, s.rocking, dt, prob.rocking, prob.rocking_col)
     r, Hk, Hg = measurement_terms(prob, s)
     info = prob.meas.info
     # each knot's rows (K, 3 R, .) of H, W H, W Hg and W r, gathered at once
@@ -465,9 +485,10 @@ def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> 
     n, cc, sc = TRAJECTORY_DIM, prob.clock_col, prob.settle_col
     chains = None if prob.gm is None else s.gm + x[:, n:cc]
     clock = None if s.clock is None else s.clock + x[:, cc:sc]
-    settle = None if s.settle is None else s.settle + x[:, sc:prob.knot_dim]
+    settle = None if s.settle is None else s.settle + x[:, sc:prob.rocking_col]
+    rock = None if s.rocking is None else s.rocking + x[:, prob.rocking_col:prob.knot_dim]
     return JointState(R, t, s.w + x[:, 6:n], R_s, t_s, s.kappa_ppm + float(g[kc]), clock, pb,
-                      sync, settle, dev, chains, R_mb)
+                      sync, settle, dev, chains, R_mb, rock)
 
 
 def difference(prob: JointProblem, a: JointState, b: JointState
@@ -484,7 +505,9 @@ def difference(prob: JointProblem, a: JointState, b: JointState
     if prob.clock is not None:
         x[:, prob.clock_col:prob.settle_col] = b.clock - a.clock
     if prob.settle is not None:
-        x[:, prob.settle_col:] = b.settle - a.settle
+        x[:, prob.settle_col:prob.rocking_col] = b.settle - a.settle
+    if prob.rocking is not None:
+        x[:, prob.rocking_col:] = b.rocking - a.rocking
     g = np.zeros(prob.n_globals)
     kc, f = prob.kappa_col, prob.free
     g[:kc] = np.concatenate([b.t_s[f] - a.t_s[f],
@@ -599,6 +622,9 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
         if estimate_noise and prob.gm is not None:
             prob, dn = gm_step(prob, s, sol, rng)
             change = max(change, dn)
+        if estimate_noise and prob.rocking is not None:
+            prob, dn = rocking_step(prob, s, sol, rng)
+            change = max(change, dn)
         last = (change < VCE_TOL and not freed and snooped) or it == VCE_MAX_ITER
         if last and estimate_noise and prob.gm is not None:  # the last solve without them
             prob = replace(prob, gm=gmn.without_undetermined(prob.gm))
@@ -683,6 +709,20 @@ def gm_step(prob: JointProblem, s: JointState, sol,
                         np.diff(prob.t_knot[k])))
     new = gmn.update(old, moments, old.determined if old.iterations else None, rng)
     return replace(prob, gm=new), gmn.log_change(old, new)
+
+
+def rocking_step(prob: JointProblem, s: JointState, sol,
+                 rng: np.random.Generator | None = None) -> tuple[JointProblem, float]:
+    """One update of the rocking's chains' sigma and tau (:func:`rtsgt.joint.gm.update`,
+    ``rng`` its draws) from the posterior at ``s`` at every knot: the problem with them and
+    the largest change of a determined one's log (docs/joint.md#the-vehicles-rocking)."""
+    old = prob.rocking
+    j = prob.rocking_col + np.arange(ROCKING_DIM)
+    k = np.arange(prob.t_knot.size)
+    cross = knot_cross_covariance(sol, chain_gains(sol), k[:-1], k[1:])[:, j, j]
+    moments = rocking_moments(s.rocking, sol.cov[:, j, j], cross, np.diff(prob.t_knot))
+    new = gmn.update(old, moments, old.determined if old.iterations else None, rng)
+    return replace(prob, rocking=new), gmn.log_change(old, new)
 
 
 def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = 1e-6
@@ -776,4 +816,4 @@ def _freed(prob: JointProblem, tests, found: list[int], j: int) -> JointProblem:
 __all__ = ["HYPOTHESIS_MAX_ITER", "UNDECIDED_COST", "JointProblem", "JointState", "QcFit",
            "SolveInfo", "assemble", "carry_alternatives", "difference", "gauss_newton", "gm_step",
            "measurement_global_factor", "measurement_hsh", "measurement_terms", "noise_step",
-           "snoop_prisms", "solve_with_qc"]
+           "rocking_step", "snoop_prisms", "solve_with_qc"]

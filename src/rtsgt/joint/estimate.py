@@ -17,7 +17,7 @@ from rtsgt.geometry.so3 import log_so3
 from rtsgt.geometry.transform import RigidTransform
 from rtsgt.joint import deviation as pdev
 from rtsgt.joint import gm as gmn
-from rtsgt.joint.axes import body_qc, body_solution, velocities_in_body
+from rtsgt.joint.axes import body_qc, body_rotation, body_solution, velocities_in_body
 from rtsgt.joint.blockcv import raw_block_cv, raw_block_summary
 from rtsgt.joint.clock import clock_model, report_times
 from rtsgt.joint.engine import (
@@ -45,6 +45,7 @@ from rtsgt.joint.relative import (
     linear_covariance,
     world_covariance,
 )
+from rtsgt.joint.rocking import ROCKING_DIM, bridge_variance, rocked_knots, start_rocking
 from rtsgt.joint.settling import settle_model
 from rtsgt.joint.slow import at_times
 from rtsgt.noise.model import NoiseModel
@@ -86,7 +87,10 @@ class JointResult:
     station and channel (:class:`rtsgt.joint.gm.GaussMarkov`, docs/joint.md#gauss-markov-noise;
     None where not estimated); ``motion_axes``: the motion prior's axes as a rotation vector
     from the body frame's, ``log(R_mb)`` (3,) rad, and its covariance (3, 3) rad^2
-    (docs/joint.md#the-motion-axes; None where not estimated).
+    (docs/joint.md#the-motion-axes; None where not estimated); ``rocking``: the vehicle's
+    rocking's sigma and correlation time per axis (:class:`rtsgt.joint.gm.GaussMarkov`, rows
+    the shifts and the rotations; docs/joint.md#the-vehicles-rocking; None where not
+    estimated).
     """
 
     t: np.ndarray
@@ -111,6 +115,7 @@ class JointResult:
     deviation: pdev.DeviationFit | None = None
     gauss_markov: gmn.GaussMarkov | None = None
     motion_axes: tuple[np.ndarray, np.ndarray] | None = None
+    rocking: gmn.GaussMarkov | None = None
 
 
 def _stations(calibration):
@@ -131,8 +136,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                    noise: bool = False, settling: bool = False,
                    calibrated_at: dict[str, float] | None = None, deviation: bool = False,
                    gauss_markov: bool = False, rng: np.random.Generator | None = None,
-                   max_gap_s: float = DEFAULT_MAX_GAP_S, motion_axes: bool = False
-                   ) -> JointResult:
+                   max_gap_s: float = DEFAULT_MAX_GAP_S, motion_axes: bool = False,
+                   rocking: bool = False) -> JointResult:
     """Poses ``T_world_body`` at ``query_times`` (Q,) s from every station's observations.
 
     ``observations``: one :class:`rtsgt.types.Observations` per station (valid, increasing
@@ -159,7 +164,10 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     ``gauss_markov`` (and ``noise``), each station's channels carry a first-order
     Gauss-Markov noise as states of the knots, its sigma and correlation time estimated
     (docs/joint.md#gauss-markov-noise; ``rng`` the draws of their observed information,
-    None: approximated without draws).
+    None: approximated without draws). With ``rocking`` (and ``noise``), the vehicle's rocking
+    is a first-order Gauss-Markov process per axis of the knots' pose, its sigma and
+    correlation time estimated as the chains' (docs/joint.md#the-vehicles-rocking), and the
+    poses are the rocked ones, with its variance between the knots.
     ``max_gap_s``: a longer gap between a station's measurements starts new blocks of the
     raw block cross-validation (docs/joint.md#block-cross-validation-of-the-measurements),
     and a longer interval between knots (no station measured) has a motion prior of its own,
@@ -200,7 +208,7 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                         if deviation else None,
                         gm=gmn.start_model(meas.var_white, meas.station, len(ids))
                         if gauss_markov and noise else None, motion_axes=motion_axes,
-                        max_gap_s=max_gap_s)
+                        max_gap_s=max_gap_s, rocking=start_rocking() if rocking and noise else None)
     K = knots.t.size
     state = JointState(R0, p0, body_velocities(knots.t, R0, p0), R_s, t_s, 0.0,
                        None if ck is None else np.zeros((K, ck.size)),
@@ -210,31 +218,36 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        None if not deviation else np.zeros((len(names),
                                                             pdev.n_coefficients(pdev.ORDERS))),
                        None if prob.gm is None else np.zeros((K, prob.n_gm)),
-                       np.eye(3) if motion_axes else None)
+                       np.eye(3) if motion_axes else None,
+                       None if prob.rocking is None else np.zeros((K, ROCKING_DIM)))
     prob, state, sol, solve, qc_fit = solve_with_qc(prob, state, estimate_qc, max_iter, tol,
                                                     noise, rng)
     cov_g = sol.cov_g
     pfit = None if p_info is None else _prism_fit(names, prob, state, cov_g)
     block_cv = raw_block_summary(raw_block_cv(prob, state, sol, max_gap_s), ids)
     body = _body_knots(prob, state, sol)
+    bridge = _rocking_bridge(prob, state)
     slow = prob.clock is not None or prob.settle is not None  # reported along the chain
     gains = chain_gains(body[4]) if slow else None
     R, t, cov_body = interpolate_poses_gp(tq, knots.t, *body[:4], body[4].cov, body[4].cov_next)
+    if bridge is not None:
+        cov_body = cov_body + bridge(tq)
     cov_pose = body_to_world_cov(R, cov_body)
     globals_ = global_names(prob, ids, names)
     shared = _shared(tq, knots.t, body,
-                     globals_ + tuple(f"moved_{names[j]}" for j, _, _ in prob.prism_alternatives))
+                     globals_ + tuple(f"moved_{names[j]}" for j, _, _ in prob.prism_alternatives),
+                     bridge)
     est = _pose_estimate(R, t, cov_pose, survey if pfit is None else pfit.xyz)
     return JointResult(tq, est, _station_results(ids, free, state, cov_g), state.kappa_ppm,
                        meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, body[4], gains, ids, ref),
                        knots.t.size, meas.t.size, solve,
                        solve.costs[-1] / (3 * meas.t.size), shared, pfit,
                        None if prob.noise is None else replace(prob.noise, stations=ids),
-                       JointPosterior(knots.t, *body[:4], body[4]), block_cv,
+                       JointPosterior(knots.t, *body[:4], body[4], bridge), block_cv,
                        _time_sync(prob, state, cov_g, globals_),
                        _settling(prob, state, body[4], gains, ids), _deviation(prob, state, cov_g, names),
                        None if prob.gm is None else replace(prob.gm, stations=ids),
-                       _motion_axes(prob, state, cov_g))
+                       _motion_axes(prob, state, cov_g), prob.rocking)
 
 
 def _motion_axes(prob: JointProblem, state: JointState, cov_g):
@@ -371,20 +384,37 @@ def global_names(prob: JointProblem, ids, prisms=()) -> tuple[str, ...]:
 def _body_knots(prob: JointProblem, s: JointState, sol):
     """The knots as body-frame poses: ``R`` (K, 3, 3), ``t`` (K, 3), velocities ``w`` (K, 6),
     the prior's ``qc`` per interval and the :class:`rtsgt.joint.sparse.ArrowSolution`
-    (turned from the motion axes where they are estimated, :mod:`rtsgt.joint.axes`)."""
+    (with the vehicle's rocking where it is estimated, :func:`rtsgt.joint.rocking.rocked_knots`;
+    turned from the motion axes where they are estimated, :mod:`rtsgt.joint.axes`)."""
+    R, t = s.R, s.t
+    if prob.rocking is not None:
+        R, t, sol = rocked_knots(R, t, s.rocking, sol, prob.rocking_col)
     if not prob.n_axes:
-        return s.R, s.t, s.w, prob.qc, sol
+        return R, t, s.w, prob.qc, sol
     w = velocities_in_body(s.w, s.R_mb)
-    return (s.R @ s.R_mb, s.t, w, body_qc(prob.qc, s.R_mb),
+    return (R @ s.R_mb, t, w, body_qc(prob.qc, s.R_mb),
             body_solution(sol, s.R_mb, w, prob.axes_col))
 
 
-def _shared(tq, t_knot, body, names) -> SharedFactor:
+def _rocking_bridge(prob: JointProblem, s: JointState):
+    """The rocking's variance between the knots in the body frame, ``t`` (Q,) -> (Q, 6, 6)
+    (:func:`rtsgt.joint.rocking.bridge_variance`, turned by the motion axes); None
+    without the rocking."""
+    if prob.rocking is None:
+        return None
+    A = np.eye(6) if s.R_mb is None else body_rotation(s.R_mb)
+    return lambda t: (A * bridge_variance(t, prob.t_knot, prob.rocking)[:, None, :]) @ A.T
+
+
+def _shared(tq, t_knot, body, names, bridge=None) -> SharedFactor:
     """The query poses' :class:`SharedFactor` in the world frame (columns: the globals'
-    Cholesky factor, named by ``names``) from the knots ``body`` (:func:`_body_knots`)."""
+    Cholesky factor, named by ``names``) from the knots ``body`` (:func:`_body_knots`), the
+    rocking's ``bridge`` variance (:func:`_rocking_bridge`) in the varying part."""
     R_k, t_k, w_k, qc, sol = body
     R, _, var, L = interpolate_split_gp(tq, t_knot, R_k, t_k, w_k, qc, sol.cov_var,
                                         sol.cov_var_next, sol.factor)
+    if bridge is not None:
+        var = var + bridge(tq)
     return SharedFactor(tq, body_to_world(R) @ L, names, body_to_world_cov(R, var))
 
 

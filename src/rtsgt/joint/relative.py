@@ -8,6 +8,7 @@ interval's two knots: docs/joint.md#poses-at-two-times.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -119,7 +120,10 @@ def world_covariance(R_a: np.ndarray, cov: np.ndarray, R_b: np.ndarray | None = 
 class JointPosterior:
     """What the joint engine's poses at any time inside the knots need: knot times ``t_knot``
     (K,) s, poses ``R`` (K, 3, 3), ``t`` (K, 3), body velocities ``w`` (K, 6), the prior's
-    ``qc`` (K-1, 6) per interval and the solution ``sol`` with its covariances."""
+    ``qc`` (K-1, 6) per interval and the solution ``sol`` with its covariances; with the
+    vehicle's rocking (docs/joint.md#the-vehicles-rocking) ``bridge`` (Q,) -> (Q, 6, 6) its
+    variance in the body frame at query times between the knots (each pose's own: two
+    poses' apart are independent given the knots)."""
 
     t_knot: np.ndarray
     R: np.ndarray
@@ -127,6 +131,7 @@ class JointPosterior:
     w: np.ndarray
     qc: np.ndarray
     sol: ArrowSolution
+    bridge: Callable[[np.ndarray], np.ndarray] | None = None
 
     @property
     def span(self) -> tuple[float, float]:
@@ -137,6 +142,8 @@ class JointPosterior:
         ``t_query`` (Q,) s inside :attr:`span`."""
         R, p, cov = interpolate_poses_gp(t_query, self.t_knot, self.R, self.t, self.w,
                                          self.qc, self.sol.cov, self.sol.cov_next)
+        if self.bridge is not None:
+            cov = cov + self.bridge(t_query)
         out = world_covariance(R, cov)
         return R, p, 0.5 * (out + np.swapaxes(out, 1, 2))
 

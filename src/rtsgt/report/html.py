@@ -741,6 +741,16 @@ def _joint_html(j: Mapping) -> str:
         parts.append(_kv_table("run-joint-axes", [
             (f"motion axes {a} (mrad)", _pm(r, sd))
             for a, r, sd in zip(ax["axes"], ax["rotation_mrad"], ax["sigma_mrad"], strict=True)]))
+    rock = j.get("rocking")
+    if rock:
+        parts.append(_rows_table(
+            "run-joint-rocking", ("axis", "rocking (mm, mrad)", "correlation time (s)",
+                                  "determined"),
+            [f"<tr><td class='s'>{html.escape(a)}</td>"
+             f"<td>{_pm(v.get('sigma'), v.get('sigma_sigma'))}</td>"
+             f"<td>{_pm(v.get('tau_s'), v.get('tau_sigma_s'))}</td>"
+             f"<td class='s'>{'yes' if v.get('determined') else 'no (its start)'}</td></tr>"
+             for a, v in rock.items()]))
     parts.append("<p><small>Each estimate with its sigma; the components the data do not "
                  "determine keep their prior and say so. Method: rtsgt's docs/joint.md."
                  "</small></p>")

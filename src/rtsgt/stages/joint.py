@@ -212,7 +212,10 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
     prisms' deviation with their viewing angle per prism, harmonic and component (mm, with
     sigma and whether the data determine it; docs/joint.md#prism-deviation); ``motion_axes``:
     the motion prior's axes' rotation from the body frame about its x, y, z (mrad, with
-    sigma and in sigmas of their prior; docs/joint.md#the-motion-axes); the solve's
+    sigma and in sigmas of their prior; docs/joint.md#the-motion-axes); ``rocking``: the
+    vehicle's rocking per axis, its sigma (mm, mrad) and correlation time (s) with their
+    sigmas, redundancy and whether the data determined it
+    (docs/joint.md#the-vehicles-rocking); the solve's
     iterations, convergence, chi^2 per row, knots and measurements."""
     q = jr.qc
     used = np.bincount(q.classes, minlength=len(CLASS_NAMES))
@@ -236,6 +239,7 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
         "settling": {sid: _settling_summary(*v) for sid, v in jr.settling.items()},
         "deviation": None if jr.deviation is None else _deviation_summary(jr.deviation),
         "motion_axes": None if jr.motion_axes is None else _axes_summary(*jr.motion_axes),
+        "rocking": None if jr.rocking is None else _rocking_summary(jr.rocking),
         "iterations": int(jr.solve.iterations), "converged": bool(jr.solve.converged),
         "chi2_per_dof": float(jr.chi2_per_dof), "knots": int(jr.n_knots),
         "measurements": int(jr.n_measurements), "poses": int(jr.t.size),
@@ -331,6 +335,20 @@ def _gm_summary(fit: GaussMarkov) -> dict[str, Any]:
                 "correlation": float(0.0 if fit.corr is None else fit.corr[i, j]),
                 "redundancy": float(0.0 if fit.redundancy is None else fit.redundancy[i, j]),
                 "determined": bool(fit.determined[i, j])}
+    return out
+
+
+def _rocking_summary(fit: GaussMarkov) -> dict[str, Any]:
+    """The vehicle's rocking per axis (shifts x, y, z in mm, rotations rx, ry, rz in mrad):
+    sigma and correlation time (s) with their sigmas, redundancy, whether determined."""
+    out = {}
+    for i, axis in enumerate(("x", "y", "z", "rx", "ry", "rz")):
+        r, c = divmod(i, 3)
+        out[axis] = {"sigma": float(1e3 * fit.sigma[r, c]),
+                     "sigma_sigma": float(1e3 * fit.sigma_sd[r, c]),
+                     "tau_s": float(fit.tau_s[r, c]), "tau_sigma_s": float(fit.tau_sd[r, c]),
+                     "redundancy": float(0.0 if fit.redundancy is None else fit.redundancy[r, c]),
+                     "determined": bool(fit.determined[r, c])}
     return out
 
 
