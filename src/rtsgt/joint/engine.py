@@ -304,8 +304,8 @@ def measurement_terms(prob: JointProblem, s: JointState):
         slope = np.einsum("mic,mc->mi", dH, coef)  # d deviation / d alpha
         Hk[:, :, :6] += slope[:, :, None] * (da_xi @ body_rotation(R_mb))[:, None, :]
         Hs[:, :, :3] += slope[:, :, None] * da_st[:, None, :]
-    Hpose = Hk[:, :, :6].copy()  # d h / d (the knot's pose), as the rocking moves it
-    if prob.rocking is not None:
+    if prob.rocking is not None:  # the rocked pose: d h / d (the knot's pose) moves it
+        Hpose = Hk[:, :, :6].copy()
         r = r - np.einsum("mij,mj->mi", Hpose, s.rocking[k])
     if prob.gm is not None:  # the station's chains add to its measurements
         r = r - gmn.chain_values(s.gm, k, m.station)

@@ -88,7 +88,7 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
                           start_p, qc, weather=weather, clocks=clocks, prisms=True,
                           noise=True, settling=True, calibrated_at=calibrated_at,
                           deviation=True, gauss_markov=True, max_gap_s=max_gap_s, rng=rng,
-                          motion_axes=True)
+                          motion_axes=True, rocking=True)
 
 
 def calibration_times(gcp: GcpShots | None, calibration: CalibrationResult,
