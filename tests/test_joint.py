@@ -515,13 +515,7 @@ def test_the_prisms_deviation_with_their_viewing_angle_is_recovered():
         cp, cm = (assemble(prob, retract(prob, half, np.zeros((60, 12)), sgn * g))[1]
                   for sgn in (1.0, -1.0))
         assert (cp - cm) / 2e-8 == pytest.approx(-2 * system.c[col], rel=1e-4, abs=1e-2), col
-    for knot, j in ((3, 0), (3, 4), (30, 5), (59, 3)):
-        x = np.zeros((60, 12))
-        x[knot, j] = 1e-8
-        cp, cm = (assemble(prob, retract(prob, half, sgn * x, np.zeros(prob.n_globals)))[1]
-                  for sgn in (1.0, -1.0))
-        assert (cp - cm) / 2e-8 == pytest.approx(-2 * system.a[knot, j], rel=1e-4,
-                                                 abs=1e-2), (knot, j)
+    _assert_knot_gradient(prob, half, ((3, 0), (3, 4), (30, 5), (59, 3)), 1e-8)
 
 
 def test_the_settling_prior_is_the_covariance_of_its_two_processes():
@@ -816,16 +810,21 @@ def test_gauss_markov_chains_are_estimated_with_the_trajectory(monkeypatch):
     assert np.all(np.abs(err[..., 0]) < np.log(1.6)), fit.sigma / (1.5 * sig)
     assert np.all(np.abs(err[..., 1]) < np.log(3.0)), fit.tau_s
     # the chains' columns of the gradient against finite differences of the cost
-    small = replace(prob, gm=fit)
-    half = replace(truth, gm=0.5 * g_true)
-    system, _ = assemble(small, half)
-    for knot, j in ((0, 12), (3, 13), (301, 20), (K - 1, 17), (450, 3)):
-        x = np.zeros((K, small.knot_dim))
-        x[knot, j] = 1e-9
-        cp, cm = (assemble(small, retract(small, half, sgn * x, np.zeros(small.n_globals)))[1]
+    _assert_knot_gradient(replace(prob, gm=fit), replace(truth, gm=0.5 * g_true),
+                          ((0, 12), (3, 13), (301, 20), (K - 1, 17), (450, 3)), 1e-9)
+
+
+def _assert_knot_gradient(prob, state, cases, h):
+    """The knots' columns ``cases`` ((knot, column), ...) of the gradient of ``assemble``'s
+    cost at ``state`` against its central finite differences with step ``h``."""
+    system, _ = assemble(prob, state)
+    for knot, j in cases:
+        x = np.zeros((prob.t_knot.size, prob.knot_dim))
+        x[knot, j] = h
+        cp, cm = (assemble(prob, retract(prob, state, sgn * x, np.zeros(prob.n_globals)))[1]
                   for sgn in (1.0, -1.0))
-        assert (cp - cm) / 2e-9 == pytest.approx(-2 * system.a[knot, j], rel=1e-4,
-                                                 abs=1e-2), (knot, j)
+        assert (cp - cm) / (2 * h) == pytest.approx(-2 * system.a[knot, j], rel=1e-4,
+                                                     abs=1e-2), (knot, j)
 
 
 def _with_knots_at(prob, s, sol, tq):
@@ -1163,15 +1162,8 @@ def test_the_vehicles_rocking_is_estimated_with_the_trajectory(monkeypatch):
     nees = np.einsum("ki,kij,kj->k", err, np.linalg.inv(cov), err).mean() / 6
     assert 0.7 < nees < 1.3, nees
     # the rocking's columns of the gradient against finite differences of the cost
-    half = replace(truth, rocking=0.5 * rock)
-    system, _ = assemble(out, half)
-    for knot, j in ((0, c), (3, c + 1), (301, c + 5), (K - 1, c + 3), (450, c + 2)):
-        dx = np.zeros((K, out.knot_dim))
-        dx[knot, j] = 1e-9
-        cp, cm = (assemble(out, retract(out, half, sgn * dx, np.zeros(out.n_globals)))[1]
-                  for sgn in (1.0, -1.0))
-        assert (cp - cm) / 2e-9 == pytest.approx(-2 * system.a[knot, j], rel=1e-4,
-                                                 abs=1e-2), (knot, j)
+    _assert_knot_gradient(out, replace(truth, rocking=0.5 * rock),
+                          ((0, c), (3, c + 1), (301, c + 5), (K - 1, c + 3), (450, c + 2)), 1e-9)
 
 
 def test_the_rockings_bridge_variance_and_the_rocked_knots():
