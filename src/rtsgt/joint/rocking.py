@@ -52,23 +52,18 @@ def rocked_knots(R: np.ndarray, t: np.ndarray, rocking: np.ndarray, sol: ArrowSo
     ``rocking`` (K, 6)), and ``sol`` with each knot's pose perturbation (its first 6 states)
     as the rocked pose's, ``xi_k + r_k`` (first order: ``r`` is millimetres and
     milliradians; the rocking's states at columns ``col:col+6``): ``M . M^T`` of the knots'
-    covariances, ``M`` of the shared factor (turned in place, as
-    :func:`rtsgt.joint.axes.body_solution`'s: the solution is not read unrocked after this)."""
+    covariances, ``M`` of the shared factor, all turned in place, a few thousand knots at a
+    time (as :func:`rtsgt.joint.axes.body_solution`'s factor: the solution is not read
+    unrocked after this, and the hour's arrays are not copied)."""
     dR, dp = exp_se3(rocking)
     j = slice(col, col + ROCKING_DIM)
-
-    def turned(a: np.ndarray) -> np.ndarray:  # M a M^T: the pose's rows and columns
-        out = a.copy()
-        out[:, :6] += out[:, j]
-        out[:, :, :6] += out[:, :, j]
-        return out
-
-    factor = sol.factor
-    for sl in chunks(factor.shape[0]):
-        factor[sl, :6] += factor[sl, j]
-    rocked = ArrowSolution(sol.x, sol.g, turned(sol.cov), turned(sol.cov_next), sol.cov_g,
-                           turned(sol.cov_var), turned(sol.cov_var_next), factor, sol.chol_g)
-    return R @ dR, t + np.einsum("kij,kj->ki", R, dp), rocked
+    for a in (sol.cov, sol.cov_next, sol.cov_var, sol.cov_var_next):  # M a M^T
+        for sl in chunks(a.shape[0]):
+            a[sl, :6] += a[sl, j]
+            a[sl, :, :6] += a[sl, :, j]
+    for sl in chunks(sol.factor.shape[0]):  # M L
+        sol.factor[sl, :6] += sol.factor[sl, j]
+    return R @ dR, t + np.einsum("kij,kj->ki", R, dp), sol
 
 
 def bridge_variance(t_query: np.ndarray, t_knot: np.ndarray, model: gmn.GaussMarkov
