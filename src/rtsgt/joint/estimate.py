@@ -28,7 +28,7 @@ from rtsgt.joint.engine import (
     solve_with_qc,
     station_prior_info,
 )
-from rtsgt.joint.interpolate import interpolate_poses_gp, interpolate_split_gp
+from rtsgt.joint.interpolate import interpolate_split_gp
 from rtsgt.joint.knots import (
     DEFAULT_MERGE_S,
     body_velocities,
@@ -229,10 +229,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     bridge = _rocking_bridge(prob, state)
     slow = prob.clock is not None or prob.settle is not None  # reported along the chain
     gains = chain_gains(body[4]) if slow else None
-    R, t, cov_body = interpolate_poses_gp(tq, knots.t, *body[:4], body[4].cov, body[4].cov_next)
-    if bridge is not None:
-        cov_body = cov_body + bridge(tq)
-    cov_pose = body_to_world_cov(R, cov_body)
+    posterior = JointPosterior(knots.t, *body[:4], body[4], bridge)
+    R, t, cov_pose = posterior.poses(tq)
     globals_ = global_names(prob, ids, names)
     shared = _shared(tq, knots.t, body,
                      globals_ + tuple(f"moved_{names[j]}" for j, _, _ in prob.prism_alternatives),
@@ -243,7 +241,7 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        knots.t.size, meas.t.size, solve,
                        solve.costs[-1] / (3 * meas.t.size), shared, pfit,
                        None if prob.noise is None else replace(prob.noise, stations=ids),
-                       JointPosterior(knots.t, *body[:4], body[4], bridge), block_cv,
+                       posterior, block_cv,
                        _time_sync(prob, state, cov_g, globals_),
                        _settling(prob, state, body[4], gains, ids), _deviation(prob, state, cov_g, names),
                        None if prob.gm is None else replace(prob.gm, stations=ids),
