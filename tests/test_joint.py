@@ -12,7 +12,7 @@ from scipy.stats import chi2
 
 from rtsgt.clocks import walk_prior_info
 from rtsgt.errors import InputError
-from rtsgt.geometry.so3 import exp_so3, quat_xyzw_to_matrix
+from rtsgt.geometry.so3 import exp_so3, hat, quat_xyzw_to_matrix
 from rtsgt.geometry.transform import perturbation
 from rtsgt.io.deployment import load_deployment
 from rtsgt.joint import engine as engine_module
@@ -51,7 +51,14 @@ from rtsgt.joint.qc import (
     with_gaps,
 )
 from rtsgt.joint.rocking import bridge_variance, rocked_knots, start_rocking
-from rtsgt.joint.se3 import exp_se3, jacobians_inv, left_jacobian, log_se3, so3_left_jacobian
+from rtsgt.joint.se3 import (
+    curly,
+    exp_se3,
+    jacobians_inv,
+    left_jacobian,
+    log_se3,
+    so3_left_jacobian,
+)
 from rtsgt.joint.settling import (
     HOUR_DRIFT_SIGMA,
     HOUR_S,
@@ -420,6 +427,30 @@ def test_gauss_newton_recovers_a_noise_free_trajectory_from_a_perturbed_start():
     np.testing.assert_allclose(est.t_s, truth.t_s, atol=1e-7)
     assert info.costs[-1] < 1e-8
     assert np.all(np.linalg.eigvalsh(cov) > 0) and np.all(np.linalg.eigvalsh(cov_g) > 0)
+
+
+def test_a_common_turn_of_every_knots_frame_leaves_the_prior_exact():
+    """A constant-velocity trajectory has a prior error of zero. Every knot turned by one
+    right perturbation ``d`` with the velocities' first-order step ``-d^curly w`` is the same
+    motion in another frame: ``retract`` adds the second orders of the frame change, so the
+    error stays zero (to round-off); the velocities plus the step alone leave an error of
+    second order in ``d`` (what the floor ``Qc``'s stiff axes saw as a cost of thousands,
+    docs/joint.md#the-knots-origin). ``difference`` still inverts ``retract``."""
+    rng = np.random.default_rng(21)
+    prob, truth = _synthetic(rng, K=12)
+    dt = np.diff(prob.t_knot)
+    assert np.abs(prior_terms(truth.R, truth.t, truth.w, dt)[0]).max() < 1e-12
+    d = np.r_[0.01, -0.02, 0.005, 0.006, -0.004, 0.002]
+    x = np.zeros((12, 12))
+    x[:, :6] = d
+    x[:, 6:] = -truth.w @ curly(d).T
+    g = np.zeros(prob.n_globals)
+    turned = retract(prob, truth, x, g)
+    assert np.abs(prior_terms(turned.R, turned.t, turned.w, dt)[0]).max() < 1e-12
+    first = replace(turned, w=truth.w + x[:, 6:])
+    assert np.abs(prior_terms(first.R, first.t, first.w, dt)[0]).max() > 1e-6
+    back = difference(prob, truth, turned)
+    np.testing.assert_allclose(back[0], x, atol=1e-12)
 
 
 def test_gauss_newton_recovers_the_clock_offsets_of_a_noise_free_problem():
@@ -1043,6 +1074,32 @@ def test_joint_poses_are_within_their_covariance_and_more_precise(simulated):
     ratio = np.concatenate([s[2] for s in simulated])
     assert 0.6 < nees.mean() / 6 < 1.5, nees.mean() / 6
     assert np.median(ratio) < 0.65, np.median(ratio)
+
+
+def test_the_joint_poses_do_not_depend_on_the_survey_frames_origin(simulated):
+    """The survey's body frame moved 10 m away (the prisms' coordinates plus ``b``, the
+    poses to start from turned with it): the knots' frame is the prisms' centroid whichever
+    the body frame's origin (docs/joint.md#the-knots-origin), so the poses are the same body
+    motion, ``t - R b``, and their covariances the same, carried to the new origin
+    (``A = [[I, (R b)^], [0, I]]``) to round-off; at the body frame's origin the motion
+    prior's ``Qc`` (the prisms' own, :func:`qc_from_prisms`) would be the wrong one there."""
+    jr, _, _, (obs, comp, data, tq, est, keep) = simulated[0]
+    b = np.array([8.0, -6.0, 1.0])
+    ref = replace(data.reference, xyz=data.reference.xyz + b)
+    R0, t0 = est.R[keep], est.t[keep] - np.einsum("kij,j->ki", est.R[keep], b)
+    qc = qc_from_prisms(np.stack([np.eye(3) * 1e-2] * 3), ref.xyz)
+    a = estimate_joint(obs, comp.calibration, data.reference, comp.noise_model, tq, tq,
+                       est.R[keep], est.t[keep], qc, weather=data.weather)
+    moved = estimate_joint(obs, comp.calibration, ref, comp.noise_model, tq, tq, R0, t0, qc,
+                           weather=data.weather)
+    R, t = a.estimate.R, a.estimate.t
+    Rb = np.einsum("kij,j->ki", R, b)
+    np.testing.assert_allclose(moved.estimate.R, R, atol=1e-9)
+    np.testing.assert_allclose(moved.estimate.t, t - Rb, atol=1e-8)
+    A = np.broadcast_to(np.eye(6), (R.shape[0], 6, 6)).copy()
+    A[:, :3, 3:] = hat(Rb)
+    cov = A @ a.estimate.cov @ np.swapaxes(A, 1, 2)
+    np.testing.assert_allclose(moved.estimate.cov, cov, rtol=1e-6, atol=1e-6 * np.abs(cov).max())
 
 
 def test_prisms_and_noise_estimated_on_a_simulated_deployment(simulated):

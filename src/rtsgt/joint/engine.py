@@ -46,7 +46,7 @@ from rtsgt.joint.qc import (
 )
 from rtsgt.joint.relative import chain_gains, knot_cross_covariance
 from rtsgt.joint.rocking import ROCKING_DIM, rocking_moments
-from rtsgt.joint.se3 import exp_se3, log_se3, so3_left_jacobian
+from rtsgt.joint.se3 import adjoint, curly, exp_se3, log_se3, so3_left_jacobian
 from rtsgt.joint.settling import KIND_COLUMNS, SettleModel
 from rtsgt.joint.sparse import (
     ArrowSystem,
@@ -457,8 +457,20 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
     return ArrowSystem(D, U, B, C, a, c), cost
 
 
+def _frame_change(dR: np.ndarray, dp: np.ndarray, d: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The second and higher orders (K, 6) of body velocities ``w`` (K, 6) under the knots'
+    right perturbations ``d`` (K, 6) (``exp(d^) = (dR, dp)``) taken as a change of frame,
+    ``Ad(exp(-d^)) w - w + d^curly w``: added to the velocities' steps, a rotation of every
+    knot's frame (the motion axes' step) turns their velocities exactly, and the motion
+    prior's stiffest axes see no error of second order (docs/joint.md#the-knots-origin)."""
+    dRt = np.swapaxes(dR, 1, 2)
+    Ad = adjoint(dRt, -np.einsum("kij,kj->ki", dRt, dp))
+    return np.einsum("kij,kj->ki", Ad - np.eye(6) + curly(d), w)
+
+
 def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> JointState:
-    """``T_k exp(d_k^)``, ``w_k + dw_k``, ``t_s + dt``, ``exp(dtheta) R_s``, ``kappa + dk``,
+    """``T_k exp(d_k^)``, ``w_k + dw_k`` (plus the second orders of the change of frame,
+    :func:`_frame_change`), ``t_s + dt``, ``exp(dtheta) R_s``, ``kappa + dk``,
     the prisms, the constant clock offsets, the deviation, ``R_mb exp(a^)``, the clock and
     the Gauss-Markov chains, the clocks and the settling plus their steps."""
     dR, dp = exp_se3(x[:, :6])
@@ -487,7 +499,8 @@ def retract(prob: JointProblem, s: JointState, x: np.ndarray, g: np.ndarray) -> 
     clock = None if s.clock is None else s.clock + x[:, cc:sc]
     settle = None if s.settle is None else s.settle + x[:, sc:prob.rocking_col]
     rock = None if s.rocking is None else s.rocking + x[:, prob.rocking_col:prob.knot_dim]
-    return JointState(R, t, s.w + x[:, 6:n], R_s, t_s, s.kappa_ppm + float(g[kc]), clock, pb,
+    w = s.w + x[:, 6:n] + _frame_change(dR, dp, x[:, :6], s.w)
+    return JointState(R, t, w, R_s, t_s, s.kappa_ppm + float(g[kc]), clock, pb,
                       sync, settle, dev, chains, R_mb, rock)
 
 
@@ -499,7 +512,8 @@ def difference(prob: JointProblem, a: JointState, b: JointState
     x[:, :6] = log_se3(np.swapaxes(a.R, 1, 2) @ b.R,
                        np.einsum("kji,kj->ki", a.R, b.t - a.t))
     n = TRAJECTORY_DIM
-    x[:, 6:n] = b.w - a.w
+    dR, dp = exp_se3(x[:, :6])
+    x[:, 6:n] = b.w - a.w - _frame_change(dR, dp, x[:, :6], a.w)
     if prob.gm is not None:
         x[:, n:prob.clock_col] = b.gm - a.gm
     if prob.clock is not None:
@@ -601,7 +615,7 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     prob = replace(prob, axes_sigma=AXES_HELD_SIGMA if prob.n_axes else axes_sigma
                    ).with_qc(np.broadcast_to(qc0, (n, 6)))
     s, sol, info = gauss_newton(prob, s, max_iter, tol)
-    classes = motion_classes(prob.t_knot, s.R, s.w)
+    classes = motion_classes(prob.t_knot, s.R, s.w, prob.p_body)
     table = np.tile(qc0, (N_CLASSES, 1))
     red_g = np.zeros_like(table)
     own = None

@@ -43,6 +43,7 @@ from rtsgt.joint.relative import (
     body_to_world,
     chain_gains,
     linear_covariance,
+    origin_adjoint,
     world_covariance,
 )
 from rtsgt.joint.rocking import ROCKING_DIM, bridge_variance, rocked_knots, start_rocking
@@ -185,7 +186,11 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     meas = polar_measurements(observations, ids, names, model, weather, carried)
     tq = np.asarray(query_times, dtype=float)
     knots = build_knots(meas.t, tq if query_knots else np.zeros(0), merge_s)
+    survey = np.asarray(reference.xyz, dtype=float)
+    origin = survey.mean(axis=0)  # the knots' frame's origin (docs/joint.md#the-knots-origin)
+    survey = survey - origin
     R0, p0 = interpolate_poses(knots.t, init_t, init_R, init_p)
+    p0 = p0 + R0 @ origin
     qc = np.asarray(qc, dtype=float)
     if qc.shape != (6,) or not np.all(qc > 0):
         raise InputError(f"Expected qc of shape (6,), positive, got {qc!r}")
@@ -197,7 +202,6 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     sync_col = np.arange(len(ids)) if sync else None
     if clocks and len(ids) > 1:  # a lone station has no clock to estimate against
         ck = clock_model(meas.station, len(ids), ref, anchored=sync)
-    survey = np.asarray(reference.xyz, dtype=float)
     p_info = prism_prior_info(reference.cov) if prisms else None
     prob = JointProblem(knots.t, knots.of_measurement, knots.tau, meas, survey, R_s, t_s, info,
                         free, qc, ck, p_info, np.asarray(reference.cov, dtype=float),
@@ -223,18 +227,18 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     prob, state, sol, solve, qc_fit = solve_with_qc(prob, state, estimate_qc, max_iter, tol,
                                                     noise, rng)
     cov_g = sol.cov_g
-    pfit = None if p_info is None else _prism_fit(names, prob, state, cov_g)
+    pfit = None if p_info is None else _prism_fit(names, prob, state, cov_g, origin)
     block_cv = raw_block_summary(raw_block_cv(prob, state, sol, max_gap_s), ids)
     body = _body_knots(prob, state, sol)
     bridge = _rocking_bridge(prob, state)
     slow = prob.clock is not None or prob.settle is not None  # reported along the chain
     gains = chain_gains(body[4]) if slow else None
-    posterior = JointPosterior(knots.t, *body[:4], body[4], bridge)
+    posterior = JointPosterior(knots.t, *body[:4], body[4], bridge, origin)
     R, t, cov_pose = posterior.poses(tq)
     globals_ = global_names(prob, ids, names)
     shared = _shared(tq, knots.t, body,
                      globals_ + tuple(f"moved_{names[j]}" for j, _, _ in prob.prism_alternatives),
-                     bridge)
+                     bridge, origin)
     est = _pose_estimate(R, t, cov_pose, survey if pfit is None else pfit.xyz)
     return JointResult(tq, est, _station_results(ids, free, state, cov_g), state.kappa_ppm,
                        meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, body[4], gains, ids, ref),
@@ -326,8 +330,9 @@ def _time_sync(prob: JointProblem, state: JointState, cov_g, names) -> dict:
     return out
 
 
-def _prism_fit(names, prob: JointProblem, state: JointState, cov_g) -> PrismFit:
-    """The prisms' estimates and tests: a prism found moved keeps its statistic at detection."""
+def _prism_fit(names, prob: JointProblem, state: JointState, cov_g, origin) -> PrismFit:
+    """The prisms' estimates and tests in the body frame (``origin`` (3,) m the knots'
+    frame's): a prism found moved keeps its statistic at detection."""
     sl = slice(prob.kappa_col + 1, prob.kappa_col + 1 + prob.n_prism)
     cov = cov_g[sl, sl]
     moved = np.zeros(len(names), bool)
@@ -342,8 +347,8 @@ def _prism_fit(names, prob: JointProblem, state: JointState, cov_g) -> PrismFit:
         weight[j], above[j] = w, cost
     if prob.prism_alternatives:  # the found one shares the weights
         weight[prob.prism_found[-1][0]] = prob.prism_alternatives[0][2]
-    return PrismFit(names, state.p_body.copy(), 0.5 * (cov + cov.T), prob.p_body.copy(), moved,
-                    np.sqrt(stat), dof, weight, above)
+    return PrismFit(names, state.p_body + origin, 0.5 * (cov + cov.T), prob.p_body + origin,
+                    moved, np.sqrt(stat), dof, weight, above)
 
 
 def _station_results(ids, free, state, cov_g) -> dict[str, RigidTransform]:
@@ -395,8 +400,9 @@ def _body_knots(prob: JointProblem, s: JointState, sol):
 
 
 def _rocking_bridge(prob: JointProblem, s: JointState):
-    """The rocking's variance between the knots in the body frame, ``t`` (Q,) -> (Q, 6, 6)
-    (:func:`rtsgt.joint.rocking.bridge_variance`, turned by the motion axes); None
+    """The rocking's variance between the knots with the body's axes, at the knots' origin,
+    ``t`` (Q,) -> (Q, 6, 6) (:func:`rtsgt.joint.rocking.bridge_variance`, turned from the
+    motion axes; to the body's origin by :class:`rtsgt.joint.relative.JointPosterior`); None
     without the rocking."""
     if prob.rocking is None:
         return None
@@ -404,16 +410,19 @@ def _rocking_bridge(prob: JointProblem, s: JointState):
     return lambda t: (A * bridge_variance(t, prob.t_knot, prob.rocking)[:, None, :]) @ A.T
 
 
-def _shared(tq, t_knot, body, names, bridge=None) -> SharedFactor:
+def _shared(tq, t_knot, body, names, bridge=None, origin=None) -> SharedFactor:
     """The query poses' :class:`SharedFactor` in the world frame (columns: the globals'
     Cholesky factor, named by ``names``) from the knots ``body`` (:func:`_body_knots`), the
-    rocking's ``bridge`` variance (:func:`_rocking_bridge`) in the varying part."""
+    rocking's ``bridge`` variance (:func:`_rocking_bridge`) in the varying part, turned to
+    the body frame's origin from the knots' ``origin``
+    (:func:`rtsgt.joint.relative.origin_adjoint`)."""
     R_k, t_k, w_k, qc, sol = body
     R, _, var, L = interpolate_split_gp(tq, t_knot, R_k, t_k, w_k, qc, sol.cov_var,
                                         sol.cov_var_next, sol.factor)
     if bridge is not None:
         var = var + bridge(tq)
-    return SharedFactor(tq, body_to_world(R) @ L, names, body_to_world_cov(R, var))
+    A = origin_adjoint(origin)
+    return SharedFactor(tq, body_to_world(R) @ A @ L, names, body_to_world_cov(R, A @ var @ A.T))
 
 
 def _clocks(prob, state, sol, gains, ids, reference: int):

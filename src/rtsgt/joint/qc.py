@@ -29,20 +29,26 @@ QC_FLOOR = 1e-10
 N_CLASSES = len(CLASS_NAMES)
 
 
-def motion_classes(t: np.ndarray, R: np.ndarray, w: np.ndarray) -> np.ndarray:
+def motion_classes(t: np.ndarray, R: np.ndarray, w: np.ndarray,
+                   points: np.ndarray | None = None) -> np.ndarray:
     """Class (K-1,) of each interval between knots at ``t`` (K,) s with poses ``R`` (K, 3, 3)
-    and body velocities ``w`` (K, 6): the faster class of its two ends; a knot stands below
-    :data:`STANDING_SPEED_M_S`, else its class is that of the norm of the world velocity's
-    change across :data:`ACC_WINDOW_S`, divided by the window (m/s^2)."""
-    v = np.einsum("kij,kj->ki", R, w[:, :3])
+    and body velocities ``w`` (K, 6): the faster class of its two ends. A knot stands where
+    every one of ``points`` (P, 3) m (body frame: the prisms; None: the origin alone) moves
+    slower than :data:`STANDING_SPEED_M_S` (a turn in place about one of them is not
+    standing); else its class is that of the largest norm of a point's world velocity change
+    across :data:`ACC_WINDOW_S`, divided by the window (m/s^2)."""
+    pts = np.zeros((1, 3)) if points is None else np.asarray(points, dtype=float)
+    vb = w[:, None, :3] + np.cross(w[:, None, 3:], pts[None])  # (K, P, 3)
+    v = np.einsum("kij,kpj->kpi", R, vb)
     h = 0.5 * ACC_WINDOW_S
     tp = np.minimum(t + h, t[-1])
     tm = np.maximum(t - h, t[0])
-    dv = np.stack([np.interp(tp, t, v[:, i]) - np.interp(tm, t, v[:, i]) for i in range(3)],
-                  axis=1)
-    acc = np.linalg.norm(dv, axis=1) / np.maximum(tp - tm, 1e-9)
+    dv = np.stack([[np.interp(tp, t, v[:, p, i]) - np.interp(tm, t, v[:, p, i])
+                    for i in range(3)] for p in range(pts.shape[0])])  # (P, 3, K): a handful
+    acc = np.linalg.norm(dv, axis=1).max(axis=0) / np.maximum(tp - tm, 1e-9)
     moving = 1 + np.searchsorted(np.asarray(ACCELERATION_EDGES_M_S2), acc, side="right")
-    cls = np.where(np.linalg.norm(v, axis=1) < STANDING_SPEED_M_S, 0, moving)
+    speed = np.linalg.norm(v, axis=2).max(axis=1)
+    cls = np.where(speed < STANDING_SPEED_M_S, 0, moving)
     return np.maximum(cls[:-1], cls[1:])
 
 

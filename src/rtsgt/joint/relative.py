@@ -13,12 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rtsgt.geometry.so3 import hat
 from rtsgt.joint.interpolate import interpolate_poses_gp, query_jacobians
 from rtsgt.joint.prior import TRAJECTORY_DIM
 from rtsgt.joint.sparse import ArrowSolution
 
-__all__ = ["JointPosterior", "body_to_world", "chain_gains", "chain_products", "knot_cross_covariance",
-           "linear_covariance", "query_cross_covariance", "world_covariance"]
+__all__ = ["JointPosterior", "body_to_world", "chain_gains", "chain_products",
+           "knot_cross_covariance", "knots_to_body", "linear_covariance", "origin_adjoint",
+           "query_cross_covariance", "world_covariance"]
 
 
 def chain_gains(sol: ArrowSolution) -> np.ndarray:
@@ -116,14 +118,38 @@ def world_covariance(R_a: np.ndarray, cov: np.ndarray, R_b: np.ndarray | None = 
                                                   1, 2)
 
 
+def origin_adjoint(origin: np.ndarray | None) -> np.ndarray:
+    """``Ad(T_body_knot)`` (6, 6), ``T_body_knot = (I, origin)``: a right perturbation
+    ``(rho, phi)`` of the knots' frame (the body's axes, its origin at ``origin`` (3,) m in
+    the body frame; docs/joint.md#the-knots-origin) as the body frame's, ``rho + origin x
+    phi``; the identity for None."""
+    A = np.eye(6)
+    if origin is not None:
+        A[:3, 3:] = hat(origin)
+    return A
+
+
+def knots_to_body(R: np.ndarray, t: np.ndarray, cov: np.ndarray,
+                  origin: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Positions ``t`` (Q, 3) of the knots' frame (rotations ``R`` (Q, 3, 3)) and the
+    covariance ``cov`` (Q, 6, 6) of its right perturbation as the body frame's (``origin``:
+    :func:`origin_adjoint`): ``t - R origin`` and ``A cov A^T``."""
+    if origin is None:
+        return t, cov
+    A = origin_adjoint(origin)
+    return t - R @ origin, A @ cov @ A.T
+
+
 @dataclass(frozen=True)
 class JointPosterior:
     """What the joint engine's poses at any time inside the knots need: knot times ``t_knot``
     (K,) s, poses ``R`` (K, 3, 3), ``t`` (K, 3), body velocities ``w`` (K, 6), the prior's
     ``qc`` (K-1, 6) per interval and the solution ``sol`` with its covariances; with the
     vehicle's rocking (docs/joint.md#the-vehicles-rocking) ``bridge`` (Q,) -> (Q, 6, 6) its
-    variance in the body frame at query times between the knots (each pose's own: two
-    poses' apart are independent given the knots)."""
+    variance in the knots' frame at query times between the knots (each pose's own: two
+    poses' apart are independent given the knots); ``origin`` (3,) m the knots' frame's
+    origin in the body frame (the prisms' centroid, docs/joint.md#the-knots-origin; None: the
+    body frame's own): the poses it returns are the body frame's."""
 
     t_knot: np.ndarray
     R: np.ndarray
@@ -132,6 +158,7 @@ class JointPosterior:
     qc: np.ndarray
     sol: ArrowSolution
     bridge: Callable[[np.ndarray], np.ndarray] | None = None
+    origin: np.ndarray | None = None
 
     @property
     def span(self) -> tuple[float, float]:
@@ -144,6 +171,7 @@ class JointPosterior:
                                          self.qc, self.sol.cov, self.sol.cov_next)
         if self.bridge is not None:
             cov = cov + self.bridge(t_query)
+        p, cov = knots_to_body(R, p, cov, self.origin)
         out = world_covariance(R, cov)
         return R, p, 0.5 * (out + np.swapaxes(out, 1, 2))
 
@@ -166,4 +194,5 @@ class JointPosterior:
             block[:, :n, n:] = sol.cov_next[k, :n, :n]
             block[:, n:, :n] = np.swapaxes(sol.cov_next[k, :n, :n], 1, 2)
             out[same] = J_a[same] @ block @ np.swapaxes(J_b[same], 1, 2)
-        return world_covariance(R_a, out, R_b)
+        A = origin_adjoint(self.origin)
+        return world_covariance(R_a, A @ out @ A.T, R_b)
