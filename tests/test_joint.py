@@ -1041,7 +1041,7 @@ def _run(tmp, seed):
     nees = np.einsum("ki,kij,kj->k", err, np.linalg.inv(jr.estimate.cov), err)
     ratio = np.sqrt(np.einsum("kii->k", jr.estimate.cov[:, :3, :3])
                     / np.einsum("kii->k", est.cov[keep][:, :3, :3]))
-    return jr, nees, ratio, (obs, comp, data, tq, est, keep)
+    return jr, nees, ratio, (obs, comp, data, tq, est, keep, qc)
 
 
 @pytest.fixture(scope="module")
@@ -1083,22 +1083,19 @@ def test_the_joint_poses_do_not_depend_on_the_survey_frames_origin(simulated):
     motion, ``t - R b``, and their covariances the same, carried to the new origin
     (``A = [[I, (R b)^], [0, I]]``) to round-off; at the body frame's origin the motion
     prior's ``Qc`` (the prisms' own, :func:`qc_from_prisms`) would be the wrong one there."""
-    jr, _, _, (obs, comp, data, tq, est, keep) = simulated[0]
+    jr, _, _, (obs, comp, data, tq, est, keep, qc) = simulated[0]
     b = np.array([8.0, -6.0, 1.0])
     ref = replace(data.reference, xyz=data.reference.xyz + b)
     R0, t0 = est.R[keep], est.t[keep] - np.einsum("kij,j->ki", est.R[keep], b)
-    qc = qc_from_prisms(np.stack([np.eye(3) * 1e-2] * 3), ref.xyz)
-    a = estimate_joint(obs, comp.calibration, data.reference, comp.noise_model, tq, tq,
-                       est.R[keep], est.t[keep], qc, weather=data.weather)
     moved = estimate_joint(obs, comp.calibration, ref, comp.noise_model, tq, tq, R0, t0, qc,
-                           weather=data.weather)
-    R, t = a.estimate.R, a.estimate.t
+                           weather=data.weather)  # qc_from_prisms: the centroid's, the same
+    R, t = jr.estimate.R, jr.estimate.t
     Rb = np.einsum("kij,j->ki", R, b)
     np.testing.assert_allclose(moved.estimate.R, R, atol=1e-9)
     np.testing.assert_allclose(moved.estimate.t, t - Rb, atol=1e-8)
     A = np.broadcast_to(np.eye(6), (R.shape[0], 6, 6)).copy()
     A[:, :3, 3:] = hat(Rb)
-    cov = A @ a.estimate.cov @ np.swapaxes(A, 1, 2)
+    cov = A @ jr.estimate.cov @ np.swapaxes(A, 1, 2)
     np.testing.assert_allclose(moved.estimate.cov, cov, rtol=1e-6, atol=1e-6 * np.abs(cov).max())
 
 
@@ -1107,7 +1104,7 @@ def test_prisms_and_noise_estimated_on_a_simulated_deployment(simulated):
     the white noise estimated no prism is found, the shared split names the prisms' columns
     and still adds up, and the distances' factors are 1 within 3 sigma (the angles' are
     biased low by the motion model: docs/joint.md#noise-identification)."""
-    _, _, _, (obs, comp, data, tq, est, keep) = simulated[0]
+    _, _, _, (obs, comp, data, tq, est, keep, _) = simulated[0]
     qc = np.array([0.1, 0.1, 0.01, 1e-3, 1e-3, 0.01])
     jr = estimate_joint(obs, comp.calibration, data.reference, comp.noise_model, tq, tq,
                         est.R[keep], est.t[keep], qc, weather=data.weather, prisms=True,
@@ -1163,7 +1160,7 @@ def test_clock_offsets_of_a_field_deployment_within_two_sigma(tmp_path):
 
 
 def test_bad_inputs_are_named(simulated):
-    jr, _, _, (obs, comp, data, tq, est, keep) = simulated[0]
+    _, _, _, (obs, comp, data, tq, est, keep, _) = simulated[0]
     with pytest.raises(InputError, match="qc of shape"):
         estimate_joint(obs, comp.calibration, data.reference, comp.noise_model, tq, tq,
                        est.R[keep], est.t[keep], np.ones(3))

@@ -509,10 +509,9 @@ def difference(prob: JointProblem, a: JointState, b: JointState
     """The steps ``x`` (K, :attr:`JointProblem.knot_dim`), ``g`` (G,) from ``a`` to ``b``:
     the inverse of :func:`retract` (``retract(prob, a, x, g)`` is ``b``)."""
     x = np.zeros((a.R.shape[0], prob.knot_dim))
-    x[:, :6] = log_se3(np.swapaxes(a.R, 1, 2) @ b.R,
-                       np.einsum("kji,kj->ki", a.R, b.t - a.t))
+    dR, dp = np.swapaxes(a.R, 1, 2) @ b.R, np.einsum("kji,kj->ki", a.R, b.t - a.t)
+    x[:, :6] = log_se3(dR, dp)
     n = TRAJECTORY_DIM
-    dR, dp = exp_se3(x[:, :6])
     x[:, 6:n] = b.w - a.w - _frame_change(dR, dp, x[:, :6], a.w)
     if prob.gm is not None:
         x[:, n:prob.clock_col] = b.gm - a.gm
