@@ -60,6 +60,11 @@ from rtsgt.joint.sparse import (
 #: Prior standard deviation (m, rad) given to a station direction its calibration fixes
 #: exactly (a zero variance, e.g. the reference station).
 FIXED_SIGMA = 1e-7
+#: Gauss-Newton has converged when the predicted decrease of the cost is below this (chi^2
+#: units: the squared Mahalanobis length of the step left, under the posterior's information;
+#: the estimate is within 0.03 of its own sigma of the minimum, which further iterations would
+#: only polish; docs/joint.md#the-solver).
+DECREASE_TOL = 1e-3
 #: Gauss-Newton has converged when a step changes the cost by less than this fraction of it
 #: (the prior's Jacobian is first order in the interval's motion, so the predicted decrease
 #: need not vanish at the minimum).
@@ -547,8 +552,8 @@ class SolveInfo:
     costs: tuple[float, ...]
 
 
-def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10, tol: float = 1e-6,
-                 want_cov: bool = True):
+def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10,
+                 tol: float = DECREASE_TOL, want_cov: bool = True):
     """Gauss-Newton from ``s`` until the predicted decrease of the cost is below ``tol`` or a
     step changes the cost by less than :data:`STALL_REL` of it (a step that raises the cost is
     halved, up to 8 times, unless its predicted decrease is below
@@ -592,7 +597,7 @@ class QcFit:
 
 
 def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
-                  max_iter: int = 10, tol: float = 1e-6, estimate_noise: bool = False,
+                  max_iter: int = 10, tol: float = DECREASE_TOL, estimate_noise: bool = False,
                   rng: np.random.Generator | None = None):
     """Gauss-Newton with the prior's ``Qc`` per motion class by iterated variance components
     (docs/joint.md#qc-from-the-data), starting from ``prob.qc`` (6,) for every class, with
@@ -738,7 +743,7 @@ def rocking_step(prob: JointProblem, s: JointState, sol,
     return replace(prob, rocking=new), gmn.log_change(old, new)
 
 
-def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = 1e-6
+def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = DECREASE_TOL
                  ) -> tuple[JointProblem, bool, tuple[JointProblem, ...]]:
     """Test each trusted prism against its survey (:func:`rtsgt.joint.prisms.prism_tests`);
     where one is beyond its critical value (and at least two would stay trusted) a move is
@@ -775,7 +780,7 @@ def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = 1e-6
 
 
 def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,
-                       alternatives: tuple[JointProblem, ...], tol: float = 1e-6):
+                       alternatives: tuple[JointProblem, ...], tol: float = DECREASE_TOL):
     """The solve ``prob``, ``s``, ``sol``, ``info`` with the hypotheses of other prisms'
     moves carried (docs/joint.md#which-prism-moved): each of ``alternatives`` (problems with
     another prism freed instead of the last one found, :func:`snoop_prisms`) solved with
@@ -826,7 +831,7 @@ def _freed(prob: JointProblem, tests, found: list[int], j: int) -> JointProblem:
     return replace(prob, prism_info=info, prism_found=prob.prism_found + (entry,))
 
 
-__all__ = ["HYPOTHESIS_MAX_ITER", "UNDECIDED_COST", "JointProblem", "JointState", "QcFit",
+__all__ = ["DECREASE_TOL", "HYPOTHESIS_MAX_ITER", "UNDECIDED_COST", "JointProblem", "JointState", "QcFit",
            "SolveInfo", "assemble", "carry_alternatives", "difference", "gauss_newton", "gm_step",
            "measurement_global_factor", "measurement_hsh", "measurement_terms", "noise_step",
            "rocking_step", "snoop_prisms", "solve_with_qc"]

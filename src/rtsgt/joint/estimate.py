@@ -21,6 +21,7 @@ from rtsgt.joint.axes import body_qc, body_rotation, body_solution, velocities_i
 from rtsgt.joint.blockcv import raw_block_cv, raw_block_summary
 from rtsgt.joint.clock import clock_model, report_times
 from rtsgt.joint.engine import (
+    DECREASE_TOL,
     JointProblem,
     JointState,
     QcFit,
@@ -131,7 +132,8 @@ def _stations(calibration):
 
 def estimate_joint(observations, calibration, reference, model: NoiseModel, query_times,
                    init_t, init_R, init_p, qc, *, weather=None,
-                   merge_s: float = DEFAULT_MERGE_S, max_iter: int = 10, tol: float = 1e-6,
+                   merge_s: float = DEFAULT_MERGE_S, max_iter: int = 10,
+                   tol: float = DECREASE_TOL,
                    estimate_qc: bool = True, query_knots: bool = False,
                    clocks: bool = False, prisms: bool = False,
                    noise: bool = False, settling: bool = False,

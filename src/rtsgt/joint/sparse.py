@@ -6,9 +6,12 @@ and the Schur complement onto the global parameters: docs/joint.md#the-solver.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import LinAlgWarning
+from scipy.linalg import inv as _lapack_inv
 
 
 @dataclass(frozen=True)
@@ -125,9 +128,12 @@ def add_shared_columns(sol: ArrowSolution, dx: np.ndarray, dg: np.ndarray) -> Ar
 
 
 def _spd_inv(a: np.ndarray) -> np.ndarray:
-    """Inverses (..., d, d) of SPD blocks through their Cholesky factors."""
-    li = np.linalg.inv(np.linalg.cholesky(a))
-    return np.swapaxes(li, -1, -2) @ li
+    """Inverses (..., d, d) of SPD blocks through their Cholesky factors (LAPACK's
+    ``potrf``, ``potri``; raises :class:`numpy.linalg.LinAlgError` where one is not
+    positive definite; an ill-conditioned block is the caller's to judge, not warned of)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", LinAlgWarning)
+        return _lapack_inv(a, assume_a="pos", check_finite=False)
 
 
 def _sym(a: np.ndarray) -> np.ndarray:
@@ -137,15 +143,14 @@ def _sym(a: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class _Level:
     """One level of the reduction: its ``n`` blocks, the odd ones' ``d_inv`` (D_i^-1),
-    ``ga`` (D_i^-1 A_i,i-1), ``gb`` (D_i^-1 A_i,i+1) and couplings ``b_left`` (A_i-1,i),
-    ``b_right`` (A_i,i+1; zero past the end)."""
+    ``ga`` (D_i^-1 A_i,i-1), ``gb`` (D_i^-1 A_i,i+1) and couplings to their neighbours
+    ``couple`` (n_odd, 2 d, d): ``A_i-1,i`` over ``A_i+1,i`` (zero past the end)."""
 
     n: int
     d_inv: np.ndarray
     ga: np.ndarray
     gb: np.ndarray
-    b_left: np.ndarray
-    b_right: np.ndarray
+    couple: np.ndarray
 
 
 def _eliminate(D, U) -> tuple[list[_Level], np.ndarray]:
@@ -160,14 +165,16 @@ def _eliminate(D, U) -> tuple[list[_Level], np.ndarray]:
         if n % 2 == 0:
             b_right = np.concatenate([b_right, np.zeros((1, d, d))])
         d_inv = _spd_inv(D[1::2])
-        ga = d_inv @ np.swapaxes(b_left, 1, 2)
-        gb = d_inv @ b_right
+        gab = d_inv @ np.concatenate([np.swapaxes(b_left, 1, 2), b_right], axis=2)
+        ga, gb = gab[:, :, :d], gab[:, :, d:]
+        left = b_left @ gab  # [A_i-1,i D_i^-1 A_i,i-1, A_i-1,i D_i^-1 A_i,i+1]
         d_e = D[0::2].copy()
-        d_e[:n_odd] -= b_left @ ga
+        d_e[:n_odd] -= left[:, :, :d]
         d_e[1:] -= (np.swapaxes(b_right, 1, 2) @ gb)[: n_even - 1]
-        U = -(b_left @ gb)[: n_even - 1]
+        U = -left[: n_even - 1, :, d:]
         D = _sym(d_e)
-        levels.append(_Level(n, d_inv, ga, gb, b_left, b_right))
+        couple = np.concatenate([b_left, np.swapaxes(b_right, 1, 2)], axis=1)
+        levels.append(_Level(n, d_inv, ga, gb, couple))
     return levels, _spd_inv(D)
 
 
@@ -185,8 +192,10 @@ def _forward(levels: list[_Level], h: np.ndarray, keep: bool = True, schur: bool
         if schur:
             T += np.tensordot(h_o, g, axes=([0, 1], [0, 1]))  # BLAS, not einsum's loop
         h_e = h[0::2].copy()
-        h_e[:n_odd] -= lev.b_left @ g
-        h_e[1:] -= (np.swapaxes(lev.b_right, 1, 2) @ g)[: n_even - 1]
+        step = lev.couple @ g  # both neighbours' updates in one product
+        d = g.shape[1]
+        h_e[:n_odd] -= step[:, :d]
+        h_e[1:] -= step[: n_even - 1, d:]
         if keep:
             gs.append(g)
         h = h_e
@@ -249,8 +258,8 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
     G = C.shape[0]
     sx = 1.0 / np.sqrt(np.einsum("kii->ki", D))
     sg = 1.0 / np.sqrt(np.diag(C)) if G else np.zeros(0)
-    Ds = D * sx[:, :, None] * sx[:, None, :]
-    Us = U * sx[:-1, :, None] * sx[1:, None, :]
+    Ds = D * (sx[:, :, None] * sx[:, None, :])  # (one pass over the blocks)
+    Us = U * (sx[:-1, :, None] * sx[1:, None, :])
     Cs = C * sg[:, None] * sg[None, :]
     rhs = np.empty((K, d, G + 1))
     rhs[:, :, 0] = system.a * sx
