@@ -100,6 +100,10 @@ def test_the_speed_laws_exponent_is_found_from_chains_drawn_with_it(beta):
     assert abs(law.exponent - beta) < 3.0 * law.exponent_sd, law
     assert law.reference_speed_m_s == pytest.approx(v_ref, rel=1e-12)
     assert reference_speed(np.zeros(5)) == 1.0
+    # standing throughout, every knot's scale is the floor's: the law is not seen and stays
+    still = speed_law_step(SpeedLaw(0.0, 1.0), model, rock, zero, zero[1:], dt,
+                           np.zeros(K), np.random.default_rng(1))
+    assert still.exponent == 0.0 and still.reference_speed_m_s == 1.0, still
 
 
 def test_the_speed_laws_steps_climb_the_marginal_likelihood_of_noisy_data():

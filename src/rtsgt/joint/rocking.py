@@ -92,8 +92,11 @@ def speed_law_step(law: SpeedLaw, model: gmn.GaussMarkov, rock: np.ndarray, var:
     draws, :func:`rtsgt.joint.gm.posterior_draws`). Not EM's maximisation: where the data
     hardly see the rocking (its posterior is mostly its prior) that would keep any exponent
     it starts from. A step is at most :data:`MAX_EXPONENT_STEP`, within
-    :data:`EXPONENT_RANGE`; without ``rng``, or where the information is not positive, the
+    :data:`EXPONENT_RANGE`; without ``rng``, where the information is not positive or where
+    no knot moves (every scale the floor's: the exponent and the chains' sigma are one), the
     law stays (with its last ``exponent_sd``)."""
+    if not np.any(speed >= STANDING_SPEED_M_S):  # no knot moves: the law is not seen
+        return SpeedLaw(law.exponent, reference_speed(speed), law.exponent_sd)
     v_ref = reference_speed(speed)
     beta = law.exponent
     f = [_loglik(beta + i * _H, v_ref, speed, model, rock, var, cross, dt)[0]
