@@ -91,7 +91,7 @@ def test_posterior_draws_have_the_moments_they_are_drawn_from():
     cross = rho * np.sqrt(var[1:] * var[:-1])
     g = rng.normal(size=(N, 2))
     R = 4000
-    d = gm.posterior_draws(g, var, cross, np.random.default_rng(4), R)
+    d = gm._posterior_draws(g, var, cross, np.random.default_rng(4), R)
     assert d.shape == (N, 2, R)
     se = np.sqrt(var / R)
     assert np.all(np.abs(d.mean(axis=2) - g) < 5 * se)
@@ -164,6 +164,6 @@ def test_complete_score_is_the_gradient_of_the_expected_log_likelihood():
     for i in range(2):
         e = np.zeros(2)
         e[i] = h
-        fd = (gm.expected_loglik(*(x + e).T, g, zero, zero[1:], np.diff(t))
-              - gm.expected_loglik(*(x - e).T, g, zero, zero[1:], np.diff(t))) / (2 * h)
+        fd = (gm._q(*(x + e).T, g, zero, zero[1:], np.diff(t))
+              - gm._q(*(x - e).T, g, zero, zero[1:], np.diff(t))) / (2 * h)
         np.testing.assert_allclose(score[:, i], fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())

@@ -40,19 +40,12 @@ from rtsgt.joint.qc import (
     VCE_TOL,
     class_members,
     motion_classes,
-    point_velocities,
     prior_components,
     qc_per_class,
     with_gaps,
 )
 from rtsgt.joint.relative import chain_gains, knot_cross_covariance
-from rtsgt.joint.rocking import (
-    ROCKING_DIM,
-    SpeedLaw,
-    rocking_moments,
-    scaled_moments,
-    speed_law_step,
-)
+from rtsgt.joint.rocking import ROCKING_DIM, rocking_moments
 from rtsgt.joint.se3 import adjoint, curly, exp_se3, log_se3, so3_left_jacobian
 from rtsgt.joint.settling import KIND_COLUMNS, SettleModel
 from rtsgt.joint.sparse import (
@@ -151,9 +144,7 @@ class JointProblem:
     docs/joint.md#which-prism-moved), and whether the motion prior's axes are estimated
     (``motion_axes``, with the prior sigma ``axes_sigma`` rad, docs/joint.md#the-motion-axes),
     and the vehicle's rocking (``rocking``: its chains, states of every knot after the
-    settling's; None: none, docs/joint.md#the-vehicles-rocking) with its speed law
-    (``rocking_law``, :class:`rtsgt.joint.rocking.SpeedLaw`, and its scale at each knot
-    ``rocking_scale`` (K,); None: a rocking of one size, docs/joint.md#the-rockings-speed-law).
+    settling's; None: none, docs/joint.md#the-vehicles-rocking).
     Globals: the free stations' ``(dt, dtheta)``, ``kappa``, the prisms' positions (3P), the
     constant clock offsets, the prisms' deviation (P, C), the motion axes (3)."""
 
@@ -183,8 +174,6 @@ class JointProblem:
     axes_sigma: float = AXES_SIGMA
     max_gap_s: float = np.inf
     rocking: gmn.GaussMarkov | None = None
-    rocking_law: SpeedLaw | None = None
-    rocking_scale: np.ndarray | None = None
 
     @property
     def gaps(self) -> np.ndarray:
@@ -420,8 +409,7 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
     if prob.settle is not None:
         cost += prob.settle.prior.add_prior(D, U, a, s.settle, dt, prob.settle_col)
     if prob.rocking is not None:
-        cost += gmn.add_prior(D, U, a, s.rocking, dt, prob.rocking, prob.rocking_col,
-                              prob.rocking_scale)
+        cost += gmn.add_prior(D, U, a, s.rocking, dt, prob.rocking, prob.rocking_col)
     r, Hk, Hg = measurement_terms(prob, s)
     info = prob.meas.info
     # each knot's rows (K, 3 R, .) of H, W H, W Hg and W r, gathered at once
@@ -743,25 +731,16 @@ def gm_step(prob: JointProblem, s: JointState, sol,
 
 def rocking_step(prob: JointProblem, s: JointState, sol,
                  rng: np.random.Generator | None = None) -> tuple[JointProblem, float]:
-    """One update of the rocking's speed law (:func:`rtsgt.joint.rocking.speed_law_step`, at
-    the knots' speeds of ``s``) and of its chains' sigma and tau under the law it was solved
-    with (:func:`rtsgt.joint.gm.update`; ``rng`` the draws of both) from the posterior at
-    ``s`` at every knot: the problem with them and the largest change of a determined
-    chain's log or of the law's exponent (docs/joint.md#the-rockings-speed-law)."""
+    """One update of the rocking's chains' sigma and tau (:func:`rtsgt.joint.gm.update`,
+    ``rng`` its draws) from the posterior at ``s`` at every knot: the problem with them and
+    the largest change of a determined one's log (docs/joint.md#the-vehicles-rocking)."""
     old = prob.rocking
     j = prob.rocking_col + np.arange(ROCKING_DIM)
     k = np.arange(prob.t_knot.size)
-    dt = np.diff(prob.t_knot)
     cross = knot_cross_covariance(sol, chain_gains(sol), k[:-1], k[1:])[:, j, j]
-    var = sol.cov[:, j, j]
-    speed = np.linalg.norm(point_velocities(s.R, s.w, prob.p_body), axis=2).max(axis=1)
-    before = prob.rocking_law or SpeedLaw(0.0, 1.0)
-    scale = np.ones(speed.size) if prob.rocking_scale is None else prob.rocking_scale
-    moments = rocking_moments(*scaled_moments(s.rocking, var, cross, scale), dt)
+    moments = rocking_moments(s.rocking, sol.cov[:, j, j], cross, np.diff(prob.t_knot))
     new = gmn.update(old, moments, old.determined if old.iterations else None, rng)
-    law = speed_law_step(before, old, s.rocking, var, cross, dt, speed, rng)
-    change = max(gmn.log_change(old, new), abs(law.exponent - before.exponent))
-    return replace(prob, rocking=new, rocking_law=law, rocking_scale=law.scale(speed)), change
+    return replace(prob, rocking=new), gmn.log_change(old, new)
 
 
 def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = DECREASE_TOL

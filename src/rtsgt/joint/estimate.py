@@ -47,13 +47,7 @@ from rtsgt.joint.relative import (
     origin_adjoint,
     world_covariance,
 )
-from rtsgt.joint.rocking import (
-    ROCKING_DIM,
-    SpeedLaw,
-    bridge_variance,
-    rocked_knots,
-    start_rocking,
-)
+from rtsgt.joint.rocking import ROCKING_DIM, bridge_variance, rocked_knots, start_rocking
 from rtsgt.joint.settling import settle_model
 from rtsgt.joint.slow import at_times
 from rtsgt.noise.model import NoiseModel
@@ -98,9 +92,7 @@ class JointResult:
     (docs/joint.md#the-motion-axes; None where not estimated); ``rocking``: the vehicle's
     rocking's sigma and correlation time per axis (:class:`rtsgt.joint.gm.GaussMarkov`, rows
     the shifts and the rotations; docs/joint.md#the-vehicles-rocking; None where not
-    estimated); ``rocking_law``: its size along the run with the speed
-    (:class:`rtsgt.joint.rocking.SpeedLaw`, docs/joint.md#the-rockings-speed-law; None where
-    the rocking is not estimated).
+    estimated).
     """
 
     t: np.ndarray
@@ -126,7 +118,6 @@ class JointResult:
     gauss_markov: gmn.GaussMarkov | None = None
     motion_axes: tuple[np.ndarray, np.ndarray] | None = None
     rocking: gmn.GaussMarkov | None = None
-    rocking_law: SpeedLaw | None = None
 
 
 def _stations(calibration):
@@ -260,7 +251,7 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        _time_sync(prob, state, cov_g, globals_),
                        _settling(prob, state, body[4], gains, ids), _deviation(prob, state, cov_g, names),
                        None if prob.gm is None else replace(prob.gm, stations=ids),
-                       _motion_axes(prob, state, cov_g), prob.rocking, prob.rocking_law)
+                       _motion_axes(prob, state, cov_g), prob.rocking)
 
 
 def _motion_axes(prob: JointProblem, state: JointState, cov_g):
@@ -418,8 +409,7 @@ def _rocking_bridge(prob: JointProblem, s: JointState):
     if prob.rocking is None:
         return None
     A = np.eye(6) if s.R_mb is None else body_rotation(s.R_mb)
-    return lambda t: (A * bridge_variance(t, prob.t_knot, prob.rocking, prob.rocking_scale
-                                          )[:, None, :]) @ A.T
+    return lambda t: (A * bridge_variance(t, prob.t_knot, prob.rocking)[:, None, :]) @ A.T
 
 
 def _shared(tq, t_knot, body, names, bridge=None, origin=None) -> SharedFactor:

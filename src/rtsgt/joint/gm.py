@@ -110,29 +110,24 @@ def transition(dt: np.ndarray, tau: np.ndarray):
 
 
 def add_prior(D: np.ndarray, U: np.ndarray, a: np.ndarray, g: np.ndarray, dt: np.ndarray,
-              model: GaussMarkov, col: int, scale: np.ndarray | None = None) -> float:
+              model: GaussMarkov, col: int) -> float:
     """Adds the chains' prior to the knots' normal equations ``D`` (K, d, d), ``U``
     (K-1, d, d), ``a`` (K, d) (in place; the chains at columns ``col + j``) and returns its
-    cost: ``z_0 ~ N(0, sigma^2)``, ``z_k+1 - phi_k z_k ~ N(0, sigma^2 (1 - phi_k^2))`` of
-    ``z_k = g_k / scale_k`` (``scale`` (K,) > 0 each knot's, None: 1; a process whose size
-    changes along the run, docs/joint.md#the-rockings-speed-law)."""
+    cost: ``g_0 ~ N(0, sigma^2)``, ``g_k+1 - phi_k g_k ~ N(0, sigma^2 (1 - phi_k^2))``."""
     sigma, tau = model.sigma.ravel(), model.tau_s.ravel()
     phi, c = transition(dt, tau)
-    inv = np.ones((g.shape[0], 1)) if scale is None else 1.0 / np.asarray(scale)[:, None]
-    z = g * inv
     w = 1.0 / (sigma**2 * c)
-    e = z[1:] - phi * z[:-1]
+    e = g[1:] - phi * g[:-1]
     j = col + np.arange(sigma.size)
-    lo, hi = inv[:-1], inv[1:]  # d e / d g_k = -phi / scale_k, d e / d g_k+1 = 1 / scale_k+1
-    D[:-1, j, j] += w * phi**2 * lo**2
-    D[1:, j, j] += w * hi**2
-    U[:, j, j] -= w * phi * lo * hi
-    a[:-1, j] += w * phi * e * lo
-    a[1:, j] -= w * e * hi
+    D[:-1, j, j] += w * phi**2
+    D[1:, j, j] += w
+    U[:, j, j] -= w * phi
+    a[:-1, j] += w * phi * e
+    a[1:, j] -= w * e
     w0 = 1.0 / sigma**2
-    D[0, j, j] += w0 * inv[0] ** 2
-    a[0, j] -= w0 * z[0] * inv[0]
-    return float(np.sum(w * e**2) + np.sum(w0 * z[0] ** 2))
+    D[0, j, j] += w0
+    a[0, j] -= w0 * g[0]
+    return float(np.sum(w * e**2) + np.sum(w0 * g[0] ** 2))
 
 
 def _expected(g, var, cross, phi):
@@ -143,7 +138,7 @@ def _expected(g, var, cross, phi):
     return e**2 + v, v
 
 
-def expected_loglik(log_s2, log_tau, g, var, cross, dt):
+def _q(log_s2, log_tau, g, var, cross, dt):
     """The expected complete-data log-likelihood of the chains (n,) (constants dropped) at
     ``log sigma^2``, ``log tau`` (n,)."""
     s2 = np.exp(log_s2)
@@ -159,9 +154,9 @@ def _log_params(model: GaussMarkov) -> np.ndarray:
 
 
 def _derivatives(x, g, var, cross, dt, h: float = 1e-3):
-    """Gradient (n, 2) and Hessian (n, 2, 2) of :func:`expected_loglik` in ``x`` (n, 2)
-    (central differences, step ``h``)."""
-    f = {(a, b): expected_loglik(x[:, 0] + a * h, x[:, 1] + b * h, g, var, cross, dt)
+    """Gradient (n, 2) and Hessian (n, 2, 2) of :func:`_q` in ``x`` (n, 2) (central
+    differences, step ``h``)."""
+    f = {(a, b): _q(x[:, 0] + a * h, x[:, 1] + b * h, g, var, cross, dt)
          for a in (-1, 0, 1) for b in (-1, 0, 1)}  # the 3x3 stencil
     grad = np.stack([f[1, 0] - f[-1, 0], f[0, 1] - f[0, -1]], axis=1) / (2.0 * h)
     H = np.empty((x.shape[0], 2, 2))
@@ -177,10 +172,9 @@ def _positive(info: np.ndarray) -> np.ndarray:
 
 
 def _em_target(g, var, cross, dt) -> np.ndarray:
-    """The maximum (3, 2) of the expected complete-data log-likelihood
-    :func:`expected_loglik` in ``(log sigma^2, log tau)``: ``tau`` on a log grid
-    (:data:`TAU_RANGE_S`, :data:`TAU_GRID`) with ``sigma^2`` profiled out, refined by a
-    parabola through the grid's best three."""
+    """The maximum (3, 2) of the expected complete-data log-likelihood :func:`_q` in ``(log
+    sigma^2, log tau)``: ``tau`` on a log grid (:data:`TAU_RANGE_S`, :data:`TAU_GRID`) with
+    ``sigma^2`` profiled out, refined by a parabola through the grid's best three."""
     n = g.shape[1]
     N = g.shape[0]
     grid = np.geomspace(*TAU_RANGE_S, TAU_GRID)
@@ -202,7 +196,7 @@ def _em_target(g, var, cross, dt) -> np.ndarray:
     return np.stack([log_s2, log_tau], axis=1)
 
 
-def posterior_draws(g, var, cross, rng: np.random.Generator, n_draws: int) -> np.ndarray:
+def _posterior_draws(g, var, cross, rng: np.random.Generator, n_draws: int) -> np.ndarray:
     """Draws (N, n, R) of the chains at their knots from the posterior as a Gauss-Markov
     sequence with means ``g`` (N, n), variances ``var`` (N, n) and consecutive covariances
     ``cross`` (N-1, n): ``d_i+1 = a_i d_i + sqrt(q_i) eps``, ``a_i = C_i / V_i``, ``q_i =
@@ -223,8 +217,8 @@ def posterior_draws(g, var, cross, rng: np.random.Generator, n_draws: int) -> np
 
 def _complete_score(x, g, dt) -> np.ndarray:
     """The complete data's score (n, 2) in ``(log sigma^2, log tau)`` of chains known at their
-    knots, ``g`` (N, n), ``x`` (n, 2) (closed form of :func:`expected_loglik`'s gradient at
-    no posterior variance; ``u = dt / tau``, ``d phi = phi u``, ``d c = -2 phi^2 u``)."""
+    knots, ``g`` (N, n), ``x`` (n, 2) (closed form of :func:`_q`'s gradient at no posterior
+    variance; ``u = dt / tau``, ``d phi = phi u``, ``d c = -2 phi^2 u``)."""
     s2, tau = np.exp(x[:, 0]), np.exp(x[:, 1])
     phi, c = transition(dt, tau)
     u = dt[:, None] / tau
@@ -238,9 +232,9 @@ def _complete_score(x, g, dt) -> np.ndarray:
 def _observed_information(x, g, var, cross, dt, H, rng, n_draws):
     """Louis' observed information (n, 2, 2) of ``(log sigma^2, log tau)``: the complete
     data's, ``-H``, less the posterior variance of the complete data's score (over
-    :func:`posterior_draws`)."""
+    :func:`_posterior_draws`)."""
     n = g.shape[1]
-    draws = posterior_draws(g, var, cross, rng, n_draws)  # (N, n, R)
+    draws = _posterior_draws(g, var, cross, rng, n_draws)  # (N, n, R)
     flat = draws.reshape(g.shape[0], n * n_draws)
     score = _complete_score(np.repeat(x, n_draws, axis=0), flat, dt).reshape(n, n_draws, 2)
     dev = score - score.mean(axis=1, keepdims=True)
@@ -340,5 +334,5 @@ def log_change(old: GaussMarkov, new: GaussMarkov) -> float:
 
 
 __all__ = ["CHANNELS", "GaussMarkov", "START_SHARE", "START_TAU_S", "TAU_RANGE_S", "add_prior",
-           "chain_jacobian", "chain_values", "expected_loglik", "log_change", "posterior_draws",
-           "start_model", "transition", "update", "without_undetermined"]
+           "chain_jacobian", "chain_values", "log_change", "start_model", "transition", "update",
+           "without_undetermined"]

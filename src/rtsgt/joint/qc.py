@@ -37,26 +37,19 @@ def motion_classes(t: np.ndarray, R: np.ndarray, w: np.ndarray,
     slower than :data:`STANDING_SPEED_M_S` (a turn in place about one of them is not
     standing); else its class is that of the largest norm of a point's world velocity change
     across :data:`ACC_WINDOW_S`, divided by the window (m/s^2)."""
-    v = point_velocities(R, w, points)
+    pts = np.zeros((1, 3)) if points is None else np.asarray(points, dtype=float)
+    vb = w[:, None, :3] + np.cross(w[:, None, 3:], pts[None])  # (K, P, 3)
+    v = np.einsum("kij,kpj->kpi", R, vb)
     h = 0.5 * ACC_WINDOW_S
     tp = np.minimum(t + h, t[-1])
     tm = np.maximum(t - h, t[0])
     dv = np.stack([[np.interp(tp, t, v[:, p, i]) - np.interp(tm, t, v[:, p, i])
-                    for i in range(3)] for p in range(v.shape[1])])  # (P, 3, K): a handful
+                    for i in range(3)] for p in range(pts.shape[0])])  # (P, 3, K): a handful
     acc = np.linalg.norm(dv, axis=1).max(axis=0) / np.maximum(tp - tm, 1e-9)
     moving = 1 + np.searchsorted(np.asarray(ACCELERATION_EDGES_M_S2), acc, side="right")
     speed = np.linalg.norm(v, axis=2).max(axis=1)
     cls = np.where(speed < STANDING_SPEED_M_S, 0, moving)
     return np.maximum(cls[:-1], cls[1:])
-
-
-def point_velocities(R: np.ndarray, w: np.ndarray, points: np.ndarray | None = None
-                     ) -> np.ndarray:
-    """World velocities (K, P, 3) m/s of body points ``points`` (P, 3) m (None: the origin
-    alone) of knots with poses ``R`` (K, 3, 3) and body velocities ``w`` (K, 6)."""
-    pts = np.zeros((1, 3)) if points is None else np.asarray(points, dtype=float)
-    vb = w[:, None, :3] + np.cross(w[:, None, 3:], pts[None])  # (K, P, 3)
-    return np.einsum("kij,kpj->kpi", R, vb)
 
 
 def prior_components(e, E, F, dt, qc, cov, cov_next):
@@ -131,5 +124,5 @@ def qc_per_class(quad: np.ndarray, red: np.ndarray, classes: np.ndarray,
 
 
 __all__ = ["ACC_WINDOW_S", "MIN_REDUNDANCY", "N_CLASSES", "QC_FLOOR", "VCE_GN_ITER",
-           "VCE_MAX_ITER", "VCE_TOL", "class_members", "motion_classes", "point_velocities",
-           "prior_components", "qc_per_class", "with_gaps"]
+           "VCE_MAX_ITER", "VCE_TOL", "class_members", "motion_classes", "prior_components",
+           "qc_per_class", "with_gaps"]

@@ -751,11 +751,6 @@ def _joint_html(j: Mapping) -> str:
              f"<td>{_pm(v.get('tau_s'), v.get('tau_sigma_s'))}</td>"
              f"<td class='s'>{'yes' if v.get('determined') else 'no (its start)'}</td></tr>"
              for a, v in rock.items()]))
-        law = j.get("rocking_speed_law")
-        if law:
-            parts.append(_kv_table("run-joint-rocking-law", [
-                ("rocking's speed law", f"(v / {law['reference_speed_m_s']:.2f} m/s) ^ "
-                                        f"({_pm(law['exponent'], law.get('exponent_sigma'))})")]))
     parts.append("<p><small>Each estimate with its sigma; the components the data do not "
                  "determine keep their prior and say so. Method: rtsgt's docs/joint.md."
                  "</small></p>")

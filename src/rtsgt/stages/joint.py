@@ -214,10 +214,8 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
     the motion prior's axes' rotation from the body frame about its x, y, z (mrad, with
     sigma and in sigmas of their prior; docs/joint.md#the-motion-axes); ``rocking``: the
     vehicle's rocking per axis, its sigma (mm, mrad) and correlation time (s) with their
-    sigmas, redundancy and whether the data determined it, at the reference speed of its
-    ``rocking_speed_law`` (``exponent`` with ``exponent_sigma``, ``reference_speed_m_s``:
-    the rocking scales as ``(v / reference) ** exponent``;
-    docs/joint.md#the-rockings-speed-law); the solve's
+    sigmas, redundancy and whether the data determined it
+    (docs/joint.md#the-vehicles-rocking); the solve's
     iterations, convergence, chi^2 per row, knots and measurements."""
     q = jr.qc
     used = np.bincount(q.classes, minlength=len(CLASS_NAMES))
@@ -242,10 +240,6 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
         "deviation": None if jr.deviation is None else _deviation_summary(jr.deviation),
         "motion_axes": None if jr.motion_axes is None else _axes_summary(*jr.motion_axes),
         "rocking": None if jr.rocking is None else _rocking_summary(jr.rocking),
-        "rocking_speed_law": None if jr.rocking_law is None else {
-            "exponent": float(jr.rocking_law.exponent),
-            "exponent_sigma": float(jr.rocking_law.exponent_sd),
-            "reference_speed_m_s": float(jr.rocking_law.reference_speed_m_s)},
         "iterations": int(jr.solve.iterations), "converged": bool(jr.solve.converged),
         "chi2_per_dof": float(jr.chi2_per_dof), "knots": int(jr.n_knots),
         "measurements": int(jr.n_measurements), "poses": int(jr.t.size),
