@@ -831,7 +831,7 @@ def _freed(prob: JointProblem, tests, found: list[int], j: int) -> JointProblem:
     return replace(prob, prism_info=info, prism_found=prob.prism_found + (entry,))
 
 
-__all__ = ["DECREASE_TOL", "HYPOTHESIS_MAX_ITER", "UNDECIDED_COST", "JointProblem", "JointState", "QcFit",
-           "SolveInfo", "assemble", "carry_alternatives", "difference", "gauss_newton", "gm_step",
-           "measurement_global_factor", "measurement_hsh", "measurement_terms", "noise_step",
-           "rocking_step", "snoop_prisms", "solve_with_qc"]
+__all__ = ["DECREASE_TOL", "HYPOTHESIS_MAX_ITER", "UNDECIDED_COST", "JointProblem",
+           "JointState", "QcFit", "SolveInfo", "assemble", "carry_alternatives", "difference",
+           "gauss_newton", "gm_step", "measurement_global_factor", "measurement_hsh",
+           "measurement_terms", "noise_step", "rocking_step", "snoop_prisms", "solve_with_qc"]
