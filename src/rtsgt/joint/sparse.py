@@ -164,8 +164,9 @@ def _eliminate(D, U) -> tuple[list[_Level], np.ndarray]:
         b_right = U[1::2]
         if n % 2 == 0:
             b_right = np.concatenate([b_right, np.zeros((1, d, d))])
+        couple = np.concatenate([b_left, np.swapaxes(b_right, 1, 2)], axis=1)
         d_inv = _spd_inv(D[1::2])
-        gab = d_inv @ np.concatenate([np.swapaxes(b_left, 1, 2), b_right], axis=2)
+        gab = d_inv @ np.swapaxes(couple, 1, 2)  # [D_i^-1 A_i,i-1, D_i^-1 A_i,i+1]
         ga, gb = gab[:, :, :d], gab[:, :, d:]
         left = b_left @ gab  # [A_i-1,i D_i^-1 A_i,i-1, A_i-1,i D_i^-1 A_i,i+1]
         d_e = D[0::2].copy()
@@ -173,7 +174,6 @@ def _eliminate(D, U) -> tuple[list[_Level], np.ndarray]:
         d_e[1:] -= (np.swapaxes(b_right, 1, 2) @ gb)[: n_even - 1]
         U = -left[: n_even - 1, :, d:]
         D = _sym(d_e)
-        couple = np.concatenate([b_left, np.swapaxes(b_right, 1, 2)], axis=1)
         levels.append(_Level(n, d_inv, ga, gb, couple))
     return levels, _spd_inv(D)
 
