@@ -50,7 +50,14 @@ from rtsgt.joint.qc import (
     qc_per_class,
     with_gaps,
 )
-from rtsgt.joint.rocking import bridge_variance, rocked_knots, start_rocking
+from rtsgt.joint.rocking import (
+    add_rocking_prior,
+    bridge_variance,
+    pivot_map,
+    rocked_knots,
+    rocking_moments,
+    start_rocking,
+)
 from rtsgt.joint.se3 import (
     curly,
     exp_se3,
@@ -1170,16 +1177,22 @@ def test_bad_inputs_are_named(simulated):
                        est.R[keep], est.t[keep], np.ones(6))
 
 
-def test_the_vehicles_rocking_is_estimated_with_the_trajectory(monkeypatch):
+@pytest.mark.parametrize("depth", [0.0, 0.6])
+def test_the_vehicles_rocking_is_estimated_with_the_trajectory(monkeypatch, depth):
     """The knots' poses rocked by a first-order Gauss-Markov process per axis (shifts 2 mm,
-    rotations 1 mrad, tau 1 s; the measurements see the rocked pose, to first order) over a
+    rotations 1 mrad about a pivot ``depth`` m below the knots' origin, tau 1 s; the
+    measurements see the rocked pose, composed exactly by the test) over a
     white noise of half the datasheet's: with the rocking as knot states
     (rtsgt.joint.rocking) the solve with the noise estimated determines every axis's chain;
     the shifts' sigma within 10 % and tau within a factor 2 of the truth, the rotations'
-    sigma within a factor 2 (their correlated part, 0.6 mm at the prisms, is shared with
-    the trajectory's turning: their tau reads 0.1-0.2 s); the knots' poses with their
-    rocking are the rocked truth's to NEES/dof 0.7-1.3; the rocking's columns of the gradient
-    equal finite differences of the cost (docs/joint.md#the-vehicles-rocking)."""
+    sigma within a factor 2 about x and y and 3 about z (their correlated part, 0.6 mm at the
+    prisms, is shared with the trajectory's turning, the yaw's most: their tau reads 0.1-0.2
+    s; the yaw's sigma 0.6 of the truth about the origin, 0.4 about the pivot below), with
+    the pivot given to the model (docs/joint.md#the-rockings-pivot); the knots' poses with
+    their rocking (rocked_knots) are the rocked truth's to NEES/dof 0.7-1.3 (about the
+    pivot, of the position, roll and pitch: the yaw's reads z^2 4.9 there, 2.3 about the
+    origin, its rocking taken for the trajectory's turning); the rocking's columns of the
+    gradient equal finite differences of the cost (docs/joint.md#the-vehicles-rocking)."""
     monkeypatch.setattr(engine_module, "VCE_MAX_ITER", 30)
     rng = np.random.default_rng(41)
     K = 600
@@ -1192,8 +1205,14 @@ def test_the_vehicles_rocking_is_estimated_with_the_trajectory(monkeypatch):
     for i in range(1, K):  # the process's recursion, in the test's own code
         x[i] = phi[i - 1] * x[i - 1] + np.sqrt(1 - phi[i - 1] ** 2) * rng.standard_normal(6)
     rock = sigma * x
-    rocked = replace(prob, rocking=start_rocking())
-    y = prob.meas.y - measurement_terms(rocked, replace(truth, rocking=rock))[0]  # h(rocked)
+    # the rocked truth: T exp(rho^) about the knot, then the rotation about the pivot p
+    Rr = exp_so3(rock[:, 3:])
+    pivot = np.array([0.0, 0.0, -depth])
+    dp = rock[:, :3] + pivot - Rr @ pivot
+    R_true, t_true = truth.R @ Rr, truth.t + np.einsum("kij,kj->ki", truth.R, dp)
+    rocked_truth = replace(truth, R=R_true, t=t_true)
+    y = prob.meas.y - measurement_terms(prob, rocked_truth)[0]  # h(rocked)
+    rocked = replace(prob, rocking=start_rocking(), pivot=None if depth == 0 else pivot)
     sig = np.sqrt(prob.meas.var_white[0])
     y = y + 0.5 * sig * rng.standard_normal(y.shape)
     prob = replace(rocked, meas=replace(prob.meas, y=y), qc=prob.qc * 1e-4)
@@ -1203,17 +1222,17 @@ def test_the_vehicles_rocking_is_estimated_with_the_trajectory(monkeypatch):
     fit = out.rocking
     assert info.converged and fit.determined.all(), (info, fit)
     ratio = fit.sigma.ravel() / sigma
-    assert np.all(np.abs(ratio[:3] - 1) < 0.1) and np.all(np.abs(np.log(ratio[3:])) < np.log(2)), ratio
+    assert np.all(np.abs(ratio[:3] - 1) < 0.1), ratio
+    assert np.all(np.abs(np.log(ratio[3:5])) < np.log(2)) and abs(np.log(ratio[5])) < np.log(3), ratio
     assert np.all(np.abs(np.log(fit.tau_s[0] / tau)) < np.log(2)), fit.tau_s
-    # the knots' poses with their rocking against the rocked truth (first order)
-    err = log_se3(*_compose(np.swapaxes(truth.R, 1, 2),
-                            -np.einsum("kji,kj->ki", truth.R, truth.t), est.R, est.t))
-    err = err + est.rocking - rock
+    # the knots' poses with their rocking against the rocked truth
     c = out.rocking_col
-    J = np.zeros((6, out.knot_dim))
-    J[:, :6] = J[:, c:c + 6] = np.eye(6)
-    cov = J @ sol.cov @ J.T
-    nees = np.einsum("ki,kij,kj->k", err, np.linalg.inv(cov), err).mean() / 6
+    R_est, t_est, rsol = rocked_knots(est.R, est.t, est.rocking, sol, c)
+    err = log_se3(*_compose(np.swapaxes(R_true, 1, 2),
+                            -np.einsum("kji,kj->ki", R_true, t_true), R_est, t_est))
+    ax = np.arange(6 if depth == 0 else 5)  # about the pivot, the yaw's: docs/joint.md
+    cov = rsol.cov[:, ax][:, :, ax]
+    nees = np.einsum("ki,kij,kj->k", err[:, ax], np.linalg.inv(cov), err[:, ax]).mean() / ax.size
     assert 0.7 < nees < 1.3, nees
     # the rocking's columns of the gradient against finite differences of the cost
     _assert_knot_gradient(out, replace(truth, rocking=0.5 * rock),
@@ -1265,3 +1284,66 @@ def test_the_rockings_bridge_variance_and_the_rocked_knots():
     dR, dp = exp_se3(r)
     np.testing.assert_allclose(Rr, R @ dR, atol=1e-15)
     np.testing.assert_allclose(tr, t + np.einsum("kij,kj->ki", R, dp), atol=1e-15)
+
+
+def test_the_rocking_about_a_pivot_and_its_prior():
+    """Rotations ``phi`` about a pivot (pivot_map) are the exact rotation about it to second
+    order in ``phi``; the rocking's prior in the
+    knots' columns (add_rocking_prior) is the inverse of the rocked perturbations' dense
+    covariance, ``P Sigma_u P^T`` with each process axis ``sigma^2 exp(-|dt| / tau)`` (the
+    test's own), its cost, gradient and the chains' moments (rocking_moments) those of the
+    process ``u = P^-1 r``."""
+    rng = np.random.default_rng(6)
+    K = 5
+    phi = rng.normal(0.0, 1e-3, (K, 3))
+    pv = np.array([0.1, -0.05, -0.7])
+    dp_exact = pv - exp_so3(phi) @ pv
+    M = pivot_map(pv)
+    dR, dp = exp_se3(np.concatenate([np.zeros((K, 3)), phi], axis=1) @ M.T)
+    np.testing.assert_allclose(dR, exp_so3(phi), atol=1e-15)
+    err = np.linalg.norm(dp - dp_exact, axis=1)  # second order: at most |p| |phi|^2
+    assert np.all(err < np.linalg.norm(pv) * np.sum(phi**2, axis=1)), err
+    assert np.all(np.linalg.norm(dp_exact, axis=1) > 100 * err)
+    np.testing.assert_allclose(pivot_map(-pv) @ M, np.eye(6), atol=1e-15)
+    np.testing.assert_array_equal(pivot_map(None), np.eye(6))
+    # the prior against the dense covariance
+    model = replace(start_rocking(), sigma=np.array([[1e-3, 2e-3, 3e-3], [4e-3, 5e-3, 6e-3]]),
+                    tau_s=np.array([[0.1, 0.3, 1.0], [2.0, 0.05, 0.5]]))
+    t = np.cumsum(rng.uniform(0.05, 0.5, K))
+    d, col = 9, 2
+    D, U, a = np.zeros((K, d, d)), np.zeros((K - 1, d, d)), np.zeros((K, d))
+    r = rng.normal(0.0, 1e-3, (K, 6))
+    cost = add_rocking_prior(D, U, a, r, np.diff(t), model, col, pv)
+    sig, tau = model.sigma.ravel(), model.tau_s.ravel()
+    cov_u = np.zeros((6 * K, 6 * K))  # knot-major
+    for ax in range(6):
+        cov_u[ax::6, ax::6] = sig[ax] ** 2 * np.exp(-np.abs(t[:, None] - t[None, :]) / tau[ax])
+    Pk = np.kron(np.eye(K), M)
+    info = np.linalg.inv(Pk @ cov_u @ Pk.T)
+    j = slice(col, col + 6)
+    big = np.abs(info).max()
+    for k in range(K):
+        np.testing.assert_allclose(D[k, j, j], info[6 * k:6 * k + 6, 6 * k:6 * k + 6],
+                                   rtol=1e-8, atol=1e-8 * big)
+    for k in range(K - 1):
+        np.testing.assert_allclose(U[k, j, j], info[6 * k:6 * k + 6, 6 * k + 6:6 * k + 12],
+                                   rtol=1e-8, atol=1e-8 * big)
+    assert cost == pytest.approx(r.ravel() @ info @ r.ravel(), rel=1e-8)
+    grad = info @ r.ravel()
+    np.testing.assert_allclose(a[:, j].ravel(), -grad, rtol=1e-8, atol=1e-8 * np.abs(grad).max())
+    # the chains' moments: the process u = P^-1 r's means, variances and lag-one covariances
+    A = rng.standard_normal((6 * K, 6 * K))
+    cov_r = A @ A.T
+    blk = [slice(6 * k, 6 * k + 6) for k in range(K)]
+    moments = rocking_moments(r, np.stack([cov_r[b, b] for b in blk]),
+                              np.stack([cov_r[blk[k], blk[k + 1]] for k in range(K - 1)]),
+                              np.diff(t), pv)
+    Pinv = np.kron(np.eye(K), np.linalg.inv(M))
+    u, cov_uu = (Pinv @ r.ravel()).reshape(K, 6), Pinv @ cov_r @ Pinv.T
+    for row, (g, var, cross, dt) in enumerate(moments):  # shifts, rotations
+        ax = 3 * row + np.arange(3)
+        np.testing.assert_allclose(g, u[:, ax], rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(var, [np.diag(cov_uu[b, b])[ax] for b in blk], rtol=1e-10)
+        np.testing.assert_allclose(cross, [np.diag(cov_uu[blk[k], blk[k + 1]])[ax]
+                                           for k in range(K - 1)], rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(dt, np.diff(t))

@@ -203,6 +203,8 @@ def test_deployment_toml_schema(written):
     assert doc["weather"] == {"file": "weather.csv", "format": "csv"}
     ref = dict(doc["reference"])
     T_survey_body = np.array(ref.pop("T_survey_body"))
+    pivot = np.array(ref.pop("rocking_pivot"))  # the robot's origin, in the survey frame
+    np.testing.assert_array_equal(pivot, sim.truth.T_body_robot.translation)
     assert ref == {"file": "calibration_raw.csv", "format": "survey-dms",
                    "prisms": {"1": 1, "2": 2, "3": 3}, "body_frame": "transform"}
     np.testing.assert_array_equal(T_survey_body, sim.truth.T_body_robot.as_matrix())
@@ -229,6 +231,9 @@ def test_deployment_toml_schema(written):
     cfg = config.load_config(toml)
     assert [s.file.name for s in cfg.stations] == ["prism1.csv", "prism2.csv", "prism3.csv"]
     assert cfg.reference.prisms == {"1": 1, "2": 2, "3": 3}
+    # the pivot read back in the body (robot) frame: its origin
+    reference = pytest.importorskip("rtsgt.io.deployment").read_reference(cfg)
+    np.testing.assert_allclose(reference.pivot, np.zeros(3), atol=1e-12)
 
 
 def test_round_trip_with_the_readers(written):

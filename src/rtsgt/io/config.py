@@ -92,6 +92,9 @@ class ReferenceConfig:
     body_frame: str = "survey"
     body_points: tuple[int, ...] = ()
     T_survey_body: tuple[tuple[float, ...], ...] | None = None
+    #: ``rocking_pivot``: the point the vehicle rocks about (m; the survey's frame, the body
+    #: frame's for a ``csv`` reference); None: not given (docs/joint.md#the-rockings-pivot).
+    rocking_pivot: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -492,7 +495,14 @@ def _reference(path: Path, doc: dict, prisms: list[str],
         if T_sb is None or len(T_sb) != 4 or any(len(row) != 4 for row in T_sb):
             raise ConfigError("[reference] body_frame = 'transform' needs a 4x4 T_survey_body", path)
         T_sb = tuple(tuple(float(x) for x in row) for row in T_sb)
-    reference = ReferenceConfig(ref_file, ref_format, rows, body_frame, body_points, T_sb)
+    pivot = r.get("rocking_pivot", list, None)
+    if pivot is not None:
+        if len(pivot) != 3 or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                      and math.isfinite(x) for x in pivot):
+            raise ConfigError(f"[reference] rocking_pivot must be [x, y, z] in m, got {pivot!r}",
+                              path)
+        pivot = tuple(float(x) for x in pivot)
+    reference = ReferenceConfig(ref_file, ref_format, rows, body_frame, body_points, T_sb, pivot)
     r.done()
     return reference
 

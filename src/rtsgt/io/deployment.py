@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -83,7 +84,7 @@ def read_reference(cfg: DeploymentConfig) -> ReferencePoints:
         missing = [n for n in names if n not in ref.names]
         if missing:
             raise InputError(f"no reference point named {', '.join(missing)}", rc.file)
-        return ref.select(names)
+        return replace(ref.select(names), pivot=rc.rocking_pivot)
     survey = (read_sensor_positions(rc.file) if rc.format == "sensor-positions"
               else read_survey_raw(rc.file))
     n_rows = survey.xyz.shape[0]
@@ -104,7 +105,8 @@ def read_reference(cfg: DeploymentConfig) -> ReferencePoints:
     else:
         body = RigidTransform.from_matrix(np.array(rc.T_survey_body), frame_to="survey",
                                           frame_from="body")
-    return reference_from_survey(survey.xyz, survey.cov, rows, body_frame=body, names=names)
+    return reference_from_survey(survey.xyz, survey.cov, rows, body_frame=body, names=names,
+                                 pivot=rc.rocking_pivot)
 
 
 def _warn_sensor_position_defects(points: SensorPositions, rows: list[int]) -> None:

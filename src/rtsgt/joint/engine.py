@@ -45,7 +45,7 @@ from rtsgt.joint.qc import (
     with_gaps,
 )
 from rtsgt.joint.relative import chain_gains, knot_cross_covariance
-from rtsgt.joint.rocking import ROCKING_DIM, rocking_moments
+from rtsgt.joint.rocking import ROCKING_DIM, add_rocking_prior, rocking_moments
 from rtsgt.joint.se3 import adjoint, curly, exp_se3, log_se3, so3_left_jacobian
 from rtsgt.joint.settling import KIND_COLUMNS, SettleModel
 from rtsgt.joint.sparse import (
@@ -144,7 +144,9 @@ class JointProblem:
     docs/joint.md#which-prism-moved), and whether the motion prior's axes are estimated
     (``motion_axes``, with the prior sigma ``axes_sigma`` rad, docs/joint.md#the-motion-axes),
     and the vehicle's rocking (``rocking``: its chains, states of every knot after the
-    settling's; None: none, docs/joint.md#the-vehicles-rocking).
+    settling's; None: none, docs/joint.md#the-vehicles-rocking; the knots' states the rocked
+    pose's perturbation, the chains the process about the vehicle's ``pivot`` (3,) m in the
+    knots' frame, None: their origin, docs/joint.md#the-rockings-pivot).
     Globals: the free stations' ``(dt, dtheta)``, ``kappa``, the prisms' positions (3P), the
     constant clock offsets, the prisms' deviation (P, C), the motion axes (3)."""
 
@@ -174,6 +176,7 @@ class JointProblem:
     axes_sigma: float = AXES_SIGMA
     max_gap_s: float = np.inf
     rocking: gmn.GaussMarkov | None = None
+    pivot: np.ndarray | None = None
 
     @property
     def gaps(self) -> np.ndarray:
@@ -409,7 +412,8 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
     if prob.settle is not None:
         cost += prob.settle.prior.add_prior(D, U, a, s.settle, dt, prob.settle_col)
     if prob.rocking is not None:
-        cost += gmn.add_prior(D, U, a, s.rocking, dt, prob.rocking, prob.rocking_col)
+        cost += add_rocking_prior(D, U, a, s.rocking, dt, prob.rocking, prob.rocking_col,
+                                  prob.pivot)
     r, Hk, Hg = measurement_terms(prob, s)
     info = prob.meas.info
     # each knot's rows (K, 3 R, .) of H, W H, W Hg and W r, gathered at once
@@ -732,13 +736,15 @@ def gm_step(prob: JointProblem, s: JointState, sol,
 def rocking_step(prob: JointProblem, s: JointState, sol,
                  rng: np.random.Generator | None = None) -> tuple[JointProblem, float]:
     """One update of the rocking's chains' sigma and tau (:func:`rtsgt.joint.gm.update`,
-    ``rng`` its draws) from the posterior at ``s`` at every knot: the problem with them and
+    ``rng`` its draws) from the posterior at ``s`` at every knot, the process's about the
+    vehicle's pivot (:func:`rtsgt.joint.rocking.rocking_moments`): the problem with them and
     the largest change of a determined one's log (docs/joint.md#the-vehicles-rocking)."""
     old = prob.rocking
-    j = prob.rocking_col + np.arange(ROCKING_DIM)
+    j = slice(prob.rocking_col, prob.rocking_col + ROCKING_DIM)
     k = np.arange(prob.t_knot.size)
     cross = knot_cross_covariance(sol, chain_gains(sol), k[:-1], k[1:])[:, j, j]
-    moments = rocking_moments(s.rocking, sol.cov[:, j, j], cross, np.diff(prob.t_knot))
+    moments = rocking_moments(s.rocking, sol.cov[:, j, j], cross, np.diff(prob.t_knot),
+                              prob.pivot)
     new = gmn.update(old, moments, old.determined if old.iterations else None, rng)
     return replace(prob, rocking=new), gmn.log_change(old, new)
 

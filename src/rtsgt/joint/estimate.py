@@ -47,7 +47,13 @@ from rtsgt.joint.relative import (
     origin_adjoint,
     world_covariance,
 )
-from rtsgt.joint.rocking import ROCKING_DIM, bridge_variance, rocked_knots, start_rocking
+from rtsgt.joint.rocking import (
+    ROCKING_DIM,
+    bridge_variance,
+    pivot_map,
+    rocked_knots,
+    start_rocking,
+)
 from rtsgt.joint.settling import settle_model
 from rtsgt.joint.slow import at_times
 from rtsgt.noise.model import NoiseModel
@@ -92,7 +98,8 @@ class JointResult:
     (docs/joint.md#the-motion-axes; None where not estimated); ``rocking``: the vehicle's
     rocking's sigma and correlation time per axis (:class:`rtsgt.joint.gm.GaussMarkov`, rows
     the shifts and the rotations; docs/joint.md#the-vehicles-rocking; None where not
-    estimated).
+    estimated) and ``rocking_pivot`` (3,) m the point its rotations are about, body frame
+    (docs/joint.md#the-rockings-pivot; None: the prisms' centroid).
     """
 
     t: np.ndarray
@@ -118,6 +125,7 @@ class JointResult:
     gauss_markov: gmn.GaussMarkov | None = None
     motion_axes: tuple[np.ndarray, np.ndarray] | None = None
     rocking: gmn.GaussMarkov | None = None
+    rocking_pivot: np.ndarray | None = None
 
 
 def _stations(calibration):
@@ -169,8 +177,10 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     (docs/joint.md#gauss-markov-noise; ``rng`` the draws of their observed information,
     None: approximated without draws). With ``rocking`` (and ``noise``), the vehicle's rocking
     is a first-order Gauss-Markov process per axis of the knots' pose, its sigma and
-    correlation time estimated as the chains' (docs/joint.md#the-vehicles-rocking), and the
-    poses are the rocked ones, with its variance between the knots.
+    correlation time estimated as the chains' (docs/joint.md#the-vehicles-rocking), its
+    rotations about ``reference.pivot`` where given (else the prisms' centroid;
+    docs/joint.md#the-rockings-pivot), and the poses are the rocked ones, with its variance
+    between the knots.
     ``max_gap_s``: a longer gap between a station's measurements starts new blocks of the
     raw block cross-validation (docs/joint.md#block-cross-validation-of-the-measurements),
     and a longer interval between knots (no station measured) has a motion prior of its own,
@@ -214,7 +224,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                         if deviation else None,
                         gm=gmn.start_model(meas.var_white, meas.station, len(ids))
                         if gauss_markov and noise else None, motion_axes=motion_axes,
-                        max_gap_s=max_gap_s, rocking=start_rocking() if rocking and noise else None)
+                        max_gap_s=max_gap_s, rocking=start_rocking() if rocking and noise else None,
+                        pivot=None if reference.pivot is None else reference.pivot - origin)
     K = knots.t.size
     state = JointState(R0, p0, body_velocities(knots.t, R0, p0), R_s, t_s, 0.0,
                        None if ck is None else np.zeros((K, ck.size)),
@@ -251,7 +262,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        _time_sync(prob, state, cov_g, globals_),
                        _settling(prob, state, body[4], gains, ids), _deviation(prob, state, cov_g, names),
                        None if prob.gm is None else replace(prob.gm, stations=ids),
-                       _motion_axes(prob, state, cov_g), prob.rocking)
+                       _motion_axes(prob, state, cov_g), prob.rocking,
+                       None if prob.pivot is None else prob.pivot + origin)
 
 
 def _motion_axes(prob: JointProblem, state: JointState, cov_g):
@@ -403,12 +415,13 @@ def _body_knots(prob: JointProblem, s: JointState, sol):
 
 def _rocking_bridge(prob: JointProblem, s: JointState):
     """The rocking's variance between the knots with the body's axes, at the knots' origin,
-    ``t`` (Q,) -> (Q, 6, 6) (:func:`rtsgt.joint.rocking.bridge_variance`, turned from the
-    motion axes; to the body's origin by :class:`rtsgt.joint.relative.JointPosterior`); None
-    without the rocking."""
+    ``t`` (Q,) -> (Q, 6, 6) (:func:`rtsgt.joint.rocking.bridge_variance`, the process's about
+    the pivot (:func:`rtsgt.joint.rocking.pivot_map`), turned from the motion axes; to the
+    body's origin by :class:`rtsgt.joint.relative.JointPosterior`); None without the
+    rocking."""
     if prob.rocking is None:
         return None
-    A = np.eye(6) if s.R_mb is None else body_rotation(s.R_mb)
+    A = (np.eye(6) if s.R_mb is None else body_rotation(s.R_mb)) @ pivot_map(prob.pivot)
     return lambda t: (A * bridge_variance(t, prob.t_knot, prob.rocking)[:, None, :]) @ A.T
 
 

@@ -66,13 +66,16 @@ def check_reference_geometry(xyz: ArrayLike, min_shape: float = MIN_SHAPE) -> No
 class ReferencePoints:
     """Reference prisms in the body frame with their joint covariance: ``names`` (n,), ``xyz``
     (n, 3) m, ``cov`` (3n, 3n) m^2 of the stacked ``(x1, y1, z1, x2, ...)`` (or (n, 3, 3) per
-    point), ``frame`` the body frame's name. Raises GeometryError for fewer than 3 points or
-    nearly collinear ones."""
+    point), ``frame`` the body frame's name; ``pivot`` (3,) m the point the vehicle rocks
+    about, its suspension's roll centre, in the body frame (None: not given; the joint
+    engine's rocking, docs/joint.md#the-rockings-pivot). Raises GeometryError for fewer than
+    3 points or nearly collinear ones."""
 
     names: tuple[str, ...]
     xyz: np.ndarray
     cov: np.ndarray
     frame: str = "body"
+    pivot: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         names = tuple(str(s) for s in self.names)
@@ -92,6 +95,12 @@ class ReferencePoints:
         cov = np.array(check_covariance(cov, 3 * n, "reference covariance"), dtype=float)
         cov = 0.5 * (cov + cov.T)
         check_reference_geometry(xyz)
+        if self.pivot is not None:
+            pivot = np.array(self.pivot, dtype=float)
+            if pivot.shape != (3,) or not np.all(np.isfinite(pivot)):
+                raise ValueError(f"Expected a finite pivot of shape (3,), got {self.pivot!r}")
+            pivot.setflags(write=False)
+            object.__setattr__(self, "pivot", pivot)
         xyz.setflags(write=False)
         cov.setflags(write=False)
         object.__setattr__(self, "names", names)
@@ -125,7 +134,7 @@ class ReferencePoints:
             idx.append(self.names.index(str(s)))
         rows = np.concatenate([[3 * k, 3 * k + 1, 3 * k + 2] for k in idx])
         return ReferencePoints(tuple(str(s) for s in names), self.xyz[idx],
-                               self.cov[np.ix_(rows, rows)], self.frame)
+                               self.cov[np.ix_(rows, rows)], self.frame, self.pivot)
 
 
 def block_diagonal(blocks: np.ndarray) -> np.ndarray:
@@ -183,13 +192,16 @@ def reference_from_survey(
     *,
     body_frame: str | RigidTransform | Sequence[int] = "survey",
     names: Sequence[str] | None = None,
+    pivot: ArrayLike | None = None,
 ) -> ReferencePoints:
     """Reference prisms in the chosen body frame, with covariance, from a static survey.
 
     ``points_survey`` (K, 3) m and ``cov_survey`` (K, 3, 3) or (3K, 3K) m^2, survey frame;
     ``prism_rows``: the **0-based** rows of the prisms, in prism order; ``body_frame``:
     ``"survey"``, a ``RigidTransform`` ``T_survey_body`` (its covariance propagated), or 0-based
-    rows of sensor points (:func:`frame_from_points`); ``names`` default ``"1", "2", ...``. Raises
+    rows of sensor points (:func:`frame_from_points`); ``names`` default ``"1", "2", ...``;
+    ``pivot`` (3,) m the vehicle's rocking pivot in the survey frame (None: not given), put
+    in the body frame as the prisms are (its uncertainty not carried). Raises
     GeometryError (fewer than 3 prisms, a collinear set or frame) or ValueError (shapes, rows, a
     non-PSD covariance).
     """
@@ -220,7 +232,10 @@ def reference_from_survey(
     body_frame, R0, t0, C_T, frame = _frame_spec(body_frame, X)
     xyz = _body_points(X[None], np.zeros((1, 6)), rows, body_frame, R0, t0)[0]
     cov = _propagated_cov(X, C, rows, body_frame, R0, t0, C_T)
-    return ReferencePoints(names, xyz, 0.5 * (cov + cov.T), frame)
+    if pivot is not None:  # one more point, after the survey's rows (the frame's stay theirs)
+        Xp = np.concatenate([X, np.asarray(pivot, dtype=float).reshape(1, 3)])
+        pivot = _body_points(Xp[None], np.zeros((1, 6)), [K], body_frame, R0, t0)[0, 0]
+    return ReferencePoints(names, xyz, 0.5 * (cov + cov.T), frame, pivot)
 
 
 def _frame_spec(body_frame, X: np.ndarray):

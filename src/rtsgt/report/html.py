@@ -751,6 +751,11 @@ def _joint_html(j: Mapping) -> str:
              f"<td>{_pm(v.get('tau_s'), v.get('tau_sigma_s'))}</td>"
              f"<td class='s'>{'yes' if v.get('determined') else 'no (its start)'}</td></tr>"
              for a, v in rock.items()]))
+        piv = j.get("rocking_pivot_m")
+        parts.append(_kv_table("run-joint-pivot", [(
+            "rocking's pivot (body frame, m)",
+            "the prisms' centroid (not given)" if piv is None
+            else html.escape(", ".join(f"{x:.3f}" for x in piv)))]))
     parts.append("<p><small>Each estimate with its sigma; the components the data do not "
                  "determine keep their prior and say so. Method: rtsgt's docs/joint.md."
                  "</small></p>")

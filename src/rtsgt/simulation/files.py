@@ -247,6 +247,9 @@ def _toml_text(sim: SimulatedDeployment, name: str) -> str:
         "T_survey_body = [" + ", ".join(
             "[" + ", ".join(repr(float(x)) for x in row) + "]"
             for row in sim.truth.T_body_robot.as_matrix()) + "]",
+        "# the point the vehicle rocks about: the robot's origin, on the ground (survey frame)",
+        "rocking_pivot = [" + ", ".join(
+            repr(float(x)) for x in sim.truth.T_body_robot.translation) + "]",
         "",
         "[noise]",
         f"sources = [{sources}]",

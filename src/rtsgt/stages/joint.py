@@ -215,7 +215,9 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
     sigma and in sigmas of their prior; docs/joint.md#the-motion-axes); ``rocking``: the
     vehicle's rocking per axis, its sigma (mm, mrad) and correlation time (s) with their
     sigmas, redundancy and whether the data determined it
-    (docs/joint.md#the-vehicles-rocking); the solve's
+    (docs/joint.md#the-vehicles-rocking); ``rocking_pivot_m``: the point its rotations are
+    about, body frame (None: the prisms' centroid; docs/joint.md#the-rockings-pivot); the
+    solve's
     iterations, convergence, chi^2 per row, knots and measurements."""
     q = jr.qc
     used = np.bincount(q.classes, minlength=len(CLASS_NAMES))
@@ -240,6 +242,8 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
         "deviation": None if jr.deviation is None else _deviation_summary(jr.deviation),
         "motion_axes": None if jr.motion_axes is None else _axes_summary(*jr.motion_axes),
         "rocking": None if jr.rocking is None else _rocking_summary(jr.rocking),
+        "rocking_pivot_m": None if jr.rocking is None or jr.rocking_pivot is None
+        else jr.rocking_pivot.tolist(),
         "iterations": int(jr.solve.iterations), "converged": bool(jr.solve.converged),
         "chi2_per_dof": float(jr.chi2_per_dof), "knots": int(jr.n_knots),
         "measurements": int(jr.n_measurements), "poses": int(jr.t.size),
