@@ -1185,9 +1185,10 @@ def test_the_vehicles_rocking_is_estimated_with_the_trajectory(monkeypatch, dept
     white noise of half the datasheet's: with the rocking as knot states
     (rtsgt.joint.rocking) the solve with the noise estimated determines every axis's chain;
     the shifts' sigma within 10 % and tau within a factor 2 of the truth, the rotations'
-    sigma within a factor 2 about x and y and 3 about z (their correlated part, 0.6 mm at the
-    prisms, is shared with the trajectory's turning, the yaw's most: their tau reads 0.1-0.2
-    s; the yaw's sigma 0.6 of the truth about the origin, 0.4 about the pivot below), with
+    sigma within a factor 2, the yaw's about the pivot below within 3 (their correlated
+    part, 0.6 mm at the prisms, is shared with the trajectory's turning, the yaw's most:
+    their tau reads 0.1-0.2 s; the yaw's sigma 0.6 of the truth about the origin, 0.4 about
+    the pivot below), with
     the pivot given to the model (docs/joint.md#the-rockings-pivot); the knots' poses with
     their rocking (rocked_knots) are the rocked truth's to NEES/dof 0.7-1.3 (about the
     pivot, of the position, roll and pitch: the yaw's reads z^2 4.9 there, 2.3 about the
@@ -1223,7 +1224,8 @@ def test_the_vehicles_rocking_is_estimated_with_the_trajectory(monkeypatch, dept
     assert info.converged and fit.determined.all(), (info, fit)
     ratio = fit.sigma.ravel() / sigma
     assert np.all(np.abs(ratio[:3] - 1) < 0.1), ratio
-    assert np.all(np.abs(np.log(ratio[3:5])) < np.log(2)) and abs(np.log(ratio[5])) < np.log(3), ratio
+    yaw_bound = np.log(2) if depth == 0 else np.log(3)  # about the pivot, the yaw's: above
+    assert np.all(np.abs(np.log(ratio[3:5])) < np.log(2)) and abs(np.log(ratio[5])) < yaw_bound, ratio
     assert np.all(np.abs(np.log(fit.tau_s[0] / tau)) < np.log(2)), fit.tau_s
     # the knots' poses with their rocking against the rocked truth
     c = out.rocking_col

@@ -99,7 +99,7 @@ class JointResult:
     rocking's sigma and correlation time per axis (:class:`rtsgt.joint.gm.GaussMarkov`, rows
     the shifts and the rotations; docs/joint.md#the-vehicles-rocking; None where not
     estimated) and ``rocking_pivot`` (3,) m the point its rotations are about, body frame
-    (docs/joint.md#the-rockings-pivot; None: the prisms' centroid).
+    (docs/joint.md#the-rockings-pivot; None: the prisms' centroid, or no rocking).
     """
 
     t: np.ndarray
@@ -263,7 +263,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        _settling(prob, state, body[4], gains, ids), _deviation(prob, state, cov_g, names),
                        None if prob.gm is None else replace(prob.gm, stations=ids),
                        _motion_axes(prob, state, cov_g), prob.rocking,
-                       None if prob.pivot is None else prob.pivot + origin)
+                       None if prob.rocking is None or prob.pivot is None
+                       else prob.pivot + origin)
 
 
 def _motion_axes(prob: JointProblem, state: JointState, cov_g):
