@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from rtsgt.checks.static import static_stretches
+from rtsgt.interpolation.prisms import gp_velocity_z2
 from rtsgt.io.deployment import load_deployment
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
@@ -53,7 +54,8 @@ def simulated(seed: int, rate_hz: float, duration_s: float, tmp: Path):
         warnings.simplefilter("ignore")
         record = run_pipeline(data, opts.updated(seed=seed, engine="linear"))
     c = record.computation
-    iv = static_stretches(c.prisms.t[c.keep], c.prisms.xyz[c.keep])
+    t = c.prisms.t[c.keep]
+    iv = static_stretches(t, c.prisms.xyz[c.keep], gp_velocity_z2(c.gps, t))
     truth = sim.truth
     return score(iv, truth.t, true_standing(truth.t, truth.prisms_world), truth.prisms_world)
 

@@ -14,12 +14,15 @@ from rtsgt.checks.static import (
     COMPONENTS,
     EDGE_MARGIN_S,
     MIN_STATIC_S,
+    MOVING_Z2,
     gauss_markov_fit,
     lag_one_test,
     static_noise_check,
     static_stretches,
 )
 from rtsgt.errors import RtsgtWarning
+from rtsgt.interpolation.gp import fit_track
+from rtsgt.interpolation.prisms import gp_velocity_z2
 from rtsgt.types import PrismTrack
 
 DT = 0.4
@@ -131,6 +134,51 @@ def test_a_short_stop_is_found_and_every_stretch_ends_before_the_robot_moves(smo
         assert np.all(iv[:, 0] >= stops[:, 0]) and np.all(iv[:, 1] <= stops[:, 1]), (seed, iv)
         lost = (stops[:, 1] - stops[:, 0]) - (iv[:, 1] - iv[:, 0])
         assert np.all(lost <= 2 * EDGE_MARGIN_S), (seed, lost)
+
+
+def _creeping(rng, creep_m_s, noise_m=0.3e-3, dt=0.2):
+    """Two prisms measured every ``dt`` s with white noise ``noise_m`` (m, each axis): a robot
+    standing 20 s, driving 10 s at 0.5 m/s, moving ``creep_m_s`` for 15 s (under the standing
+    speed), driving 10 s and standing 20 s, each change of speed a quintic ramp over 2 s.
+    Returns the times, the measured prisms (T, 2, 3), the GP of each (its ``Qc`` fitted) and
+    the intervals (3, 2) s of the slow parts at their own speed."""
+    levels = np.array([0.0, 0.5, creep_m_s, 0.5, 0.0])
+    starts = np.cumsum([0.0, 20.0, 10.0, 15.0, 10.0])
+    ramp = 2.0
+    t = np.arange(0.0, starts[-1] + 20.0, dt)
+    speed = np.full(t.size, levels[0])
+    for a, lo, hi in zip(starts[1:], levels[:-1], levels[1:], strict=True):
+        s = np.clip((t - a) / ramp, 0.0, 1.0)
+        speed += (hi - lo) * s**3 * (10 - 15 * s + 6 * s * s)
+    x = np.r_[0.0, np.cumsum(0.5 * (speed[1:] + speed[:-1]) * dt)]
+    truth = np.stack([np.column_stack([x, 0 * x + 0.5 * p, 0 * x]) for p in range(2)], axis=1)
+    xyz = truth + noise_m * rng.standard_normal(truth.shape)
+    cov = np.broadcast_to(noise_m**2 * np.eye(3), (t.size, 3, 3))
+    gps = {str(p): fit_track((t, xyz[:, p], cov)) for p in range(2)}
+    slow = np.array([[0.0, starts[1]], [starts[2] + ramp, starts[3]], [starts[4] + ramp, t[-1]]])
+    return t, xyz, gps, slow
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_robot_creeping_through_a_whole_run_does_not_stand(seed):
+    """A robot moving at 30 mm/s for 15 s between two drives: every pose is under the standing
+    speed and the run's own noise floor is its steady speed, so the speed alone takes it for
+    standing (the real static stretches of 2022-11-10 hold such a run: 12-15 mm/s at 71 m,
+    docs/self-checks.md#stretches). Its GP's velocity, tested against the GP's covariance,
+    is not noise; the stops' is, and they stand."""
+    t, xyz, gps, slow = _creeping(np.random.default_rng(seed), 0.03)
+    z2 = gp_velocity_z2(gps, t)
+    assert z2.shape == (t.size, 2) and np.all(np.isfinite(z2))
+    alone = static_stretches(t, xyz)
+    assert alone.shape == (3, 2), alone  # the creep taken for a stop by the speed alone
+    iv = static_stretches(t, xyz, z2)
+    assert iv.shape == (2, 2), iv
+    assert np.all(iv[:, 0] >= slow[[0, 2], 0]) and np.all(iv[:, 1] <= slow[[0, 2], 1]), iv
+    np.testing.assert_allclose(iv, alone[[0, 2]])  # the stops as the speed finds them
+    inside = (t > slow[1, 0] + 1.0) & (t < slow[1, 1] - 1.0)
+    assert np.median(z2[inside]) > MOVING_Z2, np.median(z2[inside])
+    still = (t > 2.0) & (t < slow[0, 1] - 2.0) | (t > slow[2, 0] + 2.0) & (t < slow[2, 1] - 2.0)
+    assert np.median(z2[still]) < 0.25 * MOVING_Z2, np.median(z2[still])
 
 
 @pytest.mark.parametrize("confidence", [0.95, 0.99])

@@ -22,6 +22,7 @@ from rtsgt.deployment import DeploymentData
 from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
 from rtsgt.evaluation.joint_truth import JointGroundTruth
 from rtsgt.evaluation.static_poses import static_relative_check
+from rtsgt.interpolation.prisms import gp_velocity_z2
 from rtsgt.noise.correlated import inflate_tracks
 from rtsgt.options import RunOptions
 from rtsgt.record import MIN_POSE_PRISMS, PositionRunRecord, RunComputation, RunRecord
@@ -107,7 +108,7 @@ def _pose_stages(data: DeploymentData, options: RunOptions, front: Front, say: P
     clock.timings.update(fit.timings)
     clock.restart()
     static, correlated = static_noise(options, front, fit.tracks, fit.groundtruth.t,
-                                      fit.prisms.xyz[fit.keep], say, clock)
+                                      fit.prisms.xyz[fit.keep], fit.gps, say, clock)
     if correlated["applied"]:
         start = time.perf_counter()
         fit = fit_to_gates(options, data.query_times, front.intervals,
@@ -153,7 +154,7 @@ def _static_relative(record: RunRecord, joint: JointFit | None) -> RunRecord:
     the joint engine's knots."""
     c = record.computation
     gt = record.groundtruth
-    stretches = static_stretches(gt.t, c.prisms.xyz[c.keep])
+    stretches = static_stretches(gt.t, c.prisms.xyz[c.keep], gp_velocity_z2(c.gps, gt.t))
     # the linear engine's poses: the check's covariances are its first-order model anyway
     truth = (ContinuousGroundTruth.from_record(record, engine="linear") if joint is None
              else JointGroundTruth(joint.result.posterior))
@@ -172,7 +173,7 @@ def _position_stages(data: DeploymentData, options: RunOptions, front: Front, sa
                      say)
     clock.lap("interpolation")
     static, correlated = static_noise(options, front, fit.tracks, fit.prisms.t, fit.prisms.xyz,
-                                      say, clock)
+                                      fit.gps, say, clock)
     if correlated["applied"]:
         fit = fit_prisms(options, data.query_times, front.intervals,
                          inflate_tracks(front.tracks, front.origins, correlated),

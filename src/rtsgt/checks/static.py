@@ -27,7 +27,7 @@ from rtsgt.stats import ratio_interval, ratio_verdict
 from rtsgt.types import PrismTrack
 
 __all__ = ["COMPONENTS", "EDGE_MARGIN_S", "FAMILY_FALSE_ALARM", "MIN_SAMPLES", "MIN_STATIC_S",
-           "NOISE_FLOOR_FACTOR", "WHITE_SOURCES", "gauss_markov_fit", "lag_one_test",
+           "MOVING_Z2", "NOISE_FLOOR_FACTOR", "WHITE_SOURCES", "gauss_markov_fit", "lag_one_test",
            "static_noise_check", "static_stretches"]
 
 #: Cut from both ends of a run of standing poses, s.
@@ -39,6 +39,10 @@ MIN_STATIC_S = 2.0
 #: speed: the 99.9 % quantile of a chi distribution over its median, at one degree of freedom
 #: (the largest such ratio: the speed's noise along one direction only).
 NOISE_FLOOR_FACTOR = float(np.sqrt(stats.chi2.ppf(0.999, 1) / stats.chi2.ppf(0.5, 1)))
+#: A candidate run whose median velocity z^2 (any prism's, against its predicted covariance)
+#: is above this moves, however slowly: the 99.9 % quantile of a chi-square at three degrees
+#: of freedom (a standing prism's velocity is noise).
+MOVING_Z2 = float(stats.chi2.ppf(0.999, 3))
 #: The sources whose errors change from one measurement to the next.
 WHITE_SOURCES = WHITE_NOISE_SOURCES
 #: Fewest samples of a prism (over its stretches) for a verdict.
@@ -66,10 +70,14 @@ def _runs(mask: np.ndarray, joined: np.ndarray) -> tuple[np.ndarray, np.ndarray]
             np.flatnonzero(mask & ~np.r_[link, False]))
 
 
-def static_stretches(t: ArrayLike, prisms_xyz: ArrayLike) -> np.ndarray:
+def static_stretches(t: ArrayLike, prisms_xyz: ArrayLike,
+                     velocity_z2: ArrayLike | None = None) -> np.ndarray:
     """Intervals (K, 2), s, in which the robot stands, from the kept poses' times ``t`` (T,) and
     prisms ``prisms_xyz`` (T, n, 3), m: runs where every prism is slower than
-    ``STANDING_SPEED_M_S`` (no gap over 1.5 median intervals), within each the poses whose
+    ``STANDING_SPEED_M_S`` (no gap over 1.5 median intervals), but for those whose median
+    ``velocity_z2`` (T, n') (each prism's velocity against its predicted covariance,
+    :func:`rtsgt.interpolation.prisms.gp_velocity_z2`; None: not tested) is above
+    ``MOVING_Z2`` for a prism (a robot creeping through a whole run), within each the poses whose
     speed is at most ``NOISE_FLOOR_FACTOR`` times the run's median speed (its noise floor; at
     least ``STANDING_SPEED_M_S / 1000``), shortened by ``EDGE_MARGIN_S`` at both ends, kept
     if at least ``MIN_STATIC_S`` long (docs/self-checks.md#stretches)."""
@@ -81,6 +89,14 @@ def static_stretches(t: ArrayLike, prisms_xyz: ArrayLike) -> np.ndarray:
     dt = np.diff(t)
     joined = dt <= 1.5 * float(np.median(dt))
     first, last = _runs(speed < STANDING_SPEED_M_S, joined)  # NaN (a pose alone): not still
+    if velocity_z2 is not None and first.size:
+        z2 = np.asarray(velocity_z2, dtype=float).reshape(t.size, -1)
+        with warnings.catch_warnings():  # a run without a finite z^2 is not tested
+            warnings.simplefilter("ignore", RuntimeWarning)
+            level = np.array([np.nanmax(np.nanmedian(z2[a:b + 1], axis=0), initial=0.0)
+                              for a, b in zip(first, last, strict=True)])  # a few runs
+        still = ~(level > MOVING_Z2)
+        first, last = first[still], last[still]
     if not first.size:
         return np.zeros((0, 2))
     # each candidate's own noise floor: its poses' median speed (a few runs, not samples)

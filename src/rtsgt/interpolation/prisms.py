@@ -302,6 +302,31 @@ def gp_velocities(gps: dict[str, GPTrack], t: np.ndarray) -> np.ndarray:
                      for g in gps.values()], axis=1)
 
 
+def gp_velocity_z2(gps: dict[str, GPTrack], t: np.ndarray) -> np.ndarray:
+    """Each prism's posterior velocity at the times ``t`` (T,) against its own covariance,
+    ``v^T Cov(v)^-1 v`` (T, n) (prisms in the order of ``gps``): chi-square at three degrees
+    of freedom where the prism stands and its GP is honest (docs/self-checks.md#stretches);
+    NaN where the covariance is not positive definite."""
+    out = np.full((np.size(t), len(gps)), np.nan)
+    for i, g in enumerate(gps.values()):  # a handful of prisms
+        q = g.query(t, with_velocity=True, allow_gaps=True)
+        L, ok = _cholesky_rows(q.velocity_cov)
+        z = np.linalg.solve(L[ok], q.velocity[ok][:, :, None])[:, :, 0]
+        out[ok, i] = np.einsum("ki,ki->k", z, z)
+    return out
+
+
+def _cholesky_rows(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lower Cholesky factors (T, 3, 3) of ``cov`` (T, 3, 3) and which rows have one (the
+    others' factors are the identity)."""
+    d = np.einsum("kii->ki", cov)
+    ok = np.all(np.isfinite(cov), axis=(1, 2)) & np.all(d > 0, axis=1)
+    ok[ok] = np.linalg.eigvalsh(cov[ok])[:, 0] > 1e-12 * d[ok].max(axis=1)
+    L = np.broadcast_to(np.eye(3), cov.shape).copy()
+    L[ok] = np.linalg.cholesky(cov[ok])
+    return L, ok
+
+
 def query_prisms(
     tracks: dict[str, PrismTrack], gps: dict[str, GPTrack], t: np.ndarray, options: InterpolationOptions,
     coupling: StationCoupling | None = None,

@@ -18,6 +18,8 @@ from rtsgt.checks import (
     static_noise_check,
     static_stretches,
 )
+from rtsgt.interpolation.gp import GPTrack
+from rtsgt.interpolation.prisms import gp_velocity_z2
 from rtsgt.noise.correlated import correlated_noise_plan
 from rtsgt.options import RunOptions
 from rtsgt.pose import ReferencePoints
@@ -31,14 +33,16 @@ __all__ = ["JOINT_INTER_PRISM", "run_checks", "static_noise"]
 
 
 def static_noise(options: RunOptions, front: Front, fitted: dict[str, PrismTrack],
-                 t: np.ndarray, xyz: np.ndarray, say: Progress,
+                 t: np.ndarray, xyz: np.ndarray, gps: dict[str, GPTrack], say: Progress,
                  clock: Stopwatch) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The noise on the static stretches of the prisms ``xyz`` (T, n, 3) at ``t`` (T,), the
+    """The noise on the static stretches of the prisms ``xyz`` (T, n, 3) at ``t`` (T,) (their
+    ``gps`` test whether a slow run stands: :func:`rtsgt.checks.static_stretches`), the
     measurements ``fitted`` taken as independent (:func:`rtsgt.checks.static_noise_check`),
     and the plan to inflate the white covariance of module 2's tracks where it finds the noise
     correlated (:func:`rtsgt.noise.correlated.correlated_noise_plan`): ``(static, plan)``."""
     say("self-check: static stretches")
-    static = static_noise_check(fitted, front.origins, static_stretches(t, xyz))
+    stretches = static_stretches(t, xyz, gp_velocity_z2(gps, t))
+    static = static_noise_check(fitted, front.origins, stretches)
     correlated = correlated_noise_plan(
         static, front.tracks, apply=options.interpolation.correlated_noise == "inflate")
     clock.lap("static_noise")
