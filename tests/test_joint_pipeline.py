@@ -290,6 +290,10 @@ def test_the_report_shows_the_joint_estimates_with_their_sigmas(runs):
         for ch, w in per.items():
             row = next(r for r in rows if f"<td class='s'>{sid}</td><td class='s'>{ch}</td>" in r)
             assert f"at {w['median_range_m']:.3g} m" in row and f"σ {w['sigma_at_median']:.3g}" in row, row
+            # a factor pooled over the stations says so, one the data left says it is the prior
+            assert ("pooled over the stations" in row) == w["pooled"], row
+            assert ("(the prior, kept)" in row) == (not w["determined"][0]), row
+            assert not w["pooled"] or w["determined"][0], w
     for sid, per in j["gauss_markov"].items():
         for ch, v in per.items():
             row = next(r for r in rows if f"<td class='s'>{sid}</td><td class='s'>{ch}</td>" in r)

@@ -699,8 +699,8 @@ def noise_step(prob: JointProblem, s: JointState, sol, iteration: int = 1):
     theta = np.tile(PRIOR, (S, 3, 1)) if old is None else old.theta
     cov = measurement_cov(m.corr, Q, m.station, theta)
     q, r, F = component_sums(e, m.info, HSH, Q, cov * (1.0 - np.eye(3)), m.station, S)
-    new, sigma, det, share, cov_th = update_components(theta, q, r, F,
-                                               None if old is None else old.determined)
+    new, sigma, det, share, cov_th, pooled = update_components(
+        theta, q, r, F, *((None, None) if old is None else (old.determined, old.pooled)))
     med = np.stack([np.median(Q[m.station == i], axis=0) if np.any(m.station == i)
                     else np.ones((3, 2)) for i in range(S)])  # a handful of stations
     v_old = np.einsum("sck,sck->sc", theta, med)
@@ -708,7 +708,8 @@ def noise_step(prob: JointProblem, s: JointState, sol, iteration: int = 1):
     changed = 0.5 * np.abs(np.log(np.maximum(v_new, 1e-300) / np.maximum(v_old, 1e-300)))
     change = float(np.max(changed[det.any(axis=2)], initial=0.0))
     info = np.linalg.inv(measurement_cov(m.corr, Q, m.station, new))
-    fit = NoiseFit(new, sigma, det, share, iteration, cov=cov_th, median_basis=med)
+    fit = NoiseFit(new, sigma, det, share, iteration, cov=cov_th, median_basis=med,
+                   pooled=pooled)
     return replace(prob, meas=replace(m, info=info), noise=fit), change
 
 

@@ -37,7 +37,8 @@ class NoiseFit:
     ``stations`` (S,) their ids (where known); ``cov`` (S, 6, 6) the covariance of each
     station's six (channel-major: ``theta[s].ravel()``), zero where not determined;
     ``median_basis`` (S, 3, 2) :func:`noise_basis` at each station's median (the channel's
-    variance there is ``theta @ median_basis``)."""
+    variance there is ``theta @ median_basis``); ``pooled`` (S, 3) the factors that are one
+    factor of their channel's pooled stations (docs/joint.md#pooled-factors; None: none)."""
 
     theta: np.ndarray
     sigma: np.ndarray
@@ -47,6 +48,7 @@ class NoiseFit:
     stations: tuple[str, ...] = ()
     cov: np.ndarray | None = None
     median_basis: np.ndarray | None = None
+    pooled: np.ndarray | None = None
 
     @property
     def median_range_m(self) -> np.ndarray:
@@ -143,42 +145,64 @@ def range_scores(q: np.ndarray, r: np.ndarray, F: np.ndarray, th: np.ndarray,
 
 
 def update_components(theta: np.ndarray, q: np.ndarray, r: np.ndarray, F: np.ndarray,
-                      determined: np.ndarray | None = None):
+                      determined: np.ndarray | None = None,
+                      pooled: np.ndarray | None = None):
     """One REML step from ``theta`` (S, 3, 2) and the sums of :func:`component_sums`:
     ``F_dd theta_d = q_d - F_du theta_u`` over each station's determined components ``d``
-    (the others ``u`` at their prior), floored. Its fixed point is the REML equations
-    ``e^T W Q_i W e = tr(W_P Q_i)``; for a single component it is Förstner's ``theta q / r``.
-    A factor is determined when its redundancy share ``theta_i r_i`` reaches
-    :data:`MIN_REDUNDANCY` (decided when ``determined`` is None), a range part once its score
-    test at 0 (:func:`range_scores`) passes :data:`SCORE_Z`, from the second update on (at the
-    prior's weights the statistic's spread follows the factors' error,
-    docs/joint.md#noise-identification). Returns ``theta``, their sigmas
-    (S, 3, 2) from ``2 F_dd^-1``, the determined components, the redundancy shares (S, 3, 2)
-    and the covariance (S, 6, 6)."""
+    (the others ``u`` at their prior or at the channel's pooled factor), floored. Its fixed
+    point is the REML equations ``e^T W Q_i W e = tr(W_P Q_i)``; for a single component it
+    is Förstner's ``theta q / r``. A station's factor is determined once its redundancy share
+    ``theta_i r_i`` reaches :data:`MIN_REDUNDANCY` (at any update; it stays determined); the
+    factors of a channel that the stations do not determine alone are one factor of those
+    stations, ``pooled`` (S, 3), once their shares together reach it (the datasheet is
+    common: docs/joint.md#pooled-factors; a pooled station leaves once its share alone
+    reaches it, the others stay pooled), solved after the stations' own components with theirs
+    held (block Gauss-Seidel: the loop's next update corrects). A range part is determined
+    once its score test at 0 (:func:`range_scores`) passes :data:`SCORE_Z`, from the second
+    update on (at the prior's weights the statistic's spread follows the factors' error,
+    docs/joint.md#noise-identification). ``determined``, ``pooled``: the last update's
+    (None: the first). Returns ``theta``, their sigmas (S, 3, 2) from ``2 F_dd^-1``, the
+    determined components (a pooled factor among them), the redundancy shares (S, 3, 2), the
+    covariance (S, 6, 6) and the pooled factors (S, 3)."""
     S = theta.shape[0]
     th = theta.reshape(S, 6)
     share = th * r
+    share3 = share.reshape(S, 3, 2)
     if determined is None:  # the weights are the prior's: no range part is tested yet
         determined = np.zeros((S, 3, 2), bool)
-        determined[:, :, 0] = share.reshape(S, 3, 2)[:, :, 0] >= MIN_REDUNDANCY
+        pooled = np.zeros((S, 3), bool)
     else:
         determined = determined | (range_scores(q, r, F, th, determined) >= SCORE_Z)
+    was = np.zeros((S, 3), bool) if pooled is None else pooled
+    alone = share3[:, :, 0] >= MIN_REDUNDANCY
+    determined[:, :, 0] |= alone  # (a pooled station whose share now suffices leaves)
+    rest = ~determined[:, :, 0] | (was & ~alone)  # the stations a pooled factor is of
+    together = np.where(rest, share3[:, :, 0], 0.0).sum(axis=0) >= MIN_REDUNDANCY
+    pooled = rest & (together | was.any(axis=0))[None, :]
+    determined[:, :, 0] |= pooled
     det = determined.reshape(S, 6)
+    own = det & ~(np.repeat(pooled, 2, axis=1) & np.tile([True, False], 3))
     prior = np.tile(PRIOR, 3)
     new = np.where(det, th, prior[None, :])
     cov = np.zeros((S, 6, 6))
     floor = np.tile([FACTOR_FLOOR, 0.0], 3)
     for s in range(S):
-        d, u = det[s], ~det[s]
+        d, u = own[s], ~own[s]
         if not d.any():
             continue
         Fdd = F[s][np.ix_(d, d)]
         new[s, d] = np.maximum(np.linalg.solve(Fdd, q[s, d] - F[s][np.ix_(d, u)] @ new[s, u]),
                                floor[d])
         cov[s][np.ix_(d, d)] = 2.0 * np.linalg.inv(Fdd)
+    for c in np.flatnonzero(pooled.any(axis=0)):  # a channel's pooled factor, the rest held
+        i, of = 2 * c, pooled[:, c]
+        others = np.arange(6) != i
+        f = F[of, i, i].sum()
+        g = (q[of, i] - np.einsum("sj,sj->s", F[of, i][:, others], new[of][:, others])).sum()
+        new[of, i] = max(g / f, FACTOR_FLOOR)
+        cov[of, i, i] = 2.0 / f
     sigma = np.sqrt(np.clip(np.einsum("sii->si", cov), 0.0, None))
-    return (new.reshape(S, 3, 2), sigma.reshape(S, 3, 2), determined, share.reshape(S, 3, 2),
-            cov)
+    return (new.reshape(S, 3, 2), sigma.reshape(S, 3, 2), determined, share3, cov, pooled)
 
 
 __all__ = ["CHANNELS", "FACTOR_FLOOR", "MIN_REDUNDANCY", "NoiseFit", "PRIOR", "RANGE_UNIT_M",

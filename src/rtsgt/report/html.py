@@ -654,7 +654,7 @@ def _rows_table(table_id: str, headers: Sequence[str], rows: Sequence[str]) -> s
 
 def _joint_noise_row(sid, ch: str, w: Mapping | None, g: Mapping | None) -> str:
     """One station's and channel's noise row: the white factor (and range part) where
-    determined, else the prior's, the white sigma at the station's median range, and the
+    determined (alone, or pooled over the stations), else the prior's, the white sigma at the station's median range, and the
     Gauss-Markov chain's sigma and tau where determined."""
     det = (w or {}).get("determined") or [False, False]
     at = (w or {}).get("sigma_at_median")
@@ -662,7 +662,8 @@ def _joint_noise_row(sid, ch: str, w: Mapping | None, g: Mapping | None) -> str:
         f"; σ {_pm(at, w.get('sigma_at_median_sigma')) if any(det) else _fmt(at, 3)} "
         f"{'mm' if ch == 'd' else 'mgon'} at {_fmt(w.get('median_range_m'), 3)} m")
     white = ("–" if not w else
-             (_pm(w.get("factor"), w.get("factor_sigma")) if det[0]
+             (_pm(w.get("factor"), w.get("factor_sigma"))
+              + (" (pooled over the stations)" if w.get("pooled") else "") if det[0]
               else f"{_fmt(w.get('factor'), 3)} (the prior, kept)")
              + (f"; range part {_fmt(w.get('range_part'), 3)} "
                 f"{'ppm' if ch == 'd' else 'mgon at 100 m'}" if det[1] else "")

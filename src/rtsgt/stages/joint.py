@@ -300,7 +300,7 @@ def _prisms_summary(pf: PrismFit) -> dict[str, Any]:
 def _noise_summary(nf: NoiseFit) -> dict[str, Any]:
     """Each station's white-noise components per channel: the datasheet's factor and the
     range part (angles: mgon at 100 m; distance: ppm) with their sigmas, whether the data
-    determined them (else the prior, kept), and the white sigma they give at the station's
+    determined them (else the prior, kept) and the factor pooled over the stations, and the white sigma they give at the station's
     median range (angles mgon, distance mm) with its sigma (first order)."""
     out = {}
     v, sd = (None, None) if nf.median_basis is None else nf.median_variance()
@@ -310,7 +310,8 @@ def _noise_summary(nf: NoiseFit) -> dict[str, Any]:
             per[c] = {"factor": float(nf.theta[i, j, 0]),
                       "factor_sigma": float(nf.sigma[i, j, 0]),
                       "range_part": float(nf.range_sigma[i, j] / (1.0 if c == "d" else MGON)),
-                      "determined": [bool(x) for x in nf.determined[i, j]]}
+                      "determined": [bool(x) for x in nf.determined[i, j]],
+                      "pooled": bool(nf.pooled is not None and nf.pooled[i, j])}
             if v is None:
                 continue
             unit = 1e-3 if c == "d" else MGON  # sigma = sqrt(v), its sd sd(v) / (2 sigma)
