@@ -6,6 +6,7 @@ the data do not determine keeps its prior."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from rtsgt.joint.noise import (
     FACTOR_FLOOR,
@@ -133,3 +134,50 @@ def test_a_range_part_is_tested_once_the_factors_are_estimated():
     assert np.mean(np.array(z[1]) > SCORE_Z) < 0.02, sd
     _, _, det, _, _ = _fit(truth, n=1000, iters=2)
     assert det[0, 0, 1] and not det[0, 1, 1], det
+
+
+def _sums(shares, theta, target):
+    """REML sums of two stations whose factors' redundancy shares are ``shares`` (S, 3) at
+    ``theta`` (S, 3, 2) and whose data say ``target`` (S, 3): one component's ``F theta = q``
+    at the target, no range part (its score 0)."""
+    S = shares.shape[0]
+    r = np.zeros((S, 6))
+    r[:, 0::2] = shares / theta[:, :, 0]
+    f = np.ones((S, 6))
+    f[:, 0::2] = r[:, 0::2] / target  # (a variance's information, about r / (2 theta^2))
+    q = np.zeros((S, 6))
+    q[:, 0::2] = f[:, 0::2] * target
+    return q, r, f[:, :, None] * np.eye(6)
+
+
+def test_a_factor_enters_when_its_share_does_and_a_pooled_station_leaves_when_alone():
+    """The decisions of :func:`update_components` over three updates of two stations: Hz
+    shares 6 and 6 (pooled, 12 together), then 12 and 6 (station 0 leaves the pool, station
+    1 stays in it alone), then 12 and 3 (still pooled: a factor determined stays so); V
+    shares 4 and 4 (8 together: the prior), then 11 and 4 (station 0 enters alone, station 1
+    keeps the prior); d determined alone throughout."""
+    target = np.array([[2.0, 3.0, 0.5], [4.0, 3.0, 0.7]])
+    steps = [np.array([[6.0, 4.0, 50.0], [6.0, 4.0, 50.0]]),
+             np.array([[12.0, 11.0, 50.0], [6.0, 4.0, 50.0]]),
+             np.array([[12.0, 11.0, 50.0], [3.0, 4.0, 50.0]])]
+    theta = np.tile(PRIOR, (2, 3, 1))
+    det = pooled = None
+    out = []
+    for shares in steps:
+        q, r, F = _sums(shares, theta, target)
+        theta, sigma, det, _, _, pooled = update_components(theta, q, r, F, det, pooled)
+        out.append((theta.copy(), det.copy(), pooled.copy()))
+    (th1, det1, pool1), (th2, det2, pool2), (th3, det3, pool3) = out
+    assert pool1[:, 0].all() and not pool1[:, 1:].any(), pool1
+    # one factor: the REML equation summed over the two, sum q / sum F (2 2/3, not 3)
+    q, _, F = _sums(steps[0], np.tile(PRIOR, (2, 3, 1)), target)
+    assert th1[0, 0, 0] == th1[1, 0, 0] == pytest.approx(q[:, 0].sum() / F[:, 0, 0].sum())
+    assert not det1[:, 1, 0].any() and np.all(th1[:, 1, 0] == 1.0)  # V: the prior
+    assert det1[:, 2, 0].all() and np.allclose(th1[:, 2, 0], target[:, 2])
+    assert not pool2[0, 0] and pool2[1, 0] and det2[:, 0, 0].all(), pool2
+    assert th2[0, 0, 0] == pytest.approx(2.0) and th2[1, 0, 0] == pytest.approx(4.0)
+    assert det2[0, 1, 0] and not det2[1, 1, 0] and th2[1, 1, 0] == 1.0, det2
+    assert th2[0, 1, 0] == pytest.approx(3.0)
+    np.testing.assert_array_equal(pool3, pool2)
+    np.testing.assert_array_equal(det3, det2)
+    assert not det3[..., 1].any()  # no range part where the data show none

@@ -654,8 +654,9 @@ def _rows_table(table_id: str, headers: Sequence[str], rows: Sequence[str]) -> s
 
 def _joint_noise_row(sid, ch: str, w: Mapping | None, g: Mapping | None) -> str:
     """One station's and channel's noise row: the white factor (and range part) where
-    determined (alone, or pooled over the stations), else the prior's, the white sigma at the station's median range, and the
-    Gauss-Markov chain's sigma and tau where determined."""
+    determined (alone, or pooled over the stations), else the prior's, the white sigma at
+    the station's median range, and the Gauss-Markov chain's sigma and tau where
+    determined."""
     det = (w or {}).get("determined") or [False, False]
     at = (w or {}).get("sigma_at_median")
     at_text = "" if at is None else (
