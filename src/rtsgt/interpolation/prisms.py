@@ -310,21 +310,13 @@ def gp_velocity_z2(gps: dict[str, GPTrack], t: np.ndarray) -> np.ndarray:
     out = np.full((np.size(t), len(gps)), np.nan)
     for i, g in enumerate(gps.values()):  # a handful of prisms
         q = g.query(t, with_velocity=True, allow_gaps=True)
-        L, ok = _cholesky_rows(q.velocity_cov)
-        z = np.linalg.solve(L[ok], q.velocity[ok][:, :, None])[:, :, 0]
-        out[ok, i] = np.einsum("ki,ki->k", z, z)
+        C, v = q.velocity_cov, q.velocity
+        d = np.einsum("kii->ki", C)
+        ok = np.all(np.isfinite(C), axis=(1, 2)) & np.all(d > 0, axis=1)
+        ok[ok] = np.linalg.eigvalsh(C[ok])[:, 0] > 1e-12 * d[ok].max(axis=1)
+        out[ok, i] = np.einsum("ki,ki->k", v[ok],
+                               np.linalg.solve(C[ok], v[ok][:, :, None])[:, :, 0])
     return out
-
-
-def _cholesky_rows(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Lower Cholesky factors (T, 3, 3) of ``cov`` (T, 3, 3) and which rows have one (the
-    others' factors are the identity)."""
-    d = np.einsum("kii->ki", cov)
-    ok = np.all(np.isfinite(cov), axis=(1, 2)) & np.all(d > 0, axis=1)
-    ok[ok] = np.linalg.eigvalsh(cov[ok])[:, 0] > 1e-12 * d[ok].max(axis=1)
-    L = np.broadcast_to(np.eye(3), cov.shape).copy()
-    L[ok] = np.linalg.cholesky(cov[ok])
-    return L, ok
 
 
 def query_prisms(

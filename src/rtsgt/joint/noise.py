@@ -170,7 +170,6 @@ def update_components(theta: np.ndarray, q: np.ndarray, r: np.ndarray, F: np.nda
     share3 = share.reshape(S, 3, 2)
     if determined is None:  # the weights are the prior's: no range part is tested yet
         determined = np.zeros((S, 3, 2), bool)
-        pooled = np.zeros((S, 3), bool)
     else:
         determined = determined | (range_scores(q, r, F, th, determined) >= SCORE_Z)
     was = np.zeros((S, 3), bool) if pooled is None else pooled
