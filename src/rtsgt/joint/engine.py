@@ -50,10 +50,10 @@ from rtsgt.joint.se3 import adjoint, curly, exp_se3, log_se3, so3_left_jacobian
 from rtsgt.joint.settling import KIND_COLUMNS, SettleModel
 from rtsgt.joint.sparse import (
     ArrowSystem,
-    add_shared_columns,
     add_transitions,
     chunks,
     knot_rows,
+    mix_solutions,
     solve_arrow,
 )
 
@@ -794,10 +794,10 @@ def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,
     ``prob``'s final noise and ``Qc`` from ``s`` (to convergence, as the trials); of them
     all the lowest cost plus freed directions is the estimate (the trials' noise weights
     were an earlier update's: the order can turn), and those within :data:`UNDECIDED_COST`
-    of it stay, with equal weights ``w``: each its state's difference from the estimate's
-    (:func:`difference`) times ``sqrt(w)`` as a shared error of the solution
-    (:func:`rtsgt.joint.sparse.add_shared_columns`; the mixture's covariance about the
-    estimate). Returns the problem (its ``prism_alternatives``), state, solution and
+    of it stay, with equal weights ``w``: the solution is the mixture of theirs about the
+    estimate (:func:`rtsgt.joint.sparse.mix_solutions`: each one's covariances, solved at
+    its own state, and its state's difference from the estimate's, :func:`difference`).
+    Returns the problem (its ``prism_alternatives``), state, solution and
     :class:`SolveInfo` of the estimate."""
     runs = [(prob, s, sol, info)]
     for alt in alternatives:  # a handful of prisms, scored by their cost alone
@@ -806,19 +806,20 @@ def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,
     score = np.array([_hypothesis_score(r[0], r[3]) for r in runs])
     best = int(np.argmin(score))
     kept = [i for i in range(len(runs)) if i != best and score[i] - score[best] < UNDECIDED_COST]
-    prob, s, sol, info = runs[best]
-    if sol is None:  # an alternative's: its covariances at its state, the first's dropped
-        runs[0] = (runs[0][0], runs[0][1], None, runs[0][3])
-        sol = solve_arrow(assemble(prob, s)[0], want_cov=True)
+    prob, s, _, info = runs[best]
+    sols = [runs[i][2] if runs[i][2] is not None  # an alternative's: at its own state
+            else solve_arrow(assemble(runs[i][0], runs[i][1])[0], want_cov=True)
+            for i in [best] + kept]
     if not kept:
-        return replace(prob, prism_alternatives=()), s, sol, info
-    w = 1.0 / (len(kept) + 1)
+        return replace(prob, prism_alternatives=()), s, sols[0], info
+    w = np.full(len(kept) + 1, 1.0 / (len(kept) + 1))
     steps = [difference(prob, s, runs[i][1]) for i in kept]
-    dx = np.sqrt(w) * np.stack([x for x, _ in steps])
-    dg = np.sqrt(w) * np.stack([g for _, g in steps])
-    entries = tuple((runs[i][0].prism_found[-1][0], float(score[i] - score[best]), w)
+    dx = np.stack([np.zeros_like(steps[0][0])] + [x for x, _ in steps])
+    dg = np.stack([np.zeros_like(steps[0][1])] + [g for _, g in steps])
+    entries = tuple((runs[i][0].prism_found[-1][0], float(score[i] - score[best]), float(w[0]))
                     for i in kept)
-    return replace(prob, prism_alternatives=entries), s, add_shared_columns(sol, dx, dg), info
+    return (replace(prob, prism_alternatives=entries), s, mix_solutions(sols, w, dx, dg),
+            info)
 
 
 def _hypothesis_score(prob: JointProblem, info: SolveInfo) -> float:

@@ -249,8 +249,9 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     posterior = JointPosterior(knots.t, *body[:4], body[4], bridge, origin)
     R, t, cov_pose = posterior.poses(tq)
     globals_ = global_names(prob, ids, names)
-    shared = _shared(tq, knots.t, body,
-                     globals_ + tuple(f"moved_{names[j]}" for j, _, _ in prob.prism_alternatives),
+    moved = tuple(f"moved_{names[j]}" for j, _, _ in prob.prism_alternatives)
+    shared = _shared(tq, knots.t, body,  # the columns of engine.carry_alternatives' mixture
+                     globals_ + tuple(f"{m}_{g}" for m in moved for g in globals_) + moved,
                      bridge, origin)
     est = _pose_estimate(R, t, cov_pose, survey if pfit is None else pfit.xyz)
     return JointResult(tq, est, _station_results(ids, free, state, cov_g), state.kappa_ppm,

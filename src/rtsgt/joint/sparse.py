@@ -127,6 +127,29 @@ def add_shared_columns(sol: ArrowSolution, dx: np.ndarray, dg: np.ndarray) -> Ar
                          np.concatenate([sol.chol_g, dg.T], axis=1))
 
 
+def mix_solutions(sols: list[ArrowSolution], w: np.ndarray, dx: np.ndarray, dg: np.ndarray
+                  ) -> ArrowSolution:
+    """The mixture of the solutions ``sols`` (each with covariances) with weights ``w`` (n,)
+    about the first's estimate (docs/joint.md#which-prism-moved): ``dx`` (n, K, d) and ``dg``
+    (n, G) each solution's difference from the first's (the first's zero), so that
+    ``Sigma = sum_i w_i (Sigma_i + delta_i delta_i^T)``. Its split: the knots' part given the
+    globals ``sum_i w_i cov_var_i`` (so too ``cov_var_next``), and the shared columns of
+    every solution's ``factor``, ``chol_g`` and the differences, each times ``sqrt(w_i)``
+    (:func:`add_shared_columns`). The first's ``x``, ``g``; each covariance is taken in its
+    own state's tangent space, the differences' order neglected."""
+    r = np.sqrt(w)
+    pairs = list(zip(w, r, sols, strict=True))
+
+    def mean(name):
+        return sum(wi * getattr(s, name) for wi, _, s in pairs)
+
+    base = ArrowSolution(sols[0].x, sols[0].g, mean("cov"), mean("cov_next"), mean("cov_g"),
+                         mean("cov_var"), mean("cov_var_next"),
+                         np.concatenate([ri * s.factor for _, ri, s in pairs], axis=2),
+                         np.concatenate([ri * s.chol_g for _, ri, s in pairs], axis=1))
+    return add_shared_columns(base, r[1:, None, None] * dx[1:], r[1:, None] * dg[1:])
+
+
 def _spd_inv(a: np.ndarray) -> np.ndarray:
     """Inverses (..., d, d) of SPD blocks through their Cholesky factors (LAPACK's
     ``potrf``, ``potri``; raises :class:`numpy.linalg.LinAlgError` where one is not
