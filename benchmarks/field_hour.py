@@ -22,9 +22,9 @@ Against the simulation's truth:
   (:func:`moved_prism`).
 
 ``--without displacement clocks gm rocking ...`` leaves effects of the preset out, to see what each
-costs. Development seeds are 0-14; issue 23's acceptance must be measured on seeds never used
-(1000-1019 to 5000-5019, by thousands, have been: 6000 on). Prints one line per seed
-and a Markdown table (docs/simulation.md).
+costs. Development seeds are 0-44 (15-44 since 2026-11-30); issue 23's acceptance must be
+measured on seeds never used (1000-1019 to 5000-5019, by thousands, have been: 6000 on).
+Prints one line per seed and a Markdown table (docs/simulation.md).
 """
 
 from __future__ import annotations

@@ -810,6 +810,7 @@ def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,
     sols = [runs[i][2] if runs[i][2] is not None  # an alternative's: at its own state
             else solve_arrow(assemble(runs[i][0], runs[i][1])[0], want_cov=True)
             for i in [best] + kept]
+    runs = [r[:2] for r in runs]  # (the others' covariances' memory)
     if not kept:
         return replace(prob, prism_alternatives=()), s, sols[0], info
     w = np.full(len(kept) + 1, 1.0 / (len(kept) + 1))
