@@ -140,7 +140,8 @@ class JointProblem:
     each knot's state is then its trajectory's, its chains', its clocks' and its settling's
     values: :attr:`knot_dim`), and the other
     prisms whose move explains the data as well as the one found's
-    (``prism_alternatives``: index, cost above the chosen's, weight;
+    (``prism_alternatives``: index, score above the chosen's, weight; every other
+    hypothesis solved at the end, those not carried with weight 0;
     docs/joint.md#which-prism-moved), and whether the motion prior's axes are estimated
     (``motion_axes``, with the prior sigma ``axes_sigma`` rad, docs/joint.md#the-motion-axes),
     and the vehicle's rocking (``rocking``: its chains, states of every knot after the
@@ -811,16 +812,16 @@ def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,
             else solve_arrow(assemble(runs[i][0], runs[i][1])[0], want_cov=True)
             for i in [best] + kept]
     runs = [r[:2] for r in runs]  # (the others' covariances' memory)
-    if not kept:
-        return replace(prob, prism_alternatives=()), s, sols[0], info
     w = np.full(len(kept) + 1, 1.0 / (len(kept) + 1))
+    prob = replace(prob, prism_alternatives=tuple(
+        (runs[i][0].prism_found[-1][0], float(score[i] - score[best]),
+         float(w[0]) if i in kept else 0.0) for i in range(len(runs)) if i != best))
+    if not kept:
+        return prob, s, sols[0], info
     steps = [difference(prob, s, runs[i][1]) for i in kept]
     dx = np.stack([np.zeros_like(steps[0][0])] + [x for x, _ in steps])
     dg = np.stack([np.zeros_like(steps[0][1])] + [g for _, g in steps])
-    entries = tuple((runs[i][0].prism_found[-1][0], float(score[i] - score[best]), float(w[0]))
-                    for i in kept)
-    return (replace(prob, prism_alternatives=entries), s, mix_solutions(sols, w, dx, dg),
-            info)
+    return prob, s, mix_solutions(sols, w, dx, dg), info
 
 
 def _hypothesis_score(prob: JointProblem, info: SolveInfo) -> float:

@@ -180,8 +180,8 @@ class PrismFit:
     prism did not move); ``weight`` (P,) the weight of the hypothesis that the prism moved
     (1 for one found alone, equal for the found and the others whose move explains the data
     as well, carried in the covariance: docs/joint.md#which-prism-moved; 0 otherwise) and
-    ``cost_above`` (P,) the cost of such another prism's hypothesis above the found one's
-    (NaN for the others)."""
+    ``cost_above`` (P,) the score of another prism's hypothesis above the found one's, for
+    every hypothesis solved beside it, carried or not (NaN for the others)."""
 
     names: tuple[str, ...]
     xyz: np.ndarray
