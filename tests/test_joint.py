@@ -439,7 +439,7 @@ def test_a_mixture_of_solutions_is_the_weighted_covariances_plus_the_spread():
     w = np.array([0.3, 0.7])
     dx = np.stack([np.zeros((K, 12)), 1e-3 * rng.normal(size=(K, 12))])
     dg = np.stack([np.zeros(13), 1e-3 * rng.normal(size=13)])
-    mix = sparse.mix_solutions(sols, w, dx, dg)
+    mix = sparse.mix_solutions(sols, w, dx[1:], dg[1:])
     n = 12 * K
     dense = sum(wi * (np.linalg.inv(sy.dense()[0]) + np.outer(d, d))
                 for wi, sy, d in zip(w, systems, np.concatenate([dx.reshape(2, -1), dg], 1),

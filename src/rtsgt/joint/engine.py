@@ -819,8 +819,8 @@ def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,
     if not kept:
         return prob, s, sols[0], info
     steps = [difference(prob, s, runs[i][1]) for i in kept]
-    dx = np.stack([np.zeros_like(steps[0][0])] + [x for x, _ in steps])
-    dg = np.stack([np.zeros_like(steps[0][1])] + [g for _, g in steps])
+    dx = np.stack([x for x, _ in steps])
+    dg = np.stack([g for _, g in steps])
     return prob, s, mix_solutions(sols, w, dx, dg), info
 
 

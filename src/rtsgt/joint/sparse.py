@@ -130,13 +130,14 @@ def add_shared_columns(sol: ArrowSolution, dx: np.ndarray, dg: np.ndarray) -> Ar
 def mix_solutions(sols: list[ArrowSolution], w: np.ndarray, dx: np.ndarray, dg: np.ndarray
                   ) -> ArrowSolution:
     """The mixture of the solutions ``sols`` (each with covariances) with weights ``w`` (n,)
-    about the first's estimate (docs/joint.md#which-prism-moved): ``dx`` (n, K, d) and ``dg``
-    (n, G) each solution's difference from the first's (the first's zero), so that
-    ``Sigma = sum_i w_i (Sigma_i + delta_i delta_i^T)``. Its split: the knots' part given the
-    globals ``sum_i w_i cov_var_i`` (so too ``cov_var_next``), and the shared columns of
-    every solution's ``factor``, ``chol_g`` and the differences, each times ``sqrt(w_i)``
-    (:func:`add_shared_columns`). The first's ``x``, ``g``; each covariance is taken in its
-    own state's tangent space, the differences' order neglected."""
+    about the first's estimate (docs/joint.md#which-prism-moved): ``dx`` (n-1, K, d) and
+    ``dg`` (n-1, G) each other solution's difference from the first's, so that
+    ``Sigma = sum_i w_i (Sigma_i + delta_i delta_i^T)`` (``delta_1 = 0``). Its split: the
+    knots' part given the globals ``sum_i w_i cov_var_i`` (so too ``cov_var_next``), and
+    the shared columns of every solution's ``factor``, ``chol_g`` and the differences, each
+    times ``sqrt(w_i)`` (:func:`add_shared_columns`). The first's ``x``, ``g``; each
+    covariance is taken in its own state's tangent space, the differences' order
+    neglected."""
     r = np.sqrt(w)
     pairs = list(zip(w, r, sols, strict=True))
 
@@ -147,7 +148,7 @@ def mix_solutions(sols: list[ArrowSolution], w: np.ndarray, dx: np.ndarray, dg: 
                          mean("cov_var"), mean("cov_var_next"),
                          np.concatenate([ri * s.factor for _, ri, s in pairs], axis=2),
                          np.concatenate([ri * s.chol_g for _, ri, s in pairs], axis=1))
-    return add_shared_columns(base, r[1:, None, None] * dx[1:], r[1:, None] * dg[1:])
+    return add_shared_columns(base, r[1:, None, None] * dx, r[1:, None] * dg)
 
 
 def _spd_inv(a: np.ndarray) -> np.ndarray:
