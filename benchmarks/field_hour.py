@@ -194,7 +194,8 @@ def within(z: list[float] | None) -> float | None:
 
 
 def config(args):
-    """The preset's configuration, less the effects ``--without`` names."""
+    """The preset's configuration, less the effects ``--without`` names, with the rocking's
+    speed exponent of ``--rocking-exponent``."""
     cfg = preset_config("field-hour", duration_s=args.duration)
     fx, rx = cfg.field, cfg.reality
     for name in args.without:
@@ -210,6 +211,8 @@ def config(args):
                                      clock_walk_s_per_sqrt_h=0.0)
         else:
             rx = dataclasses.replace(rx, **{name: False})
+    if args.rocking_exponent is not None:
+        fx = dataclasses.replace(fx, rocking_speed_exponent=args.rocking_exponent)
     return dataclasses.replace(cfg, field=fx, reality=rx)
 
 
@@ -261,6 +264,9 @@ def main() -> None:
                     choices=["displacement", "clocks", "gm", "rocking", "prism_cyclic",
                              "tripod_settling"],
                     help="effects of the preset to leave out (to see what each costs)")
+    ap.add_argument("--rocking-exponent", type=float, default=None,
+                    help="the rocking's size while driving as (v / top speed) ** this "
+                         "(default: the preset's, 1; 0: one size, as on the real deployments)")
     ap.add_argument("--out", default=None,
                     help="folder: each seed's result as <seed>.json when it is done")
     args = ap.parse_args()

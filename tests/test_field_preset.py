@@ -145,7 +145,8 @@ def test_the_vehicle_rocks_as_it_drives(field_sim):
     the rocking removed is the path's, 1e-12); the rocking's size follows the speed: none
     where the robot stands, and scaled to full speed each axis's RMS over the moving times
     is the drawn one (sinusoids of 0.5-3 Hz over minutes: within 15 %), drawn inside the
-    preset's ranges and written to truth.json."""
+    preset's ranges and written to truth.json; with the speed exponent 0, of one size
+    wherever the robot moves."""
     sim, toml = field_sim
     m, ft = sim.truth.model, sim.truth.field
     fx = ft.effects
@@ -178,6 +179,11 @@ def test_the_vehicle_rocks_as_it_drives(field_sim):
     np.testing.assert_allclose(np.sqrt(np.mean(unit**2, axis=0)) / rms, 1.0, atol=0.15)
     doc = json.loads((toml.parent / "truth.json").read_text())["field"]
     np.testing.assert_allclose(list(doc["rocking_rms_at_top_speed"].values()), rms, rtol=1e-12)
+    assert doc["effects"]["rocking_speed_exponent"] == fx.rocking_speed_exponent == 1.0
+    # of one size while driving (exponent 0): the full speed's wherever it moves, none standing
+    x0 = dataclasses.replace(m, rocking_speed_exponent=0.0).rocking_at(t)
+    np.testing.assert_allclose(x0[moving], unit, rtol=1e-9, atol=1e-15)
+    assert np.all(x0[v == 0.0] == 0.0) and np.all(np.any(x0[v > 0.0] != 0.0, axis=1))
 
 
 def test_far_station_and_truth_json(field_sim):

@@ -383,6 +383,7 @@ class TruthModel:
     # rows (axis, amplitude, frequency Hz, phase), scaled by the speed over rocking_speed_m_s
     rocking: np.ndarray | None = None
     rocking_speed_m_s: float = 1.0
+    rocking_speed_exponent: float = 1.0
 
     # -- robot motion ------------------------------------------------------------------------
     def speed_at(self, t) -> np.ndarray:
@@ -426,13 +427,17 @@ class TruthModel:
     def rocking_at(self, t) -> np.ndarray:
         """The vehicle's rocking (..., 6) at times ``t``: rotations about the robot's x, y, z
         (rad) and shifts along them (m), each its sinusoids' sum times the speed over
-        ``rocking_speed_m_s`` (none where the robot stands)."""
+        ``rocking_speed_m_s`` to the power ``rocking_speed_exponent`` (none where the robot
+        stands)."""
         tau = np.asarray(t, dtype=float) - self.t0
         out = np.zeros(tau.shape + (6,))
         for k in range(6):  # six axes, each a few dozen sinusoids
             a, f, ph = self.rocking[self.rocking[:, 0] == k, 1:].T
             out[..., k] = np.sin(np.multiply.outer(tau, 2.0 * np.pi * f) + ph) @ a
-        return out * (self.speed_at(t) / self.rocking_speed_m_s)[..., None]
+        v = np.asarray(self.speed_at(t), dtype=float)
+        scale = np.where(v > 0.0, (np.maximum(v, 1e-300) / self.rocking_speed_m_s)
+                         ** self.rocking_speed_exponent, 0.0)
+        return out * scale[..., None]
 
     def _rocked(self, t, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``T_world_robot T_rock``: the path's pose (``R``, ``p``) turned and shifted by the
@@ -1246,6 +1251,7 @@ def simulate_deployment(
         prisms_robot=true_robot.prisms_robot, R_robot_body=R_robot_body,
         t_robot_body=-R_robot_body @ robot.t_body_robot, weather_params=_weather_params(cfg, rng),
         rocking=rocking, rocking_speed_m_s=float(np.max(speed.level, initial=0.0)) or 1.0,
+        rocking_speed_exponent=1.0 if cfg.field is None else cfg.field.rocking_speed_exponent,
     )
     offsets = _clock_offsets(cfg, rng)
     observations, observations_truth = _track(cfg, rng, model, stations, offsets)

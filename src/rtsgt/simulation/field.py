@@ -48,7 +48,10 @@ RANGE_UNIT_M = 100.0
 @dataclass(frozen=True)
 class FieldEffects:
     """Ranges ``(low, high)`` the field effects' sizes are drawn from (uniform; correlation times
-    log-uniform); units in the names (docs/simulation.md#the-field-hour-preset).
+    log-uniform); units in the names (docs/simulation.md#the-field-hour-preset). The
+    rocking's size while driving goes as ``(v / top speed) ** rocking_speed_exponent`` (1:
+    proportional to the speed, the preset's; 0: one size, what both real deployments show,
+    docs/simulation.md#the-vehicles-rocking); none where the robot stands.
     """
 
     angle_white_rad: tuple[float, float] = (0.10 * MGON, 0.25 * MGON)
@@ -65,6 +68,7 @@ class FieldEffects:
     rocking_shift_m: tuple[float, float] = (1.0e-3, 5.0e-3)
     rocking_heave_m: tuple[float, float] = (0.35e-3, 1.4e-3)
     rocking_hz: tuple[float, float] = (0.5, 3.0)
+    rocking_speed_exponent: float = 1.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
