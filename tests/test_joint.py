@@ -781,7 +781,7 @@ def test_a_move_two_prisms_explain_alike_is_carried_as_both_hypotheses():
                                                False, 20, 1e-12)
         chosen = out.prism_found[-1][0]
         assert info.converged and chosen in (0, 1), out.prism_found
-        (other, above, w), = [a for a in out.prism_alternatives if a[2] > 0]
+        (other, above, w), = out.carried_alternatives
         assert other == 1 - chosen and 0 <= above < UNDECIDED_COST and w == 0.5, above
         err = log_se3(*_compose(np.swapaxes(truth.R, 1, 2),
                                 -np.einsum("kji,kj->ki", truth.R, truth.t), est.R, est.t))
@@ -829,8 +829,7 @@ def test_the_hypotheses_carried_do_not_depend_on_which_was_found_first():
     # with the third prism's hypothesis as well: solved again, far above, not carried
     s, sol, info = gauss_newton(first, s0, HYPOTHESIS_MAX_ITER, 1e-12)
     pc, sc, _, _ = carry_alternatives(first, s, sol, info, alts, 1e-12)
-    carried = [a for a in pc.prism_alternatives if a[2] > 0]
-    assert [a[0] for a in carried] == [a[0] for a in pa.prism_alternatives]
+    assert [a[0] for a in pc.carried_alternatives] == [a[0] for a in pa.prism_alternatives]
     (_, above, w), = [a for a in pc.prism_alternatives if a[2] == 0]  # listed: by how much
     assert above >= UNDECIDED_COST, above
     np.testing.assert_allclose(sc.t, sa.t, atol=1e-6)

@@ -188,6 +188,12 @@ class JointProblem:
         (:func:`rtsgt.joint.qc.class_members`; docs/joint.md#gaps)."""
         return np.diff(self.t_knot) > self.max_gap_s
 
+    @property
+    def carried_alternatives(self) -> tuple[tuple[int, float, float], ...]:
+        """The entries of ``prism_alternatives`` carried in the covariance (weight above 0;
+        the others are listed with their score only, docs/joint.md#which-prism-moved)."""
+        return tuple(a for a in self.prism_alternatives if a[2] > 0)
+
     def with_qc(self, qc: np.ndarray, trusted: np.ndarray | None = None,
                 moving: np.ndarray | None = None) -> JointProblem:
         """The problem with ``Qc`` ``qc`` (K-1, 6) per interval, the gaps' the loosest of the

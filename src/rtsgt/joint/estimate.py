@@ -249,7 +249,7 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     posterior = JointPosterior(knots.t, *body[:4], body[4], bridge, origin)
     R, t, cov_pose = posterior.poses(tq)
     globals_ = global_names(prob, ids, names)
-    moved = tuple(f"moved_{names[j]}" for j, _, w in prob.prism_alternatives if w > 0)
+    moved = tuple(f"moved_{names[j]}" for j, _, _ in prob.carried_alternatives)
     shared = _shared(tq, knots.t, body,  # the columns of engine.carry_alternatives' mixture
                      globals_ + tuple(f"{m}_{g}" for m in moved for g in globals_) + moved,
                      bridge, origin)
@@ -361,9 +361,8 @@ def _prism_fit(names, prob: JointProblem, state: JointState, cov_g, origin) -> P
     above = np.full(len(names), np.nan)
     for j, cost, w in prob.prism_alternatives:
         weight[j], above[j] = w, cost
-    carried = [w for _, _, w in prob.prism_alternatives if w > 0]
-    if carried:  # the found one shares the weights
-        weight[prob.prism_found[-1][0]] = carried[0]
+    if prob.carried_alternatives:  # the found one shares the weights
+        weight[prob.prism_found[-1][0]] = prob.carried_alternatives[0][2]
     return PrismFit(names, state.p_body + origin, 0.5 * (cov + cov.T), prob.p_body + origin,
                     moved, np.sqrt(stat), dof, weight, above)
 
