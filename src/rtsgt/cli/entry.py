@@ -8,21 +8,16 @@ nothing more on stderr (docs/cli.md#errors-warnings-and-exit-statuses).
 from __future__ import annotations
 
 import atexit
-import ctypes
 import os
 import signal
 import sys
 
+from rtsgt.allocator import limit_arenas
 from rtsgt.choices import EXIT_INTERRUPTED, INTERRUPTED_LINE, WRITE_PROCESSES_ENV
 
 #: The BLAS thread counts the command line runs with unless the environment sets them: one
 #: (many small matrices; docs/benchmarks.md#speed).
 BLAS_THREADS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
-#: The most malloc arenas (glibc) the command line runs with (docs/benchmarks.md#speed).
-MALLOC_ARENAS = 2
-#: glibc's ``mallopt`` parameter ``M_ARENA_MAX``.
-_M_ARENA_MAX = -8
 
 
 
@@ -59,18 +54,10 @@ def interrupted() -> int:
     return EXIT_INTERRUPTED
 
 
-def _limit_malloc_arenas() -> None:
-    """At most :data:`MALLOC_ARENAS` malloc arenas under glibc (elsewhere nothing)."""
-    try:
-        ctypes.CDLL(None).mallopt(_M_ARENA_MAX, MALLOC_ARENAS)
-    except (AttributeError, OSError, TypeError):  # not glibc
-        pass
-
-
 def main() -> None:
     """Run the command line of ``sys.argv``; exits with the command's status."""
     status: int | str | None
-    _limit_malloc_arenas()
+    limit_arenas()  # (rtsgt.allocator: docs/benchmarks.md#speed)
     for name, value in BLAS_THREADS.items():  # before numpy loads; a user's setting wins
         os.environ.setdefault(name, value)
     os.environ.setdefault(WRITE_PROCESSES_ENV, "2")  # rtsgt.io.run_dir.WRITE_PROCESSES

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from rtsgt.allocator import keep_freed_memory
 from rtsgt.calibration import CalibrationResult
 from rtsgt.choices import DEFAULT_MAX_GAP_S
 from rtsgt.errors import InputError
@@ -132,8 +133,10 @@ def joint_fit(options: RunOptions, filtered: Sequence[Observations],
     fitted to, its start the per-prism kept poses and the GPs' ``Qc``, its query times the
     per-prism fit's; then module 4's gates on its poses (a query time it does not answer is
     rejected as a pose without every prism); ``gcp``: the calibration's shots (their times
-    the stations' calibration times)."""
+    the stations' calibration times). Keeps the process's freed memory from here on
+    (:func:`rtsgt.allocator.keep_freed_memory`)."""
     say("joint engine")
+    keep_freed_memory()  # its solves' large arrays reused, not faulted in afresh
     obs = [o.select(np.isin(o.t, fit.tracks[o.prism].t)) for o in filtered
            if o.prism in fit.tracks]
     keep0 = fit.keep
