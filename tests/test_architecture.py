@@ -22,7 +22,8 @@ SRC = REPO / "src"
 #: The packages (top-level modules) of rtsgt by layer, lowest first: a module may import its
 #: own layer and those below it (docs/architecture.md#layers).
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("rtsgt", "errors", "parallel", "choices", "stats", "measurement", "geometry"),
+    ("rtsgt", "errors", "parallel", "allocator", "choices", "stats", "measurement",
+     "geometry"),
     ("types",),
     ("pose", "noise", "filtering"),
     ("interpolation",),
