@@ -167,3 +167,56 @@ def test_complete_score_is_the_gradient_of_the_expected_log_likelihood():
         fd = (gm._q(*(x + e).T, g, zero, zero[1:], np.diff(t))
               - gm._q(*(x - e).T, g, zero, zero[1:], np.diff(t))) / (2 * h)
         np.testing.assert_allclose(score[:, i], fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max())
+
+
+def _observed_chains(rng, t, sigma, tau, white):
+    """Three chains (sigma, tau) at times ``t`` seen through white noise of sigma ``white``."""
+    g = _ou(rng, t, np.full(3, sigma), np.full(3, tau)) if sigma > 0 else np.zeros((t.size, 3))
+    return g + white * rng.standard_normal(g.shape)
+
+
+def _posterior_moments(t, y, white, model):
+    """The chains' exact posterior (dense) given ``y`` (N, 3) at ``model``'s sigma and tau:
+    means (N, 3), variances (N, 3), consecutive covariances (N-1, 3)."""
+    out = []
+    for c in range(3):  # three chains
+        K = model.sigma[0, c] ** 2 * np.exp(-np.abs(np.subtract.outer(t, t)) / model.tau_s[0, c])
+        A = np.linalg.solve(K + white**2 * np.eye(t.size), np.column_stack([K, y[:, c]]))
+        P = K - K @ A[:, :-1]
+        out.append((K @ A[:, -1], np.diag(P).copy(), np.diag(P, 1).copy()))
+    return tuple(np.stack([o[i] for o in out], axis=1) for i in range(3))
+
+
+def _loop(t, y, white, start, follow, seed, updates=8):
+    """The engine's loop for the chains alone: ``updates`` updates, each from the exact
+    posterior at the last one's parameters."""
+    model = gm.GaussMarkov(np.full((1, 3), start), np.full((1, 3), gm.START_TAU_S),
+                           np.full((1, 3), start), np.zeros((1, 3), bool))
+    for i in range(updates):
+        g, var, cross = _posterior_moments(t, y, white, model)
+        model = gm.update(model, [(g, var, cross, np.diff(t))],
+                          model.determined if model.iterations else None,
+                          np.random.default_rng(seed + i), follow=follow)
+    return model
+
+
+def test_a_chain_started_too_small_follows_the_data_and_enters():
+    """Chains of sigma 1 (tau 5 s, every 0.5 s for 200 s) under white noise of 1, started at
+    0.05: the data hardly inform them there (redundancy about 1, below 10), so without
+    ``follow`` they keep their start and the last solve leaves them out; with it EM's steps
+    take them up and they enter within the loop's 8 updates, their sigma within a factor 2
+    of the truth. Chains of sigma 0 and 0.02 started at 0.05 stay out (not determined)."""
+    t = np.arange(400) * 0.5
+    rng = np.random.default_rng(21)
+    y = _observed_chains(rng, t, 1.0, 5.0, 1.0)
+    kept = _loop(t, y, 1.0, 0.05, follow=False, seed=31)
+    assert not kept.determined.any()
+    np.testing.assert_array_equal(kept.sigma, 0.05)
+    fit = _loop(t, y, 1.0, 0.05, follow=True, seed=31)
+    assert fit.determined.all()
+    assert np.all((fit.sigma > 0.5) & (fit.sigma < 2.0)), fit.sigma
+    for sigma in (0.0, 0.02):
+        y0 = _observed_chains(rng, t, sigma, 5.0, 1.0)
+        fit0 = _loop(t, y0, 1.0, 0.05, follow=True, seed=41)
+        assert not fit0.determined.any(), fit0.redundancy
+        assert np.all(fit0.redundancy < gm.MIN_REDUNDANCY)

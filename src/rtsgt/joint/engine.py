@@ -737,7 +737,8 @@ def gm_step(prob: JointProblem, s: JointState, sol,
         cross = knot_cross_covariance(sol, gains, k[:-1], k[1:])[:, j, j]
         moments.append((s.gm[k][:, j - TRAJECTORY_DIM], sol.cov[k[:, None], j, j], cross,
                         np.diff(prob.t_knot[k])))
-    new = gmn.update(old, moments, old.determined if old.iterations else None, rng)
+    new = gmn.update(old, moments, old.determined if old.iterations else None, rng,
+                     follow=True)
     return replace(prob, gm=new), gmn.log_change(old, new)
 
 

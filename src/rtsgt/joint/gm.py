@@ -38,7 +38,7 @@ class GaussMarkov:
     """The chains' parameters: ``sigma`` (S, 3) in the channels' units (rad, rad, m),
     ``tau_s`` (S, 3) s, per station (the problem's order) and channel (:data:`CHANNELS`);
     ``start`` (S, 3) the starting sigmas; ``determined`` (S, 3) the chains estimated (the others
-    keep their start while the loop runs and are left out of its last solve,
+    follow EM's steps while the loop runs, :func:`update`, and are left out of its last solve,
     :func:`without_undetermined`; flagged); ``sd_log`` (S, 3, 2) the standard deviations of ``log sigma``
     and ``log tau`` and ``corr`` (S, 3) their correlation (0 where not determined);
     ``redundancy`` (S, 3) each chain's prior's redundancy; ``iterations`` the updates made;
@@ -242,7 +242,8 @@ def _observed_information(x, g, var, cross, dt, H, rng, n_draws):
 
 
 def update(model: GaussMarkov, moments, determined: np.ndarray | None = None,
-           rng: np.random.Generator | None = None, n_draws: int = N_DRAWS) -> GaussMarkov:
+           rng: np.random.Generator | None = None, n_draws: int = N_DRAWS,
+           follow: bool = False) -> GaussMarkov:
     """One step of the chains' ``(log sigma^2, log tau)`` on their marginal likelihood, from
     the posterior at the current parameters: ``moments`` one per station (None: fewer than
     two measurements, its chains stay as they are), the posterior of its three chains at its
@@ -260,8 +261,10 @@ def update(model: GaussMarkov, moments, determined: np.ndarray | None = None,
     :data:`MAX_LOG_STEP`. A chain is determined once its prior's redundancy (Förstner's
     ``sum 1 - Var_post(e) / Var_prior(e)``) reaches
     :data:`rtsgt.joint.noise.MIN_REDUNDANCY` (``determined`` the chains already determined;
-    None: none); the others keep their start. The standard deviations are the information's
-    (docs/joint.md#gauss-markov-noise)."""
+    None: none); the others keep their start or, with ``follow``, take EM's step (it follows
+    the data however little they inform a chain and cannot overshoot; a chain started too
+    small enters once its redundancy at its new sigma suffices). The standard deviations
+    are the information's (0 where not determined; docs/joint.md#gauss-markov-noise)."""
     S = model.sigma.shape[0]
     sigma, tau = model.sigma.ravel(), model.tau_s.ravel()
     x = _log_params(model)
@@ -281,9 +284,12 @@ def update(model: GaussMarkov, moments, determined: np.ndarray | None = None,
         red[j] = np.sum(1.0 - v / (sigma[j] ** 2 * c), axis=0) + 1.0 - var[0] / sigma[j] ** 2
         share[j] = np.clip(red[j] / g.shape[0], 1e-3, 1.0)
         score[j], H[j] = _derivatives(x[j], g, var, cross, dt)
+        known = red[j] >= MIN_REDUNDANCY
+        if determined is not None:
+            known |= determined.ravel()[j]
         if rng is not None:
             obs[j] = _observed_information(x[j], g, var, cross, dt, H[j], rng, n_draws)
-            if _positive(obs[j]).all():
+            if _positive(obs[j]).all() and (known.all() or not follow):
                 continue  # Newton's steps: EM's target is not needed
         target[j] = _em_target(g, var, cross, dt)
         e = g[1:] - phi * g[:-1]  # sigma^2 by Förstner's variance component at this tau
@@ -299,24 +305,27 @@ def update(model: GaussMarkov, moments, determined: np.ndarray | None = None,
     cov = np.where(ok[:, None, None], np.linalg.inv(np.where(ok[:, None, None], info,
                                                              np.eye(2))), 0.0)
     newton = np.einsum("nij,nj->ni", cov, score)
-    step = np.clip(np.where(louis[:, None], newton, target - x), -MAX_LOG_STEP, MAX_LOG_STEP)
+    # a chain not (yet) determined takes EM's step: it follows the data however little they
+    # inform it and cannot overshoot, and enters once its redundancy at the new sigma suffices
+    step = np.clip(np.where((louis & det)[:, None], newton, target - x), -MAX_LOG_STEP,
+                   MAX_LOG_STEP)
     sd = np.sqrt(np.clip(np.einsum("nii->ni", cov), 0.0, None)) * np.array([0.5, 1.0])
     corr = np.where(det & ok, cov[:, 0, 1] / np.maximum(
         np.sqrt(cov[:, 0, 0] * cov[:, 1, 1]), 1e-300), 0.0)
     sd[~det] = 0.0
-    new = _with_log_params(replace(model, determined=det.reshape(S, 3)), x + step)
+    moved = det | follow
+    new = _with_log_params(replace(model, determined=det.reshape(S, 3)), x + step, moved)
     return replace(new, sd_log=sd.reshape(S, 3, 2), corr=corr.reshape(S, 3),
                    redundancy=red.reshape(S, 3), iterations=model.iterations + 1)
 
 
-def _with_log_params(model: GaussMarkov, x: np.ndarray) -> GaussMarkov:
-    """``model`` with its determined chains' ``(log sigma^2, log tau)`` (n, 2) set to ``x``
-    (within :data:`TAU_RANGE_S` and above the sigma floor)."""
-    det = model.determined.ravel()
+def _with_log_params(model: GaussMarkov, x: np.ndarray, moved: np.ndarray) -> GaussMarkov:
+    """``model`` with the ``moved`` (n,) chains' ``(log sigma^2, log tau)`` (n, 2) set to
+    ``x`` (within :data:`TAU_RANGE_S` and above the sigma floor)."""
     s2 = np.maximum(x[:, 0], 2.0 * np.log(SIGMA_FLOOR_SHARE * model.start.ravel()))
     lt = np.clip(x[:, 1], *np.log(TAU_RANGE_S))
-    sigma = np.where(det, np.exp(0.5 * s2), model.sigma.ravel()).reshape(model.sigma.shape)
-    tau = np.where(det, np.exp(lt), model.tau_s.ravel()).reshape(model.tau_s.shape)
+    sigma = np.where(moved, np.exp(0.5 * s2), model.sigma.ravel()).reshape(model.sigma.shape)
+    tau = np.where(moved, np.exp(lt), model.tau_s.ravel()).reshape(model.tau_s.shape)
     return replace(model, sigma=sigma, tau_s=tau)
 
 
