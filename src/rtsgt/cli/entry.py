@@ -20,7 +20,6 @@ from rtsgt.choices import EXIT_INTERRUPTED, INTERRUPTED_LINE, WRITE_PROCESSES_EN
 BLAS_THREADS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
-
 def _ignore_interrupts() -> None:
     try:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
