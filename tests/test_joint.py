@@ -1422,3 +1422,28 @@ def test_the_rocking_about_a_pivot_and_its_prior():
         np.testing.assert_allclose(cross, [np.diag(cov_uu[blk[k], blk[k + 1]])[ax]
                                            for k in range(K - 1)], rtol=1e-10, atol=1e-10)
         np.testing.assert_allclose(dt, np.diff(t))
+
+
+def test_gauss_newton_stops_where_no_halved_step_lowers_the_cost(monkeypatch):
+    """Every state but the start made to cost more than the start (as a wrong linearisation
+    sees it): each of the 8 halvings of the first step raises the cost, so the solve
+    stops at its start, unconverged, instead of taking the last halving and going on (an
+    hour's hypothesis solve ran 30 such iterations, 215 assemblies, its cost creeping up)."""
+    rng = np.random.default_rng(5)
+    prob, truth = _synthetic(rng)
+    dx = rng.normal(size=(40, 12)) * np.r_[[0.02] * 3, [0.01] * 3, [0.05] * 6]
+    start = retract(prob, truth, dx, rng.normal(size=13) * 1e-3)
+    calls = []
+    cost0 = assemble(prob, start)[1]
+
+    def costlier(p, s):
+        system, cost = assemble(p, s)
+        calls.append(s is start)
+        return system, cost if s is start else cost0 + 1.0 + cost
+
+    monkeypatch.setattr(engine_module, "assemble", costlier)
+    est, sol, info = gauss_newton(prob, start, max_iter=10, tol=1e-10)
+    assert est is start and not info.converged
+    assert info.iterations == 0 and len(info.costs) == 1
+    assert calls.count(False) == engine_module.MAX_HALVINGS  # the halved trials
+    assert sol is not None and sol.cov.shape[0] == prob.t_knot.size  # at the start

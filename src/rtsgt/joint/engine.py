@@ -74,6 +74,9 @@ STALL_REL = 1e-9
 #: solution the rise is the first-order Jacobians' error (the prior's, the settling's), and
 #: halving the step would only creep towards the same point.
 WHOLE_STEP_DECREASE = 1e-2
+#: Halvings of a step that raises the cost before the solve stops where it is (a step of
+#: 1/2^8 that still raises it: Gauss-Newton's model no longer describes the cost there).
+MAX_HALVINGS = 8
 #: Of several prisms whose move explains the data, another's hypothesis stays beside the
 #: chosen one's (:func:`carry_alternatives`) unless its final solve ends at a cost (plus
 #: freed directions) higher by at least this: the likelihood ratio of the two beyond its
@@ -567,8 +570,10 @@ def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10,
                  tol: float = DECREASE_TOL, want_cov: bool = True):
     """Gauss-Newton from ``s`` until the predicted decrease of the cost is below ``tol`` or a
     step changes the cost by less than :data:`STALL_REL` of it (a step that raises the cost is
-    halved, up to 8 times, unless its predicted decrease is below
-    :data:`WHOLE_STEP_DECREASE`). Returns the state, the
+    halved, up to :data:`MAX_HALVINGS` times, unless its predicted decrease is below
+    :data:`WHOLE_STEP_DECREASE`; where the last halving still raises it, the solve stops at
+    the state it has, converged where the predicted decrease was below ``tol``). Returns the
+    state, the
     :class:`rtsgt.joint.sparse.ArrowSolution` at it (with its covariances; None without
     ``want_cov``: a trial scored by its cost alone) and a :class:`SolveInfo`."""
     system, cost = assemble(prob, s)
@@ -580,12 +585,16 @@ def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10,
         decrease = float(np.sum(x * system.a) + g @ system.c)
         del system, sol  # the trial's system replaces it: one (K, d, G) B at a time
         step = 1.0
-        for _ in range(8):
+        for _ in range(MAX_HALVINGS):
             trial = retract(prob, s, step * x, step * g)
             trial_system, trial_cost = assemble(prob, trial)
             if trial_cost <= cost + 1e-9 * abs(cost) or decrease < WHOLE_STEP_DECREASE:
                 break
             step *= 0.5
+        else:  # no step along Gauss-Newton's direction lowers the cost: its model's limit
+            system = assemble(prob, s)[0] if want_cov else None  # (the state kept)
+            converged = decrease < tol
+            break
         s, system, cost = trial, trial_system, trial_cost
         costs.append(cost)
         if decrease < tol or abs(costs[-2] - cost) <= STALL_REL * abs(cost):
