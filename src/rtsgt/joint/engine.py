@@ -592,6 +592,7 @@ def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10,
                 break
             step *= 0.5
         else:  # no step along Gauss-Newton's direction lowers the cost: its model's limit
+            del trial, trial_system  # (one (K, d, G) B at a time, as above)
             system = assemble(prob, s)[0] if want_cov else None  # (the state kept)
             converged = decrease < tol
             break
