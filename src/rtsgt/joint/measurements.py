@@ -113,13 +113,21 @@ def predict(R_k, t_k, w_k, tau, p_body, R_s, t_s, kappa_ppm):
     Inputs per measurement: its knot's pose ``R_k`` (M, 3, 3), ``t_k`` (M, 3) and body velocity
     ``w_k`` (M, 6), its offset from the knot ``tau`` (M,) s, its prism's body position
     ``p_body`` (M, 3), its station ``R_s`` (M, 3, 3), ``t_s`` (M, 3), and ``kappa_ppm``.
+    The prism is carried from the knot at the knot's constant body velocity to second order
+    in ``tau`` (docs/joint.md#the-measurements).
     Returns ``h``, ``H_knot`` (M, 3, 12) with respect to ``(d_k, dw_k)`` (right perturbation),
     ``H_station`` (M, 3, 6) with respect to ``(dt, dtheta)`` of the station (world frame, left),
-    ``H_kappa`` (M, 3) and ``H_tau`` (M, 3) with respect to ``tau`` (the rate of ``h``, 1/s).
+    ``H_kappa`` (M, 3), ``H_tau`` (M, 3) with respect to ``tau`` (the rate of ``h``, 1/s) and
+    ``B_point`` (M, 3, 3), the carried point's derivative with respect to ``p_body`` (``d h /
+    d p_body`` is ``H_knot[:, :, :3] @ B_point``).
     """
-    # body point at the measurement time, first order in tau: b = p + tau (v + omega x p)
-    vb = w_k[:, :3] + np.cross(w_k[:, 3:], p_body)
-    b = p_body + tau[:, None] * vb
+    # body point at the measurement time: b = p + tau u + tau^2 / 2 omega x u, u = v + omega x p
+    # (exp(tau w^) p to second order in tau)
+    om = w_k[:, 3:]
+    u = w_k[:, :3] + np.cross(om, p_body)
+    wu = np.cross(om, u)
+    tt = tau[:, None]
+    b = p_body + tt * u + 0.5 * tt * tt * wu
     p_w = np.einsum("mij,mj->mi", R_k, b) + t_k
     Rst = np.swapaxes(R_s, 1, 2)
     q = np.einsum("mij,mj->mi", Rst, p_w - t_s)
@@ -132,18 +140,22 @@ def predict(R_k, t_k, w_k, tau, p_body, R_s, t_s, kappa_ppm):
     P[:, 2] *= scale
     PR = P @ Rst @ R_k  # d h / d (body point)
     M = q.shape[0]
+    t3 = tau[:, None, None]
+    W = hat(om)
+    half = 0.5 * t3 * t3
     H_knot = np.empty((M, 3, 12))
     H_knot[:, :, :3] = PR
     H_knot[:, :, 3:6] = -PR @ hat(b)
-    H_knot[:, :, 6:9] = tau[:, None, None] * PR
-    H_knot[:, :, 9:] = -tau[:, None, None] * (PR @ hat(p_body))
+    H_knot[:, :, 6:9] = PR @ (t3 * np.eye(3) + half * W)  # d b / d v
+    H_knot[:, :, 9:] = -PR @ (t3 * hat(p_body) + half * (hat(u) + W @ hat(p_body)))
     H_station = np.empty((M, 3, 6))
     PRs = P @ Rst
     H_station[:, :, :3] = -PRs
     H_station[:, :, 3:] = PRs @ hat(p_w - t_s)
     H_kappa = np.zeros((M, 3))
     H_kappa[:, 2] = 1e-6 * dist
-    return h, H_knot, H_station, H_kappa, np.einsum("mij,mj->mi", PR, vb)
+    B_point = np.eye(3) + t3 * W + half * (W @ W)
+    return h, H_knot, H_station, H_kappa, np.einsum("mij,mj->mi", PR, u + tt * wu), B_point
 
 
 def residual(y: np.ndarray, h: np.ndarray) -> np.ndarray:
