@@ -35,6 +35,7 @@ from rtsgt.joint.engine import (
     retract,
     snoop_prisms,
     solve_with_qc,
+    undecided,
 )
 from rtsgt.joint.estimate import body_to_world_cov
 from rtsgt.joint.interpolate import interpolate_poses_gp
@@ -849,12 +850,13 @@ def test_the_hypotheses_carried_do_not_depend_on_which_was_found_first():
     s0, sol0, _ = gauss_newton(prob, replace(truth, p_body=prob.p_body.copy()), 20, 1e-12)
     first, freed, alts = snoop_prisms(prob, s0, sol0, 1e-12)
     assert freed and len(alts) == 2, (freed, alts)  # every other candidate, to be solved again
-    alike = [a for a in alts if a.prism_found[-1][0] in (0, 1)]
+    alike = [a for a in alts if a[0].prism_found[-1][0] in (0, 1)]
     assert first.prism_found[-1][0] in (0, 1) and len(alike) == 1, first.prism_found
-    out = []
-    for p, other in ((first, alike[0]), (alike[0], first)):
+    (other, trial_above), = alike
+    out = []  # each as the one found, the other's trial score above it
+    for p, alt in ((first, (other, trial_above)), (other, (first, -trial_above))):
         s, sol, info = gauss_newton(p, s0, HYPOTHESIS_MAX_ITER, 1e-12)
-        out.append(carry_alternatives(p, s, sol, info, (other,), 1e-12))
+        out.append(carry_alternatives(p, s, sol, info, (alt,), 1e-12))
     (pa, sa, sola, _), (pb_, sb, solb, _) = out
     assert pa.prism_found[-1][0] == pb_.prism_found[-1][0]
     assert len(pa.prism_alternatives) == len(pb_.prism_alternatives) == 1
@@ -868,6 +870,22 @@ def test_the_hypotheses_carried_do_not_depend_on_which_was_found_first():
     np.testing.assert_allclose(sa.t, sb.t, atol=1e-6)
     np.testing.assert_allclose(sola.cov[:, :6, :6], solb.cov[:, :6, :6], rtol=1e-4,
                                atol=1e-6 * np.abs(sola.cov[:, :6, :6]).max())
+
+
+def test_a_hypothesis_is_dropped_only_where_the_data_decide_against_it():
+    """rtsgt.joint.engine.undecided: the estimate is the final solve's lowest score; another
+    hypothesis is dropped where its final score is at least UNDECIDED_COST above the
+    estimate's, unless its trial scored below the estimate's: the noise's update turned the
+    order (docs/joint.md#which-prism-moved)."""
+    c = UNDECIDED_COST
+    decided = undecided(np.array([0.0, 0.5]), np.array([0.0, c + 0.5]))
+    assert decided == (0, []), decided
+    turned = undecided(np.array([0.0, 77.0]), np.array([40.0, 0.0]))  # the update turns it
+    assert turned == (1, [0]), turned
+    barely = undecided(np.array([0.0, 0.5, 3 * c]), np.array([c + 0.5, 0.0, 50.0]))
+    assert barely == (1, [0]), barely  # any turn keeps it; the third, decided, is dropped
+    final_near = undecided(np.array([0.0, 30.0, 80.0]), np.array([c - 0.5, 0.0, 50.0]))
+    assert final_near == (1, [0]), final_near
 
 
 def test_with_the_noise_estimated_a_moved_prism_is_found_after_its_first_update():

@@ -79,8 +79,9 @@ WHOLE_STEP_DECREASE = 1e-2
 MAX_HALVINGS = 8
 #: Of several prisms whose move explains the data, another's hypothesis stays beside the
 #: chosen one's (:func:`carry_alternatives`) unless its final solve ends at a cost (plus
-#: freed directions) higher by at least this: the likelihood ratio of the two beyond its
-#: critical value at the prisms' test rate (``chi2(1).ppf(1 - TEST_ALPHA)``, 10.8;
+#: freed directions) higher by at least this (and its trial did not end below the chosen
+#: one's: :func:`undecided`): the likelihood ratio of the two beyond its critical value at
+#: the prisms' test rate (``chi2(1).ppf(1 - TEST_ALPHA)``, 10.8;
 #: docs/joint.md#which-prism-moved).
 UNDECIDED_COST = float(chi2.ppf(1.0 - TEST_ALPHA, 1))
 #: Most Gauss-Newton iterations of a prism hypothesis's solve (:func:`snoop_prisms`,
@@ -778,7 +779,8 @@ def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = DECREASE_T
     freed (from ``s``, to convergence: ``tol``, :data:`HYPOTHESIS_MAX_ITER`) ends at the
     lowest cost plus freed directions (the tests rank to first order only: two prisms' moves
     can explain the data alike, docs/joint.md#which-prism-moved). Returns the problem,
-    whether a prism was freed and the problems with each other candidate freed instead (its
+    whether a prism was freed and each other candidate's hypothesis, ``(problem, above)``:
+    the problem with it freed instead and its trial's score above the chosen one's (its
     alternatives, solved again with the final noise by :func:`carry_alternatives`: the
     trials' weights are an early update's, and the order can turn)."""
     if prob.prism_info is None:
@@ -801,29 +803,31 @@ def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = DECREASE_T
                                                         want_cov=False)[2])
                       for p in freed])  # a handful of prisms
     best = int(np.argmin(score))
-    return freed[best], True, tuple(p for i, p in enumerate(freed) if i != best)
+    return freed[best], True, tuple((p, float(score[i] - score[best]))
+                                    for i, p in enumerate(freed) if i != best)
 
 
 def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,
                        alternatives: tuple[JointProblem, ...], tol: float = DECREASE_TOL):
     """The solve ``prob``, ``s``, ``sol``, ``info`` with the hypotheses of other prisms'
-    moves carried (docs/joint.md#which-prism-moved): each of ``alternatives`` (problems with
-    another prism freed instead of the last one found, :func:`snoop_prisms`) solved with
-    ``prob``'s final noise and ``Qc`` from ``s`` (to convergence, as the trials); of them
-    all the lowest cost plus freed directions is the estimate (the trials' noise weights
-    were an earlier update's: the order can turn), and those within :data:`UNDECIDED_COST`
-    of it stay, with equal weights ``w``: the solution is the mixture of theirs about the
-    estimate (:func:`rtsgt.joint.sparse.mix_solutions`: each one's covariances, solved at
-    its own state, and its state's difference from the estimate's, :func:`difference`).
-    Returns the problem (its ``prism_alternatives``), state, solution and
-    :class:`SolveInfo` of the estimate."""
+    moves carried (docs/joint.md#which-prism-moved): each of ``alternatives`` (``(problem,
+    above)``: the problem with another prism freed instead of the last one found and its
+    trial's score above the found one's, :func:`snoop_prisms`) solved with ``prob``'s final
+    noise and ``Qc`` from ``s`` (to convergence, as the trials); of them all the lowest
+    cost plus freed directions is the estimate (the trials' noise weights were an earlier
+    update's: the order can turn), and the others stay unless both scores decide against
+    them (:func:`undecided`), with equal weights ``w``: the solution is the mixture of
+    theirs about the estimate (:func:`rtsgt.joint.sparse.mix_solutions`: each one's
+    covariances, solved at its own state, and its state's difference from the estimate's,
+    :func:`difference`). Returns the problem (its ``prism_alternatives``), state, solution
+    and :class:`SolveInfo` of the estimate."""
     runs = [(prob, s, sol, info)]
-    for alt in alternatives:  # a handful of prisms, scored by their cost alone
+    for alt, _ in alternatives:  # a handful of prisms, scored by their cost alone
         p = replace(prob, prism_info=alt.prism_info, prism_found=alt.prism_found)
         runs.append((p, *gauss_newton(p, s, HYPOTHESIS_MAX_ITER, tol, want_cov=False)))
     score = np.array([_hypothesis_score(r[0], r[3]) for r in runs])
-    best = int(np.argmin(score))
-    kept = [i for i in range(len(runs)) if i != best and score[i] - score[best] < UNDECIDED_COST]
+    trial = np.array([0.0] + [above for _, above in alternatives])
+    best, kept = undecided(trial, score)
     prob, s, _, info = runs[best]
     sols = [runs[i][2] if runs[i][2] is not None  # an alternative's: at its own state
             else solve_arrow(assemble(runs[i][0], runs[i][1])[0], want_cov=True)
@@ -839,6 +843,20 @@ def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,
     dx = np.stack([x for x, _ in steps])
     dg = np.stack([g for _, g in steps])
     return prob, s, mix_solutions(sols, w, dx, dg), info
+
+
+def undecided(trial: np.ndarray, final: np.ndarray) -> tuple[int, list[int]]:
+    """Which prism hypotheses the data have decided against: of the scores (cost plus freed
+    directions) of each hypothesis's ``trial`` (H,) solve (weighted by an early update of
+    the noise) and ``final`` (H,) solve (the final noise, chains and ``Qc``), the estimate
+    is the lowest final score's, and another hypothesis is kept beside it where its final
+    score is within :data:`UNDECIDED_COST` of the estimate's or its trial scored below the
+    estimate's: an order that the noise's update turns is not the data's
+    (docs/joint.md#which-prism-moved). Returns the estimate's index and the kept ones'."""
+    best = int(np.argmin(final))
+    kept = [i for i in range(final.size) if i != best and (
+        final[i] - final[best] < UNDECIDED_COST or trial[i] < trial[best])]
+    return best, kept
 
 
 def _hypothesis_score(prob: JointProblem, info: SolveInfo) -> float:
@@ -861,4 +879,5 @@ def _freed(prob: JointProblem, tests, found: list[int], j: int) -> JointProblem:
 __all__ = ["DECREASE_TOL", "HYPOTHESIS_MAX_ITER", "UNDECIDED_COST", "JointProblem",
            "JointState", "QcFit", "SolveInfo", "assemble", "carry_alternatives", "difference",
            "gauss_newton", "gm_step", "measurement_global_factor", "measurement_hsh",
-           "measurement_terms", "noise_step", "rocking_step", "snoop_prisms", "solve_with_qc"]
+           "measurement_terms", "noise_step", "rocking_step", "snoop_prisms", "solve_with_qc",
+           "undecided"]

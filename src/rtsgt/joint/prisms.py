@@ -178,8 +178,9 @@ class PrismFit:
     the estimate minus the survey; ``shift_sigma`` (P,) the test statistic's square root
     (for a moved prism: at its detection; chi with ``dof`` (P,) degrees of freedom if the
     prism did not move); ``weight`` (P,) the weight of the hypothesis that the prism moved
-    (1 for one found alone, equal for the found and the others whose move explains the data
-    as well, carried in the covariance: docs/joint.md#which-prism-moved; 0 otherwise) and
+    (1 for one found alone, equal for the found and the others carried in the covariance,
+    whose move explains the data as well or the trial preferred:
+    docs/joint.md#which-prism-moved; 0 otherwise) and
     ``cost_above`` (P,) the score of another prism's hypothesis above the found one's, for
     every hypothesis solved beside it, carried or not (NaN for the others)."""
 
