@@ -22,6 +22,7 @@ from rtsgt.joint.relative import (
     query_cross_covariance,
     world_covariance,
 )
+from rtsgt.joint.sparse import mix_solutions
 from rtsgt.stats import ratio_interval
 from test_joint import _synthetic  # the joint tests' synthetic problem
 
@@ -82,6 +83,29 @@ def test_deletion_nees_equals_a_dense_inverse_and_a_solve_without_the_block(extr
             pred = e - Hb @ delta
             C = Rb + Hb @ np.linalg.solve(N_minus, Hb.T)
             assert out.nees[b] == pytest.approx(pred @ np.linalg.solve(C, pred), rel=1e-5)
+
+
+def test_a_mixture_of_hypotheses_is_cross_validated_with_the_estimates_own_posterior():
+    """With prism hypotheses carried (rtsgt.joint.sparse.mix_solutions), the deletion
+    residuals are the estimate's least squares': the same NEES as its own solution's, where
+    the mixture's spread (here 5 sigmas) would change them (on the real static stretches
+    it made a channel's NEES negative: the deletion covariance indefinite)."""
+    rng = np.random.default_rng(32)
+    prob, truth = _synthetic(rng, K=30, noise=1.0)
+    prob = replace(prob, qc=QC_TRUE)
+    s, sol, _ = gauss_newton(prob, truth, max_iter=20, tol=1e-14)
+    dx = 5.0 * np.sqrt(np.einsum("kii->ki", sol.cov))[None] * rng.choice([-1.0, 1.0],
+                                                                          size=sol.x.shape)
+    dg = 5.0 * np.sqrt(np.diag(sol.cov_g))[None]
+    mixed = mix_solutions([sol, sol], np.array([0.5, 0.5]), dx, dg)
+    own = raw_block_cv(prob, s, sol, max_gap_s=5.0, lengths=SHORT_BLOCKS_S)
+    out = raw_block_cv(prob, s, mixed, max_gap_s=5.0, lengths=SHORT_BLOCKS_S)
+    np.testing.assert_array_equal(out.nees, own.nees)
+    assert np.all(own.nees > 0), own.nees.min()
+    spread = raw_block_cv(prob, s, replace(mixed, own=None), max_gap_s=5.0,
+                          lengths=SHORT_BLOCKS_S)
+    change = np.abs(spread.nees / own.nees - 1.0)
+    assert change.max() > 0.5, change.max()
 
 
 def test_verdict_consistent_for_the_model_and_optimistic_for_noise_larger_than_stated():

@@ -80,8 +80,11 @@ def _block_index(t, station, max_gap_s, lengths):
 def raw_block_cv(prob: JointProblem, s: JointState, sol: ArrowSolution,
                  max_gap_s: float, lengths: tuple[float, ...] | None = None) -> RawBlocks:
     """Deletion NEES of every block of every station's measurements of the problem ``prob``
-    at its solution ``s`` with the covariances ``sol`` (``want_cov``); ``max_gap_s``: a
-    longer gap starts new blocks."""
+    at its solution ``s`` with the covariances ``sol`` (``want_cov``; of a mixture of prism
+    hypotheses, its ``own``: the estimate's least squares, whose residuals these are; the
+    mixture's spread would make ``Q_b`` indefinite); ``max_gap_s``: a longer gap starts new
+    blocks."""
+    sol = sol if sol.own is None else sol.own
     m = prob.meas
     r, *terms = measurement_terms(prob, s)
     Hk, k = terms[0], prob.of_meas

@@ -7,7 +7,7 @@ and the Schur complement onto the global parameters: docs/joint.md#the-solver.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg import LinAlgWarning
@@ -99,7 +99,10 @@ class ArrowSolution:
     globals), ``factor`` (K, d, G) ``L_k = -Y_B,k chol(S^-1)`` (the knots' error per unit
     whitened global error, ``cov = cov_var + L L^T``) and ``chol_g`` (G, G) the lower
     Cholesky factor of ``cov_g`` (``Cov(x_k, g) = L_k chol_g^T``; with more whitened errors
-    than globals, :func:`add_shared_columns`, ``factor`` (K, d, G') and ``chol_g`` (G, G'))."""
+    than globals, :func:`add_shared_columns`, ``factor`` (K, d, G') and ``chol_g`` (G, G'));
+    ``own`` where this is a mixture of hypotheses (:func:`mix_solutions`), the estimate's
+    own solution: the posterior of its least squares, whose fitted residuals the deletion
+    residuals are (:func:`rtsgt.joint.blockcv.raw_block_cv`)."""
 
     x: np.ndarray
     g: np.ndarray
@@ -110,6 +113,7 @@ class ArrowSolution:
     cov_var_next: np.ndarray | None = None
     factor: np.ndarray | None = None
     chol_g: np.ndarray | None = None
+    own: ArrowSolution | None = None
 
 
 def add_shared_columns(sol: ArrowSolution, dx: np.ndarray, dg: np.ndarray) -> ArrowSolution:
@@ -137,7 +141,7 @@ def mix_solutions(sols: list[ArrowSolution], w: np.ndarray, dx: np.ndarray, dg: 
     the shared columns of every solution's ``factor``, ``chol_g`` and the differences, each
     times ``sqrt(w_i)`` (:func:`add_shared_columns`). The first's ``x``, ``g``; each
     covariance is taken in its own state's tangent space, the differences' order
-    neglected."""
+    neglected; ``own`` the first (:class:`ArrowSolution`)."""
     r = np.sqrt(w)
     pairs = list(zip(w, r, sols, strict=True))
 
@@ -148,7 +152,8 @@ def mix_solutions(sols: list[ArrowSolution], w: np.ndarray, dx: np.ndarray, dg: 
                          mean("cov_var"), mean("cov_var_next"),
                          np.concatenate([ri * s.factor for _, ri, s in pairs], axis=2),
                          np.concatenate([ri * s.chol_g for _, ri, s in pairs], axis=1))
-    return add_shared_columns(base, r[1:, None, None] * dx, r[1:, None] * dg)
+    mixed = add_shared_columns(base, r[1:, None, None] * dx, r[1:, None] * dg)
+    return replace(mixed, own=sols[0])
 
 
 def _spd_inv(a: np.ndarray) -> np.ndarray:
