@@ -770,7 +770,7 @@ def rocking_step(prob: JointProblem, s: JointState, sol,
 
 
 def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = DECREASE_TOL
-                 ) -> tuple[JointProblem, bool, tuple[JointProblem, ...]]:
+                 ) -> tuple[JointProblem, bool, tuple[tuple[JointProblem, float], ...]]:
     """Test each trusted prism against its survey (:func:`rtsgt.joint.prisms.prism_tests`);
     where one is beyond its critical value (and at least two would stay trusted) a move is
     detected, and one prism has its survey freed where the data determine its move: of the
@@ -808,7 +808,8 @@ def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = DECREASE_T
 
 
 def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,
-                       alternatives: tuple[JointProblem, ...], tol: float = DECREASE_TOL):
+                       alternatives: tuple[tuple[JointProblem, float], ...],
+                       tol: float = DECREASE_TOL):
     """The solve ``prob``, ``s``, ``sol``, ``info`` with the hypotheses of other prisms'
     moves carried (docs/joint.md#which-prism-moved): each of ``alternatives`` (``(problem,
     above)``: the problem with another prism freed instead of the last one found and its
