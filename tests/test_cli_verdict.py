@@ -94,6 +94,21 @@ def test_a_prism_the_joint_engine_found_moved_is_a_caveat_with_its_size():
     assert "prism 2 moved 10.0 mm" in v.line() and "sigma up to" not in v.line(), v.line()
 
 
+def test_undecided_prism_hypotheses_are_a_caveat_naming_the_prisms():
+    """Where the joint engine carries several prisms' hypotheses
+    (docs/joint.md#which-prism-moved) the verdict names them and their weight; a move found
+    alone does not."""
+    prisms = {"1": {"moved": False, "moved_weight": 0.5, "shift_mm": [0.1, 0.0, 0.0]},
+              "2": {"moved": True, "moved_weight": 0.5, "shift_mm": [6.0, 8.0, 0.0]},
+              "3": {"moved": False, "moved_weight": 0.0, "shift_mm": [0.0, 0.1, 0.0]}}
+    v = run_verdict({}, kept=100, queried=100, joint={"prisms": prisms})
+    (f,) = [f for f in v.findings if f.check == "which prism moved"]
+    assert f.severity == 1 and "prisms 1 and 2 each carried at weight 0.50" in f.text, f.text
+    prisms["1"]["moved_weight"], prisms["2"]["moved_weight"] = 0.0, 1.0
+    v = run_verdict({}, kept=100, queried=100, joint={"prisms": prisms})
+    assert [f.check for f in v.findings] == ["moved prism"], v.findings
+
+
 def test_static_correlation_is_a_caveat_only_where_the_gps_do_not_carry_it():
     comp = {"level": {"verdict": "consistent"},
             "correlation": {"verdict": "optimistic", "correlation_time_s": 2.5}}

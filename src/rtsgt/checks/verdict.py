@@ -256,6 +256,14 @@ def _moved_prisms(joint: dict, out: list[Finding]) -> None:
                            f"prism {name} moved {shift:.1f} mm from its survey: where the other "
                            f"prisms cannot place it only the motion model does{sigma}; a survey "
                            f"after the deployment would determine it"))
+    carried = {k: v["moved_weight"] for k, v in (joint.get("prisms") or {}).items()
+               if 0.0 < (v.get("moved_weight") or 0.0) < 1.0}
+    if carried:  # docs/joint.md#which-prism-moved
+        out.append(Finding(1, "which prism moved",
+                           f"which prism moved is not decided: prisms {_names(sorted(carried))} "
+                           f"each carried at weight {min(carried.values()):.2f} in the poses' "
+                           f"covariance, which is larger for it; a survey after the deployment "
+                           f"would decide"))
 
 
 def run_verdict(self_checks: dict, *, kept: int, queried: int,
