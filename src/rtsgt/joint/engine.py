@@ -49,6 +49,7 @@ from rtsgt.joint.rocking import ROCKING_DIM, add_rocking_prior, rocking_moments
 from rtsgt.joint.se3 import adjoint, curly, exp_se3, log_se3, so3_left_jacobian
 from rtsgt.joint.settling import KIND_COLUMNS, SettleModel
 from rtsgt.joint.sparse import (
+    ArrowSolution,
     ArrowSystem,
     add_transitions,
     chunks,
@@ -84,6 +85,13 @@ MAX_HALVINGS = 8
 #: the prisms' test rate (``chi2(1).ppf(1 - TEST_ALPHA)``, 10.8;
 #: docs/joint.md#which-prism-moved).
 UNDECIDED_COST = float(chi2.ppf(1.0 - TEST_ALPHA, 1))
+#: Sigma (s) holding the mean of the stations' constant clock offsets at its prior's zero
+#: while Gauss-Newton iterates. It is a time shift of the whole trajectory, which the
+#: stations cannot see; only the prediction of each measurement from its own knot does (an
+#: artefact whose pull grows with the run's length: a simulated hour went to -10 ms against
+#: a prior of 0.8 ms). Its estimate is therefore the prior's; the covariances leave it free
+#: to that prior (:func:`covariance_solve`, docs/joint.md#clock-offsets).
+COMMON_SYNC_HOLD_S = 1e-6
 #: Most Gauss-Newton iterations of a prism hypothesis's solve (:func:`snoop_prisms`,
 #: :func:`carry_alternatives`): they run to convergence, their costs compared; a move along
 #: the direction the data hardly see takes more than the final solve's 10 (13 on the field
@@ -457,11 +465,12 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
         C[sl, sl] += prob.prism_info
         c[sl] -= prob.prism_info @ ep
         cost += float(ep @ prob.prism_info @ ep)
-    if prob.n_sync:  # the clock error's prior: the noise model's time_sync second moment
-        sl = slice(prob.sync_col, prob.sync_col + prob.n_sync)
-        C[sl, sl] += np.eye(prob.n_sync) / prob.sync_var
-        c[sl] -= s.sync / prob.sync_var
-        cost += float(s.sync @ s.sync) / prob.sync_var
+    if prob.n_sync:  # the clock error's prior: the noise model's time_sync second moment,
+        sl, hold = _common_sync_hold(prob)  # its mean held at zero (COMMON_SYNC_HOLD_S)
+        W = np.eye(prob.n_sync) / prob.sync_var + hold
+        C[sl, sl] += W
+        c[sl] -= W @ s.sync
+        cost += float(s.sync @ W @ s.sync)
     if prob.n_deviation:  # zero mean, deviation_sigma each
         sl = slice(prob.deviation_col, prob.deviation_col + prob.n_deviation)
         w = 1.0 / prob.deviation_sigma.ravel() ** 2
@@ -475,6 +484,24 @@ def assemble(prob: JointProblem, s: JointState) -> tuple[ArrowSystem, float]:
         c[sl] -= ga
         cost += ca
     return ArrowSystem(D, U, B, C, a, c), cost
+
+
+def _common_sync_hold(prob: JointProblem) -> tuple[slice, np.ndarray]:
+    """The constant clock offsets' columns and the information (N, N) holding their mean at
+    zero with :data:`COMMON_SYNC_HOLD_S`."""
+    n = prob.n_sync
+    return (slice(prob.sync_col, prob.sync_col + n),
+            np.full((n, n), 1.0 / (n * COMMON_SYNC_HOLD_S) ** 2))
+
+
+def covariance_solve(prob: JointProblem, system: ArrowSystem) -> ArrowSolution:
+    """:func:`rtsgt.joint.sparse.solve_arrow` with covariances of ``system`` (assembled at
+    the solution by :func:`assemble`), the constant clock offsets' mean released to its
+    prior (modifies ``system``)."""
+    if prob.n_sync:
+        sl, hold = _common_sync_hold(prob)
+        system.C[sl, sl] -= hold
+    return solve_arrow(system, want_cov=True)
 
 
 def _frame_change(dR: np.ndarray, dp: np.ndarray, d: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -603,7 +630,7 @@ def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10,
             converged = True
             break
     info = SolveInfo(len(costs) - 1, converged, tuple(costs))
-    return s, solve_arrow(system, want_cov=True) if want_cov else None, info
+    return s, covariance_solve(prob, system) if want_cov else None, info
 
 
 @dataclass(frozen=True)
@@ -831,7 +858,7 @@ def carry_alternatives(prob: JointProblem, s: JointState, sol, info: SolveInfo,
     best, kept = undecided(trial, score)
     prob, s, _, info = runs[best]
     sols = [runs[i][2] if runs[i][2] is not None  # an alternative's: at its own state
-            else solve_arrow(assemble(runs[i][0], runs[i][1])[0], want_cov=True)
+            else covariance_solve(runs[i][0], assemble(runs[i][0], runs[i][1])[0])
             for i in [best] + kept]
     runs = [r[:2] for r in runs]  # (the others' covariances' memory)
     w = np.full(len(kept) + 1, 1.0 / (len(kept) + 1))
@@ -878,7 +905,8 @@ def _freed(prob: JointProblem, tests, found: list[int], j: int) -> JointProblem:
 
 
 __all__ = ["DECREASE_TOL", "HYPOTHESIS_MAX_ITER", "UNDECIDED_COST", "JointProblem",
-           "JointState", "QcFit", "SolveInfo", "assemble", "carry_alternatives", "difference",
+           "JointState", "QcFit", "SolveInfo", "assemble", "carry_alternatives",
+           "covariance_solve", "difference",
            "gauss_newton", "gm_step", "measurement_global_factor", "measurement_hsh",
            "measurement_terms", "noise_step", "rocking_step", "snoop_prisms", "solve_with_qc",
            "undecided"]
