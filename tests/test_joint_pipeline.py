@@ -23,6 +23,7 @@ from rtsgt.io.deployment import load_deployment
 from rtsgt.io.run_dir import read_run, write_run
 from rtsgt.joint.axes import AXES_SIGMA
 from rtsgt.joint.gm import TAU_RANGE_S
+from rtsgt.joint.qc import VCE_MAX_ITER, VCE_TOL
 from rtsgt.measurement.units import MGON
 from rtsgt.options import RUN_ENGINES, RunOptions
 from rtsgt.pipeline import run_pipeline
@@ -84,6 +85,14 @@ def test_the_summary_has_the_joint_section_and_the_checks_say_what_they_judge(ru
     assert doc["parameters"]["engine"] == "joint" and doc["parameters"]["clocks"] is True
     j = doc["joint"]
     assert j["converged"] and 0.5 < j["chi2_per_dof"] < 1.5, j
+    # the variance components' loop: each part's last change, converged where all are small,
+    # and a run whose loop stopped short says so in its warnings
+    changes = j["qc_last_change"]
+    assert {"qc", "white"} <= set(changes) <= {"qc", "white", "chains", "rocking"}, changes
+    assert j["qc_converged"] == (max(changes.values()) < VCE_TOL), changes
+    assert 1 <= j["qc_iterations"] <= VCE_MAX_ITER
+    said = [w for w in record.warnings if "variance components did not converge" in w]
+    assert len(said) == (not j["qc_converged"]), record.warnings
     assert j["poses"] == len(record.groundtruth) and j["knots"] <= j["measurements"]
     assert set(j["stations"]) == set(record.stations)
     held = [s for s, v in j["stations"].items() if v["held"]]
@@ -271,6 +280,9 @@ def test_the_report_shows_the_joint_estimates_with_their_sigmas(runs):
         part = page[page.index(f"<table id='{name}'"):]
         return part[:part.index("</table>")]
 
+    loop = table("run-joint")
+    assert (f"{j['qc_iterations']} updates, "
+            + ("converged" if j["qc_converged"] else "not converged")) in loop, loop
     stations = table("run-joint-stations")
     for sid, v in j["stations"].items():
         row = stations[stations.index(f"<td class='s'>{sid}</td>"):]

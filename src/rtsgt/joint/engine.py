@@ -637,24 +637,41 @@ def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10,
 class QcFit:
     """``table`` (N_CLASSES, 6) the ``Qc`` of each motion class (m^2/s^3, rad^2/s^3),
     ``classes`` (K-1,) each interval's, ``redundancy`` (N_CLASSES, 6) each group's,
-    ``iterations`` of the variance components (0: ``Qc`` given, not estimated)."""
+    ``iterations`` of the variance components (0: ``Qc`` given, not estimated);
+    ``changes`` the last update's largest relative change of each part of their loop
+    (``("qc" | "white" | "chains" | "rocking", change)``: ``Qc``, the white noise, its chains,
+    the rocking; a log change where the part is in logs), whose largest below
+    :data:`rtsgt.joint.qc.VCE_TOL` means the loop converged rather than stopping at its
+    last update (docs/joint.md#the-variance-components-loop)."""
 
     table: np.ndarray
     classes: np.ndarray
     redundancy: np.ndarray
     iterations: int
+    changes: tuple[tuple[str, float], ...] = ()
+
+    @property
+    def change(self) -> float:
+        """The last update's largest change of any part (0: none made)."""
+        return max((v for _, v in self.changes), default=0.0)
+
+    @property
+    def converged(self) -> bool:
+        """Whether the loop's last update changed every part by less than ``VCE_TOL``."""
+        return self.change < VCE_TOL
 
 
 def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
                   max_iter: int = 10, tol: float = DECREASE_TOL, estimate_noise: bool = False,
-                  rng: np.random.Generator | None = None):
+                  rng: np.random.Generator | None = None, max_updates: int = VCE_MAX_ITER):
     """Gauss-Newton with the prior's ``Qc`` per motion class by iterated variance components
     (docs/joint.md#qc-from-the-data), starting from ``prob.qc`` (6,) for every class, with
     (``estimate_noise``) the white noise's components (docs/joint.md#noise-identification;
     the problem's ``noise``) and the Gauss-Markov chains' (where the problem has them;
     ``rng`` their draws, docs/joint.md#gauss-markov-noise) and the prisms' tests (where they
     are parameters; with the noise estimated, from its first update on) in the same loop;
-    each iteration re-solves from the last state; other prisms' moves that explain the data
+    each iteration re-solves from the last state, at most ``max_updates`` of them (the
+    :class:`QcFit` says whether the loop converged first); other prisms' moves that explain the data
     as well as the one found are carried at the end (:func:`carry_alternatives`). The motion
     axes (where estimated) are held at the body frame's through the loop, so that the
     prisms' tests have the motion prior's frame, and freed with ``prob.axes_sigma`` for a
@@ -675,24 +692,23 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     it = 0
     freed = False
     alternatives = ()
+    changes = {}
     snooped = not estimate_noise  # else after the noise's first update: weighted by the
     if snooped:  # datasheet, another prism can explain a move better (docs/joint.md)
         prob, freed, alternatives = snoop_prisms(prob, s, sol, tol)
-    while (estimate or estimate_noise or freed) and it < VCE_MAX_ITER:
+    while (estimate or estimate_noise or freed) and it < max_updates:
         it += 1
-        change = 0.0
+        changes = {}
         if estimate:
-            prob, table, own, red_g, change = _qc_step(prob, s, sol, classes, table, own)
+            prob, table, own, red_g, changes["qc"] = _qc_step(prob, s, sol, classes, table, own)
         if estimate_noise:
-            prob, dn = noise_step(prob, s, sol, it)
-            change = max(change, dn)
+            prob, changes["white"] = noise_step(prob, s, sol, it)
         if estimate_noise and prob.gm is not None:
-            prob, dn = gm_step(prob, s, sol, rng)
-            change = max(change, dn)
+            prob, changes["chains"] = gm_step(prob, s, sol, rng)
         if estimate_noise and prob.rocking is not None:
-            prob, dn = rocking_step(prob, s, sol, rng)
-            change = max(change, dn)
-        last = (change < VCE_TOL and not freed and snooped) or it == VCE_MAX_ITER
+            prob, changes["rocking"] = rocking_step(prob, s, sol, rng)
+        change = max(changes.values(), default=0.0)
+        last = (change < VCE_TOL and not freed and snooped) or it == max_updates
         if last and estimate_noise and prob.gm is not None:  # the last solve without them
             prob = replace(prob, gm=gmn.without_undetermined(prob.gm))
         full = last or not (estimate or estimate_noise)  # a freed prism alone: to the end
@@ -709,7 +725,8 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
         s, sol, info = gauss_newton(prob, s, max_iter, tol)
     if alternatives:
         prob, s, sol, info = carry_alternatives(prob, s, sol, info, alternatives, tol)
-    return prob, s, sol, info, QcFit(table, classes, red_g, it if estimate else 0)
+    return prob, s, sol, info, QcFit(table, classes, red_g, it if estimate else 0,
+                                     tuple((k, float(v)) for k, v in changes.items()))
 
 
 def _qc_step(prob: JointProblem, s: JointState, sol, classes, table, own):

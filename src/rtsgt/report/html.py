@@ -676,6 +676,19 @@ def _joint_noise_row(sid, ch: str, w: Mapping | None, g: Mapping | None) -> str:
             f"<td class='s'>{white}</td><td class='s'>{corr}</td></tr>")
 
 
+def _loop_text(j: Mapping) -> str:
+    """The variance components' loop of a joint run: its updates and whether it converged
+    (docs/joint.md#the-variance-components-loop)."""
+    if j.get("qc_converged") is None:  # (a summary written before the field)
+        return f"{_fmt(j.get('qc_iterations'))} updates"
+    if j.get("qc_converged"):
+        return f"{_fmt(j.get('qc_iterations'))} updates, converged"
+    parts = ", ".join(f"{html.escape(str(k))} {_fmt(100 * v, 3)} %"
+                      for k, v in (j.get("qc_last_change") or {}).items())
+    return (f"{_fmt(j.get('qc_iterations'))} updates, not converged (the last one's largest "
+            f"changes: {parts}): the estimates are where the loop stopped")
+
+
 def _joint_html(j: Mapping) -> str:
     """What the joint engine estimated besides the poses (``summary.json``'s ``joint``), each
     estimate with its sigma: the solve, the stations' shifts from their calibration, the
@@ -687,6 +700,7 @@ def _joint_html(j: Mapping) -> str:
         ("solve", f"{_fmt(j.get('iterations'))} iterations, "
                   f"{'converged' if j.get('converged') else 'not converged'}, "
                   f"χ² / row {_fmt(j.get('chi2_per_dof'), 3)}"),
+        ("variance components", _loop_text(j)),
         ("knots, measurements, poses",
          f"{_fmt(j.get('knots'))}, {_fmt(j.get('measurements'))}, {_fmt(j.get('poses'))}"),
         ("atmosphere", f"{_pm(j.get('kappa_ppm'), j.get('kappa_sigma_ppm'))} ppm")])]

@@ -6,6 +6,7 @@ ones, and the summary of what it estimated. docs/pipeline.md#the-joint-engine.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
@@ -15,7 +16,7 @@ import numpy as np
 from rtsgt.allocator import keep_freed_memory
 from rtsgt.calibration import CalibrationResult
 from rtsgt.choices import DEFAULT_MAX_GAP_S
-from rtsgt.errors import InputError
+from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.geometry.so3 import log_so3, matrix_to_quat_xyzw
 from rtsgt.geometry.transform import RigidTransform
 from rtsgt.interpolation.motion import CLASS_NAMES
@@ -156,6 +157,12 @@ def joint_fit(options: RunOptions, filtered: Sequence[Observations],
                      calibrated_at=calibration_times(
                          gcp, calibration, min(float(o.t[0]) for o in obs)),
                      rng=stage_rng(options.seed, "joint"))
+    if not jr.qc.converged:
+        parts = ", ".join(f"{k} {100 * v:.0f} %" for k, v in jr.qc.changes)
+        warnings.warn(f"joint engine: its variance components did not converge in "
+                      f"{jr.qc.iterations} updates (the last one's largest changes: {parts}): "
+                      f"their estimates are where the loop stopped "
+                      f"(docs/joint.md#the-variance-components-loop)", RtsgtWarning, stacklevel=2)
     est = _on_every_time(jr.estimate, np.isin(tq, jr.t))
     keep, report = gate_poses(est, reference, options)
     gt = PoseTrajectory(tq[keep], est.t[keep], matrix_to_quat_xyzw(est.R[keep]), est.cov[keep])
@@ -200,7 +207,9 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
     """``joint`` of ``summary.json``: what the joint engine estimated besides the poses, JSON
     ready (docs/file-formats.md#summaryjson). ``qc``: the prior's ``Qc`` per motion class
     (m^2/s^3 and rad^2/s^3, the body frame's axes: the reference prisms' frame) with its
-    redundancy; ``kappa_ppm`` with its sigma; ``stations``: each station's posterior shift
+    redundancy; ``qc_iterations`` of the variance components' loop (``Qc``, noise, chains,
+    rocking), ``qc_converged`` whether it converged and ``qc_last_change`` its last update's
+    largest relative change of each (docs/joint.md#the-variance-components-loop); ``kappa_ppm`` with its sigma; ``stations``: each station's posterior shift
     from its calibration (mm, mrad, and in the calibration's sigmas per axis); ``clocks``: per
     station but the reference its offset (ms) at the start and the end, the largest
     ``|offset|`` and the median sigma; ``time_sync``: the constant clock offsets against the
@@ -229,7 +238,8 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
                                 "intervals": int(used[c])}
                for c in range(len(CLASS_NAMES)) if used[c] > 0},
         "qc_axes": ["x", "y", "z", "rx", "ry", "rz"],
-        "qc_iterations": int(q.iterations),
+        "qc_iterations": int(q.iterations), "qc_converged": bool(q.converged),
+        "qc_last_change": dict(q.changes),
         "kappa_ppm": float(jr.kappa_ppm), "kappa_sigma_ppm": float(jr.kappa_sigma_ppm),
         "stations": {sid: _station_shift(calibration.transforms[sid], T)
                      for sid, T in jr.stations.items()},
