@@ -414,6 +414,24 @@ def test_knot_rows_sum_each_knots_products_as_add_at_does(order):
     assert np.all(out[empty] == 0.0)
 
 
+def test_arrow_solver_gives_the_same_numbers_on_any_number_of_threads(monkeypatch):
+    """The reduction's products split between threads (sparse._bmm, here in parts of two
+    blocks and more, three threads) give the solution and every covariance bit for bit as
+    one thread does: each block's product is its own."""
+    rng = np.random.default_rng(5)
+    prob, truth = _synthetic(rng, K=29, noise=1.0)
+    system, _ = assemble(prob, truth)
+    monkeypatch.setattr(sparse, "_MIN_PER_THREAD", 2)
+    sols = []
+    for cores in (1, 3):
+        monkeypatch.setattr(sparse, "_CORES", cores)
+        sols.append((solve_arrow(system), solve_arrow(system, want_cov=True)))
+    for one, many in zip(*sols, strict=True):
+        for name in ("x", "g", "cov", "cov_next", "cov_g", "cov_var", "cov_var_next", "factor"):
+            a, b = getattr(one, name), getattr(many, name)
+            assert (a is None) == (b is None) and (a is None or np.array_equal(a, b)), name
+
+
 @pytest.mark.parametrize(("chunk", "K"), [(4, 13), (2048, 14)])
 def test_arrow_solver_matches_a_dense_solve_of_the_same_normal_equations(chunk, K,
                                                                         monkeypatch):

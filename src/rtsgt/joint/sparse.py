@@ -7,11 +7,19 @@ and the Schur complement onto the global parameters: docs/joint.md#the-solver.
 from __future__ import annotations
 
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg import LinAlgWarning
 from scipy.linalg import inv as _lapack_inv
+
+from rtsgt.parallel import available_cores
+
+#: Threads that share the reduction's batched products (:mod:`rtsgt.parallel`).
+_CORES = available_cores()
+#: Fewest blocks of a product worth a thread of their own (a thread's start costs more).
+_MIN_PER_THREAD = 512
 
 
 @dataclass(frozen=True)
@@ -156,6 +164,27 @@ def mix_solutions(sols: list[ArrowSolution], w: np.ndarray, dx: np.ndarray, dg: 
     return replace(mixed, own=sols[0])
 
 
+def _bmm(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` of two stacks (n, p, q), (n, q, r), the stack split between up to
+    :data:`_CORES` threads where it is long (numpy releases the interpreter lock in its
+    products). Each block's product is BLAS's alone, so the numbers do not depend on the
+    threads."""
+    n = a.shape[0]
+    parts = min(_CORES, n // _MIN_PER_THREAD)
+    if parts < 2 or a.ndim != 3 or b.ndim != 3 or b.shape[0] != n:
+        return a @ b
+    out = np.empty((n, a.shape[1], b.shape[2]), dtype=np.result_type(a, b))
+    edges = np.linspace(0, n, parts + 1).astype(int)
+
+    def part(i: int) -> None:
+        sl = slice(edges[i], edges[i + 1])
+        np.matmul(a[sl], b[sl], out=out[sl])
+
+    with ThreadPoolExecutor(max_workers=parts) as ex:
+        list(ex.map(part, range(parts)))
+    return out
+
+
 def _spd_inv(a: np.ndarray) -> np.ndarray:
     """Inverses (..., d, d) of SPD blocks through their Cholesky factors (LAPACK's
     ``potrf``, ``potri``; raises :class:`numpy.linalg.LinAlgError` where one is not
@@ -195,12 +224,12 @@ def _eliminate(D, U) -> tuple[list[_Level], np.ndarray]:
             b_right = np.concatenate([b_right, np.zeros((1, d, d))])
         couple = np.concatenate([b_left, np.swapaxes(b_right, 1, 2)], axis=1)
         d_inv = _spd_inv(D[1::2])
-        gab = d_inv @ np.swapaxes(couple, 1, 2)  # [D_i^-1 A_i,i-1, D_i^-1 A_i,i+1]
+        gab = _bmm(d_inv, np.swapaxes(couple, 1, 2))  # [D_i^-1 A_i,i-1, D_i^-1 A_i,i+1]
         ga, gb = gab[:, :, :d], gab[:, :, d:]
-        left = b_left @ gab  # [A_i-1,i D_i^-1 A_i,i-1, A_i-1,i D_i^-1 A_i,i+1]
+        left = _bmm(b_left, gab)  # [A_i-1,i D_i^-1 A_i,i-1, A_i-1,i D_i^-1 A_i,i+1]
         d_e = D[0::2].copy()
         d_e[:n_odd] -= left[:, :, :d]
-        d_e[1:] -= (np.swapaxes(b_right, 1, 2) @ gb)[: n_even - 1]
+        d_e[1:] -= _bmm(np.swapaxes(b_right, 1, 2), gb)[: n_even - 1]
         U = -left[: n_even - 1, :, d:]
         D = _sym(d_e)
         levels.append(_Level(n, d_inv, ga, gb, couple))
@@ -217,11 +246,11 @@ def _forward(levels: list[_Level], h: np.ndarray, keep: bool = True, schur: bool
     for lev in levels:
         n_even, n_odd = (lev.n + 1) // 2, lev.n // 2
         h_o = np.ascontiguousarray(h[1::2])  # (for the products; tensordot would copy it)
-        g = lev.d_inv @ h_o
+        g = _bmm(lev.d_inv, h_o)
         if schur:
             T += np.tensordot(h_o, g, axes=([0, 1], [0, 1]))  # BLAS, not einsum's loop
         h_e = h[0::2].copy()
-        step = lev.couple @ g  # both neighbours' updates in one product
+        step = _bmm(lev.couple, g)  # both neighbours' updates in one product
         d = g.shape[1]
         h_e[:n_odd] -= step[:, :d]
         h_e[1:] -= step[: n_even - 1, d:]
@@ -242,7 +271,7 @@ def _back(levels: list[_Level], S: np.ndarray, h: np.ndarray, gs: list) -> np.nd
         g = gs.pop()
         n = lev.n
         x_e = x if n % 2 else np.concatenate([x, np.zeros((1,) + x.shape[1:])])
-        x_o = g - lev.ga @ x_e[:-1] - lev.gb @ x_e[1:]
+        x_o = g - _bmm(lev.ga, x_e[:-1]) - _bmm(lev.gb, x_e[1:])
         x = np.empty((n,) + x_o.shape[1:])
         x[0::2] = x_e[: (n + 1) // 2]
         x[1::2] = x_o
@@ -261,9 +290,9 @@ def _inverse_blocks(levels: list[_Level], S: np.ndarray) -> tuple[np.ndarray, np
             s_e = np.concatenate([s_e, np.zeros((1, dim, dim))])
             c_e = np.concatenate([c_e, np.zeros((1, dim, dim))])
         # rows i (odd) of A Sigma = I with neighbours a = i-1, b = i+1
-        s_ia = -(ga @ s_e[:-1] + gb @ np.swapaxes(c_e, 1, 2))
-        s_ib = -(ga @ c_e + gb @ s_e[1:])
-        s_ii = lev.d_inv - ga @ np.swapaxes(s_ia, 1, 2) - gb @ np.swapaxes(s_ib, 1, 2)
+        s_ia = -(_bmm(ga, s_e[:-1]) + _bmm(gb, np.swapaxes(c_e, 1, 2)))
+        s_ib = -(_bmm(ga, c_e) + _bmm(gb, s_e[1:]))
+        s_ii = lev.d_inv - _bmm(ga, np.swapaxes(s_ia, 1, 2)) - _bmm(gb, np.swapaxes(s_ib, 1, 2))
         S = np.empty((n, dim, dim))
         S[0::2] = s_e[: (n + 1) // 2]
         S[1::2] = _sym(s_ii)
@@ -330,8 +359,8 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
     cov, nxt = var.copy(), np.concatenate([var_next, np.zeros((1, d, d))])
     for sl in chunks(K):  # L L^T a few thousand knots at a time
         lo, hi = sl.start, sl.stop
-        cov[lo:hi] += yb[lo:hi] @ np.swapaxes(yb[lo:hi], 1, 2)
-        nxt[lo:hi - 1] += yb[lo:hi - 1] @ np.swapaxes(yb[lo + 1:hi], 1, 2)
+        cov[lo:hi] += _bmm(yb[lo:hi], np.swapaxes(yb[lo:hi], 1, 2))
+        nxt[lo:hi - 1] += _bmm(yb[lo:hi - 1], np.swapaxes(yb[lo + 1:hi], 1, 2))
         if hi < K:
             nxt[hi - 1] += yb[hi - 1] @ yb[hi].T
     return ArrowSolution(x, g, cov, nxt[:-1], schur_inv * sg[:, None] * sg[None, :],
