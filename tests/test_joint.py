@@ -927,11 +927,12 @@ def test_gauss_markov_chains_are_estimated_with_the_trajectory():
     tau 2, 5 and 10 s) over a white noise of half the datasheet's: with the chains as knot
     states (rtsgt.joint.gm) the solve with the noise estimated, up to 30 updates (the
     default stops after VCE_MAX_ITER, short of the chains' convergence here: docs/joint.md),
-    determines every chain, whose last update moved them by less than VCE_TOL; over the 18 estimates of sigma and tau the mean squared error in their
-    sigmas is below 3 (one deployment: a loose check of their honesty, the benchmark's is
-    the statistical one), each sigma within a factor 1.6 and each tau within a factor 3 of
-    the truth (the start: 0.33 and 0.3-1.5), and the chains' columns of the gradient equal
-    finite differences of the cost (docs/joint.md#gauss-markov-noise). (The white factors'
+    determines every chain, whose last update moved them by less than VCE_TOL; over the 18
+    estimates of sigma and tau the mean squared error in their sigmas is below 3 (one
+    deployment: a loose check of their honesty, the benchmark's is the statistical one),
+    each sigma within a factor 1.6 and each tau within a factor 3 of the truth (the start:
+    0.33 and 0.3-1.5), and the chains' columns of the gradient equal finite differences of
+    the cost (docs/joint.md#gauss-markov-noise). (The white factors'
     sigmas ignore their trade with the chains' sigma: the near reference station's Hz factor
     reads 1.0 against 0.25, docs/joint.md.)"""
     rng = np.random.default_rng(31)

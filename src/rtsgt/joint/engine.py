@@ -671,12 +671,12 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     ``rng`` their draws, docs/joint.md#gauss-markov-noise) and the prisms' tests (where they
     are parameters; with the noise estimated, from its first update on) in the same loop;
     each iteration re-solves from the last state, at most ``max_updates`` of them (the
-    :class:`QcFit` says whether the loop converged first); other prisms' moves that explain the data
-    as well as the one found are carried at the end (:func:`carry_alternatives`). The motion
-    axes (where estimated) are held at the body frame's through the loop, so that the
-    prisms' tests have the motion prior's frame, and freed with ``prob.axes_sigma`` for a
-    last solve (docs/joint.md#the-motion-axes). Returns
-    the problem with the final ``qc`` per interval, the state, the
+    :class:`QcFit` says whether the loop converged first); other prisms' moves that explain
+    the data as well as the one found are carried at the end (:func:`carry_alternatives`).
+    The motion axes (where estimated) are held at the body frame's through the loop, so that
+    the prisms' tests have the motion prior's frame, and freed with ``prob.axes_sigma`` for a
+    last solve (docs/joint.md#the-motion-axes). Returns the problem with the final ``qc``
+    per interval, the state, the
     :class:`rtsgt.joint.sparse.ArrowSolution`, the last :class:`SolveInfo` and a
     :class:`QcFit`."""
     n = prob.t_knot.size - 1

@@ -209,8 +209,9 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
     (m^2/s^3 and rad^2/s^3, the body frame's axes: the reference prisms' frame) with its
     redundancy; ``qc_iterations`` of the variance components' loop (``Qc``, noise, chains,
     rocking), ``qc_converged`` whether it converged and ``qc_last_change`` its last update's
-    largest relative change of each (docs/joint.md#the-variance-components-loop); ``kappa_ppm`` with its sigma; ``stations``: each station's posterior shift
-    from its calibration (mm, mrad, and in the calibration's sigmas per axis); ``clocks``: per
+    largest relative change of each (docs/joint.md#the-variance-components-loop);
+    ``kappa_ppm`` with its sigma; ``stations``: each station's posterior shift from its
+    calibration (mm, mrad, and in the calibration's sigmas per axis); ``clocks``: per
     station but the reference its offset (ms) at the start and the end, the largest
     ``|offset|`` and the median sigma; ``time_sync``: the constant clock offsets against the
     robot's (ms, with sigma); ``prisms``: each prism's shift from its survey (mm, with its
