@@ -2,8 +2,8 @@
 
 Two settings, each nothing where the C library is not glibc: at most :data:`MALLOC_ARENAS`
 arenas (the command line's threads keep less freed memory), and freed memory kept in the
-process (the joint engine's arrays of tens of megabytes, allocated at every Gauss-Newton
-step, no longer mapped afresh and faulted in page by page). Measured in
+process (the joint engine's arrays of tens to hundreds of megabytes, allocated at every
+Gauss-Newton step, no longer mapped afresh and faulted in page by page). Measured in
 docs/benchmarks.md#speed.
 """
 
@@ -20,7 +20,7 @@ MMAP_THRESHOLD = 32 * 1024 * 1024
 TRIM_THRESHOLD = 1024 * 1024 * 1024
 
 # glibc's mallopt parameters (malloc.h)
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_ARENA_MAX = -1, -3, -8
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -3, -4, -8
 
 
 def _mallopt(param: int, value: int) -> bool:
@@ -37,13 +37,15 @@ def limit_arenas(n: int = MALLOC_ARENAS) -> bool:
 
 
 def keep_freed_memory() -> bool:
-    """For the rest of the process, blocks up to :data:`MMAP_THRESHOLD` from the heap and
+    """For the rest of the process, every block from the heap (``M_MMAP_MAX`` 0: none mapped
+    on its own; glibc caps the size up to which it would take one from the heap at
+    :data:`MMAP_THRESHOLD`, and an hour's solves use arrays of hundreds of megabytes) and
     freed memory kept up to :data:`TRIM_THRESHOLD` (glibc's adaptive thresholds off): the
     memory a large array frees is reused by the next instead of being returned to the system
-    and faulted in again. Whether both were set. The process's resident size then stays near
-    its peak."""
-    return _mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD) & _mallopt(_M_TRIM_THRESHOLD,
-                                                                   TRIM_THRESHOLD)
+    and faulted in again. Whether all three were set. The process's resident size then stays
+    near its peak."""
+    return (_mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)
+            & _mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD) & _mallopt(_M_MMAP_MAX, 0))
 
 
 __all__ = ["MALLOC_ARENAS", "MMAP_THRESHOLD", "TRIM_THRESHOLD", "keep_freed_memory",
