@@ -24,7 +24,8 @@ Against the simulation's truth:
   (:func:`moved_prism`).
 
 ``--without displacement clocks gm rocking ...`` leaves effects of the preset out, to see what each
-costs. Development seeds are 0-44 (15-44 since 2026-11-30); issue 23's acceptance must be
+costs; ``--max-updates N`` runs the joint engine's variance-component loop to at most N
+updates (docs/joint.md#the-variance-components-loop). Development seeds are 0-44 (15-44 since 2026-11-30); issue 23's acceptance must be
 measured on seeds never used (1000-1019 to 5000-5019, by thousands, have been: 6000 on).
 Prints one line per seed and a Markdown table (docs/simulation.md).
 """
@@ -53,6 +54,7 @@ from rtsgt.evaluation.metrics import (
 )
 from rtsgt.geometry.so3 import quat_xyzw_to_matrix
 from rtsgt.io.deployment import load_deployment
+from rtsgt.joint import engine as joint_engine
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import simulate_deployment, write_deployment
 from rtsgt.simulation.compare import compare_to_truth
@@ -270,9 +272,14 @@ def main() -> None:
     ap.add_argument("--rocking-exponent", type=float, default=None,
                     help="the rocking's size while driving as (v / top speed) ** this "
                          "(default: the preset's, 1; 0: one size, as on the real deployments)")
+    ap.add_argument("--max-updates", type=int, default=None,
+                    help="the joint engine's variance-component updates at most (default: "
+                         "its VCE_MAX_ITER; docs/joint.md#the-variance-components-loop)")
     ap.add_argument("--out", default=None,
                     help="folder: each seed's result as <seed>.json when it is done")
     args = ap.parse_args()
+    if args.max_updates is not None:  # a benchmark's knob: the loop's stop, read at the call
+        joint_engine.VCE_MAX_ITER = args.max_updates
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in seeds(args.seeds):

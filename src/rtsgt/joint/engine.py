@@ -663,15 +663,16 @@ class QcFit:
 
 def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
                   max_iter: int = 10, tol: float = DECREASE_TOL, estimate_noise: bool = False,
-                  rng: np.random.Generator | None = None, max_updates: int = VCE_MAX_ITER):
+                  rng: np.random.Generator | None = None, max_updates: int | None = None):
     """Gauss-Newton with the prior's ``Qc`` per motion class by iterated variance components
     (docs/joint.md#qc-from-the-data), starting from ``prob.qc`` (6,) for every class, with
     (``estimate_noise``) the white noise's components (docs/joint.md#noise-identification;
     the problem's ``noise``) and the Gauss-Markov chains' (where the problem has them;
     ``rng`` their draws, docs/joint.md#gauss-markov-noise) and the prisms' tests (where they
     are parameters; with the noise estimated, from its first update on) in the same loop;
-    each iteration re-solves from the last state, at most ``max_updates`` of them (the
-    :class:`QcFit` says whether the loop converged first); other prisms' moves that explain
+    each iteration re-solves from the last state, at most ``max_updates`` of them (None:
+    :data:`VCE_MAX_ITER`, read at the call; the :class:`QcFit` says whether the loop
+    converged first); other prisms' moves that explain
     the data as well as the one found are carried at the end (:func:`carry_alternatives`).
     The motion axes (where estimated) are held at the body frame's through the loop, so that
     the prisms' tests have the motion prior's frame, and freed with ``prob.axes_sigma`` for a
@@ -680,6 +681,7 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     :class:`rtsgt.joint.sparse.ArrowSolution`, the last :class:`SolveInfo` and a
     :class:`QcFit`."""
     n = prob.t_knot.size - 1
+    max_updates = VCE_MAX_ITER if max_updates is None else max_updates
     qc0 = np.asarray(prob.qc, dtype=float)
     axes_sigma = prob.axes_sigma  # held at the body frame's until the last solve
     prob = replace(prob, axes_sigma=AXES_HELD_SIGMA if prob.n_axes else axes_sigma
