@@ -26,8 +26,8 @@ Against the simulation's truth:
 ``--without displacement clocks gm rocking ...`` leaves effects of the preset out, to see what each
 costs; ``--max-updates N`` runs the joint engine's variance-component loop to at most N
 updates (docs/joint.md#the-variance-components-loop). Development seeds are 0-44 (15-44
-since 2026-11-30); issue 23's acceptance must be measured on seeds never used (1000-1019 to 5000-5019, by thousands, have been: 6000 on).
-Prints one line per seed and a Markdown table (docs/simulation.md).
+since 2026-11-30); issue 23's acceptance must be measured on seeds never used (1000-1019
+to 5000-5019, by thousands, have been: 6000 on). Prints one line per seed and a Markdown table (docs/simulation.md).
 """
 
 from __future__ import annotations
