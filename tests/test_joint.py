@@ -42,7 +42,7 @@ from rtsgt.joint.interpolate import interpolate_poses_gp
 from rtsgt.joint.knots import build_knots, qc_from_prisms
 from rtsgt.joint.measurements import PolarMeasurements, predict, residual
 from rtsgt.joint.prior import prior_terms, wnoa_q_inv
-from rtsgt.joint.prisms import prism_tests
+from rtsgt.joint.prisms import blind_moves, prism_tests
 from rtsgt.joint.qc import (
     N_CLASSES,
     QC_FLOOR,
@@ -779,6 +779,37 @@ def test_a_moved_prism_surveyed_more_tightly_than_the_others_is_still_found():
     assert info.converged and [f[0] for f in prob2.prism_found] == [0], prob2.prism_found
     assert prob2.prism_found[0][2] >= 2, prob2.prism_found  # its in-plane directions
     np.testing.assert_allclose(est.t, truth.t, atol=1e-5)
+
+
+def test_what_no_station_sees_of_a_prisms_move():
+    """blind_moves: with three prisms each one's blind direction is the normal of their plane
+    (largest component positive) and the poses turn by ``1 / h`` rad per m of move along it,
+    ``h`` its distance from the other two's line: the rotation by ``e`` about that line moves
+    it by ``e h`` along the normal to first order (the test's own rotation, exact) and keeps
+    the other two; a fourth prism off the plane leaves none; with two prisms each has the
+    two directions across their line, each at ``1 / L``."""
+    n, _ = _in_plane_move()
+    out = blind_moves(SURVEY)
+    for j, (g, turn) in enumerate(out):
+        a, b = SURVEY[[k for k in range(3) if k != j]]
+        u = (b - a) / np.linalg.norm(b - a)
+        v = SURVEY[j] - a
+        h = np.linalg.norm(v - (v @ u) * u)
+        assert g.shape == (3, 1) and turn.shape == (1,)
+        assert abs(abs(g[:, 0] @ n) - 1.0) < 1e-12 and g[np.argmax(np.abs(g[:, 0])), 0] > 0
+        assert turn[0] == pytest.approx(1.0 / h, rel=1e-9)
+        e = 1e-6  # the rotation about the others' line through a
+        step = a + exp_so3(e * u[None])[0] @ (SURVEY[j] - a) - SURVEY[j]
+        along = np.sign(step @ g[:, 0]) * e * h * g[:, 0]  # (either sense of the turn)
+        assert np.linalg.norm(step - along) < 1e-3 * e * h
+    four = np.vstack([SURVEY, [0.1, 0.0, 1.2]])
+    assert all(g.shape == (3, 0) and t.size == 0 for g, t in blind_moves(four))
+    two = blind_moves(SURVEY[:2])
+    L = np.linalg.norm(SURVEY[1] - SURVEY[0])
+    for g, turn in two:
+        assert g.shape == (3, 2)
+        np.testing.assert_allclose(g.T @ (SURVEY[1] - SURVEY[0]), 0.0, atol=1e-12)
+        np.testing.assert_allclose(turn, 1.0 / L, rtol=1e-9)
 
 
 def test_a_prisms_move_along_its_gauge_is_not_tested():

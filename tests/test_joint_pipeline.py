@@ -132,6 +132,18 @@ def test_the_summary_has_the_joint_section_and_the_checks_say_what_they_judge(ru
         # the largest eigenvalue of a 3x3 covariance: between its largest diagonal and trace
         sd = np.array(v["sigma_mm"])
         assert sd.max() - 1e-9 <= v["largest_sigma_mm"] <= np.sqrt(sd @ sd) + 1e-9, v
+    # three prisms: each one's blind move is across their plane (the same direction for
+    # all), turning the poses by 1 / h, h its distance from the others' line (the closed
+    # form on the survey the run used, in its body frame)
+    body = record.computation.joint.prisms.survey
+    n = np.cross(body[1] - body[0], body[2] - body[0])
+    for i, v in enumerate(j["prisms"].values()):  # the survey's order, the simulator's
+        (g,), (turn,) = v["blind_directions"], v["blind_turn_mrad_per_mm"]
+        assert abs(abs(np.dot(g, n)) / np.linalg.norm(n) - 1.0) < 1e-9, g
+        a, b = body[[k for k in range(3) if k != i]]
+        u = (b - a) / np.linalg.norm(b - a)
+        h = np.linalg.norm((body[i] - a) - ((body[i] - a) @ u) * u)
+        assert turn == pytest.approx(1.0 / h, rel=1e-9), (turn, h)  # rad/m = mrad/mm
     assert not [f for f in doc["verdict"]["findings"] if f["check"] == "moved prism"]
     # the prisms' deviation: per prism (order, term, component); a held order is 0 with its
     # prior's 0.1 um, an estimated one has a sigma under its prior's 2 mm / sqrt(6)
@@ -296,6 +308,8 @@ def test_the_report_shows_the_joint_estimates_with_their_sigmas(runs):
     prisms = table("run-joint-prisms")
     for v in j["prisms"].values():
         assert f"{v['largest_sigma_mm']:.3g}" in prisms and ">kept<" in prisms
+        blind = ", ".join(f"{x:.2f}" for x in v["blind_directions"][0])
+        assert f"({blind}): {v['blind_turn_mrad_per_mm'][0]:.3g} mrad per mm" in prisms
     noise = table("run-joint-noise")
     rows = noise.split("<tr>")[1:]
     for sid, per in j["noise"].items():

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import null_space
 from scipy.stats import chi2
 
 from rtsgt.geometry.so3 import hat
@@ -129,22 +130,56 @@ def _determined(N: np.ndarray, prior: np.ndarray):
     return w, U, (w > 0.0) & (w >= DETERMINED_RATIO * prior_w)
 
 
+def _fixing(p_body: np.ndarray, trusted: np.ndarray, j: int) -> tuple[np.ndarray, np.ndarray]:
+    """The rigid motions (6, m) (small ``(shift, rotation)`` about the body frame's origin)
+    that keep the ``trusted`` prisms (boolean (P,)) of ``p_body`` (P, 3) fixed, and how far
+    each moves prism ``j`` (3, m)."""
+    if not np.any(trusted):
+        null = np.eye(6)
+    else:
+        rows = np.concatenate([np.concatenate([np.eye(3), -hat(p)], axis=1)
+                               for p in p_body[trusted]])
+        _, sv, Vt = np.linalg.svd(rows)
+        null = Vt[np.sum(sv > 1e-9 * sv[0]):].T
+    return null, np.concatenate([np.eye(3), -hat(p_body[j])], axis=1) @ null
+
+
 def gauge_directions(p_body: np.ndarray, trusted: np.ndarray, j: int) -> np.ndarray:
     """Orthonormal directions (3, m) in which prism ``j`` moves under the rigid motions that
     keep the ``trusted`` prisms (boolean (P,)) of ``p_body`` (P, 3) fixed: none for three or
     more not collinear, the tangent of the circle about their line for two (the body frame
     is the survey's: there prism j's survey defines it)."""
-    if not np.any(trusted):
-        return np.eye(3)
-    rows = np.concatenate([np.concatenate([np.eye(3), -hat(p)], axis=1)
-                           for p in p_body[trusted]])
-    _, sv, Vt = np.linalg.svd(rows)
-    null = Vt[np.sum(sv > 1e-9 * sv[0]):].T  # (6, m) rigid motions fixing the trusted
-    D = np.concatenate([np.eye(3), -hat(p_body[j])], axis=1) @ null
+    _, D = _fixing(p_body, trusted, j)
     if D.size == 0:
         return np.zeros((3, 0))
     U, sd, _ = np.linalg.svd(D, full_matrices=False)
     return U[:, sd > 1e-9 * max(sd.max(), 1e-300)]
+
+
+def blind_moves(p_body: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """What no station sees of a prism's move, per prism ``j`` of ``p_body`` (P, 3) m (the
+    others where the survey puts them): the directions (3, m) of a move of ``j`` that a
+    rigid motion keeping the others makes (:func:`gauge_directions`: for three prisms the
+    normal of their plane, for four or more off one plane none; each direction's largest
+    component positive) and the body frame's turn (m,) rad per m of move along each, the
+    least rotation of a rigid motion that makes it (for three prisms ``1 / h``, ``h`` the
+    prism's distance from the others' line; for two ``1 / L`` over their distance). Every
+    pose is turned so by a move the survey does not know of
+    (docs/joint.md#what-no-station-sees)."""
+    out = []
+    for j in range(p_body.shape[0]):  # a handful of prisms
+        trusted = np.arange(p_body.shape[0]) != j
+        null, D = _fixing(p_body, trusted, j)
+        g = gauge_directions(p_body, trusted, j)
+        if g.size:  # each direction's largest component positive
+            g = g * np.sign(g[np.argmax(np.abs(g), axis=0), np.arange(g.shape[1])])
+        c = np.linalg.pinv(D) @ g  # (n, m) one rigid motion along each, then the least turn
+        Z = null_space(D)  # (motions keeping prism j too: about the line of two prisms)
+        if Z.size:
+            Rz = null[3:] @ Z
+            c = c - Z @ np.linalg.lstsq(Rz, null[3:] @ c, rcond=None)[0]
+        out.append((g, np.linalg.norm(null[3:] @ c, axis=0)))
+    return out
 
 
 def free_prism(info: np.ndarray, cov: np.ndarray, j: int, tests: PrismTests,
@@ -205,6 +240,13 @@ class PrismFit:
         return self.xyz - self.survey
 
     @property
+    def blind(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per prism the directions (3, m) of a move from the survey no station sees and
+        the poses' turn (m,) rad per m of move along each (:func:`blind_moves` of
+        ``survey``)."""
+        return blind_moves(self.survey)
+
+    @property
     def largest_sigma(self) -> np.ndarray:
         """Each prism's posterior standard deviation along its least determined direction
         (P,), m: for a prism found moved, where only the survey, the motion axes' prior and
@@ -214,4 +256,4 @@ class PrismFit:
 
 
 __all__ = ["DETERMINED_RATIO", "FIXED_SIGMA_M", "PrismFit", "PrismTests", "TEST_ALPHA",
-           "free_prism", "gauge_directions", "prism_prior_info", "prism_tests"]
+           "blind_moves", "free_prism", "gauge_directions", "prism_prior_info", "prism_tests"]

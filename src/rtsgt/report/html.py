@@ -676,6 +676,18 @@ def _joint_noise_row(sid, ch: str, w: Mapping | None, g: Mapping | None) -> str:
             f"<td class='s'>{white}</td><td class='s'>{corr}</td></tr>")
 
 
+def _blind_text(prism: Mapping) -> str:
+    """A prism's moves no station sees (``blind_directions``, ``blind_turn_mrad_per_mm`` of
+    ``summary.json``'s ``joint.prisms``): each direction and the poses' turn per mm along
+    it; none where the other prisms hold every direction (docs/joint.md#what-no-station-sees)."""
+    dirs = prism.get("blind_directions") or []
+    turns = prism.get("blind_turn_mrad_per_mm") or []
+    if not dirs:
+        return "none"
+    return "; ".join(f"({_vec(d, '.2f')}): {_fmt(t, 3)} mrad per mm"
+                     for d, t in zip(dirs, turns, strict=True))
+
+
 def _loop_text(j: Mapping) -> str:
     """The variance components' loop of a joint run: its updates and whether it converged
     (docs/joint.md#the-variance-components-loop)."""
@@ -729,12 +741,13 @@ def _joint_html(j: Mapping) -> str:
     parts.append(_rows_table(
         "run-joint-prisms", ("prism", "shift from the survey (mm)", "sigma (mm)",
                              "largest sigma (mm)", "test (sigmas)", "survey",
-                             "weight of the move"),
+                             "weight of the move",
+                             "a move no station sees: along (body frame), turns the poses by"),
         [f"<tr><td class='s'>{html.escape(str(pid))}</td>"
          f"<td>{_vec(v.get('shift_mm'), '.2f')}</td><td>{_vec(v.get('sigma_mm'), '.2f')}</td>"
          f"<td>{_fmt(v.get('largest_sigma_mm'), 3)}</td><td>{_fmt(v.get('test_sigmas'), 3)}</td>"
          f"<td class='s'>{'moved' if v.get('moved') else 'kept'}</td>"
-         f"<td>{_fmt(v.get('moved_weight'), 3)}</td></tr>"
+         f"<td>{_fmt(v.get('moved_weight'), 3)}</td><td class='s'>{_blind_text(v)}</td></tr>"
          for pid, v in (j.get("prisms") or {}).items()]))
     noise, gm = j.get("noise") or {}, j.get("gauss_markov") or {}
     parts.append(_rows_table(

@@ -299,11 +299,15 @@ def _deviation_summary(fit: DeviationFit) -> dict[str, Any]:
 
 def _prisms_summary(pf: PrismFit) -> dict[str, Any]:
     """Each prism's estimate against its survey (body frame), mm, its sigma per axis and
-    along its least determined direction, and the weight of the hypothesis that it moved
-    (with the cost above the found one's of another prism's hypothesis carried beside it)."""
-    largest = pf.largest_sigma
+    along its least determined direction, the weight of the hypothesis that it moved
+    (with the cost above the found one's of another prism's hypothesis carried beside it),
+    and the directions of a move no station sees (body frame, unit) with the poses' turn
+    per mm of move along each (mrad)."""
+    largest, blind = pf.largest_sigma, pf.blind
     return {p: {"shift_mm": (1e3 * pf.shift[i]).tolist(), "sigma_mm": (1e3 * pf.sigma[i]).tolist(),
                 "largest_sigma_mm": float(1e3 * largest[i]),
+                "blind_directions": blind[i][0].T.tolist(),
+                "blind_turn_mrad_per_mm": blind[i][1].tolist(),
                 "test_sigmas": float(pf.shift_sigma[i]), "moved": bool(pf.moved[i]),
                 "moved_weight": float(pf.weight[i]),
                 "cost_above_found": None if np.isnan(pf.cost_above[i])
