@@ -114,8 +114,9 @@ def clocks_within(record, sim) -> float | None:
 
 def moved_prism(record, sim) -> dict:
     """The prism the field truth moved, those the joint engine found moved and the others'
-    hypotheses it carried beside them (docs/joint.md#which-prism-moved), by index; empty
-    without the joint engine's prisms or the field truth."""
+    hypotheses it carried beside them (docs/joint.md#which-prism-moved), by index, with what
+    the stations can see of the move (:func:`move_geometry`); empty without the joint
+    engine's prisms or the field truth."""
     joint = record.computation.joint
     f = sim.truth.field
     pf = None if joint is None else joint.prisms
@@ -123,7 +124,45 @@ def moved_prism(record, sim) -> dict:
         return {}
     return {"prism_moved": int(f.displaced_prism),
             "prism_found": [int(j) for j in np.flatnonzero(pf.moved)],
-            "prism_carried": [int(j) for j in np.flatnonzero((pf.weight > 0) & ~pf.moved)]}
+            "prism_carried": [int(j) for j in np.flatnonzero((pf.weight > 0) & ~pf.moved)],
+            **move_geometry(sim.truth.reference_body, int(f.displaced_prism),
+                            np.asarray(f.displacement_body_m, dtype=float))}
+
+
+def move_geometry(moved: np.ndarray, k: int, delta: np.ndarray) -> dict:
+    """What a rigid body's tracked prisms show of one prism's move: prisms at ``moved``
+    (P, 3) m after prism ``k`` moved by ``delta`` (3,) m (the survey at ``moved`` less it).
+    The inter-prism distances are all the stations see of the body's shape; to first order
+    prism ``k``'s move changes those to the others by its projections on their directions,
+    and the part of the move orthogonal to them (with three prisms, along their plane's
+    normal) is a rotation of the body frame about the other prisms, seen by nothing
+    (docs/joint.md#what-no-station-sees). Returns, mm: ``move_mm`` its size,
+    ``move_blind_mm`` its part no distance sees (first order), ``move_seen_mm`` the norm of
+    the distances' changes (exact) and ``move_other_mm`` the least norm of their changes that
+    a move of one other prism leaves unexplained (first order: how far the move is from
+    being another prism's)."""
+    surveyed = moved.copy()
+    surveyed[k] -= delta
+    pairs = [(i, j) for i in range(len(moved)) for j in range(i + 1, len(moved))]
+
+    def jac(i: int) -> np.ndarray:  # d (pair distances) / d (prism i's position), (pairs, 3)
+        A = np.zeros((len(pairs), 3))
+        for n, (a, b) in enumerate(pairs):
+            if i in (a, b):
+                e = surveyed[a] - surveyed[b]
+                A[n] = (1.0 if i == a else -1.0) * e / np.linalg.norm(e)
+        return A
+
+    dist = lambda X: np.array([np.linalg.norm(X[a] - X[b]) for a, b in pairs])  # noqa: E731
+    change = dist(moved) - dist(surveyed)
+    Ak = jac(k)
+    seen = np.linalg.pinv(Ak) @ (Ak @ delta)  # the move's part in the row space
+    other = [np.linalg.norm(change - jac(i) @ np.linalg.lstsq(jac(i), change, rcond=None)[0])
+             for i in range(len(moved)) if i != k]
+    return {"move_mm": float(1e3 * np.linalg.norm(delta)),
+            "move_blind_mm": float(1e3 * np.linalg.norm(delta - seen)),
+            "move_seen_mm": float(1e3 * np.linalg.norm(change)),
+            "move_other_mm": float(1e3 * min(other, default=np.inf))}
 
 
 def deviation_within(record, sim, data) -> float | None:
