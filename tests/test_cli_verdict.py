@@ -109,6 +109,30 @@ def test_undecided_prism_hypotheses_are_a_caveat_naming_the_prisms():
     assert [f.check for f in v.findings] == ["moved prism"], v.findings
 
 
+def test_a_move_no_station_sees_is_a_note_with_the_poses_turn_per_mm():
+    """Three prisms share their blind direction (their plane's normal): the note names it
+    and the range of the poses' turn per mm; it leaves the level as it was; two prisms'
+    several directions are left to summary.json; a rig without one has no note
+    (docs/joint.md#what-no-station-sees)."""
+    n = [0.22904714, -0.21176024, 0.95010263]
+    turns = {"1": 1.58, "2": 1.40, "3": 1.14}
+    prisms = {k: {"moved": False, "shift_mm": [0.0, 0.0, 0.0], "blind_directions": [n],
+                  "blind_turn_mrad_per_mm": [t]} for k, t in turns.items()}
+    v = run_verdict({}, kept=100, queried=100, joint={"prisms": prisms})
+    assert v.level == "usable" and [(f.severity, f.check) for f in v.findings] == [
+        (0, "what no station sees")], v.findings
+    text = v.findings[0].text
+    assert "prisms 1, 2 and 3 across their plane, along (0.23, -0.21, 0.95)" in text, text
+    assert "each mm of it turns every pose by 1.1-1.6 mrad" in text, text
+    two = {k: {"blind_directions": [[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+               "blind_turn_mrad_per_mm": [2.5, 2.5]} for k in "12"}
+    (f,) = run_verdict({}, kept=100, queried=100, joint={"prisms": two}).findings
+    assert "in the directions summary.json gives" in f.text and "by 2.5 mrad," in f.text, f.text
+    for p in prisms.values():  # four prisms off one plane: none
+        p["blind_directions"], p["blind_turn_mrad_per_mm"] = [], []
+    assert not run_verdict({}, kept=100, queried=100, joint={"prisms": prisms}).findings
+
+
 def test_static_correlation_is_a_caveat_only_where_the_gps_do_not_carry_it():
     comp = {"level": {"verdict": "consistent"},
             "correlation": {"verdict": "optimistic", "correlation_time_s": 2.5}}

@@ -145,6 +145,8 @@ def test_the_summary_has_the_joint_section_and_the_checks_say_what_they_judge(ru
         h = np.linalg.norm((body[i] - a) - ((body[i] - a) @ u) * u)
         assert turn == pytest.approx(1.0 / h, rel=1e-9), (turn, h)  # rad/m = mrad/mm
     assert not [f for f in doc["verdict"]["findings"] if f["check"] == "moved prism"]
+    (blind,) = [f for f in doc["verdict"]["findings"] if f["check"] == "what no station sees"]
+    assert blind["severity"] == 0 and "prisms 1, 2 and 3 across their plane" in blind["text"]
     # the prisms' deviation: per prism (order, term, component); a held order is 0 with its
     # prior's 0.1 um, an estimated one has a sigma under its prior's 2 mm / sqrt(6)
     dev = j["deviation"]

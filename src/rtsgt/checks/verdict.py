@@ -266,6 +266,31 @@ def _moved_prisms(joint: dict, out: list[Finding]) -> None:
                            f"would decide"))
 
 
+def _blind_moves(joint: dict, out: list[Finding]) -> None:
+    """A note where a prism's move can be seen by no station (``blind_directions`` of
+    ``summary.json``'s ``joint.prisms``): which prisms, along what (for three prisms the
+    normal of their plane, the same for each) and the poses' turn per mm of it
+    (docs/joint.md#what-no-station-sees)."""
+    blind = {k: v for k, v in (joint.get("prisms") or {}).items()
+             if v.get("blind_directions")}  # absent from runs written before it was
+    if not blind:
+        return
+    turns = [t for v in blind.values() for t in v.get("blind_turn_mrad_per_mm") or ()]
+    dirs = [d for v in blind.values() for d in v["blind_directions"]]
+    one = all(max(abs(a - b) for a, b in zip(d, dirs[0], strict=True)) < 1e-6 for d in dirs)
+    along = ("across their plane, along ("
+             + ", ".join(f"{x:.2f}" for x in dirs[0]) + ") in the body frame," if one
+             else "in the directions summary.json gives")
+    size = (f"{min(turns):.2g} mrad" if max(turns) - min(turns) < 0.005 * max(turns)
+            else f"{min(turns):.2g}-{max(turns):.2g} mrad")
+    out.append(Finding(0, "what no station sees",
+                       f"a move of prism{'s' if len(blind) > 1 else ''} {_names(list(blind))} "
+                       f"{along} changes no inter-prism distance and is seen by no station: "
+                       f"each mm of it turns every pose by {size}, and the poses take the "
+                       f"survey there; a prism off their plane, a survey after the deployment "
+                       f"or an IMU's gravity would see it"))
+
+
 def run_verdict(self_checks: dict, *, kept: int, queried: int,
                 distance_check: dict | None = None, correlated_noise: dict | None = None,
                 survey_sigma: float = SURVEY_DISTANCE_WARNING_SIGMA,
@@ -274,7 +299,7 @@ def run_verdict(self_checks: dict, *, kept: int, queried: int,
     of ``queried``, its ``distance_check`` (tracked distances against the survey; a pair over
     ``survey_sigma`` predicted sigmas is a finding), ``correlated_noise`` (what the GPs
     carried) and ``joint`` (``summary.json``'s ``joint``: a prism the joint engine found
-    moved is a caveat)."""
+    moved is a caveat, a move no station could see a note)."""
     out: list[Finding] = []
     if kept == 0:
         out.append(Finding(2, "poses", f"no pose passed the quality gates (0 of {queried})"))
@@ -290,6 +315,7 @@ def run_verdict(self_checks: dict, *, kept: int, queried: int,
     _gcp(self_checks.get("gcp_fit") or {}, out)
     _dynamic(self_checks.get("dynamic_calibration") or {}, out)
     _moved_prisms(joint or {}, out)
+    _blind_moves(joint or {}, out)
     return RunVerdict(tuple(sorted(out, key=lambda f: -f.severity)))
 
 
