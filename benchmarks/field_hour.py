@@ -262,6 +262,9 @@ def config(args):
 def one(seed: int, args, tmp: Path) -> dict:
     sim = simulate_deployment(config(args), seed)
     data, options = load_deployment(write_deployment(sim, tmp / f"field-{seed}"))
+    if args.prism_stability_mm is not None:
+        data = dataclasses.replace(data, reference=dataclasses.replace(
+            data.reference, stability=1e-3 * args.prism_stability_mm))
     options = options.updated(seed=seed, **({"engine": args.engine} if args.engine else {}))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -314,6 +317,9 @@ def main() -> None:
     ap.add_argument("--max-updates", type=int, default=None,
                     help="the joint engine's variance-component updates at most (default: "
                          "its VCE_MAX_ITER; docs/joint.md#the-variance-components-loop)")
+    ap.add_argument("--prism-stability-mm", type=float, default=None,
+                    help="the deployment's [reference] prism_stability_mm (default: its own, "
+                         "0; docs/joint.md#what-no-station-sees)")
     ap.add_argument("--out", default=None,
                     help="folder: each seed's result as <seed>.json when it is done")
     args = ap.parse_args()

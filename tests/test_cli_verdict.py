@@ -123,7 +123,10 @@ def test_a_move_no_station_sees_is_a_note_with_the_poses_turn_per_mm():
         (0, "what no station sees")], v.findings
     text = v.findings[0].text
     assert "prisms 1, 2 and 3 across their plane, along (0.23, -0.21, 0.95)" in text, text
-    assert "each mm of it turns every pose by 1.1-1.6 mrad" in text, text
+    assert "each mm of it turns every pose by 1.1-1.6 mrad, and the poses take the survey" in text
+    v = run_verdict({}, kept=100, queried=100,
+                    joint={"prisms": prisms, "prism_stability_mm": 2.0})
+    assert "the poses carry a move of 2 mm (1 sigma) there" in v.findings[0].text, v.findings
     two = {k: {"blind_directions": [[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
                "blind_turn_mrad_per_mm": [2.5, 2.5]} for k in "12"}
     (f,) = run_verdict({}, kept=100, queried=100, joint={"prisms": two}).findings

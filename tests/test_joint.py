@@ -42,7 +42,7 @@ from rtsgt.joint.interpolate import interpolate_poses_gp
 from rtsgt.joint.knots import build_knots, qc_from_prisms
 from rtsgt.joint.measurements import PolarMeasurements, predict, residual
 from rtsgt.joint.prior import prior_terms, wnoa_q_inv
-from rtsgt.joint.prisms import blind_moves, prism_tests
+from rtsgt.joint.prisms import blind_moves, prism_tests, stability_factor
 from rtsgt.joint.qc import (
     N_CLASSES,
     QC_FLOOR,
@@ -810,6 +810,30 @@ def test_what_no_station_sees_of_a_prisms_move():
         assert g.shape == (3, 2)
         np.testing.assert_allclose(g.T @ (SURVEY[1] - SURVEY[0]), 0.0, atol=1e-12)
         np.testing.assert_allclose(turn, 1.0 / L, rtol=1e-9)
+
+
+def test_the_stability_is_a_move_along_the_blind_directions_that_the_stations_cannot_see():
+    """stability_factor: the prisms' moves sigma^2 n n^T per prism of three (n their plane's
+    normal), independent between prisms, and the body frame's turn that keeps every prism
+    where the stations see it exactly (rho + phi x p_j + dp_j = 0); nothing for four prisms
+    off one plane, zero for a sigma of 0 (docs/joint.md#what-no-station-sees)."""
+    n, _ = _in_plane_move()
+    dxi, dp = stability_factor(SURVEY, 2e-3)
+    assert dxi.shape == (6, 3) and dp.shape == (9, 3)
+    C = dp @ dp.T
+    for j in range(3):
+        for k in range(3):
+            want = 4e-6 * np.outer(n, n) if j == k else np.zeros((3, 3))
+            np.testing.assert_allclose(C[3 * j:3 * j + 3, 3 * k:3 * k + 3], want, atol=1e-18)
+        seen = dxi[:3] + np.cross(dxi[3:].T, SURVEY[j]).T + dp[3 * j:3 * j + 3]
+        np.testing.assert_allclose(seen, 0.0, atol=1e-15)
+    # a move of one prism alone turns the body about the other two's line by 1 / h (blind_moves)
+    np.testing.assert_allclose(np.linalg.norm(dxi[3:], axis=0),
+                               2e-3 * np.concatenate([t for _, t in blind_moves(SURVEY)]),
+                               rtol=1e-9)
+    dxi4, dp4 = stability_factor(np.vstack([SURVEY, [0.1, 0.0, 1.2]]), 2e-3)
+    assert dxi4.shape == (6, 0) and dp4.shape == (12, 0)
+    assert not np.any(stability_factor(SURVEY, 0.0)[0])
 
 
 def test_a_prisms_move_along_its_gauge_is_not_tested():

@@ -282,6 +282,48 @@ def test_calibration_times_are_the_gcp_shots_within_the_hour_before_the_tracking
     assert calibration_times(shots, SimpleNamespace(method="dynamic", transforms={}), t0) == {}
 
 
+def test_the_prisms_stability_turns_the_poses_as_the_closed_form_says(runs):
+    """``[reference] prism_stability_mm``: a prism may have moved along its blind direction
+    (docs/joint.md#what-no-station-sees), carried as a consider parameter. The poses are
+    the same; their rotation covariance (body frame) grows by the closed form's: the tilts
+    about the prisms' plane's in-plane axes of the rigid motion (tilt u1, u2, shift along n)
+    that moves each prism by e_j along n, ``cov = sigma^2 (A^T A)^-1``, ``A_j = ((p_j x n)
+    . u1, (p_j x n) . u2, 1)``, nothing about n; the growth is shared by every pose. The
+    summary records it; a per-prism engine says it does not carry it."""
+    sim, folder, base, _ = runs[0]
+    data, opts = load_deployment(folder)
+    data = replace(data, reference=replace(data.reference, stability=1e-3))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rec = run_pipeline(data, opts.updated(seed=SEEDS[0], engine="joint"))
+        linear = run_pipeline(data, opts.updated(seed=SEEDS[0], engine="linear"))
+    assert rec.joint["prism_stability_mm"] == pytest.approx(1.0)
+    assert base.joint["prism_stability_mm"] == 0.0
+    assert any("prism_stability_mm: only the joint engine" in w for w in linear.warnings)
+    assert not any("prism_stability_mm" in w for w in rec.warnings)
+
+    def body_rotation_cov(gt):
+        R = quat_xyzw_to_matrix(gt.quat_xyzw)
+        return np.swapaxes(R, 1, 2) @ gt.cov[:, 3:, 3:] @ R
+
+    grown = np.mean(body_rotation_cov(rec.groundtruth) - body_rotation_cov(base.groundtruth),
+                    axis=0)
+    p = data.reference.xyz
+    n = np.cross(p[1] - p[0], p[2] - p[0])
+    n /= np.linalg.norm(n)
+    U = np.linalg.svd(np.eye(3) - np.outer(n, n))[0][:, :2]
+    A = np.column_stack([np.cross(p, n) @ U, np.ones(3)])
+    closed = U @ (1e-6 * np.linalg.inv(A.T @ A))[:2, :2] @ U.T
+    np.testing.assert_allclose(grown, closed, atol=1e-3 * np.trace(closed))
+    np.testing.assert_allclose(rec.groundtruth.position, base.groundtruth.position, atol=1e-12)
+    # the growth is shared: the split's shared part grows by it, the varying part not
+    sb, sr = base.groundtruth_split, rec.groundtruth_split
+    assert sr.names[-3:] == ("blind_1", "blind_2", "blind_3"), sr.names
+    np.testing.assert_allclose(sr.varying_cov, sb.varying_cov, atol=1e-15)
+    np.testing.assert_allclose(sr.shared_cov + sr.varying_cov, rec.groundtruth.cov, rtol=1e-6,
+                               atol=1e-12)
+
+
 def test_the_report_shows_the_joint_estimates_with_their_sigmas(runs):
     """The report's run section has the joint engine's estimates from summary.json, each with
     its sigma: the stations' shifts, the clocks, the prisms, the noise and the motion axes."""

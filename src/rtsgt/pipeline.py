@@ -19,6 +19,7 @@ import numpy as np
 
 from rtsgt.checks.static import static_stretches
 from rtsgt.deployment import DeploymentData
+from rtsgt.errors import RtsgtWarning
 from rtsgt.evaluation.groundtruth import ContinuousGroundTruth
 from rtsgt.evaluation.joint_truth import JointGroundTruth
 from rtsgt.evaluation.static_poses import static_relative_check
@@ -121,6 +122,10 @@ def _pose_stages(data: DeploymentData, options: RunOptions, front: Front, say: P
         front.reports["module4"] = fit.window_report
         removed = front.removal.measurements([fit.left_out[o.prism] for o in front.filtered])
     joint = None
+    if reference.stability > 0 and not options.joint:
+        warnings.warn("[reference] prism_stability_mm: only the joint engine carries a prism's "
+                      "move that no station sees; the per-prism engine takes the survey as "
+                      "it is (docs/joint.md#what-no-station-sees)", RtsgtWarning, stacklevel=2)
     if options.joint:
         joint = joint_fit(options, front.filtered, front.calibration, front.model,
                           data.weather, fit, reference, say, data.gcp)

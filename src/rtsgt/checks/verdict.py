@@ -269,8 +269,8 @@ def _moved_prisms(joint: dict, out: list[Finding]) -> None:
 def _blind_moves(joint: dict, out: list[Finding]) -> None:
     """A note where a prism's move can be seen by no station (``blind_directions`` of
     ``summary.json``'s ``joint.prisms``): which prisms, along what (for three prisms the
-    normal of their plane, the same for each) and the poses' turn per mm of it
-    (docs/joint.md#what-no-station-sees)."""
+    normal of their plane, the same for each), the poses' turn per mm of it and whether the
+    poses carry such a move (``prism_stability_mm``; docs/joint.md#what-no-station-sees)."""
     blind = {k: v for k, v in (joint.get("prisms") or {}).items()
              if v.get("blind_directions")}  # absent from runs written before it was
     if not blind:
@@ -283,12 +283,17 @@ def _blind_moves(joint: dict, out: list[Finding]) -> None:
              else "in the directions summary.json gives")
     size = (f"{min(turns):.2g} mrad" if max(turns) - min(turns) < 0.005 * max(turns)
             else f"{min(turns):.2g}-{max(turns):.2g} mrad")
+    stability = joint.get("prism_stability_mm") or 0.0  # absent from older runs
+    carried = (f"the poses carry a move of {stability:.3g} mm (1 sigma) there, as "
+               f"[reference] prism_stability_mm says" if stability > 0 else
+               "the poses take the survey there ([reference] prism_stability_mm would have "
+               "them carry a move)")
     out.append(Finding(0, "what no station sees",
                        f"a move of prism{'s' if len(blind) > 1 else ''} {_names(list(blind))} "
                        f"{along} changes no inter-prism distance and is seen by no station: "
-                       f"each mm of it turns every pose by {size}, and the poses take the "
-                       f"survey there; a prism off their plane, a survey after the deployment "
-                       f"or an IMU's gravity would see it"))
+                       f"each mm of it turns every pose by {size}, and {carried}; a prism off "
+                       f"their plane, a survey after the deployment or an IMU's gravity would "
+                       f"see it"))
 
 
 def run_verdict(self_checks: dict, *, kept: int, queried: int,

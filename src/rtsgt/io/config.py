@@ -95,6 +95,10 @@ class ReferenceConfig:
     #: ``rocking_pivot``: the point the vehicle rocks about (m; the survey's frame, the body
     #: frame's for a ``csv`` reference); None: not given (docs/joint.md#the-rockings-pivot).
     rocking_pivot: tuple[float, float, float] | None = None
+    #: ``prism_stability_mm``: how far (1 sigma per axis, mm) a prism may have moved since
+    #: its survey where no station can see it; 0: the survey is trusted there
+    #: (docs/joint.md#what-no-station-sees).
+    prism_stability_mm: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -502,7 +506,12 @@ def _reference(path: Path, doc: dict, prisms: list[str],
             raise ConfigError(f"[reference] rocking_pivot must be [x, y, z] in m, got {pivot!r}",
                               path)
         pivot = tuple(float(x) for x in pivot)
-    reference = ReferenceConfig(ref_file, ref_format, rows, body_frame, body_points, T_sb, pivot)
+    stability = r.get("prism_stability_mm", float, 0.0)
+    if not (math.isfinite(stability) and stability >= 0.0):
+        raise ConfigError(f"[reference] prism_stability_mm must be a finite mm >= 0, got "
+                          f"{stability!r}", path)
+    reference = ReferenceConfig(ref_file, ref_format, rows, body_frame, body_points, T_sb, pivot,
+                                stability)
     r.done()
     return reference
 

@@ -84,7 +84,8 @@ def read_reference(cfg: DeploymentConfig) -> ReferencePoints:
         missing = [n for n in names if n not in ref.names]
         if missing:
             raise InputError(f"no reference point named {', '.join(missing)}", rc.file)
-        return replace(ref.select(names), pivot=rc.rocking_pivot)
+        return replace(ref.select(names), pivot=rc.rocking_pivot,
+                       stability=1e-3 * rc.prism_stability_mm)
     survey = (read_sensor_positions(rc.file) if rc.format == "sensor-positions"
               else read_survey_raw(rc.file))
     n_rows = survey.xyz.shape[0]
@@ -105,8 +106,9 @@ def read_reference(cfg: DeploymentConfig) -> ReferencePoints:
     else:
         body = RigidTransform.from_matrix(np.array(rc.T_survey_body), frame_to="survey",
                                           frame_from="body")
-    return reference_from_survey(survey.xyz, survey.cov, rows, body_frame=body, names=names,
-                                 pivot=rc.rocking_pivot)
+    return replace(reference_from_survey(survey.xyz, survey.cov, rows, body_frame=body,
+                                         names=names, pivot=rc.rocking_pivot),
+                   stability=1e-3 * rc.prism_stability_mm)
 
 
 def _warn_sensor_position_defects(points: SensorPositions, rows: list[int]) -> None:

@@ -38,7 +38,13 @@ from rtsgt.joint.knots import (
 )
 from rtsgt.joint.measurements import GLOBAL_SOURCES, polar_measurements
 from rtsgt.joint.noise import NoiseFit
-from rtsgt.joint.prisms import PrismFit, prism_prior_info, prism_tests
+from rtsgt.joint.prisms import (
+    PrismFit,
+    blind_moves,
+    prism_prior_info,
+    prism_tests,
+    stability_factor,
+)
 from rtsgt.joint.relative import (
     JointPosterior,
     body_to_world,
@@ -56,6 +62,7 @@ from rtsgt.joint.rocking import (
 )
 from rtsgt.joint.settling import settle_model
 from rtsgt.joint.slow import at_times
+from rtsgt.joint.sparse import add_shared_columns
 from rtsgt.noise.model import NoiseModel
 from rtsgt.pose.estimate import PoseEstimate
 from rtsgt.pose.registration import shape_ratio
@@ -99,7 +106,9 @@ class JointResult:
     rocking's sigma and correlation time per axis (:class:`rtsgt.joint.gm.GaussMarkov`, rows
     the shifts and the rotations; docs/joint.md#the-vehicles-rocking; None where not
     estimated) and ``rocking_pivot`` (3,) m the point its rotations are about, body frame
-    (docs/joint.md#the-rockings-pivot; None: the prisms' centroid, or no rocking).
+    (docs/joint.md#the-rockings-pivot; None: the prisms' centroid, or no rocking);
+    ``prism_stability`` m the prisms' moves since the survey no station sees, 1 sigma, in
+    their prior (docs/joint.md#what-no-station-sees).
     """
 
     t: np.ndarray
@@ -126,6 +135,7 @@ class JointResult:
     motion_axes: tuple[np.ndarray, np.ndarray] | None = None
     rocking: gmn.GaussMarkov | None = None
     rocking_pivot: np.ndarray | None = None
+    prism_stability: float = 0.0
 
 
 def _stations(calibration):
@@ -239,10 +249,10 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        None if prob.rocking is None else np.zeros((K, ROCKING_DIM)))
     prob, state, sol, solve, qc_fit = solve_with_qc(prob, state, estimate_qc, max_iter, tol,
                                                     noise, rng)
-    cov_g = sol.cov_g
-    pfit = None if p_info is None else _prism_fit(names, prob, state, cov_g, origin)
     block_cv = raw_block_summary(raw_block_cv(prob, state, sol, max_gap_s), ids)
     body = _body_knots(prob, state, sol)
+    body, cov_g, blind = _with_stability(prob, body, sol.cov_g, reference.stability, names)
+    pfit = None if p_info is None else _prism_fit(names, prob, state, cov_g, origin)
     bridge = _rocking_bridge(prob, state)
     slow = prob.clock is not None or prob.settle is not None  # reported along the chain
     gains = chain_gains(body[4]) if slow else None
@@ -251,8 +261,8 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     globals_ = global_names(prob, ids, names)
     moved = tuple(f"moved_{names[j]}" for j, _, _ in prob.carried_alternatives)
     shared = _shared(tq, knots.t, body,  # the columns of engine.carry_alternatives' mixture
-                     globals_ + tuple(f"{m}_{g}" for m in moved for g in globals_) + moved,
-                     bridge, origin)
+                     globals_ + tuple(f"{m}_{g}" for m in moved for g in globals_) + moved
+                     + blind, bridge, origin)
     est = _pose_estimate(R, t, cov_pose, survey if pfit is None else pfit.xyz)
     return JointResult(tq, est, _station_results(ids, free, state, cov_g), state.kappa_ppm,
                        meas.kappa_sigma_ppm, qc_fit, _clocks(prob, state, body[4], gains, ids, ref),
@@ -265,7 +275,31 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        None if prob.gm is None else replace(prob.gm, stations=ids),
                        _motion_axes(prob, state, cov_g), prob.rocking,
                        None if prob.rocking is None or prob.pivot is None
-                       else prob.pivot + origin)
+                       else prob.pivot + origin, reference.stability)
+
+
+def _with_stability(prob: JointProblem, body, cov_g: np.ndarray, sigma: float, names):
+    """The knots ``body`` (:func:`_body_knots`) and the globals' covariance ``cov_g`` with
+    the prisms' moves since the survey that no station sees carried, ``sigma`` m along
+    each one's blind directions (:func:`rtsgt.joint.prisms.stability_factor`, a consider
+    parameter: it moves no estimate) as shared columns of the solution, and their names
+    (``blind_<prism>``, with ``_<i>`` where a prism has several); unchanged for 0
+    (docs/joint.md#what-no-station-sees)."""
+    if sigma <= 0.0:
+        return body, cov_g, ()
+    dxi, dp = stability_factor(prob.p_body, sigma)
+    sol = body[4]
+    r = dxi.shape[1]
+    dx = np.zeros((r,) + sol.x.shape)
+    dx[:, :, :6] = dxi.T[:, None, :]  # the same body-frame turn at every knot
+    dg = np.zeros((r, sol.g.size))
+    if prob.n_prism:
+        sl = slice(prob.kappa_col + 1, prob.kappa_col + 1 + prob.n_prism)
+        dg[:, sl] = dp.T
+    per = [g.shape[1] for g, _ in blind_moves(prob.p_body)]
+    out = tuple(f"blind_{names[j]}" + (f"_{i}" if n > 1 else "")
+                for j, n in enumerate(per) for i in range(n))
+    return (*body[:4], add_shared_columns(sol, dx, dg)), cov_g + dg.T @ dg, out
 
 
 def _motion_axes(prob: JointProblem, state: JointState, cov_g):

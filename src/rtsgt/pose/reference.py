@@ -68,14 +68,17 @@ class ReferencePoints:
     (n, 3) m, ``cov`` (3n, 3n) m^2 of the stacked ``(x1, y1, z1, x2, ...)`` (or (n, 3, 3) per
     point), ``frame`` the body frame's name; ``pivot`` (3,) m the point the vehicle rocks
     about, its suspension's roll centre, in the body frame (None: not given; the joint
-    engine's rocking, docs/joint.md#the-rockings-pivot). Raises GeometryError for fewer than
-    3 points or nearly collinear ones."""
+    engine's rocking, docs/joint.md#the-rockings-pivot); ``stability`` m how far (1 sigma per
+    axis) a prism may have moved since the survey where no station sees it (0: the survey
+    trusted; the joint engine's prior, docs/joint.md#what-no-station-sees). Raises
+    GeometryError for fewer than 3 points or nearly collinear ones."""
 
     names: tuple[str, ...]
     xyz: np.ndarray
     cov: np.ndarray
     frame: str = "body"
     pivot: np.ndarray | None = None
+    stability: float = 0.0
 
     def __post_init__(self) -> None:
         names = tuple(str(s) for s in self.names)
@@ -95,6 +98,9 @@ class ReferencePoints:
         cov = np.array(check_covariance(cov, 3 * n, "reference covariance"), dtype=float)
         cov = 0.5 * (cov + cov.T)
         check_reference_geometry(xyz)
+        if not (np.isfinite(self.stability) and self.stability >= 0.0):
+            raise ValueError(f"Expected a finite stability >= 0 m, got {self.stability!r}")
+        object.__setattr__(self, "stability", float(self.stability))
         if self.pivot is not None:
             pivot = np.array(self.pivot, dtype=float)
             if pivot.shape != (3,) or not np.all(np.isfinite(pivot)):
@@ -134,7 +140,8 @@ class ReferencePoints:
             idx.append(self.names.index(str(s)))
         rows = np.concatenate([[3 * k, 3 * k + 1, 3 * k + 2] for k in idx])
         return ReferencePoints(tuple(str(s) for s in names), self.xyz[idx],
-                               self.cov[np.ix_(rows, rows)], self.frame, self.pivot)
+                               self.cov[np.ix_(rows, rows)], self.frame, self.pivot,
+                               self.stability)
 
 
 def block_diagonal(blocks: np.ndarray) -> np.ndarray:

@@ -229,9 +229,10 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
     vehicle's rocking per axis, its sigma (mm, mrad) and correlation time (s) with their
     sigmas, redundancy and whether the data determined it
     (docs/joint.md#the-vehicles-rocking); ``rocking_pivot_m``: the point its rotations are
-    about, body frame (None: the prisms' centroid; docs/joint.md#the-rockings-pivot); the
-    solve's
-    iterations, convergence, chi^2 per row, knots and measurements."""
+    about, body frame (None: the prisms' centroid; docs/joint.md#the-rockings-pivot);
+    ``prism_stability_mm``: the prior's moves since the survey no station sees (1 sigma;
+    docs/joint.md#what-no-station-sees); the solve's iterations, convergence, chi^2 per
+    row, knots and measurements."""
     q = jr.qc
     used = np.bincount(q.classes, minlength=len(CLASS_NAMES))
     return {
@@ -257,6 +258,7 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
         "motion_axes": None if jr.motion_axes is None else _axes_summary(*jr.motion_axes),
         "rocking": None if jr.rocking is None else _rocking_summary(jr.rocking),
         "rocking_pivot_m": None if jr.rocking_pivot is None else jr.rocking_pivot.tolist(),
+        "prism_stability_mm": 1e3 * jr.prism_stability,
         "iterations": int(jr.solve.iterations), "converged": bool(jr.solve.converged),
         "chi2_per_dof": float(jr.chi2_per_dof), "knots": int(jr.n_knots),
         "measurements": int(jr.n_measurements), "poses": int(jr.t.size),
