@@ -107,8 +107,8 @@ class JointResult:
     the shifts and the rotations; docs/joint.md#the-vehicles-rocking; None where not
     estimated) and ``rocking_pivot`` (3,) m the point its rotations are about, body frame
     (docs/joint.md#the-rockings-pivot; None: the prisms' centroid, or no rocking);
-    ``prism_stability`` m the prisms' moves since the survey no station sees, 1 sigma, in
-    their prior (docs/joint.md#what-no-station-sees).
+    ``prism_stability`` m the prisms' moves since the survey no station sees, 1 sigma,
+    carried in the covariances (docs/joint.md#what-no-station-sees).
     """
 
     t: np.ndarray

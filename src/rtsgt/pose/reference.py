@@ -70,7 +70,7 @@ class ReferencePoints:
     about, its suspension's roll centre, in the body frame (None: not given; the joint
     engine's rocking, docs/joint.md#the-rockings-pivot); ``stability`` m how far (1 sigma per
     axis) a prism may have moved since the survey where no station sees it (0: the survey
-    trusted; the joint engine's prior, docs/joint.md#what-no-station-sees). Raises
+    trusted; the joint engine carries it, docs/joint.md#what-no-station-sees). Raises
     GeometryError for fewer than 3 points or nearly collinear ones."""
 
     names: tuple[str, ...]

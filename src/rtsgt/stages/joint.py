@@ -230,7 +230,7 @@ def joint_summary(jr: JointResult, calibration: CalibrationResult) -> dict[str, 
     sigmas, redundancy and whether the data determined it
     (docs/joint.md#the-vehicles-rocking); ``rocking_pivot_m``: the point its rotations are
     about, body frame (None: the prisms' centroid; docs/joint.md#the-rockings-pivot);
-    ``prism_stability_mm``: the prior's moves since the survey no station sees (1 sigma;
+    ``prism_stability_mm``: the moves since the survey no station sees, carried (1 sigma;
     docs/joint.md#what-no-station-sees); the solve's iterations, convergence, chi^2 per
     row, knots and measurements."""
     q = jr.qc
