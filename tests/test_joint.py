@@ -818,8 +818,8 @@ def test_the_stability_is_a_move_along_the_blind_directions_that_the_stations_ca
     where the stations see it exactly (rho + phi x p_j + dp_j = 0); nothing for four prisms
     off one plane, zero for a sigma of 0 (docs/joint.md#what-no-station-sees)."""
     n, _ = _in_plane_move()
-    dxi, dp = stability_factor(SURVEY, 2e-3)
-    assert dxi.shape == (6, 3) and dp.shape == (9, 3)
+    dxi, dp, owner = stability_factor(SURVEY, 2e-3)
+    assert dxi.shape == (6, 3) and dp.shape == (9, 3) and owner.tolist() == [0, 1, 2]
     C = dp @ dp.T
     for j in range(3):
         for k in range(3):
@@ -831,8 +831,8 @@ def test_the_stability_is_a_move_along_the_blind_directions_that_the_stations_ca
     np.testing.assert_allclose(np.linalg.norm(dxi[3:], axis=0),
                                2e-3 * np.concatenate([t for _, t in blind_moves(SURVEY)]),
                                rtol=1e-9)
-    dxi4, dp4 = stability_factor(np.vstack([SURVEY, [0.1, 0.0, 1.2]]), 2e-3)
-    assert dxi4.shape == (6, 0) and dp4.shape == (12, 0)
+    dxi4, dp4, owner4 = stability_factor(np.vstack([SURVEY, [0.1, 0.0, 1.2]]), 2e-3)
+    assert dxi4.shape == (6, 0) and dp4.shape == (12, 0) and owner4.size == 0
     assert not np.any(stability_factor(SURVEY, 0.0)[0])
 
 

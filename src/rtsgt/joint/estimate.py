@@ -40,7 +40,6 @@ from rtsgt.joint.measurements import GLOBAL_SOURCES, polar_measurements
 from rtsgt.joint.noise import NoiseFit
 from rtsgt.joint.prisms import (
     PrismFit,
-    blind_moves,
     prism_prior_info,
     prism_tests,
     stability_factor,
@@ -287,7 +286,7 @@ def _with_stability(prob: JointProblem, body, cov_g: np.ndarray, sigma: float, n
     (docs/joint.md#what-no-station-sees)."""
     if sigma <= 0.0:
         return body, cov_g, ()
-    dxi, dp = stability_factor(prob.p_body, sigma)
+    dxi, dp, owner = stability_factor(prob.p_body, sigma)
     sol = body[4]
     r = dxi.shape[1]
     dx = np.zeros((r,) + sol.x.shape)
@@ -296,9 +295,9 @@ def _with_stability(prob: JointProblem, body, cov_g: np.ndarray, sigma: float, n
     if prob.n_prism:
         sl = slice(prob.kappa_col + 1, prob.kappa_col + 1 + prob.n_prism)
         dg[:, sl] = dp.T
-    per = [g.shape[1] for g, _ in blind_moves(prob.p_body)]
-    out = tuple(f"blind_{names[j]}" + (f"_{i}" if n > 1 else "")
-                for j, n in enumerate(per) for i in range(n))
+    per = np.bincount(owner, minlength=len(names))
+    out = tuple(f"blind_{names[j]}" + (f"_{i}" if per[j] > 1 else "")
+                for j in range(len(names)) for i in range(per[j]))
     return (*body[:4], add_shared_columns(sol, dx, dg)), cov_g + dg.T @ dg, out
 
 

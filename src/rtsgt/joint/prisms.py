@@ -182,7 +182,8 @@ def blind_moves(p_body: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def stability_factor(p_body: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+def stability_factor(p_body: np.ndarray, sigma: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Moves since the survey of the prisms at ``p_body`` (P, 3) m that no station sees,
     ``sigma`` m (1 sigma per axis) along each prism's blind directions (:func:`blind_moves`),
     independent between prisms, as a consider parameter (docs/joint.md#what-no-station-sees):
@@ -190,17 +191,17 @@ def stability_factor(p_body: np.ndarray, sigma: float) -> tuple[np.ndarray, np.n
     prisms' body positions' change ``dp`` (3P, r) m and the body frame's right perturbation
     ``dxi`` (6, r) ``(rho, phi)`` at ``p_body``'s origin that keeps every prism where the
     stations see it (``rho + phi x p_j + dp_j = 0``, least squares: exact where the moves
-    are a rigid motion's, as for three prisms)."""
+    are a rigid motion's, as for three prisms), and each move's prism ``owner`` (r,)."""
     P = p_body.shape[0]
     blocks = [g for g, _ in blind_moves(p_body)]
-    r = sum(g.shape[1] for g in blocks)
-    dp = np.zeros((3 * P, r))
+    owner = np.repeat(np.arange(P), [g.shape[1] for g in blocks])
+    dp = np.zeros((3 * P, owner.size))
     c = 0
     for j, g in enumerate(blocks):  # a handful of prisms
         dp[3 * j:3 * j + 3, c:c + g.shape[1]] = sigma * g
         c += g.shape[1]
     M = np.concatenate([np.concatenate([np.eye(3), -hat(p)], axis=1) for p in p_body])
-    return -np.linalg.pinv(M) @ dp, dp
+    return -np.linalg.pinv(M) @ dp, dp, owner
 
 
 def free_prism(info: np.ndarray, cov: np.ndarray, j: int, tests: PrismTests,
