@@ -451,6 +451,15 @@ def test_arrow_solver_matches_a_dense_solve_of_the_same_normal_equations(chunk, 
     bare = solve_arrow(system)
     assert bare.cov is None
     np.testing.assert_allclose(np.concatenate([bare.x.ravel(), bare.g]), ref, atol=1e-9 * scale)
+    # consumed in place: the same numbers bit for bit, a, B, C and c as they were
+    kept = {k: getattr(system, k).copy() for k in ("a", "B", "C", "c")}
+    for want_cov, copied in ((True, sol), (False, bare)):
+        used = ArrowSystem(*(getattr(system, k).copy() for k in ("D", "U", "B", "C", "a", "c")))
+        out = solve_arrow(used, want_cov=want_cov, overwrite=True)
+        for name in ("x", "g", "cov", "cov_next", "cov_g", "cov_var", "factor"):
+            a, b = getattr(out, name), getattr(copied, name)
+            assert (a is None) == (b is None) and (a is None or np.array_equal(a, b)), name
+        assert all(np.array_equal(getattr(used, k), v) for k, v in kept.items())
     inv = np.linalg.inv(M)
     n = x.size
     for k in range(K):

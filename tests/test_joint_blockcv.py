@@ -148,6 +148,14 @@ def test_cross_covariance_of_distant_knots_and_queries_equals_a_dense_inverse():
     for i, (a, b) in enumerate(zip(k_a, k_b, strict=True)):
         ref = cov[d * a:d * a + d, d * b:d * b + d]
         np.testing.assert_allclose(C[i], ref, rtol=1e-5, atol=1e-5 * np.abs(ref).max())
+    # consecutive knots: the solution's own cov_next, which rocking_step reads directly
+    k = np.arange(K - 1)
+    np.testing.assert_allclose(knot_cross_covariance(sol, chain_gains(sol), k, k + 1),
+                               sol.cov_next, rtol=1e-8, atol=1e-10 * np.abs(sol.cov).max())
+    for a in (0, 13, K - 2):
+        ref = cov[d * a:d * a + d, d * (a + 1):d * (a + 2)]
+        np.testing.assert_allclose(sol.cov_next[a], ref, rtol=1e-5,
+                                   atol=1e-5 * np.abs(ref).max())
     # query poses: any Jacobians on their intervals' two knots' trajectories
     q_a, q_b = np.array([0, 4, 10]), np.array([2, 26, 28])
     J_a, J_b = rng.normal(size=(3, 6, 24)), rng.normal(size=(3, 6, 24))

@@ -97,6 +97,13 @@ COMMON_SYNC_HOLD_S = 1e-6
 #: the direction the data hardly see takes more than the final solve's 10 (13 on the field
 #: preset, docs/joint.md#which-prism-moved).
 HYPOTHESIS_MAX_ITER = 30
+#: Gauss-Newton of a prism hypothesis's trial (:func:`snoop_prisms`) has converged when the
+#: predicted decrease of the cost is below this (chi^2 units). The trials are scored by
+#: their cost alone, compared at :data:`UNDECIDED_COST` (10.8): a cost within about this
+#: of its minimum ranks them as one at :data:`DECREASE_TOL` does, in fewer iterations
+#: (their final solves, whose state may become the estimate, still run to
+#: :data:`DECREASE_TOL`; docs/joint.md#which-prism-moved).
+TRIAL_DECREASE_TOL = 0.1
 
 
 @dataclass(frozen=True)
@@ -501,7 +508,7 @@ def covariance_solve(prob: JointProblem, system: ArrowSystem) -> ArrowSolution:
     if prob.n_sync:
         sl, hold = _common_sync_hold(prob)
         system.C[sl, sl] -= hold
-    return solve_arrow(system, want_cov=True)
+    return solve_arrow(system, want_cov=True, overwrite=True)
 
 
 def _frame_change(dR: np.ndarray, dp: np.ndarray, d: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -608,7 +615,7 @@ def gauss_newton(prob: JointProblem, s: JointState, max_iter: int = 10,
     costs = [cost]
     converged = False
     for _ in range(max_iter):
-        sol = solve_arrow(system)
+        sol = solve_arrow(system, overwrite=True)  # (its a and c read below)
         x, g = sol.x, sol.g
         decrease = float(np.sum(x * system.a) + g @ system.c)
         del system, sol  # the trial's system replaces it: one (K, d, G) B at a time
@@ -682,6 +689,7 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     :class:`QcFit`."""
     n = prob.t_knot.size - 1
     max_updates = VCE_MAX_ITER if max_updates is None else max_updates
+    trial_tol = max(tol, TRIAL_DECREASE_TOL)  # the prisms' trials: scored, solved again
     qc0 = np.asarray(prob.qc, dtype=float)
     axes_sigma = prob.axes_sigma  # held at the body frame's until the last solve
     prob = replace(prob, axes_sigma=AXES_HELD_SIGMA if prob.n_axes else axes_sigma
@@ -697,7 +705,7 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
     changes = {}
     snooped = not estimate_noise  # else after the noise's first update: weighted by the
     if snooped:  # datasheet, another prism can explain a move better (docs/joint.md)
-        prob, freed, alternatives = snoop_prisms(prob, s, sol, tol)
+        prob, freed, alternatives = snoop_prisms(prob, s, sol, trial_tol)
     while (estimate or estimate_noise or freed) and it < max_updates:
         it += 1
         changes = {}
@@ -718,7 +726,7 @@ def solve_with_qc(prob: JointProblem, s: JointState, estimate: bool = True,
         s, sol, info = gauss_newton(prob, s, max_iter if full else VCE_GN_ITER, tol)
         if last:
             break
-        prob, freed, alts = snoop_prisms(prob, s, sol, tol)
+        prob, freed, alts = snoop_prisms(prob, s, sol, trial_tol)
         alternatives = alts if freed else alternatives
         snooped = True
     if prob.n_axes:  # the axes free: the covariance does not rest on the motion prior's tilt
@@ -807,15 +815,14 @@ def rocking_step(prob: JointProblem, s: JointState, sol,
     the largest change of a determined one's log (docs/joint.md#the-vehicles-rocking)."""
     old = prob.rocking
     j = slice(prob.rocking_col, prob.rocking_col + ROCKING_DIM)
-    k = np.arange(prob.t_knot.size)
-    cross = knot_cross_covariance(sol, chain_gains(sol), k[:-1], k[1:])[:, j, j]
-    moments = rocking_moments(s.rocking, sol.cov[:, j, j], cross, np.diff(prob.t_knot),
-                              prob.pivot)
+    # consecutive knots: Cov(x_k, x_k+1) is the solution's own block, no chain to walk
+    moments = rocking_moments(s.rocking, sol.cov[:, j, j], sol.cov_next[:, j, j],
+                              np.diff(prob.t_knot), prob.pivot)
     new = gmn.update(old, moments, old.determined if old.iterations else None, rng)
     return replace(prob, rocking=new), gmn.log_change(old, new)
 
 
-def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = DECREASE_TOL
+def snoop_prisms(prob: JointProblem, s: JointState, sol, tol: float = TRIAL_DECREASE_TOL
                  ) -> tuple[JointProblem, bool, tuple[tuple[JointProblem, float], ...]]:
     """Test each trusted prism against its survey (:func:`rtsgt.joint.prisms.prism_tests`);
     where one is beyond its critical value (and at least two would stay trusted) a move is
@@ -923,8 +930,8 @@ def _freed(prob: JointProblem, tests, found: list[int], j: int) -> JointProblem:
     return replace(prob, prism_info=info, prism_found=prob.prism_found + (entry,))
 
 
-__all__ = ["DECREASE_TOL", "HYPOTHESIS_MAX_ITER", "UNDECIDED_COST", "JointProblem",
-           "JointState", "QcFit", "SolveInfo", "assemble", "carry_alternatives",
+__all__ = ["DECREASE_TOL", "HYPOTHESIS_MAX_ITER", "TRIAL_DECREASE_TOL", "UNDECIDED_COST",
+           "JointProblem", "JointState", "QcFit", "SolveInfo", "assemble", "carry_alternatives",
            "covariance_solve", "difference",
            "gauss_newton", "gm_step", "measurement_global_factor", "measurement_hsh",
            "measurement_terms", "noise_step", "rocking_step", "snoop_prisms", "solve_with_qc",

@@ -302,8 +302,10 @@ def _inverse_blocks(levels: list[_Level], S: np.ndarray) -> tuple[np.ndarray, np
     return S, C
 
 
-def solve_arrow(system: ArrowSystem, want_cov: bool = False):
-    """Solve an :class:`ArrowSystem` by eliminating the knots.
+def solve_arrow(system: ArrowSystem, want_cov: bool = False, overwrite: bool = False):
+    """Solve an :class:`ArrowSystem` by eliminating the knots (with ``overwrite``, its
+    ``D`` and ``U`` are scaled in place, not copied: the system is consumed but for ``a``,
+    ``B``, ``C`` and ``c``).
 
     ``Y = A^-1 [a, B]``, ``S = C - B^T A^-1 B``, ``g = S^-1 (c - B^T A^-1 a)``,
     ``x = A^-1 a - A^-1 B g``. Returns an :class:`ArrowSolution`; its covariances are None
@@ -316,8 +318,15 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
     G = C.shape[0]
     sx = 1.0 / np.sqrt(np.einsum("kii->ki", D))
     sg = 1.0 / np.sqrt(np.diag(C)) if G else np.zeros(0)
-    Ds = D * (sx[:, :, None] * sx[:, None, :])  # (one pass over the blocks)
-    Us = U * (sx[:-1, :, None] * sx[1:, None, :])
+    if overwrite:  # (the hour's two (K, d, d) copies not made)
+        Ds, Us = D, U
+        for sl in chunks(K):
+            Ds[sl] *= sx[sl, :, None] * sx[sl, None, :]
+        for sl in chunks(K - 1):
+            Us[sl] *= sx[sl, :, None] * sx[sl.start + 1:sl.stop + 1, None, :]
+    else:
+        Ds = D * (sx[:, :, None] * sx[:, None, :])  # (one pass over the blocks)
+        Us = U * (sx[:-1, :, None] * sx[1:, None, :])
     Cs = C * sg[:, None] * sg[None, :]
     rhs = np.empty((K, d, G + 1))
     rhs[:, :, 0] = system.a * sx
@@ -325,6 +334,7 @@ def solve_arrow(system: ArrowSystem, want_cov: bool = False):
     rhs[:, :, 1:] *= sg
     Bs = rhs[:, :, 1:]
     levels, S = _eliminate(Ds, Us)
+    del Ds, Us  # (the levels hold what the passes need)
     if not want_cov:  # the Schur complement from the forward pass; one column back
         root, _, T = _forward(levels, rhs, keep=False, schur=True)
         T += np.tensordot(root, S @ root, axes=([0, 1], [0, 1]))  # [a, B]^T A^-1 [a, B]
