@@ -4,6 +4,8 @@ the covariance convention, and poses on simulated deployments against their trut
 
 from __future__ import annotations
 
+import tracemalloc
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -11,11 +13,12 @@ import pytest
 from scipy.stats import chi2
 
 from rtsgt.clocks import walk_prior_info
-from rtsgt.errors import InputError
+from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.geometry.so3 import exp_so3, hat, quat_xyzw_to_matrix
 from rtsgt.geometry.transform import perturbation
 from rtsgt.io.deployment import load_deployment
 from rtsgt.joint import engine as engine_module
+from rtsgt.joint import estimate as estimate_module
 from rtsgt.joint import estimate_joint, sparse
 from rtsgt.joint import gm as gmn
 from rtsgt.joint.clock import clock_model, report_times
@@ -37,7 +40,7 @@ from rtsgt.joint.engine import (
     solve_with_qc,
     undecided,
 )
-from rtsgt.joint.estimate import body_to_world_cov
+from rtsgt.joint.estimate import RUN_PER_SOLVE, body_to_world_cov
 from rtsgt.joint.interpolate import interpolate_poses_gp
 from rtsgt.joint.knots import build_knots, qc_from_prisms
 from rtsgt.joint.measurements import PolarMeasurements, predict, residual
@@ -76,7 +79,7 @@ from rtsgt.joint.settling import (
     settle_start,
 )
 from rtsgt.joint.slow import LevelRate
-from rtsgt.joint.sparse import ArrowSystem, knot_rows, solve_arrow
+from rtsgt.joint.sparse import ArrowSystem, knot_rows, solve_arrow, solve_bytes
 from rtsgt.measurement.polar import cartesian_to_polar
 from rtsgt.pipeline import run_pipeline
 from rtsgt.simulation import SimulationConfig, simulate_deployment, write_deployment
@@ -430,6 +433,32 @@ def test_arrow_solver_gives_the_same_numbers_on_any_number_of_threads(monkeypatc
         for name in ("x", "g", "cov", "cov_next", "cov_g", "cov_var", "cov_var_next", "factor"):
             a, b = getattr(one, name), getattr(many, name)
             assert (a is None) == (b is None) and (a is None or np.array_equal(a, b)), name
+
+
+@pytest.mark.parametrize(("K", "d", "G"), [(1500, 12, 13), (1501, 30, 40), (1500, 43, 82)])
+def test_a_solves_memory_is_what_solve_bytes_says(K, d, G):
+    """rtsgt.joint.sparse.solve_bytes, the floor of the joint engine's memory
+    (docs/joint.md#an-hours-floor): the system's arrays plus the peak that one solve with
+    covariances allocates (numpy's allocations, traced), within 15 % of it, from the
+    trajectory's 12 states to the field preset's 43 with its 82 globals."""
+    rng = np.random.default_rng(5)
+    M = rng.standard_normal((K, d, d)) / np.sqrt(d)
+    system = ArrowSystem(M @ np.swapaxes(M, 1, 2) + 3.0 * np.eye(d),
+                         0.3 * rng.standard_normal((K - 1, d, d)) / np.sqrt(d),
+                         0.3 * rng.standard_normal((K, d, G)) / np.sqrt(d * G),
+                         (1.0 + 0.1 * K) * np.eye(G), rng.standard_normal((K, d)),
+                         rng.standard_normal(G))
+    del M
+    held = system.D.nbytes + system.U.nbytes + system.B.nbytes
+    tracemalloc.start()
+    try:
+        sol = solve_arrow(system, want_cov=True, overwrite=True)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert sol.cov.shape == (K, d, d)
+    ratio = (held + peak) / solve_bytes(K, d, G)
+    assert 0.85 < ratio < 1.15, ratio
 
 
 @pytest.mark.parametrize(("chunk", "K"), [(4, 13), (2048, 14)])
@@ -1388,6 +1417,21 @@ def test_bad_inputs_are_named(simulated):
     with pytest.raises(InputError, match="station '9'"):
         estimate_joint(moved, comp.calibration, data.reference, comp.noise_model, tq, tq,
                        est.R[keep], est.t[keep], np.ones(6))
+    # a run that may not fit: warned of; one that fits: silent
+    need = solve_bytes(20000, 43, 82)
+    with pytest.warns(RtsgtWarning, match=r"20000 knots of 43 states and 82 globals may "
+                      r"need up to 8.4 GB, 6.0 GB is available"):
+        estimate_module._check_memory(20000, 43, 82, int(6e9))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        estimate_module._check_memory(20000, 43, 82, int(RUN_PER_SOLVE * need) + 1)
+        estimate_module._check_memory(20000, 43, 82, None)
+    # more memory than the machine has for one solve: said before any solve, with the sizes
+    need = solve_bytes(tq.size, 12, 13)  # at least: as many knots as queries, 12 states
+    with pytest.raises(InputError, match=r"joint engine: \d+ knots of 12 states and \d+ "
+                       r"globals need at least [\d.]+ GB for one solve, 0.0 GB is available"):
+        estimate_joint(obs, comp.calibration, data.reference, comp.noise_model, tq, tq,
+                       est.R[keep], est.t[keep], np.ones(6), memory_bytes=need // 1000)
 
 
 @pytest.mark.parametrize("depth", [0.0, 0.6])

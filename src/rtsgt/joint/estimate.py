@@ -7,12 +7,13 @@ project's convention: docs/joint.md.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from rtsgt.choices import DEFAULT_MAX_GAP_S
-from rtsgt.errors import InputError
+from rtsgt.errors import InputError, RtsgtWarning
 from rtsgt.geometry.so3 import log_so3
 from rtsgt.geometry.transform import RigidTransform
 from rtsgt.joint import deviation as pdev
@@ -61,11 +62,18 @@ from rtsgt.joint.rocking import (
 )
 from rtsgt.joint.settling import settle_model
 from rtsgt.joint.slow import at_times
-from rtsgt.joint.sparse import add_shared_columns
+from rtsgt.joint.sparse import add_shared_columns, solve_bytes
 from rtsgt.noise.model import NoiseModel
 from rtsgt.pose.estimate import PoseEstimate
 from rtsgt.pose.registration import shape_ratio
 from rtsgt.shared import POSE_COMPONENTS, SharedFactor
+
+#: A whole run of the joint engine holds up to this many times one solve's memory
+#: (:func:`rtsgt.joint.sparse.solve_bytes`): the field preset's runs measured 1.3-1.6 times
+#: it in peak resident size (600 s, 1800 s and the hours, 2026-12-01: the interpreter, its
+#: measurements, the solution it keeps, the prisms' hypotheses;
+#: docs/joint.md#an-hours-floor).
+RUN_PER_SOLVE = 1.7
 
 
 @dataclass(frozen=True)
@@ -157,7 +165,7 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                    calibrated_at: dict[str, float] | None = None, deviation: bool = False,
                    gauss_markov: bool = False, rng: np.random.Generator | None = None,
                    max_gap_s: float = DEFAULT_MAX_GAP_S, motion_axes: bool = False,
-                   rocking: bool = False) -> JointResult:
+                   rocking: bool = False, memory_bytes: int | None = None) -> JointResult:
     """Poses ``T_world_body`` at ``query_times`` (Q,) s from every station's observations.
 
     ``observations``: one :class:`rtsgt.types.Observations` per station (valid, increasing
@@ -196,6 +204,9 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
     the loosest of the run's moving classes' (docs/joint.md#gaps).
     With ``motion_axes``, the motion prior is written in axes of its own, their rotation from
     the body frame estimated (docs/joint.md#the-motion-axes); the poses are the body frame's.
+    ``memory_bytes``: the memory the run may take (None: not checked); an InputError, before
+    any solve, where one solve of the problem needs more
+    (:func:`rtsgt.joint.sparse.solve_bytes`, docs/joint.md#an-hours-floor).
     """
     init_t = np.asarray(init_t, dtype=float)
     if init_t.size < 2:
@@ -236,6 +247,7 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                         max_gap_s=max_gap_s, rocking=start_rocking() if rocking and noise else None,
                         pivot=None if reference.pivot is None else reference.pivot - origin)
     K = knots.t.size
+    _check_memory(K, prob.knot_dim, prob.n_globals, memory_bytes)
     state = JointState(R0, p0, body_velocities(knots.t, R0, p0), R_s, t_s, 0.0,
                        None if ck is None else np.zeros((K, ck.size)),
                        None if p_info is None else survey.copy(),
@@ -275,6 +287,24 @@ def estimate_joint(observations, calibration, reference, model: NoiseModel, quer
                        _motion_axes(prob, state, cov_g), prob.rocking,
                        None if prob.rocking is None or prob.pivot is None
                        else prob.pivot + origin, reference.stability)
+
+
+def _check_memory(K: int, d: int, G: int, memory_bytes: int | None) -> None:
+    """InputError where one solve of ``K`` knots of ``d`` states and ``G`` globals needs more
+    than ``memory_bytes`` (:func:`rtsgt.joint.sparse.solve_bytes`); a warning where a whole
+    run, :data:`RUN_PER_SOLVE` times that, may (None: not checked)."""
+    if memory_bytes is None:
+        return
+    need = solve_bytes(K, d, G)
+    size = f"{K} knots of {d} states and {G} globals"
+    remedy = "run a shorter deployment, or a per-prism engine (--engine linear)"
+    if need > memory_bytes:
+        raise InputError(f"joint engine: {size} need at least {need / 1e9:.1f} GB for one "
+                         f"solve, {memory_bytes / 1e9:.1f} GB is available: {remedy}")
+    if RUN_PER_SOLVE * need > memory_bytes:
+        warnings.warn(f"joint engine: {size} may need up to {RUN_PER_SOLVE * need / 1e9:.1f} "
+                      f"GB, {memory_bytes / 1e9:.1f} GB is available; if the run is stopped "
+                      f"for memory: {remedy}", RtsgtWarning, stacklevel=3)
 
 
 def _with_stability(prob: JointProblem, body, cov_g: np.ndarray, sigma: float, names):

@@ -302,6 +302,17 @@ def _inverse_blocks(levels: list[_Level], S: np.ndarray) -> tuple[np.ndarray, np
     return S, C
 
 
+def solve_bytes(K: int, d: int, G: int) -> int:
+    """Bytes that one solve with covariances of ``K`` knots of ``d`` states and ``G``
+    globals holds at its peak (:func:`solve_arrow` with ``overwrite``): the system's ``D``,
+    ``U`` and ``B`` and the solve's own nine ``(K, d, d)`` and two ``(K, d, G)`` arrays (the
+    reduction's levels, the right-hand side and its solution, the inverse's blocks and their
+    temporaries; measured with tracemalloc in tests/test_joint.py). A run of the joint engine
+    holds more (its measurements, the solution it keeps, other hypotheses' solutions):
+    this is its floor (docs/joint.md#an-hours-floor)."""
+    return 8 * int(K) * (11 * d * d + 3 * d * G)
+
+
 def solve_arrow(system: ArrowSystem, want_cov: bool = False, overwrite: bool = False):
     """Solve an :class:`ArrowSystem` by eliminating the knots (with ``overwrite``, its
     ``D`` and ``U`` are scaled in place, not copied: the system is consumed but for ``a``,

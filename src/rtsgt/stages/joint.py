@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from rtsgt.allocator import keep_freed_memory
+from rtsgt.allocator import available_memory, keep_freed_memory
 from rtsgt.calibration import CalibrationResult
 from rtsgt.choices import DEFAULT_MAX_GAP_S
 from rtsgt.errors import InputError, RtsgtWarning
@@ -76,7 +76,9 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
     noise per station and channel with the noise model's as its prior
     (docs/joint.md#noise-identification) and its Gauss-Markov part
     (docs/joint.md#gauss-markov-noise; ``rng`` the draws of its observed information).
-    InputError when no query time falls inside the measurements' span.
+    InputError when no query time falls inside the measurements' span, or when one solve
+    needs more memory than the machine has available (:func:`rtsgt.allocator.available_memory`;
+    docs/joint.md#an-hours-floor).
     """
     lo = min(float(o.t[0]) for o in observations)
     hi = max(float(o.t[-1]) for o in observations)
@@ -90,7 +92,7 @@ def joint_poses(observations: Sequence[Observations], calibration: CalibrationRe
                           start_p, qc, weather=weather, clocks=clocks, prisms=True,
                           noise=True, settling=True, calibrated_at=calibrated_at,
                           deviation=True, gauss_markov=True, max_gap_s=max_gap_s, rng=rng,
-                          motion_axes=True, rocking=True)
+                          motion_axes=True, rocking=True, memory_bytes=available_memory())
 
 
 def calibration_times(gcp: GcpShots | None, calibration: CalibrationResult,
