@@ -287,6 +287,7 @@ def one(seed: int, args, tmp: Path) -> dict:
         "white_z": (zw := white_z(rec, sim)), "white_within_2sigma": within(zw),
         "raw_block_cv": raw.get("nees_per_dof"),
         "seed": seed, "poses": len(gt), "wall_s": wall,
+        "knots": (rec.joint or {}).get("knots"),  # the joint engine's (its memory's size)
         "nees6": n6.mean / 6, "in95": float(np.mean(n6.values <= chi2.ppf(0.95, 6))),
         "split_consistent": bool(n6.consistent),
         "rel": {k: (float(v.mean() / 6) if v.size else None, int(v.size))

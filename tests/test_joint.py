@@ -1420,7 +1420,7 @@ def test_bad_inputs_are_named(simulated):
     # a run that may not fit: warned of; one that fits: silent
     need = solve_bytes(20000, 43, 82)
     with pytest.warns(RtsgtWarning, match=r"20000 knots of 43 states and 82 globals may "
-                      r"need up to 8.4 GB, 6.0 GB is available"):
+                      r"need up to 7.8 GB, 6.0 GB is available"):
         estimate_module._check_memory(20000, 43, 82, int(6e9))
     with warnings.catch_warnings():
         warnings.simplefilter("error")

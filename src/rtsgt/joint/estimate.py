@@ -69,11 +69,11 @@ from rtsgt.pose.registration import shape_ratio
 from rtsgt.shared import POSE_COMPONENTS, SharedFactor
 
 #: A whole run of the joint engine holds up to this many times one solve's memory
-#: (:func:`rtsgt.joint.sparse.solve_bytes`): the field preset's runs measured 1.3-1.6 times
+#: (:func:`rtsgt.joint.sparse.solve_bytes`): the field preset's runs measured 1.4-1.8 times
 #: it in peak resident size (600 s, 1800 s and the hours, 2026-12-01: the interpreter, its
 #: measurements, the solution it keeps, the prisms' hypotheses;
 #: docs/joint.md#an-hours-floor).
-RUN_PER_SOLVE = 1.7
+RUN_PER_SOLVE = 1.8
 
 
 @dataclass(frozen=True)

@@ -200,15 +200,24 @@ def _sym(a: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class _Level:
-    """One level of the reduction: its ``n`` blocks, the odd ones' ``d_inv`` (D_i^-1),
-    ``ga`` (D_i^-1 A_i,i-1), ``gb`` (D_i^-1 A_i,i+1) and couplings to their neighbours
-    ``couple`` (n_odd, 2 d, d): ``A_i-1,i`` over ``A_i+1,i`` (zero past the end)."""
+    """One level of the reduction: its ``n`` blocks, the odd ones' ``d_inv`` (D_i^-1) and
+    ``gab`` (n_odd, d, 2 d): ``[D_i^-1 A_i,i-1, D_i^-1 A_i,i+1]`` (zero past the end). Its
+    transpose is the couplings to the neighbours times the pivot's inverse, ``[A_i-1,i;
+    A_i+1,i] D_i^-1``: what the forward pass applies, so the couplings are not kept."""
 
     n: int
     d_inv: np.ndarray
-    ga: np.ndarray
-    gb: np.ndarray
-    couple: np.ndarray
+    gab: np.ndarray
+
+    @property
+    def ga(self) -> np.ndarray:
+        """``D_i^-1 A_i,i-1`` (n_odd, d, d)."""
+        return self.gab[:, :, : self.gab.shape[1]]
+
+    @property
+    def gb(self) -> np.ndarray:
+        """``D_i^-1 A_i,i+1`` (n_odd, d, d)."""
+        return self.gab[:, :, self.gab.shape[1]:]
 
 
 def _eliminate(D, U) -> tuple[list[_Level], np.ndarray]:
@@ -225,14 +234,14 @@ def _eliminate(D, U) -> tuple[list[_Level], np.ndarray]:
         couple = np.concatenate([b_left, np.swapaxes(b_right, 1, 2)], axis=1)
         d_inv = _spd_inv(D[1::2])
         gab = _bmm(d_inv, np.swapaxes(couple, 1, 2))  # [D_i^-1 A_i,i-1, D_i^-1 A_i,i+1]
-        ga, gb = gab[:, :, :d], gab[:, :, d:]
+        del couple  # (the level keeps gab alone)
         left = _bmm(b_left, gab)  # [A_i-1,i D_i^-1 A_i,i-1, A_i-1,i D_i^-1 A_i,i+1]
         d_e = D[0::2].copy()
         d_e[:n_odd] -= left[:, :, :d]
-        d_e[1:] -= _bmm(np.swapaxes(b_right, 1, 2), gb)[: n_even - 1]
+        d_e[1:] -= _bmm(np.swapaxes(b_right, 1, 2), gab[:, :, d:])[: n_even - 1]
         U = -left[: n_even - 1, :, d:]
         D = _sym(d_e)
-        levels.append(_Level(n, d_inv, ga, gb, couple))
+        levels.append(_Level(n, d_inv, gab))
     return levels, _spd_inv(D)
 
 
@@ -250,7 +259,8 @@ def _forward(levels: list[_Level], h: np.ndarray, keep: bool = True, schur: bool
         if schur:
             T += np.tensordot(h_o, g, axes=([0, 1], [0, 1]))  # BLAS, not einsum's loop
         h_e = h[0::2].copy()
-        step = _bmm(lev.couple, g)  # both neighbours' updates in one product
+        # both neighbours' updates in one product: [A_i-1,i; A_i+1,i] D_i^-1 h_i
+        step = _bmm(np.swapaxes(lev.gab, 1, 2), h_o)
         d = g.shape[1]
         h_e[:n_odd] -= step[:, :d]
         h_e[1:] -= step[: n_even - 1, d:]
@@ -305,12 +315,12 @@ def _inverse_blocks(levels: list[_Level], S: np.ndarray) -> tuple[np.ndarray, np
 def solve_bytes(K: int, d: int, G: int) -> int:
     """Bytes that one solve with covariances of ``K`` knots of ``d`` states and ``G``
     globals holds at its peak (:func:`solve_arrow` with ``overwrite``): the system's ``D``,
-    ``U`` and ``B`` and the solve's own nine ``(K, d, d)`` and two ``(K, d, G)`` arrays (the
-    reduction's levels, the right-hand side and its solution, the inverse's blocks and their
-    temporaries; measured with tracemalloc in tests/test_joint.py). A run of the joint engine
-    holds more (its measurements, the solution it keeps, other hypotheses' solutions):
-    this is its floor (docs/joint.md#an-hours-floor)."""
-    return 8 * int(K) * (11 * d * d + 3 * d * G)
+    ``U`` and ``B`` and the solve's own seven ``(K, d, d)`` and two ``(K, d, G)`` arrays
+    (the reduction's levels, the right-hand side and its solution, the inverse's blocks and
+    their temporaries; measured with tracemalloc in tests/test_joint.py). A run of the joint
+    engine holds more (its measurements, the solution it keeps, other hypotheses'
+    solutions): this is its floor (docs/joint.md#an-hours-floor)."""
+    return 8 * int(K) * (9 * d * d + 3 * d * G)
 
 
 def solve_arrow(system: ArrowSystem, want_cov: bool = False, overwrite: bool = False):
