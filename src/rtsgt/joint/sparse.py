@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import warnings
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.linalg import LinAlgWarning
@@ -147,21 +147,38 @@ def mix_solutions(sols: list[ArrowSolution], w: np.ndarray, dx: np.ndarray, dg: 
     ``Sigma = sum_i w_i (Sigma_i + delta_i delta_i^T)`` (``delta_1 = 0``). Its split: the
     knots' part given the globals ``sum_i w_i cov_var_i`` (so too ``cov_var_next``), and
     the shared columns of every solution's ``factor``, ``chol_g`` and the differences, each
-    times ``sqrt(w_i)`` (:func:`add_shared_columns`). The first's ``x``, ``g``; each
+    times ``sqrt(w_i)`` (as :func:`add_shared_columns` adds them; here each array is made
+    once, the hour's mixture being its run's peak of memory). The first's ``x``, ``g``; each
     covariance is taken in its own state's tangent space, the differences' order
     neglected; ``own`` the first (:class:`ArrowSolution`)."""
     r = np.sqrt(w)
-    pairs = list(zip(w, r, sols, strict=True))
+    lx = np.moveaxis(r[1:, None, None] * dx, 0, -1)  # (K, d, n-1): the differences' columns
+    K = sols[0].cov.shape[0]
 
-    def mean(name):
-        return sum(wi * getattr(s, name) for wi, _, s in pairs)
+    def mean(name, outer=None):  # one new array, summed a few thousand knots at a time
+        out = w[0] * getattr(sols[0], name)
+        for wi, s in zip(w[1:], sols[1:], strict=True):
+            for sl in chunks(out.shape[0]):
+                out[sl] += wi * getattr(s, name)[sl]
+        for sl in chunks(out.shape[0]) if outer is not None else ():
+            out[sl] += outer(sl)
+        return out
 
-    base = ArrowSolution(sols[0].x, sols[0].g, mean("cov"), mean("cov_next"), mean("cov_g"),
-                         mean("cov_var"), mean("cov_var_next"),
-                         np.concatenate([ri * s.factor for _, ri, s in pairs], axis=2),
-                         np.concatenate([ri * s.chol_g for _, ri, s in pairs], axis=1))
-    mixed = add_shared_columns(base, r[1:, None, None] * dx, r[1:, None] * dg)
-    return replace(mixed, own=sols[0])
+    cov = mean("cov", lambda sl: lx[sl] @ np.swapaxes(lx[sl], 1, 2))
+    cov_next = mean("cov_next", lambda sl: lx[sl] @ np.swapaxes(lx[sl.start + 1:sl.stop + 1],
+                                                                 1, 2))
+    widths = np.cumsum([0] + [s.factor.shape[2] for s in sols] + [lx.shape[2]])
+    factor = np.empty((K, cov.shape[1], widths[-1]))  # every solution's columns, then lx's
+    for sl in chunks(K):
+        for ri, s, lo, hi in zip(r, sols, widths[:-2], widths[1:-1], strict=True):
+            factor[sl, :, lo:hi] = ri * s.factor[sl]
+        factor[sl, :, widths[-2]:] = lx[sl]
+    dgw = r[1:, None] * dg
+    chol_g = np.concatenate([ri * s.chol_g for ri, s in zip(r, sols, strict=True)] + [dgw.T],
+                            axis=1)
+    cov_g = sum(wi * s.cov_g for wi, s in zip(w, sols, strict=True)) + dgw.T @ dgw
+    return ArrowSolution(sols[0].x, sols[0].g, cov, cov_next, cov_g, mean("cov_var"),
+                         mean("cov_var_next"), factor, chol_g, own=sols[0])
 
 
 def _bmm(a: np.ndarray, b: np.ndarray) -> np.ndarray:
