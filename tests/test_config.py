@@ -32,6 +32,12 @@ prisms = { "1" = 1, "2" = 2, "3" = 3 }
 """
 
 
+def _in_reference(line: str):
+    """An edit of :data:`MINIMAL` adding ``line`` to its ``[reference]`` section."""
+    prisms = 'prisms = { "1" = 1, "2" = 2, "3" = 3 }'
+    return lambda s: s.replace(prisms, f"{prisms}\n{line}")
+
+
 @pytest.fixture
 def deployment(tmp_path: Path) -> Path:
     for name in ("p1.csv", "p2.csv", "p3.csv", "gcp.txt", "survey.csv"):
@@ -75,17 +81,13 @@ def test_minimal_configuration_takes_the_paper_defaults(deployment):
          r"outlier_windows = 'drop': expected outlier_windows 'remove' or 'keep'"),
         (lambda s: s.replace('prisms = { "1" = 1, "2" = 2, "3" = 3 }', 'prisms = { "1" = 1, "2" = 2 }'),
          r"no survey row for tracked prism\(s\) 3"),
-        (lambda s: s.replace('prisms = { "1" = 1, "2" = 2, "3" = 3 }',
-                             'prisms = { "1" = 1, "2" = 2, "3" = 3 }\nrocking_pivot = [0, 1]'),
+        (_in_reference("rocking_pivot = [0, 1]"),
          r"\[reference\] rocking_pivot must be \[x, y, z\] in m, got \[0, 1\]"),
-        (lambda s: s.replace('prisms = { "1" = 1, "2" = 2, "3" = 3 }',
-                             'prisms = { "1" = 1, "2" = 2, "3" = 3 }\nrocking_pivot = [0, "a", 1]'),
+        (_in_reference('rocking_pivot = [0, "a", 1]'),
          r"rocking_pivot must be \[x, y, z\] in m, got \[0, 'a', 1\]"),
-        (lambda s: s.replace('prisms = { "1" = 1, "2" = 2, "3" = 3 }',
-                             'prisms = { "1" = 1, "2" = 2, "3" = 3 }\nprism_stability_mm = -2'),
+        (_in_reference("prism_stability_mm = -2"),
          r"\[reference\] prism_stability_mm must be a finite mm >= 0, got -2.0"),
-        (lambda s: s.replace('prisms = { "1" = 1, "2" = 2, "3" = 3 }',
-                             'prisms = { "1" = 1, "2" = 2, "3" = 3 }\nprism_stability_mm = "a"'),
+        (_in_reference('prism_stability_mm = "a"'),
          r"\[reference\] prism_stability_mm must be float, got 'a'"),
         (lambda s: s + "[filter]\ntau_r_m_s = 0\n", r"\[filter\] tau_r_m_s = 0.0: expected tau_r > 0"),
         (lambda s: s + "[filter]\ntau_x = 1\n", r"unknown key\(s\) tau_x"),

@@ -124,6 +124,16 @@ class ArrowSolution:
     own: ArrowSolution | None = None
 
 
+def _add_outer(cov: np.ndarray, cov_next: np.ndarray, lx: np.ndarray) -> None:
+    """Adds the shared columns ``lx`` (K, d, n) to the knots' covariances ``cov`` (K, d, d)
+    and consecutive ones' ``cov_next`` (K-1, d, d), in place, a few thousand knots at a
+    time: ``lx_k lx_k^T`` and ``lx_k lx_k+1^T``."""
+    for sl in chunks(cov.shape[0]):
+        cov[sl] += lx[sl] @ np.swapaxes(lx[sl], 1, 2)
+    for sl in chunks(cov_next.shape[0]):
+        cov_next[sl] += lx[sl] @ np.swapaxes(lx[sl.start + 1:sl.stop + 1], 1, 2)
+
+
 def add_shared_columns(sol: ArrowSolution, dx: np.ndarray, dg: np.ndarray) -> ArrowSolution:
     """``sol`` with ``n`` more whitened shared errors: the knots' error ``dx`` (n, K, d) and
     the globals' ``dg`` (n, G) per unit of each (an unknown that moves every state at once:
@@ -132,8 +142,8 @@ def add_shared_columns(sol: ArrowSolution, dx: np.ndarray, dg: np.ndarray) -> Ar
     solution ``x``, ``g`` and the knots' part given the globals (``cov_var``,
     ``cov_var_next``) are kept."""
     lx = np.moveaxis(dx, 0, -1)  # (K, d, n)
-    cov = sol.cov + lx @ np.swapaxes(lx, 1, 2)
-    cov_next = sol.cov_next + lx[:-1] @ np.swapaxes(lx[1:], 1, 2)
+    cov, cov_next = sol.cov.copy(), sol.cov_next.copy()
+    _add_outer(cov, cov_next, lx)
     return ArrowSolution(sol.x, sol.g, cov, cov_next, sol.cov_g + dg.T @ dg, sol.cov_var,
                          sol.cov_var_next, np.concatenate([sol.factor, lx], axis=2),
                          np.concatenate([sol.chol_g, dg.T], axis=1))
@@ -155,18 +165,15 @@ def mix_solutions(sols: list[ArrowSolution], w: np.ndarray, dx: np.ndarray, dg: 
     lx = np.moveaxis(r[1:, None, None] * dx, 0, -1)  # (K, d, n-1): the differences' columns
     K = sols[0].cov.shape[0]
 
-    def mean(name, outer=None):  # one new array, summed a few thousand knots at a time
+    def mean(name):  # one new array, summed a few thousand knots at a time
         out = w[0] * getattr(sols[0], name)
         for wi, s in zip(w[1:], sols[1:], strict=True):
             for sl in chunks(out.shape[0]):
                 out[sl] += wi * getattr(s, name)[sl]
-        for sl in chunks(out.shape[0]) if outer is not None else ():
-            out[sl] += outer(sl)
         return out
 
-    cov = mean("cov", lambda sl: lx[sl] @ np.swapaxes(lx[sl], 1, 2))
-    cov_next = mean("cov_next", lambda sl: lx[sl] @ np.swapaxes(lx[sl.start + 1:sl.stop + 1],
-                                                                 1, 2))
+    cov, cov_next = mean("cov"), mean("cov_next")
+    _add_outer(cov, cov_next, lx)
     widths = np.cumsum([0] + [s.factor.shape[2] for s in sols] + [lx.shape[2]])
     factor = np.empty((K, cov.shape[1], widths[-1]))  # every solution's columns, then lx's
     for sl in chunks(K):
